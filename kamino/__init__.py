@@ -1,0 +1,33 @@
+"""kamino: simulation of robots and mechanisms with kinematic loops, in maximal coordinates.
+
+Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``ModelError``,
+``replicate``, ``concat``, ``SolverConfig``, ``State``, ``Control``, ``StepInfo``, ``init_state``,
+``step``, ``rollout``, ``metrics``, ``joint_positions`` and the procedural ``models``.
+"""
+
+from kamino import models
+from kamino.api import init_state, joint_positions, metrics, rollout, step
+from kamino.config import SolverConfig
+from kamino.model import JointType, Model, ModelBuilder, ModelError, concat, replicate
+from kamino.state import Control, State, StepInfo
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Control",
+    "JointType",
+    "Model",
+    "ModelBuilder",
+    "ModelError",
+    "SolverConfig",
+    "State",
+    "StepInfo",
+    "concat",
+    "init_state",
+    "joint_positions",
+    "metrics",
+    "models",
+    "replicate",
+    "rollout",
+    "step",
+]

@@ -1,0 +1,94 @@
+"""Solver configuration (frozen, hashable: it is a static argument of the compiled step).
+
+Defaults and the reasons for them are in docs/conventions.md ("Defaults").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Literal
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """Time stepping, stabilisation and Proximal-ADMM settings (formulation.md §5-§8).
+
+    Attributes:
+        dt: time step [s].
+        integrator: ``"euler"`` (semi-implicit Euler, §6.2) or ``"midpoint"`` (Moreau-Jean, §6.3).
+        baumgarte: fraction ``alpha`` of a joint's position error removed by the end of a step (§5).
+        curvature_correction: add the second-order drift of the pose update to the joint bias, so
+            that velocity-level constraints hold at position level to O(dt^3) per step
+            (docs/conventions.md, "Stabilisation").
+        joint_deadband: joint position errors below this [m or rad] get no bias (rounding noise
+            on redundant loop rows would otherwise be an inconsistent right-hand side);
+            ``None`` picks 1e-6 in float32 and 1e-11 in float64.
+        max_iterations: PADMM iteration cap per step.
+        tolerance: primal, dual and complementarity tolerance (infinity norms, unscaled units, §7.5).
+        fixed_iterations: run exactly ``max_iterations`` PADMM iterations with no early exit
+            (``lax.fori_loop``: what makes ``jax.grad`` through ``step`` possible).
+        rho, eta: ADMM penalty and proximal parameters (§7.3).
+        warm_start: start PADMM from the previous step's constraint forces (§7.8).
+        warmstart_scale: factor on the warm-start reactions (§7.8).
+        acceleration: Nesterov acceleration with restart (§7.4).
+        restart_tolerance: restart when the combined residual fails to drop below this factor (§7.4).
+        preconditioning: Jacobi preconditioning ``P = diag(D)^-1/2`` (§7.2).
+        angular_damping: optional angular velocity damping rate [1/s] (§6.2 step 4).
+        jacobian: ``"dense"`` (the JAX reference is dense; ``"sparse"`` is a Warp-backend option).
+        linear_solver: ``"llt"`` dense Cholesky (``"cr"``/``"auto"``: Warp-backend options).
+        cr_iterations: Conjugate Residual budget per PADMM iteration (Warp backend).
+    """
+
+    dt: float = 1.0 / 240.0
+    integrator: Literal["euler", "midpoint"] = "euler"
+    baumgarte: float = 0.5
+    curvature_correction: bool = True
+    joint_deadband: float | None = None
+    max_iterations: int = 200
+    tolerance: float = 1e-6
+    fixed_iterations: bool = False
+    rho: float = 1.0
+    eta: float = 1e-5
+    warm_start: bool = True
+    warmstart_scale: float = 1.0
+    acceleration: bool = True
+    restart_tolerance: float = 0.999
+    preconditioning: bool = True
+    angular_damping: float = 0.0
+    jacobian: Literal["dense", "sparse"] = "dense"
+    linear_solver: Literal["llt", "cr", "auto"] = "llt"
+    cr_iterations: int = 9
+
+    def __post_init__(self) -> None:
+        def bad(field: str, why: str) -> None:
+            raise ValueError(f"SolverConfig.{field}: {why} (got {getattr(self, field)!r})")
+
+        if not (math.isfinite(self.dt) and self.dt > 0):
+            bad("dt", "must be a finite positive time step")
+        if self.integrator not in ("euler", "midpoint"):
+            bad("integrator", "must be 'euler' or 'midpoint'")
+        if not (0.0 <= self.baumgarte <= 1.0):
+            bad("baumgarte", "must lie in [0, 1]")
+        if self.joint_deadband is not None and not self.joint_deadband >= 0:
+            bad("joint_deadband", "must be >= 0 or None")
+        if int(self.max_iterations) < 1:
+            bad("max_iterations", "must be >= 1")
+        if not self.tolerance > 0:
+            bad("tolerance", "must be > 0")
+        if not self.rho > 0:
+            bad("rho", "must be > 0")
+        if not self.eta >= 0:
+            bad("eta", "must be >= 0")
+        if not (0.0 < self.restart_tolerance <= 1.0):
+            bad("restart_tolerance", "must lie in (0, 1]")
+        if not (0.0 <= self.warmstart_scale <= 1.0):
+            bad("warmstart_scale", "must lie in [0, 1]")
+        if self.jacobian not in ("dense", "sparse"):
+            bad("jacobian", "must be 'dense' or 'sparse'")
+        if self.linear_solver not in ("llt", "cr", "auto"):
+            bad("linear_solver", "must be 'llt', 'cr' or 'auto'")
+        if int(self.cr_iterations) < 1:
+            bad("cr_iterations", "must be >= 1")
+        if not self.angular_damping >= 0:
+            bad("angular_damping", "must be >= 0")

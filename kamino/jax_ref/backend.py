@@ -1,0 +1,153 @@
+"""The JAX backend behind ``kamino.step``/``rollout``: flat State <-> padded worlds, jitted."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from kamino.config import SolverConfig
+from kamino.jax_ref.dynamics import body_dynamics, kinetic_energy, potential_energy
+from kamino.jax_ref.joints import constraint_residual, joint_coordinates, joint_frames
+from kamino.jax_ref.layout import Layout, PaddedModel, layout_of, to_flat, to_padded
+from kamino.jax_ref.step import step_batch
+from kamino.model import Model
+from kamino.state import Control, State, StepInfo
+
+_IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def _padded_state(pm: PaddedModel, t: dict, state: State, control: Control | None):
+    dtype = state.body_q.dtype
+    q = to_padded(state.body_q, t["bg"], pm.body_mask, 0.0)
+    q = jnp.where(pm.body_mask[..., None], q, jnp.asarray(_IDENTITY_POSE, dtype))
+    u = to_padded(state.body_u, t["bg"], pm.body_mask, 0.0)
+    f = to_padded(state.constraint_force, t["rg"], pm.row_mask, 0.0)
+    effort = jnp.zeros(pm.dof_mask.shape, dtype)
+    wrench = jnp.zeros(u.shape, dtype)
+    if control is not None and control.dof_effort is not None:
+        effort = to_padded(jnp.asarray(control.dof_effort, dtype), t["dg"], pm.dof_mask, 0.0)
+    if control is not None and control.body_wrench is not None:
+        wrench = to_padded(jnp.asarray(control.body_wrench, dtype), t["bg"], pm.body_mask, 0.0)
+    return q, u, f, effort, wrench
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def _step_jit(pm: PaddedModel, t: dict, state: State, control: Control | None, cfg: SolverConfig) -> State:
+    q, u, f, effort, wrench = _padded_state(pm, t, state, control)
+    q, u, f, res, failed = step_batch(pm, q, u, f, effort, wrench, cfg)
+    info = StepInfo(
+        iterations=res.iterations.astype(jnp.int32),
+        primal_residual=res.primal_residual,
+        dual_residual=res.dual_residual,
+        complementarity_residual=res.complementarity_residual,
+        converged=res.converged,
+        failed=failed,
+    )
+    return State(
+        body_q=to_flat(q, t["bs"]),
+        body_u=to_flat(u, t["bs"]),
+        time=state.time + jnp.where(failed, 0.0, cfg.dt).astype(state.time.dtype),
+        constraint_force=to_flat(f, t["rs"]),
+        info=info,
+    )
+
+
+def _check_state(model: Model, state: State) -> None:
+    nb = model.num_bodies
+    if state.body_q.shape != (nb, 7):
+        raise ValueError(f"state.body_q has shape {state.body_q.shape}, expected ({nb}, 7) for this model")
+    if state.body_u.shape != (nb, 6):
+        raise ValueError(f"state.body_u has shape {state.body_u.shape}, expected ({nb}, 6) for this model")
+    if state.constraint_force.shape != (model.num_constraints,):
+        raise ValueError(
+            f"state.constraint_force has shape {state.constraint_force.shape}, expected "
+            f"({model.num_constraints},) for this model"
+        )
+
+
+def _check_control(model: Model, control: Control | None) -> None:
+    if control is None:
+        return
+    if control.dof_effort is not None and jnp.shape(control.dof_effort)[-1:] != (model.num_dofs,):
+        raise ValueError(
+            f"control.dof_effort has shape {jnp.shape(control.dof_effort)}, expected ({model.num_dofs},)"
+        )
+    if control.body_wrench is not None and jnp.shape(control.body_wrench)[-2:] != (model.num_bodies, 6):
+        raise ValueError(
+            f"control.body_wrench has shape {jnp.shape(control.body_wrench)}, expected ({model.num_bodies}, 6)"
+        )
+
+
+def step(model: Model, state: State, control: Control | None, cfg: SolverConfig) -> State:
+    _check_state(model, state)
+    _check_control(model, control)
+    lay = layout_of(model, state.body_q.dtype)
+    return _step_jit(lay.padded, lay.tables, state, control, cfg)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "num_steps"))
+def _rollout_jit(pm, t, state, controls, cfg, num_steps):
+    def body(s, c):
+        s2 = _step_jit(pm, t, s, c, cfg)
+        return s2, s2
+
+    if controls is None:
+        _, traj = jax.lax.scan(lambda s, _: body(s, None), state, None, length=num_steps)
+    else:
+        _, traj = jax.lax.scan(body, state, controls)
+    return traj
+
+
+def rollout(model: Model, state: State, controls: Control | None, num_steps: int | None,
+            cfg: SolverConfig) -> State:
+    _check_state(model, state)
+    lay = layout_of(model, state.body_q.dtype)
+    if controls is None:
+        if num_steps is None:
+            raise ValueError("rollout: give controls with a leading time axis, or num_steps")
+    else:
+        _check_control(model, controls)
+        lengths = {x.shape[0] for x in jax.tree_util.tree_leaves(controls)}
+        if len(lengths) != 1:
+            raise ValueError(f"rollout: controls must share one leading time axis, got lengths {lengths}")
+        n = lengths.pop()
+        if num_steps is not None and num_steps != n:
+            raise ValueError(f"rollout: num_steps={num_steps} but controls hold {n} steps")
+        num_steps = n
+    return _rollout_jit(lay.padded, lay.tables, state, controls, cfg, int(num_steps))
+
+
+@jax.jit
+def _metrics_jit(pm: PaddedModel, t: dict, body_q, body_u):
+    q = to_padded(body_q, t["bg"], pm.body_mask, 0.0)
+    q = jnp.where(pm.body_mask[..., None], q, jnp.asarray(_IDENTITY_POSE, body_q.dtype))
+    u = to_padded(body_u, t["bg"], pm.body_mask, 0.0)
+
+    def one(pm_w, q_w, u_w):
+        bd = body_dynamics(pm_w, q_w)
+        e = constraint_residual(pm_w, joint_frames(pm_w, q_w)) if pm_w.row_mask.shape[0] else jnp.zeros(1)
+        return jnp.max(jnp.abs(e), initial=0.0), kinetic_energy(bd, pm_w, u_w), potential_energy(pm_w, q_w)
+
+    viol, ke, pe = jax.vmap(one)(pm, q, u)
+    return {"constraint_violation": viol, "kinetic_energy": ke, "potential_energy": pe,
+            "total_energy": ke + pe}
+
+
+def metrics(model: Model, state: State) -> dict:
+    lay = layout_of(model, state.body_q.dtype)
+    return _metrics_jit(lay.padded, lay.tables, state.body_q, state.body_u)
+
+
+@jax.jit
+def _joint_coords_jit(pm: PaddedModel, gather_j: dict, body_q):
+    q = to_padded(body_q, gather_j["bg"], pm.body_mask, 0.0)
+    q = jnp.where(pm.body_mask[..., None], q, jnp.asarray(_IDENTITY_POSE, body_q.dtype))
+    return jax.vmap(lambda p, x: joint_coordinates(p, joint_frames(p, x)))(pm, q)
+
+
+def joint_coordinates_padded(model: Model, body_q: jax.Array) -> jax.Array:
+    """``[W, max_joints, 7]`` packed joint coordinates (see ``joints.joint_coordinates``)."""
+    lay = layout_of(model, body_q.dtype)
+    return _joint_coords_jit(lay.padded, lay.tables, body_q)
