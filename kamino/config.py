@@ -42,7 +42,7 @@ class SolverConfig:
 
     dt: float = 1.0 / 240.0
     integrator: Literal["euler", "midpoint"] = "euler"
-    baumgarte: float = 0.5
+    baumgarte: float = 1.0
     curvature_correction: bool = True
     joint_deadband: float | None = None
     max_iterations: int = 200

@@ -293,10 +293,14 @@ class ModelBuilder:
         inertia_arr = np.asarray(inertia, dtype=float)
         if inertia_arr.shape == (3,):
             inertia_arr = np.diag(inertia_arr)
+        try:
+            mass = float(mass)
+        except (TypeError, ValueError) as exc:
+            raise ModelError(f"body {name!r}: mass must be a number, got {mass!r}") from exc
         self._bodies.append(
             _Body(
                 name=name,
-                mass=float(mass),
+                mass=mass,
                 inertia=inertia_arr,
                 pos=_vec(pos, 3, f"body {name!r} pos"),
                 quat=_vec(quat, 4, f"body {name!r} quat"),
@@ -386,6 +390,7 @@ class ModelBuilder:
         """Add a joint whose frame sits at ``anchor`` with motion ``axis`` (and ``axis2``), both in
         world coordinates at the bodies' current (builder) poses. The joint frames are computed so
         that the joint's coordinates are zero at those poses (as for an MJCF reference pose)."""
+        name = name if name is not None else f"joint_{len(self._joints)}"
         if not (-1 <= parent < len(self._bodies)) or not (0 <= child < len(self._bodies)):
             raise ModelError(f"joint {name!r}: parent {parent} or child {child} is not a body")
 
@@ -414,7 +419,7 @@ class ModelBuilder:
         for field_name, arr in (("inertia", b.inertia), ("pos", b.pos), ("quat", b.quat),
                                 ("velocity", b.vel), ("angular_velocity", b.ang_vel)):
             _finite(np.asarray(arr), f"{what} {field_name}")
-        if not np.isfinite(b.mass):
+        if not np.isfinite(b.mass):  # b.mass is a float (add_body converts or raises ModelError)
             raise ModelError(f"{what}: mass is {b.mass}")
         if b.mass <= 0.0:
             raise ModelError(f"{what}: mass must be > 0, got {b.mass}")
@@ -455,7 +460,8 @@ class ModelBuilder:
             raise ModelError(f"{what}: connects body {jt.child} to itself")
         _check_quat(jt.parent_frame[1], f"{what} parent_frame quaternion")
         _check_quat(jt.child_frame[1], f"{what} child_frame quaternion")
-        if np.linalg.norm(jt.axis) < 1e-12:
+        uses_axis = jt.type in (JointType.REVOLUTE, JointType.PRISMATIC, JointType.CYLINDRICAL, JointType.UNIVERSAL)
+        if uses_axis and np.linalg.norm(jt.axis) < 1e-12:
             raise ModelError(f"{what}: zero-length axis")
         if jt.axis2 is not None:
             if np.linalg.norm(jt.axis2) < 1e-12:
@@ -516,9 +522,6 @@ class ModelBuilder:
             lowers.append(jt.limits[0])
             uppers.append(jt.limits[1])
 
-        def starts(counts: np.ndarray) -> np.ndarray:
-            return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64) if len(counts) else counts
-
         one = np.array([0], dtype=np.int64)
         model = Model(
             num_worlds=1,
@@ -542,11 +545,11 @@ class ModelBuilder:
             joint_names=tuple(jnames),
             world_joint_start=one.copy(),
             world_joint_count=np.array([nj], dtype=np.int64),
-            joint_dof_start=starts(dof_count),
+            joint_dof_start=_prefix(dof_count),
             joint_dof_count=dof_count,
-            joint_coord_start=starts(coord_count),
+            joint_coord_start=_prefix(coord_count),
             joint_coord_count=coord_count,
-            joint_cts_start=starts(cts_count),
+            joint_cts_start=_prefix(cts_count),
             joint_cts_count=cts_count,
             dof_lower=np.concatenate(lowers) if lowers else np.zeros(0),
             dof_upper=np.concatenate(uppers) if uppers else np.zeros(0),
@@ -582,7 +585,9 @@ def _freeze(model: Model) -> Model:
 
 
 def _prefix(counts: np.ndarray) -> np.ndarray:
-    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    """Exclusive prefix sum (the start offsets of consecutive segments); empty for no segments."""
+    counts = np.asarray(counts, dtype=np.int64)
+    return (np.cumsum(counts) - counts).astype(np.int64)
 
 
 def concat(models: Sequence[Model]) -> Model:

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from kamino.config import SolverConfig
 from kamino.jax_ref.dynamics import body_dynamics, kinetic_energy, potential_energy
 from kamino.jax_ref.joints import constraint_residual, joint_coordinates, joint_frames
-from kamino.jax_ref.layout import Layout, PaddedModel, layout_of, to_flat, to_padded
+from kamino.jax_ref.layout import PaddedModel, layout_of, to_flat, to_padded
 from kamino.jax_ref.step import step_batch
 from kamino.model import Model
 from kamino.state import Control, State, StepInfo

@@ -174,4 +174,4 @@ def to_padded(flat: jax.Array, gather: np.ndarray, mask: jax.Array | np.ndarray,
 def to_flat(padded: jax.Array, scatter: np.ndarray) -> jax.Array:
     """Padded ``[W, width, ...]`` -> flat ``[N, ...]``."""
     W, width = padded.shape[:2]
-    return padded.reshape((W * width,) + padded.shape[2:])[scatter]
+    return padded.reshape((W * width, *padded.shape[2:]))[scatter]

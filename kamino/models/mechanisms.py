@@ -52,7 +52,9 @@ def double_pendulum(lengths: tuple[float, float] = (1.0, 1.0), masses: tuple[flo
                                 quat=rot, name=f"link{k + 1}"))
     b.add_joint(JointType.REVOLUTE, -1, links[0], parent_frame=(p0, (0, 0, 0, 1)),
                 child_frame=((0.0, 0.0, lengths[0] / 2), (0, 0, 0, 1)), axis=Y, name="hinge1")
-    b.add_joint_at(JointType.REVOLUTE, links[0], links[1], anchor=p1, axis=Y, name="hinge2")
+    # both joint frames world-aligned at angle 0, so hinge2 reads the relative angle (MuJoCo's qpos)
+    b.add_joint(JointType.REVOLUTE, links[0], links[1], parent_frame=((0.0, 0.0, -lengths[0] / 2), (0, 0, 0, 1)),
+                child_frame=((0.0, 0.0, lengths[1] / 2), (0, 0, 0, 1)), axis=Y, name="hinge2")
     return b.finalize()
 
 
