@@ -18,10 +18,15 @@ from kamino.state import Control, State, StepInfo
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
+def _padded_poses(pm: PaddedModel, t: dict, body_q: jax.Array) -> jax.Array:
+    """Flat poses -> padded ``[W, nb, 7]``, identity poses on padding."""
+    q = to_padded(body_q, t["bg"], pm.body_mask, 0.0)
+    return jnp.where(pm.body_mask[..., None], q, jnp.asarray(_IDENTITY_POSE, body_q.dtype))
+
+
 def _padded_state(pm: PaddedModel, t: dict, state: State, control: Control | None):
     dtype = state.body_q.dtype
-    q = to_padded(state.body_q, t["bg"], pm.body_mask, 0.0)
-    q = jnp.where(pm.body_mask[..., None], q, jnp.asarray(_IDENTITY_POSE, dtype))
+    q = _padded_poses(pm, t, state.body_q)
     u = to_padded(state.body_u, t["bg"], pm.body_mask, 0.0)
     f = to_padded(state.constraint_force, t["rg"], pm.row_mask, 0.0)
     effort = jnp.zeros(pm.dof_mask.shape, dtype)
@@ -121,8 +126,7 @@ def rollout(model: Model, state: State, controls: Control | None, num_steps: int
 
 @jax.jit
 def _metrics_jit(pm: PaddedModel, t: dict, body_q, body_u):
-    q = to_padded(body_q, t["bg"], pm.body_mask, 0.0)
-    q = jnp.where(pm.body_mask[..., None], q, jnp.asarray(_IDENTITY_POSE, body_q.dtype))
+    q = _padded_poses(pm, t, body_q)
     u = to_padded(body_u, t["bg"], pm.body_mask, 0.0)
 
     def one(pm_w, q_w, u_w):
@@ -142,8 +146,7 @@ def metrics(model: Model, state: State) -> dict:
 
 @jax.jit
 def _joint_coords_jit(pm: PaddedModel, gather_j: dict, body_q):
-    q = to_padded(body_q, gather_j["bg"], pm.body_mask, 0.0)
-    q = jnp.where(pm.body_mask[..., None], q, jnp.asarray(_IDENTITY_POSE, body_q.dtype))
+    q = _padded_poses(pm, gather_j, body_q)
     return jax.vmap(lambda p, x: joint_coordinates(p, joint_frames(p, x)))(pm, q)
 
 
