@@ -8,13 +8,27 @@ Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``
 from kamino import models
 from kamino.api import init_state, joint_positions, metrics, rollout, step
 from kamino.config import SolverConfig
-from kamino.model import JointType, Model, ModelBuilder, ModelError, concat, replicate
-from kamino.state import Control, State, StepInfo
+from kamino.model import (
+    Actuation,
+    ActuationMode,
+    GeomType,
+    JointType,
+    Model,
+    ModelBuilder,
+    ModelError,
+    concat,
+    replicate,
+)
+from kamino.state import ContactState, Control, State, StepInfo
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Actuation",
+    "ActuationMode",
+    "ContactState",
     "Control",
+    "GeomType",
     "JointType",
     "Model",
     "ModelBuilder",

@@ -12,7 +12,7 @@ import numpy as np
 
 from kamino.config import SolverConfig
 from kamino.model import JointType, Model
-from kamino.state import Control, State, StepInfo
+from kamino.state import ContactState, Control, State, StepInfo
 
 BACKENDS = ("jax", "warp")
 
@@ -41,6 +41,10 @@ def init_state(model: Model, dtype=None) -> State:
         body_u=jnp.asarray(model.body_u0, dtype),
         time=jnp.zeros(model.num_worlds, dtype),
         constraint_force=jnp.zeros(model.num_constraints, dtype),
+        actuator_force=jnp.zeros(model.num_dofs, dtype),
+        passive_force=jnp.zeros(model.num_dofs, dtype),
+        limit_force=jnp.zeros(model.num_dofs, dtype),
+        contacts=ContactState.empty(model.num_contacts, dtype),
         info=StepInfo.empty(model.num_worlds, dtype),
     )
 

@@ -35,6 +35,17 @@ class SolverConfig:
         restart_tolerance: restart when the combined residual fails to drop below this factor (§7.4).
         preconditioning: Jacobi preconditioning ``P = diag(D)^-1/2`` (§7.2).
         angular_damping: optional angular velocity damping rate [1/s] (§6.2 step 4).
+        contact_baumgarte: fraction ``gamma`` of a contact penetration removed per step (§4.2, §5).
+        limit_baumgarte: fraction ``beta`` of a joint-limit violation removed per step (§4.1, §5).
+        contact_deadband: gaps and penetrations below this [m] get no bias (``delta`` of §4.2).
+        restitution_threshold: approach speed [m/s] below which contacts are inelastic (§4.2).
+        contact_match_distance: a new contact continues a previous one of the same geom pair when
+            their points on geom b are closer than this [m] (warm start, §7.8).
+        limit_margin: a limit row is active when the DoF is within this distance [m or rad] of the
+            limit, plus what its velocity covers in the step (§4.1). The free velocity of a body
+            does not see what its joints transmit (gravity on a pendulum is a joint reaction), so a
+            margin is needed for a DoF that rests on its limit not to fall through for a step.
+        contact_margin: likewise for contacts [m], added to the geoms' own margins (§4.2).
         jacobian: ``"dense"`` (the JAX reference is dense; ``"sparse"`` is a Warp-backend option).
         linear_solver: ``"llt"`` dense Cholesky (``"cr"``/``"auto"``: Warp-backend options).
         cr_iterations: Conjugate Residual budget per PADMM iteration (Warp backend).
@@ -56,6 +67,13 @@ class SolverConfig:
     restart_tolerance: float = 0.999
     preconditioning: bool = True
     angular_damping: float = 0.0
+    contact_baumgarte: float = 0.2
+    limit_baumgarte: float = 0.2
+    contact_deadband: float = 1e-6
+    restitution_threshold: float = 0.1
+    contact_match_distance: float = 2e-3
+    limit_margin: float = 1e-2
+    contact_margin: float = 1e-3
     jacobian: Literal["dense", "sparse"] = "dense"
     linear_solver: Literal["llt", "cr", "auto"] = "llt"
     cr_iterations: int = 9
@@ -92,3 +110,10 @@ class SolverConfig:
             bad("cr_iterations", "must be >= 1")
         if not self.angular_damping >= 0:
             bad("angular_damping", "must be >= 0")
+        for name in ("contact_baumgarte", "limit_baumgarte"):
+            if not (0.0 <= getattr(self, name) <= 1.0):
+                bad(name, "must lie in [0, 1]")
+        for name in ("contact_deadband", "restitution_threshold", "contact_match_distance", "limit_margin",
+                     "contact_margin"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                bad(name, "must be a finite number >= 0")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import itertools
 from collections.abc import Sequence
 from typing import Any
 
@@ -32,6 +33,64 @@ class JointType(enum.IntEnum):
     SPHERICAL = 5
     CARTESIAN = 6
     FREE = 7
+
+
+class GeomType(enum.IntEnum):
+    """Collision geometry types (MuJoCo's size conventions, all in the geom's local frame).
+
+    PLANE: infinite half-space below local z = 0 (normal +z); size ignored.
+    SPHERE: radius ``size[0]``. CAPSULE: radius ``size[0]``, half-length ``size[1]`` of the
+    segment along local z. BOX: half-extents ``size[0:3]``. CYLINDER: radius ``size[0]``,
+    half-height ``size[1]`` along local z.
+    """
+
+    PLANE = 0
+    SPHERE = 1
+    CAPSULE = 2
+    BOX = 3
+    CYLINDER = 4
+
+
+class ActuationMode(enum.IntEnum):
+    """How a joint DoF is driven (formulation.md §3; docs/conventions.md "Actuation").
+
+    PASSIVE: no actuator (``Control.dof_effort`` is still applied as an external joint effort).
+    EFFORT: the commanded effort, clipped to the effort limit, applied explicitly.
+    POSITION: implicit PD towards ``Control.position_target`` (and ``velocity_target``).
+    VELOCITY: implicit D towards ``Control.velocity_target``.
+    """
+
+    PASSIVE = 0
+    EFFORT = 1
+    POSITION = 2
+    VELOCITY = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class Actuation:
+    """Actuator of a joint's DoFs (scalars apply to every DoF of the joint).
+
+    ``kp`` [N m/rad or N/m], ``kd`` [N m s/rad or N s/m]; ``effort_limit`` bounds the actuator's
+    generalized force (PD + feed-forward, or the commanded effort) and is enforced by the solver.
+    """
+
+    mode: ActuationMode | str = ActuationMode.POSITION
+    kp: float = 0.0
+    kd: float = 0.0
+    effort_limit: float = float("inf")
+
+    def resolved_mode(self) -> ActuationMode:
+        if isinstance(self.mode, str):
+            try:
+                return ActuationMode[self.mode.upper()]
+            except KeyError as exc:
+                names = [m.name.lower() for m in ActuationMode]
+                raise ModelError(f"unknown actuation mode {self.mode!r}; choose one of {names}") from exc
+        return ActuationMode(self.mode)
+
+
+#: Joint types whose DoFs have a scalar coordinate a PD actuator can track (formulation.md §3.2).
+PD_JOINT_TYPES = (JointType.REVOLUTE, JointType.PRISMATIC, JointType.CYLINDRICAL)
 
 
 # Row kinds: how a constraint row's residual is read (formulation.md §2.3).
@@ -71,6 +130,25 @@ JOINT_NUM_COORDS: dict[JointType, int] = {
     JointType.SPHERICAL: 4,
     JointType.CARTESIAN: 3,
     JointType.FREE: 7,
+}
+
+#: Contact points the narrow phase can return per geom pair (type_a <= type_b), the pair's share
+#: of the default contact capacity (kamino/jax_ref/collision.py produces exactly these counts).
+CONTACT_POINTS: dict[tuple[GeomType, GeomType], int] = {
+    (GeomType.PLANE, GeomType.SPHERE): 1,
+    (GeomType.PLANE, GeomType.CAPSULE): 2,
+    (GeomType.PLANE, GeomType.BOX): 4,
+    (GeomType.PLANE, GeomType.CYLINDER): 4,
+    (GeomType.SPHERE, GeomType.SPHERE): 1,
+    (GeomType.SPHERE, GeomType.CAPSULE): 1,
+    (GeomType.SPHERE, GeomType.BOX): 1,
+    (GeomType.SPHERE, GeomType.CYLINDER): 1,
+    (GeomType.CAPSULE, GeomType.CAPSULE): 2,
+    (GeomType.CAPSULE, GeomType.BOX): 2,
+    (GeomType.CAPSULE, GeomType.CYLINDER): 2,
+    (GeomType.BOX, GeomType.BOX): 8,
+    (GeomType.BOX, GeomType.CYLINDER): 4,
+    (GeomType.CYLINDER, GeomType.CYLINDER): 4,
 }
 
 _QUAT_UNIT_TOL = 1e-6  # issue 2: "zero or non-unit quaternion (beyond 1e-6)"
@@ -121,12 +199,40 @@ class Model:
     joint_cts_count: np.ndarray
     dof_lower: np.ndarray  # [D]
     dof_upper: np.ndarray  # [D]
+    dof_act_mode: np.ndarray  # [D] ActuationMode
+    dof_kp: np.ndarray  # [D]
+    dof_kd: np.ndarray  # [D]
+    dof_effort_limit: np.ndarray  # [D] (inf: unlimited)
+    dof_armature: np.ndarray  # [D] reflected inertia
+    dof_damping: np.ndarray  # [D] viscous damping
+    dof_stiffness: np.ndarray  # [D] passive spring
+    dof_springref: np.ndarray  # [D] spring rest position
     world_dof_start: np.ndarray
     world_dof_count: np.ndarray
     world_coord_start: np.ndarray
     world_coord_count: np.ndarray
     world_cts_start: np.ndarray
     world_cts_count: np.ndarray
+    # collision geometry (pose in the body's CoM frame; world frame for body -1)
+    geom_type: np.ndarray  # [G] GeomType
+    geom_body: np.ndarray  # [G] global body index or -1
+    geom_world: np.ndarray  # [G]
+    geom_pos: np.ndarray  # [G, 3]
+    geom_quat: np.ndarray  # [G, 4]
+    geom_size: np.ndarray  # [G, 3]
+    geom_friction: np.ndarray  # [G]
+    geom_restitution: np.ndarray  # [G]
+    geom_margin: np.ndarray  # [G]
+    geom_names: tuple[str, ...]
+    world_geom_start: np.ndarray
+    world_geom_count: np.ndarray
+    # candidate contact pairs (filtered at build time; geom a has the smaller type)
+    pair_geom_a: np.ndarray  # [P] global geom index
+    pair_geom_b: np.ndarray  # [P]
+    pair_world: np.ndarray  # [P]
+    world_pair_start: np.ndarray
+    world_pair_count: np.ndarray
+    world_contact_capacity: np.ndarray  # [W] max contacts per world
 
     # ---- sizes -------------------------------------------------------------------------
     @property
@@ -144,6 +250,19 @@ class Model:
     @property
     def num_coords(self) -> int:
         return int(self.joint_coord_count.sum())
+
+    @property
+    def num_geoms(self) -> int:
+        return int(self.geom_type.shape[0])
+
+    @property
+    def num_pairs(self) -> int:
+        return int(self.pair_geom_a.shape[0])
+
+    @property
+    def num_contacts(self) -> int:
+        """Total contact capacity over all worlds."""
+        return int(self.world_contact_capacity.sum())
 
     @property
     def num_constraints(self) -> int:
@@ -171,9 +290,13 @@ class Model:
         lines = []
         for w in range(min(self.num_worlds, 8)):
             nb, nj = int(self.world_body_count[w]), int(self.world_joint_count[w])
+            js, je = int(self.world_dof_start[w]), int(self.world_dof_start[w] + self.world_dof_count[w])
+            actuated = int(np.count_nonzero(self.dof_act_mode[js:je] != ActuationMode.PASSIVE))
             lines.append(
-                f"world {w}: {nb} bodies, {nj} joints, {int(self.world_dof_count[w])} dofs, "
-                f"{int(self.world_cts_count[w])} constraint rows, {count_loops(self, w)} loops"
+                f"world {w}: {nb} bodies, {nj} joints, {int(self.world_dof_count[w])} dofs ({actuated} actuated), "
+                f"{int(self.world_cts_count[w])} constraint rows, {count_loops(self, w)} loops, "
+                f"{int(self.world_geom_count[w])} geoms, {int(self.world_pair_count[w])} contact pairs, "
+                f"contact capacity {int(self.world_contact_capacity[w])}"
             )
         if self.num_worlds > 8:
             lines.append(f"... ({self.num_worlds} worlds)")
@@ -233,6 +356,60 @@ def _check_quat(q: np.ndarray, what: str) -> None:
         raise ModelError(f"{what}: quaternion norm is {n:.9g}, not 1 (tolerance {_QUAT_UNIT_TOL})")
 
 
+def _per_dof(value: Any, ndof: int, what: str) -> np.ndarray:
+    """A scalar or per-DoF sequence as ``[ndof]`` floats."""
+    try:
+        return np.broadcast_to(np.asarray(value, dtype=float), (ndof,)).copy()
+    except (TypeError, ValueError) as exc:
+        raise ModelError(f"{what}: expected a number or {ndof} numbers (one per DoF), got {value!r}") from exc
+
+
+def _joint_dynamics(name: str, jtype: JointType, ndof: int, actuation: Actuation | None, armature: Any,
+                    damping: Any, stiffness: Any, springref: Any) -> dict[str, np.ndarray]:
+    """Per-DoF actuation and passive-dynamics arrays of one joint, validated (formulation.md §3.2)."""
+    what = f"joint {name!r}"
+    out = {
+        "armature": _per_dof(armature, ndof, f"{what} armature"),
+        "damping": _per_dof(damping, ndof, f"{what} damping"),
+        "stiffness": _per_dof(stiffness, ndof, f"{what} stiffness"),
+        "springref": _per_dof(springref, ndof, f"{what} springref"),
+    }
+    if actuation is None:
+        actuation = Actuation(mode=ActuationMode.PASSIVE)
+    elif not isinstance(actuation, Actuation):
+        raise ModelError(f"{what}: actuation must be a kamino.Actuation, got {actuation!r}")
+    mode = actuation.resolved_mode()
+    out["act_mode"] = np.full(ndof, int(mode), dtype=np.int64)
+    out["kp"] = _per_dof(actuation.kp, ndof, f"{what} kp")
+    out["kd"] = _per_dof(actuation.kd, ndof, f"{what} kd")
+    out["effort_limit"] = _per_dof(actuation.effort_limit, ndof, f"{what} effort_limit")
+    for key in ("armature", "damping", "stiffness", "springref", "kp", "kd"):
+        _finite(out[key], f"{what} {key}")
+    for key in ("armature", "damping", "stiffness", "kp", "kd"):
+        if np.any(out[key] < 0):
+            raise ModelError(f"{what}: {key} must be >= 0, got {out[key].tolist()}")
+    if np.any(np.isnan(out["effort_limit"])) or np.any(out["effort_limit"] <= 0):
+        raise ModelError(f"{what}: effort_limit must be > 0 (inf for none), got {out['effort_limit'].tolist()}")
+    if mode != ActuationMode.PASSIVE and ndof == 0:
+        raise ModelError(f"{what}: a {jtype.name} joint has no DoF to actuate")
+    if mode in (ActuationMode.PASSIVE, ActuationMode.EFFORT) and (np.any(out["kp"]) or np.any(out["kd"])):
+        raise ModelError(f"{what}: {mode.name.lower()} actuation takes no gains (kp, kd must be 0)")
+    if mode == ActuationMode.VELOCITY and np.any(out["kp"]):
+        raise ModelError(f"{what}: velocity actuation takes no kp (use mode='position')")
+    if mode in (ActuationMode.POSITION, ActuationMode.VELOCITY):
+        if jtype not in PD_JOINT_TYPES:
+            allowed = ", ".join(t.name for t in PD_JOINT_TYPES)
+            raise ModelError(f"{what}: {mode.name.lower()} actuation needs a scalar-coordinate joint ({allowed}), "
+                             f"not {jtype.name}")
+        gains = out["kp"] + out["kd"] if mode == ActuationMode.POSITION else out["kd"]
+        if np.any(gains <= 0):
+            raise ModelError(f"{what}: {mode.name.lower()} actuation needs positive gains, got kp={out['kp'].tolist()} "
+                             f"kd={out['kd'].tolist()}")
+    if np.any(out["stiffness"] > 0) and jtype not in PD_JOINT_TYPES:
+        raise ModelError(f"{what}: a passive spring needs a scalar-coordinate joint, not {jtype.name}")
+    return out
+
+
 @dataclasses.dataclass
 class _Body:
     name: str
@@ -255,6 +432,22 @@ class _Joint:
     axis: np.ndarray
     axis2: np.ndarray | None
     limits: tuple[np.ndarray, np.ndarray]
+    dynamics: dict[str, np.ndarray]  # per-DoF act_mode, kp, kd, effort_limit, armature, damping, ...
+
+
+@dataclasses.dataclass
+class _Geom:
+    name: str
+    type: GeomType
+    body: int
+    size: np.ndarray
+    pos: np.ndarray
+    quat: np.ndarray
+    friction: float
+    restitution: float
+    margin: float
+    group: int
+    mask: int
 
 
 class ModelBuilder:
@@ -272,6 +465,8 @@ class ModelBuilder:
         self.gravity = np.asarray(gravity, dtype=float)
         self._bodies: list[_Body] = []
         self._joints: list[_Joint] = []
+        self._geoms: list[_Geom] = []
+        self._pair_overrides: dict[tuple[int, int], bool] = {}
 
     # -- bodies ------------------------------------------------------------------------
     def add_body(
@@ -321,8 +516,12 @@ class ModelBuilder:
         axis: Sequence[float] = (1.0, 0.0, 0.0),
         axis2: Sequence[float] | None = None,
         limits: Any = None,
-        actuation: Any = None,
+        actuation: Actuation | None = None,
         name: str | None = None,
+        armature: Any = 0.0,
+        damping: Any = 0.0,
+        stiffness: Any = 0.0,
+        springref: Any = 0.0,
     ) -> int:
         """Add a joint between ``parent`` (a body index or -1 for the world) and ``child``.
 
@@ -330,17 +529,14 @@ class ModelBuilder:
         child's CoM frames (world frame for ``parent=-1``). ``axis`` is the motion axis in the joint
         frame (REVOLUTE, PRISMATIC, CYLINDRICAL; first axis of UNIVERSAL, whose second is ``axis2``,
         default the joint frame's y). SPHERICAL, CARTESIAN, FIXED and FREE use the joint frame axes.
-        ``limits`` is ``(lower, upper)`` per DoF (scalars for 1-DoF joints); stored and validated
-        here, enforced by the solver once joint limits land (issue 3).
-        Any joint may close a kinematic loop.
+        ``limits`` is ``(lower, upper)`` per DoF (scalars broadcast; ``±inf`` for no limit), enforced
+        as unilateral rows (formulation.md §4.1). ``actuation`` (an :class:`Actuation`) drives every
+        DoF of the joint; ``armature`` (reflected inertia), ``damping`` (viscous), ``stiffness`` and
+        ``springref`` (a passive spring) are per DoF (scalars broadcast), all treated implicitly
+        (formulation.md §3.2). Any joint may close a kinematic loop.
         """
         idx = len(self._joints)
         name = name if name is not None else f"joint_{idx}"
-        if actuation is not None:
-            raise NotImplementedError(
-                f"joint {name!r}: actuation is not supported yet (implicit PD arrives with the actuation "
-                "issue); apply efforts through kamino.Control(dof_effort=...)"
-            )
         try:
             jtype = JointType(type)
         except ValueError as exc:
@@ -353,8 +549,9 @@ class ModelBuilder:
                 lo, hi = limits
             except (TypeError, ValueError) as exc:
                 raise ModelError(f"joint {name!r}: limits must be (lower, upper), got {limits!r}") from exc
-            lower = np.broadcast_to(np.asarray(lo, dtype=float), (ndof,)).copy()
-            upper = np.broadcast_to(np.asarray(hi, dtype=float), (ndof,)).copy()
+            lower = _per_dof(lo, ndof, f"joint {name!r} lower limit")
+            upper = _per_dof(hi, ndof, f"joint {name!r} upper limit")
+        dynamics = _joint_dynamics(name, jtype, ndof, actuation, armature, damping, stiffness, springref)
         self._joints.append(
             _Joint(
                 name=name,
@@ -372,6 +569,7 @@ class ModelBuilder:
                 axis=_vec(axis, 3, f"joint {name!r} axis"),
                 axis2=None if axis2 is None else _vec(axis2, 3, f"joint {name!r} axis2"),
                 limits=(lower, upper),
+                dynamics=dynamics,
             )
         )
         return idx
@@ -386,10 +584,13 @@ class ModelBuilder:
         axis2: Sequence[float] | None = None,
         limits: Any = None,
         name: str | None = None,
+        **dynamics: Any,
     ) -> int:
         """Add a joint whose frame sits at ``anchor`` with motion ``axis`` (and ``axis2``), both in
         world coordinates at the bodies' current (builder) poses. The joint frames are computed so
-        that the joint's coordinates are zero at those poses (as for an MJCF reference pose)."""
+        that the joint's coordinates are zero at those poses (as for an MJCF reference pose).
+        ``dynamics`` are :meth:`add_joint`'s ``actuation``, ``armature``, ``damping``, ``stiffness``,
+        ``springref``."""
         name = name if name is not None else f"joint_{len(self._joints)}"
         if not (-1 <= parent < len(self._bodies)) or not (0 <= child < len(self._bodies)):
             raise ModelError(f"joint {name!r}: parent {parent} or child {child} is not a body")
@@ -410,8 +611,107 @@ class ModelBuilder:
             child_frame=(Rc.T @ (anchor_w - rc), q_rel / np.linalg.norm(q_rel)),
             axis=Rp.T @ _vec(axis, 3, f"joint {name!r} axis"),
             axis2=None if axis2 is None else Rp.T @ _vec(axis2, 3, f"joint {name!r} axis2"),
-            limits=limits, name=name,
+            limits=limits, name=name, **dynamics,
         )
+
+    # -- collision geometry ------------------------------------------------------------
+    def add_geom(
+        self,
+        type: GeomType,
+        body: int,
+        size: Any = (0.0, 0.0, 0.0),
+        pos: Sequence[float] = (0.0, 0.0, 0.0),
+        quat: Sequence[float] = (0.0, 0.0, 0.0, 1.0),
+        friction: float = 1.0,
+        restitution: float = 0.0,
+        margin: float = 0.0,
+        group: int = 1,
+        mask: int = 0xFFFFFFFF,
+        name: str | None = None,
+    ) -> int:
+        """Attach a collision geom to ``body`` (-1: the world); returns its index.
+
+        ``size`` follows :class:`GeomType` (a sphere's radius may be a scalar). ``pos``/``quat`` place
+        the geom in the body's CoM frame (world frame for -1). ``friction`` is the Coulomb coefficient,
+        ``restitution`` the Newton coefficient in [0, 1]; a pair uses the larger of its two geoms'
+        values (docs/conventions.md, "Contacts"). ``margin`` [m] widens contact activation. Two geoms
+        may touch when ``group_a & mask_b`` and ``group_b & mask_a`` are both non-zero, they are on
+        different bodies not both the world, and the bodies are not joined by a joint
+        (:meth:`set_collision` overrides all of this for one pair).
+        """
+        idx = len(self._geoms)
+        name = name if name is not None else f"geom_{idx}"
+        try:
+            gtype = GeomType(type)
+        except ValueError as exc:
+            raise ModelError(f"geom {name!r}: unknown geom type {type!r}") from exc
+        sz = np.asarray(size, dtype=float).reshape(-1)
+        if sz.size > 3:
+            raise ModelError(f"geom {name!r}: size has {sz.size} numbers, at most 3")
+        sz = np.concatenate([sz, np.zeros(3 - sz.size)])
+        self._geoms.append(
+            _Geom(name=name, type=gtype, body=int(body), size=sz, pos=_vec(pos, 3, f"geom {name!r} pos"),
+                  quat=_vec(quat, 4, f"geom {name!r} quat"), friction=float(friction),
+                  restitution=float(restitution), margin=float(margin), group=int(group), mask=int(mask))
+        )
+        return idx
+
+    def set_collision(self, geom_a: int, geom_b: int, enabled: bool) -> None:
+        """Force the contact pair ``(geom_a, geom_b)`` on or off, overriding group/mask filtering and
+        the automatic exclusion of bodies joined by a joint."""
+        key = (min(int(geom_a), int(geom_b)), max(int(geom_a), int(geom_b)))
+        self._pair_overrides[key] = bool(enabled)
+
+    _SIZE_NEEDS = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, GeomType.BOX: 3, GeomType.CYLINDER: 2}
+
+    def _validate_geom(self, i: int, g: _Geom, nb: int) -> None:
+        what = f"geom {g.name!r} (index {i})"
+        for field_name, arr in (("size", g.size), ("pos", g.pos), ("quat", g.quat)):
+            _finite(arr, f"{what} {field_name}")
+        if not (-1 <= g.body < nb):
+            raise ModelError(f"{what}: body {g.body} does not exist ({nb} bodies; -1 is the world)")
+        need = self._SIZE_NEEDS[g.type]
+        if np.any(g.size[:need] <= 0):
+            raise ModelError(f"{what}: a {g.type.name} needs {need} positive size value(s), got {g.size.tolist()}")
+        _check_quat(g.quat, f"{what} quat")
+        if not (np.isfinite(g.friction) and g.friction >= 0):
+            raise ModelError(f"{what}: friction must be >= 0, got {g.friction}")
+        if not (0.0 <= g.restitution <= 1.0):
+            raise ModelError(f"{what}: restitution must lie in [0, 1], got {g.restitution}")
+        if not (np.isfinite(g.margin) and g.margin >= 0):
+            raise ModelError(f"{what}: margin must be >= 0, got {g.margin}")
+
+    def _contact_pairs(self) -> list[tuple[int, int]]:
+        """Candidate pairs ``(a, b)`` with ``type_a <= type_b`` after filtering (issue 3: only pairs
+        that can touch generate work)."""
+        joined = {(min(j.parent, j.child), max(j.parent, j.child)) for j in self._joints}
+        for key in self._pair_overrides:
+            for gi in key:
+                if not (0 <= gi < len(self._geoms)):
+                    raise ModelError(f"set_collision: geom {gi} does not exist ({len(self._geoms)} geoms)")
+        pairs = []
+        for a in range(len(self._geoms)):
+            for b in range(a + 1, len(self._geoms)):
+                ga, gb = self._geoms[a], self._geoms[b]
+                override = self._pair_overrides.get((a, b))
+                if ga.body == gb.body or (ga.body < 0 and gb.body < 0):
+                    if override:
+                        raise ModelError(f"set_collision: geoms {ga.name!r} and {gb.name!r} are on the same body "
+                                         "(or both on the world) and cannot collide")
+                    continue
+                if (ga.type, gb.type) == (GeomType.PLANE, GeomType.PLANE):
+                    if override:
+                        raise ModelError(f"set_collision: plane-plane contact ({ga.name!r}, {gb.name!r}) is not "
+                                         "supported")
+                    continue
+                if override is None:
+                    ok = (ga.group & gb.mask) != 0 and (gb.group & ga.mask) != 0
+                    ok = ok and (min(ga.body, gb.body), max(ga.body, gb.body)) not in joined
+                else:
+                    ok = override
+                if ok:
+                    pairs.append((a, b) if ga.type <= gb.type else (b, a))
+        return pairs
 
     # -- validation and assembly -----------------------------------------------------
     def _validate_body(self, i: int, b: _Body) -> None:
@@ -475,8 +775,14 @@ class ModelBuilder:
             k = int(bad[0])
             raise ModelError(f"{what}: lower limit {lo[k]} > upper limit {hi[k]} (DoF {k})")
 
-    def finalize(self) -> Model:
-        """Validate and return the single-world :class:`Model`; raises :class:`ModelError`."""
+    def finalize(self, contact_capacity: int | None = None) -> Model:
+        """Validate and return the single-world :class:`Model`; raises :class:`ModelError`.
+
+        ``contact_capacity`` bounds the contacts of the world (3 constraint rows each). The default
+        is what the candidate pairs can produce together (``CONTACT_POINTS`` per pair), which never
+        overflows; a smaller capacity keeps the first contacts in pair order and counts the rest in
+        ``state.info.contact_overflow``.
+        """
         _finite(self.gravity, "gravity")
         if self.gravity.shape != (3,):
             raise ModelError(f"gravity: expected 3 numbers, got shape {self.gravity.shape}")
@@ -495,6 +801,19 @@ class ModelBuilder:
         if len(set(jnames)) != len(jnames):
             dup = next(n for n in jnames if jnames.count(n) > 1)
             raise ModelError(f"joint name {dup!r} is used twice")
+        for i, g in enumerate(self._geoms):
+            self._validate_geom(i, g, nb)
+        gnames = [g.name for g in self._geoms]
+        if len(set(gnames)) != len(gnames):
+            dup = next(n for n in gnames if gnames.count(n) > 1)
+            raise ModelError(f"geom name {dup!r} is used twice")
+        pairs = self._contact_pairs()
+        full_capacity = sum(CONTACT_POINTS[(self._geoms[a].type, self._geoms[b].type)] for a, b in pairs)
+        if contact_capacity is None:
+            contact_capacity = full_capacity
+        elif int(contact_capacity) < 0:
+            raise ModelError(f"contact_capacity must be >= 0, got {contact_capacity}")
+        contact_capacity = int(contact_capacity) if pairs else 0
 
         body_q0 = np.array([np.concatenate([b.pos, b.quat / np.linalg.norm(b.quat)]) for b in self._bodies])
         body_u0 = np.array([np.concatenate([b.vel, b.ang_vel]) for b in self._bodies])
@@ -521,6 +840,13 @@ class ModelBuilder:
             cts_count[j] = len(JOINT_CONSTRAINT_ROWS[jt.type])
             lowers.append(jt.limits[0])
             uppers.append(jt.limits[1])
+
+        def dyn(key: str, dtype=float) -> np.ndarray:
+            parts = [jt.dynamics[key] for jt in self._joints]
+            return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
+
+        geoms = self._geoms
+        ng = len(geoms)
 
         one = np.array([0], dtype=np.int64)
         model = Model(
@@ -553,12 +879,38 @@ class ModelBuilder:
             joint_cts_count=cts_count,
             dof_lower=np.concatenate(lowers) if lowers else np.zeros(0),
             dof_upper=np.concatenate(uppers) if uppers else np.zeros(0),
+            dof_act_mode=dyn("act_mode", np.int64),
+            dof_kp=dyn("kp"),
+            dof_kd=dyn("kd"),
+            dof_effort_limit=dyn("effort_limit"),
+            dof_armature=dyn("armature"),
+            dof_damping=dyn("damping"),
+            dof_stiffness=dyn("stiffness"),
+            dof_springref=dyn("springref"),
             world_dof_start=one.copy(),
             world_dof_count=np.array([dof_count.sum()], dtype=np.int64),
             world_coord_start=one.copy(),
             world_coord_count=np.array([coord_count.sum()], dtype=np.int64),
             world_cts_start=one.copy(),
             world_cts_count=np.array([cts_count.sum()], dtype=np.int64),
+            geom_type=np.array([int(g.type) for g in geoms], dtype=np.int64),
+            geom_body=np.array([g.body for g in geoms], dtype=np.int64),
+            geom_world=np.zeros(ng, dtype=np.int64),
+            geom_pos=np.array([g.pos for g in geoms]).reshape(ng, 3),
+            geom_quat=np.array([g.quat / np.linalg.norm(g.quat) for g in geoms]).reshape(ng, 4),
+            geom_size=np.array([g.size for g in geoms]).reshape(ng, 3),
+            geom_friction=np.array([g.friction for g in geoms]),
+            geom_restitution=np.array([g.restitution for g in geoms]),
+            geom_margin=np.array([g.margin for g in geoms]),
+            geom_names=tuple(gnames),
+            world_geom_start=one.copy(),
+            world_geom_count=np.array([ng], dtype=np.int64),
+            pair_geom_a=np.array([a for a, _ in pairs], dtype=np.int64),
+            pair_geom_b=np.array([b for _, b in pairs], dtype=np.int64),
+            pair_world=np.zeros(len(pairs), dtype=np.int64),
+            world_pair_start=one.copy(),
+            world_pair_count=np.array([len(pairs)], dtype=np.int64),
+            world_contact_capacity=np.array([contact_capacity], dtype=np.int64),
         )
         return _freeze(model)
 
@@ -566,15 +918,6 @@ class ModelBuilder:
 # ---------------------------------------------------------------------------------------
 # Multi-world models
 # ---------------------------------------------------------------------------------------
-
-# fields holding per-entity data, grouped by the entity that sizes them
-_BODY_FIELDS = ("body_mass", "body_inertia", "body_q0", "body_u0")
-_JOINT_FIELDS = ("joint_type", "joint_anchor_B", "joint_anchor_F", "joint_frame_B", "joint_frame_F",
-                 "joint_dof_count", "joint_coord_count", "joint_cts_count")
-_DOF_FIELDS = ("dof_lower", "dof_upper")
-_WORLD_COUNT_FIELDS = ("world_body_count", "world_joint_count", "world_dof_count", "world_coord_count",
-                       "world_cts_count")
-
 
 def _freeze(model: Model) -> Model:
     for f in dataclasses.fields(model):
@@ -593,92 +936,48 @@ def _prefix(counts: np.ndarray) -> np.ndarray:
 def concat(models: Sequence[Model]) -> Model:
     """Stack models (each with one or more worlds) into one multi-world model, in order.
 
-    Worlds may differ (heterogeneous): storage is the sum of per-world sizes, with per-world
-    offsets/counts recomputed here.
+    Worlds may differ (heterogeneous): storage is the sum of per-world sizes; per-world offsets,
+    and every index field (bodies of joints and geoms, geoms of pairs, worlds), are shifted here.
     """
     models = list(models)
     if not models:
         raise ModelError("concat: no models given")
-    cat = {}
-    for name in _BODY_FIELDS + _JOINT_FIELDS + _DOF_FIELDS + _WORLD_COUNT_FIELDS + ("gravity",):
-        cat[name] = np.concatenate([getattr(m, name) for m in models], axis=0)
-    nbs = np.array([m.num_bodies for m in models])
-    nws = np.array([m.num_worlds for m in models])
-    body_off = np.repeat(_prefix(nbs), [m.num_joints for m in models])
-    world_off_b = np.repeat(_prefix(nws), nbs)
-    world_off_j = np.repeat(_prefix(nws), [m.num_joints for m in models])
-    parent = np.concatenate([m.joint_parent for m in models])
-    parent = np.where(parent >= 0, parent + body_off, -1)
-    child = np.concatenate([m.joint_child for m in models]) + body_off
-    return _assemble(
-        cat, parent, child,
-        np.concatenate([m.body_world for m in models]) + world_off_b,
-        np.concatenate([m.joint_world for m in models]) + world_off_j,
-        sum((m.body_names for m in models), ()),
-        sum((m.joint_names for m in models), ()),
-    )
+    out: dict[str, Any] = {"num_worlds": sum(m.num_worlds for m in models)}
+    shifts = {"body": _prefix([m.num_bodies for m in models]), "geom": _prefix([m.num_geoms for m in models]),
+              "world": _prefix([m.num_worlds for m in models])}
+    for f in dataclasses.fields(Model):
+        name = f.name
+        if name == "num_worlds" or name.startswith("world_") and name.endswith("_start"):
+            continue
+        first = getattr(models[0], name)
+        if isinstance(first, tuple):
+            out[name] = tuple(itertools.chain.from_iterable(getattr(m, name) for m in models))
+            continue
+        parts = []
+        for k, m in enumerate(models):
+            v = getattr(m, name)
+            shift = _INDEX_FIELDS.get(name)
+            if shift is not None:
+                off = shifts[shift][k]
+                v = np.where(v >= 0, v + off, v) if shift == "body" else v + off
+            parts.append(v)
+        out[name] = np.concatenate(parts, axis=0)
+    for f in dataclasses.fields(Model):
+        if f.name.startswith("world_") and f.name.endswith("_start"):
+            out[f.name] = _prefix(out[f.name[: -len("_start")] + "_count"])
+    for entity in ("joint_dof", "joint_coord", "joint_cts"):
+        out[entity + "_start"] = _prefix(out[entity + "_count"])
+    return _freeze(Model(**out))
+
+
+#: Index fields shifted by ``concat``: which entity's offset they get (-1 stays -1 for bodies).
+_INDEX_FIELDS = {"joint_parent": "body", "joint_child": "body", "geom_body": "body", "body_world": "world",
+                 "joint_world": "world", "geom_world": "world", "pair_world": "world", "pair_geom_a": "geom",
+                 "pair_geom_b": "geom"}
 
 
 def replicate(model: Model, n: int) -> Model:
     """``n`` copies of ``model`` as one multi-world model (homogeneous worlds)."""
     if int(n) < 1:
         raise ModelError(f"replicate: number of copies must be >= 1, got {n}")
-    n = int(n)
-    cat = {}
-    for name in _BODY_FIELDS + _JOINT_FIELDS + _DOF_FIELDS + _WORLD_COUNT_FIELDS + ("gravity",):
-        v = getattr(model, name)
-        cat[name] = np.tile(v, (n,) + (1,) * (v.ndim - 1))
-    nb, nj, nw = model.num_bodies, model.num_joints, model.num_worlds
-    body_off = np.repeat(np.arange(n) * nb, nj)
-    parent = np.tile(model.joint_parent, n)
-    parent = np.where(parent >= 0, parent + body_off, -1)
-    child = np.tile(model.joint_child, n) + body_off
-    return _assemble(
-        cat, parent, child,
-        np.tile(model.body_world, n) + np.repeat(np.arange(n) * nw, nb),
-        np.tile(model.joint_world, n) + np.repeat(np.arange(n) * nw, nj),
-        model.body_names * n,
-        model.joint_names * n,
-    )
-
-
-def _assemble(cat, parent, child, body_world, joint_world, body_names, joint_names) -> Model:
-    model = Model(
-        num_worlds=int(cat["world_body_count"].shape[0]),
-        gravity=cat["gravity"],
-        body_mass=cat["body_mass"],
-        body_inertia=cat["body_inertia"],
-        body_q0=cat["body_q0"],
-        body_u0=cat["body_u0"],
-        body_world=body_world.astype(np.int64),
-        body_names=tuple(body_names),
-        world_body_start=_prefix(cat["world_body_count"]),
-        world_body_count=cat["world_body_count"],
-        joint_type=cat["joint_type"],
-        joint_parent=parent.astype(np.int64),
-        joint_child=child.astype(np.int64),
-        joint_world=joint_world.astype(np.int64),
-        joint_anchor_B=cat["joint_anchor_B"],
-        joint_anchor_F=cat["joint_anchor_F"],
-        joint_frame_B=cat["joint_frame_B"],
-        joint_frame_F=cat["joint_frame_F"],
-        joint_names=tuple(joint_names),
-        world_joint_start=_prefix(cat["world_joint_count"]),
-        world_joint_count=cat["world_joint_count"],
-        joint_dof_start=_prefix(cat["joint_dof_count"]),
-        joint_dof_count=cat["joint_dof_count"],
-        joint_coord_start=_prefix(cat["joint_coord_count"]),
-        joint_coord_count=cat["joint_coord_count"],
-        joint_cts_start=_prefix(cat["joint_cts_count"]),
-        joint_cts_count=cat["joint_cts_count"],
-        dof_lower=cat["dof_lower"],
-        dof_upper=cat["dof_upper"],
-        world_dof_start=_prefix(cat["world_dof_count"]),
-        world_dof_count=cat["world_dof_count"],
-        world_coord_start=_prefix(cat["world_coord_count"]),
-        world_coord_count=cat["world_coord_count"],
-        world_cts_start=_prefix(cat["world_cts_count"]),
-        world_cts_count=cat["world_cts_count"],
-    )
-    return _freeze(model)
-
+    return concat([model] * int(n))

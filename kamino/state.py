@@ -23,18 +23,54 @@ class StepInfo:
     complementarity_residual: jax.Array
     converged: jax.Array
     failed: jax.Array
+    num_contacts: jax.Array
+    contact_overflow: jax.Array
 
     @staticmethod
     def empty(num_worlds: int, dtype=jnp.float32) -> StepInfo:
         z = jnp.zeros(num_worlds, dtype)
+        zi = jnp.zeros(num_worlds, jnp.int32)
         return StepInfo(
-            iterations=jnp.zeros(num_worlds, jnp.int32),
+            iterations=zi,
             primal_residual=z,
             dual_residual=z,
             complementarity_residual=z,
             converged=jnp.ones(num_worlds, bool),
             failed=jnp.zeros(num_worlds, bool),
+            num_contacts=zi,
+            contact_overflow=zi,
         )
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ContactState:
+    """The last step's contacts, flat over worlds (``[total_contact_capacity, ...]``, world 0 first,
+    each world's slots in detection order; empty slots have ``pair = -1`` and zeros).
+
+    Attributes:
+        pair: world-local index of the geom pair (``-1``: empty slot).
+        pos: world point midway between the two surfaces.
+        normal: unit normal from geom a to geom b.
+        dist: signed gap [m] (negative: penetration).
+        force: contact force on geom b's body [N], world frame (``C lambda / dt``).
+        velocity: relative velocity of b with respect to a at the contact after the step, world frame.
+        point_b: the contact point on geom b in its body's CoM frame (the warm-start key).
+    """
+
+    pair: jax.Array
+    pos: jax.Array
+    normal: jax.Array
+    dist: jax.Array
+    force: jax.Array
+    velocity: jax.Array
+    point_b: jax.Array
+
+    @staticmethod
+    def empty(capacity: int, dtype=jnp.float32) -> ContactState:
+        v = jnp.zeros((capacity, 3), dtype)
+        return ContactState(pair=jnp.full(capacity, -1, jnp.int32), pos=v, normal=v, dist=jnp.zeros(capacity, dtype),
+                            force=v, velocity=v, point_b=v)
 
 
 @jax.tree_util.register_dataclass
@@ -48,6 +84,11 @@ class State:
         time: ``[num_worlds]`` simulated time [s].
         constraint_force: ``[total_constraint_rows]`` last step's joint-row reactions ``lambda/dt``
             (the warm start of the next solve), in the row order of docs/conventions.md.
+        actuator_force: ``[total_dofs]`` generalized force each DoF's actuator applied in the last step
+            (implicit PD/D force, or the clipped commanded effort; for passive DoFs the applied effort).
+        passive_force: ``[total_dofs]`` generalized force of armature, damping and springs.
+        limit_force: ``[total_dofs]`` generalized force of the joint limits (positive pushes the DoF up).
+        contacts: the last step's :class:`ContactState`.
         info: the last solve's :class:`StepInfo`.
     """
 
@@ -55,6 +96,10 @@ class State:
     body_u: jax.Array
     time: jax.Array
     constraint_force: jax.Array
+    actuator_force: jax.Array
+    passive_force: jax.Array
+    limit_force: jax.Array
+    contacts: ContactState
     info: StepInfo
 
     def replace(self, **changes) -> State:
@@ -68,10 +113,16 @@ class Control:
 
     Attributes:
         dof_effort: ``[total_dofs]`` generalized joint efforts (N for translational DoFs, N m for
-            rotational ones; a FREE joint's six are a world-aligned force and torque at the child CoM),
-            applied explicitly as body wrenches ``J_dofs^T tau`` (formulation.md §3.1).
+            rotational ones; a FREE joint's six are a world-aligned force and torque at the child CoM).
+            On PASSIVE DoFs it is applied as is, on EFFORT DoFs clipped to the effort limit, both
+            explicitly as body wrenches ``J_dofs^T tau`` (formulation.md §3.1); on POSITION/VELOCITY
+            DoFs it is the actuator's feed-forward, inside the effort limit.
         body_wrench: ``[total_bodies, 6]`` external wrenches ``(f, tau)`` in world, torque about the CoM.
+        position_target: ``[total_dofs]`` targets of POSITION DoFs (DoF space, formulation.md §4.1).
+        velocity_target: ``[total_dofs]`` velocity targets of POSITION and VELOCITY DoFs.
     """
 
     dof_effort: jax.Array | None = None
     body_wrench: jax.Array | None = None
+    position_target: jax.Array | None = None
+    velocity_target: jax.Array | None = None

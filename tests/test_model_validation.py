@@ -250,7 +250,7 @@ def test_joint_errors_raised_at_add_time():
         b.add_joint(JointType.REVOLUTE, 0, 1, axis=(0, 1), name="short_axis")
     with pytest.raises(ModelError, match=r"joint 'far_anchor': parent 0 or child 5 is not a body"):
         b.add_joint_at(JointType.REVOLUTE, 0, 5, anchor=(0, 0, 0), name="far_anchor")
-    with pytest.raises(NotImplementedError, match=r"joint 'motorised'.*actuation"):
+    with pytest.raises(ModelError, match=r"joint 'motorised': actuation must be a kamino.Actuation"):
         b.add_joint(JointType.REVOLUTE, 0, 1, actuation="pd", name="motorised")
     assert b._joints == []  # nothing was stored by the failed calls
 
@@ -535,3 +535,73 @@ def test_derived_models_do_not_alias_the_source():
     for f in _PER_BODY + _PER_JOINT + _PER_DOF + ("joint_parent", "joint_child"):
         assert not np.shares_memory(getattr(rep, f), getattr(base, f)), f
         assert not np.shares_memory(getattr(cat, f), getattr(base, f)), f
+
+
+# ---- geoms and actuation (issue 3) ------------------------------------------------------
+
+
+def test_geom_errors_name_the_geom():
+    def builder():
+        b = kamino.ModelBuilder()
+        b.add_body(mass=1.0, inertia=(0.01,) * 3)
+        return b
+
+    cases = [
+        (dict(type=kamino.GeomType.SPHERE, body=0, size=0.0, name="dot"), r"geom 'dot' \(index 0\): a SPHERE needs 1"),
+        (dict(type=kamino.GeomType.BOX, body=0, size=(0.1, 0.1), name="flat"), r"geom 'flat'.*BOX needs 3"),
+        (dict(type=kamino.GeomType.SPHERE, body=3, size=0.1, name="lost"), r"geom 'lost'.*body 3 does not exist"),
+        (dict(type=kamino.GeomType.SPHERE, body=0, size=0.1, friction=-1, name="grippy"), r"geom 'grippy'.*friction"),
+        (dict(type=kamino.GeomType.SPHERE, body=0, size=0.1, restitution=1.5, name="bouncy"),
+         r"geom 'bouncy'.*restitution must lie in \[0, 1\]"),
+        (dict(type=kamino.GeomType.SPHERE, body=0, size=0.1, quat=(0, 0, 0, 2), name="twisted"),
+         r"geom 'twisted'.*quaternion norm"),
+        (dict(type=kamino.GeomType.SPHERE, body=0, size=float("nan"), name="nan"), r"geom 'nan'.*NaN"),
+    ]
+    for kwargs, pattern in cases:
+        b = builder()
+        b.add_geom(**kwargs)
+        with pytest.raises(ModelError, match=pattern):
+            b.finalize()
+    b = builder()
+    with pytest.raises(ModelError, match=r"geom 'odd': unknown geom type 9"):
+        b.add_geom(9, 0, name="odd")
+    b = builder()
+    g0 = b.add_geom(kamino.GeomType.SPHERE, 0, size=0.1)
+    g1 = b.add_geom(kamino.GeomType.BOX, 0, size=(0.1, 0.1, 0.1))
+    b.set_collision(g0, g1, True)
+    with pytest.raises(ModelError, match="same body"):
+        b.finalize()
+
+
+def test_actuation_errors_name_the_joint():
+    b = _two_bodies()
+    Act = kamino.Actuation
+    with pytest.raises(ModelError, match=r"joint 'ball': position actuation needs a scalar-coordinate joint"):
+        b.add_joint(JointType.SPHERICAL, 0, 1, actuation=Act("position", kp=1.0), name="ball")
+    with pytest.raises(ModelError, match=r"joint 'lazy': position actuation needs positive gains"):
+        b.add_joint(JointType.REVOLUTE, 0, 1, actuation=Act("position"), name="lazy")
+    with pytest.raises(ModelError, match=r"joint 'ff': effort actuation takes no gains"):
+        b.add_joint(JointType.REVOLUTE, 0, 1, actuation=Act("effort", kp=3.0), name="ff")
+    with pytest.raises(ModelError, match=r"joint 'weak': effort_limit must be > 0"):
+        b.add_joint(JointType.REVOLUTE, 0, 1, actuation=Act("position", kp=1.0, effort_limit=0.0), name="weak")
+    with pytest.raises(ModelError, match=r"joint 'neg': armature must be >= 0"):
+        b.add_joint(JointType.REVOLUTE, 0, 1, armature=-0.1, name="neg")
+    with pytest.raises(ModelError, match=r"unknown actuation mode 'servo'"):
+        b.add_joint(JointType.REVOLUTE, 0, 1, actuation=Act("servo"), name="servo")
+    with pytest.raises(ModelError, match=r"joint 'weld': a FIXED joint has no DoF to actuate"):
+        b.add_joint(JointType.FIXED, 0, 1, actuation=Act("effort"), name="weld")
+    with pytest.raises(ModelError, match=r"joint 'many' damping: expected a number or 1 numbers"):
+        b.add_joint(JointType.REVOLUTE, 0, 1, damping=(1.0, 2.0), name="many")
+    assert b._joints == []
+
+
+def test_replicate_and_concat_shift_geom_and_pair_indices():
+    single = kamino.models.box_stack(2)
+    mixed = kamino.concat([kamino.models.fourbar(), single, single])
+    assert mixed.num_geoms == 2 * single.num_geoms
+    assert mixed.num_pairs == 2 * single.num_pairs
+    w2 = mixed.pair_world == 2
+    assert np.all(mixed.geom_world[mixed.pair_geom_a[w2]] == 2)
+    bodies = mixed.geom_body[mixed.geom_world == 2]
+    assert np.all((bodies == -1) | (mixed.body_world[np.maximum(bodies, 0)] == 2))
+    assert mixed.world_contact_capacity.tolist() == [0, 16, 16]

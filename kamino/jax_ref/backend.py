@@ -11,9 +11,9 @@ from kamino.config import SolverConfig
 from kamino.jax_ref.dynamics import body_dynamics, kinetic_energy, potential_energy
 from kamino.jax_ref.joints import constraint_residual, joint_coordinates, joint_frames
 from kamino.jax_ref.layout import PaddedModel, layout_of, to_flat, to_padded
-from kamino.jax_ref.step import step_batch
+from kamino.jax_ref.step import WorldCache, WorldControl, step_batch
 from kamino.model import Model
-from kamino.state import Control, State, StepInfo
+from kamino.state import ContactState, Control, State, StepInfo
 
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
@@ -25,23 +25,47 @@ def _padded_poses(pm: PaddedModel, t: dict, body_q: jax.Array) -> jax.Array:
 
 
 def _padded_state(pm: PaddedModel, t: dict, state: State, control: Control | None):
+    """Flat State/Control -> padded poses, twists, warm-start cache and controls per world."""
     dtype = state.body_q.dtype
     q = _padded_poses(pm, t, state.body_q)
     u = to_padded(state.body_u, t["bg"], pm.body_mask, 0.0)
-    f = to_padded(state.constraint_force, t["rg"], pm.row_mask, 0.0)
-    effort = jnp.zeros(pm.dof_mask.shape, dtype)
-    wrench = jnp.zeros(u.shape, dtype)
-    if control is not None and control.dof_effort is not None:
-        effort = to_padded(jnp.asarray(control.dof_effort, dtype), t["dg"], pm.dof_mask, 0.0)
-    if control is not None and control.body_wrench is not None:
-        wrench = to_padded(jnp.asarray(control.body_wrench, dtype), t["bg"], pm.body_mask, 0.0)
-    return q, u, f, effort, wrench
+    dof = lambda x: to_padded(x, t["dg"], pm.dof_mask, 0.0)  # noqa: E731
+    con = lambda x, fill=0.0: to_padded(x, t["cg"], t["cm"], fill)  # noqa: E731
+    c = state.contacts
+    cache = WorldCache(
+        kin=to_padded(state.constraint_force, t["rg"], pm.row_mask, 0.0),
+        actuator=dof(state.actuator_force),
+        passive=dof(state.passive_force),
+        limit=dof(state.limit_force),
+        contact_pair=con(c.pair, -1),
+        contact_pos=con(c.pos),
+        contact_normal=con(c.normal),
+        contact_dist=con(c.dist),
+        contact_force=con(c.force),
+        contact_velocity=con(c.velocity),
+        contact_point_b=con(c.point_b),
+    )
+
+    def ctl(field, fill_shape, gather, mask):
+        value = None if control is None else getattr(control, field)
+        if value is None:
+            return jnp.zeros(fill_shape, dtype)
+        return to_padded(jnp.asarray(value, dtype), gather, mask, 0.0)
+
+    ctrl = WorldControl(
+        effort=ctl("dof_effort", pm.dof_mask.shape, t["dg"], pm.dof_mask),
+        wrench=ctl("body_wrench", u.shape, t["bg"], pm.body_mask),
+        position_target=ctl("position_target", pm.dof_mask.shape, t["dg"], pm.dof_mask),
+        velocity_target=ctl("velocity_target", pm.dof_mask.shape, t["dg"], pm.dof_mask),
+    )
+    return q, u, cache, ctrl
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
 def _step_jit(pm: PaddedModel, t: dict, state: State, control: Control | None, cfg: SolverConfig) -> State:
-    q, u, f, effort, wrench = _padded_state(pm, t, state, control)
-    q, u, f, res, failed = step_batch(pm, q, u, f, effort, wrench, cfg)
+    q, u, cache, ctrl = _padded_state(pm, t, state, control)
+    q, u, cache, out, failed = step_batch(pm, q, u, cache, ctrl, cfg)
+    res = out.solve
     info = StepInfo(
         iterations=res.iterations.astype(jnp.int32),
         primal_residual=res.primal_residual,
@@ -49,12 +73,28 @@ def _step_jit(pm: PaddedModel, t: dict, state: State, control: Control | None, c
         complementarity_residual=res.complementarity_residual,
         converged=res.converged,
         failed=failed,
+        num_contacts=out.num_contacts.astype(jnp.int32),
+        contact_overflow=out.contact_overflow.astype(jnp.int32),
     )
+    dof = lambda x: to_flat(x, t["ds"])  # noqa: E731
+    con = lambda x: to_flat(x, t["cs"])  # noqa: E731
     return State(
         body_q=to_flat(q, t["bs"]),
         body_u=to_flat(u, t["bs"]),
         time=state.time + jnp.where(failed, 0.0, cfg.dt).astype(state.time.dtype),
-        constraint_force=to_flat(f, t["rs"]),
+        constraint_force=to_flat(cache.kin, t["rs"]),
+        actuator_force=dof(cache.actuator),
+        passive_force=dof(cache.passive),
+        limit_force=dof(cache.limit),
+        contacts=ContactState(
+            pair=con(cache.contact_pair),
+            pos=con(cache.contact_pos),
+            normal=con(cache.contact_normal),
+            dist=con(cache.contact_dist),
+            force=con(cache.contact_force),
+            velocity=con(cache.contact_velocity),
+            point_b=con(cache.contact_point_b),
+        ),
         info=info,
     )
 
@@ -65,6 +105,12 @@ def _check_state(model: Model, state: State) -> None:
         raise ValueError(f"state.body_q has shape {state.body_q.shape}, expected ({nb}, 7) for this model")
     if state.body_u.shape != (nb, 6):
         raise ValueError(f"state.body_u has shape {state.body_u.shape}, expected ({nb}, 6) for this model")
+    for field in ("actuator_force", "passive_force", "limit_force"):
+        if getattr(state, field).shape != (model.num_dofs,):
+            raise ValueError(f"state.{field} has shape {getattr(state, field).shape}, expected ({model.num_dofs},)")
+    if state.contacts.pair.shape != (model.num_contacts,):
+        raise ValueError(f"state.contacts has capacity {state.contacts.pair.shape[0]}, expected {model.num_contacts} "
+                         "for this model (create the state with kamino.init_state(model))")
     if state.constraint_force.shape != (model.num_constraints,):
         raise ValueError(
             f"state.constraint_force has shape {state.constraint_force.shape}, expected "
@@ -83,6 +129,10 @@ def _check_control(model: Model, control: Control | None) -> None:
         raise ValueError(
             f"control.body_wrench has shape {jnp.shape(control.body_wrench)}, expected ({model.num_bodies}, 6)"
         )
+    for field in ("position_target", "velocity_target"):
+        value = getattr(control, field)
+        if value is not None and jnp.shape(value)[-1:] != (model.num_dofs,):
+            raise ValueError(f"control.{field} has shape {jnp.shape(value)}, expected ({model.num_dofs},)")
 
 
 def step(model: Model, state: State, control: Control | None, cfg: SolverConfig) -> State:

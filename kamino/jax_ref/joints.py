@@ -177,3 +177,15 @@ def joint_coordinates(pm: PaddedModel, jf: JointFrames) -> jax.Array:
     for jt, val in table.items():
         out = jnp.where((T == int(jt))[:, None], val, out)
     return out
+
+
+def dof_positions(pm: PaddedModel, jf: JointFrames) -> jax.Array:
+    """Position of every joint DoF ``[nd]`` in DoF space (formulation.md §4.1 "coordinates are mapped to
+    DoF space"): translations read ``t``; rotations read ``Log(Q)`` componentwise (the angle, for a
+    hinge), and a UNIVERSAL joint's DoFs read its two angles ``(theta_1, theta_2)``."""
+    six = jnp.concatenate([jf.t, quat_log(jf.Q)], axis=-1)  # [nj, 6]
+    coords = joint_coordinates(pm, jf)
+    univ = six.at[:, 3].set(coords[:, 0]).at[:, 4].set(coords[:, 1])
+    six = jnp.where((pm.joint_type == int(JointType.UNIVERSAL))[:, None], univ, six)
+    j = pm.dof_joint
+    return jnp.where(pm.dof_mask, six[j, pm.dof_axis], 0.0)

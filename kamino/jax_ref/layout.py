@@ -15,7 +15,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kamino.model import JOINT_CONSTRAINT_ROWS, JOINT_DOF_ROWS, JointType, Model
+from kamino.model import CONTACT_POINTS, JOINT_CONSTRAINT_ROWS, JOINT_DOF_ROWS, ActuationMode, JointType, Model
+
+DYN_ACTUATOR, DYN_PASSIVE = 0, 1
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PairGroup:
+    """The candidate contact pairs of one geom-type combination, per world (``[W, n]``, local geoms)."""
+
+    geom_a: jax.Array
+    geom_b: jax.Array
+    pair: jax.Array  # world-local pair index (the warm-start key)
+    mask: jax.Array
 
 
 @jax.tree_util.register_dataclass
@@ -42,6 +55,36 @@ class PaddedModel:
     dof_axis: jax.Array  # [W, nd]
     dof_kind: jax.Array  # [W, nd] (kamino.model.DOF_*)
     dof_mask: jax.Array  # [W, nd]
+    dof_act_mode: jax.Array  # [W, nd] kamino.ActuationMode
+    dof_kp: jax.Array
+    dof_kd: jax.Array
+    dof_effort_limit: jax.Array
+    dof_armature: jax.Array
+    dof_damping: jax.Array
+    dof_stiffness: jax.Array
+    dof_springref: jax.Array
+    dof_lower: jax.Array
+    dof_upper: jax.Array
+    # joint-dynamics rows (formulation.md §3.2): one per DoF and kind (actuator / passive)
+    dyn_dof: jax.Array  # [W, ndyn] local DoF
+    dyn_kind: jax.Array  # [W, ndyn] DYN_ACTUATOR or DYN_PASSIVE
+    dyn_mask: jax.Array
+    # limit rows (§4.1): one per DoF with a finite limit
+    lim_dof: jax.Array  # [W, nl]
+    lim_mask: jax.Array
+    # geoms (local body index, -1 the world) and candidate pairs grouped by type combination
+    geom_type: jax.Array  # [W, ng]
+    geom_body: jax.Array
+    geom_pos: jax.Array
+    geom_quat: jax.Array
+    geom_size: jax.Array
+    geom_friction: jax.Array
+    geom_restitution: jax.Array
+    geom_margin: jax.Array
+    pair_groups: tuple[PairGroup, ...]
+    contact_capacity: jax.Array  # [W]
+    pair_kinds: tuple[tuple[int, int], ...] = dataclasses.field(metadata={"static": True}, default=())
+    max_contacts: int = dataclasses.field(metadata={"static": True}, default=0)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -60,6 +103,9 @@ class Layout:
     row_scatter: np.ndarray  # [C]
     dof_gather: np.ndarray  # [W, nd]
     dof_scatter: np.ndarray  # [D]
+    max_contacts: int
+    contact_gather: np.ndarray  # [W, C]
+    contact_scatter: np.ndarray  # [total capacity]
     dtype: np.dtype
     tables: dict  # the gather/scatter tables above as device arrays (jit arguments)
 
@@ -72,6 +118,11 @@ def _pad_index(starts: np.ndarray, counts: np.ndarray, width: int):
     gather = np.where(mask, starts[:, None] + local, 0).astype(np.int64)
     scatter = (np.repeat(np.arange(W) * width, counts) + _local_ranks(counts)).astype(np.int64)
     return gather, mask, scatter
+
+
+def _prefix(counts: np.ndarray) -> np.ndarray:
+    counts = np.asarray(counts, dtype=np.int64)
+    return np.cumsum(counts) - counts
 
 
 def _local_ranks(counts: np.ndarray) -> np.ndarray:
@@ -129,9 +180,51 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
         m = mask.reshape(mask.shape + (1,) * (out.ndim - mask.ndim))
         return np.where(m, out, fill)
 
+    # joint-dynamics rows: an actuator row per PD/velocity DoF, a passive row per DoF with
+    # armature, damping or a spring (formulation.md §3.2; docs/conventions.md "Actuation")
+    dof_local = _local_ranks(model.world_dof_count)
+    is_pd = np.isin(model.dof_act_mode, (int(ActuationMode.POSITION), int(ActuationMode.VELOCITY)))
+    is_passive = (model.dof_armature > 0) | (model.dof_damping > 0) | (model.dof_stiffness > 0)
+    dof_world = np.repeat(np.arange(W), model.world_dof_count)
+    dyn_world = np.concatenate([dof_world[is_pd], dof_world[is_passive]])
+    dyn_dof = np.concatenate([dof_local[is_pd], dof_local[is_passive]])
+    dyn_kind = np.concatenate([np.full(is_pd.sum(), DYN_ACTUATOR), np.full(is_passive.sum(), DYN_PASSIVE)])
+    order = np.lexsort((dyn_dof, dyn_kind, dyn_world))  # per world: actuator rows, then passive rows
+    dyn_count = np.bincount(dyn_world, minlength=W)
+    ndyn = int(dyn_count.max()) if dyn_world.size else 0
+    yg, ymask, _ = _pad_index(_prefix(dyn_count), dyn_count, ndyn)
+    limited = np.isfinite(model.dof_lower) | np.isfinite(model.dof_upper)
+    lim_count = np.bincount(dof_world[limited], minlength=W)
+    nl = int(lim_count.max()) if limited.any() else 0
+    lg, lmask, _ = _pad_index(_prefix(lim_count), lim_count, nl)
+
+    # geoms and candidate pairs, grouped by type combination (static per model)
+    ng = int(model.world_geom_count.max()) if model.num_geoms else 0
+    gg, gmask, _ = _pad_index(model.world_geom_start, model.world_geom_count, ng)
+    geom_body_local = np.where(model.geom_body >= 0, model.geom_body - model.world_body_start[model.geom_world], -1)
+    pair_local = _local_ranks(model.world_pair_count)
+    kinds = sorted({(int(model.geom_type[a]), int(model.geom_type[b]))
+                    for a, b in zip(model.pair_geom_a, model.pair_geom_b, strict=True)})
+    geom_local = np.arange(model.num_geoms) - model.world_geom_start[model.geom_world] if model.num_geoms else None
+    groups = []
+    for ta, tb in kinds:
+        sel = np.nonzero((model.geom_type[model.pair_geom_a] == ta) & (model.geom_type[model.pair_geom_b] == tb))[0]
+        cnt = np.bincount(model.pair_world[sel], minlength=W)
+        kg, kmask, _ = _pad_index(_prefix(cnt), cnt, int(cnt.max()))
+        groups.append(PairGroup(
+            geom_a=jnp.asarray(np.where(kmask, geom_local[model.pair_geom_a[sel]][kg], 0), jnp.int32),
+            geom_b=jnp.asarray(np.where(kmask, geom_local[model.pair_geom_b[sel]][kg], 0), jnp.int32),
+            pair=jnp.asarray(np.where(kmask, pair_local[sel][kg], -1), jnp.int32),
+            mask=jnp.asarray(kmask),
+        ))
+    nc = int(model.world_contact_capacity.max()) if W else 0
+    cg, cmask, csc = _pad_index(_prefix(model.world_contact_capacity), model.world_contact_capacity, nc)
+
     eye = np.eye(3)
     f = lambda a: jnp.asarray(a, dtype=dtype)  # noqa: E731
     i = lambda a: jnp.asarray(a, dtype=jnp.int32)  # noqa: E731
+    dof_arr = lambda a, fill=0.0: take(a, dg, dmask, fill)  # noqa: E731
+    geom_arr = lambda a, fill=0.0: take(a, gg, gmask, fill)  # noqa: E731
     padded = PaddedModel(
         body_mask=jnp.asarray(bmask),
         mass=f(take(model.body_mass, bg, bmask, 1.0)),
@@ -152,13 +245,42 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
         dof_axis=i(take(dof_axis, dg, dmask, 0)),
         dof_kind=i(take(dof_kind, dg, dmask, 0)),
         dof_mask=jnp.asarray(dmask),
+        dof_act_mode=i(dof_arr(model.dof_act_mode, 0)),
+        dof_kp=f(dof_arr(model.dof_kp)),
+        dof_kd=f(dof_arr(model.dof_kd)),
+        dof_effort_limit=f(dof_arr(model.dof_effort_limit, np.inf)),
+        dof_armature=f(dof_arr(model.dof_armature)),
+        dof_damping=f(dof_arr(model.dof_damping)),
+        dof_stiffness=f(dof_arr(model.dof_stiffness)),
+        dof_springref=f(dof_arr(model.dof_springref)),
+        dof_lower=f(dof_arr(model.dof_lower, -np.inf)),
+        dof_upper=f(dof_arr(model.dof_upper, np.inf)),
+        dyn_dof=i(take(dyn_dof[order], yg, ymask, 0)),
+        dyn_kind=i(take(dyn_kind[order], yg, ymask, 0)),
+        dyn_mask=jnp.asarray(ymask),
+        lim_dof=i(take(dof_local[limited], lg, lmask, 0)),
+        lim_mask=jnp.asarray(lmask),
+        geom_type=i(geom_arr(model.geom_type, 0)),
+        geom_body=i(geom_arr(geom_body_local, -1)),
+        geom_pos=f(geom_arr(model.geom_pos)),
+        geom_quat=f(geom_arr(model.geom_quat, np.array([0, 0, 0, 1.0]))),
+        geom_size=f(geom_arr(model.geom_size)),
+        geom_friction=f(geom_arr(model.geom_friction)),
+        geom_restitution=f(geom_arr(model.geom_restitution)),
+        geom_margin=f(geom_arr(model.geom_margin)),
+        pair_groups=tuple(groups),
+        contact_capacity=i(model.world_contact_capacity),
+        pair_kinds=tuple(kinds),
+        max_contacts=nc,
     )
     return Layout(
         padded=padded, num_worlds=W, max_bodies=nb, max_joints=nj, max_rows=nr, max_dofs=nd,
         body_gather=bg, body_scatter=bsc, row_gather=rg, row_scatter=rsc, dof_gather=dg, dof_scatter=dsc,
+        max_contacts=nc, contact_gather=cg, contact_scatter=csc,
         dtype=dtype,
         tables={"bg": jnp.asarray(bg), "bs": jnp.asarray(bsc), "rg": jnp.asarray(rg), "rs": jnp.asarray(rsc),
-                "dg": jnp.asarray(dg)},
+                "dg": jnp.asarray(dg), "ds": jnp.asarray(dsc), "cg": jnp.asarray(cg), "cs": jnp.asarray(csc),
+                "cm": jnp.asarray(cmask)},
     )
 
 

@@ -1,8 +1,14 @@
 """Proximal-ADMM on the dual problem of one world (paper Alg. 1; formulation.md §7-§8.1).
 
-    lambda* = argmin_{x in K} 1/2 x^T D x + x^T v_f
+    lambda* = argmin_{x in K} 1/2 x^T D x + x^T (v_f + Gamma(v+(x)))
 
-with ``K = R^{n_bilateral} x R_+^{n_unilateral}`` (contact cones arrive with the contacts issue).
+with the feasible set ``K`` of formulation.md §4.3, extended with bounded rows:
+
+- *box rows* ``[0, n_box)``: ``lo <= lambda <= hi``; bilateral joint rows have ``(-inf, inf)``,
+  limit rows ``[0, inf)``, effort-limited actuator rows ``[-dt tau_max, dt tau_max]``;
+- *contact rows* ``[n_box, n_box + 3 n_c)``: triples ``(t1, t2, n)`` in the Coulomb cone
+  ``||lambda_t|| <= mu lambda_n``, with the De Saxcé correction ``Gamma(v) = (0, 0, mu ||v_t||)``.
+
 The linear system ``(P D P + (eta + rho) I) x = rhs`` is factorised once per step by a dense
 Cholesky and reused by every iteration (§8.1).
 """
@@ -17,15 +23,14 @@ from jax.scipy.linalg import cho_solve
 
 from kamino.config import SolverConfig
 
-ROW_BILATERAL, ROW_UNILATERAL = 0, 1
-
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class PADMMResult:
-    """Solution (unscaled impulses ``lambda = P y``) and the solve's report."""
+    """Solution (unscaled impulses ``lambda = P y``), constraint velocities and the solve's report."""
 
     impulse: jax.Array
+    velocity: jax.Array  # v+ = D lambda + v_f per row (for contacts without the De Saxcé term)
     iterations: jax.Array
     primal_residual: jax.Array
     dual_residual: jax.Array
@@ -33,57 +38,112 @@ class PADMMResult:
     converged: jax.Array
 
 
-def jacobi_preconditioner(D: jax.Array, row_mask: jax.Array, enabled: bool) -> jax.Array:
-    """``P = diag(D)^-1/2`` on active rows, 1 on padded rows (formulation.md §7.2, paper)."""
+def jacobi_preconditioner(D: jax.Array, row_mask: jax.Array, n_box: int, enabled: bool) -> jax.Array:
+    """``P = diag(D)^-1/2`` on active rows, 1 on padded rows (formulation.md §7.2, paper).
+
+    A contact gets one scalar for its three rows, from the largest of their diagonal entries, so
+    that the scaling keeps the isotropic Coulomb cone invariant (§7.2).
+    """
     if not enabled:
         return jnp.ones(D.shape[0], D.dtype)
     eps = jnp.finfo(D.dtype).eps
     d = jnp.abs(jnp.diagonal(D))
+    tri = d[n_box:].reshape(-1, 3)
+    d = jnp.concatenate([d[:n_box], jnp.repeat(jnp.max(tri, axis=1), 3)])
     return jnp.where(row_mask & (d > eps), 1.0 / jnp.sqrt(d + eps), 1.0)
 
 
-def project(x: jax.Array, row_type: jax.Array) -> jax.Array:
-    """Projection on ``K``: identity on bilateral rows, ``max(0, .)`` on unilateral rows (§7.3 step 3)."""
-    return jnp.where(row_type == ROW_UNILATERAL, jnp.maximum(x, 0.0), x)
+def cone_project(x: jax.Array, mu: jax.Array) -> jax.Array:
+    """Projection of triples ``x [n, 3] = (t1, t2, n)`` on the Coulomb cones ``K_mu`` (formulation.md §4.2).
+
+    The polar-cone case is tested first, so ``mu = 0`` and ``x_t = 0`` never divide by zero.
+    """
+    xt, xn = x[:, :2], x[:, 2]
+    s2 = jnp.sum(xt * xt, axis=1)
+    s = jnp.sqrt(jnp.where(s2 > 0, s2, 1.0)) * (s2 > 0)
+    inside = s <= mu * xn
+    polar = mu * s <= -xn
+    yn = (mu * s + xn) / (1.0 + mu * mu)
+    scale = jnp.where(s > 0, mu * yn / jnp.where(s > 0, s, 1.0), 0.0)
+    boundary = jnp.concatenate([xt * scale[:, None], yn[:, None]], axis=1)
+    return jnp.where(inside[:, None], x, jnp.where(polar[:, None], 0.0, boundary))
 
 
-def solve(D: jax.Array, v_f: jax.Array, row_type: jax.Array, row_mask: jax.Array, impulse0: jax.Array,
-          cfg: SolverConfig) -> PADMMResult:
-    """Accelerated PADMM with restart (formulation.md §7.3-§7.5) from the warm start ``impulse0``.
+def de_saxce(z: jax.Array, mu: jax.Array, n_box: int) -> jax.Array:
+    """``Gamma(z)``: ``mu ||z_t||`` on each contact's normal row, zero elsewhere (formulation.md §4.2)."""
+    zc = z[n_box:].reshape(-1, 3)
+    nt = jnp.sqrt(jnp.sum(zc[:, :2] ** 2, axis=1) + jnp.finfo(z.dtype).tiny)
+    corr = jnp.stack([jnp.zeros_like(nt), jnp.zeros_like(nt), mu * nt], axis=1)
+    return jnp.concatenate([jnp.zeros(n_box, z.dtype), corr.reshape(-1)])
 
-    All iterates are in scaled variables (``lambda = P x``, ``v = P^-1 z``); residuals are reported in
-    unscaled units (§7.5). With ``cfg.fixed_iterations`` exactly ``cfg.max_iterations`` iterations run
-    (a ``fori_loop``: differentiable with ``jax.grad``); otherwise a ``while_loop`` stops when the
-    primal, dual and complementarity residuals are all ``<= cfg.tolerance`` (after >= 2 iterations).
+
+def project(x: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, n_box: int) -> jax.Array:
+    """Projection on ``K`` (§7.3 step 3): clip on box rows, Coulomb cone on contact triples."""
+    box = jnp.clip(x[:n_box], lo, hi)
+    cones = cone_project(x[n_box:].reshape(-1, 3), mu).reshape(-1)
+    return jnp.concatenate([box, cones])
+
+
+def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
+          impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig) -> PADMMResult:
+    """Accelerated PADMM with restart (formulation.md §7.3-§7.5) from a warm start.
+
+    ``D`` already holds the regularisation ``R`` of the joint-dynamics rows. ``lo``/``hi`` bound the
+    ``n_box = len(lo)`` box rows; the remaining rows are contact triples with friction ``mu``.
+    ``impulse0`` and ``velocity0`` (the latter including the De Saxcé term on contacts) warm-start
+    ``x``/``y`` and ``z`` (§7.8). All iterates are scaled (``lambda = P x``, ``v = P^-1 z``); residuals
+    are reported in unscaled units (§7.5). ``cfg.fixed_iterations`` runs exactly
+    ``cfg.max_iterations`` iterations (a ``fori_loop``, differentiable); otherwise a ``while_loop``
+    stops when the primal, dual and complementarity residuals are all ``<= cfg.tolerance``.
     """
     dtype = D.dtype
     n = D.shape[0]
+    n_box = lo.shape[0]
     eta, rho = jnp.asarray(cfg.eta, dtype), jnp.asarray(cfg.rho, dtype)
-    P = jacobi_preconditioner(D, row_mask, cfg.preconditioning)
+    P = jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
     Dt = P[:, None] * D * P[None, :]
     vt = jnp.where(row_mask, P * v_f, 0.0)
     L = jnp.linalg.cholesky(Dt + (eta + rho) * jnp.eye(n, dtype=dtype))
-    unilateral = (row_type == ROW_UNILATERAL) & row_mask
+    finite_lo, finite_hi = jnp.isfinite(lo), jnp.isfinite(hi)
+    # bounds on scaled box rows (P > 0); infinite bounds stay infinite without touching P (no inf*0 in grads)
+    lo_s = jnp.where(finite_lo, jnp.where(finite_lo, lo, 0.0) / P[:n_box], lo)
+    hi_s = jnp.where(finite_hi, jnp.where(finite_hi, hi, 0.0) / P[:n_box], hi)
     tol = jnp.asarray(cfg.tolerance, dtype)
     restart_tol = jnp.asarray(cfg.restart_tolerance, dtype)
+    box_bounded = (finite_lo | finite_hi) & row_mask[:n_box]
+    active_contact = row_mask[n_box:].reshape(-1, 3)[:, 2]
 
-    x0 = project(jnp.where(row_mask, impulse0 / P, 0.0), row_type)
-    zeros = jnp.zeros_like(x0)
+    def proj(x):
+        return jnp.where(row_mask, project(x, lo_s, hi_s, mu, n_box), 0.0)
+
+    def complementarity(y, z):
+        yb, zb = y[:n_box], z[:n_box]
+        gap = jnp.minimum(jnp.where(finite_lo, jnp.abs(yb - jnp.where(finite_lo, lo_s, 0.0)), jnp.inf),
+                          jnp.where(finite_hi, jnp.abs(jnp.where(finite_hi, hi_s, 0.0) - yb), jnp.inf))
+        r_box = jnp.where(box_bounded, jnp.abs(zb) * jnp.where(box_bounded, gap, 0.0), 0.0)
+        yc, zc = y[n_box:].reshape(-1, 3), z[n_box:].reshape(-1, 3)
+        r_con = jnp.where(active_contact, jnp.abs(jnp.sum(yc * zc, axis=1)), 0.0)
+        return jnp.maximum(jnp.max(r_box, initial=0.0), jnp.max(r_con, initial=0.0))
+
+    x0 = proj(jnp.where(row_mask, impulse0 / P, 0.0))
+    z0 = jnp.where(row_mask, P * velocity0, 0.0)
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
     # carry: k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, r_p, r_d, r_c, converged
-    init = (jnp.int32(0), x0, x0, zeros, x0, zeros, jnp.asarray(1.0, dtype), big,
+    init = (jnp.int32(0), x0, x0, z0, x0, z0, jnp.asarray(1.0, dtype), big,
             big, big, big, jnp.asarray(False))
 
     def iterate(carry):
         k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _ = carry
-        # step 2 (linear solve with the cached factor), steps 3-4 (projection, dual update)
-        x = cho_solve((L, True), -vt + eta * x_p + rho * y_hat + z_hat)
-        y = project(x - z_hat / rho, row_type)
-        z = z_hat + rho * (y - x)
+        # step 1-2: De Saxcé correction, linear solve with the cached factor
+        s = de_saxce(z_hat, mu, n_box)
+        x = cho_solve((L, True), -vt - s + eta * x_p + rho * y_hat + z_hat)
+        # steps 3-4: projection on K, dual update
+        y = proj(x - z_hat / rho)
+        z = jnp.where(row_mask, z_hat + rho * (y - x), 0.0)
         # §7.5 residuals in unscaled units
         r_p = jnp.max(jnp.abs(P * (x - y)), initial=0.0)
         r_d = jnp.max(jnp.abs((eta * (x - x_p) + rho * (y - y_hat)) / P), initial=0.0)
-        r_c = jnp.max(jnp.where(unilateral, jnp.abs(x * z), 0.0), initial=0.0)
+        r_c = complementarity(y, z)
         converged = (k + 1 >= 2) & (r_p <= tol) & (r_d <= tol) & (r_c <= tol)
         if cfg.acceleration:
             # §7.4 Fast ADMM with restart on the combined residual
@@ -96,7 +156,6 @@ def solve(D: jax.Array, v_f: jax.Array, row_type: jax.Array, row_mask: jax.Array
             c_n = jnp.where(keep, c, c_p / restart_tol)
         else:
             a, y_hat_n, z_hat_n, c_n = a_p, y, z, c_p
-        # a converged world keeps its final iterate: report y (the feasible point) as y_p
         return (k + 1, x, y, z, y_hat_n, z_hat_n, a, c_n, r_p, r_d, r_c, converged)
 
     if cfg.fixed_iterations:
@@ -105,9 +164,11 @@ def solve(D: jax.Array, v_f: jax.Array, row_type: jax.Array, row_mask: jax.Array
         out = jax.lax.while_loop(
             lambda c: (~c[-1]) & (c[0] < cfg.max_iterations), iterate, init
         )
-    k, _, y, _, _, _, _, _, r_p, r_d, r_c, converged = out
+    k, _, y, z, _, _, _, _, r_p, r_d, r_c, converged = out
+    v = (z - de_saxce(z, mu, n_box)) / P  # §7.7: v+ = z - Gamma(z), unscaled
     return PADMMResult(
         impulse=jnp.where(row_mask, P * y, 0.0),
+        velocity=jnp.where(row_mask, v, 0.0),
         iterations=k,
         primal_residual=r_p,
         dual_residual=r_d,

@@ -1,6 +1,8 @@
-"""One time step of one world, and its vmapped/jitted batch over worlds (formulation.md §5-§6).
+"""One time step of one world, and its vmapped/jitted batch over worlds (formulation.md §3-§6).
 
-Pipeline (architecture.md, backend contract): kinematics -> dynamics -> PADMM -> integrate.
+Pipeline (architecture.md, backend contract): kinematics -> collision -> dynamics -> PADMM ->
+integrate. Rows of a world, in order (formulation.md §7.1): joint-dynamics rows (actuators, then
+armature/damping/springs) | joint kinematic rows | limit rows | contact triples ``(t1, t2, n)``.
 """
 
 from __future__ import annotations
@@ -12,11 +14,52 @@ import jax
 import jax.numpy as jnp
 
 from kamino.config import SolverConfig
+from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import padmm
 from kamino.jax_ref.dynamics import apply_inv_mass, body_dynamics, delassus, nonlinear_force
-from kamino.jax_ref.joints import constraint_jacobian, constraint_residual, dof_jacobian, joint_frames
-from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.joints import (
+    constraint_jacobian,
+    constraint_residual,
+    dof_jacobian,
+    dof_positions,
+    joint_frames,
+)
+from kamino.jax_ref.layout import DYN_ACTUATOR, PaddedModel
 from kamino.jax_ref.spatial import integrate_pose
+from kamino.model import ActuationMode
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class WorldCache:
+    """What a world carries from one step to the next: the reactions (warm start) and contacts.
+
+    Forces are ``lambda / dt``: ``kin`` per kinematic row, ``actuator``/``passive``/``limit`` per DoF
+    (generalized forces), contacts in world frame on geom b's body.
+    """
+
+    kin: jax.Array  # [nr]
+    actuator: jax.Array  # [nd]
+    passive: jax.Array  # [nd]
+    limit: jax.Array  # [nd] signed generalized force
+    contact_pair: jax.Array  # [C]
+    contact_pos: jax.Array  # [C, 3]
+    contact_normal: jax.Array  # [C, 3]
+    contact_dist: jax.Array  # [C]
+    contact_force: jax.Array  # [C, 3]
+    contact_velocity: jax.Array  # [C, 3]
+    contact_point_b: jax.Array  # [C, 3]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class WorldControl:
+    """One world's inputs (padded): DoF efforts, body wrenches, position and velocity targets."""
+
+    effort: jax.Array  # [nd]
+    wrench: jax.Array  # [nb, 6]
+    position_target: jax.Array  # [nd]
+    velocity_target: jax.Array  # [nd]
 
 
 @jax.tree_util.register_dataclass
@@ -26,8 +69,10 @@ class WorldStep:
 
     body_q: jax.Array
     body_u: jax.Array
-    impulse: jax.Array
+    cache: WorldCache
     solve: padmm.PADMMResult
+    num_contacts: jax.Array
+    contact_overflow: jax.Array
 
 
 def _deadband(x: jax.Array, delta) -> jax.Array:
@@ -68,56 +113,204 @@ def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: ja
     return jnp.where(pm.row_mask, bias / h, 0.0)
 
 
+def explicit_effort(pm: PaddedModel, effort: jax.Array) -> jax.Array:
+    """Efforts applied as body wrenches ``J_dofs^T tau`` (formulation.md §3.1): as given on PASSIVE
+    DoFs, clipped to the effort limit on EFFORT DoFs, none on POSITION/VELOCITY DoFs (there the
+    effort is the actuator row's feed-forward)."""
+    mode = pm.dof_act_mode
+    lim = pm.dof_effort_limit
+    tau = jnp.where(mode == ActuationMode.EFFORT, jnp.clip(effort, -lim, lim), effort)
+    explicit = (mode == ActuationMode.PASSIVE) | (mode == ActuationMode.EFFORT)
+    return jnp.where(pm.dof_mask & explicit, tau, 0.0)
+
+
+def dynamics_rows(pm: PaddedModel, q_dof: jax.Array, qd_minus: jax.Array, ctrl: WorldControl, h,
+                  cfg: SolverConfig):
+    """Regularisation ``R``, bias ``v*`` and impulse bounds of the joint-dynamics rows (formulation.md §3.2).
+
+    Each row is the DoF row of ``J_dofs``; with ``m`` the row's implicit inertia the row equation
+    ``J u+ + lambda/m + v* = 0`` reads ``m qd+ = p0 - lambda``, i.e. backward-Euler dynamics:
+
+    - actuator row (POSITION/VELOCITY DoFs): ``m = dt (kd + h kp)``, ``p0 = dt (tau_ff + kp (q_ref -
+      q) + kd qd_ref)`` (kp only in POSITION mode), so that ``lambda = dt [tau_ff + kp (q_ref - q -
+      h qd+) + kd (qd_ref - qd+)]`` is the PD impulse at the end of the step; the effort limit bounds
+      it: ``|lambda| <= dt tau_max`` (a box row, enforced by PADMM);
+    - passive row (armature ``a``, damping ``b``, spring ``k`` at ``q_s``): ``m = a + dt b + dt h k``,
+      ``p0 = a qd- + dt k (q_s - q)``.
+
+    ``q`` is evaluated where the dynamics are built; ``h`` is the pose update after the solve.
+    """
+    dt = cfg.dt
+    d = pm.dyn_dof
+    is_act = pm.dyn_kind == DYN_ACTUATOR
+    pos_mode = pm.dof_act_mode[d] == ActuationMode.POSITION
+    kp, kd = jnp.where(pos_mode, pm.dof_kp[d], 0.0), pm.dof_kd[d]
+    q, qd = q_dof[d], qd_minus[d]
+    m_act = dt * (kd + h * kp)
+    p_act = dt * (ctrl.effort[d] + kp * (ctrl.position_target[d] - q) + kd * ctrl.velocity_target[d])
+    a, b, k = pm.dof_armature[d], pm.dof_damping[d], pm.dof_stiffness[d]
+    m_pas = a + dt * b + dt * h * k
+    p_pas = a * qd + dt * k * (pm.dof_springref[d] - q)
+    m = jnp.maximum(jnp.where(is_act, m_act, m_pas), 1e-6)
+    p0 = jnp.where(is_act, p_act, p_pas)
+    bound = jnp.where(is_act, dt * pm.dof_effort_limit[d], jnp.inf)
+    mask = pm.dyn_mask
+    return (jnp.where(mask, 1.0 / m, 0.0), jnp.where(mask, -p0 / m, 0.0),
+            jnp.where(mask, -bound, -jnp.inf), jnp.where(mask, bound, jnp.inf))
+
+
+def limit_rows(pm: PaddedModel, q_dof: jax.Array, qd_free: jax.Array, h, cfg: SolverConfig):
+    """Side, activity and bias of the limit rows (formulation.md §4.1, with speculative activation).
+
+    Each limited DoF watches its nearer limit: ``r = q - q_min`` (side ``+1``) or ``q_max - q``
+    (side ``-1``). The row ``side * J_dof`` is active when ``r <= margin + h max(0, -side qd_f)``
+    (it can be reached in this step); its bias is ``r / h`` for ``r > 0`` (the DoF may close the gap,
+    not more) and ``beta r / h`` for a violation.
+    """
+    d = pm.lim_dof
+    q = q_dof[d]
+    r_lo, r_hi = q - pm.dof_lower[d], pm.dof_upper[d] - q
+    side = jnp.where(r_lo <= r_hi, 1.0, -1.0)
+    r = jnp.minimum(r_lo, r_hi)
+    approach = jnp.maximum(-side * qd_free[d], 0.0)
+    active = pm.lim_mask & (r < cfg.limit_margin + h * approach)
+    r_safe = jnp.where(active, r, 0.0)
+    bias = jnp.where(r_safe > 0, r_safe / h, cfg.limit_baumgarte * r_safe / h)
+    return side, active, jnp.where(active, bias, 0.0)
+
+
 def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array, body_u: jax.Array,
-                          force_prev: jax.Array, wrench: jax.Array, effort: jax.Array, h, cfg: SolverConfig):
+                          cache: WorldCache, ctrl: WorldControl, h, cfg: SolverConfig):
     """Build the dynamics at ``q_eval``, solve PADMM and return ``u+`` (formulation.md §6.2 steps 1-3).
 
-    ``q_start`` is the pose at the start of the step (for the stabilisation target), ``h`` the
-    duration of the pose update that follows the solve, ``force_prev`` the previous step's
-    reactions (the warm start, §7.8).
+    ``q_start`` is the pose at the start of the step (stabilisation target), ``h`` the duration of
+    the pose update that follows the solve, ``cache`` the previous step's reactions and contacts.
     """
     dt = cfg.dt
     nb = body_u.shape[0]
+    dtype = body_u.dtype
     jf = joint_frames(pm, q_eval)
     bd = body_dynamics(pm, q_eval)
     J_dofs = dof_jacobian(pm, jf, nb)
-    actuation = (J_dofs.T @ jnp.where(pm.dof_mask, effort, 0.0)).reshape(nb, 6)  # w^a = J_dofs^T tau (§3.1)
-    h_force = nonlinear_force(pm, bd, body_u, pm.gravity, wrench + actuation)
+    actuation = (J_dofs.T @ explicit_effort(pm, ctrl.effort)).reshape(nb, 6)  # w^a = J_dofs^T tau (§3.1)
+    h_force = nonlinear_force(pm, bd, body_u, pm.gravity, ctrl.wrench + actuation)
     u_f = body_u + dt * apply_inv_mass(bd, h_force)  # §1.4 free velocity
-    if pm.row_mask.shape[0] == 0:
-        empty = jnp.zeros(0, body_u.dtype)
-        z = jnp.asarray(0.0, body_u.dtype)
-        return u_f, padmm.PADMMResult(empty, jnp.int32(0), z, z, z, jnp.asarray(True))
+    u_vec, uf_vec = body_u.reshape(nb * 6), u_f.reshape(nb * 6)
+    q_dof = dof_positions(pm, jf)
+    qd_minus, qd_free = J_dofs @ u_vec, J_dofs @ uf_vec
+
+    # joint-dynamics rows
+    d = pm.dyn_dof
+    J_dyn = jnp.where(pm.dyn_mask[:, None], J_dofs[d], 0.0)
+    R_dyn, vs_dyn, lo_dyn, hi_dyn = dynamics_rows(pm, q_dof, qd_minus, ctrl, h, cfg)
+    # kinematic joint rows
     e_eval = constraint_residual(pm, jf)
     e_start = e_eval if q_start is q_eval else constraint_residual(pm, joint_frames(pm, q_start))
-    J = constraint_jacobian(pm, jf, nb)
-    v_star = joint_bias(pm, q_eval, u_f, e_eval, e_start, J, h, cfg)
-    v_f = J @ u_f.reshape(nb * 6) + v_star  # §5
-    D = delassus(J, bd)  # R = 0: no dynamic rows yet (actuation issue)
-    row_type = jnp.full(e_eval.shape, padmm.ROW_BILATERAL, jnp.int32)
-    impulse0 = (cfg.warmstart_scale * dt) * force_prev if cfg.warm_start else jnp.zeros_like(force_prev)
-    res = padmm.solve(D, v_f, row_type, pm.row_mask, impulse0, cfg)
+    J_kin = constraint_jacobian(pm, jf, nb)
+    vs_kin = joint_bias(pm, q_eval, u_f, e_eval, e_start, J_kin, h, cfg) if e_eval.shape[0] else e_eval
+    # limit rows
+    side, lim_active, vs_lim = limit_rows(pm, q_dof, qd_free, h, cfg)
+    J_lim = jnp.where(lim_active[:, None], side[:, None] * J_dofs[pm.lim_dof], 0.0)
+    # contact rows
+    ct = cts.detect(pm, q_eval, body_u, u_f, h, cfg)
+    J_con = cts.contact_jacobian(ct, q_eval, nb)
+    vn_minus = (J_con @ u_vec).reshape(-1, 3)[:, 2]
+    vs_con = cts.contact_bias(ct, vn_minus, h, cfg)
+
+    J = jnp.concatenate([J_dyn, J_kin, J_lim, J_con], axis=0)
+    n_dyn, n_kin, n_lim = J_dyn.shape[0], J_kin.shape[0], J_lim.shape[0]
+    n_box = n_dyn + n_kin + n_lim
+    if J.shape[0] == 0:
+        z = jnp.asarray(0.0, dtype)
+        empty = jnp.zeros(0, dtype)
+        return u_f, padmm.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True)), ct, side
+    con_mask = jnp.repeat(ct.mask, 3)
+    row_mask = jnp.concatenate([pm.dyn_mask, pm.row_mask, lim_active, con_mask])
+    v_star = jnp.concatenate([vs_dyn, vs_kin, vs_lim, vs_con])
+    R = jnp.concatenate([R_dyn, jnp.zeros(n_kin + n_lim + con_mask.shape[0], dtype)])
+    inf = jnp.full(n_kin, jnp.inf, dtype)
+    lo = jnp.concatenate([lo_dyn, -inf, jnp.zeros(n_lim, dtype)])
+    hi = jnp.concatenate([hi_dyn, inf, jnp.full(n_lim, jnp.inf, dtype)])
+    D = delassus(J, bd) + jnp.diag(R)
+    v_f = J @ uf_vec + v_star  # §5
+
+    # warm start (§7.8): previous reactions, contacts matched by geom pair and point on geom b
+    frames = cts.contact_frames(ct.normal)
+    point_b = cts.local_point_b(ct, q_eval)
+    j, found = cts.match_previous(ct, point_b, cache.contact_pair, cache.contact_point_b, cfg.contact_match_distance)
+    found = found & ct.mask
+    f_prev = jnp.einsum("cji,cj->ci", frames, cache.contact_force[j])  # C_new^T f_world
+    v_prev = jnp.einsum("cji,cj->ci", frames, cache.contact_velocity[j])
+    f_prev = jnp.where(found[:, None], padmm.cone_project(f_prev, ct.mu), 0.0)
+    v_prev = jnp.where(found[:, None], v_prev, 0.0)
+    v_prev = v_prev + padmm.de_saxce(v_prev.reshape(-1), ct.mu, 0).reshape(-1, 3)
+    act_prev = jnp.where(pm.dyn_kind == DYN_ACTUATOR, cache.actuator[d], cache.passive[d])
+    force0 = jnp.concatenate([act_prev, cache.kin, jnp.maximum(side * cache.limit[pm.lim_dof], 0.0),
+                              f_prev.reshape(-1)])
+    impulse0 = (cfg.warmstart_scale * dt) * force0 if cfg.warm_start else jnp.zeros_like(force0)
+    velocity0 = jnp.concatenate([jnp.zeros(n_box, dtype), v_prev.reshape(-1)])
+    if not cfg.warm_start:
+        velocity0 = jnp.zeros_like(velocity0)
+    res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg)
     u_plus = u_f + apply_inv_mass(bd, (J.T @ res.impulse).reshape(nb, 6))  # u+ = u_f + M^-1 J^T lambda
-    return u_plus, res
+    return u_plus, res, ct, side
 
 
-def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, force0: jax.Array, effort: jax.Array,
-               wrench: jax.Array, cfg: SolverConfig) -> WorldStep:
+def _new_cache(pm: PaddedModel, q_eval, res: padmm.PADMMResult, ct: cts.Contacts, side, ctrl: WorldControl,
+               cache: WorldCache, cfg: SolverConfig) -> WorldCache:
+    """Split the solve's impulses into the per-family forces ``lambda / dt`` the State carries."""
+    dt = cfg.dt
+    nd = pm.dof_mask.shape[0]
+    n_dyn, n_kin, n_lim = pm.dyn_mask.shape[0], pm.row_mask.shape[0], pm.lim_mask.shape[0]
+    if res.impulse.shape[0] == 0:
+        f = jnp.zeros(0, q_eval.dtype)
+        v = jnp.zeros(0, q_eval.dtype)
+    else:
+        f, v = res.impulse / dt, res.velocity
+    f_dyn, f_kin, f_lim = f[:n_dyn], f[n_dyn:n_dyn + n_kin], f[n_dyn + n_kin:n_dyn + n_kin + n_lim]
+    C = ct.pair.shape[0]
+    f_con = f[n_dyn + n_kin + n_lim:].reshape(C, 3)
+    v_con = v[n_dyn + n_kin + n_lim:].reshape(C, 3)
+    frames = cts.contact_frames(ct.normal)
+    d = pm.dyn_dof
+    is_act = (pm.dyn_kind == DYN_ACTUATOR) & pm.dyn_mask
+    is_pas = (pm.dyn_kind != DYN_ACTUATOR) & pm.dyn_mask
+    zeros = jnp.zeros(nd, q_eval.dtype)
+    actuator = explicit_effort(pm, ctrl.effort).at[d].add(jnp.where(is_act, f_dyn, 0.0))
+    passive = zeros.at[d].add(jnp.where(is_pas, f_dyn, 0.0))
+    limit = zeros.at[pm.lim_dof].add(jnp.where(pm.lim_mask, side * f_lim, 0.0))
+    cmask = ct.mask[:, None]
+    return WorldCache(
+        kin=f_kin,
+        actuator=actuator,
+        passive=passive,
+        limit=limit,
+        contact_pair=ct.pair,
+        contact_pos=ct.pos,
+        contact_normal=ct.normal,
+        contact_dist=ct.dist,
+        contact_force=jnp.where(cmask, jnp.einsum("cij,cj->ci", frames, f_con), 0.0),
+        contact_velocity=jnp.where(cmask, jnp.einsum("cij,cj->ci", frames, v_con), 0.0),
+        contact_point_b=jnp.where(cmask, cts.local_point_b(ct, q_eval), 0.0),
+    )
+
+
+def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, cache: WorldCache, ctrl: WorldControl,
+               cfg: SolverConfig) -> WorldStep:
     """Advance one world by ``cfg.dt`` (formulation.md §6.2 Euler, §6.3 Moreau-Jean midpoint)."""
     dt = cfg.dt
     if cfg.integrator == "euler":
-        u_plus, res = _constrained_velocity(pm, body_q, body_q, body_u, force0, wrench, effort, dt, cfg)
-        u_plus = _angular_damping(u_plus, cfg)
-        q_plus = integrate_pose(body_q, u_plus, dt)
+        q_eval, h = body_q, dt
     else:
-        q_mid = integrate_pose(body_q, body_u, 0.5 * dt)
-        u_plus, res = _constrained_velocity(pm, body_q, q_mid, body_u, force0, wrench, effort, 0.5 * dt, cfg)
-        u_plus = _angular_damping(u_plus, cfg)
-        q_plus = integrate_pose(q_mid, u_plus, 0.5 * dt)
+        q_eval, h = integrate_pose(body_q, body_u, 0.5 * dt), 0.5 * dt
+    u_plus, res, ct, side = _constrained_velocity(pm, body_q, q_eval, body_u, cache, ctrl, h, cfg)
+    u_plus = _angular_damping(u_plus, cfg)
+    q_plus = integrate_pose(q_eval, u_plus, h)
     mask = pm.body_mask[:, None]
     q_plus = jnp.where(mask, q_plus, body_q)
     u_plus = jnp.where(mask, u_plus, body_u)
-    return WorldStep(body_q=q_plus, body_u=u_plus, impulse=res.impulse, solve=res)
+    return WorldStep(body_q=q_plus, body_u=u_plus, cache=_new_cache(pm, q_eval, res, ct, side, ctrl, cache, cfg),
+                     solve=res, num_contacts=jnp.minimum(ct.count, pm.contact_capacity), contact_overflow=ct.overflow)
 
 
 def _angular_damping(u: jax.Array, cfg: SolverConfig) -> jax.Array:
@@ -127,16 +320,21 @@ def _angular_damping(u: jax.Array, cfg: SolverConfig) -> jax.Array:
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
-def step_batch(pm: PaddedModel, body_q, body_u, force0, effort, wrench, cfg: SolverConfig):
+def step_batch(pm: PaddedModel, body_q, body_u, cache: WorldCache, ctrl: WorldControl, cfg: SolverConfig):
     """``step_world`` vmapped over worlds (all arrays padded, leading axis = world).
 
     A world whose new state is non-finite keeps its previous state and is flagged ``failed``.
     """
-    out = jax.vmap(step_world, in_axes=(0, 0, 0, 0, 0, 0, None))(pm, body_q, body_u, force0, effort, wrench, cfg)
+    out = jax.vmap(step_world, in_axes=(0, 0, 0, 0, 0, None))(pm, body_q, body_u, cache, ctrl, cfg)
     finite = jnp.all(jnp.isfinite(out.body_q), axis=(1, 2)) & jnp.all(jnp.isfinite(out.body_u), axis=(1, 2))
-    finite = finite & jnp.all(jnp.isfinite(out.impulse), axis=-1)
-    keep = finite[:, None, None]
-    q = jnp.where(keep, out.body_q, body_q)
-    u = jnp.where(keep, out.body_u, body_u)
-    force = jnp.where(finite[:, None], out.impulse / cfg.dt, force0)
-    return q, u, force, out.solve, ~finite
+    for leaf in jax.tree_util.tree_leaves(out.cache):
+        if jnp.issubdtype(leaf.dtype, jnp.floating):
+            finite = finite & jnp.all(jnp.isfinite(leaf).reshape(leaf.shape[0], -1), axis=1)
+
+    def keep(new, old):
+        return jnp.where(finite.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+
+    q = keep(out.body_q, body_q)
+    u = keep(out.body_u, body_u)
+    new_cache = jax.tree_util.tree_map(keep, out.cache, cache)
+    return q, u, new_cache, out, ~finite

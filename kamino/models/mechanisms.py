@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kamino.model import JointType, Model, ModelBuilder
+from kamino.model import Actuation, JointType, Model, ModelBuilder
 from kamino.models.shapes import add_link, box_inertia
 
 Y = (0.0, 1.0, 0.0)
@@ -74,7 +74,8 @@ def _circle_intersection(c0, r0, c1, r1, upper: bool = True) -> np.ndarray:
 
 def fourbar(ground: float = 0.3, crank: float = 0.18, coupler: float = 0.26, rocker: float = 0.24,
             crank_angle: float = -1.2, coupler_above: bool = True, linear_density: float = 2.0,
-            radius: float = 0.01, height: float = 1.0, gravity: float = 9.81) -> Model:
+            radius: float = 0.01, height: float = 1.0, gravity: float = 9.81, actuated: bool = False,
+            kp: float = 50.0, kd: float = 2.0, effort_limit: float = float("inf")) -> Model:
     """Planar four-bar linkage in the xz plane (a Grashof crank-rocker: shortest link = crank).
 
     Bodies: ``ground`` (fixed to the world by a FIXED joint), ``crank``, ``coupler``, ``rocker``,
@@ -85,6 +86,9 @@ def fourbar(ground: float = 0.3, crank: float = 0.18, coupler: float = 0.26, roc
     (``coupler_above``), out of equilibrium, so the linkage swings under gravity.
     ``fourbar(crank=0.1, coupler=0.3, rocker=0.2, crank_angle=np.pi / 3, coupler_above=True)`` is
     a hard case: released above, the light crank whips round at up to 25 rad/s.
+    With ``actuated=True`` the crank joint ``ground_crank`` is driven by an implicit PD position
+    actuator (``kp`` [N m/rad], ``kd`` [N m s/rad], ``effort_limit`` [N m]); its target is
+    ``kamino.Control.position_target`` (DoF 0 of the model).
     """
     b = ModelBuilder(gravity=(0.0, 0.0, -gravity))
     A = np.array([0.0, 0.0, height])
@@ -96,7 +100,8 @@ def fourbar(ground: float = 0.3, crank: float = 0.18, coupler: float = 0.26, roc
     co = add_link(b, B, C, linear_density * coupler, radius, "coupler")
     ro = add_link(b, Dp, C, linear_density * rocker, radius, "rocker")
     b.add_joint_at(JointType.FIXED, -1, g, anchor=0.5 * (A + Dp), name="fix")
-    b.add_joint_at(JointType.REVOLUTE, g, cr, anchor=A, axis=Y, name="ground_crank")
+    drive = Actuation(mode="position", kp=kp, kd=kd, effort_limit=effort_limit) if actuated else None
+    b.add_joint_at(JointType.REVOLUTE, g, cr, anchor=A, axis=Y, name="ground_crank", actuation=drive)
     b.add_joint_at(JointType.REVOLUTE, cr, co, anchor=B, axis=Y, name="crank_coupler")
     b.add_joint_at(JointType.REVOLUTE, co, ro, anchor=C, axis=Y, name="coupler_rocker")
     b.add_joint_at(JointType.REVOLUTE, ro, g, anchor=Dp, axis=Y, name="rocker_ground")

@@ -1,0 +1,254 @@
+"""Contact detection, contact rows and contact warm start for one world (formulation.md §4.2, §7.8).
+
+``detect`` runs the narrow phase (``kamino.jax_ref.collision``) on the model's candidate pairs,
+decides which points are active this step (speculative activation, restitution timing) and packs
+the active ones, in pair order, into the world's fixed contact capacity. ``contact_rows`` builds
+the three rows per contact ``(t1, t2, n)`` and their bias; ``warm_start`` matches the new
+contacts to the previous step's by geom pair and position.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from kamino.config import SolverConfig
+import importlib  # TEMP
+from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.spatial import quat_mul, quat_to_matrix
+from kamino.model import GeomType
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Contacts:
+    """Active contacts of one world, padded to the capacity ``C`` (arrays ``[C, ...]``).
+
+    ``normal`` points from geom a (body ``body_a``, -1 the world) to geom b; ``pos`` is the
+    midpoint of the witness points ``pos -/+ normal dist/2``; ``dist`` < 0 is penetration.
+    """
+
+    pair: jax.Array  # [C] world-local pair index (-1: empty slot)
+    body_a: jax.Array
+    body_b: jax.Array
+    pos: jax.Array
+    normal: jax.Array
+    dist: jax.Array
+    mu: jax.Array
+    restitution: jax.Array
+    margin: jax.Array
+    mask: jax.Array
+    count: jax.Array  # active contacts found (may exceed the capacity)
+    overflow: jax.Array  # contacts dropped for lack of capacity
+
+
+def geom_poses(pm: PaddedModel, body_q: jax.Array) -> jax.Array:
+    """World poses ``[ng, 7]`` of the geoms: body pose composed with the geom's local pose."""
+    on_body = pm.geom_body >= 0
+    bq = body_q[jnp.where(on_body, pm.geom_body, 0)]
+    R = quat_to_matrix(bq[:, 3:])
+    p = bq[:, :3] + jnp.einsum("gij,gj->gi", R, pm.geom_pos)
+    q = quat_mul(bq[:, 3:], pm.geom_quat)
+    pose = jnp.concatenate([p, q], axis=-1)
+    return jnp.where(on_body[:, None], pose, jnp.concatenate([pm.geom_pos, pm.geom_quat], axis=-1))
+
+
+def _bounding_radius(pm: PaddedModel) -> jax.Array:
+    """Distance from a body's CoM that bounds each geom (planes: their offset only; see docstring of
+    ``detect``)."""
+    s = pm.geom_size
+    r = jnp.select(
+        [pm.geom_type == GeomType.SPHERE, pm.geom_type == GeomType.CAPSULE, pm.geom_type == GeomType.BOX,
+         pm.geom_type == GeomType.CYLINDER],
+        [s[:, 0], s[:, 0] + s[:, 1], jnp.linalg.norm(s, axis=-1), jnp.hypot(s[:, 0], s[:, 1])],
+        0.0,
+    )
+    return r + jnp.linalg.norm(pm.geom_pos, axis=-1)
+
+
+def point_velocity(body_u: jax.Array, body_q: jax.Array, body: jax.Array, x: jax.Array) -> jax.Array:
+    """World velocity of the material point at ``x`` of ``body`` (zero for the world, -1)."""
+    b = jnp.where(body >= 0, body, 0)
+    u = body_u[b]
+    v = u[:, :3] + jnp.cross(u[:, 3:], x - body_q[b, :3])
+    return jnp.where((body >= 0)[:, None], v, 0.0)
+
+
+def _approach_velocity(body_q, body_u, body_a, body_b, pos, normal, dist):
+    x_a = pos - 0.5 * dist[:, None] * normal
+    x_b = pos + 0.5 * dist[:, None] * normal
+    dv = point_velocity(body_u, body_q, body_b, x_b) - point_velocity(body_u, body_q, body_a, x_a)
+    return jnp.sum(dv * normal, axis=-1)
+
+
+def detect(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, body_u_free: jax.Array, h,
+           cfg: SolverConfig) -> Contacts:
+    """Active contacts of one world at pose ``body_q`` (formulation.md §4.2).
+
+    A point is active when its gap is within the pair's margin plus what the approach speed of the
+    free velocity ``body_u_free`` closes in the pose update that follows (``h``):
+    ``d <= m_a + m_b + cfg.contact_margin + h max(0, -v_n)`` (speculative contacts: fast bodies do
+    not tunnel, resting ones do not sink). A speculative contact stops its bodies exactly at contact,
+    which is an inelastic impact, so contacts with restitution are not speculative: they are active
+    when touching (``d <= m_a + m_b + cfg.contact_deadband``) or, when approaching (at the
+    start-of-step velocity ``body_u``) faster than ``cfg.restitution_threshold``, at the step
+    boundary nearest to the impact (``d < h |v_n| / 2``; otherwise the impact happens next step, at a
+    penetration below ``h |v_n| / 2``), docs/conventions.md "Contacts". The narrow phase
+    is called with a margin widened by a bound of the pair's approach speed (planes attached to
+    bodies contribute their body's linear speed only).
+    """
+    C = pm.max_contacts
+    dtype = body_q.dtype
+    gpose = geom_poses(pm, body_q)
+    rad = _bounding_radius(pm)
+    gb = pm.geom_body
+    gsafe = jnp.where(gb >= 0, gb, 0)
+    g_lin = jnp.where((gb >= 0)[:, None], body_u_free[gsafe, :3], 0.0)
+    g_ang = jnp.where(gb >= 0, jnp.linalg.norm(body_u_free[gsafe, 3:], axis=-1), 0.0)
+
+    fields = {k: [] for k in ("pair", "a", "b", "pos", "normal", "dist")}
+    for (ta, tb), grp in zip(pm.pair_kinds, pm.pair_groups, strict=True):
+        a, b = grp.geom_a, grp.geom_b
+        speed = jnp.linalg.norm(g_lin[b] - g_lin[a], axis=-1) + g_ang[a] * rad[a] + g_ang[b] * rad[b]
+        margin = pm.geom_margin[a] + pm.geom_margin[b] + cfg.contact_margin + h * speed
+        collide = importlib.import_module("kamino.jax_ref.collision").collide  # TEMP
+        cp = jax.vmap(lambda pa, sa, pb, sb, m, ta=ta, tb=tb: collide(ta, tb, pa, sa, pb, sb, m))(
+            gpose[a], pm.geom_size[a], gpose[b], pm.geom_size[b], margin)
+        k = cp.dist.shape[1]
+        ok = cp.valid & grp.mask[:, None]
+        fields["pair"].append(jnp.where(ok, grp.pair[:, None], -1).reshape(-1))
+        fields["a"].append(jnp.repeat(a, k))
+        fields["b"].append(jnp.repeat(b, k))
+        fields["pos"].append(cp.pos.reshape(-1, 3))
+        fields["normal"].append(cp.normal.reshape(-1, 3))
+        fields["dist"].append(cp.dist.reshape(-1))
+    if not fields["pair"]:
+        z = jnp.zeros((C,), dtype)
+        zi = jnp.full((C,), -1, jnp.int32)
+        return Contacts(zi, zi, zi, jnp.zeros((C, 3), dtype), jnp.zeros((C, 3), dtype), z, z, z, z,
+                        jnp.zeros((C,), bool), jnp.int32(0), jnp.int32(0))
+    pair = jnp.concatenate(fields["pair"])
+    ga, gbb = jnp.concatenate(fields["a"]), jnp.concatenate(fields["b"])
+    pos, normal = jnp.concatenate(fields["pos"]), jnp.concatenate(fields["normal"])
+    dist = jnp.concatenate(fields["dist"])
+    body_a, body_b = pm.geom_body[ga], pm.geom_body[gbb]
+    restitution = jnp.maximum(pm.geom_restitution[ga], pm.geom_restitution[gbb])
+    static_margin = pm.geom_margin[ga] + pm.geom_margin[gbb] + cfg.contact_margin
+
+    v_free = _approach_velocity(body_q, body_u_free, body_a, body_b, pos, normal, dist)
+    v_n = _approach_velocity(body_q, body_u, body_a, body_b, pos, normal, dist)
+    speculative = dist <= static_margin + h * jnp.maximum(-v_free, 0.0)
+    impact = (restitution > 0) & (v_n < -cfg.restitution_threshold)
+    touching = dist <= pm.geom_margin[ga] + pm.geom_margin[gbb] + cfg.contact_deadband
+    elastic = jnp.where(impact, dist < 0.5 * h * jnp.abs(v_n), touching)
+    active = (pair >= 0) & jnp.where(restitution > 0, elastic, speculative)
+
+    # pack the active points, in candidate order, into the capacity (deterministic)
+    count = jnp.sum(active).astype(jnp.int32)
+    n_cand = pair.shape[0]
+    (idx,) = jnp.nonzero(active, size=C, fill_value=n_cand)
+    cap = pm.contact_capacity
+    slot_ok = (jnp.arange(C) < jnp.minimum(count, cap)) & (idx < n_cand)
+    safe = jnp.where(slot_ok, idx, 0)
+
+    def take(x, fill):
+        return jnp.where(slot_ok.reshape((C,) + (1,) * (x.ndim - 1)), x[safe], fill)
+
+    return Contacts(
+        pair=take(pair, -1),
+        body_a=take(body_a, -1),
+        body_b=take(body_b, -1),
+        pos=take(pos, 0.0),
+        normal=take(normal, 0.0),
+        dist=take(dist, 0.0),
+        mu=take(jnp.maximum(pm.geom_friction[ga], pm.geom_friction[gbb]), 0.0),
+        restitution=take(restitution, 0.0),
+        margin=take(static_margin, 0.0),
+        mask=slot_ok,
+        count=count,
+        overflow=jnp.maximum(count - cap, 0).astype(jnp.int32),
+    )
+
+
+def contact_frames(normal: jax.Array) -> jax.Array:
+    """Contact frames ``C = [t1 t2 n]`` ``[C, 3, 3]`` (columns), right-handed (formulation.md §4.2)."""
+    ex = jnp.zeros_like(normal).at[:, 0].set(1.0)
+    ey = jnp.zeros_like(normal).at[:, 1].set(1.0)
+    s = jnp.where((jnp.abs(normal[:, 0]) < jnp.cos(jnp.pi / 6))[:, None], ex, ey)
+
+    def unit(v):
+        n = jnp.linalg.norm(v, axis=-1, keepdims=True)
+        return v / jnp.where(n > 0, n, 1.0)
+
+    t2 = unit(jnp.cross(normal, s))
+    t1 = unit(jnp.cross(t2, normal))
+    return jnp.stack([t1, t2, normal], axis=-1)
+
+
+def contact_jacobian(ct: Contacts, body_q: jax.Array, nb: int) -> jax.Array:
+    """Dense contact rows ``[3C, nb*6]``: per contact ``(t1, t2, n)``, ``J_B = [c, (x_B - r_B) x c]``
+    and ``J_A = -[c, (x_A - r_A) x c]`` (formulation.md §4.2); the world's block is dropped."""
+    C = ct.pair.shape[0]
+    frames = contact_frames(ct.normal)  # [C, 3, 3]
+    x_a = ct.pos - 0.5 * ct.dist[:, None] * ct.normal
+    x_b = ct.pos + 0.5 * ct.dist[:, None] * ct.normal
+    c = jnp.swapaxes(frames, 1, 2)  # [C, 3 rows, 3]
+
+    def blocks(body, x, sign):
+        r = body_q[jnp.where(body >= 0, body, 0), :3]
+        ang = jnp.cross((x - r)[:, None, :], c)
+        blk = sign * jnp.concatenate([c, ang], axis=-1)  # [C, 3, 6]
+        return jnp.where(((body >= 0) & ct.mask)[:, None, None], blk, 0.0)
+
+    J = jnp.zeros((C, 3, nb, 6), body_q.dtype)
+    rows = jnp.arange(C)
+    J = J.at[rows, :, jnp.where(ct.body_b >= 0, ct.body_b, 0)].add(blocks(ct.body_b, x_b, 1.0))
+    J = J.at[rows, :, jnp.where(ct.body_a >= 0, ct.body_a, 0)].add(blocks(ct.body_a, x_a, -1.0))
+    return J.reshape(3 * C, nb * 6)
+
+
+def contact_bias(ct: Contacts, v_n_minus: jax.Array, h, cfg: SolverConfig) -> jax.Array:
+    """``v*`` of the contact rows ``[3C]`` (formulation.md §4.2 "gap bias" and "restitution").
+
+    Tangent rows get 0. The normal row: with the dead-banded gap ``d~`` and ``xi = d~ / h``,
+    ``v* = xi`` for a gap (the contact may close it this step, not more) and ``gamma xi`` for a
+    penetration (``gamma = cfg.contact_baumgarte``). An impact (restitution ``e > 0`` and approach
+    faster than ``cfg.restitution_threshold``) instead asks ``v_n+ >= -e v_n-`` (Newton's law), or
+    the penetration correction's speed if that is larger (``e < 1``); adding the two would inject
+    energy into every bounce.
+    """
+    d = jnp.sign(ct.dist) * jnp.maximum(jnp.abs(ct.dist) - cfg.contact_deadband, 0.0)
+    xi = d / h
+    gap_bias = jnp.where(xi > 0, xi, cfg.contact_baumgarte * xi)
+    e = ct.restitution
+    impact = (e > 0) & (v_n_minus < -cfg.restitution_threshold)
+    newton = jnp.minimum(e * v_n_minus, jnp.where(e < 1, cfg.contact_baumgarte * jnp.minimum(xi, 0.0), 0.0))
+    vn = jnp.where(impact, newton, gap_bias)
+    zeros = jnp.zeros_like(vn)
+    return jnp.where(ct.mask[:, None], jnp.stack([zeros, zeros, vn], axis=-1), 0.0).reshape(-1)
+
+
+def local_point_b(ct: Contacts, body_q: jax.Array) -> jax.Array:
+    """Witness point on geom b in its body's CoM frame (world frame for the world): the warm-start
+    matching key, carried rigidly with the body (formulation.md §7.8 advects it instead)."""
+    x_b = ct.pos + 0.5 * ct.dist[:, None] * ct.normal
+    b = jnp.where(ct.body_b >= 0, ct.body_b, 0)
+    R = quat_to_matrix(body_q[b, 3:])
+    local = jnp.einsum("cji,cj->ci", R, x_b - body_q[b, :3])
+    return jnp.where((ct.body_b >= 0)[:, None], local, x_b)
+
+
+def match_previous(ct: Contacts, point_b: jax.Array, prev_pair: jax.Array, prev_point_b: jax.Array,
+                   tol: float) -> tuple[jax.Array, jax.Array]:
+    """Index of the previous contact each new contact continues (same geom pair, nearest point on
+    geom b within ``tol``), and whether one was found (formulation.md §7.8, "key and position")."""
+    if ct.pair.shape[0] == 0:
+        return jnp.zeros(0, jnp.int32), jnp.zeros(0, bool)
+    same = (ct.pair[:, None] == prev_pair[None, :]) & (prev_pair[None, :] >= 0) & ct.mask[:, None]
+    d2 = jnp.sum((point_b[:, None, :] - prev_point_b[None, :, :]) ** 2, axis=-1)
+    d2 = jnp.where(same, d2, jnp.inf)
+    j = jnp.argmin(d2, axis=1)
+    found = jnp.min(d2, axis=1) <= tol * tol
+    return j, found
