@@ -151,6 +151,9 @@ CONTACT_POINTS: dict[tuple[GeomType, GeomType], int] = {
     (GeomType.CYLINDER, GeomType.CYLINDER): 4,
 }
 
+#: How many leading ``size`` entries each geom type uses (all must be positive).
+_GEOM_SIZE_COUNT = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, GeomType.BOX: 3, GeomType.CYLINDER: 2}
+
 _QUAT_UNIT_TOL = 1e-6  # issue 2: "zero or non-unit quaternion (beyond 1e-6)"
 
 
@@ -662,15 +665,13 @@ class ModelBuilder:
         key = (min(int(geom_a), int(geom_b)), max(int(geom_a), int(geom_b)))
         self._pair_overrides[key] = bool(enabled)
 
-    _SIZE_NEEDS = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, GeomType.BOX: 3, GeomType.CYLINDER: 2}
-
     def _validate_geom(self, i: int, g: _Geom, nb: int) -> None:
         what = f"geom {g.name!r} (index {i})"
         for field_name, arr in (("size", g.size), ("pos", g.pos), ("quat", g.quat)):
             _finite(arr, f"{what} {field_name}")
         if not (-1 <= g.body < nb):
             raise ModelError(f"{what}: body {g.body} does not exist ({nb} bodies; -1 is the world)")
-        need = self._SIZE_NEEDS[g.type]
+        need = _GEOM_SIZE_COUNT[g.type]
         if np.any(g.size[:need] <= 0):
             raise ModelError(f"{what}: a {g.type.name} needs {need} positive size value(s), got {g.size.tolist()}")
         _check_quat(g.quat, f"{what} quat")
@@ -947,7 +948,7 @@ def concat(models: Sequence[Model]) -> Model:
               "world": _prefix([m.num_worlds for m in models])}
     for f in dataclasses.fields(Model):
         name = f.name
-        if name == "num_worlds" or name.startswith("world_") and name.endswith("_start"):
+        if name == "num_worlds" or (name.startswith("world_") and name.endswith("_start")):
             continue
         first = getattr(models[0], name)
         if isinstance(first, tuple):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 import pytest
 
@@ -168,7 +167,8 @@ def test_actuated_fourbar_tracks_a_1hz_sinusoid(integrator):
     amp = 0.4
     pos = np.zeros((T, model.num_dofs))
     vel = np.zeros((T, model.num_dofs))
-    pos[:, 0], vel[:, 0] = amp * np.sin(2 * np.pi * t), amp * 2 * np.pi * np.cos(2 * np.pi * t)
+    # a 1 Hz sinusoid that starts at rest where the linkage is (no step in the reference)
+    pos[:, 0], vel[:, 0] = amp * (1 - np.cos(2 * np.pi * t)), amp * 2 * np.pi * np.sin(2 * np.pi * t)
     state = kamino.init_state(model)
     traj = kamino.rollout(model, state, kamino.Control(position_target=pos, velocity_target=vel), config=cfg)
     theta = trajectory_joint_positions(model, state, traj)[:, 0]
@@ -176,4 +176,4 @@ def test_actuated_fourbar_tracks_a_1hz_sinusoid(integrator):
     closure = trajectory_metrics(model, state, traj)["constraint_violation"].max()
     print(f"actuated four-bar ({integrator}): RMS tracking error {rms:.3e} rad, closure {closure:.2e} m")
     assert rms < 0.01 * amp  # stiff PD (kp 500) on a 0.2 kg m^2-class linkage: sub-percent tracking
-    assert closure < (1e-6 if integrator == "midpoint" else 5e-6)
+    assert closure < 1e-6  # issue: loop closure < 1e-6 m

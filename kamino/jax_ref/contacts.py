@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from kamino.config import SolverConfig
-import importlib  # TEMP
+from kamino.jax_ref.collision import collide
 from kamino.jax_ref.layout import PaddedModel
 from kamino.jax_ref.spatial import quat_mul, quat_to_matrix
 from kamino.model import GeomType
@@ -113,7 +113,6 @@ def detect(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, body_u_free: j
         a, b = grp.geom_a, grp.geom_b
         speed = jnp.linalg.norm(g_lin[b] - g_lin[a], axis=-1) + g_ang[a] * rad[a] + g_ang[b] * rad[b]
         margin = pm.geom_margin[a] + pm.geom_margin[b] + cfg.contact_margin + h * speed
-        collide = importlib.import_module("kamino.jax_ref.collision").collide  # TEMP
         cp = jax.vmap(lambda pa, sa, pb, sb, m, ta=ta, tb=tb: collide(ta, tb, pa, sa, pb, sb, m))(
             gpose[a], pm.geom_size[a], gpose[b], pm.geom_size[b], margin)
         k = cp.dist.shape[1]

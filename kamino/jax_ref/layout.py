@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kamino.model import CONTACT_POINTS, JOINT_CONSTRAINT_ROWS, JOINT_DOF_ROWS, ActuationMode, JointType, Model
+from kamino.model import JOINT_CONSTRAINT_ROWS, JOINT_DOF_ROWS, ActuationMode, JointType, Model
 
 DYN_ACTUATOR, DYN_PASSIVE = 0, 1
 
