@@ -1,8 +1,9 @@
 """kamino: simulation of robots and mechanisms with kinematic loops, in maximal coordinates.
 
-Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``ModelError``,
-``replicate``, ``concat``, ``SolverConfig``, ``State``, ``Control``, ``StepInfo``, ``init_state``,
-``step``, ``rollout``, ``metrics``, ``joint_positions`` and the procedural ``models``.
+Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``GeomType``,
+``Actuation``, ``ActuationMode``, ``ModelError``, ``replicate``, ``concat``, ``SolverConfig``,
+``State``, ``ContactState``, ``Control``, ``StepInfo``, ``init_state``, ``step``, ``rollout``,
+``metrics``, ``joint_positions`` and the procedural ``models``.
 """
 
 from kamino import models

@@ -19,9 +19,10 @@ def _run(model, steps, dtype=None, **cfg):
     return kamino.rollout(model, state, num_steps=steps, config=kamino.SolverConfig(dt=DT, **cfg))
 
 
-def test_box_resting_on_a_plane():
+@pytest.mark.parametrize("integrator", ["euler", "midpoint"])
+def test_box_resting_on_a_plane(integrator):
     model = kamino.models.box_on_plane(mass=1.0, size=0.2)
-    traj = _run(model, int(5.0 / DT))
+    traj = _run(model, int(5.0 / DT), integrator=integrator)
     q = np.asarray(traj.body_q)[:, 0]
     # penetration: speculative contacts keep the box on the plane to the PADMM tolerance (issue: < 1e-4 m)
     assert (0.1 - q[:, 2]).max() < 1e-4
@@ -62,9 +63,10 @@ def test_sliding_box_gains_no_normal_velocity():
     assert np.allclose(u[:, 0], 2.0 - 0.3 * G * DT * np.arange(1, 101), atol=1e-6)
 
 
-def test_sphere_rebounds_to_e_squared_of_its_drop_height():
+@pytest.mark.parametrize("integrator", ["euler", "midpoint"])
+def test_sphere_rebounds_to_e_squared_of_its_drop_height(integrator):
     model = kamino.models.sphere_drop(restitution=0.5, height=1.0, radius=0.05)
-    traj = _run(model, 300)
+    traj = _run(model, 300, integrator=integrator)
     z = np.asarray(traj.body_q)[:, 0, 2] - 0.05
     first = int(np.argmin(z[:150]))
     rebound = z[first:first + 150].max()

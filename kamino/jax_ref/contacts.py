@@ -208,22 +208,27 @@ def contact_jacobian(ct: Contacts, body_q: jax.Array, nb: int) -> jax.Array:
     return J.reshape(3 * C, nb * 6)
 
 
-def contact_bias(ct: Contacts, v_n_minus: jax.Array, h, cfg: SolverConfig) -> jax.Array:
+def contact_bias(ct: Contacts, dist_start: jax.Array, v_n_minus: jax.Array, h, cfg: SolverConfig) -> jax.Array:
     """``v*`` of the contact rows ``[3C]`` (formulation.md §4.2 "gap bias" and "restitution").
 
-    Tangent rows get 0. The normal row: with the dead-banded gap ``d~`` and ``xi = d~ / h``,
-    ``v* = xi`` for a gap (the contact may close it this step, not more) and ``gamma xi`` for a
-    penetration (``gamma = cfg.contact_baumgarte``). An impact (restitution ``e > 0`` and approach
+    Tangent rows get 0. The normal row asks the end-of-step gap ``d + h v_n+`` (``d`` dead-banded,
+    read where the dynamics are built) to be at least ``(1 - gamma) min(d_start, 0)``: a gap may
+    close, not more, and a penetration at the start of the step shrinks by ``gamma =
+    cfg.contact_baumgarte``. For Euler (``d = d_start``) this is §4.2's ``xi = d / h`` for a gap and
+    ``gamma xi`` for a penetration. An impact (restitution ``e > 0`` and approach
     faster than ``cfg.restitution_threshold``) instead asks ``v_n+ >= -e v_n-`` (Newton's law), or
     the penetration correction's speed if that is larger (``e < 1``); adding the two would inject
     energy into every bounce.
     """
-    d = jnp.sign(ct.dist) * jnp.maximum(jnp.abs(ct.dist) - cfg.contact_deadband, 0.0)
-    xi = d / h
-    gap_bias = jnp.where(xi > 0, xi, cfg.contact_baumgarte * xi)
+
+    def deadband(x):
+        return jnp.sign(x) * jnp.maximum(jnp.abs(x) - cfg.contact_deadband, 0.0)
+
+    d, d0 = deadband(ct.dist), deadband(dist_start)
+    gap_bias = (d - (1.0 - cfg.contact_baumgarte) * jnp.minimum(d0, 0.0)) / h
     e = ct.restitution
     impact = (e > 0) & (v_n_minus < -cfg.restitution_threshold)
-    newton = jnp.minimum(e * v_n_minus, jnp.where(e < 1, cfg.contact_baumgarte * jnp.minimum(xi, 0.0), 0.0))
+    newton = jnp.minimum(e * v_n_minus, jnp.where(e < 1, jnp.minimum(gap_bias, 0.0), 0.0))
     vn = jnp.where(impact, newton, gap_bias)
     zeros = jnp.zeros_like(vn)
     return jnp.where(ct.mask[:, None], jnp.stack([zeros, zeros, vn], axis=-1), 0.0).reshape(-1)

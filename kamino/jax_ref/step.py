@@ -159,24 +159,34 @@ def dynamics_rows(pm: PaddedModel, q_dof: jax.Array, qd_minus: jax.Array, ctrl: 
             jnp.where(mask, -bound, -jnp.inf), jnp.where(mask, bound, jnp.inf))
 
 
-def limit_rows(pm: PaddedModel, q_dof: jax.Array, qd_free: jax.Array, h, cfg: SolverConfig):
+def limit_rows(pm: PaddedModel, q_dof: jax.Array, q_dof_start: jax.Array, qd_free: jax.Array, h,
+               cfg: SolverConfig):
     """Side, activity and bias of the limit rows (formulation.md §4.1, with speculative activation).
 
     Each limited DoF watches its nearer limit: ``r = q - q_min`` (side ``+1``) or ``q_max - q``
-    (side ``-1``). The row ``side * J_dof`` is active when ``r <= margin + h max(0, -side qd_f)``
-    (it can be reached in this step); its bias is ``r / h`` for ``r > 0`` (the DoF may close the gap,
-    not more) and ``beta r / h`` for a violation.
+    (side ``-1``), read where the dynamics are built. The row ``side * J_dof`` is active when
+    ``r < margin + h max(0, -side qd_f)`` (the limit can be reached in this step). Its bias asks the
+    end-of-step distance ``r + h side qd+`` to be at least ``(1 - beta) min(r_start, 0)``: a gap may
+    close, not more; a violation at the start of the step shrinks by ``beta``. For Euler
+    (``r = r_start``) this is ``r / h`` for a gap and ``beta r / h`` for a violation (§5); for the
+    midpoint rule it does not mistake the midpoint's overshoot for a violation to keep.
     """
     d = pm.lim_dof
-    q = q_dof[d]
-    r_lo, r_hi = q - pm.dof_lower[d], pm.dof_upper[d] - q
+
+    def distance(q):
+        r_lo, r_hi = q[d] - pm.dof_lower[d], pm.dof_upper[d] - q[d]
+        return r_lo, r_hi
+
+    r_lo, r_hi = distance(q_dof)
     side = jnp.where(r_lo <= r_hi, 1.0, -1.0)
     r = jnp.minimum(r_lo, r_hi)
+    s_lo, s_hi = distance(q_dof_start)
+    r_start = jnp.where(side > 0, s_lo, s_hi)
     approach = jnp.maximum(-side * qd_free[d], 0.0)
     active = pm.lim_mask & (r < cfg.limit_margin + h * approach)
     r_safe = jnp.where(active, r, 0.0)
-    bias = jnp.where(r_safe > 0, r_safe / h, cfg.limit_baumgarte * r_safe / h)
-    return side, active, jnp.where(active, bias, 0.0)
+    target = (1.0 - cfg.limit_baumgarte) * jnp.minimum(jnp.where(active, r_start, 0.0), 0.0)
+    return side, active, jnp.where(active, (r_safe - target) / h, 0.0)
 
 
 def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array, body_u: jax.Array,
@@ -209,13 +219,17 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     J_kin = constraint_jacobian(pm, jf, nb)
     vs_kin = joint_bias(pm, q_eval, u_f, e_eval, e_start, J_kin, h, cfg) if e_eval.shape[0] else e_eval
     # limit rows
-    side, lim_active, vs_lim = limit_rows(pm, q_dof, qd_free, h, cfg)
+    # Unilateral rows measure the violation to keep where the dynamics are built, also for the
+    # midpoint rule: an impact in the first half-step overshoots by up to h |v|, and asking the
+    # end-of-step position to undo it would reverse the velocity (an elastic bounce). As in
+    # Moreau-Jean, the overshoot is a penetration that the Baumgarte term removes (docs/conventions.md).
+    side, lim_active, vs_lim = limit_rows(pm, q_dof, q_dof, qd_free, h, cfg)
     J_lim = jnp.where(lim_active[:, None], side[:, None] * J_dofs[pm.lim_dof], 0.0)
     # contact rows
     ct = cts.detect(pm, q_eval, body_u, u_f, h, cfg)
     J_con = cts.contact_jacobian(ct, q_eval, nb)
     vn_minus = (J_con @ u_vec).reshape(-1, 3)[:, 2]
-    vs_con = cts.contact_bias(ct, vn_minus, h, cfg)
+    vs_con = cts.contact_bias(ct, ct.dist, vn_minus, h, cfg)  # same reading as the limits above
 
     J = jnp.concatenate([J_dyn, J_kin, J_lim, J_con], axis=0)
     n_dyn, n_kin, n_lim = J_dyn.shape[0], J_kin.shape[0], J_lim.shape[0]
