@@ -44,6 +44,12 @@ class Contacts:
     overflow: jax.Array  # contacts dropped for lack of capacity
 
 
+def deadband(x: jax.Array, delta) -> jax.Array:
+    """``sign(x) max(0, |x| - delta)``: the dead band of formulation.md §4.2, used for contact gaps
+    and joint errors alike."""
+    return jnp.sign(x) * jnp.maximum(jnp.abs(x) - delta, 0.0)
+
+
 def geom_poses(pm: PaddedModel, body_q: jax.Array) -> jax.Array:
     """World poses ``[ng, 7]`` of the geoms: body pose composed with the geom's local pose."""
     on_body = pm.geom_body >= 0
@@ -220,11 +226,7 @@ def contact_bias(ct: Contacts, dist_start: jax.Array, v_n_minus: jax.Array, h, c
     the penetration correction's speed if that is larger (``e < 1``); adding the two would inject
     energy into every bounce.
     """
-
-    def deadband(x):
-        return jnp.sign(x) * jnp.maximum(jnp.abs(x) - cfg.contact_deadband, 0.0)
-
-    d, d0 = deadband(ct.dist), deadband(dist_start)
+    d, d0 = deadband(ct.dist, cfg.contact_deadband), deadband(dist_start, cfg.contact_deadband)
     gap_bias = (d - (1.0 - cfg.contact_baumgarte) * jnp.minimum(d0, 0.0)) / h
     e = ct.restitution
     impact = (e > 0) & (v_n_minus < -cfg.restitution_threshold)

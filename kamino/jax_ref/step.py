@@ -75,11 +75,6 @@ class WorldStep:
     contact_overflow: jax.Array
 
 
-def _deadband(x: jax.Array, delta) -> jax.Array:
-    """``sign(x) max(0, |x| - delta)`` (the dead band of formulation.md §4.2, applied to joint errors)."""
-    return jnp.sign(x) * jnp.maximum(jnp.abs(x) - delta, 0.0)
-
-
 def joint_deadband(cfg: SolverConfig, dtype) -> float:
     """Configured joint dead band, or the dtype default (docs/conventions.md, "Stabilisation")."""
     if cfg.joint_deadband is not None:
@@ -104,12 +99,12 @@ def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: ja
     Errors below the dead band get no bias (rounding noise on redundant loop rows).
     """
     delta = joint_deadband(cfg, e_eval.dtype)
-    bias = _deadband(e_eval - (1.0 - cfg.baumgarte) * e_start, delta)
+    bias = cts.deadband(e_eval - (1.0 - cfg.baumgarte) * e_start, delta)
     if cfg.curvature_correction:
         e_pred = constraint_residual(pm, joint_frames(pm, integrate_pose(q_eval, u_pred, h)))
         nb = u_pred.shape[0]
         c = e_pred - e_eval - h * (J @ u_pred.reshape(nb * 6))
-        bias = bias + _deadband(c, delta)
+        bias = bias + cts.deadband(c, delta)
     return jnp.where(pm.row_mask, bias / h, 0.0)
 
 
@@ -271,7 +266,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
 
 
 def _new_cache(pm: PaddedModel, q_eval, res: padmm.PADMMResult, ct: cts.Contacts, side, ctrl: WorldControl,
-               cache: WorldCache, cfg: SolverConfig) -> WorldCache:
+               cfg: SolverConfig) -> WorldCache:
     """Split the solve's impulses into the per-family forces ``lambda / dt`` the State carries."""
     dt = cfg.dt
     nd = pm.dof_mask.shape[0]
@@ -323,7 +318,7 @@ def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, cache: Wor
     mask = pm.body_mask[:, None]
     q_plus = jnp.where(mask, q_plus, body_q)
     u_plus = jnp.where(mask, u_plus, body_u)
-    return WorldStep(body_q=q_plus, body_u=u_plus, cache=_new_cache(pm, q_eval, res, ct, side, ctrl, cache, cfg),
+    return WorldStep(body_q=q_plus, body_u=u_plus, cache=_new_cache(pm, q_eval, res, ct, side, ctrl, cfg),
                      solve=res, num_contacts=jnp.minimum(ct.count, pm.contact_capacity), contact_overflow=ct.overflow)
 
 
