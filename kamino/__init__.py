@@ -3,12 +3,14 @@
 Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``GeomType``,
 ``Actuation``, ``ActuationMode``, ``ModelError``, ``replicate``, ``concat``, ``SolverConfig``,
 ``State``, ``ContactState``, ``Control``, ``StepInfo``, ``init_state``, ``step``, ``rollout``,
-``metrics``, ``joint_positions`` and the procedural ``models``.
+``metrics``, ``joint_positions``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``,
+``load_mjcf`` and the procedural ``models``.
 """
 
 from kamino import models
-from kamino.api import init_state, joint_positions, metrics, rollout, step
+from kamino.api import init_state, joint_positions, load_mjcf, metrics, rollout, step
 from kamino.config import SolverConfig
+from kamino.kinematics import FKResult, forward_kinematics, set_joint_positions
 from kamino.model import (
     Actuation,
     ActuationMode,
@@ -29,6 +31,7 @@ __all__ = [
     "ActuationMode",
     "ContactState",
     "Control",
+    "FKResult",
     "GeomType",
     "JointType",
     "Model",
@@ -38,11 +41,14 @@ __all__ = [
     "State",
     "StepInfo",
     "concat",
+    "forward_kinematics",
     "init_state",
     "joint_positions",
+    "load_mjcf",
     "metrics",
     "models",
     "replicate",
     "rollout",
+    "set_joint_positions",
     "step",
 ]

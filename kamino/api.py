@@ -30,23 +30,49 @@ def _backend(name: str):
     raise ValueError(f"unknown backend {name!r}; choose one of {BACKENDS}")
 
 
-def init_state(model: Model, dtype=None) -> State:
-    """The model's initial state: the builder's body poses and twists, zero reactions.
+def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_positions=None, base_pose=None,
+               **fk_options) -> State:
+    """The model's initial state: zero twists (the builder's, if set), reactions and contacts.
 
-    ``dtype`` defaults to JAX's default float (float32, or float64 with ``jax_enable_x64``).
+    Without coordinates the bodies are at the builder's (reference) poses. With ``joint_positions``,
+    ``actuated_positions`` and/or ``base_pose`` the poses come from :func:`kamino.forward_kinematics`
+    (consistent with every joint and loop closure; ``fk_options`` are passed on), which raises a
+    ``ValueError`` naming the worlds that do not converge. ``dtype`` defaults to JAX's default float
+    (float32, or float64 with ``jax_enable_x64``).
     """
     dtype = jnp.zeros(0).dtype if dtype is None else jnp.dtype(dtype)
+    body_q = jnp.asarray(model.body_q0, dtype)
+    body_u = jnp.asarray(model.body_u0, dtype)
+    if joint_positions is not None or actuated_positions is not None or base_pose is not None:
+        from kamino.kinematics import forward_kinematics
+
+        fk = forward_kinematics(model, joint_positions, actuated_positions, base_pose, dtype=dtype, **fk_options)
+        bad = np.nonzero(~np.asarray(fk.converged))[0]
+        if bad.size:
+            raise ValueError(f"init_state: forward kinematics did not converge in worlds {bad[:8].tolist()} "
+                             f"(residual {np.asarray(fk.residual)[bad[:8]].tolist()}); the coordinates may be "
+                             "unreachable")
+        body_q, body_u = fk.body_q, jnp.zeros_like(body_u)
     return State(
-        body_q=jnp.asarray(model.body_q0, dtype),
-        body_u=jnp.asarray(model.body_u0, dtype),
+        body_q=body_q,
+        body_u=body_u,
         time=jnp.zeros(model.num_worlds, dtype),
         constraint_force=jnp.zeros(model.num_constraints, dtype),
         actuator_force=jnp.zeros(model.num_dofs, dtype),
         passive_force=jnp.zeros(model.num_dofs, dtype),
         limit_force=jnp.zeros(model.num_dofs, dtype),
+        coupling_force=jnp.zeros(model.num_couplings, dtype),
         contacts=ContactState.empty(model.num_contacts, dtype),
         info=StepInfo.empty(model.num_worlds, dtype),
     )
+
+
+def load_mjcf(source, **options) -> Model:
+    """Load an MJCF file (path) or XML string as a single-world :class:`Model` (``kamino/io/mjcf.py``;
+    mapping, options and what is unsupported: docs/mjcf.md). Imports ``mujoco`` on first use."""
+    from kamino.io.mjcf import load_mjcf as _load_mjcf
+
+    return _load_mjcf(source, **options)
 
 
 def step(model: Model, state: State, control: Control | None = None, *, config: SolverConfig | None = None,
@@ -65,7 +91,7 @@ def rollout(model: Model, state: State, controls: Control | None = None, *, num_
 
 def metrics(model: Model, state: State) -> dict[str, jax.Array]:
     """Per-world diagnostics ``[num_worlds]``: ``constraint_violation`` (max |residual| of the joint
-    rows: m for translational rows, rad for rotational ones), ``kinetic_energy``,
+    rows and couplings: m for translational rows, rad for rotational ones), ``kinetic_energy``,
     ``potential_energy`` (``-m g . r``) and ``total_energy``."""
     from kamino.jax_ref import backend
 
@@ -92,5 +118,5 @@ def _coord_gather(model: Model) -> np.ndarray:
     return np.repeat(slot * 7, counts) + (np.arange(int(counts.sum())) - np.repeat(model.joint_coord_start, counts))
 
 
-__all__ = ["Control", "JointType", "SolverConfig", "State", "init_state", "joint_positions", "metrics",
+__all__ = ["Control", "JointType", "SolverConfig", "State", "init_state", "joint_positions", "load_mjcf", "metrics",
            "rollout", "step"]

@@ -41,7 +41,8 @@ class GeomType(enum.IntEnum):
     PLANE: infinite half-space below local z = 0 (normal +z); size ignored.
     SPHERE: radius ``size[0]``. CAPSULE: radius ``size[0]``, half-length ``size[1]`` of the
     segment along local z. BOX: half-extents ``size[0:3]``. CYLINDER: radius ``size[0]``,
-    half-height ``size[1]`` along local z.
+    half-height ``size[1]`` along local z. ELLIPSOID: semi-axes ``size[0:3]`` along local x, y, z
+    (collides with planes only: another enabled pair with an ellipsoid is a :class:`ModelError`).
     """
 
     PLANE = 0
@@ -49,6 +50,7 @@ class GeomType(enum.IntEnum):
     CAPSULE = 2
     BOX = 3
     CYLINDER = 4
+    ELLIPSOID = 5
 
 
 class ActuationMode(enum.IntEnum):
@@ -139,6 +141,7 @@ CONTACT_POINTS: dict[tuple[GeomType, GeomType], int] = {
     (GeomType.PLANE, GeomType.CAPSULE): 2,
     (GeomType.PLANE, GeomType.BOX): 4,
     (GeomType.PLANE, GeomType.CYLINDER): 4,
+    (GeomType.PLANE, GeomType.ELLIPSOID): 1,
     (GeomType.SPHERE, GeomType.SPHERE): 1,
     (GeomType.SPHERE, GeomType.CAPSULE): 1,
     (GeomType.SPHERE, GeomType.BOX): 1,
@@ -152,7 +155,8 @@ CONTACT_POINTS: dict[tuple[GeomType, GeomType], int] = {
 }
 
 #: How many leading ``size`` entries each geom type uses (all must be positive).
-_GEOM_SIZE_COUNT = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, GeomType.BOX: 3, GeomType.CYLINDER: 2}
+_GEOM_SIZE_COUNT = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, GeomType.BOX: 3, GeomType.CYLINDER: 2,
+                    GeomType.ELLIPSOID: 3}
 
 _QUAT_UNIT_TOL = 1e-6  # issue 2: "zero or non-unit quaternion (beyond 1e-6)"
 
@@ -236,6 +240,22 @@ class Model:
     world_pair_start: np.ndarray
     world_pair_count: np.ndarray
     world_contact_capacity: np.ndarray  # [W] max contacts per world
+    # joint couplings (mimic joints): q_a = sum_k coef[k] q_b^k (docs/conventions.md "Couplings")
+    coupling_joint_a: np.ndarray  # [K] global joint index
+    coupling_joint_b: np.ndarray  # [K] global joint index or -1 (q_a = coef[0])
+    coupling_coef: np.ndarray  # [K, 5] polynomial coefficients a_0..a_4
+    coupling_world: np.ndarray  # [K]
+    coupling_names: tuple[str, ...]
+    world_coupling_start: np.ndarray
+    world_coupling_count: np.ndarray
+    # named actuators: one per actuated DoF (the DoF's Actuation sets mode and gains)
+    actuator_dof: np.ndarray  # [A] global DoF index
+    actuator_gear: np.ndarray  # [A] ctrl -> effort factor (EFFORT DoFs)
+    actuator_ctrl_range: np.ndarray  # [A, 2] ctrl clip range (-inf, inf: none)
+    actuator_world: np.ndarray  # [A]
+    actuator_names: tuple[str, ...]
+    world_actuator_start: np.ndarray
+    world_actuator_count: np.ndarray
 
     # ---- sizes -------------------------------------------------------------------------
     @property
@@ -268,6 +288,14 @@ class Model:
         return int(self.world_contact_capacity.sum())
 
     @property
+    def num_couplings(self) -> int:
+        return int(self.coupling_joint_a.shape[0])
+
+    @property
+    def num_actuators(self) -> int:
+        return int(self.actuator_dof.shape[0])
+
+    @property
     def num_constraints(self) -> int:
         """Total bilateral (joint) constraint rows over all worlds."""
         return int(self.joint_cts_count.sum())
@@ -287,6 +315,14 @@ class Model:
             if self.joint_names[j] == name:
                 return j
         raise KeyError(f"no joint named {name!r} in world {world}")
+
+    def actuator_index(self, name: str, world: int = 0) -> int:
+        """Global index of the actuator called ``name`` in ``world``."""
+        s, c = int(self.world_actuator_start[world]), int(self.world_actuator_count[world])
+        for a in range(s, s + c):
+            if self.actuator_names[a] == name:
+                return a
+        raise KeyError(f"no actuator named {name!r} in world {world}")
 
     def summary(self) -> str:
         """One line per world kind: bodies, joints, DoFs, constraint rows, independent loops."""
@@ -453,6 +489,27 @@ class _Geom:
     mask: int
 
 
+@dataclasses.dataclass
+class _Coupling:
+    name: str
+    joint_a: int
+    joint_b: int
+    coef: np.ndarray
+
+
+@dataclasses.dataclass
+class _Actuator:
+    name: str
+    joint: int
+    dof: int
+    gear: float
+    ctrl_range: tuple[float, float]
+
+
+#: Joint types a coupling may tie (their single coordinate, zero at the joint's reference).
+COUPLING_JOINT_TYPES = (JointType.REVOLUTE, JointType.PRISMATIC)
+
+
 class ModelBuilder:
     """Builds a single-world :class:`Model` (combine worlds with ``replicate``/``concat``).
 
@@ -470,6 +527,8 @@ class ModelBuilder:
         self._joints: list[_Joint] = []
         self._geoms: list[_Geom] = []
         self._pair_overrides: dict[tuple[int, int], bool] = {}
+        self._couplings: list[_Coupling] = []
+        self._actuators: list[_Actuator] = []
 
     # -- bodies ------------------------------------------------------------------------
     def add_body(
@@ -617,6 +676,95 @@ class ModelBuilder:
             limits=limits, name=name, **dynamics,
         )
 
+    # -- couplings and actuators -------------------------------------------------------
+    def add_coupling(self, joint_a: int, joint_b: int | None = None, polycoef: Sequence[float] = (0.0, 1.0),
+                     name: str | None = None) -> int:
+        """Tie joint ``joint_a``'s coordinate to ``joint_b``'s: ``q_a = sum_k polycoef[k] q_b^k`` (k = 0..4;
+        MuJoCo's ``<equality><joint>``; without ``joint_b``, ``q_a = polycoef[0]``). Both joints are
+        REVOLUTE or PRISMATIC; coordinates are zero at the joint's reference (the builder pose for
+        :meth:`add_joint_at` joints). One bilateral constraint row (docs/conventions.md "Couplings")."""
+        idx = len(self._couplings)
+        name = name if name is not None else f"coupling_{idx}"
+        coef = np.asarray(polycoef, dtype=float).reshape(-1)
+        if coef.size == 0 or coef.size > 5:
+            raise ModelError(f"coupling {name!r}: polycoef needs 1 to 5 coefficients, got {coef.size}")
+        _finite(coef, f"coupling {name!r} polycoef")
+        jb = -1 if joint_b is None else int(joint_b)
+        self._couplings.append(_Coupling(name=name, joint_a=int(joint_a), joint_b=jb,
+                                         coef=np.concatenate([coef, np.zeros(5 - coef.size)])))
+        return idx
+
+    def add_actuator(self, joint: int, name: str | None = None, gear: float = 1.0,
+                     ctrl_range: tuple[float, float] | None = None, dof: int = 0) -> int:
+        """Name the actuator of DoF ``dof`` of an actuated ``joint`` (the joint's :class:`Actuation`
+        sets the mode and gains). ``gear`` maps a control to an effort on EFFORT DoFs (must be 1 for
+        POSITION/VELOCITY DoFs) and ``ctrl_range`` clips the control (:meth:`kamino.Control.from_ctrl`).
+        Actuated DoFs not named here get an actuator named after their joint at ``finalize``."""
+        idx = len(self._actuators)
+        lo, hi = (-np.inf, np.inf) if ctrl_range is None else (float(ctrl_range[0]), float(ctrl_range[1]))
+        self._actuators.append(_Actuator(name=name if name is not None else "", joint=int(joint), dof=int(dof),
+                                         gear=float(gear), ctrl_range=(lo, hi)))
+        return idx
+
+    def _finalize_couplings(self) -> list[_Coupling]:
+        nj = len(self._joints)
+        for c in self._couplings:
+            what = f"coupling {c.name!r}"
+            for role, j in (("joint_a", c.joint_a), ("joint_b", c.joint_b)):
+                if role == "joint_b" and j == -1:
+                    continue
+                if not (0 <= j < nj):
+                    raise ModelError(f"{what}: {role} {j} is not a joint ({nj} joints)")
+                jt = self._joints[j].type
+                if jt not in COUPLING_JOINT_TYPES:
+                    raise ModelError(f"{what}: {role} {self._joints[j].name!r} is a {jt.name} joint; couplings tie "
+                                     "REVOLUTE or PRISMATIC joints")
+            if c.joint_a == c.joint_b:
+                raise ModelError(f"{what}: couples joint {self._joints[c.joint_a].name!r} to itself")
+        names = [c.name for c in self._couplings]
+        if len(set(names)) != len(names):
+            raise ModelError(f"coupling name {next(n for n in names if names.count(n) > 1)!r} is used twice")
+        return self._couplings
+
+    def _finalize_actuators(self) -> list[_Actuator]:
+        """Explicit actuators in call order, then one per remaining actuated DoF; validated."""
+        nj = len(self._joints)
+        taken: dict[tuple[int, int], str] = {}
+        out = []
+        for a in self._actuators:
+            if not (0 <= a.joint < nj):
+                raise ModelError(f"actuator {a.name!r}: joint {a.joint} does not exist ({nj} joints)")
+            jt = self._joints[a.joint]
+            name = a.name or (jt.name if len(jt.dynamics["act_mode"]) == 1 else f"{jt.name}_{a.dof}")
+            what = f"actuator {name!r}"
+            if not (0 <= a.dof < len(jt.dynamics["act_mode"])):
+                raise ModelError(f"{what}: joint {jt.name!r} has no DoF {a.dof}")
+            mode = ActuationMode(int(jt.dynamics["act_mode"][a.dof]))
+            if mode == ActuationMode.PASSIVE:
+                raise ModelError(f"{what}: joint {jt.name!r} is passive; give it an Actuation")
+            if (a.joint, a.dof) in taken:
+                raise ModelError(f"{what}: DoF {a.dof} of joint {jt.name!r} already has actuator "
+                                 f"{taken[(a.joint, a.dof)]!r}")
+            if not (np.isfinite(a.gear) and a.gear != 0.0):
+                raise ModelError(f"{what}: gear must be finite and non-zero, got {a.gear}")
+            if mode in (ActuationMode.POSITION, ActuationMode.VELOCITY) and a.gear != 1.0:
+                raise ModelError(f"{what}: {mode.name.lower()} actuators take gear 1, got {a.gear}")
+            lo, hi = a.ctrl_range
+            if np.isnan(lo) or np.isnan(hi) or lo > hi:
+                raise ModelError(f"{what}: ctrl_range must be (low, high) with low <= high, got {a.ctrl_range}")
+            taken[(a.joint, a.dof)] = name
+            out.append(dataclasses.replace(a, name=name))
+        for j, jt in enumerate(self._joints):
+            modes = jt.dynamics["act_mode"]
+            for k in range(len(modes)):
+                if modes[k] != ActuationMode.PASSIVE and (j, k) not in taken:
+                    name = jt.name if len(modes) == 1 else f"{jt.name}_{k}"
+                    out.append(_Actuator(name=name, joint=j, dof=k, gear=1.0, ctrl_range=(-np.inf, np.inf)))
+        names = [a.name for a in out]
+        if len(set(names)) != len(names):
+            raise ModelError(f"actuator name {next(n for n in names if names.count(n) > 1)!r} is used twice")
+        return out
+
     # -- collision geometry ------------------------------------------------------------
     def add_geom(
         self,
@@ -711,6 +859,11 @@ class ModelBuilder:
                 else:
                     ok = override
                 if ok:
+                    key = (ga.type, gb.type) if ga.type <= gb.type else (gb.type, ga.type)
+                    if key not in CONTACT_POINTS:
+                        raise ModelError(f"geoms {ga.name!r} and {gb.name!r}: contact between a {key[0].name} and a "
+                                         f"{key[1].name} is not supported; disable the pair with set_collision or "
+                                         "group/mask")
                     pairs.append((a, b) if ga.type <= gb.type else (b, a))
         return pairs
 
@@ -848,6 +1001,11 @@ class ModelBuilder:
 
         geoms = self._geoms
         ng = len(geoms)
+        couplings = self._finalize_couplings()
+        nk = len(couplings)
+        actuators = self._finalize_actuators()
+        na = len(actuators)
+        act_dof = np.array([_prefix(dof_count)[a.joint] + a.dof for a in actuators], dtype=np.int64)
 
         one = np.array([0], dtype=np.int64)
         model = Model(
@@ -912,6 +1070,20 @@ class ModelBuilder:
             world_pair_start=one.copy(),
             world_pair_count=np.array([len(pairs)], dtype=np.int64),
             world_contact_capacity=np.array([contact_capacity], dtype=np.int64),
+            coupling_joint_a=np.array([c.joint_a for c in couplings], dtype=np.int64),
+            coupling_joint_b=np.array([c.joint_b for c in couplings], dtype=np.int64),
+            coupling_coef=np.array([c.coef for c in couplings]).reshape(nk, 5),
+            coupling_world=np.zeros(nk, dtype=np.int64),
+            coupling_names=tuple(c.name for c in couplings),
+            world_coupling_start=one.copy(),
+            world_coupling_count=np.array([nk], dtype=np.int64),
+            actuator_dof=act_dof.reshape(na),
+            actuator_gear=np.array([a.gear for a in actuators]).reshape(na),
+            actuator_ctrl_range=np.array([a.ctrl_range for a in actuators]).reshape(na, 2),
+            actuator_world=np.zeros(na, dtype=np.int64),
+            actuator_names=tuple(a.name for a in actuators),
+            world_actuator_start=one.copy(),
+            world_actuator_count=np.array([na], dtype=np.int64),
         )
         return _freeze(model)
 
@@ -945,7 +1117,8 @@ def concat(models: Sequence[Model]) -> Model:
         raise ModelError("concat: no models given")
     out: dict[str, Any] = {"num_worlds": sum(m.num_worlds for m in models)}
     shifts = {"body": _prefix([m.num_bodies for m in models]), "geom": _prefix([m.num_geoms for m in models]),
-              "world": _prefix([m.num_worlds for m in models])}
+              "world": _prefix([m.num_worlds for m in models]), "joint": _prefix([m.num_joints for m in models]),
+              "dof": _prefix([m.num_dofs for m in models])}
     for f in dataclasses.fields(Model):
         name = f.name
         if name == "num_worlds" or (name.startswith("world_") and name.endswith("_start")):
@@ -960,7 +1133,7 @@ def concat(models: Sequence[Model]) -> Model:
             shift = _INDEX_FIELDS.get(name)
             if shift is not None:
                 off = shifts[shift][k]
-                v = np.where(v >= 0, v + off, v) if shift == "body" else v + off
+                v = np.where(v >= 0, v + off, v) if shift in ("body", "joint") else v + off
             parts.append(v)
         out[name] = np.concatenate(parts, axis=0)
     for f in dataclasses.fields(Model):
@@ -974,7 +1147,8 @@ def concat(models: Sequence[Model]) -> Model:
 #: Index fields shifted by ``concat``: which entity's offset they get (-1 stays -1 for bodies).
 _INDEX_FIELDS = {"joint_parent": "body", "joint_child": "body", "geom_body": "body", "body_world": "world",
                  "joint_world": "world", "geom_world": "world", "pair_world": "world", "pair_geom_a": "geom",
-                 "pair_geom_b": "geom"}
+                 "pair_geom_b": "geom", "coupling_joint_a": "joint", "coupling_joint_b": "joint",
+                 "coupling_world": "world", "actuator_dof": "dof", "actuator_world": "world"}
 
 
 def replicate(model: Model, n: int) -> Model:

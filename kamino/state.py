@@ -6,6 +6,9 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from kamino.model import ActuationMode, Model
 
 
 @jax.tree_util.register_dataclass
@@ -88,6 +91,8 @@ class State:
             (implicit PD/D force, or the clipped commanded effort; for passive DoFs the applied effort).
         passive_force: ``[total_dofs]`` generalized force of armature, damping and springs.
         limit_force: ``[total_dofs]`` generalized force of the joint limits (positive pushes the DoF up).
+        coupling_force: ``[total_couplings]`` reaction of each joint coupling (generalized force on
+            joint a's DoF, ``lambda / dt``).
         contacts: the last step's :class:`ContactState`.
         info: the last solve's :class:`StepInfo`.
     """
@@ -99,6 +104,7 @@ class State:
     actuator_force: jax.Array
     passive_force: jax.Array
     limit_force: jax.Array
+    coupling_force: jax.Array
     contacts: ContactState
     info: StepInfo
 
@@ -126,3 +132,32 @@ class Control:
     body_wrench: jax.Array | None = None
     position_target: jax.Array | None = None
     velocity_target: jax.Array | None = None
+
+    @staticmethod
+    def from_ctrl(model: Model, ctrl) -> Control:
+        """A MuJoCo-style control vector -> :class:`Control`.
+
+        ``ctrl`` has one entry per actuator (``[..., model.num_actuators]``, flat over worlds, in
+        ``model.actuator_names`` order; leading axes, e.g. time, are kept). Each entry is clipped to the
+        actuator's ``ctrl_range`` and lands on its DoF: EFFORT -> ``dof_effort = gear * ctrl``,
+        POSITION -> ``position_target = ctrl``, VELOCITY -> ``velocity_target = ctrl``.
+        """
+        ctrl = jnp.asarray(ctrl)
+        if ctrl.shape[-1:] != (model.num_actuators,):
+            raise ValueError(f"ctrl has shape {ctrl.shape}, expected (..., {model.num_actuators}) "
+                             f"(one entry per actuator: {list(model.actuator_names[:8])}...)")
+        if not jnp.issubdtype(ctrl.dtype, jnp.floating):
+            ctrl = ctrl.astype(jnp.zeros(0).dtype)
+        c = jnp.clip(ctrl, model.actuator_ctrl_range[:, 0], model.actuator_ctrl_range[:, 1])
+        mode = model.dof_act_mode[model.actuator_dof]
+        zeros = jnp.zeros((*ctrl.shape[:-1], model.num_dofs), c.dtype)
+
+        def scatter(selected, values):
+            sel = np.nonzero(selected)[0]
+            return zeros.at[..., model.actuator_dof[sel]].set(values[..., sel])
+
+        return Control(
+            dof_effort=scatter(mode == ActuationMode.EFFORT, c * model.actuator_gear),
+            position_target=scatter(mode == ActuationMode.POSITION, c),
+            velocity_target=scatter(mode == ActuationMode.VELOCITY, c),
+        )

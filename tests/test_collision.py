@@ -93,7 +93,7 @@ def test_pair_validation_and_shapes():
         collide(G.PLANE, G.PLANE, p, z, p, z, 0.0)
     with pytest.raises(ValueError, match=r"unordered geom pair \(BOX, SPHERE\)"):
         collide(G.BOX, G.SPHERE, p, z, p, z, 0.0)
-    assert len(MAX_POINTS) == 14 and all(a <= b for a, b in MAX_POINTS)
+    assert len(MAX_POINTS) == 15 and all(a <= b for a, b in MAX_POINTS)
     assert max(MAX_POINTS.values()) == 8 and MAX_POINTS[(G.BOX, G.BOX)] == 8
     for ta, tb in ALL_PAIRS:
         size = jnp.array([0.3, 0.2, 0.1])
@@ -122,6 +122,24 @@ def test_plane_sphere():
         np.testing.assert_allclose(cp["normal"][0], n, atol=EXACT)
         # midpoint of the plane point c - height n and the sphere's lowest point c - 0.5 n
         np.testing.assert_allclose(cp["pos"][0], c - n * (height + 0.5) / 2, atol=EXACT)
+
+
+def test_plane_ellipsoid_support_point():
+    """Gap of an ellipsoid above a tilted plane = centre height - sqrt(n^T R S^2 R^T n) (its support
+    function), the witness point the support point; exact in both separated and penetrating poses."""
+    qp = quat([1, -2, 0.5], 0.3)
+    n = rot(qp)[:, 2]
+    semi = np.array([0.3, 0.2, 0.1])
+    for axis, angle, height in [([0.2, 1, 0.4], 0.9, 0.5), ([1, 0, 0], 1.2, 0.05)]:
+        q = quat(axis, angle)
+        R = rot(q)
+        support = np.sqrt(n @ R @ np.diag(semi**2) @ R.T @ n)
+        c = np.array([0.1, 0.2, -0.1]) + height * n
+        cp = run(G.PLANE, G.ELLIPSOID, pose((0.1, 0.2, -0.1), qp), [0] * 3, pose(c, q), semi, margin=1.0)
+        np.testing.assert_allclose(cp["dist"][0], height - support, atol=EXACT)
+        np.testing.assert_allclose(cp["normal"][0], n, atol=EXACT)
+        lowest = c - R @ (semi**2 * (R.T @ n)) / support  # support point along -n
+        np.testing.assert_allclose(cp["pos"][0], lowest - n * (height - support) / 2, atol=EXACT)
 
 
 def test_plane_capsule_lying_and_standing():
@@ -373,7 +391,7 @@ def test_valid_is_false_beyond_the_margin():
 # ---------------------------------------------------------------------------------------------
 
 SIZES = {G.PLANE: (0.0, 0.0, 0.0), G.SPHERE: (0.3, 0.0, 0.0), G.CAPSULE: (0.2, 0.5, 0.0),
-         G.BOX: (0.3, 0.4, 0.5), G.CYLINDER: (0.3, 0.4, 0.0)}
+         G.BOX: (0.3, 0.4, 0.5), G.CYLINDER: (0.3, 0.4, 0.0), G.ELLIPSOID: (0.3, 0.2, 0.4)}
 
 
 def random_poses(rng, n, ta, spread_a=0.2, spread_b=1.2):
@@ -409,14 +427,15 @@ def test_rigid_motion_invariance(ta, tb):
     np.testing.assert_allclose(c1["normal"][v], c0["normal"][v] @ R.T, atol=1e-7)
 
 
-_MJ_NAME = {G.PLANE: "plane", G.SPHERE: "sphere", G.CAPSULE: "capsule", G.BOX: "box", G.CYLINDER: "cylinder"}
+_MJ_NAME = {G.PLANE: "plane", G.SPHERE: "sphere", G.CAPSULE: "capsule", G.BOX: "box", G.CYLINDER: "cylinder",
+            G.ELLIPSOID: "ellipsoid"}
 
 
 def mujoco_distances(ta, sa, pa, tb, sb, pb, distmax) -> np.ndarray:
     """``mj_geomDistance`` of two mocap-body geoms at each pose pair (MuJoCo quaternions are w-first)."""
 
     def geom(t, s):
-        s = {G.PLANE: (1, 1, 0.1), G.SPHERE: s[:1], G.CAPSULE: s[:2], G.CYLINDER: s[:2], G.BOX: s}[t]
+        s = {G.PLANE: (1, 1, 0.1), G.SPHERE: s[:1], G.CAPSULE: s[:2], G.CYLINDER: s[:2], G.BOX: s, G.ELLIPSOID: s}[t]
         return f'<geom type="{_MJ_NAME[t]}" size="{" ".join(map(str, s))}"/>'
 
     m = mujoco.MjModel.from_xml_string(

@@ -8,8 +8,9 @@ import jax
 import jax.numpy as jnp
 
 from kamino.config import SolverConfig
+from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.dynamics import body_dynamics, kinetic_energy, potential_energy
-from kamino.jax_ref.joints import constraint_residual, joint_coordinates, joint_frames
+from kamino.jax_ref.joints import constraint_residual, dof_positions, joint_coordinates, joint_frames
 from kamino.jax_ref.layout import PaddedModel, layout_of, to_flat, to_padded
 from kamino.jax_ref.step import WorldCache, WorldControl, step_batch
 from kamino.model import Model
@@ -34,6 +35,7 @@ def _padded_state(pm: PaddedModel, t: dict, state: State, control: Control | Non
     c = state.contacts
     cache = WorldCache(
         kin=to_padded(state.constraint_force, t["rg"], pm.row_mask, 0.0),
+        coupling=to_padded(state.coupling_force, t["ug"], pm.cpl_mask, 0.0),
         actuator=dof(state.actuator_force),
         passive=dof(state.passive_force),
         limit=dof(state.limit_force),
@@ -86,6 +88,7 @@ def _step_jit(pm: PaddedModel, t: dict, state: State, control: Control | None, c
         actuator_force=dof(cache.actuator),
         passive_force=dof(cache.passive),
         limit_force=dof(cache.limit),
+        coupling_force=to_flat(cache.coupling, t["us"]),
         contacts=ContactState(
             pair=con(cache.contact_pair),
             pos=con(cache.contact_pos),
@@ -108,6 +111,9 @@ def _check_state(model: Model, state: State) -> None:
     for field in ("actuator_force", "passive_force", "limit_force"):
         if getattr(state, field).shape != (model.num_dofs,):
             raise ValueError(f"state.{field} has shape {getattr(state, field).shape}, expected ({model.num_dofs},)")
+    if state.coupling_force.shape != (model.num_couplings,):
+        raise ValueError(f"state.coupling_force has shape {state.coupling_force.shape}, expected "
+                         f"({model.num_couplings},) for this model")
     if state.contacts.pair.shape != (model.num_contacts,):
         raise ValueError(f"state.contacts has capacity {state.contacts.pair.shape[0]}, expected {model.num_contacts} "
                          "for this model (create the state with kamino.init_state(model))")
@@ -181,7 +187,9 @@ def _metrics_jit(pm: PaddedModel, t: dict, body_q, body_u):
 
     def one(pm_w, q_w, u_w):
         bd = body_dynamics(pm_w, q_w)
-        e = constraint_residual(pm_w, joint_frames(pm_w, q_w)) if pm_w.row_mask.shape[0] else jnp.zeros(1)
+        jf = joint_frames(pm_w, q_w)
+        e = constraint_residual(pm_w, jf) if pm_w.row_mask.shape[0] else jnp.zeros(1)
+        e = jnp.concatenate([e, coupling_residual(pm_w, dof_positions(pm_w, jf))])
         return jnp.max(jnp.abs(e), initial=0.0), kinetic_energy(bd, pm_w, u_w), potential_energy(pm_w, q_w)
 
     viol, ke, pe = jax.vmap(one)(pm, q, u)

@@ -18,6 +18,7 @@ pair                 K   algorithm
 PLANE-SPHERE         1   exact
 PLANE-CAPSULE        2   exact, the two segment ends
 PLANE-BOX            4   exact, the 4 deepest of the 8 corners (a box lying flat: its bottom face)
+PLANE-ELLIPSOID      1   exact, the support point along the plane normal
 PLANE-CYLINDER       4   MuJoCo's choice: the deepest rim point of each cap, and two more rim points
                          of the deeper cap at +-120 deg from its deepest one (a standing cylinder gets
                          a support triangle, a lying one its two line-contact ends)
@@ -321,6 +322,17 @@ def _plane_box(pose_a, size_a, pose_b, size_b, margin):
     _, R = _frame(pose_a)
     order = jnp.argsort(corners @ R[:, 2], stable=True)[:4]
     return _plane_vs_points(pose_a, corners[order], jnp.zeros((), size_b.dtype))
+
+
+def _plane_ellipsoid(pose_a, size_a, pose_b, size_b, margin):
+    """Exact: the ellipsoid's support point along the plane's inward normal, ``c + R S^2 d / |S d|``
+    with ``d = -R^T n`` and ``S = diag(semi-axes)``."""
+    _, Ra = _frame(pose_a)
+    c, R = _frame(pose_b)
+    d = -(R.T @ Ra[:, 2])
+    sd = size_b * d
+    x = size_b * sd / jnp.sqrt(jnp.sum(sd * sd))
+    return _plane_vs_points(pose_a, (c + R @ x)[None, :], jnp.zeros((), size_b.dtype))
 
 
 def _cylinder_support(pose, size, direction):
@@ -777,6 +789,7 @@ _PAIRS = {
     (_G.PLANE, _G.CAPSULE): (_plane_capsule, 2),
     (_G.PLANE, _G.BOX): (_plane_box, 4),
     (_G.PLANE, _G.CYLINDER): (_plane_cylinder, 4),
+    (_G.PLANE, _G.ELLIPSOID): (_plane_ellipsoid, 1),
     (_G.SPHERE, _G.SPHERE): (_sphere_sphere, 1),
     (_G.SPHERE, _G.CAPSULE): (_sphere_capsule, 1),
     (_G.SPHERE, _G.BOX): (_sphere_box, 1),

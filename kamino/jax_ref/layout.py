@@ -69,6 +69,13 @@ class PaddedModel:
     dyn_dof: jax.Array  # [W, ndyn] local DoF
     dyn_kind: jax.Array  # [W, ndyn] DYN_ACTUATOR or DYN_PASSIVE
     dyn_mask: jax.Array
+    # coupling rows: q_a = sum_k coef_k q_b^k (docs/conventions.md "Couplings"); local DoF indices
+    cpl_dof_a: jax.Array  # [W, nk]
+    cpl_dof_b: jax.Array  # [W, nk] (0 where there is no joint b)
+    cpl_has_b: jax.Array  # [W, nk] bool
+    cpl_wrap: jax.Array  # [W, nk] bool: joint a is an angle (residual wrapped to [-pi, pi])
+    cpl_coef: jax.Array  # [W, nk, 5]
+    cpl_mask: jax.Array  # [W, nk]
     # limit rows (§4.1): one per DoF with a finite limit
     lim_dof: jax.Array  # [W, nl]
     lim_mask: jax.Array
@@ -97,12 +104,15 @@ class Layout:
     max_joints: int
     max_rows: int
     max_dofs: int
+    max_couplings: int
     body_gather: np.ndarray  # [W, nb] flat index of each padded body (0 on padding)
     body_scatter: np.ndarray  # [B] position of each flat body in the [W*nb] padded array
     row_gather: np.ndarray  # [W, nr]
     row_scatter: np.ndarray  # [C]
     dof_gather: np.ndarray  # [W, nd]
     dof_scatter: np.ndarray  # [D]
+    coupling_gather: np.ndarray  # [W, nk]
+    coupling_scatter: np.ndarray  # [K]
     max_contacts: int
     contact_gather: np.ndarray  # [W, C]
     contact_scatter: np.ndarray  # [total capacity]
@@ -198,6 +208,16 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
     nl = int(lim_count.max()) if limited.any() else 0
     lg, lmask, _ = _pad_index(_prefix(lim_count), lim_count, nl)
 
+    # couplings: the first DoF of each coupled joint, world-local
+    nk = int(model.world_coupling_count.max()) if model.num_couplings else 0
+    ug, umask, usc = _pad_index(model.world_coupling_start, model.world_coupling_count, nk)
+    dof_start_local = model.joint_dof_start - model.world_dof_start[model.joint_world] if model.num_joints else None
+    ja, jb = model.coupling_joint_a, model.coupling_joint_b
+    has_b = jb >= 0
+    cpl_a = dof_start_local[ja] if model.num_couplings else np.zeros(0, np.int64)
+    cpl_b = np.where(has_b, dof_start_local[np.maximum(jb, 0)], 0) if model.num_couplings else np.zeros(0, np.int64)
+    cpl_wrap = model.joint_type[ja] == int(JointType.REVOLUTE) if model.num_couplings else np.zeros(0, bool)
+
     # geoms and candidate pairs, grouped by type combination (static per model)
     ng = int(model.world_geom_count.max()) if model.num_geoms else 0
     gg, gmask, _ = _pad_index(model.world_geom_start, model.world_geom_count, ng)
@@ -258,6 +278,12 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
         dyn_dof=i(take(dyn_dof[order], yg, ymask, 0)),
         dyn_kind=i(take(dyn_kind[order], yg, ymask, 0)),
         dyn_mask=jnp.asarray(ymask),
+        cpl_dof_a=i(take(cpl_a, ug, umask, 0)),
+        cpl_dof_b=i(take(cpl_b, ug, umask, 0)),
+        cpl_has_b=jnp.asarray(take(has_b, ug, umask, False)),
+        cpl_wrap=jnp.asarray(take(cpl_wrap, ug, umask, False)),
+        cpl_coef=f(take(model.coupling_coef, ug, umask, 0.0)),
+        cpl_mask=jnp.asarray(umask),
         lim_dof=i(take(dof_local[limited], lg, lmask, 0)),
         lim_mask=jnp.asarray(lmask),
         geom_type=i(geom_arr(model.geom_type, 0)),
@@ -274,12 +300,14 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
         max_contacts=nc,
     )
     return Layout(
-        padded=padded, num_worlds=W, max_bodies=nb, max_joints=nj, max_rows=nr, max_dofs=nd,
+        padded=padded, num_worlds=W, max_bodies=nb, max_joints=nj, max_rows=nr, max_dofs=nd, max_couplings=nk,
         body_gather=bg, body_scatter=bsc, row_gather=rg, row_scatter=rsc, dof_gather=dg, dof_scatter=dsc,
+        coupling_gather=ug, coupling_scatter=usc,
         max_contacts=nc, contact_gather=cg, contact_scatter=csc,
         dtype=dtype,
         tables={"bg": jnp.asarray(bg), "bs": jnp.asarray(bsc), "rg": jnp.asarray(rg), "rs": jnp.asarray(rsc),
-                "dg": jnp.asarray(dg), "ds": jnp.asarray(dsc), "cg": jnp.asarray(cg), "cs": jnp.asarray(csc),
+                "dg": jnp.asarray(dg), "ds": jnp.asarray(dsc), "ug": jnp.asarray(ug), "us": jnp.asarray(usc),
+                "cg": jnp.asarray(cg), "cs": jnp.asarray(csc),
                 "cm": jnp.asarray(cmask)},
     )
 

@@ -2,7 +2,8 @@
 
 Pipeline (architecture.md, backend contract): kinematics -> collision -> dynamics -> PADMM ->
 integrate. Rows of a world, in order (formulation.md §7.1): joint-dynamics rows (actuators, then
-armature/damping/springs) | joint kinematic rows | limit rows | contact triples ``(t1, t2, n)``.
+armature/damping/springs) | joint kinematic rows | coupling rows | limit rows | contact triples
+``(t1, t2, n)``.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import jax.numpy as jnp
 from kamino.config import SolverConfig
 from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import padmm
+from kamino.jax_ref.couplings import coupling_jacobian, coupling_residual
 from kamino.jax_ref.dynamics import apply_inv_mass, body_dynamics, delassus, nonlinear_force
 from kamino.jax_ref.joints import (
     constraint_jacobian,
@@ -39,6 +41,7 @@ class WorldCache:
     """
 
     kin: jax.Array  # [nr]
+    coupling: jax.Array  # [nk]
     actuator: jax.Array  # [nd]
     passive: jax.Array  # [nd]
     limit: jax.Array  # [nd] signed generalized force
@@ -106,6 +109,19 @@ def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: ja
         c = e_pred - e_eval - h * (J @ u_pred.reshape(nb * 6))
         bias = bias + cts.deadband(c, delta)
     return jnp.where(pm.row_mask, bias / h, 0.0)
+
+
+def coupling_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: jax.Array, e_start: jax.Array,
+                  J: jax.Array, h, cfg: SolverConfig) -> jax.Array:
+    """Stabilisation bias of the coupling rows: :func:`joint_bias`'s rule on ``q_a - p(q_b)``."""
+    if not e_eval.shape[0]:
+        return e_eval
+    delta = joint_deadband(cfg, e_eval.dtype)
+    bias = cts.deadband(e_eval - (1.0 - cfg.baumgarte) * e_start, delta)
+    if cfg.curvature_correction:
+        e_pred = coupling_residual(pm, dof_positions(pm, joint_frames(pm, integrate_pose(q_eval, u_pred, h))))
+        bias = bias + cts.deadband(e_pred - e_eval - h * (J @ u_pred.reshape(-1)), delta)
+    return jnp.where(pm.cpl_mask, bias / h, 0.0)
 
 
 def explicit_effort(pm: PaddedModel, effort: jax.Array) -> jax.Array:
@@ -209,10 +225,14 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     J_dyn = jnp.where(pm.dyn_mask[:, None], J_dofs[d], 0.0)
     R_dyn, vs_dyn, lo_dyn, hi_dyn = dynamics_rows(pm, q_dof, qd_minus, ctrl, h, cfg)
     # kinematic joint rows
+    jf_start = jf if q_start is q_eval else joint_frames(pm, q_start)
     e_eval = constraint_residual(pm, jf)
-    e_start = e_eval if q_start is q_eval else constraint_residual(pm, joint_frames(pm, q_start))
+    e_start = e_eval if q_start is q_eval else constraint_residual(pm, jf_start)
     J_kin = constraint_jacobian(pm, jf, nb)
-    vs_kin = joint_bias(pm, q_eval, u_f, e_eval, e_start, J_kin, h, cfg) if e_eval.shape[0] else e_eval
+    # coupling rows (mimic joints)
+    J_cpl = coupling_jacobian(pm, q_dof, J_dofs)
+    e_cpl = coupling_residual(pm, q_dof)
+    e_cpl_start = e_cpl if q_start is q_eval else coupling_residual(pm, dof_positions(pm, jf_start))
     # limit rows
     # Unilateral rows measure the violation to keep where the dynamics are built, also for the
     # midpoint rule: an impact in the first half-step overshoots by up to h |v|, and asking the
@@ -226,23 +246,13 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     vn_minus = (J_con @ u_vec).reshape(-1, 3)[:, 2]
     vs_con = cts.contact_bias(ct, ct.dist, vn_minus, h, cfg)  # same reading as the limits above
 
-    J = jnp.concatenate([J_dyn, J_kin, J_lim, J_con], axis=0)
-    n_dyn, n_kin, n_lim = J_dyn.shape[0], J_kin.shape[0], J_lim.shape[0]
+    J = jnp.concatenate([J_dyn, J_kin, J_cpl, J_lim, J_con], axis=0)
+    n_dyn, n_kin, n_lim = J_dyn.shape[0], J_kin.shape[0] + J_cpl.shape[0], J_lim.shape[0]
     n_box = n_dyn + n_kin + n_lim
     if J.shape[0] == 0:
         z = jnp.asarray(0.0, dtype)
         empty = jnp.zeros(0, dtype)
         return u_f, padmm.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True)), ct, side
-    con_mask = jnp.repeat(ct.mask, 3)
-    row_mask = jnp.concatenate([pm.dyn_mask, pm.row_mask, lim_active, con_mask])
-    v_star = jnp.concatenate([vs_dyn, vs_kin, vs_lim, vs_con])
-    R = jnp.concatenate([R_dyn, jnp.zeros(n_kin + n_lim + con_mask.shape[0], dtype)])
-    inf = jnp.full(n_kin, jnp.inf, dtype)
-    lo = jnp.concatenate([lo_dyn, -inf, jnp.zeros(n_lim, dtype)])
-    hi = jnp.concatenate([hi_dyn, inf, jnp.full(n_lim, jnp.inf, dtype)])
-    D = delassus(J, bd) + jnp.diag(R)
-    v_f = J @ uf_vec + v_star  # §5
-
     # warm start (§7.8): previous reactions, contacts matched by geom pair and point on geom b
     frames = cts.contact_frames(ct.normal)
     point_b = cts.local_point_b(ct, q_eval)
@@ -254,12 +264,26 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     v_prev = jnp.where(found[:, None], v_prev, 0.0)
     v_prev = v_prev + padmm.de_saxce(v_prev.reshape(-1), ct.mu, 0).reshape(-1, 3)
     act_prev = jnp.where(pm.dyn_kind == DYN_ACTUATOR, cache.actuator[d], cache.passive[d])
-    force0 = jnp.concatenate([act_prev, cache.kin, jnp.maximum(side * cache.limit[pm.lim_dof], 0.0),
+    force0 = jnp.concatenate([act_prev, cache.kin, cache.coupling, jnp.maximum(side * cache.limit[pm.lim_dof], 0.0),
                               f_prev.reshape(-1)])
     impulse0 = (cfg.warmstart_scale * dt) * force0 if cfg.warm_start else jnp.zeros_like(force0)
     velocity0 = jnp.concatenate([jnp.zeros(n_box, dtype), v_prev.reshape(-1)])
     if not cfg.warm_start:
         velocity0 = jnp.zeros_like(velocity0)
+    # bilateral rows' stabilisation (§5); the curvature term is predicted along u_f, not along
+    # u_f + M^-1 J^T lambda_prev (that feeds the midpoint rule's alternating mode: docs/conventions.md)
+    vs_kin = joint_bias(pm, q_eval, u_f, e_eval, e_start, J_kin, h, cfg) if e_eval.shape[0] else e_eval
+    vs_cpl = coupling_bias(pm, q_eval, u_f, e_cpl, e_cpl_start, J_cpl, h, cfg)
+    con_mask = jnp.repeat(ct.mask, 3)
+    row_mask = jnp.concatenate([pm.dyn_mask, pm.row_mask, pm.cpl_mask, lim_active, con_mask])
+    v_star = jnp.concatenate([vs_dyn, vs_kin, vs_cpl, vs_lim, vs_con])
+    R = jnp.concatenate([R_dyn, jnp.zeros(n_kin + n_lim + con_mask.shape[0], dtype)])
+    inf = jnp.full(n_kin, jnp.inf, dtype)
+    lo = jnp.concatenate([lo_dyn, -inf, jnp.zeros(n_lim, dtype)])
+    hi = jnp.concatenate([hi_dyn, inf, jnp.full(n_lim, jnp.inf, dtype)])
+    D = delassus(J, bd) + jnp.diag(R)
+    v_f = J @ uf_vec + v_star  # §5
+
     res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg)
     u_plus = u_f + apply_inv_mass(bd, (J.T @ res.impulse).reshape(nb, 6))  # u+ = u_f + M^-1 J^T lambda
     return u_plus, res, ct, side
@@ -270,13 +294,16 @@ def _new_cache(pm: PaddedModel, q_eval, res: padmm.PADMMResult, ct: cts.Contacts
     """Split the solve's impulses into the per-family forces ``lambda / dt`` the State carries."""
     dt = cfg.dt
     nd = pm.dof_mask.shape[0]
-    n_dyn, n_kin, n_lim = pm.dyn_mask.shape[0], pm.row_mask.shape[0], pm.lim_mask.shape[0]
+    n_dyn, n_jnt, n_cpl, n_lim = (pm.dyn_mask.shape[0], pm.row_mask.shape[0], pm.cpl_mask.shape[0],
+                                  pm.lim_mask.shape[0])
+    n_kin = n_jnt + n_cpl
     if res.impulse.shape[0] == 0:
         f = jnp.zeros(0, q_eval.dtype)
         v = jnp.zeros(0, q_eval.dtype)
     else:
         f, v = res.impulse / dt, res.velocity
-    f_dyn, f_kin, f_lim = f[:n_dyn], f[n_dyn:n_dyn + n_kin], f[n_dyn + n_kin:n_dyn + n_kin + n_lim]
+    f_dyn, f_lim = f[:n_dyn], f[n_dyn + n_kin:n_dyn + n_kin + n_lim]
+    f_kin, f_cpl = f[n_dyn:n_dyn + n_jnt], f[n_dyn + n_jnt:n_dyn + n_kin]
     C = ct.pair.shape[0]
     f_con = f[n_dyn + n_kin + n_lim:].reshape(C, 3)
     v_con = v[n_dyn + n_kin + n_lim:].reshape(C, 3)
@@ -291,6 +318,7 @@ def _new_cache(pm: PaddedModel, q_eval, res: padmm.PADMMResult, ct: cts.Contacts
     cmask = ct.mask[:, None]
     return WorldCache(
         kin=f_kin,
+        coupling=f_cpl,
         actuator=actuator,
         passive=passive,
         limit=limit,

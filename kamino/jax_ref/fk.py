@@ -1,0 +1,234 @@
+"""Forward kinematics for resets: batched damped Gauss-Newton on the body poses (formulation.md §9).
+
+Unknowns are the poses of all bodies of a world; a step is a twist per body ``delta`` applied with
+the exponential map (``integrate_pose(q, delta, 1)``), so the quaternions stay unit and the step is
+measured in the tangent space (docs/conventions.md "Forward kinematics" on this departure from the
+additive quaternion update of §9). Residual rows, in order:
+
+- the kinematic rows of every joint that is not targeted (``constraint_residual``, §2.3-2.4);
+- six fixed-joint rows (``t``, ``Log Q``) per targeted joint, measured against the target relative
+  transform ``T* = (t*, Q*)`` built from its coordinates: the follower's joint frame is replaced by
+  ``(a_F, X_F) T*^-1``, so the fixed-joint residual reads ``T0^-1 T*``-type errors with the joint
+  rows' own Jacobian (§9 "a non-identity offset is folded into Q*");
+- one row per joint coupling (``coupling_residual``);
+- six rows ``(r - r*, Log(q q*^-1))`` on the base body when a base pose is requested.
+
+Step: ``(J^T J + mu I) delta = -J^T C`` (Cholesky; ``mu`` keeps free directions, e.g. a floating base
+without a target or a tie rod's spin, at the initial guess), Armijo line search on ``phi = |C|^2 / 2``
+over ``alpha = 1, 1/2, ..., 2^-9``. Large target changes are approached in sub-targets of at most
+``max_angle_step`` / ``max_translation_step`` per iteration (§9 "incremental solve"). A world stops when
+``max |C| <= tolerance`` at the final target, when its line search fails, or at the iteration budget.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from kamino.jax_ref.couplings import coupling_jacobian, coupling_residual
+from kamino.jax_ref.joints import (
+    constraint_jacobian,
+    constraint_residual,
+    dof_jacobian,
+    dof_positions,
+    joint_coordinates,
+    joint_frames,
+)
+from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.spatial import integrate_pose, quat_conj, quat_exp, quat_log, quat_mul, rotate
+from kamino.model import JointType
+
+_ALPHAS = tuple(0.5**k for k in range(10))
+_ARMIJO = 1e-4
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class FKTables:
+    """Per-world FK row structure (padded, leading axis world), built on the host per model and mode."""
+
+    row_joint: jax.Array  # [W, nr]
+    row_axis: jax.Array
+    row_kind: jax.Array
+    row_mask: jax.Array
+    targeted: jax.Array  # [W, nj] bool
+    base_body: jax.Array  # [W] local body index (-1: none)
+
+
+@dataclasses.dataclass(frozen=True)
+class FKSettings:
+    """Solver settings (static under ``jit``): stop at ``max |C| <= tolerance`` or after
+    ``max_iterations`` beyond the sub-target stages; ``damping`` is ``mu`` relative to ``1 + max diag
+    J^T J``; sub-targets move at most ``max_angle_step`` [rad] / ``max_translation_step`` [m]."""
+
+    tolerance: float = 1e-6
+    max_iterations: int = 30
+    damping: float = 1e-9
+    max_angle_step: float = 0.17453292519943295  # 10 degrees
+    max_translation_step: float = 0.05
+
+
+def target_transform(jtype: jax.Array, c: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Relative transform ``(t*, Q*)`` of a joint from its packed coordinates ``c [nj, 7]``: the inverse
+    of ``joints.joint_coordinates`` (REVOLUTE ``Rx(angle)``; PRISMATIC ``t = (d, 0, 0)``; CYLINDRICAL
+    both; UNIVERSAL ``Rx(theta_1) Ry(theta_2)``; SPHERICAL ``Q``; CARTESIAN ``t``; FREE ``(t, Q)``)."""
+    z = jnp.zeros_like(c[:, 0])
+    one = jnp.ones_like(z)
+
+    def axis_quat(angle, k):
+        v = [z, z, z]
+        v[k] = jnp.sin(0.5 * angle)
+        return jnp.stack([*v, jnp.cos(0.5 * angle)], -1)
+
+    ident = jnp.stack([z, z, z, one], -1)
+    zero3 = jnp.zeros_like(c[:, :3])
+    tx = jnp.stack([c[:, 0], z, z], -1)
+    table = {
+        JointType.REVOLUTE: (zero3, axis_quat(c[:, 0], 0)),
+        JointType.PRISMATIC: (tx, ident),
+        JointType.CYLINDRICAL: (tx, axis_quat(c[:, 1], 0)),
+        JointType.UNIVERSAL: (zero3, quat_mul(axis_quat(c[:, 0], 0), axis_quat(c[:, 1], 1))),
+        JointType.SPHERICAL: (zero3, c[:, 0:4]),
+        JointType.CARTESIAN: (c[:, 0:3], ident),
+        JointType.FREE: (c[:, 0:3], c[:, 3:7]),
+    }
+    t, Q = zero3, ident
+    for jt, (tt, qq) in table.items():
+        sel = (jtype == int(jt))[:, None]
+        t, Q = jnp.where(sel, tt, t), jnp.where(sel, qq, Q)
+    Q = Q / jnp.linalg.norm(Q, axis=-1, keepdims=True)
+    return t, Q
+
+
+def _interpolate(jtype, c0, c1, p):
+    """Coordinates a fraction ``p`` of the way from ``c0`` to ``c1``: linear, quaternions by slerp."""
+    lin = c0 + p * (c1 - c0)
+    out = lin
+    for jt, k in ((JointType.SPHERICAL, 0), (JointType.FREE, 3)):
+        q0, q1 = c0[:, k:k + 4], c1[:, k:k + 4]
+        qp = quat_mul(q0, quat_exp(p * quat_log(quat_mul(quat_conj(q0), q1))))
+        out = jnp.where((jtype == int(jt))[:, None], out.at[:, k:k + 4].set(qp), out)
+    return out
+
+
+def _stages(jtype, targeted, c0, c1, base_from, base_to, has_base, s: FKSettings):
+    """Number of sub-targets so that no coordinate moves more than the step limits per iteration."""
+    d = jnp.abs(c1 - c0)
+    ang = jnp.zeros_like(d[:, 0])
+    lin = jnp.zeros_like(d[:, 0])
+    rot_angle = lambda q0, q1: jnp.linalg.norm(quat_log(quat_mul(quat_conj(q0), q1)), axis=-1)  # noqa: E731
+    for jt, a_cols, l_cols in ((JointType.REVOLUTE, [0], []), (JointType.PRISMATIC, [], [0]),
+                               (JointType.CYLINDRICAL, [1], [0]), (JointType.UNIVERSAL, [0, 1], []),
+                               (JointType.CARTESIAN, [], [0, 1, 2]), (JointType.FREE, [], [0, 1, 2])):
+        sel = jtype == int(jt)
+        if a_cols:
+            ang = jnp.where(sel, jnp.max(d[:, a_cols], axis=-1), ang)
+        if l_cols:
+            lin = jnp.where(sel, jnp.max(d[:, l_cols], axis=-1), lin)
+    ang = jnp.where(jtype == int(JointType.SPHERICAL), rot_angle(c0[:, 0:4], c1[:, 0:4]), ang)
+    ang = jnp.where(jtype == int(JointType.FREE), rot_angle(c0[:, 3:7], c1[:, 3:7]), ang)
+    need = jnp.maximum(ang / s.max_angle_step, lin / s.max_translation_step)
+    need = jnp.max(jnp.where(targeted, need, 0.0), initial=0.0)
+    base_need = jnp.maximum(rot_angle(base_from[3:], base_to[3:]) / s.max_angle_step,
+                            jnp.linalg.norm(base_to[:3] - base_from[:3]) / s.max_translation_step)
+    need = jnp.maximum(need, jnp.where(has_base, base_need, 0.0))
+    return jnp.maximum(jnp.ceil(need), 1.0)
+
+
+def _with_targets(pm: PaddedModel, tab, t_star, Q_star) -> PaddedModel:
+    """``pm`` with the FK rows and the targeted joints' follower frames replaced by ``(a_F, X_F) T*^-1``."""
+    Qi = quat_conj(Q_star)
+    frame_F = quat_mul(pm.frame_F, Qi)
+    anchor_F = pm.anchor_F - rotate(frame_F, t_star)
+    sel = tab.targeted[:, None]
+    return dataclasses.replace(pm, row_joint=tab.row_joint, row_axis=tab.row_axis, row_kind=tab.row_kind,
+                               row_mask=tab.row_mask, anchor_F=jnp.where(sel, anchor_F, pm.anchor_F),
+                               frame_F=jnp.where(sel, frame_F, pm.frame_F))
+
+
+def _residual_and_jacobian(pm, pm_t, tab, q, base_target, with_jacobian: bool):
+    nb = q.shape[0]
+    jf_t = joint_frames(pm_t, q)
+    jf = joint_frames(pm, q)
+    q_dof = dof_positions(pm, jf)
+    C = [constraint_residual(pm_t, jf_t), coupling_residual(pm, q_dof)]
+    has_base = tab.base_body >= 0
+    b = jnp.maximum(tab.base_body, 0)
+    rot_err = quat_log(quat_mul(q[b, 3:], quat_conj(base_target[3:])))
+    C.append(jnp.where(has_base, jnp.concatenate([q[b, :3] - base_target[:3], rot_err]), 0.0))
+    C = jnp.concatenate(C)
+    if not with_jacobian:
+        return C, None
+    J_base = jnp.zeros((6, nb, 6), q.dtype).at[jnp.arange(6), b, jnp.arange(6)].set(jnp.where(has_base, 1.0, 0.0))
+    J = jnp.concatenate([constraint_jacobian(pm_t, jf_t, nb),
+                         coupling_jacobian(pm, q_dof, dof_jacobian(pm, jf, nb)),
+                         J_base.reshape(6, nb * 6)])
+    return C, J
+
+
+def solve_world(pm: PaddedModel, tab: FKTables, q_init, coords, base_target, s: FKSettings):
+    """Gauss-Newton FK of one world. ``coords [nj, 7]`` are the targets of the targeted joints,
+    ``base_target [7]`` the base pose (ignored without a base). Returns ``(q, converged, residual,
+    iterations)``."""
+    nb = q_init.shape[0]
+    dtype = q_init.dtype
+    jtype = pm.joint_type
+    c0 = joint_coordinates(pm, joint_frames(pm, q_init))
+    has_base = tab.base_body >= 0
+    base_from = q_init[jnp.maximum(tab.base_body, 0)]
+    n_stages = _stages(jtype, tab.targeted, c0, coords, base_from, base_target, has_base, s)
+    eye = jnp.eye(nb * 6, dtype=dtype)
+
+    def targets(it):
+        p = jnp.minimum((it + 1.0) / n_stages, 1.0)
+        c = _interpolate(jtype, c0, coords, p)
+        t_star, Q_star = target_transform(jtype, c)
+        rot = quat_mul(base_from[3:], quat_exp(p * quat_log(quat_mul(quat_conj(base_from[3:]), base_target[3:]))))
+        base = jnp.concatenate([base_from[:3] + p * (base_target[:3] - base_from[:3]), rot])
+        return _with_targets(pm, tab, t_star, Q_star), base, p
+
+    def phi(pm_t, q, base):
+        C, _ = _residual_and_jacobian(pm, pm_t, tab, q, base, False)
+        return 0.5 * jnp.sum(C * C), jnp.max(jnp.abs(C), initial=0.0)
+
+    def body(carry):
+        q, it, _, _, _ = carry
+        pm_t, base, p = targets(it)
+        C, J = _residual_and_jacobian(pm, pm_t, tab, q, base, True)
+        g = J.T @ C
+        A = J.T @ J
+        A = A + (s.damping * (1.0 + jnp.max(jnp.diag(A)))) * eye
+        delta = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), g)
+        phi0 = 0.5 * jnp.sum(C * C)
+        slope = g @ delta
+        alphas = jnp.asarray(_ALPHAS, dtype)
+        cand = jax.vmap(lambda a: integrate_pose(q, (a * delta).reshape(nb, 6), 1.0))(alphas)
+        phis, cmax = jax.vmap(lambda qq: phi(pm_t, qq, base))(cand)
+        ok = jnp.isfinite(phis) & (phis <= phi0 + _ARMIJO * alphas * slope)
+        k = jnp.argmax(ok)
+        accepted = jnp.any(ok)
+        q_new = jnp.where(accepted, cand[k], q)
+        res = jnp.where(accepted, cmax[k], jnp.max(jnp.abs(C), initial=0.0))
+        done = (p >= 1.0) & (res <= s.tolerance)
+        stalled = ~accepted & (res > s.tolerance)
+        return q_new, it + 1.0, res, done, stalled
+
+    def cond(carry):
+        _, it, _, done, stalled = carry
+        return (~done) & (~stalled) & (it < s.max_iterations + n_stages)
+
+    pm0, base0, _ = targets(n_stages - 1.0)  # the final targets
+    _, r0 = phi(pm0, q_init, base0)
+    init = (q_init, jnp.asarray(0.0, dtype), r0, (n_stages <= 1.0) & (r0 <= s.tolerance), jnp.asarray(False))
+    q, it, _, _, _ = jax.lax.while_loop(cond, body, init)
+    _, res = phi(pm0, q, base0)
+    return q, res <= s.tolerance, res, it
+
+
+@functools.partial(jax.jit, static_argnames=("settings",))
+def solve_batch(pm: PaddedModel, tab: FKTables, q_init, coords, base_target, settings: FKSettings):
+    """``solve_world`` vmapped over worlds (padded arrays, leading axis world)."""
+    return jax.vmap(solve_world, in_axes=(0, 0, 0, 0, 0, None))(pm, tab, q_init, coords, base_target, settings)

@@ -1,0 +1,237 @@
+"""Forward kinematics for resets: ``forward_kinematics`` and ``set_joint_positions`` (formulation.md §9).
+
+Given joint coordinates — all of them, or only the actuated ones — find body poses that satisfy
+every joint, loop-closure and coupling constraint, for all worlds at once. The solver
+(``kamino/jax_ref/fk.py``) is a damped Gauss-Newton with line search on the body poses; a world that
+does not converge is flagged in ``FKResult.converged`` and keeps its best (finite) iterate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import weakref
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from kamino.jax_ref.fk import FKSettings, FKTables, solve_batch
+from kamino.jax_ref.layout import _pad_index, layout_of, to_flat, to_padded
+from kamino.jax_ref.spatial import quat_exp
+from kamino.model import JOINT_CONSTRAINT_ROWS, RES_LOG, RES_TRANS, ActuationMode, JointType, Model
+from kamino.state import State
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class FKResult:
+    """Result of :func:`forward_kinematics`.
+
+    Attributes:
+        body_q: ``[total_bodies, 7]`` CoM poses (flat, like ``State.body_q``).
+        converged: ``[num_worlds]`` bool: ``residual <= tolerance``.
+        residual: ``[num_worlds]`` max |constraint residual| (m or rad) at the returned poses.
+        iterations: ``[num_worlds]`` Gauss-Newton iterations used.
+    """
+
+    body_q: jax.Array
+    converged: jax.Array
+    residual: jax.Array
+    iterations: jax.Array
+
+
+_FIXED_ROWS = ((0, RES_TRANS), (1, RES_TRANS), (2, RES_TRANS), (3, RES_LOG), (4, RES_LOG), (5, RES_LOG))
+_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def actuated_joints(model: Model) -> np.ndarray:
+    """``[num_joints]`` bool: joints whose DoFs have an actuator (kamino.Actuation other than passive)."""
+    active = model.dof_act_mode != int(ActuationMode.PASSIVE)
+    owner = np.repeat(np.arange(model.num_joints), model.joint_dof_count)
+    out = np.zeros(model.num_joints, bool)
+    out[owner[active]] = True
+    return out
+
+
+def base_bodies(model: Model) -> np.ndarray:
+    """``[num_worlds]`` global index of each world's floating base — the child of its first FREE joint
+    from the world — or ``-1`` (fixed-base world)."""
+    out = np.full(model.num_worlds, -1, np.int64)
+    free = np.nonzero((model.joint_type == int(JointType.FREE)) & (model.joint_parent < 0))[0]
+    for j in free[::-1]:
+        out[model.joint_world[j]] = model.joint_child[j]
+    return out
+
+
+def _tables(model: Model, mode: str, use_base: bool) -> tuple[FKTables, np.ndarray, np.ndarray]:
+    """Host-built FK row tables (cached per model), the joint gather table and its mask."""
+    key = (mode, use_base)
+    per_model = _TABLES.setdefault(model, {})
+    if key in per_model:
+        return per_model[key]
+    W = model.num_worlds
+    nj = int(model.world_joint_count.max()) if model.num_joints else 0
+    jg, jmask, _ = _pad_index(model.world_joint_start, model.world_joint_count, nj)
+    targeted = np.ones(model.num_joints, bool) if mode == "all" else actuated_joints(model)
+    rows: list[list[tuple[int, int, int]]] = [[] for _ in range(W)]
+    for j in range(model.num_joints):
+        w = int(model.joint_world[j])
+        local = j - int(model.world_joint_start[w])
+        spec = _FIXED_ROWS if targeted[j] else JOINT_CONSTRAINT_ROWS[JointType(int(model.joint_type[j]))]
+        rows[w].extend((local, axis, kind) for axis, kind in spec)
+    nr = max((len(r) for r in rows), default=0)
+    table = np.zeros((3, W, nr), np.int64)
+    mask = np.zeros((W, nr), bool)
+    for w, r in enumerate(rows):
+        if r:
+            table[:, w, :len(r)] = np.asarray(r).T
+            mask[w, :len(r)] = True
+    base = base_bodies(model)
+    base_local = np.where(base >= 0, base - model.world_body_start, -1) if use_base else np.full(W, -1)
+    tab = FKTables(
+        row_joint=jnp.asarray(table[0], jnp.int32), row_axis=jnp.asarray(table[1], jnp.int32),
+        row_kind=jnp.asarray(table[2], jnp.int32), row_mask=jnp.asarray(mask),
+        targeted=jnp.asarray(np.where(jmask, targeted[jg] if model.num_joints else False, False)),
+        base_body=jnp.asarray(base_local, jnp.int32),
+    )
+    per_model[key] = (tab, jg, jmask)
+    return per_model[key]
+
+
+def _coords_from_dofs(model: Model, dof_pos: jax.Array) -> jax.Array:
+    """Packed coordinates ``[num_joints, 7]`` from DoF positions (rotation vectors -> quaternions)."""
+    dtype = dof_pos.dtype
+    out = jnp.zeros((model.num_joints, 7), dtype)
+    for j in range(model.num_joints):
+        s, n = int(model.joint_dof_start[j]), int(model.joint_dof_count[j])
+        d = dof_pos[s:s + n]
+        jt = JointType(int(model.joint_type[j]))
+        if jt == JointType.SPHERICAL:
+            d = quat_exp(d)
+        elif jt == JointType.FREE:
+            d = jnp.concatenate([d[:3], quat_exp(d[3:])])
+        out = out.at[j, :d.shape[0]].set(d)
+    return out
+
+
+def _coords_from_flat(model: Model, coords: jax.Array) -> jax.Array:
+    """Packed coordinates ``[num_joints, 7]`` from the flat ``[num_coords]`` vector (``kamino.joint_positions``)."""
+    counts = model.joint_coord_count
+    joint = np.repeat(np.arange(model.num_joints), counts)
+    slot = np.arange(int(counts.sum())) - np.repeat(model.joint_coord_start, counts)
+    out = jnp.zeros((model.num_joints, 7), coords.dtype).at[joint, slot].set(coords)
+    # quaternion coordinates (SPHERICAL, FREE) are normalised
+    for jt, k in ((JointType.SPHERICAL, 0), (JointType.FREE, 3)):
+        sel = np.nonzero(model.joint_type == int(jt))[0]
+        if sel.size:
+            q = out[sel, k:k + 4]
+            out = out.at[sel, k:k + 4].set(q / jnp.linalg.norm(q, axis=-1, keepdims=True))
+    return out
+
+
+def _concrete(x) -> np.ndarray | None:
+    try:
+        return np.asarray(x)
+    except (TypeError, jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return None
+
+
+def forward_kinematics(model: Model, joint_positions=None, actuated_positions=None, base_pose=None, *,
+                       initial_body_q=None, tolerance: float = 1e-6, max_iterations: int = 30,
+                       dtype=None) -> FKResult:
+    """Body poses consistent with every joint, loop closure and coupling, for all worlds at once.
+
+    Give either ``joint_positions`` — all joint coordinates, flat ``[num_coords]`` in the layout of
+    :func:`kamino.joint_positions` — or ``actuated_positions`` — one DoF position per actuator,
+    ``[num_actuators]`` in ``model.actuator_names`` order (angle [rad] or translation [m]; a
+    rotation-vector component for SPHERICAL/FREE DoFs); unactuated joints are then solved for.
+    With neither, the actuated joints are held at their reference (zero) coordinates.
+    ``base_pose`` (``[7]`` or ``[num_worlds, 7]``, CoM pose of each world's floating base: the child
+    of its FREE joint from the world) places floating robots; without it the base stays where the
+    initial guess has it. ``initial_body_q`` (default: the model's reference pose ``body_q0``, moved
+    rigidly to ``base_pose``) is where the Gauss-Newton iteration starts.
+
+    Solves ``max |C| <= tolerance`` by damped Gauss-Newton with an Armijo line search, at most
+    ``max_iterations`` plus one per sub-target of 10 deg / 5 cm (formulation.md §9). Works under
+    ``jax.jit`` for the coordinate arguments. ``dtype`` defaults to JAX's default float.
+    """
+    if joint_positions is not None and actuated_positions is not None:
+        raise ValueError("forward_kinematics: give joint_positions or actuated_positions, not both")
+    if joint_positions is not None and base_pose is not None:
+        raise ValueError("forward_kinematics: with joint_positions the base pose is the FREE joint's coordinates; "
+                         "do not also give base_pose")
+    dtype = jnp.zeros(0).dtype if dtype is None else jnp.dtype(dtype)
+    mode = "all" if joint_positions is not None else "actuated"
+    base = base_bodies(model)
+    if base_pose is not None and np.any(base < 0):
+        worlds = np.nonzero(base < 0)[0][:8].tolist()
+        raise ValueError(f"forward_kinematics: base_pose given but worlds {worlds} have no floating base "
+                         "(a FREE joint from the world)")
+    tab, jg, jmask = _tables(model, mode, base_pose is not None)
+    lay = layout_of(model, dtype)
+    pm, t = lay.padded, lay.tables
+
+    if mode == "all":
+        jp = jnp.asarray(joint_positions, dtype)
+        if jp.shape != (model.num_coords,):
+            raise ValueError(f"joint_positions has shape {jp.shape}, expected ({model.num_coords},) "
+                             "(the layout of kamino.joint_positions)")
+        coords = _coords_from_flat(model, jp)
+    else:
+        ap = jnp.zeros(model.num_actuators, dtype) if actuated_positions is None else jnp.asarray(actuated_positions,
+                                                                                                    dtype)
+        if ap.shape != (model.num_actuators,):
+            raise ValueError(f"actuated_positions has shape {ap.shape}, expected ({model.num_actuators},) "
+                             f"(one per actuator: {list(model.actuator_names[:6])}...)")
+        coords = _coords_from_dofs(model, jnp.zeros(model.num_dofs, dtype).at[model.actuator_dof].set(ap))
+    for name, value in (("joint_positions", joint_positions), ("actuated_positions", actuated_positions),
+                        ("base_pose", base_pose)):
+        arr = None if value is None else _concrete(value)
+        if arr is not None and not np.all(np.isfinite(arr)):
+            raise ValueError(f"forward_kinematics: {name} contains NaN or inf")
+    coords_p = to_padded(coords, jg, jmask, 0.0)
+
+    q0 = jnp.asarray(model.body_q0 if initial_body_q is None else initial_body_q, dtype)
+    if q0.shape != (model.num_bodies, 7):
+        raise ValueError(f"initial_body_q has shape {q0.shape}, expected ({model.num_bodies}, 7)")
+    if base_pose is None:
+        base_target = jnp.tile(jnp.asarray([0, 0, 0, 0, 0, 0, 1.0], dtype), (model.num_worlds, 1))
+    else:
+        base_target = jnp.broadcast_to(jnp.asarray(base_pose, dtype), (model.num_worlds, 7))
+        base_target = base_target.at[:, 3:].set(base_target[:, 3:] / jnp.linalg.norm(base_target[:, 3:], axis=-1,
+                                                                                       keepdims=True))
+        if initial_body_q is None:
+            q0 = _move_rigidly(model, q0, base, base_target)
+    from kamino.jax_ref.backend import _padded_poses
+
+    q_pad = _padded_poses(pm, t, q0)
+    settings = FKSettings(tolerance=float(tolerance), max_iterations=int(max_iterations))
+    q, converged, residual, iterations = solve_batch(pm, tab, q_pad, coords_p, base_target, settings)
+    return FKResult(body_q=to_flat(q, t["bs"]), converged=converged, residual=residual,
+                    iterations=iterations.astype(jnp.int32))
+
+
+def _move_rigidly(model: Model, q0: jax.Array, base: np.ndarray, target: jax.Array) -> jax.Array:
+    """Move every body of each world by the rigid transform taking its base body to ``target``."""
+    from kamino.jax_ref.spatial import quat_conj, quat_mul, rotate
+
+    world = model.body_world
+    b = base[world]
+    qb = q0[b]
+    rel = quat_mul(target[world, 3:], quat_conj(qb[:, 3:]))
+    pos = target[world, :3] + rotate(rel, q0[:, :3] - qb[:, :3])
+    rot = quat_mul(rel, q0[:, 3:])
+    return jnp.concatenate([pos, rot / jnp.linalg.norm(rot, axis=-1, keepdims=True)], axis=-1)
+
+
+def set_joint_positions(model: Model, state: State, joint_positions=None, actuated_positions=None,
+                        base_pose=None, **options) -> State:
+    """``state`` reset to the poses that :func:`forward_kinematics` finds from the given coordinates,
+    starting from ``state.body_q``; twists, reactions and contacts are zeroed, time is kept. Worlds
+    that do not converge keep the best iterate; call :func:`forward_kinematics` for the flags."""
+    from kamino.api import init_state
+
+    fk = forward_kinematics(model, joint_positions, actuated_positions, base_pose,
+                            initial_body_q=state.body_q, dtype=state.body_q.dtype, **options)
+    fresh = init_state(model, dtype=state.body_q.dtype)
+    return fresh.replace(body_q=fk.body_q, time=state.time)
