@@ -162,7 +162,9 @@ def dynamics_rows(pm: PaddedModel, q_dof: jax.Array, qd_minus: jax.Array, ctrl: 
     a, b, k = pm.dof_armature[d], pm.dof_damping[d], pm.dof_stiffness[d]
     m_pas = a + dt * b + dt * h * k
     p_pas = a * qd + dt * k * (pm.dof_springref[d] - q)
-    m = jnp.maximum(jnp.where(is_act, m_act, m_pas), 1e-6)
+    # m > 0 on every real row (positive gains; armature, damping or a spring); the floor only keeps
+    # padding finite — a larger floor would add false damping to a soft spring at small dt
+    m = jnp.maximum(jnp.where(is_act, m_act, m_pas), 1e-30)
     p0 = jnp.where(is_act, p_act, p_pas)
     bound = jnp.where(is_act, dt * pm.dof_effort_limit[d], jnp.inf)
     mask = pm.dyn_mask

@@ -1,7 +1,8 @@
 """Procedural models: each function returns a validated single-world :class:`kamino.Model`."""
 
+from kamino.models.describe import describe
 from kamino.models.mechanisms import chain_of_loops, double_pendulum, fourbar, pendulum, slider_crank
 from kamino.models.scenes import box_on_plane, box_stack, incline, newtons_cradle, sphere_drop
 
-__all__ = ["box_on_plane", "box_stack", "chain_of_loops", "double_pendulum", "fourbar", "incline",
+__all__ = ["box_on_plane", "box_stack", "chain_of_loops", "describe", "double_pendulum", "fourbar", "incline",
            "newtons_cradle", "pendulum", "slider_crank", "sphere_drop"]
