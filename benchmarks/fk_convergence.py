@@ -35,7 +35,7 @@ def random_actuated(model: kamino.Model, num: int, seed: int = 0, unlimited: flo
 
 
 def run(name: str, num: int, seed: int = 0, chunk: int = 1000) -> dict:
-    robot = getattr(kamino.models, name)()
+    robot = getattr(kamino.models, name)()  # the procedural robots: kamino/models/robots.py
     samples = random_actuated(robot, num, seed)
     converged, residual, iterations, finite = [], [], [], []
     t_total = 0.0

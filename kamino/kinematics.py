@@ -100,17 +100,14 @@ def _tables(model: Model, mode: str, use_base: bool) -> tuple[FKTables, np.ndarr
 
 def _coords_from_dofs(model: Model, dof_pos: jax.Array) -> jax.Array:
     """Packed coordinates ``[num_joints, 7]`` from DoF positions (rotation vectors -> quaternions)."""
-    dtype = dof_pos.dtype
-    out = jnp.zeros((model.num_joints, 7), dtype)
-    for j in range(model.num_joints):
-        s, n = int(model.joint_dof_start[j]), int(model.joint_dof_count[j])
-        d = dof_pos[s:s + n]
-        jt = JointType(int(model.joint_type[j]))
-        if jt == JointType.SPHERICAL:
-            d = quat_exp(d)
-        elif jt == JointType.FREE:
-            d = jnp.concatenate([d[:3], quat_exp(d[3:])])
-        out = out.at[j, :d.shape[0]].set(d)
+    counts = model.joint_dof_count
+    joint = np.repeat(np.arange(model.num_joints), counts)
+    slot = np.arange(int(counts.sum())) - np.repeat(model.joint_dof_start, counts)
+    out = jnp.zeros((model.num_joints, 7), dof_pos.dtype).at[joint, slot].set(dof_pos)
+    for jt, k in ((JointType.SPHERICAL, 0), (JointType.FREE, 3)):  # DoFs k..k+2 are a rotation vector
+        sel = np.nonzero(model.joint_type == int(jt))[0]
+        if sel.size:
+            out = out.at[sel, k:k + 4].set(quat_exp(out[sel, k:k + 3]))
     return out
 
 
