@@ -300,29 +300,25 @@ class Model:
         """Total bilateral (joint) constraint rows over all worlds."""
         return int(self.joint_cts_count.sum())
 
+    def _lookup(self, entity: str, names: tuple[str, ...], name: str, world: int) -> int:
+        start = int(getattr(self, f"world_{entity}_start")[world])
+        count = int(getattr(self, f"world_{entity}_count")[world])
+        for k in range(start, start + count):
+            if names[k] == name:
+                return k
+        raise KeyError(f"no {entity} named {name!r} in world {world}")
+
     def body_index(self, name: str, world: int = 0) -> int:
         """Global index of the body called ``name`` in ``world``."""
-        s, c = int(self.world_body_start[world]), int(self.world_body_count[world])
-        for i in range(s, s + c):
-            if self.body_names[i] == name:
-                return i
-        raise KeyError(f"no body named {name!r} in world {world}")
+        return self._lookup("body", self.body_names, name, world)
 
     def joint_index(self, name: str, world: int = 0) -> int:
         """Global index of the joint called ``name`` in ``world``."""
-        s, c = int(self.world_joint_start[world]), int(self.world_joint_count[world])
-        for j in range(s, s + c):
-            if self.joint_names[j] == name:
-                return j
-        raise KeyError(f"no joint named {name!r} in world {world}")
+        return self._lookup("joint", self.joint_names, name, world)
 
     def actuator_index(self, name: str, world: int = 0) -> int:
         """Global index of the actuator called ``name`` in ``world``."""
-        s, c = int(self.world_actuator_start[world]), int(self.world_actuator_count[world])
-        for a in range(s, s + c):
-            if self.actuator_names[a] == name:
-                return a
-        raise KeyError(f"no actuator named {name!r} in world {world}")
+        return self._lookup("actuator", self.actuator_names, name, world)
 
     def summary(self) -> str:
         """One line per world kind: bodies, joints, DoFs, constraint rows, independent loops."""

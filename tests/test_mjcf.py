@@ -15,6 +15,7 @@ import pytest
 
 import kamino
 from kamino.io import import_mjcf, load_mjcf
+from tests.helpers import trajectory_joint_positions, trajectory_metrics
 
 mujoco = pytest.importorskip("mujoco")
 
@@ -115,17 +116,6 @@ COMPOSITES = """
   </worldbody>
 </mujoco>
 """
-
-
-def trajectory_metrics(model: kamino.Model, state: kamino.State, traj: kamino.State) -> dict[str, np.ndarray]:
-    """``kamino.metrics`` on every state of a rollout: arrays ``[T, num_worlds]``."""
-    out = jax.vmap(lambda q, u: kamino.metrics(model, state.replace(body_q=q, body_u=u)))(traj.body_q, traj.body_u)
-    return {k: np.asarray(v) for k, v in out.items()}
-
-
-def trajectory_joint_positions(model: kamino.Model, state: kamino.State, traj: kamino.State) -> np.ndarray:
-    """``kamino.joint_positions`` on every state of a rollout: ``[T, num_coords]``."""
-    return np.asarray(jax.vmap(lambda q: kamino.joint_positions(model, state.replace(body_q=q)))(traj.body_q))
 
 
 def _quat_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ from kamino.hostmath import quat_to_matrix
 from kamino.jax_ref.joints import constraint_jacobian, constraint_residual, dof_jacobian, dof_positions, joint_frames
 from kamino.jax_ref.layout import layout_of
 from kamino.jax_ref.spatial import integrate_pose
+from kamino.kinematics import actuated_joints
 from kamino.model import ActuationMode, GeomType, JointType, count_loops
 from kamino.models import robots
 from tests.helpers import trajectory_metrics
@@ -45,13 +46,6 @@ def _model(name: str) -> kamino.Model:
     return getattr(kamino.models, name)()
 
 
-def _actuated_joints(model: kamino.Model) -> np.ndarray:
-    owner = np.repeat(np.arange(model.num_joints), model.joint_dof_count)
-    out = np.zeros(model.num_joints, bool)
-    out[owner[model.dof_act_mode != int(ActuationMode.PASSIVE)]] = True
-    return out
-
-
 def _free_base(model: kamino.Model) -> np.ndarray:
     return (model.joint_type == int(JointType.FREE)) & (model.joint_parent < 0)
 
@@ -68,7 +62,7 @@ def _world0(model: kamino.Model):
 @pytest.mark.parametrize("name", NAMES)
 def test_counts_match_table_1(name):
     model, exp = _model(name), EXPECTED[name]
-    act, free = _actuated_joints(model), _free_base(model)
+    act, free = actuated_joints(model), _free_base(model)
     assert model.num_bodies == exp["bodies"]
     assert int(act.sum()) == exp["actuated"]
     assert int((~act & ~free).sum()) == exp["passive"]
@@ -89,7 +83,7 @@ def test_counts_match_table_1(name):
 
 def test_dr_legs_passive_joints_are_revolute():
     model = _model("dr_legs")
-    act, free = _actuated_joints(model), _free_base(model)
+    act, free = actuated_joints(model), _free_base(model)
     assert np.all(model.joint_type[~act & ~free] == int(JointType.REVOLUTE))
 
 
