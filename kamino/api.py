@@ -1,7 +1,7 @@
 """Public entry points: ``step``, ``rollout``, ``init_state``, ``metrics``, ``joint_positions``.
 
-Backends are looked up by name; ``"jax"`` is the reference in ``kamino/jax_ref``. The Warp
-backend (``"warp"``) lands with its own issue and raises ``NotImplementedError`` until then.
+Backends are looked up by name: ``"jax"`` is the reference in ``kamino/jax_ref``, ``"warp"`` the
+production backend in ``kamino/warp_backend`` (docs/warp_backend.md).
 """
 
 from __future__ import annotations
@@ -23,10 +23,9 @@ def _backend(name: str):
 
         return backend
     if name == "warp":
-        raise NotImplementedError(
-            "backend='warp' is not implemented yet: the Warp production backend lands with its own issue; "
-            "use backend='jax'"
-        )
+        from kamino.warp_backend import backend
+
+        return backend
     raise ValueError(f"unknown backend {name!r}; choose one of {BACKENDS}")
 
 

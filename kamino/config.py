@@ -9,6 +9,8 @@ import dataclasses
 import math
 from typing import Literal
 
+import numpy as np
+
 
 @dataclasses.dataclass(frozen=True)
 class SolverConfig:
@@ -77,6 +79,13 @@ class SolverConfig:
     jacobian: Literal["dense", "sparse"] = "dense"
     linear_solver: Literal["llt", "cr", "auto"] = "llt"
     cr_iterations: int = 9
+
+    def deadband_for(self, dtype) -> float:
+        """The joint dead band in effect for states of ``dtype``: ``joint_deadband``, or 1e-6 in
+        float32 and 1e-11 in float64 (docs/conventions.md, "Stabilisation")."""
+        if self.joint_deadband is not None:
+            return self.joint_deadband
+        return 1e-6 if np.dtype(dtype) == np.float32 else 1e-11
 
     def __post_init__(self) -> None:
         def bad(field: str, why: str) -> None:

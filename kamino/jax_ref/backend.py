@@ -7,6 +7,9 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from kamino.checks import check_control as _check_control
+from kamino.checks import check_rollout_controls
+from kamino.checks import check_state as _check_state
 from kamino.config import SolverConfig
 from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.dynamics import body_dynamics, kinetic_energy, potential_energy
@@ -102,45 +105,6 @@ def _step_jit(pm: PaddedModel, t: dict, state: State, control: Control | None, c
     )
 
 
-def _check_state(model: Model, state: State) -> None:
-    nb = model.num_bodies
-    if state.body_q.shape != (nb, 7):
-        raise ValueError(f"state.body_q has shape {state.body_q.shape}, expected ({nb}, 7) for this model")
-    if state.body_u.shape != (nb, 6):
-        raise ValueError(f"state.body_u has shape {state.body_u.shape}, expected ({nb}, 6) for this model")
-    for field in ("actuator_force", "passive_force", "limit_force"):
-        if getattr(state, field).shape != (model.num_dofs,):
-            raise ValueError(f"state.{field} has shape {getattr(state, field).shape}, expected ({model.num_dofs},)")
-    if state.coupling_force.shape != (model.num_couplings,):
-        raise ValueError(f"state.coupling_force has shape {state.coupling_force.shape}, expected "
-                         f"({model.num_couplings},) for this model")
-    if state.contacts.pair.shape != (model.num_contacts,):
-        raise ValueError(f"state.contacts has capacity {state.contacts.pair.shape[0]}, expected {model.num_contacts} "
-                         "for this model (create the state with kamino.init_state(model))")
-    if state.constraint_force.shape != (model.num_constraints,):
-        raise ValueError(
-            f"state.constraint_force has shape {state.constraint_force.shape}, expected "
-            f"({model.num_constraints},) for this model"
-        )
-
-
-def _check_control(model: Model, control: Control | None) -> None:
-    if control is None:
-        return
-    if control.dof_effort is not None and jnp.shape(control.dof_effort)[-1:] != (model.num_dofs,):
-        raise ValueError(
-            f"control.dof_effort has shape {jnp.shape(control.dof_effort)}, expected ({model.num_dofs},)"
-        )
-    if control.body_wrench is not None and jnp.shape(control.body_wrench)[-2:] != (model.num_bodies, 6):
-        raise ValueError(
-            f"control.body_wrench has shape {jnp.shape(control.body_wrench)}, expected ({model.num_bodies}, 6)"
-        )
-    for field in ("position_target", "velocity_target"):
-        value = getattr(control, field)
-        if value is not None and jnp.shape(value)[-1:] != (model.num_dofs,):
-            raise ValueError(f"control.{field} has shape {jnp.shape(value)}, expected ({model.num_dofs},)")
-
-
 def step(model: Model, state: State, control: Control | None, cfg: SolverConfig) -> State:
     _check_state(model, state)
     _check_control(model, control)
@@ -165,18 +129,7 @@ def rollout(model: Model, state: State, controls: Control | None, num_steps: int
             cfg: SolverConfig) -> State:
     _check_state(model, state)
     lay = layout_of(model, state.body_q.dtype)
-    if controls is None:
-        if num_steps is None:
-            raise ValueError("rollout: give controls with a leading time axis, or num_steps")
-    else:
-        _check_control(model, controls)
-        lengths = {x.shape[0] for x in jax.tree_util.tree_leaves(controls)}
-        if len(lengths) != 1:
-            raise ValueError(f"rollout: controls must share one leading time axis, got lengths {lengths}")
-        n = lengths.pop()
-        if num_steps is not None and num_steps != n:
-            raise ValueError(f"rollout: num_steps={num_steps} but controls hold {n} steps")
-        num_steps = n
+    num_steps = check_rollout_controls(model, controls, num_steps)
     return _rollout_jit(lay.padded, lay.tables, state, controls, cfg, int(num_steps))
 
 

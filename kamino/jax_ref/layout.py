@@ -15,9 +15,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kamino.model import JOINT_CONSTRAINT_ROWS, JOINT_DOF_ROWS, ActuationMode, JointType, Model
+from kamino.model import Model
+from kamino.tables import DYN_ACTUATOR, DYN_PASSIVE, row_tables
 
-DYN_ACTUATOR, DYN_PASSIVE = 0, 1
+__all__ = ["DYN_ACTUATOR", "DYN_PASSIVE", "Layout", "PaddedModel", "layout_of", "to_flat", "to_padded"]
 
 
 @jax.tree_util.register_dataclass
@@ -169,54 +170,31 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
     parent_local = np.where(model.joint_parent >= 0, model.joint_parent - body_start_of_joint, -1)
     child_local = model.joint_child - body_start_of_joint
 
-    # per flat row / dof: owning joint (world-local), axis, kind
-    n_rows, n_dofs = model.num_constraints, model.num_dofs
-    row_joint, row_axis, row_kind = (np.zeros(n_rows, np.int64) for _ in range(3))
-    dof_joint, dof_axis, dof_kind = (np.zeros(n_dofs, np.int64) for _ in range(3))
+    tab = row_tables(model)
     joint_local = np.arange(model.num_joints) - (
         model.world_joint_start[model.joint_world] if model.num_joints else 0
     )
-    for jt in JointType:
-        sel = np.nonzero(model.joint_type == int(jt))[0]
-        for k, (axis, kind) in enumerate(JOINT_CONSTRAINT_ROWS[jt]):
-            rows = model.joint_cts_start[sel] + k
-            row_joint[rows], row_axis[rows], row_kind[rows] = joint_local[sel], axis, kind
-        for k, (axis, kind) in enumerate(JOINT_DOF_ROWS[jt]):
-            dofs = model.joint_dof_start[sel] + k
-            dof_joint[dofs], dof_axis[dofs], dof_kind[dofs] = joint_local[sel], axis, kind
+    row_joint, row_axis, row_kind = joint_local[tab.cts_joint], tab.cts_axis, tab.cts_kind
+    dof_joint, dof_axis, dof_kind = joint_local[tab.dof_joint], tab.dof_axis, tab.dof_kind
 
     def take(arr, gather, mask, fill):
         out = arr[gather] if arr.size else np.zeros(gather.shape + arr.shape[1:], arr.dtype)
         m = mask.reshape(mask.shape + (1,) * (out.ndim - mask.ndim))
         return np.where(m, out, fill)
 
-    # joint-dynamics rows: an actuator row per PD/velocity DoF, a passive row per DoF with
-    # armature, damping or a spring (formulation.md §3.2; docs/conventions.md "Actuation")
+    # joint-dynamics, limit and coupling rows (kamino/tables.py), world-local DoF indices
     dof_local = _local_ranks(model.world_dof_count)
-    is_pd = np.isin(model.dof_act_mode, (int(ActuationMode.POSITION), int(ActuationMode.VELOCITY)))
-    is_passive = (model.dof_armature > 0) | (model.dof_damping > 0) | (model.dof_stiffness > 0)
-    dof_world = np.repeat(np.arange(W), model.world_dof_count)
-    dyn_world = np.concatenate([dof_world[is_pd], dof_world[is_passive]])
-    dyn_dof = np.concatenate([dof_local[is_pd], dof_local[is_passive]])
-    dyn_kind = np.concatenate([np.full(is_pd.sum(), DYN_ACTUATOR), np.full(is_passive.sum(), DYN_PASSIVE)])
-    order = np.lexsort((dyn_dof, dyn_kind, dyn_world))  # per world: actuator rows, then passive rows
-    dyn_count = np.bincount(dyn_world, minlength=W)
-    ndyn = int(dyn_count.max()) if dyn_world.size else 0
+    dyn_count, lim_count = tab.world_dyn_count, tab.world_lim_count
+    ndyn = int(dyn_count.max()) if dyn_count.size else 0
     yg, ymask, _ = _pad_index(_prefix(dyn_count), dyn_count, ndyn)
-    limited = np.isfinite(model.dof_lower) | np.isfinite(model.dof_upper)
-    lim_count = np.bincount(dof_world[limited], minlength=W)
-    nl = int(lim_count.max()) if limited.any() else 0
+    nl = int(lim_count.max()) if lim_count.size else 0
     lg, lmask, _ = _pad_index(_prefix(lim_count), lim_count, nl)
-
-    # couplings: the first DoF of each coupled joint, world-local
     nk = int(model.world_coupling_count.max()) if model.num_couplings else 0
     ug, umask, usc = _pad_index(model.world_coupling_start, model.world_coupling_count, nk)
-    dof_start_local = model.joint_dof_start - model.world_dof_start[model.joint_world] if model.num_joints else None
-    ja, jb = model.coupling_joint_a, model.coupling_joint_b
-    has_b = jb >= 0
-    cpl_a = dof_start_local[ja] if model.num_couplings else np.zeros(0, np.int64)
-    cpl_b = np.where(has_b, dof_start_local[np.maximum(jb, 0)], 0) if model.num_couplings else np.zeros(0, np.int64)
-    cpl_wrap = model.joint_type[ja] == int(JointType.REVOLUTE) if model.num_couplings else np.zeros(0, bool)
+    has_b = tab.cpl_dof_b >= 0
+    cpl_a = dof_local[tab.cpl_dof_a] if model.num_couplings else np.zeros(0, np.int64)
+    cpl_b = np.where(has_b, dof_local[np.maximum(tab.cpl_dof_b, 0)], 0) if model.num_couplings else cpl_a
+    cpl_wrap = tab.cpl_wrap
 
     # geoms and candidate pairs, grouped by type combination (static per model)
     ng = int(model.world_geom_count.max()) if model.num_geoms else 0
@@ -275,8 +253,8 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
         dof_springref=f(dof_arr(model.dof_springref)),
         dof_lower=f(dof_arr(model.dof_lower, -np.inf)),
         dof_upper=f(dof_arr(model.dof_upper, np.inf)),
-        dyn_dof=i(take(dyn_dof[order], yg, ymask, 0)),
-        dyn_kind=i(take(dyn_kind[order], yg, ymask, 0)),
+        dyn_dof=i(take(dof_local[tab.dyn_dof] if tab.dyn_dof.size else tab.dyn_dof, yg, ymask, 0)),
+        dyn_kind=i(take(tab.dyn_kind, yg, ymask, 0)),
         dyn_mask=jnp.asarray(ymask),
         cpl_dof_a=i(take(cpl_a, ug, umask, 0)),
         cpl_dof_b=i(take(cpl_b, ug, umask, 0)),
@@ -284,7 +262,7 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
         cpl_wrap=jnp.asarray(take(cpl_wrap, ug, umask, False)),
         cpl_coef=f(take(model.coupling_coef, ug, umask, 0.0)),
         cpl_mask=jnp.asarray(umask),
-        lim_dof=i(take(dof_local[limited], lg, lmask, 0)),
+        lim_dof=i(take(dof_local[tab.lim_dof] if tab.lim_dof.size else tab.lim_dof, lg, lmask, 0)),
         lim_mask=jnp.asarray(lmask),
         geom_type=i(geom_arr(model.geom_type, 0)),
         geom_body=i(geom_arr(geom_body_local, -1)),

@@ -80,9 +80,7 @@ class WorldStep:
 
 def joint_deadband(cfg: SolverConfig, dtype) -> float:
     """Configured joint dead band, or the dtype default (docs/conventions.md, "Stabilisation")."""
-    if cfg.joint_deadband is not None:
-        return cfg.joint_deadband
-    return 1e-6 if jnp.dtype(dtype) == jnp.float32 else 1e-11
+    return cfg.deadband_for(dtype)
 
 
 def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: jax.Array, e_start: jax.Array,

@@ -1,0 +1,171 @@
+"""The Warp backend behind ``kamino.step(..., backend="warp")`` / ``rollout``: State <-> device buffers.
+
+``State``/``Control`` stay JAX pytrees. A :class:`~kamino.warp_backend.pipeline.Stepper` holds the
+device buffers of one (model, config, precision, device); a call copies the State into them, runs
+the step (a CUDA graph on the GPU) and returns a new State. On a CUDA device the JAX buffers are
+wrapped with ``wp.from_jax`` (no host round trip: one device-to-device copy into the stepper's
+persistent buffers, which a captured graph needs) and the results are handed back with
+``wp.to_jax`` (zero-copy); on the CPU the arrays go through numpy. docs/warp_backend.md measures
+the cost of this boundary.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import warp as wp
+
+from kamino.checks import check_control, check_rollout_controls, check_state
+from kamino.config import SolverConfig
+from kamino.model import Model
+from kamino.state import ContactState, Control, State, StepInfo
+from kamino.warp_backend.pipeline import Stepper
+from kamino.warp_backend.types import types_of
+
+_STEPPERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def default_device() -> wp.context.Device:
+    """Warp's preferred device (the first CUDA GPU, else the CPU)."""
+    return wp.get_device()
+
+
+def stepper(model: Model, cfg: SolverConfig, np_dtype, device=None) -> Stepper:
+    """The cached :class:`Stepper` of ``model`` for ``cfg``, precision and device."""
+    dev = wp.get_device(device)
+    key = (cfg, np.dtype(np_dtype), str(dev))
+    per_model = _STEPPERS.setdefault(model, {})
+    if key not in per_model:
+        per_model[key] = Stepper(model, cfg, np_dtype, dev)
+    return per_model[key]
+
+
+def _on_gpu(x: jax.Array) -> bool:
+    try:
+        return any(d.platform == "gpu" for d in x.devices())
+    except AttributeError:  # a numpy array
+        return False
+
+
+def _np_dtype(arr: wp.array) -> np.dtype:
+    dtype = arr.dtype
+    return np.dtype(wp.dtype_to_numpy(getattr(dtype, "_wp_scalar_type_", dtype)))
+
+
+def _write(dst: wp.array, src, device) -> None:
+    """Copy a JAX/numpy array into the device buffer ``dst`` (``wp.from_jax`` on the GPU: no host copy)."""
+    if dst.size == 0:
+        return
+    if device.is_cuda and isinstance(src, jax.Array) and _on_gpu(src):
+        wp.copy(dst, wp.from_jax(src.astype(_np_dtype(dst)), dtype=dst.dtype))
+    else:
+        a = np.asarray(src, dtype=_np_dtype(dst))
+        dst.assign(a.reshape(dst.shape[0], -1) if a.ndim > 1 else a)
+
+
+def _read(src: wp.array, shape, dtype=None) -> jax.Array:
+    """A new JAX array holding ``src`` (``wp.to_jax`` of a device copy on the GPU)."""
+    if src.size == 0:
+        return jnp.zeros(shape, dtype if dtype is not None else _np_dtype(src))
+    if src.device.is_cuda:
+        return wp.to_jax(wp.clone(src)).reshape(shape)
+    return jnp.asarray(src.numpy().reshape(shape))
+
+
+def load_state(st: Stepper, state: State, control: Control | None) -> None:
+    """Copy ``state`` and ``control`` into the stepper's buffers (zeros for absent controls)."""
+    w, dev = st.work, st.device
+    _write(w.q, state.body_q, dev)
+    _write(w.u, state.body_u, dev)
+    _write(w.time, state.time, dev)
+    _write(w.kin_force, state.constraint_force, dev)
+    _write(w.cpl_force, state.coupling_force, dev)
+    _write(w.act_force, state.actuator_force, dev)
+    _write(w.pas_force, state.passive_force, dev)
+    _write(w.lim_force, state.limit_force, dev)
+    c = state.contacts
+    for dst, src in ((w.con_pair, c.pair), (w.con_pos, c.pos), (w.con_normal, c.normal), (w.con_dist, c.dist),
+                     (w.con_force, c.force), (w.con_velocity, c.velocity), (w.con_point_b, c.point_b)):
+        _write(dst, src, dev)
+    load_control(st, control)
+
+
+def load_control(st: Stepper, control: Control | None) -> None:
+    w, dev = st.work, st.device
+    for name, dst in (("dof_effort", w.effort), ("body_wrench", w.wrench), ("position_target", w.position_target),
+                      ("velocity_target", w.velocity_target)):
+        value = None if control is None else getattr(control, name)
+        if value is None:
+            dst.zero_()
+        else:
+            _write(dst, jnp.asarray(value, st.np_dtype), dev)
+
+
+def read_state(st: Stepper, int_dtype=jnp.int32) -> State:
+    """A new :class:`State` from the stepper's buffers (after a step)."""
+    w, m = st.work, st.wm.model
+    B, cap = m.num_bodies, m.num_contacts
+    info_found = _read(w.ct_found, (m.num_worlds,))
+    num_contacts = _read(w.n_con, (m.num_worlds,))
+    return State(
+        body_q=_read(w.q, (B, 7)),
+        body_u=_read(w.u, (B, 6)),
+        time=_read(w.time, (m.num_worlds,)),
+        constraint_force=_read(w.kin_force, (m.num_constraints,)),
+        actuator_force=_read(w.act_force, (m.num_dofs,)),
+        passive_force=_read(w.pas_force, (m.num_dofs,)),
+        limit_force=_read(w.lim_force, (m.num_dofs,)),
+        coupling_force=_read(w.cpl_force, (m.num_couplings,)),
+        contacts=ContactState(
+            pair=_read(w.con_pair, (cap,), jnp.int32),
+            pos=_read(w.con_pos, (cap, 3)),
+            normal=_read(w.con_normal, (cap, 3)),
+            dist=_read(w.con_dist, (cap,)),
+            force=_read(w.con_force, (cap, 3)),
+            velocity=_read(w.con_velocity, (cap, 3)),
+            point_b=_read(w.con_point_b, (cap, 3)),
+        ),
+        info=StepInfo(
+            iterations=_read(w.iters, (m.num_worlds,)),
+            primal_residual=_read(w.r_p, (m.num_worlds,)),
+            dual_residual=_read(w.r_d, (m.num_worlds,)),
+            complementarity_residual=_read(w.r_c, (m.num_worlds,)),
+            converged=_read(w.converged, (m.num_worlds,)) != 0,
+            failed=_read(w.failed, (m.num_worlds,)) != 0,
+            num_contacts=num_contacts,
+            contact_overflow=jnp.maximum(info_found - num_contacts, 0).astype(int_dtype),
+        ),
+    )
+
+
+def _dtype_of(state: State):
+    dt = np.dtype(state.body_q.dtype)
+    types_of(dt)  # raises for unsupported precisions
+    return dt
+
+
+def step(model: Model, state: State, control: Control | None, cfg: SolverConfig) -> State:
+    check_state(model, state)
+    check_control(model, control)
+    st = stepper(model, cfg, _dtype_of(state))
+    load_state(st, state, control)
+    st.run(1)
+    return read_state(st)
+
+
+def rollout(model: Model, state: State, controls: Control | None, num_steps: int | None,
+            cfg: SolverConfig) -> State:
+    check_state(model, state)
+    num_steps = check_rollout_controls(model, controls, num_steps)
+    st = stepper(model, cfg, _dtype_of(state))
+    load_state(st, state, None)
+    traj = []
+    for t in range(num_steps):
+        if controls is not None:
+            load_control(st, jax.tree_util.tree_map(lambda x, t=t: x[t], controls))
+        st.run(1)
+        traj.append(read_state(st))
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *traj)

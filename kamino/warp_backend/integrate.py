@@ -1,0 +1,116 @@
+"""End of a step in Warp: ``u+ = u_f + M^-1 J^T lambda``, the pose update, the State's forces, commit.
+
+Formulation.md §6.2 (Euler: ``q+ = q ⊕ dt u+``) and §6.3 (midpoint: ``q+ = q_m ⊕ dt/2 u+``); the
+forces are ``lambda / dt`` split by row family as ``_new_cache`` of the JAX reference. A world
+whose new pose, twist or impulses are not finite keeps its previous state and is flagged
+``failed`` (architecture.md: never a silent NaN, never contaminating other worlds).
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.rows import ROW_ACTUATOR, ROW_COUPLING, ROW_JOINT, ROW_LIMIT, ROW_PASSIVE
+from kamino.warp_backend.spatial import spatial_funcs
+from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import work_struct
+
+
+@functools.cache
+def integrate_kernels(np_dtype) -> SimpleNamespace:
+    T = types_of(np_dtype)
+    scalar, vec6 = T.scalar, T.vec6
+    M = model_struct(np_dtype)
+    Work = work_struct(np_dtype)
+    sp = spatial_funcs(np_dtype)
+    lin, ang, twist, integrate_pose = sp.lin, sp.ang, sp.twist, sp.integrate_pose
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def integrate(m: M, w: Work, nblk: int, dense: int, h: scalar, damping: scalar):
+        """``u+ = u_f + M^-1 J^T lambda`` (the body's share of every active row, summed in row order) and
+        ``q+ = q_eval ⊕ h u+``."""
+        wid, i = wp.tid()
+        if i >= m.body_count[wid]:
+            return
+        b = m.body_start[wid] + i
+        n = w.n_rows[wid]
+        r0 = m.row_start[wid]
+        acc = vec6()
+        if dense != 0:
+            nc = 6 * m.body_count[wid]
+            base = m.jd_start[wid] + 6 * i
+            for a in range(n):
+                lam = w.impulse[r0 + a]
+                for c in range(6):
+                    acc[c] += lam * w.Jd[base + a * nc + c]
+        else:
+            for a in range(n):
+                r = r0 + a
+                for k in range(nblk):
+                    if w.row_body[r * nblk + k] == b:
+                        acc += w.impulse[r] * w.row_J[r * nblk + k]
+        u = w.u_f[b] + twist(m.inv_mass[b] * lin(acc), w.inv_inertia_w[b] * ang(acc))
+        if damping != scalar(0.0):
+            u = twist(lin(u), (scalar(1.0) - damping) * ang(u))
+        x = integrate_pose(w.q_eval[b], u, h)
+        w.u_new[b] = u
+        w.q_new[b] = x
+        ok = True
+        for c in range(6):
+            ok = ok and wp.isfinite(u[c])
+        for c in range(7):
+            ok = ok and wp.isfinite(x[c])
+        if not ok:
+            w.failed[wid] = 1
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def dof_forces(m: M, w: Work):
+        """Reset the per-DoF forces: the actuator force starts from the explicit effort."""
+        wid, i = wp.tid()
+        if i >= m.dof_count[wid] or w.failed[wid] != 0:
+            return
+        d = m.dof_start[wid] + i
+        w.act_force[d] = w.tau_explicit[d]
+        w.pas_force[d] = scalar(0.0)
+        w.lim_force[d] = scalar(0.0)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def row_forces(m: M, w: Work, inv_dt: scalar):
+        """``lambda / dt`` of each box row into the State's field of its family."""
+        wid, a = wp.tid()
+        if a >= w.n_box[wid] or w.failed[wid] != 0:
+            return
+        r = m.row_start[wid] + a
+        f = w.impulse[r] * inv_dt
+        src = w.row_src[r]
+        t = w.row_type[r]
+        if t == ROW_ACTUATOR:
+            w.act_force[src] += f
+        elif t == ROW_PASSIVE:
+            w.pas_force[src] = f
+        elif t == ROW_JOINT:
+            w.kin_force[src] = f
+        elif t == ROW_COUPLING:
+            w.cpl_force[src] = f
+        elif t == ROW_LIMIT:
+            w.lim_force[src] = w.row_side[r] * f
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def commit_bodies(m: M, w: Work):
+        wid, i = wp.tid()
+        if i >= m.body_count[wid] or w.failed[wid] != 0:
+            return
+        b = m.body_start[wid] + i
+        w.q[b] = w.q_new[b]
+        w.u[b] = w.u_new[b]
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def commit_time(w: Work, dt: scalar):
+        wid = wp.tid()
+        if w.failed[wid] == 0:
+            w.time[wid] = w.time[wid] + dt
+
+    return SimpleNamespace(integrate=integrate, dof_forces=dof_forces, row_forces=row_forces,
+                           commit_bodies=commit_bodies, commit_time=commit_time)

@@ -1,0 +1,138 @@
+"""One Warp "stepper" per (model, config, precision, device): buffers, the launch sequence of a step,
+and its CUDA-graph capture.
+
+The sequence follows the backend contract (architecture.md): kinematics -> collision -> dynamics ->
+PADMM -> integrate. Every launch is on a ``(num_worlds, max_count)`` grid or one thread per world;
+nothing loops over worlds or bodies on the host, and nothing reads back to the host inside a step.
+On a CUDA device the PADMM loop is a ``wp.capture_while`` on the device counter of worlds still
+iterating, so a step (or a block of steps) is one CUDA graph; on the CPU the same kernel runs all
+iterations in one launch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from kamino.config import SolverConfig
+from kamino.model import Model
+from kamino.warp_backend.contacts import contact_kernels
+from kamino.warp_backend.integrate import integrate_kernels
+from kamino.warp_backend.model_data import warp_model
+from kamino.warp_backend.rows import row_kernels
+from kamino.warp_backend.solver import solver_kernels
+from kamino.warp_backend.workspace import allocate
+
+#: linear_solver="auto" takes the Conjugate Residual path above this many constraint rows per world
+#: (docs/warp_backend.md, "Choosing the linear solver").
+AUTO_CR_ROWS = 300
+
+
+def resolve_linear_solver(cfg: SolverConfig, max_rows: int) -> str:
+    """``"llt"`` or ``"cr"`` for ``cfg`` on worlds of up to ``max_rows`` rows (CR needs the sparse J)."""
+    choice = cfg.linear_solver
+    if choice == "auto":
+        choice = "cr" if (cfg.jacobian == "sparse" and max_rows > AUTO_CR_ROWS) else "llt"
+    if choice == "cr" and cfg.jacobian == "dense":
+        raise ValueError("SolverConfig: linear_solver='cr' works on the block-sparse Jacobian; "
+                         "use jacobian='sparse' (or linear_solver='llt' with jacobian='dense')")
+    return choice
+
+
+class Stepper:
+    """Device buffers and launches for stepping ``model`` with ``cfg``."""
+
+    def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None):
+        self.device = wp.get_device(device)
+        self.cfg = cfg
+        self.np_dtype = np.dtype(np_dtype)
+        self.wm = wm = warp_model(model, self.np_dtype, str(self.device))
+        self.linear_solver = resolve_linear_solver(cfg, wm.max_rows)
+        self.dense = cfg.jacobian == "dense"
+        with wp.ScopedDevice(self.device):
+            self.work = allocate(wm, cfg.integrator == "euler", self.dense)
+        self.rk = row_kernels(self.np_dtype)
+        self.sk = solver_kernels(self.np_dtype)
+        self.ik = integrate_kernels(self.np_dtype)
+        self.ck = contact_kernels(self.np_dtype) if model.num_pairs else None
+        self.use_graph = self.device.is_cuda
+        self.padmm_chunk = cfg.max_iterations if not self.use_graph else min(cfg.max_iterations, 8)
+        self._graphs: dict[int, object] = {}
+
+    # --- launches -------------------------------------------------------------------------------
+    def _launch(self, kernel, dim, *args):
+        if all(int(d) > 0 for d in (dim if isinstance(dim, tuple) else (dim,))):
+            wp.launch(kernel, dim=dim, inputs=[self.wm.arrays, self.work, *args], device=self.device)
+
+    def launch_step(self) -> None:
+        """Enqueue one step (capturable: no host synchronisation)."""
+        cfg, wm, w = self.cfg, self.wm, self.work
+        rk, sk, ik, ck = self.rk, self.sk, self.ik, self.ck
+        W, nblk = wm.num_worlds, wm.blocks_per_row
+        dt = cfg.dt
+        midpoint = cfg.integrator == "midpoint"
+        h = 0.5 * dt if midpoint else dt
+        delta = cfg.deadband_for(self.np_dtype)
+        if midpoint:
+            self._launch(rk.half_step, (W, wm.max_bodies), h)
+        self._launch(rk.dof_blocks, (W, wm.max_dofs))
+        self._launch(rk.bodies, (W, wm.max_bodies), dt, h)
+        self._launch(rk.dof_rates, (W, wm.max_dofs))
+        self._launch(rk.dyn_rows, (W, wm.max_dyn), nblk, dt, h)
+        curv, mid = int(cfg.curvature_correction), int(midpoint)
+        self._launch(rk.joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta, curv, mid)
+        self._launch(rk.coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta, curv, mid)
+        self._launch(rk.limits, (W, wm.max_lim), h, cfg.limit_margin, cfg.limit_baumgarte)
+        self._launch(rk.pack_limits, W, nblk)
+        if ck is not None:
+            self._launch(ck.narrow_phase, (W, wm.max_pairs), h, cfg.contact_margin)
+            self._launch(ck.pack, W, h, cfg.contact_margin, cfg.contact_deadband, cfg.restitution_threshold)
+        self._launch(sk.count_rows, W)
+        if ck is not None:
+            self._launch(ck.contact_rows, (W, wm.max_contacts), nblk, h, cfg.contact_baumgarte, cfg.contact_deadband,
+                         cfg.restitution_threshold, cfg.contact_match_distance)
+        # dynamics: pre-baked blocks, v_f, Delassus (dense path) and preconditioning (§7.2, §8)
+        rows = (W, wm.max_rows)
+        self._launch(sk.prebake, rows, nblk, int(self.dense))
+        llt = self.linear_solver == "llt"
+        if llt:
+            if self.dense:
+                self._launch(sk.delassus_dense, rows)
+            else:
+                self._launch(sk.delassus_sparse, rows, nblk)
+        self._launch(sk.precondition, rows, nblk, int(llt), int(cfg.preconditioning))
+        self._launch(sk.scale, rows, cfg.eta + cfg.rho, int(llt))
+        # PADMM (§7)
+        w.remaining.fill_(W)
+        scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
+        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(llt))
+        args = (nblk, int(not llt), int(cfg.cr_iterations), cfg.eta, cfg.rho, cfg.tolerance,
+                cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations))
+        if self.use_graph and wp.get_device(self.device).is_capturing:
+            wp.capture_while(w.remaining, lambda: self._launch(sk.padmm_iterate, W, self.padmm_chunk,
+                                                               cfg.max_iterations, *args))
+        else:
+            self._launch(sk.padmm_iterate, W, cfg.max_iterations, cfg.max_iterations, *args)
+        self._launch(sk.padmm_finish, rows)
+        # integrate, split the forces, commit (§6)
+        self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
+        self._launch(ik.dof_forces, (W, wm.max_dofs))
+        self._launch(ik.row_forces, rows, 1.0 / dt)
+        if ck is not None:
+            self._launch(ck.commit_contacts, (W, wm.max_contacts), 1.0 / dt)
+        self._launch(ik.commit_bodies, (W, wm.max_bodies))
+        wp.launch(ik.commit_time, dim=W, inputs=[w, dt], device=self.device)
+
+    def run(self, num_steps: int) -> None:
+        """Advance ``num_steps`` steps in place (replaying a captured graph on CUDA)."""
+        if not self.use_graph:
+            for _ in range(num_steps):
+                self.launch_step()
+            return
+        graph = self._graphs.get(num_steps)
+        if graph is None:
+            with wp.ScopedCapture(device=self.device) as capture:
+                for _ in range(num_steps):
+                    self.launch_step()
+            graph = self._graphs[num_steps] = capture.graph
+        wp.capture_launch(graph)

@@ -1,0 +1,312 @@
+"""Body dynamics and the bilateral / limit constraint rows of a step, as Warp kernels.
+
+Formulas of ``kamino/jax_ref/step.py`` and ``dynamics.py`` (formulation.md §1.4, §3.2, §4.1, §5).
+Kernels run on ``(num_worlds, max_count)`` grids; a world's rows are written into its segment:
+``[joint-dynamics | kinematic | coupling | active limits (compacted) | contacts]``.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from kamino.model import ActuationMode
+from kamino.tables import DYN_ACTUATOR
+from kamino.warp_backend.kinematics import kinematics_funcs
+from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.spatial import spatial_funcs
+from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import work_struct
+
+# row families (for splitting the solution into the State's force fields)
+ROW_ACTUATOR, ROW_PASSIVE, ROW_JOINT, ROW_COUPLING, ROW_LIMIT, ROW_CONTACT = 0, 1, 2, 3, 4, 5
+_PASSIVE, _EFFORT, _POSITION = int(ActuationMode.PASSIVE), int(ActuationMode.EFFORT), int(ActuationMode.POSITION)
+
+
+@functools.cache
+def row_kernels(np_dtype) -> SimpleNamespace:
+    T = types_of(np_dtype)
+    scalar, vec6 = T.scalar, T.vec6
+    M = model_struct(np_dtype)
+    Work = work_struct(np_dtype)
+    sp = spatial_funcs(np_dtype)
+    kf = kinematics_funcs(np_dtype)
+    integrate_pose, deadband, lin, ang, twist = sp.integrate_pose, sp.deadband, sp.lin, sp.ang, sp.twist
+    inf = scalar(wp.inf)
+
+    @wp.func
+    def body_dot(u: wp.array(dtype=vec6), b: int, J: vec6):
+        if b < 0:
+            return scalar(0.0)
+        return wp.dot(J, u[b])
+
+    @wp.func
+    def set_blocks(w: Work, r: int, nblk: int, bF: int, JF: vec6, bB: int, JB: vec6):
+        """Row ``r`` = blocks ``(bF, JF)``, ``(bB, JB)``; the other block slots empty."""
+        for k in range(nblk):
+            w.row_body[r * nblk + k] = -1
+            w.row_J[r * nblk + k] = vec6()
+        w.row_body[r * nblk] = bF
+        w.row_J[r * nblk] = JF
+        w.row_body[r * nblk + 1] = bB
+        if bB >= 0:
+            w.row_J[r * nblk + 1] = JB
+
+    @wp.func
+    def row_dot(w: Work, r: int, nblk: int, u: wp.array(dtype=vec6)):
+        """``J_r u`` over the row's blocks."""
+        s = scalar(0.0)
+        for k in range(nblk):
+            s += body_dot(u, w.row_body[r * nblk + k], w.row_J[r * nblk + k])
+        return s
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def half_step(m: M, w: Work, h: scalar):
+        """Midpoint pose ``q_m = q ⊕ h u`` (formulation.md §6.3)."""
+        wid, i = wp.tid()
+        if i >= m.body_count[wid]:
+            return
+        b = m.body_start[wid] + i
+        w.q_eval[b] = integrate_pose(w.q[b], w.u[b], h)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def dof_blocks(m: M, w: Work):
+        """``J_dofs`` blocks, DoF positions and the explicit efforts (formulation.md §3.1) at ``q_eval``."""
+        wid, i = wp.tid()
+        if i >= m.dof_count[wid]:
+            return
+        d = m.dof_start[wid] + i
+        JF, JB = kf.dof_blocks(m, w.q_eval, d)
+        w.dof_JF[d] = JF
+        w.dof_JB[d] = JB
+        w.q_dof[d] = kf.dof_position(m, w.q_eval, d)
+        mode = m.act_mode[d]
+        tau = w.effort[d]
+        if mode == _EFFORT:
+            tau = wp.clamp(tau, -m.effort_limit[d], m.effort_limit[d])
+        elif mode != _PASSIVE:
+            tau = scalar(0.0)
+        w.tau_explicit[d] = tau
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def bodies(m: M, w: Work, dt: scalar, h: scalar):
+        """World inertia, ``h = (m g, -w x I w) + w_ext + J_dofs^T tau`` (§1.4), free velocity
+        ``u_f = u + dt M^-1 h`` and the predicted pose ``q_eval ⊕ h u_f`` (curvature term, §5)."""
+        wid, i = wp.tid()
+        if i >= m.body_count[wid]:
+            return
+        b = m.body_start[wid] + i
+        x = w.q_eval[b]
+        R = wp.quat_to_matrix(wp.transform_get_rotation(x))
+        I = R * m.inertia[b] * wp.transpose(R)
+        I = scalar(0.5) * (I + wp.transpose(I))
+        Ii = R * m.inv_inertia[b] * wp.transpose(R)
+        Ii = scalar(0.5) * (Ii + wp.transpose(Ii))
+        w.inertia_w[b] = I
+        w.inv_inertia_w[b] = Ii
+        # explicit joint efforts on this body (deterministic: scan the world's DoFs)
+        ext = w.wrench[b]
+        d0 = m.dof_start[wid]
+        for k in range(m.dof_count[wid]):
+            d = d0 + k
+            tau = w.tau_explicit[d]
+            if tau != scalar(0.0):
+                j = m.dof_joint[d]
+                if m.joint_child[j] == b:
+                    ext += tau * w.dof_JF[d]
+                if m.joint_parent[j] == b:
+                    ext += tau * w.dof_JB[d]
+        u = w.u[b]
+        om = ang(u)
+        hf = twist(m.mass[b] * m.gravity[wid], -wp.cross(om, I * om)) + ext
+        uf = u + dt * twist(m.inv_mass[b] * lin(hf), Ii * ang(hf))
+        w.u_f[b] = uf
+        w.q_pred[b] = integrate_pose(x, uf, h)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def dof_rates(m: M, w: Work):
+        """DoF velocities before the step and of the free motion, DoF positions at the predicted pose."""
+        wid, i = wp.tid()
+        if i >= m.dof_count[wid]:
+            return
+        d = m.dof_start[wid] + i
+        j = m.dof_joint[d]
+        bF = m.joint_child[j]
+        bB = m.joint_parent[j]
+        w.qd_minus[d] = body_dot(w.u, bF, w.dof_JF[d]) + body_dot(w.u, bB, w.dof_JB[d])
+        w.qd_free[d] = body_dot(w.u_f, bF, w.dof_JF[d]) + body_dot(w.u_f, bB, w.dof_JB[d])
+        w.q_dof_pred[d] = kf.dof_position(m, w.q_pred, d)
+
+    @wp.func
+    def dof_row(m: M, w: Work, r: int, nblk: int, d: int, sign: scalar):
+        j = m.dof_joint[d]
+        set_blocks(w, r, nblk, m.joint_child[j], sign * w.dof_JF[d], m.joint_parent[j], sign * w.dof_JB[d])
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def dyn_rows(m: M, w: Work, nblk: int, dt: scalar, h: scalar):
+        """Joint-dynamics rows (formulation.md §3.2; ``dynamics_rows`` of the JAX reference): implicit inertia
+        ``m`` (``R = 1/m``), bias ``-p0/m`` and the effort bound of actuator rows."""
+        wid, i = wp.tid()
+        if i >= m.dyn_count[wid]:
+            return
+        k = m.dyn_start[wid] + i
+        d = m.dyn_dof[k]
+        r = m.row_start[wid] + i
+        dof_row(m, w, r, nblk, d, scalar(1.0))
+        q = w.q_dof[d]
+        mi = scalar(0.0)
+        p0 = scalar(0.0)
+        bound = inf
+        if m.dyn_kind[k] == DYN_ACTUATOR:
+            kp = scalar(0.0)
+            if m.act_mode[d] == _POSITION:
+                kp = m.kp[d]
+            kd = m.kd[d]
+            mi = dt * (kd + h * kp)
+            p0 = dt * (w.effort[d] + kp * (w.position_target[d] - q) + kd * w.velocity_target[d])
+            bound = dt * m.effort_limit[d]
+            w.row_type[r] = ROW_ACTUATOR
+            w.f0[r] = w.act_force[d]
+        else:
+            a = m.armature[d]
+            ks = m.stiffness[d]
+            mi = a + dt * m.damping[d] + dt * h * ks
+            p0 = a * w.qd_minus[d] + dt * ks * (m.springref[d] - q)
+            w.row_type[r] = ROW_PASSIVE
+            w.f0[r] = w.pas_force[d]
+        mi = wp.max(mi, scalar(1e-30))
+        w.reg[r] = scalar(1.0) / mi
+        w.vstar[r] = -p0 / mi
+        w.lo[r] = -bound
+        w.hi[r] = bound
+        w.v0[r] = scalar(0.0)
+        w.row_src[r] = d
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
+                   midpoint: int):
+        """Kinematic joint rows: blocks and the stabilisation bias of ``joint_bias`` (formulation.md §5;
+        docs/conventions.md "Stabilisation")."""
+        wid, i = wp.tid()
+        if i >= m.cts_count[wid]:
+            return
+        c = m.cts_start[wid] + i
+        r = m.row_start[wid] + m.dyn_count[wid] + i
+        j = m.cts_joint[c]
+        e, JF, JB = kf.cts_row(m, w.q_eval, c)
+        set_blocks(w, r, nblk, m.joint_child[j], JF, m.joint_parent[j], JB)
+        e_start = e
+        if midpoint != 0:
+            e_start = kf.cts_residual(m, w.q, c)
+        bias = deadband(e - (scalar(1.0) - alpha) * e_start, delta)
+        if curvature != 0:
+            e_pred = kf.cts_residual(m, w.q_pred, c)
+            bias += deadband(e_pred - e - h * row_dot(w, r, nblk, w.u_f), delta)
+        w.vstar[r] = bias / h
+        w.reg[r] = scalar(0.0)
+        w.lo[r] = -inf
+        w.hi[r] = inf
+        w.f0[r] = w.kin_force[c]
+        w.v0[r] = scalar(0.0)
+        w.row_type[r] = ROW_JOINT
+        w.row_src[r] = c
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
+                      midpoint: int):
+        """Coupling rows ``q_a - p(q_b)``: blocks ``J_a - p'(q_b) J_b`` (four) and the bias of ``coupling_bias``."""
+        wid, i = wp.tid()
+        if i >= m.cpl_count[wid]:
+            return
+        k = m.cpl_start[wid] + i
+        r = m.row_start[wid] + m.dyn_count[wid] + m.cts_count[wid] + i
+        da = m.cpl_dof_a[k]
+        db = m.cpl_dof_b[k]
+        qb = scalar(0.0)
+        qb_pred = scalar(0.0)
+        if db >= 0:
+            qb = w.q_dof[db]
+            qb_pred = w.q_dof_pred[db]
+        e, dp = kf.coupling_residual(m, k, w.q_dof[da], qb)
+        dof_row(m, w, r, nblk, da, scalar(1.0))
+        if db >= 0:
+            jb = m.dof_joint[db]
+            w.row_body[r * nblk + 2] = m.joint_child[jb]
+            w.row_J[r * nblk + 2] = -dp * w.dof_JF[db]
+            w.row_body[r * nblk + 3] = m.joint_parent[jb]
+            w.row_J[r * nblk + 3] = -dp * w.dof_JB[db]
+        e_start = e
+        if midpoint != 0:
+            # DoF positions at the start pose: only needed by the midpoint rule
+            qa0 = kf.dof_position(m, w.q, da)
+            qb0 = scalar(0.0)
+            if db >= 0:
+                qb0 = kf.dof_position(m, w.q, db)
+            e_start, dp0 = kf.coupling_residual(m, k, qa0, qb0)
+        bias = deadband(e - (scalar(1.0) - alpha) * e_start, delta)
+        if curvature != 0:
+            e_pred, dp1 = kf.coupling_residual(m, k, w.q_dof_pred[da], qb_pred)
+            bias += deadband(e_pred - e - h * row_dot(w, r, nblk, w.u_f), delta)
+        w.vstar[r] = bias / h
+        w.reg[r] = scalar(0.0)
+        w.lo[r] = -inf
+        w.hi[r] = inf
+        w.f0[r] = w.cpl_force[k]
+        w.v0[r] = scalar(0.0)
+        w.row_type[r] = ROW_COUPLING
+        w.row_src[r] = k
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def limits(m: M, w: Work, h: scalar, margin: scalar, beta: scalar):
+        """Which limit rows are active and their bias (formulation.md §4.1; ``limit_rows`` of the JAX
+        reference): the nearer limit, active when it can be reached within the step."""
+        wid, i = wp.tid()
+        if i >= m.lim_count[wid]:
+            return
+        k = m.lim_start[wid] + i
+        d = m.lim_dof[k]
+        q = w.q_dof[d]
+        r_lo = q - m.lower[d]
+        r_hi = m.upper[d] - q
+        side = scalar(1.0)
+        r = r_lo
+        if r_lo > r_hi:
+            side = scalar(-1.0)
+            r = r_hi
+        approach = wp.max(-side * w.qd_free[d], scalar(0.0))
+        active = r < margin + h * approach
+        w.lim_side[k] = side
+        if active:
+            w.lim_active[k] = 1
+            w.lim_bias[k] = (r - (scalar(1.0) - beta) * wp.min(r, scalar(0.0))) / h
+        else:
+            w.lim_active[k] = 0
+            w.lim_bias[k] = scalar(0.0)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def pack_limits(m: M, w: Work, nblk: int):
+        """Append the active limit rows after the fixed rows, in DoF order (deterministic)."""
+        wid = wp.tid()
+        r = m.row_start[wid] + m.row_fixed[wid]
+        n = int(0)
+        for i in range(m.lim_count[wid]):
+            k = m.lim_start[wid] + i
+            if w.lim_active[k] != 0:
+                d = m.lim_dof[k]
+                side = w.lim_side[k]
+                dof_row(m, w, r + n, nblk, d, side)
+                w.vstar[r + n] = w.lim_bias[k]
+                w.reg[r + n] = scalar(0.0)
+                w.lo[r + n] = scalar(0.0)
+                w.hi[r + n] = inf
+                w.f0[r + n] = wp.max(side * w.lim_force[d], scalar(0.0))
+                w.v0[r + n] = scalar(0.0)
+                w.row_type[r + n] = ROW_LIMIT
+                w.row_src[r + n] = d
+                w.row_side[r + n] = side
+                n += 1
+        w.n_lim[wid] = n
+
+    return SimpleNamespace(half_step=half_step, dof_blocks=dof_blocks, bodies=bodies, dof_rates=dof_rates,
+                           dyn_rows=dyn_rows, joint_rows=joint_rows, coupling_rows=coupling_rows, limits=limits,
+                           pack_limits=pack_limits, set_blocks=set_blocks, row_dot=row_dot, body_dot=body_dot)

@@ -1,0 +1,464 @@
+"""Delassus assembly and Proximal-ADMM in Warp (formulation.md §7-§8; paper Alg. 1).
+
+Per step: the rows' blocks are pre-baked into ``M^-1 J^T`` blocks, ``v_f = J u_f + v*`` (§5), then
+either the dense Delassus ``D = J M^-1 J^T + R`` is assembled (from the block-sparse rows, or from a
+dense per-world ``J``), scaled by the Jacobi preconditioner ``P`` (§7.2) and factorised once by a
+Cholesky (§8.1), or PADMM runs matrix-free with a Conjugate Residual solve of the scaled operator
+``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` warm-started from the previous ADMM iterate (§8.2).
+
+The PADMM iterations of a world run in one thread (all of a world's vectors stay in its own row
+segment, cached near the thread); ``padmm_iterate`` runs up to ``chunk`` iterations and resumes from
+the stored iterate, so the host — or ``wp.capture_while`` inside a CUDA graph — relaunches it until
+every world has converged or reached its cap (``remaining`` counts the worlds still iterating).
+Every step mirrors ``kamino/jax_ref/padmm.py`` (accelerated PADMM with restart, §7.4; residuals,
+§7.5).
+"""
+
+import functools
+from types import SimpleNamespace
+
+import numpy as np
+import warp as wp
+
+from kamino.warp_backend.cone import cone_funcs
+from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.spatial import spatial_funcs
+from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import work_struct
+
+
+@functools.cache
+def solver_kernels(np_dtype) -> SimpleNamespace:
+    T = types_of(np_dtype)
+    scalar, vec6 = T.scalar, T.vec6
+    M = model_struct(np_dtype)
+    Work = work_struct(np_dtype)
+    sp = spatial_funcs(np_dtype)
+    lin, ang, twist = sp.lin, sp.ang, sp.twist
+    cf = cone_funcs(np_dtype)
+    cone_project, de_saxce = cf.cone_project, cf.de_saxce
+    eps = scalar(float(np.finfo(np_dtype).eps))
+    big = scalar(float(np.finfo(np_dtype).max))
+    inf = scalar(wp.inf)
+
+    @wp.func
+    def inv_mass_times(m: M, w: Work, b: int, J: vec6):
+        """``M_b^-1 J`` for a 1x6 block on body ``b`` (block-diagonal M, §1.3)."""
+        return twist(m.inv_mass[b] * lin(J), w.inv_inertia_w[b] * ang(J))
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def count_rows(m: M, w: Work):
+        wid = wp.tid()
+        n_box = m.row_fixed[wid] + w.n_lim[wid]
+        w.n_box[wid] = n_box
+        w.n_rows[wid] = n_box + 3 * w.n_con[wid]
+        w.failed[wid] = 0
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def prebake(m: M, w: Work, nblk: int, dense: int):
+        """``M^-1 J^T`` blocks and ``v_f = J u_f + v*`` of each active row; the dense ``J`` rows on request."""
+        wid, i = wp.tid()
+        if i >= w.n_rows[wid]:
+            return
+        r = m.row_start[wid] + i
+        vf = w.vstar[r]
+        for k in range(nblk):
+            b = w.row_body[r * nblk + k]
+            if b >= 0:
+                J = w.row_J[r * nblk + k]
+                w.row_MJ[r * nblk + k] = inv_mass_times(m, w, b, J)
+                vf += wp.dot(J, w.u_f[b])
+            else:
+                w.row_MJ[r * nblk + k] = vec6()
+        w.vf[r] = vf
+        if dense != 0:
+            nc = 6 * m.body_count[wid]
+            base = m.jd_start[wid] + i * nc
+            for c in range(nc):
+                w.Jd[base + c] = scalar(0.0)
+                w.MJd[base + c] = scalar(0.0)
+            b0 = m.body_start[wid]
+            for k in range(nblk):
+                b = w.row_body[r * nblk + k]
+                if b >= 0:
+                    J = w.row_J[r * nblk + k]
+                    MJ = w.row_MJ[r * nblk + k]
+                    for c in range(6):
+                        w.Jd[base + 6 * (b - b0) + c] += J[c]
+                        w.MJd[base + 6 * (b - b0) + c] += MJ[c]
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def delassus_sparse(m: M, w: Work, nblk: int):
+        """Row ``a`` of ``D = J M^-1 J^T + R`` from the block-sparse rows (blocks meet on shared bodies)."""
+        wid, a = wp.tid()
+        n = w.n_rows[wid]
+        if a >= n:
+            return
+        r0 = m.row_start[wid]
+        base = m.mat_start[wid]
+        ra = r0 + a
+        for b in range(a, n):
+            rb = r0 + b
+            s = scalar(0.0)
+            for k in range(nblk):
+                bk = w.row_body[ra * nblk + k]
+                if bk >= 0:
+                    for l in range(nblk):
+                        if w.row_body[rb * nblk + l] == bk:
+                            s += wp.dot(w.row_J[ra * nblk + k], w.row_MJ[rb * nblk + l])
+            if b == a:
+                s += w.reg[ra]
+            w.D[base + a * n + b] = s
+            w.D[base + b * n + a] = s
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def delassus_dense(m: M, w: Work):
+        """Row ``a`` of ``D = J M^-1 J^T + R`` from the dense per-world ``J`` (``6 n_bodies`` columns)."""
+        wid, a = wp.tid()
+        n = w.n_rows[wid]
+        if a >= n:
+            return
+        nc = 6 * m.body_count[wid]
+        jb = m.jd_start[wid]
+        base = m.mat_start[wid]
+        for b in range(a, n):
+            s = scalar(0.0)
+            for c in range(nc):
+                s += w.Jd[jb + a * nc + c] * w.MJd[jb + b * nc + c]
+            if b == a:
+                s += w.reg[m.row_start[wid] + a]
+            w.D[base + a * n + b] = s
+            w.D[base + b * n + a] = s
+
+    @wp.func
+    def row_diag(m: M, w: Work, wid: int, a: int, nblk: int, assembled: int):
+        """``D_aa`` (from the assembled matrix, or from the row's blocks)."""
+        n = w.n_rows[wid]
+        r = m.row_start[wid] + a
+        if assembled != 0:
+            return w.D[m.mat_start[wid] + a * n + a]
+        s = w.reg[r]
+        for k in range(nblk):
+            bk = w.row_body[r * nblk + k]
+            if bk >= 0:
+                for l in range(nblk):
+                    if w.row_body[r * nblk + l] == bk:
+                        s += wp.dot(w.row_J[r * nblk + k], w.row_MJ[r * nblk + l])
+        return s
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def precondition(m: M, w: Work, nblk: int, assembled: int, enabled: int):
+        """Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2); one value per contact from the largest of its
+        three diagonal entries (keeps the Coulomb cone invariant)."""
+        wid, a = wp.tid()
+        n = w.n_rows[wid]
+        if a >= n:
+            return
+        r = m.row_start[wid] + a
+        if enabled == 0:
+            w.P[r] = scalar(1.0)
+            return
+        n_box = w.n_box[wid]
+        d = scalar(0.0)
+        if a < n_box:
+            d = wp.abs(row_diag(m, w, wid, a, nblk, assembled))
+        else:
+            c0 = n_box + 3 * ((a - n_box) // 3)
+            for t in range(3):
+                d = wp.max(d, wp.abs(row_diag(m, w, wid, c0 + t, nblk, assembled)))
+        if d > eps:
+            w.P[r] = scalar(1.0) / wp.sqrt(d + eps)
+        else:
+            w.P[r] = scalar(1.0)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def scale(m: M, w: Work, shift: scalar, assembled: int):
+        """``D~ = P D P + (eta + rho) I`` row by row (the dense path), ``v~_f = P v_f``, scaled bounds."""
+        wid, a = wp.tid()
+        n = w.n_rows[wid]
+        if a >= n:
+            return
+        r0 = m.row_start[wid]
+        r = r0 + a
+        Pa = w.P[r]
+        if assembled != 0:
+            base = m.mat_start[wid] + a * n
+            for b in range(n):
+                w.D[base + b] = Pa * w.D[base + b] * w.P[r0 + b]
+            w.D[base + a] += shift
+        w.vt[r] = Pa * w.vf[r]
+        lo = w.lo[r]
+        hi = w.hi[r]
+        if wp.isfinite(lo):
+            lo = lo / Pa
+        if wp.isfinite(hi):
+            hi = hi / Pa
+        w.lo_s[r] = lo
+        w.hi_s[r] = hi
+
+    @wp.func
+    def project_into(w: Work, r0: int, n_box: int, n: int, src: wp.array(dtype=scalar),
+                     shift: wp.array(dtype=scalar), inv_rho: scalar, dst: wp.array(dtype=scalar)):
+        """``dst = Pi_K(src - inv_rho * shift)`` (§7.3 step 3): clip on box rows, cones on contacts."""
+        for a in range(n_box):
+            r = r0 + a
+            dst[r] = wp.clamp(src[r] - inv_rho * shift[r], w.lo_s[r], w.hi_s[r])
+        for c in range((n - n_box) // 3):
+            r = r0 + n_box + 3 * c
+            p = cone_project(src[r] - inv_rho * shift[r], src[r + 1] - inv_rho * shift[r + 1],
+                             src[r + 2] - inv_rho * shift[r + 2], w.mu[r])
+            dst[r] = p[0]
+            dst[r + 1] = p[1]
+            dst[r + 2] = p[2]
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def padmm_init(m: M, w: Work, impulse_scale: scalar, use_velocity: int, factorize: int):
+        """Warm start (§7.8: ``x0 = Pi_K(impulse0 / P)``, ``z0 = P v0``) and the Cholesky factor of ``D~``
+        (lower, in place, §8.1)."""
+        wid = wp.tid()
+        n = w.n_rows[wid]
+        r0 = m.row_start[wid]
+        for a in range(n):
+            r = r0 + a
+            w.x[r] = impulse_scale * w.f0[r] / w.P[r]
+            w.z_p[r] = scalar(0.0)
+            if use_velocity != 0:
+                w.z_p[r] = w.P[r] * w.v0[r]
+            w.z_hat[r] = w.z_p[r]
+        project_into(w, r0, w.n_box[wid], n, w.x, w.x, scalar(0.0), w.x_p)
+        for a in range(n):
+            r = r0 + a
+            w.y_p[r] = w.x_p[r]
+            w.y_hat[r] = w.x_p[r]
+        w.a_p[wid] = scalar(1.0)
+        w.c_p[wid] = big
+        w.iters[wid] = 0
+        w.r_p[wid] = scalar(0.0)
+        w.r_d[wid] = scalar(0.0)
+        w.r_c[wid] = scalar(0.0)
+        w.converged[wid] = int(n == 0)
+        w.done[wid] = int(n == 0)
+        if n == 0:
+            wp.atomic_sub(w.remaining, 0, 1)
+        if factorize != 0:
+            base = m.mat_start[wid]
+            for j in range(n):
+                s = w.D[base + j * n + j]
+                for k in range(j):
+                    s -= w.D[base + j * n + k] * w.D[base + j * n + k]
+                ljj = wp.sqrt(s)
+                w.D[base + j * n + j] = ljj
+                for i in range(j + 1, n):
+                    t = w.D[base + i * n + j]
+                    for k in range(j):
+                        t -= w.D[base + i * n + k] * w.D[base + j * n + k]
+                    w.D[base + i * n + j] = t / ljj
+
+    @wp.func
+    def cho_solve_inplace(m: M, w: Work, wid: int, n: int, r0: int):
+        """``x <- L^-T L^-1 x`` with the cached factor (forward then backward substitution)."""
+        base = m.mat_start[wid]
+        for i in range(n):
+            s = w.x[r0 + i]
+            for k in range(i):
+                s -= w.D[base + i * n + k] * w.x[r0 + k]
+            w.x[r0 + i] = s / w.D[base + i * n + i]
+        for ii in range(n):
+            i = n - 1 - ii
+            s = w.x[r0 + i]
+            for k in range(i + 1, n):
+                s -= w.D[base + k * n + i] * w.x[r0 + k]
+            w.x[r0 + i] = s / w.D[base + i * n + i]
+
+    @wp.func
+    def apply_operator(m: M, w: Work, wid: int, n: int, r0: int, nblk: int, shift: scalar,
+                       v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
+        """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free (§8.2, pre-baked blocks)."""
+        b0 = m.body_start[wid]
+        for i in range(m.body_count[wid]):
+            w.cr_w[b0 + i] = vec6()
+        for a in range(n):
+            r = r0 + a
+            pv = w.P[r] * v[r]
+            for k in range(nblk):
+                b = w.row_body[r * nblk + k]
+                if b >= 0:
+                    w.cr_w[b] = w.cr_w[b] + pv * w.row_J[r * nblk + k]
+        for a in range(n):
+            r = r0 + a
+            s = scalar(0.0)
+            for k in range(nblk):
+                b = w.row_body[r * nblk + k]
+                if b >= 0:
+                    s += wp.dot(w.row_MJ[r * nblk + k], w.cr_w[b])
+            Pa = w.P[r]
+            out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
+
+    @wp.func
+    def cr_solve(m: M, w: Work, wid: int, n: int, r0: int, nblk: int, shift: scalar, budget: int):
+        """Conjugate Residual on ``A x = b`` (``b`` in ``y``), from ``x = x_p`` (§8.2): one operator
+        application per iteration, at most ``budget`` iterations, stop at ``|r|^2 < max(rtol^2 |b|^2, atol^2)``."""
+        for a in range(n):
+            w.x[r0 + a] = w.x_p[r0 + a]
+        apply_operator(m, w, wid, n, r0, nblk, shift, w.x, w.cr_Ar)
+        bb = scalar(0.0)
+        for a in range(n):
+            r = r0 + a
+            w.cr_r[r] = w.y[r] - w.cr_Ar[r]
+            w.cr_p[r] = w.cr_r[r]
+            bb += w.y[r] * w.y[r]
+        apply_operator(m, w, wid, n, r0, nblk, shift, w.cr_r, w.cr_Ar)
+        zeta = scalar(0.0)
+        for a in range(n):
+            r = r0 + a
+            w.cr_Ap[r] = w.cr_Ar[r]
+            zeta += w.cr_r[r] * w.cr_Ar[r]
+        stop = wp.max(scalar(1e-16) * bb, eps * eps)
+        for it in range(budget):
+            rr = scalar(0.0)
+            pp = scalar(0.0)
+            for a in range(n):
+                rr += w.cr_r[r0 + a] * w.cr_r[r0 + a]
+                pp += w.cr_Ap[r0 + a] * w.cr_Ap[r0 + a]
+            if rr < stop or pp <= scalar(0.0) or zeta == scalar(0.0):
+                break
+            alpha = zeta / pp
+            for a in range(n):
+                r = r0 + a
+                w.x[r] += alpha * w.cr_p[r]
+                w.cr_r[r] -= alpha * w.cr_Ap[r]
+            apply_operator(m, w, wid, n, r0, nblk, shift, w.cr_r, w.cr_Ar)
+            zeta_new = scalar(0.0)
+            for a in range(n):
+                zeta_new += w.cr_r[r0 + a] * w.cr_Ar[r0 + a]
+            beta = zeta_new / zeta
+            zeta = zeta_new
+            for a in range(n):
+                r = r0 + a
+                w.cr_p[r] = w.cr_r[r] + beta * w.cr_p[r]
+                w.cr_Ap[r] = w.cr_Ar[r] + beta * w.cr_Ap[r]
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def padmm_iterate(m: M, w: Work, chunk: int, max_iterations: int, nblk: int, use_cr: int, cr_budget: int,
+                      eta: scalar, rho: scalar, tol: scalar, restart_tol: scalar, accelerate: int, fixed: int):
+        """Up to ``chunk`` accelerated PADMM iterations of one world (§7.3-§7.5; ``padmm.solve`` of the JAX
+        reference), resuming from the stored iterate; a world that converges (unless ``fixed``) or reaches
+        ``max_iterations`` is marked done and leaves ``remaining``."""
+        wid = wp.tid()
+        if w.done[wid] != 0:
+            return
+        n = w.n_rows[wid]
+        n_box = w.n_box[wid]
+        r0 = m.row_start[wid]
+        shift = eta + rho
+        for step in range(chunk):
+            # steps 1-2: De Saxcé correction s = Gamma(z_hat), rhs, linear solve
+            for a in range(n):
+                r = r0 + a
+                w.y[r] = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
+            for c in range((n - n_box) // 3):
+                r = r0 + n_box + 3 * c
+                w.y[r + 2] -= de_saxce(w.z_hat[r], w.z_hat[r + 1], w.mu[r])
+            if use_cr != 0:
+                cr_solve(m, w, wid, n, r0, nblk, shift, cr_budget)
+            else:
+                for a in range(n):
+                    w.x[r0 + a] = w.y[r0 + a]
+                cho_solve_inplace(m, w, wid, n, r0)
+            # steps 3-4: projection and dual update
+            project_into(w, r0, n_box, n, w.x, w.z_hat, scalar(1.0) / rho, w.y)
+            r_p = scalar(0.0)
+            r_d = scalar(0.0)
+            c_sum = scalar(0.0)
+            for a in range(n):
+                r = r0 + a
+                Pa = w.P[r]
+                z = w.z_hat[r] + rho * (w.y[r] - w.x[r])
+                w.z[r] = z
+                r_p = wp.max(r_p, wp.abs(Pa * (w.x[r] - w.y[r])))
+                r_d = wp.max(r_d, wp.abs((eta * (w.x[r] - w.x_p[r]) + rho * (w.y[r] - w.y_hat[r])) / Pa))
+                dy = Pa * (w.y[r] - w.y_hat[r])
+                dz = (z - w.z_hat[r]) / Pa
+                c_sum += rho * dy * dy + dz * dz / rho
+            # complementarity (scaling-invariant)
+            r_c = scalar(0.0)
+            for a in range(n_box):
+                r = r0 + a
+                lo = w.lo_s[r]
+                hi = w.hi_s[r]
+                if wp.isfinite(lo) or wp.isfinite(hi):
+                    gap = inf
+                    if wp.isfinite(lo):
+                        gap = wp.abs(w.y[r] - lo)
+                    if wp.isfinite(hi):
+                        gap = wp.min(gap, wp.abs(hi - w.y[r]))
+                    r_c = wp.max(r_c, wp.abs(w.z[r]) * gap)
+            for c in range((n - n_box) // 3):
+                r = r0 + n_box + 3 * c
+                r_c = wp.max(r_c, wp.abs(w.y[r] * w.z[r] + w.y[r + 1] * w.z[r + 1] + w.y[r + 2] * w.z[r + 2]))
+            k = w.iters[wid] + 1
+            converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
+            # §7.4: Fast ADMM with restart
+            a_p = w.a_p[wid]
+            c_p = w.c_p[wid]
+            keep = c_sum < restart_tol * c_p
+            a_new = scalar(1.0)
+            beta = scalar(0.0)
+            c_new = c_p / restart_tol
+            if accelerate == 0:
+                a_new = a_p
+                c_new = c_p
+            elif keep:
+                a_new = scalar(0.5) * (scalar(1.0) + wp.sqrt(scalar(1.0) + scalar(4.0) * a_p * a_p))
+                beta = (a_p - scalar(1.0)) / a_new
+                c_new = c_sum
+            for a in range(n):
+                r = r0 + a
+                y = w.y[r]
+                z = w.z[r]
+                if accelerate == 0:
+                    w.y_hat[r] = y
+                    w.z_hat[r] = z
+                elif keep:
+                    w.y_hat[r] = y + beta * (y - w.y_p[r])
+                    w.z_hat[r] = z + beta * (z - w.z_p[r])
+                else:
+                    w.y_hat[r] = w.y_p[r]
+                    w.z_hat[r] = w.z_p[r]
+                w.x_p[r] = w.x[r]
+                w.y_p[r] = y
+                w.z_p[r] = z
+            w.a_p[wid] = a_new
+            w.c_p[wid] = c_new
+            w.iters[wid] = k
+            w.r_p[wid] = r_p
+            w.r_d[wid] = r_d
+            w.r_c[wid] = r_c
+            if (converged and fixed == 0) or k >= max_iterations:
+                w.converged[wid] = int(converged)
+                w.done[wid] = 1
+                wp.atomic_sub(w.remaining, 0, 1)
+                return
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def padmm_finish(m: M, w: Work):
+        """Unscale (§7.7): ``lambda = P y``, ``v+ = (z - Gamma(z)) / P``; a non-finite impulse fails the world."""
+        wid, a = wp.tid()
+        n = w.n_rows[wid]
+        if a >= n:
+            return
+        r = m.row_start[wid] + a
+        n_box = w.n_box[wid]
+        Pa = w.P[r]
+        lam = Pa * w.y_p[r]
+        z = w.z_p[r]
+        if a >= n_box and (a - n_box) % 3 == 2:
+            z -= de_saxce(w.z_p[r - 2], w.z_p[r - 1], w.mu[r])
+        w.impulse[r] = lam
+        w.velocity[r] = z / Pa
+        if not wp.isfinite(lam):
+            w.failed[wid] = 1
+
+    return SimpleNamespace(count_rows=count_rows, prebake=prebake, delassus_sparse=delassus_sparse,
+                           delassus_dense=delassus_dense, precondition=precondition, scale=scale,
+                           padmm_init=padmm_init, padmm_iterate=padmm_iterate, padmm_finish=padmm_finish)

@@ -1,0 +1,73 @@
+"""Quaternion and SE(3) helpers as Warp functions (formulation.md §1.1, §2.3, §6.1).
+
+The same formulas as ``kamino/jax_ref/spatial.py`` (small-angle series below ``|phi|^2 < 1e-12``),
+so that both backends round the same way up to the order of operations.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from kamino.warp_backend.types import types_of
+
+
+@functools.cache
+def spatial_funcs(np_dtype) -> SimpleNamespace:
+    T = types_of(np_dtype)
+    scalar, vec3, vec6, quat, transform = T.scalar, T.vec3, T.vec6, T.quat, T.transform
+
+    @wp.func
+    def quat_exp(phi: vec3):
+        """``Exp(phi) = (sin(|phi|/2) phi/|phi|, cos(|phi|/2))``; ``(phi/2 (1 - |phi|^2/24), 1 - |phi|^2/8)`` near 0."""
+        sq = wp.dot(phi, phi)
+        if sq < scalar(1e-12):
+            v = scalar(0.5) * phi * (scalar(1.0) - sq / scalar(24.0))
+            return quat(v[0], v[1], v[2], scalar(1.0) - sq / scalar(8.0))
+        n = wp.sqrt(sq)
+        v = wp.sin(scalar(0.5) * n) / n * phi
+        return quat(v[0], v[1], v[2], wp.cos(scalar(0.5) * n))
+
+    @wp.func
+    def quat_log(q_in: quat):
+        """Rotation vector ``Log(q)`` of a unit quaternion, shortest way round (§2.3)."""
+        q = q_in
+        if q[3] < scalar(0.0):
+            q = -q
+        v = vec3(q[0], q[1], q[2])
+        w = q[3]
+        sq = wp.dot(v, v)
+        if sq < scalar(1e-12):
+            return (scalar(2.0) - scalar(2.0 / 3.0) * sq / (w * w)) * v / w
+        s = wp.sqrt(sq)
+        return scalar(2.0) * wp.atan2(s, w) / s * v
+
+    @wp.func
+    def integrate_pose(x: transform, u: vec6, h: scalar):
+        """``r+ = r + h v``, ``q+ = normalize(Exp(h w) ⊗ q)`` (formulation.md §6.1)."""
+        p = wp.transform_get_translation(x) + h * vec3(u[0], u[1], u[2])
+        q = quat_exp(h * vec3(u[3], u[4], u[5])) * wp.transform_get_rotation(x)
+        return transform(p, wp.normalize(q))
+
+    @wp.func
+    def deadband(x: scalar, delta: scalar):
+        """``sign(x) max(0, |x| - delta)`` (formulation.md §4.2)."""
+        a = wp.abs(x) - delta
+        if a <= scalar(0.0):
+            return scalar(0.0)
+        return wp.sign(x) * a
+
+    @wp.func
+    def lin(u: vec6):
+        return vec3(u[0], u[1], u[2])
+
+    @wp.func
+    def ang(u: vec6):
+        return vec3(u[3], u[4], u[5])
+
+    @wp.func
+    def twist(v: vec3, w: vec3):
+        return vec6(v[0], v[1], v[2], w[0], w[1], w[2])
+
+    return SimpleNamespace(quat_exp=quat_exp, quat_log=quat_log, integrate_pose=integrate_pose, deadband=deadband,
+                           lin=lin, ang=ang, twist=twist)

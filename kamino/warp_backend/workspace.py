@@ -1,0 +1,192 @@
+"""Per-step device buffers of the Warp backend (one struct, allocated once per model and config).
+
+The state the step reads (``q``, ``u``, the previous step's reactions and contacts, the controls)
+is held in persistent buffers, so that a captured CUDA graph always sees the same addresses; the
+step writes its results into ``*_new`` buffers and a final commit copies them over the state
+(keeping the previous state of a world whose result is not finite).
+"""
+
+import functools
+
+import numpy as np
+import warp as wp
+
+from kamino.warp_backend.model_data import WarpModel
+from kamino.warp_backend.types import types_of
+
+
+@functools.cache
+def work_struct(np_dtype):
+    T = types_of(np_dtype)
+    scalar, vec3, vec6, mat33, transform = T.scalar, T.vec3, T.vec6, T.mat33, T.transform
+    iarr = wp.array(dtype=wp.int32)
+    farr = wp.array(dtype=scalar)
+    v3 = wp.array(dtype=vec3)
+    v6 = wp.array(dtype=vec6)
+
+    @wp.struct
+    class Work:
+        # state (persistent) and controls
+        q: wp.array(dtype=transform)
+        u: v6
+        time: farr
+        kin_force: farr  # [num_constraints] lambda/dt of the kinematic rows
+        cpl_force: farr  # [num_couplings]
+        act_force: farr  # [num_dofs]
+        pas_force: farr
+        lim_force: farr
+        con_pair: iarr  # [capacity] previous/committed contacts
+        con_pos: v3
+        con_normal: v3
+        con_dist: farr
+        con_force: v3
+        con_velocity: v3
+        con_point_b: v3
+        effort: farr  # controls [num_dofs]
+        position_target: farr
+        velocity_target: farr
+        wrench: v6  # [num_bodies]
+        # body quantities of this step
+        q_eval: wp.array(dtype=transform)
+        q_pred: wp.array(dtype=transform)
+        u_f: v6
+        inertia_w: wp.array(dtype=mat33)
+        inv_inertia_w: wp.array(dtype=mat33)
+        body_impulse: v6
+        # DoF quantities
+        dof_JF: v6
+        dof_JB: v6
+        q_dof: farr
+        q_dof_pred: farr
+        qd_minus: farr
+        qd_free: farr
+        tau_explicit: farr
+        # limits (candidates, before compaction)
+        lim_side: farr
+        lim_active: iarr
+        lim_bias: farr
+        # contacts of this step (capacity slots) and narrow-phase candidates
+        cand_pos: v3
+        cand_normal: v3
+        cand_dist: farr
+        cand_valid: iarr
+        ct_pair: iarr
+        ct_body_a: iarr
+        ct_body_b: iarr
+        ct_pos: v3
+        ct_normal: v3
+        ct_dist: farr
+        ct_mu: farr
+        ct_restitution: farr
+        ct_found: iarr  # number of active contacts found (may exceed capacity) per world
+        # constraint rows (segment of maxdim rows per world)
+        row_body: iarr  # [rows * nblk]
+        row_J: v6
+        row_MJ: v6  # M^-1 J^T per block (pre-baked)
+        row_type: iarr
+        row_src: iarr
+        row_side: farr
+        vstar: farr
+        reg: farr  # R (joint-dynamics regularisation)
+        lo: farr
+        hi: farr
+        mu: farr
+        f0: farr  # warm-start force (lambda/dt)
+        v0: farr  # warm-start velocity
+        vf: farr
+        # per world row counts
+        n_lim: iarr
+        n_con: iarr
+        n_box: iarr
+        n_rows: iarr
+        # dense Jacobian and Delassus
+        Jd: farr
+        MJd: farr
+        D: farr
+        # PADMM
+        P: farr
+        vt: farr
+        lo_s: farr
+        hi_s: farr
+        x: farr
+        y: farr
+        z: farr
+        x_p: farr
+        y_p: farr
+        z_p: farr
+        y_hat: farr
+        z_hat: farr
+        impulse: farr
+        velocity: farr
+        a_p: farr  # per world
+        c_p: farr
+        iters: iarr
+        r_p: farr
+        r_d: farr
+        r_c: farr
+        converged: iarr
+        done: iarr  # per world: 1 once converged or at the iteration cap
+        remaining: iarr  # [1] worlds still iterating (the capture_while condition)
+        # Conjugate Residual scratch
+        cr_r: farr
+        cr_p: farr
+        cr_Ap: farr
+        cr_Ar: farr
+        cr_w: v6  # [bodies] J^T x
+        # results
+        q_new: wp.array(dtype=transform)
+        u_new: v6
+        failed: iarr  # per world
+
+    return Work
+
+
+def allocate(wm: WarpModel, euler: bool, dense: bool):
+    """A zero-initialised :func:`work_struct` for ``wm`` (``q_eval`` aliases ``q`` for Euler)."""
+    T = types_of(wm.np_dtype)
+    m = wm.model
+    dev = wm.device
+    W = work_struct(wm.np_dtype)()
+    B, D, C, K, cap = m.num_bodies, m.num_dofs, m.num_constraints, m.num_couplings, m.num_contacts
+    R, nblk = wm.total_rows, wm.blocks_per_row
+    L = int(np.sum(wm_lim_counts(wm)))
+    sizes = {
+        "q": (B, T.transform), "u": (B, T.vec6), "time": (m.num_worlds, T.scalar),
+        "kin_force": (C, T.scalar), "cpl_force": (K, T.scalar), "act_force": (D, T.scalar), "pas_force": (D, T.scalar),
+        "lim_force": (D, T.scalar), "con_pair": (cap, wp.int32), "con_pos": (cap, T.vec3), "con_normal": (cap, T.vec3),
+        "con_dist": (cap, T.scalar), "con_force": (cap, T.vec3), "con_velocity": (cap, T.vec3),
+        "con_point_b": (cap, T.vec3), "effort": (D, T.scalar), "position_target": (D, T.scalar),
+        "velocity_target": (D, T.scalar), "wrench": (B, T.vec6),
+        "q_pred": (B, T.transform), "u_f": (B, T.vec6), "inertia_w": (B, T.mat33),
+        "inv_inertia_w": (B, T.mat33), "body_impulse": (B, T.vec6),
+        "dof_JF": (D, T.vec6), "dof_JB": (D, T.vec6), "q_dof": (D, T.scalar), "q_dof_pred": (D, T.scalar),
+        "qd_minus": (D, T.scalar), "qd_free": (D, T.scalar), "tau_explicit": (D, T.scalar),
+        "lim_side": (L, T.scalar), "lim_active": (L, wp.int32), "lim_bias": (L, T.scalar),
+        "cand_pos": (wm.total_cand, T.vec3), "cand_normal": (wm.total_cand, T.vec3),
+        "cand_dist": (wm.total_cand, T.scalar), "cand_valid": (wm.total_cand, wp.int32),
+        "ct_pair": (cap, wp.int32), "ct_body_a": (cap, wp.int32), "ct_body_b": (cap, wp.int32),
+        "ct_pos": (cap, T.vec3), "ct_normal": (cap, T.vec3), "ct_dist": (cap, T.scalar), "ct_mu": (cap, T.scalar),
+        "ct_restitution": (cap, T.scalar), "ct_found": (m.num_worlds, wp.int32),
+        "row_body": (R * nblk, wp.int32), "row_J": (R * nblk, T.vec6), "row_MJ": (R * nblk, T.vec6),
+        "row_type": (R, wp.int32), "row_src": (R, wp.int32), "row_side": (R, T.scalar),
+        "Jd": (wm.total_jd if dense else 0, T.scalar), "MJd": (wm.total_jd if dense else 0, T.scalar),
+        "D": (wm.total_mat, T.scalar),
+        "cr_w": (B, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
+    }
+    for name in ("vstar", "reg", "lo", "hi", "mu", "f0", "v0", "vf", "P", "vt", "lo_s", "hi_s", "x", "y", "z", "x_p",
+                 "y_p", "z_p", "y_hat", "z_hat", "impulse", "velocity", "cr_r", "cr_p", "cr_Ap", "cr_Ar"):
+        sizes[name] = (R, T.scalar)
+    for name in ("a_p", "c_p", "r_p", "r_d", "r_c"):
+        sizes[name] = (m.num_worlds, T.scalar)
+    for name in ("n_lim", "n_con", "n_box", "n_rows", "iters", "converged", "done", "failed"):
+        sizes[name] = (m.num_worlds, wp.int32)
+    sizes["remaining"] = (1, wp.int32)
+    for name, (n, dtype) in sizes.items():
+        setattr(W, name, wp.zeros(max(n, 0), dtype=dtype, device=dev))
+    W.con_pair.fill_(-1)
+    W.q_eval = W.q if euler else wp.zeros(B, dtype=T.transform, device=dev)
+    return W
+
+
+def wm_lim_counts(wm: WarpModel) -> np.ndarray:
+    return wm.arrays.lim_count.numpy()
