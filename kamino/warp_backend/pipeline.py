@@ -26,6 +26,8 @@ from kamino.warp_backend.workspace import allocate
 #: linear_solver="auto" takes the Conjugate Residual path above this many constraint rows per world
 #: (docs/warp_backend.md, "Choosing the linear solver").
 AUTO_CR_ROWS = 300
+#: threads per block of the one-thread-per-world kernels
+PER_WORLD_BLOCK = 32
 
 
 def resolve_linear_solver(cfg: SolverConfig, max_rows: int) -> str:
@@ -58,11 +60,18 @@ class Stepper:
         self.use_graph = self.device.is_cuda
         self.padmm_chunk = cfg.max_iterations if not self.use_graph else min(cfg.max_iterations, 8)
         self._graphs: dict[int, object] = {}
+        #: callables ``f(stepper)`` enqueued at the start of every step (captured with it), e.g. a
+        #: kernel that sets the controls from the device-side time
+        self.pre_step: list = []
 
     # --- launches -------------------------------------------------------------------------------
     def _launch(self, kernel, dim, *args):
+        """Launch on ``dim``; one-thread-per-world kernels use blocks of 32 threads, so that a few thousand
+        worlds spread over every multiprocessor (a world's thread does serial work)."""
         if all(int(d) > 0 for d in (dim if isinstance(dim, tuple) else (dim,))):
-            wp.launch(kernel, dim=dim, inputs=[self.wm.arrays, self.work, *args], device=self.device)
+            block = PER_WORLD_BLOCK if not isinstance(dim, tuple) else 256
+            wp.launch(kernel, dim=dim, inputs=[self.wm.arrays, self.work, *args], device=self.device,
+                      block_dim=block)
 
     def launch_step(self) -> None:
         """Enqueue one step (capturable: no host synchronisation)."""
@@ -73,6 +82,8 @@ class Stepper:
         midpoint = cfg.integrator == "midpoint"
         h = 0.5 * dt if midpoint else dt
         delta = cfg.deadband_for(self.np_dtype)
+        for hook in self.pre_step:
+            hook(self)
         if midpoint:
             self._launch(rk.half_step, (W, wm.max_bodies), h)
         self._launch(rk.dof_blocks, (W, wm.max_dofs))
@@ -114,6 +125,14 @@ class Stepper:
         else:
             self._launch(sk.padmm_iterate, W, cfg.max_iterations, cfg.max_iterations, *args)
         self._launch(sk.padmm_finish, rows)
+        for _ in range(getattr(self, "refine", 0)):
+            self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
+            self._launch(rk.predict_with, (W, wm.max_bodies), h)
+            self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta, mid)
+            w.remaining.fill_(W)
+            wp.launch(sk.padmm_resume, dim=W, inputs=[w, cfg.max_iterations], device=self.device, block_dim=PER_WORLD_BLOCK)
+            self._launch(sk.padmm_iterate, W, cfg.max_iterations, 2 * cfg.max_iterations, *args)
+            self._launch(sk.padmm_finish, rows)
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
         self._launch(ik.dof_forces, (W, wm.max_dofs))
@@ -122,6 +141,10 @@ class Stepper:
             self._launch(ck.commit_contacts, (W, wm.max_contacts), 1.0 / dt)
         self._launch(ik.commit_bodies, (W, wm.max_bodies))
         wp.launch(ik.commit_time, dim=W, inputs=[w, dt], device=self.device)
+
+    def invalidate_graphs(self) -> None:
+        """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
+        self._graphs.clear()
 
     def run(self, num_steps: int) -> None:
         """Advance ``num_steps`` steps in place (replaying a captured graph on CUDA)."""

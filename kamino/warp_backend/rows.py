@@ -212,6 +212,36 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.row_src[r] = c
 
     @wp.kernel(module="unique", enable_backward=False)
+    def predict_with(m: M, w: Work, h: scalar):
+        """``q_pred = q_eval ⊕ h u_new``: the predicted pose along the solved velocity (curvature refinement)."""
+        wid, i = wp.tid()
+        if i >= m.body_count[wid]:
+            return
+        b = m.body_start[wid] + i
+        w.q_pred[b] = integrate_pose(w.q_eval[b], w.u_new[b], h)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def refine_joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, midpoint: int):
+        """The joint rows' bias with the curvature term predicted along the solved velocity ``u_new``; updates
+        ``v~_f = P (J u_f + v*)``."""
+        wid, i = wp.tid()
+        if i >= m.cts_count[wid]:
+            return
+        c = m.cts_start[wid] + i
+        r = m.row_start[wid] + m.dyn_count[wid] + i
+        e = kf.cts_residual(m, w.q_eval, c)
+        e_start = e
+        if midpoint != 0:
+            e_start = kf.cts_residual(m, w.q, c)
+        bias = deadband(e - (scalar(1.0) - alpha) * e_start, delta)
+        e_pred = kf.cts_residual(m, w.q_pred, c)
+        bias += deadband(e_pred - e - h * row_dot(w, r, nblk, w.u_new), delta)
+        vs = bias / h
+        w.vf[r] = w.vf[r] - w.vstar[r] + vs
+        w.vt[r] = w.P[r] * w.vf[r]
+        w.vstar[r] = vs
+
+    @wp.kernel(module="unique", enable_backward=False)
     def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
                       midpoint: int):
         """Coupling rows ``q_a - p(q_b)``: blocks ``J_a - p'(q_b) J_b`` (four) and the bias of ``coupling_bias``."""
@@ -309,4 +339,4 @@ def row_kernels(np_dtype) -> SimpleNamespace:
 
     return SimpleNamespace(half_step=half_step, dof_blocks=dof_blocks, bodies=bodies, dof_rates=dof_rates,
                            dyn_rows=dyn_rows, joint_rows=joint_rows, coupling_rows=coupling_rows, limits=limits,
-                           pack_limits=pack_limits, set_blocks=set_blocks, row_dot=row_dot, body_dot=body_dot)
+                           pack_limits=pack_limits, predict_with=predict_with, refine_joint_rows=refine_joint_rows, set_blocks=set_blocks, row_dot=row_dot, body_dot=body_dot)

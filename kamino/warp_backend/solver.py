@@ -253,10 +253,16 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     for k in range(j):
                         t -= w.D[base + i * n + k] * w.D[base + j * n + k]
                     w.D[base + i * n + j] = t / ljj
+            # keep L^T in the strict upper triangle too: the backward substitution then reads rows
+            # (contiguous) instead of columns
+            for i in range(n):
+                for k in range(i):
+                    w.D[base + k * n + i] = w.D[base + i * n + k]
 
     @wp.func
     def cho_solve_inplace(m: M, w: Work, wid: int, n: int, r0: int):
-        """``x <- L^-T L^-1 x`` with the cached factor (forward then backward substitution)."""
+        """``x <- L^-T L^-1 x`` with the cached factor (forward then backward substitution; ``L^T`` is read
+        from the upper triangle)."""
         base = m.mat_start[wid]
         for i in range(n):
             s = w.x[r0 + i]
@@ -267,7 +273,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             i = n - 1 - ii
             s = w.x[r0 + i]
             for k in range(i + 1, n):
-                s -= w.D[base + k * n + i] * w.x[r0 + k]
+                s -= w.D[base + i * n + k] * w.x[r0 + k]
             w.x[r0 + i] = s / w.D[base + i * n + i]
 
     @wp.func
@@ -441,6 +447,16 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 return
 
     @wp.kernel(module="unique", enable_backward=False)
+    def padmm_resume(w: Work, max_iterations: int):
+        """Let every world iterate again (``max_iterations`` more) from its current iterate."""
+        wid = wp.tid()
+        w.done[wid] = int(w.n_rows[wid] == 0)
+        w.a_p[wid] = scalar(1.0)
+        w.c_p[wid] = big
+        if w.n_rows[wid] == 0:
+            wp.atomic_sub(w.remaining, 0, 1)
+
+    @wp.kernel(module="unique", enable_backward=False)
     def padmm_finish(m: M, w: Work):
         """Unscale (§7.7): ``lambda = P y``, ``v+ = (z - Gamma(z)) / P``; a non-finite impulse fails the world."""
         wid, a = wp.tid()
@@ -461,4 +477,4 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
 
     return SimpleNamespace(count_rows=count_rows, prebake=prebake, delassus_sparse=delassus_sparse,
                            delassus_dense=delassus_dense, precondition=precondition, scale=scale,
-                           padmm_init=padmm_init, padmm_iterate=padmm_iterate, padmm_finish=padmm_finish)
+                           padmm_init=padmm_init, padmm_resume=padmm_resume, padmm_iterate=padmm_iterate, padmm_finish=padmm_finish)

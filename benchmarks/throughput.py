@@ -1,0 +1,318 @@
+"""Throughput against error on the GPU: kamino (Warp backend, each Jacobian/solver configuration, and the
+JAX backend) and, when importable, the peers MuJoCo Warp and Newton SolverKamino on the same scenes.
+
+    python benchmarks/throughput.py [--scenes fourbar ladder8 ...] [--worlds 1 64 512 4096 16384]
+                                    [--configs dense-llt sparse-llt sparse-cr jax] [--no-peers] [--out FILE]
+    python benchmarks/throughput.py --plot benchmarks/results/throughput_h100.json   # PNG plots from a JSON
+
+Method (architecture.md "Performance method", the same as the peers' figures in benchmarks/README.md):
+float32, dt = 0.0025 s, the drive ``2 N m sin(2 pi t)`` on the scene's first actuator set on the device
+every step (inside the graph); throughput = steps/s x worlds with a CUDA graph of ``--graph-steps`` steps
+replayed, after warm-up, median of ``--repeats`` trials. Next to each figure: the PADMM iterations and
+residuals and the loop closure (largest anchor distance of any joint with translational rows) over a
+``--closure-steps`` run of one world, and the device memory per world.
+"""
+
+
+import argparse
+import json
+import math
+import pathlib
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+
+HERE = pathlib.Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+import kamino  # noqa: E402
+from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType  # noqa: E402
+
+SCENES = ("fourbar", "ladder8", "ladder32", "dr_legs")
+CONFIGS = {
+    "dense-llt": dict(jacobian="dense", linear_solver="llt"),
+    "sparse-llt": dict(jacobian="sparse", linear_solver="llt"),
+    "sparse-cr": dict(jacobian="sparse", linear_solver="cr"),
+}
+DT = 0.0025
+AMPLITUDE, FREQUENCY = 2.0, 1.0
+
+
+def load_scene(name: str):
+    """(model, initial state, drive) of a benchmark scene: MJCF files from benchmarks/scenes, or dr_legs."""
+    if name == "dr_legs":
+        model = kamino.models.dr_legs()
+        return model, {"offset_from_state": True, "amplitude": 0.2}
+    return kamino.load_mjcf(HERE / "scenes" / f"{name}.xml"), {"offset_from_state": False, "amplitude": AMPLITUDE}
+
+
+def closure_distance(model, body_q: np.ndarray) -> float:
+    """Largest distance between the two anchors of any joint whose first three rows are translational
+    (revolute, spherical, universal, fixed joints: every loop-closing joint of the scenes)."""
+    q = np.asarray(body_q, np.float64)
+
+    def rot(qs):
+        x, y, z, w = qs[..., 0], qs[..., 1], qs[..., 2], qs[..., 3]
+        return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                         np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+    sel = [j for j in range(model.num_joints)
+           if len(JOINT_CONSTRAINT_ROWS[JointType(int(model.joint_type[j]))]) >= 3
+           and JOINT_CONSTRAINT_ROWS[JointType(int(model.joint_type[j]))][2][0] == 2
+           and JOINT_CONSTRAINT_ROWS[JointType(int(model.joint_type[j]))][0][0] == 0]
+    if not sel:
+        return 0.0
+    sel = np.array(sel)
+    par, chi = model.joint_parent[sel], model.joint_child[sel]
+    pF = q[chi, :3] + np.einsum("jab,jb->ja", rot(q[chi, 3:]), model.joint_anchor_F[sel])
+    qB = np.where((par >= 0)[:, None], q[np.maximum(par, 0)], np.array([0, 0, 0, 0, 0, 0, 1.0]))
+    pB = qB[:, :3] + np.einsum("jab,jb->ja", rot(qB[:, 3:]), model.joint_anchor_B[sel])
+    return float(np.max(np.linalg.norm(pF - pB, axis=-1)))
+
+
+def _drive_hook(st, model, drive, base_targets):
+    """A pre-step hook writing ``offset + A sin(2 pi f t)`` to the first actuator of every world (device side)."""
+    import warp as wp
+
+    from kamino.warp_backend.types import types_of
+
+    T = types_of(st.np_dtype)
+    scalar = T.scalar
+    dof = model.actuator_dof[model.world_actuator_start]
+    mode = int(model.dof_act_mode[dof[0]])
+    gear = float(model.actuator_gear[model.world_actuator_start[0]])
+    offset = base_targets[dof] if drive["offset_from_state"] else np.zeros(len(dof))
+    dof_w = wp.array(dof.astype(np.int32), dtype=wp.int32, device=st.device)
+    off_w = wp.array(offset.astype(st.np_dtype), dtype=scalar, device=st.device)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def drive_kernel(time: wp.array(dtype=scalar), dofs: wp.array(dtype=wp.int32), off: wp.array(dtype=scalar),
+                     effort: wp.array(dtype=scalar), target: wp.array(dtype=scalar), amp: scalar, omega: scalar,
+                     effort_mode: int):
+        w = wp.tid()
+        v = off[w] + amp * wp.sin(omega * time[w])
+        if effort_mode != 0:
+            effort[dofs[w]] = v
+        else:
+            target[dofs[w]] = v
+
+    def hook(s):
+        wp.launch(drive_kernel, dim=len(dof), device=s.device,
+                  inputs=[s.work.time, dof_w, off_w, s.work.effort, s.work.position_target,
+                          drive["amplitude"] * (gear if mode == int(ActuationMode.EFFORT) else 1.0),
+                          2.0 * math.pi * FREQUENCY, int(mode == int(ActuationMode.EFFORT))])
+    return hook
+
+
+def _initial(model, name):
+    """Initial state, controls and the drive's offset per DoF. dr_legs stands in its reference pose,
+    held by zero position targets (its DoFs are measured from that pose), as in tests/test_robots.py."""
+    state = kamino.init_state(model, np.float32)
+    if name == "dr_legs":
+        return state, kamino.Control(position_target=np.zeros(model.num_dofs, np.float32)), np.zeros(model.num_dofs)
+    return state, None, np.zeros(model.num_dofs)
+
+
+def bench_warp(name, config_name, num_worlds, args) -> dict:
+    import warp as wp
+
+    from kamino.warp_backend import backend as wb
+
+    base, drive = load_scene(name)
+    model = kamino.replicate(base, num_worlds) if num_worlds > 1 else base
+    cfg = kamino.SolverConfig(dt=DT, **CONFIGS[config_name])
+    state, control, base_targets = _initial(model, name)
+    dev = wp.get_device()
+    wp.synchronize_device(dev)
+    mem0 = wp.get_mempool_used_mem_current(dev) if dev.is_cuda else 0
+    st = wb.stepper(model, cfg, np.float32, dev)
+    wb.load_state(st, state, control)
+    st.pre_step.append(_drive_hook(st, model, drive, base_targets))
+    wp.synchronize_device(dev)
+    mem = (wp.get_mempool_used_mem_current(dev) - mem0) if dev.is_cuda else 0
+    n = args.graph_steps
+    st.run(n)  # capture + warm-up
+    st.run(n)
+    wp.synchronize_device(dev)
+    trials = []
+    replays = max(1, args.replays)
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        for _ in range(replays):
+            st.run(n)
+        wp.synchronize_device(dev)
+        trials.append(time.perf_counter() - t0)
+    step_time = statistics.median(trials) / (replays * n)
+    return {"kamino": "warp", "config": config_name, "scene": name, "num_worlds": num_worlds,
+            "throughput": num_worlds / step_time, "step_time_s": step_time, "memory_per_world_bytes": mem / num_worlds,
+            "rows_max": st.wm.max_rows, "linear_solver": st.linear_solver}
+
+
+def bench_jax(name, num_worlds, args) -> dict:
+    import jax
+
+    base, _ = load_scene(name)
+    model = kamino.replicate(base, num_worlds) if num_worlds > 1 else base
+    cfg = kamino.SolverConfig(dt=DT)
+    state, _, _ = _initial(model, name)
+    n = args.graph_steps
+    t = np.arange(n) * DT
+    dof = model.actuator_dof[model.world_actuator_start]
+    effort = np.zeros((n, model.num_dofs), np.float32)
+    effort[:, dof] = (AMPLITUDE * np.sin(2 * np.pi * FREQUENCY * t))[:, None]
+    controls = kamino.Control(dof_effort=effort)
+    run = jax.jit(lambda s: jax.tree_util.tree_map(lambda x: x[-1], kamino.rollout(model, s, controls, config=cfg)))
+    s = run(state)
+    jax.block_until_ready(s)
+    trials = []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        s = run(s)
+        jax.block_until_ready(s)
+        trials.append(time.perf_counter() - t0)
+    step_time = statistics.median(trials) / n
+    return {"kamino": "jax", "config": "jax", "scene": name, "num_worlds": num_worlds,
+            "throughput": num_worlds / step_time, "step_time_s": step_time}
+
+
+def closure_run(name, config_name, args) -> dict:
+    """One world, ``--closure-steps`` steps: PADMM iterations/residuals and the loop closure."""
+    import warp as wp
+
+    from kamino.warp_backend import backend as wb
+
+    model, drive = load_scene(name)
+    cfg = kamino.SolverConfig(dt=DT, **CONFIGS[config_name])
+    state, control, base_targets = _initial(model, name)
+    st = wb.stepper(model, cfg, np.float32, wp.get_device())
+    wb.load_state(st, state, control)
+    st.pre_step.append(_drive_hook(st, model, drive, base_targets))
+    closure, iters, r_p, r_d, conv = 0.0, [], [], [], []
+    for _ in range(args.closure_steps):
+        st.run(1)
+        closure = max(closure, closure_distance(model, st.work.q.numpy().reshape(-1, 7)))
+        iters.append(int(st.work.iters.numpy()[0]))
+        r_p.append(float(st.work.r_p.numpy()[0]))
+        r_d.append(float(st.work.r_d.numpy()[0]))
+        conv.append(bool(st.work.converged.numpy()[0]))
+    return {"closure_max_m": closure, "iterations_mean": float(np.mean(iters)), "iterations_max": int(np.max(iters)),
+            "primal_residual_max": float(np.max(r_p)), "dual_residual_max": float(np.max(r_d)),
+            "converged_fraction": float(np.mean(conv))}
+
+
+def environment() -> dict:
+    import jax
+    import warp as wp
+
+    dev = wp.get_device()
+    return {"gpu": dev.name if dev.is_cuda else platform.processor(), "warp": wp.__version__, "jax": jax.__version__,
+            "python": platform.python_version(), "date": time.strftime("%Y-%m-%d"),
+            "command": " ".join(sys.argv)}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scenes", nargs="+", default=list(SCENES))
+    p.add_argument("--worlds", nargs="+", type=int, default=[1, 64, 512, 4096, 16384])
+    p.add_argument("--configs", nargs="+", default=[*CONFIGS, "jax"])
+    p.add_argument("--graph-steps", type=int, default=10)
+    p.add_argument("--replays", type=int, default=10)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--closure-steps", type=int, default=1000)
+    p.add_argument("--no-peers", action="store_true")
+    p.add_argument("--out", type=pathlib.Path, default=None)
+    p.add_argument("--plot", type=pathlib.Path, default=None, help="plot an existing JSON and exit")
+    args = p.parse_args(argv)
+    if args.plot:
+        plot(json.loads(args.plot.read_text()), args.plot.with_suffix(""))
+        return 0
+    results = {"environment": environment(), "records": []}
+
+    def emit(rec):
+        results["records"].append(rec)
+        print(json.dumps(rec), flush=True)
+        if args.out:
+            args.out.write_text(json.dumps(results, indent=1))
+
+    for scene in args.scenes:
+        for config in args.configs:
+            if config == "jax":
+                for nw in args.worlds:
+                    try:
+                        emit(bench_jax(scene, nw, args))
+                    except Exception as e:  # keep going: report what failed
+                        emit({"kamino": "jax", "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
+                continue
+            err = closure_run(scene, config, args) if args.closure_steps else {}
+            for nw in args.worlds:
+                try:
+                    emit({**bench_warp(scene, config, nw, args), **err})
+                except Exception as e:
+                    emit({"kamino": "warp", "config": config, "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
+        if not args.no_peers:
+            run_peers(scene, args, emit)
+    return 0
+
+
+def run_peers(scene, args, emit) -> None:
+    """MuJoCo Warp and Newton SolverKamino on the same MJCF, when importable (benchmarks/peers.py)."""
+    if scene not in ("fourbar", "ladder8", "ladder32"):
+        return
+    try:
+        import peers
+    except ImportError as e:
+        emit({"peer": "all", "scene": scene, "error": f"benchmarks/peers.py not importable: {e}"})
+        return
+    path = str(HERE / "scenes" / f"{scene}.xml")
+    for nw in args.worlds:
+        for fn, kw in ((peers.run_mujoco_warp, {}), (peers.run_solver_kamino, {"variant": "padmm_dense"})):
+            try:
+                emit(fn(path, nw, graph_steps=args.graph_steps, repeats=args.repeats,
+                        closure_steps=args.closure_steps if nw == args.worlds[0] else 0, **kw))
+            except Exception as e:
+                emit({"peer": fn.__name__, "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
+
+
+def plot(results: dict, stem: pathlib.Path) -> None:
+    """Throughput against worlds, and throughput against closure error, one panel per scene."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    recs = [r for r in results["records"] if r.get("throughput")]
+    scenes = sorted({r["scene"] for r in recs})
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 4), squeeze=False)
+    for ax, scene in zip(axes[0], scenes, strict=True):
+        series = {}
+        for r in recs:
+            if r["scene"] == scene:
+                key = f"kamino {r['config']}" if "config" in r else f"{r['peer']} {r.get('variant') or ''}".strip()
+                series.setdefault(key, []).append((r["num_worlds"], r["throughput"]))
+        for key, pts in sorted(series.items()):
+            pts.sort()
+            ax.plot(*zip(*pts, strict=True), marker="o", label=key)
+        ax.set(xscale="log", yscale="log", xlabel="worlds", ylabel="steps/s x worlds", title=scene)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(f"{stem}_throughput.png", dpi=120)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in recs:
+        if r.get("closure_max_m") and r["num_worlds"] == max(x["num_worlds"] for x in recs):
+            label = f"{r['scene']} {r.get('config') or r.get('peer')}"
+            ax.scatter(r["closure_max_m"], r["throughput"], label=label)
+    ax.set(xscale="log", yscale="log", xlabel="max loop closure over 1000 steps [m]",
+           ylabel="steps/s x worlds (largest world count)")
+    ax.legend(fontsize=6)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(f"{stem}_error.png", dpi=120)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
