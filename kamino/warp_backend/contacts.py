@@ -12,7 +12,8 @@ from types import SimpleNamespace
 import warp as wp
 
 from kamino.warp_backend.cone import cone_funcs
-from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.indexing import index_funcs
+from kamino.warp_backend.model_data import GROUP, model_struct
 from kamino.warp_backend.rows import ROW_CONTACT, row_kernels
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
@@ -32,6 +33,7 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
     cf = cone_funcs(np_dtype)
     rk = row_kernels(np_dtype)
     collide_pair = collision_funcs(np_dtype).collide_pair
+    ridx = index_funcs(np_dtype).ridx
 
     @wp.func
     def geom_pose(m: M, body_q: wp.array(dtype=transform), g: int):
@@ -182,25 +184,26 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
         if i >= w.n_con[wid]:
             return
         s = m.con_start[wid] + i
-        r = m.row_start[wid] + w.n_box[wid] + 3 * i
+        a0 = w.n_box[wid] + 3 * i
         C = contact_frame(w.ct_normal[s])
         ba = w.ct_body_a[s]
         bb = w.ct_body_b[s]
         mu = w.ct_mu[s]
         for t in range(3):
             JB, JA = contact_blocks(w, s, vec3(C[0, t], C[1, t], C[2, t]))
-            rk.set_blocks(w, r + t, nblk, bb, JB, ba, JA)
-            w.reg[r + t] = scalar(0.0)
-            w.lo[r + t] = scalar(0.0)
-            w.hi[r + t] = scalar(0.0)
-            w.mu[r + t] = mu
-            w.row_type[r + t] = ROW_CONTACT
-            w.row_src[r + t] = s
-            w.vstar[r + t] = scalar(0.0)
+            rt = ridx(m, wid, a0 + t)
+            rk.set_blocks(w, rt, nblk, bb, JB, ba, JA)
+            w.reg[rt] = scalar(0.0)
+            w.lo[rt] = scalar(0.0)
+            w.hi[rt] = scalar(0.0)
+            w.mu[rt] = mu
+            w.row_type[rt] = ROW_CONTACT
+            w.row_src[rt] = s
+            w.vstar[rt] = scalar(0.0)
         # bias of the normal row: gap closes at most, penetration shrinks by gamma; or Newton's restitution
         d = deadband(w.ct_dist[s], deadband_c)
         gap_bias = (d - (scalar(1.0) - gamma) * wp.min(d, scalar(0.0))) / h
-        vn_minus = rk.row_dot(w, r + 2, nblk, w.u)
+        vn_minus = rk.row_dot(w, ridx(m, wid, a0 + 2), nblk, w.u)
         e = w.ct_restitution[s]
         vn = gap_bias
         if e > scalar(0.0) and vn_minus < -restitution_threshold:
@@ -208,7 +211,7 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             if e < scalar(1.0):
                 corr = wp.min(gap_bias, scalar(0.0))
             vn = wp.min(e * vn_minus, corr)
-        w.vstar[r + 2] = vn
+        w.vstar[ridx(m, wid, a0 + 2)] = vn
         # warm start: previous contact of the same pair nearest on geom b (first on ties), within the distance
         pb = local_point_b(w, s)
         best = int(-1)
@@ -228,8 +231,8 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             v = wp.transpose(C) * w.con_velocity[best]
         v[2] = v[2] + cf.de_saxce(v[0], v[1], mu)
         for t in range(3):
-            w.f0[r + t] = f[t]
-            w.v0[r + t] = v[t]
+            w.f0[ridx(m, wid, a0 + t)] = f[t]
+            w.v0[ridx(m, wid, a0 + t)] = v[t]
 
     @wp.kernel(module="unique", enable_backward=False)
     def commit_contacts(m: M, w: Work, inv_dt: scalar):
@@ -239,14 +242,16 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             return
         s = m.con_start[wid] + i
         if i < w.n_con[wid]:
-            r = m.row_start[wid] + w.n_box[wid] + 3 * i
+            r = ridx(m, wid, w.n_box[wid] + 3 * i)
+            r1 = r + GROUP
+            r2 = r + 2 * GROUP
             C = contact_frame(w.ct_normal[s])
             w.con_pair[s] = w.ct_pair[s]
             w.con_pos[s] = w.ct_pos[s]
             w.con_normal[s] = w.ct_normal[s]
             w.con_dist[s] = w.ct_dist[s]
-            w.con_force[s] = C * vec3(w.impulse[r], w.impulse[r + 1], w.impulse[r + 2]) * inv_dt
-            w.con_velocity[s] = C * vec3(w.velocity[r], w.velocity[r + 1], w.velocity[r + 2])
+            w.con_force[s] = C * vec3(w.impulse[r], w.impulse[r1], w.impulse[r2]) * inv_dt
+            w.con_velocity[s] = C * vec3(w.velocity[r], w.velocity[r1], w.velocity[r2])
             w.con_point_b[s] = local_point_b(w, s)
         else:
             w.con_pair[s] = -1

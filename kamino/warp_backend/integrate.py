@@ -11,6 +11,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.rows import ROW_ACTUATOR, ROW_COUPLING, ROW_JOINT, ROW_LIMIT, ROW_PASSIVE
 from kamino.warp_backend.spatial import spatial_funcs
@@ -25,6 +26,8 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
     M = model_struct(np_dtype)
     Work = work_struct(np_dtype)
     sp = spatial_funcs(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, jidx = ix.ridx, ix.jidx
     lin, ang, twist, integrate_pose = sp.lin, sp.ang, sp.twist, sp.integrate_pose
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -36,18 +39,15 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
             return
         b = m.body_start[wid] + i
         n = w.n_rows[wid]
-        r0 = m.row_start[wid]
         acc = vec6()
         if dense != 0:
-            nc = 6 * m.body_count[wid]
-            base = m.jd_start[wid] + 6 * i
             for a in range(n):
-                lam = w.impulse[r0 + a]
+                lam = w.impulse[ridx(m, wid, a)]
                 for c in range(6):
-                    acc[c] += lam * w.Jd[base + a * nc + c]
+                    acc[c] += lam * w.Jd[jidx(m, wid, a, 6 * i + c)]
         else:
             for a in range(n):
-                r = r0 + a
+                r = ridx(m, wid, a)
                 for k in range(nblk):
                     if w.row_body[r * nblk + k] == b:
                         acc += w.impulse[r] * w.row_J[r * nblk + k]
@@ -82,7 +82,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         wid, a = wp.tid()
         if a >= w.n_box[wid] or w.failed[wid] != 0:
             return
-        r = m.row_start[wid] + a
+        r = ridx(m, wid, a)
         f = w.impulse[r] * inv_dt
         src = w.row_src[r]
         t = w.row_type[r]

@@ -5,8 +5,9 @@ max_count)`` grids and threads past their world's count return at once (architec
 layout"). Entity indices are global (flat). Each world owns a segment of constraint rows of length
 ``maxdim_w = n_dyn + n_joint + n_coupling + n_limit + 3 capacity`` (formulation.md §10.1); the
 first ``n_fixed = n_dyn + n_joint + n_coupling`` rows are always active, the active limit and
-contact rows follow, compacted, so a step only works on the rows it uses. The dense Delassus
-matrix of a world lives in a segment of ``maxdim_w^2`` entries with the active row count as stride.
+contact rows follow, compacted, so a step only works on the rows it uses. Row data, the dense
+Delassus matrix and the dense Jacobian are interleaved over groups of 32 worlds
+(``kamino/warp_backend/indexing.py``).
 """
 
 import dataclasses
@@ -19,6 +20,16 @@ import warp as wp
 from kamino.model import CONTACT_POINTS, GeomType, Model
 from kamino.tables import prefix, row_tables
 from kamino.warp_backend.types import types_of
+
+GROUP = 32  # worlds per interleaved storage group (kamino/warp_backend/indexing.py)
+
+
+def group_sizes(per_world: np.ndarray) -> np.ndarray:
+    """``max`` of ``per_world`` over each group of :data:`GROUP` consecutive worlds."""
+    W = len(per_world)
+    padded = np.zeros(((W + GROUP - 1) // GROUP) * GROUP, np.int64)
+    padded[:W] = per_world
+    return padded.reshape(-1, GROUP).max(axis=1)
 
 
 @functools.cache
@@ -52,11 +63,14 @@ def model_struct(np_dtype):
         cand_count: iarr
         con_start: iarr  # contact slots (capacity)
         con_capacity: iarr
-        row_start: iarr  # constraint-row segment
         row_fixed: iarr  # n_dyn + n_joint + n_coupling
         row_maxdim: iarr
-        mat_start: iarr  # dense Delassus segment (maxdim^2)
-        jd_start: iarr  # dense Jacobian segment (maxdim * 6 n_bodies)
+        # per group of 32 worlds (kamino/warp_backend/indexing.py): interleaved row, Delassus, dense-J storage
+        grp_row_start: iarr
+        grp_maxdim: iarr
+        grp_mat_start: iarr
+        grp_jd_start: iarr
+        grp_ncol: iarr  # 6 x the group's largest body count
         gravity: wp.array(dtype=vec3)
         # bodies
         mass: farr
@@ -187,6 +201,8 @@ def _upload(model: Model, np_dtype: np.dtype, device: str) -> WarpModel:
     cap = model.world_contact_capacity
     n_fixed = ndyn + ncts + ncpl
     maxdim = n_fixed + nlim + 3 * cap
+    g_dim = group_sizes(maxdim)
+    g_col = 6 * group_sizes(nb)
     # candidate contact points, in detection order
     order = tab.pair_order
     kinds = tab.pair_kinds
@@ -203,8 +219,9 @@ def _upload(model: Model, np_dtype: np.dtype, device: str) -> WarpModel:
         dyn_start=prefix(ndyn), dyn_count=ndyn, cpl_start=model.world_coupling_start, cpl_count=ncpl,
         lim_start=prefix(nlim), lim_count=nlim, pair_start=prefix(pair_count), pair_count=pair_count,
         cand_start=prefix(cand_count), cand_count=cand_count, con_start=prefix(cap), con_capacity=cap,
-        row_start=prefix(maxdim), row_fixed=n_fixed, row_maxdim=maxdim, mat_start=prefix(maxdim * maxdim),
-        jd_start=prefix(maxdim * 6 * nb), body_world=model.body_world,
+        row_fixed=n_fixed, row_maxdim=maxdim, grp_row_start=prefix(GROUP * g_dim), grp_maxdim=g_dim,
+        grp_mat_start=prefix(GROUP * g_dim * g_dim), grp_jd_start=prefix(GROUP * g_dim * g_col), grp_ncol=g_col,
+        body_world=model.body_world,
         joint_type=model.joint_type, joint_parent=model.joint_parent, joint_child=model.joint_child,
         cts_joint=tab.cts_joint, cts_axis=tab.cts_axis, cts_kind=tab.cts_kind,
         dof_joint=tab.dof_joint, dof_axis=tab.dof_axis, dof_kind=tab.dof_kind, act_mode=model.dof_act_mode,
@@ -241,6 +258,7 @@ def _upload(model: Model, np_dtype: np.dtype, device: str) -> WarpModel:
         model=model, device=device, np_dtype=np_dtype, arrays=S, num_worlds=W,
         max_bodies=mx(nb), max_joints=mx(nj), max_dofs=mx(nd), max_cts=mx(ncts), max_dyn=mx(ndyn),
         max_cpl=mx(ncpl), max_lim=mx(nlim), max_pairs=mx(pair_count), max_contacts=mx(cap), max_rows=mx(maxdim),
-        total_rows=int(maxdim.sum()), total_mat=int((maxdim * maxdim).sum()), total_jd=int((maxdim * 6 * nb).sum()),
+        total_rows=int(GROUP * g_dim.sum()), total_mat=int(GROUP * (g_dim * g_dim).sum()),
+        total_jd=int(GROUP * (g_dim * g_col).sum()),
         total_cand=int(cand_count.sum()), blocks_per_row=4 if two_joint_couplings else 2,
     )

@@ -12,6 +12,7 @@ import warp as wp
 
 from kamino.model import ActuationMode
 from kamino.tables import DYN_ACTUATOR
+from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.kinematics import kinematics_funcs
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.spatial import spatial_funcs
@@ -31,6 +32,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
     Work = work_struct(np_dtype)
     sp = spatial_funcs(np_dtype)
     kf = kinematics_funcs(np_dtype)
+    ridx = index_funcs(np_dtype).ridx
     integrate_pose, deadband, lin, ang, twist = sp.integrate_pose, sp.deadband, sp.lin, sp.ang, sp.twist
     inf = scalar(wp.inf)
 
@@ -151,7 +153,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             return
         k = m.dyn_start[wid] + i
         d = m.dyn_dof[k]
-        r = m.row_start[wid] + i
+        r = ridx(m, wid, i)
         dof_row(m, w, r, nblk, d, scalar(1.0))
         q = w.q_dof[d]
         mi = scalar(0.0)
@@ -191,7 +193,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = m.row_start[wid] + m.dyn_count[wid] + i
+        r = ridx(m, wid, m.dyn_count[wid] + i)
         j = m.cts_joint[c]
         e, JF, JB = kf.cts_row(m, w.q_eval, c)
         set_blocks(w, r, nblk, m.joint_child[j], JF, m.joint_parent[j], JB)
@@ -228,7 +230,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = m.row_start[wid] + m.dyn_count[wid] + i
+        r = ridx(m, wid, m.dyn_count[wid] + i)
         e = kf.cts_residual(m, w.q_eval, c)
         e_start = e
         if midpoint != 0:
@@ -249,7 +251,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cpl_count[wid]:
             return
         k = m.cpl_start[wid] + i
-        r = m.row_start[wid] + m.dyn_count[wid] + m.cts_count[wid] + i
+        r = ridx(m, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
         da = m.cpl_dof_a[k]
         db = m.cpl_dof_b[k]
         qb = scalar(0.0)
@@ -317,23 +319,24 @@ def row_kernels(np_dtype) -> SimpleNamespace:
     def pack_limits(m: M, w: Work, nblk: int):
         """Append the active limit rows after the fixed rows, in DoF order (deterministic)."""
         wid = wp.tid()
-        r = m.row_start[wid] + m.row_fixed[wid]
+        a0 = m.row_fixed[wid]
         n = int(0)
         for i in range(m.lim_count[wid]):
             k = m.lim_start[wid] + i
             if w.lim_active[k] != 0:
                 d = m.lim_dof[k]
                 side = w.lim_side[k]
-                dof_row(m, w, r + n, nblk, d, side)
-                w.vstar[r + n] = w.lim_bias[k]
-                w.reg[r + n] = scalar(0.0)
-                w.lo[r + n] = scalar(0.0)
-                w.hi[r + n] = inf
-                w.f0[r + n] = wp.max(side * w.lim_force[d], scalar(0.0))
-                w.v0[r + n] = scalar(0.0)
-                w.row_type[r + n] = ROW_LIMIT
-                w.row_src[r + n] = d
-                w.row_side[r + n] = side
+                r = ridx(m, wid, a0 + n)
+                dof_row(m, w, r, nblk, d, side)
+                w.vstar[r] = w.lim_bias[k]
+                w.reg[r] = scalar(0.0)
+                w.lo[r] = scalar(0.0)
+                w.hi[r] = inf
+                w.f0[r] = wp.max(side * w.lim_force[d], scalar(0.0))
+                w.v0[r] = scalar(0.0)
+                w.row_type[r] = ROW_LIMIT
+                w.row_src[r] = d
+                w.row_side[r] = side
                 n += 1
         w.n_lim[wid] = n
 

@@ -21,7 +21,8 @@ import numpy as np
 import warp as wp
 
 from kamino.warp_backend.cone import cone_funcs
-from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.indexing import index_funcs
+from kamino.warp_backend.model_data import GROUP, model_struct
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
@@ -37,6 +38,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     lin, ang, twist = sp.lin, sp.ang, sp.twist
     cf = cone_funcs(np_dtype)
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
+    ix = index_funcs(np_dtype)
+    ridx, didx, jidx = ix.ridx, ix.didx, ix.jidx
+    S = GROUP  # storage distance between consecutive rows of a world
     eps = scalar(float(np.finfo(np_dtype).eps))
     big = scalar(float(np.finfo(np_dtype).max))
     inf = scalar(wp.inf)
@@ -60,7 +64,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         wid, i = wp.tid()
         if i >= w.n_rows[wid]:
             return
-        r = m.row_start[wid] + i
+        r = ridx(m, wid, i)
         vf = w.vstar[r]
         for k in range(nblk):
             b = w.row_body[r * nblk + k]
@@ -73,10 +77,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         w.vf[r] = vf
         if dense != 0:
             nc = 6 * m.body_count[wid]
-            base = m.jd_start[wid] + i * nc
             for c in range(nc):
-                w.Jd[base + c] = scalar(0.0)
-                w.MJd[base + c] = scalar(0.0)
+                w.Jd[jidx(m, wid, i, c)] = scalar(0.0)
+                w.MJd[jidx(m, wid, i, c)] = scalar(0.0)
             b0 = m.body_start[wid]
             for k in range(nblk):
                 b = w.row_body[r * nblk + k]
@@ -84,8 +87,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     J = w.row_J[r * nblk + k]
                     MJ = w.row_MJ[r * nblk + k]
                     for c in range(6):
-                        w.Jd[base + 6 * (b - b0) + c] += J[c]
-                        w.MJd[base + 6 * (b - b0) + c] += MJ[c]
+                        w.Jd[jidx(m, wid, i, 6 * (b - b0) + c)] += J[c]
+                        w.MJd[jidx(m, wid, i, 6 * (b - b0) + c)] += MJ[c]
 
     @wp.kernel(module="unique", enable_backward=False)
     def delassus_sparse(m: M, w: Work, nblk: int):
@@ -94,11 +97,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         n = w.n_rows[wid]
         if a >= n:
             return
-        r0 = m.row_start[wid]
-        base = m.mat_start[wid]
-        ra = r0 + a
+        ra = ridx(m, wid, a)
         for b in range(a, n):
-            rb = r0 + b
+            rb = ridx(m, wid, b)
             s = scalar(0.0)
             for k in range(nblk):
                 bk = w.row_body[ra * nblk + k]
@@ -108,8 +109,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                             s += wp.dot(w.row_J[ra * nblk + k], w.row_MJ[rb * nblk + l])
             if b == a:
                 s += w.reg[ra]
-            w.D[base + a * n + b] = s
-            w.D[base + b * n + a] = s
+            w.D[didx(m, wid, a, b)] = s
+            w.D[didx(m, wid, b, a)] = s
 
     @wp.kernel(module="unique", enable_backward=False)
     def delassus_dense(m: M, w: Work):
@@ -119,24 +120,21 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         if a >= n:
             return
         nc = 6 * m.body_count[wid]
-        jb = m.jd_start[wid]
-        base = m.mat_start[wid]
         for b in range(a, n):
             s = scalar(0.0)
             for c in range(nc):
-                s += w.Jd[jb + a * nc + c] * w.MJd[jb + b * nc + c]
+                s += w.Jd[jidx(m, wid, a, c)] * w.MJd[jidx(m, wid, b, c)]
             if b == a:
-                s += w.reg[m.row_start[wid] + a]
-            w.D[base + a * n + b] = s
-            w.D[base + b * n + a] = s
+                s += w.reg[ridx(m, wid, a)]
+            w.D[didx(m, wid, a, b)] = s
+            w.D[didx(m, wid, b, a)] = s
 
     @wp.func
     def row_diag(m: M, w: Work, wid: int, a: int, nblk: int, assembled: int):
         """``D_aa`` (from the assembled matrix, or from the row's blocks)."""
-        n = w.n_rows[wid]
-        r = m.row_start[wid] + a
+        r = ridx(m, wid, a)
         if assembled != 0:
-            return w.D[m.mat_start[wid] + a * n + a]
+            return w.D[didx(m, wid, a, a)]
         s = w.reg[r]
         for k in range(nblk):
             bk = w.row_body[r * nblk + k]
@@ -154,7 +152,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         n = w.n_rows[wid]
         if a >= n:
             return
-        r = m.row_start[wid] + a
+        r = ridx(m, wid, a)
         if enabled == 0:
             w.P[r] = scalar(1.0)
             return
@@ -178,14 +176,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         n = w.n_rows[wid]
         if a >= n:
             return
-        r0 = m.row_start[wid]
-        r = r0 + a
+        r = ridx(m, wid, a)
         Pa = w.P[r]
         if assembled != 0:
-            base = m.mat_start[wid] + a * n
             for b in range(n):
-                w.D[base + b] = Pa * w.D[base + b] * w.P[r0 + b]
-            w.D[base + a] += shift
+                k = didx(m, wid, a, b)
+                w.D[k] = Pa * w.D[k] * w.P[ridx(m, wid, b)]
+            w.D[didx(m, wid, a, a)] += shift
         w.vt[r] = Pa * w.vf[r]
         lo = w.lo[r]
         hi = w.hi[r]
@@ -197,37 +194,37 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         w.hi_s[r] = hi
 
     @wp.func
-    def project_into(w: Work, r0: int, n_box: int, n: int, src: wp.array(dtype=scalar),
+    def project_into(m: M, w: Work, wid: int, n_box: int, n: int, src: wp.array(dtype=scalar),
                      shift: wp.array(dtype=scalar), inv_rho: scalar, dst: wp.array(dtype=scalar)):
         """``dst = Pi_K(src - inv_rho * shift)`` (§7.3 step 3): clip on box rows, cones on contacts."""
         for a in range(n_box):
-            r = r0 + a
+            r = ridx(m, wid, a)
             dst[r] = wp.clamp(src[r] - inv_rho * shift[r], w.lo_s[r], w.hi_s[r])
         for c in range((n - n_box) // 3):
-            r = r0 + n_box + 3 * c
-            p = cone_project(src[r] - inv_rho * shift[r], src[r + 1] - inv_rho * shift[r + 1],
-                             src[r + 2] - inv_rho * shift[r + 2], w.mu[r])
+            r = ridx(m, wid, n_box + 3 * c)
+            p = cone_project(src[r] - inv_rho * shift[r], src[r + S] - inv_rho * shift[r + S],
+                             src[r + 2 * S] - inv_rho * shift[r + 2 * S], w.mu[r])
             dst[r] = p[0]
-            dst[r + 1] = p[1]
-            dst[r + 2] = p[2]
+            dst[r + S] = p[1]
+            dst[r + 2 * S] = p[2]
 
     @wp.kernel(module="unique", enable_backward=False)
     def padmm_init(m: M, w: Work, impulse_scale: scalar, use_velocity: int, factorize: int):
         """Warm start (§7.8: ``x0 = Pi_K(impulse0 / P)``, ``z0 = P v0``) and the Cholesky factor of ``D~``
-        (lower, in place, §8.1)."""
+        (lower, in place, §8.1; ``L^T`` is also written to the upper triangle so that the backward
+        substitution reads rows)."""
         wid = wp.tid()
         n = w.n_rows[wid]
-        r0 = m.row_start[wid]
         for a in range(n):
-            r = r0 + a
+            r = ridx(m, wid, a)
             w.x[r] = impulse_scale * w.f0[r] / w.P[r]
             w.z_p[r] = scalar(0.0)
             if use_velocity != 0:
                 w.z_p[r] = w.P[r] * w.v0[r]
             w.z_hat[r] = w.z_p[r]
-        project_into(w, r0, w.n_box[wid], n, w.x, w.x, scalar(0.0), w.x_p)
+        project_into(m, w, wid, w.n_box[wid], n, w.x, w.x, scalar(0.0), w.x_p)
         for a in range(n):
-            r = r0 + a
+            r = ridx(m, wid, a)
             w.y_p[r] = w.x_p[r]
             w.y_hat[r] = w.x_p[r]
         w.a_p[wid] = scalar(1.0)
@@ -241,57 +238,54 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         if n == 0:
             wp.atomic_sub(w.remaining, 0, 1)
         if factorize != 0:
-            base = m.mat_start[wid]
             for j in range(n):
-                s = w.D[base + j * n + j]
+                s = w.D[didx(m, wid, j, j)]
                 for k in range(j):
-                    s -= w.D[base + j * n + k] * w.D[base + j * n + k]
+                    l = w.D[didx(m, wid, j, k)]
+                    s -= l * l
                 ljj = wp.sqrt(s)
-                w.D[base + j * n + j] = ljj
+                w.D[didx(m, wid, j, j)] = ljj
                 for i in range(j + 1, n):
-                    t = w.D[base + i * n + j]
+                    t = w.D[didx(m, wid, i, j)]
                     for k in range(j):
-                        t -= w.D[base + i * n + k] * w.D[base + j * n + k]
-                    w.D[base + i * n + j] = t / ljj
-            # keep L^T in the strict upper triangle too: the backward substitution then reads rows
-            # (contiguous) instead of columns
+                        t -= w.D[didx(m, wid, i, k)] * w.D[didx(m, wid, j, k)]
+                    w.D[didx(m, wid, i, j)] = t / ljj
             for i in range(n):
                 for k in range(i):
-                    w.D[base + k * n + i] = w.D[base + i * n + k]
+                    w.D[didx(m, wid, k, i)] = w.D[didx(m, wid, i, k)]
 
     @wp.func
-    def cho_solve_inplace(m: M, w: Work, wid: int, n: int, r0: int):
-        """``x <- L^-T L^-1 x`` with the cached factor (forward then backward substitution; ``L^T`` is read
+    def cho_solve_inplace(m: M, w: Work, wid: int, n: int):
+        """``x <- L^-T L^-1 x`` with the cached factor (forward, then backward substitution reading ``L^T``
         from the upper triangle)."""
-        base = m.mat_start[wid]
         for i in range(n):
-            s = w.x[r0 + i]
+            s = w.x[ridx(m, wid, i)]
             for k in range(i):
-                s -= w.D[base + i * n + k] * w.x[r0 + k]
-            w.x[r0 + i] = s / w.D[base + i * n + i]
+                s -= w.D[didx(m, wid, i, k)] * w.x[ridx(m, wid, k)]
+            w.x[ridx(m, wid, i)] = s / w.D[didx(m, wid, i, i)]
         for ii in range(n):
             i = n - 1 - ii
-            s = w.x[r0 + i]
+            s = w.x[ridx(m, wid, i)]
             for k in range(i + 1, n):
-                s -= w.D[base + i * n + k] * w.x[r0 + k]
-            w.x[r0 + i] = s / w.D[base + i * n + i]
+                s -= w.D[didx(m, wid, i, k)] * w.x[ridx(m, wid, k)]
+            w.x[ridx(m, wid, i)] = s / w.D[didx(m, wid, i, i)]
 
     @wp.func
-    def apply_operator(m: M, w: Work, wid: int, n: int, r0: int, nblk: int, shift: scalar,
+    def apply_operator(m: M, w: Work, wid: int, n: int, nblk: int, shift: scalar,
                        v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
         """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free (§8.2, pre-baked blocks)."""
         b0 = m.body_start[wid]
         for i in range(m.body_count[wid]):
             w.cr_w[b0 + i] = vec6()
         for a in range(n):
-            r = r0 + a
+            r = ridx(m, wid, a)
             pv = w.P[r] * v[r]
             for k in range(nblk):
                 b = w.row_body[r * nblk + k]
                 if b >= 0:
                     w.cr_w[b] = w.cr_w[b] + pv * w.row_J[r * nblk + k]
         for a in range(n):
-            r = r0 + a
+            r = ridx(m, wid, a)
             s = scalar(0.0)
             for k in range(nblk):
                 b = w.row_body[r * nblk + k]
@@ -301,22 +295,22 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
 
     @wp.func
-    def cr_solve(m: M, w: Work, wid: int, n: int, r0: int, nblk: int, shift: scalar, budget: int):
+    def cr_solve(m: M, w: Work, wid: int, n: int, nblk: int, shift: scalar, budget: int):
         """Conjugate Residual on ``A x = b`` (``b`` in ``y``), from ``x = x_p`` (§8.2): one operator
         application per iteration, at most ``budget`` iterations, stop at ``|r|^2 < max(rtol^2 |b|^2, atol^2)``."""
         for a in range(n):
-            w.x[r0 + a] = w.x_p[r0 + a]
-        apply_operator(m, w, wid, n, r0, nblk, shift, w.x, w.cr_Ar)
+            w.x[ridx(m, wid, a)] = w.x_p[ridx(m, wid, a)]
+        apply_operator(m, w, wid, n, nblk, shift, w.x, w.cr_Ar)
         bb = scalar(0.0)
         for a in range(n):
-            r = r0 + a
+            r = ridx(m, wid, a)
             w.cr_r[r] = w.y[r] - w.cr_Ar[r]
             w.cr_p[r] = w.cr_r[r]
             bb += w.y[r] * w.y[r]
-        apply_operator(m, w, wid, n, r0, nblk, shift, w.cr_r, w.cr_Ar)
+        apply_operator(m, w, wid, n, nblk, shift, w.cr_r, w.cr_Ar)
         zeta = scalar(0.0)
         for a in range(n):
-            r = r0 + a
+            r = ridx(m, wid, a)
             w.cr_Ap[r] = w.cr_Ar[r]
             zeta += w.cr_r[r] * w.cr_Ar[r]
         stop = wp.max(scalar(1e-16) * bb, eps * eps)
@@ -324,23 +318,24 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             rr = scalar(0.0)
             pp = scalar(0.0)
             for a in range(n):
-                rr += w.cr_r[r0 + a] * w.cr_r[r0 + a]
-                pp += w.cr_Ap[r0 + a] * w.cr_Ap[r0 + a]
+                r = ridx(m, wid, a)
+                rr += w.cr_r[r] * w.cr_r[r]
+                pp += w.cr_Ap[r] * w.cr_Ap[r]
             if rr < stop or pp <= scalar(0.0) or zeta == scalar(0.0):
                 break
             alpha = zeta / pp
             for a in range(n):
-                r = r0 + a
+                r = ridx(m, wid, a)
                 w.x[r] += alpha * w.cr_p[r]
                 w.cr_r[r] -= alpha * w.cr_Ap[r]
-            apply_operator(m, w, wid, n, r0, nblk, shift, w.cr_r, w.cr_Ar)
+            apply_operator(m, w, wid, n, nblk, shift, w.cr_r, w.cr_Ar)
             zeta_new = scalar(0.0)
             for a in range(n):
-                zeta_new += w.cr_r[r0 + a] * w.cr_Ar[r0 + a]
+                zeta_new += w.cr_r[ridx(m, wid, a)] * w.cr_Ar[ridx(m, wid, a)]
             beta = zeta_new / zeta
             zeta = zeta_new
             for a in range(n):
-                r = r0 + a
+                r = ridx(m, wid, a)
                 w.cr_p[r] = w.cr_r[r] + beta * w.cr_p[r]
                 w.cr_Ap[r] = w.cr_Ar[r] + beta * w.cr_Ap[r]
 
@@ -355,29 +350,28 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             return
         n = w.n_rows[wid]
         n_box = w.n_box[wid]
-        r0 = m.row_start[wid]
         shift = eta + rho
         for step in range(chunk):
             # steps 1-2: De Saxcé correction s = Gamma(z_hat), rhs, linear solve
             for a in range(n):
-                r = r0 + a
+                r = ridx(m, wid, a)
                 w.y[r] = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
             for c in range((n - n_box) // 3):
-                r = r0 + n_box + 3 * c
-                w.y[r + 2] -= de_saxce(w.z_hat[r], w.z_hat[r + 1], w.mu[r])
+                r = ridx(m, wid, n_box + 3 * c)
+                w.y[r + 2 * S] -= de_saxce(w.z_hat[r], w.z_hat[r + S], w.mu[r])
             if use_cr != 0:
-                cr_solve(m, w, wid, n, r0, nblk, shift, cr_budget)
+                cr_solve(m, w, wid, n, nblk, shift, cr_budget)
             else:
                 for a in range(n):
-                    w.x[r0 + a] = w.y[r0 + a]
-                cho_solve_inplace(m, w, wid, n, r0)
+                    w.x[ridx(m, wid, a)] = w.y[ridx(m, wid, a)]
+                cho_solve_inplace(m, w, wid, n)
             # steps 3-4: projection and dual update
-            project_into(w, r0, n_box, n, w.x, w.z_hat, scalar(1.0) / rho, w.y)
+            project_into(m, w, wid, n_box, n, w.x, w.z_hat, scalar(1.0) / rho, w.y)
             r_p = scalar(0.0)
             r_d = scalar(0.0)
             c_sum = scalar(0.0)
             for a in range(n):
-                r = r0 + a
+                r = ridx(m, wid, a)
                 Pa = w.P[r]
                 z = w.z_hat[r] + rho * (w.y[r] - w.x[r])
                 w.z[r] = z
@@ -389,7 +383,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             # complementarity (scaling-invariant)
             r_c = scalar(0.0)
             for a in range(n_box):
-                r = r0 + a
+                r = ridx(m, wid, a)
                 lo = w.lo_s[r]
                 hi = w.hi_s[r]
                 if wp.isfinite(lo) or wp.isfinite(hi):
@@ -400,8 +394,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                         gap = wp.min(gap, wp.abs(hi - w.y[r]))
                     r_c = wp.max(r_c, wp.abs(w.z[r]) * gap)
             for c in range((n - n_box) // 3):
-                r = r0 + n_box + 3 * c
-                r_c = wp.max(r_c, wp.abs(w.y[r] * w.z[r] + w.y[r + 1] * w.z[r + 1] + w.y[r + 2] * w.z[r + 2]))
+                r = ridx(m, wid, n_box + 3 * c)
+                r_c = wp.max(r_c, wp.abs(w.y[r] * w.z[r] + w.y[r + S] * w.z[r + S] + w.y[r + 2 * S] * w.z[r + 2 * S]))
             k = w.iters[wid] + 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             # §7.4: Fast ADMM with restart
@@ -419,7 +413,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 beta = (a_p - scalar(1.0)) / a_new
                 c_new = c_sum
             for a in range(n):
-                r = r0 + a
+                r = ridx(m, wid, a)
                 y = w.y[r]
                 z = w.z[r]
                 if accelerate == 0:
@@ -463,13 +457,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         n = w.n_rows[wid]
         if a >= n:
             return
-        r = m.row_start[wid] + a
+        r = ridx(m, wid, a)
         n_box = w.n_box[wid]
         Pa = w.P[r]
         lam = Pa * w.y_p[r]
         z = w.z_p[r]
         if a >= n_box and (a - n_box) % 3 == 2:
-            z -= de_saxce(w.z_p[r - 2], w.z_p[r - 1], w.mu[r])
+            z -= de_saxce(w.z_p[r - 2 * S], w.z_p[r - S], w.mu[r])
         w.impulse[r] = lam
         w.velocity[r] = z / Pa
         if not wp.isfinite(lam):
