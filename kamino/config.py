@@ -23,6 +23,10 @@ class SolverConfig:
         curvature_correction: add the second-order drift of the pose update to the joint bias, so
             that velocity-level constraints hold at position level to O(dt^3) per step
             (docs/conventions.md, "Stabilisation").
+        curvature_refinement: after PADMM converges, evaluate the curvature term once more along the
+            solved velocity ``u+`` and continue PADMM from its iterate (docs/conventions.md,
+            "Stabilisation"): the loop closure error of a step drops from ``O(h^2 |u+ - u_f| |u|)`` to third
+            order, at the price of the extra iterations (up to ``max_iterations`` more).
         joint_deadband: joint position errors below this [m or rad] get no bias (rounding noise
             on redundant loop rows would otherwise be an inconsistent right-hand side);
             ``None`` picks 1e-6 in float32 and 1e-11 in float64.
@@ -57,6 +61,7 @@ class SolverConfig:
     integrator: Literal["euler", "midpoint"] = "euler"
     baumgarte: float = 1.0
     curvature_correction: bool = True
+    curvature_refinement: bool = False
     joint_deadband: float | None = None
     max_iterations: int = 200
     tolerance: float = 1e-6

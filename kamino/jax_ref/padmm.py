@@ -85,7 +85,7 @@ def project(x: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, n_box: in
 
 
 def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
-          impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig) -> PADMMResult:
+          impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig, refine=None) -> PADMMResult:
     """Accelerated PADMM with restart (formulation.md §7.3-§7.5) from a warm start.
 
     ``D`` already holds the regularisation ``R`` of the joint-dynamics rows. ``lo``/``hi`` bound the
@@ -95,6 +95,10 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     are reported in unscaled units (§7.5). ``cfg.fixed_iterations`` runs exactly
     ``cfg.max_iterations`` iterations (a ``fori_loop``, differentiable); otherwise a ``while_loop``
     stops when the primal, dual and complementarity residuals are all ``<= cfg.tolerance``.
+
+    ``refine`` (the curvature refinement, ``cfg.curvature_refinement``) maps the impulses of the converged
+    solve to a new ``v_f``; PADMM then restarts from its last iterate (``x_p = x``, ``y_hat = y``,
+    ``z_hat = z``, no momentum) on the new right-hand side for up to ``cfg.max_iterations`` more iterations.
     """
     dtype = D.dtype
     n = D.shape[0]
@@ -132,7 +136,7 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     init = (jnp.int32(0), x0, x0, z0, x0, z0, jnp.asarray(1.0, dtype), big,
             big, big, big, jnp.asarray(False))
 
-    def iterate(carry):
+    def iterate(carry, vt):
         k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _ = carry
         # step 1-2: De Saxcé correction, linear solve with the cached factor
         s = de_saxce(z_hat, mu, n_box)
@@ -158,12 +162,17 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
             a, y_hat_n, z_hat_n, c_n = a_p, y, z, c_p
         return (k + 1, x, y, z, y_hat_n, z_hat_n, a, c_n, r_p, r_d, r_c, converged)
 
-    if cfg.fixed_iterations:
-        out = jax.lax.fori_loop(0, cfg.max_iterations, lambda _, c: iterate(c), init)
-    else:
-        out = jax.lax.while_loop(
-            lambda c: (~c[-1]) & (c[0] < cfg.max_iterations), iterate, init
-        )
+    def run(carry, vt, cap):
+        if cfg.fixed_iterations:
+            return jax.lax.fori_loop(0, cfg.max_iterations, lambda _, c: iterate(c, vt), carry)
+        return jax.lax.while_loop(lambda c: (~c[-1]) & (c[0] < cap), lambda c: iterate(c, vt), carry)
+
+    out = run(init, vt, cfg.max_iterations)
+    if refine is not None:
+        k, x, y, z = out[0], out[1], out[2], out[3]
+        vt2 = jnp.where(row_mask, P * refine(jnp.where(row_mask, P * y, 0.0)), 0.0)
+        restart = (k, x, y, z, y, z, jnp.asarray(1.0, dtype), big, out[8], out[9], out[10], jnp.asarray(False))
+        out = run(restart, vt2, k + cfg.max_iterations)
     k, _, y, z, _, _, _, _, r_p, r_d, r_c, converged = out
     v = (z - de_saxce(z, mu, n_box)) / P  # §7.7: v+ = z - Gamma(z), unscaled
     return PADMMResult(

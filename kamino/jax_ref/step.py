@@ -284,7 +284,16 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     D = delassus(J, bd) + jnp.diag(R)
     v_f = J @ uf_vec + v_star  # §5
 
-    res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg)
+    refine = None
+    if cfg.curvature_refinement and cfg.curvature_correction and n_kin:
+        def refine(impulse):
+            # the bilateral rows' curvature term predicted along the solved velocity (docs/conventions.md)
+            u_sol = u_f + apply_inv_mass(bd, (J.T @ impulse).reshape(nb, 6))
+            vk = joint_bias(pm, q_eval, u_sol, e_eval, e_start, J_kin, h, cfg) if e_eval.shape[0] else e_eval
+            vc = coupling_bias(pm, q_eval, u_sol, e_cpl, e_cpl_start, J_cpl, h, cfg)
+            return J @ uf_vec + jnp.concatenate([vs_dyn, vk, vc, vs_lim, vs_con])
+
+    res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine)
     u_plus = u_f + apply_inv_mass(bd, (J.T @ res.impulse).reshape(nb, 6))  # u+ = u_f + M^-1 J^T lambda
     return u_plus, res, ct, side
 

@@ -113,25 +113,20 @@ class Stepper:
                 self._launch(sk.delassus_sparse, rows, nblk)
         self._launch(sk.precondition, rows, nblk, int(llt), int(cfg.preconditioning))
         self._launch(sk.scale, rows, cfg.eta + cfg.rho, int(llt))
-        # PADMM (§7)
+        # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
-        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(llt))
-        args = (nblk, int(not llt), int(cfg.cr_iterations), cfg.eta, cfg.rho, cfg.tolerance,
-                cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations))
-        if self.use_graph and wp.get_device(self.device).is_capturing:
-            wp.capture_while(w.remaining, lambda: self._launch(sk.padmm_iterate, W, self.padmm_chunk,
-                                                               cfg.max_iterations, *args))
-        else:
-            self._launch(sk.padmm_iterate, W, cfg.max_iterations, cfg.max_iterations, *args)
+        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(llt), cfg.max_iterations)
+        self._padmm_loop()
         self._launch(sk.padmm_finish, rows)
-        for _ in range(getattr(self, "refine", 0)):
+        if cfg.curvature_refinement and cfg.curvature_correction and (wm.max_cts or wm.max_cpl):
             self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
             self._launch(rk.predict_with, (W, wm.max_bodies), h)
             self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta, mid)
+            self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta, mid)
             w.remaining.fill_(W)
-            wp.launch(sk.padmm_resume, dim=W, inputs=[w, cfg.max_iterations], device=self.device, block_dim=PER_WORLD_BLOCK)
-            self._launch(sk.padmm_iterate, W, cfg.max_iterations, 2 * cfg.max_iterations, *args)
+            self._launch(sk.padmm_resume, W, cfg.max_iterations)
+            self._padmm_loop()
             self._launch(sk.padmm_finish, rows)
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
@@ -145,6 +140,18 @@ class Stepper:
     def invalidate_graphs(self) -> None:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
         self._graphs.clear()
+
+    def _padmm_loop(self) -> None:
+        """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds
+        still iterating when capturing a CUDA graph, else one launch running each world to its cap."""
+        cfg, w = self.cfg, self.work
+        args = (self.wm.blocks_per_row, int(self.linear_solver == "cr"), int(cfg.cr_iterations), cfg.eta, cfg.rho,
+                cfg.tolerance, cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations))
+        W = self.wm.num_worlds
+        if self.use_graph and self.device.is_capturing:
+            wp.capture_while(w.remaining, lambda: self._launch(self.sk.padmm_iterate, W, self.padmm_chunk, *args))
+        else:
+            self._launch(self.sk.padmm_iterate, W, 2 * self.cfg.max_iterations, *args)
 
     def run(self, num_steps: int) -> None:
         """Advance ``num_steps`` steps in place (replaying a captured graph on CUDA)."""

@@ -222,10 +222,17 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         b = m.body_start[wid] + i
         w.q_pred[b] = integrate_pose(w.q_eval[b], w.u_new[b], h)
 
+    @wp.func
+    def set_bias(w: Work, r: int, vs: scalar):
+        """Replace row ``r``'s bias, keeping ``v_f = J u_f + v*`` and ``v~_f = P v_f`` consistent."""
+        w.vf[r] = w.vf[r] - w.vstar[r] + vs
+        w.vt[r] = w.P[r] * w.vf[r]
+        w.vstar[r] = vs
+
     @wp.kernel(module="unique", enable_backward=False)
     def refine_joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, midpoint: int):
-        """The joint rows' bias with the curvature term predicted along the solved velocity ``u_new``; updates
-        ``v~_f = P (J u_f + v*)``."""
+        """The joint rows' bias with the curvature term predicted along the solved velocity ``u_new``
+        (``SolverConfig.curvature_refinement``; ``joint_bias`` of the JAX reference with ``u_pred = u+``)."""
         wid, i = wp.tid()
         if i >= m.cts_count[wid]:
             return
@@ -238,10 +245,33 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         bias = deadband(e - (scalar(1.0) - alpha) * e_start, delta)
         e_pred = kf.cts_residual(m, w.q_pred, c)
         bias += deadband(e_pred - e - h * row_dot(w, r, nblk, w.u_new), delta)
-        vs = bias / h
-        w.vf[r] = w.vf[r] - w.vstar[r] + vs
-        w.vt[r] = w.P[r] * w.vf[r]
-        w.vstar[r] = vs
+        set_bias(w, r, bias / h)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def refine_coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, midpoint: int):
+        """The coupling rows' bias along the solved velocity (as :func:`refine_joint_rows`)."""
+        wid, i = wp.tid()
+        if i >= m.cpl_count[wid]:
+            return
+        k = m.cpl_start[wid] + i
+        r = ridx(m, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
+        da = m.cpl_dof_a[k]
+        db = m.cpl_dof_b[k]
+        qb = scalar(0.0)
+        qb_pred = scalar(0.0)
+        qb0 = scalar(0.0)
+        if db >= 0:
+            qb = w.q_dof[db]
+            qb_pred = kf.dof_position(m, w.q_pred, db)
+            qb0 = kf.dof_position(m, w.q, db)
+        e, dp = kf.coupling_residual(m, k, w.q_dof[da], qb)
+        e_start = e
+        if midpoint != 0:
+            e_start, dp0 = kf.coupling_residual(m, k, kf.dof_position(m, w.q, da), qb0)
+        bias = deadband(e - (scalar(1.0) - alpha) * e_start, delta)
+        e_pred, dp1 = kf.coupling_residual(m, k, kf.dof_position(m, w.q_pred, da), qb_pred)
+        bias += deadband(e_pred - e - h * row_dot(w, r, nblk, w.u_new), delta)
+        set_bias(w, r, bias / h)
 
     @wp.kernel(module="unique", enable_backward=False)
     def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
@@ -342,4 +372,6 @@ def row_kernels(np_dtype) -> SimpleNamespace:
 
     return SimpleNamespace(half_step=half_step, dof_blocks=dof_blocks, bodies=bodies, dof_rates=dof_rates,
                            dyn_rows=dyn_rows, joint_rows=joint_rows, coupling_rows=coupling_rows, limits=limits,
-                           pack_limits=pack_limits, predict_with=predict_with, refine_joint_rows=refine_joint_rows, set_blocks=set_blocks, row_dot=row_dot, body_dot=body_dot)
+                           pack_limits=pack_limits, predict_with=predict_with, refine_joint_rows=refine_joint_rows,
+                           refine_coupling_rows=refine_coupling_rows, set_blocks=set_blocks, row_dot=row_dot,
+                           body_dot=body_dot)

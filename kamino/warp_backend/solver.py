@@ -209,7 +209,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             dst[r + 2 * S] = p[2]
 
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_init(m: M, w: Work, impulse_scale: scalar, use_velocity: int, factorize: int):
+    def padmm_init(m: M, w: Work, impulse_scale: scalar, use_velocity: int, factorize: int, max_iterations: int):
         """Warm start (§7.8: ``x0 = Pi_K(impulse0 / P)``, ``z0 = P v0``) and the Cholesky factor of ``D~``
         (lower, in place, §8.1; ``L^T`` is also written to the upper triangle so that the backward
         substitution reads rows)."""
@@ -230,6 +230,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         w.a_p[wid] = scalar(1.0)
         w.c_p[wid] = big
         w.iters[wid] = 0
+        w.it_cap[wid] = max_iterations
         w.r_p[wid] = scalar(0.0)
         w.r_d[wid] = scalar(0.0)
         w.r_c[wid] = scalar(0.0)
@@ -340,11 +341,11 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 w.cr_Ap[r] = w.cr_Ar[r] + beta * w.cr_Ap[r]
 
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_iterate(m: M, w: Work, chunk: int, max_iterations: int, nblk: int, use_cr: int, cr_budget: int,
+    def padmm_iterate(m: M, w: Work, chunk: int, nblk: int, use_cr: int, cr_budget: int,
                       eta: scalar, rho: scalar, tol: scalar, restart_tol: scalar, accelerate: int, fixed: int):
         """Up to ``chunk`` accelerated PADMM iterations of one world (§7.3-§7.5; ``padmm.solve`` of the JAX
-        reference), resuming from the stored iterate; a world that converges (unless ``fixed``) or reaches
-        ``max_iterations`` is marked done and leaves ``remaining``."""
+        reference), resuming from the stored iterate; a world that converges (unless ``fixed``) or reaches its
+        iteration cap ``it_cap`` is marked done and leaves ``remaining``."""
         wid = wp.tid()
         if w.done[wid] != 0:
             return
@@ -434,20 +435,28 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             w.r_p[wid] = r_p
             w.r_d[wid] = r_d
             w.r_c[wid] = r_c
-            if (converged and fixed == 0) or k >= max_iterations:
+            if (converged and fixed == 0) or k >= w.it_cap[wid]:
                 w.converged[wid] = int(converged)
                 w.done[wid] = 1
                 wp.atomic_sub(w.remaining, 0, 1)
                 return
 
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_resume(w: Work, max_iterations: int):
-        """Let every world iterate again (``max_iterations`` more) from its current iterate."""
+    def padmm_resume(m: M, w: Work, max_iterations: int):
+        """Restart PADMM from its last iterate (``y_hat = y``, ``z_hat = z``, no momentum) for up to
+        ``max_iterations`` more iterations, after the right-hand side changed (curvature refinement)."""
         wid = wp.tid()
-        w.done[wid] = int(w.n_rows[wid] == 0)
+        n = w.n_rows[wid]
+        for a in range(n):
+            r = ridx(m, wid, a)
+            w.y_hat[r] = w.y_p[r]
+            w.z_hat[r] = w.z_p[r]
         w.a_p[wid] = scalar(1.0)
         w.c_p[wid] = big
-        if w.n_rows[wid] == 0:
+        w.it_cap[wid] = w.iters[wid] + max_iterations
+        w.converged[wid] = int(n == 0)
+        w.done[wid] = int(n == 0)
+        if n == 0:
             wp.atomic_sub(w.remaining, 0, 1)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -471,4 +480,5 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
 
     return SimpleNamespace(count_rows=count_rows, prebake=prebake, delassus_sparse=delassus_sparse,
                            delassus_dense=delassus_dense, precondition=precondition, scale=scale,
-                           padmm_init=padmm_init, padmm_resume=padmm_resume, padmm_iterate=padmm_iterate, padmm_finish=padmm_finish)
+                           padmm_init=padmm_init, padmm_resume=padmm_resume, padmm_iterate=padmm_iterate,
+                           padmm_finish=padmm_finish)

@@ -121,6 +121,7 @@ def work_struct(np_dtype):
         a_p: farr  # per world
         c_p: farr
         iters: iarr
+        it_cap: iarr  # per world: iteration count at which the current PADMM phase stops
         r_p: farr
         r_d: farr
         r_c: farr
@@ -178,7 +179,7 @@ def allocate(wm: WarpModel, euler: bool, dense: bool):
         sizes[name] = (R, T.scalar)
     for name in ("a_p", "c_p", "r_p", "r_d", "r_c"):
         sizes[name] = (m.num_worlds, T.scalar)
-    for name in ("n_lim", "n_con", "n_box", "n_rows", "iters", "converged", "done", "failed"):
+    for name in ("n_lim", "n_con", "n_box", "n_rows", "iters", "it_cap", "converged", "done", "failed"):
         sizes[name] = (m.num_worlds, wp.int32)
     sizes["remaining"] = (1, wp.int32)
     for name, (n, dtype) in sizes.items():
