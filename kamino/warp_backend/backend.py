@@ -22,6 +22,7 @@ from kamino.checks import check_control, check_rollout_controls, check_state
 from kamino.config import SolverConfig
 from kamino.model import Model
 from kamino.state import ContactState, Control, State, StepInfo
+from kamino.warp_backend.jit import is_traced, traced_step
 from kamino.warp_backend.pipeline import Stepper
 from kamino.warp_backend.types import types_of
 
@@ -33,14 +34,21 @@ def default_device() -> wp.context.Device:
     return wp.get_device()
 
 
-def stepper(model: Model, cfg: SolverConfig, np_dtype, device=None) -> Stepper:
-    """The cached :class:`Stepper` of ``model`` for ``cfg``, precision and device."""
+def stepper(model: Model, cfg: SolverConfig, np_dtype, device=None, *, for_jit: bool = False) -> Stepper:
+    """The cached :class:`Stepper` of ``model`` for ``cfg``, precision and device (``for_jit``: the one
+    called from inside JAX transformations, which launches without its own graph capture)."""
     dev = wp.get_device(device)
-    key = (cfg, np.dtype(np_dtype), str(dev))
+    key = (cfg, np.dtype(np_dtype), str(dev), for_jit)
     per_model = _STEPPERS.setdefault(model, {})
     if key not in per_model:
-        per_model[key] = Stepper(model, cfg, np_dtype, dev)
+        per_model[key] = st = Stepper(model, cfg, np_dtype, dev)
+        st.use_graph = st.use_graph and not for_jit
     return per_model[key]
+
+
+def _jax_device() -> str:
+    """The Warp device of JAX's default backend (where traced arrays will live)."""
+    return "cuda:0" if jax.default_backend() == "gpu" else "cpu"
 
 
 def _on_gpu(x: jax.Array) -> bool:
@@ -150,6 +158,9 @@ def _dtype_of(state: State):
 def step(model: Model, state: State, control: Control | None, cfg: SolverConfig) -> State:
     check_state(model, state)
     check_control(model, control)
+    if is_traced(state) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(control)):
+        st = stepper(model, cfg, _dtype_of(state), _jax_device(), for_jit=True)
+        return traced_step(st, model, state, control)
     st = stepper(model, cfg, _dtype_of(state))
     load_state(st, state, control)
     st.run(1)
@@ -160,6 +171,13 @@ def rollout(model: Model, state: State, controls: Control | None, num_steps: int
             cfg: SolverConfig) -> State:
     check_state(model, state)
     num_steps = check_rollout_controls(model, controls, num_steps)
+    if is_traced(state) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(controls)):
+        def body(s, c):
+            s2 = step(model, s, c, cfg)
+            return s2, s2
+
+        _, traj = jax.lax.scan(body, state, controls, length=num_steps)
+        return traj
     st = stepper(model, cfg, _dtype_of(state))
     load_state(st, state, None)
     traj = []

@@ -1,0 +1,130 @@
+"""The Warp step as a JAX primitive: ``kamino.step(..., backend="warp")`` inside ``jax.jit``.
+
+When the State holds traced arrays (inside ``jax.jit``, ``lax.scan``, ...), the Warp backend calls
+its step through Warp's JAX FFI (``wp.jax_callable``): XLA allocates the output buffers, Warp reads
+and writes them in place (no host round trip), and the step's kernels are launched on XLA's stream.
+The callable copies the inputs into the stepper's persistent buffers and the results out of them
+(device-to-device, ~35 small copies per call; docs/warp_backend.md "JAX interop"). Inside the call
+the step runs without its own graph capture (``JaxCallableGraphMode.NONE``): the PADMM loop then
+runs each world to its end in one launch, with no host synchronisation.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import jax
+import jax.numpy as jnp
+import warp as wp
+
+from kamino.model import Model
+from kamino.state import ContactState, Control, State, StepInfo
+from kamino.warp_backend.pipeline import Stepper
+from kamino.warp_backend.types import types_of
+
+_CALLABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+# (State/Control field path, Work buffer, kind) of every input; kind picks the Warp dtype
+_INPUTS = (
+    ("body_q", "q", "transform"), ("body_u", "u", "vec6"), ("time", "time", "scalar"),
+    ("constraint_force", "kin_force", "scalar"), ("coupling_force", "cpl_force", "scalar"),
+    ("actuator_force", "act_force", "scalar"), ("passive_force", "pas_force", "scalar"),
+    ("limit_force", "lim_force", "scalar"), ("contacts.pair", "con_pair", "int"),
+    ("contacts.pos", "con_pos", "vec3"), ("contacts.normal", "con_normal", "vec3"),
+    ("contacts.dist", "con_dist", "scalar"), ("contacts.force", "con_force", "vec3"),
+    ("contacts.velocity", "con_velocity", "vec3"), ("contacts.point_b", "con_point_b", "vec3"),
+    ("control.dof_effort", "effort", "scalar"), ("control.position_target", "position_target", "scalar"),
+    ("control.velocity_target", "velocity_target", "scalar"), ("control.body_wrench", "wrench", "vec6"),
+)
+_STATE_OUTPUTS = _INPUTS[:15]
+_INFO_OUTPUTS = (("iterations", "iters", "int"), ("primal_residual", "r_p", "scalar"),
+                 ("dual_residual", "r_d", "scalar"), ("complementarity_residual", "r_c", "scalar"),
+                 ("converged", "converged", "int"), ("failed", "failed", "int"), ("num_contacts", "n_con", "int"),
+                 ("found", "ct_found", "int"))
+
+
+def is_traced(state: State) -> bool:
+    """Whether ``state`` holds JAX tracers (we are inside a JAX transformation)."""
+    return isinstance(state.body_q, jax.core.Tracer)
+
+
+def _warp_dtype(T, kind):
+    return {"transform": T.transform, "vec6": T.vec6, "vec3": T.vec3, "scalar": T.scalar, "int": wp.int32}[kind]
+
+
+def _callable(st: Stepper):
+    """The ``wp.jax_callable`` of one stepper (cached), with the non-empty fields as arguments."""
+    per = _CALLABLES.setdefault(st, {})
+    if "call" in per:
+        return per["call"], per["ins"], per["outs"]
+    T = types_of(st.np_dtype)
+    w = st.work
+    ins = [f for f in _INPUTS if getattr(w, f[1]).size]
+    outs = [("out_" + f[0].replace(".", "_"), f[1], f[2]) for f in _STATE_OUTPUTS + _INFO_OUTPUTS
+            if getattr(w, f[1]).size]
+    names = [f[0].replace(".", "_") for f in ins] + [f[0] for f in outs]
+    types = {n: wp.array(dtype=_warp_dtype(T, f[2])) for n, f in zip(names, ins + outs, strict=True)}
+
+    def body(arrays):
+        for arr, (_, buf, _) in zip(arrays[:len(ins)], ins, strict=True):
+            wp.copy(getattr(w, buf), arr)
+        st.launch_step()
+        for arr, (_, buf, _) in zip(arrays[len(ins):], outs, strict=True):
+            wp.copy(arr, getattr(w, buf))
+
+    src = f"def kamino_warp_step({', '.join(names)}):\n    _body([{', '.join(names)}])\n"
+    ns = {"_body": body}
+    exec(src, ns)  # a signature with one annotated argument per field (what jax_callable reads)
+    fn = ns["kamino_warp_step"]
+    fn.__annotations__ = types
+    fn.__module__ = __name__
+    st.launch_step()  # load (compile) every kernel before the first traced call
+    call = wp.jax_callable(fn, num_outputs=len(outs), graph_mode=wp.JaxCallableGraphMode.NONE, vmap_method=None)
+    per.update(call=call, ins=ins, outs=outs)
+    return call, ins, outs
+
+
+def traced_step(st: Stepper, model: Model, state: State, control: Control | None) -> State:
+    """One step with traced inputs, through the Warp FFI."""
+    call, ins, outs = _callable(st)
+    dtype = jnp.dtype(st.np_dtype)
+    args = []
+    for path, buf, _ in ins:
+        if path.startswith("control."):
+            value = None if control is None else getattr(control, path[8:])
+            shape = (model.num_bodies, 6) if path.endswith("body_wrench") else (model.num_dofs,)
+            args.append(jnp.zeros(shape, dtype) if value is None else jnp.asarray(value, dtype).reshape(shape))
+        elif path.startswith("contacts."):
+            args.append(getattr(state.contacts, path[9:]))
+        else:
+            args.append(getattr(state, path))
+    dims = {name: getattr(st.work, buf).shape for name, buf, _ in outs}
+    results = dict(zip([o[0] for o in outs], call(*args, output_dims=dims), strict=True))
+    W, cap = model.num_worlds, model.num_contacts
+
+    def get(path, shape, kind="scalar"):
+        name = "out_" + path.replace(".", "_")
+        if name in results:
+            return results[name].reshape(shape)
+        return jnp.zeros(shape, jnp.int32 if kind == "int" else dtype)
+
+    n_con = get("num_contacts", (W,), "int")
+    return State(
+        body_q=get("body_q", (model.num_bodies, 7)), body_u=get("body_u", (model.num_bodies, 6)),
+        time=get("time", (W,)), constraint_force=get("constraint_force", (model.num_constraints,)),
+        actuator_force=get("actuator_force", (model.num_dofs,)), passive_force=get("passive_force", (model.num_dofs,)),
+        limit_force=get("limit_force", (model.num_dofs,)), coupling_force=get("coupling_force", (model.num_couplings,)),
+        contacts=ContactState(
+            pair=get("contacts.pair", (cap,), "int") if cap else jnp.zeros(0, jnp.int32),
+            pos=get("contacts.pos", (cap, 3)), normal=get("contacts.normal", (cap, 3)),
+            dist=get("contacts.dist", (cap,)), force=get("contacts.force", (cap, 3)),
+            velocity=get("contacts.velocity", (cap, 3)), point_b=get("contacts.point_b", (cap, 3))),
+        info=StepInfo(
+            iterations=get("iterations", (W,), "int"), primal_residual=get("primal_residual", (W,)),
+            dual_residual=get("dual_residual", (W,)), complementarity_residual=get("complementarity_residual", (W,)),
+            converged=get("converged", (W,), "int") != 0, failed=get("failed", (W,), "int") != 0,
+            num_contacts=n_con, contact_overflow=jnp.maximum(get("found", (W,), "int") - n_con, 0)),
+    )
+
+
+__all__ = ["is_traced", "traced_step"]
