@@ -68,7 +68,8 @@ def _write(dst: wp.array, src, device) -> None:
     if dst.size == 0:
         return
     if device.is_cuda and isinstance(src, jax.Array) and _on_gpu(src):
-        wp.copy(dst, wp.from_jax(src.astype(_np_dtype(dst)), dtype=dst.dtype))
+        # JAX computes on its own stream: wait for the buffer before Warp's stream reads it
+        wp.copy(dst, wp.from_jax(jax.block_until_ready(src.astype(_np_dtype(dst))), dtype=dst.dtype))
     else:
         a = np.asarray(src, dtype=_np_dtype(dst))
         dst.assign(a.reshape(dst.shape[0], -1) if a.ndim > 1 else a)
@@ -79,7 +80,9 @@ def _read(src: wp.array, shape, dtype=None) -> jax.Array:
     if src.size == 0:
         return jnp.zeros(shape, dtype if dtype is not None else _np_dtype(src))
     if src.device.is_cuda:
-        return wp.to_jax(wp.clone(src)).reshape(shape)
+        out = wp.clone(src)
+        wp.synchronize_device(src.device)
+        return wp.to_jax(out).reshape(shape)
     return jnp.asarray(src.numpy().reshape(shape))
 
 
@@ -115,6 +118,9 @@ def load_control(st: Stepper, control: Control | None) -> None:
 def read_state(st: Stepper, int_dtype=jnp.int32) -> State:
     """A new :class:`State` from the stepper's buffers (after a step)."""
     w, m = st.work, st.wm.model
+    if st.device.is_cuda:
+        # the copies handed to JAX are made on Warp's stream; JAX must not read them earlier
+        wp.synchronize_device(st.device)
     B, cap = m.num_bodies, m.num_contacts
     info_found = _read(w.ct_found, (m.num_worlds,))
     num_contacts = _read(w.n_con, (m.num_worlds,))
