@@ -105,6 +105,7 @@ def load_state(st: Stepper, state: State, control: Control | None) -> None:
 
 
 def load_control(st: Stepper, control: Control | None) -> None:
+    """Copy ``control`` into the stepper's buffers (zeros for absent fields)."""
     w, dev = st.work, st.device
     for name, dst in (("dof_effort", w.effort), ("body_wrench", w.wrench), ("position_target", w.position_target),
                       ("velocity_target", w.velocity_target)):
@@ -113,6 +114,10 @@ def load_control(st: Stepper, control: Control | None) -> None:
             dst.zero_()
         else:
             _write(dst, jnp.asarray(value, st.np_dtype), dev)
+    if dev.is_cuda:
+        # the copies read JAX buffers (some of them temporaries) asynchronously: finish them before the
+        # temporaries can be freed and reused
+        wp.synchronize_device(dev)
 
 
 def read_state(st: Stepper, int_dtype=jnp.int32) -> State:
