@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -464,13 +466,16 @@ def test_chain_of_loops_rows_grow_linearly(n):
 # ---------------------------------------------------------------------------------------------
 
 
-def test_warp_backend_not_implemented():
+def test_warp_backend_rejects_bad_input_like_the_reference():
     m = pendulum()
     s = kamino.init_state(m)
-    with pytest.raises(NotImplementedError, match="warp"):
-        kamino.step(m, s, backend="warp")
-    with pytest.raises(NotImplementedError, match="warp"):
-        kamino.rollout(m, s, num_steps=2, backend="warp")
+    with pytest.raises(ValueError, match="body_q"):
+        kamino.step(m, s.replace(body_q=s.body_q[:0]), backend="warp")
+    half = jax.tree_util.tree_map(lambda x: x.astype(jnp.float16) if jnp.issubdtype(x.dtype, jnp.floating) else x, s)
+    with pytest.raises(ValueError, match="float32 and float64"):
+        kamino.step(m, half, backend="warp")
+    with pytest.raises(ValueError, match="linear_solver='cr'"):
+        kamino.step(m, s, config=kamino.SolverConfig(jacobian="dense", linear_solver="cr"), backend="warp")
 
 
 def test_unknown_backend():
