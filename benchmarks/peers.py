@@ -1,0 +1,908 @@
+"""Peer simulators for kamino's throughput benchmark: MuJoCo Warp and Newton's ``SolverKamino``.
+
+Each ``run_*`` function loads one benchmark scene (an MJCF file from ``benchmarks/scenes/``), builds
+``num_worlds`` copies of it on one Warp device, and measures what the shared bench README reports for
+the peers, with the same method, so our numbers and theirs compare:
+
+* **throughput**: steps/s x worlds at dt = 0.0025 s. On CUDA, ``graph_steps`` steps are captured in one
+  CUDA graph (``wp.ScopedCapture``), replayed a few times to warm up, then ``repeats`` trials of N replays
+  are timed (``wp.synchronize_device`` before reading the clock) and the median trial is reported. N is
+  picked so that one trial lasts at least ``min_trial_s``. On the CPU device the steps are a plain Python
+  loop of ``graph_steps`` steps per trial (smoke tests only; ``use_graph=True`` tries Warp's CPU graphs).
+* **drive**: before every step, the first actuator's control is set to ``2.0 * sin(2 pi 1.0 t)`` N m in
+  every world (fourbar's ``drive_j1``, the ladders' only motor) by a small Warp kernel that reads a device
+  time counter (MuJoCo Warp: ``Data.time``; Newton: a step counter bumped after every step), so that
+  the timed loop is pure graph replay.
+* **closure**: ONE world, freshly built, stepped ``closure_steps`` times with the same drive; after every
+  step a Warp kernel folds the largest distance between the two anchors of each loop-closing joint into
+  a device scalar (``wp.atomic_max``). MuJoCo Warp: ``<connect>`` equalities, anchor ``eq_data[0:3]`` on
+  body1 and ``eq_data[3:6]`` on body2 (MuJoCo's compiled connect semantics), through ``xpos``/``xmat``
+  (these are the poses at the start of each step, so a final ``kinematics`` call adds the last pose).
+  Newton: joints outside every articulation (``joint_articulation == -1``), parent anchor
+  ``body_q[parent] * X_p`` vs child anchor ``body_q[child] * X_c``.
+* **memory per world**: device memory in use after building the N-world model and data (Newton: model,
+  two states, control and the solver) minus before, divided by N. On CUDA the primary figure is Warp's
+  memory-pool usage (``wp.get_mempool_used_mem_current``; ``cudaMemGetInfo`` used-memory delta if the
+  pool is off). A second figure, ``memory_per_world_arrays_bytes``, sums the distinct owning
+  ``wp.array`` allocations reachable from those objects (also the only figure on CPU).
+
+Results are plain JSON-serialisable dicts with the keys ``peer, variant, scene`` (file stem), ``scene_path,
+num_worlds, throughput`` (steps/s x worlds), ``step_time_s, closure_max_m, closure_steps,
+memory_per_world_bytes, memory_per_world_arrays_bytes, memory_method, device, timing`` (``graph_replay`` or
+``python_loop``), ``graph_steps, replays_per_trial, trials_s, dt, versions, notes, reason`` (plus ``source``
+for SolverKamino). A peer that is not importable, or that cannot load or run the scene, gives a dict whose
+measurements are ``None`` and whose ``reason`` says why (``traceback`` holds the details). The closure
+run does not depend on ``num_worlds``: when sweeping world counts, pass ``closure_steps=0`` after the first.
+
+Scenes in Newton: ``add_mjcf`` turns each ``<connect>`` into a BALL loop joint (3 rows, as MuJoCo's
+connect), which SolverKamino simulates; ``source="newton_basics"`` instead builds the four-bar with
+``newton.tests.utils.basics.build_boxes_fourbar`` (REVOLUTE loop joint), where the README's SolverKamino
+four-bar figures come from.
+
+CLI smoke test: ``python benchmarks/peers.py benchmarks/scenes/fourbar.xml 1 4 [--device cpu]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import gc
+import importlib.metadata
+import json
+import math
+import statistics
+import sys
+import time
+import traceback
+import xml.etree.ElementTree as ET
+from collections.abc import Callable
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+try:  # the peers run on Warp; without it every runner returns a result whose ``reason`` says so
+    import warp as wp
+except ImportError:  # pragma: no cover
+    wp = None
+
+DT = 0.0025
+"""Time step [s] of every scene (their ``<option timestep>``); the peers are stepped with it."""
+DRIVE_AMPLITUDE = 2.0
+"""Drive torque amplitude [N m] on the first actuator."""
+DRIVE_FREQUENCY = 1.0
+"""Drive frequency [Hz]."""
+MIN_TRIAL_S = 0.5
+"""Default lower bound on the duration of one timed trial on CUDA [s]."""
+KAMINO_VARIANTS = ("padmm_dense", "padmm_sparse_cr", "dvi", "dvi_sparse", "lox")
+"""SolverKamino configurations: the first three are the README's; ``dvi_sparse`` and ``lox`` are extras."""
+SCENE_SOURCES = ("mjcf", "newton_basics")
+"""How the Newton scene is built: Newton's MJCF importer, or (four-bar only) ``build_boxes_fourbar``."""
+
+_DISTRIBUTIONS = {"mujoco_warp": "mujoco-warp", "mujoco": "mujoco", "newton": "newton", "warp": "warp-lang"}
+_MAX_REPLAYS = 1_000_000
+
+
+def peer_versions() -> dict[str, str | None]:
+    """Installed versions of the peers and of what they run on (``None`` where a package is missing).
+
+    Read from the package metadata, so nothing is imported.
+    """
+    versions: dict[str, str | None] = {}
+    for key, dist in _DISTRIBUTIONS.items():
+        try:
+            versions[key] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            versions[key] = None
+    return versions
+
+
+# --------------------------------------------------------------------------------------------------
+# Shared helpers
+# --------------------------------------------------------------------------------------------------
+
+
+def _new_result(peer: str, variant: str, scene: str, num_worlds: int) -> dict[str, Any]:
+    """Result dict with every measurement ``None``; filled in by the runners."""
+    return {
+        "peer": peer,
+        "variant": variant,
+        "scene": Path(scene).stem,
+        "scene_path": str(scene),
+        "num_worlds": int(num_worlds),
+        "throughput": None,
+        "step_time_s": None,
+        "closure_max_m": None,
+        "memory_per_world_bytes": None,
+        "memory_per_world_arrays_bytes": None,
+        "memory_method": None,
+        "device": None,
+        "timing": None,
+        "graph_steps": None,
+        "replays_per_trial": None,
+        "trials_s": None,
+        "closure_steps": None,
+        "dt": DT,
+        "versions": peer_versions(),
+        "notes": "",
+        "reason": None,
+    }
+
+
+def _fail(result: dict[str, Any], stage: str, exc: BaseException) -> dict[str, Any]:
+    """Record why a run stopped; the measurements gathered so far are kept."""
+    result["reason"] = f"{stage}: {type(exc).__name__}: {exc}"
+    result["traceback"] = traceback.format_exc(limit=6)
+    return result
+
+
+def _add_note(result: dict[str, Any], note: str) -> None:
+    result["notes"] = f"{result['notes']}; {note}" if result["notes"] else note
+
+
+@functools.cache
+def _kernels() -> SimpleNamespace:
+    """The small Warp kernels of the benchmark (drive, time counter, closure), defined once on demand."""
+
+    @wp.kernel
+    def mjw_drive(
+        time_: wp.array(dtype=wp.float32),
+        actuator: int,
+        amplitude: float,
+        omega: float,
+        ctrl: wp.array2d(dtype=wp.float32),
+    ):
+        world = wp.tid()
+        ctrl[world, actuator] = amplitude * wp.sin(omega * time_[world])
+
+    @wp.kernel
+    def counter_drive(
+        counter: wp.array(dtype=wp.int32),
+        dofs: wp.array(dtype=wp.int32),
+        amplitude: float,
+        omega: float,
+        dt: float,
+        joint_f: wp.array(dtype=wp.float32),
+    ):
+        world = wp.tid()
+        t = float(counter[0]) * dt
+        joint_f[dofs[world]] = amplitude * wp.sin(omega * t)
+
+    @wp.kernel
+    def tick(counter: wp.array(dtype=wp.int32)):
+        counter[0] = counter[0] + 1
+
+    @wp.kernel
+    def mjw_closure(
+        xpos: wp.array2d(dtype=wp.vec3),
+        xmat: wp.array2d(dtype=wp.mat33),
+        body1: wp.array(dtype=wp.int32),
+        body2: wp.array(dtype=wp.int32),
+        anchor1: wp.array(dtype=wp.vec3),
+        anchor2: wp.array(dtype=wp.vec3),
+        out: wp.array(dtype=wp.float32),
+    ):
+        world, i = wp.tid()
+        b1 = body1[i]
+        b2 = body2[i]
+        p1 = xpos[world, b1] + xmat[world, b1] @ anchor1[i]
+        p2 = xpos[world, b2] + xmat[world, b2] @ anchor2[i]
+        wp.atomic_max(out, 0, wp.length(p1 - p2))
+
+    @wp.kernel
+    def newton_closure(
+        body_q: wp.array(dtype=wp.transform),
+        joints: wp.array(dtype=wp.int32),
+        joint_parent: wp.array(dtype=wp.int32),
+        joint_child: wp.array(dtype=wp.int32),
+        joint_X_p: wp.array(dtype=wp.transform),
+        joint_X_c: wp.array(dtype=wp.transform),
+        out: wp.array(dtype=wp.float32),
+    ):
+        j = joints[wp.tid()]
+        p = wp.transform_get_translation(joint_X_p[j])
+        if joint_parent[j] >= 0:
+            p = wp.transform_point(body_q[joint_parent[j]], p)
+        c = wp.transform_get_translation(joint_X_c[j])
+        if joint_child[j] >= 0:
+            c = wp.transform_point(body_q[joint_child[j]], c)
+        wp.atomic_max(out, 0, wp.length(p - c))
+
+    return SimpleNamespace(
+        mjw_drive=mjw_drive,
+        counter_drive=counter_drive,
+        tick=tick,
+        mjw_closure=mjw_closure,
+        newton_closure=newton_closure,
+    )
+
+
+def _resolve_device(device: str | None) -> Any:
+    """The Warp device to run on: ``device`` if given, else Warp's preferred one (``cuda:0`` if present)."""
+    wp.init()
+    return wp.get_device(device) if device is not None else wp.get_preferred_device()
+
+
+def _device_name(dev: Any) -> str:
+    return f"{dev.alias} ({dev.name})"
+
+
+def _memory_in_use(dev: Any) -> tuple[int | None, str]:
+    """Device memory in use now [bytes] and how it was read; ``None`` on the CPU.
+
+    Collects garbage first, so that arrays of earlier runs held only by reference cycles are freed.
+    """
+    gc.collect()
+    wp.synchronize_device(dev)
+    if not dev.is_cuda:
+        return None, "cpu: no device memory counter (see memory_per_world_arrays_bytes)"
+    if wp.is_mempool_enabled(dev):
+        return int(wp.get_mempool_used_mem_current(dev)), "cuda mempool used bytes (wp.get_mempool_used_mem_current)"
+    return int(dev.total_memory - dev.free_memory), "cudaMemGetInfo used bytes (memory pool off)"
+
+
+def _owned_array_bytes(*roots: Any, max_objects: int = 2_000_000) -> int:
+    """Bytes of the distinct owning ``wp.array`` allocations reachable from ``roots``.
+
+    Walks attributes, dataclass fields and containers of objects from the ``newton`` and ``mujoco_warp``
+    packages (plus builtin containers); views (arrays without a deleter) are not counted, and each
+    allocation is counted once by pointer.
+    """
+    seen: set[int] = set()
+    allocations: dict[int, int] = {}
+    stack = list(roots)
+    visited = 0
+    while stack and visited < max_objects:
+        obj = stack.pop()
+        if id(obj) in seen:
+            continue
+        seen.add(id(obj))
+        visited += 1
+        if isinstance(obj, wp.array):
+            if obj.ptr and getattr(obj, "deleter", None) is not None:
+                allocations[int(obj.ptr)] = max(allocations.get(int(obj.ptr), 0), int(obj.capacity))
+            continue
+        if isinstance(obj, dict):
+            stack.extend(obj.values())
+            continue
+        if isinstance(obj, list | tuple | set | frozenset):
+            stack.extend(obj)
+            continue
+        module = type(obj).__module__ or ""
+        if not (module.startswith("newton") or module.startswith("mujoco_warp")):
+            continue
+        if isinstance(obj, type):
+            continue
+        fields = getattr(obj, "__dict__", None)
+        if fields is not None:
+            stack.extend(fields.values())
+        for slot in getattr(type(obj), "__slots__", ()):
+            if hasattr(obj, slot):
+                stack.append(getattr(obj, slot))
+    return sum(allocations.values())
+
+
+def _time_steps(
+    step: Callable[[], None],
+    dev: Any,
+    *,
+    graph_steps: int,
+    repeats: int,
+    use_graph: bool,
+    min_trial_s: float,
+    warmup_batches: int = 2,
+) -> dict[str, Any]:
+    """Time batches of ``graph_steps`` calls of ``step`` and return the median trial.
+
+    With ``use_graph`` one batch is captured as a Warp graph and each trial replays it N times (N chosen
+    from one calibration replay so that a trial lasts ``min_trial_s``); otherwise each trial is a Python
+    loop of one batch. The device is synchronised before every clock read.
+    """
+    if use_graph:
+        with wp.ScopedCapture(device=dev) as capture:
+            for _ in range(graph_steps):
+                step()
+        graph = capture.graph
+
+        def batch() -> None:
+            wp.capture_launch(graph)
+
+    else:
+
+        def batch() -> None:
+            for _ in range(graph_steps):
+                step()
+
+    for _ in range(warmup_batches):
+        batch()
+    wp.synchronize_device(dev)
+    replays = 1
+    if use_graph:
+        t0 = time.perf_counter()
+        batch()
+        wp.synchronize_device(dev)
+        one = max(time.perf_counter() - t0, 1e-7)
+        replays = int(min(_MAX_REPLAYS, max(1, math.ceil(min_trial_s / one))))
+    trials = []
+    for _ in range(repeats):
+        wp.synchronize_device(dev)
+        t0 = time.perf_counter()
+        for _ in range(replays):
+            batch()
+        wp.synchronize_device(dev)
+        trials.append(time.perf_counter() - t0)
+    median = statistics.median(trials)
+    return {
+        "timing": "graph_replay" if use_graph else "python_loop",
+        "graph_steps": graph_steps,
+        "replays_per_trial": replays,
+        "trials_s": trials,
+        "step_time_s": median / (replays * graph_steps),
+    }
+
+
+def _run_closure_steps(step: Callable[[], None], dev: Any, n: int, graph_steps: int, use_graph: bool) -> None:
+    """Run ``n`` steps, through graph replays of ``graph_steps`` steps where ``use_graph``."""
+    done = 0
+    if use_graph and n >= graph_steps:
+        with wp.ScopedCapture(device=dev) as capture:
+            for _ in range(graph_steps):
+                step()
+        while done + graph_steps <= n:
+            wp.capture_launch(capture.graph)
+            done += graph_steps
+    while done < n:
+        step()
+        done += 1
+    wp.synchronize_device(dev)
+
+
+def _first_motor_joint(scene: str) -> str | None:
+    """Name of the joint driven by the scene's first actuator (``<actuator><motor joint=...>``)."""
+    root = ET.parse(scene).getroot()
+    for actuators in root.iter("actuator"):
+        for act in actuators:
+            if act.get("joint"):
+                return act.get("joint")
+    return None
+
+
+# --------------------------------------------------------------------------------------------------
+# MuJoCo Warp
+# --------------------------------------------------------------------------------------------------
+
+
+def _mjw_build(scene: str, num_worlds: int, dev: Any) -> tuple[Any, Any, Any]:
+    """Host model, device ``Model`` and ``num_worlds``-world ``Data`` of an MJCF scene (scene's own options).
+
+    ``mj_forward`` runs on the host data first, so that MuJoCo Warp's default ``njmax`` covers the
+    constraint rows present at the start (the ladders' 3 rows per ``<connect>``).
+    """
+    import mujoco
+    import mujoco_warp as mjw
+
+    mjm = mujoco.MjModel.from_xml_path(str(scene))
+    mjd = mujoco.MjData(mjm)
+    mujoco.mj_forward(mjm, mjd)
+    with wp.ScopedDevice(dev):
+        m = mjw.put_model(mjm)
+        d = mjw.put_data(mjm, mjd, nworld=num_worlds)
+    return mjm, m, d
+
+
+def _mjw_stepper(
+    m: Any, d: Any, num_worlds: int, *, drive: bool = True, closure: tuple | None = None
+) -> Callable[[], None]:
+    """One benchmark step: drive kernel on ``ctrl[:, 0]`` from ``d.time``, ``mjw.step``, optional closure."""
+    import mujoco_warp as mjw
+
+    k = _kernels()
+    omega = 2.0 * math.pi * DRIVE_FREQUENCY
+
+    def step() -> None:
+        if drive:
+            wp.launch(k.mjw_drive, dim=num_worlds, inputs=[d.time, 0, DRIVE_AMPLITUDE, omega], outputs=[d.ctrl])
+        mjw.step(m, d)
+        if closure is not None:
+            wp.launch(k.mjw_closure, dim=(num_worlds, closure[0].shape[0]), inputs=[d.xpos, d.xmat, *closure])
+
+    return step
+
+
+def _mjw_connects(mjm: Any, dev: Any) -> tuple | None:
+    """Device arrays (body1, body2, anchor1, anchor2, out) of the model's ``<connect>`` equalities."""
+    import mujoco
+    import numpy as np
+
+    b1, b2, a1, a2 = [], [], [], []
+    for i in range(mjm.neq):
+        if mjm.eq_type[i] != mujoco.mjtEq.mjEQ_CONNECT:
+            continue
+        o1, o2 = int(mjm.eq_obj1id[i]), int(mjm.eq_obj2id[i])
+        if mjm.eq_objtype[i] == mujoco.mjtObj.mjOBJ_SITE:
+            b1.append(int(mjm.site_bodyid[o1]))
+            b2.append(int(mjm.site_bodyid[o2]))
+            a1.append(mjm.site_pos[o1])
+            a2.append(mjm.site_pos[o2])
+        else:
+            b1.append(o1)
+            b2.append(o2)
+            a1.append(mjm.eq_data[i, 0:3])
+            a2.append(mjm.eq_data[i, 3:6])
+    if not b1:
+        return None
+    return (
+        wp.array(np.array(b1, np.int32), dtype=wp.int32, device=dev),
+        wp.array(np.array(b2, np.int32), dtype=wp.int32, device=dev),
+        wp.array(np.array(a1, np.float32), dtype=wp.vec3, device=dev),
+        wp.array(np.array(a2, np.float32), dtype=wp.vec3, device=dev),
+        wp.zeros(1, dtype=wp.float32, device=dev),
+    )
+
+
+def _mjw_overflow_note(d: Any) -> str | None:
+    """A note if any world hit MuJoCo Warp's constraint (``njmax``) or contact (``naconmax``) capacity."""
+    nefc = int(d.nefc.numpy().max())
+    nacon = int(d.nacon.numpy()[0])
+    notes = []
+    if nefc > d.njmax:
+        notes.append(f"nefc exceeded njmax={d.njmax}")
+    if nacon > d.naconmax:
+        notes.append(f"nacon exceeded naconmax={d.naconmax}")
+    return ", ".join(notes) or None
+
+
+def run_mujoco_warp(
+    scene: str,
+    num_worlds: int,
+    *,
+    device: str | None = None,
+    graph_steps: int = 10,
+    repeats: int = 3,
+    closure_steps: int = 1000,
+    min_trial_s: float = MIN_TRIAL_S,
+    use_graph: bool | None = None,
+) -> dict[str, Any]:
+    """Throughput, loop closure and memory of MuJoCo Warp on an MJCF scene.
+
+    The scene is loaded with ``mujoco.MjModel.from_xml_path`` and run with its own options (for these
+    scenes: Newton solver, Euler, soft ``<connect>``), ``mujoco_warp.put_model`` /
+    ``put_data(nworld=num_worlds)``, ``mujoco_warp.step``. See the module docstring for the method.
+
+    Args:
+        scene: MJCF path.
+        num_worlds: number of worlds stepped together for the throughput.
+        device: Warp device (``"cuda:0"``, ``"cpu"``); ``None`` picks Warp's preferred device.
+        graph_steps: steps captured per graph (CUDA) or per timed batch (CPU).
+        repeats: timed trials; the median is reported.
+        closure_steps: steps of the one-world closure run; 0 skips it.
+        min_trial_s: lower bound on one trial's duration when replaying graphs.
+        use_graph: capture graphs; ``None`` means on CUDA only.
+
+    Returns:
+        The result dict (module docstring); ``reason`` is set when something could not run.
+    """
+    result = _new_result("mujoco_warp", "newton_solver_soft_connect", scene, num_worlds)
+    try:
+        import mujoco
+        import mujoco_warp as mjw
+    except Exception as exc:  # a missing or broken peer is a result, not an error
+        return _fail(result, "import", exc)
+    try:
+        dev = _resolve_device(device)
+        result["device"] = _device_name(dev)
+        graph = dev.is_cuda if use_graph is None else use_graph
+        with wp.ScopedDevice(dev):
+            before, method = _memory_in_use(dev)
+            mjm, m, d = _mjw_build(scene, num_worlds, dev)
+            after, _ = _memory_in_use(dev)
+            result["memory_method"] = method
+            if before is not None and after is not None:
+                result["memory_per_world_bytes"] = (after - before) / num_worlds
+            result["memory_per_world_arrays_bytes"] = _owned_array_bytes(m, d) / num_worlds
+            if mjm.nu < 1:
+                _add_note(result, "scene has no actuator: no drive")
+            opt = mjm.opt
+            _add_note(
+                result,
+                f"solver={mujoco.mjtSolver(opt.solver).name} integrator={mujoco.mjtIntegrator(opt.integrator).name} "
+                f"cone={mujoco.mjtCone(opt.cone).name} iterations={opt.iterations} tolerance={opt.tolerance:g} "
+                f"njmax={d.njmax} naconmax={d.naconmax}",
+            )
+    except Exception as exc:
+        return _fail(result, "load", exc)
+
+    try:
+        with wp.ScopedDevice(dev):
+            step = _mjw_stepper(m, d, num_worlds, drive=mjm.nu > 0)
+            step()  # compile and load the kernels outside any capture
+            wp.synchronize_device(dev)
+            timing = _time_steps(
+                step, dev, graph_steps=graph_steps, repeats=repeats, use_graph=graph, min_trial_s=min_trial_s
+            )
+            result.update(timing)
+            result["throughput"] = num_worlds / timing["step_time_s"]
+            overflow = _mjw_overflow_note(d)
+            if overflow:
+                _add_note(result, f"capacity hit during throughput run: {overflow}")
+        del step, m, d  # free the N-world data before the closure run
+        gc.collect()
+    except Exception as exc:
+        return _fail(result, "throughput", exc)
+
+    if closure_steps > 0:
+        try:
+            with wp.ScopedDevice(dev):
+                mjm1, m1, d1 = _mjw_build(scene, 1, dev)
+                connects = _mjw_connects(mjm1, dev)
+                if connects is None:
+                    _add_note(result, "no <connect> equality: no closure")
+                else:
+                    step = _mjw_stepper(m1, d1, 1, drive=mjm1.nu > 0, closure=connects)
+                    _run_closure_steps(step, dev, closure_steps, graph_steps, graph)
+                    mjw.kinematics(m1, d1)  # poses after the last step
+                    wp.launch(
+                        _kernels().mjw_closure, dim=(1, connects[0].shape[0]), inputs=[d1.xpos, d1.xmat, *connects]
+                    )
+                    result["closure_max_m"] = float(connects[4].numpy()[0])
+                    result["closure_steps"] = closure_steps
+        except Exception as exc:
+            return _fail(result, "closure", exc)
+    return result
+
+
+# --------------------------------------------------------------------------------------------------
+# Newton SolverKamino
+# --------------------------------------------------------------------------------------------------
+
+
+def _kamino_config(variant: str, contact_free: bool) -> Any:
+    """``SolverKamino.Config`` of a benchmark variant (defaults otherwise).
+
+    Kamino's own collision detector is on (default config: unified pipeline), as in Newton's four-bar
+    example. For a scene without any collidable pair (``contact_free``: the ladders) its per-world contact
+    capacity is set to 0, so that Kamino allocates no contact container: left to itself it sizes one from
+    a geometry heuristic that ignores MJCF ``contype=0`` (at least 1000 contacts per world for DVI, or with
+    the detector off), and its dense Delassus matrices with it (ladder8, one world: 80-117 MB instead of
+    0.4 MB per world).
+
+    * ``padmm_dense``: PADMM, dense Jacobian and dynamics, dense blocked LLT (``LLTB``), Newton's default.
+    * ``padmm_sparse_cr``: PADMM, sparse Jacobian and dynamics, conjugate residual (``CR``) linear solver.
+    * ``dvi``: DVI backend with its defaults (sparse Jacobian, RCM-reordered blocked LLT, PGS).
+    * ``dvi_sparse``: DVI with sparse dynamics (CR) -- extra.
+    * ``lox``: the experimental LOX backend -- extra.
+    """
+    from newton.solvers import SolverKamino
+
+    common = {"use_collision_detector": True}
+    if variant == "padmm_dense":
+        cfg = SolverKamino.Config(dynamics_solver="padmm", sparse_jacobian=False, sparse_dynamics=False, **common)
+    elif variant == "padmm_sparse_cr":
+        cfg = SolverKamino.Config(dynamics_solver="padmm", sparse_jacobian=True, sparse_dynamics=True, **common)
+        cfg.dynamics.linear_solver_type = "CR"
+    elif variant == "dvi":
+        cfg = SolverKamino.Config(dynamics_solver="dvi", **common)
+    elif variant == "dvi_sparse":
+        cfg = SolverKamino.Config(dynamics_solver="dvi", sparse_jacobian=True, sparse_dynamics=True, **common)
+    elif variant == "lox":
+        cfg = SolverKamino.Config(dynamics_solver="lox", **common)
+    else:
+        raise ValueError(f"unknown SolverKamino variant {variant!r}; one of {KAMINO_VARIANTS}")
+    if contact_free:
+        cfg.collision_detector.max_contacts_per_world = 0
+    cfg.validate()
+    return cfg
+
+
+def _newton_world_builder(scene: str, source: str) -> tuple[Any, str]:
+    """One world of the scene in a Newton ``ModelBuilder`` (Z up, SolverKamino attributes registered).
+
+    ``mjcf``: ``ModelBuilder.add_mjcf`` (``<connect>`` becomes a BALL loop joint, Newton's default
+    ``convert_mjc_equality_constraints=True``). ``newton_basics``: the four-bar of
+    ``newton.tests.utils.basics.build_boxes_fourbar`` (REVOLUTE loop joint; actuator on joint 1 only), which
+    the README's SolverKamino four-bar figures come from. Returns the builder and a note.
+    """
+    import newton
+
+    builder = newton.ModelBuilder(up_axis=newton.Axis.Z)
+    newton.solvers.SolverKamino.register_custom_attributes(builder)
+    if source == "mjcf":
+        builder.add_mjcf(str(scene))
+        return builder, "scene from MJCF via newton add_mjcf (<connect> -> BALL loop joint)"
+    if source == "newton_basics":
+        if Path(scene).stem != "fourbar":
+            raise ValueError("source='newton_basics' exists for fourbar only")
+        from newton.tests.utils import basics
+
+        builder.default_shape_cfg.margin = 0.0
+        builder.default_shape_cfg.gap = 0.0
+        basics.build_boxes_fourbar(builder=builder, actuator_ids=[1])
+        return builder, "scene built by newton.tests.utils.basics.build_boxes_fourbar (REVOLUTE loop joint)"
+    raise ValueError(f"unknown source {source!r}; one of {SCENE_SOURCES}")
+
+
+def _find_joint(builder: Any, name: str) -> int:
+    """Index of the builder joint labelled ``name`` (MJCF labels carry a path prefix)."""
+    for j, label in enumerate(builder.joint_label):
+        if label == name or label.endswith("/" + name):
+            return j
+    raise KeyError(f"no joint named {name!r} in the Newton scene")
+
+
+def _newton_build(scene: str, num_worlds: int, dev: Any, source: str) -> SimpleNamespace:
+    """Model (``num_worlds`` replicated worlds), the drive's DoF per world and the loop joints."""
+    import newton
+    import numpy as np
+
+    world, note = _newton_world_builder(scene, source)
+    drive_joint = _first_motor_joint(scene)
+    drive_local = None
+    if drive_joint is not None:
+        j = _find_joint(world, drive_joint)
+        dof = world.joint_qd_start[j]
+        world.joint_target_mode[dof] = int(newton.JointTargetMode.EFFORT)  # an explicit-effort actuator
+        drive_local = j
+    joints_per_world = world.joint_count
+    builder = newton.ModelBuilder(up_axis=newton.Axis.Z)
+    newton.solvers.SolverKamino.register_custom_attributes(builder)
+    builder.replicate(world, num_worlds)
+    model = builder.finalize(device=dev, skip_validation_joints=True)
+
+    joint_world = model.joint_world.numpy()
+    in_worlds = np.flatnonzero(joint_world >= 0)
+    if in_worlds.size != num_worlds * joints_per_world:
+        raise RuntimeError("unexpected joint layout after replicate")
+    per_world = in_worlds.reshape(num_worlds, joints_per_world)
+    if not np.array_equal(joint_world[per_world[:, 0]], np.arange(num_worlds)):
+        raise RuntimeError("unexpected joint order after replicate")
+    drive_dofs = None
+    if drive_local is not None:
+        drive_dofs = model.joint_qd_start.numpy()[per_world[:, drive_local]].astype(np.int32)
+    loops = np.flatnonzero(model.joint_articulation.numpy() < 0).astype(np.int32)
+    return SimpleNamespace(model=model, drive_dofs=drive_dofs, loops=loops, note=note, drive_joint=drive_joint)
+
+
+def _newton_sim(built: SimpleNamespace, variant: str) -> SimpleNamespace:
+    """Solver, two states, control and the device-side drive arrays for a built Newton model."""
+    from newton.solvers import SolverKamino
+
+    model = built.model
+    solver = SolverKamino(model, config=_kamino_config(variant, int(model.shape_contact_pair_count) == 0))
+    states = [model.state(), model.state()]
+    control = model.control()
+    counter = wp.zeros(1, dtype=wp.int32, device=model.device)
+    dofs = None if built.drive_dofs is None else wp.array(built.drive_dofs, dtype=wp.int32, device=model.device)
+    return SimpleNamespace(solver=solver, states=states, control=control, counter=counter, dofs=dofs)
+
+
+def _newton_stepper(built: SimpleNamespace, sim: SimpleNamespace, closure: tuple | None = None) -> Callable[[], None]:
+    """One benchmark step: drive kernel into ``control.joint_f``, ``SolverKamino.step``, swap, tick.
+
+    The states are swapped in Python after every step, so a captured graph must hold an even number of
+    steps to be replayable (see ``_even``).
+    """
+    k = _kernels()
+    model = built.model
+    omega = 2.0 * math.pi * DRIVE_FREQUENCY
+    n_drive = 0 if sim.dofs is None else sim.dofs.shape[0]
+
+    def step() -> None:
+        if n_drive:
+            wp.launch(
+                k.counter_drive,
+                dim=n_drive,
+                inputs=[sim.counter, sim.dofs, DRIVE_AMPLITUDE, omega, DT],
+                outputs=[sim.control.joint_f],
+            )
+        sim.solver.step(sim.states[0], sim.states[1], sim.control, None, DT)
+        sim.states.reverse()
+        wp.launch(k.tick, dim=1, inputs=[sim.counter])
+        if closure is not None:
+            wp.launch(
+                k.newton_closure,
+                dim=closure[0].shape[0],
+                inputs=[
+                    sim.states[0].body_q,
+                    closure[0],
+                    model.joint_parent,
+                    model.joint_child,
+                    model.joint_X_p,
+                    model.joint_X_c,
+                    closure[1],
+                ],
+            )
+
+    return step
+
+
+def _even(n: int) -> int:
+    """``n`` rounded up to an even count (captured Newton graphs must end on the state they start from)."""
+    return n + (n % 2)
+
+
+def run_solver_kamino(
+    scene: str,
+    num_worlds: int,
+    *,
+    device: str | None = None,
+    variant: str = "padmm_dense",
+    graph_steps: int = 10,
+    repeats: int = 3,
+    closure_steps: int = 1000,
+    min_trial_s: float = MIN_TRIAL_S,
+    use_graph: bool | None = None,
+    source: str = "mjcf",
+) -> dict[str, Any]:
+    """Throughput, loop closure and memory of Newton's ``SolverKamino`` on a benchmark scene.
+
+    The scene is built once with Newton's builder (``source``: the same MJCF through ``add_mjcf``, or
+    Newton's own procedural four-bar) and replicated to ``num_worlds`` worlds with
+    ``ModelBuilder.replicate``. The drive goes into ``Control.joint_f`` of the first ``<motor>``'s joint
+    (set to explicit-effort actuation). Kamino's own collision detector is on (see ``_kamino_config``). See
+    the module docstring for the method.
+
+    Args:
+        scene: MJCF path.
+        num_worlds: number of worlds stepped together for the throughput.
+        device: Warp device; ``None`` picks Warp's preferred device.
+        variant: one of ``KAMINO_VARIANTS`` (``padmm_dense``, ``padmm_sparse_cr``, ``dvi``; extras
+            ``dvi_sparse``, ``lox``).
+        graph_steps: steps per captured graph / timed batch; rounded up to even (state ping-pong).
+        repeats: timed trials; the median is reported.
+        closure_steps: steps of the one-world closure run; 0 skips it.
+        min_trial_s: lower bound on one trial's duration when replaying graphs.
+        use_graph: capture graphs; ``None`` means on CUDA only.
+        source: ``"mjcf"`` or ``"newton_basics"`` (fourbar only), see ``SCENE_SOURCES``.
+
+    Returns:
+        The result dict (module docstring); ``reason`` is set when something could not run.
+    """
+    result = _new_result("newton_solver_kamino", variant, scene, num_worlds)
+    result["source"] = source
+    try:
+        import newton  # noqa: F401
+    except Exception as exc:
+        return _fail(result, "import", exc)
+    if variant not in KAMINO_VARIANTS:
+        return _fail(result, "config", ValueError(f"unknown variant {variant!r}; one of {KAMINO_VARIANTS}"))
+    graph_steps = _even(graph_steps)
+    try:
+        dev = _resolve_device(device)
+        result["device"] = _device_name(dev)
+        graph = dev.is_cuda if use_graph is None else use_graph
+        with wp.ScopedDevice(dev):
+            before, method = _memory_in_use(dev)
+            built = _newton_build(scene, num_worlds, dev, source)
+            sim = _newton_sim(built, variant)
+            after, _ = _memory_in_use(dev)
+            result["memory_method"] = method
+            if before is not None and after is not None:
+                result["memory_per_world_bytes"] = (after - before) / num_worlds
+            result["memory_per_world_arrays_bytes"] = (
+                _owned_array_bytes(built.model, sim.solver, sim.states, sim.control) / num_worlds
+            )
+            _add_note(result, built.note)
+            if int(built.model.shape_contact_pair_count) == 0:
+                _add_note(result, "Kamino collision detector on, no contact pairs: contact capacity 0")
+            else:
+                _add_note(result, "Kamino collision detector on (default config)")
+            if built.drive_dofs is None:
+                _add_note(result, "scene has no <motor>: no drive")
+            if built.loops.size == 0:
+                _add_note(result, "no loop joint in the Newton model: the loop is not closed")
+    except Exception as exc:
+        return _fail(result, "load", exc)
+
+    try:
+        with wp.ScopedDevice(dev):
+            step = _newton_stepper(built, sim)
+            step()  # compile and load the kernels outside any capture
+            step()
+            wp.synchronize_device(dev)
+            timing = _time_steps(
+                step, dev, graph_steps=graph_steps, repeats=repeats, use_graph=graph, min_trial_s=min_trial_s
+            )
+            result.update(timing)
+            result["throughput"] = num_worlds / timing["step_time_s"]
+        del step, built, sim  # free the N-world model before the closure run
+        gc.collect()
+    except Exception as exc:
+        return _fail(result, "throughput", exc)
+
+    if closure_steps > 0:
+        try:
+            with wp.ScopedDevice(dev):
+                built1 = _newton_build(scene, 1, dev, source)
+                if built1.loops.size:
+                    sim1 = _newton_sim(built1, variant)
+                    closure = (
+                        wp.array(built1.loops, dtype=wp.int32, device=dev),
+                        wp.zeros(1, dtype=wp.float32, device=dev),
+                    )
+                    step = _newton_stepper(built1, sim1, closure=closure)
+                    _run_closure_steps(step, dev, closure_steps, graph_steps, graph)
+                    result["closure_max_m"] = float(closure[1].numpy()[0])
+                    result["closure_steps"] = closure_steps
+        except Exception as exc:
+            return _fail(result, "closure", exc)
+    return result
+
+
+# --------------------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------------------
+
+
+def _format(r: dict[str, Any]) -> str:
+    def num(x: float | None, fmt: str) -> str:
+        return "-" if x is None else format(x, fmt)
+
+    closure = None if r["closure_max_m"] is None else 1e3 * r["closure_max_m"]
+    mem = r["memory_per_world_bytes"]
+    if mem is None:
+        mem = r["memory_per_world_arrays_bytes"]
+    line = (
+        f"{r['peer']:<21} {r['variant']:<27} {r['scene']:<9} worlds={r['num_worlds']:<6} "
+        f"throughput={num(r['throughput'], '.3g')} step={num(r['step_time_s'], '.3g')}s "
+        f"closure={num(closure, '.3f')}mm mem/world={num(None if mem is None else mem / 1024, '.1f')}KiB "
+        f"[{r['timing']}] {r['device']}"
+    )
+    if r["reason"]:
+        line += f"  FAILED {r['reason']}"
+    return line
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run both peers on one scene for the given world counts and print one line per result."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scene", help="MJCF scene, e.g. benchmarks/scenes/fourbar.xml")
+    parser.add_argument("worlds", nargs="+", type=int, help="world counts")
+    parser.add_argument("--device", default=None, help="Warp device (default: Warp's preferred)")
+    parser.add_argument("--peers", default="mujoco_warp,solver_kamino", help="comma list")
+    parser.add_argument("--variants", default="padmm_dense,padmm_sparse_cr,dvi", help="SolverKamino variants")
+    parser.add_argument("--source", default="mjcf", choices=SCENE_SOURCES, help="Newton scene source")
+    parser.add_argument("--graph-steps", type=int, default=10)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--closure-steps", type=int, default=1000, help="closure run once per peer/variant")
+    parser.add_argument("--min-trial-s", type=float, default=MIN_TRIAL_S)
+    parser.add_argument("--graph", action=argparse.BooleanOptionalAction, default=None, help="force graphs on/off")
+    parser.add_argument("--json", default=None, help="write all results to this JSON file")
+    parser.add_argument("--verbose", action="store_true", help="keep Warp's module-load messages")
+    args = parser.parse_args(argv)
+
+    if not args.verbose:
+        wp.config.quiet = True
+        wp.config.log_level = wp.LOG_WARNING
+    peers = [p.strip() for p in args.peers.split(",") if p.strip()]
+    common = {
+        "device": args.device,
+        "graph_steps": args.graph_steps,
+        "repeats": args.repeats,
+        "min_trial_s": args.min_trial_s,
+        "use_graph": args.graph,
+    }
+    print("versions:", json.dumps(peer_versions()), flush=True)
+    results = []
+    jobs: list[tuple[str, Callable[..., dict[str, Any]], dict[str, Any]]] = []
+    if "mujoco_warp" in peers:
+        jobs.append(("mujoco_warp", run_mujoco_warp, {}))
+    if "solver_kamino" in peers:
+        for v in [v.strip() for v in args.variants.split(",") if v.strip()]:
+            jobs.append((f"solver_kamino/{v}", run_solver_kamino, {"variant": v, "source": args.source}))
+    for _, fn, extra in jobs:
+        closure = None
+        for i, n in enumerate(args.worlds):
+            steps = args.closure_steps if i == 0 else 0  # the closure run is one world: do it once
+            r = fn(args.scene, n, closure_steps=steps, **common, **extra)
+            if i == 0:
+                closure = (r["closure_max_m"], r["closure_steps"])
+            else:
+                r["closure_max_m"], r["closure_steps"] = closure
+            results.append(r)
+            print(_format(r), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1))
+    return 0 if all(r["reason"] is None for r in results) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
