@@ -36,7 +36,11 @@ CONFIGS = {
     "dense-llt": dict(jacobian="dense", linear_solver="llt"),
     "sparse-llt": dict(jacobian="sparse", linear_solver="llt"),
     "sparse-cr": dict(jacobian="sparse", linear_solver="cr"),
+    "sparse-llt-block": dict(jacobian="sparse", linear_solver="llt"),
 }
+#: PADMM kernel of a configuration (``Stepper(padmm=...)``): one thread per world unless ``"block"`` (one
+#: thread block per world, padmm_tile.py)
+PADMM = {"sparse-llt-block": "block"}
 DT = 0.0025
 #: solver settings of every kamino configuration here (docs/warp_backend.md): a penalty suited to these
 #: mechanisms' Delassus spectra, the curvature refinement for the loop closure, a cap on iterations
@@ -132,7 +136,7 @@ def bench_warp(name, config_name, num_worlds, args) -> dict:
     dev = wp.get_device()
     wp.synchronize_device(dev)
     mem0 = wp.get_mempool_used_mem_current(dev) if dev.is_cuda else 0
-    st = wb.stepper(model, cfg, np.float32, dev)
+    st = wb.stepper(model, cfg, np.float32, dev, padmm=PADMM.get(config_name))
     wb.load_state(st, state, control)
     st.pre_step.append(_drive_hook(st, model, drive, base_targets))
     wp.synchronize_device(dev)
@@ -152,7 +156,7 @@ def bench_warp(name, config_name, num_worlds, args) -> dict:
     step_time = statistics.median(trials) / (replays * n)
     return {"kamino": "warp", "config": config_name, "scene": name, "num_worlds": num_worlds,
             "throughput": num_worlds / step_time, "step_time_s": step_time, "memory_per_world_bytes": mem / num_worlds,
-            "rows_max": st.wm.max_rows, "linear_solver": st.linear_solver}
+            "rows_max": st.wm.max_rows, "linear_solver": st.linear_solver, "padmm": st.padmm}
 
 
 def bench_jax(name, num_worlds, args) -> dict:
@@ -191,7 +195,7 @@ def closure_run(name, config_name, args) -> dict:
     model, drive = load_scene(name)
     cfg = kamino.SolverConfig(dt=DT, **SOLVER, **CONFIGS[config_name])
     state, control, base_targets = _initial(model, name)
-    st = wb.stepper(model, cfg, np.float32, wp.get_device())
+    st = wb.stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
     wb.load_state(st, state, control)
     st.pre_step.append(_drive_hook(st, model, drive, base_targets))
     closure, iters, r_p, r_d, conv = 0.0, [], [], [], []
@@ -226,10 +230,13 @@ def main(argv=None) -> int:
     p.add_argument("--replays", type=int, default=10)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--closure-steps", type=int, default=1000)
+    p.add_argument("--tolerance", type=float, default=None, help="PADMM tolerance (default: SolverConfig's)")
     p.add_argument("--no-peers", action="store_true")
     p.add_argument("--out", type=pathlib.Path, default=None)
     p.add_argument("--plot", type=pathlib.Path, default=None, help="plot an existing JSON and exit")
     args = p.parse_args(argv)
+    if args.tolerance is not None:
+        SOLVER["tolerance"] = args.tolerance
     if args.plot:
         plot(json.loads(args.plot.read_text()), args.plot.with_suffix(""))
         return 0

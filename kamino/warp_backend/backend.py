@@ -34,14 +34,16 @@ def default_device() -> wp.context.Device:
     return wp.get_device()
 
 
-def stepper(model: Model, cfg: SolverConfig, np_dtype, device=None, *, for_jit: bool = False) -> Stepper:
+def stepper(model: Model, cfg: SolverConfig, np_dtype, device=None, *, for_jit: bool = False,
+            padmm: str | None = None) -> Stepper:
     """The cached :class:`Stepper` of ``model`` for ``cfg``, precision and device (``for_jit``: the one
-    called from inside JAX transformations, which launches without its own graph capture)."""
+    called from inside JAX transformations, which launches without its own graph capture; ``padmm``: see
+    :class:`Stepper`)."""
     dev = wp.get_device(device)
-    key = (cfg, np.dtype(np_dtype), str(dev), for_jit)
+    key = (cfg, np.dtype(np_dtype), str(dev), for_jit, padmm)
     per_model = _STEPPERS.setdefault(model, {})
     if key not in per_model:
-        per_model[key] = st = Stepper(model, cfg, np_dtype, dev)
+        per_model[key] = st = Stepper(model, cfg, np_dtype, dev, padmm=padmm)
         st.use_graph = st.use_graph and not for_jit
     return per_model[key]
 

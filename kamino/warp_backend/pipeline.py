@@ -19,6 +19,7 @@ from kamino.model import Model
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.model_data import warp_model
+from kamino.warp_backend.padmm_tile import max_tile_rows, tile_fits, tile_kernels, tile_rows
 from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.solver import solver_kernels
 from kamino.warp_backend.workspace import allocate
@@ -42,17 +43,39 @@ def resolve_linear_solver(cfg: SolverConfig, max_rows: int) -> str:
 
 
 class Stepper:
-    """Device buffers and launches for stepping ``model`` with ``cfg``."""
+    """Device buffers and launches for stepping ``model`` with ``cfg``.
 
-    def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None):
+    ``padmm``: ``"thread"`` (default) runs PADMM with one thread per world (``solver.py``, LLT or CR);
+    ``"block"`` runs the LLT solve with one thread block per world (``padmm_tile.py``), for worlds whose
+    Cholesky factor fits in shared memory (measured trade-off: docs/warp_backend.md, "One block per world").
+    """
+
+    def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None, padmm: str | None = None):
         self.device = wp.get_device(device)
         self.cfg = cfg
         self.np_dtype = np.dtype(np_dtype)
         self.wm = wm = warp_model(model, self.np_dtype, str(self.device))
         self.linear_solver = resolve_linear_solver(cfg, wm.max_rows)
         self.dense = cfg.jacobian == "dense"
+        llt = self.linear_solver == "llt"
+        padmm = "thread" if padmm is None else padmm
+        if padmm not in ("block", "thread"):
+            raise ValueError(f"padmm must be 'block' or 'thread' (got {padmm!r})")
+        if padmm == "block" and not llt:
+            raise ValueError("padmm='block' is the LLT solve; linear_solver='cr' runs with padmm='thread'")
+        if padmm == "block" and not tile_fits(wm.max_rows, self.np_dtype):
+            raise ValueError(f"padmm='block': {wm.max_rows} rows per world need a {tile_rows(wm.max_rows)}^2 "
+                             f"Cholesky factor in shared memory; the block kernel takes up to "
+                             f"{max_tile_rows(self.np_dtype)} rows in {self.np_dtype}")
+        self.padmm = padmm
         with wp.ScopedDevice(self.device):
             self.work = allocate(wm, cfg.integrator == "euler", self.dense)
+            if padmm == "block":
+                # CPU launches need cooperative blocks for one thread per row (warp.config)
+                wp.config.enable_cpu_blocks = True
+                self.tile_R = tile_rows(wm.max_rows)
+                self.tk = tile_kernels(self.np_dtype, self.tile_R)
+                self.Dt = wp.zeros((wm.num_worlds, self.tile_R, self.tile_R), dtype=self.work.D.dtype)
         self.rk = row_kernels(self.np_dtype)
         self.sk = solver_kernels(self.np_dtype)
         self.ik = integrate_kernels(self.np_dtype)
@@ -116,7 +139,10 @@ class Stepper:
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
-        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(llt), cfg.max_iterations)
+        block = self.padmm == "block"
+        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(llt and not block), cfg.max_iterations)
+        if block:
+            self._launch(self.tk[0], (W, self.tile_R), self.Dt)
         self._padmm_loop()
         self._launch(sk.padmm_finish, rows)
         if cfg.curvature_refinement and cfg.curvature_correction and (wm.max_cts or wm.max_cpl):
@@ -145,9 +171,15 @@ class Stepper:
         """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds
         still iterating when capturing a CUDA graph, else one launch running each world to its cap."""
         cfg, w = self.cfg, self.work
+        W = self.wm.num_worlds
+        if self.padmm == "block":
+            wp.launch_tiled(self.tk[1], dim=[W], inputs=[self.wm.arrays, w, self.Dt, cfg.eta, cfg.rho, cfg.tolerance,
+                                                         cfg.restart_tolerance, int(cfg.acceleration),
+                                                         int(cfg.fixed_iterations)],
+                            block_dim=self.tile_R, device=self.device)
+            return
         args = (self.wm.blocks_per_row, int(self.linear_solver == "cr"), int(cfg.cr_iterations), cfg.eta, cfg.rho,
                 cfg.tolerance, cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations))
-        W = self.wm.num_worlds
         if self.use_graph and self.device.is_capturing:
             wp.capture_while(w.remaining, lambda: self._launch(self.sk.padmm_iterate, W, self.padmm_chunk, *args))
         else:
