@@ -42,9 +42,11 @@ CONFIGS = {
 #: thread block per world, padmm_tile.py)
 PADMM = {"sparse-llt-block": "block"}
 DT = 0.0025
-#: solver settings of every kamino configuration here (docs/warp_backend.md): a penalty suited to these
-#: mechanisms' Delassus spectra, the curvature refinement for the loop closure, a cap on iterations
-SOLVER = dict(rho=0.01, curvature_refinement=True, max_iterations=100)
+#: solver settings of every kamino configuration here (docs/warp_backend.md, "Convergence on the four-bar"):
+#: the penalty of Newton's Kamino examples (0.1; 0.01 made the four-bar's unlimited steps take 5x the
+#: iterations), a float32-attainable tolerance (the residual floor is about 1e-6), the curvature refinement
+#: for the loop closure, a cap on iterations
+SOLVER = dict(rho=0.1, tolerance=1e-5, curvature_refinement=True, max_iterations=100)
 AMPLITUDE, FREQUENCY = 2.0, 1.0
 
 
