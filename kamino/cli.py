@@ -1,9 +1,13 @@
-"""``kamino`` command line: ``kamino demo`` simulates the four-bar and reports closure, energy and speed."""
+"""``kamino`` command line: ``kamino demo`` simulates the four-bar and reports closure, energy and speed;
+``kamino bench`` runs the throughput-against-error benchmark (``benchmarks/throughput.py``)."""
 
 from __future__ import annotations
 
 import argparse
+import runpy
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -42,7 +46,23 @@ def demo(seconds: float = 5.0, dt: float = 1.0 / 240.0, integrator: str = "midpo
     return out
 
 
+def bench_script() -> Path:
+    """``benchmarks/throughput.py`` of the source checkout this package runs from."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "throughput.py"
+    if not path.is_file():
+        raise SystemExit(f"kamino bench: {path} not found; it runs from a source checkout of kamino "
+                         "(pip install -e .), where benchmarks/ holds the scenes and the peers' runners")
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["bench"]:
+        # every option belongs to benchmarks/throughput.py (see `kamino bench --help`)
+        script = bench_script()
+        sys.argv = [f"kamino bench ({script})", *argv[1:]]
+        runpy.run_path(str(script), run_name="__main__")
+        return 0
     parser = argparse.ArgumentParser(prog="kamino", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     d = sub.add_parser("demo", help="simulate the four-bar linkage and report closure, energy, speed")
@@ -50,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--dt", type=float, default=1.0 / 240.0)
     d.add_argument("--integrator", choices=["euler", "midpoint"], default="midpoint")
     d.add_argument("--x64", action="store_true", help="simulate in float64")
+    sub.add_parser("bench", help="GPU throughput against error, with the peers (benchmarks/throughput.py; "
+                                 "options: kamino bench --help)")
     args = parser.parse_args(argv)
     if args.command == "demo":
         if args.x64:
