@@ -37,10 +37,12 @@ CONFIGS = {
     "sparse-llt": dict(jacobian="sparse", linear_solver="llt"),
     "sparse-cr": dict(jacobian="sparse", linear_solver="cr"),
     "sparse-llt-block": dict(jacobian="sparse", linear_solver="llt"),
+    "sparse-llt-warp": dict(jacobian="sparse", linear_solver="llt"),
+    "dense-llt-warp": dict(jacobian="dense", linear_solver="llt"),
 }
-#: PADMM kernel of a configuration (``Stepper(padmm=...)``): one thread per world unless ``"block"`` (one
-#: thread block per world, padmm_tile.py)
-PADMM = {"sparse-llt-block": "block"}
+#: PADMM kernel of a configuration (``Stepper(padmm=...)``): one thread per world unless ``"warp"`` (32 threads
+#: per world, padmm_warp.py) or ``"block"`` (one tile block per world, padmm_tile.py)
+PADMM = {"sparse-llt-block": "block", "sparse-llt-warp": "warp", "dense-llt-warp": "warp"}
 DT = 0.0025
 #: solver settings of every kamino configuration here (docs/warp_backend.md, "Convergence on the four-bar"):
 #: the penalty of Newton's Kamino examples (0.1; 0.01 made the four-bar's unlimited steps take 5x the

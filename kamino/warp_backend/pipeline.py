@@ -20,6 +20,7 @@ from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.model_data import warp_model
 from kamino.warp_backend.padmm_tile import max_tile_rows, tile_fits, tile_kernels, tile_rows
+from kamino.warp_backend.padmm_warp import LANES, warp_kernels, warp_slots
 from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.solver import solver_kernels
 from kamino.warp_backend.workspace import allocate
@@ -46,6 +47,7 @@ class Stepper:
     """Device buffers and launches for stepping ``model`` with ``cfg``.
 
     ``padmm``: ``"thread"`` (default) runs PADMM with one thread per world (``solver.py``, LLT or CR);
+    ``"warp"`` runs the LLT solve with 32 threads per world on its active rows (``padmm_warp.py``);
     ``"block"`` runs the LLT solve with one thread block per world (``padmm_tile.py``), for worlds whose
     Cholesky factor fits in shared memory (measured trade-off: docs/warp_backend.md, "One block per world").
     """
@@ -59,10 +61,10 @@ class Stepper:
         self.dense = cfg.jacobian == "dense"
         llt = self.linear_solver == "llt"
         padmm = "thread" if padmm is None else padmm
-        if padmm not in ("block", "thread"):
-            raise ValueError(f"padmm must be 'block' or 'thread' (got {padmm!r})")
-        if padmm == "block" and not llt:
-            raise ValueError("padmm='block' is the LLT solve; linear_solver='cr' runs with padmm='thread'")
+        if padmm not in ("block", "thread", "warp"):
+            raise ValueError(f"padmm must be 'thread', 'warp' or 'block' (got {padmm!r})")
+        if padmm != "thread" and not llt:
+            raise ValueError(f"padmm={padmm!r} is the LLT solve; linear_solver='cr' runs with padmm='thread'")
         if padmm == "block" and not tile_fits(wm.max_rows, self.np_dtype):
             raise ValueError(f"padmm='block': {wm.max_rows} rows per world need a {tile_rows(wm.max_rows)}^2 "
                              f"Cholesky factor in shared memory; the block kernel takes up to "
@@ -76,6 +78,14 @@ class Stepper:
                 self.tile_R = tile_rows(wm.max_rows)
                 self.tk = tile_kernels(self.np_dtype, self.tile_R)
                 self.Dt = wp.zeros((wm.num_worlds, self.tile_R, self.tile_R), dtype=self.work.D.dtype)
+            if padmm == "warp":
+                wp.config.enable_cpu_blocks = True
+                nj = warp_slots(wm.max_rows)
+                self.wk = warp_kernels(self.np_dtype, nj)
+                R, dt = LANES * nj, self.work.D.dtype
+                self.Aw = wp.zeros((wm.num_worlds, R, R), dtype=dt)
+                self.Sw = wp.zeros((wm.num_worlds, 4, R), dtype=dt)
+                self.redw = wp.zeros((wm.num_worlds, LANES), dtype=dt)
         self.rk = row_kernels(self.np_dtype)
         self.sk = solver_kernels(self.np_dtype)
         self.ik = integrate_kernels(self.np_dtype)
@@ -139,11 +149,13 @@ class Stepper:
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
-        block = self.padmm == "block"
-        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(llt and not block), cfg.max_iterations)
-        if block:
+        own = self.padmm != "thread"  # the block and warp kernels factorise themselves
+        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(llt and not own), cfg.max_iterations)
+        if self.padmm == "block":
             self._launch(self.tk[0], (W, self.tile_R), self.Dt)
-        self._padmm_loop()
+        elif self.padmm == "warp":
+            self._launch(self.wk[0], rows, self.Aw)
+        self._padmm_loop(factor=True)
         self._launch(sk.padmm_finish, rows)
         if cfg.curvature_refinement and cfg.curvature_correction and (wm.max_cts or wm.max_cpl):
             self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
@@ -152,7 +164,7 @@ class Stepper:
             self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta, mid)
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W, cfg.max_iterations)
-            self._padmm_loop()
+            self._padmm_loop(factor=False)
             self._launch(sk.padmm_finish, rows)
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
@@ -167,11 +179,19 @@ class Stepper:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
         self._graphs.clear()
 
-    def _padmm_loop(self) -> None:
+    def _padmm_loop(self, factor: bool) -> None:
         """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds
-        still iterating when capturing a CUDA graph, else one launch running each world to its cap."""
+        still iterating when capturing a CUDA graph, else one launch running each world to its cap (the
+        warp and block kernels always run each world to the end in one launch; ``factor``: the warp kernel
+        factorises first, a refinement pass reuses the factor)."""
         cfg, w = self.cfg, self.work
         W = self.wm.num_worlds
+        if self.padmm == "warp":
+            wp.launch_tiled(self.wk[1], dim=[W], inputs=[self.wm.arrays, w, self.Aw, self.Sw, self.redw, int(factor),
+                                                         cfg.eta, cfg.rho, cfg.tolerance, cfg.restart_tolerance,
+                                                         int(cfg.acceleration), int(cfg.fixed_iterations)],
+                            block_dim=LANES, device=self.device)
+            return
         if self.padmm == "block":
             wp.launch_tiled(self.tk[1], dim=[W], inputs=[self.wm.arrays, w, self.Dt, cfg.eta, cfg.rho, cfg.tolerance,
                                                          cfg.restart_tolerance, int(cfg.acceleration),
