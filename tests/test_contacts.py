@@ -9,20 +9,22 @@ import pytest
 
 import kamino
 from kamino import GeomType
+from tests.helpers import BACKENDS
 
 G = 9.81
 DT = 1.0 / 240.0
 
 
-def _run(model, steps, dtype=None, **cfg):
+def _run(variant, model, steps, dtype=None, **cfg):
     state = kamino.init_state(model, dtype)
-    return kamino.rollout(model, state, num_steps=steps, config=kamino.SolverConfig(dt=DT, **cfg))
+    return variant.rollout(model, state, num_steps=steps, config=kamino.SolverConfig(dt=DT, **cfg))
 
 
+@pytest.mark.parametrize("variant", BACKENDS)
 @pytest.mark.parametrize("integrator", ["euler", "midpoint"])
-def test_box_resting_on_a_plane(integrator):
+def test_box_resting_on_a_plane(integrator, variant):
     model = kamino.models.box_on_plane(mass=1.0, size=0.2)
-    traj = _run(model, int(5.0 / DT), integrator=integrator)
+    traj = _run(variant, model, int(5.0 / DT), integrator=integrator)
     q = np.asarray(traj.body_q)[:, 0]
     # penetration: speculative contacts keep the box on the plane to the PADMM tolerance (issue: < 1e-4 m)
     assert (0.1 - q[:, 2]).max() < 1e-4
@@ -35,12 +37,13 @@ def test_box_resting_on_a_plane(integrator):
     assert np.all(np.asarray(traj.info.converged))
 
 
+@pytest.mark.parametrize("variant", BACKENDS)
 @pytest.mark.parametrize("mu", [0.5, 0.2])
-def test_box_on_a_20_degree_incline(mu):
+def test_box_on_a_20_degree_incline(mu, variant):
     th = np.deg2rad(20.0)
     model = kamino.models.incline(20.0, mu)
     T = int(2.0 / DT)
-    traj = _run(model, T)
+    traj = _run(variant, model, T)
     downhill = np.array([np.cos(th), 0.0, -np.sin(th)])
     s = (np.asarray(traj.body_q)[:, 0, :3] - model.body_q0[0, :3]) @ downhill
     if mu * np.cos(th) >= np.sin(th):  # tan(20 deg) = 0.36 < 0.5: it sticks (issue: < 1e-5 m after 2 s)
@@ -52,21 +55,23 @@ def test_box_on_a_20_degree_incline(mu):
         assert abs(a_fit - a_exact) < 0.01 * a_exact  # issue: within 1%
 
 
-def test_sliding_box_gains_no_normal_velocity():
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_sliding_box_gains_no_normal_velocity(variant):
     # Coulomb friction without the De Saxcé correction would push the sliding box off the plane at
     # v_n = mu |v_t| = 0.6 m/s; with it the normal velocity stays at the solver's tolerance
     model = kamino.models.box_on_plane(velocity=(2.0, 0.0, 0.0), mu=0.3)
-    traj = _run(model, 100, tolerance=1e-8)  # tighter than the default so the bound tests physics
+    traj = _run(variant, model, 100, tolerance=1e-8)  # tighter than the default so the bound tests physics
     u = np.asarray(traj.body_u)[:, 0]
     assert np.abs(u[:, 2]).max() < 1e-6
     # and it decelerates at mu g while sliding: v = 2 - mu g t (semi-implicit Euler is exact here)
     assert np.allclose(u[:, 0], 2.0 - 0.3 * G * DT * np.arange(1, 101), atol=1e-6)
 
 
+@pytest.mark.parametrize("variant", BACKENDS)
 @pytest.mark.parametrize("integrator", ["euler", "midpoint"])
-def test_sphere_rebounds_to_e_squared_of_its_drop_height(integrator):
+def test_sphere_rebounds_to_e_squared_of_its_drop_height(integrator, variant):
     model = kamino.models.sphere_drop(restitution=0.5, height=1.0, radius=0.05)
-    traj = _run(model, 300, integrator=integrator)
+    traj = _run(variant, model, 300, integrator=integrator)
     z = np.asarray(traj.body_q)[:, 0, 2] - 0.05
     first = int(np.argmin(z[:150]))
     rebound = z[first:first + 150].max()
@@ -75,9 +80,10 @@ def test_sphere_rebounds_to_e_squared_of_its_drop_height(integrator):
     assert abs(rebound - 0.25) < 0.05 * 0.25
 
 
-def test_newtons_cradle_conserves_momentum_and_passes_the_impulse():
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_newtons_cradle_conserves_momentum_and_passes_the_impulse(variant):
     model = kamino.models.newtons_cradle(3, hanging=False, speed=0.5, mass=0.1)
-    traj = _run(model, 60)
+    traj = _run(variant, model, 60)
     v = np.asarray(traj.body_u)[:, :, 0]
     p = 0.1 * v.sum(axis=1)
     assert np.abs(p - 0.05).max() < 1e-6  # issue: momentum within 1e-6
@@ -86,9 +92,10 @@ def test_newtons_cradle_conserves_momentum_and_passes_the_impulse():
     assert np.allclose(v[-1], [0.0, 0.0, 0.5], atol=1e-5)
 
 
-def test_hanging_newtons_cradle_swings_the_last_ball_to_the_release_height():
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_hanging_newtons_cradle_swings_the_last_ball_to_the_release_height(variant):
     model = kamino.models.newtons_cradle(3, hanging=True)
-    traj = _run(model, 240)
+    traj = _run(variant, model, 240)
     z = np.asarray(traj.body_q)[:, :, 2]
     rest = z[0, 1]
     h0 = z[0, 0] - rest
@@ -99,29 +106,34 @@ def test_hanging_newtons_cradle_swings_the_last_ball_to_the_release_height():
     assert rise[1] < 0.01 * h0
 
 
-def test_stack_of_five_boxes_stays_put_in_float32():
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_stack_of_five_boxes_stays_put_in_float32(variant):
     model = kamino.models.box_stack(5)
-    traj = _run(model, int(10.0 / DT), dtype=np.float32, tolerance=1e-4)  # float32: tolerance of the paper's examples
+    # Warp variants: 2 s instead of 10 s, for CI time (3 x 2400 steps of ~3 ms on the CPU); same bounds
+    steps = int((2.0 if variant.is_warp else 10.0) / DT)
+    traj = _run(variant, model, steps, dtype=np.float32, tolerance=1e-4)  # float32: tolerance of the paper's examples
     q = np.asarray(traj.body_q)
     assert np.abs(q[:, :, :3] - model.body_q0[None, :, :3]).max() < 1e-3  # issue: within 1 mm for 10 s
     assert np.asarray(traj.info.contact_overflow).max() == 0
 
 
-def test_contact_overflow_is_counted_not_silent():
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_contact_overflow_is_counted_not_silent(variant):
     b = kamino.ModelBuilder()
     box = b.add_body(mass=1.0, inertia=(0.01,) * 3, pos=(0, 0, 0.1))
     b.add_geom(GeomType.BOX, box, size=(0.1, 0.1, 0.1))
     b.add_geom(GeomType.PLANE, -1)
     model = b.finalize(contact_capacity=2)  # a resting box needs 4
-    traj = _run(model, 5)
+    traj = _run(variant, model, 5)
     assert np.all(np.asarray(traj.info.num_contacts)[:, 0] == 2)
     assert np.all(np.asarray(traj.info.contact_overflow)[:, 0] == 2)
 
 
-def test_warm_start_matches_contacts_and_saves_iterations():
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_warm_start_matches_contacts_and_saves_iterations(variant):
     model = kamino.models.box_on_plane(velocity=(1.0, 0.5, 0.0), mu=0.4)
-    warm = _run(model, 40)
-    cold = _run(model, 40, warm_start=False)
+    warm = _run(variant, model, 40)
+    cold = _run(variant, model, 40, warm_start=False)
     it_w = np.asarray(warm.info.iterations)[5:].mean()
     it_c = np.asarray(cold.info.iterations)[5:].mean()
     print(f"sliding box: mean PADMM iterations warm {it_w:.1f}, cold {it_c:.1f}")
@@ -153,22 +165,24 @@ def test_collision_filtering_by_group_mask_and_joints():
     assert int(model.world_contact_capacity[0]) == 4  # one point per sphere pair
 
 
-def test_heterogeneous_contact_worlds_match_standalone_runs():
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_heterogeneous_contact_worlds_match_standalone_runs(variant):
     models = [kamino.models.box_on_plane(velocity=(1.0, 0.0, 0.0)), kamino.models.sphere_drop(0.5),
               kamino.models.fourbar()]
     mixed = kamino.concat(models)
-    traj = _run(mixed, 120)
+    traj = _run(variant, mixed, 120)
     start = 0
     for m in models:
-        alone = _run(m, 120)
+        alone = _run(variant, m, 120)
         n = m.num_bodies
         assert np.allclose(np.asarray(traj.body_q)[:, start:start + n], np.asarray(alone.body_q), atol=1e-10)
         start += n
 
 
-def test_contact_state_reports_forces_in_world_frame():
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_contact_state_reports_forces_in_world_frame(variant):
     model = kamino.models.incline(20.0, 0.5)
-    traj = _run(model, 240)
+    traj = _run(variant, model, 240)
     f = np.asarray(traj.contacts.force)[-1].sum(axis=0)
     # a sticking box: the contacts carry its weight exactly (PADMM tolerance)
     assert np.allclose(f, [0.0, 0.0, G], atol=1e-4)
@@ -177,9 +191,11 @@ def test_contact_state_reports_forces_in_world_frame():
     assert np.allclose(n, [np.sin(th), 0.0, np.cos(th)], atol=1e-9)
 
 
-def test_jit_vmap_over_worlds_with_contacts_in_float32():
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_jit_vmap_over_worlds_with_contacts_in_float32(variant):
     model = kamino.replicate(kamino.models.box_on_plane(), 8)
     state = kamino.init_state(model, np.float32)
-    out = jax.jit(lambda s: kamino.step(model, s, config=kamino.SolverConfig(tolerance=1e-4)))(state)
+    cfg = kamino.SolverConfig(tolerance=1e-4)
+    out = jax.jit(lambda s: variant.step(model, s, config=cfg))(state)  # Warp: through its FFI call
     assert out.body_q.dtype == np.float32
     assert np.all(np.asarray(out.info.num_contacts) == 4)

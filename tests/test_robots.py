@@ -19,7 +19,7 @@ from kamino.jax_ref.spatial import integrate_pose
 from kamino.kinematics import actuated_joints
 from kamino.model import ActuationMode, GeomType, JointType, count_loops
 from kamino.models import robots
-from tests.helpers import trajectory_metrics
+from tests.helpers import BACKENDS, CR_BUDGET_BUG, CR_STOP_BUG, backends, trajectory_metrics
 
 #: Table 1 of the paper: bodies, actuated joints, passive joints (without the FREE base joint), FREE
 #: base joint from the world, independent loops.
@@ -218,11 +218,18 @@ def test_feet_touch_the_ground_and_the_com_is_over_them(name):
 # standing / holding the nominal pose under implicit PD, 5 s in float32
 # ---------------------------------------------------------------------------------------
 
-def _hold(name: str):
+#: Warp variants hold for 1.5 s instead of 5 s, for CI time: a Warp step of these robots costs 30-300 ms on
+#: the CPU (one thread per world runs the whole PADMM loop). 1.5 s covers the settling on the ground and the
+#: last second at rest that ``_check_hold`` asks for.
+WARP_STAND_STEPS = round(1.5 / DT)
+
+
+def _hold(name: str, variant):
     model = _model(name)
     state = kamino.init_state(model, dtype=jnp.float32)
-    ctrl = kamino.Control(position_target=jnp.zeros((STAND_STEPS, model.num_dofs), jnp.float32))
-    traj = kamino.rollout(model, state, ctrl, config=STAND_CFG)
+    steps = WARP_STAND_STEPS if variant.is_warp else STAND_STEPS
+    ctrl = kamino.Control(position_target=jnp.zeros((steps, model.num_dofs), jnp.float32))
+    traj = variant.rollout(model, state, ctrl, config=STAND_CFG)
     assert traj.body_q.dtype == jnp.float32
     return model, state, traj
 
@@ -252,11 +259,31 @@ def _check_hold(name: str, model, state, traj) -> None:
     assert disp.max() < 0.05
 
 
-@pytest.mark.parametrize("name", FLOATING)
-def test_floating_robot_stands_for_5_s_in_float32(name):
-    _check_hold(name, *_hold(name))
+def _standing_cases() -> list:
+    """(name, variant) of every floating robot on every backend; the CR variant of bdx and dr_legs is a known
+    failure (CR_BUDGET_BUG)."""
+    cases = []
+    for name in FLOATING:
+        for p in BACKENDS:
+            v = p.values[0]
+            bug = v.is_cr and name in ("bdx", "dr_legs")
+            marks = [pytest.mark.xfail(strict=True, reason=CR_BUDGET_BUG)] if bug else []
+            cases.append(pytest.param(name, v, id=f"{name}-{v.id}", marks=marks))
+    return cases
+
+
+@pytest.mark.parametrize("name, variant", _standing_cases())
+def test_floating_robot_stands_for_5_s_in_float32(name, variant):
+    _check_hold(name, *_hold(name, variant))
 
 
 @pytest.mark.slow
-def test_animatronic_holds_its_pose_for_5_s_in_float32():
-    _check_hold("animatronic", *_hold("animatronic"))
+@pytest.mark.parametrize("variant", backends(xfail_cr=CR_STOP_BUG))
+def test_animatronic_holds_its_pose_for_5_s_in_float32(variant):
+    if variant.is_warp and variant.linear_solver == "llt":
+        # ~1000 constraint rows in one world: the per-world Cholesky (one CPU thread) costs 2 s (sparse J) and
+        # 11 s (dense J) per step here, hours for the test. This size is what linear_solver="auto" hands to CR
+        # (pipeline.AUTO_CR_ROWS = 300); the warp-sparse-cr variant runs the test, and
+        # test_cross_backend.py::test_animatronic_llt_matches_across_jacobians_for_a_step steps these two
+        pytest.skip("per-world Cholesky of ~1000 rows: 2-11 s per Warp CPU step; covered by warp-sparse-cr")
+    _check_hold("animatronic", *_hold("animatronic", variant))
