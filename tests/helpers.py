@@ -39,6 +39,8 @@ class Variant:
     backend: str
     jacobian: str = "dense"
     linear_solver: str = "llt"
+    #: CR budget per PADMM iteration (``SolverConfig.cr_iterations``); ``None``: the config's (default 9)
+    cr_iterations: int | None = None
 
     @property
     def is_warp(self) -> bool:
@@ -52,6 +54,8 @@ class Variant:
         cfg = dataclasses.replace(cfg or kamino.SolverConfig(), **changes)
         if self.is_warp:
             cfg = dataclasses.replace(cfg, jacobian=self.jacobian, linear_solver=self.linear_solver)
+        if self.is_cr and self.cr_iterations is not None:
+            cfg = dataclasses.replace(cfg, cr_iterations=self.cr_iterations)
         return cfg
 
     def step(self, model: kamino.Model, state: kamino.State, control: kamino.Control | None = None, *,
@@ -90,27 +94,9 @@ BACKENDS = [pytest.param(v, id=v.id) for v in VARIANTS]
 #: the three Warp solver configurations (cross-backend tests)
 WARP_BACKENDS = [pytest.param(v, id=v.id) for v in WARP_VARIANTS]
 
-#: Known Warp bug, strict xfail on the ``warp-sparse-cr`` variant of the tests it breaks (``backends(xfail_cr=...)``)
-CR_STOP_BUG = (
-    "kamino bug: the Conjugate Residual inner solve (warp_backend/solver.py cr_solve) stops at "
-    "|r|^2 < max(1e-16 |b|^2, eps^2), i.e. a relative residual of 1e-8 in the P-scaled system; unscaled by 1/P "
-    "that error sits at or above the PADMM tolerance, so PADMM with linear_solver='cr' stalls (four-bar: r_d "
-    "1e-6..1e-5 after 200 iterations, converged=False on 4-23% of the steps) and cannot reach a tight tolerance "
-    "(1e-11). With the stop at 1e-30 |b|^2 CR reproduces LLT's iteration counts exactly, even with the default "
-    "cr_iterations=9, and these tests pass")
-
-
-#: Known Warp limitation, strict xfail where it breaks a physics bound (robots of 100-200 rows)
-CR_BUDGET_BUG = (
-    "kamino bug: with linear_solver='cr' PADMM's convergence test ignores the inner solve's error. The default "
-    "cr_iterations=9 does not solve these 106-180-row systems (Jacobi-scaled condition ~700 at rho=0.01), yet "
-    "PADMM reports converged=True at residuals <= tolerance while the loop closure error is 10x the LLT/JAX one "
-    "(bdx 1.2e-5 vs 1.0e-6 m at step 2; dr_legs 3.4e-5 m after step 1, 200 iterations on steps 1-4). With "
-    "cr_iterations=30 CR reproduces LLT's iteration counts and the test passes")
-
-
 def backends(*, xfail_cr: str | None = None) -> list:
-    """:data:`BACKENDS`, with the ``warp-sparse-cr`` variant marked ``xfail(strict=True, reason=xfail_cr)``."""
+    """:data:`BACKENDS`, with the ``warp-sparse-cr`` variant marked ``xfail(strict=True, reason=xfail_cr)``
+    (a limitation of the Conjugate Residual path measured on that test, stated in ``xfail_cr``)."""
     out = []
     for v in VARIANTS:
         marks = [pytest.mark.xfail(strict=True, reason=xfail_cr)] if (xfail_cr and v.is_cr) else []

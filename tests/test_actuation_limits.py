@@ -7,7 +7,7 @@ import pytest
 
 import kamino
 from kamino import Actuation, JointType
-from tests.helpers import BACKENDS, CR_STOP_BUG, backends, trajectory_joint_positions, trajectory_metrics
+from tests.helpers import BACKENDS, trajectory_joint_positions, trajectory_metrics
 
 DT = 1.0 / 240.0
 
@@ -89,7 +89,7 @@ def test_effort_mode_clips_the_commanded_effort(variant):
     assert np.allclose(w, 0.5 / 0.1 * DT * np.arange(1, 25), rtol=1e-9)  # semi-implicit Euler: exact
 
 
-@pytest.mark.parametrize("variant", backends(xfail_cr=CR_STOP_BUG))
+@pytest.mark.parametrize("variant", BACKENDS)
 def test_armature_and_damping_decay_matches_backward_euler(variant):
     I, a, b, w0 = 0.1, 0.05, 0.3, 2.0
     model = _turntable(I, a, damping=b, velocity=w0)
@@ -105,7 +105,7 @@ def test_armature_and_damping_decay_matches_backward_euler(variant):
     assert np.allclose(w, w0 * np.exp(-b / (I + a) * DT * n), rtol=0.01)
 
 
-@pytest.mark.parametrize("variant", backends(xfail_cr=CR_STOP_BUG))
+@pytest.mark.parametrize("variant", BACKENDS)
 def test_passive_spring_is_an_implicit_spring(variant):
     I, k, q_s = 0.1, 4.0, 0.3
     b = kamino.ModelBuilder(gravity=(0.0, 0.0, -9.81))

@@ -15,7 +15,7 @@ import pytest
 
 import kamino
 from kamino.io import import_mjcf, load_mjcf
-from tests.helpers import BACKENDS, CR_STOP_BUG, backends, trajectory_joint_positions, trajectory_metrics
+from tests.helpers import BACKENDS, trajectory_joint_positions, trajectory_metrics
 
 mujoco = pytest.importorskip("mujoco")
 
@@ -568,7 +568,7 @@ EQUALITIES = """
 """
 
 
-@pytest.mark.parametrize("variant", backends(xfail_cr=CR_STOP_BUG))
+@pytest.mark.parametrize("variant", BACKENDS)
 def test_equalities_become_loop_joints(variant):
     imp = import_mjcf(EQUALITIES)
     m = imp.model

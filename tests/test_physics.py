@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import kamino
-from tests.helpers import BACKENDS, CR_STOP_BUG, backends, trajectory_joint_positions, trajectory_metrics
+from tests.helpers import BACKENDS, trajectory_joint_positions, trajectory_metrics
 
 
 def _period_from_crossings(t: np.ndarray, x: np.ndarray) -> float:
@@ -39,7 +39,7 @@ def test_pendulum_period_matches_physical_pendulum(variant):
     assert bool(np.all(traj.info.converged))
 
 
-@pytest.mark.parametrize("variant", backends(xfail_cr=CR_STOP_BUG))
+@pytest.mark.parametrize("variant", BACKENDS)
 @pytest.mark.parametrize("integrator, closure_bound", [("midpoint", 1e-6), ("euler", 1e-4)])
 def test_fourbar_stays_closed_and_conserves_energy(integrator, closure_bound, variant):
     model = kamino.models.fourbar()
