@@ -29,6 +29,7 @@ import warp as wp
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.padmm_rules import padmm_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
@@ -66,7 +67,8 @@ def tile_kernels(np_dtype, R: int):
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
     ix = index_funcs(np_dtype)
     ridx, didx = ix.ridx, ix.didx
-    inf = scalar(wp.inf)
+    pf = padmm_funcs(np_dtype)
+    momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     zero = scalar(0.0)
     one = scalar(1.0)
 
@@ -128,7 +130,6 @@ def tile_kernels(np_dtype, R: int):
                 hi = w.hi_s[r]
             else:
                 mu = w.mu[ridx(m, wid, c0)]
-        bounded = is_box and (wp.isfinite(lo) or wp.isfinite(hi))
         cont = active and not is_box
         shift_inv_rho = one / rho
         a_p = w.a_p[wid]
@@ -163,13 +164,8 @@ def tile_kernels(np_dtype, R: int):
             dy = P * (y - y_hat)
             dz = (z - z_hat) / P
             rc_row = zero
-            if bounded:
-                gap = inf
-                if wp.isfinite(lo):
-                    gap = wp.abs(y - lo)
-                if wp.isfinite(hi):
-                    gap = wp.min(gap, wp.abs(hi - y))
-                rc_row = wp.abs(z) * gap
+            if is_box:
+                rc_row = box_complementarity(y, z, lo, hi)
             yz = wp.tile(y * z)
             if cont and j == 0:
                 rc_row = wp.abs(wp.tile_extract(yz, c0) + wp.tile_extract(yz, c0 + 1) + wp.tile_extract(yz, c0 + 2))
@@ -180,23 +176,11 @@ def tile_kernels(np_dtype, R: int):
             k += 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             # §7.4: fast ADMM with restart
-            keep = c_sum < restart_tol * c_p
-            beta = zero
-            if accelerate == 0:
-                y_hat = y
-                z_hat = z
-            elif keep:
-                a_new = scalar(0.5) * (one + wp.sqrt(one + scalar(4.0) * a_p * a_p))
-                beta = (a_p - one) / a_new
-                a_p = a_new
-                c_p = c_sum
-                y_hat = y + beta * (y - y_p)
-                z_hat = z + beta * (z - z_p)
-            else:
-                a_p = one
-                c_p = c_p / restart_tol
-                y_hat = y_p
-                z_hat = z_p
+            mom = momentum(a_p, c_p, c_sum, restart_tol, accelerate)
+            a_p = mom[0]
+            c_p = mom[1]
+            y_hat = extrapolated(y, y_p, mom[2], int(mom[3]))
+            z_hat = extrapolated(z, z_p, mom[2], int(mom[3]))
             x_p = x
             y_p = y
             z_p = z

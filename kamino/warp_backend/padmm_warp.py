@@ -26,6 +26,7 @@ import warp as wp
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.padmm_rules import padmm_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
@@ -57,7 +58,8 @@ def warp_kernels(np_dtype, NJ: int):
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
     ix = index_funcs(np_dtype)
     ridx, didx = ix.ridx, ix.didx
-    inf = scalar(wp.inf)
+    pf = padmm_funcs(np_dtype)
+    momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     zero = scalar(0.0)
     one = scalar(1.0)
 
@@ -232,13 +234,8 @@ def warp_kernels(np_dtype, NJ: int):
                     dy = P[j] * (y[j] - y_hat[j])
                     dz = (z[j] - z_hat[j]) / P[j]
                     cs_l += rho * dy * dy + dz * dz / rho
-                    if a < n_box and (wp.isfinite(lo[j]) or wp.isfinite(hi[j])):
-                        gap = inf
-                        if wp.isfinite(lo[j]):
-                            gap = wp.abs(y[j] - lo[j])
-                        if wp.isfinite(hi[j]):
-                            gap = wp.min(gap, wp.abs(hi[j] - y[j]))
-                        rc_l = wp.max(rc_l, wp.abs(z[j]) * gap)
+                    if a < n_box:
+                        rc_l = wp.max(rc_l, box_complementarity(y[j], z[j], lo[j], hi[j]))
                     sb[a] = y[j] * z[j]
             sync()
             for j in range(NJ):
@@ -252,26 +249,14 @@ def warp_kernels(np_dtype, NJ: int):
             k += 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             # §7.4: fast ADMM with restart
-            keep = c_sum < restart_tol * c_p
-            beta = zero
-            if accelerate != 0 and keep:
-                a_new = scalar(0.5) * (one + wp.sqrt(one + scalar(4.0) * a_p * a_p))
-                beta = (a_p - one) / a_new
-                a_p = a_new
-                c_p = c_sum
-            elif accelerate != 0:
-                a_p = one
-                c_p = c_p / restart_tol
+            mom = momentum(a_p, c_p, c_sum, restart_tol, accelerate)
+            a_p = mom[0]
+            c_p = mom[1]
+            beta = mom[2]
+            mode = int(mom[3])
             for j in range(NJ):
-                if accelerate == 0:
-                    y_hat[j] = y[j]
-                    z_hat[j] = z[j]
-                elif keep:
-                    y_hat[j] = y[j] + beta * (y[j] - y_p[j])
-                    z_hat[j] = z[j] + beta * (z[j] - z_p[j])
-                else:
-                    y_hat[j] = y_p[j]
-                    z_hat[j] = z_p[j]
+                y_hat[j] = extrapolated(y[j], y_p[j], beta, mode)
+                z_hat[j] = extrapolated(z[j], z_p[j], beta, mode)
                 x_p[j] = x[j]
                 y_p[j] = y[j]
                 z_p[j] = z[j]

@@ -23,6 +23,7 @@ import warp as wp
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, model_struct
+from kamino.warp_backend.padmm_rules import padmm_funcs
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
@@ -40,10 +41,11 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
     ix = index_funcs(np_dtype)
     ridx, didx, jidx = ix.ridx, ix.didx, ix.jidx
+    pf = padmm_funcs(np_dtype)
+    momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     S = GROUP  # storage distance between consecutive rows of a world
     eps = scalar(float(np.finfo(np_dtype).eps))
     big = scalar(float(np.finfo(np_dtype).max))
-    inf = scalar(wp.inf)
 
     @wp.func
     def inv_mass_times(m: M, w: Work, b: int, J: vec6):
@@ -397,52 +399,27 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             r_c = scalar(0.0)
             for a in range(n_box):
                 r = ridx(m, wid, a)
-                lo = w.lo_s[r]
-                hi = w.hi_s[r]
-                if wp.isfinite(lo) or wp.isfinite(hi):
-                    gap = inf
-                    if wp.isfinite(lo):
-                        gap = wp.abs(w.y[r] - lo)
-                    if wp.isfinite(hi):
-                        gap = wp.min(gap, wp.abs(hi - w.y[r]))
-                    r_c = wp.max(r_c, wp.abs(w.z[r]) * gap)
+                r_c = wp.max(r_c, box_complementarity(w.y[r], w.z[r], w.lo_s[r], w.hi_s[r]))
             for c in range((n - n_box) // 3):
                 r = ridx(m, wid, n_box + 3 * c)
                 r_c = wp.max(r_c, wp.abs(w.y[r] * w.z[r] + w.y[r + S] * w.z[r + S] + w.y[r + 2 * S] * w.z[r + 2 * S]))
             k = w.iters[wid] + 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             # §7.4: Fast ADMM with restart
-            a_p = w.a_p[wid]
-            c_p = w.c_p[wid]
-            keep = c_sum < restart_tol * c_p
-            a_new = scalar(1.0)
-            beta = scalar(0.0)
-            c_new = c_p / restart_tol
-            if accelerate == 0:
-                a_new = a_p
-                c_new = c_p
-            elif keep:
-                a_new = scalar(0.5) * (scalar(1.0) + wp.sqrt(scalar(1.0) + scalar(4.0) * a_p * a_p))
-                beta = (a_p - scalar(1.0)) / a_new
-                c_new = c_sum
+            mom = momentum(w.a_p[wid], w.c_p[wid], c_sum, restart_tol, accelerate)
+            beta = mom[2]
+            mode = int(mom[3])
             for a in range(n):
                 r = ridx(m, wid, a)
                 y = w.y[r]
                 z = w.z[r]
-                if accelerate == 0:
-                    w.y_hat[r] = y
-                    w.z_hat[r] = z
-                elif keep:
-                    w.y_hat[r] = y + beta * (y - w.y_p[r])
-                    w.z_hat[r] = z + beta * (z - w.z_p[r])
-                else:
-                    w.y_hat[r] = w.y_p[r]
-                    w.z_hat[r] = w.z_p[r]
+                w.y_hat[r] = extrapolated(y, w.y_p[r], beta, mode)
+                w.z_hat[r] = extrapolated(z, w.z_p[r], beta, mode)
                 w.x_p[r] = w.x[r]
                 w.y_p[r] = y
                 w.z_p[r] = z
-            w.a_p[wid] = a_new
-            w.c_p[wid] = c_new
+            w.a_p[wid] = mom[0]
+            w.c_p[wid] = mom[1]
             w.iters[wid] = k
             w.r_p[wid] = r_p
             w.r_d[wid] = r_d

@@ -1,0 +1,60 @@
+"""The per-iteration rules of accelerated PADMM shared by the three PADMM kernels (one thread per world in
+``solver.py``, 32 threads per world in ``padmm_warp.py``, one tile block per world in ``padmm_tile.py``):
+the fast-ADMM momentum with restart (formulation.md §7.4) and a box row's complementarity residual (§7.5).
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from kamino.warp_backend.types import types_of
+
+#: what :func:`padmm_funcs` ``momentum`` asks the kernel to do with ``(y_hat, z_hat)``
+NO_ACCELERATION, EXTRAPOLATE, RESTART = 0, 1, 2
+
+
+@functools.cache
+def padmm_funcs(np_dtype) -> SimpleNamespace:
+    T = types_of(np_dtype)
+    scalar = T.scalar
+    vec4 = wp.types.vector(length=4, dtype=scalar)
+    inf = scalar(wp.inf)
+    one = scalar(1.0)
+    zero = scalar(0.0)
+
+    @wp.func
+    def momentum(a_p: scalar, c_p: scalar, c_sum: scalar, restart_tol: scalar, accelerate: int):
+        """§7.4 step 5: ``(a, c, beta, mode)`` from the previous momentum ``a_p``, the previous combined
+        residual ``c_p`` and this iteration's ``c_sum``. ``mode`` (stored as a scalar): ``NO_ACCELERATION``
+        (``hat = new``), ``EXTRAPOLATE`` (``hat = new + beta (new - prev)``, the residual dropped by ``restart_tol``) or
+        ``RESTART`` (``hat = prev``, momentum reset, ``c = c_p / restart_tol``)."""
+        if accelerate == 0:
+            return vec4(a_p, c_p, zero, scalar(NO_ACCELERATION))
+        if c_sum < restart_tol * c_p:
+            a_new = scalar(0.5) * (one + wp.sqrt(one + scalar(4.0) * a_p * a_p))
+            return vec4(a_new, c_sum, (a_p - one) / a_new, scalar(EXTRAPOLATE))
+        return vec4(one, c_p / restart_tol, zero, scalar(RESTART))
+
+    @wp.func
+    def extrapolated(new: scalar, prev: scalar, beta: scalar, mode: int):
+        """The next ``y_hat`` (or ``z_hat``) of a row after :func:`momentum`."""
+        if mode == EXTRAPOLATE:
+            return new + beta * (new - prev)
+        if mode == RESTART:
+            return prev
+        return new
+
+    @wp.func
+    def box_complementarity(y: scalar, z: scalar, lo: scalar, hi: scalar):
+        """``|z| * distance of y to its nearest finite bound`` (0 for an unbounded row), §7.5."""
+        if not (wp.isfinite(lo) or wp.isfinite(hi)):
+            return scalar(0.0)
+        gap = inf
+        if wp.isfinite(lo):
+            gap = wp.abs(y - lo)
+        if wp.isfinite(hi):
+            gap = wp.min(gap, wp.abs(hi - y))
+        return wp.abs(z) * gap
+
+    return SimpleNamespace(momentum=momentum, extrapolated=extrapolated, box_complementarity=box_complementarity)
