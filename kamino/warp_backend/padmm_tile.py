@@ -69,6 +69,7 @@ def tile_kernels(np_dtype, R: int):
     ridx, didx = ix.ridx, ix.didx
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
+    store_row, store_world = pf.store_row, pf.store_world
     zero = scalar(0.0)
     one = scalar(1.0)
 
@@ -187,23 +188,8 @@ def tile_kernels(np_dtype, R: int):
             if converged and fixed == 0:
                 break
         if active:
-            w.x[r] = x
-            w.y[r] = y
-            w.z[r] = z
-            w.x_p[r] = x_p
-            w.y_p[r] = y_p
-            w.z_p[r] = z_p
-            w.y_hat[r] = y_hat
-            w.z_hat[r] = z_hat
+            store_row(w, r, x, y, z, x_p, y_p, z_p, y_hat, z_hat)
         if a == 0:
-            w.a_p[wid] = a_p
-            w.c_p[wid] = c_p
-            w.iters[wid] = k
-            w.r_p[wid] = r_p
-            w.r_d[wid] = r_d
-            w.r_c[wid] = r_c
-            w.converged[wid] = int(converged)
-            w.done[wid] = 1
-            wp.atomic_sub(w.remaining, 0, 1)
+            store_world(w, wid, a_p, c_p, k, r_p, r_d, r_c, converged)
 
     return to_tile, padmm_tile

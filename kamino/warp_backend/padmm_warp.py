@@ -60,6 +60,7 @@ def warp_kernels(np_dtype, NJ: int):
     ridx, didx = ix.ridx, ix.didx
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
+    store_row, store_world = pf.store_row, pf.store_world
     zero = scalar(0.0)
     one = scalar(1.0)
 
@@ -265,24 +266,8 @@ def warp_kernels(np_dtype, NJ: int):
         for j in range(NJ):
             a = lane + LANES * j
             if a < n:
-                r = ridx(m, wid, a)
-                w.x[r] = x[j]
-                w.y[r] = y[j]
-                w.z[r] = z[j]
-                w.x_p[r] = x_p[j]
-                w.y_p[r] = y_p[j]
-                w.z_p[r] = z_p[j]
-                w.y_hat[r] = y_hat[j]
-                w.z_hat[r] = z_hat[j]
+                store_row(w, ridx(m, wid, a), x[j], y[j], z[j], x_p[j], y_p[j], z_p[j], y_hat[j], z_hat[j])
         if lane == 0:
-            w.a_p[wid] = a_p
-            w.c_p[wid] = c_p
-            w.iters[wid] = k
-            w.r_p[wid] = r_p
-            w.r_d[wid] = r_d
-            w.r_c[wid] = r_c
-            w.converged[wid] = int(converged)
-            w.done[wid] = 1
-            wp.atomic_sub(w.remaining, 0, 1)
+            store_world(w, wid, a_p, c_p, k, r_p, r_d, r_c, converged)
 
     return to_dense, padmm_warp
