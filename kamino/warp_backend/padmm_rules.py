@@ -1,6 +1,7 @@
 """The per-iteration rules of accelerated PADMM shared by the three PADMM kernels (one thread per world in
 ``solver.py``, 32 threads per world in ``padmm_warp.py``, one tile block per world in ``padmm_tile.py``):
-the fast-ADMM momentum with restart (formulation.md §7.4), a box row's complementarity residual (§7.5), and
+the dual update and a row's residuals (formulation.md §7.3-§7.5), the fast-ADMM momentum with restart
+(§7.4), a box row's complementarity residual (§7.5), and
 the write-back of a solve's iterates (for the two cooperative kernels, which keep them in registers).
 """
 
@@ -49,6 +50,17 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
         return new
 
     @wp.func
+    def dual_update(x: scalar, y: scalar, x_p: scalar, y_hat: scalar, z_hat: scalar, P: scalar, eta: scalar,
+                    rho: scalar):
+        """§7.3 step 4 and the row's share of the §7.5/§7.4 residuals (unscaled units):
+        ``(z, |P (x - y)|, |(eta (x - x_p) + rho (y - y_hat)) / P|, rho |P dy|^2 + |dz / P|^2 / rho)``."""
+        z = z_hat + rho * (y - x)
+        dy = P * (y - y_hat)
+        dz = (z - z_hat) / P
+        return vec4(z, wp.abs(P * (x - y)), wp.abs((eta * (x - x_p) + rho * (y - y_hat)) / P),
+                    rho * dy * dy + dz * dz / rho)
+
+    @wp.func
     def box_complementarity(y: scalar, z: scalar, lo: scalar, hi: scalar):
         """``|z| * distance of y to its nearest finite bound`` (0 for an unbounded row), §7.5."""
         if not (wp.isfinite(lo) or wp.isfinite(hi)):
@@ -87,5 +99,6 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
         w.done[wid] = 1
         wp.atomic_sub(w.remaining, 0, 1)
 
-    return SimpleNamespace(momentum=momentum, extrapolated=extrapolated, box_complementarity=box_complementarity,
+    return SimpleNamespace(momentum=momentum, extrapolated=extrapolated, dual_update=dual_update,
+                           box_complementarity=box_complementarity,
                            store_row=store_row, store_world=store_world)

@@ -69,7 +69,7 @@ def tile_kernels(np_dtype, R: int):
     ridx, didx = ix.ridx, ix.didx
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
-    store_row, store_world = pf.store_row, pf.store_world
+    store_row, store_world, dual_update = pf.store_row, pf.store_world, pf.dual_update
     zero = scalar(0.0)
     one = scalar(1.0)
 
@@ -161,19 +161,18 @@ def tile_kernels(np_dtype, R: int):
             else:
                 y = wp.clamp(v, lo, hi)
             # step 4: dual update and the residuals of §7.5 (unscaled units)
-            z = z_hat + rho * (y - x)
-            dy = P * (y - y_hat)
-            dz = (z - z_hat) / P
+            du = dual_update(x, y, x_p, y_hat, z_hat, P, eta, rho)
+            z = du[0]
             rc_row = zero
             if is_box:
                 rc_row = box_complementarity(y, z, lo, hi)
             yz = wp.tile(y * z)
             if cont and j == 0:
                 rc_row = wp.abs(wp.tile_extract(yz, c0) + wp.tile_extract(yz, c0 + 1) + wp.tile_extract(yz, c0 + 2))
-            r_p = wp.tile_extract(wp.tile_max(wp.tile(wp.abs(P * (x - y)))), 0)
-            r_d = wp.tile_extract(wp.tile_max(wp.tile(wp.abs((eta * (x - x_p) + rho * (y - y_hat)) / P))), 0)
+            r_p = wp.tile_extract(wp.tile_max(wp.tile(du[1])), 0)
+            r_d = wp.tile_extract(wp.tile_max(wp.tile(du[2])), 0)
             r_c = wp.tile_extract(wp.tile_max(wp.tile(rc_row)), 0)
-            c_sum = wp.tile_extract(wp.tile_sum(wp.tile(rho * dy * dy + dz * dz / rho)), 0)
+            c_sum = wp.tile_extract(wp.tile_sum(wp.tile(du[3])), 0)
             k += 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             # §7.4: fast ADMM with restart

@@ -60,7 +60,7 @@ def warp_kernels(np_dtype, NJ: int):
     ridx, didx = ix.ridx, ix.didx
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
-    store_row, store_world = pf.store_row, pf.store_world
+    store_row, store_world, dual_update = pf.store_row, pf.store_world, pf.dual_update
     zero = scalar(0.0)
     one = scalar(1.0)
 
@@ -229,12 +229,11 @@ def warp_kernels(np_dtype, NJ: int):
                         p = cone_project(sv[c0], sv[c0 + 1], sv[c0 + 2], mu[j])
                         y[j] = p[a - c0]
                     # step 4: dual update and the residuals of §7.5 (unscaled units)
-                    z[j] = z_hat[j] + rho * (y[j] - x[j])
-                    rp_l = wp.max(rp_l, wp.abs(P[j] * (x[j] - y[j])))
-                    rd_l = wp.max(rd_l, wp.abs((eta * (x[j] - x_p[j]) + rho * (y[j] - y_hat[j])) / P[j]))
-                    dy = P[j] * (y[j] - y_hat[j])
-                    dz = (z[j] - z_hat[j]) / P[j]
-                    cs_l += rho * dy * dy + dz * dz / rho
+                    du = dual_update(x[j], y[j], x_p[j], y_hat[j], z_hat[j], P[j], eta, rho)
+                    z[j] = du[0]
+                    rp_l = wp.max(rp_l, du[1])
+                    rd_l = wp.max(rd_l, du[2])
+                    cs_l += du[3]
                     if a < n_box:
                         rc_l = wp.max(rc_l, box_complementarity(y[j], z[j], lo[j], hi[j]))
                     sb[a] = y[j] * z[j]

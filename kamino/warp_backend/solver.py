@@ -43,6 +43,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     ridx, didx, jidx = ix.ridx, ix.didx, ix.jidx
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
+    dual_update = pf.dual_update
     S = GROUP  # storage distance between consecutive rows of a world
     eps = scalar(float(np.finfo(np_dtype).eps))
     big = scalar(float(np.finfo(np_dtype).max))
@@ -382,13 +383,11 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             for a in range(n):
                 r = ridx(m, wid, a)
                 Pa = w.P[r]
-                z = w.z_hat[r] + rho * (w.y[r] - w.x[r])
-                w.z[r] = z
-                r_p = wp.max(r_p, wp.abs(Pa * (w.x[r] - w.y[r])))
-                r_d = wp.max(r_d, wp.abs((eta * (w.x[r] - w.x_p[r]) + rho * (w.y[r] - w.y_hat[r])) / Pa))
-                dy = Pa * (w.y[r] - w.y_hat[r])
-                dz = (z - w.z_hat[r]) / Pa
-                c_sum += rho * dy * dy + dz * dz / rho
+                du = dual_update(w.x[r], w.y[r], w.x_p[r], w.y_hat[r], w.z_hat[r], Pa, eta, rho)
+                w.z[r] = du[0]
+                r_p = wp.max(r_p, du[1])
+                r_d = wp.max(r_d, du[2])
+                c_sum += du[3]
             # complementarity (scaling-invariant)
             if use_cr != 0:
                 # the inner solve's residual b - A x, unscaled as the dual residual (a velocity, / P): an
