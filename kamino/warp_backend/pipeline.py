@@ -16,13 +16,14 @@ import warp as wp
 
 from kamino.config import SolverConfig
 from kamino.model import Model
+from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.model_data import warp_model
 from kamino.warp_backend.padmm_tile import max_tile_rows, tile_fits, tile_kernels, tile_rows
 from kamino.warp_backend.padmm_warp import LANES, warp_kernels, warp_slots
 from kamino.warp_backend.rows import row_kernels
-from kamino.warp_backend.solver import solver_kernels
+from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, solver_kernels
 from kamino.warp_backend.workspace import allocate
 
 #: linear_solver="auto" takes the Conjugate Residual path above this many constraint rows per world:
@@ -71,8 +72,14 @@ class Stepper:
                              f"Cholesky factor in shared memory; the block kernel takes up to "
                              f"{max_tile_rows(self.np_dtype)} rows in {self.np_dtype}")
         self.padmm = padmm
+        #: the LLT solve with block-sparse rows and one thread per world factorises sparsely (sparse_llt.py)
+        self.sparse_factor = llt and not self.dense and padmm == "thread"
         with wp.ScopedDevice(self.device):
-            self.work = allocate(wm, cfg.integrator == "euler", self.dense)
+            self.work = allocate(wm, cfg.integrator == "euler", self.dense, llt and not self.sparse_factor)
+            if self.sparse_factor:
+                self.sf = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy())
+                self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
+            self.sp = self.sf.arrays if self.sparse_factor else sparse_llt.empty(self.np_dtype, self.device)
             if padmm == "block":
                 # CPU launches need cooperative blocks for one thread per row (warp.config)
                 wp.config.enable_cpu_blocks = True
@@ -139,19 +146,24 @@ class Stepper:
         # dynamics: pre-baked blocks, v_f, Delassus (dense path) and preconditioning (§7.2, §8)
         rows = (W, wm.max_rows)
         self._launch(sk.prebake, rows, nblk, int(self.dense))
-        llt = self.linear_solver == "llt"
-        if llt:
+        assembled = self.linear_solver == "llt" and not self.sparse_factor  # the dense Delassus matrix
+        if assembled:
             if self.dense:
                 self._launch(sk.delassus_dense, rows)
             else:
                 self._launch(sk.delassus_sparse, rows, nblk)
-        self._launch(sk.precondition, rows, nblk, int(llt), int(cfg.preconditioning))
-        self._launch(sk.scale, rows, cfg.eta + cfg.rho, int(llt))
+        self._launch(sk.precondition, rows, nblk, int(assembled), int(cfg.preconditioning))
+        self._launch(sk.scale, rows, cfg.eta + cfg.rho, int(assembled))
+        if self.sparse_factor:
+            self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz), self.sp, nblk, cfg.eta + cfg.rho)
+            self._launch(self.spk.assemble_tail, rows, self.sp, nblk, cfg.eta + cfg.rho)
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
         own = self.padmm != "thread"  # the block and warp kernels factorise themselves
-        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(llt and not own), cfg.max_iterations)
+        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled and not own), cfg.max_iterations)
+        if self.sparse_factor:
+            self._launch(self.spk.factor, W, self.sp)
         if self.padmm == "block":
             self._launch(self.tk[0], (W, self.tile_R), self.Dt)
         elif self.padmm == "warp":
@@ -199,12 +211,14 @@ class Stepper:
                                                          int(cfg.fixed_iterations)],
                             block_dim=self.tile_R, device=self.device)
             return
-        args = (self.wm.blocks_per_row, int(self.linear_solver == "cr"), int(cfg.cr_iterations), cfg.eta, cfg.rho,
+        linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else LINEAR_DENSE
+        args = (self.wm.blocks_per_row, linear, int(cfg.cr_iterations), cfg.eta, cfg.rho,
                 cfg.tolerance, cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations))
         if self.use_graph and self.device.is_capturing:
-            wp.capture_while(w.remaining, lambda: self._launch(self.sk.padmm_iterate, W, self.padmm_chunk, *args))
+            wp.capture_while(w.remaining,
+                             lambda: self._launch(self.sk.padmm_iterate, W, self.sp, self.padmm_chunk, *args))
         else:
-            self._launch(self.sk.padmm_iterate, W, 2 * self.cfg.max_iterations, *args)
+            self._launch(self.sk.padmm_iterate, W, self.sp, 2 * self.cfg.max_iterations, *args)
 
     def run(self, num_steps: int) -> None:
         """Advance ``num_steps`` steps in place (replaying a captured graph on CUDA)."""

@@ -24,9 +24,13 @@ from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, model_struct
 from kamino.warp_backend.padmm_rules import padmm_funcs
+from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
+
+#: ``padmm_iterate``'s linear solve: the dense Cholesky factor, Conjugate Residual, the sparse factor
+LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE = 0, 1, 2
 
 
 @functools.cache
@@ -44,6 +48,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     dual_update = pf.dual_update
+    SP = pattern_struct(np_dtype)
+    sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
     S = GROUP  # storage distance between consecutive rows of a world
     eps = scalar(float(np.finfo(np_dtype).eps))
     big = scalar(float(np.finfo(np_dtype).max))
@@ -350,11 +356,12 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 w.cr_Ap[r] = w.cr_Ar[r] + beta * w.cr_Ap[r]
 
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_iterate(m: M, w: Work, chunk: int, nblk: int, use_cr: int, cr_budget: int,
+    def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, nblk: int, linear: int, cr_budget: int,
                       eta: scalar, rho: scalar, tol: scalar, restart_tol: scalar, accelerate: int, fixed: int):
         """Up to ``chunk`` accelerated PADMM iterations of one world (§7.3-§7.5; ``padmm.solve`` of the JAX
         reference), resuming from the stored iterate; a world that converges (unless ``fixed``) or reaches its
-        iteration cap ``it_cap`` is marked done and leaves ``remaining``."""
+        iteration cap ``it_cap`` is marked done and leaves ``remaining``. ``linear``: ``LINEAR_DENSE``,
+        ``LINEAR_CR`` or ``LINEAR_SPARSE`` (``sparse_llt.py``)."""
         wid = wp.tid()
         if w.done[wid] != 0:
             return
@@ -369,12 +376,15 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             for c in range((n - n_box) // 3):
                 r = ridx(m, wid, n_box + 3 * c)
                 w.y[r + 2 * S] -= de_saxce(w.z_hat[r], w.z_hat[r + S], w.mu[r])
-            if use_cr != 0:
+            if linear == LINEAR_CR:
                 cr_solve(m, w, wid, n, nblk, shift, cr_budget)
             else:
                 for a in range(n):
                     w.x[ridx(m, wid, a)] = w.y[ridx(m, wid, a)]
-                cho_solve_inplace(m, w, wid, n)
+                if linear == LINEAR_SPARSE:
+                    sparse_solve(m, w, sp, wid, n)
+                else:
+                    cho_solve_inplace(m, w, wid, n)
             # steps 3-4: projection and dual update
             project_into(m, w, wid, n_box, n, w.x, w.z_hat, scalar(1.0) / rho, w.y)
             r_p = scalar(0.0)
@@ -389,7 +399,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 r_d = wp.max(r_d, du[2])
                 c_sum += du[3]
             # complementarity (scaling-invariant)
-            if use_cr != 0:
+            if linear == LINEAR_CR:
                 # the inner solve's residual b - A x, unscaled as the dual residual (a velocity, / P): an
                 # inexact solve (a small cr_iterations budget) must not let the world report convergence
                 for a in range(n):

@@ -142,8 +142,9 @@ def work_struct(np_dtype):
     return Work
 
 
-def allocate(wm: WarpModel, euler: bool, dense: bool):
-    """A zero-initialised :func:`work_struct` for ``wm`` (``q_eval`` aliases ``q`` for Euler)."""
+def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True):
+    """A zero-initialised :func:`work_struct` for ``wm`` (``q_eval`` aliases ``q`` for Euler); ``dense``: the
+    dense per-world Jacobian, ``delassus``: the dense Delassus matrix (not needed by CR or the sparse factor)."""
     T = types_of(wm.np_dtype)
     m = wm.model
     dev = wm.device
@@ -171,7 +172,7 @@ def allocate(wm: WarpModel, euler: bool, dense: bool):
         "row_body": (R * nblk, wp.int32), "row_J": (R * nblk, T.vec6), "row_MJ": (R * nblk, T.vec6),
         "row_type": (R, wp.int32), "row_src": (R, wp.int32), "row_side": (R, T.scalar),
         "Jd": (wm.total_jd if dense else 0, T.scalar), "MJd": (wm.total_jd if dense else 0, T.scalar),
-        "D": (wm.total_mat, T.scalar),
+        "D": (wm.total_mat if delassus else 0, T.scalar),
         "cr_w": (B, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
     }
     for name in ("vstar", "reg", "lo", "hi", "mu", "f0", "v0", "vf", "P", "vt", "lo_s", "hi_s", "x", "y", "z", "x_p",

@@ -1,0 +1,411 @@
+"""Sparse Cholesky of the scaled Delassus matrix (formulation.md §8.1) with a static pattern.
+
+The always-active rows of a world (joint-dynamics, joint and coupling rows: the first ``n_fixed``) touch
+fixed pairs of bodies, so the sparsity of ``D~ = P J M^-1 J^T P + (eta + rho) I`` on them is known when the
+model is built: rows ``a`` and ``b`` couple only when they share a moving body. The host orders those rows
+by minimum degree (fewest fill-ins first; a tree is factorised without fill, a ladder of loops with a
+little), computes the pattern of the factor ``L`` and, for every entry, the list of products its update
+needs (``L_pq = (D~_pq - sum_r L_pr L_qr) / L_qq``, ``r`` over the columns the rows ``p`` and ``q``
+share). On the device, a world's thread factorises by walking that list — no searches, no branches on
+values — and the PADMM iterations solve with the sparse factor.
+
+The rows that change from step to step (active limits, contacts; their bodies are only known at run
+time) form a dense *tail*: ``L = [[L_f, 0], [L_tf, L_t]]`` with ``L_tf = D~_tf L_f^-T`` (sparse forward
+substitutions) and ``L_t = chol(D~_t - L_tf L_tf^T)``. The tail rows of a world are stored as full rows
+(fixed-row positions, then tail columns), interleaved over groups of 32 worlds like the other row data.
+
+Measured on ladder8 (144 fixed rows): 1688 factor entries instead of 10440 for the dense factor, 18k
+multiply-adds to factorise instead of 498k (docs/warp_backend.md, "Sparse factor").
+"""
+
+import dataclasses
+import functools
+from types import SimpleNamespace
+
+import numpy as np
+import warp as wp
+
+from kamino.model import Model
+from kamino.tables import prefix, row_tables
+from kamino.warp_backend.indexing import index_funcs
+from kamino.warp_backend.model_data import GROUP, group_sizes, model_struct
+from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import work_struct
+
+# --- host: symbolic analysis ---------------------------------------------------------------------------
+
+def fixed_row_bodies(model: Model) -> list[np.ndarray]:
+    """Per world, the moving bodies (world-local indices, ``-1`` padding) of each always-active row, in row
+    order: joint-dynamics rows, joint rows, coupling rows (``kamino/warp_backend/rows.py``). Shape
+    ``[n_fixed, 4]`` per world."""
+    tab = row_tables(model)
+    jp, jc = np.asarray(model.joint_parent), np.asarray(model.joint_child)
+
+    def joint_bodies(j: np.ndarray) -> np.ndarray:
+        return np.stack([jp[j], jc[j]], axis=-1)
+
+    dyn = joint_bodies(tab.dof_joint[tab.dyn_dof]) if len(tab.dyn_dof) else np.zeros((0, 2), np.int64)
+    cts = joint_bodies(tab.cts_joint) if len(tab.cts_joint) else np.zeros((0, 2), np.int64)
+    if len(tab.cpl_dof_a):
+        ja = tab.dof_joint[tab.cpl_dof_a]
+        jb = np.where(tab.cpl_dof_b >= 0, tab.dof_joint[np.maximum(tab.cpl_dof_b, 0)], -1)
+        cpl = np.concatenate([joint_bodies(ja), np.where(jb[:, None] >= 0, joint_bodies(np.maximum(jb, 0)), -1)],
+                             axis=1)
+    else:
+        cpl = np.zeros((0, 4), np.int64)
+    pad = lambda a: np.concatenate([a, -np.ones((len(a), 4 - a.shape[1]), np.int64)], axis=1)  # noqa: E731
+    dyn, cts = pad(dyn), pad(cts)
+    dyn_start = prefix(tab.world_dyn_count)
+    out = []
+    for w in range(model.num_worlds):
+        b0 = int(model.world_body_start[w])
+        s, c = int(model.world_cts_start[w]), int(model.world_cts_count[w])
+        k0, k1 = int(model.world_coupling_start[w]), int(model.world_coupling_count[w])
+        d0, d1 = int(dyn_start[w]), int(tab.world_dyn_count[w])
+        rows = np.concatenate([dyn[d0:d0 + d1], cts[s:s + c], cpl[k0:k0 + k1]])
+        out.append(np.where(rows >= 0, rows - b0, -1).astype(np.int64))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Symbolic:
+    """The factor pattern of one world type (positions ``p`` = rows in elimination order)."""
+
+    perm: np.ndarray  # [n] row of position p
+    row_ptr: np.ndarray  # [n + 1] entries of factor row p (columns ascending, the diagonal last)
+    col: np.ndarray  # [nnz] column position of each entry
+    row: np.ndarray  # [nnz] row position of each entry
+    div: np.ndarray  # [nnz] entry holding L_qq for entry (p, q) (itself on the diagonal)
+    upd_ptr: np.ndarray  # [nnz + 1] update pairs of each entry
+    upd_a: np.ndarray  # [n_upd] entry L_pr
+    upd_b: np.ndarray  # [n_upd] entry L_qr
+
+    @property
+    def nnz(self) -> int:
+        return len(self.col)
+
+
+def symbolic(bodies: np.ndarray) -> Symbolic:
+    """Minimum-degree ordering and the factor pattern of rows coupled through shared bodies (``bodies``:
+    ``[n, k]`` moving bodies per row, ``-1`` padding)."""
+    n = len(bodies)
+    adj: list[set[int]] = [set() for _ in range(n)]
+    by_body: dict[int, list[int]] = {}
+    for a in range(n):
+        for b in set(int(x) for x in bodies[a] if x >= 0):
+            by_body.setdefault(b, []).append(a)
+    for rows in by_body.values():
+        for a in rows:
+            adj[a].update(rows)
+    for a in range(n):
+        adj[a].discard(a)
+    alive = set(range(n))
+    order: list[int] = []
+    below: list[set[int]] = []  # rows (original) below the diagonal in the eliminated column
+    while alive:
+        v = min(alive, key=lambda a: (len(adj[a]), a))
+        nb = set(adj[v])
+        order.append(v)
+        below.append(nb)
+        for a in nb:
+            adj[a] |= nb
+            adj[a].discard(a)
+            adj[a].discard(v)
+        alive.discard(v)
+    pos = np.empty(n, np.int64)
+    pos[np.asarray(order, np.int64)] = np.arange(n)
+    cols: list[list[int]] = [[] for _ in range(n)]
+    for j, nb in enumerate(below):
+        for a in nb:
+            cols[int(pos[a])].append(j)
+    row_ptr, col, row = [0], [], []
+    for p in range(n):
+        cs = [*sorted(cols[p]), p]
+        col += cs
+        row += [p] * len(cs)
+        row_ptr.append(len(col))
+    index = {(r, c): k for k, (r, c) in enumerate(zip(row, col, strict=True))}
+    diag = [row_ptr[p + 1] - 1 for p in range(n)]
+    div, upd_ptr, upd_a, upd_b = [], [0], [], []
+    for k, (p, q) in enumerate(zip(row, col, strict=True)):
+        div.append(diag[q])
+        shared = set(col[row_ptr[q]:row_ptr[q + 1] - 1]) if q != p else None
+        for kk in range(row_ptr[p], row_ptr[p + 1] - 1):
+            r = col[kk]
+            if r >= q:
+                break
+            if q == p:
+                upd_a.append(kk)
+                upd_b.append(kk)
+            elif r in shared:
+                upd_a.append(kk)
+                upd_b.append(index[(q, r)])
+        upd_ptr.append(len(upd_a))
+    i64 = lambda a: np.asarray(a, np.int64)  # noqa: E731
+    return Symbolic(perm=i64(order), row_ptr=i64(row_ptr), col=i64(col), row=i64(row), div=i64(div),
+                    upd_ptr=i64(upd_ptr), upd_a=i64(upd_a), upd_b=i64(upd_b))
+
+
+@functools.cache
+def pattern_struct(np_dtype):
+    """The Warp struct of the factor patterns (shared by worlds of one type) and the factor's values."""
+    scalar = types_of(np_dtype).scalar
+    iarr = wp.array(dtype=wp.int32)
+
+    @wp.struct
+    class Pattern:
+        # per world: where its type's pattern starts in the arrays below
+        perm_start: iarr  # into perm and row_ptr (row_ptr has one more per type: at perm_start + type index)
+        ptr_start: iarr
+        ent_start: iarr  # into col, row, div, upd_ptr
+        nnz: iarr
+        n_fixed: iarr
+        perm: iarr
+        row_ptr: iarr  # world-type-local entry indices
+        col: iarr
+        row: iarr
+        div: iarr
+        upd_ptr: iarr  # [2 nnz]: (start, end) of each entry's update pairs in upd_a / upd_b
+        upd_a: iarr  # world-type-local entry indices
+        upd_b: iarr
+        # per group of 32 worlds: interleaved value storage
+        grp_val_start: iarr
+        grp_tail_start: iarr
+        val: wp.array(dtype=scalar)  # the fixed rows' factor
+        tail: wp.array(dtype=scalar)  # the tail rows (fixed positions, then tail columns)
+
+    return Pattern
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SparseFactor:
+    """A model's factor patterns and value storage on one device."""
+
+    arrays: object  # Pattern
+    max_nnz: int
+    max_tail: int
+    nnz_total: int  # factor entries summed over worlds (fixed rows)
+
+
+def build(model: Model, np_dtype, device, row_maxdim: np.ndarray) -> SparseFactor:
+    """Symbolic analysis of every world type of ``model`` and the device storage of the factors."""
+    W = model.num_worlds
+    types: dict[bytes, int] = {}
+    syms: list[Symbolic] = []
+    world_type = np.empty(W, np.int64)
+    for w, rows in enumerate(fixed_row_bodies(model)):
+        key = rows.tobytes() + bytes(str(rows.shape), "ascii")
+        if key not in types:
+            types[key] = len(syms)
+            syms.append(symbolic(rows))
+        world_type[w] = types[key]
+    n_t = np.array([len(s.perm) for s in syms], np.int64)
+    nnz_t = np.array([s.nnz for s in syms], np.int64)
+    upd_t = np.array([len(s.upd_a) for s in syms], np.int64)
+    perm_t, ptr_t, ent_t, upd0_t = prefix(n_t), prefix(n_t + 1), prefix(nnz_t), prefix(upd_t)
+    cat = lambda f: np.concatenate([f(s) for s in syms]) if syms else np.zeros(0, np.int64)  # noqa: E731
+    n_fixed = n_t[world_type]
+    nnz = nnz_t[world_type]
+    tail_rows = np.asarray(row_maxdim, np.int64) - n_fixed
+    g_nnz, g_tail = group_sizes(nnz), group_sizes(tail_rows)
+    g_dim = group_sizes(np.asarray(row_maxdim, np.int64))
+    S = pattern_struct(np.dtype(np_dtype))()
+
+    def i32(a):
+        return wp.array(np.asarray(a, np.int32).reshape(-1), dtype=wp.int32, device=device)
+
+    S.perm_start, S.ptr_start, S.ent_start = i32(perm_t[world_type]), i32(ptr_t[world_type]), i32(ent_t[world_type])
+    S.nnz, S.n_fixed = i32(nnz), i32(n_fixed)
+    S.perm, S.row_ptr, S.col, S.row, S.div = (i32(cat(lambda s, f=f: getattr(s, f)))
+                                              for f in ("perm", "row_ptr", "col", "row", "div"))
+    # (start, end) of each entry's update pairs, as global indices into upd_a / upd_b
+    S.upd_ptr = i32(np.concatenate([np.stack([s.upd_ptr[:-1], s.upd_ptr[1:]], axis=1) + o
+                                    for s, o in zip(syms, upd0_t, strict=True)]) if syms else [])
+    S.upd_a, S.upd_b = i32(cat(lambda s: s.upd_a)), i32(cat(lambda s: s.upd_b))
+    S.grp_val_start = i32(prefix(GROUP * g_nnz))
+    S.grp_tail_start = i32(prefix(GROUP * g_tail * g_dim))
+    scalar = types_of(np.dtype(np_dtype)).scalar
+    S.val = wp.zeros(int(GROUP * g_nnz.sum()), dtype=scalar, device=device)
+    S.tail = wp.zeros(int(GROUP * (g_tail * g_dim).sum()), dtype=scalar, device=device)
+    mx = lambda a: int(a.max()) if len(a) else 0  # noqa: E731
+    return SparseFactor(arrays=S, max_nnz=mx(nnz), max_tail=mx(tail_rows), nnz_total=int(nnz.sum()))
+
+
+def empty(np_dtype, device) -> object:
+    """A pattern struct with no worlds (the argument of kernels that take the dense or CR path)."""
+    S = pattern_struct(np.dtype(np_dtype))()
+    scalar = types_of(np.dtype(np_dtype)).scalar
+    for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "perm", "row_ptr", "col", "row", "div",
+                 "upd_ptr", "upd_a", "upd_b", "grp_val_start", "grp_tail_start"):
+        setattr(S, name, wp.zeros(0, dtype=wp.int32, device=device))
+    S.val = wp.zeros(0, dtype=scalar, device=device)
+    S.tail = wp.zeros(0, dtype=scalar, device=device)
+    return S
+
+
+# --- device: assembly, factorisation, solve ---------------------------------------------------------------
+
+@functools.cache
+def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
+    T = types_of(np_dtype)
+    scalar = T.scalar
+    M = model_struct(np_dtype)
+    Work = work_struct(np_dtype)
+    SP = pattern_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx = ix.ridx
+
+    @wp.func
+    def vidx(m: M, sp: SP, wid: int, k: int):
+        """Storage index of factor entry ``k`` (world-type-local) of world ``wid``."""
+        g = wid // GROUP
+        return sp.grp_val_start[g] + k * GROUP + (wid - g * GROUP)
+
+    @wp.func
+    def tidx(m: M, sp: SP, wid: int, t: int, c: int):
+        """Storage index of column ``c`` (fixed position, or tail row index) of tail row ``t``."""
+        g = wid // GROUP
+        return sp.grp_tail_start[g] + (t * m.grp_maxdim[g] + c) * GROUP + (wid - g * GROUP)
+
+    @wp.func
+    def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):
+        """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (blocks meet on shared bodies)."""
+        ra = ridx(m, wid, a)
+        rb = ridx(m, wid, b)
+        s = scalar(0.0)
+        for k in range(nblk):
+            bk = w.row_body[ra * nblk + k]
+            if bk >= 0:
+                for l in range(nblk):
+                    if w.row_body[rb * nblk + l] == bk:
+                        s += wp.dot(w.row_J[ra * nblk + k], w.row_MJ[rb * nblk + l])
+        if a == b:
+            s += w.reg[ra]
+        return s
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def assemble_fixed(m: M, w: Work, sp: SP, nblk: int, shift: scalar):
+        """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D_ab P_b (+ eta + rho on the diagonal)``."""
+        wid, k = wp.tid()
+        if k >= sp.nnz[wid]:
+            return
+        e = sp.ent_start[wid] + k
+        p = sp.row[e]
+        q = sp.col[e]
+        a = sp.perm[sp.perm_start[wid] + p]
+        b = sp.perm[sp.perm_start[wid] + q]
+        s = w.P[ridx(m, wid, a)] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
+        if p == q:
+            s += shift
+        sp.val[vidx(m, sp, wid, k)] = s
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def assemble_tail(m: M, w: Work, sp: SP, nblk: int, shift: scalar):
+        """Tail row ``a`` (an active limit or contact row): ``D~_ab`` for every fixed position and every tail
+        row ``b <= a``."""
+        wid, a = wp.tid()
+        nf = sp.n_fixed[wid]
+        if a < nf or a >= w.n_rows[wid]:
+            return
+        t = a - nf
+        Pa = w.P[ridx(m, wid, a)]
+        for p in range(nf):
+            b = sp.perm[sp.perm_start[wid] + p]
+            sp.tail[tidx(m, sp, wid, t, p)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
+        for b in range(nf, a + 1):
+            s = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
+            if b == a:
+                s += shift
+            sp.tail[tidx(m, sp, wid, t, b)] = s
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def factor(m: M, w: Work, sp: SP):
+        """Cholesky ``D~ = L L^T`` in place (§8.1): the fixed rows by the precomputed update lists, then the
+        tail rows (forward substitution against the fixed rows, dense Cholesky among themselves)."""
+        wid = wp.tid()
+        nf = sp.n_fixed[wid]
+        e0 = sp.ent_start[wid]
+        for k in range(sp.nnz[wid]):
+            s = sp.val[vidx(m, sp, wid, k)]
+            for u in range(sp.upd_ptr[2 * (e0 + k)], sp.upd_ptr[2 * (e0 + k) + 1]):
+                s -= sp.val[vidx(m, sp, wid, sp.upd_a[u])] * sp.val[vidx(m, sp, wid, sp.upd_b[u])]
+            d = sp.div[e0 + k]
+            if d == k:
+                s = wp.sqrt(s)
+            else:
+                s = s / sp.val[vidx(m, sp, wid, d)]
+            sp.val[vidx(m, sp, wid, k)] = s
+        n = w.n_rows[wid]
+        p0 = sp.ptr_start[wid]
+        for t in range(n - nf):
+            # L_tf: row t solves L_f l = D~_ft (forward substitution over the sparse rows)
+            for p in range(nf):
+                s = sp.tail[tidx(m, sp, wid, t, p)]
+                k1 = sp.row_ptr[p0 + p + 1] - 1
+                for k in range(sp.row_ptr[p0 + p], k1):
+                    s -= sp.val[vidx(m, sp, wid, k)] * sp.tail[tidx(m, sp, wid, t, sp.col[e0 + k])]
+                sp.tail[tidx(m, sp, wid, t, p)] = s / sp.val[vidx(m, sp, wid, k1)]
+            # L_t: dense Cholesky row t
+            for j in range(t + 1):
+                s = sp.tail[tidx(m, sp, wid, t, nf + j)]
+                for p in range(nf):
+                    s -= sp.tail[tidx(m, sp, wid, t, p)] * sp.tail[tidx(m, sp, wid, j, p)]
+                for i in range(j):
+                    s -= sp.tail[tidx(m, sp, wid, t, nf + i)] * sp.tail[tidx(m, sp, wid, j, nf + i)]
+                if j == t:
+                    s = wp.sqrt(s)
+                else:
+                    s = s / sp.tail[tidx(m, sp, wid, j, nf + j)]
+                sp.tail[tidx(m, sp, wid, t, nf + j)] = s
+
+    @wp.func
+    def solve_inplace(m: M, w: Work, sp: SP, wid: int, n: int):
+        """``x <- L^-T L^-1 x`` with the sparse factor and its dense tail."""
+        nf = sp.n_fixed[wid]
+        e0 = sp.ent_start[wid]
+        p0 = sp.ptr_start[wid]
+        q0 = sp.perm_start[wid]
+        nt = n - nf
+        # forward: fixed rows, then tail rows
+        for p in range(nf):
+            r = ridx(m, wid, sp.perm[q0 + p])
+            s = w.x[r]
+            k1 = sp.row_ptr[p0 + p + 1] - 1
+            for k in range(sp.row_ptr[p0 + p], k1):
+                s -= sp.val[vidx(m, sp, wid, k)] * w.x[ridx(m, wid, sp.perm[q0 + sp.col[e0 + k]])]
+            w.x[r] = s / sp.val[vidx(m, sp, wid, k1)]
+        for t in range(nt):
+            r = ridx(m, wid, nf + t)
+            s = w.x[r]
+            for p in range(nf):
+                s -= sp.tail[tidx(m, sp, wid, t, p)] * w.x[ridx(m, wid, sp.perm[q0 + p])]
+            for i in range(t):
+                s -= sp.tail[tidx(m, sp, wid, t, nf + i)] * w.x[ridx(m, wid, nf + i)]
+            w.x[r] = s / sp.tail[tidx(m, sp, wid, t, nf + t)]
+        # backward: tail rows, their share of the fixed rows, then the fixed rows (column sweeps of L_f)
+        for tt in range(nt):
+            t = nt - 1 - tt
+            r = ridx(m, wid, nf + t)
+            s = w.x[r]
+            for i in range(t + 1, nt):
+                s -= sp.tail[tidx(m, sp, wid, i, nf + t)] * w.x[ridx(m, wid, nf + i)]
+            w.x[r] = s / sp.tail[tidx(m, sp, wid, t, nf + t)]
+        if nt > 0:
+            for p in range(nf):
+                r = ridx(m, wid, sp.perm[q0 + p])
+                s = w.x[r]
+                for t in range(nt):
+                    s -= sp.tail[tidx(m, sp, wid, t, p)] * w.x[ridx(m, wid, nf + t)]
+                w.x[r] = s
+        for pp in range(nf):
+            p = nf - 1 - pp
+            r = ridx(m, wid, sp.perm[q0 + p])
+            k1 = sp.row_ptr[p0 + p + 1] - 1
+            xp = w.x[r] / sp.val[vidx(m, sp, wid, k1)]
+            w.x[r] = xp
+            for k in range(sp.row_ptr[p0 + p], k1):
+                rq = ridx(m, wid, sp.perm[q0 + sp.col[e0 + k]])
+                w.x[rq] = w.x[rq] - sp.val[vidx(m, sp, wid, k)] * xp
+
+    return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor,
+                           solve_inplace=solve_inplace)
