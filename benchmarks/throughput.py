@@ -245,9 +245,11 @@ def main(argv=None) -> int:
     p.add_argument("--replays", type=int, default=10)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--closure-steps", type=int, default=1000)
-    p.add_argument("--tolerance", type=float, default=None, help="PADMM tolerance (default: SolverConfig's)")
+    p.add_argument("--tolerance", type=float, default=None, help=f"PADMM tolerance (default {SOLVER['tolerance']})")
     p.add_argument("--rho", type=float, default=None, help=f"PADMM penalty (default {SOLVER['rho']})")
     p.add_argument("--no-peers", action="store_true")
+    p.add_argument("--kamino-variants", nargs="+", default=["padmm_dense", "dvi"],
+                   help="Newton SolverKamino variants run beside kamino (benchmarks/peers.py KAMINO_VARIANTS)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     p.add_argument("--plot", type=pathlib.Path, default=None, help="plot an existing JSON and exit")
     args = p.parse_args(argv)
@@ -297,8 +299,8 @@ def run_peers(scene, args, emit) -> None:
         return
     path = str(HERE / "scenes" / f"{scene}.xml")
     for nw in args.worlds:
-        for fn, kw in ((peers.run_mujoco_warp, {}), (peers.run_solver_kamino, {"variant": "padmm_dense"}),
-                       (peers.run_solver_kamino, {"variant": "padmm_sparse_cr"})):
+        runs = [(peers.run_mujoco_warp, {})] + [(peers.run_solver_kamino, {"variant": v}) for v in args.kamino_variants]
+        for fn, kw in runs:
             try:
                 emit(fn(path, nw, graph_steps=args.graph_steps, repeats=args.repeats,
                         closure_steps=args.closure_steps if nw == args.worlds[0] else 0, **kw))

@@ -28,6 +28,13 @@ def index_funcs(np_dtype) -> SimpleNamespace:
         return m.grp_row_start[g] + a * GROUP + (wid - g * GROUP)
 
     @wp.func
+    def row_base(m: M, wid: int):
+        """``ridx(m, wid, a) = row_base(m, wid) + a * GROUP``: hoisted out of a world's row loops (a kernel that
+        also stores to arrays cannot have the compiler prove the start unchanged, so it would reload it)."""
+        g = wid // GROUP
+        return m.grp_row_start[g] + (wid - g * GROUP)
+
+    @wp.func
     def didx(m: M, wid: int, a: int, b: int):
         """Storage index of the Delassus entry ``(a, b)`` of world ``wid``."""
         g = wid // GROUP
@@ -39,4 +46,4 @@ def index_funcs(np_dtype) -> SimpleNamespace:
         g = wid // GROUP
         return m.grp_jd_start[g] + (a * m.grp_ncol[g] + c) * GROUP + (wid - g * GROUP)
 
-    return SimpleNamespace(ridx=ridx, didx=didx, jidx=jidx)
+    return SimpleNamespace(ridx=ridx, row_base=row_base, didx=didx, jidx=jidx)

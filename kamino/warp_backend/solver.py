@@ -44,7 +44,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     cf = cone_funcs(np_dtype)
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
     ix = index_funcs(np_dtype)
-    ridx, didx, jidx = ix.ridx, ix.didx, ix.jidx
+    ridx, didx, jidx, row_base = ix.ridx, ix.didx, ix.jidx, ix.row_base
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     dual_update = pf.dual_update
@@ -206,11 +206,12 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     def project_into(m: M, w: Work, wid: int, n_box: int, n: int, src: wp.array(dtype=scalar),
                      shift: wp.array(dtype=scalar), inv_rho: scalar, dst: wp.array(dtype=scalar)):
         """``dst = Pi_K(src - inv_rho * shift)`` (§7.3 step 3): clip on box rows, cones on contacts."""
+        rb = row_base(m, wid)
         for a in range(n_box):
-            r = ridx(m, wid, a)
+            r = rb + a * S
             dst[r] = wp.clamp(src[r] - inv_rho * shift[r], w.lo_s[r], w.hi_s[r])
         for c in range((n - n_box) // 3):
-            r = ridx(m, wid, n_box + 3 * c)
+            r = rb + (n_box + 3 * c) * S
             p = cone_project(src[r] - inv_rho * shift[r], src[r + S] - inv_rho * shift[r + S],
                              src[r + 2 * S] - inv_rho * shift[r + 2 * S], w.mu[r])
             dst[r] = p[0]
@@ -223,9 +224,10 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         (lower, in place, §8.1; ``L^T`` is also written to the upper triangle so that the backward
         substitution reads rows)."""
         wid = wp.tid()
+        rb = row_base(m, wid)
         n = w.n_rows[wid]
         for a in range(n):
-            r = ridx(m, wid, a)
+            r = rb + a * S
             w.x[r] = impulse_scale * w.f0[r] / w.P[r]
             w.z_p[r] = scalar(0.0)
             if use_velocity != 0:
@@ -233,7 +235,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             w.z_hat[r] = w.z_p[r]
         project_into(m, w, wid, w.n_box[wid], n, w.x, w.x, scalar(0.0), w.x_p)
         for a in range(n):
-            r = ridx(m, wid, a)
+            r = rb + a * S
             w.y_p[r] = w.x_p[r]
             w.y_hat[r] = w.x_p[r]
         w.a_p[wid] = scalar(1.0)
@@ -268,34 +270,39 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     def cho_solve_inplace(m: M, w: Work, wid: int, n: int):
         """``x <- L^-T L^-1 x`` with the cached factor (forward, then backward substitution reading ``L^T``
         from the upper triangle)."""
+        rb = row_base(m, wid)
+        g = wid // GROUP
+        db = m.grp_mat_start[g] + (wid - g * GROUP)  # didx(m, wid, i, k) = db + (i * md + k) * S
+        md = m.grp_maxdim[g]
         for i in range(n):
-            s = w.x[ridx(m, wid, i)]
+            s = w.x[rb + i * S]
             for k in range(i):
-                s -= w.D[didx(m, wid, i, k)] * w.x[ridx(m, wid, k)]
-            w.x[ridx(m, wid, i)] = s / w.D[didx(m, wid, i, i)]
+                s -= w.D[db + (i * md + k) * S] * w.x[rb + k * S]
+            w.x[rb + i * S] = s / w.D[db + (i * md + i) * S]
         for ii in range(n):
             i = n - 1 - ii
-            s = w.x[ridx(m, wid, i)]
+            s = w.x[rb + i * S]
             for k in range(i + 1, n):
-                s -= w.D[didx(m, wid, i, k)] * w.x[ridx(m, wid, k)]
-            w.x[ridx(m, wid, i)] = s / w.D[didx(m, wid, i, i)]
+                s -= w.D[db + (i * md + k) * S] * w.x[rb + k * S]
+            w.x[rb + i * S] = s / w.D[db + (i * md + i) * S]
 
     @wp.func
     def apply_operator(m: M, w: Work, wid: int, n: int, nblk: int, shift: scalar,
                        v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
         """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free (§8.2, pre-baked blocks)."""
+        rb = row_base(m, wid)
         b0 = m.body_start[wid]
         for i in range(m.body_count[wid]):
             w.cr_w[b0 + i] = vec6()
         for a in range(n):
-            r = ridx(m, wid, a)
+            r = rb + a * S
             pv = w.P[r] * v[r]
             for k in range(nblk):
                 b = w.row_body[r * nblk + k]
                 if b >= 0:
                     w.cr_w[b] = w.cr_w[b] + pv * w.row_J[r * nblk + k]
         for a in range(n):
-            r = ridx(m, wid, a)
+            r = rb + a * S
             s = scalar(0.0)
             for k in range(nblk):
                 b = w.row_body[r * nblk + k]
@@ -314,19 +321,20 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         residual ``b - A x`` (the recurrence's, which follows the true one to rounding); ``padmm_iterate``
         folds it into the dual residual, so a world converges only when its linear solves are accurate to
         the tolerance too."""
+        rb = row_base(m, wid)
         for a in range(n):
-            w.x[ridx(m, wid, a)] = w.x_p[ridx(m, wid, a)]
+            w.x[rb + a * S] = w.x_p[rb + a * S]
         apply_operator(m, w, wid, n, nblk, shift, w.x, w.cr_Ar)
         bb = scalar(0.0)
         for a in range(n):
-            r = ridx(m, wid, a)
+            r = rb + a * S
             w.cr_r[r] = w.y[r] - w.cr_Ar[r]
             w.cr_p[r] = w.cr_r[r]
             bb += w.y[r] * w.y[r]
         apply_operator(m, w, wid, n, nblk, shift, w.cr_r, w.cr_Ar)
         zeta = scalar(0.0)
         for a in range(n):
-            r = ridx(m, wid, a)
+            r = rb + a * S
             w.cr_Ap[r] = w.cr_Ar[r]
             zeta += w.cr_r[r] * w.cr_Ar[r]
         stop = scalar(1e-30) * bb
@@ -334,24 +342,24 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             rr = scalar(0.0)
             pp = scalar(0.0)
             for a in range(n):
-                r = ridx(m, wid, a)
+                r = rb + a * S
                 rr += w.cr_r[r] * w.cr_r[r]
                 pp += w.cr_Ap[r] * w.cr_Ap[r]
             if rr <= stop or pp <= scalar(0.0) or zeta == scalar(0.0):
                 break
             alpha = zeta / pp
             for a in range(n):
-                r = ridx(m, wid, a)
+                r = rb + a * S
                 w.x[r] += alpha * w.cr_p[r]
                 w.cr_r[r] -= alpha * w.cr_Ap[r]
             apply_operator(m, w, wid, n, nblk, shift, w.cr_r, w.cr_Ar)
             zeta_new = scalar(0.0)
             for a in range(n):
-                zeta_new += w.cr_r[ridx(m, wid, a)] * w.cr_Ar[ridx(m, wid, a)]
+                zeta_new += w.cr_r[rb + a * S] * w.cr_Ar[rb + a * S]
             beta = zeta_new / zeta
             zeta = zeta_new
             for a in range(n):
-                r = ridx(m, wid, a)
+                r = rb + a * S
                 w.cr_p[r] = w.cr_r[r] + beta * w.cr_p[r]
                 w.cr_Ap[r] = w.cr_Ar[r] + beta * w.cr_Ap[r]
 
@@ -363,55 +371,73 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         iteration cap ``it_cap`` is marked done and leaves ``remaining``. ``linear``: ``LINEAR_DENSE``,
         ``LINEAR_CR`` or ``LINEAR_SPARSE`` (``sparse_llt.py``)."""
         wid = wp.tid()
+        rb = row_base(m, wid)
         if w.done[wid] != 0:
             return
         n = w.n_rows[wid]
         n_box = w.n_box[wid]
         shift = eta + rho
+        inv_rho = scalar(1.0) / rho
         for step in range(chunk):
-            # steps 1-2: De Saxcé correction s = Gamma(z_hat), rhs, linear solve
+            # steps 1-2: De Saxcé correction s = Gamma(z_hat), rhs (into x for the in-place LLT solves, into y
+            # as CR's right-hand side), linear solve
+            rhs = w.x
+            if linear == LINEAR_CR:
+                rhs = w.y
             for a in range(n):
-                r = ridx(m, wid, a)
-                w.y[r] = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
+                r = rb + a * S
+                rhs[r] = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
             for c in range((n - n_box) // 3):
-                r = ridx(m, wid, n_box + 3 * c)
-                w.y[r + 2 * S] -= de_saxce(w.z_hat[r], w.z_hat[r + S], w.mu[r])
+                r = rb + (n_box + 3 * c) * S
+                rhs[r + 2 * S] -= de_saxce(w.z_hat[r], w.z_hat[r + S], w.mu[r])
             if linear == LINEAR_CR:
                 cr_solve(m, w, wid, n, nblk, shift, cr_budget)
+            elif linear == LINEAR_SPARSE:
+                sparse_solve(m, w, sp, wid, n)
             else:
-                for a in range(n):
-                    w.x[ridx(m, wid, a)] = w.y[ridx(m, wid, a)]
-                if linear == LINEAR_SPARSE:
-                    sparse_solve(m, w, sp, wid, n)
-                else:
-                    cho_solve_inplace(m, w, wid, n)
-            # steps 3-4: projection and dual update
-            project_into(m, w, wid, n_box, n, w.x, w.z_hat, scalar(1.0) / rho, w.y)
+                cho_solve_inplace(m, w, wid, n)
+            # steps 3-4: projection, dual update and the residuals (complementarity is scaling-invariant), one
+            # pass over the box rows and one over the contact triples
             r_p = scalar(0.0)
             r_d = scalar(0.0)
+            r_c = scalar(0.0)
             c_sum = scalar(0.0)
-            for a in range(n):
-                r = ridx(m, wid, a)
-                Pa = w.P[r]
-                du = dual_update(w.x[r], w.y[r], w.x_p[r], w.y_hat[r], w.z_hat[r], Pa, eta, rho)
+            for a in range(n_box):
+                r = rb + a * S
+                x = w.x[r]
+                z_hat = w.z_hat[r]
+                lo = w.lo_s[r]
+                hi = w.hi_s[r]
+                y = wp.clamp(x - inv_rho * z_hat, lo, hi)
+                w.y[r] = y
+                du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho)
                 w.z[r] = du[0]
                 r_p = wp.max(r_p, du[1])
                 r_d = wp.max(r_d, du[2])
                 c_sum += du[3]
-            # complementarity (scaling-invariant)
+                r_c = wp.max(r_c, box_complementarity(y, du[0], lo, hi))
+            for c in range((n - n_box) // 3):
+                r = rb + (n_box + 3 * c) * S
+                cp = cone_project(w.x[r] - inv_rho * w.z_hat[r], w.x[r + S] - inv_rho * w.z_hat[r + S],
+                                  w.x[r + 2 * S] - inv_rho * w.z_hat[r + 2 * S], w.mu[r])
+                yz = scalar(0.0)
+                for t in range(3):
+                    rt = r + t * S
+                    y = cp[t]
+                    w.y[rt] = y
+                    du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho)
+                    w.z[rt] = du[0]
+                    r_p = wp.max(r_p, du[1])
+                    r_d = wp.max(r_d, du[2])
+                    c_sum += du[3]
+                    yz += y * du[0]
+                r_c = wp.max(r_c, wp.abs(yz))
             if linear == LINEAR_CR:
                 # the inner solve's residual b - A x, unscaled as the dual residual (a velocity, / P): an
                 # inexact solve (a small cr_iterations budget) must not let the world report convergence
                 for a in range(n):
-                    r = ridx(m, wid, a)
+                    r = rb + a * S
                     r_d = wp.max(r_d, wp.abs(w.cr_r[r] / w.P[r]))
-            r_c = scalar(0.0)
-            for a in range(n_box):
-                r = ridx(m, wid, a)
-                r_c = wp.max(r_c, box_complementarity(w.y[r], w.z[r], w.lo_s[r], w.hi_s[r]))
-            for c in range((n - n_box) // 3):
-                r = ridx(m, wid, n_box + 3 * c)
-                r_c = wp.max(r_c, wp.abs(w.y[r] * w.z[r] + w.y[r + S] * w.z[r + S] + w.y[r + 2 * S] * w.z[r + 2 * S]))
             k = w.iters[wid] + 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             # §7.4: Fast ADMM with restart
@@ -419,7 +445,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             beta = mom[2]
             mode = int(mom[3])
             for a in range(n):
-                r = ridx(m, wid, a)
+                r = rb + a * S
                 y = w.y[r]
                 z = w.z[r]
                 w.y_hat[r] = extrapolated(y, w.y_p[r], beta, mode)

@@ -74,6 +74,7 @@ class Symbolic:
     perm: np.ndarray  # [n] row of position p
     row_ptr: np.ndarray  # [n + 1] entries of factor row p (columns ascending, the diagonal last)
     col: np.ndarray  # [nnz] column position of each entry
+    colrow: np.ndarray  # [nnz] the row (original numbering) of each entry's column: perm[col]
     row: np.ndarray  # [nnz] row position of each entry
     div: np.ndarray  # [nnz] entry holding L_qq for entry (p, q) (itself on the diagonal)
     upd_ptr: np.ndarray  # [nnz + 1] update pairs of each entry
@@ -142,7 +143,8 @@ def symbolic(bodies: np.ndarray) -> Symbolic:
                 upd_b.append(index[(q, r)])
         upd_ptr.append(len(upd_a))
     i64 = lambda a: np.asarray(a, np.int64)  # noqa: E731
-    return Symbolic(perm=i64(order), row_ptr=i64(row_ptr), col=i64(col), row=i64(row), div=i64(div),
+    return Symbolic(perm=i64(order), row_ptr=i64(row_ptr), col=i64(col), colrow=i64(order)[i64(col)], row=i64(row),
+                    div=i64(div),
                     upd_ptr=i64(upd_ptr), upd_a=i64(upd_a), upd_b=i64(upd_b))
 
 
@@ -163,6 +165,7 @@ def pattern_struct(np_dtype):
         perm: iarr
         row_ptr: iarr  # world-type-local entry indices
         col: iarr
+        colrow: iarr
         row: iarr
         div: iarr
         upd_ptr: iarr  # [2 nnz]: (start, end) of each entry's update pairs in upd_a / upd_b
@@ -216,8 +219,8 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray) -> SparseFacto
 
     S.perm_start, S.ptr_start, S.ent_start = i32(perm_t[world_type]), i32(ptr_t[world_type]), i32(ent_t[world_type])
     S.nnz, S.n_fixed = i32(nnz), i32(n_fixed)
-    S.perm, S.row_ptr, S.col, S.row, S.div = (i32(cat(lambda s, f=f: getattr(s, f)))
-                                              for f in ("perm", "row_ptr", "col", "row", "div"))
+    S.perm, S.row_ptr, S.col, S.colrow, S.row, S.div = (i32(cat(lambda s, f=f: getattr(s, f)))
+                                              for f in ("perm", "row_ptr", "col", "colrow", "row", "div"))
     # (start, end) of each entry's update pairs, as global indices into upd_a / upd_b
     S.upd_ptr = i32(np.concatenate([np.stack([s.upd_ptr[:-1], s.upd_ptr[1:]], axis=1) + o
                                     for s, o in zip(syms, upd0_t, strict=True)]) if syms else [])
@@ -235,8 +238,8 @@ def empty(np_dtype, device) -> object:
     """A pattern struct with no worlds (the argument of kernels that take the dense or CR path)."""
     S = pattern_struct(np.dtype(np_dtype))()
     scalar = types_of(np.dtype(np_dtype)).scalar
-    for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "perm", "row_ptr", "col", "row", "div",
-                 "upd_ptr", "upd_a", "upd_b", "grp_val_start", "grp_tail_start"):
+    for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "perm", "row_ptr", "col", "colrow", "row",
+                 "div", "upd_ptr", "upd_a", "upd_b", "grp_val_start", "grp_tail_start"):
         setattr(S, name, wp.zeros(0, dtype=wp.int32, device=device))
     S.val = wp.zeros(0, dtype=scalar, device=device)
     S.tail = wp.zeros(0, dtype=scalar, device=device)
@@ -254,6 +257,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     SP = pattern_struct(np_dtype)
     ix = index_funcs(np_dtype)
     ridx = ix.ridx
+    S = GROUP  # storage distance between consecutive rows (entries) of a world
 
     @wp.func
     def vidx(m: M, sp: SP, wid: int, k: int):
@@ -318,49 +322,62 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 s += shift
             sp.tail[tidx(m, sp, wid, t, b)] = s
 
+    @wp.func
+    def bases(m: M, sp: SP, wid: int):
+        """Hoisted storage starts of world ``wid``: rows, factor values, tail rows, and the tail row stride
+        (``ridx = rows + a S``, ``vidx = vals + k S``, ``tidx = tail + t stride + c S``)."""
+        g = wid // GROUP
+        lane = wid - g * GROUP
+        return wp.vec4i(m.grp_row_start[g] + lane, sp.grp_val_start[g] + lane, sp.grp_tail_start[g] + lane,
+                        m.grp_maxdim[g] * GROUP)
+
     @wp.kernel(module="unique", enable_backward=False)
     def factor(m: M, w: Work, sp: SP):
         """Cholesky ``D~ = L L^T`` in place (§8.1): the fixed rows by the precomputed update lists, then the
         tail rows (forward substitution against the fixed rows, dense Cholesky among themselves)."""
         wid = wp.tid()
+        base = bases(m, sp, wid)
+        vb, tb, ts = base[1], base[2], base[3]
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         for k in range(sp.nnz[wid]):
-            s = sp.val[vidx(m, sp, wid, k)]
+            s = sp.val[vb + k * S]
             for u in range(sp.upd_ptr[2 * (e0 + k)], sp.upd_ptr[2 * (e0 + k) + 1]):
-                s -= sp.val[vidx(m, sp, wid, sp.upd_a[u])] * sp.val[vidx(m, sp, wid, sp.upd_b[u])]
+                s -= sp.val[vb + sp.upd_a[u] * S] * sp.val[vb + sp.upd_b[u] * S]
             d = sp.div[e0 + k]
             if d == k:
                 s = wp.sqrt(s)
             else:
-                s = s / sp.val[vidx(m, sp, wid, d)]
-            sp.val[vidx(m, sp, wid, k)] = s
+                s = s / sp.val[vb + d * S]
+            sp.val[vb + k * S] = s
         n = w.n_rows[wid]
         p0 = sp.ptr_start[wid]
         for t in range(n - nf):
+            tr = tb + t * ts
             # L_tf: row t solves L_f l = D~_ft (forward substitution over the sparse rows)
             for p in range(nf):
-                s = sp.tail[tidx(m, sp, wid, t, p)]
+                s = sp.tail[tr + p * S]
                 k1 = sp.row_ptr[p0 + p + 1] - 1
                 for k in range(sp.row_ptr[p0 + p], k1):
-                    s -= sp.val[vidx(m, sp, wid, k)] * sp.tail[tidx(m, sp, wid, t, sp.col[e0 + k])]
-                sp.tail[tidx(m, sp, wid, t, p)] = s / sp.val[vidx(m, sp, wid, k1)]
+                    s -= sp.val[vb + k * S] * sp.tail[tr + sp.col[e0 + k] * S]
+                sp.tail[tr + p * S] = s / sp.val[vb + k1 * S]
             # L_t: dense Cholesky row t
             for j in range(t + 1):
-                s = sp.tail[tidx(m, sp, wid, t, nf + j)]
-                for p in range(nf):
-                    s -= sp.tail[tidx(m, sp, wid, t, p)] * sp.tail[tidx(m, sp, wid, j, p)]
-                for i in range(j):
-                    s -= sp.tail[tidx(m, sp, wid, t, nf + i)] * sp.tail[tidx(m, sp, wid, j, nf + i)]
+                jr = tb + j * ts
+                s = sp.tail[tr + (nf + j) * S]
+                for p in range(nf + j):
+                    s -= sp.tail[tr + p * S] * sp.tail[jr + p * S]
                 if j == t:
                     s = wp.sqrt(s)
                 else:
-                    s = s / sp.tail[tidx(m, sp, wid, j, nf + j)]
-                sp.tail[tidx(m, sp, wid, t, nf + j)] = s
+                    s = s / sp.tail[jr + (nf + j) * S]
+                sp.tail[tr + (nf + j) * S] = s
 
     @wp.func
     def solve_inplace(m: M, w: Work, sp: SP, wid: int, n: int):
         """``x <- L^-T L^-1 x`` with the sparse factor and its dense tail."""
+        base = bases(m, sp, wid)
+        rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
@@ -368,44 +385,43 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         nt = n - nf
         # forward: fixed rows, then tail rows
         for p in range(nf):
-            r = ridx(m, wid, sp.perm[q0 + p])
+            r = rb + sp.perm[q0 + p] * S
             s = w.x[r]
             k1 = sp.row_ptr[p0 + p + 1] - 1
             for k in range(sp.row_ptr[p0 + p], k1):
-                s -= sp.val[vidx(m, sp, wid, k)] * w.x[ridx(m, wid, sp.perm[q0 + sp.col[e0 + k]])]
-            w.x[r] = s / sp.val[vidx(m, sp, wid, k1)]
+                s -= sp.val[vb + k * S] * w.x[rb + sp.colrow[e0 + k] * S]
+            w.x[r] = s / sp.val[vb + k1 * S]
         for t in range(nt):
-            r = ridx(m, wid, nf + t)
-            s = w.x[r]
+            tr = tb + t * ts
+            s = w.x[rb + (nf + t) * S]
             for p in range(nf):
-                s -= sp.tail[tidx(m, sp, wid, t, p)] * w.x[ridx(m, wid, sp.perm[q0 + p])]
+                s -= sp.tail[tr + p * S] * w.x[rb + sp.perm[q0 + p] * S]
             for i in range(t):
-                s -= sp.tail[tidx(m, sp, wid, t, nf + i)] * w.x[ridx(m, wid, nf + i)]
-            w.x[r] = s / sp.tail[tidx(m, sp, wid, t, nf + t)]
+                s -= sp.tail[tr + (nf + i) * S] * w.x[rb + (nf + i) * S]
+            w.x[rb + (nf + t) * S] = s / sp.tail[tr + (nf + t) * S]
         # backward: tail rows, their share of the fixed rows, then the fixed rows (column sweeps of L_f)
         for tt in range(nt):
             t = nt - 1 - tt
-            r = ridx(m, wid, nf + t)
-            s = w.x[r]
+            s = w.x[rb + (nf + t) * S]
             for i in range(t + 1, nt):
-                s -= sp.tail[tidx(m, sp, wid, i, nf + t)] * w.x[ridx(m, wid, nf + i)]
-            w.x[r] = s / sp.tail[tidx(m, sp, wid, t, nf + t)]
+                s -= sp.tail[tb + i * ts + (nf + t) * S] * w.x[rb + (nf + i) * S]
+            w.x[rb + (nf + t) * S] = s / sp.tail[tb + t * ts + (nf + t) * S]
         if nt > 0:
             for p in range(nf):
-                r = ridx(m, wid, sp.perm[q0 + p])
+                r = rb + sp.perm[q0 + p] * S
                 s = w.x[r]
                 for t in range(nt):
-                    s -= sp.tail[tidx(m, sp, wid, t, p)] * w.x[ridx(m, wid, nf + t)]
+                    s -= sp.tail[tb + t * ts + p * S] * w.x[rb + (nf + t) * S]
                 w.x[r] = s
         for pp in range(nf):
             p = nf - 1 - pp
-            r = ridx(m, wid, sp.perm[q0 + p])
+            r = rb + sp.perm[q0 + p] * S
             k1 = sp.row_ptr[p0 + p + 1] - 1
-            xp = w.x[r] / sp.val[vidx(m, sp, wid, k1)]
+            xp = w.x[r] / sp.val[vb + k1 * S]
             w.x[r] = xp
             for k in range(sp.row_ptr[p0 + p], k1):
-                rq = ridx(m, wid, sp.perm[q0 + sp.col[e0 + k]])
-                w.x[rq] = w.x[rq] - sp.val[vidx(m, sp, wid, k)] * xp
+                rq = rb + sp.colrow[e0 + k] * S
+                w.x[rq] = w.x[rq] - sp.val[vb + k * S] * xp
 
     return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor,
                            solve_inplace=solve_inplace)
