@@ -32,6 +32,10 @@ class SolverConfig:
             ``None`` picks 1e-6 in float32 and 1e-11 in float64.
         max_iterations: PADMM iteration cap per step.
         tolerance: primal, dual and complementarity tolerance (infinity norms, unscaled units, §7.5).
+        redundant_limits: fix ``lambda = 0`` up front on limit rows that are equivalent, modulo the bilateral
+            rows, to another limit row with a smaller bias (all three hinge limits of a parallelogram loop);
+            the solution is unchanged and PADMM stops creeping along the null direction
+            (``kamino.jax_ref.padmm.redundant_limits``). JAX reference, float64 only; the Warp backend ignores it.
         fixed_iterations: run exactly ``max_iterations`` PADMM iterations with no early exit
             (``lax.fori_loop``: what makes ``jax.grad`` through ``step`` possible).
         rho, eta: ADMM penalty and proximal parameters (§7.3).
@@ -66,6 +70,7 @@ class SolverConfig:
     max_iterations: int = 200
     tolerance: float = 1e-6
     fixed_iterations: bool = False
+    redundant_limits: bool = False
     rho: float = 1.0
     eta: float = 1e-5
     warm_start: bool = True
