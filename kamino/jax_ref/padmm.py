@@ -114,7 +114,7 @@ def redundant_limits(Dt: jax.Array, vt: jax.Array, lo: jax.Array, hi: jax.Array,
     Numerics (float64): ``D_bb`` is singular for redundant bilateral rows (planar loops), so it is
     regularised, ``D_bb + delta I`` with ``delta = 1e-10`` (``Dt`` has a unit diagonal); this lowers
     ``rho`` of exactly dependent rows by about ``delta / (2 sigma)``, ``sigma`` the smallest non-zero
-    eigenvalue of ``Dt_bb`` (1e-9 on the benchmark four-bar, ``sigma = 0.03``). Rows count as equivalent when
+    eigenvalue of ``Dt_bb`` (2e-9 on the benchmark four-bar, ``sigma = 0.03``). Rows count as equivalent when
     ``1 - rho <= tau = 1e-7``: exact dependencies are found for ``sigma >= 5e-4`` and rows further apart than
     ``sqrt(2 tau) = 4.5e-4`` rad (in the projected metric) never are. Rows with ``S_aa <= delta`` (a limit on a
     DoF the bilateral rows already lock) are left alone. In float32 the rounding of ``D`` alone puts ``1 - rho``
