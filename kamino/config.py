@@ -35,7 +35,8 @@ class SolverConfig:
         redundant_limits: fix ``lambda = 0`` up front on limit rows that are equivalent, modulo the bilateral
             rows, to another limit row with a smaller bias (all three hinge limits of a parallelogram loop);
             the solution is unchanged and PADMM stops creeping along the null direction
-            (``kamino.jax_ref.padmm.redundant_limits``). JAX reference, float64 only; the Warp backend ignores it.
+            (``kamino.jax_ref.padmm.redundant_limits``). JAX reference, float64 only (float32 and the Warp
+            backend raise).
         fixed_iterations: run exactly ``max_iterations`` PADMM iterations with no early exit
             (``lax.fori_loop``: what makes ``jax.grad`` through ``step`` possible).
         rho, eta: ADMM penalty and proximal parameters (§7.3).

@@ -160,3 +160,15 @@ def test_rule_on_constructed_rows():
     expected[[n_b, n_b + 1, n_b + 4]] = True
     expected[keep] = False
     np.testing.assert_array_equal(fixed, expected)
+
+
+def test_rule_refuses_what_it_cannot_do():
+    """float32 (equivalent rows are not separable from independent ones at its rounding) and the Warp backend
+    (not implemented there) raise instead of silently solving without the rule."""
+    model = _double_pendulum()
+    cfg = kamino.SolverConfig(dt=1.0 / 240.0, redundant_limits=True)
+    with pytest.raises(ValueError, match="float64"):
+        kamino.step(model, kamino.init_state(model, dtype=np.float32), config=cfg)
+    pytest.importorskip("warp")
+    with pytest.raises(ValueError, match="JAX reference only"):
+        kamino.step(model, kamino.init_state(model, dtype=np.float64), config=cfg, backend="warp")

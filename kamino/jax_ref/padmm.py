@@ -118,10 +118,13 @@ def redundant_limits(Dt: jax.Array, vt: jax.Array, lo: jax.Array, hi: jax.Array,
     ``1 - rho <= tau = 1e-7``: exact dependencies are found for ``sigma >= 5e-4`` and rows further apart than
     ``sqrt(2 tau) = 4.5e-4`` rad (in the projected metric) never are. Rows with ``S_aa <= delta`` (a limit on a
     DoF the bilateral rows already lock) are left alone. In float32 the rounding of ``D`` alone puts ``1 - rho``
-    of exactly dependent rows near 1e-3, too close to genuinely independent rows: the rule is off there.
+    of exactly dependent rows near 1e-3, too close to genuinely independent rows: float32 is refused.
     """
     n, n_box = Dt.shape[0], lo.shape[0]
-    if Dt.dtype != jnp.float64 or n_box == 0:
+    if Dt.dtype != jnp.float64:
+        raise ValueError(f"SolverConfig.redundant_limits needs float64 (got {Dt.dtype}): in float32 equivalent limit "
+                         "rows cannot be told from independent ones")
+    if n_box == 0:
         return jnp.zeros(n, bool)
     delta, tau = 1e-10, 1e-7
     box = jnp.arange(n) < n_box

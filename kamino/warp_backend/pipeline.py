@@ -62,6 +62,9 @@ class Stepper:
         self.linear_solver = resolve_linear_solver(cfg, wm.max_rows)
         self.dense = cfg.jacobian == "dense"
         llt = self.linear_solver == "llt"
+        if cfg.redundant_limits:
+            raise ValueError("SolverConfig.redundant_limits is implemented in the JAX reference only (float64); "
+                             "use backend='jax' or leave it off")
         padmm = "thread" if padmm is None else padmm
         if padmm not in ("block", "thread", "warp"):
             raise ValueError(f"padmm must be 'thread', 'warp' or 'block' (got {padmm!r})")
