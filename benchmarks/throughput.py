@@ -333,12 +333,21 @@ def plot(results: dict, stem: pathlib.Path) -> None:
     fig.tight_layout()
     fig.savefig(f"{stem}_throughput.png", dpi=120)
     fig, ax = plt.subplots(figsize=(6, 4))
+    # one point per scene and simulator: its closure (measured once, on one world) against its throughput at
+    # the largest world count it ran
+    points: dict[str, dict] = {}
     for r in recs:
-        if r.get("closure_max_m") and r["num_worlds"] == max(x["num_worlds"] for x in recs):
-            label = f"{r['scene']} {r.get('config') or r.get('peer')}"
-            ax.scatter(r["closure_max_m"], r["throughput"], label=label)
+        key = f"{r['scene']} " + (f"kamino {r['config']}" if "config" in r else f"{r['peer']} {r.get('variant') or ''}")
+        p = points.setdefault(key.strip(), {"closure": None, "worlds": -1, "throughput": None})
+        if r.get("closure_max_m"):
+            p["closure"] = r["closure_max_m"]
+        if r["num_worlds"] > p["worlds"]:
+            p["worlds"], p["throughput"] = r["num_worlds"], r["throughput"]
+    for label, p in sorted(points.items()):
+        if p["closure"]:
+            ax.scatter(p["closure"], p["throughput"], label=f"{label} ({p['worlds']} worlds)")
     ax.set(xscale="log", yscale="log", xlabel="max loop closure over 1000 steps [m]",
-           ylabel="steps/s x worlds (largest world count)")
+           ylabel="steps/s x worlds (largest world count run)")
     ax.legend(fontsize=6)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
