@@ -50,6 +50,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     dual_update = pf.dual_update
     SP = pattern_struct(np_dtype)
     sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
+    delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
     S = GROUP  # storage distance between consecutive rows of a world
     eps = scalar(float(np.finfo(np_dtype).eps))
     big = scalar(float(np.finfo(np_dtype).max))
@@ -106,18 +107,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         n = w.n_rows[wid]
         if a >= n:
             return
-        ra = ridx(m, wid, a)
         for b in range(a, n):
-            rb = ridx(m, wid, b)
-            s = scalar(0.0)
-            for k in range(nblk):
-                bk = w.row_body[ra * nblk + k]
-                if bk >= 0:
-                    for l in range(nblk):
-                        if w.row_body[rb * nblk + l] == bk:
-                            s += wp.dot(w.row_J[ra * nblk + k], w.row_MJ[rb * nblk + l])
-            if b == a:
-                s += w.reg[ra]
+            s = delassus_entry(m, w, wid, a, b, nblk)
             w.D[didx(m, wid, a, b)] = s
             w.D[didx(m, wid, b, a)] = s
 
@@ -141,17 +132,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def row_diag(m: M, w: Work, wid: int, a: int, nblk: int, assembled: int):
         """``D_aa`` (from the assembled matrix, or from the row's blocks)."""
-        r = ridx(m, wid, a)
         if assembled != 0:
             return w.D[didx(m, wid, a, a)]
-        s = w.reg[r]
-        for k in range(nblk):
-            bk = w.row_body[r * nblk + k]
-            if bk >= 0:
-                for l in range(nblk):
-                    if w.row_body[r * nblk + l] == bk:
-                        s += wp.dot(w.row_J[r * nblk + k], w.row_MJ[r * nblk + l])
-        return s
+        return delassus_entry(m, w, wid, a, a, nblk)
 
     @wp.kernel(module="unique", enable_backward=False)
     def precondition(m: M, w: Work, nblk: int, assembled: int, enabled: int):

@@ -424,4 +424,4 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 w.x[rq] = w.x[rq] - sp.val[vb + k * S] * xp
 
     return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor,
-                           solve_inplace=solve_inplace)
+                           solve_inplace=solve_inplace, delassus_entry=delassus_entry)
