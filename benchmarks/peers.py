@@ -123,6 +123,9 @@ def _new_result(peer: str, variant: str, scene: str, num_worlds: int) -> dict[st
         "replays_per_trial": None,
         "trials_s": None,
         "closure_steps": None,
+        "iterations_mean": None,
+        "iterations_max": None,
+        "converged_fraction": None,
         "dt": DT,
         "versions": peer_versions(),
         "notes": "",
@@ -700,12 +703,40 @@ def _newton_sim(built: SimpleNamespace, variant: str, settings: str = "newton_ex
     return SimpleNamespace(solver=solver, config=config, states=states, control=control, counter=counter, dofs=dofs)
 
 
-def _newton_stepper(built: SimpleNamespace, sim: SimpleNamespace, closure: tuple | None = None) -> Callable[[], None]:
+def _padmm_status(solver: Any) -> Any:
+    """SolverKamino's per-world PADMM status array (private attributes of Newton 1.8), or ``None``.
+
+    Read only to report the peer's PADMM iterations next to kamino's; ``None`` for DVI or another layout.
+    """
+    padmm = getattr(getattr(solver, "_solver_kamino", None), "_solver_fd", None)
+    data = getattr(padmm, "data", None) if padmm is not None and hasattr(padmm, "_step") else None
+    return getattr(data, "status", None)
+
+
+def _padmm_stats_kernel(status_dtype: Any) -> Any:
+    """Kernel adding world 0's PADMM iterations and convergence flag of one step to ``out = [sum, conv, max]``."""
+
+    @wp.kernel
+    def padmm_stats(status: wp.array(dtype=status_dtype), out: wp.array(dtype=wp.int32)):
+        s = status[0]
+        out[0] = out[0] + s.iterations
+        out[1] = out[1] + wp.where(s.converged > 0, 1, 0)
+        out[2] = wp.max(out[2], s.iterations)
+
+    return padmm_stats
+
+
+def _newton_stepper(
+    built: SimpleNamespace, sim: SimpleNamespace, closure: tuple | None = None, stats: wp.array | None = None
+) -> Callable[[], None]:
     """One benchmark step: drive kernel into ``control.joint_f``, ``SolverKamino.step``, swap, tick.
 
-    The states are swapped in Python after every step, so a captured graph must hold an even number of
-    steps to be replayable (see ``_even``).
+    With ``stats`` (an int32 array of 3), world 0's PADMM iterations are accumulated after every step on the
+    device (see ``_padmm_stats_kernel``). The states are swapped in Python after every step, so a captured
+    graph must hold an even number of steps to be replayable (see ``_even``).
     """
+    status = _padmm_status(sim.solver) if stats is not None else None
+    stats_kernel = None if status is None else _padmm_stats_kernel(status.dtype)
     k = _kernels()
     model = built.model
     omega = 2.0 * math.pi * DRIVE_FREQUENCY
@@ -736,6 +767,8 @@ def _newton_stepper(built: SimpleNamespace, sim: SimpleNamespace, closure: tuple
                     closure[1],
                 ],
             )
+        if stats_kernel is not None:
+            wp.launch(stats_kernel, dim=1, inputs=[status, stats])
 
     return step
 
@@ -857,10 +890,16 @@ def run_solver_kamino(
                         wp.array(built1.loops, dtype=wp.int32, device=dev),
                         wp.zeros(1, dtype=wp.float32, device=dev),
                     )
-                    step = _newton_stepper(built1, sim1, closure=closure)
+                    stats = wp.zeros(3, dtype=wp.int32, device=dev)
+                    step = _newton_stepper(built1, sim1, closure=closure, stats=stats)
                     _run_closure_steps(step, dev, closure_steps, graph_steps, graph)
                     result["closure_max_m"] = float(closure[1].numpy()[0])
                     result["closure_steps"] = closure_steps
+                    if _padmm_status(sim1.solver) is not None:
+                        total, conv, most = (int(v) for v in stats.numpy())
+                        result["iterations_mean"] = total / closure_steps
+                        result["iterations_max"] = most
+                        result["converged_fraction"] = conv / closure_steps
         except Exception as exc:
             return _fail(result, "closure", exc)
     return result
