@@ -716,14 +716,15 @@ def _padmm_status(solver: Any) -> Any:
 def _padmm_stats_kernel(status_dtype: Any) -> Any:
     """Kernel adding world 0's PADMM iterations and convergence flag of one step to ``out = [sum, conv, max]``."""
 
-    @wp.kernel
-    def padmm_stats(status: wp.array(dtype=status_dtype), out: wp.array(dtype=wp.int32)):
+    def padmm_stats(status, out):
         s = status[0]
         out[0] = out[0] + s.iterations
         out[1] = out[1] + wp.where(s.converged > 0, 1, 0)
         out[2] = wp.max(out[2], s.iterations)
 
-    return padmm_stats
+    # the struct type is only known here: set the annotations as objects (this module's are strings)
+    padmm_stats.__annotations__ = {"status": wp.array(dtype=status_dtype), "out": wp.array(dtype=wp.int32)}
+    return wp.kernel(padmm_stats)
 
 
 def _newton_stepper(

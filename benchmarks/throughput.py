@@ -15,6 +15,7 @@ residuals and the loop closure (largest anchor distance of any joint with transl
 
 
 import argparse
+import dataclasses
 import json
 import math
 import pathlib
@@ -160,7 +161,7 @@ def bench_warp(name, config_name, num_worlds, args) -> dict:
     step_time = statistics.median(trials) / (replays * n)
     return {"kamino": "warp", "config": config_name, "scene": name, "num_worlds": num_worlds,
             "throughput": num_worlds / step_time, "step_time_s": step_time, "memory_per_world_bytes": mem / num_worlds,
-            "rows_max": st.wm.max_rows, "linear_solver": st.linear_solver, "padmm": st.padmm}
+            "rows_max": st.wm.max_rows, "linear_solver": st.linear_solver, "padmm": st.padmm, "solver": dict(SOLVER)}
 
 
 def bench_jax(name, num_worlds, args) -> dict:
@@ -236,6 +237,21 @@ def environment() -> dict:
             "command": " ".join(sys.argv)}
 
 
+def _solver_overrides(items: list[str]) -> dict:
+    """``["baumgarte=0.01", "curvature_refinement=false"]`` -> SolverConfig fields, checked against the dataclass."""
+    fields = {f.name for f in dataclasses.fields(kamino.SolverConfig)}
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in fields:
+            raise SystemExit(f"--solver {item!r}: expected FIELD=VALUE with FIELD one of kamino.SolverConfig's fields")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value  # a string value, e.g. integrator=midpoint
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", nargs="+", default=list(SCENES))
@@ -247,6 +263,9 @@ def main(argv=None) -> int:
     p.add_argument("--closure-steps", type=int, default=1000)
     p.add_argument("--tolerance", type=float, default=None, help=f"PADMM tolerance (default {SOLVER['tolerance']})")
     p.add_argument("--rho", type=float, default=None, help=f"PADMM penalty (default {SOLVER['rho']})")
+    p.add_argument("--solver", nargs="+", default=[], metavar="FIELD=VALUE",
+                   help="further kamino.SolverConfig fields for kamino's runs, e.g. baumgarte=0.01 "
+                        "curvature_refinement=false (values parsed as JSON)")
     p.add_argument("--no-peers", action="store_true")
     p.add_argument("--kamino-variants", nargs="+", default=["padmm_dense", "dvi"],
                    help="Newton SolverKamino variants run beside kamino (benchmarks/peers.py KAMINO_VARIANTS)")
@@ -257,6 +276,7 @@ def main(argv=None) -> int:
         SOLVER["tolerance"] = args.tolerance
     if args.rho is not None:
         SOLVER["rho"] = args.rho
+    SOLVER.update(_solver_overrides(args.solver))
     if args.plot:
         plot(json.loads(args.plot.read_text()), args.plot.with_suffix(""))
         return 0
