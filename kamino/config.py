@@ -27,6 +27,11 @@ class SolverConfig:
             solved velocity ``u+`` and continue PADMM from its iterate (docs/conventions.md,
             "Stabilisation"): the loop closure error of a step drops from ``O(h^2 |u+ - u_f| |u|)`` to third
             order, at the price of the extra iterations (up to ``max_iterations`` more).
+        post_stabilisation: number of position projections after the pose update (0: none). Each one
+            removes the joint and coupling rows' position errors by the smallest mass-weighted displacement
+            of the bodies (a Gauss-Newton step with the step's Jacobian and a sparse Cholesky of the
+            always-active rows' Delassus block), so that a soft ``baumgarte`` can keep PADMM well conditioned
+            while the loops stay closed (docs/conventions.md, "Post-stabilisation").
         joint_deadband: joint position errors below this [m or rad] get no bias (rounding noise
             on redundant loop rows would otherwise be an inconsistent right-hand side);
             ``None`` picks 1e-6 in float32 and 1e-11 in float64.
@@ -67,6 +72,7 @@ class SolverConfig:
     baumgarte: float = 1.0
     curvature_correction: bool = True
     curvature_refinement: bool = False
+    post_stabilisation: int = 0
     joint_deadband: float | None = None
     max_iterations: int = 200
     tolerance: float = 1e-6
@@ -98,6 +104,14 @@ class SolverConfig:
             return self.joint_deadband
         return 1e-6 if np.dtype(dtype) == np.float32 else 1e-11
 
+    @staticmethod
+    def projection_shift_for(dtype) -> float:
+        """The diagonal shift of post-stabilisation's scaled system ``P D_ff P + shift I``: ``sqrt(eps)`` of
+        ``dtype`` (1.5e-8 in float64, 3.5e-4 in float32). Redundant loop rows make ``D_ff`` singular; the
+        shift keeps the Cholesky pivots above rounding, and leaves ``shift / (sigma + shift)`` of the error
+        along a direction of scaled curvature ``sigma`` (docs/conventions.md, "Post-stabilisation")."""
+        return float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
+
     def __post_init__(self) -> None:
         def bad(field: str, why: str) -> None:
             raise ValueError(f"SolverConfig.{field}: {why} (got {getattr(self, field)!r})")
@@ -126,6 +140,8 @@ class SolverConfig:
             bad("jacobian", "must be 'dense' or 'sparse'")
         if self.linear_solver not in ("llt", "cr", "auto"):
             bad("linear_solver", "must be 'llt', 'cr' or 'auto'")
+        if int(self.post_stabilisation) != self.post_stabilisation or self.post_stabilisation < 0:
+            bad("post_stabilisation", "must be an integer >= 0 (the number of position projections per step)")
         if int(self.cr_iterations) < 1:
             bad("cr_iterations", "must be >= 1")
         if not self.angular_damping >= 0:

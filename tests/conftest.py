@@ -15,9 +15,9 @@ it. Two settings cut that without touching what is computed:
 import os
 from pathlib import Path
 
-_FLAGS = "--xla_cpu_use_fusion_emitters=false"
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FLAGS}".strip()
+_FLAGS = {"xla_cpu_use_fusion_emitters": "false"}
+_user = os.environ.get("XLA_FLAGS", "")
+os.environ["XLA_FLAGS"] = " ".join([_user] + [f"--{k}={v}" for k, v in _FLAGS.items() if k not in _user]).strip()
 
 import jax  # noqa: E402  (XLA_FLAGS must be set before the backend starts)
 

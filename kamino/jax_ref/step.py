@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from kamino.config import SolverConfig
 from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import padmm
+from kamino.jax_ref import post_stabilisation as post
 from kamino.jax_ref.couplings import coupling_jacobian, coupling_residual
 from kamino.jax_ref.dynamics import apply_inv_mass, body_dynamics, delassus, nonlinear_force
 from kamino.jax_ref.joints import (
@@ -252,7 +253,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     if J.shape[0] == 0:
         z = jnp.asarray(0.0, dtype)
         empty = jnp.zeros(0, dtype)
-        return u_f, padmm.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True)), ct, side
+        return u_f, padmm.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True)), ct, side, None
     # warm start (§7.8): previous reactions, contacts matched by geom pair and point on geom b
     frames = cts.contact_frames(ct.normal)
     point_b = cts.local_point_b(ct, q_eval)
@@ -295,7 +296,11 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
 
     res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine)
     u_plus = u_f + apply_inv_mass(bd, (J.T @ res.impulse).reshape(nb, 6))  # u+ = u_f + M^-1 J^T lambda
-    return u_plus, res, ct, side
+    proj = None
+    if cfg.post_stabilisation and n_dyn + n_kin:
+        P = padmm.jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
+        proj = post.projector(J, D, P, n_dyn + n_kin, bd)
+    return u_plus, res, ct, side, proj
 
 
 def _new_cache(pm: PaddedModel, q_eval, res: padmm.PADMMResult, ct: cts.Contacts, side, ctrl: WorldControl,
@@ -349,9 +354,11 @@ def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, cache: Wor
         q_eval, h = body_q, dt
     else:
         q_eval, h = integrate_pose(body_q, body_u, 0.5 * dt), 0.5 * dt
-    u_plus, res, ct, side = _constrained_velocity(pm, body_q, q_eval, body_u, cache, ctrl, h, cfg)
+    u_plus, res, ct, side, proj = _constrained_velocity(pm, body_q, q_eval, body_u, cache, ctrl, h, cfg)
     u_plus = _angular_damping(u_plus, cfg)
     q_plus = integrate_pose(q_eval, u_plus, h)
+    if proj is not None:
+        q_plus = post.project(pm, q_plus, proj, cfg)
     mask = pm.body_mask[:, None]
     q_plus = jnp.where(mask, q_plus, body_q)
     u_plus = jnp.where(mask, u_plus, body_u)

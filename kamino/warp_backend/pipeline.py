@@ -22,6 +22,7 @@ from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.model_data import warp_model
 from kamino.warp_backend.padmm_tile import max_tile_rows, tile_fits, tile_kernels, tile_rows
 from kamino.warp_backend.padmm_warp import LANES, warp_kernels, warp_slots
+from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, solver_kernels
 from kamino.warp_backend.workspace import allocate
@@ -83,6 +84,10 @@ class Stepper:
                 self.sf = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy())
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             self.sp = self.sf.arrays if self.sparse_factor else sparse_llt.empty(self.np_dtype, self.device)
+            if cfg.post_stabilisation:
+                # the fixed rows' own pattern and factor (no tail rows)
+                self.post = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy())
+                self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             if padmm == "block":
                 # CPU launches need cooperative blocks for one thread per row (warp.config)
                 wp.config.enable_cpu_blocks = True
@@ -101,6 +106,7 @@ class Stepper:
         self.sk = solver_kernels(self.np_dtype)
         self.ik = integrate_kernels(self.np_dtype)
         self.ck = contact_kernels(self.np_dtype) if model.num_pairs else None
+        self.pk = post_stabilisation_kernels(self.np_dtype) if cfg.post_stabilisation else None
         self.use_graph = self.device.is_cuda
         self.padmm_chunk = cfg.max_iterations if not self.use_graph else min(cfg.max_iterations, 8)
         self._graphs: dict[int, object] = {}
@@ -184,6 +190,14 @@ class Stepper:
             self._launch(sk.padmm_finish, rows)
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
+        if cfg.post_stabilisation:  # position projections (post_stabilisation.py)
+            post, shift = self.post.arrays, cfg.projection_shift_for(self.np_dtype)
+            self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift)
+            self._launch(self.spk.factor_fixed, W, post)
+            for _ in range(cfg.post_stabilisation):
+                self._launch(self.pk.residual, rows, delta)
+                self._launch(self.pk.solve, W, post)
+                self._launch(self.pk.displace, (W, wm.max_bodies), nblk)
         self._launch(ik.dof_forces, (W, wm.max_dofs))
         self._launch(ik.row_forces, rows, 1.0 / dt)
         if ck is not None:

@@ -331,14 +331,9 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         return wp.vec4i(m.grp_row_start[g] + lane, sp.grp_val_start[g] + lane, sp.grp_tail_start[g] + lane,
                         m.grp_maxdim[g] * GROUP)
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def factor(m: M, w: Work, sp: SP):
-        """Cholesky ``D~ = L L^T`` in place (§8.1): the fixed rows by the precomputed update lists, then the
-        tail rows (forward substitution against the fixed rows, dense Cholesky among themselves)."""
-        wid = wp.tid()
-        base = bases(m, sp, wid)
-        vb, tb, ts = base[1], base[2], base[3]
-        nf = sp.n_fixed[wid]
+    @wp.func
+    def factor_fixed_rows(sp: SP, wid: int, vb: int):
+        """``L_f`` in place: the fixed rows' entries by the precomputed update lists."""
         e0 = sp.ent_start[wid]
         for k in range(sp.nnz[wid]):
             s = sp.val[vb + k * S]
@@ -350,6 +345,23 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             else:
                 s = s / sp.val[vb + d * S]
             sp.val[vb + k * S] = s
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def factor_fixed(m: M, w: Work, sp: SP):
+        """Cholesky of the fixed rows only (``D~_ff = L_f L_f^T``; post-stabilisation)."""
+        wid = wp.tid()
+        factor_fixed_rows(sp, wid, bases(m, sp, wid)[1])
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def factor(m: M, w: Work, sp: SP):
+        """Cholesky ``D~ = L L^T`` in place (§8.1): the fixed rows by the precomputed update lists, then the
+        tail rows (forward substitution against the fixed rows, dense Cholesky among themselves)."""
+        wid = wp.tid()
+        base = bases(m, sp, wid)
+        vb, tb, ts = base[1], base[2], base[3]
+        nf = sp.n_fixed[wid]
+        e0 = sp.ent_start[wid]
+        factor_fixed_rows(sp, wid, vb)
         n = w.n_rows[wid]
         p0 = sp.ptr_start[wid]
         for t in range(n - nf):
@@ -424,4 +436,5 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 w.x[rq] = w.x[rq] - sp.val[vb + k * S] * xp
 
     return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor,
+                           factor_fixed=factor_fixed,
                            solve_inplace=solve_inplace, delassus_entry=delassus_entry)

@@ -1,0 +1,78 @@
+"""Post-stabilisation: projecting the poses back onto the joint constraints after a step.
+
+Velocity-level Baumgarte stabilisation (formulation.md §5) closes a loop only as fast as ``alpha`` allows, and
+a stiff ``alpha`` gives redundant unilateral rows inconsistent biases that PADMM resolves slowly
+(docs/warp_backend.md, "Convergence on the four-bar"). Post-stabilisation (Cline and Pai 2003) instead corrects
+the positions after the pose update: with ``e(q)`` the residuals of the always-active rows (zero on the
+joint-dynamics rows, the joint residual of formulation.md §2.4 on the kinematic rows, ``q_a - p(q_b)`` on the
+coupling rows), one pass is the Gauss-Newton step of
+
+    min_d 1/2 d^T M d   subject to   e(q) + J d = 0,    d = -M^-1 J^T (J M^-1 J^T + R)^-1 e,
+    q <- q ⊕ d,
+
+with the step's ``J``, ``M`` and joint-dynamics compliance ``R`` (the actuators' implicit inertia resists the
+correction as it resists motion). The system is solved in PADMM's Jacobi scaling ``P``: ``(P D_ff P + s I) y =
+-P e``, ``lambda = P y``, with the small shift ``s = SolverConfig.projection_shift_for(dtype)`` (``sqrt(eps)``):
+redundant loop rows make ``D_ff`` singular, and a null direction of ``D_ff`` moves no body (``J^T v = 0``), so the
+shift only has to keep the pivots above rounding. It leaves ``s / (sigma + s)`` of the error along a direction of
+scaled curvature ``sigma``; a second pass (``SolverConfig.post_stabilisation = 2``) re-linearises at the corrected
+pose. (PADMM's own factor carries the shift ``eta + rho``, 0.1-1: reusing it left 5-20 % of the four-bar's loop
+error per pass, measured, so the projection factorises its own block.)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.linalg import cho_factor, cho_solve
+
+from kamino.config import SolverConfig
+from kamino.jax_ref.contacts import deadband
+from kamino.jax_ref.couplings import coupling_residual
+from kamino.jax_ref.dynamics import BodyDynamics, apply_inv_mass
+from kamino.jax_ref.joints import constraint_residual, dof_positions, joint_frames
+from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.spatial import integrate_pose
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Projector:
+    """The always-active rows' data a projection needs: their Jacobian ``J_f`` (dynamics, joint, coupling
+    rows), PADMM's row scaling ``P_f`` and the Cholesky factor of ``P_f D_ff P_f + s I``."""
+
+    J: jax.Array  # [nf, 6 nb]
+    P: jax.Array  # [nf]
+    factor: jax.Array  # [nf, nf] lower Cholesky factor
+    bodies: BodyDynamics
+
+
+def projector(J: jax.Array, D: jax.Array, P: jax.Array, n_fixed: int, bd: BodyDynamics) -> Projector:
+    """The projection's system from the step's ``J``, Delassus ``D`` (with ``R``) and scaling ``P``."""
+    Pf = P[:n_fixed]
+    shift = SolverConfig.projection_shift_for(D.dtype)
+    A = Pf[:, None] * D[:n_fixed, :n_fixed] * Pf[None, :] + shift * jnp.eye(n_fixed, dtype=D.dtype)
+    return Projector(J=J[:n_fixed], P=Pf, factor=cho_factor(A, lower=True)[0], bodies=bd)
+
+
+def fixed_row_residual(pm: PaddedModel, q: jax.Array, delta) -> jax.Array:
+    """``e(q)`` of the always-active rows in row order (zero on the joint-dynamics rows), with the joint
+    dead band ``delta`` (errors below it are rounding noise on redundant rows, as for the bias)."""
+    jf = joint_frames(pm, q)
+    e_kin = jnp.where(pm.row_mask, deadband(constraint_residual(pm, jf), delta), 0.0)
+    e_cpl = jnp.where(pm.cpl_mask, deadband(coupling_residual(pm, dof_positions(pm, jf)), delta), 0.0)
+    return jnp.concatenate([jnp.zeros(pm.dyn_mask.shape[0], q.dtype), e_kin, e_cpl])
+
+
+def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig) -> jax.Array:
+    """``cfg.post_stabilisation`` projection passes of the poses ``q`` [nb, 7] (module docstring)."""
+    delta = cfg.deadband_for(q.dtype)
+    nb = q.shape[0]
+    for _ in range(cfg.post_stabilisation):
+        e = fixed_row_residual(pm, q, delta)
+        y = cho_solve((proj.factor, True), -proj.P * e)
+        d = apply_inv_mass(proj.bodies, (proj.J.T @ (proj.P * y)).reshape(nb, 6))
+        q = integrate_pose(q, d, 1.0)
+    return q

@@ -1,0 +1,89 @@
+"""Post-stabilisation on the device: the position projection of ``kamino/jax_ref/post_stabilisation.py``.
+
+Once per step, after the pose update, the always-active rows' scaled block ``P D_ff P + s I`` is assembled on
+their static sparse pattern and factorised (``sparse_llt.assemble_fixed`` / ``factor_fixed``, with a factor
+storage of its own: PADMM's factor carries the shift ``eta + rho``). One pass is then three launches: the
+residuals at ``q_new`` in PADMM's units (``x = -P e``), one thread per world solving with the sparse factor,
+and the displacement ``d = M^-1 J_f^T P y`` applied as ``q_new ⊕ d``. The factorisation and the solve read
+the block-sparse rows, which every configuration builds, so the projection works with either Jacobian and
+either linear solver.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from kamino.warp_backend.indexing import index_funcs
+from kamino.warp_backend.kinematics import kinematics_funcs
+from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
+from kamino.warp_backend.spatial import spatial_funcs
+from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import work_struct
+
+
+@functools.cache
+def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
+    T = types_of(np_dtype)
+    scalar, vec6 = T.scalar, T.vec6
+    M = model_struct(np_dtype)
+    Work = work_struct(np_dtype)
+    SP = pattern_struct(np_dtype)
+    sp = spatial_funcs(np_dtype)
+    kf = kinematics_funcs(np_dtype)
+    ridx = index_funcs(np_dtype).ridx
+    integrate_pose, deadband, lin, ang, twist = sp.integrate_pose, sp.deadband, sp.lin, sp.ang, sp.twist
+    sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def residual(m: M, w: Work, delta: scalar):
+        """``x_a = -P_a e_a(q_new)`` on the always-active rows (``fixed_row_residual`` of the reference)."""
+        wid, a = wp.tid()
+        if a >= m.row_fixed[wid]:
+            return
+        nd = m.dyn_count[wid]
+        nc = m.cts_count[wid]
+        e = scalar(0.0)
+        if a >= nd and a < nd + nc:
+            e = deadband(kf.cts_residual(m, w.q_new, m.cts_start[wid] + a - nd), delta)
+        elif a >= nd + nc:
+            k = m.cpl_start[wid] + a - nd - nc
+            db = m.cpl_dof_b[k]
+            qb = scalar(0.0)
+            if db >= 0:
+                qb = kf.dof_position(m, w.q_new, db)
+            ek, dp = kf.coupling_residual(m, k, kf.dof_position(m, w.q_new, m.cpl_dof_a[k]), qb)
+            e = deadband(ek, delta)
+        r = ridx(m, wid, a)
+        w.x[r] = -w.P[r] * e
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def solve(m: M, w: Work, sp: SP):
+        """``y = (P D_ff P + s I)^-1 x`` with the fixed rows' sparse factor."""
+        wid = wp.tid()
+        sparse_solve(m, w, sp, wid, m.row_fixed[wid])
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def displace(m: M, w: Work, nblk: int):
+        """``q_new <- q_new ⊕ M^-1 J_f^T P y`` (the body's share of every fixed row, summed in row order)."""
+        wid, i = wp.tid()
+        if i >= m.body_count[wid]:
+            return
+        b = m.body_start[wid] + i
+        acc = vec6()
+        for a in range(m.row_fixed[wid]):
+            r = ridx(m, wid, a)
+            for k in range(nblk):
+                if w.row_body[r * nblk + k] == b:
+                    acc += (w.P[r] * w.x[r]) * w.row_J[r * nblk + k]
+        d = twist(m.inv_mass[b] * lin(acc), w.inv_inertia_w[b] * ang(acc))
+        x = integrate_pose(w.q_new[b], d, scalar(1.0))
+        ok = True
+        for c in range(7):
+            ok = ok and wp.isfinite(x[c])
+        if not ok:
+            w.failed[wid] = 1
+        w.q_new[b] = x
+
+    return SimpleNamespace(residual=residual, solve=solve, displace=displace)
