@@ -30,6 +30,17 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
     ridx, jidx = ix.ridx, ix.jidx
     lin, ang, twist, integrate_pose = sp.lin, sp.ang, sp.twist, sp.integrate_pose
 
+    @wp.func
+    def rows_on_body(m: M, w: Work, wid: int, b: int, n: int, nblk: int, lam: wp.array(dtype=scalar)):
+        """``(J^T lambda)_b`` over the first ``n`` rows of world ``wid`` (block-sparse rows, summed in row order)."""
+        acc = vec6()
+        for a in range(n):
+            r = ridx(m, wid, a)
+            for k in range(nblk):
+                if w.row_body[r * nblk + k] == b:
+                    acc += lam[r] * w.row_J[r * nblk + k]
+        return acc
+
     @wp.kernel(module="unique", enable_backward=False)
     def integrate(m: M, w: Work, nblk: int, dense: int, h: scalar, damping: scalar):
         """``u+ = u_f + M^-1 J^T lambda`` (the body's share of every active row, summed in row order) and
@@ -46,11 +57,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
                 for c in range(6):
                     acc[c] += lam * w.Jd[jidx(m, wid, a, 6 * i + c)]
         else:
-            for a in range(n):
-                r = ridx(m, wid, a)
-                for k in range(nblk):
-                    if w.row_body[r * nblk + k] == b:
-                        acc += w.impulse[r] * w.row_J[r * nblk + k]
+            acc = rows_on_body(m, w, wid, b, n, nblk, w.impulse)
         u = w.u_f[b] + twist(m.inv_mass[b] * lin(acc), w.inv_inertia_w[b] * ang(acc))
         if damping != scalar(0.0):
             u = twist(lin(u), (scalar(1.0) - damping) * ang(u))
@@ -112,5 +119,5 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         if w.failed[wid] == 0:
             w.time[wid] = w.time[wid] + dt
 
-    return SimpleNamespace(integrate=integrate, dof_forces=dof_forces, row_forces=row_forces,
+    return SimpleNamespace(rows_on_body=rows_on_body, integrate=integrate, dof_forces=dof_forces, row_forces=row_forces,
                            commit_bodies=commit_bodies, commit_time=commit_time)

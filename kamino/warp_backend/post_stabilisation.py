@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from kamino.warp_backend.indexing import index_funcs
+from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.kinematics import kinematics_funcs
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
@@ -26,7 +27,7 @@ from kamino.warp_backend.workspace import work_struct
 @functools.cache
 def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
     T = types_of(np_dtype)
-    scalar, vec6 = T.scalar, T.vec6
+    scalar = T.scalar
     M = model_struct(np_dtype)
     Work = work_struct(np_dtype)
     SP = pattern_struct(np_dtype)
@@ -35,6 +36,7 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
     ridx = index_funcs(np_dtype).ridx
     integrate_pose, deadband, lin, ang, twist = sp.integrate_pose, sp.deadband, sp.lin, sp.ang, sp.twist
     sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
+    rows_on_body = integrate_kernels(np_dtype).rows_on_body
 
     @wp.kernel(module="unique", enable_backward=False)
     def residual(m: M, w: Work, delta: scalar):
@@ -60,23 +62,22 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def solve(m: M, w: Work, sp: SP):
-        """``y = (P D_ff P + s I)^-1 x`` with the fixed rows' sparse factor."""
+        """``lambda = P (P D_ff P + s I)^-1 x`` with the fixed rows' sparse factor (into ``x``)."""
         wid = wp.tid()
-        sparse_solve(m, w, sp, wid, m.row_fixed[wid])
+        nf = m.row_fixed[wid]
+        sparse_solve(m, w, sp, wid, nf)
+        for a in range(nf):  # lambda = P y
+            r = ridx(m, wid, a)
+            w.x[r] = w.P[r] * w.x[r]
 
     @wp.kernel(module="unique", enable_backward=False)
     def displace(m: M, w: Work, nblk: int):
-        """``q_new <- q_new ⊕ M^-1 J_f^T P y`` (the body's share of every fixed row, summed in row order)."""
+        """``q_new <- q_new ⊕ M^-1 J_f^T lambda`` (the body's share of every fixed row, summed in row order)."""
         wid, i = wp.tid()
         if i >= m.body_count[wid]:
             return
         b = m.body_start[wid] + i
-        acc = vec6()
-        for a in range(m.row_fixed[wid]):
-            r = ridx(m, wid, a)
-            for k in range(nblk):
-                if w.row_body[r * nblk + k] == b:
-                    acc += (w.P[r] * w.x[r]) * w.row_J[r * nblk + k]
+        acc = rows_on_body(m, w, wid, b, m.row_fixed[wid], nblk, w.x)
         d = twist(m.inv_mass[b] * lin(acc), w.inv_inertia_w[b] * ang(acc))
         x = integrate_pose(w.q_new[b], d, scalar(1.0))
         ok = True
