@@ -199,3 +199,32 @@ def test_jit_vmap_over_worlds_with_contacts_in_float32(variant):
     out = jax.jit(lambda s: variant.step(model, s, config=cfg))(state)  # Warp: through its FFI call
     assert out.body_q.dtype == np.float32
     assert np.all(np.asarray(out.info.num_contacts) == 4)
+
+
+def _two_cubes_corner_to_corner(gap_per_axis: float) -> kamino.Model:
+    """Two free 0.2 m cubes in zero gravity, at rest, the second displaced along the diagonal so that their
+    facing corners are ``sqrt(3) * gap_per_axis`` apart (while every face axis separates them by only
+    ``gap_per_axis``)."""
+    from kamino.model import ModelBuilder
+    from kamino.models.shapes import box_inertia
+
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    d = 0.2 + gap_per_axis
+    for k, pos in enumerate(((0.0, 0.0, 0.0), (d, d, d))):
+        body = b.add_body(mass=1.0, inertia=box_inertia(1.0, (0.2,) * 3), pos=pos, name=f"cube{k}")
+        b.add_geom(GeomType.BOX, body, size=(0.1, 0.1, 0.1), name=f"cube{k}")
+    return b.finalize()
+
+
+@pytest.mark.parametrize("variant", BACKENDS)
+def test_a_contact_activates_only_within_its_margin_corner_to_corner(variant):
+    # contact margin 15 mm. Face-axis separation 10 mm, but the corners are 17.3 mm apart: no contact (the
+    # narrow phase measures the corner distance; the bounding spheres touch the corners, which lie on the line
+    # of centres, so the pair-skipping test is exact here). At 8 mm per axis the corners are 13.9 mm apart.
+    for gap, expect_contact in ((0.010, False), (0.008, True)):
+        model = _two_cubes_corner_to_corner(gap)
+        traj = _run(variant, model, 1, contact_margin=0.015)
+        n = int(np.asarray(traj.info.num_contacts)[-1, 0])
+        assert (n > 0) == expect_contact, (gap, n)
+        # at rest in zero gravity either way: a speculative contact short of touching pushes nothing
+        assert np.abs(np.asarray(traj.body_u)).max() < 1e-9

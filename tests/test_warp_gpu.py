@@ -28,10 +28,6 @@ def test_from_jax_shares_the_device_pointer():
     assert arr.device.is_cuda
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "open bug (issue 5): after 5 steps the uncaptured CUDA stepper of this test is still at the initial pose "
-    "while the graph-captured one moved; one step of each agrees to the last bit on the H100 when the second "
-    "stepper is built after the first has run. Deterministic on the H100 on 2026-11-22; docs/warp_backend.md"))
 def test_a_captured_step_replays_the_uncaptured_one():
     model = kamino.replicate(kamino.load_mjcf("benchmarks/scenes/fourbar.xml"), 64)
     state = kamino.init_state(model, jnp.float32)

@@ -65,13 +65,20 @@ def _np_dtype(arr: wp.array) -> np.dtype:
     return np.dtype(wp.dtype_to_numpy(getattr(dtype, "_wp_scalar_type_", dtype)))
 
 
-def _write(dst: wp.array, src, device) -> None:
-    """Copy a JAX/numpy array into the device buffer ``dst`` (``wp.from_jax`` on the GPU: no host copy)."""
+def _write(dst: wp.array, src, device, keep: list) -> None:
+    """Copy a JAX/numpy array into the device buffer ``dst`` (``wp.from_jax`` on the GPU: no host copy).
+
+    On the GPU the copy is only enqueued on Warp's stream, behind whatever that stream still runs (a replayed
+    step of another stepper, say). The JAX buffer it reads, often a temporary made here by a dtype
+    conversion, is appended to ``keep``: the caller holds it until it has synchronised, so that JAX cannot
+    free and reuse the buffer before the copy has read it."""
     if dst.size == 0:
         return
     if device.is_cuda and isinstance(src, jax.Array) and _on_gpu(src):
         # JAX computes on its own stream: wait for the buffer before Warp's stream reads it
-        wp.copy(dst, wp.from_jax(jax.block_until_ready(src.astype(_np_dtype(dst))), dtype=dst.dtype))
+        buf = jax.block_until_ready(src.astype(_np_dtype(dst)))
+        keep.append(buf)
+        wp.copy(dst, wp.from_jax(buf, dtype=dst.dtype))
     else:
         a = np.asarray(src, dtype=_np_dtype(dst))
         dst.assign(a.reshape(dst.shape[0], -1) if a.ndim > 1 else a)
@@ -91,35 +98,38 @@ def _read(src: wp.array, shape, dtype=None) -> jax.Array:
 def load_state(st: Stepper, state: State, control: Control | None) -> None:
     """Copy ``state`` and ``control`` into the stepper's buffers (zeros for absent controls)."""
     w, dev = st.work, st.device
-    _write(w.q, state.body_q, dev)
-    _write(w.u, state.body_u, dev)
-    _write(w.time, state.time, dev)
-    _write(w.kin_force, state.constraint_force, dev)
-    _write(w.cpl_force, state.coupling_force, dev)
-    _write(w.act_force, state.actuator_force, dev)
-    _write(w.pas_force, state.passive_force, dev)
-    _write(w.lim_force, state.limit_force, dev)
+    keep: list = []  # the JAX buffers the enqueued copies read (see _write)
+    for dst, src in ((w.q, state.body_q), (w.u, state.body_u), (w.time, state.time),
+                     (w.kin_force, state.constraint_force), (w.cpl_force, state.coupling_force),
+                     (w.act_force, state.actuator_force), (w.pas_force, state.passive_force),
+                     (w.lim_force, state.limit_force)):
+        _write(dst, src, dev, keep)
     c = state.contacts
     for dst, src in ((w.con_pair, c.pair), (w.con_pos, c.pos), (w.con_normal, c.normal), (w.con_dist, c.dist),
                      (w.con_force, c.force), (w.con_velocity, c.velocity), (w.con_point_b, c.point_b)):
-        _write(dst, src, dev)
-    load_control(st, control)
+        _write(dst, src, dev, keep)
+    load_control(st, control, keep)
 
 
-def load_control(st: Stepper, control: Control | None) -> None:
-    """Copy ``control`` into the stepper's buffers (zeros for absent fields)."""
+def load_control(st: Stepper, control: Control | None, keep: list | None = None) -> None:
+    """Copy ``control`` into the stepper's buffers (zeros for absent fields); on the GPU, wait for the copies
+    before the JAX buffers they read (``keep``, and the temporaries made here) may be freed."""
     w, dev = st.work, st.device
+    keep = [] if keep is None else keep
     for name, dst in (("dof_effort", w.effort), ("body_wrench", w.wrench), ("position_target", w.position_target),
                       ("velocity_target", w.velocity_target)):
         value = None if control is None else getattr(control, name)
         if value is None:
             dst.zero_()
         else:
-            _write(dst, jnp.asarray(value, st.np_dtype), dev)
+            _write(dst, jnp.asarray(value, st.np_dtype), dev, keep)
     if dev.is_cuda:
-        # the copies read JAX buffers (some of them temporaries) asynchronously: finish them before the
-        # temporaries can be freed and reused
+        # The copies were only enqueued, possibly behind a step of another stepper still running on Warp's
+        # stream. Under jax_enable_x64 the float64 controls are converted to temporaries that JAX would free
+        # and reuse before such a queued copy reads them: this was the captured-vs-uncaptured test failure
+        # (docs/warp_backend.md). Wait here, then let the buffers go.
         wp.synchronize_device(dev)
+    keep.clear()
 
 
 def read_state(st: Stepper, int_dtype=jnp.int32) -> State:

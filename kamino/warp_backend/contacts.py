@@ -11,6 +11,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.model import GeomType
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, model_struct
@@ -34,6 +35,7 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
     rk = row_kernels(np_dtype)
     collide_pair = collision_funcs(np_dtype).collide_pair
     ridx = index_funcs(np_dtype).ridx
+    PLANE = int(GeomType.PLANE)
 
     @wp.func
     def geom_pose(m: M, body_q: wp.array(dtype=transform), g: int):
@@ -61,7 +63,8 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
     @wp.kernel(module="unique", enable_backward=False)
     def narrow_phase(m: M, w: Work, h: scalar, contact_margin: scalar):
         """Candidate points of each geom pair, with the margin widened by a bound of the pair's approach
-        speed over the pose update (``detect`` of the JAX reference)."""
+        speed over the pose update (``detect`` of the JAX reference); a pair whose bounding spheres are
+        farther apart than that margin is skipped (no valid candidate, as in the reference)."""
         wid, i = wp.tid()
         if i >= m.pair_count[wid]:
             return
@@ -82,6 +85,17 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             wb = wp.length(ang(w.u_f[bb]))
         speed = wp.length(vb - va) + wa * m.geom_radius[ga] + wb * m.geom_radius[gb]
         margin = m.geom_margin[ga] + m.geom_margin[gb] + contact_margin + h * speed
+        if m.geom_type[ga] != PLANE:  # pairs are ordered: a plane is always geom a
+            ca = vec3()
+            cb = vec3()
+            if ba >= 0:
+                ca = wp.transform_get_translation(w.q_eval[ba])
+            if bb >= 0:
+                cb = wp.transform_get_translation(w.q_eval[bb])
+            if wp.length(cb - ca) > m.geom_radius[ga] + m.geom_radius[gb] + margin:  # bounding spheres apart
+                for k in range(m.pair_points[p]):
+                    w.cand_valid[m.pair_cand[p] + k] = 0
+                return
         collide_pair(m.geom_type[ga], m.geom_type[gb], geom_pose(m, w.q_eval, ga), m.geom_size[ga],
                      geom_pose(m, w.q_eval, gb), m.geom_size[gb], margin, m.pair_cand[p], w.cand_pos,
                      w.cand_normal, w.cand_dist, w.cand_valid)
