@@ -34,6 +34,7 @@ from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType  # noqa
 
 SCENES = ("fourbar", "ladder8", "ladder32", "dr_legs")
 CONFIGS = {
+    "default": {},  # kamino.SolverConfig(dt=DT) as it comes: sparse J, LLT (CR above AUTO_CR_ROWS rows)
     "dense-llt": dict(jacobian="dense", linear_solver="llt"),
     "sparse-llt": dict(jacobian="sparse", linear_solver="llt"),
     "sparse-cr": dict(jacobian="sparse", linear_solver="cr"),
@@ -45,11 +46,9 @@ CONFIGS = {
 #: per world, padmm_warp.py) or ``"block"`` (one tile block per world, padmm_tile.py)
 PADMM = {"sparse-llt-block": "block", "sparse-llt-warp": "warp", "dense-llt-warp": "warp"}
 DT = 0.0025
-#: solver settings of every kamino configuration here (docs/warp_backend.md, "Convergence on the four-bar"):
-#: the penalty of Newton's Kamino examples (0.1; 0.01 made the four-bar's unlimited steps take 5x the
-#: iterations), a float32-attainable tolerance (the residual floor is about 1e-6), the curvature refinement
-#: for the loop closure, a cap on iterations
-SOLVER = dict(rho=0.1, tolerance=1e-5, curvature_refinement=True, max_iterations=100)
+#: solver settings of every kamino configuration here on top of ``kamino.SolverConfig(dt=DT)``: none, the library
+#: defaults are the measured configuration (issue 16; ``--solver FIELD=VALUE`` overrides for experiments)
+SOLVER: dict = {}
 AMPLITUDE, FREQUENCY = 2.0, 1.0
 
 
@@ -214,17 +213,47 @@ def closure_run(name, config_name, args) -> dict:
     st = wb.stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
     wb.load_state(st, state, control)
     st.pre_step.append(_drive_hook(st, model, drive, base_targets))
-    closure, iters, r_p, r_d, conv = 0.0, [], [], [], []
+    closure, iters, r_p, r_d, conv, ju = 0.0, [], [], [], [], 0.0
     for _ in range(args.closure_steps):
         st.run(1)
         closure = max(closure, closure_distance(model, st.work.q.numpy().reshape(-1, 7)))
+        ju = max(ju, joint_velocity_error(st))
         iters.append(int(st.work.iters.numpy()[0]))
         r_p.append(float(st.work.r_p.numpy()[0]))
         r_d.append(float(st.work.r_d.numpy()[0]))
         conv.append(bool(st.work.converged.numpy()[0]))
     return {"closure_max_m": closure, "iterations_mean": float(np.mean(iters)), "iterations_max": int(np.max(iters)),
             "primal_residual_max": float(np.max(r_p)), "dual_residual_max": float(np.max(r_d)),
-            "converged_fraction": float(np.mean(conv))}
+            "converged_fraction": float(np.mean(conv)), "joint_velocity_error_max": ju}
+
+
+def joint_velocity_error(st) -> float:
+    """``max |J(q+) u+|`` over the joint rows of a single-world stepper after a step: the bilateral constraint
+    velocity at the new pose, in m/s (translational rows) or rad/s (rotational rows), the velocity drift the next
+    step starts from. The Jacobian is the JAX reference's (formulation.md §2.5), at the committed poses and
+    twists. (``J(q-) u+`` is not an error: it equals the stabilisation bias, curvature term included.)"""
+    import jax
+    import jax.numpy as jnp
+
+    from kamino.jax_ref.joints import constraint_jacobian, joint_frames
+    from kamino.jax_ref.layout import layout_of
+
+    model = st.wm.model
+    if model.num_worlds != 1 or not model.num_constraints:
+        return 0.0
+    fn = _JVEL.get(id(model))
+    if fn is None:
+        pm = jax.tree_util.tree_map(lambda x: x[0], layout_of(model, st.np_dtype).padded)
+
+        def fn(q, u):
+            J = constraint_jacobian(pm, joint_frames(pm, q), q.shape[0])
+            return jnp.max(jnp.abs(jnp.where(pm.row_mask, J @ u.reshape(-1), 0.0)))
+
+        fn = _JVEL[id(model)] = jax.jit(fn)
+    return float(fn(jnp.asarray(st.work.q.numpy().reshape(-1, 7)), jnp.asarray(st.work.u.numpy().reshape(-1, 6))))
+
+
+_JVEL: dict = {}
 
 
 def environment() -> dict:
@@ -261,8 +290,8 @@ def main(argv=None) -> int:
     p.add_argument("--replays", type=int, default=10)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--closure-steps", type=int, default=1000)
-    p.add_argument("--tolerance", type=float, default=None, help=f"PADMM tolerance (default {SOLVER['tolerance']})")
-    p.add_argument("--rho", type=float, default=None, help=f"PADMM penalty (default {SOLVER['rho']})")
+    p.add_argument("--tolerance", type=float, default=None, help="PADMM tolerance (default: SolverConfig's)")
+    p.add_argument("--rho", type=float, default=None, help="PADMM starting penalty (default: SolverConfig's)")
     p.add_argument("--solver", nargs="+", default=[], metavar="FIELD=VALUE",
                    help="further kamino.SolverConfig fields for kamino's runs, e.g. baumgarte=0.01 "
                         "curvature_refinement=false (values parsed as JSON)")

@@ -11,6 +11,13 @@ from typing import Literal
 
 import numpy as np
 
+#: the adaptive penalty of the limit and contact rows changes at most every ``PENALTY_INTERVAL`` PADMM iterations,
+#: and only when the primal and dual residuals are out of balance by more than ``PENALTY_THRESHOLD``; it stays in
+#: ``[RHO_MIN, RHO_MAX]`` (the scaled problem has a unit diagonal). Both backends use these (docs/conventions.md,
+#: "Penalty").
+PENALTY_INTERVAL, PENALTY_THRESHOLD = 10, 5.0
+RHO_MIN, RHO_MAX = 1e-3, 10.0
+
 
 @dataclasses.dataclass(frozen=True)
 class SolverConfig:
@@ -36,7 +43,13 @@ class SolverConfig:
             on redundant loop rows would otherwise be an inconsistent right-hand side);
             ``None`` picks 1e-6 in float32 and 1e-11 in float64.
         max_iterations: PADMM iteration cap per step.
-        tolerance: primal, dual and complementarity tolerance (infinity norms, unscaled units, §7.5).
+        tolerance: the one knob that trades speed for accuracy. PADMM stops when its primal and dual residuals
+            are below it as velocities [m/s or rad/s] of the world's heaviest constrained direction (each row's
+            impulse and velocity error weighted by the square root of its effective mass: a row's kinetic-energy
+            error is at most that of a ``tolerance`` velocity error on the heaviest row), and the complementarity
+            residual ``|lambda v|`` below it too (``kamino.jax_ref.padmm.solve``; docs/conventions.md, "PADMM
+            defaults"). 1e-3 m/s moves a body by at most 2.5 um in a 2.5 ms step; post-stabilisation removes the
+            joints' share of that drift.
         redundant_limits: fix ``lambda = 0`` up front on limit rows that are equivalent, modulo the bilateral
             rows, to another limit row with a smaller bias (all three hinge limits of a parallelogram loop);
             the solution is unchanged and PADMM stops creeping along the null direction
@@ -44,7 +57,15 @@ class SolverConfig:
             backend raise).
         fixed_iterations: run exactly ``max_iterations`` PADMM iterations with no early exit
             (``lax.fori_loop``: what makes ``jax.grad`` through ``step`` possible).
-        rho, eta: ADMM penalty and proximal parameters (§7.3).
+        rho, eta: ADMM penalty and proximal parameters (§7.3). With ``penalty="adaptive"`` ``rho`` is the
+            starting penalty of the limit and contact rows, which each world then balances (and carries to its
+            next step in ``state.info.penalty``).
+        penalty: ``"adaptive"`` (default): the always-active rows carry ``rho_free``, the limit and contact rows
+            a per-world penalty balanced by the residuals (docs/conventions.md, "Penalty"); ``"fixed"``: every
+            row carries ``rho`` (formulation.md §7.6).
+        rho_free: the penalty of the always-active rows (joint-dynamics, joint, coupling) under
+            ``penalty="adaptive"``: only a proximal shift there, small for fast convergence, large enough to keep
+            float32 factors of redundant loops well conditioned.
         warm_start: start PADMM from the previous step's constraint forces (§7.8).
         warmstart_scale: factor on the warm-start reactions (§7.8).
         acceleration: Nesterov acceleration with restart (§7.4).
@@ -62,24 +83,31 @@ class SolverConfig:
             does not see what its joints transmit (gravity on a pendulum is a joint reaction), so a
             margin is needed for a DoF that rests on its limit not to fall through for a step.
         contact_margin: likewise for contacts [m], added to the geoms' own margins (§4.2).
-        jacobian: ``"dense"`` (the JAX reference is dense; ``"sparse"`` is a Warp-backend option).
-        linear_solver: ``"llt"`` dense Cholesky (``"cr"``/``"auto"``: Warp-backend options).
+        jacobian: Warp backend: ``"sparse"`` block rows (default) or a ``"dense"`` per-world Jacobian. The JAX
+            reference always computes densely; the physics is the same.
+        linear_solver: Warp backend: ``"llt"`` Cholesky (sparse factor with ``jacobian="sparse"``), ``"cr"``
+            matrix-free Conjugate Residual, ``"auto"`` (default): CR above ``AUTO_CR_ROWS`` rows per world.
         cr_iterations: Conjugate Residual budget per PADMM iteration (Warp backend).
+        max_unconverged_steps: a world whose PADMM has not converged for more than this many consecutive steps
+            is marked ``state.info.failed`` and frozen, like a world whose state went non-finite
+            (docs/conventions.md, "World health").
     """
 
     dt: float = 1.0 / 240.0
     integrator: Literal["euler", "midpoint"] = "euler"
-    baumgarte: float = 1.0
+    baumgarte: float = 0.01
     curvature_correction: bool = True
     curvature_refinement: bool = False
-    post_stabilisation: int = 0
+    post_stabilisation: int = 1
     joint_deadband: float | None = None
     max_iterations: int = 200
-    tolerance: float = 1e-6
+    tolerance: float = 1e-3
     fixed_iterations: bool = False
     redundant_limits: bool = False
-    rho: float = 1.0
+    rho: float = 0.1
     eta: float = 1e-5
+    penalty: Literal["fixed", "adaptive"] = "adaptive"
+    rho_free: float = 1e-3
     warm_start: bool = True
     warmstart_scale: float = 1.0
     acceleration: bool = True
@@ -93,9 +121,10 @@ class SolverConfig:
     contact_match_distance: float = 2e-3
     limit_margin: float = 1e-2
     contact_margin: float = 1e-3
-    jacobian: Literal["dense", "sparse"] = "dense"
-    linear_solver: Literal["llt", "cr", "auto"] = "llt"
+    jacobian: Literal["dense", "sparse"] = "sparse"
+    linear_solver: Literal["llt", "cr", "auto"] = "auto"
     cr_iterations: int = 9
+    max_unconverged_steps: int = 50
 
     def deadband_for(self, dtype) -> float:
         """The joint dead band in effect for states of ``dtype``: ``joint_deadband``, or 1e-6 in
@@ -130,6 +159,12 @@ class SolverConfig:
             bad("tolerance", "must be > 0")
         if not self.rho > 0:
             bad("rho", "must be > 0")
+        if not self.rho_free > 0:
+            bad("rho_free", "must be > 0")
+        if self.penalty not in ("adaptive", "fixed"):
+            bad("penalty", "must be 'adaptive' or 'fixed'")
+        if int(self.max_unconverged_steps) != self.max_unconverged_steps or self.max_unconverged_steps < 0:
+            bad("max_unconverged_steps", "must be an integer >= 0")
         if not self.eta >= 0:
             bad("eta", "must be >= 0")
         if not (0.0 < self.restart_tolerance <= 1.0):

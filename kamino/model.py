@@ -783,7 +783,7 @@ class ModelBuilder:
         ``restitution`` the Newton coefficient in [0, 1]; a pair uses the larger of its two geoms'
         values (docs/conventions.md, "Contacts"). ``margin`` [m] widens contact activation. Two geoms
         may touch when ``group_a & mask_b`` and ``group_b & mask_a`` are both non-zero, they are on
-        different bodies not both the world, and the bodies are not joined by a joint
+        different bodies not both the world, and the bodies are not joined by a joint other than FREE
         (:meth:`set_collision` overrides all of this for one pair).
         """
         idx = len(self._geoms)
@@ -828,8 +828,11 @@ class ModelBuilder:
 
     def _contact_pairs(self) -> list[tuple[int, int]]:
         """Candidate pairs ``(a, b)`` with ``type_a <= type_b`` after filtering (issue 3: only pairs
-        that can touch generate work)."""
-        joined = {(min(j.parent, j.child), max(j.parent, j.child)) for j in self._joints}
+        that can touch generate work; docs/conventions.md, "Contacts"). A FREE joint constrains nothing
+        (no rows in ``JOINT_CONSTRAINT_ROWS``, formulation.md §2.4), so it does not exclude its bodies'
+        pairs: a free body collides with the world's geoms. Every other joint type excludes them."""
+        joined = {(min(j.parent, j.child), max(j.parent, j.child)) for j in self._joints
+                  if j.type != JointType.FREE}
         for key in self._pair_overrides:
             for gi in key:
                 if not (0 <= gi < len(self._geoms)):

@@ -28,6 +28,8 @@ class StepInfo:
     failed: jax.Array
     num_contacts: jax.Array
     contact_overflow: jax.Array
+    penalty: jax.Array
+    unconverged_steps: jax.Array
 
     @staticmethod
     def empty(num_worlds: int, dtype=jnp.float32) -> StepInfo:
@@ -42,6 +44,8 @@ class StepInfo:
             failed=jnp.zeros(num_worlds, bool),
             num_contacts=zi,
             contact_overflow=zi,
+            penalty=z,
+            unconverged_steps=zi,
         )
 
 

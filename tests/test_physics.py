@@ -54,7 +54,7 @@ def test_fourbar_stays_closed_and_conserves_energy(integrator, closure_bound, va
     # issue bounds: closure < 1e-6 m (midpoint), < 1e-4 m (Euler), over 10 s at dt = 1/240
     assert met["constraint_violation"].max() < closure_bound
     assert bool(np.all(traj.info.converged)), "PADMM must reach its tolerance on every step"
-    assert float(np.max(traj.info.dual_residual)) <= 1e-6
+    assert float(np.max(traj.info.dual_residual)) <= kamino.SolverConfig().tolerance  # the stopping test held
     if integrator == "midpoint":
         E0 = float(kamino.metrics(model, state)["total_energy"][0])
         drift = np.abs(met["total_energy"][:, 0] - E0).max()

@@ -23,7 +23,8 @@ from kamino.jax_ref import padmm
 FOURBAR_XML = Path(__file__).resolve().parents[1] / "benchmarks" / "scenes" / "fourbar.xml"
 DT = 0.0025  # the benchmark's step and drive (benchmarks/throughput.py)
 # the benchmark's solver settings
-BENCH = dict(dt=DT, rho=0.1, eta=1e-5, tolerance=1e-5, max_iterations=200, curvature_refinement=False)
+BENCH = dict(dt=DT, rho=0.1, eta=1e-5, tolerance=1e-5, max_iterations=200, curvature_refinement=False,
+             penalty="fixed", baumgarte=1.0, post_stabilisation=0)
 
 
 def _driven_fourbar_states(num_steps: int):

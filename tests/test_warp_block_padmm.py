@@ -28,7 +28,7 @@ def test_cooperative_kernels_solve_what_the_thread_kernel_solves(padmm):
     # at a tight tolerance, so the kernels, which differ only in who does the arithmetic (and in the order of
     # the factorisation's sums), agree to rounding (1e-12 m over 40 steps) and take the same iterations
     model = kamino.concat([kamino.models.fourbar(), kamino.models.box_stack(2)])
-    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-9, curvature_refinement=True)
+    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-9, curvature_refinement=True, penalty="fixed")
     q_thread, it_thread, _ = _run(model, cfg, "thread", 40)
     q_block, it_block, st = _run(model, cfg, padmm, 40)
     if padmm == "block":

@@ -49,6 +49,7 @@ def _padded_state(pm: PaddedModel, t: dict, state: State, control: Control | Non
         contact_force=con(c.force),
         contact_velocity=con(c.velocity),
         contact_point_b=con(c.point_b),
+        penalty=state.info.penalty,
     )
 
     def ctl(field, fill_shape, gather, mask):
@@ -69,24 +70,34 @@ def _padded_state(pm: PaddedModel, t: dict, state: State, control: Control | Non
 @functools.partial(jax.jit, static_argnames=("cfg",))
 def _step_jit(pm: PaddedModel, t: dict, state: State, control: Control | None, cfg: SolverConfig) -> State:
     q, u, cache, ctrl = _padded_state(pm, t, state, control)
-    q, u, cache, out, failed = step_batch(pm, q, u, cache, ctrl, cfg)
+    frozen = state.info.failed
+    q, u, cache, out, nonfinite = step_batch(pm, q, u, cache, ctrl, cfg, frozen)
     res = out.solve
+    # world health (docs/conventions.md): a frozen world reports no solve and keeps its count; a world that
+    # stays unconverged past cfg.max_unconverged_steps fails and is frozen from the next step on
+    converged = res.converged & ~frozen
+    prev = state.info.unconverged_steps
+    unconverged = jnp.where(frozen | nonfinite, prev, jnp.where(converged, 0, prev + 1)).astype(jnp.int32)
+    failed = frozen | nonfinite | (unconverged > cfg.max_unconverged_steps)
+    zero = jnp.zeros_like(res.primal_residual)
     info = StepInfo(
-        iterations=res.iterations.astype(jnp.int32),
-        primal_residual=res.primal_residual,
-        dual_residual=res.dual_residual,
-        complementarity_residual=res.complementarity_residual,
-        converged=res.converged,
+        iterations=jnp.where(frozen, 0, res.iterations).astype(jnp.int32),
+        primal_residual=jnp.where(frozen, zero, res.primal_residual),
+        dual_residual=jnp.where(frozen, zero, res.dual_residual),
+        complementarity_residual=jnp.where(frozen, zero, res.complementarity_residual),
+        converged=converged,
         failed=failed,
         num_contacts=out.num_contacts.astype(jnp.int32),
         contact_overflow=out.contact_overflow.astype(jnp.int32),
+        penalty=cache.penalty,
+        unconverged_steps=unconverged,
     )
     dof = lambda x: to_flat(x, t["ds"])  # noqa: E731
     con = lambda x: to_flat(x, t["cs"])  # noqa: E731
     return State(
         body_q=to_flat(q, t["bs"]),
         body_u=to_flat(u, t["bs"]),
-        time=state.time + jnp.where(failed, 0.0, cfg.dt).astype(state.time.dtype),
+        time=state.time + jnp.where(frozen | nonfinite, 0.0, cfg.dt).astype(state.time.dtype),
         constraint_force=to_flat(cache.kin, t["rs"]),
         actuator_force=dof(cache.actuator),
         passive_force=dof(cache.passive),

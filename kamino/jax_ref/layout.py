@@ -146,11 +146,18 @@ _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def layout_of(model: Model, dtype=None) -> Layout:
-    """The (cached) padded layout of ``model`` in ``dtype`` (default: JAX's float dtype)."""
+    """The (cached) padded layout of ``model`` in ``dtype`` (default: JAX's float dtype).
+
+    Built under ``jax.ensure_compile_time_eval()``: when the first call comes from inside a trace
+    (``jax.jit`` of ``kamino.metrics``, say), ``jnp.asarray`` would otherwise return tracers of that
+    trace, and the cache would hand them to every later call (``UnexpectedTracerError``). Its arrays are
+    therefore always concrete device arrays, whatever traces the caller is in (tests/test_layout_cache.py).
+    """
     dtype = np.dtype(dtype if dtype is not None else jnp.zeros(0).dtype)
     per_model = _CACHE.setdefault(model, {})
     if dtype not in per_model:
-        per_model[dtype] = _build_layout(model, dtype)
+        with jax.ensure_compile_time_eval():
+            per_model[dtype] = _build_layout(model, dtype)
     return per_model[dtype]
 
 

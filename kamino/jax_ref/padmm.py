@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
-from kamino.config import SolverConfig
+from kamino.config import PENALTY_INTERVAL, PENALTY_THRESHOLD, RHO_MAX, RHO_MIN, SolverConfig
 
 
 @jax.tree_util.register_dataclass
@@ -36,6 +36,7 @@ class PADMMResult:
     dual_residual: jax.Array
     complementarity_residual: jax.Array
     converged: jax.Array
+    penalty: jax.Array  # the bounded rows' penalty at the end of the solve (the next step starts from it)
 
 
 def jacobi_preconditioner(D: jax.Array, row_mask: jax.Array, n_box: int, enabled: bool) -> jax.Array:
@@ -151,16 +152,36 @@ def redundant_limits(Dt: jax.Array, vt: jax.Array, lo: jax.Array, hi: jax.Array,
 
 
 def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
-          impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig, refine=None) -> PADMMResult:
-    """Accelerated PADMM with restart (formulation.md §7.3-§7.5) from a warm start.
+          impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig, refine=None, rho0=None,
+          n_fixed: int = 0) -> PADMMResult:
+    """Accelerated PADMM with restart (formulation.md §7.3-§7.5) from a warm start, with a penalty per row class.
 
     ``D`` already holds the regularisation ``R`` of the joint-dynamics rows. ``lo``/``hi`` bound the
-    ``n_box = len(lo)`` box rows; the remaining rows are contact triples with friction ``mu``.
+    ``n_box = len(lo)`` box rows; the remaining rows are contact triples with friction ``mu``. The first
+    ``n_fixed`` rows are the always-active ones (joint-dynamics, joint and coupling rows).
     ``impulse0`` and ``velocity0`` (the latter including the De Saxcé term on contacts) warm-start
-    ``x``/``y`` and ``z`` (§7.8). All iterates are scaled (``lambda = P x``, ``v = P^-1 z``); residuals
-    are reported in unscaled units (§7.5). ``cfg.fixed_iterations`` runs exactly
-    ``cfg.max_iterations`` iterations (a ``fori_loop``, differentiable); otherwise a ``while_loop``
-    stops when the primal, dual and complementarity residuals are all ``<= cfg.tolerance``.
+    ``x``/``y`` and ``z`` (§7.8). All iterates are scaled (``lambda = P x``, ``v = P^-1 z``).
+
+    **Penalty (departure from §7.6, docs/conventions.md "Penalty").** With ``cfg.penalty = "adaptive"`` the
+    fixed rows carry the small constant penalty ``cfg.rho_free`` (those with a finite bound, effort-limited
+    actuators, the constant ``cfg.rho``): on a row whose projection is the identity
+    the penalty is only a proximal shift, and PADMM on those rows is a proximal-point iteration that removes
+    the fraction ``lambda / (lambda + eta + rho)`` of the error along an eigenvalue ``lambda`` of ``D~`` per
+    iteration. The limit and contact rows carry ``rho_u``, which starts at ``rho0`` (the world's last
+    penalty, else ``cfg.rho``) and is balanced: every ``PENALTY_INTERVAL`` iterations, if the primal and dual
+    residuals differ by more than ``PENALTY_THRESHOLD``, ``rho_u <- rho_u sqrt(r_p / r_d)`` (clipped to
+    ``[RHO_MIN, RHO_MAX]``), the factor is recomputed and the momentum restarts. With
+    ``cfg.penalty = "fixed"`` every row carries ``cfg.rho`` (§7.6 "fixed").
+
+    **Residuals (departure from §7.5).** ``r_p = max|x - y| / P_ref`` and ``r_d = max|eta (x - x_p) + rho
+    (y - y_hat)| / P_ref`` in the scaled variables, with ``P_ref`` the largest ``P`` of the world's active rows
+    (its heaviest constrained direction, ``P^2`` being an effective mass): each row's impulse and velocity
+    error, weighted by the square root of its effective mass, expressed as a velocity of the heaviest row
+    (m/s or rad/s). A row's kinetic-energy error is at most that of a ``tolerance`` velocity error on the
+    heaviest row, so light rows (a thin rod's axial spin, ``D_ii ~ 1e5``) no longer hold the world to float32
+    rounding. ``r_c`` (§7.5) is unchanged. ``cfg.fixed_iterations`` runs exactly ``cfg.max_iterations``
+    iterations (a ``fori_loop``, differentiable); otherwise a ``while_loop`` stops when ``r_p``, ``r_d`` and
+    ``r_c`` are all ``<= cfg.tolerance``.
 
     ``refine`` (the curvature refinement, ``cfg.curvature_refinement``) maps the impulses of the converged
     solve to a new ``v_f``; PADMM then restarts from its last iterate (``x_p = x``, ``y_hat = y``,
@@ -174,11 +195,28 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     dtype = D.dtype
     n = D.shape[0]
     n_box = lo.shape[0]
-    eta, rho = jnp.asarray(cfg.eta, dtype), jnp.asarray(cfg.rho, dtype)
+    eta = jnp.asarray(cfg.eta, dtype)
     P = jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
     Dt = P[:, None] * D * P[None, :]
     vt = jnp.where(row_mask, P * v_f, 0.0)
-    L = jnp.linalg.cholesky(Dt + (eta + rho) * jnp.eye(n, dtype=dtype))
+    P_ref = jnp.max(jnp.where(row_mask, P, 0.0), initial=0.0)
+    P_ref = jnp.where(P_ref > 0, P_ref, 1.0)
+    adaptive = cfg.penalty == "adaptive"
+    fixed_row = jnp.arange(n) < n_fixed
+    bound_rows = row_mask & ~fixed_row
+    # fixed rows with a finite bound (effort-limited actuators) keep the constant penalty rho: a proximal shift
+    # of 1e-3 cannot move their impulse onto the bound in reasonable time, and a constant keeps L_f static
+    boxed = jnp.concatenate([jnp.isfinite(lo) | jnp.isfinite(hi), jnp.zeros(n - n_box, bool)])
+    rho0 = jnp.asarray(cfg.rho if rho0 is None else rho0, dtype)
+    rho_free = jnp.asarray(cfg.rho_free if adaptive else cfg.rho, dtype)
+    rho_fixed = jnp.where(boxed, jnp.asarray(cfg.rho, dtype), rho_free)
+
+    def penalty(rho_u):
+        return jnp.where(fixed_row, rho_fixed, rho_u) if adaptive else jnp.full(n, cfg.rho, dtype)
+
+    def factor(rho_u):
+        return jnp.linalg.cholesky(Dt + jnp.diag(eta + penalty(rho_u)))
+
     finite_lo, finite_hi = jnp.isfinite(lo), jnp.isfinite(hi)
     # bounds on scaled box rows (P > 0); infinite bounds stay infinite without touching P (no inf*0 in grads)
     lo_s = jnp.where(finite_lo, jnp.where(finite_lo, lo, 0.0) / P[:n_box], lo)
@@ -210,26 +248,29 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     x0 = proj(jnp.where(row_mask, impulse0 / P, 0.0), hi_v)
     z0 = jnp.where(row_mask, P * velocity0, 0.0)
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
-    # carry: k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, r_p, r_d, r_c, converged
+    tiny = jnp.asarray(jnp.finfo(dtype).tiny, dtype)
+    any_bound = jnp.any(bound_rows)
+    # carry: k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, r_p, r_d, r_c, converged, rho_u, L, k_rho
     init = (jnp.int32(0), x0, x0, z0, x0, z0, jnp.asarray(1.0, dtype), big,
-            big, big, big, jnp.asarray(False))
+            big, big, big, jnp.asarray(False), rho0, factor(rho0), jnp.int32(0))
 
     def iterate(carry, vt, hi_v):
-        k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _ = carry
+        k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _, rho_u, L, k_rho = carry
+        rho = penalty(rho_u)
         # step 1-2: De Saxcé correction, linear solve with the cached factor
         s = de_saxce(z_hat, mu, n_box)
         x = cho_solve((L, True), -vt - s + eta * x_p + rho * y_hat + z_hat)
         # steps 3-4: projection on K, dual update
         y = proj(x - z_hat / rho, hi_v)
         z = jnp.where(row_mask, z_hat + rho * (y - x), 0.0)
-        # §7.5 residuals in unscaled units
-        r_p = jnp.max(jnp.abs(P * (x - y)), initial=0.0)
-        r_d = jnp.max(jnp.abs((eta * (x - x_p) + rho * (y - y_hat)) / P), initial=0.0)
+        # residuals in the energy norm, velocities of the heaviest row (docstring)
+        r_p = jnp.max(jnp.abs(x - y), initial=0.0) / P_ref
+        r_d = jnp.max(jnp.abs(eta * (x - x_p) + rho * (y - y_hat)), initial=0.0) / P_ref
         r_c = complementarity(y, z)
         converged = (k + 1 >= 2) & (r_p <= tol) & (r_d <= tol) & (r_c <= tol)
+        # §7.4 Fast ADMM with restart on the combined residual (unscaled units)
+        c = jnp.sum(rho * (P * (y - y_hat)) ** 2) + jnp.sum(((z - z_hat) / P) ** 2 / rho)
         if cfg.acceleration:
-            # §7.4 Fast ADMM with restart on the combined residual
-            c = rho * jnp.sum((P * (y - y_hat)) ** 2) + jnp.sum(((z - z_hat) / P) ** 2) / rho
             keep = c < restart_tol * c_p
             a = jnp.where(keep, 0.5 * (1.0 + jnp.sqrt(1.0 + 4.0 * a_p * a_p)), 1.0)
             beta = jnp.where(keep, (a_p - 1.0) / a, 0.0)
@@ -238,12 +279,26 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
             c_n = jnp.where(keep, c, c_p / restart_tol)
         else:
             a, y_hat_n, z_hat_n, c_n = a_p, y, z, c_p
-        return (k + 1, x, y, z, y_hat_n, z_hat_n, a, c_n, r_p, r_d, r_c, converged)
+        if adaptive:
+            # residual balancing of the bounded rows' penalty; a change refactorises and restarts the momentum
+            # a discrete choice: no gradient flows through it (fixed_iterations under jax.grad)
+            ratio = jax.lax.stop_gradient(jnp.sqrt((r_p + tiny) / (r_d + tiny)))
+            due = (k + 1 - k_rho >= PENALTY_INTERVAL) & any_bound & ~converged
+            rho_n = jnp.clip(rho_u * ratio, RHO_MIN, RHO_MAX).astype(dtype)
+            change = due & ((ratio > PENALTY_THRESHOLD) | (ratio * PENALTY_THRESHOLD < 1.0)) & (rho_n != rho_u)
+            L = jax.lax.cond(change, lambda: factor(rho_n), lambda: L)
+            a = jnp.where(change, 1.0, a)
+            y_hat_n = jnp.where(change, y, y_hat_n)
+            z_hat_n = jnp.where(change, z, z_hat_n)
+            c_n = jnp.where(change, big, c_n)
+            k_rho = jnp.where(change, k + 1, k_rho)
+            rho_u = jnp.where(change, rho_n, rho_u)
+        return (k + 1, x, y, z, y_hat_n, z_hat_n, a, c_n, r_p, r_d, r_c, converged, rho_u, L, k_rho)
 
     def run(carry, vt, hi_v, cap):
         if cfg.fixed_iterations:
             return jax.lax.fori_loop(0, cfg.max_iterations, lambda _, c: iterate(c, vt, hi_v), carry)
-        return jax.lax.while_loop(lambda c: (~c[-1]) & (c[0] < cap), lambda c: iterate(c, vt, hi_v), carry)
+        return jax.lax.while_loop(lambda c: (~c[11]) & (c[0] < cap), lambda c: iterate(c, vt, hi_v), carry)
 
     out = run(init, vt, hi_v, cfg.max_iterations)
     if refine is not None:
@@ -252,9 +307,10 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
         hi_v2 = upper(vt2)
         if cfg.redundant_limits:
             y = proj(y, hi_v2)  # the set of fixed rows may change with the right-hand side
-        restart = (k, x, y, z, y, z, jnp.asarray(1.0, dtype), big, out[8], out[9], out[10], jnp.asarray(False))
+        restart = (k, x, y, z, y, z, jnp.asarray(1.0, dtype), big, out[8], out[9], out[10], jnp.asarray(False),
+                   out[12], out[13], k)
         out = run(restart, vt2, hi_v2, k + cfg.max_iterations)
-    k, _, y, z, _, _, _, _, r_p, r_d, r_c, converged = out
+    k, _, y, z, _, _, _, _, r_p, r_d, r_c, converged, rho_u = out[:13]
     v = (z - de_saxce(z, mu, n_box)) / P  # §7.7: v+ = z - Gamma(z), unscaled
     return PADMMResult(
         impulse=jnp.where(row_mask, P * y, 0.0),
@@ -264,4 +320,5 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
         dual_residual=r_d,
         complementarity_residual=r_c,
         converged=converged,
+        penalty=rho_u,
     )

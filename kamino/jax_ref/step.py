@@ -19,7 +19,7 @@ from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import padmm
 from kamino.jax_ref import post_stabilisation as post
 from kamino.jax_ref.couplings import coupling_jacobian, coupling_residual
-from kamino.jax_ref.dynamics import apply_inv_mass, body_dynamics, delassus, nonlinear_force
+from kamino.jax_ref.dynamics import apply_inv_mass, body_dynamics, delassus, free_velocity, nonlinear_force
 from kamino.jax_ref.joints import (
     constraint_jacobian,
     constraint_residual,
@@ -53,6 +53,7 @@ class WorldCache:
     contact_force: jax.Array  # [C, 3]
     contact_velocity: jax.Array  # [C, 3]
     contact_point_b: jax.Array  # [C, 3]
+    penalty: jax.Array  # [] the last solve's penalty on bounded rows (0: none yet; the next solve starts there)
 
 
 @jax.tree_util.register_dataclass
@@ -84,29 +85,45 @@ def joint_deadband(cfg: SolverConfig, dtype) -> float:
     return cfg.deadband_for(dtype)
 
 
+#: Moreau-Jean midpoint rule: fraction ``gamma`` of the start pose's constraint velocity (as a displacement
+#: over the half-step) that the end-of-step target keeps (docs/conventions.md "Stabilisation"). It makes
+#: the end pose's constraint velocity ``w+ = -(1 - gamma) w- - alpha e- / h``; with ``gamma = 0`` the
+#: target reverses ``w-`` every step (the trapezoidal rule's undamped alternating mode).
+#: ``kamino/warp_backend/rows.py`` (``MIDPOINT_DAMPING``) uses the same value.
+MIDPOINT_DAMPING = 1.0 / 3.0
+
+
 def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: jax.Array, e_start: jax.Array,
                J: jax.Array, h, cfg: SolverConfig) -> jax.Array:
     """Stabilisation bias ``v*`` of the joint rows (formulation.md §5; docs/conventions.md "Stabilisation").
 
     The step ends with the update ``q+ = q_eval ⊕ h u+`` (Euler: ``q_eval = q-``, ``h = dt``;
     midpoint: ``q_eval = q_m``, ``h = dt/2``). Expanding ``e(q+) = e_eval + h J u+ + c`` and asking
-    for ``e(q+) = (1 - alpha) e(q-)`` gives the row equation ``J u+ + v* = 0`` with
+    for ``e(q+) = (1 - alpha) e(q-) + gamma h w-`` gives the row equation ``J u+ + v* = 0`` with
 
-        v* = (e_eval - (1 - alpha) e_start + c) / h,
+        v* = (e_eval - (1 - alpha) e_start - gamma h w- + c) / h,
 
-    i.e. the Baumgarte term ``alpha e / dt`` of §5 for Euler, and the same end-of-step contraction
-    for the midpoint rule. With ``curvature_correction``, ``c = e(q_eval ⊕ h u_pred) - e_eval -
+    i.e. the Baumgarte term ``alpha e / dt`` of §5 for Euler (``gamma = 0``: no first half-step), and an
+    end-of-step contraction for the midpoint rule. There ``h w- = e_eval - e_start - c`` estimates
+    ``h J(q-) u-``, what the first half-step moved the residual along the start pose's constraint
+    velocity (its curvature taken equal to the second half-step's ``c``); ``gamma =``
+    :data:`MIDPOINT_DAMPING` lets that much of it stand instead of reversing it, so the end pose's
+    constraint velocity is ``w+ = -(1 - gamma) w- - alpha e- / h`` and the alternating mode decays
+    (docs/conventions.md). With ``curvature_correction``, ``c = e(q_eval ⊕ h u_pred) - e_eval -
     h J u_pred`` (a finite difference along the free velocity ``u_pred``) cancels the second-order
     drift of the exponential-map update, leaving ``O(h^2 |u+ - u_pred|)`` instead of ``O(h^2 |u|^2)``.
     Errors below the dead band get no bias (rounding noise on redundant loop rows).
     """
     delta = joint_deadband(cfg, e_eval.dtype)
-    bias = cts.deadband(e_eval - (1.0 - cfg.baumgarte) * e_start, delta)
+    c = jnp.zeros_like(e_eval)
     if cfg.curvature_correction:
         e_pred = constraint_residual(pm, joint_frames(pm, integrate_pose(q_eval, u_pred, h)))
         nb = u_pred.shape[0]
         c = e_pred - e_eval - h * (J @ u_pred.reshape(nb * 6))
-        bias = bias + cts.deadband(c, delta)
+    target = (1.0 - cfg.baumgarte) * e_start
+    if cfg.integrator == "midpoint":
+        target = target + MIDPOINT_DAMPING * (e_eval - e_start - c)
+    bias = cts.deadband(e_eval - target, delta) + cts.deadband(c, delta)
     return jnp.where(pm.row_mask, bias / h, 0.0)
 
 
@@ -116,10 +133,14 @@ def coupling_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval:
     if not e_eval.shape[0]:
         return e_eval
     delta = joint_deadband(cfg, e_eval.dtype)
-    bias = cts.deadband(e_eval - (1.0 - cfg.baumgarte) * e_start, delta)
+    c = jnp.zeros_like(e_eval)
     if cfg.curvature_correction:
         e_pred = coupling_residual(pm, dof_positions(pm, joint_frames(pm, integrate_pose(q_eval, u_pred, h))))
-        bias = bias + cts.deadband(e_pred - e_eval - h * (J @ u_pred.reshape(-1)), delta)
+        c = e_pred - e_eval - h * (J @ u_pred.reshape(-1))
+    target = (1.0 - cfg.baumgarte) * e_start
+    if cfg.integrator == "midpoint":
+        target = target + MIDPOINT_DAMPING * (e_eval - e_start - c)
+    bias = cts.deadband(e_eval - target, delta) + cts.deadband(c, delta)
     return jnp.where(pm.cpl_mask, bias / h, 0.0)
 
 
@@ -216,7 +237,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     J_dofs = dof_jacobian(pm, jf, nb)
     actuation = (J_dofs.T @ explicit_effort(pm, ctrl.effort)).reshape(nb, 6)  # w^a = J_dofs^T tau (§3.1)
     h_force = nonlinear_force(pm, bd, body_u, pm.gravity, ctrl.wrench + actuation)
-    u_f = body_u + dt * apply_inv_mass(bd, h_force)  # §1.4 free velocity
+    u_f = free_velocity(pm, bd, q_eval, body_u, h_force, dt)  # §1.4 free velocity, implicit gyroscopic term
     u_vec, uf_vec = body_u.reshape(nb * 6), u_f.reshape(nb * 6)
     q_dof = dof_positions(pm, jf)
     qd_minus, qd_free = J_dofs @ u_vec, J_dofs @ uf_vec
@@ -253,7 +274,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     if J.shape[0] == 0:
         z = jnp.asarray(0.0, dtype)
         empty = jnp.zeros(0, dtype)
-        return u_f, padmm.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True)), ct, side, None
+        return u_f, padmm.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True), z), ct, side, None
     # warm start (§7.8): previous reactions, contacts matched by geom pair and point on geom b
     frames = cts.contact_frames(ct.normal)
     point_b = cts.local_point_b(ct, q_eval)
@@ -294,7 +315,8 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
             vc = coupling_bias(pm, q_eval, u_sol, e_cpl, e_cpl_start, J_cpl, h, cfg)
             return J @ uf_vec + jnp.concatenate([vs_dyn, vk, vc, vs_lim, vs_con])
 
-    res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine)
+    rho0 = jnp.where(cache.penalty > 0, cache.penalty, cfg.rho).astype(dtype)
+    res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_dyn + n_kin)
     u_plus = u_f + apply_inv_mass(bd, (J.T @ res.impulse).reshape(nb, 6))  # u+ = u_f + M^-1 J^T lambda
     proj = None
     if cfg.post_stabilisation and n_dyn + n_kin:
@@ -343,6 +365,7 @@ def _new_cache(pm: PaddedModel, q_eval, res: padmm.PADMMResult, ct: cts.Contacts
         contact_force=jnp.where(cmask, jnp.einsum("cij,cj->ci", frames, f_con), 0.0),
         contact_velocity=jnp.where(cmask, jnp.einsum("cij,cj->ci", frames, v_con), 0.0),
         contact_point_b=jnp.where(cmask, cts.local_point_b(ct, q_eval), 0.0),
+        penalty=res.penalty,
     )
 
 
@@ -373,21 +396,25 @@ def _angular_damping(u: jax.Array, cfg: SolverConfig) -> jax.Array:
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
-def step_batch(pm: PaddedModel, body_q, body_u, cache: WorldCache, ctrl: WorldControl, cfg: SolverConfig):
+def step_batch(pm: PaddedModel, body_q, body_u, cache: WorldCache, ctrl: WorldControl, cfg: SolverConfig,
+               frozen: jax.Array):
     """``step_world`` vmapped over worlds (all arrays padded, leading axis = world).
 
-    A world whose new state is non-finite keeps its previous state and is flagged ``failed``.
+    A world whose new state is non-finite, or that is ``frozen`` (failed earlier), keeps its previous state;
+    the last output flags the worlds whose new state was non-finite (docs/conventions.md, "World health").
     """
     out = jax.vmap(step_world, in_axes=(0, 0, 0, 0, 0, None))(pm, body_q, body_u, cache, ctrl, cfg)
     finite = jnp.all(jnp.isfinite(out.body_q), axis=(1, 2)) & jnp.all(jnp.isfinite(out.body_u), axis=(1, 2))
     for leaf in jax.tree_util.tree_leaves(out.cache):
         if jnp.issubdtype(leaf.dtype, jnp.floating):
             finite = finite & jnp.all(jnp.isfinite(leaf).reshape(leaf.shape[0], -1), axis=1)
+    nonfinite = ~finite & ~frozen
+    advance = finite & ~frozen
 
     def keep(new, old):
-        return jnp.where(finite.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+        return jnp.where(advance.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
 
     q = keep(out.body_q, body_q)
     u = keep(out.body_u, body_u)
     new_cache = jax.tree_util.tree_map(keep, out.cache, cache)
-    return q, u, new_cache, out, ~finite
+    return q, u, new_cache, out, nonfinite

@@ -102,7 +102,8 @@ def load_state(st: Stepper, state: State, control: Control | None) -> None:
     for dst, src in ((w.q, state.body_q), (w.u, state.body_u), (w.time, state.time),
                      (w.kin_force, state.constraint_force), (w.cpl_force, state.coupling_force),
                      (w.act_force, state.actuator_force), (w.pas_force, state.passive_force),
-                     (w.lim_force, state.limit_force)):
+                     (w.lim_force, state.limit_force), (w.rho_u, state.info.penalty),
+                     (w.unconverged, state.info.unconverged_steps), (w.frozen, state.info.failed)):
         _write(dst, src, dev, keep)
     c = state.contacts
     for dst, src in ((w.con_pair, c.pair), (w.con_pos, c.pos), (w.con_normal, c.normal), (w.con_dist, c.dist),
@@ -168,6 +169,8 @@ def read_state(st: Stepper, int_dtype=jnp.int32) -> State:
             failed=_read(w.failed, (m.num_worlds,)) != 0,
             num_contacts=num_contacts,
             contact_overflow=jnp.maximum(info_found - num_contacts, 0).astype(int_dtype),
+            penalty=_read(w.rho_u, (m.num_worlds,)),
+            unconverged_steps=_read(w.unconverged, (m.num_worlds,)),
         ),
     )
 
@@ -203,10 +206,109 @@ def rollout(model: Model, state: State, controls: Control | None, num_steps: int
         return traj
     st = stepper(model, cfg, _dtype_of(state))
     load_state(st, state, None)
-    traj = []
+    traj = _Trajectory(st, num_steps)
     for t in range(num_steps):
         if controls is not None:
             load_control(st, jax.tree_util.tree_map(lambda x, t=t: x[t], controls))
         st.run(1)
-        traj.append(read_state(st))
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *traj)
+        traj.record(t)
+    return traj.result()
+
+
+class _Trajectory:
+    """The trajectory of an eager rollout (docs/warp_backend.md, "JAX interop"), written step by step into
+    buffers ``[num_steps, ...]`` allocated once: numpy arrays on the CPU; on a CUDA device Warp arrays filled
+    by device-to-device copies (``wp.copy`` at an offset, on Warp's stream behind the step: no host round
+    trip per step). They become JAX arrays once, at the end (``jax.device_put`` / ``wp.to_jax``).
+
+    It reads the stepper buffers :func:`read_state` reads, into the same State fields, shapes and dtypes,
+    without any XLA operation whose shapes depend on ``num_steps``: such an operation is compiled again for
+    every new length (the former ``jnp.stack`` of one State per step was an XLA concatenate with
+    ``num_steps`` operands, compiled in time superlinear in the length;
+    tests/test_cross_backend.py::test_eager_warp_rollout_length_compiles_nothing).
+    """
+
+    def __init__(self, st: Stepper, num_steps: int) -> None:
+        w, m = st.work, st.wm.model
+        W, B, cap = m.num_worlds, m.num_bodies, m.num_contacts
+        self.num_steps, self.device, self.cuda = int(num_steps), st.device, st.device.is_cuda
+        # field -> (stepper buffer, per-step shape, dtype when the buffer is empty): read_state's sources
+        self.fields: dict[str, tuple[wp.array, tuple[int, ...], np.dtype]] = {
+            name: (src, shape, np.dtype(dtype) if dtype is not None else _np_dtype(src))
+            for name, src, shape, dtype in (
+                ("body_q", w.q, (B, 7), None), ("body_u", w.u, (B, 6), None), ("time", w.time, (W,), None),
+                ("constraint_force", w.kin_force, (m.num_constraints,), None),
+                ("actuator_force", w.act_force, (m.num_dofs,), None),
+                ("passive_force", w.pas_force, (m.num_dofs,), None),
+                ("limit_force", w.lim_force, (m.num_dofs,), None),
+                ("coupling_force", w.cpl_force, (m.num_couplings,), None),
+                ("pair", w.con_pair, (cap,), np.int32), ("pos", w.con_pos, (cap, 3), None),
+                ("normal", w.con_normal, (cap, 3), None), ("dist", w.con_dist, (cap,), None),
+                ("force", w.con_force, (cap, 3), None), ("velocity", w.con_velocity, (cap, 3), None),
+                ("point_b", w.con_point_b, (cap, 3), None),
+                ("iterations", w.iters, (W,), None), ("primal_residual", w.r_p, (W,), None),
+                ("dual_residual", w.r_d, (W,), None), ("complementarity_residual", w.r_c, (W,), None),
+                ("converged", w.converged, (W,), None), ("failed", w.failed, (W,), None),
+                ("num_contacts", w.n_con, (W,), None), ("found", w.ct_found, (W,), None),
+                ("penalty", w.rho_u, (W,), None), ("unconverged_steps", w.unconverged, (W,), None),
+            )
+        }
+        self.bufs: dict[str, wp.array | np.ndarray] = {}
+        for name, (src, shape, _) in self.fields.items():
+            if src.size == 0 or self.num_steps == 0:
+                continue  # read as zeros in result()
+            if self.cuda:
+                self.bufs[name] = wp.empty(self.num_steps * src.size, dtype=src.dtype, device=src.device)
+            else:
+                self.bufs[name] = np.empty((self.num_steps, *shape), _np_dtype(src))
+
+    def record(self, t: int) -> None:
+        """Write the stepper's current State (after step ``t``) into row ``t`` of the buffers."""
+        for name, buf in self.bufs.items():
+            src = self.fields[name][0]
+            if self.cuda:
+                wp.copy(buf, src, dest_offset=t * src.size, count=src.size)
+            else:
+                buf[t] = src.numpy().reshape(buf.shape[1:])
+
+    def _host(self, name: str) -> np.ndarray:
+        """Field ``name`` as a host array ``[num_steps, ...]`` (zeros where the stepper buffer is empty)."""
+        src, shape, dtype = self.fields[name]
+        buf = self.bufs.get(name)
+        if buf is None:
+            return np.zeros((self.num_steps, *shape), dtype)
+        return buf.numpy().reshape((self.num_steps, *shape)) if self.cuda else buf
+
+    def _jax(self, name: str) -> jax.Array:
+        """Field ``name`` as a JAX array ``[num_steps, ...]``: ``wp.to_jax`` of the Warp buffer on a CUDA
+        device (zero-copy), else ``jax.device_put`` (which, unlike ``jnp.asarray``, compiles nothing)."""
+        src, shape, _ = self.fields[name]
+        buf = self.bufs.get(name)
+        if self.cuda and buf is not None:
+            scalar = getattr(src.dtype, "_wp_scalar_type_", src.dtype)
+            return wp.to_jax(buf.view(scalar).reshape((self.num_steps, *shape)))
+        return jax.device_put(self._host(name))
+
+    def result(self) -> State:
+        """The trajectory: a :class:`State` whose arrays have a leading time axis (as :func:`read_state`)."""
+        if self.cuda:
+            # the copies were enqueued on Warp's stream: JAX must not read the buffers earlier
+            wp.synchronize_device(self.device)
+        f = self._jax
+        # the derived flags are computed on the host (one device-to-host copy of 4 [T, W] arrays per rollout)
+        flags = {k: self._host(k) for k in ("converged", "failed", "num_contacts", "found")}
+        overflow = np.maximum(flags["found"] - flags["num_contacts"], 0).astype(np.int32)
+        return State(
+            body_q=f("body_q"), body_u=f("body_u"), time=f("time"), constraint_force=f("constraint_force"),
+            actuator_force=f("actuator_force"), passive_force=f("passive_force"), limit_force=f("limit_force"),
+            coupling_force=f("coupling_force"),
+            contacts=ContactState(pair=f("pair"), pos=f("pos"), normal=f("normal"), dist=f("dist"),
+                                  force=f("force"), velocity=f("velocity"), point_b=f("point_b")),
+            info=StepInfo(
+                iterations=f("iterations"), primal_residual=f("primal_residual"), dual_residual=f("dual_residual"),
+                complementarity_residual=f("complementarity_residual"),
+                converged=jax.device_put(flags["converged"] != 0), failed=jax.device_put(flags["failed"] != 0),
+                num_contacts=f("num_contacts"), contact_overflow=jax.device_put(overflow),
+                penalty=f("penalty"), unconverged_steps=f("unconverged_steps"),
+            ),
+        )

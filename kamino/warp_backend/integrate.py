@@ -114,10 +114,25 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         w.u[b] = w.u_new[b]
 
     @wp.kernel(module="unique", enable_backward=False)
-    def commit_time(w: Work, dt: scalar):
+    def commit_time(w: Work, dt: scalar, max_unconverged: int):
+        """Advance the time of the worlds that stepped, and their health (docs/conventions.md, "World health"):
+        a world that failed (non-finite result) or whose PADMM has not converged for more than
+        ``max_unconverged`` consecutive steps is frozen at its last finite state until the caller resets it."""
         wid = wp.tid()
-        if w.failed[wid] == 0:
-            w.time[wid] = w.time[wid] + dt
+        if w.frozen[wid] != 0:
+            w.failed[wid] = 1
+            return
+        if w.failed[wid] != 0:
+            w.frozen[wid] = 1
+            return
+        w.time[wid] = w.time[wid] + dt
+        if w.converged[wid] != 0:
+            w.unconverged[wid] = 0
+        else:
+            w.unconverged[wid] = w.unconverged[wid] + 1
+            if w.unconverged[wid] > max_unconverged:
+                w.failed[wid] = 1
+                w.frozen[wid] = 1
 
     return SimpleNamespace(rows_on_body=rows_on_body, integrate=integrate, dof_forces=dof_forces, row_forces=row_forces,
                            commit_bodies=commit_bodies, commit_time=commit_time)

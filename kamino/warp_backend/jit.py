@@ -35,12 +35,15 @@ _INPUTS = (
     ("contacts.velocity", "con_velocity", "vec3"), ("contacts.point_b", "con_point_b", "vec3"),
     ("control.dof_effort", "effort", "scalar"), ("control.position_target", "position_target", "scalar"),
     ("control.velocity_target", "velocity_target", "scalar"), ("control.body_wrench", "wrench", "vec6"),
+    ("info.penalty", "rho_u", "scalar"), ("info.unconverged_steps", "unconverged", "int"),
+    ("info.failed", "frozen", "int"),
 )
 _STATE_OUTPUTS = _INPUTS[:15]
 _INFO_OUTPUTS = (("iterations", "iters", "int"), ("primal_residual", "r_p", "scalar"),
                  ("dual_residual", "r_d", "scalar"), ("complementarity_residual", "r_c", "scalar"),
                  ("converged", "converged", "int"), ("failed", "failed", "int"), ("num_contacts", "n_con", "int"),
-                 ("found", "ct_found", "int"))
+                 ("found", "ct_found", "int"), ("penalty", "rho_u", "scalar"),
+                 ("unconverged_steps", "unconverged", "int"))
 
 
 def is_traced(state: State) -> bool:
@@ -96,6 +99,9 @@ def traced_step(st: Stepper, model: Model, state: State, control: Control | None
             args.append(jnp.zeros(shape, dtype) if value is None else jnp.asarray(value, dtype).reshape(shape))
         elif path.startswith("contacts."):
             args.append(getattr(state.contacts, path[9:]))
+        elif path.startswith("info."):
+            value = getattr(state.info, path[5:])
+            args.append(value.astype(jnp.int32) if value.dtype == jnp.bool_ else value)
         else:
             args.append(getattr(state, path))
     dims = {name: getattr(st.work, buf).shape for name, buf, _ in outs}
@@ -123,7 +129,8 @@ def traced_step(st: Stepper, model: Model, state: State, control: Control | None
             iterations=get("iterations", (W,), "int"), primal_residual=get("primal_residual", (W,)),
             dual_residual=get("dual_residual", (W,)), complementarity_residual=get("complementarity_residual", (W,)),
             converged=get("converged", (W,), "int") != 0, failed=get("failed", (W,), "int") != 0,
-            num_contacts=n_con, contact_overflow=jnp.maximum(get("found", (W,), "int") - n_con, 0)),
+            num_contacts=n_con, contact_overflow=jnp.maximum(get("found", (W,), "int") - n_con, 0),
+            penalty=get("penalty", (W,)), unconverged_steps=get("unconverged_steps", (W,), "int")),
     )
 
 

@@ -8,8 +8,10 @@ the write-back of a solve's iterates (for the two cooperative kernels, which kee
 import functools
 from types import SimpleNamespace
 
+import numpy as np
 import warp as wp
 
+from kamino.config import PENALTY_INTERVAL, PENALTY_THRESHOLD, RHO_MAX, RHO_MIN
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
@@ -26,6 +28,7 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
     inf = scalar(wp.inf)
     one = scalar(1.0)
     zero = scalar(0.0)
+    tiny = scalar(float(np.finfo(np_dtype).tiny))
 
     @wp.func
     def momentum(a_p: scalar, c_p: scalar, c_sum: scalar, restart_tol: scalar, accelerate: int):
@@ -52,13 +55,27 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
     @wp.func
     def dual_update(x: scalar, y: scalar, x_p: scalar, y_hat: scalar, z_hat: scalar, P: scalar, eta: scalar,
                     rho: scalar):
-        """§7.3 step 4 and the row's share of the §7.5/§7.4 residuals (unscaled units):
-        ``(z, |P (x - y)|, |(eta (x - x_p) + rho (y - y_hat)) / P|, rho |P dy|^2 + |dz / P|^2 / rho)``."""
+        """§7.3 step 4 and the row's share of the residuals: ``(z, |x - y|, |eta (x - x_p) + rho (y - y_hat)|,
+        rho |P dy|^2 + |dz / P|^2 / rho)``. The first two residuals are scaled (an impulse or velocity error
+        weighted by the square root of the row's effective mass); the world divides their maxima by its ``p_ref``
+        (``kamino.jax_ref.padmm.solve``, "Residuals"). The last is the row's share of §7.4's combined residual."""
         z = z_hat + rho * (y - x)
         dy = P * (y - y_hat)
         dz = (z - z_hat) / P
-        return vec4(z, wp.abs(P * (x - y)), wp.abs((eta * (x - x_p) + rho * (y - y_hat)) / P),
-                    rho * dy * dy + dz * dz / rho)
+        return vec4(z, wp.abs(x - y), wp.abs(eta * (x - x_p) + rho * (y - y_hat)), rho * dy * dy + dz * dz / rho)
+
+    @wp.func
+    def balanced_penalty(rho_u: scalar, r_p: scalar, r_d: scalar, k: int, k_rho: int):
+        """The limit and contact rows' penalty after iteration ``k`` (the last change at ``k_rho``): residual
+        balancing, ``rho_u sqrt(r_p / r_d)`` clipped to ``[RHO_MIN, RHO_MAX]``, when ``PENALTY_INTERVAL``
+        iterations have passed and the balance is off by more than ``PENALTY_THRESHOLD``; else ``rho_u``
+        (``kamino.jax_ref.padmm.solve``)."""
+        if k - k_rho < PENALTY_INTERVAL:
+            return rho_u
+        ratio = wp.sqrt((r_p + tiny) / (r_d + tiny))
+        if ratio > scalar(PENALTY_THRESHOLD) or ratio * scalar(PENALTY_THRESHOLD) < one:
+            return wp.clamp(rho_u * ratio, scalar(RHO_MIN), scalar(RHO_MAX))
+        return rho_u
 
     @wp.func
     def box_complementarity(y: scalar, z: scalar, lo: scalar, hi: scalar):
@@ -100,5 +117,6 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
         wp.atomic_sub(w.remaining, 0, 1)
 
     return SimpleNamespace(momentum=momentum, extrapolated=extrapolated, dual_update=dual_update,
+                           balanced_penalty=balanced_penalty,
                            box_complementarity=box_complementarity,
                            store_row=store_row, store_world=store_world)

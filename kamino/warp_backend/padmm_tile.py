@@ -169,8 +169,8 @@ def tile_kernels(np_dtype, R: int):
             yz = wp.tile(y * z)
             if cont and j == 0:
                 rc_row = wp.abs(wp.tile_extract(yz, c0) + wp.tile_extract(yz, c0 + 1) + wp.tile_extract(yz, c0 + 2))
-            r_p = wp.tile_extract(wp.tile_max(wp.tile(du[1])), 0)
-            r_d = wp.tile_extract(wp.tile_max(wp.tile(du[2])), 0)
+            r_p = wp.tile_extract(wp.tile_max(wp.tile(du[1])), 0) / w.p_ref[wid]
+            r_d = wp.tile_extract(wp.tile_max(wp.tile(du[2])), 0) / w.p_ref[wid]
             r_c = wp.tile_extract(wp.tile_max(wp.tile(rc_row)), 0)
             c_sum = wp.tile_extract(wp.tile_sum(wp.tile(du[3])), 0)
             k += 1

@@ -242,8 +242,8 @@ def warp_kernels(np_dtype, NJ: int):
                 a = lane + LANES * j
                 if a < n and a >= n_box and (a - n_box) % 3 == 0:
                     rc_l = wp.max(rc_l, wp.abs(sb[a] + sb[a + 1] + sb[a + 2]))
-            r_p = block_max(rw, rp_l, lane)
-            r_d = block_max(rw, rd_l, lane)
+            r_p = block_max(rw, rp_l, lane) / w.p_ref[wid]
+            r_d = block_max(rw, rd_l, lane) / w.p_ref[wid]
             r_c = block_max(rw, rc_l, lane)
             c_sum = block_sum(rw, cs_l, lane)
             k += 1

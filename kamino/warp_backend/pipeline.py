@@ -75,7 +75,13 @@ class Stepper:
             raise ValueError(f"padmm='block': {wm.max_rows} rows per world need a {tile_rows(wm.max_rows)}^2 "
                              f"Cholesky factor in shared memory; the block kernel takes up to "
                              f"{max_tile_rows(self.np_dtype)} rows in {self.np_dtype}")
+        if padmm != "thread" and cfg.penalty != "fixed":
+            raise ValueError(f"padmm={padmm!r} runs with one penalty for every row: use SolverConfig(penalty='fixed') "
+                             "(the adaptive penalty is the one-thread-per-world kernel's)")
         self.padmm = padmm
+        #: the fixed rows' penalty and whether the limit and contact rows' penalty adapts (kamino.jax_ref.padmm.solve)
+        self.adaptive = cfg.penalty == "adaptive"
+        self.rho_free = cfg.rho_free if self.adaptive else cfg.rho
         #: the LLT solve with block-sparse rows and one thread per world factorises sparsely (sparse_llt.py)
         self.sparse_factor = llt and not self.dense and padmm == "thread"
         with wp.ScopedDevice(self.device):
@@ -162,17 +168,19 @@ class Stepper:
             else:
                 self._launch(sk.delassus_sparse, rows, nblk)
         self._launch(sk.precondition, rows, nblk, int(assembled), int(cfg.preconditioning))
-        self._launch(sk.scale, rows, cfg.eta + cfg.rho, int(assembled))
+        own = self.padmm != "thread"  # the block and warp kernels factorise themselves (fixed penalty)
+        shift_f, shift_b = cfg.eta + self.rho_free, cfg.eta + cfg.rho
+        self._launch(sk.scale, rows, shift_f, shift_b, shift_f if own else 0.0, int(assembled))
         if self.sparse_factor:
-            self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz), self.sp, nblk, cfg.eta + cfg.rho)
-            self._launch(self.spk.assemble_tail, rows, self.sp, nblk, cfg.eta + cfg.rho)
+            self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz), self.sp, nblk, shift_f, shift_b)
+            self._launch(self.spk.assemble_tail, rows, self.sp, nblk)
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
-        own = self.padmm != "thread"  # the block and warp kernels factorise themselves
-        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled and not own), cfg.max_iterations)
+        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled and not own), cfg.max_iterations,
+                     cfg.eta, cfg.rho, int(self.adaptive))
         if self.sparse_factor:
-            self._launch(self.spk.factor, W, self.sp)
+            self._launch(self.spk.factor, W, self.sp, cfg.eta)
         if self.padmm == "block":
             self._launch(self.tk[0], (W, self.tile_R), self.Dt)
         elif self.padmm == "warp":
@@ -192,7 +200,7 @@ class Stepper:
         self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
         if cfg.post_stabilisation:  # position projections (post_stabilisation.py)
             post, shift = self.post.arrays, cfg.projection_shift_for(self.np_dtype)
-            self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift)
+            self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift, shift)
             self._launch(self.spk.factor_fixed, W, post)
             for _ in range(cfg.post_stabilisation):
                 self._launch(self.pk.residual, rows, delta)
@@ -203,7 +211,7 @@ class Stepper:
         if ck is not None:
             self._launch(ck.commit_contacts, (W, wm.max_contacts), 1.0 / dt)
         self._launch(ik.commit_bodies, (W, wm.max_bodies))
-        wp.launch(ik.commit_time, dim=W, inputs=[w, dt], device=self.device)
+        wp.launch(ik.commit_time, dim=W, inputs=[w, dt, int(cfg.max_unconverged_steps)], device=self.device)
 
     def invalidate_graphs(self) -> None:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
@@ -229,8 +237,9 @@ class Stepper:
                             block_dim=self.tile_R, device=self.device)
             return
         linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else LINEAR_DENSE
-        args = (self.wm.blocks_per_row, linear, int(cfg.cr_iterations), cfg.eta, cfg.rho,
-                cfg.tolerance, cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations))
+        args = (self.wm.blocks_per_row, linear, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho,
+                cfg.tolerance, cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations),
+                int(self.adaptive))
         if self.use_graph and self.device.is_capturing:
             wp.capture_while(w.remaining,
                              lambda: self._launch(self.sk.padmm_iterate, W, self.sp, self.padmm_chunk, *args))

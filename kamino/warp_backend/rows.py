@@ -22,12 +22,17 @@ from kamino.warp_backend.workspace import work_struct
 # row families (for splitting the solution into the State's force fields)
 ROW_ACTUATOR, ROW_PASSIVE, ROW_JOINT, ROW_COUPLING, ROW_LIMIT, ROW_CONTACT = 0, 1, 2, 3, 4, 5
 _PASSIVE, _EFFORT, _POSITION = int(ActuationMode.PASSIVE), int(ActuationMode.EFFORT), int(ActuationMode.POSITION)
+#: midpoint rule: share of the start pose's constraint velocity kept by the end-of-step target:
+#: ``kamino.jax_ref.step.MIDPOINT_DAMPING`` (tests/test_midpoint.py checks)
+MIDPOINT_DAMPING = 1.0 / 3.0
+#: Newton iterations of the implicit gyroscopic solve: ``kamino.jax_ref.dynamics.GYRO_ITERATIONS`` (tests check)
+GYRO_ITERATIONS = 4
 
 
 @functools.cache
 def row_kernels(np_dtype) -> SimpleNamespace:
     T = types_of(np_dtype)
-    scalar, vec6 = T.scalar, T.vec6
+    scalar, vec3, vec6, mat33 = T.scalar, T.vec3, T.vec6, T.mat33
     M = model_struct(np_dtype)
     Work = work_struct(np_dtype)
     sp = spatial_funcs(np_dtype)
@@ -90,10 +95,32 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             tau = scalar(0.0)
         w.tau_explicit[d] = tau
 
+    @wp.func
+    def gyroscopic_correction(Ib: mat33, R: mat33, w0: vec3, we: vec3, dt: scalar):
+        """World-frame correction ``R d`` from the explicit free angular velocity ``we`` to the implicit-midpoint one
+        (body frame: ``Ī (w_f - w0) = dt (tau_b - w̄ x Ī w̄)``, ``w̄ = (w0 + w_f) / 2``): ``GYRO_ITERATIONS`` Newton
+        steps on ``F(d) = Ī d + dt (w̄ x Ī' w̄ - w0 x Ī' w0)``, ``w̄ = R^T (w0 + we) / 2 + d / 2``, ``Ī' = Ī - Ī_00 1``
+        (exactly zero correction for a spherical inertia). docs/conventions.md, "Gyroscopic term";
+        ``kamino.jax_ref.dynamics.gyroscopic_correction`` does the same operations."""
+        Dv = Ib - Ib[0, 0] * wp.identity(n=3, dtype=scalar)
+        Rt = wp.transpose(R)
+        a = Rt * w0
+        mid = Rt * (scalar(0.5) * (w0 + we))
+        g0 = wp.cross(a, Dv * a)
+        d = vec3()
+        for _k in range(GYRO_ITERATIONS):
+            wm = mid + scalar(0.5) * d
+            Dw = Dv * wm
+            F = Ib * d + dt * (wp.cross(wm, Dw) - g0)
+            Jac = Ib + (scalar(0.5) * dt) * (wp.skew(wm) * Dv - wp.skew(Dw))
+            d = d - wp.inverse(Jac) * F
+        return R * d
+
     @wp.kernel(module="unique", enable_backward=False)
     def bodies(m: M, w: Work, dt: scalar, h: scalar):
         """World inertia, ``h = (m g, -w x I w) + w_ext + J_dofs^T tau`` (§1.4), free velocity
-        ``u_f = u + dt M^-1 h`` and the predicted pose ``q_eval ⊕ h u_f`` (curvature term, §5)."""
+        ``u_f = u + dt M^-1 h`` with the implicit-midpoint gyroscopic term (:func:`gyroscopic_correction`,
+        docs/conventions.md "Gyroscopic term") and the predicted pose ``q_eval ⊕ h u_f`` (curvature term, §5)."""
         wid, i = wp.tid()
         if i >= m.body_count[wid]:
             return
@@ -122,6 +149,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         om = ang(u)
         hf = twist(m.mass[b] * m.gravity[wid], -wp.cross(om, I * om)) + ext
         uf = u + dt * twist(m.inv_mass[b] * lin(hf), Ii * ang(hf))
+        uf = twist(lin(uf), ang(uf) + gyroscopic_correction(m.inertia[b], R, om, ang(uf), dt))
         w.u_f[b] = uf
         w.q_pred[b] = integrate_pose(x, uf, h)
 
@@ -184,6 +212,19 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.v0[r] = scalar(0.0)
         w.row_src[r] = d
 
+    gamma = scalar(MIDPOINT_DAMPING)
+
+    @wp.func
+    def stabilisation_bias(e: scalar, e_start: scalar, c: scalar, alpha: scalar, delta: scalar, midpoint: int):
+        """``h v*`` of a joint or coupling row (``joint_bias`` of the JAX reference; docs/conventions.md
+        "Stabilisation"): the end-of-step target ``(1 - alpha) e_start``, plus for the midpoint rule the share
+        ``MIDPOINT_DAMPING`` of the first half-step's move ``e - e_start - c`` (which damps the alternating mode),
+        and the curvature term ``c``, each through the dead band."""
+        target = (scalar(1.0) - alpha) * e_start
+        if midpoint != 0:
+            target += gamma * (e - e_start - c)
+        return deadband(e - target, delta) + deadband(c, delta)
+
     @wp.kernel(module="unique", enable_backward=False)
     def joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
                    midpoint: int):
@@ -200,11 +241,11 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         e_start = e
         if midpoint != 0:
             e_start = kf.cts_residual(m, w.q, c)
-        bias = deadband(e - (scalar(1.0) - alpha) * e_start, delta)
+        cv = scalar(0.0)
         if curvature != 0:
             e_pred = kf.cts_residual(m, w.q_pred, c)
-            bias += deadband(e_pred - e - h * row_dot(w, r, nblk, w.u_f), delta)
-        w.vstar[r] = bias / h
+            cv = e_pred - e - h * row_dot(w, r, nblk, w.u_f)
+        w.vstar[r] = stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h
         w.reg[r] = scalar(0.0)
         w.lo[r] = -inf
         w.hi[r] = inf
@@ -242,10 +283,9 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         e_start = e
         if midpoint != 0:
             e_start = kf.cts_residual(m, w.q, c)
-        bias = deadband(e - (scalar(1.0) - alpha) * e_start, delta)
         e_pred = kf.cts_residual(m, w.q_pred, c)
-        bias += deadband(e_pred - e - h * row_dot(w, r, nblk, w.u_new), delta)
-        set_bias(w, r, bias / h)
+        cv = e_pred - e - h * row_dot(w, r, nblk, w.u_new)
+        set_bias(w, r, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
 
     @wp.kernel(module="unique", enable_backward=False)
     def refine_coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, midpoint: int):
@@ -268,10 +308,9 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         e_start = e
         if midpoint != 0:
             e_start, dp0 = kf.coupling_residual(m, k, kf.dof_position(m, w.q, da), qb0)
-        bias = deadband(e - (scalar(1.0) - alpha) * e_start, delta)
         e_pred, dp1 = kf.coupling_residual(m, k, kf.dof_position(m, w.q_pred, da), qb_pred)
-        bias += deadband(e_pred - e - h * row_dot(w, r, nblk, w.u_new), delta)
-        set_bias(w, r, bias / h)
+        cv = e_pred - e - h * row_dot(w, r, nblk, w.u_new)
+        set_bias(w, r, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
 
     @wp.kernel(module="unique", enable_backward=False)
     def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
@@ -305,11 +344,11 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             if db >= 0:
                 qb0 = kf.dof_position(m, w.q, db)
             e_start, dp0 = kf.coupling_residual(m, k, qa0, qb0)
-        bias = deadband(e - (scalar(1.0) - alpha) * e_start, delta)
+        cv = scalar(0.0)
         if curvature != 0:
             e_pred, dp1 = kf.coupling_residual(m, k, w.q_dof_pred[da], qb_pred)
-            bias += deadband(e_pred - e - h * row_dot(w, r, nblk, w.u_f), delta)
-        w.vstar[r] = bias / h
+            cv = e_pred - e - h * row_dot(w, r, nblk, w.u_f)
+        w.vstar[r] = stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h
         w.reg[r] = scalar(0.0)
         w.lo[r] = -inf
         w.hi[r] = inf
@@ -374,4 +413,4 @@ def row_kernels(np_dtype) -> SimpleNamespace:
                            dyn_rows=dyn_rows, joint_rows=joint_rows, coupling_rows=coupling_rows, limits=limits,
                            pack_limits=pack_limits, predict_with=predict_with, refine_joint_rows=refine_joint_rows,
                            refine_coupling_rows=refine_coupling_rows, set_blocks=set_blocks, row_dot=row_dot,
-                           body_dot=body_dot)
+                           body_dot=body_dot, gyroscopic_correction=gyroscopic_correction)

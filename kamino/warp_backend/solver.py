@@ -31,6 +31,8 @@ from kamino.warp_backend.workspace import work_struct
 
 #: ``padmm_iterate``'s linear solve: the dense Cholesky factor, Conjugate Residual, the sparse factor
 LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE = 0, 1, 2
+#: ``padmm_iterate``: a new penalty restarts the momentum at the current iterate (``y_hat = y``, ``z_hat = z``)
+RESTART_HERE = 3
 
 
 @functools.cache
@@ -47,9 +49,11 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     ridx, didx, jidx, row_base = ix.ridx, ix.didx, ix.jidx, ix.row_base
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
+    balanced_penalty = pf.balanced_penalty
     dual_update = pf.dual_update
     SP = pattern_struct(np_dtype)
     sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
+    factor_tail_sparse = sparse_llt_kernels(np_dtype).factor_tail
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
     S = GROUP  # storage distance between consecutive rows of a world
     eps = scalar(float(np.finfo(np_dtype).eps))
@@ -66,7 +70,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         n_box = m.row_fixed[wid] + w.n_lim[wid]
         w.n_box[wid] = n_box
         w.n_rows[wid] = n_box + 3 * w.n_con[wid]
-        w.failed[wid] = 0
+        w.failed[wid] = w.frozen[wid]
 
     @wp.kernel(module="unique", enable_backward=False)
     def prebake(m: M, w: Work, nblk: int, dense: int):
@@ -162,8 +166,10 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             w.P[r] = scalar(1.0)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def scale(m: M, w: Work, shift: scalar, assembled: int):
-        """``D~ = P D P + (eta + rho) I`` row by row (the dense path), ``v~_f = P v_f``, scaled bounds."""
+    def scale(m: M, w: Work, shift: scalar, shift_box: scalar, shift_tail: scalar, assembled: int):
+        """``D~ = P D P`` row by row (the dense path; ``shift = eta + rho_free`` on the fixed rows' diagonal,
+        ``shift_box`` on fixed rows with a finite bound, ``shift_tail`` on the others), ``v~_f = P v_f``, scaled
+        bounds."""
         wid, a = wp.tid()
         n = w.n_rows[wid]
         if a >= n:
@@ -174,7 +180,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             for b in range(n):
                 k = didx(m, wid, a, b)
                 w.D[k] = Pa * w.D[k] * w.P[ridx(m, wid, b)]
-            w.D[didx(m, wid, a, a)] += shift
+            if a < m.row_fixed[wid]:
+                if wp.isfinite(w.lo[r]) or wp.isfinite(w.hi[r]):
+                    w.D[didx(m, wid, a, a)] += shift_box
+                else:
+                    w.D[didx(m, wid, a, a)] += shift
+            else:
+                w.D[didx(m, wid, a, a)] += shift_tail  # 0 when padmm_init adds the world's penalty
         w.vt[r] = Pa * w.vf[r]
         lo = w.lo[r]
         hi = w.hi[r]
@@ -201,14 +213,40 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             dst[r + S] = p[1]
             dst[r + 2 * S] = p[2]
 
+    @wp.func
+    def factor_tail_dense(m: M, w: Work, wid: int, n: int, shift: scalar):
+        """``L_t = chol(S_t + shift I)`` of the dense factor's tail (limit and contact rows): the Schur
+        complement ``S_t`` is kept in the tail block's upper triangle and ``sdiag``, so that a new penalty only
+        redoes this part (``kamino.jax_ref.padmm.solve``, "Penalty")."""
+        nf = m.row_fixed[wid]
+        rb = row_base(m, wid)
+        for t in range(n - nf):
+            for j in range(t + 1):
+                s = scalar(0.0)
+                if j == t:
+                    s = w.sdiag[rb + (nf + t) * S] + shift
+                else:
+                    s = w.D[didx(m, wid, nf + j, nf + t)]
+                for i in range(j):
+                    s -= w.D[didx(m, wid, nf + t, nf + i)] * w.D[didx(m, wid, nf + j, nf + i)]
+                if j == t:
+                    s = wp.sqrt(s)
+                else:
+                    s = s / w.D[didx(m, wid, nf + j, nf + j)]
+                w.D[didx(m, wid, nf + t, nf + j)] = s
+
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_init(m: M, w: Work, impulse_scale: scalar, use_velocity: int, factorize: int, max_iterations: int):
-        """Warm start (§7.8: ``x0 = Pi_K(impulse0 / P)``, ``z0 = P v0``) and the Cholesky factor of ``D~``
-        (lower, in place, §8.1; ``L^T`` is also written to the upper triangle so that the backward
-        substitution reads rows)."""
+    def padmm_init(m: M, w: Work, impulse_scale: scalar, use_velocity: int, factorize: int, max_iterations: int,
+                   eta: scalar, rho0: scalar, adaptive: int):
+        """Warm start (§7.8: ``x0 = Pi_K(impulse0 / P)``, ``z0 = P v0``), the world's penalty and residual scale,
+        and the dense Cholesky factor of ``D~`` (lower, in place, §8.1): the fixed rows' columns, the tail's
+        Schur complement ``S_t`` (upper triangle of the tail block and ``sdiag``), then ``L_t`` for the penalty;
+        ``L^T`` of the fixed columns is mirrored into the upper triangle so that the backward substitution
+        reads rows."""
         wid = wp.tid()
         rb = row_base(m, wid)
         n = w.n_rows[wid]
+        p_ref = scalar(0.0)
         for a in range(n):
             r = rb + a * S
             w.x[r] = impulse_scale * w.f0[r] / w.P[r]
@@ -216,6 +254,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             if use_velocity != 0:
                 w.z_p[r] = w.P[r] * w.v0[r]
             w.z_hat[r] = w.z_p[r]
+            p_ref = wp.max(p_ref, w.P[r])
+        if p_ref <= scalar(0.0):
+            p_ref = scalar(1.0)
+        w.p_ref[wid] = p_ref
+        if adaptive == 0 or not (w.rho_u[wid] > scalar(0.0)):
+            w.rho_u[wid] = rho0
+        w.k_rho[wid] = 0
         project_into(m, w, wid, w.n_box[wid], n, w.x, w.x, scalar(0.0), w.x_p)
         for a in range(n):
             r = rb + a * S
@@ -228,12 +273,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         w.r_p[wid] = scalar(0.0)
         w.r_d[wid] = scalar(0.0)
         w.r_c[wid] = scalar(0.0)
-        w.converged[wid] = int(n == 0)
-        w.done[wid] = int(n == 0)
-        if n == 0:
+        w.converged[wid] = int(n == 0 and w.frozen[wid] == 0)
+        w.done[wid] = int(n == 0 or w.frozen[wid] != 0)  # a frozen world does not iterate
+        if w.done[wid] != 0:
             wp.atomic_sub(w.remaining, 0, 1)
         if factorize != 0:
-            for j in range(n):
+            nf = wp.min(m.row_fixed[wid], n)
+            for j in range(nf):
                 s = w.D[didx(m, wid, j, j)]
                 for k in range(j):
                     l = w.D[didx(m, wid, j, k)]
@@ -245,14 +291,24 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     for k in range(j):
                         t -= w.D[didx(m, wid, i, k)] * w.D[didx(m, wid, j, k)]
                     w.D[didx(m, wid, i, j)] = t / ljj
+            for t in range(n - nf):
+                for jj in range(t + 1):
+                    s = w.D[didx(m, wid, nf + t, nf + jj)]
+                    for k in range(nf):
+                        s -= w.D[didx(m, wid, nf + t, k)] * w.D[didx(m, wid, nf + jj, k)]
+                    if jj == t:
+                        w.sdiag[rb + (nf + t) * S] = s
+                    else:
+                        w.D[didx(m, wid, nf + jj, nf + t)] = s
+            factor_tail_dense(m, w, wid, n, eta + w.rho_u[wid])
             for i in range(n):
-                for k in range(i):
+                for k in range(wp.min(i, nf)):
                     w.D[didx(m, wid, k, i)] = w.D[didx(m, wid, i, k)]
 
     @wp.func
     def cho_solve_inplace(m: M, w: Work, wid: int, n: int):
         """``x <- L^-T L^-1 x`` with the cached factor (forward, then backward substitution reading ``L^T``
-        from the upper triangle)."""
+        from the upper triangle, and from the lower one in the tail block)."""
         rb = row_base(m, wid)
         g = wid // GROUP
         db = m.grp_mat_start[g] + (wid - g * GROUP)  # didx(m, wid, i, k) = db + (i * md + k) * S
@@ -262,17 +318,24 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             for k in range(i):
                 s -= w.D[db + (i * md + k) * S] * w.x[rb + k * S]
             w.x[rb + i * S] = s / w.D[db + (i * md + i) * S]
+        nf = m.row_fixed[wid]
         for ii in range(n):
             i = n - 1 - ii
             s = w.x[rb + i * S]
-            for k in range(i + 1, n):
-                s -= w.D[db + (i * md + k) * S] * w.x[rb + k * S]
+            if i >= nf:  # the tail block keeps its Schur complement in the upper triangle: read L by columns
+                for k in range(i + 1, n):
+                    s -= w.D[db + (k * md + i) * S] * w.x[rb + k * S]
+            else:
+                for k in range(i + 1, n):
+                    s -= w.D[db + (i * md + k) * S] * w.x[rb + k * S]
             w.x[rb + i * S] = s / w.D[db + (i * md + i) * S]
 
     @wp.func
-    def apply_operator(m: M, w: Work, wid: int, n: int, nblk: int, shift: scalar,
-                       v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
-        """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free (§8.2, pre-baked blocks)."""
+    def apply_operator(m: M, w: Work, wid: int, n: int, nblk: int, shift_f: scalar, shift_b: scalar,
+                       shift_t: scalar, v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
+        """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free (§8.2, pre-baked blocks), with
+        ``eta + rho = shift_f`` on the fixed rows (``shift_b`` on those with a finite bound) and ``shift_t`` on the
+        limit and contact rows."""
         rb = row_base(m, wid)
         b0 = m.body_start[wid]
         for i in range(m.body_count[wid]):
@@ -292,10 +355,16 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 if b >= 0:
                     s += wp.dot(w.row_MJ[r * nblk + k], w.cr_w[b])
             Pa = w.P[r]
+            shift = shift_t
+            if a < m.row_fixed[wid]:
+                shift = shift_f
+                if wp.isfinite(w.lo_s[r]) or wp.isfinite(w.hi_s[r]):
+                    shift = shift_b
             out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
 
     @wp.func
-    def cr_solve(m: M, w: Work, wid: int, n: int, nblk: int, shift: scalar, budget: int):
+    def cr_solve(m: M, w: Work, wid: int, n: int, nblk: int, shift_f: scalar, shift_b: scalar, shift_t: scalar,
+                 budget: int):
         """Conjugate Residual on ``A x = b`` (``b`` in ``y``), from ``x = x_p`` (§8.2): one operator
         application per iteration, at most ``budget`` iterations. It stops early only when the residual has
         vanished to rounding (``|r|^2 <= 1e-30 |b|^2``, or exactly zero) or the recurrence breaks down
@@ -307,14 +376,14 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         rb = row_base(m, wid)
         for a in range(n):
             w.x[rb + a * S] = w.x_p[rb + a * S]
-        apply_operator(m, w, wid, n, nblk, shift, w.x, w.cr_Ar)
+        apply_operator(m, w, wid, n, nblk, shift_f, shift_b, shift_t, w.x, w.cr_Ar)
         bb = scalar(0.0)
         for a in range(n):
             r = rb + a * S
             w.cr_r[r] = w.y[r] - w.cr_Ar[r]
             w.cr_p[r] = w.cr_r[r]
             bb += w.y[r] * w.y[r]
-        apply_operator(m, w, wid, n, nblk, shift, w.cr_r, w.cr_Ar)
+        apply_operator(m, w, wid, n, nblk, shift_f, shift_b, shift_t, w.cr_r, w.cr_Ar)
         zeta = scalar(0.0)
         for a in range(n):
             r = rb + a * S
@@ -335,7 +404,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 r = rb + a * S
                 w.x[r] += alpha * w.cr_p[r]
                 w.cr_r[r] -= alpha * w.cr_Ap[r]
-            apply_operator(m, w, wid, n, nblk, shift, w.cr_r, w.cr_Ar)
+            apply_operator(m, w, wid, n, nblk, shift_f, shift_b, shift_t, w.cr_r, w.cr_Ar)
             zeta_new = scalar(0.0)
             for a in range(n):
                 zeta_new += w.cr_r[rb + a * S] * w.cr_Ar[rb + a * S]
@@ -346,21 +415,36 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 w.cr_p[r] = w.cr_r[r] + beta * w.cr_p[r]
                 w.cr_Ap[r] = w.cr_Ar[r] + beta * w.cr_Ap[r]
 
+    @wp.func
+    def row_penalty(w: Work, r: int, a: int, nf: int, rho_free: scalar, rho_box: scalar, rho_u: scalar):
+        """Row ``a``'s penalty (``kamino.jax_ref.padmm.solve``, "Penalty"): ``rho_free`` on an unbounded fixed row,
+        ``rho_box`` on a fixed row with a finite bound, the world's ``rho_u`` on limit and contact rows."""
+        if a >= nf:
+            return rho_u
+        if wp.isfinite(w.lo_s[r]) or wp.isfinite(w.hi_s[r]):
+            return rho_box
+        return rho_free
+
     @wp.kernel(module="unique", enable_backward=False)
     def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, nblk: int, linear: int, cr_budget: int,
-                      eta: scalar, rho: scalar, tol: scalar, restart_tol: scalar, accelerate: int, fixed: int):
+                      eta: scalar, rho_free: scalar, rho_box: scalar, tol: scalar, restart_tol: scalar,
+                      accelerate: int, fixed: int, adaptive: int):
         """Up to ``chunk`` accelerated PADMM iterations of one world (§7.3-§7.5; ``padmm.solve`` of the JAX
-        reference), resuming from the stored iterate; a world that converges (unless ``fixed``) or reaches its
-        iteration cap ``it_cap`` is marked done and leaves ``remaining``. ``linear``: ``LINEAR_DENSE``,
-        ``LINEAR_CR`` or ``LINEAR_SPARSE`` (``sparse_llt.py``)."""
+        reference, its penalty rule and residuals included), resuming from the stored iterate; a world that
+        converges (unless ``fixed``) or reaches its iteration cap ``it_cap`` is marked done and leaves
+        ``remaining``. The fixed rows carry the penalty ``rho_free`` (``rho_box`` where a finite bound makes the
+        projection matter: effort-limited actuators), the limit and contact rows the world's
+        ``rho_u``, rebalanced when ``adaptive`` (then the tail of the factor is recomputed). ``linear``:
+        ``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE`` (``sparse_llt.py``)."""
         wid = wp.tid()
         rb = row_base(m, wid)
         if w.done[wid] != 0:
             return
         n = w.n_rows[wid]
         n_box = w.n_box[wid]
-        shift = eta + rho
-        inv_rho = scalar(1.0) / rho
+        nf = m.row_fixed[wid]
+        inv_ref = scalar(1.0) / w.p_ref[wid]
+        rho_u = w.rho_u[wid]
         for step in range(chunk):
             # steps 1-2: De Saxcé correction s = Gamma(z_hat), rhs (into x for the in-place LLT solves, into y
             # as CR's right-hand side), linear solve
@@ -369,12 +453,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 rhs = w.y
             for a in range(n):
                 r = rb + a * S
+                rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 rhs[r] = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
             for c in range((n - n_box) // 3):
                 r = rb + (n_box + 3 * c) * S
                 rhs[r + 2 * S] -= de_saxce(w.z_hat[r], w.z_hat[r + S], w.mu[r])
             if linear == LINEAR_CR:
-                cr_solve(m, w, wid, n, nblk, shift, cr_budget)
+                cr_solve(m, w, wid, n, nblk, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
             elif linear == LINEAR_SPARSE:
                 sparse_solve(m, w, sp, wid, n)
             else:
@@ -387,11 +472,12 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             c_sum = scalar(0.0)
             for a in range(n_box):
                 r = rb + a * S
+                rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 x = w.x[r]
                 z_hat = w.z_hat[r]
                 lo = w.lo_s[r]
                 hi = w.hi_s[r]
-                y = wp.clamp(x - inv_rho * z_hat, lo, hi)
+                y = wp.clamp(x - z_hat / rho, lo, hi)
                 w.y[r] = y
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho)
                 w.z[r] = du[0]
@@ -399,6 +485,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 r_d = wp.max(r_d, du[2])
                 c_sum += du[3]
                 r_c = wp.max(r_c, box_complementarity(y, du[0], lo, hi))
+            inv_rho = scalar(1.0) / rho_u
             for c in range((n - n_box) // 3):
                 r = rb + (n_box + 3 * c) * S
                 cp = cone_project(w.x[r] - inv_rho * w.z_hat[r], w.x[r + S] - inv_rho * w.z_hat[r + S],
@@ -408,7 +495,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     rt = r + t * S
                     y = cp[t]
                     w.y[rt] = y
-                    du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho)
+                    du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho_u)
                     w.z[rt] = du[0]
                     r_p = wp.max(r_p, du[1])
                     r_d = wp.max(r_d, du[2])
@@ -416,28 +503,50 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     yz += y * du[0]
                 r_c = wp.max(r_c, wp.abs(yz))
             if linear == LINEAR_CR:
-                # the inner solve's residual b - A x, unscaled as the dual residual (a velocity, / P): an
+                # the inner solve's residual b - A x, a scaled velocity like the dual residual's rows: an
                 # inexact solve (a small cr_iterations budget) must not let the world report convergence
                 for a in range(n):
-                    r = rb + a * S
-                    r_d = wp.max(r_d, wp.abs(w.cr_r[r] / w.P[r]))
+                    r_d = wp.max(r_d, wp.abs(w.cr_r[rb + a * S]))
+            r_p = r_p * inv_ref
+            r_d = r_d * inv_ref
             k = w.iters[wid] + 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             # §7.4: Fast ADMM with restart
             mom = momentum(w.a_p[wid], w.c_p[wid], c_sum, restart_tol, accelerate)
             beta = mom[2]
             mode = int(mom[3])
+            a_new = mom[0]
+            c_new = mom[1]
+            # the limit and contact rows' penalty (residual balancing); a change restarts the momentum from
+            # this iterate and refactorises the tail
+            if adaptive != 0 and n > nf and not converged:
+                rho_n = balanced_penalty(rho_u, r_p, r_d, k, w.k_rho[wid])
+                if rho_n != rho_u:
+                    rho_u = rho_n
+                    w.rho_u[wid] = rho_n
+                    w.k_rho[wid] = k
+                    mode = RESTART_HERE
+                    a_new = scalar(1.0)
+                    c_new = big
+                    if linear == LINEAR_SPARSE:
+                        factor_tail_sparse(m, w, sp, wid, n, eta + rho_u)
+                    elif linear == LINEAR_DENSE:
+                        factor_tail_dense(m, w, wid, n, eta + rho_u)
             for a in range(n):
                 r = rb + a * S
                 y = w.y[r]
                 z = w.z[r]
-                w.y_hat[r] = extrapolated(y, w.y_p[r], beta, mode)
-                w.z_hat[r] = extrapolated(z, w.z_p[r], beta, mode)
+                if mode == RESTART_HERE:
+                    w.y_hat[r] = y
+                    w.z_hat[r] = z
+                else:
+                    w.y_hat[r] = extrapolated(y, w.y_p[r], beta, mode)
+                    w.z_hat[r] = extrapolated(z, w.z_p[r], beta, mode)
                 w.x_p[r] = w.x[r]
                 w.y_p[r] = y
                 w.z_p[r] = z
-            w.a_p[wid] = mom[0]
-            w.c_p[wid] = mom[1]
+            w.a_p[wid] = a_new
+            w.c_p[wid] = c_new
             w.iters[wid] = k
             w.r_p[wid] = r_p
             w.r_d[wid] = r_d
@@ -461,9 +570,10 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         w.a_p[wid] = scalar(1.0)
         w.c_p[wid] = big
         w.it_cap[wid] = w.iters[wid] + max_iterations
-        w.converged[wid] = int(n == 0)
-        w.done[wid] = int(n == 0)
-        if n == 0:
+        w.k_rho[wid] = w.iters[wid]
+        w.converged[wid] = int(n == 0 and w.frozen[wid] == 0)
+        w.done[wid] = int(n == 0 or w.frozen[wid] != 0)
+        if w.done[wid] != 0:
             wp.atomic_sub(w.remaining, 0, 1)
 
     @wp.kernel(module="unique", enable_backward=False)

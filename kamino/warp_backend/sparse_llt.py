@@ -288,8 +288,9 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         return s
 
     @wp.kernel(module="unique", enable_backward=False)
-    def assemble_fixed(m: M, w: Work, sp: SP, nblk: int, shift: scalar):
-        """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D_ab P_b (+ eta + rho on the diagonal)``."""
+    def assemble_fixed(m: M, w: Work, sp: SP, nblk: int, shift: scalar, shift_box: scalar):
+        """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D_ab P_b`` (``+ shift`` on the diagonal,
+        ``shift_box`` on a row with a finite bound: the rows' penalty, kamino.jax_ref.padmm.solve)."""
         wid, k = wp.tid()
         if k >= sp.nnz[wid]:
             return
@@ -300,13 +301,17 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         b = sp.perm[sp.perm_start[wid] + q]
         s = w.P[ridx(m, wid, a)] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
         if p == q:
-            s += shift
+            ra = ridx(m, wid, a)
+            if wp.isfinite(w.lo[ra]) or wp.isfinite(w.hi[ra]):
+                s += shift_box
+            else:
+                s += shift
         sp.val[vidx(m, sp, wid, k)] = s
 
     @wp.kernel(module="unique", enable_backward=False)
-    def assemble_tail(m: M, w: Work, sp: SP, nblk: int, shift: scalar):
+    def assemble_tail(m: M, w: Work, sp: SP, nblk: int):
         """Tail row ``a`` (an active limit or contact row): ``D~_ab`` for every fixed position and every tail
-        row ``b <= a``."""
+        row ``b <= a`` (no shift: :func:`factor` adds the world's penalty)."""
         wid, a = wp.tid()
         nf = sp.n_fixed[wid]
         if a < nf or a >= w.n_rows[wid]:
@@ -317,10 +322,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             b = sp.perm[sp.perm_start[wid] + p]
             sp.tail[tidx(m, sp, wid, t, p)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
         for b in range(nf, a + 1):
-            s = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
-            if b == a:
-                s += shift
-            sp.tail[tidx(m, sp, wid, t, b)] = s
+            sp.tail[tidx(m, sp, wid, t, b)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
 
     @wp.func
     def bases(m: M, sp: SP, wid: int):
@@ -352,13 +354,40 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         wid = wp.tid()
         factor_fixed_rows(sp, wid, bases(m, sp, wid)[1])
 
+    @wp.func
+    def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar):
+        """``L_t = chol(S_t + shift I)``: the tail rows' Cholesky from their Schur complement ``S_t = D~_t -
+        L_tf L_tf^T``, kept by :func:`factor` in the tail rows' upper slots (``S_t[t, j]`` at row ``j``, column
+        ``nf + t``) and ``w.sdiag``; a new penalty of the limit and contact rows redoes only this
+        (``kamino.jax_ref.padmm.solve``, "Penalty")."""
+        base = bases(m, sp, wid)
+        rb, tb, ts = base[0], base[2], base[3]
+        nf = sp.n_fixed[wid]
+        for t in range(n - nf):
+            tr = tb + t * ts
+            for j in range(t + 1):
+                jr = tb + j * ts
+                s = scalar(0.0)
+                if j == t:
+                    s = w.sdiag[rb + (nf + t) * S] + shift
+                else:
+                    s = sp.tail[jr + (nf + t) * S]
+                for i in range(j):
+                    s -= sp.tail[tr + (nf + i) * S] * sp.tail[jr + (nf + i) * S]
+                if j == t:
+                    s = wp.sqrt(s)
+                else:
+                    s = s / sp.tail[jr + (nf + j) * S]
+                sp.tail[tr + (nf + j) * S] = s
+
     @wp.kernel(module="unique", enable_backward=False)
-    def factor(m: M, w: Work, sp: SP):
+    def factor(m: M, w: Work, sp: SP, eta: scalar):
         """Cholesky ``D~ = L L^T`` in place (§8.1): the fixed rows by the precomputed update lists, then the
-        tail rows (forward substitution against the fixed rows, dense Cholesky among themselves)."""
+        tail rows (forward substitution against the fixed rows, their Schur complement, and its dense Cholesky
+        with the world's penalty ``eta + rho_u``, :func:`factor_tail`)."""
         wid = wp.tid()
         base = bases(m, sp, wid)
-        vb, tb, ts = base[1], base[2], base[3]
+        rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         factor_fixed_rows(sp, wid, vb)
@@ -373,17 +402,17 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 for k in range(sp.row_ptr[p0 + p], k1):
                     s -= sp.val[vb + k * S] * sp.tail[tr + sp.col[e0 + k] * S]
                 sp.tail[tr + p * S] = s / sp.val[vb + k1 * S]
-            # L_t: dense Cholesky row t
+            # S_t row t: D~_tj - L_t. L_j. for j <= t, into row j's upper slot (column nf + t) and sdiag
             for j in range(t + 1):
                 jr = tb + j * ts
                 s = sp.tail[tr + (nf + j) * S]
-                for p in range(nf + j):
+                for p in range(nf):
                     s -= sp.tail[tr + p * S] * sp.tail[jr + p * S]
                 if j == t:
-                    s = wp.sqrt(s)
+                    w.sdiag[rb + (nf + t) * S] = s
                 else:
-                    s = s / sp.tail[jr + (nf + j) * S]
-                sp.tail[tr + (nf + j) * S] = s
+                    sp.tail[jr + (nf + t) * S] = s
+        factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid])
 
     @wp.func
     def solve_inplace(m: M, w: Work, sp: SP, wid: int, n: int):
@@ -436,5 +465,6 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 w.x[rq] = w.x[rq] - sp.val[vb + k * S] * xp
 
     return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor,
+                           factor_tail=factor_tail,
                            factor_fixed=factor_fixed,
                            solve_inplace=solve_inplace, delassus_entry=delassus_entry)

@@ -125,6 +125,10 @@ def work_struct(np_dtype):
         r_p: farr
         r_d: farr
         r_c: farr
+        rho_u: farr  # per world: the penalty of the limit and contact rows (persists from step to step)
+        k_rho: iarr  # per world: the iteration of the last penalty change
+        p_ref: farr  # per world: the largest P of the active rows (the residuals' velocity scale)
+        sdiag: farr  # [rows] the diagonal of the tail rows' Schur complement (refactorisation on a new penalty)
         converged: iarr
         done: iarr  # per world: 1 once converged or at the iteration cap
         remaining: iarr  # [1] worlds still iterating (the capture_while condition)
@@ -137,7 +141,9 @@ def work_struct(np_dtype):
         # results
         q_new: wp.array(dtype=transform)
         u_new: v6
-        failed: iarr  # per world
+        failed: iarr  # per world: this step failed (non-finite) or the world is frozen
+        unconverged: iarr  # per world: consecutive steps whose PADMM did not converge (persistent)
+        frozen: iarr  # per world: failed earlier, kept at its state until the caller resets it (persistent)
 
     return Work
 
@@ -176,11 +182,12 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True):
         "cr_w": (B, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
     }
     for name in ("vstar", "reg", "lo", "hi", "mu", "f0", "v0", "vf", "P", "vt", "lo_s", "hi_s", "x", "y", "z", "x_p",
-                 "y_p", "z_p", "y_hat", "z_hat", "impulse", "velocity", "cr_r", "cr_p", "cr_Ap", "cr_Ar"):
+                 "y_p", "z_p", "y_hat", "z_hat", "impulse", "velocity", "cr_r", "cr_p", "cr_Ap", "cr_Ar", "sdiag"):
         sizes[name] = (R, T.scalar)
-    for name in ("a_p", "c_p", "r_p", "r_d", "r_c"):
+    for name in ("a_p", "c_p", "r_p", "r_d", "r_c", "rho_u", "p_ref"):
         sizes[name] = (m.num_worlds, T.scalar)
-    for name in ("n_lim", "n_con", "n_box", "n_rows", "iters", "it_cap", "converged", "done", "failed"):
+    for name in ("n_lim", "n_con", "n_box", "n_rows", "iters", "it_cap", "converged", "done", "failed", "k_rho",
+                 "unconverged", "frozen"):
         sizes[name] = (m.num_worlds, wp.int32)
     sizes["remaining"] = (1, wp.int32)
     for name, (n, dtype) in sizes.items():
