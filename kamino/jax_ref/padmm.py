@@ -19,7 +19,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import cho_solve
+from jax.scipy.linalg import cho_solve, solve_triangular
 
 from kamino.config import PENALTY_INTERVAL, PENALTY_THRESHOLD, RHO_MAX, RHO_MIN, SolverConfig
 
@@ -214,8 +214,30 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     def penalty(rho_u):
         return jnp.where(fixed_row, rho_fixed, rho_u) if adaptive else jnp.full(n, cfg.rho, dtype)
 
+    # block Cholesky [[L_f, 0], [L_tf, L_t]] of Dt + diag(eta + penalty): L_f and L_tf do not depend on the
+    # limit and contact rows' penalty rho_u, so a new rho_u only redoes L_t = chol(S_t + (eta + rho_u) I) from the
+    # tail's Schur complement S_t (the Warp backend's scheme, docs/conventions.md "Penalty")
+    nf = min(n_fixed, n) if adaptive else 0
+    A = Dt + jnp.diag(eta + penalty(rho0))
+    L_f = jnp.linalg.cholesky(A[:nf, :nf]) if nf else jnp.zeros((0, 0), dtype)
+    L_tf = solve_triangular(L_f, A[:nf, nf:], lower=True).T if nf else jnp.zeros((n - nf, 0), dtype)
+    S_t = Dt[nf:, nf:] - L_tf @ L_tf.T
+
     def factor(rho_u):
-        return jnp.linalg.cholesky(Dt + jnp.diag(eta + penalty(rho_u)))
+        if nf == n:
+            return jnp.zeros((0, 0), dtype)
+        tail = penalty(rho_u)[nf:] if adaptive else jnp.full(n - nf, cfg.rho, dtype)
+        return jnp.linalg.cholesky(S_t + jnp.diag(eta + tail))
+
+    def lin_solve(L_t, b):
+        """``x = (Dt + diag(eta + rho))^-1 b`` with the block factor."""
+        y_f = solve_triangular(L_f, b[:nf], lower=True) if nf else b[:0]
+        if nf == n:
+            return solve_triangular(L_f, y_f, lower=True, trans="T")
+        y_t = solve_triangular(L_t, b[nf:] - L_tf @ y_f, lower=True)
+        x_t = solve_triangular(L_t, y_t, lower=True, trans="T")
+        x_f = solve_triangular(L_f, y_f - L_tf.T @ x_t, lower=True, trans="T") if nf else b[:0]
+        return jnp.concatenate([x_f, x_t])
 
     finite_lo, finite_hi = jnp.isfinite(lo), jnp.isfinite(hi)
     # bounds on scaled box rows (P > 0); infinite bounds stay infinite without touching P (no inf*0 in grads)
@@ -259,7 +281,7 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
         rho = penalty(rho_u)
         # step 1-2: De Saxcé correction, linear solve with the cached factor
         s = de_saxce(z_hat, mu, n_box)
-        x = cho_solve((L, True), -vt - s + eta * x_p + rho * y_hat + z_hat)
+        x = lin_solve(L, -vt - s + eta * x_p + rho * y_hat + z_hat)
         # steps 3-4: projection on K, dual update
         y = proj(x - z_hat / rho, hi_v)
         z = jnp.where(row_mask, z_hat + rho * (y - x), 0.0)
