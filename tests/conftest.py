@@ -39,6 +39,11 @@ if "xla_cpu_use_fusion_emitters" not in _user and "KAMINO_TEST_XLA_PROBED" not i
 import jax  # noqa: E402  (XLA_FLAGS must be set before the backend starts)
 
 jax.config.update("jax_enable_x64", True)
+# Synchronous CPU dispatch: a JAX computation runs to its end on the calling thread before the next Warp CPU launch.
+# With asynchronous dispatch a worker that had run Warp steps deadlocked (0 % CPU) waiting for a JAX reference
+# rollout (tests/test_post_stabilisation.py::test_warp_projects_as_the_reference, twice on 2026-11-23; the same
+# test passes alone in about a minute); the hang docs/warp_backend.md lists as not understood looks the same.
+jax.config.update("jax_cpu_enable_async_dispatch", False)
 jax.config.update("jax_compilation_cache_dir", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.3)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
