@@ -7,6 +7,10 @@ it. Two settings cut that without touching what is computed:
   pendulum rollout, it compiles in 1.2 s instead of 2.7 s and the gradient in 8 s instead of 12 s. The
   run time of the 5 s animatronic hold stays the same (43 s). No fast-math: the floating-point semantics are
   unchanged. Set only where this XLA still has the flag (probed below).
+- ``--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``: one XLA compute thread per xdist worker
+  (CI has two cores and runs two workers). Besides the contention it removes, XLA CPU's multi-threaded Eigen pool
+  is reported to wedge on vmapped graphs (a hang at 0 % CPU, jax-ml/jax#25861 and PyAutoFit#1530), the symptom of a
+  CI run that stalled at 75 % for 90 minutes.
 - A persistent compilation cache under ``.pytest_cache/jax``, shared by the xdist workers. Many tests
   compile the same step (same model, shapes and config) in fresh closures; from the second one on, the
   executable comes from disk. A clean clone starts with an empty cache.
@@ -18,6 +22,7 @@ import sys
 from pathlib import Path
 
 _FLAG = "--xla_cpu_use_fusion_emitters=false"
+_THREADS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 
 
 def _xla_accepts(flags: str) -> bool:
@@ -34,7 +39,10 @@ _user = os.environ.get("XLA_FLAGS", "")
 if "xla_cpu_use_fusion_emitters" not in _user and "KAMINO_TEST_XLA_PROBED" not in os.environ:
     os.environ["KAMINO_TEST_XLA_PROBED"] = "1"
     if _xla_accepts(f"{_user} {_FLAG}".strip()):
-        os.environ["XLA_FLAGS"] = f"{_user} {_FLAG}".strip()
+        _user = f"{_user} {_FLAG}".strip()
+    if "multi_thread_eigen" not in _user and _xla_accepts(f"{_user} {_THREADS}".strip()):
+        _user = f"{_user} {_THREADS}".strip()
+    os.environ["XLA_FLAGS"] = _user
 
 import jax  # noqa: E402  (XLA_FLAGS must be set before the backend starts)
 

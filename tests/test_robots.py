@@ -33,12 +33,11 @@ EXPECTED = {
 NAMES = list(EXPECTED)
 FLOATING = [n for n in NAMES if EXPECTED[n]["free"]]
 
-# Standing test: 5 s at dt = 1/100 in float32. PADMM at the paper's float32 tolerance (1e-4) and
-# rho = 0.01: the Jacobi-scaled Delassus of these robots has eigenvalues from ~5e-4 to ~7 (light
-# linkage parts between heavy links), for which rho = 1 (the default) needs hundreds of iterations;
-# rho ~ sqrt(lambda_min lambda_max) converges in a few to a few tens (measured: mean 4-9 per step).
+# Standing test: 5 s at dt = 1/100 in float32, at the library defaults but for the one accuracy knob: a robot at rest
+# to < 1 mm/s asks for tolerance 1e-4 (velocity errors of 1e-4 m/s, up to 1e-3 on light rows). At the default 1e-3
+# dr_legs sways by +-1.4 mm with a period of ~1 s (measured; docs/conventions.md, "PADMM defaults").
 DT = 0.01
-STAND_CFG = kamino.SolverConfig(dt=DT, tolerance=1e-4, rho=0.01)
+STAND_CFG = kamino.SolverConfig(dt=DT, tolerance=1e-4)
 STAND_STEPS = round(5.0 / DT)
 
 
@@ -225,10 +224,10 @@ def test_feet_touch_the_ground_and_the_com_is_over_them(name):
 WARP_STAND_STEPS = round(1.5 / DT)
 
 
-def _hold(name: str, variant):
+def _hold(name: str, variant, full: bool = False):
     model = _model(name)
     state = kamino.init_state(model, dtype=jnp.float32)
-    steps = WARP_STAND_STEPS if variant.is_warp else STAND_STEPS
+    steps = WARP_STAND_STEPS if variant.is_warp and not full else STAND_STEPS
     ctrl = kamino.Control(position_target=jnp.zeros((steps, model.num_dofs), jnp.float32))
     traj = variant.rollout(model, state, ctrl, config=STAND_CFG)
     assert traj.body_q.dtype == jnp.float32
@@ -298,4 +297,7 @@ def test_animatronic_holds_its_pose_for_5_s_in_float32(variant):
         # 11 s (dense J) per step here, hours for the test. This size is what linear_solver="auto" hands to CR
         # (pipeline.AUTO_CR_ROWS = 300); the warp-sparse-cr variant runs the test
         pytest.skip("per-world Cholesky of ~1000 rows: 2-11 s per Warp CPU step; covered by warp-sparse-cr")
-    _check_hold("animatronic", *_hold("animatronic", variant))
+    # the full 5 s on Warp too (~35 s on the CPU for CR): its first ~20 steps, the mechanism settling from the builder
+    # pose, do not reach 1e-4 with CR's default budget of 9 iterations (measured); 20 of 500 steps stay under the
+    # 5 % that _check_hold allows, 20 of 150 would not
+    _check_hold("animatronic", *_hold("animatronic", variant, full=True))

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from kamino.config import PENALTY_INTERVAL, PENALTY_THRESHOLD, RHO_MAX, RHO_MIN
+from kamino.config import PENALTY_INTERVAL, PENALTY_THRESHOLD, RESIDUAL_LOOSENING_MAX, RHO_MAX, RHO_MIN
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
@@ -53,16 +53,25 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
         return new
 
     @wp.func
+    def residual_weight(P: scalar, p_ref: scalar):
+        """A row's residual weight ``1 / min(K P, p_ref)``, ``K = RESIDUAL_LOOSENING_MAX``: its scaled error as a
+        velocity of the world's heaviest row, capped at ``K`` times its own velocity error
+        (``kamino.jax_ref.padmm.solve``, "Residuals")."""
+        return one / wp.min(scalar(RESIDUAL_LOOSENING_MAX) * P, p_ref)
+
+    @wp.func
     def dual_update(x: scalar, y: scalar, x_p: scalar, y_hat: scalar, z_hat: scalar, P: scalar, eta: scalar,
-                    rho: scalar):
-        """§7.3 step 4 and the row's share of the residuals: ``(z, |x - y|, |eta (x - x_p) + rho (y - y_hat)|,
-        rho |P dy|^2 + |dz / P|^2 / rho)``. The first two residuals are scaled (an impulse or velocity error
-        weighted by the square root of the row's effective mass); the world divides their maxima by its ``p_ref``
-        (``kamino.jax_ref.padmm.solve``, "Residuals"). The last is the row's share of §7.4's combined residual."""
+                    rho: scalar, p_ref: scalar):
+        """§7.3 step 4 and the row's share of the residuals: ``(z, w |x - y|, w |eta (x - x_p) + rho (y - y_hat)|,
+        rho |P dy|^2 + |dz / P|^2 / rho)`` with ``w`` the row's :func:`residual_weight`; the world takes the maxima
+        of the first two (``kamino.jax_ref.padmm.solve``, "Residuals"). The last is the row's share of §7.4's
+        combined residual."""
         z = z_hat + rho * (y - x)
         dy = P * (y - y_hat)
         dz = (z - z_hat) / P
-        return vec4(z, wp.abs(x - y), wp.abs(eta * (x - x_p) + rho * (y - y_hat)), rho * dy * dy + dz * dz / rho)
+        wgt = residual_weight(P, p_ref)
+        return vec4(z, wgt * wp.abs(x - y), wgt * wp.abs(eta * (x - x_p) + rho * (y - y_hat)),
+                    rho * dy * dy + dz * dz / rho)
 
     @wp.func
     def balanced_penalty(rho_u: scalar, r_p: scalar, r_d: scalar, k: int, k_rho: int):
@@ -117,6 +126,7 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
         wp.atomic_sub(w.remaining, 0, 1)
 
     return SimpleNamespace(momentum=momentum, extrapolated=extrapolated, dual_update=dual_update,
+                           residual_weight=residual_weight,
                            balanced_penalty=balanced_penalty,
                            box_complementarity=box_complementarity,
                            store_row=store_row, store_world=store_world)

@@ -135,6 +135,7 @@ def tile_kernels(np_dtype, R: int):
         shift_inv_rho = one / rho
         a_p = w.a_p[wid]
         c_p = w.c_p[wid]
+        p_ref = w.p_ref[wid]
         k = w.iters[wid]
         cap = w.it_cap[wid]
         x = zero
@@ -161,7 +162,7 @@ def tile_kernels(np_dtype, R: int):
             else:
                 y = wp.clamp(v, lo, hi)
             # step 4: dual update and the residuals of §7.5 (unscaled units)
-            du = dual_update(x, y, x_p, y_hat, z_hat, P, eta, rho)
+            du = dual_update(x, y, x_p, y_hat, z_hat, P, eta, rho, p_ref)
             z = du[0]
             rc_row = zero
             if is_box:
@@ -169,8 +170,8 @@ def tile_kernels(np_dtype, R: int):
             yz = wp.tile(y * z)
             if cont and j == 0:
                 rc_row = wp.abs(wp.tile_extract(yz, c0) + wp.tile_extract(yz, c0 + 1) + wp.tile_extract(yz, c0 + 2))
-            r_p = wp.tile_extract(wp.tile_max(wp.tile(du[1])), 0) / w.p_ref[wid]
-            r_d = wp.tile_extract(wp.tile_max(wp.tile(du[2])), 0) / w.p_ref[wid]
+            r_p = wp.tile_extract(wp.tile_max(wp.tile(du[1])), 0)
+            r_d = wp.tile_extract(wp.tile_max(wp.tile(du[2])), 0)
             r_c = wp.tile_extract(wp.tile_max(wp.tile(rc_row)), 0)
             c_sum = wp.tile_extract(wp.tile_sum(wp.tile(du[3])), 0)
             k += 1

@@ -182,6 +182,7 @@ def warp_kernels(np_dtype, NJ: int):
                     hi[j] = w.hi_s[r]
                 else:
                     mu[j] = w.mu[ridx(m, wid, n_box + 3 * ((a - n_box) // 3))]
+        p_ref = w.p_ref[wid]
         a_p = w.a_p[wid]
         c_p = w.c_p[wid]
         k = w.iters[wid]
@@ -229,7 +230,7 @@ def warp_kernels(np_dtype, NJ: int):
                         p = cone_project(sv[c0], sv[c0 + 1], sv[c0 + 2], mu[j])
                         y[j] = p[a - c0]
                     # step 4: dual update and the residuals of §7.5 (unscaled units)
-                    du = dual_update(x[j], y[j], x_p[j], y_hat[j], z_hat[j], P[j], eta, rho)
+                    du = dual_update(x[j], y[j], x_p[j], y_hat[j], z_hat[j], P[j], eta, rho, p_ref)
                     z[j] = du[0]
                     rp_l = wp.max(rp_l, du[1])
                     rd_l = wp.max(rd_l, du[2])
@@ -242,8 +243,8 @@ def warp_kernels(np_dtype, NJ: int):
                 a = lane + LANES * j
                 if a < n and a >= n_box and (a - n_box) % 3 == 0:
                     rc_l = wp.max(rc_l, wp.abs(sb[a] + sb[a + 1] + sb[a + 2]))
-            r_p = block_max(rw, rp_l, lane) / w.p_ref[wid]
-            r_d = block_max(rw, rd_l, lane) / w.p_ref[wid]
+            r_p = block_max(rw, rp_l, lane)
+            r_d = block_max(rw, rd_l, lane)
             r_c = block_max(rw, rc_l, lane)
             c_sum = block_sum(rw, cs_l, lane)
             k += 1

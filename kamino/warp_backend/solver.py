@@ -51,6 +51,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     balanced_penalty = pf.balanced_penalty
     dual_update = pf.dual_update
+    residual_weight = pf.residual_weight
     SP = pattern_struct(np_dtype)
     sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
     factor_tail_sparse = sparse_llt_kernels(np_dtype).factor_tail
@@ -443,7 +444,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         n = w.n_rows[wid]
         n_box = w.n_box[wid]
         nf = m.row_fixed[wid]
-        inv_ref = scalar(1.0) / w.p_ref[wid]
+        p_ref = w.p_ref[wid]
         rho_u = w.rho_u[wid]
         for step in range(chunk):
             # steps 1-2: De Saxcé correction s = Gamma(z_hat), rhs (into x for the in-place LLT solves, into y
@@ -479,7 +480,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 hi = w.hi_s[r]
                 y = wp.clamp(x - z_hat / rho, lo, hi)
                 w.y[r] = y
-                du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho)
+                du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
                 r_p = wp.max(r_p, du[1])
                 r_d = wp.max(r_d, du[2])
@@ -495,7 +496,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     rt = r + t * S
                     y = cp[t]
                     w.y[rt] = y
-                    du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho_u)
+                    du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho_u, p_ref)
                     w.z[rt] = du[0]
                     r_p = wp.max(r_p, du[1])
                     r_d = wp.max(r_d, du[2])
@@ -506,9 +507,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 # the inner solve's residual b - A x, a scaled velocity like the dual residual's rows: an
                 # inexact solve (a small cr_iterations budget) must not let the world report convergence
                 for a in range(n):
-                    r_d = wp.max(r_d, wp.abs(w.cr_r[rb + a * S]))
-            r_p = r_p * inv_ref
-            r_d = r_d * inv_ref
+                    r_d = wp.max(r_d, residual_weight(w.P[rb + a * S], p_ref) * wp.abs(w.cr_r[rb + a * S]))
             k = w.iters[wid] + 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             # §7.4: Fast ADMM with restart
