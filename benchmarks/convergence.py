@@ -390,16 +390,13 @@ def _throughput(st, args) -> tuple[float | None, float | None]:
 
 
 def _release(model: kamino.Model) -> None:
-    """Drop the Warp backend's per-model caches of ``model`` (its steppers and device model). Their values refer
-    to the model, so these ``WeakKeyDictionary`` entries never expire by themselves: without this a run over
-    many scenes and tolerances would keep every stepper's device buffers."""
+    """Drop the Warp backend's per-model caches of ``model`` (``warp_backend.backend.release``): without this a run
+    over many scenes and tolerances would keep every stepper's device buffers."""
     import gc
 
     from kamino.warp_backend import backend as wb
-    from kamino.warp_backend import model_data
 
-    wb._STEPPERS.pop(model, None)
-    model_data._CACHE.pop(model, None)
+    wb.release(model)
     gc.collect()
 
 

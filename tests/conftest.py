@@ -61,16 +61,14 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_steps():
     """After each test module, drop what the module compiled: JAX's in-memory executables and the Warp backend's
-    per-model steppers and device models (``WeakKeyDictionary`` entries whose values refer to their model, so they
-    never expire by themselves). Without this a worker grew to 6.8 GB over the suite, and workers died mid-run on
-    CI. The on-disk compilation cache still serves later modules."""
+    per-model steppers and device models (``kamino.warp_backend.backend.release``). Without this a worker grew to
+    6.8 GB over the suite, and workers died mid-run on CI. The on-disk compilation cache still serves later
+    modules."""
     yield
     import gc
 
-    from kamino.warp_backend import backend as warp_steppers
-    from kamino.warp_backend import model_data
+    from kamino.warp_backend.backend import release
 
-    warp_steppers._STEPPERS.clear()
-    model_data._CACHE.clear()
+    release()
     jax.clear_caches()
     gc.collect()

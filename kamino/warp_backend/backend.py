@@ -29,6 +29,21 @@ from kamino.warp_backend.types import types_of
 _STEPPERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
+def release(model: Model | None = None) -> None:
+    """Drop the Warp backend's cached steppers and device models of ``model`` (of every model when ``None``).
+
+    Their values refer to the model, so these ``WeakKeyDictionary`` entries never expire by themselves: a process
+    that steps many models (a benchmark over scenes, a test suite) keeps every stepper's device buffers until it
+    releases them. The next step of a released model builds its stepper again."""
+    from kamino.warp_backend import model_data
+
+    for cache in (_STEPPERS, model_data._CACHE):
+        if model is None:
+            cache.clear()
+        else:
+            cache.pop(model, None)
+
+
 def default_device() -> wp.context.Device:
     """Warp's preferred device (the first CUDA GPU, else the CPU)."""
     return wp.get_device()
