@@ -1,21 +1,27 @@
 """Tests run in float64 unless a test asks for float32 (issue 2: "float64 unless stated").
 
 CI time (a 2-core machine, 20-minute budget) goes mostly to XLA compiling the step on the CPU, not to running
-it. Two settings cut that without touching what is computed:
+it. These settings cut that without touching what is computed:
 
 - ``--xla_cpu_use_fusion_emitters=false``: XLA's older CPU fusion code generator. Measured on this project's
   pendulum rollout, it compiles in 1.2 s instead of 2.7 s and the gradient in 8 s instead of 12 s. The
   run time of the 5 s animatronic hold stays the same (43 s). No fast-math: the floating-point semantics are
   unchanged. Set only where this XLA still has the flag (probed below).
-- ``--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``: one XLA compute thread per xdist worker
-  (CI has two cores and runs two workers). Besides the contention it removes, XLA CPU's multi-threaded Eigen pool
-  is reported to wedge on vmapped graphs (a hang at 0 % CPU, jax-ml/jax#25861 and PyAutoFit#1530), the symptom of a
-  CI run that stalled at 75 % for 90 minutes.
+- ``--xla_cpu_multi_thread_eigen=false``: Eigen's own matrix kernels stay on the calling thread (CI has two
+  cores and runs two workers).
 - A persistent compilation cache under ``.pytest_cache/jax-<worker>``, one per xdist worker. Many tests
   compile the same step (same model, shapes and config) in fresh closures; from the second one on, the
-  executable comes from disk. A clean clone starts with an empty cache. Not shared between the workers: since
-  the shared cache came in (2026-11-23), a worker has hung at 0 % CPU inside a JAX rollout on three CI runs
-  (test_post_stabilisation, test_batching), never in a single-process run; the cause is not proven.
+  executable comes from disk. A clean clone starts with an empty cache.
+
+CPU deadlock (why pyproject.toml excludes jaxlib 0.10.x and 0.11.0). Workers hung at 0 % CPU inside JAX rollouts
+on CI runs of 2026-11-23 and 24 (test_post_stabilisation, test_batching), and one died. gdb on a hung worker
+(2026-11-24, jaxlib 0.10.2, ``tests/test_post_stabilisation.py::test_warp_projects_as_the_reference`` alone in
+one process) showed both threads of XLA's intra-op pool inside ``lapack_dpotrf_ffi`` -> ``jax::ParallelBatchMap``
+-> ``BlockingCounter::Wait``: two batched Cholesky factorisations ran concurrently, each on a pool thread, each
+waiting for batch chunks it had queued on the same, now full, pool. jaxlib 0.10 added that parallel batch path and
+0.11.1 compiled it out; 0.9.2 has none (no ``ParallelBatchMap`` symbol in its ``_lapack.so``). On a 2-core machine
+the pool has two threads, so two concurrent batched LAPACK calls (the PADMM factorisation and the projection's,
+or two worlds' groups) suffice.
 """
 
 import os
@@ -24,7 +30,7 @@ import sys
 from pathlib import Path
 
 _FLAG = "--xla_cpu_use_fusion_emitters=false"
-_THREADS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+_THREADS = "--xla_cpu_multi_thread_eigen=false"
 
 
 def _xla_accepts(flags: str) -> bool:
@@ -51,9 +57,6 @@ import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 # Synchronous CPU dispatch: a JAX computation runs to its end on the calling thread before the next Warp CPU launch.
-# With asynchronous dispatch a worker that had run Warp steps deadlocked (0 % CPU) waiting for a JAX reference
-# rollout (tests/test_post_stabilisation.py::test_warp_projects_as_the_reference, twice on 2026-11-23; the same
-# test passes alone in about a minute); the hang docs/warp_backend.md lists as not understood looks the same.
 jax.config.update("jax_cpu_enable_async_dispatch", False)
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER", "main")
 jax.config.update("jax_compilation_cache_dir",
