@@ -100,14 +100,19 @@ def _write(dst: wp.array, src, device, keep: list) -> None:
 
 
 def _read(src: wp.array, shape, dtype=None) -> jax.Array:
-    """A new JAX array holding ``src`` (``wp.to_jax`` of a device copy on the GPU)."""
+    """A new JAX array holding ``src`` (``wp.to_jax`` of a device copy on the GPU).
+
+    Always a copy: the stepper reuses ``src`` on its next step, and a JAX array that aliased it would change under
+    the caller's feet. On the CPU ``jnp.asarray`` of a numpy view may alias it (jaxlib 0.9 does, for aligned
+    buffers): a state returned by one step then took the values of a later step of another state
+    (tests/test_world_health.py, the frozen world)."""
     if src.size == 0:
         return jnp.zeros(shape, dtype if dtype is not None else _np_dtype(src))
     if src.device.is_cuda:
         out = wp.clone(src)
         wp.synchronize_device(src.device)
         return wp.to_jax(out).reshape(shape)
-    return jnp.asarray(src.numpy().reshape(shape))
+    return jnp.asarray(np.array(src.numpy().reshape(shape), copy=True))
 
 
 def load_state(st: Stepper, state: State, control: Control | None) -> None:
