@@ -11,6 +11,7 @@ the cost of this boundary.
 
 from __future__ import annotations
 
+import dataclasses
 import weakref
 
 import jax
@@ -153,46 +154,61 @@ def load_control(st: Stepper, control: Control | None, keep: list | None = None)
     keep.clear()
 
 
-def read_state(st: Stepper, int_dtype=jnp.int32) -> State:
-    """A new :class:`State` from the stepper's buffers (after a step)."""
+def state_fields(st: Stepper) -> dict[str, tuple[wp.array, tuple[int, ...], np.dtype]]:
+    """The stepper buffers a :class:`State` is read from: field name -> (buffer, per-step shape, dtype). The
+    contact fields carry their :class:`ContactState` names; ``found`` (contacts the narrow phase found, kept or
+    not) only feeds ``contact_overflow``. One table for :func:`read_state` and :class:`_Trajectory`."""
     w, m = st.work, st.wm.model
+    W, B, cap = m.num_worlds, m.num_bodies, m.num_contacts
+    table = (
+        ("body_q", w.q, (B, 7), None), ("body_u", w.u, (B, 6), None), ("time", w.time, (W,), None),
+        ("constraint_force", w.kin_force, (m.num_constraints,), None),
+        ("actuator_force", w.act_force, (m.num_dofs,), None), ("passive_force", w.pas_force, (m.num_dofs,), None),
+        ("limit_force", w.lim_force, (m.num_dofs,), None), ("coupling_force", w.cpl_force, (m.num_couplings,), None),
+        ("pair", w.con_pair, (cap,), np.int32), ("pos", w.con_pos, (cap, 3), None),
+        ("normal", w.con_normal, (cap, 3), None), ("dist", w.con_dist, (cap,), None),
+        ("force", w.con_force, (cap, 3), None), ("velocity", w.con_velocity, (cap, 3), None),
+        ("point_b", w.con_point_b, (cap, 3), None),
+        ("iterations", w.iters, (W,), None), ("primal_residual", w.r_p, (W,), None),
+        ("dual_residual", w.r_d, (W,), None), ("complementarity_residual", w.r_c, (W,), None),
+        ("converged", w.converged, (W,), None), ("failed", w.failed, (W,), None),
+        ("num_contacts", w.n_con, (W,), None), ("found", w.ct_found, (W,), None),
+        ("penalty", w.rho_u, (W,), None), ("unconverged_steps", w.unconverged, (W,), None),
+    )
+    return {name: (src, shape, np.dtype(dtype) if dtype is not None else _np_dtype(src))
+            for name, src, shape, dtype in table}
+
+
+_CONTACT_FIELDS = ("pair", "pos", "normal", "dist", "force", "velocity", "point_b")
+_FLAGS = ("converged", "failed", "contact_overflow")
+_DERIVED = ("converged", "failed", "found")
+
+
+def _assemble(get, flags: dict[str, jax.Array]) -> State:
+    """A :class:`State` from ``get(name)`` (a JAX array per :func:`state_fields` entry, read as is) and the
+    derived ``flags`` (``converged``, ``failed``: bool; ``contact_overflow``: int32)."""
+    info = {f.name: flags[f.name] if f.name in _FLAGS else get(f.name) for f in dataclasses.fields(StepInfo)}
+    top = {f.name: get(f.name) for f in dataclasses.fields(State) if f.name not in ("contacts", "info")}
+    return State(**top, contacts=ContactState(**{k: get(k) for k in _CONTACT_FIELDS}), info=StepInfo(**info))
+
+
+def read_state(st: Stepper) -> State:
+    """A new :class:`State` from the stepper's buffers (after a step)."""
     if st.device.is_cuda:
         # the copies handed to JAX are made on Warp's stream; JAX must not read them earlier
         wp.synchronize_device(st.device)
-    B, cap = m.num_bodies, m.num_contacts
-    info_found = _read(w.ct_found, (m.num_worlds,))
-    num_contacts = _read(w.n_con, (m.num_worlds,))
-    return State(
-        body_q=_read(w.q, (B, 7)),
-        body_u=_read(w.u, (B, 6)),
-        time=_read(w.time, (m.num_worlds,)),
-        constraint_force=_read(w.kin_force, (m.num_constraints,)),
-        actuator_force=_read(w.act_force, (m.num_dofs,)),
-        passive_force=_read(w.pas_force, (m.num_dofs,)),
-        limit_force=_read(w.lim_force, (m.num_dofs,)),
-        coupling_force=_read(w.cpl_force, (m.num_couplings,)),
-        contacts=ContactState(
-            pair=_read(w.con_pair, (cap,), jnp.int32),
-            pos=_read(w.con_pos, (cap, 3)),
-            normal=_read(w.con_normal, (cap, 3)),
-            dist=_read(w.con_dist, (cap,)),
-            force=_read(w.con_force, (cap, 3)),
-            velocity=_read(w.con_velocity, (cap, 3)),
-            point_b=_read(w.con_point_b, (cap, 3)),
-        ),
-        info=StepInfo(
-            iterations=_read(w.iters, (m.num_worlds,)),
-            primal_residual=_read(w.r_p, (m.num_worlds,)),
-            dual_residual=_read(w.r_d, (m.num_worlds,)),
-            complementarity_residual=_read(w.r_c, (m.num_worlds,)),
-            converged=_read(w.converged, (m.num_worlds,)) != 0,
-            failed=_read(w.failed, (m.num_worlds,)) != 0,
-            num_contacts=num_contacts,
-            contact_overflow=jnp.maximum(info_found - num_contacts, 0).astype(int_dtype),
-            penalty=_read(w.rho_u, (m.num_worlds,)),
-            unconverged_steps=_read(w.unconverged, (m.num_worlds,)),
-        ),
-    )
+    fields = state_fields(st)
+    host = {k: np.asarray(fields[k][0].numpy()) if fields[k][0].size else np.zeros(fields[k][1], fields[k][2])
+            for k in (*_DERIVED, "num_contacts")}
+    return _assemble(lambda k: _read(*fields[k]), _flags(host))
+
+
+def _flags(host: dict[str, np.ndarray]) -> dict[str, jax.Array]:
+    """The derived flags, computed on the host from the raw ``converged``/``failed`` counters and the contact
+    counts (``jax.device_put``: no XLA operation to compile)."""
+    overflow = np.maximum(host["found"] - host["num_contacts"], 0).astype(np.int32)
+    return {"converged": jax.device_put(host["converged"] != 0), "failed": jax.device_put(host["failed"] != 0),
+            "contact_overflow": jax.device_put(overflow)}
 
 
 def _dtype_of(state: State):
@@ -249,30 +265,8 @@ class _Trajectory:
     """
 
     def __init__(self, st: Stepper, num_steps: int) -> None:
-        w, m = st.work, st.wm.model
-        W, B, cap = m.num_worlds, m.num_bodies, m.num_contacts
         self.num_steps, self.device, self.cuda = int(num_steps), st.device, st.device.is_cuda
-        # field -> (stepper buffer, per-step shape, dtype when the buffer is empty): read_state's sources
-        self.fields: dict[str, tuple[wp.array, tuple[int, ...], np.dtype]] = {
-            name: (src, shape, np.dtype(dtype) if dtype is not None else _np_dtype(src))
-            for name, src, shape, dtype in (
-                ("body_q", w.q, (B, 7), None), ("body_u", w.u, (B, 6), None), ("time", w.time, (W,), None),
-                ("constraint_force", w.kin_force, (m.num_constraints,), None),
-                ("actuator_force", w.act_force, (m.num_dofs,), None),
-                ("passive_force", w.pas_force, (m.num_dofs,), None),
-                ("limit_force", w.lim_force, (m.num_dofs,), None),
-                ("coupling_force", w.cpl_force, (m.num_couplings,), None),
-                ("pair", w.con_pair, (cap,), np.int32), ("pos", w.con_pos, (cap, 3), None),
-                ("normal", w.con_normal, (cap, 3), None), ("dist", w.con_dist, (cap,), None),
-                ("force", w.con_force, (cap, 3), None), ("velocity", w.con_velocity, (cap, 3), None),
-                ("point_b", w.con_point_b, (cap, 3), None),
-                ("iterations", w.iters, (W,), None), ("primal_residual", w.r_p, (W,), None),
-                ("dual_residual", w.r_d, (W,), None), ("complementarity_residual", w.r_c, (W,), None),
-                ("converged", w.converged, (W,), None), ("failed", w.failed, (W,), None),
-                ("num_contacts", w.n_con, (W,), None), ("found", w.ct_found, (W,), None),
-                ("penalty", w.rho_u, (W,), None), ("unconverged_steps", w.unconverged, (W,), None),
-            )
-        }
+        self.fields = state_fields(st)
         self.bufs: dict[str, wp.array | np.ndarray] = {}
         for name, (src, shape, _) in self.fields.items():
             if src.size == 0 or self.num_steps == 0:
@@ -314,21 +308,4 @@ class _Trajectory:
         if self.cuda:
             # the copies were enqueued on Warp's stream: JAX must not read the buffers earlier
             wp.synchronize_device(self.device)
-        f = self._jax
-        # the derived flags are computed on the host (one device-to-host copy of 4 [T, W] arrays per rollout)
-        flags = {k: self._host(k) for k in ("converged", "failed", "num_contacts", "found")}
-        overflow = np.maximum(flags["found"] - flags["num_contacts"], 0).astype(np.int32)
-        return State(
-            body_q=f("body_q"), body_u=f("body_u"), time=f("time"), constraint_force=f("constraint_force"),
-            actuator_force=f("actuator_force"), passive_force=f("passive_force"), limit_force=f("limit_force"),
-            coupling_force=f("coupling_force"),
-            contacts=ContactState(pair=f("pair"), pos=f("pos"), normal=f("normal"), dist=f("dist"),
-                                  force=f("force"), velocity=f("velocity"), point_b=f("point_b")),
-            info=StepInfo(
-                iterations=f("iterations"), primal_residual=f("primal_residual"), dual_residual=f("dual_residual"),
-                complementarity_residual=f("complementarity_residual"),
-                converged=jax.device_put(flags["converged"] != 0), failed=jax.device_put(flags["failed"] != 0),
-                num_contacts=f("num_contacts"), contact_overflow=jax.device_put(overflow),
-                penalty=f("penalty"), unconverged_steps=f("unconverged_steps"),
-            ),
-        )
+        return _assemble(self._jax, _flags({k: self._host(k) for k in (*_DERIVED, "num_contacts")}))
