@@ -36,3 +36,22 @@ def test_the_warp_step_runs_inside_jax_jit_and_scan():
     traj = jax.jit(lambda s: kamino.rollout(model, s, num_steps=10, config=cfg, backend="warp"))(state)
     ref = kamino.rollout(model, state, num_steps=10, config=cfg, backend="warp")
     np.testing.assert_array_equal(np.asarray(traj.body_q), np.asarray(ref.body_q))
+
+
+def test_a_returned_state_is_not_changed_by_later_steps():
+    """The eager step reuses its stepper's buffers: every State it returns must own its arrays. jaxlib 0.9 made
+    ``jnp.asarray`` of a numpy view alias the buffer, and a state returned by one step then took the values of the
+    next step of another state (2026-11-24). Here a falling box's first state must survive a step of a state moving
+    the other way, field by field."""
+    model = kamino.models.box_stack(1)
+    s0 = kamino.init_state(model, jnp.float32)
+    cfg = kamino.SolverConfig()
+    s1 = kamino.step(model, s0, config=cfg, backend="warp")
+    before = {k: np.array(v) for k, v in (("body_q", s1.body_q), ("body_u", s1.body_u), ("time", s1.time),
+                                          ("iterations", s1.info.iterations))}
+    up = s0.replace(body_u=s0.body_u.at[:, 2].set(5.0))
+    s2 = kamino.step(model, kamino.step(model, up, config=cfg, backend="warp"), config=cfg, backend="warp")
+    assert not np.array_equal(np.asarray(s2.body_u), before["body_u"])  # the later steps differ ...
+    for name, arr in (("body_q", s1.body_q), ("body_u", s1.body_u), ("time", s1.time),
+                      ("iterations", s1.info.iterations)):
+        np.testing.assert_array_equal(np.asarray(arr), before[name], err_msg=name)  # ... and s1 is untouched
