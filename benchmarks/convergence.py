@@ -8,7 +8,8 @@
 Configuration: ``kamino.SolverConfig(dt=0.0025)`` and nothing else (every solver setting at its library
 default: the adaptive penalty, tolerance 1e-3, ...), float32, Warp's CUDA device (its CPU device when there
 is none: smoke runs, no throughput). The sweep changes ``tolerance`` only; ``serial_chain_dt1e-3`` changes
-``dt`` only.
+``dt`` only. ``--solver FIELD=VALUE ...`` sets fields on top of the defaults, for experiments (a candidate
+default measured beside the current one); the JSON records them under ``solver_overrides``.
 
 Worlds are not copies of one another: a driven scene gives world ``w`` of ``W`` the drive phase
 ``2 pi w / W`` (a device-side pre-step hook, :func:`drive_hook`); an undriven scene starts world ``w`` with
@@ -58,6 +59,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 import stress_models  # noqa: E402
+from throughput import solver_overrides  # noqa: E402
 
 import kamino  # noqa: E402
 from kamino.model import JOINT_CONSTRAINT_ROWS, RES_TRANS, ActuationMode, JointType  # noqa: E402
@@ -501,8 +503,9 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
 
 
 # ------------------------------------------------------------------------------------------------------ main
-def environment(argv: list[str], device) -> dict:
-    """GPU (or CPU) name, versions, the exact command, and the measured configuration."""
+def environment(argv: list[str], device, overrides: dict | None = None) -> dict:
+    """GPU (or CPU) name, versions, the exact command, and the measured configuration (the defaults, with the
+    ``--solver`` ``overrides`` of an experiment)."""
     import jax
     import warp as wp
 
@@ -516,7 +519,8 @@ def environment(argv: list[str], device) -> dict:
             "kamino": kamino.__version__, "python": platform.python_version(), "git": rev,
             "date": time.strftime("%Y-%m-%d %H:%M:%S"),
             "command": " ".join(["python benchmarks/convergence.py", *argv]),
-            "dtype": "float32", "solver_config": dataclasses.asdict(kamino.SolverConfig(dt=DT))}
+            "dtype": "float32", "solver_config": dataclasses.asdict(kamino.SolverConfig(dt=DT, **(overrides or {}))),
+            "solver_overrides": overrides or {}}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -533,6 +537,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--graph-steps", type=int, default=10)
     p.add_argument("--replays", type=int, default=10)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--solver", nargs="+", default=[], metavar="FIELD=VALUE",
+                   help="experiments only: SolverConfig fields set on top of the defaults (recorded in the JSON)")
     p.add_argument("--device", default=None, help="Warp device (default: CUDA if available, else cpu)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     p.add_argument("--plot", type=pathlib.Path, default=None, help="write PNGs from an existing JSON and exit")
@@ -554,7 +560,8 @@ def main(argv: list[str] | None = None) -> int:
     device = wp.get_device(args.device)
     names = args.scenes or list(SCENES)
     scenes = [SCENES[n] for n in names if not (args.no_stress and SCENES[n].stress)]
-    results = {"environment": environment(argv, device), "records": []}
+    overrides = solver_overrides(args.solver)
+    results = {"environment": environment(argv, device, overrides), "records": []}
 
     def emit(rec: dict) -> None:
         results["records"].append(rec)
@@ -570,7 +577,7 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as e:  # keep going: report what failed
             emit({"scene": scene.name, "error": repr(e)[:500]})
             continue
-        default = kamino.SolverConfig(dt=scene.dt)
+        default = kamino.SolverConfig(dt=scene.dt, **overrides)
         runs = [(default, False)]
         if not (args.no_sweep or scene.stress):
             runs += [(dataclasses.replace(default, tolerance=t), True) for t in args.tolerances]

@@ -266,7 +266,7 @@ def environment() -> dict:
             "command": " ".join(sys.argv)}
 
 
-def _solver_overrides(items: list[str]) -> dict:
+def solver_overrides(items: list[str]) -> dict:
     """``["baumgarte=0.01", "curvature_refinement=false"]`` -> SolverConfig fields, checked against the dataclass."""
     fields = {f.name for f in dataclasses.fields(kamino.SolverConfig)}
     out = {}
@@ -305,7 +305,7 @@ def main(argv=None) -> int:
         SOLVER["tolerance"] = args.tolerance
     if args.rho is not None:
         SOLVER["rho"] = args.rho
-    SOLVER.update(_solver_overrides(args.solver))
+    SOLVER.update(solver_overrides(args.solver))
     if args.plot:
         plot(json.loads(args.plot.read_text()), args.plot.with_suffix(""))
         return 0
