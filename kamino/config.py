@@ -43,6 +43,8 @@ class SolverConfig:
             of the bodies (a Gauss-Newton step with the step's Jacobian and a sparse Cholesky of the
             always-active rows' Delassus block), so that a soft ``baumgarte`` can keep PADMM well conditioned
             while the loops stay closed (docs/conventions.md, "Post-stabilisation").
+        projection_shift: the diagonal shift of post-stabilisation's scaled system (``None``: ``sqrt(eps)`` of
+            the state's dtype; :meth:`projection_shift_for`).
         joint_deadband: joint position errors below this [m or rad] get no bias (rounding noise
             on redundant loop rows would otherwise be an inconsistent right-hand side);
             ``None`` picks 1e-6 in float32 and 1e-11 in float64.
@@ -104,6 +106,7 @@ class SolverConfig:
     curvature_correction: bool = True
     curvature_refinement: bool = False
     post_stabilisation: int = 1
+    projection_shift: float | None = None
     joint_deadband: float | None = None
     max_iterations: int = 200
     tolerance: float = 1e-3
@@ -138,12 +141,13 @@ class SolverConfig:
             return self.joint_deadband
         return 1e-6 if np.dtype(dtype) == np.float32 else 1e-11
 
-    @staticmethod
-    def projection_shift_for(dtype) -> float:
-        """The diagonal shift of post-stabilisation's scaled system ``P D_ff P + shift I``: ``sqrt(eps)`` of
-        ``dtype`` (1.5e-8 in float64, 3.5e-4 in float32). Redundant loop rows make ``D_ff`` singular; the
-        shift keeps the Cholesky pivots above rounding, and leaves ``shift / (sigma + shift)`` of the error
-        along a direction of scaled curvature ``sigma`` (docs/conventions.md, "Post-stabilisation")."""
+    def projection_shift_for(self, dtype) -> float:
+        """The diagonal shift of post-stabilisation's scaled system ``P D_ff P + shift I``: ``projection_shift``,
+        or ``sqrt(eps)`` of ``dtype`` (1.5e-8 in float64, 3.5e-4 in float32). Redundant loop rows make ``D_ff``
+        singular; the shift keeps the Cholesky pivots above rounding, and leaves ``shift / (sigma + shift)`` of
+        the error along a direction of scaled curvature ``sigma`` (docs/conventions.md, "Post-stabilisation")."""
+        if self.projection_shift is not None:
+            return self.projection_shift
         return float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
 
     def __post_init__(self) -> None:
@@ -156,6 +160,8 @@ class SolverConfig:
             bad("integrator", "must be 'euler' or 'midpoint'")
         if not (0.0 <= self.baumgarte <= 1.0):
             bad("baumgarte", "must lie in [0, 1]")
+        if self.projection_shift is not None and not self.projection_shift > 0:
+            bad("projection_shift", "must be > 0 or None")
         if self.joint_deadband is not None and not self.joint_deadband >= 0:
             bad("joint_deadband", "must be >= 0 or None")
         if int(self.max_iterations) < 1:

@@ -12,7 +12,7 @@ coupling rows), one pass is the Gauss-Newton step of
 
 with the step's ``J``, ``M`` and joint-dynamics compliance ``R`` (the actuators' implicit inertia resists the
 correction as it resists motion). The system is solved in PADMM's Jacobi scaling ``P``: ``(P D_ff P + s I) y =
--P e``, ``lambda = P y``, with the small shift ``s = SolverConfig.projection_shift_for(dtype)`` (``sqrt(eps)``):
+-P e``, ``lambda = P y``, with the small shift ``s = cfg.projection_shift_for(dtype)`` (default ``sqrt(eps)``):
 redundant loop rows make ``D_ff`` singular, and a null direction of ``D_ff`` moves no body (``J^T v = 0``), so the
 shift only has to keep the pivots above rounding. It leaves ``s / (sigma + s)`` of the error along a direction of
 scaled curvature ``sigma``. A second pass (``SolverConfig.post_stabilisation = 2``) evaluates ``e`` again at the
@@ -52,10 +52,11 @@ class Projector:
     bodies: BodyDynamics
 
 
-def projector(J: jax.Array, D: jax.Array, P: jax.Array, n_fixed: int, bd: BodyDynamics) -> Projector:
+def projector(J: jax.Array, D: jax.Array, P: jax.Array, n_fixed: int, bd: BodyDynamics,
+              cfg: SolverConfig) -> Projector:
     """The projection's system from the step's ``J``, Delassus ``D`` (with ``R``) and scaling ``P``."""
     Pf = P[:n_fixed]
-    shift = SolverConfig.projection_shift_for(D.dtype)
+    shift = cfg.projection_shift_for(D.dtype)
     A = Pf[:, None] * D[:n_fixed, :n_fixed] * Pf[None, :] + shift * jnp.eye(n_fixed, dtype=D.dtype)
     return Projector(J=J[:n_fixed], P=Pf, factor=cho_factor(A, lower=True)[0], bodies=bd)
 

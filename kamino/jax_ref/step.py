@@ -321,7 +321,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     proj = None
     if cfg.post_stabilisation and n_dyn + n_kin:
         P = padmm.jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
-        proj = post.projector(J, D, P, n_dyn + n_kin, bd)
+        proj = post.projector(J, D, P, n_dyn + n_kin, bd, cfg)
     return u_plus, res, ct, side, proj
 
 
