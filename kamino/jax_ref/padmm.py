@@ -215,7 +215,7 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     fixed_row = jnp.arange(n) < n_fixed
     bound_rows = row_mask & ~fixed_row
     # fixed rows with a finite bound (effort-limited actuators) keep the constant penalty rho: a proximal shift
-    # of 1e-3 cannot move their impulse onto the bound in reasonable time, and a constant keeps L_f static
+    # of rho_free cannot move their impulse onto the bound in reasonable time, and a constant keeps L_f static
     boxed = jnp.concatenate([jnp.isfinite(lo) | jnp.isfinite(hi), jnp.zeros(n - n_box, bool)])
     rho0 = jnp.asarray(cfg.rho if rho0 is None else rho0, dtype)
     rho_free = jnp.asarray(cfg.rho_free if adaptive else cfg.rho, dtype)
