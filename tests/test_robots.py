@@ -222,7 +222,7 @@ def test_feet_touch_the_ground_and_the_com_is_over_them(name):
 #: the CPU (one thread per world runs the whole PADMM loop). 3 s covers the settling on the ground and the
 #: last second at rest that ``_check_hold`` asks for: bdx's base (Warp, sparse LLT) moves 2.3, 0.73, 0.78, 0.35,
 #: 0.39, 0.23 mm in successive half seconds with the residual cap at 30 (0.10 mm in the last half second with the
-#: cap at 10), so its second second still moves 1.09 mm and the third 0.59 mm (measured 2026-11-24).
+#: cap at 10), so its second second still moves by up to 1.09 mm and the third by 0.59 mm (measured 2026-11-24).
 WARP_STAND_STEPS = round(3.0 / DT)
 
 
