@@ -127,3 +127,82 @@ def test_a_world_unconverged_too_long_fails(variant):
     assert counts == [1, 2, 3, 4, 4]
     assert failed == [False, False, False, True, True]
     np.testing.assert_array_equal(np.asarray(s.body_q), np.asarray(prev.body_q))
+
+
+def _stress_models():
+    import importlib.util
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "stress_models.py"
+    spec = importlib.util.spec_from_file_location("stress_models", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+#: measured limitation of float32 on a numerically null Delassus direction (docs/conventions.md, "Warm start"), strict
+#: xfail until a rule holds these worlds without costing the standing robots
+NULL_DIRECTION_STALL = (
+    "float32 leaves a right-hand side along a numerically null direction of the Delassus matrix; the impulse the "
+    "proximal iterations pile up along it is carried by the warm start until its rounding stalls PADMM (measured: "
+    "mass ratio world 3425 of 4096 on Warp CPU converges on 10.6 % of 1000 steps and fails; the 1-degree tilted "
+    "four-bar, JAX, 32 worlds: 90.6 %, 5 failed). A reduced warm start after unconverged steps holds both (99.75 %, "
+    "99.22 %) but fails the animatronic holding its pose at tolerance 1e-4")
+
+
+@pytest.mark.xfail(strict=True, reason=NULL_DIRECTION_STALL)
+def test_mass_ratio_world_that_stalled_holds():
+    """Warp CPU, float32, defaults: the 1e4 mass-ratio pendulum (``benchmarks/convergence.py``'s stress scene) with
+    the initial twist perturbation of world 3425 of 4096, the one world that failed there on Warp CPU. The stress
+    suite asks 99 % of the steps converged and no failure."""
+    pytest.importorskip("warp")
+    base = _stress_models().mass_ratio_pendulum()
+    phase = 2.0 * np.pi * 3425 / 4096
+    d = 1e-2 * np.array([np.cos(phase), np.sin(phase), 0.0])
+    s0 = kamino.init_state(base, jnp.float32)
+    s0 = s0.replace(body_u=s0.body_u + jnp.asarray(np.concatenate([d, d]), jnp.float32))
+    tr = WARP_SPARSE_LLT.rollout(base, s0, num_steps=1000, config=kamino.SolverConfig(dt=DT))
+    conv = np.asarray(tr.info.converged).mean()
+    assert conv >= 0.99, f"converged on {conv:.4f} of the steps"
+    assert not np.asarray(tr.info.failed).any()
+
+
+@pytest.mark.xfail(strict=True, reason=NULL_DIRECTION_STALL)
+def test_tilted_fourbar_converges_at_the_defaults():
+    """JAX reference, float32, defaults: the four-bar with a hinge tilted by 1° (a loop near a singular
+    configuration; ``benchmarks/stress_models.tilted_fourbar``) under the benchmark drive with 32 phases, 1000 steps.
+    The stress suite asks 99 % and no failure (measured: 90.6 %, 5 worlds failed, joint anchors apart by up to
+    7.2e-4 m; with a reduced warm start after unconverged steps 99.22 %, none failed, 6.3e-6 m).
+    ``constraint_violation`` also counts the rotational rows: the tilted hinge's, whose combination along the planar
+    motion is numerically null in float32 (docs/conventions.md, "Warm start"), keep up to 2.4e-3 rad (measured with
+    the reduced warm start); bounded by 5e-3 here, the translational rows by 1e-5 m as for the other loops."""
+    base = _stress_models().tilted_fourbar(1.0)
+    W, steps = 32, 1000
+    model = kamino.replicate(base, W)
+    dof = int(base.actuator_dof[0])
+    t, phase = DT * np.arange(steps)[:, None], 2.0 * np.pi * np.arange(W)[None, :] / W
+    effort = np.zeros((steps, W, base.num_dofs))
+    effort[:, :, dof] = 2.0 * float(base.actuator_gear[0]) * np.sin(2.0 * np.pi * t + phase)
+    ctrl = kamino.Control(dof_effort=jnp.asarray(effort.reshape(steps, -1), jnp.float32))
+    tr = JAX.rollout(model, kamino.init_state(model, jnp.float32), ctrl, config=kamino.SolverConfig(dt=DT))
+    conv = np.asarray(tr.info.converged)
+    assert conv.mean() >= 0.99, f"converged on {conv.mean():.4f} of the steps"
+    assert not np.asarray(tr.info.failed).any()
+    viol = np.asarray(jax.vmap(lambda q: kamino.metrics(model, kamino.init_state(model, jnp.float32).replace(
+        body_q=q))["constraint_violation"])(tr.body_q[::10]))
+    assert viol.max() <= 5e-3
+    q = np.asarray(tr.body_q[::10], np.float64).reshape(-1, W, base.num_bodies, 7)
+    assert _anchor_gap(base, q).max() <= 1e-5
+
+
+def _anchor_gap(base: kamino.Model, body_q: np.ndarray) -> np.ndarray:
+    """The largest distance between the two anchors of any joint, per pose ``[..., bodies, 7]``."""
+    def point(b, anchor):
+        if b < 0:
+            return np.broadcast_to(anchor, (*body_q.shape[:-2], 3))
+        q = body_q[..., b, 3:]  # (x, y, z, w)
+        t = 2.0 * np.cross(q[..., :3], anchor)
+        return body_q[..., b, :3] + anchor + q[..., 3:] * t + np.cross(q[..., :3], t)
+
+    gaps = [np.linalg.norm(point(int(p), base.joint_anchor_B[j]) - point(int(c), base.joint_anchor_F[j]), axis=-1)
+            for j, (p, c) in enumerate(zip(base.joint_parent, base.joint_child, strict=True))]
+    return np.max(gaps, axis=0)
