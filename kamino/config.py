@@ -22,6 +22,11 @@ RHO_MIN, RHO_MAX = 1e-3, 10.0
 #: defaults"): uncapped, dr_legs' light rotational rows let the standing robot lean by 1 cm in 5 s at tolerance 1e-3;
 #: at 10, the driven four-bar's light limit rows stall PADMM in rare worlds (1 failed world of 4096 on the GPU)
 RESIDUAL_LOOSENING_MAX = 30.0
+#: a PADMM iterate whose remaining velocity error on the always-active rows no longer responds to the impulse
+#: changes is a least-squares solution along a numerically null direction of the scaled Delassus matrix: it stops
+#: (converged) when the change of that error is below ``NULL_DIRECTION_RATIO`` times the proximal shift times the
+#: change of the impulse, a Rayleigh quotient below 1e-2 of the shift (docs/conventions.md, "Null directions")
+NULL_DIRECTION_RATIO = 1e-2
 
 
 @dataclasses.dataclass(frozen=True)

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve, solve_triangular
 
 from kamino.config import (
+    NULL_DIRECTION_RATIO,
     PENALTY_INTERVAL,
     PENALTY_THRESHOLD,
     RESIDUAL_LOOSENING_MAX,
@@ -191,6 +192,19 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     iterations (a ``fori_loop``, differentiable); otherwise a ``while_loop`` stops when ``r_p``, ``r_d`` and
     ``r_c`` are all ``<= cfg.tolerance``.
 
+    **Null directions (float32; adaptive penalty).** On the rows whose penalty is the proximal shift
+    ``sigma = eta + rho_free`` (unbounded fixed rows) the dual residual vector ``e = eta (x - x_p) + rho (y -
+    y_hat)`` is minus the constraint velocity error ``Dt x + vt`` (the projection is the identity there), so ``e -
+    e_p = -Dt (x - x_p)``. When the error no longer responds to the impulse change, ``max |e - e_p| <=
+    NULL_DIRECTION_RATIO sigma max |x - x_p|`` (a Rayleigh quotient of the increment below 1e-2 sigma), the
+    iterate moves along a numerically null direction of ``Dt``: an eigenvalue that float32 cannot resolve (``Dt``
+    has a unit diagonal; the 1e4 mass-ratio pendulum's smallest is 2.8e-8, a four-bar with a hinge tilted by 1° has
+    three at 1e-8) or the redundancy of a loop. The error left along it is what no impulse representable in the
+    dtype removes; the proximal iteration would only pile impulse up along that direction (``e / sigma`` per
+    iteration, carried by the warm start) until its rounding stalls the world. Such an iterate is a least-squares
+    solution and counts as converged when the other rows' residuals, the primal and the complementarity residuals
+    are below the tolerance (docs/conventions.md, "Null directions").
+
     ``refine`` (the curvature refinement, ``cfg.curvature_refinement``) maps the impulses of the converged
     solve to a new ``v_f``; PADMM then restarts from its last iterate (``x_p = x``, ``y_hat = y``,
     ``z_hat = z``, no momentum) on the new right-hand side for up to ``cfg.max_iterations`` more iterations.
@@ -220,6 +234,7 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     rho0 = jnp.asarray(cfg.rho if rho0 is None else rho0, dtype)
     rho_free = jnp.asarray(cfg.rho_free if adaptive else cfg.rho, dtype)
     rho_fixed = jnp.where(boxed, jnp.asarray(cfg.rho, dtype), rho_free)
+    free_row = fixed_row & ~boxed  # the rows whose penalty is the proximal shift rho_free
 
     def penalty(rho_u):
         return jnp.where(fixed_row, rho_fixed, rho_u) if adaptive else jnp.full(n, cfg.rho, dtype)
@@ -282,12 +297,13 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
     tiny = jnp.asarray(jnp.finfo(dtype).tiny, dtype)
     any_bound = jnp.any(bound_rows)
-    # carry: k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, r_p, r_d, r_c, converged, rho_u, L, k_rho
+    # carry: k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, r_p, r_d, r_c, converged, rho_u, L, k_rho, e_p (the previous
+    # iteration's dual residual vector: the null-direction test)
     init = (jnp.int32(0), x0, x0, z0, x0, z0, jnp.asarray(1.0, dtype), big,
-            big, big, big, jnp.asarray(False), rho0, factor(rho0), jnp.int32(0))
+            big, big, big, jnp.asarray(False), rho0, factor(rho0), jnp.int32(0), jnp.full(n, big, dtype))
 
     def iterate(carry, vt, hi_v):
-        k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _, rho_u, L, k_rho = carry
+        k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _, rho_u, L, k_rho, e_p = carry
         rho = penalty(rho_u)
         # step 1-2: De Saxcé correction, linear solve with the cached factor
         s = de_saxce(z_hat, mu, n_box)
@@ -297,9 +313,17 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
         z = jnp.where(row_mask, z_hat + rho * (y - x), 0.0)
         # residuals in the energy norm, capped for light rows (docstring)
         r_p = jnp.max(W * jnp.abs(x - y), initial=0.0)
-        r_d = jnp.max(W * jnp.abs(eta * (x - x_p) + rho * (y - y_hat)), initial=0.0)
+        e = eta * (x - x_p) + rho * (y - y_hat)
+        r_d = jnp.max(W * jnp.abs(e), initial=0.0)
         r_c = complementarity(y, z)
         converged = (k + 1 >= 2) & (r_p <= tol) & (r_d <= tol) & (r_c <= tol)
+        if adaptive:
+            # or a least-squares solution along a numerically null direction of Dt (docstring, "Null directions")
+            r_tail = jnp.max(jnp.where(free_row, 0.0, W * jnp.abs(e)), initial=0.0)
+            de = jnp.max(jnp.where(free_row, jnp.abs(e - e_p), 0.0), initial=0.0)
+            dx = jnp.max(jnp.where(free_row, jnp.abs(x - x_p), 0.0), initial=0.0)
+            null = (de <= NULL_DIRECTION_RATIO * (eta + rho_free) * dx) & (dx > 0)
+            converged |= (k + 1 >= 2) & (r_p <= tol) & (r_tail <= tol) & (r_c <= tol) & null
         # §7.4 Fast ADMM with restart on the combined residual (unscaled units)
         c = jnp.sum(rho * (P * (y - y_hat)) ** 2) + jnp.sum(((z - z_hat) / P) ** 2 / rho)
         if cfg.acceleration:
@@ -325,7 +349,7 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
             c_n = jnp.where(change, big, c_n)
             k_rho = jnp.where(change, k + 1, k_rho)
             rho_u = jnp.where(change, rho_n, rho_u)
-        return (k + 1, x, y, z, y_hat_n, z_hat_n, a, c_n, r_p, r_d, r_c, converged, rho_u, L, k_rho)
+        return (k + 1, x, y, z, y_hat_n, z_hat_n, a, c_n, r_p, r_d, r_c, converged, rho_u, L, k_rho, e)
 
     def run(carry, vt, hi_v, cap):
         if cfg.fixed_iterations:
@@ -340,7 +364,7 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
         if cfg.redundant_limits:
             y = proj(y, hi_v2)  # the set of fixed rows may change with the right-hand side
         restart = (k, x, y, z, y, z, jnp.asarray(1.0, dtype), big, out[8], out[9], out[10], jnp.asarray(False),
-                   out[12], out[13], k)
+                   out[12], out[13], k, out[15])
         out = run(restart, vt2, hi_v2, k + cfg.max_iterations)
     k, _, y, z, _, _, _, _, r_p, r_d, r_c, converged, rho_u = out[:13]
     v = (z - de_saxce(z, mu, n_box)) / P  # §7.7: v+ = z - Gamma(z), unscaled

@@ -20,6 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
+from kamino.config import NULL_DIRECTION_RATIO
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, model_struct
@@ -59,6 +60,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     S = GROUP  # storage distance between consecutive rows of a world
     eps = scalar(float(np.finfo(np_dtype).eps))
     big = scalar(float(np.finfo(np_dtype).max))
+    null_ratio = scalar(NULL_DIRECTION_RATIO)
 
     @wp.func
     def inv_mass_times(m: M, w: Work, b: int, J: vec6):
@@ -471,6 +473,12 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             r_d = scalar(0.0)
             r_c = scalar(0.0)
             c_sum = scalar(0.0)
+            # the null-direction test (kamino.jax_ref.padmm.solve, "Null directions"): the dual residual of the
+            # rows that are not free (penalty rho_free), and on the free rows the change of the residual vector e
+            # against the change of the impulse
+            r_tail = scalar(0.0)
+            de = scalar(0.0)
+            dx = scalar(0.0)
             for a in range(n_box):
                 r = rb + a * S
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
@@ -486,6 +494,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 r_d = wp.max(r_d, du[2])
                 c_sum += du[3]
                 r_c = wp.max(r_c, box_complementarity(y, du[0], lo, hi))
+                if adaptive != 0 and a < nf and not (wp.isfinite(lo) or wp.isfinite(hi)):
+                    e = eta * (x - w.x_p[r]) + rho * (y - w.y_hat[r])
+                    de = wp.max(de, wp.abs(e - w.e_p[r]))
+                    dx = wp.max(dx, wp.abs(x - w.x_p[r]))
+                    w.e_p[r] = e
+                else:
+                    r_tail = wp.max(r_tail, du[2])
             inv_rho = scalar(1.0) / rho_u
             for c in range((n - n_box) // 3):
                 r = rb + (n_box + 3 * c) * S
@@ -500,6 +515,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     w.z[rt] = du[0]
                     r_p = wp.max(r_p, du[1])
                     r_d = wp.max(r_d, du[2])
+                    r_tail = wp.max(r_tail, du[2])
                     c_sum += du[3]
                     yz += y * du[0]
                 r_c = wp.max(r_c, wp.abs(yz))
@@ -508,8 +524,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 # inexact solve (a small cr_iterations budget) must not let the world report convergence
                 for a in range(n):
                     r_d = wp.max(r_d, residual_weight(w.P[rb + a * S], p_ref) * wp.abs(w.cr_r[rb + a * S]))
+                    r_tail = wp.max(r_tail, residual_weight(w.P[rb + a * S], p_ref) * wp.abs(w.cr_r[rb + a * S]))
             k = w.iters[wid] + 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
+            # or a least-squares solution along a numerically null direction (e_p of iteration 1 is stale: k >= 2)
+            if k >= 2 and r_p <= tol and r_tail <= tol and r_c <= tol and dx > scalar(0.0):
+                if de <= null_ratio * (eta + rho_free) * dx:
+                    converged = True
             # §7.4: Fast ADMM with restart
             mom = momentum(w.a_p[wid], w.c_p[wid], c_sum, restart_tol, accelerate)
             beta = mom[2]

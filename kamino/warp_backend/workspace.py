@@ -116,6 +116,7 @@ def work_struct(np_dtype):
         z_p: farr
         y_hat: farr
         z_hat: farr
+        e_p: farr  # the free rows' dual residual vector of the previous iteration (the null-direction test)
         impulse: farr
         velocity: farr
         a_p: farr  # per world
@@ -182,7 +183,8 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True):
         "cr_w": (B, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
     }
     for name in ("vstar", "reg", "lo", "hi", "mu", "f0", "v0", "vf", "P", "vt", "lo_s", "hi_s", "x", "y", "z", "x_p",
-                 "y_p", "z_p", "y_hat", "z_hat", "impulse", "velocity", "cr_r", "cr_p", "cr_Ap", "cr_Ar", "sdiag"):
+                 "y_p", "z_p", "y_hat", "z_hat", "e_p",
+                 "impulse", "velocity", "cr_r", "cr_p", "cr_Ap", "cr_Ar", "sdiag"):
         sizes[name] = (R, T.scalar)
     for name in ("a_p", "c_p", "r_p", "r_d", "r_c", "rho_u", "p_ref"):
         sizes[name] = (m.num_worlds, T.scalar)
