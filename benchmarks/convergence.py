@@ -481,6 +481,7 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
         **stats.result(),
         "failed_worlds": int(failed.sum()), "nonfinite_worlds": int(nonfinite.sum()),
         "closure_max_m": float(closure_max.max()), "closure_p99_over_worlds_m": float(np.quantile(closure_max, 0.99)),
+        "closure_worst_worlds": {int(w): float(closure_max[w]) for w in np.argsort(closure_max)[::-1][:5]},
         "closure_sample_every": every,
         "penalty_final": {"min": float(rho.min()), "median": float(np.median(rho)), "max": float(rho.max())},
         "residuals_final_max": {k: float(np.nanmax(getattr(st.work, k).numpy())) for k in ("r_p", "r_d", "r_c")},

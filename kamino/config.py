@@ -17,6 +17,10 @@ import numpy as np
 #: "Penalty").
 PENALTY_INTERVAL, PENALTY_THRESHOLD = 10, 5.0
 RHO_MIN, RHO_MAX = 1e-3, 10.0
+#: one balancing step changes the penalty by at most this factor: the uncapped ``sqrt(r_p / r_d)`` is 0 when every
+#: limit impulse is feasible (``r_p = 0``) and swings the penalty between ``RHO_MIN`` and 0.4 in a limit cycle on a
+#: parallelogram four-bar with all three hinge limits active (docs/conventions.md, "Penalty")
+PENALTY_MAX_FACTOR = 10.0
 #: the PADMM residuals weigh each row by the square root of its effective mass, relative to the world's heaviest row,
 #: but a light row's velocity error may exceed the tolerance by at most this factor (docs/conventions.md, "PADMM
 #: defaults"): uncapped, dr_legs' light rotational rows let the standing robot lean by 1 cm in 5 s at tolerance 1e-3;
@@ -44,13 +48,15 @@ class SolverConfig:
             solved velocity ``u+`` and continue PADMM from its iterate (docs/conventions.md,
             "Stabilisation"): the loop closure error of a step drops from ``O(h^2 |u+ - u_f| |u|)`` to third
             order, at the price of the extra iterations (up to ``max_iterations`` more).
-        post_stabilisation: number of position projections after the pose update (0: none). Each one
+        post_stabilisation: number of position projections after the pose update (0: none; a world whose PADMM
+            did not converge gets one more). Each one
             removes the joint and coupling rows' position errors by the smallest mass-weighted displacement
             of the bodies (a Gauss-Newton step with the step's Jacobian and a sparse Cholesky of the
             always-active rows' Delassus block), so that a soft ``baumgarte`` can keep PADMM well conditioned
             while the loops stay closed (docs/conventions.md, "Post-stabilisation").
-        projection_shift: the diagonal shift of post-stabilisation's scaled system (``None``: ``sqrt(eps)`` of
-            the state's dtype; :meth:`projection_shift_for`).
+        projection_shift: the diagonal shift of post-stabilisation's scaled system (``None``: ``sqrt(eps)`` of the
+            state's dtype, or PADMM's own shifts of the always-active rows where those are smaller, as in float32,
+            so that the Warp backend solves with PADMM's factor; :meth:`projection_shifts`).
         joint_deadband: joint position errors below this [m or rad] get no bias (rounding noise
             on redundant loop rows would otherwise be an inconsistent right-hand side);
             ``None`` picks 1e-6 in float32 and 1e-11 in float64.
@@ -147,14 +153,29 @@ class SolverConfig:
             return self.joint_deadband
         return 1e-6 if np.dtype(dtype) == np.float32 else 1e-11
 
-    def projection_shift_for(self, dtype) -> float:
-        """The diagonal shift of post-stabilisation's scaled system ``P D_ff P + shift I``: ``projection_shift``,
-        or ``sqrt(eps)`` of ``dtype`` (1.5e-8 in float64, 3.5e-4 in float32). Redundant loop rows make ``D_ff``
-        singular; the shift keeps the Cholesky pivots above rounding, and leaves ``shift / (sigma + shift)`` of
-        the error along a direction of scaled curvature ``sigma`` (docs/conventions.md, "Post-stabilisation")."""
+    def projection_shifts(self, dtype) -> tuple[float, float]:
+        """The diagonal shifts of post-stabilisation's scaled system ``P D_ff P + diag(s)``: ``s`` on an unbounded
+        row and on a row with a finite bound (an effort-limited actuator's joint-dynamics row).
+
+        Redundant loop rows make ``D_ff`` singular; the shift keeps the Cholesky pivots above rounding, and leaves
+        ``s / (sigma + s)`` of the error along a direction of scaled curvature ``sigma`` (docs/conventions.md,
+        "Post-stabilisation"), so it is the smallest that rounding allows, ``sqrt(eps)`` of ``dtype`` (1.5e-8 in
+        float64, 3.5e-4 in float32). Under the adaptive penalty PADMM has already factorised the same block with
+        the shifts ``eta + rho_free`` and ``eta + rho`` (a row with a finite bound); where the former is below
+        ``sqrt(eps)`` (float32: 1.1e-4) the projection takes PADMM's shifts and the Warp backend its factor.
+        ``projection_shift`` sets both shifts."""
         if self.projection_shift is not None:
-            return self.projection_shift
-        return float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
+            return self.projection_shift, self.projection_shift
+        floor = float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
+        if self.shares_padmm_factor(dtype):
+            return self.eta + self.rho_free, self.eta + self.rho
+        return floor, floor
+
+    def shares_padmm_factor(self, dtype) -> bool:
+        """Whether post-stabilisation's default system is PADMM's factor of the always-active rows
+        (:meth:`projection_shifts`)."""
+        floor = float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
+        return self.projection_shift is None and self.penalty == "adaptive" and self.eta + self.rho_free <= floor
 
     def __post_init__(self) -> None:
         def bad(field: str, why: str) -> None:

@@ -192,3 +192,55 @@ def test_tilted_fourbar_converges_at_the_defaults():
     closure = _benchmark_module("throughput").closure_distance  # the benchmarks' loop closure (joint anchors)
     assert max(closure(model, q) for q in np.asarray(tr.body_q[::10])) <= 1e-3
 
+
+
+# World 129 of 256 of benchmarks/convergence.py's four-bar (Warp CPU, float32, defaults before the penalty cap) after
+# 508 steps: the parallelogram sits on all three hinge limits at once (+-45 deg), which are equivalent modulo the
+# loop's rows, with the base's contacts clear of the ground.
+_LIMIT_CYCLE_Q = [
+    [-0.30152663588523865, 0.0036309855058789253, 0.10607443004846573, -0.0002413679176243022, -0.9961152672767639,
+     0.02200605720281601, 0.08526435494422913],
+    [-0.3244291841983795, 0.0019648198504000902, 0.06986961513757706, 0.008196639828383923, -0.9529571533203125,
+     0.020424533635377884, -0.3023049235343933],
+    [-0.23695823550224304, -0.00017569423653185368, 0.014638596214354038, -0.00024132935504894704,
+     -0.9961145520210266, 0.022006528452038765, 0.0852741003036499],
+    [-0.21405577659606934, 0.0014905110001564026, 0.050844136625528336, 0.008196486160159111, -0.9529567360877991,
+     0.020424149930477142, -0.3023064434528351]]
+_LIMIT_CYCLE_U = [
+    [-0.8860399723052979, 0.0118175707757473, -0.3633718490600586, -0.2783989906311035, -4.814675331115723,
+     0.27037355303764343],
+    [-0.7099880576133728, -0.0038523823022842407, -0.46323201060295105, -0.27750909328460693, -4.988391876220703,
+     0.28124892711639404],
+    [-0.4324727952480316, 0.004118410404771566, -0.04524874687194824, -0.27625054121017456, -4.7121076583862305,
+     0.2666291296482086],
+    [-0.6107509732246399, 0.01994943805038929, 0.05849742889404297, -0.27500367164611816, -4.897542476654053,
+     0.2748473584651947]]
+_LIMIT_CYCLE_T, _LIMIT_CYCLE_PHASE = 1.2700053453445435, 2.0 * np.pi * 129 / 256
+
+
+@pytest.mark.parametrize("variant", [JAX, WARP_SPARSE_LLT], ids=lambda v: v.id)
+def test_penalty_balancing_converges_on_three_equivalent_limits(variant):
+    """One step of the benchmark four-bar from a state where its three hinge limits bind together. The limit rows
+    are equivalent modulo the loop's rows (their projected Gram matrix has rank 1): the solution carries the impulse
+    on the row with the smallest bias only, and PADMM at a fixed penalty of 0.01-0.1 reaches it in 30-40 iterations
+    (measured on the step's problem, float64). Uncapped residual balancing multiplied the penalty by ``sqrt(r_p /
+    r_d)``, which is 0 once every limit impulse is feasible: the penalty swung between ``RHO_MIN`` and 0.4 every 10
+    iterations and never converged (200 iterations, in float64 too), leaving the loop open by 1.4e-5 m after this step
+    and 5.8e-5 m after the next (1.5e-3 m in the worst of 4096 worlds on the GPU). With the factor capped at
+    ``PENALTY_MAX_FACTOR`` both backends converge in 34 iterations and close the loop to 2.1e-7 m (measured);
+    bounded at 5e-6 m (the benchmarks' float32 floor is 2-5e-6 m; a third of the loop left open before)."""
+    dtype = jnp.float64  # in float32 the step from a cold start happened to converge (23 iterations)
+    model = kamino.load_mjcf(SCENES / "fourbar.xml")
+    s0 = kamino.init_state(model, dtype)
+    s0 = s0.replace(body_q=jnp.asarray(_LIMIT_CYCLE_Q, dtype), body_u=jnp.asarray(_LIMIT_CYCLE_U, dtype),
+                    time=jnp.full_like(s0.time, _LIMIT_CYCLE_T))
+    q_dof = np.asarray(kamino.joint_positions(model, s0))
+    hinges = q_dof[7:10]  # after the free base's seven coordinates
+    assert np.all(np.abs(np.abs(hinges) - np.pi / 4) < 1e-3), f"not on the three limits: {hinges}"
+    effort = np.zeros(model.num_dofs)
+    effort[int(model.actuator_dof[0])] = 2.0 * np.sin(2.0 * np.pi * _LIMIT_CYCLE_T + _LIMIT_CYCLE_PHASE)
+    s1 = variant.step(model, s0, kamino.Control(dof_effort=jnp.asarray(effort, dtype)),
+                      config=kamino.SolverConfig(dt=DT))
+    assert bool(s1.info.converged[0]) and int(s1.info.iterations[0]) < 200, int(s1.info.iterations[0])
+    closure = _benchmark_module("throughput").closure_distance
+    assert closure(model, np.asarray(s1.body_q)) <= 5e-6

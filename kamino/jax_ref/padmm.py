@@ -24,6 +24,7 @@ from jax.scipy.linalg import cho_solve, solve_triangular
 from kamino.config import (
     NULL_DIRECTION_RATIO,
     PENALTY_INTERVAL,
+    PENALTY_MAX_FACTOR,
     PENALTY_THRESHOLD,
     RESIDUAL_LOOSENING_MAX,
     RHO_MAX,
@@ -177,9 +178,10 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     the fraction ``lambda / (lambda + eta + rho)`` of the error along an eigenvalue ``lambda`` of ``D~`` per
     iteration. The limit and contact rows carry ``rho_u``, which starts at ``rho0`` (the world's last
     penalty, else ``cfg.rho``) and is balanced: every ``PENALTY_INTERVAL`` iterations, if the primal and dual
-    residuals differ by more than ``PENALTY_THRESHOLD``, ``rho_u <- rho_u sqrt(r_p / r_d)`` (clipped to
-    ``[RHO_MIN, RHO_MAX]``), the factor is recomputed and the momentum restarts. With
-    ``cfg.penalty = "fixed"`` every row carries ``cfg.rho`` (§7.6 "fixed").
+    residuals differ by more than ``PENALTY_THRESHOLD``, ``rho_u <- rho_u sqrt(r_p / r_d)`` (the factor
+    capped at ``PENALTY_MAX_FACTOR`` either way, the penalty clipped to ``[RHO_MIN, RHO_MAX]``), the Cholesky
+    factor is recomputed and the momentum restarts. With ``cfg.penalty = "fixed"``
+    every row carries ``cfg.rho`` (§7.6 "fixed").
 
     **Residuals (departure from §7.5).** ``r_p = max_i w_i |x - y|_i`` and ``r_d = max_i w_i |eta (x - x_p) + rho
     (y - y_hat)|_i`` in the scaled variables, with ``w_i = 1 / min(K P_i, P_ref)``: ``P_ref`` is the largest ``P``
@@ -340,7 +342,8 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
             # a discrete choice: no gradient flows through it (fixed_iterations under jax.grad)
             ratio = jax.lax.stop_gradient(jnp.sqrt((r_p + tiny) / (r_d + tiny)))
             due = (k + 1 - k_rho >= PENALTY_INTERVAL) & any_bound & ~converged
-            rho_n = jnp.clip(rho_u * ratio, RHO_MIN, RHO_MAX).astype(dtype)
+            gain = jnp.clip(ratio, 1.0 / PENALTY_MAX_FACTOR, PENALTY_MAX_FACTOR)
+            rho_n = jnp.clip(rho_u * gain, RHO_MIN, RHO_MAX).astype(dtype)
             change = due & ((ratio > PENALTY_THRESHOLD) | (ratio * PENALTY_THRESHOLD < 1.0)) & (rho_n != rho_u)
             L = jax.lax.cond(change, lambda: factor(rho_n), lambda: L)
             a = jnp.where(change, 1.0, a)

@@ -11,16 +11,23 @@ coupling rows), one pass is the Gauss-Newton step of
     q <- q ⊕ d,
 
 with the step's ``J``, ``M`` and joint-dynamics compliance ``R`` (the actuators' implicit inertia resists the
-correction as it resists motion). The system is solved in PADMM's Jacobi scaling ``P``: ``(P D_ff P + s I) y =
--P e``, ``lambda = P y``, with the small shift ``s = cfg.projection_shift_for(dtype)`` (default ``sqrt(eps)``):
+correction as it resists motion). The system is solved in PADMM's Jacobi scaling ``P``: ``(P D_ff P + diag(s)) y
+= -P e``, ``lambda = P y``, with the small shifts ``s`` of ``cfg.projection_shifts(dtype)`` (``sqrt(eps)``, or
+PADMM's own ``eta + rho_free`` where smaller, as in float32, so that the Warp backend reuses PADMM's factor):
 redundant loop rows make ``D_ff`` singular, and a null direction of ``D_ff`` moves no body (``J^T v = 0``), so the
 shift only has to keep the pivots above rounding. It leaves ``s / (sigma + s)`` of the error along a direction of
 scaled curvature ``sigma``. A second pass (``SolverConfig.post_stabilisation = 2``) evaluates ``e`` again at the
 corrected pose but keeps the step's ``J`` and factor (a chord iteration, no second factorisation): each pass
 leaves about ``h |omega|`` of the error, the change of ``J`` over the step (a light slider carrying a swinging
-1 kg load, float64: 6.3e-4 m without projection, 2.7e-5 m after one pass, 5.4e-7 m after two). (PADMM's own
-factor carries the shift ``eta + rho``, 0.1-1: reusing it left 5-20 % of the four-bar's loop error per pass,
-measured, so the projection factorises its own block.)
+1 kg load, float64: 6.3e-4 m without projection, 2.7e-5 m after one pass, 5.4e-7 m after two). (Under the fixed
+penalty PADMM's factor carries ``eta + rho``, 0.1-1: reusing it left 5-20 % of the four-bar's loop error per pass,
+measured; docs/conventions.md, "Post-stabilisation".)
+
+An unconverged step: PADMM's residuals bound a converged step's velocity error by the tolerance, so the position
+error a pass starts from is at most about ``dt`` times it; a step that ran to ``max_iterations`` has no such bound
+(light rows' velocity errors of several ``tolerance`` times ``RESIDUAL_LOOSENING_MAX``), and one pass with the
+step's ``J`` left the benchmark four-bar open by up to 1.4e-4 m after such steps. Such a world gets one pass more
+(docs/conventions.md, "Post-stabilisation").
 """
 
 from __future__ import annotations
@@ -52,12 +59,14 @@ class Projector:
     bodies: BodyDynamics
 
 
-def projector(J: jax.Array, D: jax.Array, P: jax.Array, n_fixed: int, bd: BodyDynamics,
+def projector(J: jax.Array, D: jax.Array, P: jax.Array, n_fixed: int, bounded: jax.Array, bd: BodyDynamics,
               cfg: SolverConfig) -> Projector:
-    """The projection's system from the step's ``J``, Delassus ``D`` (with ``R``) and scaling ``P``."""
+    """The projection's system from the step's ``J``, Delassus ``D`` (with ``R``) and scaling ``P``; ``bounded``
+    marks the always-active rows with a finite bound (they take the second of ``cfg.projection_shifts()``)."""
     Pf = P[:n_fixed]
-    shift = cfg.projection_shift_for(D.dtype)
-    A = Pf[:, None] * D[:n_fixed, :n_fixed] * Pf[None, :] + shift * jnp.eye(n_fixed, dtype=D.dtype)
+    free_shift, bounded_shift = cfg.projection_shifts(D.dtype)
+    shift = jnp.where(bounded[:n_fixed], bounded_shift, free_shift).astype(D.dtype)
+    A = Pf[:, None] * D[:n_fixed, :n_fixed] * Pf[None, :] + jnp.diag(shift)
     return Projector(J=J[:n_fixed], P=Pf, factor=cho_factor(A, lower=True)[0], bodies=bd)
 
 
@@ -70,13 +79,15 @@ def fixed_row_residual(pm: PaddedModel, q: jax.Array, delta) -> jax.Array:
     return jnp.concatenate([jnp.zeros(pm.dyn_mask.shape[0], q.dtype), e_kin, e_cpl])
 
 
-def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig) -> jax.Array:
-    """``cfg.post_stabilisation`` projection passes of the poses ``q`` [nb, 7] (module docstring)."""
+def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, converged: jax.Array) -> jax.Array:
+    """``cfg.post_stabilisation`` projection passes of the poses ``q`` [nb, 7], and one more where PADMM did not
+    converge (``converged`` False; module docstring, "An unconverged step")."""
     delta = cfg.deadband_for(q.dtype)
     nb = q.shape[0]
-    for _ in range(cfg.post_stabilisation):
+    for k in range(cfg.post_stabilisation + 1):
         e = fixed_row_residual(pm, q, delta)
         y = cho_solve((proj.factor, True), -proj.P * e)
         d = apply_inv_mass(proj.bodies, (proj.J.T @ (proj.P * y)).reshape(nb, 6))
-        q = integrate_pose(q, d, 1.0)
+        q_next = integrate_pose(q, d, 1.0)
+        q = q_next if k < cfg.post_stabilisation else jnp.where(converged, q, q_next)
     return q

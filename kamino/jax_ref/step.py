@@ -321,7 +321,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     proj = None
     if cfg.post_stabilisation and n_dyn + n_kin:
         P = padmm.jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
-        proj = post.projector(J, D, P, n_dyn + n_kin, bd, cfg)
+        proj = post.projector(J, D, P, n_dyn + n_kin, jnp.isfinite(lo) | jnp.isfinite(hi), bd, cfg)
     return u_plus, res, ct, side, proj
 
 
@@ -381,7 +381,7 @@ def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, cache: Wor
     u_plus = _angular_damping(u_plus, cfg)
     q_plus = integrate_pose(q_eval, u_plus, h)
     if proj is not None:
-        q_plus = post.project(pm, q_plus, proj, cfg)
+        q_plus = post.project(pm, q_plus, proj, cfg, res.converged)
     mask = pm.body_mask[:, None]
     q_plus = jnp.where(mask, q_plus, body_q)
     u_plus = jnp.where(mask, u_plus, body_u)

@@ -11,7 +11,14 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from kamino.config import PENALTY_INTERVAL, PENALTY_THRESHOLD, RESIDUAL_LOOSENING_MAX, RHO_MAX, RHO_MIN
+from kamino.config import (
+    PENALTY_INTERVAL,
+    PENALTY_MAX_FACTOR,
+    PENALTY_THRESHOLD,
+    RESIDUAL_LOOSENING_MAX,
+    RHO_MAX,
+    RHO_MIN,
+)
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
@@ -76,14 +83,15 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
     @wp.func
     def balanced_penalty(rho_u: scalar, r_p: scalar, r_d: scalar, k: int, k_rho: int):
         """The limit and contact rows' penalty after iteration ``k`` (the last change at ``k_rho``): residual
-        balancing, ``rho_u sqrt(r_p / r_d)`` clipped to ``[RHO_MIN, RHO_MAX]``, when ``PENALTY_INTERVAL``
-        iterations have passed and the balance is off by more than ``PENALTY_THRESHOLD``; else ``rho_u``
-        (``kamino.jax_ref.padmm.solve``)."""
+        balancing, ``rho_u sqrt(r_p / r_d)`` (the factor capped to ``[1 / PENALTY_MAX_FACTOR, PENALTY_MAX_FACTOR]``)
+        clipped to ``[RHO_MIN, RHO_MAX]``, when ``PENALTY_INTERVAL`` iterations have passed and the balance is off by
+        more than ``PENALTY_THRESHOLD``; else ``rho_u`` (``kamino.jax_ref.padmm.solve``)."""
         if k - k_rho < PENALTY_INTERVAL:
             return rho_u
         ratio = wp.sqrt((r_p + tiny) / (r_d + tiny))
         if ratio > scalar(PENALTY_THRESHOLD) or ratio * scalar(PENALTY_THRESHOLD) < one:
-            return wp.clamp(rho_u * ratio, scalar(RHO_MIN), scalar(RHO_MAX))
+            gain = wp.clamp(ratio, one / scalar(PENALTY_MAX_FACTOR), scalar(PENALTY_MAX_FACTOR))
+            return wp.clamp(rho_u * gain, scalar(RHO_MIN), scalar(RHO_MAX))
         return rho_u
 
     @wp.func

@@ -90,7 +90,10 @@ class Stepper:
                 self.sf = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy())
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             self.sp = self.sf.arrays if self.sparse_factor else sparse_llt.empty(self.np_dtype, self.device)
-            if cfg.post_stabilisation:
+            #: post-stabilisation solves with PADMM's sparse factor of the fixed rows when that factor carries the
+            #: projection's shifts (SolverConfig.projection_shifts: float32 defaults); else with a factor of its own
+            self.post_shares_factor = self.sparse_factor and cfg.shares_padmm_factor(self.np_dtype)
+            if cfg.post_stabilisation and not self.post_shares_factor:
                 # the fixed rows' own pattern and factor (no tail rows)
                 self.post = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy())
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
@@ -199,13 +202,18 @@ class Stepper:
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
         if cfg.post_stabilisation:  # position projections (post_stabilisation.py)
-            post, shift = self.post.arrays, cfg.projection_shift_for(self.np_dtype)
-            self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift, shift)
-            self._launch(self.spk.factor_fixed, W, post)
-            for _ in range(cfg.post_stabilisation):
-                self._launch(self.pk.residual, rows, delta)
-                self._launch(self.pk.solve, W, post)
-                self._launch(self.pk.displace, (W, wm.max_bodies), nblk)
+            if self.post_shares_factor:  # L_f of PADMM's factor: the same matrix, the tail is not read
+                post = self.sp
+            else:
+                post = self.post.arrays
+                shift_f, shift_b = cfg.projection_shifts(self.np_dtype)
+                self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift_f, shift_b)
+                self._launch(self.spk.factor_fixed, W, post)
+            for k in range(cfg.post_stabilisation + 1):  # the last pass only where PADMM did not converge
+                extra = int(k == cfg.post_stabilisation)
+                self._launch(self.pk.residual, rows, delta, extra)
+                self._launch(self.pk.solve, W, post, extra)
+                self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
         self._launch(ik.dof_forces, (W, wm.max_dofs))
         self._launch(ik.row_forces, rows, 1.0 / dt)
         if ck is not None:

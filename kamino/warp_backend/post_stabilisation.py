@@ -1,8 +1,12 @@
 """Post-stabilisation on the device: the position projection of ``kamino/jax_ref/post_stabilisation.py``.
 
-Once per step, after the pose update, the always-active rows' scaled block ``P D_ff P + s I`` is assembled on
-their static sparse pattern and factorised (``sparse_llt.assemble_fixed`` / ``factor_fixed``, with a factor
-storage of its own: PADMM's factor carries the shift ``eta + rho``). One pass is then three launches: the
+Once per step, after the pose update, the always-active rows' scaled block ``P D_ff P + diag(s)`` is factorised
+(``SolverConfig.projection_shifts``). Where PADMM's sparse factor already holds it (float32 at the defaults: the
+leading block ``L_f`` of PADMM's factor carries the shifts ``eta + rho_free`` / ``eta + rho``), the projection
+solves with that ``L_f``; otherwise the block is assembled on the fixed rows' static sparse pattern and
+factorised in a storage of its own (``sparse_llt.assemble_fixed`` / ``factor_fixed``,
+``kamino/warp_backend/pipeline.py``). A world whose PADMM did not converge gets one pass more (the kernels' flag
+``unconverged_only``; the reference's docstring). One pass is three launches: the
 residuals at ``q_new`` in PADMM's units (``x = -P e``), one thread per world solving with the sparse factor,
 and the displacement ``d = M^-1 J_f^T P y`` applied as ``q_new ⊕ d``. The factorisation and the solve read
 the block-sparse rows, which every configuration builds, so the projection works with either Jacobian and
@@ -39,10 +43,11 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
     rows_on_body = integrate_kernels(np_dtype).rows_on_body
 
     @wp.kernel(module="unique", enable_backward=False)
-    def residual(m: M, w: Work, delta: scalar):
-        """``x_a = -P_a e_a(q_new)`` on the always-active rows (``fixed_row_residual`` of the reference)."""
+    def residual(m: M, w: Work, delta: scalar, unconverged_only: int):
+        """``x_a = -P_a e_a(q_new)`` on the always-active rows (``fixed_row_residual`` of the reference); with
+        ``unconverged_only`` (the extra pass) only in the worlds whose PADMM did not converge."""
         wid, a = wp.tid()
-        if a >= m.row_fixed[wid]:
+        if a >= m.row_fixed[wid] or (unconverged_only != 0 and w.converged[wid] != 0):
             return
         nd = m.dyn_count[wid]
         nc = m.cts_count[wid]
@@ -61,9 +66,11 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
         w.x[r] = -w.P[r] * e
 
     @wp.kernel(module="unique", enable_backward=False)
-    def solve(m: M, w: Work, sp: SP):
+    def solve(m: M, w: Work, sp: SP, unconverged_only: int):
         """``lambda = P (P D_ff P + s I)^-1 x`` with the fixed rows' sparse factor (into ``x``)."""
         wid = wp.tid()
+        if unconverged_only != 0 and w.converged[wid] != 0:
+            return
         nf = m.row_fixed[wid]
         sparse_solve(m, w, sp, wid, nf)
         for a in range(nf):  # lambda = P y
@@ -71,10 +78,10 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
             w.x[r] = w.P[r] * w.x[r]
 
     @wp.kernel(module="unique", enable_backward=False)
-    def displace(m: M, w: Work, nblk: int):
+    def displace(m: M, w: Work, nblk: int, unconverged_only: int):
         """``q_new <- q_new ⊕ M^-1 J_f^T lambda`` (the body's share of every fixed row, summed in row order)."""
         wid, i = wp.tid()
-        if i >= m.body_count[wid]:
+        if i >= m.body_count[wid] or (unconverged_only != 0 and w.converged[wid] != 0):
             return
         b = m.body_start[wid] + i
         acc = rows_on_body(m, w, wid, b, m.row_fixed[wid], nblk, w.x)
