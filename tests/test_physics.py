@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import kamino
-from tests.helpers import BACKENDS, trajectory_joint_positions, trajectory_metrics
+from tests.helpers import BACKENDS, JAX, WARP_SPARSE_LLT, trajectory_joint_positions, trajectory_metrics
 
 
 def _period_from_crossings(t: np.ndarray, x: np.ndarray) -> float:
@@ -62,6 +62,27 @@ def test_fourbar_stays_closed_and_conserves_energy(integrator, closure_bound, va
         # moves), which is stricter than against the total energy (its potential datum is arbitrary)
         assert drift / met["kinetic_energy"].max() < 5e-3
         assert met["kinetic_energy"].max() > 0.05  # it really swings (about 0.19 J)
+
+
+@pytest.mark.parametrize("variant", [JAX, WARP_SPARSE_LLT], ids=lambda v: v.id)
+def test_fourbar_keeps_its_energy_at_the_float32_defaults(variant):
+    """Issue 16 acceptance: the passive four-bar keeps its energy within 1 % over 10 s at ``SolverConfig(dt)``,
+    float32 (semi-implicit Euler, post-stabilisation). Measured on both backends: the total energy within 0.07 %,
+    bounded at 1 %. Against the peak kinetic energy (the energy that moves) the float32 run loses 7.2 % (float64:
+    1.2 %): the joint dead band shrinks the curvature term every step (docs/conventions.md, "Stabilisation", an
+    open problem); bounded at 10 % so that a further loss fails."""
+    model = kamino.models.fourbar()
+    state = kamino.init_state(model, jnp.float32)
+    dt = 0.0025
+    traj = variant.rollout(model, state, num_steps=round(10.0 / dt), config=kamino.SolverConfig(dt=dt))
+    met = trajectory_metrics(model, state, traj)
+    E0 = float(kamino.metrics(model, state)["total_energy"][0])
+    drift = np.abs(np.asarray(met["total_energy"][:, 0]) - E0).max()
+    ke_max = float(np.asarray(met["kinetic_energy"]).max())
+    assert ke_max > 0.1  # it swings (0.185 J)
+    assert drift / abs(E0) < 1e-2
+    assert drift / ke_max < 0.1, drift / ke_max
+    assert float(np.asarray(met["constraint_violation"]).max()) < 1e-5
 
 
 @pytest.mark.parametrize("variant", BACKENDS)
