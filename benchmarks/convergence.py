@@ -24,7 +24,8 @@ Measured per scene (:func:`measure`), over every (world, step) pair of the run:
 - ``failed_worlds``: worlds flagged ``failed`` at the end (non-finite, or unconverged for more than
   ``max_unconverged_steps`` consecutive steps: docs/conventions.md, "World health");
 - ``closure_max_m``: the largest joint anchor distance (``throughput.closure_distance``'s definition: every
-  joint whose first three rows are translational) over all worlds, every ``--sample-every`` steps;
+  joint whose first three rows are translational) over all worlds, every ``--sample-every`` steps, and
+  ``closure_worst_worlds``, the five worlds with the largest (index: closure), to replay one of them;
 - ``bilateral_velocity``: the joint rows' velocity errors for ``--sample-worlds`` worlds every
   ``--sample-every`` steps, with the JAX reference's joint Jacobian (:class:`VelocityProbe`): ``solve``
   ``|J(q_t) u+ + v*|`` (the residual of the rows PADMM solved, bias ``v*`` included), ``pre`` ``|J(q_t) u+|``
