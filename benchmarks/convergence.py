@@ -34,6 +34,9 @@ Measured per scene (:func:`measure`), over every (world, step) pair of the run:
 - ``throughput``: world-steps/s of a CUDA graph of ``--graph-steps`` steps replayed ``--replays`` times,
   median of ``--repeats`` trials, after the run (as ``throughput.bench_warp``); ``None`` on the CPU;
 - ``diverged``: a failed or non-finite world, or a closure above 1e-2 m;
+- ``steps`` and ``truncated``: the steps run; with ``--time-limit`` a run that would pass the limit stops at the
+  next sample and reports what it ran (``truncated: true``) instead of losing the record at a device call's
+  limit (the robots' replays are latency-bound);
 - for the free spinning body, the drift of the kinetic energy and of ``|L|`` relative to each world's start.
 """
 
@@ -446,6 +449,8 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
     t0 = time.perf_counter()
     done = 0
     while done < steps:
+        if args.time_limit is not None and time.perf_counter() - t0 > args.time_limit:
+            break  # report the steps run so far (module doc, ``--time-limit``)
         n = min(every, steps - done)
         if n > 1:
             st.run(n - 1)
@@ -476,7 +481,8 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
     rho = st.work.rho_u.numpy()
     rec = {
         "scene": scene.name, "suite": "stress" if scene.stress else "main", "tolerance": cfg.tolerance, "dt": cfg.dt,
-        "drive": scene.drive or "perturbed initial twist", "num_worlds": W, "steps": steps,
+        "drive": scene.drive or "perturbed initial twist", "num_worlds": W, "steps": done,
+        "truncated": done < steps,
         "bodies": int(base.num_bodies), "joints": int(base.num_joints), "rows_max": int(st.wm.max_rows),
         "linear_solver": st.linear_solver, "padmm": st.padmm,
         **stats.result(),
@@ -488,7 +494,7 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
         "residuals_final_max": {k: float(np.nanmax(getattr(st.work, k).numpy())) for k in ("r_p", "r_d", "r_c")},
         "run_wall_s": wall, "run_world_steps_per_s": W * steps / wall,
     }
-    if probe is not None:
+    if probe is not None and vel["solve"][0]:  # (none sampled when a time limit stopped the run at once)
         rec["bilateral_velocity"] = {"sampled_worlds": sampled, "sample_every": every, **{
             key: {"trans_max_m_s": float(np.max(t)), "rot_max_rad_s": float(np.max(r)),
                   "trans_mean_m_s": float(np.mean(t)), "rot_mean_rad_s": float(np.mean(r))}
@@ -542,6 +548,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--solver", nargs="+", default=[], metavar="FIELD=VALUE",
                    help="experiments only: SolverConfig fields set on top of the defaults (recorded in the JSON)")
     p.add_argument("--device", default=None, help="Warp device (default: CUDA if available, else cpu)")
+    p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                   help="stop a scene's run after this wall time and report the steps done (``truncated``)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     p.add_argument("--plot", type=pathlib.Path, default=None, help="write PNGs from an existing JSON and exit")
     p.add_argument("--table", type=pathlib.Path, default=None, help="print a markdown table of a JSON and exit")
@@ -629,9 +637,10 @@ def table(results: dict) -> str:
         if r.get("invariants_max_relative_drift"):
             d = r["invariants_max_relative_drift"]
             name += f" (dE {_fmt(d['energy'])}, d\\|L\\| {_fmt(d['L_norm'])})"
-        lines.append(f"| {name} | {_fmt(r['tolerance'])} | {_fmt(r['dt'])} | {r['num_worlds']} x {r['steps']} "
+        steps = f"{r['steps']}{' (time limit)' if r.get('truncated') else ''}"
+        lines.append(f"| {name} | {_fmt(r['tolerance'])} | {_fmt(r['dt'])} | {r['num_worlds']} x {steps} "
                      f"| {_fmt(r['converged_fraction'], '.4f')} "
-                     f"| {_fmt(it['mean'], '.1f')} / {it['p99']} / {it['max']} "
+                     f"| {_fmt(it['mean'], '.1f')} / {_fmt(it['p99'], 'd')} / {_fmt(it['max'], 'd')} "
                      f"| {r['failed_worlds']} | {_fmt(r['closure_max_m'])} | {bv_s} | {_fmt(tp, '.3g')} "
                      f"| {'yes' if r['diverged'] else 'no'} |")
     return "\n".join(lines)

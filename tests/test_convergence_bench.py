@@ -50,3 +50,14 @@ def test_convergence_benchmark_writes_every_field(convergence, tmp_path):
     assert table.count("\n| fourbar") == 2
     pngs = convergence.plot(results, tmp_path / "convergence")
     assert [pathlib.Path(p).name for p in pngs] == ["convergence_iterations.png"]
+
+
+def test_a_run_past_its_time_limit_reports_what_it_ran(convergence, tmp_path):
+    """``--time-limit``: a scene whose run would pass the limit stops and still writes its record, marked
+    ``truncated`` with the steps it ran (here none: a limit of 0 s stops before the first step)."""
+    out = tmp_path / "limited.json"
+    assert convergence.main(["--scenes", "fourbar", "--worlds", "2", "--steps", "30", "--no-sweep", "--device", "cpu",
+                             "--time-limit", "0", "--out", str(out)]) == 0
+    (rec,) = json.loads(out.read_text())["records"]
+    assert "error" not in rec, rec
+    assert rec["truncated"] is True and rec["steps"] == 0 and rec["world_steps"] == 0
