@@ -492,7 +492,7 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
         "closure_sample_every": every,
         "penalty_final": {"min": float(rho.min()), "median": float(np.median(rho)), "max": float(rho.max())},
         "residuals_final_max": {k: float(np.nanmax(getattr(st.work, k).numpy())) for k in ("r_p", "r_d", "r_c")},
-        "run_wall_s": wall, "run_world_steps_per_s": W * steps / wall,
+        "run_wall_s": wall, "run_world_steps_per_s": W * done / wall if wall > 0 else None,
     }
     if probe is not None and vel["solve"][0]:  # (none sampled when a time limit stopped the run at once)
         rec["bilateral_velocity"] = {"sampled_worlds": sampled, "sample_every": every, **{

@@ -33,6 +33,12 @@ RESIDUAL_LOOSENING_MAX = 30.0
 NULL_DIRECTION_RATIO = 1e-2
 
 
+def _rounding_floor(dtype) -> float:
+    """``sqrt(eps)`` of ``dtype``: the smallest diagonal shift that keeps a singular block's Cholesky pivots above
+    rounding (1.5e-8 in float64, 3.5e-4 in float32)."""
+    return float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
+
+
 @dataclasses.dataclass(frozen=True)
 class SolverConfig:
     """Time stepping, stabilisation and Proximal-ADMM settings (formulation.md §5-§8).
@@ -166,16 +172,16 @@ class SolverConfig:
         ``projection_shift`` sets both shifts."""
         if self.projection_shift is not None:
             return self.projection_shift, self.projection_shift
-        floor = float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
         if self.shares_padmm_factor(dtype):
             return self.eta + self.rho_free, self.eta + self.rho
+        floor = _rounding_floor(dtype)
         return floor, floor
 
     def shares_padmm_factor(self, dtype) -> bool:
         """Whether post-stabilisation's default system is PADMM's factor of the always-active rows
         (:meth:`projection_shifts`)."""
-        floor = float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
-        return self.projection_shift is None and self.penalty == "adaptive" and self.eta + self.rho_free <= floor
+        return (self.projection_shift is None and self.penalty == "adaptive"
+                and self.eta + self.rho_free <= _rounding_floor(dtype))
 
     def __post_init__(self) -> None:
         def bad(field: str, why: str) -> None:
