@@ -426,7 +426,7 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
     state = kamino.init_state(model, np.float32)
     control = (kamino.Control(position_target=np.zeros(model.num_dofs, np.float32))
                if scene.drive == "targets" else None)
-    st = wb.stepper(model, cfg, np.float32, device)
+    st = wb.stepper(model, cfg, np.float32, device, padmm=args.padmm)
     st.pre_step.clear()
     st.invalidate_graphs()
     wb.load_state(st, state, control)
@@ -547,6 +547,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--solver", nargs="+", default=[], metavar="FIELD=VALUE",
                    help="experiments only: SolverConfig fields set on top of the defaults (recorded in the JSON)")
+    p.add_argument("--padmm", choices=("thread", "warp"), default=None,
+                   help="PADMM schedule (Stepper(padmm=...)): one thread or 32 threads per world (default: the "
+                        "Stepper's choice)")
     p.add_argument("--device", default=None, help="Warp device (default: CUDA if available, else cpu)")
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="stop a scene's run after this wall time and report the steps done (``truncated``)")

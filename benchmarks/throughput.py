@@ -38,13 +38,11 @@ CONFIGS = {
     "dense-llt": dict(jacobian="dense", linear_solver="llt"),
     "sparse-llt": dict(jacobian="sparse", linear_solver="llt"),
     "sparse-cr": dict(jacobian="sparse", linear_solver="cr"),
-    "sparse-llt-block": dict(jacobian="sparse", linear_solver="llt"),
     "sparse-llt-warp": dict(jacobian="sparse", linear_solver="llt"),
-    "dense-llt-warp": dict(jacobian="dense", linear_solver="llt"),
 }
-#: PADMM kernel of a configuration (``Stepper(padmm=...)``): one thread per world unless ``"warp"`` (32 threads
-#: per world, padmm_warp.py) or ``"block"`` (one tile block per world, padmm_tile.py)
-PADMM = {"sparse-llt-block": "block", "sparse-llt-warp": "warp", "dense-llt-warp": "warp"}
+#: PADMM schedule of a configuration (``Stepper(padmm=...)``): one thread per world unless ``"warp"`` (32 threads
+#: per world, padmm_warp.py)
+PADMM = {"sparse-llt-warp": "warp"}
 DT = 0.0025
 #: solver settings of every kamino configuration here on top of ``kamino.SolverConfig(dt=DT)``: none, the library
 #: defaults are the measured configuration (issue 16; ``--solver FIELD=VALUE`` overrides for experiments)

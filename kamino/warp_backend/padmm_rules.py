@@ -1,8 +1,7 @@
-"""The per-iteration rules of accelerated PADMM shared by the three PADMM kernels (one thread per world in
-``solver.py``, 32 threads per world in ``padmm_warp.py``, one tile block per world in ``padmm_tile.py``):
-the dual update and a row's residuals (formulation.md §7.3-§7.5), the fast-ADMM momentum with restart
-(§7.4), a box row's complementarity residual (§7.5), and
-the write-back of a solve's iterates (for the two cooperative kernels, which keep them in registers).
+"""The per-iteration rules of accelerated PADMM shared by the two PADMM schedules (one thread per world in
+``solver.py``, 32 threads per world in ``padmm_warp.py``): the dual update and a row's residuals (formulation.md
+§7.3-§7.5), the fast-ADMM momentum with restart (§7.4), the penalty of the limit and contact rows, and a box row's
+complementarity residual (§7.5).
 """
 
 import functools
@@ -20,7 +19,6 @@ from kamino.config import (
     RHO_MIN,
 )
 from kamino.warp_backend.types import types_of
-from kamino.warp_backend.workspace import work_struct
 
 #: what :func:`padmm_funcs` ``momentum`` asks the kernel to do with ``(y_hat, z_hat)``
 NO_ACCELERATION, EXTRAPOLATE, RESTART = 0, 1, 2
@@ -30,7 +28,6 @@ NO_ACCELERATION, EXTRAPOLATE, RESTART = 0, 1, 2
 def padmm_funcs(np_dtype) -> SimpleNamespace:
     T = types_of(np_dtype)
     scalar = T.scalar
-    Work = work_struct(np_dtype)
     vec4 = wp.types.vector(length=4, dtype=scalar)
     inf = scalar(wp.inf)
     one = scalar(1.0)
@@ -106,35 +103,7 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
             gap = wp.min(gap, wp.abs(hi - y))
         return wp.abs(z) * gap
 
-    @wp.func
-    def store_row(w: Work, r: int, x: scalar, y: scalar, z: scalar, x_p: scalar, y_p: scalar, z_p: scalar,
-                  y_hat: scalar, z_hat: scalar):
-        """Row ``r``'s iterates back to the workspace (what ``padmm_finish`` and ``padmm_resume`` read)."""
-        w.x[r] = x
-        w.y[r] = y
-        w.z[r] = z
-        w.x_p[r] = x_p
-        w.y_p[r] = y_p
-        w.z_p[r] = z_p
-        w.y_hat[r] = y_hat
-        w.z_hat[r] = z_hat
-
-    @wp.func
-    def store_world(w: Work, wid: int, a_p: scalar, c_p: scalar, k: int, r_p: scalar, r_d: scalar, r_c: scalar,
-                    converged: bool):
-        """A world's momentum, iteration count, residuals and flags after its solve; it leaves ``remaining``."""
-        w.a_p[wid] = a_p
-        w.c_p[wid] = c_p
-        w.iters[wid] = k
-        w.r_p[wid] = r_p
-        w.r_d[wid] = r_d
-        w.r_c[wid] = r_c
-        w.converged[wid] = int(converged)
-        w.done[wid] = 1
-        wp.atomic_sub(w.remaining, 0, 1)
-
     return SimpleNamespace(momentum=momentum, extrapolated=extrapolated, dual_update=dual_update,
                            residual_weight=residual_weight,
                            balanced_penalty=balanced_penalty,
-                           box_complementarity=box_complementarity,
-                           store_row=store_row, store_world=store_world)
+                           box_complementarity=box_complementarity)

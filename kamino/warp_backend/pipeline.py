@@ -20,8 +20,7 @@ from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.model_data import warp_model
-from kamino.warp_backend.padmm_tile import max_tile_rows, tile_fits, tile_kernels, tile_rows
-from kamino.warp_backend.padmm_warp import LANES, warp_kernels, warp_slots
+from kamino.warp_backend.padmm_warp import LANES, warp_kernels
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, solver_kernels
@@ -35,11 +34,12 @@ AUTO_CR_ROWS = 300
 PER_WORLD_BLOCK = 32
 
 
-def resolve_linear_solver(cfg: SolverConfig, max_rows: int) -> str:
-    """``"llt"`` or ``"cr"`` for ``cfg`` on worlds of up to ``max_rows`` rows (CR needs the sparse J)."""
+def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread") -> str:
+    """``"llt"`` or ``"cr"`` for ``cfg`` on worlds of up to ``max_rows`` rows (CR needs the sparse J; the 32-thread
+    schedule, ``padmm="warp"``, solves with the sparse factor at every size)."""
     choice = cfg.linear_solver
     if choice == "auto":
-        choice = "cr" if (cfg.jacobian == "sparse" and max_rows > AUTO_CR_ROWS) else "llt"
+        choice = "cr" if (cfg.jacobian == "sparse" and max_rows > AUTO_CR_ROWS and padmm != "warp") else "llt"
     if choice == "cr" and cfg.jacobian == "dense":
         raise ValueError("SolverConfig: linear_solver='cr' works on the block-sparse Jacobian; "
                          "use jacobian='sparse' (or linear_solver='llt' with jacobian='dense')")
@@ -50,9 +50,8 @@ class Stepper:
     """Device buffers and launches for stepping ``model`` with ``cfg``.
 
     ``padmm``: ``"thread"`` (default) runs PADMM with one thread per world (``solver.py``, LLT or CR);
-    ``"warp"`` runs the LLT solve with 32 threads per world on its active rows (``padmm_warp.py``);
-    ``"block"`` runs the LLT solve with one thread block per world (``padmm_tile.py``), for worlds whose
-    Cholesky factor fits in shared memory (measured trade-off: docs/warp_backend.md, "One block per world").
+    ``"warp"`` runs the sparse factorisation, the PADMM iterations and post-stabilisation's solve with 32 threads per
+    world (``padmm_warp.py``; the sparse LLT path: ``jacobian="sparse"``, ``linear_solver="llt"``).
     """
 
     def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None, padmm: str | None = None):
@@ -60,30 +59,24 @@ class Stepper:
         self.cfg = cfg
         self.np_dtype = np.dtype(np_dtype)
         self.wm = wm = warp_model(model, self.np_dtype, str(self.device))
-        self.linear_solver = resolve_linear_solver(cfg, wm.max_rows)
+        self.linear_solver = resolve_linear_solver(cfg, wm.max_rows, padmm or "thread")
         self.dense = cfg.jacobian == "dense"
         llt = self.linear_solver == "llt"
         if cfg.redundant_limits:
             raise ValueError("SolverConfig.redundant_limits is implemented in the JAX reference only (float64); "
                              "use backend='jax' or leave it off")
         padmm = "thread" if padmm is None else padmm
-        if padmm not in ("block", "thread", "warp"):
-            raise ValueError(f"padmm must be 'thread', 'warp' or 'block' (got {padmm!r})")
-        if padmm != "thread" and not llt:
-            raise ValueError(f"padmm={padmm!r} is the LLT solve; linear_solver='cr' runs with padmm='thread'")
-        if padmm == "block" and not tile_fits(wm.max_rows, self.np_dtype):
-            raise ValueError(f"padmm='block': {wm.max_rows} rows per world need a {tile_rows(wm.max_rows)}^2 "
-                             f"Cholesky factor in shared memory; the block kernel takes up to "
-                             f"{max_tile_rows(self.np_dtype)} rows in {self.np_dtype}")
-        if padmm != "thread" and cfg.penalty != "fixed":
-            raise ValueError(f"padmm={padmm!r} runs with one penalty for every row: use SolverConfig(penalty='fixed') "
-                             "(the adaptive penalty is the one-thread-per-world kernel's)")
+        if padmm not in ("thread", "warp"):
+            raise ValueError(f"padmm must be 'thread' or 'warp' (got {padmm!r})")
+        if padmm == "warp" and not (llt and not self.dense):
+            raise ValueError("padmm='warp' runs the sparse LLT solve: use jacobian='sparse' and linear_solver='llt' "
+                             f"or 'auto' (got jacobian={cfg.jacobian!r}, linear_solver={self.linear_solver!r})")
         self.padmm = padmm
         #: the fixed rows' penalty and whether the limit and contact rows' penalty adapts (kamino.jax_ref.padmm.solve)
         self.adaptive = cfg.penalty == "adaptive"
         self.rho_free = cfg.rho_free if self.adaptive else cfg.rho
         #: the LLT solve with block-sparse rows and one thread per world factorises sparsely (sparse_llt.py)
-        self.sparse_factor = llt and not self.dense and padmm == "thread"
+        self.sparse_factor = llt and not self.dense
         with wp.ScopedDevice(self.device):
             self.work = allocate(wm, cfg.integrator == "euler", self.dense, llt and not self.sparse_factor)
             if self.sparse_factor:
@@ -97,20 +90,9 @@ class Stepper:
                 # the fixed rows' own pattern and factor (no tail rows)
                 self.post = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy())
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
-            if padmm == "block":
-                # CPU launches need cooperative blocks for one thread per row (warp.config)
-                wp.config.enable_cpu_blocks = True
-                self.tile_R = tile_rows(wm.max_rows)
-                self.tk = tile_kernels(self.np_dtype, self.tile_R)
-                self.Dt = wp.zeros((wm.num_worlds, self.tile_R, self.tile_R), dtype=self.work.D.dtype)
             if padmm == "warp":
-                wp.config.enable_cpu_blocks = True
-                nj = warp_slots(wm.max_rows)
-                self.wk = warp_kernels(self.np_dtype, nj)
-                R, dt = LANES * nj, self.work.D.dtype
-                self.Aw = wp.zeros((wm.num_worlds, R, R), dtype=dt)
-                self.Sw = wp.zeros((wm.num_worlds, 4, R), dtype=dt)
-                self.redw = wp.zeros((wm.num_worlds, LANES), dtype=dt)
+                wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
+                self.wk = warp_kernels(self.np_dtype)
         self.rk = row_kernels(self.np_dtype)
         self.sk = solver_kernels(self.np_dtype)
         self.ik = integrate_kernels(self.np_dtype)
@@ -171,24 +153,21 @@ class Stepper:
             else:
                 self._launch(sk.delassus_sparse, rows, nblk)
         self._launch(sk.precondition, rows, nblk, int(assembled), int(cfg.preconditioning))
-        own = self.padmm != "thread"  # the block and warp kernels factorise themselves (fixed penalty)
         shift_f, shift_b = cfg.eta + self.rho_free, cfg.eta + cfg.rho
-        self._launch(sk.scale, rows, shift_f, shift_b, shift_f if own else 0.0, int(assembled))
+        self._launch(sk.scale, rows, shift_f, shift_b, 0.0, int(assembled))
         if self.sparse_factor:
             self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz), self.sp, nblk, shift_f, shift_b)
             self._launch(self.spk.assemble_tail, rows, self.sp, nblk)
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
-        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled and not own), cfg.max_iterations,
+        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled), cfg.max_iterations,
                      cfg.eta, cfg.rho, int(self.adaptive))
-        if self.sparse_factor:
+        if self.padmm == "warp":
+            self._launch_lanes(self.wk.factor, self.sp, cfg.eta)
+        elif self.sparse_factor:
             self._launch(self.spk.factor, W, self.sp, cfg.eta)
-        if self.padmm == "block":
-            self._launch(self.tk[0], (W, self.tile_R), self.Dt)
-        elif self.padmm == "warp":
-            self._launch(self.wk[0], rows, self.Aw)
-        self._padmm_loop(factor=True)
+        self._padmm_loop()
         self._launch(sk.padmm_finish, rows)
         if cfg.curvature_refinement and cfg.curvature_correction and (wm.max_cts or wm.max_cpl):
             self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
@@ -197,7 +176,7 @@ class Stepper:
             self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta, mid)
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W, cfg.max_iterations)
-            self._padmm_loop(factor=False)
+            self._padmm_loop()
             self._launch(sk.padmm_finish, rows)
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
@@ -212,7 +191,10 @@ class Stepper:
             for k in range(cfg.post_stabilisation + 1):  # the last pass only where PADMM did not converge
                 extra = int(k == cfg.post_stabilisation)
                 self._launch(self.pk.residual, rows, delta, extra)
-                self._launch(self.pk.solve, W, post, extra)
+                if self.padmm == "warp":
+                    self._launch_lanes(self.wk.solve_fixed, post, extra)
+                else:
+                    self._launch(self.pk.solve, W, post, extra)
                 self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
         self._launch(ik.dof_forces, (W, wm.max_dofs))
         self._launch(ik.row_forces, rows, 1.0 / dt)
@@ -225,24 +207,24 @@ class Stepper:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
         self._graphs.clear()
 
-    def _padmm_loop(self, factor: bool) -> None:
+    def _launch_lanes(self, kernel, *args) -> None:
+        """Launch a 32-threads-per-world kernel (``padmm_warp.py``): one block of ``LANES`` threads per world."""
+        wp.launch_tiled(kernel, dim=[self.wm.num_worlds], inputs=[self.wm.arrays, self.work, *args], block_dim=LANES,
+                        device=self.device)
+
+    def _padmm_loop(self) -> None:
         """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds
-        still iterating when capturing a CUDA graph, else one launch running each world to its cap (the
-        warp and block kernels always run each world to the end in one launch; ``factor``: the warp kernel
-        factorises first, a refinement pass reuses the factor)."""
+        still iterating when capturing a CUDA graph, else one launch running each world to its cap."""
         cfg, w = self.cfg, self.work
         W = self.wm.num_worlds
         if self.padmm == "warp":
-            wp.launch_tiled(self.wk[1], dim=[W], inputs=[self.wm.arrays, w, self.Aw, self.Sw, self.redw, int(factor),
-                                                         cfg.eta, cfg.rho, cfg.tolerance, cfg.restart_tolerance,
-                                                         int(cfg.acceleration), int(cfg.fixed_iterations)],
-                            block_dim=LANES, device=self.device)
-            return
-        if self.padmm == "block":
-            wp.launch_tiled(self.tk[1], dim=[W], inputs=[self.wm.arrays, w, self.Dt, cfg.eta, cfg.rho, cfg.tolerance,
-                                                         cfg.restart_tolerance, int(cfg.acceleration),
-                                                         int(cfg.fixed_iterations)],
-                            block_dim=self.tile_R, device=self.device)
+            args = (cfg.eta, self.rho_free, cfg.rho, cfg.tolerance, cfg.restart_tolerance, int(cfg.acceleration),
+                    int(cfg.fixed_iterations), int(self.adaptive))
+            if self.use_graph and self.device.is_capturing:
+                wp.capture_while(w.remaining, lambda: self._launch_lanes(self.wk.padmm_iterate, self.sp,
+                                                                         self.padmm_chunk, *args))
+            else:
+                self._launch_lanes(self.wk.padmm_iterate, self.sp, 2 * cfg.max_iterations, *args)
             return
         linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else LINEAR_DENSE
         args = (self.wm.blocks_per_row, linear, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho,

@@ -80,6 +80,14 @@ class Symbolic:
     upd_ptr: np.ndarray  # [nnz + 1] update pairs of each entry
     upd_a: np.ndarray  # [n_upd] entry L_pr
     upd_b: np.ndarray  # [n_upd] entry L_qr
+    # the same pattern by columns, for the 32-lane kernels (padmm_warp.py): column sweeps and the fan-out factor
+    cptr: np.ndarray  # [n + 1] below-diagonal entries of column q: cent[cptr[q]:cptr[q + 1]] (rows ascending)
+    cent: np.ndarray  # [nnz] entry index (world-type-local); the last n slots are padding
+    crow: np.ndarray  # [nnz] the row (original numbering) of each cent entry: perm[row[cent]]
+    fan_ptr: np.ndarray  # [n + 1] update triples of column r: fan_*[fan_ptr[r]:fan_ptr[r + 1]]
+    fan_tgt: np.ndarray  # [n_upd] entry (p, q) that L_pr L_qr is subtracted from
+    fan_a: np.ndarray  # [n_upd] entry L_pr
+    fan_b: np.ndarray  # [n_upd] entry L_qr
 
     @property
     def nnz(self) -> int:
@@ -143,9 +151,21 @@ def symbolic(bodies: np.ndarray) -> Symbolic:
                 upd_b.append(index[(q, r)])
         upd_ptr.append(len(upd_a))
     i64 = lambda a: np.asarray(a, np.int64)  # noqa: E731
-    return Symbolic(perm=i64(order), row_ptr=i64(row_ptr), col=i64(col), colrow=i64(order)[i64(col)], row=i64(row),
+    col_a, row_a = i64(col), i64(row)
+    below = np.flatnonzero(row_a != col_a)
+    cent = below[np.lexsort((row_a[below], col_a[below]))]  # by column, rows ascending
+    cptr = np.searchsorted(col_a[cent], np.arange(n + 1))
+    upd_tgt = np.repeat(np.arange(len(col)), np.diff(i64(upd_ptr)))
+    fan = np.argsort(col_a[i64(upd_a)], kind="stable") if upd_a else np.zeros(0, np.int64)
+    fan_r = col_a[i64(upd_a)][fan] if upd_a else np.zeros(0, np.int64)
+    pad = np.zeros(n, np.int64)
+    return Symbolic(perm=i64(order), row_ptr=i64(row_ptr), col=col_a, colrow=i64(order)[col_a], row=row_a,
                     div=i64(div),
-                    upd_ptr=i64(upd_ptr), upd_a=i64(upd_a), upd_b=i64(upd_b))
+                    upd_ptr=i64(upd_ptr), upd_a=i64(upd_a), upd_b=i64(upd_b),
+                    cptr=i64(cptr), cent=np.concatenate([cent, pad]),
+                    crow=np.concatenate([i64(order)[row_a[cent]], pad]),
+                    fan_ptr=np.searchsorted(fan_r, np.arange(n + 1)), fan_tgt=upd_tgt[fan],
+                    fan_a=i64(upd_a)[fan] if upd_a else fan, fan_b=i64(upd_b)[fan] if upd_a else fan)
 
 
 @functools.cache
@@ -171,6 +191,15 @@ def pattern_struct(np_dtype):
         upd_ptr: iarr  # [2 nnz]: (start, end) of each entry's update pairs in upd_a / upd_b
         upd_a: iarr  # world-type-local entry indices
         upd_b: iarr
+        # by columns (Symbolic.cptr ...): cptr like row_ptr, cent / crow like col, fan_ptr like row_ptr with global
+        # indices into fan_tgt / fan_a / fan_b (whose values are world-type-local entry indices)
+        cptr: iarr
+        cent: iarr
+        crow: iarr
+        fan_ptr: iarr
+        fan_tgt: iarr
+        fan_a: iarr
+        fan_b: iarr
         # per group of 32 worlds: interleaved value storage
         grp_val_start: iarr
         grp_tail_start: iarr
@@ -225,6 +254,9 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray) -> SparseFacto
     S.upd_ptr = i32(np.concatenate([np.stack([s.upd_ptr[:-1], s.upd_ptr[1:]], axis=1) + o
                                     for s, o in zip(syms, upd0_t, strict=True)]) if syms else [])
     S.upd_a, S.upd_b = i32(cat(lambda s: s.upd_a)), i32(cat(lambda s: s.upd_b))
+    S.cptr, S.cent, S.crow = (i32(cat(lambda s, f=f: getattr(s, f))) for f in ("cptr", "cent", "crow"))
+    S.fan_ptr = i32(np.concatenate([s.fan_ptr + o for s, o in zip(syms, upd0_t, strict=True)]) if syms else [])
+    S.fan_tgt, S.fan_a, S.fan_b = (i32(cat(lambda s, f=f: getattr(s, f))) for f in ("fan_tgt", "fan_a", "fan_b"))
     S.grp_val_start = i32(prefix(GROUP * g_nnz))
     S.grp_tail_start = i32(prefix(GROUP * g_tail * g_dim))
     scalar = types_of(np.dtype(np_dtype)).scalar
@@ -239,7 +271,8 @@ def empty(np_dtype, device) -> object:
     S = pattern_struct(np.dtype(np_dtype))()
     scalar = types_of(np.dtype(np_dtype)).scalar
     for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "perm", "row_ptr", "col", "colrow", "row",
-                 "div", "upd_ptr", "upd_a", "upd_b", "grp_val_start", "grp_tail_start"):
+                 "div", "upd_ptr", "upd_a", "upd_b", "cptr", "cent", "crow", "fan_ptr", "fan_tgt", "fan_a", "fan_b",
+                 "grp_val_start", "grp_tail_start"):
         setattr(S, name, wp.zeros(0, dtype=wp.int32, device=device))
     S.val = wp.zeros(0, dtype=scalar, device=device)
     S.tail = wp.zeros(0, dtype=scalar, device=device)
@@ -464,7 +497,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 rq = rb + sp.colrow[e0 + k] * S
                 w.x[rq] = w.x[rq] - sp.val[vb + k * S] * xp
 
-    return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor,
+    return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor, bases=bases,
                            factor_tail=factor_tail,
                            factor_fixed=factor_fixed,
                            solve_inplace=solve_inplace, delassus_entry=delassus_entry)

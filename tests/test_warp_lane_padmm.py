@@ -1,0 +1,68 @@
+"""The 32-threads-per-world schedule (``Stepper(padmm="warp")``, padmm_warp.py: the sparse factorisation, the PADMM
+iterations and post-stabilisation's solve) against the one-thread-per-world kernels, on Warp's CPU device
+(cooperative CPU blocks)."""
+
+import numpy as np
+import pytest
+
+import kamino
+from kamino.warp_backend import backend as wb
+from kamino.warp_backend.pipeline import Stepper
+
+
+def _run(model, cfg, padmm, steps, dtype=np.float64):
+    st = Stepper(model, cfg, dtype, "cpu", padmm=padmm)
+    wb.load_state(st, kamino.init_state(model, dtype=dtype), None)
+    iters, rho = [], []
+    for _ in range(steps):
+        st.run(1)
+        iters.append(st.work.iters.numpy().copy())
+        rho.append(st.work.rho_u.numpy().copy())
+    q = st.work.q.numpy().view(dtype).reshape(-1, 7)
+    return q, np.array(iters), np.array(rho), st
+
+
+def test_warp_schedule_solves_what_the_thread_kernel_solves():
+    # A loop (four-bar, driven into its hinge limits), a contact world (two stacked boxes: cone projection on
+    # contact triples, De Saxcé) and a coupling-free chain of loops in one heterogeneous model, at the defaults
+    # (adaptive penalty: tail refactorisations inside the iterations; post-stabilisation: the 32-thread solve of
+    # the fixed rows) but float64 at a tight tolerance. The two schedules compute the same sums in another order,
+    # so they agree to rounding amplified by the iterations (1e-10 m over 60 steps), and take the same iterations
+    # and penalties on every step.
+    model = kamino.concat([kamino.models.fourbar(), kamino.models.box_stack(2), kamino.models.chain_of_loops(3)])
+    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8)
+    q_t, it_t, rho_t, _ = _run(model, cfg, "thread", 60)
+    q_w, it_w, rho_w, st = _run(model, cfg, "warp", 60)
+    assert st.sparse_factor and st.padmm == "warp"
+    np.testing.assert_allclose(q_w, q_t, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(it_w, it_t)
+    np.testing.assert_allclose(rho_w, rho_t, rtol=1e-9)
+    assert len(np.unique(rho_t)) > 1  # the penalty did change: the tail was refactorised inside the iterations
+    assert it_w.max() < cfg.max_iterations  # converged, not capped
+    assert bool(np.all(st.work.converged.numpy()))
+
+
+def test_warp_schedule_on_a_robot_at_the_float32_defaults():
+    # dr_legs (31 bodies, 204 fixed rows, feet contacts) at SolverConfig(dt) in float32, where post-stabilisation
+    # solves with PADMM's own L_f: the float32 rounding of the two summation orders may move an iteration count
+    # by one, so the check is the physics: poses within 1e-5 m over 20 steps (the loops close to ~2e-6 m, and the
+    # float32 rounding of the factor, amplified by PADMM's tolerance 1e-3 m/s over a few steps of 2.5 ms, stays well
+    # below that) and the same mean iterations to 5 %.
+    model = kamino.replicate(kamino.models.dr_legs(), 2)
+    cfg = kamino.SolverConfig(dt=0.0025)
+    q_t, it_t, _, _ = _run(model, cfg, "thread", 20, np.float32)
+    q_w, it_w, _, st = _run(model, cfg, "warp", 20, np.float32)
+    assert st.post_shares_factor
+    np.testing.assert_allclose(q_w[:, :3], q_t[:, :3], rtol=0, atol=1e-5)
+    assert abs(it_w.mean() - it_t.mean()) <= 0.05 * it_t.mean()
+    assert bool(np.all(st.work.converged.numpy())) and not bool(np.any(st.work.failed.numpy()))
+
+
+def test_warp_schedule_rejects_what_it_cannot_solve():
+    model = kamino.models.fourbar()
+    with pytest.raises(ValueError, match="sparse LLT"):
+        Stepper(model, kamino.SolverConfig(linear_solver="cr"), np.float32, "cpu", padmm="warp")
+    with pytest.raises(ValueError, match="sparse LLT"):
+        Stepper(model, kamino.SolverConfig(jacobian="dense"), np.float32, "cpu", padmm="warp")
+    with pytest.raises(ValueError, match="padmm must be"):
+        Stepper(model, kamino.SolverConfig(), np.float32, "cpu", padmm="block")
