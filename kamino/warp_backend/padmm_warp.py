@@ -51,10 +51,17 @@ def sync():
     ...
 
 
+def shared_rows(max_rows: int) -> int:
+    """The length of the shared vectors for worlds of up to ``max_rows`` rows (a multiple of ``LANES``: one compiled
+    module serves every size up to it)."""
+    return LANES * max(1, -(-max_rows // LANES))
+
+
 @functools.cache
-def warp_kernels(np_dtype) -> SimpleNamespace:
-    """``factor`` and ``padmm_iterate`` (launch both with ``wp.launch_tiled(dim=[num_worlds], block_dim=LANES)``)
-    and the cooperative ``solve`` of the fixed rows (post-stabilisation)."""
+def warp_kernels(np_dtype, R: int) -> SimpleNamespace:
+    """``factor``, ``padmm_iterate`` and ``solve_fixed`` (post-stabilisation) for worlds of up to ``R`` rows; launch
+    each with ``wp.launch_tiled(dim=[num_worlds], block_dim=LANES)``. The solve keeps two vectors of ``R`` rows in
+    shared memory (2 R scalars per world)."""
     T = types_of(np_dtype)
     scalar = T.scalar
     M = model_struct(np_dtype)
@@ -155,75 +162,137 @@ def warp_kernels(np_dtype) -> SimpleNamespace:
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid], lane)
 
     # --- solve --------------------------------------------------------------------------------------------
+    Vec = wp.tile(dtype=scalar, shape=(R,), storage="shared")
+
+    @wp.func_native("t.data(i) = v;")
+    def sset(t: Vec, i: int, v: scalar):
+        """``t[i] = v`` by one thread, no barrier (``t[i] = v`` on a tile synchronises the block)."""
+        ...
+
+    @wp.func_native("return t.data(i);")
+    def sget(t: Vec, i: int) -> scalar:
+        """``t[i]`` of a shared vector."""
+        ...
+
     @wp.func
-    def solve(m: M, w: Work, sp: SP, wid: int, n: int, lane: int):
-        """``x <- L^-T L^-1 x`` (``w.x``; ``w.y`` is overwritten) with the sparse factor and its dense tail, by
-        column sweeps: one barrier per row (``sparse_llt.solve_inplace``, the same products in another order)."""
+    def solve(m: M, w: Work, sp: SP, wid: int, n: int, lane: int, xs: Vec, ys: Vec):
+        """``x <- L^-T L^-1 x`` with the sparse factor and its dense tail, by column sweeps: one barrier per row
+        (``sparse_llt.solve_inplace``, the same products in another order). ``xs`` holds the right-hand side on
+        entry and the solution on exit, ``ys`` is scratch: both in shared memory, indexed by row. The next column's
+        (row's) factor entries are loaded before the barrier of the current one, so their latency overlaps it."""
         base = bases(m, sp, wid)
-        rb, vb, tb, ts = base[0], base[1], base[2], base[3]
+        vb, tb, ts = base[1], base[2], base[3]
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
         q0 = sp.perm_start[wid]
         nt = n - nf
-        # forward, fixed rows: y_q = x_q / L_qq (x_q final once the columns before q have updated it), then column
-        # q updates the rows below; the solution of L y = b collects in y
+        # forward, fixed rows, by columns: y_q = x_q / L_qq (x_q final once the columns before q have updated it),
+        # then column q updates the rows below; this thread's first entry of the next column is prefetched
+        a_n = int(0)
+        d_n = zero
+        j0_n = int(0)
+        j1_n = int(0)
+        l_n = zero
+        r_n = int(0)
+        if nf > 0:
+            a_n = sp.perm[q0]
+            d_n = sp.val[vb + (sp.row_ptr[p0 + 1] - 1) * S]
+            j0_n = sp.cptr[p0]
+            j1_n = sp.cptr[p0 + 1]
+            if j0_n + lane < j1_n:
+                l_n = sp.val[vb + sp.cent[e0 + j0_n + lane] * S]
+                r_n = sp.crow[e0 + j0_n + lane]
         for q in range(nf):
-            rq = rb + sp.perm[q0 + q] * S
-            yq = w.x[rq] / sp.val[vb + (sp.row_ptr[p0 + q + 1] - 1) * S]
+            a_q = a_n
+            yq = sget(xs, a_q) / d_n
+            j0 = j0_n
+            j1 = j1_n
+            l_q = l_n
+            r_q = r_n
+            if q + 1 < nf:
+                a_n = sp.perm[q0 + q + 1]
+                d_n = sp.val[vb + (sp.row_ptr[p0 + q + 2] - 1) * S]
+                j0_n = sp.cptr[p0 + q + 1]
+                j1_n = sp.cptr[p0 + q + 2]
+                if j0_n + lane < j1_n:
+                    l_n = sp.val[vb + sp.cent[e0 + j0_n + lane] * S]
+                    r_n = sp.crow[e0 + j0_n + lane]
             if lane == 0:
-                w.y[rq] = yq
-            for j in range(sp.cptr[p0 + q] + lane, sp.cptr[p0 + q + 1], LANES):
-                rp = rb + sp.crow[e0 + j] * S
-                w.x[rp] = w.x[rp] - sp.val[vb + sp.cent[e0 + j] * S] * yq
+                sset(ys, a_q, yq)
+            if j0 + lane < j1:
+                sset(xs, r_q, sget(xs, r_q) - l_q * yq)
+            for j in range(j0 + lane + LANES, j1, LANES):
+                rp = sp.crow[e0 + j]
+                sset(xs, rp, sget(xs, rp) - sp.val[vb + sp.cent[e0 + j] * S] * yq)
             sync()
         # forward, tail rows: the fixed columns in parallel, then the dense tail by columns
         for t in range(lane, nt, LANES):
             tr = tb + t * ts
-            s = w.x[rb + (nf + t) * S]
+            s = sget(xs, nf + t)
             for p in range(nf):
-                s -= sp.tail[tr + p * S] * w.y[rb + sp.perm[q0 + p] * S]
-            w.x[rb + (nf + t) * S] = s
+                s -= sp.tail[tr + p * S] * sget(ys, sp.perm[q0 + p])
+            sset(xs, nf + t, s)
         sync()
         for t in range(nt):
-            yt = w.x[rb + (nf + t) * S] / sp.tail[tb + t * ts + (nf + t) * S]
+            yt = sget(xs, nf + t) / sp.tail[tb + t * ts + (nf + t) * S]
             if lane == 0:
-                w.y[rb + (nf + t) * S] = yt
+                sset(ys, nf + t, yt)
             for i in range(t + 1 + lane, nt, LANES):
-                ri = rb + (nf + i) * S
-                w.x[ri] = w.x[ri] - sp.tail[tb + i * ts + (nf + t) * S] * yt
+                sset(xs, nf + i, sget(xs, nf + i) - sp.tail[tb + i * ts + (nf + t) * S] * yt)
             sync()
         # backward, tail rows: x_t = y_t / L_tt (y_t final once the rows after t have updated it), then row t of
         # L_t updates the tail rows before it; then the tail's share of the fixed rows in parallel
         for tt in range(nt):
             t = nt - 1 - tt
             tr = tb + t * ts
-            xt = w.y[rb + (nf + t) * S] / sp.tail[tr + (nf + t) * S]
+            xt = sget(ys, nf + t) / sp.tail[tr + (nf + t) * S]
             if lane == 0:
-                w.x[rb + (nf + t) * S] = xt
+                sset(xs, nf + t, xt)
             for i in range(lane, t, LANES):
-                ri = rb + (nf + i) * S
-                w.y[ri] = w.y[ri] - sp.tail[tr + (nf + i) * S] * xt
+                sset(ys, nf + i, sget(ys, nf + i) - sp.tail[tr + (nf + i) * S] * xt)
             sync()
         if nt > 0:
             for p in range(lane, nf, LANES):
-                r = rb + sp.perm[q0 + p] * S
-                s = w.y[r]
+                a = sp.perm[q0 + p]
+                s = sget(ys, a)
                 for t in range(nt):
-                    s -= sp.tail[tb + t * ts + p * S] * w.x[rb + (nf + t) * S]
-                w.y[r] = s
+                    s -= sp.tail[tb + t * ts + p * S] * sget(xs, nf + t)
+                sset(ys, a, s)
             sync()
-        # backward, fixed rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it
+        # backward, fixed rows, by rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it (prefetched
+        # like the forward sweep)
+        if nf > 0:
+            a_n = sp.perm[q0 + nf - 1]
+            j0_n = sp.row_ptr[p0 + nf - 1]
+            j1_n = sp.row_ptr[p0 + nf] - 1
+            d_n = sp.val[vb + j1_n * S]
+            if j0_n + lane < j1_n:
+                l_n = sp.val[vb + (j0_n + lane) * S]
+                r_n = sp.colrow[e0 + j0_n + lane]
         for pp in range(nf):
             p = nf - 1 - pp
-            r = rb + sp.perm[q0 + p] * S
-            k1 = sp.row_ptr[p0 + p + 1] - 1
-            xp = w.y[r] / sp.val[vb + k1 * S]
+            a_p = a_n
+            xp = sget(ys, a_p) / d_n
+            j0 = j0_n
+            j1 = j1_n
+            l_p = l_n
+            r_p = r_n
+            if p > 0:
+                a_n = sp.perm[q0 + p - 1]
+                j0_n = sp.row_ptr[p0 + p - 1]
+                j1_n = sp.row_ptr[p0 + p] - 1
+                d_n = sp.val[vb + j1_n * S]
+                if j0_n + lane < j1_n:
+                    l_n = sp.val[vb + (j0_n + lane) * S]
+                    r_n = sp.colrow[e0 + j0_n + lane]
             if lane == 0:
-                w.x[r] = xp
-            for k in range(sp.row_ptr[p0 + p] + lane, k1, LANES):
-                rq = rb + sp.colrow[e0 + k] * S
-                w.y[rq] = w.y[rq] - sp.val[vb + k * S] * xp
+                sset(xs, a_p, xp)
+            if j0 + lane < j1:
+                sset(ys, r_p, sget(ys, r_p) - l_p * xp)
+            for k in range(j0 + lane + LANES, j1, LANES):
+                rq = sp.colrow[e0 + k]
+                sset(ys, rq, sget(ys, rq) - sp.val[vb + k * S] * xp)
             sync()
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -233,11 +302,16 @@ def warp_kernels(np_dtype) -> SimpleNamespace:
         wid, lane = wp.tid()
         if unconverged_only != 0 and w.converged[wid] != 0:
             return
-        solve(m, w, sp, wid, sp.n_fixed[wid], lane)
-        sync()
         rb = bases(m, sp, wid)[0]
-        for a in range(lane, sp.n_fixed[wid], LANES):
-            w.x[rb + a * S] = w.P[rb + a * S] * w.x[rb + a * S]
+        nf = sp.n_fixed[wid]
+        xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        for a in range(lane, nf, LANES):
+            sset(xs, a, w.x[rb + a * S])
+        sync()
+        solve(m, w, sp, wid, nf, lane, xs, ys)
+        for a in range(lane, nf, LANES):
+            w.x[rb + a * S] = w.P[rb + a * S] * sget(xs, a)
 
     # --- iterations ---------------------------------------------------------------------------------------
     @wp.func
@@ -266,18 +340,19 @@ def warp_kernels(np_dtype) -> SimpleNamespace:
         nf = m.row_fixed[wid]
         p_ref = w.p_ref[wid]
         rho_u = w.rho_u[wid]
+        xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         for step in range(chunk):
-            # steps 1-2: De Saxcé correction, right-hand side (into x), linear solve
+            # steps 1-2: De Saxcé correction, right-hand side (into xs), linear solve
             for a in range(lane, n, LANES):
                 r = rb + a * S
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 rhs = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
                 if a >= n_box and (a - n_box) % 3 == 2:
                     rhs -= de_saxce(w.z_hat[r - 2 * S], w.z_hat[r - S], w.mu[r - 2 * S])
-                w.x[r] = rhs
+                sset(xs, a, rhs)
             sync()
-            solve(m, w, sp, wid, n, lane)
-            sync()
+            solve(m, w, sp, wid, n, lane, xs, ys)
             # steps 3-4: projection, dual update and the residuals: box rows, then contact triples
             r_p = zero
             r_d = zero
@@ -289,7 +364,8 @@ def warp_kernels(np_dtype) -> SimpleNamespace:
             for a in range(lane, n_box, LANES):
                 r = rb + a * S
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
-                x = w.x[r]
+                x = sget(xs, a)
+                w.x[r] = x
                 z_hat = w.z_hat[r]
                 lo = w.lo_s[r]
                 hi = w.hi_s[r]
@@ -310,9 +386,16 @@ def warp_kernels(np_dtype) -> SimpleNamespace:
                     r_tail = wp.max(r_tail, du[2])
             inv_rho = scalar(1.0) / rho_u
             for c in range(lane, nc, LANES):
-                r = rb + (n_box + 3 * c) * S
-                cp = cone_project(w.x[r] - inv_rho * w.z_hat[r], w.x[r + S] - inv_rho * w.z_hat[r + S],
-                                  w.x[r + 2 * S] - inv_rho * w.z_hat[r + 2 * S], w.mu[r])
+                a = n_box + 3 * c
+                r = rb + a * S
+                x0 = sget(xs, a)
+                x1 = sget(xs, a + 1)
+                x2 = sget(xs, a + 2)
+                cp = cone_project(x0 - inv_rho * w.z_hat[r], x1 - inv_rho * w.z_hat[r + S],
+                                  x2 - inv_rho * w.z_hat[r + 2 * S], w.mu[r])
+                w.x[r] = x0
+                w.x[r + S] = x1
+                w.x[r + 2 * S] = x2
                 yz = zero
                 for t in range(3):
                     rt = r + t * S
@@ -366,7 +449,7 @@ def warp_kernels(np_dtype) -> SimpleNamespace:
                 else:
                     w.y_hat[r] = extrapolated(y, w.y_p[r], beta, mode)
                     w.z_hat[r] = extrapolated(z, w.z_p[r], beta, mode)
-                w.x_p[r] = w.x[r]
+                w.x_p[r] = sget(xs, a)
                 w.y_p[r] = y
                 w.z_p[r] = z
             done = (converged and fixed == 0) or k >= w.it_cap[wid]

@@ -20,7 +20,7 @@ from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.model_data import warp_model
-from kamino.warp_backend.padmm_warp import LANES, warp_kernels
+from kamino.warp_backend.padmm_warp import LANES, shared_rows, warp_kernels
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, solver_kernels
@@ -92,7 +92,7 @@ class Stepper:
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
-                self.wk = warp_kernels(self.np_dtype)
+                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_rows))
         self.rk = row_kernels(self.np_dtype)
         self.sk = solver_kernels(self.np_dtype)
         self.ik = integrate_kernels(self.np_dtype)
