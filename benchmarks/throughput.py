@@ -33,6 +33,8 @@ import kamino  # noqa: E402
 from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType  # noqa: E402
 
 SCENES = ("fourbar", "ladder8", "ladder32", "dr_legs")
+#: the procedural robots (kamino.models), standing under PD with the joint-space drive on their first actuator
+ROBOTS = ("dr_legs", "bdx", "olaf", "animatronic")
 CONFIGS = {
     "default": {},  # kamino.SolverConfig(dt=DT) as it comes: sparse J, LLT (CR above AUTO_CR_ROWS rows)
     "dense-llt": dict(jacobian="dense", linear_solver="llt"),
@@ -51,9 +53,10 @@ AMPLITUDE, FREQUENCY = 2.0, 1.0
 
 
 def load_scene(name: str):
-    """(model, initial state, drive) of a benchmark scene: MJCF files from benchmarks/scenes, or dr_legs."""
-    if name == "dr_legs":
-        model = kamino.models.dr_legs()
+    """(model, drive) of a benchmark scene: MJCF files from benchmarks/scenes, or a robot of :data:`ROBOTS`
+    (position targets ``0.2 sin(2 pi t)`` rad about its reference pose on the first actuator)."""
+    if name in ROBOTS:
+        model = getattr(kamino.models, name)()
         return model, {"offset_from_state": True, "amplitude": 0.2}
     return kamino.load_mjcf(HERE / "scenes" / f"{name}.xml"), {"offset_from_state": False, "amplitude": AMPLITUDE}
 
@@ -118,10 +121,10 @@ def _drive_hook(st, model, drive, base_targets):
 
 
 def _initial(model, name):
-    """Initial state, controls and the drive's offset per DoF. dr_legs stands in its reference pose,
-    held by zero position targets (its DoFs are measured from that pose), as in tests/test_robots.py."""
+    """Initial state, controls and the drive's offset per DoF. A robot stands in its reference pose, held by zero
+    position targets (its DoFs are measured from that pose), as in tests/test_robots.py."""
     state = kamino.init_state(model, np.float32)
-    if name == "dr_legs":
+    if name in ROBOTS:
         return state, kamino.Control(position_target=np.zeros(model.num_dofs, np.float32)), np.zeros(model.num_dofs)
     return state, None, np.zeros(model.num_dofs)
 
@@ -281,7 +284,7 @@ def solver_overrides(items: list[str]) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenes", nargs="+", default=list(SCENES))
+    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=sorted({*SCENES, *ROBOTS}))
     p.add_argument("--worlds", nargs="+", type=int, default=[1, 64, 512, 4096, 16384])
     p.add_argument("--configs", nargs="+", default=[*CONFIGS, "jax"])
     p.add_argument("--graph-steps", type=int, default=10)
