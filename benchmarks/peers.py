@@ -1,7 +1,7 @@
 """Peer simulators for kamino's throughput benchmark: MuJoCo Warp and Newton's ``SolverKamino``.
 
 Each ``run_*`` function loads one benchmark scene (an MJCF file from ``benchmarks/scenes/``), builds
-``num_worlds`` copies of it on one Warp device, and measures what the shared bench README reports for
+``num_worlds`` copies of it on one Warp device, and measures what docs/benchmark_scenes.md reports for
 the peers, with the same method, so our numbers and theirs compare:
 
 * **throughput**: steps/s x worlds at dt = 0.0025 s. On CUDA, ``graph_steps`` steps are captured in one

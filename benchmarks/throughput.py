@@ -5,7 +5,7 @@ JAX backend) and, when importable, the peers MuJoCo Warp and Newton SolverKamino
                                     [--configs dense-llt sparse-llt sparse-cr jax] [--no-peers] [--out FILE]
     python benchmarks/throughput.py --plot benchmarks/results/throughput_h100.json   # PNG plots from a JSON
 
-Method (architecture.md "Performance method", the same as the peers' figures in benchmarks/README.md):
+Method (docs/architecture.md "Performance method", the same as the peers' figures in benchmarks/README.md):
 float32, dt = 0.0025 s, the drive ``2 N m sin(2 pi t)`` on the scene's first actuator set on the device
 every step (inside the graph); throughput = steps/s x worlds with a CUDA graph of ``--graph-steps`` steps
 replayed, after warm-up, median of ``--repeats`` trials. Next to each figure: the PADMM iterations and
@@ -231,7 +231,7 @@ def closure_run(name, config_name, args) -> dict:
 def joint_velocity_error(st) -> float:
     """``max |J(q+) u+|`` over the joint rows of a single-world stepper after a step: the bilateral constraint
     velocity at the new pose, in m/s (translational rows) or rad/s (rotational rows), the velocity drift the next
-    step starts from. The Jacobian is the JAX reference's (formulation.md §2.5), at the committed poses and
+    step starts from. The Jacobian is the JAX reference's (docs/formulation.md §2.5), at the committed poses and
     twists. (``J(q-) u+`` is not an error: it equals the stabilisation bias, curvature term included.)"""
     import jax
     import jax.numpy as jnp

@@ -8,7 +8,7 @@ Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``
 """
 
 from kamino import models
-from kamino.api import init_state, joint_positions, load_mjcf, metrics, rollout, step
+from kamino.api import init_state, joint_positions, load_mjcf, metrics, rollout, save_mjcf, step
 from kamino.config import SolverConfig
 from kamino.kinematics import FKResult, forward_kinematics, set_joint_positions
 from kamino.model import (
@@ -49,6 +49,7 @@ __all__ = [
     "models",
     "replicate",
     "rollout",
+    "save_mjcf",
     "set_joint_positions",
     "step",
 ]

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from kamino.checks import check_config, check_control, check_control_type, check_model, check_state
 from kamino.config import SolverConfig
 from kamino.model import JointType, Model
 from kamino.state import ContactState, Control, State, StepInfo
@@ -23,10 +24,28 @@ def _backend(name: str):
 
         return backend
     if name == "warp":
+        from kamino._warp import quiet_warp
+
+        quiet_warp()  # Warp's banner and module-load lines off, unless asked for (kamino/_warp.py)
         from kamino.warp_backend import backend
 
         return backend
-    raise ValueError(f"unknown backend {name!r}; choose one of {BACKENDS}")
+    raise ValueError(f"unknown backend {name!r} (the backend= argument); choose one of {BACKENDS}")
+
+
+def _check_call(fn: str, model, state, control, config, backend: str) -> None:
+    """What ``step`` / ``rollout`` check before a backend runs (``kamino/checks.py``): the kinds of the arguments,
+    the backend's name, the config against the backend, and the state's and a step's control's shapes."""
+    if backend not in BACKENDS:
+        raise ValueError(f"{fn}: unknown backend {backend!r} (the backend= argument); choose one of "
+                         f"{BACKENDS}")
+    check_model(model, fn)
+    check_config(config, backend, fn)
+    check_state(model, state, fn)
+    if fn == "step":
+        check_control(model, control)
+    else:
+        check_control_type(control, "controls", fn)
 
 
 def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_positions=None, base_pose=None,
@@ -74,9 +93,26 @@ def load_mjcf(source, **options) -> Model:
     return _load_mjcf(source, **options)
 
 
+def save_mjcf(model: Model, path=None, **options) -> str:
+    """Export a single-world :class:`Model` as MJCF (``kamino/io/mjcf_export.py``; mapping, the spanning-tree
+    choice and what raises: docs/mjcf.md, "Export"). Returns the XML text and writes it to ``path`` if given;
+    ``load_mjcf(save_mjcf(model))`` simulates like ``model``, and MuJoCo (its viewer, MuJoCo Warp, Newton) loads
+    the file. ``options``: ``lossy`` (drop geom restitution and initial velocities instead of raising),
+    ``model_name``. Raises ``ValueError`` naming every feature MJCF cannot represent."""
+    from kamino.io.mjcf_export import save_mjcf as _save_mjcf
+
+    return _save_mjcf(model, path, **options)
+
+
 def step(model: Model, state: State, control: Control | None = None, *, config: SolverConfig | None = None,
          backend: str = "jax") -> State:
-    """Advance every world by ``config.dt``; returns a new :class:`State` (inputs are not mutated)."""
+    """Advance every world by ``config.dt``; returns a new :class:`State` (inputs are not mutated).
+
+    ``control`` holds one step's inputs (arrays flat over all worlds, no time axis); ``config`` is a
+    :class:`SolverConfig` (docs/settings.md: the defaults and the speed-against-accuracy knob). Arguments of the
+    wrong kind or shape raise a ``TypeError`` / ``ValueError`` naming the argument before a backend runs.
+    """
+    _check_call("step", model, state, control, config, backend)
     return _backend(backend).step(model, state, control, config or SolverConfig())
 
 
@@ -84,22 +120,33 @@ def rollout(model: Model, state: State, controls: Control | None = None, *, num_
             config: SolverConfig | None = None, backend: str = "jax") -> State:
     """Run many steps. ``controls`` fields carry a leading time axis (or pass ``num_steps`` and no
     controls). Returns the trajectory: a :class:`State` whose arrays have a leading time axis
-    (the state after each step)."""
+    (the state after each step); :func:`metrics` reads it whole (``[num_steps, num_worlds]``)."""
+    _check_call("rollout", model, state, controls, config, backend)
     return _backend(backend).rollout(model, state, controls, num_steps, config or SolverConfig())
 
 
 def metrics(model: Model, state: State) -> dict[str, jax.Array]:
     """Per-world diagnostics ``[num_worlds]``: ``constraint_violation`` (max |residual| of the joint
     rows and couplings: m for translational rows, rad for rotational ones), ``kinetic_energy``,
-    ``potential_energy`` (``-m g . r``) and ``total_energy``."""
+    ``potential_energy`` (``-m g . r``) and ``total_energy``.
+
+    ``state`` may also be a trajectory from :func:`rollout` (a leading time axis on every field): then each
+    entry is ``[num_steps, num_worlds]``, the diagnostics after every step."""
     from kamino.jax_ref import backend
 
+    check_model(model, "metrics")
+    if not isinstance(state, State):
+        raise TypeError(f"metrics: state must be a kamino.State (or a rollout's trajectory), got "
+                        f"{type(state).__name__}")
+    if state.body_q.ndim == 3:  # a trajectory [num_steps, num_bodies, 7]
+        return jax.vmap(lambda q, u: backend.metrics(model, state.replace(body_q=q, body_u=u)))(state.body_q,
+                                                                                               state.body_u)
     return backend.metrics(model, state)
 
 
 def joint_positions(model: Model, state: State) -> jax.Array:
     """Joint coordinates of all joints, flat ``[model.num_coords]`` in joint order
-    (formulation.md §2.4): REVOLUTE angle, PRISMATIC t_x, CYLINDRICAL (t_x, angle), UNIVERSAL
+    (docs/formulation.md §2.4): REVOLUTE angle, PRISMATIC t_x, CYLINDRICAL (t_x, angle), UNIVERSAL
     (theta_1, theta_2), SPHERICAL quaternion (x, y, z, w), CARTESIAN t, FREE (t, quaternion).
     Angles are in [-pi, pi]."""
     from kamino.jax_ref import backend
@@ -118,4 +165,4 @@ def _coord_gather(model: Model) -> np.ndarray:
 
 
 __all__ = ["Control", "JointType", "SolverConfig", "State", "init_state", "joint_positions", "load_mjcf", "metrics",
-           "rollout", "step"]
+           "rollout", "save_mjcf", "step"]

@@ -1,15 +1,77 @@
-"""Validation of the State / Control a caller passes to ``kamino.step`` / ``rollout`` (both backends)."""
+"""Validation of what a caller passes to ``kamino.step`` / ``rollout`` (both backends), before any backend runs.
+
+Each check raises a ``TypeError`` (wrong kind of object) or ``ValueError`` (wrong shape or value) that names the
+argument, so a mistake fails here rather than as a compile, hashing or buffer error inside a backend.
+"""
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
+import dataclasses
+import warnings
 
+import jax
+import numpy as np
+
+from kamino.config import SolverConfig
 from kamino.model import Model
 from kamino.state import Control, State
 
+#: ``SolverConfig`` fields that only the Warp backend reads, with the value the JAX reference computes as
+#: (``None``: any value is the JAX reference's own). The JAX reference builds a dense Jacobian and solves with a
+#: dense Cholesky factorisation: ``jacobian="dense"`` and ``linear_solver="llt"`` are what it does anyway.
+WARP_ONLY_FIELDS = {"linear_solver": ("llt", "auto"), "cr_iterations": None}
 
-def check_state(model: Model, state: State) -> None:
+
+def _type_name(x) -> str:
+    t = type(x)
+    return t.__name__ if t.__module__ == "builtins" else f"{t.__module__}.{t.__qualname__}"
+
+
+def check_model(model, fn: str = "step") -> None:
+    """``model`` must be a :class:`kamino.Model`."""
+    if not isinstance(model, Model):
+        raise TypeError(f"{fn}: model must be a kamino.Model (kamino.models.fourbar(), ModelBuilder.finalize(), "
+                        f"kamino.load_mjcf(...)), got {_type_name(model)}")
+
+
+def check_config(config, backend: str, fn: str = "step") -> None:
+    """``config`` must be a :class:`kamino.SolverConfig` or ``None``. With ``backend="jax"`` a Warp-only setting
+    away from what the JAX reference computes (``linear_solver="cr"``, a ``cr_iterations`` other than the
+    default) warns (``UserWarning``): the JAX reference always solves with a dense Cholesky factorisation, so the
+    setting has no effect there. It warns rather than raises so that one config can drive both backends."""
+    if config is None:
+        return
+    if not isinstance(config, SolverConfig):
+        hint = " (write config=kamino.SolverConfig(**your_dict))" if isinstance(config, dict) else ""
+        raise TypeError(f"{fn}: config must be a kamino.SolverConfig or None, got {_type_name(config)}{hint}")
+    if backend != "jax":
+        return
+    defaults = SolverConfig()
+    for name, honoured in WARP_ONLY_FIELDS.items():
+        value = getattr(config, name)
+        if honoured is None:
+            ignored = value != getattr(defaults, name)
+        else:
+            ignored = value not in honoured
+        if ignored:
+            warnings.warn(f"{fn}: SolverConfig.{name}={value!r} is a Warp backend setting; backend='jax' ignores it "
+                          "(the JAX reference uses a dense Jacobian and a dense Cholesky solve; pass "
+                          "backend='warp' to use it)", UserWarning, stacklevel=3)
+
+
+def check_control_type(control, name: str = "control", fn: str = "step") -> None:
+    """``control`` must be a :class:`kamino.Control` or ``None`` (not a bare array)."""
+    if control is None or isinstance(control, Control):
+        return
+    raise TypeError(f"{fn}: {name} must be a kamino.Control or None, got {_type_name(control)} "
+                    "(wrap arrays by field: kamino.Control(position_target=...), Control(dof_effort=...), or "
+                    "kamino.Control.from_ctrl(model, ctrl) for a MuJoCo-style ctrl vector)")
+
+
+def check_state(model: Model, state: State, fn: str = "step") -> None:
+    """``state`` must be a :class:`kamino.State` whose arrays fit ``model`` (one step's state, no time axis)."""
+    if not isinstance(state, State):
+        raise TypeError(f"{fn}: state must be a kamino.State (kamino.init_state(model)), got {_type_name(state)}")
     nb = model.num_bodies
     if state.body_q.shape != (nb, 7):
         raise ValueError(f"state.body_q has shape {state.body_q.shape}, expected ({nb}, 7) for this model")
@@ -31,21 +93,31 @@ def check_state(model: Model, state: State) -> None:
         )
 
 
-def check_control(model: Model, control: Control | None) -> None:
+def check_control(model: Model, control: Control | None, *, time_axis: bool = False, name: str = "control") -> None:
+    """Shapes of a step's control (``time_axis=False``: exactly one step's arrays) or of a rollout's controls
+    (``time_axis=True``: one leading time axis on every field)."""
     if control is None:
         return
-    if control.dof_effort is not None and jnp.shape(control.dof_effort)[-1:] != (model.num_dofs,):
-        raise ValueError(
-            f"control.dof_effort has shape {jnp.shape(control.dof_effort)}, expected ({model.num_dofs},)"
-        )
-    if control.body_wrench is not None and jnp.shape(control.body_wrench)[-2:] != (model.num_bodies, 6):
-        raise ValueError(
-            f"control.body_wrench has shape {jnp.shape(control.body_wrench)}, expected ({model.num_bodies}, 6)"
-        )
-    for field in ("position_target", "velocity_target"):
-        value = getattr(control, field)
-        if value is not None and jnp.shape(value)[-1:] != (model.num_dofs,):
-            raise ValueError(f"control.{field} has shape {jnp.shape(value)}, expected ({model.num_dofs},)")
+    check_control_type(control, name, "rollout" if time_axis else "step")
+    expected = {"dof_effort": (model.num_dofs,), "body_wrench": (model.num_bodies, 6),
+                "position_target": (model.num_dofs,), "velocity_target": (model.num_dofs,)}
+    for field in dataclasses.fields(Control):
+        value = getattr(control, field.name)
+        if value is None:
+            continue
+        shape, want = tuple(np.shape(value)), expected[field.name]
+        if time_axis:
+            ok = len(shape) == len(want) + 1 and shape[1:] == want
+            what = f"(num_steps, {', '.join(map(str, want))})"
+            hint = "; rollout controls carry one leading time axis"
+        else:
+            ok = shape == want
+            what = str(want)
+            hint = ("; kamino.step takes one step's control (a leading time axis belongs to kamino.rollout's "
+                    "controls; worlds are already in the flat axis)") if shape[len(shape) - len(want):] == want else ""
+        if not ok:
+            raise ValueError(f"{name}.{field.name} has shape {shape}, expected {what} for this model "
+                             f"(total over its {model.num_worlds} world(s)){hint}")
 
 
 def check_rollout_controls(model: Model, controls: Control | None, num_steps: int | None) -> int:
@@ -53,8 +125,10 @@ def check_rollout_controls(model: Model, controls: Control | None, num_steps: in
     if controls is None:
         if num_steps is None:
             raise ValueError("rollout: give controls with a leading time axis, or num_steps")
+        if isinstance(num_steps, bool) or int(num_steps) != num_steps or num_steps < 1:
+            raise ValueError(f"rollout: num_steps must be a positive integer, got {num_steps!r}")
         return int(num_steps)
-    check_control(model, controls)
+    check_control(model, controls, time_axis=True, name="controls")
     lengths = {x.shape[0] for x in jax.tree_util.tree_leaves(controls)}
     if len(lengths) != 1:
         raise ValueError(f"rollout: controls must share one leading time axis, got lengths {lengths}")

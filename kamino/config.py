@@ -1,6 +1,7 @@
 """Solver configuration (frozen, hashable: it is a static argument of the compiled step).
 
-Defaults and the reasons for them are in docs/conventions.md ("Defaults").
+The defaults, why they are what they are, and the one setting that trades speed for accuracy (``tolerance``):
+docs/settings.md. Design notes behind each: docs/conventions.md.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ def _rounding_floor(dtype) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class SolverConfig:
-    """Time stepping, stabilisation and Proximal-ADMM settings (formulation.md §5-§8).
+    """Time stepping, stabilisation and Proximal-ADMM settings (docs/formulation.md §5-§8).
 
     Attributes:
         dt: time step [s].
@@ -74,7 +75,8 @@ class SolverConfig:
             exceeds ``RESIDUAL_LOOSENING_MAX`` times ``tolerance``), and the complementarity residual ``|lambda v|``
             below it too (``kamino.jax_ref.padmm.solve``; docs/conventions.md, "PADMM defaults"). 1e-3 m/s moves a
             body by at most 2.5 um in a 2.5 ms step; post-stabilisation removes the joints' share of that drift.
-            A robot at rest to below 1 mm/s asks for 1e-4.
+            A robot at rest to below 1 mm/s asks for 1e-4; in float32 a tighter tolerance buys no loop closure
+            (docs/settings.md: what each value buys and costs).
         redundant_limits: fix ``lambda = 0`` up front on limit rows that are equivalent, modulo the bilateral
             rows, to another limit row with a smaller bias (all three hinge limits of a parallelogram loop);
             the solution is unchanged and PADMM stops creeping along the null direction
@@ -87,7 +89,7 @@ class SolverConfig:
             next step in ``state.info.penalty``).
         penalty: ``"adaptive"`` (default): the always-active rows carry ``rho_free``, the limit and contact rows
             a per-world penalty balanced by the residuals (docs/conventions.md, "Penalty"); ``"fixed"``: every
-            row carries ``rho`` (formulation.md §7.6).
+            row carries ``rho`` (docs/formulation.md §7.6).
         rho_free: the penalty of the always-active rows (joint-dynamics, joint, coupling) under
             ``penalty="adaptive"``: only a proximal shift there, small for fast convergence, large enough to keep
             float32 factors of redundant loops well conditioned.
@@ -109,7 +111,9 @@ class SolverConfig:
             margin is needed for a DoF that rests on its limit not to fall through for a step.
         contact_margin: likewise for contacts [m], added to the geoms' own margins (§4.2).
         jacobian: Warp backend: ``"sparse"`` block rows (default) or a ``"dense"`` per-world Jacobian. The JAX
-            reference always computes densely; the physics is the same.
+            reference always computes densely (and solves by a dense Cholesky factorisation: it warns when given
+            ``linear_solver="cr"`` or a non-default ``cr_iterations``, ``kamino.checks.check_config``); the physics
+            is the same.
         linear_solver: Warp backend: ``"llt"`` Cholesky (sparse factor with ``jacobian="sparse"``), ``"cr"``
             matrix-free Conjugate Residual, ``"auto"`` (default): CR above ``AUTO_CR_ROWS`` rows per world.
         cr_iterations: Conjugate Residual budget per PADMM iteration (Warp backend).

@@ -13,7 +13,7 @@ IDENTITY_QUAT = np.array([0.0, 0.0, 0.0, 1.0])
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion ``(x, y, z, w)`` (formulation.md §1.1)."""
+    """Rotation matrix of a unit quaternion ``(x, y, z, w)`` (docs/formulation.md §1.1)."""
     x, y, z, w = np.asarray(q, dtype=float)
     return np.array(
         [
@@ -66,7 +66,7 @@ def quat_from_axis_angle(axis, angle: float) -> np.ndarray:
 
 
 def axis_frame(axis: np.ndarray, axis2: np.ndarray | None = None) -> np.ndarray:
-    """Joint-axis frame ``A`` whose first column is the motion axis (formulation.md §2.1).
+    """Joint-axis frame ``A`` whose first column is the motion axis (docs/formulation.md §2.1).
 
     One axis: ``A = [a, b, a x b]`` with ``b = normalize(e_k x a)``, ``k = (argmax|a_i| + 2) mod 3``.
     Two axes (universal): ``A = [a1, a2', a1 x a2']`` with ``a2'`` made orthogonal to ``a1``.

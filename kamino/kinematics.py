@@ -1,4 +1,4 @@
-"""Forward kinematics for resets: ``forward_kinematics`` and ``set_joint_positions`` (formulation.md §9).
+"""Forward kinematics for resets: ``forward_kinematics`` and ``set_joint_positions`` (docs/formulation.md §9).
 
 Given joint coordinates — all of them, or only the actuated ones — find body poses that satisfy
 every joint, loop-closure and coupling constraint, for all worlds at once. The solver
@@ -149,7 +149,7 @@ def forward_kinematics(model: Model, joint_positions=None, actuated_positions=No
     rigidly to ``base_pose``) is where the Gauss-Newton iteration starts.
 
     Solves ``max |C| <= tolerance`` by damped Gauss-Newton with an Armijo line search, at most
-    ``max_iterations`` plus one per sub-target of 10 deg / 5 cm (formulation.md §9). Works under
+    ``max_iterations`` plus one per sub-target of 10 deg / 5 cm (docs/formulation.md §9). Works under
     ``jax.jit`` for the coordinate arguments. ``dtype`` defaults to JAX's default float.
     """
     if joint_positions is not None and actuated_positions is not None:

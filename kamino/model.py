@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import itertools
+import numbers
 from collections.abc import Sequence
 from typing import Any
 
@@ -23,7 +24,7 @@ class ModelError(ValueError):
 
 
 class JointType(enum.IntEnum):
-    """Joint types of formulation.md §2.4. Every joint may close a loop; none is special."""
+    """Joint types of docs/formulation.md §2.4. Every joint may close a loop; none is special."""
 
     FIXED = 0
     REVOLUTE = 1
@@ -54,7 +55,7 @@ class GeomType(enum.IntEnum):
 
 
 class ActuationMode(enum.IntEnum):
-    """How a joint DoF is driven (formulation.md §3; docs/conventions.md "Actuation").
+    """How a joint DoF is driven (docs/formulation.md §3; docs/conventions.md "Actuation").
 
     PASSIVE: no actuator (``Control.dof_effort`` is still applied as an external joint effort).
     EFFORT: the commanded effort, clipped to the effort limit, applied explicitly.
@@ -81,26 +82,35 @@ class Actuation:
     kd: float = 0.0
     effort_limit: float = float("inf")
 
+    def __post_init__(self) -> None:
+        self.resolved_mode()  # an unknown mode fails here, where the Actuation is written, not at add_joint
+
     def resolved_mode(self) -> ActuationMode:
+        """``mode`` as an :class:`ActuationMode` (a name is case-insensitive: ``"position"``)."""
+        names = [m.name.lower() for m in ActuationMode]
         if isinstance(self.mode, str):
             try:
                 return ActuationMode[self.mode.upper()]
             except KeyError as exc:
-                names = [m.name.lower() for m in ActuationMode]
-                raise ModelError(f"unknown actuation mode {self.mode!r}; choose one of {names}") from exc
-        return ActuationMode(self.mode)
+                raise ModelError(f"Actuation(mode={self.mode!r}): unknown actuation mode {self.mode!r}; choose one "
+                                 f"of {names} (or a kamino.ActuationMode)") from exc
+        try:
+            return ActuationMode(self.mode)
+        except (ValueError, TypeError) as exc:
+            raise ModelError(f"Actuation(mode={self.mode!r}): unknown actuation mode {self.mode!r}; choose one of "
+                             f"{names} (or a kamino.ActuationMode)") from exc
 
 
-#: Joint types whose DoFs have a scalar coordinate a PD actuator can track (formulation.md §3.2).
+#: Joint types whose DoFs have a scalar coordinate a PD actuator can track (docs/formulation.md §3.2).
 PD_JOINT_TYPES = (JointType.REVOLUTE, JointType.PRISMATIC, JointType.CYLINDRICAL)
 
 
-# Row kinds: how a constraint row's residual is read (formulation.md §2.3).
+# Row kinds: how a constraint row's residual is read (docs/formulation.md §2.3).
 RES_TRANS, RES_LOG, RES_HINGE, RES_UNIV = 0, 1, 2, 3
-# DoF-row kinds: which axis a DoF row uses (formulation.md §2.5).
+# DoF-row kinds: which axis a DoF row uses (docs/formulation.md §2.5).
 DOF_TRANS, DOF_ROT, DOF_UNIV, DOF_FREE = 0, 1, 2, 3
 
-#: Per type: constrained rows as (axis 0..5, residual kind), in row order (formulation.md §2.4).
+#: Per type: constrained rows as (axis 0..5, residual kind), in row order (docs/formulation.md §2.4).
 JOINT_CONSTRAINT_ROWS: dict[JointType, tuple[tuple[int, int], ...]] = {
     JointType.FIXED: ((0, RES_TRANS), (1, RES_TRANS), (2, RES_TRANS), (3, RES_LOG), (4, RES_LOG), (5, RES_LOG)),
     JointType.REVOLUTE: ((0, RES_TRANS), (1, RES_TRANS), (2, RES_TRANS), (4, RES_HINGE), (5, RES_HINGE)),
@@ -111,7 +121,7 @@ JOINT_CONSTRAINT_ROWS: dict[JointType, tuple[tuple[int, int], ...]] = {
     JointType.CARTESIAN: ((3, RES_LOG), (4, RES_LOG), (5, RES_LOG)),
     JointType.FREE: (),
 }
-#: Per type: DoF rows as (axis 0..5, DoF kind) (formulation.md §2.4-2.5).
+#: Per type: DoF rows as (axis 0..5, DoF kind) (docs/formulation.md §2.4-2.5).
 JOINT_DOF_ROWS: dict[JointType, tuple[tuple[int, int], ...]] = {
     JointType.FIXED: (),
     JointType.REVOLUTE: ((3, DOF_ROT),),
@@ -122,7 +132,7 @@ JOINT_DOF_ROWS: dict[JointType, tuple[tuple[int, int], ...]] = {
     JointType.CARTESIAN: ((0, DOF_TRANS), (1, DOF_TRANS), (2, DOF_TRANS)),
     JointType.FREE: tuple((k, DOF_FREE) for k in range(6)),
 }
-#: Number of joint coordinates per type (formulation.md §2.4).
+#: Number of joint coordinates per type (docs/formulation.md §2.4).
 JOINT_NUM_COORDS: dict[JointType, int] = {
     JointType.FIXED: 0,
     JointType.REVOLUTE: 1,
@@ -401,7 +411,7 @@ def _per_dof(value: Any, ndof: int, what: str) -> np.ndarray:
 
 def _joint_dynamics(name: str, jtype: JointType, ndof: int, actuation: Actuation | None, armature: Any,
                     damping: Any, stiffness: Any, springref: Any) -> dict[str, np.ndarray]:
-    """Per-DoF actuation and passive-dynamics arrays of one joint, validated (formulation.md §3.2)."""
+    """Per-DoF actuation and passive-dynamics arrays of one joint, validated (docs/formulation.md §3.2)."""
     what = f"joint {name!r}"
     out = {
         "armature": _per_dof(armature, ndof, f"{what} armature"),
@@ -588,10 +598,10 @@ class ModelBuilder:
         frame (REVOLUTE, PRISMATIC, CYLINDRICAL; first axis of UNIVERSAL, whose second is ``axis2``,
         default the joint frame's y). SPHERICAL, CARTESIAN, FIXED and FREE use the joint frame axes.
         ``limits`` is ``(lower, upper)`` per DoF (scalars broadcast; ``±inf`` for no limit), enforced
-        as unilateral rows (formulation.md §4.1). ``actuation`` (an :class:`Actuation`) drives every
+        as unilateral rows (docs/formulation.md §4.1). ``actuation`` (an :class:`Actuation`) drives every
         DoF of the joint; ``armature`` (reflected inertia), ``damping`` (viscous), ``stiffness`` and
         ``springref`` (a passive spring) are per DoF (scalars broadcast), all treated implicitly
-        (formulation.md §3.2). Any joint may close a kinematic loop.
+        (docs/formulation.md §3.2). Any joint may close a kinematic loop.
         """
         idx = len(self._joints)
         name = name if name is not None else f"joint_{idx}"
@@ -829,7 +839,7 @@ class ModelBuilder:
     def _contact_pairs(self) -> list[tuple[int, int]]:
         """Candidate pairs ``(a, b)`` with ``type_a <= type_b`` after filtering (issue 3: only pairs
         that can touch generate work; docs/conventions.md, "Contacts"). A FREE joint constrains nothing
-        (no rows in ``JOINT_CONSTRAINT_ROWS``, formulation.md §2.4), so it does not exclude its bodies'
+        (no rows in ``JOINT_CONSTRAINT_ROWS``, docs/formulation.md §2.4), so it does not exclude its bodies'
         pairs: a free body collides with the world's geoms. Every other joint type excludes them."""
         joined = {(min(j.parent, j.child), max(j.parent, j.child)) for j in self._joints
                   if j.type != JointType.FREE}
@@ -1111,9 +1121,19 @@ def concat(models: Sequence[Model]) -> Model:
     Worlds may differ (heterogeneous): storage is the sum of per-world sizes; per-world offsets,
     and every index field (bodies of joints and geoms, geoms of pairs, worlds), are shifted here.
     """
-    models = list(models)
+    if isinstance(models, Model):
+        raise TypeError("concat: models must be a sequence of kamino.Model, got one Model "
+                        "(write kamino.concat([a, b]), or kamino.replicate(model, n) for copies)")
+    try:
+        models = list(models)
+    except TypeError:
+        raise TypeError(f"concat: models must be a sequence of kamino.Model, got {type(models).__name__}") from None
     if not models:
         raise ModelError("concat: no models given")
+    for k, m in enumerate(models):
+        if not isinstance(m, Model):
+            raise TypeError(f"concat: models[{k}] is a {type(m).__name__}, expected a kamino.Model "
+                            "(kamino.models.fourbar(), ModelBuilder.finalize(), kamino.load_mjcf(...))")
     out: dict[str, Any] = {"num_worlds": sum(m.num_worlds for m in models)}
     shifts = {"body": _prefix([m.num_bodies for m in models]), "geom": _prefix([m.num_geoms for m in models]),
               "world": _prefix([m.num_worlds for m in models]), "joint": _prefix([m.num_joints for m in models]),
@@ -1152,6 +1172,11 @@ _INDEX_FIELDS = {"joint_parent": "body", "joint_child": "body", "geom_body": "bo
 
 def replicate(model: Model, n: int) -> Model:
     """``n`` copies of ``model`` as one multi-world model (homogeneous worlds)."""
+    if not isinstance(model, Model):
+        raise TypeError(f"replicate: model must be a kamino.Model, got {type(model).__name__}")
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral):
+        raise TypeError(f"replicate(n={n!r}): n, the number of copies, must be an integer, got a "
+                        f"{type(n).__name__}")
     if int(n) < 1:
-        raise ModelError(f"replicate: number of copies must be >= 1, got {n}")
+        raise ModelError(f"replicate(n={n!r}): number of copies must be >= 1")
     return concat([model] * int(n))

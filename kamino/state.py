@@ -125,10 +125,10 @@ class Control:
         dof_effort: ``[total_dofs]`` generalized joint efforts (N for translational DoFs, N m for
             rotational ones; a FREE joint's six are a world-aligned force and torque at the child CoM).
             On PASSIVE DoFs it is applied as is, on EFFORT DoFs clipped to the effort limit, both
-            explicitly as body wrenches ``J_dofs^T tau`` (formulation.md §3.1); on POSITION/VELOCITY
+            explicitly as body wrenches ``J_dofs^T tau`` (docs/formulation.md §3.1); on POSITION/VELOCITY
             DoFs it is the actuator's feed-forward, inside the effort limit.
         body_wrench: ``[total_bodies, 6]`` external wrenches ``(f, tau)`` in world, torque about the CoM.
-        position_target: ``[total_dofs]`` targets of POSITION DoFs (DoF space, formulation.md §4.1).
+        position_target: ``[total_dofs]`` targets of POSITION DoFs (DoF space, docs/formulation.md §4.1).
         velocity_target: ``[total_dofs]`` velocity targets of POSITION and VELOCITY DoFs.
     """
 

@@ -1,6 +1,6 @@
 """Host-side index tables derived from a :class:`~kamino.model.Model`, shared by both backends.
 
-Both backends order a world's constraint rows the same way (docs/conventions.md, formulation.md
+Both backends order a world's constraint rows the same way (docs/conventions.md, docs/formulation.md
 §7.1): joint-dynamics rows (actuator rows, then passive rows), kinematic joint rows, coupling rows,
 limit rows, contact triples. This module computes, once and in numpy, which DoF or joint each row
 family refers to (global, flat indices) and how many rows of each family a world has. The JAX
@@ -63,7 +63,7 @@ def row_tables(model: Model) -> RowTables:
             dof_joint[dofs], dof_axis[dofs], dof_kind[dofs] = sel, axis, kind
 
     # joint-dynamics rows: an actuator row per PD/velocity DoF, a passive row per DoF with armature,
-    # damping or a spring (formulation.md §3.2); per world actuator rows first, each family in DoF order
+    # damping or a spring (docs/formulation.md §3.2); per world actuator rows first, each family in DoF order
     dof_world = np.repeat(np.arange(W), model.world_dof_count)
     dof_ids = np.arange(n_dofs)
     is_pd = np.isin(model.dof_act_mode, (int(ActuationMode.POSITION), int(ActuationMode.VELOCITY)))

@@ -1,4 +1,4 @@
-"""Implicit PD actuation, armature, damping, effort limits and joint limits (issue 3; formulation.md §3-§4.1)."""
+"""Implicit PD actuation, armature, damping, effort limits and joint limits (issue 3; docs/formulation.md §3-§4.1)."""
 
 from __future__ import annotations
 
@@ -117,7 +117,7 @@ def test_passive_spring_is_an_implicit_spring(variant):
     traj = variant.rollout(model, kamino.init_state(model), num_steps=T,
                            config=kamino.SolverConfig(dt=DT, tolerance=1e-11))
     theta = _angles(model, traj)
-    # formulation.md §3.2 passive row: I (w+ - w) = dt k (q_s - q - dt w+), then q+ = q + dt w+
+    # docs/formulation.md §3.2 passive row: I (w+ - w) = dt k (q_s - q - dt w+), then q+ = q + dt w+
     q, w, expected = 0.0, 0.0, []
     for _ in range(T):
         w = (I * w + DT * k * (q_s - q)) / (I + DT * DT * k)

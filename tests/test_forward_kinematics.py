@@ -1,4 +1,4 @@
-"""Forward kinematics for resets (formulation.md §9): loop closure from actuated coordinates, exact
+"""Forward kinematics for resets (docs/formulation.md §9): loop closure from actuated coordinates, exact
 round trips of full coordinates for every joint type, base placement, flags for unreachable targets."""
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
-"""The implicit-midpoint gyroscopic term (docs/conventions.md, "Gyroscopic term (departure from formulation.md §1.4)").
+"""The implicit-midpoint gyroscopic term (docs/conventions.md, "Gyroscopic term (departure from formulation.md
+§1.4)").
 
 A free body (no joint, gravity off) spinning about its intermediate principal axis, slightly perturbed (the
-Dzhanibekov case): the explicit term ``-w x I w`` of formulation.md §1.4 pumps energy into it (MuJoCo's Euler
+Dzhanibekov case): the explicit term ``-w x I w`` of docs/formulation.md §1.4 pumps energy into it (MuJoCo's Euler
 integrator, the same scheme: +82 % after 5 s); MuJoCo's ``implicitfast`` loses energy (-37 %). kamino solves the
 free angular velocity from the implicit midpoint rule of the body-frame Euler equation, which keeps the kinetic
 energy and ``|L|`` of a torque-free body exactly in exact arithmetic, also through the exponential-map pose update
@@ -198,7 +199,7 @@ def test_correction_solves_the_implicit_midpoint_rule_in_both_backends() -> None
     A = rng.normal(size=(n, 3, 3))
     Ib = A @ np.swapaxes(A, -1, -2) * 0.01 + np.eye(3) * 1e-3  # symmetric positive definite
     tau = rng.normal(size=(n, 3)) * 0.5  # world torque [N m]
-    # explicit free angular velocity (formulation.md §1.4) in world coordinates
+    # explicit free angular velocity (docs/formulation.md §1.4) in world coordinates
     Iw = R @ Ib @ np.swapaxes(R, -1, -2)
     we = w0 + DT * np.linalg.solve(Iw, (tau - np.cross(w0, np.einsum("nij,nj->ni", Iw, w0)))[..., None])[..., 0]
     corr = np.asarray(dynamics.gyroscopic_correction(jnp.asarray(Ib), jnp.asarray(R), jnp.asarray(w0),

@@ -1,4 +1,4 @@
-"""Joint residuals, Jacobians and coordinates of every joint type (formulation.md §2, §11.1)."""
+"""Joint residuals, Jacobians and coordinates of every joint type (docs/formulation.md §2, §11.1)."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ def _world(model):
 @pytest.mark.parametrize("unary", [False, True])
 @pytest.mark.parametrize("jtype", [t for t in JT if t != JT.FREE])
 def test_jacobian_matches_residual_rate(jtype, unary):
-    """J u equals the central difference of the residual along u at e = 0 (formulation.md §11.1)."""
+    """J u equals the central difference of the residual along u at e = 0 (docs/formulation.md §11.1)."""
     model = _two_bodies(jtype, unary, seed=int(jtype) + 10 * unary)
     pm = _world(model)
     q = jnp.asarray(model.body_q0)
@@ -56,7 +56,7 @@ def test_jacobian_matches_residual_rate(jtype, unary):
 
 @pytest.mark.parametrize("jtype", [JT.REVOLUTE, JT.PRISMATIC, JT.CYLINDRICAL, JT.UNIVERSAL, JT.CARTESIAN])
 def test_joint_coordinate_rates_match_dof_jacobian(jtype):
-    """d/dt of the joint coordinates equals J_dofs u for 1-3 DoF joints (formulation.md §2.4-2.5)."""
+    """d/dt of the joint coordinates equals J_dofs u for 1-3 DoF joints (docs/formulation.md §2.4-2.5)."""
     model = _two_bodies(jtype, False, seed=7)
     pm = _world(model)
     state = kamino.init_state(model)

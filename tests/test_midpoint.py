@@ -1,4 +1,4 @@
-"""The Moreau-Jean midpoint rule (formulation.md §6.3) on a four-bar whose crank a motor whips round.
+"""The Moreau-Jean midpoint rule (docs/formulation.md §6.3) on a four-bar whose crank a motor whips round.
 
 docs/conventions.md, "Stabilisation": the end-of-step target of the joint rows reverses the start pose's
 constraint velocity ``w- = J(q-) u-`` every step unless it keeps the share ``gamma = MIDPOINT_DAMPING`` of it. With

@@ -112,7 +112,7 @@ def test_a_poisoned_world_is_frozen_and_touches_no_other(variant):
 
 @pytest.mark.parametrize("variant", BACKENDS)
 def test_a_world_unconverged_too_long_fails(variant):
-    """One PADMM iteration per step can never converge (convergence needs two iterations, formulation.md §7.5):
+    """One PADMM iteration per step can never converge (convergence needs two iterations, docs/formulation.md §7.5):
     ``unconverged_steps`` counts 1, 2, 3, the 4th step passes ``max_unconverged_steps = 3`` and fails the world,
     and the 5th leaves it frozen (no solve, same state)."""
     model = kamino.models.fourbar()

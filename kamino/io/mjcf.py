@@ -377,7 +377,9 @@ class _Converter:
             b = int(mj.jnt_bodyid[group[0]])
             if np.linalg.norm(mj.body_ipos[b]) > _POINT_TOL:
                 self.problems.append(f"armature or damping on free joint {self.name('joint', group[0])!r} whose body "
-                                     "CoM is off the body origin (kamino applies them at the CoM)")
+                                     "CoM is off the body origin: refused because kamino applies them at the CoM, "
+                                     "MuJoCo at the body origin (set armature=\"0\" damping=\"0\" on the free "
+                                     "joint, which a default <joint> class may have given it)")
             if len(set(arm)) > 1 or len(set(damp)) > 1:
                 self.problems.append(f"free joint {self.name('joint', group[0])!r}: per-DoF armature/damping")
         terms: dict[str, Any] = {"armature": arm, "damping": damp, "stiffness": stiff, "springref": sref}
@@ -409,8 +411,15 @@ class _Converter:
         name = "+".join(self.name("joint", j) for j in group)
         terms = self.joint_terms(jtype, group, acts)
         if jtype == JointType.SPHERICAL and parent >= 0 and np.any(terms["armature"]):
-            self.problems.append(f"armature on ball joint {name!r} whose parent moves (kamino's spherical armature "
-                                 "acts on the world-frame relative angular velocity, MuJoCo's on the joint frame's)")
+            arm = float(np.max(terms["armature"]))
+            self.problems.append(
+                f"armature on ball joint {name!r} ({arm:g}), whose parent body moves: refused because kamino cannot "
+                "reproduce it (kamino's spherical armature acts on the relative angular velocity in world axes, "
+                "MuJoCo's in the child's moving joint frame; they differ by a gyroscopic term armature * "
+                "(w_parent x w_rel), 1e-2 rad apart after 0.5 s on a humanoid). A default <joint armature=...> "
+                "reaches ball joints too: set armature=\"0\" on each ball joint, or give them a <default> class "
+                "with armature=\"0\". Armature on hinge and slide joints, and on a ball joint to the world, is "
+                "supported")
         if jtype == JointType.FREE:
             kj = self.add_joint(jtype, -1, child, (np.zeros(3), np.eye(3)), self.body_frame(b), name,
                                 own_name=len(group) == 1, **terms)

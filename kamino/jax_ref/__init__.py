@@ -1,5 +1,5 @@
 """The JAX reference backend: a readable, vmapped, jit-compiled oracle (pure JAX).
 
-Stages (architecture.md "Backend contract"): ``joints`` (kinematics), ``dynamics``,
+Stages (docs/architecture.md "Backend contract"): ``joints`` (kinematics), ``dynamics``,
 ``padmm`` (solve), ``spatial.integrate_pose`` (integrate), orchestrated by ``step``.
 """

@@ -1,4 +1,4 @@
-"""Contact detection, contact rows and contact warm start for one world (formulation.md §4.2, §7.8).
+"""Contact detection, contact rows and contact warm start for one world (docs/formulation.md §4.2, §7.8).
 
 ``detect`` runs the narrow phase (``kamino.jax_ref.collision``) on the model's candidate pairs,
 decides which points are active this step (speculative activation, restitution timing) and packs
@@ -45,7 +45,7 @@ class Contacts:
 
 
 def deadband(x: jax.Array, delta) -> jax.Array:
-    """``sign(x) max(0, |x| - delta)``: the dead band of formulation.md §4.2, used for contact gaps
+    """``sign(x) max(0, |x| - delta)``: the dead band of docs/formulation.md §4.2, used for contact gaps
     and joint errors alike."""
     return jnp.sign(x) * jnp.maximum(jnp.abs(x) - delta, 0.0)
 
@@ -92,7 +92,7 @@ def _approach_velocity(body_q, body_u, body_a, body_b, pos, normal, dist):
 
 def detect(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, body_u_free: jax.Array, h,
            cfg: SolverConfig) -> Contacts:
-    """Active contacts of one world at pose ``body_q`` (formulation.md §4.2).
+    """Active contacts of one world at pose ``body_q`` (docs/formulation.md §4.2).
 
     A point is active when its gap is within the pair's margin plus what the approach speed of the
     free velocity ``body_u_free`` closes in the pose update that follows (``h``):
@@ -186,7 +186,7 @@ def detect(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, body_u_free: j
 
 
 def contact_frames(normal: jax.Array) -> jax.Array:
-    """Contact frames ``C = [t1 t2 n]`` ``[C, 3, 3]`` (columns), right-handed (formulation.md §4.2)."""
+    """Contact frames ``C = [t1 t2 n]`` ``[C, 3, 3]`` (columns), right-handed (docs/formulation.md §4.2)."""
     ex = jnp.zeros_like(normal).at[:, 0].set(1.0)
     ey = jnp.zeros_like(normal).at[:, 1].set(1.0)
     s = jnp.where((jnp.abs(normal[:, 0]) < jnp.cos(jnp.pi / 6))[:, None], ex, ey)
@@ -202,7 +202,7 @@ def contact_frames(normal: jax.Array) -> jax.Array:
 
 def contact_jacobian(ct: Contacts, body_q: jax.Array, nb: int) -> jax.Array:
     """Dense contact rows ``[3C, nb*6]``: per contact ``(t1, t2, n)``, ``J_B = [c, (x_B - r_B) x c]``
-    and ``J_A = -[c, (x_A - r_A) x c]`` (formulation.md §4.2); the world's block is dropped."""
+    and ``J_A = -[c, (x_A - r_A) x c]`` (docs/formulation.md §4.2); the world's block is dropped."""
     C = ct.pair.shape[0]
     frames = contact_frames(ct.normal)  # [C, 3, 3]
     x_a = ct.pos - 0.5 * ct.dist[:, None] * ct.normal
@@ -223,7 +223,7 @@ def contact_jacobian(ct: Contacts, body_q: jax.Array, nb: int) -> jax.Array:
 
 
 def contact_bias(ct: Contacts, dist_start: jax.Array, v_n_minus: jax.Array, h, cfg: SolverConfig) -> jax.Array:
-    """``v*`` of the contact rows ``[3C]`` (formulation.md §4.2 "gap bias" and "restitution").
+    """``v*`` of the contact rows ``[3C]`` (docs/formulation.md §4.2 "gap bias" and "restitution").
 
     Tangent rows get 0. The normal row asks the end-of-step gap ``d + h v_n+`` (``d`` dead-banded,
     read where the dynamics are built) to be at least ``(1 - gamma) min(d_start, 0)``: a gap may
@@ -246,7 +246,7 @@ def contact_bias(ct: Contacts, dist_start: jax.Array, v_n_minus: jax.Array, h, c
 
 def local_point_b(ct: Contacts, body_q: jax.Array) -> jax.Array:
     """Witness point on geom b in its body's CoM frame (world frame for the world): the warm-start
-    matching key, carried rigidly with the body (formulation.md §7.8 advects it instead)."""
+    matching key, carried rigidly with the body (docs/formulation.md §7.8 advects it instead)."""
     x_b = ct.pos + 0.5 * ct.dist[:, None] * ct.normal
     b = jnp.where(ct.body_b >= 0, ct.body_b, 0)
     R = quat_to_matrix(body_q[b, 3:])
@@ -257,7 +257,7 @@ def local_point_b(ct: Contacts, body_q: jax.Array) -> jax.Array:
 def match_previous(ct: Contacts, point_b: jax.Array, prev_pair: jax.Array, prev_point_b: jax.Array,
                    tol: float) -> tuple[jax.Array, jax.Array]:
     """Index of the previous contact each new contact continues (same geom pair, nearest point on
-    geom b within ``tol``), and whether one was found (formulation.md §7.8, "key and position")."""
+    geom b within ``tol``), and whether one was found (docs/formulation.md §7.8, "key and position")."""
     if ct.pair.shape[0] == 0:
         return jnp.zeros(0, jnp.int32), jnp.zeros(0, bool)
     same = (ct.pair[:, None] == prev_pair[None, :]) & (prev_pair[None, :] >= 0) & ct.mask[:, None]

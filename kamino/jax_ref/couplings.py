@@ -2,7 +2,7 @@
 
 One bilateral row per coupling, residual ``e = q_a - p(q_b)`` in joint a's units (wrapped to
 ``[-pi, pi]`` when joint a is a hinge, whose angle is defined modulo ``2 pi``), Jacobian
-``J_a - p'(q_b) J_b`` with ``J_a``, ``J_b`` the two DoF rows of ``J_dofs`` (formulation.md §2.5).
+``J_a - p'(q_b) J_b`` with ``J_a``, ``J_b`` the two DoF rows of ``J_dofs`` (docs/formulation.md §2.5).
 This is MuJoCo's ``<equality><joint polycoef>`` with coordinates measured from the reference pose.
 """
 

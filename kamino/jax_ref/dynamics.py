@@ -1,4 +1,5 @@
-"""Body dynamics for one world: mass matrix, non-linear forces, free velocity, Delassus (formulation.md §1, §7.1)."""
+"""Body dynamics for one world: mass matrix, non-linear forces, free velocity, Delassus (docs/formulation.md §1,
+§7.1)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ class BodyDynamics:
 
 
 def body_dynamics(pm: PaddedModel, body_q: jax.Array) -> BodyDynamics:
-    """World inertias ``I = R Ī R^T`` and ``I^-1 = R Ī^-1 R^T``, symmetrised (formulation.md §1.3)."""
+    """World inertias ``I = R Ī R^T`` and ``I^-1 = R Ī^-1 R^T``, symmetrised (docs/formulation.md §1.3)."""
     R = quat_to_matrix(body_q[:, 3:])
     I = jnp.einsum("bij,bjk,blk->bil", R, pm.inertia, R)
     I_inv = jnp.einsum("bij,bjk,blk->bil", R, jnp.linalg.inv(pm.inertia), R)
@@ -44,7 +45,7 @@ def apply_inv_mass(bd: BodyDynamics, w: jax.Array) -> jax.Array:
 
 def nonlinear_force(pm: PaddedModel, bd: BodyDynamics, body_u: jax.Array, gravity: jax.Array,
                     external: jax.Array) -> jax.Array:
-    """``h_i = (m_i g, -w_i x (I_i w_i)) + w^e_i`` per body ``[nb, 6]`` (formulation.md §1.4).
+    """``h_i = (m_i g, -w_i x (I_i w_i)) + w^e_i`` per body ``[nb, 6]`` (docs/formulation.md §1.4).
 
     The gyroscopic term is explicit (evaluated at the configuration the dynamics are built at);
     :func:`free_velocity` replaces it by the implicit-midpoint one (docs/conventions.md, "Gyroscopic term").
@@ -104,7 +105,7 @@ def gyroscopic_correction(inertia: jax.Array, R: jax.Array, w0: jax.Array, w_exp
 
 def free_velocity(pm: PaddedModel, bd: BodyDynamics, body_q: jax.Array, body_u: jax.Array, h_force: jax.Array,
                   dt) -> jax.Array:
-    """Free velocity ``u_f`` ``[nb, 6]`` at the evaluation pose ``body_q`` (formulation.md §1.4, departure in
+    """Free velocity ``u_f`` ``[nb, 6]`` at the evaluation pose ``body_q`` (docs/formulation.md §1.4, departure in
     docs/conventions.md, "Gyroscopic term").
 
     ``u_e = u + dt M^-1 h`` (§1.4, ``h`` from :func:`nonlinear_force`, explicit gyroscopic torque), then the angular
@@ -119,7 +120,7 @@ def free_velocity(pm: PaddedModel, bd: BodyDynamics, body_q: jax.Array, body_u: 
 
 
 def delassus(J: jax.Array, bd: BodyDynamics) -> jax.Array:
-    """``D = J M^-1 J^T`` for a dense ``J`` ``[n, nb*6]`` (formulation.md §7.1, without R)."""
+    """``D = J M^-1 J^T`` for a dense ``J`` ``[n, nb*6]`` (docs/formulation.md §7.1, without R)."""
     n = J.shape[0]
     nb = bd.inv_mass.shape[0]
     MinvJt = apply_inv_mass(bd, J.reshape(n, nb, 6)).reshape(n, nb * 6)

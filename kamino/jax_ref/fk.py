@@ -1,4 +1,4 @@
-"""Forward kinematics for resets: batched damped Gauss-Newton on the body poses (formulation.md §9).
+"""Forward kinematics for resets: batched damped Gauss-Newton on the body poses (docs/formulation.md §9).
 
 Unknowns are the poses of all bodies of a world; a step is a twist per body ``delta`` applied with
 the exponential map (``integrate_pose(q, delta, 1)``), so the quaternions stay unit and the step is
@@ -62,7 +62,9 @@ class FKTables:
 class FKSettings:
     """Solver settings (static under ``jit``): stop at ``max |C| <= tolerance`` or after
     ``max_iterations`` beyond the sub-target stages; ``damping`` is ``mu`` relative to ``1 + max diag
-    J^T J``; sub-targets move at most ``max_angle_step`` [rad] / ``max_translation_step`` [m]."""
+    J^T J``, never below ``10 eps`` of the dtype (1.2e-6 in float32: below that, rounding of ``J^T J`` leaves a
+    floating base's free directions indefinite); sub-targets move at most ``max_angle_step`` [rad] /
+    ``max_translation_step`` [m]."""
 
     tolerance: float = 1e-6
     max_iterations: int = 30
@@ -200,7 +202,10 @@ def solve_world(pm: PaddedModel, tab: FKTables, q_init, coords, base_target, s: 
         C, J = _residual_and_jacobian(pm, pm_t, tab, q, base, True)
         g = J.T @ C
         A = J.T @ J
-        A = A + (s.damping * (1.0 + jnp.max(jnp.diag(A)))) * eye
+        # the relative shift never below rounding of A's entries: a floating base without a target leaves six
+        # null directions, which float32 rounding of J^T J would otherwise make indefinite (NaN step)
+        mu = max(s.damping, 10.0 * float(jnp.finfo(dtype).eps))
+        A = A + (mu * (1.0 + jnp.max(jnp.diag(A)))) * eye
         delta = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), g)
         phi0 = 0.5 * jnp.sum(C * C)
         slope = g @ delta

@@ -1,4 +1,4 @@
-"""Joint kinematics in maximal coordinates for one world (formulation.md §2).
+"""Joint kinematics in maximal coordinates for one world (docs/formulation.md §2).
 
 Every function here works on one world's padded arrays; ``kamino.jax_ref.step`` vmaps them.
 A joint connects a base ``B`` (a body or the world) to a follower ``F``; its frame is attached
@@ -33,7 +33,7 @@ class JointFrames:
 
 
 def joint_frames(pm: PaddedModel, body_q: jax.Array) -> JointFrames:
-    """World joint frames, relative pose ``(t, Q)`` of every joint (formulation.md §2.1-2.2)."""
+    """World joint frames, relative pose ``(t, Q)`` of every joint (docs/formulation.md §2.1-2.2)."""
     has_parent = pm.joint_parent >= 0
     parent = jnp.where(has_parent, pm.joint_parent, 0)
     qB = jnp.where(has_parent[:, None], body_q[parent], jnp.array([0, 0, 0, 0, 0, 0, 1.0], body_q.dtype))
@@ -148,7 +148,7 @@ def dof_jacobian(pm: PaddedModel, jf: JointFrames, nb: int) -> jax.Array:
 
 
 def joint_coordinates(pm: PaddedModel, jf: JointFrames) -> jax.Array:
-    """All joints' coordinates packed per joint into ``[nj, 7]`` (formulation.md §2.4 column "coordinates").
+    """All joints' coordinates packed per joint into ``[nj, 7]`` (docs/formulation.md §2.4 column "coordinates").
 
     Layout per type (unused trailing entries are zero): REVOLUTE ``angle``; PRISMATIC ``t_x``;
     CYLINDRICAL ``(t_x, Log(Q)_x)``; UNIVERSAL ``(theta_1, theta_2)``; SPHERICAL ``Q (x,y,z,w)``;
@@ -180,7 +180,7 @@ def joint_coordinates(pm: PaddedModel, jf: JointFrames) -> jax.Array:
 
 
 def dof_positions(pm: PaddedModel, jf: JointFrames) -> jax.Array:
-    """Position of every joint DoF ``[nd]`` in DoF space (formulation.md §4.1 "coordinates are mapped to
+    """Position of every joint DoF ``[nd]`` in DoF space (docs/formulation.md §4.1 "coordinates are mapped to
     DoF space"): translations read ``t``; rotations read ``Log(Q)`` componentwise (the angle, for a
     hinge), and a UNIVERSAL joint's DoFs read its two angles ``(theta_1, theta_2)``."""
     six = jnp.concatenate([jf.t, quat_log(jf.Q)], axis=-1)  # [nj, 6]

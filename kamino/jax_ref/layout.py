@@ -66,7 +66,7 @@ class PaddedModel:
     dof_springref: jax.Array
     dof_lower: jax.Array
     dof_upper: jax.Array
-    # joint-dynamics rows (formulation.md §3.2): one per DoF and kind (actuator / passive)
+    # joint-dynamics rows (docs/formulation.md §3.2): one per DoF and kind (actuator / passive)
     dyn_dof: jax.Array  # [W, ndyn] local DoF
     dyn_kind: jax.Array  # [W, ndyn] DYN_ACTUATOR or DYN_PASSIVE
     dyn_mask: jax.Array

@@ -1,8 +1,8 @@
-"""Proximal-ADMM on the dual problem of one world (paper Alg. 1; formulation.md §7-§8.1).
+"""Proximal-ADMM on the dual problem of one world (paper Alg. 1; docs/formulation.md §7-§8.1).
 
     lambda* = argmin_{x in K} 1/2 x^T D x + x^T (v_f + Gamma(v+(x)))
 
-with the feasible set ``K`` of formulation.md §4.3, extended with bounded rows:
+with the feasible set ``K`` of docs/formulation.md §4.3, extended with bounded rows:
 
 - *box rows* ``[0, n_box)``: ``lo <= lambda <= hi``; bilateral joint rows have ``(-inf, inf)``,
   limit rows ``[0, inf)``, effort-limited actuator rows ``[-dt tau_max, dt tau_max]``;
@@ -49,7 +49,7 @@ class PADMMResult:
 
 
 def jacobi_preconditioner(D: jax.Array, row_mask: jax.Array, n_box: int, enabled: bool) -> jax.Array:
-    """``P = diag(D)^-1/2`` on active rows, 1 on padded rows (formulation.md §7.2, paper).
+    """``P = diag(D)^-1/2`` on active rows, 1 on padded rows (docs/formulation.md §7.2, paper).
 
     A contact gets one scalar for its three rows, from the largest of their diagonal entries, so
     that the scaling keeps the isotropic Coulomb cone invariant (§7.2).
@@ -64,7 +64,7 @@ def jacobi_preconditioner(D: jax.Array, row_mask: jax.Array, n_box: int, enabled
 
 
 def cone_project(x: jax.Array, mu: jax.Array) -> jax.Array:
-    """Projection of triples ``x [n, 3] = (t1, t2, n)`` on the Coulomb cones ``K_mu`` (formulation.md §4.2).
+    """Projection of triples ``x [n, 3] = (t1, t2, n)`` on the Coulomb cones ``K_mu`` (docs/formulation.md §4.2).
 
     The polar-cone case is tested first, so ``mu = 0`` and ``x_t = 0`` never divide by zero.
     """
@@ -80,7 +80,7 @@ def cone_project(x: jax.Array, mu: jax.Array) -> jax.Array:
 
 
 def de_saxce(z: jax.Array, mu: jax.Array, n_box: int) -> jax.Array:
-    """``Gamma(z)``: ``mu ||z_t||`` on each contact's normal row, zero elsewhere (formulation.md §4.2)."""
+    """``Gamma(z)``: ``mu ||z_t||`` on each contact's normal row, zero elsewhere (docs/formulation.md §4.2)."""
     zc = z[n_box:].reshape(-1, 3)
     nt = jnp.sqrt(jnp.sum(zc[:, :2] ** 2, axis=1) + jnp.finfo(z.dtype).tiny)
     corr = jnp.stack([jnp.zeros_like(nt), jnp.zeros_like(nt), mu * nt], axis=1)
@@ -163,7 +163,7 @@ def redundant_limits(Dt: jax.Array, vt: jax.Array, lo: jax.Array, hi: jax.Array,
 def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
           impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig, refine=None, rho0=None,
           n_fixed: int = 0) -> PADMMResult:
-    """Accelerated PADMM with restart (formulation.md §7.3-§7.5) from a warm start, with a penalty per row class.
+    """Accelerated PADMM with restart (docs/formulation.md §7.3-§7.5) from a warm start, with a penalty per row class.
 
     ``D`` already holds the regularisation ``R`` of the joint-dynamics rows. ``lo``/``hi`` bound the
     ``n_box = len(lo)`` box rows; the remaining rows are contact triples with friction ``mu``. The first

@@ -1,10 +1,10 @@
 """Post-stabilisation: projecting the poses back onto the joint constraints after a step.
 
-Velocity-level Baumgarte stabilisation (formulation.md §5) closes a loop only as fast as ``alpha`` allows, and
+Velocity-level Baumgarte stabilisation (docs/formulation.md §5) closes a loop only as fast as ``alpha`` allows, and
 a stiff ``alpha`` gives redundant unilateral rows inconsistent biases that PADMM resolves slowly
 (docs/warp_backend.md, "Convergence on the four-bar"). Post-stabilisation (Cline and Pai 2003) instead corrects
 the positions after the pose update: with ``e(q)`` the residuals of the always-active rows (zero on the
-joint-dynamics rows, the joint residual of formulation.md §2.4 on the kinematic rows, ``q_a - p(q_b)`` on the
+joint-dynamics rows, the joint residual of docs/formulation.md §2.4 on the kinematic rows, ``q_a - p(q_b)`` on the
 coupling rows), one pass is the Gauss-Newton step of
 
     min_d 1/2 d^T M d   subject to   e(q) + J d = 0,    d = -M^-1 J^T (J M^-1 J^T + R)^-1 e,

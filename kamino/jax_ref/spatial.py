@@ -1,4 +1,4 @@
-"""Quaternion and SO(3) helpers in JAX (formulation.md §1.1, §2.3, §6.1).
+"""Quaternion and SO(3) helpers in JAX (docs/formulation.md §1.1, §2.3, §6.1).
 
 Quaternions are ``(x, y, z, w)``. Every function is differentiable everywhere it is used,
 including at zero rotation (the "double where" trick keeps gradients finite).
@@ -72,7 +72,7 @@ def rotate(q: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
 
 
 def integrate_pose(q: jnp.ndarray, u: jnp.ndarray, h) -> jnp.ndarray:
-    """Exponential-map pose update ``r+ = r + h v``, ``q+ = Exp(h w) ⊗ q`` (formulation.md §6.1).
+    """Exponential-map pose update ``r+ = r + h v``, ``q+ = Exp(h w) ⊗ q`` (docs/formulation.md §6.1).
 
     ``q`` is ``[..., 7]`` (CoM position, quaternion), ``u`` is ``[..., 6]`` (v, w in world). The
     quaternion is renormalised (changes results only at rounding level).

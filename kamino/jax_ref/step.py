@@ -1,7 +1,7 @@
-"""One time step of one world, and its vmapped/jitted batch over worlds (formulation.md §3-§6).
+"""One time step of one world, and its vmapped/jitted batch over worlds (docs/formulation.md §3-§6).
 
-Pipeline (architecture.md, backend contract): kinematics -> collision -> dynamics -> PADMM ->
-integrate. Rows of a world, in order (formulation.md §7.1): joint-dynamics rows (actuators, then
+Pipeline (docs/architecture.md, backend contract): kinematics -> collision -> dynamics -> PADMM ->
+integrate. Rows of a world, in order (docs/formulation.md §7.1): joint-dynamics rows (actuators, then
 armature/damping/springs) | joint kinematic rows | coupling rows | limit rows | contact triples
 ``(t1, t2, n)``.
 """
@@ -95,7 +95,7 @@ MIDPOINT_DAMPING = 1.0 / 3.0
 
 def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: jax.Array, e_start: jax.Array,
                J: jax.Array, h, cfg: SolverConfig) -> jax.Array:
-    """Stabilisation bias ``v*`` of the joint rows (formulation.md §5; docs/conventions.md "Stabilisation").
+    """Stabilisation bias ``v*`` of the joint rows (docs/formulation.md §5; docs/conventions.md "Stabilisation").
 
     The step ends with the update ``q+ = q_eval ⊕ h u+`` (Euler: ``q_eval = q-``, ``h = dt``;
     midpoint: ``q_eval = q_m``, ``h = dt/2``). Expanding ``e(q+) = e_eval + h J u+ + c`` and asking
@@ -145,7 +145,7 @@ def coupling_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval:
 
 
 def explicit_effort(pm: PaddedModel, effort: jax.Array) -> jax.Array:
-    """Efforts applied as body wrenches ``J_dofs^T tau`` (formulation.md §3.1): as given on PASSIVE
+    """Efforts applied as body wrenches ``J_dofs^T tau`` (docs/formulation.md §3.1): as given on PASSIVE
     DoFs, clipped to the effort limit on EFFORT DoFs, none on POSITION/VELOCITY DoFs (there the
     effort is the actuator row's feed-forward)."""
     mode = pm.dof_act_mode
@@ -157,7 +157,7 @@ def explicit_effort(pm: PaddedModel, effort: jax.Array) -> jax.Array:
 
 def dynamics_rows(pm: PaddedModel, q_dof: jax.Array, qd_minus: jax.Array, ctrl: WorldControl, h,
                   cfg: SolverConfig):
-    """Regularisation ``R``, bias ``v*`` and impulse bounds of the joint-dynamics rows (formulation.md §3.2).
+    """Regularisation ``R``, bias ``v*`` and impulse bounds of the joint-dynamics rows (docs/formulation.md §3.2).
 
     Each row is the DoF row of ``J_dofs``; with ``m`` the row's implicit inertia the row equation
     ``J u+ + lambda/m + v* = 0`` reads ``m qd+ = p0 - lambda``, i.e. backward-Euler dynamics:
@@ -194,7 +194,7 @@ def dynamics_rows(pm: PaddedModel, q_dof: jax.Array, qd_minus: jax.Array, ctrl: 
 
 def limit_rows(pm: PaddedModel, q_dof: jax.Array, q_dof_start: jax.Array, qd_free: jax.Array, h,
                cfg: SolverConfig):
-    """Side, activity and bias of the limit rows (formulation.md §4.1, with speculative activation).
+    """Side, activity and bias of the limit rows (docs/formulation.md §4.1, with speculative activation).
 
     Each limited DoF watches its nearer limit: ``r = q - q_min`` (side ``+1``) or ``q_max - q``
     (side ``-1``), read where the dynamics are built. The row ``side * J_dof`` is active when
@@ -224,7 +224,7 @@ def limit_rows(pm: PaddedModel, q_dof: jax.Array, q_dof_start: jax.Array, qd_fre
 
 def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array, body_u: jax.Array,
                           cache: WorldCache, ctrl: WorldControl, h, cfg: SolverConfig):
-    """Build the dynamics at ``q_eval``, solve PADMM and return ``u+`` (formulation.md §6.2 steps 1-3).
+    """Build the dynamics at ``q_eval``, solve PADMM and return ``u+`` (docs/formulation.md §6.2 steps 1-3).
 
     ``q_start`` is the pose at the start of the step (stabilisation target), ``h`` the duration of
     the pose update that follows the solve, ``cache`` the previous step's reactions and contacts.
@@ -371,7 +371,7 @@ def _new_cache(pm: PaddedModel, q_eval, res: padmm.PADMMResult, ct: cts.Contacts
 
 def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, cache: WorldCache, ctrl: WorldControl,
                cfg: SolverConfig) -> WorldStep:
-    """Advance one world by ``cfg.dt`` (formulation.md §6.2 Euler, §6.3 Moreau-Jean midpoint)."""
+    """Advance one world by ``cfg.dt`` (docs/formulation.md §6.2 Euler, §6.3 Moreau-Jean midpoint)."""
     dt = cfg.dt
     if cfg.integrator == "euler":
         q_eval, h = body_q, dt

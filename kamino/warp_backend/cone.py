@@ -1,4 +1,4 @@
-"""The Coulomb cone in Warp: projection and the De Saxcé correction (formulation.md §4.2-§4.3)."""
+"""The Coulomb cone in Warp: projection and the De Saxcé correction (docs/formulation.md §4.2-§4.3)."""
 
 import functools
 from types import SimpleNamespace

@@ -1,6 +1,6 @@
 """Contacts in Warp: narrow phase, activation and packing, contact rows, warm start, State output.
 
-The same rules as ``kamino/jax_ref/contacts.py`` (formulation.md §4.2, §7.8): speculative
+The same rules as ``kamino/jax_ref/contacts.py`` (docs/formulation.md §4.2, §7.8): speculative
 activation with the free velocity, restitution timing, packing in detection order into the world's
 capacity (deterministic: one thread per world walks its candidates), rows ``(t1, t2, n)`` with the
 gap / Newton-restitution bias, and the warm start by geom pair and nearest point on geom b.

@@ -3,7 +3,7 @@
 Formulation.md §6.2 (Euler: ``q+ = q ⊕ dt u+``) and §6.3 (midpoint: ``q+ = q_m ⊕ dt/2 u+``); the
 forces are ``lambda / dt`` split by row family as ``_new_cache`` of the JAX reference. A world
 whose new pose, twist or impulses are not finite keeps its previous state and is flagged
-``failed`` (architecture.md: never a silent NaN, never contaminating other worlds).
+``failed`` (docs/architecture.md: never a silent NaN, never contaminating other worlds).
 """
 
 import functools

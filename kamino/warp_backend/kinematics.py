@@ -1,4 +1,4 @@
-"""Joint kinematics in Warp: joint frames, residuals and Jacobian blocks (formulation.md §2).
+"""Joint kinematics in Warp: joint frames, residuals and Jacobian blocks (docs/formulation.md §2).
 
 The same formulas as ``kamino/jax_ref/joints.py`` and ``couplings.py``. A Jacobian row is stored
 block-sparse: up to ``nblk`` pairs (body, 1x6 block) per row — the follower ``F`` and the base ``B``

@@ -1,9 +1,9 @@
 """A :class:`kamino.Model` uploaded to Warp arrays: flat over worlds, per-world starts and counts.
 
 Storage is sized by the **sum** of the per-world counts; kernels launch on ``(num_worlds,
-max_count)`` grids and threads past their world's count return at once (architecture.md, "Data
+max_count)`` grids and threads past their world's count return at once (docs/architecture.md, "Data
 layout"). Entity indices are global (flat). Each world owns a segment of constraint rows of length
-``maxdim_w = n_dyn + n_joint + n_coupling + n_limit + 3 capacity`` (formulation.md §10.1); the
+``maxdim_w = n_dyn + n_joint + n_coupling + n_limit + 3 capacity`` (docs/formulation.md §10.1); the
 first ``n_fixed = n_dyn + n_joint + n_coupling`` rows are always active, the active limit and
 contact rows follow, compacted, so a step only works on the rows it uses. Row data, the dense
 Delassus matrix and the dense Jacobian are interleaved over groups of 32 worlds

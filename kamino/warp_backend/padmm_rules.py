@@ -1,5 +1,5 @@
 """The per-iteration rules of accelerated PADMM shared by the two PADMM schedules (one thread per world in
-``solver.py``, 32 threads per world in ``padmm_warp.py``): the dual update and a row's residuals (formulation.md
+``solver.py``, 32 threads per world in ``padmm_warp.py``): the dual update and a row's residuals (docs/formulation.md
 §7.3-§7.5), the fast-ADMM momentum with restart (§7.4), the penalty of the limit and contact rows, and a box row's
 complementarity residual (§7.5).
 """

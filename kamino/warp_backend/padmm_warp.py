@@ -1,4 +1,4 @@
-"""Proximal-ADMM with one GPU warp (32 threads) per world on the sparse factor (formulation.md §7-§8.1; paper
+"""Proximal-ADMM with one GPU warp (32 threads) per world on the sparse factor (docs/formulation.md §7-§8.1; paper
 Alg. 1): the schedule for robot-sized worlds (``Stepper(padmm="warp")``).
 
 One thread per world (``solver.padmm_iterate``) walks a world's factor and vectors alone: at 4096 worlds that is one

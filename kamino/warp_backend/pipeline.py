@@ -1,7 +1,7 @@
 """One Warp "stepper" per (model, config, precision, device): buffers, the launch sequence of a step,
 and its CUDA-graph capture.
 
-The sequence follows the backend contract (architecture.md): kinematics -> collision -> dynamics ->
+The sequence follows the backend contract (docs/architecture.md): kinematics -> collision -> dynamics ->
 PADMM -> integrate. Every launch is on a ``(num_worlds, max_count)`` grid or one thread per world;
 nothing loops over worlds or bodies on the host, and nothing reads back to the host inside a step.
 On a CUDA device the PADMM loop is a ``wp.capture_while`` on the device counter of worlds still

@@ -1,6 +1,6 @@
 """Body dynamics and the bilateral / limit constraint rows of a step, as Warp kernels.
 
-Formulas of ``kamino/jax_ref/step.py`` and ``dynamics.py`` (formulation.md §1.4, §3.2, §4.1, §5).
+Formulas of ``kamino/jax_ref/step.py`` and ``dynamics.py`` (docs/formulation.md §1.4, §3.2, §4.1, §5).
 Kernels run on ``(num_worlds, max_count)`` grids; a world's rows are written into its segment:
 ``[joint-dynamics | kinematic | coupling | active limits (compacted) | contacts]``.
 """
@@ -69,7 +69,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def half_step(m: M, w: Work, h: scalar):
-        """Midpoint pose ``q_m = q ⊕ h u`` (formulation.md §6.3)."""
+        """Midpoint pose ``q_m = q ⊕ h u`` (docs/formulation.md §6.3)."""
         wid, i = wp.tid()
         if i >= m.body_count[wid]:
             return
@@ -78,7 +78,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def dof_blocks(m: M, w: Work):
-        """``J_dofs`` blocks, DoF positions and the explicit efforts (formulation.md §3.1) at ``q_eval``."""
+        """``J_dofs`` blocks, DoF positions and the explicit efforts (docs/formulation.md §3.1) at ``q_eval``."""
         wid, i = wp.tid()
         if i >= m.dof_count[wid]:
             return
@@ -174,7 +174,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def dyn_rows(m: M, w: Work, nblk: int, dt: scalar, h: scalar):
-        """Joint-dynamics rows (formulation.md §3.2; ``dynamics_rows`` of the JAX reference): implicit inertia
+        """Joint-dynamics rows (docs/formulation.md §3.2; ``dynamics_rows`` of the JAX reference): implicit inertia
         ``m`` (``R = 1/m``), bias ``-p0/m`` and the effort bound of actuator rows."""
         wid, i = wp.tid()
         if i >= m.dyn_count[wid]:
@@ -228,7 +228,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
     @wp.kernel(module="unique", enable_backward=False)
     def joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
                    midpoint: int):
-        """Kinematic joint rows: blocks and the stabilisation bias of ``joint_bias`` (formulation.md §5;
+        """Kinematic joint rows: blocks and the stabilisation bias of ``joint_bias`` (docs/formulation.md §5;
         docs/conventions.md "Stabilisation")."""
         wid, i = wp.tid()
         if i >= m.cts_count[wid]:
@@ -359,7 +359,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def limits(m: M, w: Work, h: scalar, margin: scalar, beta: scalar):
-        """Which limit rows are active and their bias (formulation.md §4.1; ``limit_rows`` of the JAX
+        """Which limit rows are active and their bias (docs/formulation.md §4.1; ``limit_rows`` of the JAX
         reference): the nearer limit, active when it can be reached within the step."""
         wid, i = wp.tid()
         if i >= m.lim_count[wid]:

@@ -1,4 +1,4 @@
-"""Delassus assembly and Proximal-ADMM in Warp (formulation.md §7-§8; paper Alg. 1).
+"""Delassus assembly and Proximal-ADMM in Warp (docs/formulation.md §7-§8; paper Alg. 1).
 
 Per step: the rows' blocks are pre-baked into ``M^-1 J^T`` blocks, ``v_f = J u_f + v*`` (§5), then
 either the dense Delassus ``D = J M^-1 J^T + R`` is assembled (from the block-sparse rows, or from a

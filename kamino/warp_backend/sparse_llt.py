@@ -1,4 +1,4 @@
-"""Sparse Cholesky of the scaled Delassus matrix (formulation.md §8.1) with a static pattern.
+"""Sparse Cholesky of the scaled Delassus matrix (docs/formulation.md §8.1) with a static pattern.
 
 The always-active rows of a world (joint-dynamics, joint and coupling rows: the first ``n_fixed``) touch
 fixed pairs of bodies, so the sparsity of ``D~ = P J M^-1 J^T P + (eta + rho) I`` on them is known when the

@@ -1,4 +1,4 @@
-"""Quaternion and SE(3) helpers as Warp functions (formulation.md §1.1, §2.3, §6.1).
+"""Quaternion and SE(3) helpers as Warp functions (docs/formulation.md §1.1, §2.3, §6.1).
 
 The same formulas as ``kamino/jax_ref/spatial.py`` (small-angle series below ``|phi|^2 < 1e-12``),
 so that both backends round the same way up to the order of operations.
@@ -44,14 +44,14 @@ def spatial_funcs(np_dtype) -> SimpleNamespace:
 
     @wp.func
     def integrate_pose(x: transform, u: vec6, h: scalar):
-        """``r+ = r + h v``, ``q+ = normalize(Exp(h w) ⊗ q)`` (formulation.md §6.1)."""
+        """``r+ = r + h v``, ``q+ = normalize(Exp(h w) ⊗ q)`` (docs/formulation.md §6.1)."""
         p = wp.transform_get_translation(x) + h * vec3(u[0], u[1], u[2])
         q = quat_exp(h * vec3(u[3], u[4], u[5])) * wp.transform_get_rotation(x)
         return transform(p, wp.normalize(q))
 
     @wp.func
     def deadband(x: scalar, delta: scalar):
-        """``sign(x) max(0, |x| - delta)`` (formulation.md §4.2)."""
+        """``sign(x) max(0, |x| - delta)`` (docs/formulation.md §4.2)."""
         a = wp.abs(x) - delta
         if a <= scalar(0.0):
             return scalar(0.0)
