@@ -9,17 +9,32 @@ the peers, with the same method, so our numbers and theirs compare:
   are timed (``wp.synchronize_device`` before reading the clock) and the median trial is reported. N is
   picked so that one trial lasts at least ``min_trial_s``. On the CPU device the steps are a plain Python
   loop of ``graph_steps`` steps per trial (smoke tests only; ``use_graph=True`` tries Warp's CPU graphs).
-* **drive**: before every step, the first actuator's control is set to ``2.0 * sin(2 pi 1.0 t)`` N m in
-  every world (fourbar's ``drive_j1``, the ladders' only motor) by a small Warp kernel that reads a device
-  time counter (MuJoCo Warp: ``Data.time``; Newton: a step counter bumped after every step), so that
-  the timed loop is pure graph replay.
+* **drive**: before every step, the first actuator's control is set to ``A sin(2 pi 1.0 t)`` in every world
+  by a small Warp kernel that reads a device time counter (MuJoCo Warp: ``Data.time``; Newton: a step
+  counter bumped after every step), so that the timed loop is pure graph replay. ``A`` is the ``amplitude``
+  keyword, ``DRIVE_AMPLITUDE`` = 2.0 by default. A ``<motor>`` (fourbar's ``drive_j1``, the ladders' only
+  motor) is a torque ``A sin`` [N m]: MuJoCo Warp's ``ctrl[:, 0]``, Newton's ``Control.joint_f`` of its DoF
+  (set to explicit effort). A ``<position kp kv>`` actuator (kamino's robots exported by
+  ``kamino.save_mjcf``, driven with ``A = 0.2``) gets the position target ``A sin`` [rad] about its
+  reference pose (the exporter gives actuated joints no ``ref``, so target 0 is the pose of the file):
+  MuJoCo Warp's ``ctrl[:, 0]``, Newton's ``Control.joint_target_q`` of the joint's coordinate, with the PD
+  gains that ``add_mjcf`` puts into ``joint_target_ke``/``kd`` (mode ``POSITION``) and the actuator's
+  ``forcerange`` copied into ``joint_effort_limit`` (``add_mjcf`` keeps it only for ``SolverMuJoCo``). The
+  other actuators keep their targets (0: the reference pose). A scene whose Newton import lacks those PD
+  gains fails with a ``reason`` rather than being driven by torques.
+* **time step**: both peers step with ``DT``; MuJoCo Warp's ``opt.timestep`` is set to it (a file without
+  ``<option timestep>``, e.g. an exported robot, would otherwise run at MuJoCo's 0.002 s; noted).
 * **closure**: ONE world, freshly built, stepped ``closure_steps`` times with the same drive; after every
   step a Warp kernel folds the largest distance between the two anchors of each loop-closing joint into
   a device scalar (``wp.atomic_max``). MuJoCo Warp: ``<connect>`` equalities, anchor ``eq_data[0:3]`` on
   body1 and ``eq_data[3:6]`` on body2 (MuJoCo's compiled connect semantics), through ``xpos``/``xmat``
   (these are the poses at the start of each step, so a final ``kinematics`` call adds the last pose).
   Newton: joints outside every articulation (``joint_articulation == -1``), parent anchor
-  ``body_q[parent] * X_p`` vs child anchor ``body_q[child] * X_c``.
+  ``body_q[parent] * X_p`` vs child anchor ``body_q[child] * X_c``. ``joint_error_max_m`` is the same
+  largest distance over every joint whose anchors coincide (kamino's own closure measure, which counts tree
+  joints as well): Newton's SolverKamino keeps tree joints as constraints too, so it measures them (a robot
+  without loops, ``bdx``, has only this figure); MuJoCo's tree joints are exact (generalized coordinates), so
+  there it equals ``closure_max_m`` (0 without ``<connect>``).
 * **memory per world**: device memory in use after building the N-world model and data (Newton: model,
   two states, control and the solver) minus before, divided by N. On CUDA the primary figure is Warp's
   memory-pool usage (``wp.get_mempool_used_mem_current``; ``cudaMemGetInfo`` used-memory delta if the
@@ -27,17 +42,19 @@ the peers, with the same method, so our numbers and theirs compare:
   ``wp.array`` allocations reachable from those objects (also the only figure on CPU).
 
 Results are plain JSON-serialisable dicts with the keys ``peer, variant, scene`` (file stem), ``scene_path,
-num_worlds, throughput`` (steps/s x worlds), ``step_time_s, closure_max_m, closure_steps,
-memory_per_world_bytes, memory_per_world_arrays_bytes, memory_method, device, timing`` (``graph_replay`` or
-``python_loop``), ``graph_steps, replays_per_trial, trials_s, dt, versions, notes, reason`` (plus ``source`` and
-``settings`` for SolverKamino). A peer that is not importable, or that cannot load or run the scene, gives a dict whose
-measurements are ``None`` and whose ``reason`` says why (``traceback`` holds the details). The closure
-run does not depend on ``num_worlds``: when sweeping world counts, pass ``closure_steps=0`` after the first.
+drive`` (what is driven, in words), ``drive_amplitude, num_worlds, throughput`` (steps/s x worlds),
+``step_time_s, closure_max_m, joint_error_max_m, closure_steps, memory_per_world_bytes, memory_per_world_arrays_bytes,
+memory_method, device, timing`` (``graph_replay`` or ``python_loop``), ``graph_steps, replays_per_trial,
+trials_s, dt, versions, notes, reason`` (plus ``source`` and ``settings`` for SolverKamino). A peer that is not
+importable, or that cannot load or run the scene, gives a dict whose measurements are ``None`` and whose
+``reason`` says why (``traceback`` holds the details). The closure run does not depend on ``num_worlds``: when
+sweeping world counts, pass ``closure_steps=0`` after the first.
 
 Scenes in Newton: ``add_mjcf`` turns each ``<connect>`` into a BALL loop joint (3 rows, as MuJoCo's
-connect), which SolverKamino simulates; ``source="newton_basics"`` instead builds the four-bar with
-``newton.tests.utils.basics.build_boxes_fourbar`` (REVOLUTE loop joint), where the README's SolverKamino
-four-bar figures come from.
+connect), which SolverKamino simulates (an exported revolute loop closure, two ``<connect>`` on its axis,
+becomes two BALL joints between the same bodies: 6 rows, one redundant, as in kamino's own round trip);
+``source="newton_basics"`` instead builds the four-bar with ``newton.tests.utils.basics.build_boxes_fourbar``
+(REVOLUTE loop joint), where the README's SolverKamino four-bar figures come from.
 
 CLI smoke test: ``python benchmarks/peers.py benchmarks/scenes/fourbar.xml 1 4 [--device cpu]``.
 """
@@ -54,6 +71,7 @@ import statistics
 import sys
 import time
 import traceback
+import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from pathlib import Path
@@ -110,10 +128,13 @@ def _new_result(peer: str, variant: str, scene: str, num_worlds: int) -> dict[st
         "variant": variant,
         "scene": Path(scene).stem,
         "scene_path": str(scene),
+        "drive": None,
+        "drive_amplitude": None,
         "num_worlds": int(num_worlds),
         "throughput": None,
         "step_time_s": None,
         "closure_max_m": None,
+        "joint_error_max_m": None,
         "memory_per_world_bytes": None,
         "memory_per_world_arrays_bytes": None,
         "memory_method": None,
@@ -162,15 +183,16 @@ def _kernels() -> SimpleNamespace:
     @wp.kernel
     def counter_drive(
         counter: wp.array(dtype=wp.int32),
-        dofs: wp.array(dtype=wp.int32),
+        index: wp.array(dtype=wp.int32),
+        offset: wp.array(dtype=wp.float32),
         amplitude: float,
         omega: float,
         dt: float,
-        joint_f: wp.array(dtype=wp.float32),
+        values: wp.array(dtype=wp.float32),
     ):
         world = wp.tid()
         t = float(counter[0]) * dt
-        joint_f[dofs[world]] = amplitude * wp.sin(omega * t)
+        values[index[world]] = offset[world] + amplitude * wp.sin(omega * t)
 
     @wp.kernel
     def tick(counter: wp.array(dtype=wp.int32)):
@@ -361,14 +383,32 @@ def _run_closure_steps(step: Callable[[], None], dev: Any, n: int, graph_steps: 
     wp.synchronize_device(dev)
 
 
-def _first_motor_joint(scene: str) -> str | None:
-    """Name of the joint driven by the scene's first actuator (``<actuator><motor joint=...>``)."""
+def _joint_actuators(scene: str) -> list[tuple[str, str, dict[str, str]]]:
+    """``(kind, joint, attributes)`` of the scene's joint actuators in file order (``kind``: the element's tag,
+    ``motor``, ``position``, ...; defaults classes are not resolved: the benchmark scenes and kamino's exports
+    write every attribute on the element)."""
     root = ET.parse(scene).getroot()
-    for actuators in root.iter("actuator"):
-        for act in actuators:
-            if act.get("joint"):
-                return act.get("joint")
-    return None
+    return [(act.tag, act.get("joint"), dict(act.attrib)) for acts in root.iter("actuator") for act in acts
+            if act.get("joint")]
+
+
+def _first_actuator(scene: str) -> tuple[str | None, str | None]:
+    """``(joint, kind)`` of the scene's first joint actuator (``<actuator><motor joint=...>``: ``("j", "motor")``);
+    ``(None, None)`` without one."""
+    acts = _joint_actuators(scene)
+    return (acts[0][1], acts[0][0]) if acts else (None, None)
+
+
+def _drive_text(kind: str | None, joint: str | None, amplitude: float) -> str | None:
+    """The drive in words, for the result's ``drive`` field."""
+    if joint is None:
+        return None
+    wave = f"{amplitude:g} sin(2 pi {DRIVE_FREQUENCY:g} t)"
+    if kind == "position":
+        return f"position target {wave} rad on <position> actuator of joint {joint!r} (about its reference pose)"
+    if kind == "motor":
+        return f"torque {wave} N m on <motor> of joint {joint!r}"
+    return f"ctrl[0] = {wave} on <{kind}> actuator of joint {joint!r}"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -376,28 +416,40 @@ def _first_motor_joint(scene: str) -> str | None:
 # --------------------------------------------------------------------------------------------------
 
 
-def _mjw_build(scene: str, num_worlds: int, dev: Any) -> tuple[Any, Any, Any]:
-    """Host model, device ``Model`` and ``num_worlds``-world ``Data`` of an MJCF scene (scene's own options).
+def _mjw_build(scene: str, num_worlds: int, dev: Any) -> tuple[Any, Any, Any, float]:
+    """Host model, device ``Model``, ``num_worlds``-world ``Data`` of an MJCF scene (scene's own options, but
+    ``opt.timestep = DT``) and the file's own time step.
 
     ``mj_forward`` runs on the host data first, so that MuJoCo Warp's default ``njmax`` covers the
-    constraint rows present at the start (the ladders' 3 rows per ``<connect>``).
+    constraint rows present at the start (the ladders' 3 rows per ``<connect>``, a robot's contacts).
     """
     import mujoco
     import mujoco_warp as mjw
 
     mjm = mujoco.MjModel.from_xml_path(str(scene))
+    file_dt = float(mjm.opt.timestep)
+    mjm.opt.timestep = DT
     mjd = mujoco.MjData(mjm)
     mujoco.mj_forward(mjm, mjd)
     with wp.ScopedDevice(dev):
         m = mjw.put_model(mjm)
         d = mjw.put_data(mjm, mjd, nworld=num_worlds)
-    return mjm, m, d
+    return mjm, m, d, file_dt
 
 
 def _mjw_stepper(
-    m: Any, d: Any, num_worlds: int, *, drive: bool = True, closure: tuple | None = None
+    m: Any,
+    d: Any,
+    num_worlds: int,
+    *,
+    drive: bool = True,
+    closure: tuple | None = None,
+    amplitude: float = DRIVE_AMPLITUDE,
 ) -> Callable[[], None]:
-    """One benchmark step: drive kernel on ``ctrl[:, 0]`` from ``d.time``, ``mjw.step``, optional closure."""
+    """One benchmark step: ``ctrl[:, 0] = amplitude sin(omega d.time)``, ``mjw.step``, optional closure.
+
+    ``ctrl`` is the actuator's own input: a torque for a ``<motor>``, a position target for a ``<position>``.
+    """
     import mujoco_warp as mjw
 
     k = _kernels()
@@ -405,7 +457,7 @@ def _mjw_stepper(
 
     def step() -> None:
         if drive:
-            wp.launch(k.mjw_drive, dim=num_worlds, inputs=[d.time, 0, DRIVE_AMPLITUDE, omega], outputs=[d.ctrl])
+            wp.launch(k.mjw_drive, dim=num_worlds, inputs=[d.time, 0, amplitude, omega], outputs=[d.ctrl])
         mjw.step(m, d)
         if closure is not None:
             wp.launch(k.mjw_closure, dim=(num_worlds, closure[0].shape[0]), inputs=[d.xpos, d.xmat, *closure])
@@ -466,12 +518,15 @@ def run_mujoco_warp(
     closure_steps: int = 1000,
     min_trial_s: float = MIN_TRIAL_S,
     use_graph: bool | None = None,
+    amplitude: float = DRIVE_AMPLITUDE,
 ) -> dict[str, Any]:
     """Throughput, loop closure and memory of MuJoCo Warp on an MJCF scene.
 
     The scene is loaded with ``mujoco.MjModel.from_xml_path`` and run with its own options (for these
-    scenes: Newton solver, Euler, soft ``<connect>``), ``mujoco_warp.put_model`` /
-    ``put_data(nworld=num_worlds)``, ``mujoco_warp.step``. See the module docstring for the method.
+    scenes: Newton solver, Euler, soft ``<connect>``; kamino's exported robots: Newton solver,
+    ``implicitfast``, ``<connect>`` with ``solref`` 0.004) but the time step ``DT``,
+    ``mujoco_warp.put_model`` / ``put_data(nworld=num_worlds)``, ``mujoco_warp.step``. See the module
+    docstring for the method.
 
     Args:
         scene: MJCF path.
@@ -482,11 +537,14 @@ def run_mujoco_warp(
         closure_steps: steps of the one-world closure run; 0 skips it.
         min_trial_s: lower bound on one trial's duration when replaying graphs.
         use_graph: capture graphs; ``None`` means on CUDA only.
+        amplitude: drive amplitude ``A`` of ``ctrl[:, 0] = A sin(2 pi t)``: N m for a ``<motor>``, rad for a
+            ``<position>`` actuator (the robots: 0.2).
 
     Returns:
         The result dict (module docstring); ``reason`` is set when something could not run.
     """
     result = _new_result("mujoco_warp", "newton_solver_soft_connect", scene, num_worlds)
+    result["drive_amplitude"] = float(amplitude)
     try:
         import mujoco
         import mujoco_warp as mjw
@@ -498,7 +556,7 @@ def run_mujoco_warp(
         graph = dev.is_cuda if use_graph is None else use_graph
         with wp.ScopedDevice(dev):
             before, method = _memory_in_use(dev)
-            mjm, m, d = _mjw_build(scene, num_worlds, dev)
+            mjm, m, d, file_dt = _mjw_build(scene, num_worlds, dev)
             after, _ = _memory_in_use(dev)
             result["memory_method"] = method
             if before is not None and after is not None:
@@ -506,6 +564,11 @@ def run_mujoco_warp(
             result["memory_per_world_arrays_bytes"] = _owned_array_bytes(m, d) / num_worlds
             if mjm.nu < 1:
                 _add_note(result, "scene has no actuator: no drive")
+            else:
+                joint, kind = _first_actuator(scene)
+                result["drive"] = _drive_text(kind, joint, amplitude)
+            if file_dt != DT:
+                _add_note(result, f"timestep {file_dt:g} s of the file replaced by {DT:g} s")
             opt = mjm.opt
             _add_note(
                 result,
@@ -518,7 +581,7 @@ def run_mujoco_warp(
 
     try:
         with wp.ScopedDevice(dev):
-            step = _mjw_stepper(m, d, num_worlds, drive=mjm.nu > 0)
+            step = _mjw_stepper(m, d, num_worlds, drive=mjm.nu > 0, amplitude=amplitude)
             step()  # compile and load the kernels outside any capture
             wp.synchronize_device(dev)
             timing = _time_steps(
@@ -537,18 +600,20 @@ def run_mujoco_warp(
     if closure_steps > 0:
         try:
             with wp.ScopedDevice(dev):
-                mjm1, m1, d1 = _mjw_build(scene, 1, dev)
+                mjm1, m1, d1, _ = _mjw_build(scene, 1, dev)
                 connects = _mjw_connects(mjm1, dev)
                 if connects is None:
-                    _add_note(result, "no <connect> equality: no closure")
+                    _add_note(result, "no <connect> equality: no loop closure (tree joints are exact in MuJoCo)")
+                    result["joint_error_max_m"] = 0.0
                 else:
-                    step = _mjw_stepper(m1, d1, 1, drive=mjm1.nu > 0, closure=connects)
+                    step = _mjw_stepper(m1, d1, 1, drive=mjm1.nu > 0, closure=connects, amplitude=amplitude)
                     _run_closure_steps(step, dev, closure_steps, graph_steps, graph)
                     mjw.kinematics(m1, d1)  # poses after the last step
                     wp.launch(
                         _kernels().mjw_closure, dim=(1, connects[0].shape[0]), inputs=[d1.xpos, d1.xmat, *connects]
                     )
                     result["closure_max_m"] = float(connects[4].numpy()[0])
+                    result["joint_error_max_m"] = result["closure_max_m"]  # tree joints: exact
                     result["closure_steps"] = closure_steps
         except Exception as exc:
             return _fail(result, "closure", exc)
@@ -635,8 +700,20 @@ def _newton_world_builder(scene: str, source: str) -> tuple[Any, str]:
     builder.default_shape_cfg.margin = 0.0
     builder.default_shape_cfg.gap = 0.0
     if source == "mjcf":
-        builder.add_mjcf(str(scene))
-        return builder, "scene from MJCF via newton add_mjcf (<connect> -> BALL loop joint; margin = gap = 0)"
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            builder.add_mjcf(str(scene))
+        parallel = sum("Parallel joints" in str(w.message) for w in caught)
+        for w in caught:  # pass on what is not the expected parallel-joint warning
+            if "Parallel joints" not in str(w.message):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        note = "scene from MJCF via newton add_mjcf (<connect> -> BALL loop joint; margin = gap = 0)"
+        if parallel:
+            note += (
+                f"; {parallel} BALL loop joint(s) parallel to another joint between the same bodies (a revolute "
+                "loop exported as two <connect>; Newton warns that parallel joints have undefined semantics)"
+            )
+        return builder, note
     if source == "newton_basics":
         if Path(scene).stem != "fourbar":
             raise ValueError("source='newton_basics' exists for fourbar only")
@@ -655,18 +732,77 @@ def _find_joint(builder: Any, name: str) -> int:
     raise KeyError(f"no joint named {name!r} in the Newton scene")
 
 
+def _newton_position_pd(world: Any, scene: str) -> tuple[int, int, list[str]]:
+    """Check the PD that ``add_mjcf`` made of the scene's ``<position kp kv>`` actuators and copy their
+    ``forcerange`` into ``joint_effort_limit`` (``add_mjcf`` keeps it only in SolverMuJoCo's custom attributes).
+
+    Returns ``(actuators, limits copied, problems)``: ``problems`` names every ``<position>`` actuator whose
+    joint DoF did not get mode ``POSITION`` with its ``kp`` (SolverKamino would not drive it as MuJoCo does).
+    """
+    import newton
+
+    count, limited, problems = 0, 0, []
+    for kind, joint, attrib in _joint_actuators(scene):
+        if kind != "position":
+            continue
+        count += 1
+        try:
+            j = _find_joint(world, joint)
+        except KeyError:
+            problems.append(f"{joint}: no Newton joint of that name (merged into another joint?)")
+            continue
+        lin, ang = world.joint_dof_dim[j]
+        if lin + ang != 1:
+            problems.append(f"{joint}: Newton joint has {lin + ang} DoFs")
+            continue
+        dof = world.joint_qd_start[j]
+        kp = float(attrib.get("kp", 1.0))
+        if world.joint_target_mode[dof] != int(newton.JointTargetMode.POSITION) or world.joint_target_ke[dof] != kp:
+            mode, ke = world.joint_target_mode[dof], world.joint_target_ke[dof]
+            problems.append(f"{joint}: mode {mode} ke {ke} (expected POSITION, {kp})")
+            continue
+        if "forcerange" in attrib and attrib.get("forcelimited", "auto") != "false":
+            world.joint_effort_limit[dof] = max(abs(float(v)) for v in attrib["forcerange"].split())
+            limited += 1
+    return count, limited, problems
+
+
 def _newton_build(scene: str, num_worlds: int, dev: Any, source: str) -> SimpleNamespace:
-    """Model (``num_worlds`` replicated worlds), the drive's DoF per world and the loop joints."""
+    """Model (``num_worlds`` replicated worlds), the drive's target array and index per world, the loop joints.
+
+    The drive writes ``offset + A sin(2 pi t)`` into ``getattr(control, drive_field)[drive_index]``: a
+    ``<motor>``'s DoF in ``joint_f`` (the DoF set to explicit effort), or a ``<position>`` actuator's joint
+    coordinate in ``joint_target_q`` (offset: the model's target there, the reference pose). Raises when a
+    ``<position>`` actuator did not become a Newton PD (see ``_newton_position_pd``).
+    """
     import newton
     import numpy as np
 
     world, note = _newton_world_builder(scene, source)
-    drive_joint = _first_motor_joint(scene)
-    drive_local = None
+    drive_joint, drive_kind = _first_actuator(scene)
+    if source == "mjcf":
+        count, limited, problems = _newton_position_pd(world, scene)
+        if problems:
+            raise RuntimeError(
+                f"Newton's add_mjcf did not make {len(problems)} of {count} <position> actuators a joint PD "
+                f"(joint_target_ke/kd, mode POSITION): {'; '.join(problems[:4])}"
+            )
+        if count:
+            note += (
+                f"; {count} <position> actuators -> Newton joint PD (joint_target_ke = kp, joint_target_kd = kv, "
+                f"mode POSITION), forcerange -> joint_effort_limit on {limited}"
+            )
+    drive_local, drive_field = None, None
     if drive_joint is not None:
         j = _find_joint(world, drive_joint)
         dof = world.joint_qd_start[j]
-        world.joint_target_mode[dof] = int(newton.JointTargetMode.EFFORT)  # an explicit-effort actuator
+        if drive_kind == "motor":
+            world.joint_target_mode[dof] = int(newton.JointTargetMode.EFFORT)  # an explicit-effort actuator
+            drive_field = "joint_f"
+        elif drive_kind == "position":
+            drive_field = "joint_target_q"  # a 1-DoF joint (checked above): its one coordinate
+        else:
+            raise ValueError(f"first actuator <{drive_kind}> of joint {drive_joint!r}: no drive for this kind")
         drive_local = j
     joints_per_world = world.joint_count
     builder = newton.ModelBuilder(up_axis=newton.Axis.Z)
@@ -681,11 +817,45 @@ def _newton_build(scene: str, num_worlds: int, dev: Any, source: str) -> SimpleN
     per_world = in_worlds.reshape(num_worlds, joints_per_world)
     if not np.array_equal(joint_world[per_world[:, 0]], np.arange(num_worlds)):
         raise RuntimeError("unexpected joint order after replicate")
-    drive_dofs = None
+    drive_index = drive_offset = None
     if drive_local is not None:
-        drive_dofs = model.joint_qd_start.numpy()[per_world[:, drive_local]].astype(np.int32)
+        joints = per_world[:, drive_local]
+        if drive_field == "joint_f":
+            drive_index = model.joint_qd_start.numpy()[joints]
+            drive_offset = np.zeros(num_worlds)
+        else:
+            drive_index = model.joint_q_start.numpy()[joints]
+            drive_offset = model.joint_target_q.numpy()[drive_index]
+        drive_index = drive_index.astype(np.int32)
+        drive_offset = drive_offset.astype(np.float32)
     loops = np.flatnonzero(model.joint_articulation.numpy() < 0).astype(np.int32)
-    return SimpleNamespace(model=model, drive_dofs=drive_dofs, loops=loops, note=note, drive_joint=drive_joint)
+    return SimpleNamespace(
+        model=model,
+        drive_field=drive_field,
+        drive_index=drive_index,
+        drive_offset=drive_offset,
+        drive_kind=drive_kind,
+        drive_joint=drive_joint,
+        loops=loops,
+        note=note,
+    )
+
+
+def _newton_anchored_joints(model: Any) -> Any:
+    """Joints whose two anchors coincide (REVOLUTE, BALL, FIXED, and D6 without linear axes), tree and loop.
+
+    SolverKamino keeps every joint as constraint rows (maximal coordinates), so its tree joints drift too; the
+    largest anchor distance over these is kamino's own closure measure (``closure_distance`` in
+    benchmarks/throughput.py: every joint whose first three rows are translational).
+    """
+    import newton
+    import numpy as np
+
+    jt = model.joint_type.numpy()
+    lin = model.joint_dof_dim.numpy()[:, 0]
+    T = newton.JointType
+    keep = np.isin(jt, [int(T.REVOLUTE), int(T.BALL), int(T.FIXED)]) | ((jt == int(T.D6)) & (lin == 0))
+    return np.flatnonzero(keep).astype(np.int32)
 
 
 def _newton_sim(built: SimpleNamespace, variant: str, settings: str = "newton_example") -> SimpleNamespace:
@@ -699,8 +869,13 @@ def _newton_sim(built: SimpleNamespace, variant: str, settings: str = "newton_ex
     states = [model.state(), model.state()]
     control = model.control()
     counter = wp.zeros(1, dtype=wp.int32, device=model.device)
-    dofs = None if built.drive_dofs is None else wp.array(built.drive_dofs, dtype=wp.int32, device=model.device)
-    return SimpleNamespace(solver=solver, config=config, states=states, control=control, counter=counter, dofs=dofs)
+    index = offset = None
+    if built.drive_index is not None:
+        index = wp.array(built.drive_index, dtype=wp.int32, device=model.device)
+        offset = wp.array(built.drive_offset, dtype=wp.float32, device=model.device)
+    return SimpleNamespace(
+        solver=solver, config=config, states=states, control=control, counter=counter, index=index, offset=offset
+    )
 
 
 def _padmm_status(solver: Any) -> Any:
@@ -728,9 +903,17 @@ def _padmm_stats_kernel(status_dtype: Any) -> Any:
 
 
 def _newton_stepper(
-    built: SimpleNamespace, sim: SimpleNamespace, closure: tuple | None = None, stats: wp.array | None = None
+    built: SimpleNamespace,
+    sim: SimpleNamespace,
+    closures: tuple = (),
+    stats: wp.array | None = None,
+    amplitude: float = DRIVE_AMPLITUDE,
 ) -> Callable[[], None]:
-    """One benchmark step: drive kernel into ``control.joint_f``, ``SolverKamino.step``, swap, tick.
+    """One benchmark step: drive kernel into ``control.joint_f`` (``<motor>``) or ``control.joint_target_q``
+    (``<position>``), ``SolverKamino.step``, swap, tick.
+
+    ``closures`` holds ``(joints, out)`` pairs: after every step the largest anchor distance of ``joints`` is
+    folded into ``out[0]``.
 
     With ``stats`` (an int32 array of 3), world 0's PADMM iterations are accumulated after every step on the
     device (see ``_padmm_stats_kernel``). The states are swapped in Python after every step, so a captured
@@ -741,31 +924,32 @@ def _newton_stepper(
     k = _kernels()
     model = built.model
     omega = 2.0 * math.pi * DRIVE_FREQUENCY
-    n_drive = 0 if sim.dofs is None else sim.dofs.shape[0]
+    n_drive = 0 if sim.index is None else sim.index.shape[0]
+    target = None if not n_drive else getattr(sim.control, built.drive_field)
 
     def step() -> None:
         if n_drive:
             wp.launch(
                 k.counter_drive,
                 dim=n_drive,
-                inputs=[sim.counter, sim.dofs, DRIVE_AMPLITUDE, omega, DT],
-                outputs=[sim.control.joint_f],
+                inputs=[sim.counter, sim.index, sim.offset, amplitude, omega, DT],
+                outputs=[target],
             )
         sim.solver.step(sim.states[0], sim.states[1], sim.control, None, DT)
         sim.states.reverse()
         wp.launch(k.tick, dim=1, inputs=[sim.counter])
-        if closure is not None:
+        for joints, out in closures:
             wp.launch(
                 k.newton_closure,
-                dim=closure[0].shape[0],
+                dim=joints.shape[0],
                 inputs=[
                     sim.states[0].body_q,
-                    closure[0],
+                    joints,
                     model.joint_parent,
                     model.joint_child,
                     model.joint_X_p,
                     model.joint_X_c,
-                    closure[1],
+                    out,
                 ],
             )
         if stats_kernel is not None:
@@ -792,14 +976,16 @@ def run_solver_kamino(
     use_graph: bool | None = None,
     source: str = "mjcf",
     settings: str = "newton_example",
+    amplitude: float = DRIVE_AMPLITUDE,
 ) -> dict[str, Any]:
     """Throughput, loop closure and memory of Newton's ``SolverKamino`` on a benchmark scene.
 
     The scene is built once with Newton's builder (``source``: the same MJCF through ``add_mjcf``, or
     Newton's own procedural four-bar) and replicated to ``num_worlds`` worlds with
-    ``ModelBuilder.replicate``. The drive goes into ``Control.joint_f`` of the first ``<motor>``'s joint
-    (set to explicit-effort actuation). Kamino's own collision detector is on (see ``_kamino_config``). See
-    the module docstring for the method.
+    ``ModelBuilder.replicate``. The drive goes into ``Control.joint_f`` of the first actuator's joint if it
+    is a ``<motor>`` (set to explicit-effort actuation), into ``Control.joint_target_q`` of its coordinate if
+    it is a ``<position>`` actuator (Newton's joint PD, see ``_newton_build``). Kamino's own collision
+    detector is on (see ``_kamino_config``). See the module docstring for the method.
 
     Args:
         scene: MJCF path.
@@ -814,6 +1000,8 @@ def run_solver_kamino(
         use_graph: capture graphs; ``None`` means on CUDA only.
         source: ``"mjcf"`` or ``"newton_basics"`` (fourbar only), see ``SCENE_SOURCES``.
         settings: ``"newton_example"`` (PADMM tolerances 1e-4 etc., see ``_kamino_config``) or ``"defaults"``.
+        amplitude: drive amplitude ``A``: a ``<motor>``'s torque ``A sin(2 pi t)`` [N m], a ``<position>``
+            actuator's target ``offset + A sin(2 pi t)`` [rad] (the robots: 0.2).
 
     Returns:
         The result dict (module docstring); ``reason`` is set when something could not run.
@@ -821,6 +1009,7 @@ def run_solver_kamino(
     result = _new_result("newton_solver_kamino", variant, scene, num_worlds)
     result["source"] = source
     result["settings"] = settings
+    result["drive_amplitude"] = float(amplitude)
     try:
         import newton  # noqa: F401
     except Exception as exc:
@@ -858,16 +1047,20 @@ def run_solver_kamino(
                 )
             else:
                 _add_note(result, f"{cfg.dynamics_solver} linear_solver={cfg.dynamics.linear_solver_type}")
-            if built.drive_dofs is None:
-                _add_note(result, "scene has no <motor>: no drive")
+            if built.drive_index is None:
+                _add_note(result, "scene has no joint actuator: no drive")
+            else:
+                result["drive"] = _drive_text(built.drive_kind, built.drive_joint, amplitude)
+                if built.drive_field == "joint_target_q":
+                    result["drive"] += " -> Newton Control.joint_target_q"
             if built.loops.size == 0:
-                _add_note(result, "no loop joint in the Newton model: the loop is not closed")
+                _add_note(result, "no loop joint in the Newton model: no loop closure (joint_error_max_m: all joints)")
     except Exception as exc:
         return _fail(result, "load", exc)
 
     try:
         with wp.ScopedDevice(dev):
-            step = _newton_stepper(built, sim)
+            step = _newton_stepper(built, sim, amplitude=amplitude)
             step()  # compile and load the kernels outside any capture
             step()
             wp.synchronize_device(dev)
@@ -885,16 +1078,20 @@ def run_solver_kamino(
         try:
             with wp.ScopedDevice(dev):
                 built1 = _newton_build(scene, 1, dev, source)
-                if built1.loops.size:
+                anchored = _newton_anchored_joints(built1.model)
+                if anchored.size:
                     sim1 = _newton_sim(built1, variant, settings)
-                    closure = (
-                        wp.array(built1.loops, dtype=wp.int32, device=dev),
-                        wp.zeros(1, dtype=wp.float32, device=dev),
+                    closures = tuple(
+                        (wp.array(joints, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.float32, device=dev))
+                        for joints in (anchored, built1.loops)
+                        if joints.size
                     )
                     stats = wp.zeros(3, dtype=wp.int32, device=dev)
-                    step = _newton_stepper(built1, sim1, closure=closure, stats=stats)
+                    step = _newton_stepper(built1, sim1, closures=closures, stats=stats, amplitude=amplitude)
                     _run_closure_steps(step, dev, closure_steps, graph_steps, graph)
-                    result["closure_max_m"] = float(closure[1].numpy()[0])
+                    result["joint_error_max_m"] = float(closures[0][1].numpy()[0])
+                    if built1.loops.size:
+                        result["closure_max_m"] = float(closures[1][1].numpy()[0])
                     result["closure_steps"] = closure_steps
                     if _padmm_status(sim1.solver) is not None:
                         total, conv, most = (int(v) for v in stats.numpy())
@@ -916,6 +1113,7 @@ def _format(r: dict[str, Any]) -> str:
         return "-" if x is None else format(x, fmt)
 
     closure = None if r["closure_max_m"] is None else 1e3 * r["closure_max_m"]
+    joint_error = None if r["joint_error_max_m"] is None else 1e3 * r["joint_error_max_m"]
     mem = r["memory_per_world_bytes"]
     if mem is None:
         mem = r["memory_per_world_arrays_bytes"]
@@ -923,7 +1121,8 @@ def _format(r: dict[str, Any]) -> str:
     line = (
         f"{r['peer']:<21} {variant:<30} {r['scene']:<9} worlds={r['num_worlds']:<6} "
         f"throughput={num(r['throughput'], '.3g')} step={num(r['step_time_s'], '.3g')}s "
-        f"closure={num(closure, '.3f')}mm mem/world={num(None if mem is None else mem / 1024, '.1f')}KiB "
+        f"closure={num(closure, '.3f')}mm joints={num(joint_error, '.3f')}mm "
+        f"mem/world={num(None if mem is None else mem / 1024, '.1f')}KiB "
         f"[{r['timing']}] {r['device']}"
     )
     if r["reason"]:
@@ -945,6 +1144,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--closure-steps", type=int, default=1000, help="closure run once per peer/variant")
     parser.add_argument("--min-trial-s", type=float, default=MIN_TRIAL_S)
+    parser.add_argument(
+        "--amplitude", type=float, default=DRIVE_AMPLITUDE, help="drive amplitude: N m (<motor>), rad (<position>)"
+    )
     parser.add_argument("--graph", action=argparse.BooleanOptionalAction, default=None, help="force graphs on/off")
     parser.add_argument("--json", default=None, help="write all results to this JSON file")
     parser.add_argument("--verbose", action="store_true", help="keep Warp's module-load messages")
@@ -960,6 +1162,7 @@ def main(argv: list[str] | None = None) -> int:
         "repeats": args.repeats,
         "min_trial_s": args.min_trial_s,
         "use_graph": args.graph,
+        "amplitude": args.amplitude,
     }
     print("versions:", json.dumps(peer_versions()), flush=True)
     results = []
@@ -981,9 +1184,9 @@ def main(argv: list[str] | None = None) -> int:
             steps = args.closure_steps if i == 0 else 0  # the closure run is one world: do it once
             r = fn(args.scene, n, closure_steps=steps, **common, **extra)
             if i == 0:
-                closure = (r["closure_max_m"], r["closure_steps"])
+                closure = (r["closure_max_m"], r["joint_error_max_m"], r["closure_steps"])
             else:
-                r["closure_max_m"], r["closure_steps"] = closure
+                r["closure_max_m"], r["joint_error_max_m"], r["closure_steps"] = closure
             results.append(r)
             print(_format(r), flush=True)
     if args.json:

@@ -10,7 +10,10 @@ float32, dt = 0.0025 s, the drive ``2 N m sin(2 pi t)`` on the scene's first act
 every step (inside the graph); throughput = steps/s x worlds with a CUDA graph of ``--graph-steps`` steps
 replayed, after warm-up, median of ``--repeats`` trials. Next to each figure: the PADMM iterations and
 residuals and the loop closure (largest anchor distance of any joint with translational rows) over a
-``--closure-steps`` run of one world, and the device memory per world.
+``--closure-steps`` run of one world, and the device memory per world. The robots (``--scenes dr_legs bdx olaf
+animatronic``) stand in their reference pose under PD, with the position target ``0.2 sin(2 pi t)`` rad on the
+first actuator. The peers run fourbar, ladder8, ladder32 from benchmarks/scenes and the robots from their
+``kamino.save_mjcf`` export, with the same drive (benchmarks/peers.py, :func:`run_peers`).
 """
 
 
@@ -22,6 +25,7 @@ import pathlib
 import platform
 import statistics
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -338,24 +342,50 @@ def main(argv=None) -> int:
     return 0
 
 
+#: the MJCF scenes the peers run from benchmarks/scenes (the robots of :data:`ROBOTS` run from kamino's export)
+PEER_SCENES = ("fourbar", "ladder8", "ladder32")
+
+
 def run_peers(scene, args, emit) -> None:
-    """MuJoCo Warp and Newton SolverKamino on the same MJCF, when importable (benchmarks/peers.py)."""
-    if scene not in ("fourbar", "ladder8", "ladder32"):
+    """MuJoCo Warp and Newton SolverKamino on the same MJCF and drive as kamino, when importable (benchmarks/peers.py).
+
+    The MJCF scenes (:data:`PEER_SCENES`) run from benchmarks/scenes with the torque drive of amplitude
+    :data:`AMPLITUDE`. A robot of :data:`ROBOTS` is exported by ``kamino.save_mjcf`` (position actuators become
+    ``<position kp kv>``, loop-closing joints ``<connect>`` with ``solref`` 0.004) into a temporary directory, and
+    the peers drive the position target of its first actuator with ``0.2 sin(2 pi t)`` rad, as kamino does
+    (:func:`load_scene`), the other actuators holding the reference pose. Each record names the scene (``scene``)
+    and where its MJCF came from (``scene_source``)."""
+    if scene not in PEER_SCENES and scene not in ROBOTS:
         return
     try:
         import peers
     except ImportError as e:
         emit({"peer": "all", "scene": scene, "error": f"benchmarks/peers.py not importable: {e}"})
         return
-    path = str(HERE / "scenes" / f"{scene}.xml")
-    for nw in args.worlds:
-        runs = [(peers.run_mujoco_warp, {})] + [(peers.run_solver_kamino, {"variant": v}) for v in args.kamino_variants]
-        for fn, kw in runs:
-            try:
-                emit(fn(path, nw, graph_steps=args.graph_steps, repeats=args.repeats,
-                        closure_steps=args.closure_steps if nw == args.worlds[0] else 0, **kw))
-            except Exception as e:
-                emit({"peer": fn.__name__, "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
+    runs = [(peers.run_mujoco_warp, {})] + [(peers.run_solver_kamino, {"variant": v}) for v in args.kamino_variants]
+    with tempfile.TemporaryDirectory(prefix="kamino_peers_") as tmp:
+        try:
+            model, drive = load_scene(scene)
+            if scene in ROBOTS:
+                path = str(pathlib.Path(tmp) / f"{scene}.xml")
+                kamino.save_mjcf(model, path, model_name=scene)
+                source = f"kamino.save_mjcf(kamino.models.{scene}())"
+            else:
+                path = str(HERE / "scenes" / f"{scene}.xml")
+                source = f"benchmarks/scenes/{scene}.xml"
+        except Exception as e:  # the export raises ValueError for what MJCF cannot represent
+            for fn, _ in runs:
+                emit({"peer": fn.__name__, "scene": scene, "error": f"MJCF for the peers: {e!r}"[:300]})
+            return
+        for nw in args.worlds:
+            for fn, kw in runs:
+                try:
+                    rec = fn(path, nw, graph_steps=args.graph_steps, repeats=args.repeats,
+                             closure_steps=args.closure_steps if nw == args.worlds[0] else 0,
+                             amplitude=drive["amplitude"], **kw)
+                    emit({**rec, "scene": scene, "scene_source": source})
+                except Exception as e:
+                    emit({"peer": fn.__name__, "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
 
 
 def plot(results: dict, stem: pathlib.Path) -> None:
