@@ -652,65 +652,19 @@ def table(results: dict) -> str:
 def plot(results: dict, stem: pathlib.Path) -> list[str]:
     """``<stem>_speed_error.png``: per scene, throughput against max loop closure over the tolerance sweep,
     each point labelled with its tolerance (the run's own world-steps/s where there is no throughput: CPU);
-    ``<stem>_iterations.png``: the PADMM iterations-per-step histogram of each scene's default run."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import matplotlib.ticker
+    ``<stem>_iterations.png``: the PADMM iterations-per-step histogram of each scene's default run. Drawn by
+    :mod:`kamino.plots`; returns the paths written."""
+    from kamino import plots
 
     recs = [r for r in results["records"] if "error" not in r]
     written = []
-    sweep: dict[str, list] = {}
-    for r in recs:
-        if r.get("sweep"):
-            sweep.setdefault(r["scene"], []).append(r)
-    for r in recs:  # the default run is a point of its scene's curve too
-        curve = sweep.get(r["scene"])
-        if not r.get("sweep") and curve is not None and all(x["tolerance"] != r["tolerance"] for x in curve):
-            curve.append(r)
-    if sweep:
-        fig, axes = plt.subplots(1, len(sweep), figsize=(4.5 * len(sweep), 4), squeeze=False)
-        for ax, (scene, rs) in zip(axes[0], sweep.items(), strict=True):
-            rs = sorted(rs, key=lambda r: -r["tolerance"])
-            gpu = all(r.get("throughput_world_steps_per_s") for r in rs)
-            y = [r["throughput_world_steps_per_s"] if gpu else r["run_world_steps_per_s"] for r in rs]
-            x = [max(r["closure_max_m"], 1e-12) for r in rs]
-            ax.plot(x, y, marker="o")
-            for xi, yi, r in zip(x, y, rs, strict=True):
-                ax.annotate(f"tol {r['tolerance']:g}\n{100 * r['converged_fraction']:.1f}% conv.", (xi, yi),
-                            fontsize=7, textcoords="offset points", xytext=(4, 4))
-            ax.set(xscale="log", yscale="log", title=scene, xlabel="max loop closure [m]",
-                   ylabel="world-steps/s" + ("" if gpu else " (run incl. host probes)"))
-            short = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:.2g}")
-            for axis, data in ((ax.xaxis, x), (ax.yaxis, y)):  # short labels; minor ones within a decade only
-                axis.set_major_formatter(short)
-                narrow = max(data) < 10 * min(data)
-                axis.set_minor_formatter(short if narrow else matplotlib.ticker.NullFormatter())
-            ax.tick_params(axis="x", which="both", labelrotation=45, labelsize=7)
-            ax.tick_params(axis="y", which="both", labelsize=7)
-            ax.grid(True, which="both", alpha=0.3)
-        fig.tight_layout()
-        written.append(f"{stem}_speed_error.png")
-        fig.savefig(written[-1], dpi=120)
-        plt.close(fig)
+    swept = {r["scene"] for r in recs if r.get("sweep")}
+    if swept:  # each swept scene's curve, its default run a point of it too
+        written.append(plots.save_figure(plots.speed_against_error([r for r in recs if r["scene"] in swept]),
+                                         f"{stem}_speed_error.png"))
     default = [r for r in recs if not r.get("sweep") and r.get("iterations_histogram")]
     if default:
-        cols = min(4, len(default))
-        rows = -(-len(default) // cols)
-        fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
-        for ax in axes.flat[len(default):]:
-            ax.axis("off")
-        for ax, r in zip(axes.flat, default, strict=False):
-            k, c = np.array(r["iterations_histogram"]).T
-            ax.bar(k, c, width=1.0)
-            ax.set(yscale="log", xlabel="PADMM iterations per step", ylabel="(world, step) pairs",
-                   title=f"{r['scene']} (tol {r['tolerance']:g}, {100 * r['converged_fraction']:.1f}% conv.)")
-            ax.title.set_fontsize(8)
-        fig.tight_layout()
-        written.append(f"{stem}_iterations.png")
-        fig.savefig(written[-1], dpi=120)
-        plt.close(fig)
+        written.append(plots.save_figure(plots.iterations_histogram(default), f"{stem}_iterations.png"))
     return written
 
 

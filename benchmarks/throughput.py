@@ -389,49 +389,17 @@ def run_peers(scene, args, emit) -> None:
 
 
 def plot(results: dict, stem: pathlib.Path) -> None:
-    """Throughput against worlds, and throughput against closure error, one panel per scene."""
-    import matplotlib
+    """``<stem>_throughput.png``: throughput against worlds; ``<stem>_error.png``: throughput against max loop
+    closure (one point per world count, each configuration and peer a series); both one panel per scene
+    (:mod:`kamino.plots`)."""
+    from kamino import plots
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    recs = [r for r in results["records"] if r.get("throughput")]
-    scenes = sorted({r["scene"] for r in recs})
-    fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 4), squeeze=False)
-    for ax, scene in zip(axes[0], scenes, strict=True):
-        series = {}
-        for r in recs:
-            if r["scene"] == scene:
-                key = f"kamino {r['config']}" if "config" in r else f"{r['peer']} {r.get('variant') or ''}".strip()
-                series.setdefault(key, []).append((r["num_worlds"], r["throughput"]))
-        for key, pts in sorted(series.items()):
-            pts.sort()
-            ax.plot(*zip(*pts, strict=True), marker="o", label=key)
-        ax.set(xscale="log", yscale="log", xlabel="worlds", ylabel="steps/s x worlds", title=scene)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(f"{stem}_throughput.png", dpi=120)
-    fig, ax = plt.subplots(figsize=(6, 4))
-    # one point per scene and simulator: its closure (measured once, on one world) against its throughput at
-    # the largest world count it ran
-    points: dict[str, dict] = {}
-    for r in recs:
-        key = f"{r['scene']} " + (f"kamino {r['config']}" if "config" in r else f"{r['peer']} {r.get('variant') or ''}")
-        p = points.setdefault(key.strip(), {"closure": None, "worlds": -1, "throughput": None})
-        if r.get("closure_max_m"):
-            p["closure"] = r["closure_max_m"]
-        if r["num_worlds"] > p["worlds"]:
-            p["worlds"], p["throughput"] = r["num_worlds"], r["throughput"]
-    for label, p in sorted(points.items()):
-        if p["closure"]:
-            ax.scatter(p["closure"], p["throughput"], label=f"{label} ({p['worlds']} worlds)")
-    ax.set(xscale="log", yscale="log", xlabel="max loop closure over 1000 steps [m]",
-           ylabel="steps/s x worlds (largest world count run)")
-    ax.legend(fontsize=6)
-    ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(f"{stem}_error.png", dpi=120)
+    plots.save_figure(plots.throughput_against_worlds(results), f"{stem}_throughput.png")
+    try:
+        fig = plots.speed_against_error(results)
+    except ValueError:  # no record has a closure: no error plot
+        return
+    plots.save_figure(fig, f"{stem}_error.png")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,315 @@
+"""Plots people want from kamino runs, drawn in one place (issue 19): a rollout's loop closure, energy, PADMM
+iterations and residuals over time (:func:`rollout_diagnostics`); the benchmark JSONs' throughput against loop
+closure (:func:`speed_against_error`), throughput against world count (:func:`throughput_against_worlds`) and the
+iterations-per-step histograms (:func:`iterations_histogram`). :func:`save_figure` writes a PNG and closes it.
+
+matplotlib is the ``bench`` extra (``pip install 'kamino[bench]'``); it is imported inside each function, never
+when ``kamino.plots`` is imported, and no backend is forced: the Agg backend is chosen only when none was set and
+there is no display to draw on. Every function returns the :class:`matplotlib.figure.Figure` it drew on.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+    from kamino.model import Model
+    from kamino.state import State
+
+__all__ = ["iterations_histogram", "rollout_diagnostics", "save_figure", "speed_against_error",
+           "throughput_against_worlds"]
+
+_INSTALL = "pip install 'kamino[bench]'"
+
+
+def _pyplot():
+    """``matplotlib.pyplot``, or an ImportError that names the extra. Chooses Agg only when no backend was set (by
+    ``MPLBACKEND``, ``matplotlib.use`` or an rc file) and, on Linux, there is no display; pyplot already imported
+    keeps whatever it has."""
+    try:
+        import matplotlib
+    except ImportError as e:
+        raise ImportError(f"kamino.plots needs matplotlib, which is not installed; install the bench extra: "
+                          f"{_INSTALL}") from e
+    if "matplotlib.pyplot" not in sys.modules and not os.environ.get("MPLBACKEND"):
+        from matplotlib import rcsetup
+
+        unset = matplotlib.rcParams._get("backend") is rcsetup._auto_backend_sentinel
+        headless = sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
+                                                             or os.environ.get("WAYLAND_DISPLAY"))
+        if unset and headless:
+            matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _axes(ax: Axes | Sequence[Axes] | None, n: int, *, ncols: int | None = None,
+          panel: tuple[float, float] = (4.5, 4.0)) -> tuple[Figure, list[Axes]]:
+    """``n`` axes: the caller's (one Axes when ``n == 1``, else a sequence of at least ``n``) or a new figure's
+    (``ncols`` a row, default all in one row)."""
+    if ax is None:
+        plt = _pyplot()
+        ncols = min(ncols or n, n) or 1
+        nrows = max(1, -(-n // ncols))
+        fig, grid = plt.subplots(nrows, ncols, figsize=(panel[0] * ncols, panel[1] * nrows), squeeze=False)
+        flat = list(grid.flat)
+        for extra in flat[n:]:
+            extra.axis("off")
+        return fig, flat[:n]
+    axes = [ax] if hasattr(ax, "figure") else list(ax)
+    if len(axes) < n:
+        raise ValueError(f"kamino.plots: this plot draws {n} panel(s), got {len(axes)} Axes")
+    return axes[0].figure, axes[:n]
+
+
+def _short_log_ticks(ax: Axes, x: Sequence[float], y: Sequence[float]) -> None:
+    """Short tick labels on log axes; minor labels only where the data span less than a decade."""
+    import matplotlib.ticker
+
+    short = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:.2g}")
+    for axis, data in ((ax.xaxis, x), (ax.yaxis, y)):
+        data = [d for d in data if d and d > 0]
+        if not data:
+            continue
+        axis.set_major_formatter(short)
+        axis.set_minor_formatter(short if max(data) < 10 * min(data) else matplotlib.ticker.NullFormatter())
+    ax.tick_params(axis="x", which="both", labelrotation=45, labelsize=7)
+    ax.tick_params(axis="y", which="both", labelsize=7)
+
+
+def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: int = 120) -> str:
+    """Write ``fig`` to ``path`` (the format from its suffix), close it (pyplot keeps no reference) and return
+    the path as a string."""
+    fig.savefig(path, dpi=dpi)
+    if "matplotlib.pyplot" in sys.modules:
+        sys.modules["matplotlib.pyplot"].close(fig)
+    return str(path)
+
+
+# ------------------------------------------------------------------------------------------------ rollouts
+
+
+def rollout_diagnostics(model: Model, traj: State, *, world: int | None = 0, dt: float | None = None,
+                        ax: Sequence[Axes] | None = None) -> Figure:
+    """Four panels from a :func:`kamino.rollout` trajectory (a :class:`kamino.State` with a leading time axis):
+
+    1. loop closure: :func:`kamino.metrics`' ``constraint_violation`` over time (log y; m for translational rows,
+       rad for rotational ones);
+    2. energy: ``kinetic_energy``, ``potential_energy`` and ``total_energy`` over time [J];
+    3. PADMM iterations per step (``traj.info.iterations``), unconverged steps marked with red crosses;
+    4. the solve's ``primal_residual`` and ``dual_residual`` per step (log y).
+
+    Args:
+        model: the model the trajectory was run on.
+        traj: the trajectory; ``traj.info`` holds each step's :class:`kamino.StepInfo` (``[num_steps, num_worlds]``).
+        world: the world to draw, or ``None`` for the maximum over all worlds of every quantity (an envelope;
+            a step counts as unconverged when any world's solve did not converge).
+        dt: the step [s], used for the time axis only when ``traj`` has no ``time`` (then ``step * dt``);
+            with neither, the x axis is the step index.
+        ax: four Axes to draw into (in the order above); by default a new 2 x 2 figure.
+
+    Returns:
+        The figure drawn on. Each panel's lines hold exactly the plotted arrays (``line.get_ydata()``).
+    """
+    from kamino.api import metrics
+
+    m = {k: np.asarray(v) for k, v in metrics(model, traj).items()}
+    num_steps, num_worlds = m["constraint_violation"].shape
+    if world is not None and not -num_worlds <= world < num_worlds:
+        raise ValueError(f"rollout_diagnostics: world {world} is out of range for {num_worlds} world(s)")
+
+    def pick(a: Any, reduce=np.max) -> np.ndarray:
+        a = np.asarray(a).reshape(num_steps, -1)
+        return a[:, world] if world is not None else reduce(a, axis=1)
+
+    time = getattr(traj, "time", None)
+    if time is not None:
+        t, xlabel = pick(time), "time [s]"
+    elif dt is not None:
+        t, xlabel = (np.arange(num_steps) + 1) * dt, "time [s]"
+    else:
+        t, xlabel = np.arange(num_steps) + 1, "step"
+    which = f"world {world}" if world is not None else f"max over {num_worlds} worlds"
+    fig, (a_close, a_energy, a_iter, a_res) = _axes(ax, 4, ncols=2, panel=(5.5, 3.5))
+
+    a_close.plot(t, pick(m["constraint_violation"]), label="constraint violation")
+    a_close.set(yscale="log", xlabel=xlabel, ylabel="max |joint residual| [m, rad]", title=f"loop closure ({which})")
+    for key in ("kinetic_energy", "potential_energy", "total_energy"):
+        a_energy.plot(t, pick(m[key]), label=key.replace("_", " "))
+    a_energy.set(xlabel=xlabel, ylabel="energy [J]", title=f"energy ({which})")
+    info = traj.info
+    iters = pick(info.iterations)
+    a_iter.plot(t, iters, drawstyle="steps-mid", label="iterations")
+    unconverged = ~pick(info.converged, np.min).astype(bool)
+    if unconverged.any():
+        a_iter.plot(t[unconverged], iters[unconverged], "x", color="tab:red", label="not converged")
+    a_iter.set(xlabel=xlabel, ylabel="PADMM iterations", title=f"PADMM iterations per step ({which})")
+    for key in ("primal_residual", "dual_residual"):
+        a_res.plot(t, pick(getattr(info, key)), label=key.replace("_", " "))
+    a_res.set(yscale="log", xlabel=xlabel, ylabel="residual", title=f"PADMM residuals per step ({which})")
+    for a in (a_close, a_energy, a_iter, a_res):
+        a.grid(True, which="both", alpha=0.3)
+        a.legend(fontsize=7)
+        a.title.set_fontsize(9)
+    if ax is None:
+        fig.tight_layout()
+    return fig
+
+
+# ---------------------------------------------------------------------------------------- benchmark results
+
+
+def _records(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    """The records of a benchmark JSON (its ``records``, or a list of them), without failed runs."""
+    recs = results["records"] if isinstance(results, Mapping) else results
+    return [r for r in recs if "error" not in r]
+
+
+def _series(r: Mapping[str, Any]) -> str:
+    """A throughput record's simulator: ``kamino <config>`` or ``<peer> <variant>``."""
+    if "config" in r and not isinstance(r["config"], Mapping):
+        return f"kamino {r['config']}"
+    if r.get("peer"):
+        return f"{r['peer']} {r.get('variant') or ''}".strip()
+    return f"kamino {r.get('kamino') or ''}".strip()
+
+
+def _is_convergence(r: Mapping[str, Any]) -> bool:
+    return "throughput_world_steps_per_s" in r or "run_world_steps_per_s" in r
+
+
+def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
+                        ax: Axes | Sequence[Axes] | None = None) -> Figure:
+    """Throughput (y, log) against max loop closure (x, log), one panel per scene, from a benchmark JSON.
+
+    - ``benchmarks/throughput.py`` records: one series per kamino configuration (``kamino <config>``) and per
+      peer (``<peer> <variant>``), one point per world count run, labelled with it. The closure is measured once
+      per scene and simulator (on one world count), so a record without ``closure_max_m`` takes its series'; a
+      series with no closure at all is left out.
+    - ``benchmarks/convergence.py`` records: one series per scene and world count over the tolerance sweep, one
+      point per tolerance (labelled with it and the converged fraction; a default run at a tolerance the sweep
+      also ran is drawn once), the y value its
+      ``throughput_world_steps_per_s`` (or, where a point has none, e.g. on the CPU, every point's
+      ``run_world_steps_per_s``, which includes host probes).
+
+    Args:
+        results: the JSON's dict (with ``records``) or the list of records; records with ``error`` are skipped.
+        ax: the Axes to draw into (one per scene, scenes sorted by name); by default a new figure.
+
+    Returns:
+        The figure drawn on; each series is one line whose data are its points, in world-count order
+        (throughput records) or from the loosest tolerance to the tightest (convergence records).
+    """
+    # scene -> series -> [(closure, throughput, label, order)]
+    panels: dict[str, dict[str, list[tuple[float, float, str, float]]]] = {}
+    run_rate: dict[str, bool] = {}
+    recs = _records(results)
+    closures: dict[tuple[str, str], float] = {}
+    for r in recs:
+        if not _is_convergence(r) and r.get("closure_max_m") is not None:
+            closures.setdefault((r["scene"], _series(r)), r["closure_max_m"])
+    conv: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
+    for r in recs:
+        if _is_convergence(r):
+            conv.setdefault((r["scene"], f"kamino, {r['num_worlds']} worlds (tolerance sweep)"), []).append(r)
+        elif r.get("throughput"):
+            closure = r.get("closure_max_m") or closures.get((r["scene"], _series(r)))
+            if closure is not None:
+                panels.setdefault(r["scene"], {}).setdefault(_series(r), []).append(
+                    (max(closure, 1e-12), r["throughput"], f"{r['num_worlds']} w", r["num_worlds"]))
+    for (scene, name), rs in conv.items():
+        by_tol: dict[float, Mapping[str, Any]] = {}
+        for r in sorted(rs, key=lambda r: not r.get("sweep")):  # a sweep point before a default run's duplicate
+            if r.get("closure_max_m") is not None:
+                by_tol.setdefault(r["tolerance"], r)
+        rs = sorted(by_tol.values(), key=lambda r: -r["tolerance"])
+        gpu = all(r.get("throughput_world_steps_per_s") for r in rs)
+        run_rate[scene] = run_rate.get(scene, False) or not gpu
+        pts = []
+        for r in rs:
+            y = r["throughput_world_steps_per_s"] if gpu else r.get("run_world_steps_per_s")
+            if y:
+                conv_txt = f"\n{100 * r['converged_fraction']:.1f}% conv." if r.get("converged_fraction") is not None \
+                    else ""
+                pts.append((max(r["closure_max_m"], 1e-12), y, f"tol {r['tolerance']:g}{conv_txt}", -r["tolerance"]))
+        if pts:
+            panels.setdefault(scene, {})[name] = pts
+    if not panels:
+        raise ValueError("speed_against_error: no record has both a throughput and a loop closure")
+    scenes = sorted(panels)
+    fig, axes = _axes(ax, len(scenes))
+    for a, scene in zip(axes, scenes, strict=True):
+        xs, ys = [], []
+        for name, pts in sorted(panels[scene].items()):
+            pts.sort(key=lambda p: p[3])
+            x, y, labels, _ = zip(*pts, strict=True)
+            a.plot(x, y, marker="o", label=name)
+            for xi, yi, text in zip(x, y, labels, strict=True):
+                a.annotate(text, (xi, yi), fontsize=6, textcoords="offset points", xytext=(4, 4))
+            xs += x
+            ys += y
+        a.set(xscale="log", yscale="log", title=scene, xlabel="max loop closure [m]",
+              ylabel="world-steps/s" + (" (run incl. host probes)" if run_rate.get(scene) else ""))
+        _short_log_ticks(a, xs, ys)
+        a.grid(True, which="both", alpha=0.3)
+        a.legend(fontsize=6)
+    if ax is None:
+        fig.tight_layout()
+    return fig
+
+
+def throughput_against_worlds(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
+                              ax: Axes | Sequence[Axes] | None = None) -> Figure:
+    """Throughput (world-steps/s, log) against world count (log), one panel per scene (sorted), one series per
+    kamino configuration and per peer, from ``benchmarks/throughput.py`` records (those with a ``throughput``)."""
+    panels: dict[str, dict[str, list[tuple[int, float]]]] = {}
+    for r in _records(results):
+        if r.get("throughput") and not _is_convergence(r):
+            panels.setdefault(r["scene"], {}).setdefault(_series(r), []).append((r["num_worlds"], r["throughput"]))
+    if not panels:
+        raise ValueError("throughput_against_worlds: no record has a throughput")
+    scenes = sorted(panels)
+    fig, axes = _axes(ax, len(scenes), panel=(5.0, 4.0))
+    for a, scene in zip(axes, scenes, strict=True):
+        for name, pts in sorted(panels[scene].items()):
+            a.plot(*zip(*sorted(pts), strict=True), marker="o", label=name)
+        a.set(xscale="log", yscale="log", xlabel="worlds", ylabel="steps/s x worlds", title=scene)
+        a.grid(True, which="both", alpha=0.3)
+        a.legend(fontsize=7)
+    if ax is None:
+        fig.tight_layout()
+    return fig
+
+
+def iterations_histogram(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
+                         ax: Axes | Sequence[Axes] | None = None) -> Figure:
+    """The PADMM iterations-per-step histogram (log counts of (world, step) pairs) of each
+    ``benchmarks/convergence.py`` record that has one (its ``iterations_histogram``: ``[[iterations, count]...]``),
+    one panel per record in record order, up to four a row."""
+    recs = [r for r in _records(results) if r.get("iterations_histogram")]
+    if not recs:
+        raise ValueError("iterations_histogram: no record has an iterations_histogram")
+    fig, axes = _axes(ax, len(recs), ncols=4, panel=(4.0, 3.0))
+    for a, r in zip(axes, recs, strict=True):
+        k, c = np.asarray(r["iterations_histogram"]).T
+        a.bar(k, c, width=1.0)
+        conv = r.get("converged_fraction")
+        detail = ", ".join(s for s in (f"tol {r['tolerance']:g}" if r.get("tolerance") is not None else "",
+                                       f"{100 * conv:.1f}% conv." if conv is not None and math.isfinite(conv) else "")
+                           if s)
+        a.set(yscale="log", xlabel="PADMM iterations per step", ylabel="(world, step) pairs",
+              title=f"{r['scene']} ({detail})" if detail else r["scene"])
+        a.title.set_fontsize(8)
+    if ax is None:
+        fig.tight_layout()
+    return fig

@@ -1,0 +1,131 @@
+"""``kamino.plots``: the figures hold the data they claim to (a four-bar rollout's metrics and solver reports; the
+committed benchmark JSONs' records), one panel per scene."""
+
+import json
+import pathlib
+import sys
+
+import numpy as np
+import pytest
+
+import kamino
+from kamino import plots
+
+pytest.importorskip("matplotlib")
+RESULTS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "results"
+
+
+@pytest.fixture(scope="module")
+def fourbar_rollout():
+    model = kamino.replicate(kamino.models.fourbar(), 2)
+    traj = kamino.rollout(model, kamino.init_state(model), num_steps=50)
+    return model, traj, {k: np.asarray(v) for k, v in kamino.metrics(model, traj).items()}
+
+
+def _lines(ax) -> dict[str, np.ndarray]:
+    return {line.get_label(): np.asarray(line.get_ydata()) for line in ax.get_lines()}
+
+
+@pytest.mark.parametrize("world", [1, None])
+def test_rollout_diagnostics_draws_the_metrics_and_the_solver_reports(fourbar_rollout, world):
+    import matplotlib.pyplot as plt
+
+    model, traj, m = fourbar_rollout
+    pick = (lambda a: np.asarray(a)[:, world]) if world is not None else (lambda a: np.asarray(a).max(axis=1))
+    fig = plots.rollout_diagnostics(model, traj, world=world)
+    try:
+        closure, energy, iters, residuals = fig.axes
+        assert len(fig.axes) == 4
+        np.testing.assert_array_equal(_lines(closure)["constraint violation"], pick(m["constraint_violation"]))
+        assert closure.get_yscale() == "log" and residuals.get_yscale() == "log"
+        # the x axis is the simulated time
+        np.testing.assert_array_equal(closure.get_lines()[0].get_xdata(), pick(traj.time))
+        e = _lines(energy)
+        assert set(e) == {"kinetic energy", "potential energy", "total energy"}
+        for key in ("kinetic_energy", "potential_energy", "total_energy"):
+            np.testing.assert_array_equal(e[key.replace("_", " ")], pick(m[key]))
+        np.testing.assert_array_equal(_lines(iters)["iterations"], pick(traj.info.iterations))
+        r = _lines(residuals)
+        np.testing.assert_array_equal(r["primal residual"], pick(traj.info.primal_residual))
+        np.testing.assert_array_equal(r["dual residual"], pick(traj.info.dual_residual))
+        assert all(len(y) == 50 for ax in fig.axes for y in _lines(ax).values() if ax is not iters)
+    finally:
+        plt.close(fig)
+
+
+def test_rollout_diagnostics_step_axis_and_caller_axes(fourbar_rollout):
+    import matplotlib.pyplot as plt
+
+    model, traj, _ = fourbar_rollout
+    fig, axes = plt.subplots(1, 4)
+    try:
+        assert plots.rollout_diagnostics(model, traj.replace(time=None), dt=0.01, ax=axes) is fig
+        np.testing.assert_allclose(axes[0].get_lines()[0].get_xdata(), 0.01 * np.arange(1, 51))
+        with pytest.raises(ValueError, match="out of range"):
+            plots.rollout_diagnostics(model, traj, world=2)
+        with pytest.raises(ValueError, match="4 panel"):
+            plots.rollout_diagnostics(model, traj, ax=axes[:2])
+    finally:
+        plt.close(fig)
+
+
+def test_speed_against_error_one_panel_per_scene():
+    import matplotlib.pyplot as plt
+
+    results = json.loads((RESULTS / "s16_h100" / "throughput_peers.json").read_text())
+    fig = plots.speed_against_error(results)
+    try:
+        assert [ax.get_title() for ax in fig.axes] == ["fourbar", "ladder8"]
+        for ax in fig.axes:
+            assert ax.get_xscale() == "log" and ax.get_yscale() == "log"
+            lines = {line.get_label(): line for line in ax.get_lines()}
+            assert set(lines) == {"kamino default", "mujoco_warp newton_solver_soft_connect",
+                                  "newton_solver_kamino padmm_dense"}
+            recs = [r for r in results["records"] if r["scene"] == ax.get_title()]
+            for label, line in lines.items():
+                series = sorted((r for r in recs if plots._series(r) == label), key=lambda r: r["num_worlds"])
+                assert len(line.get_xdata()) == len(series) == 2  # one point per world count
+                np.testing.assert_allclose(line.get_ydata(), [r["throughput"] for r in series])
+                # the closure is measured at one world count; the other takes it
+                closure = next(r["closure_max_m"] for r in series if r.get("closure_max_m") is not None)
+                np.testing.assert_allclose(line.get_xdata(), closure)
+    finally:
+        plt.close(fig)
+
+
+def test_speed_against_error_reads_a_convergence_sweep():
+    import matplotlib.pyplot as plt
+
+    results = json.loads((RESULTS / "convergence_sweep_k30_h100.json").read_text())
+    fig = plots.speed_against_error(results)
+    try:
+        (ax,) = fig.axes
+        (line,) = ax.get_lines()
+        recs = sorted(results["records"], key=lambda r: -r["tolerance"])  # the default run is the 1e-3 point
+        assert ax.get_title() == "fourbar" and len(line.get_xdata()) == len(recs) == 5
+        np.testing.assert_allclose(line.get_xdata(), [r["closure_max_m"] for r in recs])
+        np.testing.assert_allclose(line.get_ydata(), [r["throughput_world_steps_per_s"] for r in recs])
+    finally:
+        plt.close(fig)
+
+
+def test_benchmark_results_helpers_and_save(tmp_path):
+    results = json.loads((RESULTS / "throughput_h100_fourbar.json").read_text())
+    fig = plots.throughput_against_worlds(results)
+    (ax,) = fig.axes
+    assert len(ax.get_lines()) == len({plots._series(r) for r in results["records"]}) == 7
+    assert plots.save_figure(fig, tmp_path / "t.png") == str(tmp_path / "t.png") and (tmp_path / "t.png").stat().st_size
+    conv = json.loads((RESULTS / "convergence_sweep_k30_h100.json").read_text())
+    fig = plots.iterations_histogram(conv)
+    drawn = [ax for ax in fig.axes if ax.axison]  # 5 panels in a 2 x 4 grid, the rest blank
+    assert len(drawn) == sum(bool(r.get("iterations_histogram")) for r in conv["records"]) == 5
+    assert all(len(ax.patches) for ax in drawn)
+    plots.save_figure(fig, tmp_path / "h.png")
+    with pytest.raises(ValueError, match="no record"):
+        plots.speed_against_error({"records": [{"scene": "x", "num_worlds": 1, "throughput": 1.0}]})
+
+
+def test_without_matplotlib_the_error_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib now raises ImportError
+    with pytest.raises(ImportError, match=r"pip install 'kamino\[bench\]'"):
+        plots.throughput_against_worlds({"records": [{"scene": "x", "num_worlds": 1, "throughput": 1.0}]})
