@@ -7,6 +7,7 @@ import pytest
 
 import kamino
 from kamino.warp_backend import backend as wb
+from kamino.warp_backend import padmm_warp
 from kamino.warp_backend.pipeline import Stepper
 
 
@@ -22,7 +23,12 @@ def _run(model, cfg, padmm, steps, dtype=np.float64):
     return q, np.array(iters), np.array(rho), st
 
 
-def test_warp_schedule_solves_what_the_thread_kernel_solves():
+@pytest.mark.parametrize("staged", [True, False], ids=["factor-in-shared-memory", "factor-in-device-memory"])
+def test_warp_schedule_solves_what_the_thread_kernel_solves(staged, monkeypatch):
+    # Both places the factorisation works in: shared memory (robot-sized worlds) and device memory (worlds too
+    # large to stage, padmm_warp.STAGE_MAX_ENTRIES).
+    if not staged:
+        monkeypatch.setattr(padmm_warp, "STAGE_MAX_ENTRIES", 0)
     # A loop (four-bar, driven into its hinge limits), a contact world (two stacked boxes: cone projection on
     # contact triples, De Saxcé) and a coupling-free chain of loops in one heterogeneous model, at the defaults
     # (adaptive penalty: tail refactorisations inside the iterations; post-stabilisation: the 32-thread solve of
@@ -34,6 +40,7 @@ def test_warp_schedule_solves_what_the_thread_kernel_solves():
     q_t, it_t, rho_t, _ = _run(model, cfg, "thread", 60)
     q_w, it_w, rho_w, st = _run(model, cfg, "warp", 60)
     assert st.sparse_factor and st.padmm == "warp"
+    assert (st.wk.E > 0) == staged
     np.testing.assert_allclose(q_w, q_t, rtol=0, atol=1e-10)
     np.testing.assert_array_equal(it_w, it_t)
     np.testing.assert_allclose(rho_w, rho_t, rtol=1e-9)
@@ -66,3 +73,21 @@ def test_warp_schedule_rejects_what_it_cannot_solve():
         Stepper(model, kamino.SolverConfig(jacobian="dense"), np.float32, "cpu", padmm="warp")
     with pytest.raises(ValueError, match="padmm must be"):
         Stepper(model, kamino.SolverConfig(), np.float32, "cpu", padmm="block")
+
+
+def test_the_automatic_schedule_follows_the_measured_crossover():
+    # pipeline.resolve_padmm: the 32-thread schedule on CUDA where it measured faster (benchmarks/README.md
+    # "Session 18": few worlds, or worlds of 200 rows or more), one thread per world elsewhere and on every CPU run.
+    from types import SimpleNamespace
+
+    from kamino.warp_backend.pipeline import resolve_padmm
+
+    gpu, cpu = SimpleNamespace(is_cuda=True), SimpleNamespace(is_cuda=False)
+    cfg = kamino.SolverConfig()
+    assert resolve_padmm(cfg, gpu, 4096, 117, None) == "warp"  # four-bar at 4096 worlds
+    assert resolve_padmm(cfg, gpu, 16384, 117, None) == "thread"  # four-bar at 16384 worlds
+    assert resolve_padmm(cfg, gpu, 16384, 640, None) == "warp"  # ladder32 at 16384 worlds
+    assert resolve_padmm(cfg, cpu, 64, 240, None) == "thread"
+    assert resolve_padmm(kamino.SolverConfig(jacobian="dense"), gpu, 64, 240, None) == "thread"
+    assert resolve_padmm(kamino.SolverConfig(linear_solver="cr"), gpu, 64, 240, None) == "thread"
+    assert resolve_padmm(cfg, cpu, 64, 240, "warp") == "warp"  # an explicit choice is kept

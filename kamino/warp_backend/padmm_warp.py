@@ -51,19 +51,33 @@ def sync():
     ...
 
 
+#: The largest ``L_f`` (entries) that :func:`factor` factorises in shared memory; a larger one is factorised in
+#: device memory (the animatronic's 43,000 entries would leave room for one world per multiprocessor).
+STAGE_MAX_ENTRIES = 12288
+
+
 def shared_rows(max_rows: int) -> int:
     """The length of the shared vectors for worlds of up to ``max_rows`` rows (a multiple of ``LANES``: one compiled
     module serves every size up to it)."""
     return LANES * max(1, -(-max_rows // LANES))
 
 
+def shared_entries(max_nnz: int) -> int:
+    """The entries of ``L_f`` that :func:`factor` stages in shared memory for factors of up to ``max_nnz`` entries:
+    ``max_nnz`` rounded up (so that similar scenes share a compiled module), or 0 above
+    :data:`STAGE_MAX_ENTRIES`."""
+    E = 256 * max(1, -(-max_nnz // 256))
+    return E if E <= STAGE_MAX_ENTRIES else 0
+
+
 @functools.cache
-def warp_kernels(np_dtype, R: int) -> SimpleNamespace:
+def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     """``factor``, ``padmm_iterate`` and ``solve_fixed`` (post-stabilisation) for worlds of up to ``R`` rows; launch
     each with ``wp.launch_tiled(dim=[num_worlds], block_dim=LANES)``. The solve keeps two vectors of ``R`` rows in
-    shared memory (2 R scalars per world)."""
-    T = types_of(np_dtype)
-    scalar = T.scalar
+    shared memory (2 R scalars per world). With ``E > 0`` the factorisation copies the world's ``D~_f`` (up to ``E``
+    entries) into shared memory, factorises it there and writes ``L_f`` back: its chain of dependent
+    read-modify-writes, one per update, then waits on shared memory instead of device memory."""
+    scalar = types_of(np_dtype).scalar
     M = model_struct(np_dtype)
     Work = work_struct(np_dtype)
     SP = pattern_struct(np_dtype)
@@ -87,6 +101,34 @@ def warp_kernels(np_dtype, R: int) -> SimpleNamespace:
         return wp.tile_extract(wp.tile_sum(wp.tile(v)), 0)
 
     # --- factorisation ------------------------------------------------------------------------------------
+    EL = max(E, 1)  # staged length (1: not staged)
+    LVec = wp.tile(dtype=scalar, shape=(EL,), storage="shared")
+
+    @wp.func_native("t.data(i) = v;")
+    def lset(t: LVec, i: int, v: scalar):
+        """``t[i] = v`` by one thread, no barrier (``t[i] = v`` on a tile synchronises the block)."""
+        ...
+
+    @wp.func_native("return t.data(i);")
+    def lget(t: LVec, i: int) -> scalar:
+        """``t[i]`` of a shared vector."""
+        ...
+
+    @wp.func
+    def fget(sp: SP, vb: int, k: int, lv: LVec) -> scalar:
+        """Entry ``k`` (CSR order) of the world's ``D~_f`` / ``L_f``: staged in shared memory, or in device memory."""
+        if wp.static(E > 0):
+            return lget(lv, k)
+        return sp.val[vb + k * S]
+
+    @wp.func
+    def fset(sp: SP, vb: int, k: int, v: scalar, lv: LVec):
+        """Entry ``k`` of ``L_f`` := ``v`` (staged or in device memory)."""
+        if wp.static(E > 0):
+            lset(lv, k, v)
+        else:
+            sp.val[vb + k * S] = v
+
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
         """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
@@ -122,20 +164,30 @@ def warp_kernels(np_dtype, R: int) -> SimpleNamespace:
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
+        nnz = sp.nnz[wid]
+        lv = wp.tile_zeros(shape=(EL,), dtype=scalar, storage="shared")
+        if wp.static(E > 0):
+            for k in range(lane, nnz, LANES):
+                lset(lv, k, sp.val[vb + k * S])
+            sync()
         for q in range(nf):
             kd = sp.row_ptr[p0 + q + 1] - 1
-            d = wp.sqrt(sp.val[vb + kd * S])
+            d = wp.sqrt(fget(sp, vb, kd, lv))
             sync()  # every thread has read D~_qq before it becomes L_qq
             if lane == 0:
-                sp.val[vb + kd * S] = d
+                fset(sp, vb, kd, d, lv)
             for j in range(sp.cptr[p0 + q] + lane, sp.cptr[p0 + q + 1], LANES):
                 k = sp.cent[e0 + j]
-                sp.val[vb + k * S] = sp.val[vb + k * S] / d
+                fset(sp, vb, k, fget(sp, vb, k, lv) / d, lv)
             sync()
             for u in range(sp.fan_ptr[p0 + q] + lane, sp.fan_ptr[p0 + q + 1], LANES):
-                tgt = vb + sp.fan_tgt[u] * S
-                sp.val[tgt] = sp.val[tgt] - sp.val[vb + sp.fan_a[u] * S] * sp.val[vb + sp.fan_b[u] * S]
+                tgt = sp.fan_tgt[u]
+                upd = fget(sp, vb, sp.fan_a[u], lv) * fget(sp, vb, sp.fan_b[u], lv)
+                fset(sp, vb, tgt, fget(sp, vb, tgt, lv) - upd, lv)
             sync()
+        if wp.static(E > 0):
+            for k in range(lane, nnz, LANES):
+                sp.val[vb + k * S] = lget(lv, k)
         n = w.n_rows[wid]
         nt = n - nf
         for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft (each thread its own tail rows)
@@ -144,8 +196,8 @@ def warp_kernels(np_dtype, R: int) -> SimpleNamespace:
                 s = sp.tail[tr + p * S]
                 k1 = sp.row_ptr[p0 + p + 1] - 1
                 for k in range(sp.row_ptr[p0 + p], k1):
-                    s -= sp.val[vb + k * S] * sp.tail[tr + sp.col[e0 + k] * S]
-                sp.tail[tr + p * S] = s / sp.val[vb + k1 * S]
+                    s -= fget(sp, vb, k, lv) * sp.tail[tr + sp.col[e0 + k] * S]
+                sp.tail[tr + p * S] = s / fget(sp, vb, k1, lv)
         sync()
         for t in range(nt):  # S_t = D~_t - L_tf L_tf^T: row t's entries j <= t (upper slots and sdiag)
             tr = tb + t * ts
@@ -470,4 +522,4 @@ def warp_kernels(np_dtype, R: int) -> SimpleNamespace:
                 return
 
     return SimpleNamespace(factor=factor, factor_tail=factor_tail, solve=solve, solve_fixed=solve_fixed,
-                           padmm_iterate=padmm_iterate)
+                           padmm_iterate=padmm_iterate, R=R, E=E)

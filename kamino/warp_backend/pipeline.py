@@ -20,7 +20,7 @@ from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.model_data import warp_model
-from kamino.warp_backend.padmm_warp import LANES, shared_rows, warp_kernels
+from kamino.warp_backend.padmm_warp import LANES, shared_entries, shared_rows, warp_kernels
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, solver_kernels
@@ -46,12 +46,36 @@ def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread
     return choice
 
 
+#: the automatic PADMM schedule (``padmm=None``, :func:`resolve_padmm`), from the H100 measurements at the defaults
+#: (benchmarks/README.md "Session 18"): 32 threads per world wins on every scene up to 8192 worlds (ladder8 1.7x,
+#: dr_legs 3.2x, ladder32 5x at 4096) and on worlds of 200 rows or more at any count (ladder32 2x at 16384); one
+#: thread per world wins on small worlds beyond that (four-bar 1.4x, ladder8 1.1x at 16384), where the thread
+#: kernels alone fill the GPU.
+WARP_SCHEDULE_MAX_WORLDS = 8192
+WARP_SCHEDULE_MIN_ROWS = 200
+
+
+def resolve_padmm(cfg: SolverConfig, device, num_worlds: int, max_rows: int, padmm: str | None) -> str:
+    """The PADMM schedule: ``padmm`` if given, else ``"warp"`` on a CUDA device where the configuration solves with
+    the sparse LLT (``jacobian="sparse"``, ``linear_solver`` ``"auto"`` or ``"llt"``) and the worlds are few
+    (:data:`WARP_SCHEDULE_MAX_WORLDS`) or large (:data:`WARP_SCHEDULE_MIN_ROWS`); else ``"thread"`` (every CPU
+    run: the 32 threads of a world run as fibers there)."""
+    if padmm is not None:
+        if padmm not in ("thread", "warp"):
+            raise ValueError(f"padmm must be 'thread' or 'warp' (got {padmm!r})")
+        return padmm
+    sparse_llt_config = cfg.jacobian == "sparse" and cfg.linear_solver in ("auto", "llt")
+    size_wins = num_worlds <= WARP_SCHEDULE_MAX_WORLDS or max_rows >= WARP_SCHEDULE_MIN_ROWS
+    return "warp" if (device.is_cuda and sparse_llt_config and size_wins and max_rows > 0) else "thread"
+
+
 class Stepper:
     """Device buffers and launches for stepping ``model`` with ``cfg``.
 
-    ``padmm``: ``"thread"`` (default) runs PADMM with one thread per world (``solver.py``, LLT or CR);
-    ``"warp"`` runs the sparse factorisation, the PADMM iterations and post-stabilisation's solve with 32 threads per
-    world (``padmm_warp.py``; the sparse LLT path: ``jacobian="sparse"``, ``linear_solver="llt"``).
+    ``padmm``: ``"thread"`` runs PADMM with one thread per world (``solver.py``, LLT or CR); ``"warp"`` runs the
+    sparse factorisation, the PADMM iterations and post-stabilisation's solve with 32 threads per world
+    (``padmm_warp.py``; the sparse LLT path: ``jacobian="sparse"``, ``linear_solver="llt"``); ``None`` chooses by
+    device, configuration and size (:func:`resolve_padmm`).
     """
 
     def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None, padmm: str | None = None):
@@ -59,15 +83,13 @@ class Stepper:
         self.cfg = cfg
         self.np_dtype = np.dtype(np_dtype)
         self.wm = wm = warp_model(model, self.np_dtype, str(self.device))
-        self.linear_solver = resolve_linear_solver(cfg, wm.max_rows, padmm or "thread")
+        padmm = resolve_padmm(cfg, self.device, wm.num_worlds, wm.max_rows, padmm)
+        self.linear_solver = resolve_linear_solver(cfg, wm.max_rows, padmm)
         self.dense = cfg.jacobian == "dense"
         llt = self.linear_solver == "llt"
         if cfg.redundant_limits:
             raise ValueError("SolverConfig.redundant_limits is implemented in the JAX reference only (float64); "
                              "use backend='jax' or leave it off")
-        padmm = "thread" if padmm is None else padmm
-        if padmm not in ("thread", "warp"):
-            raise ValueError(f"padmm must be 'thread' or 'warp' (got {padmm!r})")
         if padmm == "warp" and not (llt and not self.dense):
             raise ValueError("padmm='warp' runs the sparse LLT solve: use jacobian='sparse' and linear_solver='llt' "
                              f"or 'auto' (got jacobian={cfg.jacobian!r}, linear_solver={self.linear_solver!r})")
@@ -92,7 +114,7 @@ class Stepper:
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
-                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_rows))
+                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_rows), shared_entries(self.sf.max_nnz))
         self.rk = row_kernels(self.np_dtype)
         self.sk = solver_kernels(self.np_dtype)
         self.ik = integrate_kernels(self.np_dtype)
