@@ -86,7 +86,7 @@ def test_the_automatic_schedule_follows_the_measured_crossover():
     cfg = kamino.SolverConfig()
     assert resolve_padmm(cfg, gpu, 4096, 117, None) == "warp"  # four-bar at 4096 worlds
     assert resolve_padmm(cfg, gpu, 16384, 117, None) == "thread"  # four-bar at 16384 worlds
-    assert resolve_padmm(cfg, gpu, 16384, 640, None) == "warp"  # ladder32 at 16384 worlds
+    assert resolve_padmm(cfg, gpu, 16384, 576, None) == "warp"  # ladder32 at 16384 worlds
     assert resolve_padmm(cfg, cpu, 64, 240, None) == "thread"
     assert resolve_padmm(kamino.SolverConfig(jacobian="dense"), gpu, 64, 240, None) == "thread"
     assert resolve_padmm(kamino.SolverConfig(linear_solver="cr"), gpu, 64, 240, None) == "thread"
