@@ -4,7 +4,8 @@ Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``
 ``Actuation``, ``ActuationMode``, ``ModelError``, ``replicate``, ``concat``, ``SolverConfig``,
 ``State``, ``ContactState``, ``Control``, ``StepInfo``, ``init_state``, ``step``, ``rollout``,
 ``metrics``, ``joint_positions``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``,
-``load_mjcf`` and the procedural ``models``.
+``load_mjcf``, ``save_mjcf`` and the procedural ``models``. Submodules imported on use: ``kamino.viz`` (an HTML
+page or a GIF of a rollout), ``kamino.plots`` (matplotlib), ``kamino.envs`` (Brax environments).
 """
 
 from kamino import models

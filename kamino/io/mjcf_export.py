@@ -693,6 +693,15 @@ class _Exporter:
         return ET.tostring(root, encoding="unicode") + "\n"
 
 
+def loop_closing_joints(model: Model) -> list[int]:
+    """The joints of ``model`` that close loops: those the export's spanning tree leaves out (its order of
+    preference, docs/mjcf.md "Spanning tree"; ``kamino.models.fourbar()``: ``rocker_ground``). Indices into the joint
+    arrays; every world's, for a batch."""
+    exporter = _Exporter(model, lossy=True)
+    exporter.spanning_tree()
+    return sorted(int(j) for j in exporter.cut)
+
+
 def save_mjcf(model: Model, path: str | os.PathLike | None = None, *, lossy: bool = False,
               model_name: str = "kamino") -> str:
     """Export a single-world kamino model as MJCF; returns the XML text and writes it to ``path`` if given.
