@@ -119,7 +119,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         """Entry ``k`` (CSR order) of the world's ``D~_f`` / ``L_f``: staged in shared memory, or in device memory."""
         if wp.static(E > 0):
             return lget(lv, k)
-        return sp.val[vb + k * S]
+        return sp.val[vb + k * sp.val_stride]
 
     @wp.func
     def fset(sp: SP, vb: int, k: int, v: scalar, lv: LVec):
@@ -127,7 +127,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         if wp.static(E > 0):
             lset(lv, k, v)
         else:
-            sp.val[vb + k * S] = v
+            sp.val[vb + k * sp.val_stride] = v
 
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
@@ -168,7 +168,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         lv = wp.tile_zeros(shape=(EL,), dtype=scalar, storage="shared")
         if wp.static(E > 0):
             for k in range(lane, nnz, LANES):
-                lset(lv, k, sp.val[vb + k * S])
+                lset(lv, k, sp.val[vb + k * sp.val_stride])
             sync()
         for q in range(nf):
             kd = sp.row_ptr[p0 + q + 1] - 1
@@ -187,7 +187,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             sync()
         if wp.static(E > 0):
             for k in range(lane, nnz, LANES):
-                sp.val[vb + k * S] = lget(lv, k)
+                sp.val[vb + k * sp.val_stride] = lget(lv, k)
         n = w.n_rows[wid]
         nt = n - nf
         for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft (each thread its own tail rows)
@@ -249,11 +249,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         r_n = int(0)
         if nf > 0:
             a_n = sp.perm[q0]
-            d_n = sp.val[vb + (sp.row_ptr[p0 + 1] - 1) * S]
+            d_n = sp.val[vb + (sp.row_ptr[p0 + 1] - 1) * sp.val_stride]
             j0_n = sp.cptr[p0]
             j1_n = sp.cptr[p0 + 1]
             if j0_n + lane < j1_n:
-                l_n = sp.val[vb + sp.cent[e0 + j0_n + lane] * S]
+                l_n = sp.val[vb + sp.cent[e0 + j0_n + lane] * sp.val_stride]
                 r_n = sp.crow[e0 + j0_n + lane]
         for q in range(nf):
             a_q = a_n
@@ -264,11 +264,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             r_q = r_n
             if q + 1 < nf:
                 a_n = sp.perm[q0 + q + 1]
-                d_n = sp.val[vb + (sp.row_ptr[p0 + q + 2] - 1) * S]
+                d_n = sp.val[vb + (sp.row_ptr[p0 + q + 2] - 1) * sp.val_stride]
                 j0_n = sp.cptr[p0 + q + 1]
                 j1_n = sp.cptr[p0 + q + 2]
                 if j0_n + lane < j1_n:
-                    l_n = sp.val[vb + sp.cent[e0 + j0_n + lane] * S]
+                    l_n = sp.val[vb + sp.cent[e0 + j0_n + lane] * sp.val_stride]
                     r_n = sp.crow[e0 + j0_n + lane]
             if lane == 0:
                 sset(ys, a_q, yq)
@@ -276,7 +276,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 sset(xs, r_q, sget(xs, r_q) - l_q * yq)
             for j in range(j0 + lane + LANES, j1, LANES):
                 rp = sp.crow[e0 + j]
-                sset(xs, rp, sget(xs, rp) - sp.val[vb + sp.cent[e0 + j] * S] * yq)
+                sset(xs, rp, sget(xs, rp) - sp.val[vb + sp.cent[e0 + j] * sp.val_stride] * yq)
             sync()
         # forward, tail rows: the fixed columns in parallel, then the dense tail by columns
         for t in range(lane, nt, LANES):
@@ -318,9 +318,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             a_n = sp.perm[q0 + nf - 1]
             j0_n = sp.row_ptr[p0 + nf - 1]
             j1_n = sp.row_ptr[p0 + nf] - 1
-            d_n = sp.val[vb + j1_n * S]
+            d_n = sp.val[vb + j1_n * sp.val_stride]
             if j0_n + lane < j1_n:
-                l_n = sp.val[vb + (j0_n + lane) * S]
+                l_n = sp.val[vb + (j0_n + lane) * sp.val_stride]
                 r_n = sp.colrow[e0 + j0_n + lane]
         for pp in range(nf):
             p = nf - 1 - pp
@@ -334,9 +334,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 a_n = sp.perm[q0 + p - 1]
                 j0_n = sp.row_ptr[p0 + p - 1]
                 j1_n = sp.row_ptr[p0 + p] - 1
-                d_n = sp.val[vb + j1_n * S]
+                d_n = sp.val[vb + j1_n * sp.val_stride]
                 if j0_n + lane < j1_n:
-                    l_n = sp.val[vb + (j0_n + lane) * S]
+                    l_n = sp.val[vb + (j0_n + lane) * sp.val_stride]
                     r_n = sp.colrow[e0 + j0_n + lane]
             if lane == 0:
                 sset(xs, a_p, xp)
@@ -344,7 +344,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 sset(ys, r_p, sget(ys, r_p) - l_p * xp)
             for k in range(j0 + lane + LANES, j1, LANES):
                 rq = sp.colrow[e0 + k]
-                sset(ys, rq, sget(ys, rq) - sp.val[vb + k * S] * xp)
+                sset(ys, rq, sget(ys, rq) - sp.val[vb + k * sp.val_stride] * xp)
             sync()
 
     @wp.kernel(module="unique", enable_backward=False)

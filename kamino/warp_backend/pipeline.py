@@ -102,7 +102,8 @@ class Stepper:
         with wp.ScopedDevice(self.device):
             self.work = allocate(wm, cfg.integrator == "euler", self.dense, llt and not self.sparse_factor)
             if self.sparse_factor:
-                self.sf = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy())
+                self.sf = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy(),
+                                           per_world=padmm == "warp")
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             self.sp = self.sf.arrays if self.sparse_factor else sparse_llt.empty(self.np_dtype, self.device)
             #: post-stabilisation solves with PADMM's sparse factor of the fixed rows when that factor carries the
@@ -110,7 +111,8 @@ class Stepper:
             self.post_shares_factor = self.sparse_factor and cfg.shares_padmm_factor(self.np_dtype)
             if cfg.post_stabilisation and not self.post_shares_factor:
                 # the fixed rows' own pattern and factor (no tail rows)
-                self.post = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy())
+                self.post = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
+                                             per_world=padmm == "warp")
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers

@@ -200,8 +200,12 @@ def pattern_struct(np_dtype):
         fan_tgt: iarr
         fan_a: iarr
         fan_b: iarr
-        # per group of 32 worlds: interleaved value storage
+        # per group of 32 worlds: the value storage, interleaved over the group's worlds (val_stride = GROUP: the
+        # one-thread-per-world kernels read a row of 32 worlds at once) or world after world (val_stride = 1: the
+        # 32 threads of one world read consecutive entries, padmm_warp.py); grp_nnz: the group's entries per world
         grp_val_start: iarr
+        grp_nnz: iarr
+        val_stride: int
         grp_tail_start: iarr
         val: wp.array(dtype=scalar)  # the fixed rows' factor
         tail: wp.array(dtype=scalar)  # the tail rows (fixed positions, then tail columns)
@@ -219,8 +223,9 @@ class SparseFactor:
     nnz_total: int  # factor entries summed over worlds (fixed rows)
 
 
-def build(model: Model, np_dtype, device, row_maxdim: np.ndarray) -> SparseFactor:
-    """Symbolic analysis of every world type of ``model`` and the device storage of the factors."""
+def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: bool = False) -> SparseFactor:
+    """Symbolic analysis of every world type of ``model`` and the device storage of the factors (``per_world``: each
+    world's values contiguous, for the 32-threads-per-world schedule; else interleaved over groups of worlds)."""
     W = model.num_worlds
     types: dict[bytes, int] = {}
     syms: list[Symbolic] = []
@@ -258,6 +263,8 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray) -> SparseFacto
     S.fan_ptr = i32(np.concatenate([s.fan_ptr + o for s, o in zip(syms, upd0_t, strict=True)]) if syms else [])
     S.fan_tgt, S.fan_a, S.fan_b = (i32(cat(lambda s, f=f: getattr(s, f))) for f in ("fan_tgt", "fan_a", "fan_b"))
     S.grp_val_start = i32(prefix(GROUP * g_nnz))
+    S.grp_nnz = i32(g_nnz)
+    S.val_stride = 1 if per_world else GROUP
     S.grp_tail_start = i32(prefix(GROUP * g_tail * g_dim))
     scalar = types_of(np.dtype(np_dtype)).scalar
     S.val = wp.zeros(int(GROUP * g_nnz.sum()), dtype=scalar, device=device)
@@ -272,8 +279,9 @@ def empty(np_dtype, device) -> object:
     scalar = types_of(np.dtype(np_dtype)).scalar
     for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "perm", "row_ptr", "col", "colrow", "row",
                  "div", "upd_ptr", "upd_a", "upd_b", "cptr", "cent", "crow", "fan_ptr", "fan_tgt", "fan_a", "fan_b",
-                 "grp_val_start", "grp_tail_start"):
+                 "grp_val_start", "grp_nnz", "grp_tail_start"):
         setattr(S, name, wp.zeros(0, dtype=wp.int32, device=device))
+    S.val_stride = GROUP
     S.val = wp.zeros(0, dtype=scalar, device=device)
     S.tail = wp.zeros(0, dtype=scalar, device=device)
     return S
@@ -296,7 +304,10 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     def vidx(m: M, sp: SP, wid: int, k: int):
         """Storage index of factor entry ``k`` (world-type-local) of world ``wid``."""
         g = wid // GROUP
-        return sp.grp_val_start[g] + k * GROUP + (wid - g * GROUP)
+        lane = wid - g * GROUP
+        if sp.val_stride == 1:
+            return sp.grp_val_start[g] + lane * sp.grp_nnz[g] + k
+        return sp.grp_val_start[g] + k * GROUP + lane
 
     @wp.func
     def tidx(m: M, sp: SP, wid: int, t: int, c: int):
@@ -360,26 +371,28 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def bases(m: M, sp: SP, wid: int):
         """Hoisted storage starts of world ``wid``: rows, factor values, tail rows, and the tail row stride
-        (``ridx = rows + a S``, ``vidx = vals + k S``, ``tidx = tail + t stride + c S``)."""
+        (``ridx = rows + a S``, ``vidx = vals + k sp.val_stride``, ``tidx = tail + t stride + c S``)."""
         g = wid // GROUP
         lane = wid - g * GROUP
-        return wp.vec4i(m.grp_row_start[g] + lane, sp.grp_val_start[g] + lane, sp.grp_tail_start[g] + lane,
-                        m.grp_maxdim[g] * GROUP)
+        vb = sp.grp_val_start[g] + lane
+        if sp.val_stride == 1:
+            vb = sp.grp_val_start[g] + lane * sp.grp_nnz[g]
+        return wp.vec4i(m.grp_row_start[g] + lane, vb, sp.grp_tail_start[g] + lane, m.grp_maxdim[g] * GROUP)
 
     @wp.func
     def factor_fixed_rows(sp: SP, wid: int, vb: int):
         """``L_f`` in place: the fixed rows' entries by the precomputed update lists."""
         e0 = sp.ent_start[wid]
         for k in range(sp.nnz[wid]):
-            s = sp.val[vb + k * S]
+            s = sp.val[vb + k * sp.val_stride]
             for u in range(sp.upd_ptr[2 * (e0 + k)], sp.upd_ptr[2 * (e0 + k) + 1]):
-                s -= sp.val[vb + sp.upd_a[u] * S] * sp.val[vb + sp.upd_b[u] * S]
+                s -= sp.val[vb + sp.upd_a[u] * sp.val_stride] * sp.val[vb + sp.upd_b[u] * sp.val_stride]
             d = sp.div[e0 + k]
             if d == k:
                 s = wp.sqrt(s)
             else:
-                s = s / sp.val[vb + d * S]
-            sp.val[vb + k * S] = s
+                s = s / sp.val[vb + d * sp.val_stride]
+            sp.val[vb + k * sp.val_stride] = s
 
     @wp.kernel(module="unique", enable_backward=False)
     def factor_fixed(m: M, w: Work, sp: SP):
@@ -433,8 +446,8 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 s = sp.tail[tr + p * S]
                 k1 = sp.row_ptr[p0 + p + 1] - 1
                 for k in range(sp.row_ptr[p0 + p], k1):
-                    s -= sp.val[vb + k * S] * sp.tail[tr + sp.col[e0 + k] * S]
-                sp.tail[tr + p * S] = s / sp.val[vb + k1 * S]
+                    s -= sp.val[vb + k * sp.val_stride] * sp.tail[tr + sp.col[e0 + k] * S]
+                sp.tail[tr + p * S] = s / sp.val[vb + k1 * sp.val_stride]
             # S_t row t: D~_tj - L_t. L_j. for j <= t, into row j's upper slot (column nf + t) and sdiag
             for j in range(t + 1):
                 jr = tb + j * ts
@@ -463,8 +476,8 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             s = w.x[r]
             k1 = sp.row_ptr[p0 + p + 1] - 1
             for k in range(sp.row_ptr[p0 + p], k1):
-                s -= sp.val[vb + k * S] * w.x[rb + sp.colrow[e0 + k] * S]
-            w.x[r] = s / sp.val[vb + k1 * S]
+                s -= sp.val[vb + k * sp.val_stride] * w.x[rb + sp.colrow[e0 + k] * S]
+            w.x[r] = s / sp.val[vb + k1 * sp.val_stride]
         for t in range(nt):
             tr = tb + t * ts
             s = w.x[rb + (nf + t) * S]
@@ -491,11 +504,11 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             p = nf - 1 - pp
             r = rb + sp.perm[q0 + p] * S
             k1 = sp.row_ptr[p0 + p + 1] - 1
-            xp = w.x[r] / sp.val[vb + k1 * S]
+            xp = w.x[r] / sp.val[vb + k1 * sp.val_stride]
             w.x[r] = xp
             for k in range(sp.row_ptr[p0 + p], k1):
                 rq = rb + sp.colrow[e0 + k] * S
-                w.x[rq] = w.x[rq] - sp.val[vb + k * S] * xp
+                w.x[rq] = w.x[rq] - sp.val[vb + k * sp.val_stride] * xp
 
     return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor, bases=bases,
                            factor_tail=factor_tail,
