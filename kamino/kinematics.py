@@ -64,11 +64,18 @@ def base_bodies(model: Model) -> np.ndarray:
 
 
 def _tables(model: Model, mode: str, use_base: bool) -> tuple[FKTables, np.ndarray, np.ndarray]:
-    """Host-built FK row tables (cached per model), the joint gather table and its mask."""
+    """Host-built FK row tables (cached per model), the joint gather table and its mask. Built under
+    ``jax.ensure_compile_time_eval()`` (as ``layout_of``): a first call from inside ``jax.jit`` would otherwise cache
+    tracers of that trace for every later call (``UnexpectedTracerError``)."""
     key = (mode, use_base)
     per_model = _TABLES.setdefault(model, {})
-    if key in per_model:
-        return per_model[key]
+    if key not in per_model:
+        with jax.ensure_compile_time_eval():
+            per_model[key] = _build_tables(model, mode, use_base)
+    return per_model[key]
+
+
+def _build_tables(model: Model, mode: str, use_base: bool) -> tuple[FKTables, np.ndarray, np.ndarray]:
     W = model.num_worlds
     nj = int(model.world_joint_count.max()) if model.num_joints else 0
     jg, jmask, _ = _pad_index(model.world_joint_start, model.world_joint_count, nj)
@@ -94,8 +101,7 @@ def _tables(model: Model, mode: str, use_base: bool) -> tuple[FKTables, np.ndarr
         targeted=jnp.asarray(np.where(jmask, targeted[jg] if model.num_joints else False, False)),
         base_body=jnp.asarray(base_local, jnp.int32),
     )
-    per_model[key] = (tab, jg, jmask)
-    return per_model[key]
+    return tab, jg, jmask
 
 
 def _coords_from_dofs(model: Model, dof_pos: jax.Array) -> jax.Array:

@@ -38,3 +38,15 @@ def test_layout_cache_serves_jit_and_eager_calls_alike(fn, jit_first):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-12)
     if fn == "metrics":  # the four-bar at rest in its reference pose: joint rows closed to float64 round-off
         assert float(np.asarray(a["constraint_violation"]).max()) < 1e-9
+
+
+def test_forward_kinematics_tables_survive_a_jitted_first_call():
+    # kamino.kinematics caches its FK row tables per model; a first call inside jax.jit (an environment's reset)
+    # must not cache tracers that a second, different jit of the same model then trips on.
+    model = kamino.models.fourbar(actuated=True)
+    q = np.array([0.3])
+    first = jax.jit(lambda a: kamino.forward_kinematics(model, actuated_positions=a).body_q)(q)
+    second = jax.jit(lambda a: kamino.forward_kinematics(model, actuated_positions=2.0 * a).residual)(q / 2.0)
+    eager = kamino.forward_kinematics(model, actuated_positions=q)
+    np.testing.assert_allclose(np.asarray(first), np.asarray(eager.body_q), atol=1e-9)
+    assert float(np.max(np.asarray(second))) < 1e-8

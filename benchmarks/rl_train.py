@@ -1,0 +1,214 @@
+"""Train a kamino environment with brax's PPO (issue 18): ``python benchmarks/rl_train.py TASK``.
+
+The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS`` (``--steps``, ``--num-envs``, ``--evals``,
+``--seed`` override them). Writes into ``--out`` (default ``scratch/rl/TASK``, git-ignored):
+
+- ``checkpoints/<step>/``: the policy (normalizer, policy, value parameters; brax's orbax format and network config)
+  after every evaluation, ``<step>`` counting environment steps over all runs. A later run of the same command
+  resumes from the newest one and trains the steps that remain (brax restores the parameters; the optimizer state
+  starts afresh); ``--fresh`` ignores them.
+- ``curve.json``: every evaluation (step, mean and spread of the episode return, wall time), over all runs;
+- ``reward_curve.png``: the evaluation return against environment steps (matplotlib);
+- ``report.json``: the task, backend, settings, device, versions, the first and last evaluation with every
+  ``eval/`` metric (the reward terms of docs/envs.md), training throughput and wall time.
+
+Progress: a tqdm bar when tqdm is installed, else one line per evaluation, both with the environment steps per
+second of the last training epoch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    from kamino.envs.configs import PPO_CONFIGS
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("task", choices=sorted(PPO_CONFIGS), help="the environment (kamino.envs.TASKS)")
+    p.add_argument("--backend", choices=("jax", "warp"), default="jax", help="kamino backend (default jax)")
+    p.add_argument("--steps", type=int, help="total environment steps over all runs (default: the task's config)")
+    p.add_argument("--num-envs", type=int, help="parallel environments (default: the task's config)")
+    p.add_argument("--evals", type=int, help="evaluations over the whole training (default: the task's config)")
+    p.add_argument("--seed", type=int, help="PPO seed (default: the task's config)")
+    p.add_argument("--out", type=Path, help="output folder (default: scratch/rl/TASK)")
+    p.add_argument("--fresh", action="store_true", help="ignore existing checkpoints and curve; start over")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other ppo.train keyword, VALUE a Python literal (repeatable): --set batch_size=32")
+    args = p.parse_args(argv)
+    args.ppo_overrides = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep or not key.isidentifier():
+            p.error(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            args.ppo_overrides[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            p.error(f"--set {key}: {value!r} is not a Python literal")
+    for name in ("steps", "num_envs", "evals"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    return args
+
+
+def latest_checkpoint(folder: Path) -> tuple[int, Path | None]:
+    """``(step, path)`` of the newest checkpoint under ``folder`` (``(0, None)`` without one)."""
+    steps = sorted(int(d.name) for d in folder.glob("*") if d.is_dir() and d.name.isdigit()) if folder.exists() else []
+    return (steps[-1], folder / f"{steps[-1]:012d}") if steps else (0, None)
+
+
+class Progress:
+    """A tqdm bar over environment steps if tqdm is installed, else a printed line per update."""
+
+    def __init__(self, total: int, start: int):
+        self.total, self.start = total, start
+        try:
+            from tqdm import tqdm
+        except ImportError:
+            self.bar = None
+        else:
+            self.bar = tqdm(total=total, initial=start, unit="step", unit_scale=True, dynamic_ncols=True)
+
+    def update(self, step: int, reward: float, std: float, sps: float, elapsed: float) -> None:
+        if self.bar is not None:
+            self.bar.n = step
+            self.bar.set_postfix(reward=f"{reward:.2f}", env_steps_per_s=f"{sps:.0f}")
+            self.bar.refresh()
+            return
+        print(f"[{step:>10d}/{self.total}] {100 * step / self.total:5.1f}%  eval return {reward:9.3f} +- {std:7.3f}  "
+              f"{sps:9.0f} env steps/s  {elapsed:7.1f} s", flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def plot_curve(curve: list[dict], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    step = np.array([c["step"] for c in curve], float)
+    mean = np.array([c["reward"] for c in curve])
+    std = np.array([c["reward_std"] for c in curve])
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(step, mean, marker="o")
+    ax.fill_between(step, mean - std, mean + std, alpha=0.25, label="spread of the episode returns")
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("evaluation episode return")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    import jax
+    import numpy as np
+    from brax.training.agents.ppo import checkpoint as ppo_checkpoint
+    from brax.training.agents.ppo import train as ppo
+
+    import kamino
+    from kamino.envs import make
+    from kamino.envs.configs import ppo_kwargs, task_config
+
+    cfg = task_config(args.task)
+    overrides = {k: v for k, v in (("num_timesteps", args.steps), ("num_envs", args.num_envs),
+                                   ("num_evals", args.evals), ("seed", args.seed)) if v is not None}
+    kwargs = ppo_kwargs(args.task, **{**args.ppo_overrides, **overrides})
+    total, evals = int(kwargs["num_timesteps"]), int(kwargs["num_evals"])
+    out = (args.out or ROOT / "scratch" / "rl" / args.task).resolve()
+    ckpt_dir = out / "checkpoints"
+    curve_path = out / "curve.json"
+    out.mkdir(parents=True, exist_ok=True)
+
+    done, restore = (0, None) if args.fresh else latest_checkpoint(ckpt_dir)
+    curve = json.loads(curve_path.read_text()) if curve_path.exists() and not args.fresh else []
+    curve = [c for c in curve if c["step"] <= done]
+    remaining = total - done
+    env = make(args.task, backend=args.backend, **cfg["env"])
+    print(f"{args.task}: backend {args.backend}, {jax.device_count()} device(s) {jax.devices()[0].platform}, "
+          f"{env.observation_size} observations, {env.action_size} actions, policy {1 / env.dt:.0f} Hz; "
+          f"{'resuming at step ' + str(done) if restore else 'starting'}, {max(remaining, 0)} steps to go", flush=True)
+
+    progress = Progress(total, done)
+    start = time.perf_counter()
+    last: dict = {}
+    first: dict = {}
+    config = ppo_checkpoint.network_config(env.observation_size, env.action_size,
+                                           kwargs.get("normalize_observations", False), kwargs["network_factory"])
+
+    def on_eval(step: int, metrics: dict) -> None:
+        nonlocal last, first
+        if restore is not None and step == 0:
+            return  # the restored policy, evaluated by the previous run already
+        metrics = {k: float(np.asarray(v)) for k, v in metrics.items()}
+        entry = {"step": done + step, "reward": metrics.get("eval/episode_reward", float("nan")),
+                 "reward_std": metrics.get("eval/episode_reward_std", float("nan")),
+                 "run_wall_s": time.perf_counter() - start}
+        curve.append(entry)
+        curve_path.write_text(json.dumps(curve, indent=1))
+        first = first or metrics
+        last = metrics
+        progress.update(done + step, entry["reward"], entry["reward_std"], metrics.get("training/sps", 0.0),
+                        entry["run_wall_s"])
+
+    def save(step: int, make_policy, params) -> None:
+        if step > 0:
+            ppo_checkpoint.save(ckpt_dir, done + step, params, config)
+
+    if remaining > 0:
+        run_evals = max(2, round(evals * remaining / total))
+        kwargs.update(num_timesteps=remaining, num_evals=run_evals, progress_fn=on_eval, policy_params_fn=save,
+                      restore_checkpoint_path=None if restore is None else str(restore))
+        with jax.enable_x64(False):  # brax's wrappers build float32 info entries at step only
+            ppo.train(environment=env, **kwargs)
+    progress.close()
+    wall = time.perf_counter() - start
+
+    if curve:
+        plot_curve(curve, out / "reward_curve.png", f"{args.task} (PPO, kamino {args.backend} backend)")
+    report = {
+        "task": args.task, "backend": args.backend, "command": " ".join(sys.argv),
+        "env": cfg["env"], "network": cfg["network"],
+        "ppo": {k: v for k, v in kwargs.items() if isinstance(v, (int, float, str, bool)) or v is None},
+        "total_steps": total, "steps_before_this_run": done, "steps_this_run": max(remaining, 0),
+        "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),
+        "first_eval": first, "last_eval": last, "curve": curve,
+        "checkpoint": str(latest_checkpoint(ckpt_dir)[1]),
+        "device": str(jax.devices()[0]), "device_count": jax.device_count(), "platform": platform.platform(),
+        "versions": {"kamino": kamino.__version__, "jax": jax.__version__, "brax": _version("brax"),
+                     "python": platform.python_version()},
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=1, default=str))
+    if curve:
+        print(f"return {curve[0]['reward']:.2f} (step {curve[0]['step']}) -> {curve[-1]['reward']:.2f} "
+              f"(step {curve[-1]['step']}); {out / 'report.json'}, {out / 'reward_curve.png'}")
+    return 0
+
+
+def _version(package: str) -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(package)
+    except PackageNotFoundError:
+        return "not installed"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

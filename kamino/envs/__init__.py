@@ -1,0 +1,34 @@
+"""Environments on Brax's API (issue 18; docs/envs.md): ``KaminoEnv`` and the registered tasks.
+
+Importing this package registers the tasks with ``brax.envs.register_environment`` (``brax.envs.get_environment``
+then builds them by name). Needs the ``rl`` extra (``pip install -e ".[rl]"``: brax).
+"""
+
+from __future__ import annotations
+
+try:
+    import brax.envs as _brax_envs
+except ImportError as exc:  # pragma: no cover - depends on the installation
+    raise ImportError("kamino.envs needs brax: install the rl extra (pip install -e \".[rl]\")") from exc
+
+from kamino.envs.base import BACKENDS, KaminoEnv
+from kamino.envs.dr_legs_joystick import DrLegsJoystick
+from kamino.envs.fourbar_track import FourbarTrack
+from kamino.envs.randomization import randomize
+from kamino.envs.system import EnvSystem
+
+#: task name -> environment class (each also registered with brax.envs)
+TASKS: dict[str, type[KaminoEnv]] = {"fourbar_track": FourbarTrack, "dr_legs_joystick": DrLegsJoystick}
+
+for _name, _cls in TASKS.items():
+    _brax_envs.register_environment(_name, _cls)
+
+
+def make(task: str, **kwargs) -> KaminoEnv:
+    """The environment ``task`` (a key of :data:`TASKS`) built with ``kwargs``."""
+    if task not in TASKS:
+        raise ValueError(f"make: unknown task {task!r} (the task argument); choose one of {sorted(TASKS)}")
+    return TASKS[task](**kwargs)
+
+
+__all__ = ["BACKENDS", "TASKS", "DrLegsJoystick", "EnvSystem", "FourbarTrack", "KaminoEnv", "make", "randomize"]

@@ -1,0 +1,140 @@
+"""``dr_legs_joystick``: the DR Legs biped follows forward, lateral and yaw-rate commands (issue 18, task b).
+
+``kamino.models.dr_legs()``: 31 bodies, 12 PD actuators, 6 kinematic loops (knee and ankle four-bars, a spatial
+ankle-roll loop per leg), box feet on a ground plane. Implicit PD with ``kp`` 15 N m/rad and ``kd`` 0.6 N m s/rad
+on every actuator (issue 18's gains), 4 ms simulator steps, 5 per policy step (50 Hz). The command ``(v_x, v_y,
+yaw rate)`` in the pelvis frame is drawn at reset and every ``resample_steps``; rewards follow the usual joystick
+recipe (velocity tracking through exponential kernels, upright, action rate, torque, alive) and an episode ends
+when the pelvis falls below ``min_height`` or tilts past ``max_tilt``, or the world's health flag is set.
+Observation, reward and termination tables: docs/envs.md, "dr_legs_joystick".
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from kamino.config import SolverConfig
+from kamino.envs.base import KaminoEnv
+from kamino.envs.geometry import body_frame_vectors
+from kamino.jax_ref.spatial import quat_mul
+from kamino.models import dr_legs
+from kamino.state import State
+
+#: reward weights (docs/envs.md); the reward is their weighted sum, per policy step
+REWARD_WEIGHTS = {"tracking_lin_vel": 1.0, "tracking_ang_vel": 0.5, "upright": 0.2, "action_rate": -0.01,
+                  "torque": -2e-4, "alive": 0.2}
+
+
+class DrLegsJoystick(KaminoEnv):
+    """Velocity-command following on ``kamino.models.dr_legs`` (observation, reward, termination: docs/envs.md).
+
+    Args:
+        kp, kd: PD gains of all 12 actuators [N m/rad], [N m s/rad].
+        command_lin_x, command_lin_y, command_yaw: half-ranges of the uniform command draw [m/s], [m/s], [rad/s].
+        tracking_sigma: variance [(m/s)^2, (rad/s)^2] of the tracking kernels ``exp(-err^2 / sigma)``.
+        min_height: the pelvis CoM height [m] below which the robot has fallen (0.77 m standing).
+        max_tilt: the pelvis tilt [rad] past which it has fallen.
+        reward_weights: overrides of :data:`REWARD_WEIGHTS`.
+        sim_dt, decimation: 4 ms, 5 per policy step (50 Hz).
+        resample_steps: policy steps between command draws (250: 5 s).
+        reset_noise: initial actuated angles drawn in ``reset_noise`` of each half-range about 0; the heading is
+            uniform in ``[-pi, pi)``.
+        reset_bank: leg configurations solved at construction (``None``: FK in every reset; base class); the
+            heading is drawn in every reset (a rigid turn).
+        obs_noise: scale on the per-entry noise of :meth:`_obs_noise_scale` (1: the documented levels).
+        **kwargs: :class:`kamino.envs.base.KaminoEnv` (``backend``, ``solver_config``, ``dtype``).
+    """
+
+    reward_terms = tuple(REWARD_WEIGHTS)
+    task_keys = ("command",)
+
+    def __init__(self, *, kp: float = 15.0, kd: float = 0.6, command_lin_x: float = 0.5, command_lin_y: float = 0.3,
+                 command_yaw: float = 0.8, tracking_sigma: float = 0.25, min_height: float = 0.45,
+                 max_tilt: float = 1.0, reward_weights: dict | None = None, sim_dt: float = 0.004,
+                 decimation: int = 5, resample_steps: int = 250, reset_noise: float = 0.1, obs_noise: float = 1.0,
+                 reset_bank: int | None = 128, solver_config: SolverConfig | None = None, **kwargs):
+        for name, value in (("kp", kp), ("tracking_sigma", tracking_sigma), ("min_height", min_height),
+                            ("max_tilt", max_tilt)):
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise ValueError(f"DrLegsJoystick: {name} must be a positive number, got {value!r}")
+        for name, value in (("kd", kd), ("command_lin_x", command_lin_x), ("command_lin_y", command_lin_y),
+                            ("command_yaw", command_yaw)):
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"DrLegsJoystick: {name} must be a number >= 0, got {value!r}")
+        unknown = sorted(set(reward_weights or {}) - set(REWARD_WEIGHTS))
+        if unknown:
+            raise ValueError(f"DrLegsJoystick: reward_weights has unknown terms {unknown}; the terms are "
+                             f"{list(REWARD_WEIGHTS)}")
+        self._weights = {**REWARD_WEIGHTS, **(reward_weights or {})}
+        self._command_range = np.array([command_lin_x, command_lin_y, command_yaw], float)
+        self._sigma = float(tracking_sigma)
+        self._min_height = float(min_height)
+        self._min_up = float(np.cos(max_tilt))
+        model = dr_legs(hip_gains=(kp, kd), knee_gains=(kp, kd), ankle_gains=(kp, kd))
+        super().__init__(model, sim_dt=sim_dt, decimation=decimation, reset_noise=reset_noise, obs_noise=obs_noise,
+                         resample_steps=resample_steps, reset_bank=reset_bank, solver_config=solver_config, **kwargs)
+
+    # ---------------------------------------------------------------- reset and commands
+
+    def _move_rigidly(self, body_q: jax.Array, rng: jax.Array) -> jax.Array:
+        """A uniform heading: every body turned about the vertical through the pelvis CoM."""
+        yaw = jax.random.uniform(rng, (), body_q.dtype, -jnp.pi, jnp.pi)
+        c, s = jnp.cos(yaw), jnp.sin(yaw)
+        pivot = body_q[self._base, :3]
+        rel = body_q[:, :3] - pivot
+        pos = pivot + jnp.stack([c * rel[:, 0] - s * rel[:, 1], s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], -1)
+        zq = jnp.stack([jnp.zeros_like(yaw), jnp.zeros_like(yaw), jnp.sin(0.5 * yaw), jnp.cos(0.5 * yaw)])
+        return jnp.concatenate([pos, quat_mul(jnp.broadcast_to(zq, body_q[:, 3:].shape), body_q[:, 3:])], -1)
+
+    def _sample_task(self, rng: jax.Array) -> dict[str, jax.Array]:
+        r = jnp.asarray(self._command_range, self.dtype)
+        return {"command": jax.random.uniform(rng, (3,), self.dtype, -1.0, 1.0) * r}
+
+    # ---------------------------------------------------------------- observation
+
+    def _obs_size(self) -> int:
+        return 12 + 3 * self.action_size
+
+    def _observe(self, ps: State, info: dict) -> jax.Array:
+        base = body_frame_vectors(ps.body_q, ps.body_u, self._base)
+        q, qd = self.actuated_state(ps)
+        centre = jnp.asarray(0.5 * (self.action_lower + self.action_upper), self.dtype)
+        return jnp.concatenate([0.25 * base["ang_vel"], base["gravity"], base["lin_vel"], info["command"],
+                                q - centre, 0.05 * qd, info["last_action"]]).astype(self.dtype)
+
+    def _obs_noise_scale(self) -> np.ndarray:
+        """Noise standard deviation per entry at ``obs_noise = 1``, in observation units: angular velocity 0.05
+        (0.2 rad/s), gravity 0.05, linear velocity 0.1 m/s, joint angles 0.01 rad, joint rates 0.075 (1.5 rad/s);
+        none on the command and the previous action."""
+        n = self.action_size
+        return np.concatenate([np.full(3, 0.05), np.full(3, 0.05), np.full(3, 0.1), np.zeros(3), np.full(n, 0.01),
+                               np.full(n, 0.075), np.zeros(n)])
+
+    # ---------------------------------------------------------------- reward and termination
+
+    def _fallen(self, ps: State) -> jax.Array:
+        base = body_frame_vectors(ps.body_q, ps.body_u, self._base)
+        return (base["height"] < self._min_height) | (base["up"] < self._min_up)
+
+    def _reward(self, prev: State, ps: State, action: jax.Array, info: dict) -> tuple[jax.Array, dict]:
+        base = body_frame_vectors(ps.body_q, ps.body_u, self._base)
+        cmd = info["command"]
+        torque = ps.actuator_force[self._act_dof]
+        raw = {
+            "tracking_lin_vel": jnp.exp(-jnp.sum((cmd[:2] - base["lin_vel"][:2]) ** 2) / self._sigma),
+            "tracking_ang_vel": jnp.exp(-((cmd[2] - base["ang_vel"][2]) ** 2) / self._sigma),
+            "upright": base["up"],
+            "action_rate": jnp.sum((action - info["last_action"]) ** 2),
+            "torque": jnp.sum(torque**2),
+            "alive": 1.0 - self._fallen(ps).astype(self.dtype),
+        }
+        terms = {k: self._weights[k] * v for k, v in raw.items()}
+        return sum(terms.values()), terms
+
+    def _terminated(self, ps: State, info: dict) -> jax.Array:
+        return self._fallen(ps)
+
+
+__all__ = ["REWARD_WEIGHTS", "DrLegsJoystick"]

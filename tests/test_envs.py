@@ -1,0 +1,323 @@
+"""Environments on Brax's API (kamino/envs, issue 18; docs/envs.md).
+
+Brax's wrappers build ``info`` entries with the default float (``jp.zeros``) at reset and float32 ones at step, so
+they need ``jax_enable_x64`` off (this suite turns it on: tests/conftest.py); every test that goes through them runs
+under ``jax.enable_x64(False)``. The environments themselves keep their own dtype (float32) either way, which the
+first test checks with x64 on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+pytest.importorskip("brax")
+
+from brax.envs.wrappers import training
+
+import kamino
+from kamino.envs import DrLegsJoystick, EnvSystem, FourbarTrack, make, randomize
+
+N = 4  # environments per batch: small (CI has two cores), more than one (vmap)
+EPISODE = 6  # brax EpisodeWrapper length in the auto-reset test
+
+
+def _violation(env, body_q: jax.Array) -> np.ndarray:
+    """Worst joint/loop residual [m or rad] of each configuration ``body_q [B, nb, 7]``."""
+    state = env._template
+    return np.asarray(jax.vmap(lambda q: kamino.metrics(env.model, state.replace(body_q=q))["constraint_violation"])(
+        body_q)).reshape(-1)
+
+
+def _signature(tree) -> dict:
+    return jax.tree.map(lambda x: (tuple(x.shape), x.dtype), tree)
+
+
+@pytest.fixture(scope="module")
+def fourbar():
+    return FourbarTrack()
+
+
+@pytest.fixture(scope="module")
+def wrapped(fourbar):
+    """The four-bar through brax's training wrappers (Vmap / Episode / AutoReset), jitted, and a short run of it:
+    ``N`` environments, a sinusoidal action, ``2 EPISODE`` steps; the states after each step."""
+    with jax.enable_x64(False):
+        env = training.wrap(fourbar, episode_length=EPISODE)
+        reset, step = jax.jit(env.reset), jax.jit(env.step)
+        states = [reset(jax.random.split(jax.random.PRNGKey(0), N))]
+        for k in range(2 * EPISODE):
+            states.append(step(states[-1], jnp.full((N, 1), 0.8 * np.sin(0.7 * k), jnp.float32)))
+    return {"env": env, "reset": reset, "step": step, "states": states}
+
+
+def test_reset_and_step_keep_keys_shapes_and_dtypes(fourbar):
+    """``metrics`` and ``info`` have the same keys, shapes and dtypes at reset and at step (brax scans over steps),
+    everything in the environment's float32 although this suite runs with jax_enable_x64 on."""
+    key = jax.random.PRNGKey(1)
+    s0 = jax.eval_shape(fourbar.reset, key)
+    s1 = jax.eval_shape(fourbar.step, s0, jax.ShapeDtypeStruct((1,), jnp.float32))
+    assert _signature(s0.metrics) == _signature(s1.metrics)
+    assert _signature(s0.info) == _signature(s1.info)
+    assert _signature(s0.pipeline_state) == _signature(s1.pipeline_state)
+    assert set(s0.metrics) == {"tracking", "action_rate", "failed"}
+    for s in (s0, s1):
+        assert s.obs.shape == (fourbar.observation_size,) and s.obs.dtype == jnp.float32
+        assert s.reward.shape == () and s.reward.dtype == jnp.float32
+        assert s.done.shape == () and s.done.dtype == jnp.float32
+
+
+def test_jit_vmap_reset_and_step(fourbar, wrapped):
+    """Batched, jitted reset and step: finite observations of the declared size, rewards in the kernel's range,
+    no world failed, time advancing by the policy period."""
+    s0, s1 = wrapped["states"][0], wrapped["states"][1]
+    assert s0.obs.shape == (N, 7) and s1.obs.shape == (N, 7)
+    assert np.all(np.isfinite(np.asarray(s1.obs)))
+    # tracking is exp(-err^2) in (0, 1]; the action-rate penalty is at most 0.02 * 2^2
+    r = np.asarray(s1.reward)
+    assert np.all((r > -0.08 - 1e-6) & (r <= 1.0 + 1e-6))
+    assert not np.any(np.asarray(s1.pipeline_state.info.failed))
+    # one policy step = decimation simulator steps: 5 x 10 ms (float32 sum of five 0.01 s steps)
+    np.testing.assert_allclose(np.asarray(s1.pipeline_state.time), fourbar.dt, rtol=1e-5)
+    assert fourbar.dt == pytest.approx(0.05)
+
+
+def test_auto_reset_through_brax_wrap(wrapped):
+    """brax's EpisodeWrapper ends the episode after EPISODE steps and its AutoResetWrapper puts every world back to
+    its first state; the environment's episode memory (last action, target) is restored at the next step."""
+    states = wrapped["states"]
+    first = states[0]
+    end = states[EPISODE]
+    assert np.all(np.asarray(end.done) == 1.0)
+    np.testing.assert_array_equal(np.asarray(end.pipeline_state.body_q), np.asarray(first.pipeline_state.body_q))
+    np.testing.assert_array_equal(np.asarray(end.obs), np.asarray(first.obs))
+    restarted = states[EPISODE + 1]
+    assert np.all(np.asarray(restarted.done) == 0.0)
+    # the first step after the reset tracks the episode's first target again, and its action-rate term compares
+    # with the reset's zero action (the last action of the previous episode is forgotten)
+    np.testing.assert_array_equal(np.asarray(restarted.info["target"]), np.asarray(first.info["target"]))
+    np.testing.assert_array_equal(np.asarray(restarted.info["task_steps"]), 1)
+    a = np.float32(0.8 * np.sin(0.7 * EPISODE))
+    np.testing.assert_allclose(np.asarray(restarted.metrics["action_rate"]), -0.02 * a * a, rtol=1e-5)
+
+
+def test_world_health_sets_done_and_auto_reset_recovers(wrapped):
+    """A world whose health flag is set (``state.info.failed``: kamino freezes it) ends its episode; the others go
+    on; brax's auto-reset gives the failed world its first state back, healthy."""
+    with jax.enable_x64(False):
+        s = wrapped["states"][1]
+        ps = s.pipeline_state
+        sick = ps.replace(info=dataclasses.replace(ps.info, failed=ps.info.failed.at[0].set(True)))
+        out = wrapped["step"](s.replace(pipeline_state=sick), jnp.zeros((N, 1), jnp.float32))
+    done = np.asarray(out.done)
+    assert done[0] == 1.0 and np.all(done[1:] == 0.0)
+    assert float(out.metrics["failed"][0]) == 1.0
+    first = wrapped["states"][0].pipeline_state
+    np.testing.assert_array_equal(np.asarray(out.pipeline_state.body_q[0]), np.asarray(first.body_q[0]))
+    assert not bool(out.pipeline_state.info.failed[0, 0])
+
+
+def test_randomization_fn_changes_the_dynamics(fourbar):
+    """brax's DomainRandomizationVmapWrapper with a randomization_fn: environments whose masses differ follow
+    different trajectories from the same reset and actions; equal parameters give identical ones."""
+    scales = jnp.asarray([1.0, 1.0, 3.0], jnp.float32)
+
+    def randomization_fn(sys: EnvSystem):  # ppo.train binds rng=; brax's wrap takes the function of sys alone
+        batched = jax.vmap(lambda f: sys.replace(body_mass=sys.body_mass * f, body_inertia=sys.body_inertia * f))(
+            scales)
+        return batched, jax.tree.map(lambda _: 0, batched)
+
+    with jax.enable_x64(False):
+        env = training.wrap(fourbar, episode_length=100, randomization_fn=randomization_fn)
+        key = jax.random.PRNGKey(3)
+        s = env.reset(jnp.stack([key] * 3))  # the same initial configuration and target in all three
+        step = jax.jit(env.step)
+        for _ in range(4):
+            s = step(s, jnp.full((3, 1), 0.9, jnp.float32))
+    q = np.asarray(s.pipeline_state.body_q)
+    np.testing.assert_array_equal(q[0], q[1])
+    # three times the mass: the effort-limited crank (3 N m) accelerates a third as fast towards the same target
+    assert np.max(np.abs(q[2] - q[0])) > 1e-2
+    assert fourbar.sys.body_mass.shape == (fourbar.model.num_bodies,)
+
+
+def test_randomize_factory_draws_per_environment(fourbar):
+    fn = randomize(mass_scale=(0.5, 2.0), friction_scale=(0.5, 1.5), kp_scale=(0.8, 1.2), action_delay=(0.0, 0.02))
+    sys_v, in_axes = fn(fourbar.sys, jax.random.split(jax.random.PRNGKey(0), 8))
+    assert sys_v.body_mass.shape == (8, fourbar.model.num_bodies)
+    assert sys_v.action_delay.shape == (8,)
+    assert jax.tree.leaves(in_axes) == [0] * len(jax.tree.leaves(sys_v))
+    ratio = np.asarray(sys_v.body_mass) / np.asarray(fourbar.sys.body_mass)
+    assert np.all((ratio >= 0.5) & (ratio <= 2.0)) and np.ptp(ratio) > 0.1
+    # the inertia follows the mass (a denser body of the same shape)
+    inertia_ratio = np.asarray(sys_v.body_inertia)[:, :, 0, 0] / np.asarray(fourbar.sys.body_inertia)[:, 0, 0]
+    np.testing.assert_allclose(inertia_ratio, ratio, rtol=1e-5)
+    with pytest.raises(ValueError, match="mass_scale"):
+        randomize(mass_scale=(2.0, 1.0))
+
+
+def test_resets_close_the_loops(fourbar):
+    """Every reset configuration satisfies every joint and the loop closure to 1e-5 m (forward kinematics solves
+    to 1e-6 m; float32): the bank (default) and FK inside the traced reset (``reset_bank=None``, built through
+    brax's registry), and the resets spread over the crank's range."""
+    assert fourbar._bank.shape[0] >= 250  # the crank-rocker assembles at every crank angle: all 256 draws converge
+    assert _violation(fourbar, jnp.asarray(fourbar._bank)).max() < 1e-5
+    import brax.envs
+
+    traced = brax.envs.get_environment("fourbar_track", reset_bank=None)
+    assert isinstance(traced, FourbarTrack)
+    states = jax.jit(jax.vmap(traced.reset_state))(jax.random.split(jax.random.PRNGKey(7), 16))
+    assert _violation(traced, states.body_q).max() < 1e-5
+    crank = np.asarray(jax.vmap(lambda s: traced.actuated_state(s)[0][0])(states))
+    assert np.ptp(crank) > 2.0  # reset_noise 1: the initial crank angle is drawn over +-2.8 rad
+    np.testing.assert_array_equal(np.asarray(states.body_u), 0.0)  # resets start at rest
+
+
+def test_bad_arguments_raise_naming_them():
+    model = kamino.models.fourbar(actuated=True)
+    with pytest.raises(ValueError, match="backend"):
+        FourbarTrack(backend="torch")
+    with pytest.raises(ValueError, match="sim_dt"):
+        FourbarTrack(sim_dt=0.0)
+    with pytest.raises(ValueError, match="decimation"):
+        FourbarTrack(decimation=0)
+    with pytest.raises(ValueError, match="action_range"):
+        FourbarTrack(action_range=4.0)
+    with pytest.raises(ValueError, match="reset_bank"):
+        FourbarTrack(reset_bank=0)
+    with pytest.raises(ValueError, match="task"):
+        make("cartpole")
+    from kamino.envs import KaminoEnv
+
+    with pytest.raises(ValueError, match="action_lower and action_upper"):  # the crank hinge has no limits
+        KaminoEnv(model, sim_dt=0.01, decimation=2)
+    with pytest.raises(ValueError, match="no actuators"):
+        KaminoEnv(kamino.models.fourbar(), sim_dt=0.01, decimation=2)
+    b = kamino.ModelBuilder()
+    link = b.add_body(mass=1.0, inertia=np.eye(3) * 0.01, pos=(0.0, 0.0, 0.5), name="link")
+    b.add_joint_at(kamino.JointType.REVOLUTE, -1, link, anchor=(0.0, 0.0, 1.0), axis=(0.0, 1.0, 0.0), name="hinge",
+                   actuation=kamino.Actuation("effort", effort_limit=5.0))
+    with pytest.raises(ValueError, match="POSITION"):  # actions are PD targets
+        KaminoEnv(b.finalize(), sim_dt=0.01, decimation=2, action_lower=-1, action_upper=1)
+    with pytest.raises(ValueError, match="worlds"):
+        KaminoEnv(kamino.replicate(model, 2), sim_dt=0.01, decimation=2, action_lower=-1, action_upper=1)
+
+
+def test_step_rejects_a_wrong_action_shape(fourbar):
+    s = jax.eval_shape(fourbar.reset, jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="action"):
+        jax.eval_shape(fourbar.step, s, jax.ShapeDtypeStruct((2,), jnp.float32))
+
+
+@pytest.fixture(scope="module")
+def legs():
+    return DrLegsJoystick(kp=15.0, kd=0.6, reset_bank=32)
+
+
+def test_dr_legs_actions_map_inside_the_joint_limits(legs):
+    """Actions (clipped to [-1, 1]) map onto the actuated joints' limits: -1 and +1 land on them exactly."""
+    m = legs.model
+    lo, hi = m.dof_lower[m.actuator_dof], m.dof_upper[m.actuator_dof]
+    a = jax.random.uniform(jax.random.PRNGKey(0), (256, legs.action_size), jnp.float32, -3.0, 3.0)
+    t = np.asarray(jax.vmap(legs.action_to_target)(a))
+    assert np.all(t >= lo - 1e-6) and np.all(t <= hi + 1e-6)
+    np.testing.assert_allclose(np.asarray(legs.action_to_target(-jnp.ones(12))), lo, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(legs.action_to_target(jnp.ones(12))), hi, atol=1e-6)
+
+
+def test_dr_legs_joystick_runs(legs):
+    """Reset and step under jit + vmap on the CPU: loops closed at reset, feet on the ground, the documented
+    observation, and falls end episodes (issue 18's gains, kp 15 N m/rad, cannot hold the 17 kg robot at a zero
+    action: it collapses in about 50 steps, 1 s; measured)."""
+    assert legs.observation_size == 48 and legs.action_size == 12 and legs.dt == pytest.approx(0.02)
+    assert _violation(legs, jnp.asarray(legs._bank)).max() < 1e-5
+    keys = jax.random.split(jax.random.PRNGKey(0), N)
+    s = jax.jit(jax.vmap(legs.reset))(keys)
+    assert s.obs.shape == (N, 48)
+    assert _violation(legs, s.pipeline_state.body_q).max() < 1e-5  # the heading is a rigid turn: loops stay closed
+    quat = np.asarray(s.pipeline_state.body_q[:, legs._base, 3:])
+    heading = 2.0 * np.arctan2(quat[:, 2], quat[:, 3])  # the pelvis starts (nearly) level: a turn about z
+    assert np.ptp(heading) > 0.5  # uniform in [-pi, pi)
+    pts, bodies, radii = legs._support
+    q = np.asarray(s.pipeline_state.body_q)
+    # lowest foot corner of every reset on the ground plane (z = 0), to float32 rounding
+    from kamino.envs.geometry import place_on_ground
+
+    for w in range(N):
+        moved = place_on_ground(jnp.asarray(q[w]), jnp.asarray(pts, jnp.float32), bodies, jnp.asarray(radii,
+                                                                                                      jnp.float32), 0.0)
+        assert abs(float(moved[0, 2] - q[w, 0, 2])) < 1e-5
+    np.testing.assert_allclose(np.asarray(s.obs[:, 3:6]), np.tile([0.0, 0.0, -1.0], (N, 1)), atol=0.25)  # upright
+    cmd = np.asarray(s.info["command"])
+    assert np.all(np.abs(cmd) <= np.array([0.5, 0.3, 0.8]) + 1e-6)
+    np.testing.assert_array_equal(np.asarray(s.obs[:, 9:12]), cmd)  # the command is observed without noise
+
+    step = jax.jit(jax.vmap(legs.step))
+    ever_done = np.zeros(N, bool)
+    for _ in range(70):
+        s = step(s, jnp.zeros((N, 12), jnp.float32))
+        ever_done |= np.asarray(s.done) > 0
+        assert np.all(np.isfinite(np.asarray(s.obs))) and np.all(np.isfinite(np.asarray(s.reward)))
+    assert ever_done.all()
+    assert set(s.metrics) == {*legs.reward_terms, "failed"}
+
+
+def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar, wrapped):
+    """backend="warp": kamino's Warp step through its JAX FFI, batched over environments by a custom_vmap rule (one
+    Warp call for all of them), on Warp's CPU device; the same trajectory as the JAX reference to float32 rounding
+    (5e-6 measured over these steps), nested vmap included; domain randomization is refused."""
+    env = FourbarTrack(backend="warp")
+    with jax.enable_x64(False):
+        w = training.wrap(env, episode_length=EPISODE)
+        step = jax.jit(w.step)
+        s = jax.jit(w.reset)(jax.random.split(jax.random.PRNGKey(0), N))
+        for k in range(4):
+            s = step(s, jnp.full((N, 1), 0.8 * np.sin(0.7 * k), jnp.float32))
+        ref = wrapped["states"][4]
+        np.testing.assert_allclose(np.asarray(s.obs), np.asarray(ref.obs), atol=1e-4)
+        nested = jax.jit(jax.vmap(jax.vmap(env.step)))
+        s0 = jax.vmap(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), 6).reshape(2, 3, 2))
+        assert nested(s0, jnp.zeros((2, 3, 1), jnp.float32)).obs.shape == (2, 3, 7)
+        with pytest.raises(ValueError, match="backend='jax'"):
+            fn = functools.partial(randomize(), rng=jax.random.split(jax.random.PRNGKey(0), 2))
+            training.wrap(env, episode_length=5, randomization_fn=fn).reset(jax.random.split(jax.random.PRNGKey(0), 2))
+
+
+_TWO_DEVICES = textwrap.dedent("""
+    import jax
+    assert jax.local_device_count() == 2, jax.devices()
+    from brax.training.agents.ppo import train as ppo
+    from kamino.envs import FourbarTrack
+    from kamino.envs.configs import ppo_kwargs
+
+    env = FourbarTrack(reset_bank=16)
+    kw = ppo_kwargs("fourbar_track", num_timesteps=640, num_evals=1, num_envs=8, batch_size=8, num_minibatches=4,
+                    unroll_length=5, num_updates_per_batch=1, episode_length=20, num_eval_envs=4, run_evals=False)
+    make_policy, params, metrics = ppo.train(environment=env, **kw)
+    leaves = jax.tree.leaves(params)
+    assert all(bool(jax.numpy.all(jax.numpy.isfinite(x))) for x in leaves)
+    print("OK", jax.local_device_count())
+""")
+
+
+def test_ppo_pmaps_over_two_host_devices():
+    """brax's PPO pmaps over the local devices: two forced host devices (the XLA flag must be set before jax is
+    imported, hence a subprocess), 4 environments per device, the JAX backend."""
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
+    env["JAX_PLATFORMS"] = "cpu"
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", _TWO_DEVICES], env=env, cwd=root, capture_output=True, text=True,
+                         timeout=600, check=False)
+    assert out.returncode == 0, out.stderr[-4000:]
+    assert "OK 2" in out.stdout
