@@ -387,3 +387,17 @@ def test_viewer_template_is_package_data():
     assert template.is_file()
     text = template.read_text(encoding="utf-8")
     assert "__KAMINO_DATA__" in text and "__KAMINO_TITLE__" in text
+
+
+def test_html_plays_a_robot_with_loops():
+    # issue 19: the viewer opens a robot (dr_legs: 31 bodies, its leg linkages closed by loop joints) and plays it:
+    # every frame's poses are the trajectory's, every body is drawn, the loop joints are the export's cuts.
+    robot = kamino.models.dr_legs()
+    traj = _synthetic(robot, 4)
+    data = _page_data(viz.html(robot, traj))
+    np.testing.assert_array_equal(np.asarray(data["frames"]["body_q"]), np.asarray(traj.body_q))
+    assert data["frames"]["step"] == [0, 1, 2, 3]
+    assert [b["name"] for b in data["bodies"]] == list(robot.body_names)
+    cuts = [robot.joint_names[j] for j in viz.loop_joints(robot)]
+    assert sorted(data["loop_joints"]) == sorted(cuts) and len(cuts) == count_loops(robot, 0) > 0
+    assert sorted(j["name"] for j in data["joints"] if j["loop"]) == sorted(cuts)
