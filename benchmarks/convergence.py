@@ -5,6 +5,9 @@
     python benchmarks/convergence.py --plot FILE.json     # FILE_speed_error.png, FILE_iterations.png
     python benchmarks/convergence.py --table FILE.json    # a markdown table on stdout
 
+Progress bars (tqdm, on stderr) over the scenes' runs and over each run's steps; ``--no-progress`` turns them off.
+stdout carries the JSON records only, one a line, as before.
+
 Configuration: ``kamino.SolverConfig(dt=0.0025)`` and nothing else (every solver setting at its library
 default: the adaptive penalty, tolerance 1e-3, ...), float32, Warp's CUDA device (its CPU device when there
 is none: smoke runs, no throughput). The sweep changes ``tolerance`` only; ``serial_chain_dt1e-3`` changes
@@ -55,6 +58,7 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+from tqdm import tqdm
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # JAX (host probes) must not take Warp's GPU memory
 
@@ -63,7 +67,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 import stress_models  # noqa: E402
-from throughput import solver_overrides  # noqa: E402
+from throughput import progress, solver_overrides  # noqa: E402
 
 import kamino  # noqa: E402
 from kamino.model import JOINT_CONSTRAINT_ROWS, RES_TRANS, ActuationMode, JointType  # noqa: E402
@@ -448,30 +452,33 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
     wp.synchronize_device(st.device)
     t0 = time.perf_counter()
     done = 0
-    while done < steps:
-        if args.time_limit is not None and time.perf_counter() - t0 > args.time_limit:
-            break  # report the steps run so far (module doc, ``--time-limit``)
-        n = min(every, steps - done)
-        if n > 1:
-            st.run(n - 1)
-        if probe is not None:
-            q_pre = np.stack([_world_slice(st.work.q, w, nb, 7) for w in sampled])
-        st.run(1)
-        done += n
-        q_all = st.work.q.numpy().reshape(W, nb, 7)
-        closure_max = np.maximum(closure_max, np.nan_to_num(closure(q_all), nan=np.inf))
-        if probe is not None:
-            u_s = np.stack([_world_slice(st.work.u, w, nb, 6) for w in sampled])
-            uf_s = np.stack([_world_slice(st.work.u_f, w, nb, 6) for w in sampled])
-            for key, (t, r) in probe(cfg, q_pre, q_all[sampled], u_s, uf_s).items():
-                vel[key][0].append(t)
-                vel[key][1].append(r)
-        if inv0 is not None:
-            ke, L = invariants(base, q_all, st.work.u.numpy().reshape(W, nb, 6))
-            n0 = np.linalg.norm(inv0[1], axis=-1)
-            inv_dev["energy"] = max(inv_dev["energy"], float(np.max(np.abs(ke / inv0[0] - 1))))
-            inv_dev["L_norm"] = max(inv_dev["L_norm"], float(np.max(np.abs(np.linalg.norm(L, axis=-1) / n0 - 1))))
-            inv_dev["L_vector"] = max(inv_dev["L_vector"], float(np.max(np.linalg.norm(L - inv0[1], axis=-1) / n0)))
+    with progress(args=args, total=steps, desc=f"{scene.name} tol {cfg.tolerance:g}", unit="step",
+                  leave=False) as bar:
+        while done < steps:
+            if args.time_limit is not None and time.perf_counter() - t0 > args.time_limit:
+                break  # report the steps run so far (module doc, ``--time-limit``)
+            n = min(every, steps - done)
+            if n > 1:
+                st.run(n - 1)
+            if probe is not None:
+                q_pre = np.stack([_world_slice(st.work.q, w, nb, 7) for w in sampled])
+            st.run(1)
+            done += n
+            bar.update(n)
+            q_all = st.work.q.numpy().reshape(W, nb, 7)
+            closure_max = np.maximum(closure_max, np.nan_to_num(closure(q_all), nan=np.inf))
+            if probe is not None:
+                u_s = np.stack([_world_slice(st.work.u, w, nb, 6) for w in sampled])
+                uf_s = np.stack([_world_slice(st.work.u_f, w, nb, 6) for w in sampled])
+                for key, (t, r) in probe(cfg, q_pre, q_all[sampled], u_s, uf_s).items():
+                    vel[key][0].append(t)
+                    vel[key][1].append(r)
+            if inv0 is not None:
+                ke, L = invariants(base, q_all, st.work.u.numpy().reshape(W, nb, 6))
+                n0 = np.linalg.norm(inv0[1], axis=-1)
+                inv_dev["energy"] = max(inv_dev["energy"], float(np.max(np.abs(ke / inv0[0] - 1))))
+                inv_dev["L_norm"] = max(inv_dev["L_norm"], float(np.max(np.abs(np.linalg.norm(L, axis=-1) / n0 - 1))))
+                inv_dev["L_vector"] = max(inv_dev["L_vector"], float(np.max(np.linalg.norm(L - inv0[1], axis=-1) / n0)))
     stats.flush(st)
     wp.synchronize_device(st.device)
     wall = time.perf_counter() - t0
@@ -556,12 +563,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=pathlib.Path, default=None)
     p.add_argument("--plot", type=pathlib.Path, default=None, help="write PNGs from an existing JSON and exit")
     p.add_argument("--table", type=pathlib.Path, default=None, help="print a markdown table of a JSON and exit")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars (tqdm, on stderr)")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
+    from kamino._warp import quiet_warp
+
+    quiet_warp()  # Warp's banner and module-load lines off stdout (KAMINO_WARP_VERBOSE=1 keeps them)
     if args.plot:
         plot(json.loads(args.plot.read_text()), args.plot.with_suffix(""))
         return 0
@@ -579,11 +590,14 @@ def main(argv: list[str] | None = None) -> int:
     def emit(rec: dict) -> None:
         results["records"].append(rec)
         brief = {k: v for k, v in rec.items() if k not in ("iterations_histogram", "config")}
-        print(json.dumps(brief), flush=True)
+        with tqdm.external_write_mode():  # the same line on stdout, the bars cleared around it on a terminal
+            print(json.dumps(brief), flush=True)
         if args.out:
             args.out.write_text(json.dumps(results, indent=1))
 
-    for scene in scenes:
+    bar = progress(scenes, args=args, desc="convergence", unit="scene")
+    for scene in bar:
+        bar.set_description(scene.name)
         try:
             base = scene.build()
             probe = VelocityProbe(base) if base.num_constraints else None

@@ -5,6 +5,9 @@ JAX backend) and, when importable, the peers MuJoCo Warp and Newton SolverKamino
                                     [--configs dense-llt sparse-llt sparse-cr jax] [--no-peers] [--out FILE]
     python benchmarks/throughput.py --plot benchmarks/results/throughput_h100.json   # PNG plots from a JSON
 
+Progress bars (tqdm, on stderr) over the runs and over each closure run's steps; ``--no-progress`` turns them off.
+stdout carries the JSON records only, one a line, as before.
+
 Method (docs/architecture.md "Performance method", the same as the peers' figures in benchmarks/README.md):
 float32, dt = 0.0025 s, the drive ``2 N m sin(2 pi t)`` on the scene's first actuator set on the device
 every step (inside the graph); throughput = steps/s x worlds with a CUDA graph of ``--graph-steps`` steps
@@ -29,6 +32,7 @@ import tempfile
 import time
 
 import numpy as np
+from tqdm import tqdm
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -54,6 +58,14 @@ DT = 0.0025
 #: defaults are the measured configuration (issue 16; ``--solver FIELD=VALUE`` overrides for experiments)
 SOLVER: dict = {}
 AMPLITUDE, FREQUENCY = 2.0, 1.0
+#: the progress bars' least refresh period [s] (tqdm ``mininterval``): a bar redrawn at most twice a second
+PROGRESS_INTERVAL = 0.5
+
+
+def progress(iterable=None, *, args=None, **kw) -> tqdm:
+    """A tqdm bar on stderr, off with ``--no-progress`` (``args.no_progress``); extra keywords go to tqdm."""
+    return tqdm(iterable, disable=bool(getattr(args, "no_progress", False)), mininterval=PROGRESS_INTERVAL,
+                dynamic_ncols=True, file=sys.stderr, **kw)
 
 
 def load_scene(name: str):
@@ -219,7 +231,8 @@ def closure_run(name, config_name, args) -> dict:
     wb.load_state(st, state, control)
     st.pre_step.append(_drive_hook(st, model, drive, base_targets))
     closure, iters, r_p, r_d, conv, ju = 0.0, [], [], [], [], 0.0
-    for _ in range(args.closure_steps):
+    for _ in progress(range(args.closure_steps), args=args, desc=f"{name} {config_name} closure", unit="step",
+                      leave=False):
         st.run(1)
         closure = max(closure, closure_distance(model, st.work.q.numpy().reshape(-1, 7)))
         ju = max(ju, joint_velocity_error(st))
@@ -286,7 +299,7 @@ def solver_overrides(items: list[str]) -> dict:
     return out
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=sorted({*SCENES, *ROBOTS}))
     p.add_argument("--worlds", nargs="+", type=int, default=[1, 64, 512, 4096, 16384])
@@ -305,7 +318,15 @@ def main(argv=None) -> int:
                    help="Newton SolverKamino variants run beside kamino (benchmarks/peers.py KAMINO_VARIANTS)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     p.add_argument("--plot", type=pathlib.Path, default=None, help="plot an existing JSON and exit")
-    args = p.parse_args(argv)
+    p.add_argument("--no-progress", action="store_true", help="no progress bars (tqdm, on stderr)")
+    return p
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    from kamino._warp import quiet_warp
+
+    quiet_warp()  # Warp's banner and module-load lines off stdout (KAMINO_WARP_VERBOSE=1 keeps them)
     if args.tolerance is not None:
         SOLVER["tolerance"] = args.tolerance
     if args.rho is not None:
@@ -318,27 +339,39 @@ def main(argv=None) -> int:
 
     def emit(rec):
         results["records"].append(rec)
-        print(json.dumps(rec), flush=True)
+        with tqdm.external_write_mode():  # the same line on stdout, the bars cleared around it on a terminal
+            print(json.dumps(rec), flush=True)
         if args.out:
             args.out.write_text(json.dumps(results, indent=1))
 
-    for scene in args.scenes:
-        for config in args.configs:
-            if config == "jax":
+    # one bar over kamino's (scene, config, worlds) runs; the peers' runs of a scene show in its description
+    bar = progress(args=args, total=len(args.scenes) * len(args.configs) * len(args.worlds), desc="throughput",
+                   unit="run")
+    with bar:
+        for scene in args.scenes:
+            for config in args.configs:
+                if config == "jax":
+                    for nw in args.worlds:
+                        bar.set_description(f"{scene} jax {nw} worlds")
+                        try:
+                            emit(bench_jax(scene, nw, args))
+                        except Exception as e:  # keep going: report what failed
+                            emit({"kamino": "jax", "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
+                        bar.update()
+                    continue
+                bar.set_description(f"{scene} {config} closure")
+                err = closure_run(scene, config, args) if args.closure_steps else {}
                 for nw in args.worlds:
+                    bar.set_description(f"{scene} {config} {nw} worlds")
                     try:
-                        emit(bench_jax(scene, nw, args))
-                    except Exception as e:  # keep going: report what failed
-                        emit({"kamino": "jax", "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
-                continue
-            err = closure_run(scene, config, args) if args.closure_steps else {}
-            for nw in args.worlds:
-                try:
-                    emit({**bench_warp(scene, config, nw, args), **err})
-                except Exception as e:
-                    emit({"kamino": "warp", "config": config, "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
-        if not args.no_peers:
-            run_peers(scene, args, emit)
+                        emit({**bench_warp(scene, config, nw, args), **err})
+                    except Exception as e:
+                        emit({"kamino": "warp", "config": config, "scene": scene, "num_worlds": nw,
+                              "error": repr(e)[:300]})
+                    bar.update()
+            if not args.no_peers:
+                bar.set_description(f"{scene} peers")
+                run_peers(scene, args, emit)
     return 0
 
 

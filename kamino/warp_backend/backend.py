@@ -12,12 +12,14 @@ the cost of this boundary.
 from __future__ import annotations
 
 import dataclasses
+import sys
 import weakref
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import warp as wp
+from tqdm import tqdm
 
 from kamino.checks import check_control, check_rollout_controls, check_state
 from kamino.config import SolverConfig
@@ -28,6 +30,10 @@ from kamino.warp_backend.pipeline import Stepper
 from kamino.warp_backend.types import types_of
 
 _STEPPERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+#: an eager :func:`rollout` of at least this many steps shows a progress bar (tqdm, on stderr, cleared at the end);
+#: shorter ones print nothing. Set it to ``float("inf")`` for none.
+PROGRESS_MIN_STEPS = 1000
 
 
 def release(model: Model | None = None) -> None:
@@ -243,7 +249,8 @@ def rollout(model: Model, state: State, controls: Control | None, num_steps: int
     st = stepper(model, cfg, _dtype_of(state))
     load_state(st, state, None)
     traj = _Trajectory(st, num_steps)
-    for t in range(num_steps):
+    for t in tqdm(range(num_steps), desc="kamino rollout (warp)", unit="step", leave=False, mininterval=0.5,
+                  dynamic_ncols=True, file=sys.stderr, disable=num_steps < PROGRESS_MIN_STEPS):
         if controls is not None:
             load_control(st, jax.tree_util.tree_map(lambda x, t=t: x[t], controls))
         st.run(1)
