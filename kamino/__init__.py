@@ -6,9 +6,14 @@ Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``
 ``metrics``, ``joint_positions``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``,
 ``load_mjcf``, ``save_mjcf`` and the procedural ``models``. Submodules imported on use: ``kamino.viz`` (an HTML
 page or a GIF of a rollout), ``kamino.plots`` (matplotlib), ``kamino.envs`` (Brax environments).
+
+Importing kamino turns on JAX's persistent compilation cache in the user's cache directory (``~/.cache/kamino/jax``
+on Linux), unless JAX's cache is already configured; ``KAMINO_JAX_CACHE=0`` turns it off, ``KAMINO_JAX_CACHE=/path``
+moves it (``kamino/_jax_cache.py``; docs/first_step.md).
 """
 
 from kamino import models
+from kamino._jax_cache import enable as _enable_jax_cache
 from kamino.api import init_state, joint_positions, load_mjcf, metrics, rollout, save_mjcf, step
 from kamino.config import SolverConfig
 from kamino.kinematics import FKResult, forward_kinematics, set_joint_positions
@@ -24,6 +29,8 @@ from kamino.model import (
     replicate,
 )
 from kamino.state import ContactState, Control, State, StepInfo
+
+_enable_jax_cache()  # before the first compile: kamino/_jax_cache.py
 
 __version__ = "0.1.0"
 

@@ -59,8 +59,11 @@ jax.config.update("jax_enable_x64", True)
 # Synchronous CPU dispatch: a JAX computation runs to its end on the calling thread before the next Warp CPU launch.
 jax.config.update("jax_cpu_enable_async_dispatch", False)
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER", "main")
-jax.config.update("jax_compilation_cache_dir",
-                  str(Path(__file__).resolve().parents[1] / ".pytest_cache" / f"jax-{_WORKER}"))
+_JAX_CACHE = Path(__file__).resolve().parents[1] / ".pytest_cache" / f"jax-{_WORKER}"
+jax.config.update("jax_compilation_cache_dir", str(_JAX_CACHE))
+# the same directory for what the tests start in subprocesses (README snippets, notebook kernels, the two-device
+# run): kamino's own default (kamino/_jax_cache.py) would write to the user's cache directory
+os.environ["KAMINO_JAX_CACHE"] = str(_JAX_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.3)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
