@@ -42,6 +42,13 @@ ROT_TOL = 1e-4
 #: positions agree to 1.4e-5 and 3.3e-5 m), the XLA CPU summation order alone moves it; the cap at 30 and
 #: rho_free 1e-4 pass locally (2026-11-24)
 ROT_TOL_LAST = 5e-4
+#: the same for the CR configuration on the chaotic random mechanisms. CR's inexact inner solve takes PADMM along
+#: another path (21 iterations against 3 on ``CR_STOP_POINT_MECHANISM``), so it stops at another point inside the
+#: tolerance ball, and the mechanism amplifies that difference. Measured on that mechanism after 100 steps: 8.1e-4 rad
+#: for CR, 2.2e-5 for both LLT configurations; the reference against itself at 10x the tolerance (1e-6): 7e-5; CR
+#: against the reference both at 1e-6: 3e-5 (the gap shrinks with the tolerance: a stop point, not another
+#: trajectory). Worst seen: 8.1e-4 there, 7.3e-4 on the CI run of 2026-11-25; the bound leaves 2.5x
+ROT_TOL_LAST_CR = 2e-3
 
 #: derandomised (the examples are a function of the test's source: CI runs the same ones every time), no example
 #: database (nothing carried over from a local run), no shrinking (each example costs a JAX compile of ~10-20 s;
@@ -54,8 +61,8 @@ PROPERTY_SETTINGS = settings(max_examples=3, deadline=None, derandomize=True, da
 #: the Warp configurations compared with the reference; CR with a budget of 30 iterations per PADMM iteration: at
 #: the default 9 its inexact float32 inner solve leaves the first steps of a random seven-hinge mechanism at the
 #: iteration cap where the reference converges in 17-18 (measured at tolerance 1e-5; the default 1e-3 is met)
-COMPARED = (WARP_DENSE_LLT, WARP_SPARSE_LLT,
-            dataclasses.replace(WARP_SPARSE_CR, id="warp-sparse-cr30", cr_iterations=30))
+CR30 = dataclasses.replace(WARP_SPARSE_CR, id="warp-sparse-cr30", cr_iterations=30)
+COMPARED = (WARP_DENSE_LLT, WARP_SPARSE_LLT, CR30)
 
 # ---------------------------------------------------------------------------------------------
 # comparison
@@ -119,13 +126,14 @@ def _settled_worlds(ref: Run, cfg: kamino.SolverConfig) -> np.ndarray:
 
 
 def _assert_agree(model: kamino.Model, ref: Run, out: Run, cfg: kamino.SolverConfig, settled: np.ndarray,
-                  compare: np.ndarray, label: str) -> None:
-    """Poses of the worlds in ``compare``, converged flags of the ``settled`` worlds; reported residuals
-    everywhere."""
+                  label: str, chaotic: bool) -> None:
+    """Poses and converged flags of the ``settled`` worlds; reported residuals everywhere. ``chaotic``: the
+    scenes amplify where a solve stops inside the tolerance ball (``ROT_TOL_LAST_CR``)."""
     world = np.asarray(model.body_world)
-    body = compare[world]
+    body = settled[world]
+    last = ROT_TOL_LAST_CR if label == CR30.id and chaotic else ROT_TOL_LAST
     for name, a, b, rot_tol in (("step 1", ref.q1, out.q1, ROT_TOL),
-                                (f"step {len(ref.converged)}", ref.qn, out.qn, ROT_TOL_LAST)):
+                                (f"step {len(ref.converged)}", ref.qn, out.qn, last)):
         dp = np.where(body, np.abs(a[:, :3].astype(float) - b[:, :3].astype(float)).max(axis=1), 0.0)
         dr = np.where(body, _quat_angle(a[:, 3:], b[:, 3:]), 0.0)
         k = int(np.argmax(np.maximum(dp / POS_TOL, dr / rot_tol)))
@@ -144,15 +152,13 @@ def _assert_agree(model: kamino.Model, ref: Run, out: Run, cfg: kamino.SolverCon
                              f"warp {out.iterations[steps[:5], worlds[:5]].tolist()}")
 
 
-def _compare_backends(model: kamino.Model, state: kamino.State, cfg: kamino.SolverConfig, *,
-                      poses_of_settled_worlds_only: bool) -> None:
+def _compare_backends(model: kamino.Model, state: kamino.State, cfg: kamino.SolverConfig, *, chaotic: bool) -> None:
     ref = _run(JAX, model, state, cfg)
     settled = _settled_worlds(ref, cfg)
     event(f"settled worlds: {int(settled.sum())} of {model.num_worlds}")
-    compare = settled if poses_of_settled_worlds_only else np.ones_like(settled)
-    assume(compare.any())
+    assume(settled.any())
     for v in COMPARED:
-        _assert_agree(model, ref, _run(v, model, state, cfg), cfg, settled, compare, v.id)
+        _assert_agree(model, ref, _run(v, model, state, cfg), cfg, settled, v.id, chaotic)
 
 
 def _batch(builds) -> tuple[kamino.Model, kamino.State]:
@@ -291,9 +297,50 @@ NEUTRAL_DOUBLE_HINGE = {"scale": 10.0 ** 0.5, "loops": [], "bodies": [
     _body(0, JointType.REVOLUTE, 10.0 ** 0.5, (0.25, 0.25, 0.25), 0.25)]}
 
 
+#: Drawn by the CI run of 2026-11-25 (rounded to three digits, which keeps the effect): nine bodies hanging from
+#: three world joints, two prismatic loops and a universal loop. Every configuration converges on every step, the
+#: reference and the LLT ones in 3 iterations, CR in up to 21, and after 100 steps CR's body 3 is 8.1e-4 rad from the
+#: reference where the LLT configurations are within 2.2e-5: the case behind ``ROT_TOL_LAST_CR``.
+_BODY_KEYS = ("parent", "joint", "mass", "size", "offset", "length", "quat", "axis", "axis2", "v", "w")
+_LOOP_KEYS = ("a", "b", "joint", "t", "axis", "axis2")
+CR_STOP_POINT_MECHANISM = {"scale": 0.912, "bodies": [dict(zip(_BODY_KEYS, b, strict=True)) for b in (
+    (-1, JointType.SPHERICAL, 1.72, (0.298, 0.232, 0.0805), (0.0, -0.0741, 0.989), 0.32,
+     (0.88, 0.555, -0.165, 0.378), (-0.172, 0.273, 0.0), (0.0254, 0.601, 0.125),
+     (-6.1e-05, -0.308, 0.65), (0.0, 0.545, 0.985)),
+    (-1, JointType.PRISMATIC, 1.44, (0.145, 0.246, 0.3), (0.0, 0.0, 0.655), 0.216,
+     (-0.287, -0.144, -0.422, -0.947), (0.0, 0.0, 0.981), (-0.971, 0.0849, 0.0),
+     (-0.524, -0.799, 1.0), (0.0, 0.341, 0.554)),
+    (1, JointType.REVOLUTE, 0.959, (0.17, 0.104, 0.209), (-0.247, -0.201, 0.0), 0.352,
+     (0.997, 0.718, 0.0, 0.264), (0.0, 0.0338, 0.0), (0.046, 0.0, 0.532),
+     (-0.673, 0.77, 0.21), (0.009, 0.554, -0.595)),
+    (0, JointType.UNIVERSAL, 0.871, (0.23, 0.12, 0.0552), (-0.226, -0.13, 0.709), 0.285,
+     (0.0, 0.475, -0.0959, 0.63), (-0.982, -0.611, -0.183), (0.955, 0.0521, -0.922),
+     (0.681, -0.592, 0.361), (0.0, 0.0, -0.514)),
+    (1, JointType.FIXED, 2.11, (0.12, 0.131, 0.17), (0.662, 0.664, 0.78), 0.153,
+     (1.0, 0.283, -0.388, 0.0), (0.666, -0.693, 0.135), (0.0, 0.512, -0.104), (0.0, 0.0, 0.5), (0.496, 0.0, 0.264)),
+    (-1, JointType.FIXED, 0.513, (0.14, 0.256, 0.149), (0.0, 0.0, 0.55), 0.127,
+     (-0.944, 0.377, 0.307, 0.0), (0.0, 0.104, 0.0), (0.0026, -0.628, 1.0),
+     (-0.436, -0.792, 0.31), (0.674, -0.116, 0.0)),
+    (5, JointType.REVOLUTE, 1.0, (0.28, 0.138, 0.1), (-0.586, -0.566, 0.344), 0.4,
+     (-0.648, 0.006, 0.698, 0.313), (-0.625, 0.0, 0.0147), (-0.742, 0.0, -0.281),
+     (0.176, 0.0, -0.138), (-0.73, -0.955, -0.0634)),
+    (5, JointType.FIXED, 1.8, (0.247, 0.168, 0.1), (0.022, -1.0, 0.237), 0.333,
+     (0.741, -0.0577, -0.23, 0.0), (-0.181, -0.159, 0.986), (0.655, 0.806, -0.0746),
+     (0.0, 0.0, 0.0506), (0.0, 0.88, -0.158)),
+    (6, JointType.FREE, 1.0, (0.147, 0.07, 0.0643), (1.0, -0.08, -0.362), 0.19,
+     (-0.494, 0.834, -0.181, -0.607), (0.0, 0.77, 0.0), (0.631, 0.06, 0.0),
+     (0.0, -0.0475, -0.945), (0.0, 0.0, 0.309)),
+)], "loops": [dict(zip(_LOOP_KEYS, lp, strict=True)) for lp in (
+    (7, 4, JointType.PRISMATIC, 0.333, (0.0, -0.316, 0.0), (0.0, 0.026, -0.317)),
+    (7, 8, JointType.PRISMATIC, 0.207, (0.0, 0.757, 0.012), (0.0, 0.0845, 1e-05)),
+    (0, 2, JointType.UNIVERSAL, 0.639, (-0.338, 0.306, 0.788), (0.0, 0.322, -0.371)),
+)]}
+
+
 @PROPERTY_SETTINGS
 @given(specs=st.lists(mechanisms(), min_size=3, max_size=6))
 @example(specs=[NEUTRAL_DOUBLE_HINGE])
+@example(specs=[CR_STOP_POINT_MECHANISM])
 def test_random_mechanisms_agree_across_backends(specs):
     """Float32, ``F32_CFG`` (defaults, rho 0.01), 1 and 100 steps; each example is a batch of up to six random
     mechanisms, one world each.
@@ -310,13 +357,15 @@ def test_random_mechanisms_agree_across_backends(specs):
       at the default rho (test_light_slider_with_a_hinged_load_stays_bounded), and an unconverged solve is where
       rounding decides the result;
     - ``F32_CFG`` (rho 0.01): most worlds converge in a few to a few tens of iterations.
+    CR is the exception to 5e-4 rad at step 100: it stops elsewhere inside the same tolerance ball, a difference
+    of the tolerance's size that the mechanism amplifies (``ROT_TOL_LAST_CR``, ``CR_STOP_POINT_MECHANISM``).
     What remains outside the regime is a world whose reference PADMM does not settle (``_settled_worlds``: a
     random set of redundant loops at the float32 residual floor, measured 0-1 of 5-6 worlds per batch): its
     poses and flags are not compared (measured there, before the CR fixes of solver.py: LLT within 8e-5 rad,
     CR 9e-4 rad after 100 steps), the example is discarded if no world settles, and the reported residuals are
     checked everywhere.
     """
-    _compare_backends(*_batch([build_mechanism(s) for s in specs]), F32_CFG, poses_of_settled_worlds_only=True)
+    _compare_backends(*_batch([build_mechanism(s) for s in specs]), F32_CFG, chaotic=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -386,13 +435,17 @@ def test_random_shapes_dropped_on_a_plane_agree_across_backends(specs):
     Why 1e-4 holds: no chaos amplifies the differences here (one contact set per shape, friction dissipates
     them), and contact activation is a threshold on the gap that rounding moves by ~1e-8 m, far from the 5 cm
     scale of the drops; what remains is float32 rounding and PADMM's stop at the same tolerance (measured:
-    <= 3e-5 m and rad). That holds on the steps where the contact solve reaches its 200-iteration cap too
-    (frictional impacts of tumbling boxes, 3-10% of the steps in float32 at tolerance 1e-6), so the poses of
-    every world are compared; the converged flags only where the reference settles (``_settled_worlds``), as
-    a flag decided at the cap is decided by rounding.
+    <= 3e-5 m and rad). Poses and converged flags are compared where the reference settles (``_settled_worlds``);
+    a world whose contact solve ends steps at the 200-iteration cap ends them on an iterate that rounding decides.
+    That was not amplified in the first examples (frictional impacts of tumbling boxes, 3-10 % of the steps at the
+    cap), but it was on the CI run of 2026-11-25. There, a 45 g capsule beside a 14 g sphere, in a world at the
+    cap, rolled 1.1e-3 rad away from the reference on the dense LLT after 100 steps. Rolling is neutral: a
+    velocity difference integrates, and the angle is the distance over a radius of 3-15 cm. Run again at
+    tolerance 1e-6 (fewer steps at the cap), the gap was 5e-5 rad. The reported residuals are checked in every
+    world.
     """
     _compare_backends(*_batch([build_drop(s) for s in specs]), kamino.SolverConfig(dt=DT, tolerance=1e-5),
-                      poses_of_settled_worlds_only=False)
+                      chaotic=False)
 
 
 # ---------------------------------------------------------------------------------------------
