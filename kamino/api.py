@@ -13,6 +13,7 @@ import numpy as np
 from kamino.checks import check_config, check_control, check_control_type, check_model, check_state
 from kamino.config import SolverConfig
 from kamino.model import JointType, Model
+from kamino.sharding import sharded_call, world_sharding
 from kamino.state import ContactState, Control, State, StepInfo
 
 BACKENDS = ("jax", "warp")
@@ -110,9 +111,13 @@ def step(model: Model, state: State, control: Control | None = None, *, config: 
 
     ``control`` holds one step's inputs (arrays flat over all worlds, no time axis); ``config`` is a
     :class:`SolverConfig` (docs/settings.md: the defaults and the speed-against-accuracy knob). Arguments of the
-    wrong kind or shape raise a ``TypeError`` / ``ValueError`` naming the argument before a backend runs.
+    wrong kind or shape raise a ``TypeError`` / ``ValueError`` naming the argument before a backend runs. A state
+    whose worlds are sharded over devices (``kamino.sharding.shard_worlds``) is stepped on each device in place.
     """
     _check_call("step", model, state, control, config, backend)
+    sharding = world_sharding(state)
+    if sharding is not None:  # worlds spread over devices: each steps its own (kamino/sharding.py)
+        return sharded_call("step", _backend(backend), model, state, control, sharding, config or SolverConfig())
     return _backend(backend).step(model, state, control, config or SolverConfig())
 
 
@@ -120,8 +125,13 @@ def rollout(model: Model, state: State, controls: Control | None = None, *, num_
             config: SolverConfig | None = None, backend: str = "jax") -> State:
     """Run many steps. ``controls`` fields carry a leading time axis (or pass ``num_steps`` and no
     controls). Returns the trajectory: a :class:`State` whose arrays have a leading time axis
-    (the state after each step); :func:`metrics` reads it whole (``[num_steps, num_worlds]``)."""
+    (the state after each step); :func:`metrics` reads it whole (``[num_steps, num_worlds]``). A state sharded
+    over devices (``kamino.sharding.shard_worlds``) gives a trajectory sharded the same way along its world axis."""
     _check_call("rollout", model, state, controls, config, backend)
+    sharding = world_sharding(state)
+    if sharding is not None:
+        return sharded_call("rollout", _backend(backend), model, state, controls, sharding, config or SolverConfig(),
+                            num_steps)
     return _backend(backend).rollout(model, state, controls, num_steps, config or SolverConfig())
 
 

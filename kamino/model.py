@@ -1170,6 +1170,60 @@ _INDEX_FIELDS = {"joint_parent": "body", "joint_child": "body", "geom_body": "bo
                  "coupling_world": "world", "actuator_dof": "dof", "actuator_world": "world"}
 
 
+#: The entity axis of each field prefix (the leading axis of the field's array); ``world`` fields are per world.
+_PREFIX_ENTITY = (("body_", "body"), ("joint_", "joint"), ("dof_", "dof"), ("geom_", "geom"), ("pair_", "pair"),
+                  ("coupling_", "coupling"), ("actuator_", "actuator"), ("world_", "world"), ("gravity", "world"))
+
+
+def take_worlds(model: Model, start: int, stop: int) -> Model:
+    """Worlds ``start .. stop - 1`` of ``model`` as a model of their own (the inverse of :func:`concat`: entities
+    are stored world after world, so each kind is one contiguous range, and index fields are shifted back).
+    ``concat([take_worlds(m, 0, k), take_worlds(m, k, m.num_worlds)])`` equals ``m``."""
+    if not isinstance(model, Model):
+        raise TypeError(f"take_worlds: model must be a kamino.Model, got {type(model).__name__}")
+    start, stop = int(start), int(stop)
+    if not 0 <= start < stop <= model.num_worlds:
+        raise ModelError(f"take_worlds(start={start}, stop={stop}): need 0 <= start < stop <= num_worlds "
+                         f"({model.num_worlds})")
+    ranges = {"world": (start, stop)}
+    for entity in ("body", "joint", "dof", "geom", "pair", "coupling", "actuator"):
+        first, count = getattr(model, f"world_{entity}_start"), getattr(model, f"world_{entity}_count")
+        ranges[entity] = (int(first[start]), int(first[stop - 1] + count[stop - 1]))
+    out: dict[str, Any] = {"num_worlds": stop - start}
+    for f in dataclasses.fields(Model):
+        name = f.name
+        if name == "num_worlds" or (name.startswith("world_") and name.endswith("_start")):
+            continue
+        if name in ("joint_dof_start", "joint_coord_start", "joint_cts_start"):
+            continue
+        entity = next(e for prefix, e in _PREFIX_ENTITY if name.startswith(prefix))
+        lo, hi = ranges[entity]
+        v = getattr(model, name)[lo:hi]
+        shift = _INDEX_FIELDS.get(name)
+        if shift is not None:
+            off = ranges[shift][0]
+            v = np.where(v >= 0, v - off, v) if shift in ("body", "joint") else v - off
+        out[name] = v.copy() if isinstance(v, np.ndarray) else tuple(v)
+    for f in dataclasses.fields(Model):
+        if f.name.startswith("world_") and f.name.endswith("_start"):
+            out[f.name] = _prefix(out[f.name[: -len("_start")] + "_count"])
+    for entity in ("joint_dof", "joint_coord", "joint_cts"):
+        out[entity + "_start"] = _prefix(out[entity + "_count"])
+    return _freeze(Model(**out))
+
+
+def same_model(a: Model, b: Model) -> bool:
+    """Whether two models are equal field by field (arrays by value)."""
+    for f in dataclasses.fields(Model):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            if x.shape != y.shape or not np.array_equal(x, y):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
 def replicate(model: Model, n: int) -> Model:
     """``n`` copies of ``model`` as one multi-world model (homogeneous worlds)."""
     if not isinstance(model, Model):

@@ -272,6 +272,23 @@ def test_dr_legs_joystick_runs(legs):
     assert set(s.metrics) == {*legs.reward_terms, "failed"}
 
 
+def test_bdx_joystick_stands_at_a_zero_action():
+    """``bdx_joystick`` (a tree biped, 14 actions): resets on the ground, and with its model's leg gains (kp 400
+    N m/rad) a zero action holds the reference pose. Over 1 s the pelvis stays within 2 cm of its height at
+    reset and no episode ends; the robot does settle onto its feet, by about 1 cm (measured). This is the
+    counterpart of dr_legs at issue 18's kp 15, which collapses."""
+    env = make("bdx_joystick", reset_bank=8)
+    assert env.observation_size == 12 + 3 * 14 and env.action_size == 14
+    s = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 4))
+    h0 = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
+    step = jax.jit(jax.vmap(env.step))
+    for _ in range(50):
+        s = step(s, jnp.zeros((4, 14), jnp.float32))
+        assert not np.any(np.asarray(s.done) > 0)
+    h = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
+    assert np.all(np.abs(h - h0) < 0.02), (h0, h)
+
+
 def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar, wrapped):
     """backend="warp": kamino's Warp step through its JAX FFI, batched over environments by a custom_vmap rule (one
     Warp call for all of them), on Warp's CPU device; the same trajectory as the JAX reference to float32 rounding
@@ -300,19 +317,21 @@ _TWO_DEVICES = textwrap.dedent("""
     from kamino.envs import FourbarTrack
     from kamino.envs.configs import ppo_kwargs
 
-    env = FourbarTrack(reset_bank=16)
     kw = ppo_kwargs("fourbar_track", num_timesteps=640, num_evals=1, num_envs=8, batch_size=8, num_minibatches=4,
                     unroll_length=5, num_updates_per_batch=1, episode_length=20, num_eval_envs=4, run_evals=False)
-    make_policy, params, metrics = ppo.train(environment=env, **kw)
-    leaves = jax.tree.leaves(params)
-    assert all(bool(jax.numpy.all(jax.numpy.isfinite(x))) for x in leaves)
-    print("OK", jax.local_device_count())
+    for backend in ("jax", "warp"):
+        make_policy, params, metrics = ppo.train(environment=FourbarTrack(reset_bank=16, backend=backend), **kw)
+        leaves = jax.tree.leaves(params)
+        assert all(bool(jax.numpy.all(jax.numpy.isfinite(x))) for x in leaves), backend
+        print("OK", backend, jax.local_device_count())
 """)
 
 
 def test_ppo_pmaps_over_two_host_devices():
     """brax's PPO pmaps over the local devices: two forced host devices (the XLA flag must be set before jax is
-    imported, hence a subprocess), 4 environments per device, the JAX backend."""
+    imported, hence a subprocess), 4 environments per device, on both backends (the Warp step runs on each device
+    with that device's stepper: kamino/warp_backend/jit.py; that it equals the unsharded step is
+    test_sharding.py's)."""
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     env["JAX_PLATFORMS"] = "cpu"
@@ -320,4 +339,4 @@ def test_ppo_pmaps_over_two_host_devices():
     out = subprocess.run([sys.executable, "-c", _TWO_DEVICES], env=env, cwd=root, capture_output=True, text=True,
                          timeout=600, check=False)
     assert out.returncode == 0, out.stderr[-4000:]
-    assert "OK 2" in out.stdout
+    assert "OK jax 2" in out.stdout and "OK warp 2" in out.stdout

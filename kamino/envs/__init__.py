@@ -12,13 +12,14 @@ except ImportError as exc:  # pragma: no cover - depends on the installation
     raise ImportError("kamino.envs needs brax: install the rl extra (pip install -e \".[rl]\")") from exc
 
 from kamino.envs.base import BACKENDS, KaminoEnv
-from kamino.envs.dr_legs_joystick import DrLegsJoystick
 from kamino.envs.fourbar_track import FourbarTrack
+from kamino.envs.joystick import BdxJoystick, DrLegsJoystick, Joystick
 from kamino.envs.randomization import randomize
 from kamino.envs.system import EnvSystem
 
 #: task name -> environment class (each also registered with brax.envs)
-TASKS: dict[str, type[KaminoEnv]] = {"fourbar_track": FourbarTrack, "dr_legs_joystick": DrLegsJoystick}
+TASKS: dict[str, type[KaminoEnv]] = {"fourbar_track": FourbarTrack, "dr_legs_joystick": DrLegsJoystick,
+                                     "bdx_joystick": BdxJoystick}
 
 for _name, _cls in TASKS.items():
     _brax_envs.register_environment(_name, _cls)
@@ -31,4 +32,5 @@ def make(task: str, **kwargs) -> KaminoEnv:
     return TASKS[task](**kwargs)
 
 
-__all__ = ["BACKENDS", "TASKS", "DrLegsJoystick", "EnvSystem", "FourbarTrack", "KaminoEnv", "make", "randomize"]
+__all__ = ["BACKENDS", "TASKS", "BdxJoystick", "DrLegsJoystick", "EnvSystem", "FourbarTrack", "Joystick", "KaminoEnv",
+           "make", "randomize"]

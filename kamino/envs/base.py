@@ -47,7 +47,7 @@ from kamino.config import SolverConfig
 from kamino.envs.geometry import dof_state, ground_height, one_world, place_on_ground, support_points
 from kamino.envs.system import EnvSystem
 from kamino.envs.warp_batching import WarpBatchedStep
-from kamino.jax_ref.backend import _step_jit
+from kamino.jax_ref.backend import step_padded
 from kamino.jax_ref.layout import layout_of
 from kamino.kinematics import base_bodies, forward_kinematics
 from kamino.model import ActuationMode, Model, replicate
@@ -288,7 +288,7 @@ class KaminoEnv(Env):
             return self._warp_step(ps, control)
         # the reference backend's jitted step on a padded model carrying this environment's parameters
         # (kamino.step reads its padded model from the host Model, which cannot carry traced parameters)
-        return _step_jit(sys.apply(self._pm), self._tables, ps, control, self._config)
+        return step_padded(sys.apply(self._pm), self._tables, ps, control, self._config)
 
     def _check_sys(self, where: str) -> None:
         if self._backend == "warp" and self.sys is not self._nominal_sys:

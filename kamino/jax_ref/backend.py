@@ -68,7 +68,10 @@ def _padded_state(pm: PaddedModel, t: dict, state: State, control: Control | Non
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
-def _step_jit(pm: PaddedModel, t: dict, state: State, control: Control | None, cfg: SolverConfig) -> State:
+def step_padded(pm: PaddedModel, t: dict, state: State, control: Control | None, cfg: SolverConfig) -> State:
+    """One step of the padded model ``pm`` with the layout tables ``t`` (``layout_of(model, dtype)``): what
+    :func:`step` runs. Public for callers whose model parameters are traced, such as the environments' domain
+    randomization (``kamino.envs``: ``pm`` then carries per-environment masses, gains, friction)."""
     q, u, cache, ctrl = _padded_state(pm, t, state, control)
     frozen = state.info.failed
     q, u, cache, out, nonfinite = step_batch(pm, q, u, cache, ctrl, cfg, frozen)
@@ -120,13 +123,13 @@ def step(model: Model, state: State, control: Control | None, cfg: SolverConfig)
     _check_state(model, state)
     _check_control(model, control)
     lay = layout_of(model, state.body_q.dtype)
-    return _step_jit(lay.padded, lay.tables, state, control, cfg)
+    return step_padded(lay.padded, lay.tables, state, control, cfg)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "num_steps"))
 def _rollout_jit(pm, t, state, controls, cfg, num_steps):
     def body(s, c):
-        s2 = _step_jit(pm, t, s, c, cfg)
+        s2 = step_padded(pm, t, s, c, cfg)
         return s2, s2
 
     if controls is None:

@@ -55,6 +55,18 @@ def _warp_dtype(T, kind):
     return {"transform": T.transform, "vec6": T.vec6, "vec3": T.vec3, "scalar": T.scalar, "int": wp.int32}[kind]
 
 
+def _stepper_on(st: Stepper, device) -> Stepper:
+    """The stepper of ``st``'s model and configuration on ``device``: the device XLA runs the call on. Under
+    ``pmap`` or ``shard_map`` over several GPUs every device has its own stepper (buffers, kernels loaded there);
+    the call's arrays live on that device. Warp runs the callbacks one at a time (its FFI lock), so the forced host
+    devices of a CPU, which all map to Warp's one CPU device, share its stepper safely."""
+    if device == st.device:
+        return st
+    from kamino.warp_backend.backend import stepper
+
+    return stepper(st.wm.model, st.cfg, st.np_dtype, device, for_jit=True, padmm=st.padmm)
+
+
 def _callable(st: Stepper):
     """The ``wp.jax_callable`` of one stepper (cached), with the non-empty fields as arguments."""
     per = _CALLABLES.setdefault(st, {})
@@ -69,11 +81,12 @@ def _callable(st: Stepper):
     types = {n: wp.array(dtype=_warp_dtype(T, f[2])) for n, f in zip(names, ins + outs, strict=True)}
 
     def body(arrays):
+        s = _stepper_on(st, arrays[0].device)
         for arr, (_, buf, _) in zip(arrays[:len(ins)], ins, strict=True):
-            wp.copy(getattr(w, buf), arr)
-        st.launch_step()
+            wp.copy(getattr(s.work, buf), arr)
+        s.launch_step()
         for arr, (_, buf, _) in zip(arrays[len(ins):], outs, strict=True):
-            wp.copy(arr, getattr(w, buf))
+            wp.copy(arr, getattr(s.work, buf))
 
     src = f"def kamino_warp_step({', '.join(names)}):\n    _body([{', '.join(names)}])\n"
     ns = {"_body": body}

@@ -1,12 +1,12 @@
-"""``dr_legs_joystick``: the DR Legs biped follows forward, lateral and yaw-rate commands (issue 18, task b).
+"""Velocity-command following for a legged robot on a ground plane: the joystick task (issue 18, tasks b and c).
 
-``kamino.models.dr_legs()``: 31 bodies, 12 PD actuators, 6 kinematic loops (knee and ankle four-bars, a spatial
-ankle-roll loop per leg), box feet on a ground plane. Implicit PD with ``kp`` 15 N m/rad and ``kd`` 0.6 N m s/rad
-on every actuator (issue 18's gains), 4 ms simulator steps, 5 per policy step (50 Hz). The command ``(v_x, v_y,
-yaw rate)`` in the pelvis frame is drawn at reset and every ``resample_steps``; rewards follow the usual joystick
-recipe (velocity tracking through exponential kernels, upright, action rate, torque, alive) and an episode ends
-when the pelvis falls below ``min_height`` or tilts past ``max_tilt``, or the world's health flag is set.
-Observation, reward and termination tables: docs/envs.md, "dr_legs_joystick".
+The command ``(v_x, v_y, yaw rate)`` in the base body's frame is drawn at reset and every ``resample_steps``;
+rewards follow the usual joystick recipe (velocity tracking through exponential kernels, upright, action rate,
+torque, alive) and an episode ends when the base body falls below ``min_height`` or tilts past ``max_tilt``, or
+the world's health flag is set. :class:`Joystick` holds the task for any one-world model with a floating base and
+PD actuators; ``dr_legs_joystick`` (:class:`DrLegsJoystick`, kinematic loops) and ``bdx_joystick``
+(:class:`BdxJoystick`, a tree) are its two robots. Observation, reward and termination tables: docs/envs.md,
+"Joystick tasks".
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from kamino.config import SolverConfig
 from kamino.envs.base import KaminoEnv
 from kamino.envs.geometry import body_frame_vectors
 from kamino.jax_ref.spatial import quat_mul
-from kamino.models import dr_legs
+from kamino.model import Model
+from kamino.models import bdx, dr_legs
 from kamino.state import State
 
 #: reward weights (docs/envs.md); the reward is their weighted sum, per policy step
@@ -27,15 +28,15 @@ REWARD_WEIGHTS = {"tracking_lin_vel": 1.0, "tracking_ang_vel": 0.5, "upright": 0
                   "torque": -2e-4, "alive": 0.2}
 
 
-class DrLegsJoystick(KaminoEnv):
-    """Velocity-command following on ``kamino.models.dr_legs`` (observation, reward, termination: docs/envs.md).
+class Joystick(KaminoEnv):
+    """Velocity-command following on ``model`` (a floating base, PD actuators, feet on a ground plane).
 
     Args:
-        kp, kd: PD gains of all 12 actuators [N m/rad], [N m s/rad].
+        model: a one-world model; its first floating body is the base whose velocity follows the command.
         command_lin_x, command_lin_y, command_yaw: half-ranges of the uniform command draw [m/s], [m/s], [rad/s].
         tracking_sigma: variance [(m/s)^2, (rad/s)^2] of the tracking kernels ``exp(-err^2 / sigma)``.
-        min_height: the pelvis CoM height [m] below which the robot has fallen (0.77 m standing).
-        max_tilt: the pelvis tilt [rad] past which it has fallen.
+        min_height: the base CoM height [m] below which the robot has fallen.
+        max_tilt: the base tilt [rad] past which it has fallen.
         reward_weights: overrides of :data:`REWARD_WEIGHTS`.
         sim_dt, decimation: 4 ms, 5 per policy step (50 Hz).
         resample_steps: policy steps between command draws (250: 5 s).
@@ -50,36 +51,35 @@ class DrLegsJoystick(KaminoEnv):
     reward_terms = tuple(REWARD_WEIGHTS)
     task_keys = ("command",)
 
-    def __init__(self, *, kp: float = 15.0, kd: float = 0.6, command_lin_x: float = 0.5, command_lin_y: float = 0.3,
-                 command_yaw: float = 0.8, tracking_sigma: float = 0.25, min_height: float = 0.45,
-                 max_tilt: float = 1.0, reward_weights: dict | None = None, sim_dt: float = 0.004,
-                 decimation: int = 5, resample_steps: int = 250, reset_noise: float = 0.1, obs_noise: float = 1.0,
+    def __init__(self, model: Model, *, min_height: float, command_lin_x: float = 0.5, command_lin_y: float = 0.3,
+                 command_yaw: float = 0.8, tracking_sigma: float = 0.25, max_tilt: float = 1.0,
+                 reward_weights: dict | None = None, sim_dt: float = 0.004, decimation: int = 5,
+                 resample_steps: int = 250, reset_noise: float = 0.1, obs_noise: float = 1.0,
                  reset_bank: int | None = 128, solver_config: SolverConfig | None = None, **kwargs):
-        for name, value in (("kp", kp), ("tracking_sigma", tracking_sigma), ("min_height", min_height),
-                            ("max_tilt", max_tilt)):
+        name = type(self).__name__
+        for arg, value in (("tracking_sigma", tracking_sigma), ("min_height", min_height), ("max_tilt", max_tilt)):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
-                raise ValueError(f"DrLegsJoystick: {name} must be a positive number, got {value!r}")
-        for name, value in (("kd", kd), ("command_lin_x", command_lin_x), ("command_lin_y", command_lin_y),
-                            ("command_yaw", command_yaw)):
+                raise ValueError(f"{name}: {arg} must be a positive number, got {value!r}")
+        for arg, value in (("command_lin_x", command_lin_x), ("command_lin_y", command_lin_y),
+                           ("command_yaw", command_yaw)):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
-                raise ValueError(f"DrLegsJoystick: {name} must be a number >= 0, got {value!r}")
+                raise ValueError(f"{name}: {arg} must be a number >= 0, got {value!r}")
         unknown = sorted(set(reward_weights or {}) - set(REWARD_WEIGHTS))
         if unknown:
-            raise ValueError(f"DrLegsJoystick: reward_weights has unknown terms {unknown}; the terms are "
+            raise ValueError(f"{name}: reward_weights has unknown terms {unknown}; the terms are "
                              f"{list(REWARD_WEIGHTS)}")
         self._weights = {**REWARD_WEIGHTS, **(reward_weights or {})}
         self._command_range = np.array([command_lin_x, command_lin_y, command_yaw], float)
         self._sigma = float(tracking_sigma)
         self._min_height = float(min_height)
         self._min_up = float(np.cos(max_tilt))
-        model = dr_legs(hip_gains=(kp, kd), knee_gains=(kp, kd), ankle_gains=(kp, kd))
         super().__init__(model, sim_dt=sim_dt, decimation=decimation, reset_noise=reset_noise, obs_noise=obs_noise,
                          resample_steps=resample_steps, reset_bank=reset_bank, solver_config=solver_config, **kwargs)
 
     # ---------------------------------------------------------------- reset and commands
 
     def _move_rigidly(self, body_q: jax.Array, rng: jax.Array) -> jax.Array:
-        """A uniform heading: every body turned about the vertical through the pelvis CoM."""
+        """A uniform heading: every body turned about the vertical through the base body's CoM."""
         yaw = jax.random.uniform(rng, (), body_q.dtype, -jnp.pi, jnp.pi)
         c, s = jnp.cos(yaw), jnp.sin(yaw)
         pivot = body_q[self._base, :3]
@@ -137,4 +137,39 @@ class DrLegsJoystick(KaminoEnv):
         return self._fallen(ps)
 
 
-__all__ = ["REWARD_WEIGHTS", "DrLegsJoystick"]
+def _check_gains(name: str, kp, kd) -> None:
+    if not (isinstance(kp, (int, float)) and np.isfinite(kp) and kp > 0):
+        raise ValueError(f"{name}: kp must be a positive number, got {kp!r}")
+    if not (isinstance(kd, (int, float)) and np.isfinite(kd) and kd >= 0):
+        raise ValueError(f"{name}: kd must be a number >= 0, got {kd!r}")
+
+
+class DrLegsJoystick(Joystick):
+    """``dr_legs_joystick``: ``kamino.models.dr_legs()`` (31 bodies, 12 PD actuators, 6 kinematic loops: knee and
+    ankle four-bars, a spatial ankle-roll loop per leg; box feet) with implicit PD ``kp`` 15 N m/rad and ``kd``
+    0.6 N m s/rad on every actuator (issue 18's gains), fallen below a pelvis height of 0.45 m (0.77 m standing).
+    Other arguments: :class:`Joystick`."""
+
+    def __init__(self, *, kp: float = 15.0, kd: float = 0.6, min_height: float = 0.45, **kwargs):
+        _check_gains(type(self).__name__, kp, kd)
+        super().__init__(dr_legs(hip_gains=(kp, kd), knee_gains=(kp, kd), ankle_gains=(kp, kd)),
+                         min_height=min_height, **kwargs)
+
+
+class BdxJoystick(Joystick):
+    """``bdx_joystick``: ``kamino.models.bdx()`` (21 bodies, a tree: 10 leg and 4 neck PD actuators; box feet),
+    the leg gains ``kp`` 400 N m/rad and ``kd`` 8 N m s/rad of the model, the neck's as built; fallen below a pelvis
+    height of ``min_height`` (default 0.6 of the standing height). The neck is actuated by the policy too (14
+    actions). Other arguments: :class:`Joystick`."""
+
+    def __init__(self, *, kp: float = 400.0, kd: float = 8.0, min_height: float | None = None, **kwargs):
+        _check_gains(type(self).__name__, kp, kd)
+        model = bdx(leg_gains=(kp, kd))
+        if min_height is None:
+            from kamino.kinematics import base_bodies
+
+            min_height = 0.6 * float(model.body_q0[int(base_bodies(model)[0]), 2])
+        super().__init__(model, min_height=min_height, **kwargs)
+
+
+__all__ = ["REWARD_WEIGHTS", "BdxJoystick", "DrLegsJoystick", "Joystick"]
