@@ -77,9 +77,10 @@ def bench(name: str, k: int, args, throughput) -> list[dict]:
     state = kamino.init_state(model, jnp.float32)
     controls = _controls(model, name, 0.0, args.block, throughput)  # the same block each time: timing only
     last = lambda traj: jax.tree.map(lambda x: x[-1], traj)  # noqa: E731
-    from kamino.api import _backend
+    import importlib
 
-    backend = _backend(args.backend)
+    backend = importlib.import_module("kamino.jax_ref.backend" if args.backend == "jax" else
+                                      "kamino.warp_backend.backend")
     mesh = jax.sharding.Mesh(np.asarray(devices), ("worlds",))
     sharded = shard_worlds(model, state, mesh)
     ctrl = jax.tree.map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(
