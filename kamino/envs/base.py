@@ -42,11 +42,11 @@ from brax.envs.base import Env
 from brax.envs.base import State as BraxState
 
 from kamino.api import init_state
+from kamino.api import step as kamino_step
 from kamino.checks import check_state
 from kamino.config import SolverConfig
 from kamino.envs.geometry import dof_state, ground_height, one_world, place_on_ground, support_points
 from kamino.envs.system import EnvSystem
-from kamino.envs.warp_batching import WarpBatchedStep
 from kamino.jax_ref.backend import step_padded
 from kamino.jax_ref.layout import layout_of
 from kamino.kinematics import base_bodies, forward_kinematics
@@ -64,8 +64,9 @@ class KaminoEnv(Env):
         sim_dt: the simulator step [s].
         decimation: simulator steps per environment step (the policy period is ``sim_dt * decimation``).
         backend: ``"jax"`` (the reference; everything, randomization included) or ``"warp"`` (kamino's Warp step
-            through its JAX FFI, batched over environments by :class:`kamino.envs.warp_batching.WarpBatchedStep`;
-            no domain randomization: its stepper holds the model's parameters).
+            through its JAX FFI, which ``jax.vmap`` batches over environments:
+            ``kamino.warp_backend.jit.batchable_step``; no domain randomization: its stepper holds the model's
+            parameters).
         solver_config: the :class:`kamino.SolverConfig` of each simulator step; its ``dt`` is replaced by
             ``sim_dt``.
         action_lower, action_upper: the PD-target range per actuator (scalars broadcast), intersected with the
@@ -141,7 +142,6 @@ class KaminoEnv(Env):
                                  f"reset) or an integer >= 1 (configurations solved at construction), got "
                                  f"{reset_bank!r}")
             self._bank = self._solve_bank(int(reset_bank), int(reset_seed))
-        self._warp_step = WarpBatchedStep(model, self._config) if backend == "warp" else None
 
     # ------------------------------------------------------------------ Brax's Env interface
 
@@ -284,8 +284,8 @@ class KaminoEnv(Env):
 
     def _physics_step(self, sys: EnvSystem, ps: State, control: Control) -> State:
         """One simulator step with ``sys``'s parameters (JAX reference) or the Warp FFI step."""
-        if self._warp_step is not None:
-            return self._warp_step(ps, control)
+        if self._backend == "warp":
+            return kamino_step(self._model, ps, control, config=self._config, backend="warp")
         # the reference backend's jitted step on a padded model carrying this environment's parameters
         # (kamino.step reads its padded model from the host Model, which cannot carry traced parameters)
         return step_padded(sys.apply(self._pm), self._tables, ps, control, self._config)

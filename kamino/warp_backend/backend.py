@@ -25,7 +25,7 @@ from kamino.checks import check_control, check_rollout_controls, check_state
 from kamino.config import SolverConfig
 from kamino.model import Model
 from kamino.state import ContactState, Control, State, StepInfo
-from kamino.warp_backend.jit import is_traced, traced_step
+from kamino.warp_backend.jit import batchable_step, is_traced
 from kamino.warp_backend.pipeline import Stepper
 from kamino.warp_backend.types import types_of
 
@@ -227,8 +227,9 @@ def step(model: Model, state: State, control: Control | None, cfg: SolverConfig)
     check_state(model, state)
     check_control(model, control)
     if is_traced(state) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(control)):
-        st = stepper(model, cfg, _dtype_of(state), _jax_device(), for_jit=True)
-        return traced_step(st, model, state, control)
+        dtype, device = _dtype_of(state), _jax_device()
+        fn = batchable_step(model, cfg, dtype, lambda m: stepper(m, cfg, dtype, device, for_jit=True))
+        return fn(state, control)
     st = stepper(model, cfg, _dtype_of(state))
     load_state(st, state, control)
     st.run(1)

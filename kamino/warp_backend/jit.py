@@ -15,6 +15,7 @@ import weakref
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import warp as wp
 
 from kamino.model import Model
@@ -100,6 +101,51 @@ def _callable(st: Stepper):
     return call, ins, outs
 
 
+_BATCHABLE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def batchable_step(model: Model, cfg, np_dtype, stepper_of):
+    """The traced step of ``model`` as a function ``(state, control) -> State`` that ``jax.vmap`` batches.
+
+    The FFI call itself has no batching rule (``vmap_method=None``). The rule here (``jax.custom_batching``) uses
+    the storage layout instead: arrays are world after world (docs/conventions.md, "Data layout"), so a batch of
+    ``B`` states of ``model`` is, flattened, the state of ``kamino.replicate(model, B)``. The rule reshapes every
+    ``[B, n, ...]`` array to ``[B * n, ...]``, makes one call for all ``B * N`` worlds and reshapes back; nested
+    ``vmap`` recurses through the replica's own function. Cached per (model, config, dtype); the replicas are kept
+    alive with it (the steppers are cached per model, weakly). ``stepper_of(model)`` gives the stepper of a model
+    (``backend.stepper`` with the configuration and device bound)."""
+    from kamino.model import replicate
+
+    per = _BATCHABLE.setdefault(model, {})
+    key = (cfg, np.dtype(np_dtype))
+    if key in per:
+        return per[key][0]
+    replicas: dict[int, Model] = {}
+
+    @jax.custom_batching.custom_vmap
+    def step(state: State, control: Control | None) -> State:
+        return traced_step(stepper_of(model), model, state, control)
+
+    @step.def_vmap
+    def rule(axis_size: int, in_batched, state: State, control: Control | None):
+        def lift(x, batched):
+            return x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x)))
+
+        state = jax.tree.map(lift, state, in_batched[0])
+        control = jax.tree.map(lift, control, in_batched[1])
+        if axis_size not in replicas:
+            replicas[axis_size] = replicate(model, axis_size)
+        big = replicas[axis_size]
+        merge = lambda x: x.reshape((axis_size * x.shape[1], *x.shape[2:]))  # noqa: E731
+        out = batchable_step(big, cfg, np_dtype, stepper_of)(jax.tree.map(merge, state), jax.tree.map(merge, control))
+        split = lambda x: x.reshape((axis_size, x.shape[0] // axis_size, *x.shape[1:]))  # noqa: E731
+        out = jax.tree.map(split, out)
+        return out, jax.tree.map(lambda _: True, out)
+
+    per[key] = (step, replicas)
+    return step
+
+
 def traced_step(st: Stepper, model: Model, state: State, control: Control | None) -> State:
     """One step with traced inputs, through the Warp FFI."""
     call, ins, outs = _callable(st)
@@ -147,4 +193,4 @@ def traced_step(st: Stepper, model: Model, state: State, control: Control | None
     )
 
 
-__all__ = ["is_traced", "traced_step"]
+__all__ = ["batchable_step", "is_traced", "traced_step"]
