@@ -37,14 +37,15 @@ PROGRESS_MIN_STEPS = 1000
 
 
 def release(model: Model | None = None) -> None:
-    """Drop the Warp backend's cached steppers and device models of ``model`` (of every model when ``None``).
+    """Drop the Warp backend's cached steppers, device models and batchable steps of ``model`` (of every model when
+    ``None``).
 
     Their values refer to the model, so these ``WeakKeyDictionary`` entries never expire by themselves: a process
     that steps many models (a benchmark over scenes, a test suite) keeps every stepper's device buffers until it
     releases them. The next step of a released model builds its stepper again."""
-    from kamino.warp_backend import model_data
+    from kamino.warp_backend import jit, model_data
 
-    for cache in (_STEPPERS, model_data._CACHE):
+    for cache in (_STEPPERS, model_data._CACHE, jit._BATCHABLE):
         if model is None:
             cache.clear()
         else:
