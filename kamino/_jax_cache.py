@@ -99,8 +99,16 @@ def choose(environ: Mapping[str, str] | None = None, *, jax_dir: str | None = No
     return CacheChoice(str(default_dir(env)), "default", "the user's cache directory")
 
 
-def _warn(message: str) -> None:
-    warnings.warn(f"kamino: {message}", RuntimeWarning, stacklevel=3)
+def _warn(message: str, stacklevel: int = 3) -> None:
+    warnings.warn(f"kamino: {message}", RuntimeWarning, stacklevel=stacklevel)
+
+
+def _left_off(message: str, detail: str) -> CacheChoice:
+    """Warn that the cache stays off (``message``), record why (``detail``) in :data:`choice` and return it."""
+    global choice
+    _warn(f"JAX's persistent compilation cache left off: {message}", stacklevel=4)
+    choice = CacheChoice(None, "failed", detail)
+    return choice
 
 
 def enable(environ: Mapping[str, str] | None = None) -> CacheChoice:
@@ -113,11 +121,9 @@ def enable(environ: Mapping[str, str] | None = None) -> CacheChoice:
         jax_dir = _jax_value("jax_compilation_cache_dir")
         jax_enabled = bool(_jax_value("jax_enable_compilation_cache"))
     except Exception as exc:  # a JAX whose config names differ
-        _warn(f"JAX's persistent compilation cache left off: reading jax.config.jax_compilation_cache_dir / "
-              f"jax_enable_compilation_cache failed ({type(exc).__name__}: {exc}). Configure the cache with JAX "
-              f"yourself, or set {ENV}=0 to silence this.")
-        choice = CacheChoice(None, "failed", f"reading JAX's config: {exc}")
-        return choice
+        return _left_off(f"reading jax.config.jax_compilation_cache_dir / jax_enable_compilation_cache failed "
+                         f"({type(exc).__name__}: {exc}). Configure the cache with JAX yourself, or set {ENV}=0 to "
+                         "silence this.", f"reading JAX's config: {exc}")
     choice = choose(env, jax_dir=jax_dir, jax_enabled=jax_enabled)
     raw = env.get(ENV, "").strip()
     if choice.source == "jax" and raw and raw.lower() not in _OFF and jax_dir and \
@@ -133,20 +139,16 @@ def enable(environ: Mapping[str, str] | None = None) -> CacheChoice:
         if not os.access(path, os.W_OK | os.X_OK):
             raise PermissionError(f"{str(path)!r} is not writable")
     except OSError as exc:
-        _warn(f"JAX's persistent compilation cache left off: cannot use {str(path)!r} ({type(exc).__name__}: {exc}). "
-              f"Set {ENV}=/a/writable/directory, or {ENV}=0 to run without it.")
-        choice = CacheChoice(None, "failed", f"{path}: {exc}")
-        return choice
+        return _left_off(f"cannot use {str(path)!r} ({type(exc).__name__}: {exc}). Set {ENV}=/a/writable/directory, "
+                         f"or {ENV}=0 to run without it.", f"{path}: {exc}")
 
     import jax
 
     try:
         jax.config.update("jax_compilation_cache_dir", str(path))
     except Exception as exc:
-        _warn(f"JAX's persistent compilation cache left off: jax.config.update('jax_compilation_cache_dir', ...) "
-              f"failed ({type(exc).__name__}: {exc}). Set {ENV}=0 to silence this.")
-        choice = CacheChoice(None, "failed", f"jax_compilation_cache_dir: {exc}")
-        return choice
+        return _left_off(f"jax.config.update('jax_compilation_cache_dir', ...) failed ({type(exc).__name__}: {exc}). "
+                         f"Set {ENV}=0 to silence this.", f"jax_compilation_cache_dir: {exc}")
     try:
         if float(_jax_value("jax_persistent_cache_min_compile_time_secs")) > MIN_COMPILE_TIME_SECS:
             jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_SECS)

@@ -1138,6 +1138,7 @@ def concat(models: Sequence[Model]) -> Model:
     shifts = {"body": _prefix([m.num_bodies for m in models]), "geom": _prefix([m.num_geoms for m in models]),
               "world": _prefix([m.num_worlds for m in models]), "joint": _prefix([m.num_joints for m in models]),
               "dof": _prefix([m.num_dofs for m in models])}
+    offsets = [{entity: off[k] for entity, off in shifts.items()} for k in range(len(models))]
     for f in dataclasses.fields(Model):
         name = f.name
         if name == "num_worlds" or (name.startswith("world_") and name.endswith("_start")):
@@ -1149,12 +1150,23 @@ def concat(models: Sequence[Model]) -> Model:
         parts = []
         for k, m in enumerate(models):
             v = getattr(m, name)
-            shift = _INDEX_FIELDS.get(name)
-            if shift is not None:
-                off = shifts[shift][k]
-                v = np.where(v >= 0, v + off, v) if shift in ("body", "joint") else v + off
-            parts.append(v)
+            parts.append(_shift_index(name, v, offsets[k]))
         out[name] = np.concatenate(parts, axis=0)
+    return _with_starts(out)
+
+
+def _shift_index(name: str, v: np.ndarray, offsets: dict[str, int]) -> np.ndarray:
+    """``v`` (field ``name``) with its entity indices moved by ``offsets[entity]`` if it is an index field
+    (:data:`_INDEX_FIELDS`); -1 (the world, or no joint) stays -1 for body and joint indices."""
+    shift = _INDEX_FIELDS.get(name)
+    if shift is None:
+        return v
+    off = offsets[shift]
+    return np.where(v >= 0, v + off, v) if shift in ("body", "joint") else v + off
+
+
+def _with_starts(out: dict[str, Any]) -> Model:
+    """The frozen :class:`Model` of the fields ``out`` with every ``*_start`` offset recomputed from its counts."""
     for f in dataclasses.fields(Model):
         if f.name.startswith("world_") and f.name.endswith("_start"):
             out[f.name] = _prefix(out[f.name[: -len("_start")] + "_count"])
@@ -1199,17 +1211,11 @@ def take_worlds(model: Model, start: int, stop: int) -> Model:
         entity = next(e for prefix, e in _PREFIX_ENTITY if name.startswith(prefix))
         lo, hi = ranges[entity]
         v = getattr(model, name)[lo:hi]
-        shift = _INDEX_FIELDS.get(name)
-        if shift is not None:
-            off = ranges[shift][0]
-            v = np.where(v >= 0, v - off, v) if shift in ("body", "joint") else v - off
-        out[name] = v.copy() if isinstance(v, np.ndarray) else tuple(v)
-    for f in dataclasses.fields(Model):
-        if f.name.startswith("world_") and f.name.endswith("_start"):
-            out[f.name] = _prefix(out[f.name[: -len("_start")] + "_count"])
-    for entity in ("joint_dof", "joint_coord", "joint_cts"):
-        out[entity + "_start"] = _prefix(out[entity + "_count"])
-    return _freeze(Model(**out))
+        if isinstance(v, np.ndarray):
+            out[name] = _shift_index(name, v, {e: -r[0] for e, r in ranges.items()}).copy()
+        else:
+            out[name] = tuple(v)
+    return _with_starts(out)
 
 
 def same_model(a: Model, b: Model) -> bool:
