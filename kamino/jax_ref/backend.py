@@ -15,6 +15,7 @@ from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.dynamics import body_dynamics, kinetic_energy, potential_energy
 from kamino.jax_ref.joints import constraint_residual, dof_positions, joint_coordinates, joint_frames
 from kamino.jax_ref.layout import PaddedModel, layout_of, to_flat, to_padded
+from kamino.jax_ref.precision import full_precision
 from kamino.jax_ref.step import WorldCache, WorldControl, step_batch
 from kamino.model import Model
 from kamino.state import ContactState, Control, State, StepInfo
@@ -148,6 +149,7 @@ def rollout(model: Model, state: State, controls: Control | None, num_steps: int
 
 
 @jax.jit
+@full_precision
 def _metrics_jit(pm: PaddedModel, t: dict, body_q, body_u):
     q = _padded_poses(pm, t, body_q)
     u = to_padded(body_u, t["bg"], pm.body_mask, 0.0)
@@ -170,6 +172,7 @@ def metrics(model: Model, state: State) -> dict:
 
 
 @jax.jit
+@full_precision
 def _joint_coords_jit(pm: PaddedModel, gather_j: dict, body_q):
     q = _padded_poses(pm, gather_j, body_q)
     return jax.vmap(lambda p, x: joint_coordinates(p, joint_frames(p, x)))(pm, q)

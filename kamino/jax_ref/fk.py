@@ -38,6 +38,7 @@ from kamino.jax_ref.joints import (
     joint_frames,
 )
 from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.precision import full_precision
 from kamino.jax_ref.spatial import integrate_pose, quat_conj, quat_exp, quat_log, quat_mul, rotate
 from kamino.model import JointType
 
@@ -234,6 +235,7 @@ def solve_world(pm: PaddedModel, tab: FKTables, q_init, coords, base_target, s: 
 
 
 @functools.partial(jax.jit, static_argnames=("settings",))
+@full_precision
 def solve_batch(pm: PaddedModel, tab: FKTables, q_init, coords, base_target, settings: FKSettings):
     """``solve_world`` vmapped over worlds (padded arrays, leading axis world)."""
     return jax.vmap(solve_world, in_axes=(0, 0, 0, 0, 0, None))(pm, tab, q_init, coords, base_target, settings)

@@ -28,6 +28,7 @@ from kamino.jax_ref.joints import (
     joint_frames,
 )
 from kamino.jax_ref.layout import DYN_ACTUATOR, PaddedModel
+from kamino.jax_ref.precision import full_precision
 from kamino.jax_ref.spatial import integrate_pose
 from kamino.model import ActuationMode
 
@@ -396,6 +397,7 @@ def _angular_damping(u: jax.Array, cfg: SolverConfig) -> jax.Array:
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
+@full_precision
 def step_batch(pm: PaddedModel, body_q, body_u, cache: WorldCache, ctrl: WorldControl, cfg: SolverConfig,
                frozen: jax.Array):
     """``step_world`` vmapped over worlds (all arrays padded, leading axis = world).
