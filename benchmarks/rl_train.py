@@ -7,7 +7,8 @@ The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS`` (``--steps
   after every evaluation, ``<step>`` counting environment steps over all runs. A later run of the same command
   resumes from the newest one and trains the steps that remain (brax restores the parameters; the optimizer state
   starts afresh); ``--fresh`` ignores them.
-- ``curve.json``: every evaluation (step, mean and spread of the episode return, wall time), over all runs;
+- ``curve.json``: every evaluation (step, mean and spread of the episode return, wall time, and the env steps/s of
+  the training epoch before it: the first epoch includes compilation), over all runs;
 - ``reward_curve.png``: the evaluation return against environment steps (matplotlib);
 - ``report.json``: the task, backend, settings, device, versions, the first and last evaluation with every
   ``eval/`` metric (the reward terms of docs/envs.md), training throughput and wall time.
@@ -160,6 +161,8 @@ def main(argv=None) -> int:
         entry = {"step": done + step, "reward": metrics.get("eval/episode_reward", float("nan")),
                  "reward_std": metrics.get("eval/episode_reward_std", float("nan")),
                  "run_wall_s": time.perf_counter() - start}
+        if "training/sps" in metrics:  # the epoch before this evaluation; the first one includes compilation
+            entry["env_steps_per_s"] = metrics["training/sps"]
         curve.append(entry)
         curve_path.write_text(json.dumps(curve, indent=1))
         first = first or metrics

@@ -11,6 +11,7 @@ try:
 except ImportError as exc:  # pragma: no cover - depends on the installation
     raise ImportError("kamino.envs needs brax: install the rl extra (pip install -e \".[rl]\")") from exc
 
+from kamino.envs import brax_compat
 from kamino.envs.base import BACKENDS, KaminoEnv
 from kamino.envs.fourbar_track import FourbarTrack
 from kamino.envs.joystick import BdxJoystick, DrLegsJoystick, Joystick
@@ -21,6 +22,7 @@ from kamino.envs.system import EnvSystem
 TASKS: dict[str, type[KaminoEnv]] = {"fourbar_track": FourbarTrack, "dr_legs_joystick": DrLegsJoystick,
                                      "bdx_joystick": BdxJoystick}
 
+brax_compat.install()
 for _name, _cls in TASKS.items():
     _brax_envs.register_environment(_name, _cls)
 
