@@ -97,20 +97,30 @@ _JITTED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def sharded_call(fn: str, backend, model: Model, state, control, sharding, config, num_steps: int | None = None):
-    """``backend.step`` (``fn == "step"``) or ``backend.rollout`` of every device's block of worlds as the group
-    model (``jax.shard_map``), jitted once per (model, backend, config, steps, mesh). The control and a rollout's
-    trajectory keep their leading time axis unsharded."""
+    """``backend.step`` (``fn == "step"``) or a rollout of every device's block of worlds as the group model
+    (``jax.shard_map`` of one step), jitted once per (model, backend, config, steps, mesh). A rollout is a
+    ``lax.scan`` whose body is that sharded step: the carry stays sharded, so each device still steps its own
+    block in place. The scan is outside the ``shard_map`` on purpose: XLA's GPU compiler (jax 0.11.2) crashed
+    compiling the Warp step's FFI call inside a loop inside a per-device program (``shard_map`` or ``pmap`` of a
+    scan or ``fori_loop``) on two GPUs, and compiled this form (docs/warp_backend.md, "Several devices"). The
+    control and a rollout's trajectory keep their leading time axis unsharded."""
     mesh, axis = sharding
     key = (fn, backend.__name__, config, num_steps, mesh, axis)
     per_model = _JITTED.setdefault(model, {})
     if key not in per_model:
         sub = group_model(model, _num_shards(mesh, axis), fn)
+        one = jax.shard_map(lambda s, c: backend.step(sub, s, c, config), mesh=mesh, in_specs=(P(axis), P(axis)),
+                            out_specs=P(axis), check_vma=False)
         if fn == "step":
-            run, spec = (lambda s, c: backend.step(sub, s, c, config)), P(axis)
+            run = one
         else:
-            run, spec = (lambda s, c: backend.rollout(sub, s, c, num_steps, config)), P(None, axis)
-        per_model[key] = jax.jit(jax.shard_map(run, mesh=mesh, in_specs=(P(axis), spec), out_specs=spec,
-                                               check_vma=False))
+            def run(s, cs):
+                def body(carry, c):
+                    nxt = one(carry, c)
+                    return nxt, nxt
+
+                return jax.lax.scan(body, s, cs, length=num_steps)[1]
+        per_model[key] = jax.jit(run)
     return per_model[key](state, control)
 
 
