@@ -125,7 +125,7 @@ def main(argv=None) -> int:
 
     import kamino
     from kamino.envs import make
-    from kamino.envs.configs import ppo_kwargs, task_config
+    from kamino.envs.configs import ppo_kwargs, task_config, training_devices
 
     cfg = task_config(args.task)
     overrides = {k: v for k, v in (("num_timesteps", args.steps), ("num_envs", args.num_envs),
@@ -141,8 +141,15 @@ def main(argv=None) -> int:
     curve = json.loads(curve_path.read_text()) if curve_path.exists() and not args.fresh else []
     curve = [c for c in curve if c["step"] <= done]
     remaining = total - done
+    devices = training_devices(args.backend, jax.default_backend(), jax.local_device_count(),
+                               kwargs.get("max_devices_per_host"))
+    if devices != kwargs.get("max_devices_per_host"):
+        kwargs["max_devices_per_host"] = devices
+        print(f"note: the Warp backend trains on one of the {jax.local_device_count()} GPUs (docs/envs.md, "
+              "\"Several devices\"); --backend jax uses all of them", flush=True)
     env = make(args.task, backend=args.backend, **cfg["env"])
-    print(f"{args.task}: backend {args.backend}, {jax.device_count()} device(s) {jax.devices()[0].platform}, "
+    used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
+    print(f"{args.task}: backend {args.backend}, {used} device(s) {jax.devices()[0].platform}, "
           f"{env.observation_size} observations, {env.action_size} actions, policy {1 / env.dt:.0f} Hz; "
           f"{'resuming at step ' + str(done) if restore else 'starting'}, {max(remaining, 0)} steps to go", flush=True)
 
@@ -193,7 +200,7 @@ def main(argv=None) -> int:
         "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),
         "first_eval": first, "last_eval": last, "curve": curve,
         "checkpoint": str(latest_checkpoint(ckpt_dir)[1]),
-        "device": str(jax.devices()[0]), "device_count": jax.device_count(), "platform": platform.platform(),
+        "device": str(jax.devices()[0]), "device_count": used, "platform": platform.platform(),
         "versions": {"kamino": kamino.__version__, "jax": jax.__version__, "brax": _version("brax"),
                      "python": platform.python_version()},
     }

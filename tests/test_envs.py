@@ -344,3 +344,19 @@ def test_ppo_pmaps_over_two_host_devices():
                          timeout=600, check=False)
     assert out.returncode == 0, out.stderr[-4000:]
     assert "OK jax 2" in out.stdout and "OK warp 2" in out.stdout
+
+
+def test_warp_backend_trains_on_one_gpu_with_a_clear_error_for_more():
+    """brax's PPO pmaps a scan of the environment step; with the Warp step inside, XLA's GPU compiler crashes on
+    two GPUs (benchmarks/results/s20_h200/multi_gpu_compile_matrix.txt). ``training_devices`` keeps the Warp
+    backend on one GPU, names the setting when more are asked for, and leaves the JAX backend and the CPU (where
+    the two-device pmap test above trains) alone."""
+    from kamino.envs.configs import training_devices
+
+    assert training_devices("jax", "gpu", 2) is None  # brax's default: every local device
+    assert training_devices("warp", "cpu", 2) is None
+    assert training_devices("warp", "gpu", 1) is None
+    assert training_devices("warp", "gpu", 2) == 1
+    assert training_devices("warp", "gpu", 2, 1) == 1
+    with pytest.raises(ValueError, match="max_devices_per_host=2"):
+        training_devices("warp", "gpu", 2, 2)
