@@ -289,6 +289,23 @@ def test_bdx_joystick_stands_at_a_zero_action():
     assert np.all(np.abs(h - h0) < 0.02), (h0, h)
 
 
+def test_dr_legs_joystick_stands_at_a_zero_action_with_its_own_gains():
+    """The default gains of ``dr_legs_joystick`` are the model's own (kp 300 N m/rad at the hips and knees, 150 at
+    the ankles): a zero action holds the reference pose for 1 s. The pelvis stays within 2 cm of its height at
+    reset, and no episode ends. With issue 18's kp 15 the same robot collapses (test_dr_legs_joystick_runs)."""
+    env = make("dr_legs_joystick", reset_bank=8)
+    s = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), 4))
+    h0 = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
+    step = jax.jit(jax.vmap(env.step))
+    for _ in range(50):
+        s = step(s, jnp.zeros((4, 12), jnp.float32))
+        assert not np.any(np.asarray(s.done) > 0)
+    h = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
+    assert np.all(np.abs(h - h0) < 0.02), (h0, h)
+    with pytest.raises(ValueError, match="kp and kd together"):
+        DrLegsJoystick(kp=15.0)
+
+
 def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar, wrapped):
     """backend="warp": kamino's Warp step through its JAX FFI, batched over environments by a custom_vmap rule (one
     Warp call for all of them), on Warp's CPU device; the same trajectory as the JAX reference to float32 rounding

@@ -9,6 +9,7 @@ either release (the lent GPUs carry JAX 0.11). Where JAX still has it, nothing c
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import jax
@@ -29,7 +30,8 @@ def device_put_replicated(x, devices: Sequence[jax.Device]):
 
 def install() -> None:
     """Provide ``jax.device_put_replicated`` where this JAX lacks it."""
-    try:
-        jax.device_put_replicated  # noqa: B018  (raises AttributeError where removed)
-    except AttributeError:
+    with warnings.catch_warnings():  # the probe alone must not warn; brax's own call still does where deprecated
+        warnings.simplefilter("ignore", DeprecationWarning)
+        present = hasattr(jax, "device_put_replicated")  # False where removed (getattr raises AttributeError)
+    if not present:
         jax.device_put_replicated = device_put_replicated

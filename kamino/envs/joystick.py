@@ -146,14 +146,22 @@ def _check_gains(name: str, kp, kd) -> None:
 
 class DrLegsJoystick(Joystick):
     """``dr_legs_joystick``: ``kamino.models.dr_legs()`` (31 bodies, 12 PD actuators, 6 kinematic loops: knee and
-    ankle four-bars, a spatial ankle-roll loop per leg; box feet) with implicit PD ``kp`` 15 N m/rad and ``kd``
-    0.6 N m s/rad on every actuator (issue 18's gains), fallen below a pelvis height of 0.45 m (0.77 m standing).
+    ankle four-bars, a spatial ankle-roll loop per leg; box feet), fallen below a pelvis height of 0.45 m (0.77 m
+    standing). The gains default to the model's own: ``kp`` 300 N m/rad and ``kd`` 8 N m s/rad at the hips and
+    knees, 150 and 4 at the ankles. Numbers ``kp``, ``kd`` put those gains on every actuator instead: issue 18's
+    15 / 0.6 are the paper's robot's, a third of this one's size, and cannot hold this one up (docs/envs.md).
     Other arguments: :class:`Joystick`."""
 
-    def __init__(self, *, kp: float = 15.0, kd: float = 0.6, min_height: float = 0.45, **kwargs):
-        _check_gains(type(self).__name__, kp, kd)
-        super().__init__(dr_legs(hip_gains=(kp, kd), knee_gains=(kp, kd), ankle_gains=(kp, kd)),
-                         min_height=min_height, **kwargs)
+    def __init__(self, *, kp: float | None = None, kd: float | None = None, min_height: float = 0.45, **kwargs):
+        if (kp is None) != (kd is None):
+            raise ValueError(f"{type(self).__name__}: give kp and kd together (or neither, for the model's own "
+                             f"gains), got kp={kp!r}, kd={kd!r}")
+        if kp is None:
+            model = dr_legs()
+        else:
+            _check_gains(type(self).__name__, kp, kd)
+            model = dr_legs(hip_gains=(kp, kd), knee_gains=(kp, kd), ankle_gains=(kp, kd))
+        super().__init__(model, min_height=min_height, **kwargs)
 
 
 class BdxJoystick(Joystick):
