@@ -6,9 +6,9 @@
 Weak scaling, the figure an RL user needs: ``--worlds-per-device`` worlds on each device, so ``k`` devices step
 ``k`` times the worlds. For each ``k``: the scene replicated ``k * N`` times, its state placed with
 ``kamino.sharding.shard_worlds`` on the first ``k`` devices, and blocks of ``--block`` steps run by
-``kamino.sharding.sharded_call`` (a scan of the backend's step under ``jax.shard_map``; on one device too, so that every ``k``
-runs the same program). Throughput = worlds x steps / s, median of ``--repeats`` trials of ``--replays`` blocks
-after two warm-up blocks; parallel efficiency = throughput(k) / (k x throughput(1)).
+``kamino.sharding.sharded_call`` (a scan of the backend's step under ``jax.shard_map``; on one device too, so
+that every ``k`` runs the same program). Throughput = worlds x steps / s, median of ``--repeats`` trials of
+``--replays`` blocks after two warm-up blocks; parallel efficiency = throughput(k) / (k x throughput(1)).
 
 The drive and the solver settings are throughput.py's (float32, ``SolverConfig(dt=0.0025)``, the robots standing
 under PD with ``0.2 sin(2 pi t)`` rad on the first actuator, the scenes driven by ``2 N m sin(2 pi t)``), written

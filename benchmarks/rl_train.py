@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     if devices != kwargs.get("max_devices_per_host"):
         kwargs["max_devices_per_host"] = devices
         print(f"note: the Warp backend trains on one of the {jax.local_device_count()} GPUs (docs/envs.md, "
-              "\"Several devices\"); --backend jax uses all of them", flush=True)
+              "\"Multi-device\"); --backend jax uses all of them", flush=True)
     env = make(args.task, backend=args.backend, **cfg["env"])
     used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
     print(f"{args.task}: backend {args.backend}, {used} device(s) {jax.devices()[0].platform}, "

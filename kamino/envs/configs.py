@@ -60,14 +60,14 @@ def ppo_kwargs(task: str, **overrides) -> dict:
 def training_devices(backend: str, platform: str, local_devices: int, requested: int | None = None) -> int | None:
     """``max_devices_per_host`` for ``ppo.train``: ``requested`` (``None``: every local device), except that the
     Warp backend trains on one GPU. On several GPUs XLA's compiler crashes (a segmentation fault, jax 0.11.2) on
-    the Warp step inside brax's ``pmap`` of a scan (docs/envs.md, "Several devices"); a segmentation fault is no
+    the Warp step inside brax's ``pmap`` of a scan (docs/envs.md, "Multi-device"); a segmentation fault is no
     error message, so this says it first. Asking for more raises ``ValueError`` naming ``max_devices_per_host``."""
     if backend != "warp" or platform != "gpu" or local_devices <= 1:
         return requested
     if requested is not None and requested > 1:
         raise ValueError(f"max_devices_per_host={requested}: the Warp backend trains on one GPU only (XLA's GPU "
                          "compiler crashes on its step inside brax's pmap over several GPUs; docs/envs.md, "
-                         "\"Several devices\"). Use backend='jax' to train on every GPU.")
+                         "\"Multi-device\"). Use backend='jax' to train on every GPU.")
     return 1
 
 
