@@ -43,6 +43,26 @@ def _xla_accepts(flags: str) -> bool:
     return probe.returncode == 0
 
 
+def _one_core_per_worker() -> None:
+    """Pin each xdist worker to its own share of the cores, before jax starts. JAX sizes its CPU thread pool from
+    the process's affinity (jax-ml/jax#1539), so two workers on a 2-core machine each ran a pool as wide as the
+    machine. XLA:CPU then slowed down far more than 2x when both computed at once: notebook 02's landing rollout
+    (14-17 s alone) took 54 s and 387 s beside the animatronic's JAX hold test (2026-11-26). The notebook kernels and
+    other subprocesses inherit the affinity. The runs on two forced host devices get every core back
+    (``helpers.all_cores``): their collectives wait for a thread per device."""
+    worker, count = os.environ.get("PYTEST_XDIST_WORKER"), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if not worker or count < 2 or not hasattr(os, "sched_setaffinity"):
+        return
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < count:
+        return
+    os.environ.setdefault("KAMINO_TEST_ALL_CPUS", ",".join(map(str, cpus)))
+    per = len(cpus) // count
+    index = int(worker.removeprefix("gw")) % count
+    os.sched_setaffinity(0, cpus[index * per:(index + 1) * per])
+
+
+_one_core_per_worker()
 _user = os.environ.get("XLA_FLAGS", "")
 if "xla_cpu_use_fusion_emitters" not in _user and "KAMINO_TEST_XLA_PROBED" not in os.environ:
     os.environ["KAMINO_TEST_XLA_PROBED"] = "1"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import jax
 import numpy as np
@@ -20,6 +21,14 @@ def trajectory_metrics(model: kamino.Model, state: kamino.State, traj: kamino.St
 def trajectory_joint_positions(model: kamino.Model, state: kamino.State, traj: kamino.State) -> np.ndarray:
     """``kamino.joint_positions`` on every state of a trajectory: ``[T, num_coords]``."""
     return np.asarray(jax.vmap(lambda q: kamino.joint_positions(model, state.replace(body_q=q)))(traj.body_q))
+
+
+def all_cores() -> None:
+    """``preexec_fn`` of a subprocess that needs every core back: conftest pins each xdist worker to its share,
+    and a run on two forced host devices needs a thread per device (their collectives wait for each other)."""
+    cpus = os.environ.get("KAMINO_TEST_ALL_CPUS")
+    if cpus and hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, [int(c) for c in cpus.split(",")])
 
 
 # ---------------------------------------------------------------------------------------------
