@@ -49,7 +49,7 @@ def _one_core_per_worker() -> None:
     machine. XLA:CPU then slowed down far more than 2x when both computed at once: notebook 02's landing rollout
     (14-17 s alone) took 54 s and 387 s beside the animatronic's JAX hold test (2026-11-26). The notebook kernels and
     other subprocesses inherit the affinity. The runs on two forced host devices get every core back
-    (``helpers.all_cores``): their collectives wait for a thread per device."""
+    (``helpers.ALL_CORES``): their collectives wait for a thread per device."""
     worker, count = os.environ.get("PYTEST_XDIST_WORKER"), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
     if not worker or count < 2 or not hasattr(os, "sched_setaffinity"):
         return

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import jax
 import numpy as np
@@ -23,12 +22,14 @@ def trajectory_joint_positions(model: kamino.Model, state: kamino.State, traj: k
     return np.asarray(jax.vmap(lambda q: kamino.joint_positions(model, state.replace(body_q=q)))(traj.body_q))
 
 
-def all_cores() -> None:
-    """``preexec_fn`` of a subprocess that needs every core back: conftest pins each xdist worker to its share,
-    and a run on two forced host devices needs a thread per device (their collectives wait for each other)."""
-    cpus = os.environ.get("KAMINO_TEST_ALL_CPUS")
-    if cpus and hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, [int(c) for c in cpus.split(",")])
+#: first lines of a subprocess script that needs every core back (before it imports jax): conftest pins each xdist
+#: worker to its share of the cores, and a run on two forced host devices needs a thread per device (their
+#: collectives wait for each other). Source, not a ``preexec_fn``: forking a multithreaded process to run Python
+#: in the child can deadlock.
+ALL_CORES = """import os
+if os.environ.get("KAMINO_TEST_ALL_CPUS") and hasattr(os, "sched_setaffinity"):
+    os.sched_setaffinity(0, [int(c) for c in os.environ["KAMINO_TEST_ALL_CPUS"].split(",")])
+"""
 
 
 # ---------------------------------------------------------------------------------------------

@@ -27,7 +27,7 @@ from brax.envs.wrappers import training
 
 import kamino
 from kamino.envs import DrLegsJoystick, EnvSystem, FourbarTrack, make, randomize
-from tests.helpers import all_cores
+from tests.helpers import ALL_CORES
 
 N = 4  # environments per batch: small (CI has two cores), more than one (vmap)
 EPISODE = 6  # brax EpisodeWrapper length in the auto-reset test
@@ -358,8 +358,8 @@ def test_ppo_pmaps_over_two_host_devices():
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     env["JAX_PLATFORMS"] = "cpu"
     root = Path(__file__).resolve().parents[1]
-    out = subprocess.run([sys.executable, "-c", _TWO_DEVICES], env=env, cwd=root, capture_output=True, text=True,
-                         timeout=600, check=False, preexec_fn=all_cores)
+    out = subprocess.run([sys.executable, "-c", ALL_CORES + _TWO_DEVICES], env=env, cwd=root, capture_output=True,
+                         text=True, timeout=600, check=False)
     assert out.returncode == 0, out.stderr[-4000:]
     assert "OK jax 2" in out.stdout and "OK warp 2" in out.stdout
 

@@ -20,7 +20,7 @@ import pytest
 import kamino
 from kamino.model import same_model, take_worlds
 from kamino.sharding import group_model, shard_worlds
-from tests.helpers import all_cores
+from tests.helpers import ALL_CORES
 
 
 def test_take_worlds_inverts_concat():
@@ -126,9 +126,10 @@ def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path):
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     env["JAX_PLATFORMS"] = "cpu"
-    script = f"TOL = {{'jax': 1e-5, 'warp': 0.0}}\nOUT = {str(tmp_path / 'multi_device.json')!r}\n" + _TWO_DEVICES
+    out_json = str(tmp_path / "multi_device.json")
+    script = ALL_CORES + f"TOL = {{'jax': 1e-5, 'warp': 0.0}}\nOUT = {out_json!r}\n" + _TWO_DEVICES
     root = Path(__file__).resolve().parents[1]
     out = subprocess.run([sys.executable, "-c", script], env=env, cwd=root, capture_output=True, text=True,
-                         timeout=600, check=False, preexec_fn=all_cores)
+                         timeout=600, check=False)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-4000:]
     assert "OK" in out.stdout
