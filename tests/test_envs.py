@@ -273,6 +273,19 @@ def test_dr_legs_joystick_runs(legs):
     assert set(s.metrics) == {*legs.reward_terms, "failed"}
 
 
+def _assert_stands_at_a_zero_action(env, seed: int, num_envs: int = 4, steps: int = 50) -> None:
+    """From ``num_envs`` resets, ``steps`` policy steps of a zero action: no episode ends, and the pelvis ends within
+    2 cm of its height at reset (a robot settling onto its feet moves about 1 cm; a collapse moves tens of cm)."""
+    s = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(seed), num_envs))
+    h0 = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
+    step = jax.jit(jax.vmap(env.step))
+    for _ in range(steps):
+        s = step(s, jnp.zeros((num_envs, env.action_size), jnp.float32))
+        assert not np.any(np.asarray(s.done) > 0)
+    h = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
+    assert np.all(np.abs(h - h0) < 0.02), (h0, h)
+
+
 def test_bdx_joystick_stands_at_a_zero_action():
     """``bdx_joystick`` (a tree biped, 14 actions): resets on the ground, and with its model's leg gains (kp 400
     N m/rad) a zero action holds the reference pose. Over 1 s the pelvis stays within 2 cm of its height at
@@ -280,29 +293,14 @@ def test_bdx_joystick_stands_at_a_zero_action():
     counterpart of dr_legs at issue 18's kp 15, which collapses."""
     env = make("bdx_joystick", reset_bank=8)
     assert env.observation_size == 12 + 3 * 14 and env.action_size == 14
-    s = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 4))
-    h0 = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
-    step = jax.jit(jax.vmap(env.step))
-    for _ in range(50):
-        s = step(s, jnp.zeros((4, 14), jnp.float32))
-        assert not np.any(np.asarray(s.done) > 0)
-    h = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
-    assert np.all(np.abs(h - h0) < 0.02), (h0, h)
+    _assert_stands_at_a_zero_action(env, seed=0)
 
 
 def test_dr_legs_joystick_stands_at_a_zero_action_with_its_own_gains():
     """The default gains of ``dr_legs_joystick`` are the model's own (kp 300 N m/rad at the hips and knees, 150 at
     the ankles): a zero action holds the reference pose for 1 s. The pelvis stays within 2 cm of its height at
     reset, and no episode ends. With issue 18's kp 15 the same robot collapses (test_dr_legs_joystick_runs)."""
-    env = make("dr_legs_joystick", reset_bank=8)
-    s = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), 4))
-    h0 = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
-    step = jax.jit(jax.vmap(env.step))
-    for _ in range(50):
-        s = step(s, jnp.zeros((4, 12), jnp.float32))
-        assert not np.any(np.asarray(s.done) > 0)
-    h = np.asarray(s.pipeline_state.body_q[:, env._base, 2])
-    assert np.all(np.abs(h - h0) < 0.02), (h0, h)
+    _assert_stands_at_a_zero_action(make("dr_legs_joystick", reset_bank=8), seed=1)
     with pytest.raises(ValueError, match="kp and kd together"):
         DrLegsJoystick(kp=15.0)
 
