@@ -125,7 +125,7 @@ def main(argv=None) -> int:
 
     import kamino
     from kamino.envs import make
-    from kamino.envs.configs import ppo_kwargs, task_config, training_devices
+    from kamino.envs.configs import ppo_kwargs, task_config
 
     cfg = task_config(args.task)
     overrides = {k: v for k, v in (("num_timesteps", args.steps), ("num_envs", args.num_envs),
@@ -141,12 +141,6 @@ def main(argv=None) -> int:
     curve = json.loads(curve_path.read_text()) if curve_path.exists() and not args.fresh else []
     curve = [c for c in curve if c["step"] <= done]
     remaining = total - done
-    devices = training_devices(args.backend, jax.default_backend(), jax.local_device_count(),
-                               kwargs.get("max_devices_per_host"))
-    if devices != kwargs.get("max_devices_per_host"):
-        kwargs["max_devices_per_host"] = devices
-        print(f"note: the Warp backend trains on one of the {jax.local_device_count()} GPUs (docs/envs.md, "
-              "\"Multi-device\"); --backend jax uses all of them", flush=True)
     env = make(args.task, backend=args.backend, **cfg["env"])
     used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
     print(f"{args.task}: backend {args.backend}, {used} device(s) {jax.devices()[0].platform}, "

@@ -72,6 +72,12 @@ def check_state(model: Model, state: State, fn: str = "step") -> None:
     """``state`` must be a :class:`kamino.State` whose arrays fit ``model`` (one step's state, no time axis)."""
     if not isinstance(state, State):
         raise TypeError(f"{fn}: state must be a kamino.State (kamino.init_state(model)), got {_type_name(state)}")
+    missing = [jax.tree_util.keystr(path) for path, leaf in
+               jax.tree_util.tree_flatten_with_path(state, is_leaf=lambda v: v is None)[0] if leaf is None]
+    if missing:
+        raise ValueError(f"{fn}: state{missing[0]} is None ({len(missing)} fields in all): the state went through "
+                         "kamino.state.drop_empty (an environment's pipeline_state); restore it with "
+                         "kamino.state.fill_empty(state, kamino.init_state(model)) or env.full_state(pipeline_state)")
     nb = model.num_bodies
     if state.body_q.shape != (nb, 7):
         raise ValueError(f"state.body_q has shape {state.body_q.shape}, expected ({nb}, 7) for this model")

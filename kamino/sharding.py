@@ -100,10 +100,10 @@ def sharded_call(fn: str, backend, model: Model, state, control, sharding, confi
     """``backend.step`` (``fn == "step"``) or a rollout of every device's block of worlds as the group model
     (``jax.shard_map`` of one step), jitted once per (model, backend, config, steps, mesh). A rollout is a
     ``lax.scan`` whose body is that sharded step: the carry stays sharded, so each device still steps its own
-    block in place. The scan is outside the ``shard_map`` on purpose: XLA's GPU compiler (jax 0.11.2) crashed
-    compiling the Warp step's FFI call inside a loop inside a per-device program (``shard_map`` or ``pmap`` of a
-    scan or ``fori_loop``) on two GPUs, and compiled this form (docs/warp_backend.md, "Several devices"). The
-    control and a rollout's trajectory keep their leading time axis unsharded."""
+    block in place. The scan is outside the ``shard_map`` on purpose: XLA's GPU compiler (jax 0.11.2) crashes on a
+    loop inside a per-device program that carries a zero-size array, which a State holds for what its model does
+    not use (docs/warp_backend.md, "Several devices"; :func:`kamino.state.drop_empty`). The control and a rollout's
+    trajectory keep their leading time axis unsharded."""
     mesh, axis = sharding
     key = (fn, backend.__name__, config, num_steps, mesh, axis)
     per_model = _JITTED.setdefault(model, {})

@@ -116,6 +116,34 @@ class State:
         return dataclasses.replace(self, **changes)
 
 
+def drop_empty(tree):
+    """``tree`` (a :class:`State`, or any pytree of arrays) with every zero-size array (the fields a model does not
+    use: ``contacts`` without contact capacity, ``coupling_force`` without couplings, ...) replaced by ``None``, so
+    that they are no pytree leaves.
+
+    Why: XLA's GPU compiler (jax 0.11.2) crashes (segmentation fault) compiling a loop inside a per-device program
+    (``pmap`` or ``shard_map`` over several GPUs, as brax's PPO builds) that carries a zero-size array, whether in
+    the loop's state or among the arrays its body closes over. The environments therefore carry their
+    ``pipeline_state``, and the model arrays of their substep loop, this way (docs/envs.md, "Multi-device").
+    :func:`fill_empty` restores the arrays."""
+    return jax.tree.map(lambda x: None if np.size(x) == 0 else x, tree)
+
+
+def fill_empty(tree, like):
+    """The :func:`drop_empty` ``tree`` made whole again: each ``None`` leaf becomes a zero-size array shaped and
+    typed as ``like``'s (the full tree, e.g. ``kamino.init_state(model)``; only its shapes and dtypes are read), with
+    ``tree``'s leading axes (a trajectory's time axis, a batch axis) in front. Inside a loop body the zeros are
+    built there, not closed over."""
+
+    def is_none(v) -> bool:
+        return v is None
+
+    pairs = zip(jax.tree.leaves(like), jax.tree.leaves(tree, is_leaf=is_none), strict=True)
+    lead = next((np.shape(x)[:np.ndim(x) - np.ndim(t)] for t, x in pairs if x is not None), ())
+    return jax.tree.map(lambda t, x: jnp.zeros((*lead, *np.shape(t)), t.dtype) if x is None else x, like, tree,
+                        is_leaf=is_none)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Control:

@@ -78,6 +78,24 @@ def test_reset_and_step_keep_keys_shapes_and_dtypes(fourbar):
         assert s.done.shape == () and s.done.dtype == jnp.float32
 
 
+def test_state_carries_no_zero_size_array(fourbar, wrapped):
+    """No leaf of the environment's state has zero size: XLA's GPU compiler (jax 0.11.2) crashes on a zero-size
+    array in the carry of a loop on several GPUs (brax's pmap of a scan; kamino.state.drop_empty). The four-bar has
+    no contact capacity and no couplings, so its kamino State has such arrays; ``full_state`` gives them back, with
+    the batch axis, as ``init_state`` shapes them."""
+    key = jax.random.PRNGKey(1)
+    s0 = jax.eval_shape(fourbar.reset, key)
+    s1 = jax.eval_shape(fourbar.step, s0, jax.ShapeDtypeStruct((1,), jnp.float32))
+    template = kamino.init_state(fourbar.model, jnp.float32)
+    assert any(np.size(x) == 0 for x in jax.tree.leaves(template))  # the case the test is about
+    for s in (s0, s1, wrapped["states"][-1]):
+        assert all(np.prod(x.shape) > 0 for x in jax.tree.leaves(s)), _signature(s)
+    whole = fourbar.full_state(wrapped["states"][-1].pipeline_state)
+    assert _signature(whole) == jax.tree.map(lambda x: ((N, *x.shape), x.dtype), template)
+    with pytest.raises(ValueError, match=r"state.coupling_force is None.*full_state"):
+        kamino.step(fourbar.model, jax.tree.map(lambda x: x[0], wrapped["states"][-1].pipeline_state))
+
+
 def test_jit_vmap_reset_and_step(fourbar, wrapped):
     """Batched, jitted reset and step: finite observations of the declared size, rewards in the kernel's range,
     no world failed, time advancing by the policy period."""
@@ -362,17 +380,34 @@ def test_ppo_pmaps_over_two_host_devices():
     assert "OK jax 2" in out.stdout and "OK warp 2" in out.stdout
 
 
-def test_warp_backend_trains_on_one_gpu_with_a_clear_error_for_more():
-    """brax's PPO pmaps a scan of the environment step; with the Warp step inside, XLA's GPU compiler crashes on
-    two GPUs (benchmarks/results/s20_h200/multi_gpu_compile_matrix.txt). ``training_devices`` keeps the Warp
-    backend on one GPU, names the setting when more are asked for, and leaves the JAX backend and the CPU (where
-    the two-device pmap test above trains) alone."""
-    from kamino.envs.configs import training_devices
+def _outer_loops(jaxpr) -> list[list[str]]:
+    """For every loop of ``jaxpr`` that is not inside another loop (the environment's own loops; the solver's loops
+    inside a step are not visited), the types of its zero-size operands (carry, closed-over arrays)."""
+    from jax.extend import core as jcore
 
-    assert training_devices("jax", "gpu", 2) is None  # brax's default: every local device
-    assert training_devices("warp", "cpu", 2) is None
-    assert training_devices("warp", "gpu", 1) is None
-    assert training_devices("warp", "gpu", 2) == 1
-    assert training_devices("warp", "gpu", 2, 1) == 1
-    with pytest.raises(ValueError, match="max_devices_per_host=2"):
-        training_devices("warp", "gpu", 2, 2)
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in ("scan", "while"):
+            found.append([str(v.aval) for v in eqn.invars if 0 in getattr(v.aval, "shape", (1,))])
+            continue
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (list, tuple)) else [param]:
+                if isinstance(sub, (jcore.ClosedJaxpr, jcore.Jaxpr)):
+                    found += _outer_loops(getattr(sub, "jaxpr", sub))
+    return found
+
+
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_substep_loop_holds_no_zero_size_array(backend):
+    """XLA's GPU compiler (jax 0.11.2) crashes on a loop inside a per-device program (brax's pmap over several GPUs)
+    that carries or closes over a zero-size array (benchmarks/results/s21_h200/multi_gpu_crash_cause.txt). The
+    four-bar has no couplings and no contacts, so its padded model and its State hold such arrays; the environment's
+    substep scan must hold none of them (kamino.state.drop_empty), on either backend."""
+    with jax.enable_x64(False):
+        env = make("fourbar_track", backend=backend)
+        s = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+        step = jax.make_jaxpr(env.step)(s, jnp.zeros(env.action_size, jnp.float32)).jaxpr
+        reset = jax.make_jaxpr(env.reset)(jax.random.PRNGKey(0)).jaxpr
+    loops = _outer_loops(step) + _outer_loops(reset)
+    assert len(_outer_loops(step)) >= 1  # the substep scan is found
+    assert all(empty == [] for empty in loops), loops

@@ -21,6 +21,10 @@ What every task shares:
 - **Observation noise** ``obs_noise`` times a per-entry scale the task gives.
 - **done** = the task's fall test, or the world's health flag (``state.info.failed``: non-finite or persistently
   unconverged solve, docs/conventions.md "World health"), or a non-finite observation.
+- **``pipeline_state``** is the world's :class:`kamino.State` without its zero-size arrays (``None`` in the fields the
+  model does not use, e.g. ``contacts`` of a robot without contact capacity): XLA's GPU compiler crashes on a
+  zero-size array carried through a loop on several GPUs (:func:`kamino.state.drop_empty`). ``env.full_state``
+  gives the whole State.
 - **Fixed structure.** ``metrics`` (the reward terms and ``failed``) and ``info`` have the same keys, shapes and
   dtypes at reset and at step (Brax's ``lax.scan`` over steps and ``AutoResetWrapper`` need it).
 
@@ -51,7 +55,7 @@ from kamino.jax_ref.backend import step_padded
 from kamino.jax_ref.layout import layout_of
 from kamino.kinematics import base_bodies, forward_kinematics
 from kamino.model import ActuationMode, Model, replicate
-from kamino.state import Control, State
+from kamino.state import Control, State, drop_empty, fill_empty
 
 BACKENDS = ("jax", "warp")
 
@@ -204,7 +208,7 @@ class KaminoEnv(Env):
         obs = self._noisy(self._observe(ps, info), k_noise)
         zero = jnp.zeros((), self._dtype)
         metrics = {name: zero for name in self.reward_terms} | {"failed": zero}
-        return BraxState(pipeline_state=ps, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
+        return BraxState(pipeline_state=drop_empty(ps), obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
     def step(self, state: BraxState, action: jax.Array) -> BraxState:
         """``decimation`` simulator steps towards the PD targets of ``action``; reward, done, next observation."""
@@ -219,7 +223,7 @@ class KaminoEnv(Env):
             info.update(jax.tree.map(lambda first, now: jnp.where(restarted, first, now), info["reset_memory"],
                                      {k: info[k] for k in info["reset_memory"]}))
         a = jnp.clip(action, -1.0, 1.0)
-        prev_ps = state.pipeline_state
+        prev_ps = self.full_state(state.pipeline_state)
         ps = self._simulate(prev_ps, self.action_to_target(info["last_action"]), self.action_to_target(a))
         reward, terms = self._reward(prev_ps, ps, a, info)
         failed = ps.info.failed[0]
@@ -238,7 +242,7 @@ class KaminoEnv(Env):
         # update the incoming dicts: wrappers add their own keys (brax's EvalWrapper: metrics["reward"])
         metrics = dict(state.metrics)
         metrics.update({k: jnp.asarray(v, self._dtype) for k, v in terms.items()}, failed=failed.astype(self._dtype))
-        return state.replace(pipeline_state=ps, obs=obs, reward=reward, done=done.astype(self._dtype),
+        return state.replace(pipeline_state=drop_empty(ps), obs=obs, reward=reward, done=done.astype(self._dtype),
                              metrics=metrics, info=info)
 
     # ------------------------------------------------------------------ shared machinery
@@ -262,6 +266,12 @@ class KaminoEnv(Env):
             body_q = self._place(body_q)
         return self._template.replace(body_q=self._move_rigidly(body_q, k_pose))
 
+    def full_state(self, pipeline_state: State) -> State:
+        """The whole :class:`kamino.State` of a ``pipeline_state``: the environment carries it without its zero-size
+        arrays (``None`` fields; :func:`kamino.state.drop_empty` says why). Leading axes (a batch, a time axis)
+        are kept."""
+        return fill_empty(pipeline_state, self._template)
+
     def actuated_state(self, ps: State) -> tuple[jax.Array, jax.Array]:
         """``(positions, rates)`` of the actuated DoFs ``[action_size]`` (actuator order)."""
         q, qd = dof_state(self._pm0, ps.body_q, ps.body_u)
@@ -275,20 +285,26 @@ class KaminoEnv(Env):
         def control(tgt):
             return Control(position_target=jnp.zeros(nd, self._dtype).at[self._act_dof].set(tgt))
 
+        # the loop neither carries nor closes over a zero-size array (kamino.state.drop_empty says why)
+        arrays = (sys.apply(self._pm), self._tables) if self._backend == "jax" else None
+        compact = drop_empty(arrays)
+
         def body(s, k):
             late = k * self._config.dt < sys.action_delay
-            return self._physics_step(sys, s, control(jnp.where(late, prev_target, target))), None
+            pm_tables = None if arrays is None else fill_empty(compact, arrays)
+            s = self._physics_step(pm_tables, self.full_state(s), control(jnp.where(late, prev_target, target)))
+            return drop_empty(s), None
 
-        ps, _ = jax.lax.scan(body, ps, jnp.arange(self._decimation, dtype=self._dtype))
-        return ps
+        ps, _ = jax.lax.scan(body, drop_empty(ps), jnp.arange(self._decimation, dtype=self._dtype))
+        return self.full_state(ps)
 
-    def _physics_step(self, sys: EnvSystem, ps: State, control: Control) -> State:
-        """One simulator step with ``sys``'s parameters (JAX reference) or the Warp FFI step."""
+    def _physics_step(self, pm_tables, ps: State, control: Control) -> State:
+        """One simulator step: the Warp FFI step (``pm_tables`` is ``None``), or the JAX reference's jitted step on
+        ``pm_tables = (padded model, layout tables)`` carrying this environment's parameters (``sys.apply``;
+        kamino.step reads its padded model from the host Model, which cannot carry traced parameters)."""
         if self._backend == "warp":
             return kamino_step(self._model, ps, control, config=self._config, backend="warp")
-        # the reference backend's jitted step on a padded model carrying this environment's parameters
-        # (kamino.step reads its padded model from the host Model, which cannot carry traced parameters)
-        return step_padded(sys.apply(self._pm), self._tables, ps, control, self._config)
+        return step_padded(*pm_tables, ps, control, self._config)
 
     def _check_sys(self, where: str) -> None:
         if self._backend == "warp" and self.sys is not self._nominal_sys:

@@ -57,18 +57,4 @@ def ppo_kwargs(task: str, **overrides) -> dict:
     return kwargs
 
 
-def training_devices(backend: str, platform: str, local_devices: int, requested: int | None = None) -> int | None:
-    """``max_devices_per_host`` for ``ppo.train``: ``requested`` (``None``: every local device), except that the
-    Warp backend trains on one GPU. On several GPUs XLA's compiler crashes (a segmentation fault, jax 0.11.2) on
-    the Warp step inside brax's ``pmap`` of a scan (docs/envs.md, "Multi-device"); a segmentation fault is no
-    error message, so this says it first. Asking for more raises ``ValueError`` naming ``max_devices_per_host``."""
-    if backend != "warp" or platform != "gpu" or local_devices <= 1:
-        return requested
-    if requested is not None and requested > 1:
-        raise ValueError(f"max_devices_per_host={requested}: the Warp backend trains on one GPU only (XLA's GPU "
-                         "compiler crashes on its step inside brax's pmap over several GPUs; docs/envs.md, "
-                         "\"Multi-device\"). Use backend='jax' to train on every GPU.")
-    return 1
-
-
-__all__ = ["PPO_CONFIGS", "ppo_kwargs", "task_config", "training_devices"]
+__all__ = ["PPO_CONFIGS", "ppo_kwargs", "task_config"]

@@ -164,7 +164,10 @@ def traced_step(st: Stepper, model: Model, state: State, control: Control | None
         else:
             args.append(getattr(state, path))
     dims = {name: getattr(st.work, buf).shape for name, buf, _ in outs}
-    results = dict(zip([o[0] for o in outs], call(*args, output_dims=dims), strict=True))
+    # the barrier keeps XLA's GPU compiler from fusing the call into a consumer it also feeds: a ``lax.scan`` that
+    # both carries the step's state and stacks it (``rollout``) otherwise runs the call twice per iteration
+    # (jax 0.11.2, dynamic-slice fusion; docs/warp_backend.md "JAX interop")
+    results = dict(zip([o[0] for o in outs], jax.lax.optimization_barrier(call(*args, output_dims=dims)), strict=True))
     W, cap = model.num_worlds, model.num_contacts
 
     def get(path, shape, kind="scalar"):
