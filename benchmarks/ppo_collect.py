@@ -1,0 +1,125 @@
+"""The simulator in PPO's regime: brax-style collection with random actions, and what the solver does there.
+
+    python benchmarks/ppo_collect.py [TASK] [--backend warp] [--num-envs 4096] [--unroll 20] [--action-scale 1]
+                                     [--set tolerance=0.01 ...] [--env kp=75 ...] [--out FILE]
+
+brax's PPO collects ``unroll_length`` env steps of every environment per batch, with actions drawn around its
+policy's mean; early in training that is close to uniform noise in ``[-1, 1]``. This runs the same loop without the
+learning: the task through brax's training wrappers (Vmap, Episode, AutoReset), ``--unroll`` steps of uniform
+random actions in ``[-scale, scale]`` in one jitted ``lax.scan``, three batches timed after one warm-up batch.
+It reports collection env steps/s, ms per simulator step, the PADMM iterations of each env step's last substep
+(mean, median, 90th and 99th percentiles, max; the GPU waits for the slowest world), the fraction of unconverged
+solves, and the worst loop closure over the environments at the end (``kamino.metrics``). ``--set KEY=VALUE``
+overrides a :class:`kamino.SolverConfig` field (the task's ``sim_dt`` is kept); ``--env KEY=VALUE`` passes a
+keyword to the task (``kamino.envs.make``), e.g. the PD gains. The figure to compare with PPO's
+end-to-end env steps/s (benchmarks/rl_train.py) is the collection share of it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import json
+import pathlib
+import sys
+import time
+
+HERE = pathlib.Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("task", nargs="?", default="dr_legs_joystick", help="a kamino.envs task (default dr_legs_joystick)")
+    p.add_argument("--backend", choices=("jax", "warp"), default="warp")
+    p.add_argument("--num-envs", type=int, default=4096)
+    p.add_argument("--unroll", type=int, default=20, help="env steps per collected batch (brax's unroll_length)")
+    p.add_argument("--action-scale", type=float, default=1.0, help="actions uniform in [-scale, scale]")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a SolverConfig field, VALUE a Python literal (repeatable): --set tolerance=0.01")
+    p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                   help="a keyword of the task's constructor, VALUE a Python literal (repeatable): --env kp=75")
+    p.add_argument("--out", type=pathlib.Path, default=None, help="append the JSON record to this file")
+    args = p.parse_args(argv)
+    if args.num_envs < 1 or args.unroll < 1:
+        p.error("--num-envs and --unroll must be positive")
+    if not 0.0 <= args.action_scale <= 1.0:
+        p.error(f"--action-scale must be in [0, 1] (actions are clipped to [-1, 1]), got {args.action_scale}")
+    args.overrides, args.env_kwargs = {}, {}
+    for flag, items, into in (("--set", args.set, args.overrides), ("--env", args.env, args.env_kwargs)):
+        for item in items:
+            key, sep, value = item.partition("=")
+            if not sep:
+                p.error(f"{flag} {item!r}: expected KEY=VALUE")
+            try:
+                into[key] = ast.literal_eval(value)
+            except (ValueError, SyntaxError):
+                p.error(f"{flag} {key}: {value!r} is not a Python literal")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    import jax
+    import numpy as np
+    from brax.envs.wrappers import training
+
+    import kamino
+    from kamino.envs import make
+
+    probe = make(args.task, backend=args.backend, **args.env_kwargs)
+    config = dataclasses.replace(probe.solver_config, **args.overrides) if args.overrides else None
+    raw = make(args.task, backend=args.backend, solver_config=config, **args.env_kwargs) if config else probe
+    env = training.wrap(raw, episode_length=1000)
+    n, scale = args.num_envs, args.action_scale
+
+    @jax.jit
+    def collect(state, key):
+        def body(s, k):
+            s = env.step(s, jax.random.uniform(k, (n, env.action_size), minval=-scale, maxval=scale))
+            info = s.pipeline_state.info
+            return s, (info.iterations, info.converged, s.done)
+
+        return jax.lax.scan(body, state, jax.random.split(key, args.unroll))
+
+    with jax.enable_x64(False):
+        state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(0), n))
+        state, _ = collect(state, jax.random.PRNGKey(1))
+        jax.block_until_ready(state)
+        times, iters, converged, done = [], [], [], []
+        for r in range(3):
+            t0 = time.perf_counter()
+            state, (it, conv, dn) = collect(state, jax.random.PRNGKey(2 + r))
+            jax.block_until_ready(state)
+            times.append(time.perf_counter() - t0)
+            iters.append(np.asarray(it))
+            converged.append(np.asarray(conv))
+            done.append(np.asarray(dn))
+        whole = raw.full_state(state.pipeline_state)
+        closure = jax.vmap(lambda s: kamino.metrics(raw.model, s)["constraint_violation"])(whole)
+    t = float(np.median(times))
+    it = np.concatenate(iters).reshape(-1)
+    record = {
+        "task": args.task, "backend": args.backend, "num_envs": n, "unroll": args.unroll,
+        "action_scale": scale, "solver_overrides": args.overrides, "env_kwargs": args.env_kwargs, "sim_dt": raw.sim_dt,
+        "decimation": raw.decimation, "collect_env_steps_per_s": args.unroll * n / t,
+        "ms_per_sim_step": t / args.unroll / raw.decimation * 1e3,
+        "iterations": {"mean": float(it.mean()), "p50": float(np.percentile(it, 50)),
+                       "p90": float(np.percentile(it, 90)), "p99": float(np.percentile(it, 99)),
+                       "max": int(it.max())},
+        "unconverged_fraction": float(1.0 - np.concatenate(converged).mean()),
+        "episodes_ended_fraction": float(np.concatenate(done).mean()),
+        "closure_max_m": float(np.max(np.asarray(closure))), "device": str(jax.devices()[0]),
+    }
+    line = json.dumps(record)
+    print(line, flush=True)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with args.out.open("a") as f:
+            f.write(line + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
