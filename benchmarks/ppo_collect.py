@@ -11,7 +11,8 @@ It reports collection env steps/s, ms per simulator step, the PADMM iterations o
 (mean, median, 90th and 99th percentiles, max; the GPU waits for the slowest world), the fraction of unconverged
 solves, and the worst loop closure over the environments at the end (``kamino.metrics``). ``--set KEY=VALUE``
 overrides a :class:`kamino.SolverConfig` field (the task's ``sim_dt`` is kept); ``--env KEY=VALUE`` passes a
-keyword to the task (``kamino.envs.make``), e.g. the PD gains. The figure to compare with PPO's
+keyword to the task (``kamino.envs.make``), e.g. the PD gains. ``--no-effort-limits`` (a diagnostic) builds the
+robot with unbounded actuator efforts. The figure to compare with PPO's
 end-to-end env steps/s (benchmarks/rl_train.py) is the collection share of it.
 """
 
@@ -40,6 +41,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="a SolverConfig field, VALUE a Python literal (repeatable): --set tolerance=0.01")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="a keyword of the task's constructor, VALUE a Python literal (repeatable): --env kp=75")
+    p.add_argument("--no-effort-limits", action="store_true",
+                   help="diagnostic: build the robot with unbounded actuator efforts (kamino.models' builders patched)")
     p.add_argument("--out", type=pathlib.Path, default=None, help="append the JSON record to this file")
     args = p.parse_args(argv)
     if args.num_envs < 1 or args.unroll < 1:
@@ -59,6 +62,29 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+def _unbounded_efforts() -> None:
+    """Make ``kamino.models``' robot builders return their model with every actuator's effort limit infinite
+    (``--no-effort-limits``: what the effort-limited actuator rows cost the solve)."""
+    import dataclasses
+
+    import numpy as np
+
+    import kamino.envs.joystick as joystick
+    import kamino.models as models
+    import kamino.models.robots as robots
+
+    for name in ("dr_legs", "bdx", "olaf"):
+        build = getattr(robots, name)
+
+        def unbounded(*a, _build=build, **k):
+            m = _build(*a, **k)
+            return dataclasses.replace(m, dof_effort_limit=np.full_like(np.asarray(m.dof_effort_limit), np.inf))
+
+        for module in (robots, models, joystick):
+            if hasattr(module, name):
+                setattr(module, name, unbounded)
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     import jax
@@ -68,6 +94,8 @@ def main(argv=None) -> int:
     import kamino
     from kamino.envs import make
 
+    if args.no_effort_limits:
+        _unbounded_efforts()
     probe = make(args.task, backend=args.backend, **args.env_kwargs)
     config = dataclasses.replace(probe.solver_config, **args.overrides) if args.overrides else None
     raw = make(args.task, backend=args.backend, solver_config=config, **args.env_kwargs) if config else probe
@@ -102,7 +130,8 @@ def main(argv=None) -> int:
     it = np.concatenate(iters).reshape(-1)
     record = {
         "task": args.task, "backend": args.backend, "num_envs": n, "unroll": args.unroll,
-        "action_scale": scale, "solver_overrides": args.overrides, "env_kwargs": args.env_kwargs, "sim_dt": raw.sim_dt,
+        "action_scale": scale, "solver_overrides": args.overrides, "env_kwargs": args.env_kwargs,
+        "effort_limits": not args.no_effort_limits, "sim_dt": raw.sim_dt,
         "decimation": raw.decimation, "collect_env_steps_per_s": args.unroll * n / t,
         "ms_per_sim_step": t / args.unroll / raw.decimation * 1e3,
         "iterations": {"mean": float(it.mean()), "p50": float(np.percentile(it, 50)),
