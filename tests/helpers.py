@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
+import pathlib
+from types import ModuleType
 
 import jax
 import numpy as np
@@ -20,6 +23,15 @@ def trajectory_metrics(model: kamino.Model, state: kamino.State, traj: kamino.St
 def trajectory_joint_positions(model: kamino.Model, state: kamino.State, traj: kamino.State) -> np.ndarray:
     """``kamino.joint_positions`` on every state of a trajectory: ``[T, num_coords]``."""
     return np.asarray(jax.vmap(lambda q: kamino.joint_positions(model, state.replace(body_q=q)))(traj.body_q))
+
+
+def load_benchmark(name: str, alias: str | None = None) -> ModuleType:
+    """``benchmarks/NAME.py`` imported as a module (the folder is not a package), under ``alias`` if given."""
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(alias or f"{name}_bench", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 #: first lines of a subprocess script that needs every core back (before it imports jax): conftest pins each xdist

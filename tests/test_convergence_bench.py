@@ -1,23 +1,19 @@
 """``benchmarks/convergence.py`` end to end on Warp's CPU device: the MJCF four-bar and one stress model
 (the four-bar with a hinge tilted by 10 degrees), 2 worlds x 30 steps at the library defaults."""
 
-import importlib.util
 import json
 import math
 import pathlib
 
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+from tests.helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def convergence():
     pytest.importorskip("warp")
-    spec = importlib.util.spec_from_file_location("convergence_bench", ROOT / "benchmarks" / "convergence.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("convergence")
 
 
 def test_convergence_benchmark_writes_every_field(convergence, tmp_path):

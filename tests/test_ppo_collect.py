@@ -1,23 +1,18 @@
 """``benchmarks/ppo_collect.py`` end to end on Warp's CPU device: the four-bar task through brax's wrappers, 2
 environments x 3 env steps, at a zero action and at full random actions."""
 
-import importlib.util
 import json
-import pathlib
 
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+from tests.helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def ppo_collect():
     pytest.importorskip("warp")
     pytest.importorskip("brax")
-    spec = importlib.util.spec_from_file_location("ppo_collect_bench", ROOT / "benchmarks" / "ppo_collect.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("ppo_collect")
 
 
 def test_records_the_solver_in_the_collection_loop(ppo_collect, tmp_path):

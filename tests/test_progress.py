@@ -1,23 +1,17 @@
 """Progress bars (issue 19): ``--no-progress`` in both benchmark scripts' parsers (nothing is run), and the Warp
 backend's host-side rollout, silent below ``PROGRESS_MIN_STEPS`` steps and with a tqdm bar on stderr above."""
 
-import importlib.util
 import json
-import pathlib
 
 import numpy as np
 import pytest
 
 import kamino
-
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+from tests.helpers import load_benchmark
 
 
 def _script(name: str):
-    spec = importlib.util.spec_from_file_location(f"{name}_bench_progress", ROOT / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark(name, f"{name}_bench_progress")
 
 
 @pytest.mark.parametrize("name", ["throughput", "convergence"])
