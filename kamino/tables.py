@@ -1,10 +1,8 @@
 """Host-side index tables derived from a :class:`~kamino.model.Model`, shared by both backends.
 
 Both backends order a world's constraint rows the same way (docs/conventions.md, docs/formulation.md
-§7.1): joint-dynamics rows (actuator rows without an effort limit, then passive rows), kinematic joint
-rows, coupling rows, effort-limited actuator rows, limit rows, contact triples. The first three families are
-the always-active rows of fixed penalty; the effort-limited actuators open the tail, whose penalty is balanced
-(docs/conventions.md, "Row order"). This module computes, once and in numpy, which DoF or joint each row
+§7.1): joint-dynamics rows (actuator rows, then passive rows), kinematic joint rows, coupling rows,
+limit rows, contact triples. This module computes, once and in numpy, which DoF or joint each row
 family refers to (global, flat indices) and how many rows of each family a world has. The JAX
 reference pads these per world; the Warp backend uses them flat.
 """
@@ -30,11 +28,9 @@ class RowTables:
     dof_joint: np.ndarray  # [num_dofs] joint of each DoF
     dof_axis: np.ndarray  # [num_dofs]
     dof_kind: np.ndarray  # [num_dofs] kamino.model.DOF_*
-    dyn_dof: np.ndarray  # [num_dyn] DoF of each joint-dynamics row, per world: unbounded actuator rows, passive
-    #                      rows, then the effort-limited actuator rows (the world's last ``world_sat_count``)
+    dyn_dof: np.ndarray  # [num_dyn] DoF of each joint-dynamics row, per world: actuator rows then passive rows
     dyn_kind: np.ndarray  # [num_dyn] DYN_ACTUATOR / DYN_PASSIVE
-    world_dyn_count: np.ndarray  # [W] all joint-dynamics rows
-    world_sat_count: np.ndarray  # [W] of which effort-limited actuator rows (they open the tail, not the fixed rows)
+    world_dyn_count: np.ndarray  # [W]
     lim_dof: np.ndarray  # [num_lim] each DoF with a finite limit, per world in DoF order
     world_lim_count: np.ndarray  # [W]
     cpl_dof_a: np.ndarray  # [K] first DoF of joint a
@@ -67,21 +63,15 @@ def row_tables(model: Model) -> RowTables:
             dof_joint[dofs], dof_axis[dofs], dof_kind[dofs] = sel, axis, kind
 
     # joint-dynamics rows: an actuator row per PD/velocity DoF, a passive row per DoF with armature,
-    # damping or a spring (docs/formulation.md §3.2); per world the unbounded actuator rows, the passive rows and
-    # the effort-limited actuator rows, each family in DoF order. Whether an actuator is effort-limited is fixed
-    # by the model (a randomized limit changes its value, not its finiteness: docs/conventions.md, "Row order")
+    # damping or a spring (docs/formulation.md §3.2); per world actuator rows first, each family in DoF order
     dof_world = np.repeat(np.arange(W), model.world_dof_count)
     dof_ids = np.arange(n_dofs)
     is_pd = np.isin(model.dof_act_mode, (int(ActuationMode.POSITION), int(ActuationMode.VELOCITY)))
-    is_sat = is_pd & np.isfinite(model.dof_effort_limit)
-    is_free = is_pd & ~is_sat
     is_passive = (model.dof_armature > 0) | (model.dof_damping > 0) | (model.dof_stiffness > 0)
-    dyn_world = np.concatenate([dof_world[is_free], dof_world[is_passive], dof_world[is_sat]])
-    dyn_dof = np.concatenate([dof_ids[is_free], dof_ids[is_passive], dof_ids[is_sat]])
-    dyn_kind = np.concatenate([np.full(int(is_free.sum()), DYN_ACTUATOR), np.full(int(is_passive.sum()), DYN_PASSIVE),
-                               np.full(int(is_sat.sum()), DYN_ACTUATOR)])
-    family = np.repeat([0, 1, 2], [int(is_free.sum()), int(is_passive.sum()), int(is_sat.sum())])
-    order = np.lexsort((dyn_dof, family, dyn_world))
+    dyn_world = np.concatenate([dof_world[is_pd], dof_world[is_passive]])
+    dyn_dof = np.concatenate([dof_ids[is_pd], dof_ids[is_passive]])
+    dyn_kind = np.concatenate([np.full(int(is_pd.sum()), DYN_ACTUATOR), np.full(int(is_passive.sum()), DYN_PASSIVE)])
+    order = np.lexsort((dyn_dof, dyn_kind, dyn_world))
     limited = np.isfinite(model.dof_lower) | np.isfinite(model.dof_upper)
 
     ja, jb = model.coupling_joint_a, model.coupling_joint_b
@@ -100,7 +90,6 @@ def row_tables(model: Model) -> RowTables:
         cts_joint=cts_joint, cts_axis=cts_axis, cts_kind=cts_kind,
         dof_joint=dof_joint, dof_axis=dof_axis, dof_kind=dof_kind,
         dyn_dof=dyn_dof[order], dyn_kind=dyn_kind[order], world_dyn_count=np.bincount(dyn_world, minlength=W),
-        world_sat_count=np.bincount(dof_world[is_sat], minlength=W),
         lim_dof=dof_ids[limited], world_lim_count=np.bincount(dof_world[limited], minlength=W),
         cpl_dof_a=np.asarray(cpl_a, np.int64), cpl_dof_b=np.asarray(cpl_b, np.int64),
         cpl_wrap=np.asarray(cpl_wrap, bool),

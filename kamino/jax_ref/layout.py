@@ -66,14 +66,10 @@ class PaddedModel:
     dof_springref: jax.Array
     dof_lower: jax.Array
     dof_upper: jax.Array
-    # joint-dynamics rows (docs/formulation.md §3.2): one per DoF and kind (actuator / passive). The fixed rows
-    # (dyn_*) are those without an effort bound; the effort-limited actuator rows (sat_*) open the tail
-    # (kamino/tables.py; docs/conventions.md, "Row order")
+    # joint-dynamics rows (docs/formulation.md §3.2): one per DoF and kind (actuator / passive)
     dyn_dof: jax.Array  # [W, ndyn] local DoF
     dyn_kind: jax.Array  # [W, ndyn] DYN_ACTUATOR or DYN_PASSIVE
     dyn_mask: jax.Array
-    sat_dof: jax.Array  # [W, nsat] local DoF of each effort-limited actuator row
-    sat_mask: jax.Array
     # coupling rows: q_a = sum_k coef_k q_b^k (docs/conventions.md "Couplings"); local DoF indices
     cpl_dof_a: jax.Array  # [W, nk]
     cpl_dof_b: jax.Array  # [W, nk] (0 where there is no joint b)
@@ -196,12 +192,8 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
     # joint-dynamics, limit and coupling rows (kamino/tables.py), world-local DoF indices
     dof_local = _local_ranks(model.world_dof_count)
     dyn_count, lim_count = tab.world_dyn_count, tab.world_lim_count
-    sat_count = tab.world_sat_count
-    fixed_count = dyn_count - sat_count
-    ndyn = int(fixed_count.max()) if dyn_count.size else 0
-    yg, ymask, _ = _pad_index(_prefix(dyn_count), fixed_count, ndyn)
-    nsat = int(sat_count.max()) if dyn_count.size else 0
-    sg, smask, _ = _pad_index(_prefix(dyn_count) + fixed_count, sat_count, nsat)
+    ndyn = int(dyn_count.max()) if dyn_count.size else 0
+    yg, ymask, _ = _pad_index(_prefix(dyn_count), dyn_count, ndyn)
     nl = int(lim_count.max()) if lim_count.size else 0
     lg, lmask, _ = _pad_index(_prefix(lim_count), lim_count, nl)
     nk = int(model.world_coupling_count.max()) if model.num_couplings else 0
@@ -271,8 +263,6 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
         dyn_dof=i(take(dof_local[tab.dyn_dof] if tab.dyn_dof.size else tab.dyn_dof, yg, ymask, 0)),
         dyn_kind=i(take(tab.dyn_kind, yg, ymask, 0)),
         dyn_mask=jnp.asarray(ymask),
-        sat_dof=i(take(dof_local[tab.dyn_dof] if tab.dyn_dof.size else tab.dyn_dof, sg, smask, 0)),
-        sat_mask=jnp.asarray(smask),
         cpl_dof_a=i(take(cpl_a, ug, umask, 0)),
         cpl_dof_b=i(take(cpl_b, ug, umask, 0)),
         cpl_has_b=jnp.asarray(take(has_b, ug, umask, False)),

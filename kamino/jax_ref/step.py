@@ -156,10 +156,9 @@ def explicit_effort(pm: PaddedModel, effort: jax.Array) -> jax.Array:
     return jnp.where(pm.dof_mask & explicit, tau, 0.0)
 
 
-def dynamics_rows(pm: PaddedModel, d: jax.Array, is_act: jax.Array, mask: jax.Array, q_dof: jax.Array,
-                  qd_minus: jax.Array, ctrl: WorldControl, h, cfg: SolverConfig):
-    """Regularisation ``R``, bias ``v*`` and impulse bounds of the joint-dynamics rows ``d`` (local DoFs; ``is_act``:
-    actuator rows, ``mask``: real rows) (docs/formulation.md §3.2).
+def dynamics_rows(pm: PaddedModel, q_dof: jax.Array, qd_minus: jax.Array, ctrl: WorldControl, h,
+                  cfg: SolverConfig):
+    """Regularisation ``R``, bias ``v*`` and impulse bounds of the joint-dynamics rows (docs/formulation.md §3.2).
 
     Each row is the DoF row of ``J_dofs``; with ``m`` the row's implicit inertia the row equation
     ``J u+ + lambda/m + v* = 0`` reads ``m qd+ = p0 - lambda``, i.e. backward-Euler dynamics:
@@ -174,6 +173,8 @@ def dynamics_rows(pm: PaddedModel, d: jax.Array, is_act: jax.Array, mask: jax.Ar
     ``q`` is evaluated where the dynamics are built; ``h`` is the pose update after the solve.
     """
     dt = cfg.dt
+    d = pm.dyn_dof
+    is_act = pm.dyn_kind == DYN_ACTUATOR
     pos_mode = pm.dof_act_mode[d] == ActuationMode.POSITION
     kp, kd = jnp.where(pos_mode, pm.dof_kp[d], 0.0), pm.dof_kd[d]
     q, qd = q_dof[d], qd_minus[d]
@@ -187,6 +188,7 @@ def dynamics_rows(pm: PaddedModel, d: jax.Array, is_act: jax.Array, mask: jax.Ar
     m = jnp.maximum(jnp.where(is_act, m_act, m_pas), 1e-30)
     p0 = jnp.where(is_act, p_act, p_pas)
     bound = jnp.where(is_act, dt * pm.dof_effort_limit[d], jnp.inf)
+    mask = pm.dyn_mask
     return (jnp.where(mask, 1.0 / m, 0.0), jnp.where(mask, -p0 / m, 0.0),
             jnp.where(mask, -bound, -jnp.inf), jnp.where(mask, bound, jnp.inf))
 
@@ -241,14 +243,10 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     q_dof = dof_positions(pm, jf)
     qd_minus, qd_free = J_dofs @ u_vec, J_dofs @ uf_vec
 
-    # joint-dynamics rows: the fixed ones, and the effort-limited actuator rows that open the tail
-    d, d_sat = pm.dyn_dof, pm.sat_dof
-    is_act = pm.dyn_kind == DYN_ACTUATOR
+    # joint-dynamics rows
+    d = pm.dyn_dof
     J_dyn = jnp.where(pm.dyn_mask[:, None], J_dofs[d], 0.0)
-    R_dyn, vs_dyn, lo_dyn, hi_dyn = dynamics_rows(pm, d, is_act, pm.dyn_mask, q_dof, qd_minus, ctrl, h, cfg)
-    J_sat = jnp.where(pm.sat_mask[:, None], J_dofs[d_sat], 0.0)
-    R_sat, vs_sat, lo_sat, hi_sat = dynamics_rows(pm, d_sat, jnp.ones_like(pm.sat_mask), pm.sat_mask, q_dof,
-                                                  qd_minus, ctrl, h, cfg)
+    R_dyn, vs_dyn, lo_dyn, hi_dyn = dynamics_rows(pm, q_dof, qd_minus, ctrl, h, cfg)
     # kinematic joint rows
     jf_start = jf if q_start is q_eval else joint_frames(pm, q_start)
     e_eval = constraint_residual(pm, jf)
@@ -271,11 +269,9 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     vn_minus = (J_con @ u_vec).reshape(-1, 3)[:, 2]
     vs_con = cts.contact_bias(ct, ct.dist, vn_minus, h, cfg)  # same reading as the limits above
 
-    # row order (docs/conventions.md, "Row order"): the fixed rows [dyn | joint | coupling], then the tail
-    # [effort-limited actuators | limits | contacts], whose penalty PADMM balances
-    J = jnp.concatenate([J_dyn, J_kin, J_cpl, J_sat, J_lim, J_con], axis=0)
-    n_dyn, n_kin, n_sat, n_lim = J_dyn.shape[0], J_kin.shape[0] + J_cpl.shape[0], J_sat.shape[0], J_lim.shape[0]
-    n_box = n_dyn + n_kin + n_sat + n_lim
+    J = jnp.concatenate([J_dyn, J_kin, J_cpl, J_lim, J_con], axis=0)
+    n_dyn, n_kin, n_lim = J_dyn.shape[0], J_kin.shape[0] + J_cpl.shape[0], J_lim.shape[0]
+    n_box = n_dyn + n_kin + n_lim
     if J.shape[0] == 0:
         z = jnp.asarray(0.0, dtype)
         empty = jnp.zeros(0, dtype)
@@ -290,9 +286,9 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     f_prev = jnp.where(found[:, None], padmm.cone_project(f_prev, ct.mu), 0.0)
     v_prev = jnp.where(found[:, None], v_prev, 0.0)
     v_prev = v_prev + padmm.de_saxce(v_prev.reshape(-1), ct.mu, 0).reshape(-1, 3)
-    act_prev = jnp.where(is_act, cache.actuator[d], cache.passive[d])
-    force0 = jnp.concatenate([act_prev, cache.kin, cache.coupling, cache.actuator[d_sat],
-                              jnp.maximum(side * cache.limit[pm.lim_dof], 0.0), f_prev.reshape(-1)])
+    act_prev = jnp.where(pm.dyn_kind == DYN_ACTUATOR, cache.actuator[d], cache.passive[d])
+    force0 = jnp.concatenate([act_prev, cache.kin, cache.coupling, jnp.maximum(side * cache.limit[pm.lim_dof], 0.0),
+                              f_prev.reshape(-1)])
     impulse0 = (cfg.warmstart_scale * dt) * force0 if cfg.warm_start else jnp.zeros_like(force0)
     velocity0 = jnp.concatenate([jnp.zeros(n_box, dtype), v_prev.reshape(-1)])
     if not cfg.warm_start:
@@ -302,12 +298,12 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     vs_kin = joint_bias(pm, q_eval, u_f, e_eval, e_start, J_kin, h, cfg) if e_eval.shape[0] else e_eval
     vs_cpl = coupling_bias(pm, q_eval, u_f, e_cpl, e_cpl_start, J_cpl, h, cfg)
     con_mask = jnp.repeat(ct.mask, 3)
-    row_mask = jnp.concatenate([pm.dyn_mask, pm.row_mask, pm.cpl_mask, pm.sat_mask, lim_active, con_mask])
-    v_star = jnp.concatenate([vs_dyn, vs_kin, vs_cpl, vs_sat, vs_lim, vs_con])
-    R = jnp.concatenate([R_dyn, jnp.zeros(n_kin, dtype), R_sat, jnp.zeros(n_lim + con_mask.shape[0], dtype)])
+    row_mask = jnp.concatenate([pm.dyn_mask, pm.row_mask, pm.cpl_mask, lim_active, con_mask])
+    v_star = jnp.concatenate([vs_dyn, vs_kin, vs_cpl, vs_lim, vs_con])
+    R = jnp.concatenate([R_dyn, jnp.zeros(n_kin + n_lim + con_mask.shape[0], dtype)])
     inf = jnp.full(n_kin, jnp.inf, dtype)
-    lo = jnp.concatenate([lo_dyn, -inf, lo_sat, jnp.zeros(n_lim, dtype)])
-    hi = jnp.concatenate([hi_dyn, inf, hi_sat, jnp.full(n_lim, jnp.inf, dtype)])
+    lo = jnp.concatenate([lo_dyn, -inf, jnp.zeros(n_lim, dtype)])
+    hi = jnp.concatenate([hi_dyn, inf, jnp.full(n_lim, jnp.inf, dtype)])
     D = delassus(J, bd) + jnp.diag(R)
     v_f = J @ uf_vec + v_star  # §5
 
@@ -318,7 +314,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
             u_sol = u_f + apply_inv_mass(bd, (J.T @ impulse).reshape(nb, 6))
             vk = joint_bias(pm, q_eval, u_sol, e_eval, e_start, J_kin, h, cfg) if e_eval.shape[0] else e_eval
             vc = coupling_bias(pm, q_eval, u_sol, e_cpl, e_cpl_start, J_cpl, h, cfg)
-            return J @ uf_vec + jnp.concatenate([vs_dyn, vk, vc, vs_sat, vs_lim, vs_con])
+            return J @ uf_vec + jnp.concatenate([vs_dyn, vk, vc, vs_lim, vs_con])
 
     rho0 = jnp.where(cache.penalty > 0, cache.penalty, cfg.rho).astype(dtype)
     res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_dyn + n_kin)
@@ -335,27 +331,25 @@ def _new_cache(pm: PaddedModel, q_eval, res: padmm.PADMMResult, ct: cts.Contacts
     """Split the solve's impulses into the per-family forces ``lambda / dt`` the State carries."""
     dt = cfg.dt
     nd = pm.dof_mask.shape[0]
-    n_dyn, n_jnt, n_cpl, n_sat, n_lim = (pm.dyn_mask.shape[0], pm.row_mask.shape[0], pm.cpl_mask.shape[0],
-                                         pm.sat_mask.shape[0], pm.lim_mask.shape[0])
+    n_dyn, n_jnt, n_cpl, n_lim = (pm.dyn_mask.shape[0], pm.row_mask.shape[0], pm.cpl_mask.shape[0],
+                                  pm.lim_mask.shape[0])
     n_kin = n_jnt + n_cpl
-    n_tail = n_dyn + n_kin + n_sat  # the first limit row
     if res.impulse.shape[0] == 0:
         f = jnp.zeros(0, q_eval.dtype)
         v = jnp.zeros(0, q_eval.dtype)
     else:
         f, v = res.impulse / dt, res.velocity
-    f_dyn, f_sat, f_lim = f[:n_dyn], f[n_dyn + n_kin:n_tail], f[n_tail:n_tail + n_lim]
+    f_dyn, f_lim = f[:n_dyn], f[n_dyn + n_kin:n_dyn + n_kin + n_lim]
     f_kin, f_cpl = f[n_dyn:n_dyn + n_jnt], f[n_dyn + n_jnt:n_dyn + n_kin]
     C = ct.pair.shape[0]
-    f_con = f[n_tail + n_lim:].reshape(C, 3)
-    v_con = v[n_tail + n_lim:].reshape(C, 3)
+    f_con = f[n_dyn + n_kin + n_lim:].reshape(C, 3)
+    v_con = v[n_dyn + n_kin + n_lim:].reshape(C, 3)
     frames = cts.contact_frames(ct.normal)
     d = pm.dyn_dof
     is_act = (pm.dyn_kind == DYN_ACTUATOR) & pm.dyn_mask
     is_pas = (pm.dyn_kind != DYN_ACTUATOR) & pm.dyn_mask
     zeros = jnp.zeros(nd, q_eval.dtype)
-    actuator = (explicit_effort(pm, ctrl.effort).at[d].add(jnp.where(is_act, f_dyn, 0.0))
-                .at[pm.sat_dof].add(jnp.where(pm.sat_mask, f_sat, 0.0)))
+    actuator = explicit_effort(pm, ctrl.effort).at[d].add(jnp.where(is_act, f_dyn, 0.0))
     passive = zeros.at[d].add(jnp.where(is_pas, f_dyn, 0.0))
     limit = zeros.at[pm.lim_dof].add(jnp.where(pm.lim_mask, side * f_lim, 0.0))
     cmask = ct.mask[:, None]

@@ -3,11 +3,9 @@
 Storage is sized by the **sum** of the per-world counts; kernels launch on ``(num_worlds,
 max_count)`` grids and threads past their world's count return at once (docs/architecture.md, "Data
 layout"). Entity indices are global (flat). Each world owns a segment of constraint rows of length
-``maxdim_w = n_dyn + n_joint + n_coupling + n_limit + 3 capacity`` (docs/formulation.md §10.1). The
-first ``n_fixed = n_dyn_fixed + n_joint + n_coupling`` rows are the always-active rows of fixed penalty
-(``n_dyn_fixed``: the joint-dynamics rows without an effort bound); the tail follows: the effort-limited
-actuator rows (always active), then the active limit and contact rows, compacted, so a step only works on
-the rows it uses (docs/conventions.md, "Row order"). Row data, the dense
+``maxdim_w = n_dyn + n_joint + n_coupling + n_limit + 3 capacity`` (docs/formulation.md §10.1); the
+first ``n_fixed = n_dyn + n_joint + n_coupling`` rows are always active, the active limit and
+contact rows follow, compacted, so a step only works on the rows it uses. Row data, the dense
 Delassus matrix and the dense Jacobian are interleaved over groups of 32 worlds
 (``kamino/warp_backend/indexing.py``).
 """
@@ -54,8 +52,7 @@ def model_struct(np_dtype):
         cts_start: iarr
         cts_count: iarr
         dyn_start: iarr
-        dyn_count: iarr  # all joint-dynamics rows: the first dyn_fixed are fixed rows, the others open the tail
-        dyn_fixed: iarr
+        dyn_count: iarr
         cpl_start: iarr
         cpl_count: iarr
         lim_start: iarr
@@ -66,8 +63,7 @@ def model_struct(np_dtype):
         cand_count: iarr
         con_start: iarr  # contact slots (capacity)
         con_capacity: iarr
-        row_fixed: iarr  # n_dyn_fixed + n_joint + n_coupling
-        row_lim0: iarr  # the first limit row: row_fixed + the effort-limited actuator rows
+        row_fixed: iarr  # n_dyn + n_joint + n_coupling
         row_maxdim: iarr
         # per group of 32 worlds (kamino/warp_backend/indexing.py): interleaved row, Delassus, dense-J storage
         grp_row_start: iarr
@@ -203,9 +199,8 @@ def _upload(model: Model, np_dtype: np.dtype, device: str) -> WarpModel:
     ncts, ncpl = model.world_cts_count, model.world_coupling_count
     ndyn, nlim = tab.world_dyn_count, tab.world_lim_count
     cap = model.world_contact_capacity
-    ndyn_fixed = ndyn - tab.world_sat_count
-    n_fixed = ndyn_fixed + ncts + ncpl
-    maxdim = ndyn + ncts + ncpl + nlim + 3 * cap
+    n_fixed = ndyn + ncts + ncpl
+    maxdim = n_fixed + nlim + 3 * cap
     g_dim = group_sizes(maxdim)
     g_col = 6 * group_sizes(nb)
     # candidate contact points, in detection order
@@ -221,10 +216,10 @@ def _upload(model: Model, np_dtype: np.dtype, device: str) -> WarpModel:
     for name, val in dict(
         body_start=model.world_body_start, body_count=nb, joint_start=model.world_joint_start, joint_count=nj,
         dof_start=model.world_dof_start, dof_count=nd, cts_start=model.world_cts_start, cts_count=ncts,
-        dyn_start=prefix(ndyn), dyn_count=ndyn, dyn_fixed=ndyn_fixed, cpl_start=model.world_coupling_start, cpl_count=ncpl,
+        dyn_start=prefix(ndyn), dyn_count=ndyn, cpl_start=model.world_coupling_start, cpl_count=ncpl,
         lim_start=prefix(nlim), lim_count=nlim, pair_start=prefix(pair_count), pair_count=pair_count,
         cand_start=prefix(cand_count), cand_count=cand_count, con_start=prefix(cap), con_capacity=cap,
-        row_fixed=n_fixed, row_lim0=n_fixed + tab.world_sat_count, row_maxdim=maxdim, grp_row_start=prefix(GROUP * g_dim), grp_maxdim=g_dim,
+        row_fixed=n_fixed, row_maxdim=maxdim, grp_row_start=prefix(GROUP * g_dim), grp_maxdim=g_dim,
         grp_mat_start=prefix(GROUP * g_dim * g_dim), grp_jd_start=prefix(GROUP * g_dim * g_col), grp_ncol=g_col,
         body_world=model.body_world,
         joint_type=model.joint_type, joint_parent=model.joint_parent, joint_child=model.joint_child,

@@ -49,7 +49,7 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
         wid, a = wp.tid()
         if a >= m.row_fixed[wid] or (unconverged_only != 0 and w.converged[wid] != 0):
             return
-        nd = m.dyn_fixed[wid]
+        nd = m.dyn_count[wid]
         nc = m.cts_count[wid]
         e = scalar(0.0)
         if a >= nd and a < nd + nc:

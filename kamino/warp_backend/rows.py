@@ -181,10 +181,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             return
         k = m.dyn_start[wid] + i
         d = m.dyn_dof[k]
-        row = i  # the fixed rows first; the effort-limited actuator rows open the tail (docs/conventions.md)
-        if i >= m.dyn_fixed[wid]:
-            row = m.row_fixed[wid] + i - m.dyn_fixed[wid]
-        r = ridx(m, wid, row)
+        r = ridx(m, wid, i)
         dof_row(m, w, r, nblk, d, scalar(1.0))
         q = w.q_dof[d]
         mi = scalar(0.0)
@@ -237,7 +234,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = ridx(m, wid, m.dyn_fixed[wid] + i)
+        r = ridx(m, wid, m.dyn_count[wid] + i)
         j = m.cts_joint[c]
         e, JF, JB = kf.cts_row(m, w.q_eval, c)
         set_blocks(w, r, nblk, m.joint_child[j], JF, m.joint_parent[j], JB)
@@ -281,7 +278,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = ridx(m, wid, m.dyn_fixed[wid] + i)
+        r = ridx(m, wid, m.dyn_count[wid] + i)
         e = kf.cts_residual(m, w.q_eval, c)
         e_start = e
         if midpoint != 0:
@@ -297,7 +294,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cpl_count[wid]:
             return
         k = m.cpl_start[wid] + i
-        r = ridx(m, wid, m.dyn_fixed[wid] + m.cts_count[wid] + i)
+        r = ridx(m, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
         da = m.cpl_dof_a[k]
         db = m.cpl_dof_b[k]
         qb = scalar(0.0)
@@ -323,7 +320,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cpl_count[wid]:
             return
         k = m.cpl_start[wid] + i
-        r = ridx(m, wid, m.dyn_fixed[wid] + m.cts_count[wid] + i)
+        r = ridx(m, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
         da = m.cpl_dof_a[k]
         db = m.cpl_dof_b[k]
         qb = scalar(0.0)
@@ -389,9 +386,9 @@ def row_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def pack_limits(m: M, w: Work, nblk: int):
-        """Append the active limit rows after the effort-limited actuator rows, in DoF order (deterministic)."""
+        """Append the active limit rows after the fixed rows, in DoF order (deterministic)."""
         wid = wp.tid()
-        a0 = m.row_lim0[wid]
+        a0 = m.row_fixed[wid]
         n = int(0)
         for i in range(m.lim_count[wid]):
             k = m.lim_start[wid] + i

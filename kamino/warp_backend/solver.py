@@ -70,7 +70,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     @wp.kernel(module="unique", enable_backward=False)
     def count_rows(m: M, w: Work):
         wid = wp.tid()
-        n_box = m.row_lim0[wid] + w.n_lim[wid]
+        n_box = m.row_fixed[wid] + w.n_lim[wid]
         w.n_box[wid] = n_box
         w.n_rows[wid] = n_box + 3 * w.n_con[wid]
         w.failed[wid] = w.frozen[wid]

@@ -36,7 +36,7 @@ from kamino.warp_backend.workspace import work_struct
 
 def fixed_row_bodies(model: Model) -> list[np.ndarray]:
     """Per world, the moving bodies (world-local indices, ``-1`` padding) of each always-active row, in row
-    order: the joint-dynamics rows without an effort bound, joint rows, coupling rows (``kamino/warp_backend/rows.py``). Shape
+    order: joint-dynamics rows, joint rows, coupling rows (``kamino/warp_backend/rows.py``). Shape
     ``[n_fixed, 4]`` per world."""
     tab = row_tables(model)
     jp, jc = np.asarray(model.joint_parent), np.asarray(model.joint_child)
@@ -61,7 +61,7 @@ def fixed_row_bodies(model: Model) -> list[np.ndarray]:
         b0 = int(model.world_body_start[w])
         s, c = int(model.world_cts_start[w]), int(model.world_cts_count[w])
         k0, k1 = int(model.world_coupling_start[w]), int(model.world_coupling_count[w])
-        d0, d1 = int(dyn_start[w]), int(tab.world_dyn_count[w] - tab.world_sat_count[w])  # the fixed ones
+        d0, d1 = int(dyn_start[w]), int(tab.world_dyn_count[w])
         rows = np.concatenate([dyn[d0:d0 + d1], cts[s:s + c], cpl[k0:k0 + k1]])
         out.append(np.where(rows >= 0, rows - b0, -1).astype(np.int64))
     return out
