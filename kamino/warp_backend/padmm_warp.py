@@ -153,6 +153,22 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 sp.tail[jr + (nf + j) * S] = d
             sync()
 
+    @wp.func
+    def by_columns(sp: SP, vb: int, e0: int, p0: int, nnz: int, nf: int, lane: int):
+        """``L_f`` in column order into ``sp.valc`` for the forward sweep of :func:`solve`: the entries below the
+        diagonal in ``cent`` order, then the diagonal of each position (in ``cent``'s padding slots)."""
+        for j in range(lane, nnz - nf, LANES):
+            sp.valc[vb + j] = sp.val[vb + sp.cent[e0 + j] * sp.val_stride]
+        for q in range(lane, nf, LANES):
+            sp.valc[vb + nnz - nf + q] = sp.val[vb + (sp.row_ptr[p0 + q + 1] - 1) * sp.val_stride]
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def order_columns(m: M, w: Work, sp: SP):
+        """:func:`by_columns` of a factor computed elsewhere (post-stabilisation's own, ``sparse_llt.factor_fixed``)."""
+        wid, lane = wp.tid()
+        base = bases(m, sp, wid)
+        by_columns(sp, base[1], sp.ent_start[wid], sp.ptr_start[wid], sp.nnz[wid], sp.n_fixed[wid], lane)
+
     @wp.kernel(module="unique", enable_backward=False)
     def factor(m: M, w: Work, sp: SP, eta: scalar):
         """Cholesky ``D~ = L L^T`` in place (§8.1) with the world's 32 threads: the fixed rows by columns (fan-out
@@ -188,6 +204,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         if wp.static(E > 0):
             for k in range(lane, nnz, LANES):
                 sp.val[vb + k * sp.val_stride] = lget(lv, k)
+        sync()
+        by_columns(sp, vb, e0, p0, nnz, nf, lane)
         n = w.n_rows[wid]
         nt = n - nf
         for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft (each thread its own tail rows)
@@ -199,17 +217,28 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                     s -= fget(sp, vb, k, lv) * sp.tail[tr + sp.col[e0 + k] * S]
                 sp.tail[tr + p * S] = s / fget(sp, vb, k1, lv)
         sync()
-        for t in range(nt):  # S_t = D~_t - L_tf L_tf^T: row t's entries j <= t (upper slots and sdiag)
+        # S_t = D~_t - L_tf L_tf^T: the entries (t, j <= t), threads over all nt (nt + 1) / 2 of them (pair u is
+        # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or sdiag, so no pair
+        # reads what another writes
+        t = int(0)
+        j = lane
+        while j > t:  # the lane's first pair
+            j -= t + 1
+            t += 1
+        while t < nt:
             tr = tb + t * ts
-            for j in range(lane, t + 1, LANES):
-                jr = tb + j * ts
-                s = sp.tail[tr + (nf + j) * S]
-                for p in range(nf):
-                    s -= sp.tail[tr + p * S] * sp.tail[jr + p * S]
-                if j == t:
-                    w.sdiag[rb + (nf + t) * S] = s
-                else:
-                    sp.tail[jr + (nf + t) * S] = s
+            jr = tb + j * ts
+            s = sp.tail[tr + (nf + j) * S]
+            for p in range(nf):
+                s -= sp.tail[tr + p * S] * sp.tail[jr + p * S]
+            if j == t:
+                w.sdiag[rb + (nf + t) * S] = s
+            else:
+                sp.tail[jr + (nf + t) * S] = s
+            j += LANES
+            while j > t:
+                j -= t + 1
+                t += 1
         sync()
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid], lane)
 
@@ -247,13 +276,14 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         j1_n = int(0)
         l_n = zero
         r_n = int(0)
+        dg = vb + sp.nnz[wid] - nf  # the diagonal's slots in valc
         if nf > 0:
             a_n = sp.perm[q0]
-            d_n = sp.val[vb + (sp.row_ptr[p0 + 1] - 1) * sp.val_stride]
+            d_n = sp.valc[dg]
             j0_n = sp.cptr[p0]
             j1_n = sp.cptr[p0 + 1]
             if j0_n + lane < j1_n:
-                l_n = sp.val[vb + sp.cent[e0 + j0_n + lane] * sp.val_stride]
+                l_n = sp.valc[vb + j0_n + lane]
                 r_n = sp.crow[e0 + j0_n + lane]
         for q in range(nf):
             a_q = a_n
@@ -264,11 +294,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             r_q = r_n
             if q + 1 < nf:
                 a_n = sp.perm[q0 + q + 1]
-                d_n = sp.val[vb + (sp.row_ptr[p0 + q + 2] - 1) * sp.val_stride]
+                d_n = sp.valc[dg + q + 1]
                 j0_n = sp.cptr[p0 + q + 1]
                 j1_n = sp.cptr[p0 + q + 2]
                 if j0_n + lane < j1_n:
-                    l_n = sp.val[vb + sp.cent[e0 + j0_n + lane] * sp.val_stride]
+                    l_n = sp.valc[vb + j0_n + lane]
                     r_n = sp.crow[e0 + j0_n + lane]
             if lane == 0:
                 sset(ys, a_q, yq)
@@ -276,7 +306,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 sset(xs, r_q, sget(xs, r_q) - l_q * yq)
             for j in range(j0 + lane + LANES, j1, LANES):
                 rp = sp.crow[e0 + j]
-                sset(xs, rp, sget(xs, rp) - sp.val[vb + sp.cent[e0 + j] * sp.val_stride] * yq)
+                sset(xs, rp, sget(xs, rp) - sp.valc[vb + j] * yq)
             sync()
         # forward, tail rows: the fixed columns in parallel, then the dense tail by columns
         for t in range(lane, nt, LANES):
@@ -521,5 +551,6 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             if done:
                 return
 
-    return SimpleNamespace(factor=factor, factor_tail=factor_tail, solve=solve, solve_fixed=solve_fixed,
+    return SimpleNamespace(factor=factor, order_columns=order_columns, factor_tail=factor_tail, solve=solve,
+                           solve_fixed=solve_fixed,
                            padmm_iterate=padmm_iterate, R=R, E=E)
