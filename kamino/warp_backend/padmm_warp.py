@@ -9,11 +9,13 @@ warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of abou
   ``L_qq = sqrt(D~_qq)``, the column's entries ``L_pq = D~_pq / L_qq`` (threads over the entries), then every update
   ``D~_pr -= L_pq L_rq`` that column ``q`` feeds (threads over the precomputed triples, ``Symbolic.fan_*``: their
   targets are distinct, so no atomics). The tail rows (active limits and contacts): ``L_tf`` by a forward
-  substitution per tail row (threads over tail rows), the Schur complement ``S_t`` (threads over pairs) and its
-  dense Cholesky by columns (:func:`factor_tail`). Same sums as ``sparse_llt.factor``, in another order.
+  substitution per tail row (threads over tail rows), the Schur complement ``S_t`` (threads over all its entry
+  pairs ``(t, j <= t)``) and its dense Cholesky by columns (:func:`factor_tail`). Same sums as
+  ``sparse_llt.factor``, in another order. Then ``L_f`` is copied in column order (``sp.valc``, :func:`by_columns`).
 - **Solve** (:func:`solve`, every iteration). Column sweeps: the forward substitution of the fixed rows walks the
   columns of ``L_f`` (``x_q = b_q / L_qq``, then the column's entries update the rows below, threads over the
-  entries), the backward one walks its rows (``x_p``, then the entries of row ``p`` update the rows above); the
+  entries; read from the column-ordered copy, so that no value waits on the load of its index: docs/warp_backend.md,
+  "Where a PADMM iteration's time goes"), the backward one walks its rows (``x_p``, then the entries of row ``p`` update the rows above); the
   tail's dense rows likewise, and the tail's share of the fixed rows is one parallel pass. One barrier per row;
   the right-hand side is updated in ``w.y`` (free during the solve) and the solution lands in ``w.x``.
 - **Iterations** (:func:`padmm_iterate`). Every per-row rule (projection, dual update, residuals, the penalty of
