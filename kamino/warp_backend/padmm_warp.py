@@ -15,8 +15,9 @@ warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of abou
 - **Solve** (:func:`solve`, every iteration). Column sweeps: the forward substitution of the fixed rows walks the
   columns of ``L_f`` (``x_q = b_q / L_qq``, then the column's entries update the rows below, threads over the
   entries; read from the column-ordered copy, so that no value waits on the load of its index: docs/warp_backend.md,
-  "Where a PADMM iteration's time goes"), the backward one walks its rows (``x_p``, then the entries of row ``p`` update the rows above); the
-  tail's dense rows likewise, and the tail's share of the fixed rows is one parallel pass. One barrier per row;
+  "Where a PADMM iteration's time goes"), the backward one walks its rows (``x_p``, then the entries of row ``p``
+  update the rows above); the tail's dense rows likewise, and the tail's share of the fixed rows is one parallel
+  pass. One barrier per row;
   the right-hand side is updated in ``w.y`` (free during the solve) and the solution lands in ``w.x``.
 - **Iterations** (:func:`padmm_iterate`). Every per-row rule (projection, dual update, residuals, the penalty of
   the limit and contact rows, the null-direction test, momentum) is ``padmm_rules.py``'s, the threads splitting the
