@@ -280,6 +280,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         l_n = zero
         r_n = int(0)
         dg = vb + sp.nnz[wid] - nf  # the diagonal's slots in valc
+        j1_nn = int(0)  # the end of column q + 2's entries (its start is column q + 1's end): loaded two ahead
         if nf > 0:
             a_n = sp.perm[q0]
             d_n = sp.valc[dg]
@@ -288,6 +289,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             if j0_n + lane < j1_n:
                 l_n = sp.valc[vb + j0_n + lane]
                 r_n = sp.crow[e0 + j0_n + lane]
+            if nf > 1:
+                j1_nn = sp.cptr[p0 + 2]
         for q in range(nf):
             a_q = a_n
             yq = sget(xs, a_q) / d_n
@@ -298,11 +301,13 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             if q + 1 < nf:
                 a_n = sp.perm[q0 + q + 1]
                 d_n = sp.valc[dg + q + 1]
-                j0_n = sp.cptr[p0 + q + 1]
-                j1_n = sp.cptr[p0 + q + 2]
+                j0_n = j1_n
+                j1_n = j1_nn
                 if j0_n + lane < j1_n:
                     l_n = sp.valc[vb + j0_n + lane]
                     r_n = sp.crow[e0 + j0_n + lane]
+                if q + 2 < nf:
+                    j1_nn = sp.cptr[p0 + q + 3]
             if lane == 0:
                 sset(ys, a_q, yq)
             if j0 + lane < j1:
@@ -347,6 +352,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             sync()
         # backward, fixed rows, by rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it (prefetched
         # like the forward sweep)
+        j0_nn = int(0)  # the start of row p - 2's entries (its end is row p - 1's start): loaded two ahead
         if nf > 0:
             a_n = sp.perm[q0 + nf - 1]
             j0_n = sp.row_ptr[p0 + nf - 1]
@@ -355,6 +361,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             if j0_n + lane < j1_n:
                 l_n = sp.val[vb + (j0_n + lane) * sp.val_stride]
                 r_n = sp.colrow[e0 + j0_n + lane]
+            if nf > 1:
+                j0_nn = sp.row_ptr[p0 + nf - 2]
         for pp in range(nf):
             p = nf - 1 - pp
             a_p = a_n
@@ -365,12 +373,14 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             r_p = r_n
             if p > 0:
                 a_n = sp.perm[q0 + p - 1]
-                j0_n = sp.row_ptr[p0 + p - 1]
-                j1_n = sp.row_ptr[p0 + p] - 1
+                j1_n = j0_n - 1
+                j0_n = j0_nn
                 d_n = sp.val[vb + j1_n * sp.val_stride]
                 if j0_n + lane < j1_n:
                     l_n = sp.val[vb + (j0_n + lane) * sp.val_stride]
                     r_n = sp.colrow[e0 + j0_n + lane]
+                if p > 1:
+                    j0_nn = sp.row_ptr[p0 + p - 2]
             if lane == 0:
                 sset(xs, a_p, xp)
             if j0 + lane < j1:
