@@ -90,6 +90,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     balanced_penalty, dual_update = pf.balanced_penalty, pf.dual_update
     bases = sparse_llt_kernels(np_dtype).bases
+    schur_entry = sparse_llt_kernels(np_dtype).schur_entry
     S = GROUP  # storage distance between consecutive rows (entries) of a world
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
@@ -229,15 +230,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             j -= t + 1
             t += 1
         while t < nt:
-            tr = tb + t * ts
-            jr = tb + j * ts
-            s = sp.tail[tr + (nf + j) * S]
-            for p in range(nf):
-                s -= sp.tail[tr + p * S] * sp.tail[jr + p * S]
-            if j == t:
-                w.sdiag[rb + (nf + t) * S] = s
-            else:
-                sp.tail[jr + (nf + t) * S] = s
+            schur_entry(w, sp, rb, tb, ts, nf, t, j)
             j += LANES
             while j > t:
                 j -= t + 1

@@ -432,6 +432,20 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                     s = s / sp.tail[jr + (nf + j) * S]
                 sp.tail[tr + (nf + j) * S] = s
 
+    @wp.func
+    def schur_entry(w: Work, sp: SP, rb: int, tb: int, ts: int, nf: int, t: int, j: int):
+        """``S_t[t, j] = D~_tj - L_t. L_j.`` (``j <= t``, tail rows, ``L_tf`` done) into row ``j``'s upper slot
+        (column ``nf + t``), or ``w.sdiag`` for ``j == t``: it reads only lower slots, so entries are independent."""
+        tr = tb + t * ts
+        jr = tb + j * ts
+        s = sp.tail[tr + (nf + j) * S]
+        for p in range(nf):
+            s -= sp.tail[tr + p * S] * sp.tail[jr + p * S]
+        if j == t:
+            w.sdiag[rb + (nf + t) * S] = s
+        else:
+            sp.tail[jr + (nf + t) * S] = s
+
     @wp.kernel(module="unique", enable_backward=False)
     def factor(m: M, w: Work, sp: SP, eta: scalar):
         """Cholesky ``D~ = L L^T`` in place (§8.1): the fixed rows by the precomputed update lists, then the
@@ -454,16 +468,8 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 for k in range(sp.row_ptr[p0 + p], k1):
                     s -= sp.val[vb + k * sp.val_stride] * sp.tail[tr + sp.col[e0 + k] * S]
                 sp.tail[tr + p * S] = s / sp.val[vb + k1 * sp.val_stride]
-            # S_t row t: D~_tj - L_t. L_j. for j <= t, into row j's upper slot (column nf + t) and sdiag
-            for j in range(t + 1):
-                jr = tb + j * ts
-                s = sp.tail[tr + (nf + j) * S]
-                for p in range(nf):
-                    s -= sp.tail[tr + p * S] * sp.tail[jr + p * S]
-                if j == t:
-                    w.sdiag[rb + (nf + t) * S] = s
-                else:
-                    sp.tail[jr + (nf + t) * S] = s
+            for j in range(t + 1):  # S_t row t
+                schur_entry(w, sp, rb, tb, ts, nf, t, j)
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid])
 
     @wp.func
@@ -519,4 +525,4 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor, bases=bases,
                            factor_tail=factor_tail,
                            factor_fixed=factor_fixed,
-                           solve_inplace=solve_inplace, delassus_entry=delassus_entry)
+                           solve_inplace=solve_inplace, delassus_entry=delassus_entry, schur_entry=schur_entry)
