@@ -140,21 +140,22 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         ``j``, column ``nf + t``) and ``w.sdiag``; the sums of ``sparse_llt.factor_tail``."""
         base = bases(m, sp, wid)
         rb, tb, ts = base[0], base[2], base[3]
+        tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         for j in range(n - nf):
             jr = tb + j * ts
             d = w.sdiag[rb + (nf + j) * S] + shift
             for i in range(j):
-                d -= sp.tail[jr + (nf + i) * S] * sp.tail[jr + (nf + i) * S]
+                d -= sp.tail[jr + (nf + i) * tc] * sp.tail[jr + (nf + i) * tc]
             d = wp.sqrt(d)
             for t in range(j + 1 + lane, n - nf, LANES):
                 tr = tb + t * ts
-                s = sp.tail[jr + (nf + t) * S]
+                s = sp.tail[jr + (nf + t) * tc]
                 for i in range(j):
-                    s -= sp.tail[tr + (nf + i) * S] * sp.tail[jr + (nf + i) * S]
-                sp.tail[tr + (nf + j) * S] = s / d
+                    s -= sp.tail[tr + (nf + i) * tc] * sp.tail[jr + (nf + i) * tc]
+                sp.tail[tr + (nf + j) * tc] = s / d
             if lane == 0:
-                sp.tail[jr + (nf + j) * S] = d
+                sp.tail[jr + (nf + j) * tc] = d
             sync()
 
     @wp.func
@@ -181,6 +182,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         wid, lane = wp.tid()
         base = bases(m, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
+        tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
@@ -215,11 +217,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft (each thread its own tail rows)
             tr = tb + t * ts
             for p in range(nf):
-                s = sp.tail[tr + p * S]
+                s = sp.tail[tr + p * tc]
                 k1 = sp.row_ptr[p0 + p + 1] - 1
                 for k in range(sp.row_ptr[p0 + p], k1):
-                    s -= fget(sp, vb, k, lv) * sp.tail[tr + sp.col[e0 + k] * S]
-                sp.tail[tr + p * S] = s / fget(sp, vb, k1, lv)
+                    s -= fget(sp, vb, k, lv) * sp.tail[tr + sp.col[e0 + k] * tc]
+                sp.tail[tr + p * tc] = s / fget(sp, vb, k1, lv)
         sync()
         # S_t = D~_t - L_tf L_tf^T: the entries (t, j <= t), threads over all nt (nt + 1) / 2 of them (pair u is
         # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or sdiag, so no pair
@@ -259,6 +261,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         (row's) factor entries are loaded before the barrier of the current one, so their latency overlaps it."""
         base = bases(m, sp, wid)
         vb, tb, ts = base[1], base[2], base[3]
+        tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
@@ -314,33 +317,33 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             tr = tb + t * ts
             s = sget(xs, nf + t)
             for p in range(nf):
-                s -= sp.tail[tr + p * S] * sget(ys, sp.perm[q0 + p])
+                s -= sp.tail[tr + p * tc] * sget(ys, sp.perm[q0 + p])
             sset(xs, nf + t, s)
         sync()
         for t in range(nt):
-            yt = sget(xs, nf + t) / sp.tail[tb + t * ts + (nf + t) * S]
+            yt = sget(xs, nf + t) / sp.tail[tb + t * ts + (nf + t) * tc]
             if lane == 0:
                 sset(ys, nf + t, yt)
             for i in range(t + 1 + lane, nt, LANES):
-                sset(xs, nf + i, sget(xs, nf + i) - sp.tail[tb + i * ts + (nf + t) * S] * yt)
+                sset(xs, nf + i, sget(xs, nf + i) - sp.tail[tb + i * ts + (nf + t) * tc] * yt)
             sync()
         # backward, tail rows: x_t = y_t / L_tt (y_t final once the rows after t have updated it), then row t of
         # L_t updates the tail rows before it; then the tail's share of the fixed rows in parallel
         for tt in range(nt):
             t = nt - 1 - tt
             tr = tb + t * ts
-            xt = sget(ys, nf + t) / sp.tail[tr + (nf + t) * S]
+            xt = sget(ys, nf + t) / sp.tail[tr + (nf + t) * tc]
             if lane == 0:
                 sset(xs, nf + t, xt)
             for i in range(lane, t, LANES):
-                sset(ys, nf + i, sget(ys, nf + i) - sp.tail[tr + (nf + i) * S] * xt)
+                sset(ys, nf + i, sget(ys, nf + i) - sp.tail[tr + (nf + i) * tc] * xt)
             sync()
         if nt > 0:
             for p in range(lane, nf, LANES):
                 a = sp.perm[q0 + p]
                 s = sget(ys, a)
                 for t in range(nt):
-                    s -= sp.tail[tb + t * ts + p * S] * sget(xs, nf + t)
+                    s -= sp.tail[tb + t * ts + p * tc] * sget(xs, nf + t)
                 sset(ys, a, s)
             sync()
         # backward, fixed rows, by rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it (prefetched

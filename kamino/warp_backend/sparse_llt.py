@@ -207,6 +207,12 @@ def pattern_struct(np_dtype):
         grp_nnz: iarr
         val_stride: int
         grp_tail_start: iarr
+        # the tail rows: entry (t, c) of a world at tail + t stride + c tail_stride, interleaved over the group's
+        # worlds like val (tail_stride = GROUP, stride = GROUP * dim) or world after world (tail_stride = 1,
+        # stride = dim: padmm_warp.py's threads read consecutive entries of a row); grp_tail_size: the group's
+        # entries per world
+        tail_stride: int
+        grp_tail_size: iarr
         val: wp.array(dtype=scalar)  # the fixed rows' factor
         # per_world storage only (padmm_warp.py): L_f again in column order, valc[j] the entry cent[j] below the
         # diagonal and the diagonal L_qq of position q in the padding slot nnz - n + q, so that the forward column
@@ -270,6 +276,8 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     S.grp_nnz = i32(g_nnz)
     S.val_stride = 1 if per_world else GROUP
     S.grp_tail_start = i32(prefix(GROUP * g_tail * g_dim))
+    S.tail_stride = 1 if per_world else GROUP
+    S.grp_tail_size = i32(g_tail * g_dim)
     scalar = types_of(np.dtype(np_dtype)).scalar
     S.val = wp.zeros(int(GROUP * g_nnz.sum()), dtype=scalar, device=device)
     S.valc = wp.zeros(int(GROUP * g_nnz.sum()) if per_world else 0, dtype=scalar, device=device)
@@ -284,9 +292,10 @@ def empty(np_dtype, device) -> object:
     scalar = types_of(np.dtype(np_dtype)).scalar
     for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "perm", "row_ptr", "col", "colrow", "row",
                  "div", "upd_ptr", "upd_a", "upd_b", "cptr", "cent", "crow", "fan_ptr", "fan_tgt", "fan_a", "fan_b",
-                 "grp_val_start", "grp_nnz", "grp_tail_start"):
+                 "grp_val_start", "grp_nnz", "grp_tail_start", "grp_tail_size"):
         setattr(S, name, wp.zeros(0, dtype=wp.int32, device=device))
     S.val_stride = GROUP
+    S.tail_stride = GROUP
     S.val = wp.zeros(0, dtype=scalar, device=device)
     S.valc = wp.zeros(0, dtype=scalar, device=device)
     S.tail = wp.zeros(0, dtype=scalar, device=device)
@@ -319,7 +328,10 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     def tidx(m: M, sp: SP, wid: int, t: int, c: int):
         """Storage index of column ``c`` (fixed position, or tail row index) of tail row ``t``."""
         g = wid // GROUP
-        return sp.grp_tail_start[g] + (t * m.grp_maxdim[g] + c) * GROUP + (wid - g * GROUP)
+        lane = wid - g * GROUP
+        if sp.tail_stride == 1:
+            return sp.grp_tail_start[g] + lane * sp.grp_tail_size[g] + t * m.grp_maxdim[g] + c
+        return sp.grp_tail_start[g] + (t * m.grp_maxdim[g] + c) * GROUP + lane
 
     @wp.func
     def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):
@@ -377,12 +389,15 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def bases(m: M, sp: SP, wid: int):
         """Hoisted storage starts of world ``wid``: rows, factor values, tail rows, and the tail row stride
-        (``ridx = rows + a S``, ``vidx = vals + k sp.val_stride``, ``tidx = tail + t stride + c S``)."""
+        (``ridx = rows + a S``, ``vidx = vals + k sp.val_stride``, ``tidx = tail + t stride + c sp.tail_stride``)."""
         g = wid // GROUP
         lane = wid - g * GROUP
         vb = sp.grp_val_start[g] + lane
         if sp.val_stride == 1:
             vb = sp.grp_val_start[g] + lane * sp.grp_nnz[g]
+        if sp.tail_stride == 1:
+            return wp.vec4i(m.grp_row_start[g] + lane, vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
+                            m.grp_maxdim[g])
         return wp.vec4i(m.grp_row_start[g] + lane, vb, sp.grp_tail_start[g] + lane, m.grp_maxdim[g] * GROUP)
 
     @wp.func
@@ -414,6 +429,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         (``kamino.jax_ref.padmm.solve``, "Penalty")."""
         base = bases(m, sp, wid)
         rb, tb, ts = base[0], base[2], base[3]
+        tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         for t in range(n - nf):
             tr = tb + t * ts
@@ -423,14 +439,14 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 if j == t:
                     s = w.sdiag[rb + (nf + t) * S] + shift
                 else:
-                    s = sp.tail[jr + (nf + t) * S]
+                    s = sp.tail[jr + (nf + t) * tc]
                 for i in range(j):
-                    s -= sp.tail[tr + (nf + i) * S] * sp.tail[jr + (nf + i) * S]
+                    s -= sp.tail[tr + (nf + i) * tc] * sp.tail[jr + (nf + i) * tc]
                 if j == t:
                     s = wp.sqrt(s)
                 else:
-                    s = s / sp.tail[jr + (nf + j) * S]
-                sp.tail[tr + (nf + j) * S] = s
+                    s = s / sp.tail[jr + (nf + j) * tc]
+                sp.tail[tr + (nf + j) * tc] = s
 
     @wp.func
     def schur_entry(w: Work, sp: SP, rb: int, tb: int, ts: int, nf: int, t: int, j: int):
@@ -438,13 +454,14 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         (column ``nf + t``), or ``w.sdiag`` for ``j == t``: it reads only lower slots, so entries are independent."""
         tr = tb + t * ts
         jr = tb + j * ts
-        s = sp.tail[tr + (nf + j) * S]
+        tc = sp.tail_stride
+        s = sp.tail[tr + (nf + j) * tc]
         for p in range(nf):
-            s -= sp.tail[tr + p * S] * sp.tail[jr + p * S]
+            s -= sp.tail[tr + p * tc] * sp.tail[jr + p * tc]
         if j == t:
             w.sdiag[rb + (nf + t) * S] = s
         else:
-            sp.tail[jr + (nf + t) * S] = s
+            sp.tail[jr + (nf + t) * tc] = s
 
     @wp.kernel(module="unique", enable_backward=False)
     def factor(m: M, w: Work, sp: SP, eta: scalar):
@@ -454,6 +471,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         wid = wp.tid()
         base = bases(m, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
+        tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         factor_fixed_rows(sp, wid, vb)
@@ -463,11 +481,11 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             tr = tb + t * ts
             # L_tf: row t solves L_f l = D~_ft (forward substitution over the sparse rows)
             for p in range(nf):
-                s = sp.tail[tr + p * S]
+                s = sp.tail[tr + p * tc]
                 k1 = sp.row_ptr[p0 + p + 1] - 1
                 for k in range(sp.row_ptr[p0 + p], k1):
-                    s -= sp.val[vb + k * sp.val_stride] * sp.tail[tr + sp.col[e0 + k] * S]
-                sp.tail[tr + p * S] = s / sp.val[vb + k1 * sp.val_stride]
+                    s -= sp.val[vb + k * sp.val_stride] * sp.tail[tr + sp.col[e0 + k] * tc]
+                sp.tail[tr + p * tc] = s / sp.val[vb + k1 * sp.val_stride]
             for j in range(t + 1):  # S_t row t
                 schur_entry(w, sp, rb, tb, ts, nf, t, j)
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid])
@@ -477,6 +495,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         """``x <- L^-T L^-1 x`` with the sparse factor and its dense tail."""
         base = bases(m, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
+        tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
@@ -494,23 +513,23 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             tr = tb + t * ts
             s = w.x[rb + (nf + t) * S]
             for p in range(nf):
-                s -= sp.tail[tr + p * S] * w.x[rb + sp.perm[q0 + p] * S]
+                s -= sp.tail[tr + p * tc] * w.x[rb + sp.perm[q0 + p] * S]
             for i in range(t):
-                s -= sp.tail[tr + (nf + i) * S] * w.x[rb + (nf + i) * S]
-            w.x[rb + (nf + t) * S] = s / sp.tail[tr + (nf + t) * S]
+                s -= sp.tail[tr + (nf + i) * tc] * w.x[rb + (nf + i) * S]
+            w.x[rb + (nf + t) * S] = s / sp.tail[tr + (nf + t) * tc]
         # backward: tail rows, their share of the fixed rows, then the fixed rows (column sweeps of L_f)
         for tt in range(nt):
             t = nt - 1 - tt
             s = w.x[rb + (nf + t) * S]
             for i in range(t + 1, nt):
-                s -= sp.tail[tb + i * ts + (nf + t) * S] * w.x[rb + (nf + i) * S]
-            w.x[rb + (nf + t) * S] = s / sp.tail[tb + t * ts + (nf + t) * S]
+                s -= sp.tail[tb + i * ts + (nf + t) * tc] * w.x[rb + (nf + i) * S]
+            w.x[rb + (nf + t) * S] = s / sp.tail[tb + t * ts + (nf + t) * tc]
         if nt > 0:
             for p in range(nf):
                 r = rb + sp.perm[q0 + p] * S
                 s = w.x[r]
                 for t in range(nt):
-                    s -= sp.tail[tb + t * ts + p * S] * w.x[rb + (nf + t) * S]
+                    s -= sp.tail[tb + t * ts + p * tc] * w.x[rb + (nf + t) * S]
                 w.x[r] = s
         for pp in range(nf):
             p = nf - 1 - pp
