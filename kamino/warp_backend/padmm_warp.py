@@ -258,7 +258,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         """``x <- L^-T L^-1 x`` with the sparse factor and its dense tail, by column sweeps: one barrier per row
         (``sparse_llt.solve_inplace``, the same products in another order). ``xs`` holds the right-hand side on
         entry and the solution on exit, ``ys`` is scratch: both in shared memory, indexed by row. The next column's
-        (row's) factor entries are loaded before the barrier of the current one, so their latency overlaps it."""
+        (row's) factor entries are loaded before the barrier of the current one, unconditionally (clamped indices), so
+        that their latency overlaps the barrier instead of preceding it (docs/warp_backend.md, "Where it goes, measured
+        part by part")."""
         base = bases(m, sp, wid)
         vb, tb, ts = base[1], base[2], base[3]
         tc = sp.tail_stride
@@ -268,13 +270,16 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         q0 = sp.perm_start[wid]
         nt = n - nf
         # forward, fixed rows, by columns: y_q = x_q / L_qq (x_q final once the columns before q have updated it),
-        # then column q updates the rows below; this thread's first entry of the next column is prefetched
+        # then column q updates the rows below. This thread's entry of the next column is loaded during column q,
+        # without a branch: its index is clamped to the world's entries, so that nothing (a select, a branch) waits
+        # for the load before the barrier, and the load's latency overlaps the rest of the step
         a_n = int(0)
         d_n = zero
         j0_n = int(0)
         j1_n = int(0)
         l_n = zero
         r_n = int(0)
+        kmax = sp.nnz[wid] - 1  # the world's last entry: where the clamped loads stop
         dg = vb + sp.nnz[wid] - nf  # the diagonal's slots in valc
         j1_nn = int(0)  # the end of column q + 2's entries (its start is column q + 1's end): loaded two ahead
         if nf > 0:
@@ -282,11 +287,10 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             d_n = sp.valc[dg]
             j0_n = sp.cptr[p0]
             j1_n = sp.cptr[p0 + 1]
-            if j0_n + lane < j1_n:
-                l_n = sp.valc[vb + j0_n + lane]
-                r_n = sp.crow[e0 + j0_n + lane]
-            if nf > 1:
-                j1_nn = sp.cptr[p0 + 2]
+            kn = wp.min(j0_n + lane, kmax)
+            l_n = sp.valc[vb + kn]
+            r_n = sp.crow[e0 + kn]
+            j1_nn = sp.cptr[p0 + wp.min(2, nf)]
         for q in range(nf):
             a_q = a_n
             yq = sget(xs, a_q) / d_n
@@ -294,16 +298,15 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             j1 = j1_n
             l_q = l_n
             r_q = r_n
-            if q + 1 < nf:
-                a_n = sp.perm[q0 + q + 1]
-                d_n = sp.valc[dg + q + 1]
-                j0_n = j1_n
-                j1_n = j1_nn
-                if j0_n + lane < j1_n:
-                    l_n = sp.valc[vb + j0_n + lane]
-                    r_n = sp.crow[e0 + j0_n + lane]
-                if q + 2 < nf:
-                    j1_nn = sp.cptr[p0 + q + 3]
+            qn = wp.min(q + 1, nf - 1)
+            a_n = sp.perm[q0 + qn]
+            d_n = sp.valc[dg + qn]
+            j0_n = j1_n
+            j1_n = j1_nn
+            kn = wp.min(j0_n + lane, kmax)
+            l_n = sp.valc[vb + kn]
+            r_n = sp.crow[e0 + kn]
+            j1_nn = sp.cptr[p0 + wp.min(q + 3, nf)]
             if lane == 0:
                 sset(ys, a_q, yq)
             if j0 + lane < j1:
@@ -346,19 +349,18 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                     s -= sp.tail[tb + t * ts + p * tc] * sget(xs, nf + t)
                 sset(ys, a, s)
             sync()
-        # backward, fixed rows, by rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it (prefetched
-        # like the forward sweep)
+        # backward, fixed rows, by rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it (loaded
+        # ahead like the forward sweep)
         j0_nn = int(0)  # the start of row p - 2's entries (its end is row p - 1's start): loaded two ahead
         if nf > 0:
             a_n = sp.perm[q0 + nf - 1]
             j0_n = sp.row_ptr[p0 + nf - 1]
             j1_n = sp.row_ptr[p0 + nf] - 1
             d_n = sp.val[vb + j1_n * sp.val_stride]
-            if j0_n + lane < j1_n:
-                l_n = sp.val[vb + (j0_n + lane) * sp.val_stride]
-                r_n = sp.colrow[e0 + j0_n + lane]
-            if nf > 1:
-                j0_nn = sp.row_ptr[p0 + nf - 2]
+            kn = wp.min(j0_n + lane, kmax)
+            l_n = sp.val[vb + kn * sp.val_stride]
+            r_n = sp.colrow[e0 + kn]
+            j0_nn = sp.row_ptr[p0 + wp.max(nf - 2, 0)]
         for pp in range(nf):
             p = nf - 1 - pp
             a_p = a_n
@@ -367,16 +369,14 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             j1 = j1_n
             l_p = l_n
             r_p = r_n
-            if p > 0:
-                a_n = sp.perm[q0 + p - 1]
-                j1_n = j0_n - 1
-                j0_n = j0_nn
-                d_n = sp.val[vb + j1_n * sp.val_stride]
-                if j0_n + lane < j1_n:
-                    l_n = sp.val[vb + (j0_n + lane) * sp.val_stride]
-                    r_n = sp.colrow[e0 + j0_n + lane]
-                if p > 1:
-                    j0_nn = sp.row_ptr[p0 + p - 2]
+            a_n = sp.perm[q0 + wp.max(p - 1, 0)]
+            j1_n = j0_n - 1
+            j0_n = j0_nn
+            d_n = sp.val[vb + wp.max(j1_n, 0) * sp.val_stride]
+            kn = wp.min(j0_n + lane, kmax)
+            l_n = sp.val[vb + kn * sp.val_stride]
+            r_n = sp.colrow[e0 + kn]
+            j0_nn = sp.row_ptr[p0 + wp.max(p - 2, 0)]
             if lane == 0:
                 sset(xs, a_p, xp)
             if j0 + lane < j1:
