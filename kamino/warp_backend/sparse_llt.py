@@ -325,13 +325,25 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         return sp.grp_val_start[g] + k * GROUP + lane
 
     @wp.func
-    def tidx(m: M, sp: SP, wid: int, t: int, c: int):
-        """Storage index of column ``c`` (fixed position, or tail row index) of tail row ``t``."""
+    def bases(m: M, sp: SP, wid: int):
+        """Hoisted storage starts of world ``wid``: rows, factor values, tail rows, and the tail row stride
+        (``ridx = rows + a S``, ``vidx = vals + k sp.val_stride``, ``tidx = tail + t stride + c sp.tail_stride``)."""
         g = wid // GROUP
         lane = wid - g * GROUP
+        vb = sp.grp_val_start[g] + lane
+        if sp.val_stride == 1:
+            vb = sp.grp_val_start[g] + lane * sp.grp_nnz[g]
         if sp.tail_stride == 1:
-            return sp.grp_tail_start[g] + lane * sp.grp_tail_size[g] + t * m.grp_maxdim[g] + c
-        return sp.grp_tail_start[g] + (t * m.grp_maxdim[g] + c) * GROUP + lane
+            return wp.vec4i(m.grp_row_start[g] + lane, vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
+                            m.grp_maxdim[g])
+        return wp.vec4i(m.grp_row_start[g] + lane, vb, sp.grp_tail_start[g] + lane, m.grp_maxdim[g] * GROUP)
+
+    @wp.func
+    def tidx(m: M, sp: SP, wid: int, t: int, c: int):
+        """Storage index of column ``c`` (fixed position, or tail row index) of tail row ``t`` (the layout of
+        :func:`bases`)."""
+        base = bases(m, sp, wid)
+        return base[2] + t * base[3] + c * sp.tail_stride
 
     @wp.func
     def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):
@@ -385,20 +397,6 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             sp.tail[tidx(m, sp, wid, t, p)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
         for b in range(nf, a + 1):
             sp.tail[tidx(m, sp, wid, t, b)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
-
-    @wp.func
-    def bases(m: M, sp: SP, wid: int):
-        """Hoisted storage starts of world ``wid``: rows, factor values, tail rows, and the tail row stride
-        (``ridx = rows + a S``, ``vidx = vals + k sp.val_stride``, ``tidx = tail + t stride + c sp.tail_stride``)."""
-        g = wid // GROUP
-        lane = wid - g * GROUP
-        vb = sp.grp_val_start[g] + lane
-        if sp.val_stride == 1:
-            vb = sp.grp_val_start[g] + lane * sp.grp_nnz[g]
-        if sp.tail_stride == 1:
-            return wp.vec4i(m.grp_row_start[g] + lane, vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
-                            m.grp_maxdim[g])
-        return wp.vec4i(m.grp_row_start[g] + lane, vb, sp.grp_tail_start[g] + lane, m.grp_maxdim[g] * GROUP)
 
     @wp.func
     def factor_fixed_rows(sp: SP, wid: int, vb: int):
