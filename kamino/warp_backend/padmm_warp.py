@@ -36,7 +36,7 @@ import warp as wp
 
 from kamino.config import NULL_DIRECTION_RATIO
 from kamino.warp_backend.cone import cone_funcs
-from kamino.warp_backend.model_data import GROUP, model_struct
+from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.padmm_rules import padmm_funcs
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
 from kamino.warp_backend.types import types_of
@@ -91,7 +91,6 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     balanced_penalty, dual_update = pf.balanced_penalty, pf.dual_update
     bases = sparse_llt_kernels(np_dtype).bases
     schur_entry = sparse_llt_kernels(np_dtype).schur_entry
-    S = GROUP  # storage distance between consecutive rows (entries) of a world
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
     zero = scalar(0.0)
@@ -138,13 +137,14 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
         products over the columns before it), from ``S_t`` in the tail rows' upper slots (``S_t[t, j]`` at row
         ``j``, column ``nf + t``) and ``w.sdiag``; the sums of ``sparse_llt.factor_tail``."""
-        base = bases(m, sp, wid)
+        rs = w.row_stride
+        base = bases(m, w, sp, wid)
         rb, tb, ts = base[0], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         for j in range(n - nf):
             jr = tb + j * ts
-            d = w.sdiag[rb + (nf + j) * S] + shift
+            d = w.sdiag[rb + (nf + j) * rs] + shift
             for i in range(j):
                 d -= sp.tail[jr + (nf + i) * tc] * sp.tail[jr + (nf + i) * tc]
             d = wp.sqrt(d)
@@ -171,7 +171,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     def order_columns(m: M, w: Work, sp: SP):
         """:func:`by_columns` of a factor computed elsewhere (post-stabilisation's own, ``sparse_llt.factor_fixed``)."""
         wid, lane = wp.tid()
-        base = bases(m, sp, wid)
+        base = bases(m, w, sp, wid)
         by_columns(sp, base[1], sp.ent_start[wid], sp.ptr_start[wid], sp.nnz[wid], sp.n_fixed[wid], lane)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -180,7 +180,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         updates), then the tail rows' ``L_tf``, their Schur complement and :func:`factor_tail` with the world's
         penalty ``eta + rho_u``."""
         wid, lane = wp.tid()
-        base = bases(m, sp, wid)
+        base = bases(m, w, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -261,7 +261,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         (row's) factor entries are loaded before the barrier of the current one, unconditionally (clamped indices), so
         that their latency overlaps the barrier instead of preceding it (docs/warp_backend.md, "Where it goes, measured
         part by part")."""
-        base = bases(m, sp, wid)
+        base = bases(m, w, sp, wid)
         vb, tb, ts = base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -390,19 +390,20 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     def solve_fixed(m: M, w: Work, sp: SP, unconverged_only: int):
         """Post-stabilisation's solve with the fixed rows' factor, 32 threads per world (``post_stabilisation.solve``
         on this schedule): ``lambda = P (P D_ff P + s I)^-1 x`` into ``x``."""
+        rs = w.row_stride
         wid, lane = wp.tid()
         if unconverged_only != 0 and w.converged[wid] != 0:
             return
-        rb = bases(m, sp, wid)[0]
+        rb = bases(m, w, sp, wid)[0]
         nf = sp.n_fixed[wid]
         xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         for a in range(lane, nf, LANES):
-            sset(xs, a, w.x[rb + a * S])
+            sset(xs, a, w.x[rb + a * rs])
         sync()
         solve(m, w, sp, wid, nf, lane, xs, ys)
         for a in range(lane, nf, LANES):
-            w.x[rb + a * S] = w.P[rb + a * S] * sget(xs, a)
+            w.x[rb + a * rs] = w.P[rb + a * rs] * sget(xs, a)
 
     # --- iterations ---------------------------------------------------------------------------------------
     @wp.func
@@ -421,10 +422,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         with the sparse factor, rule for rule: §7.3-§7.5, the penalty of the limit and contact rows, the
         null-direction test), resuming from the stored iterate; a world that converges (unless ``fixed``) or
         reaches its cap is marked done and leaves ``remaining``."""
+        rs = w.row_stride
         wid, lane = wp.tid()
         if w.done[wid] != 0:
             return
-        rb = bases(m, sp, wid)[0]
+        rb = bases(m, w, sp, wid)[0]
         n = w.n_rows[wid]
         n_box = w.n_box[wid]
         nc = (n - n_box) // 3
@@ -436,11 +438,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         for step in range(chunk):
             # steps 1-2: De Saxcé correction, right-hand side (into xs), linear solve
             for a in range(lane, n, LANES):
-                r = rb + a * S
+                r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 rhs = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
                 if a >= n_box and (a - n_box) % 3 == 2:
-                    rhs -= de_saxce(w.z_hat[r - 2 * S], w.z_hat[r - S], w.mu[r - 2 * S])
+                    rhs -= de_saxce(w.z_hat[r - 2 * rs], w.z_hat[r - rs], w.mu[r - 2 * rs])
                 sset(xs, a, rhs)
             sync()
             solve(m, w, sp, wid, n, lane, xs, ys)
@@ -453,7 +455,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             de = zero
             dx = zero
             for a in range(lane, n_box, LANES):
-                r = rb + a * S
+                r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 x = sget(xs, a)
                 w.x[r] = x
@@ -478,18 +480,18 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             inv_rho = scalar(1.0) / rho_u
             for c in range(lane, nc, LANES):
                 a = n_box + 3 * c
-                r = rb + a * S
+                r = rb + a * rs
                 x0 = sget(xs, a)
                 x1 = sget(xs, a + 1)
                 x2 = sget(xs, a + 2)
-                cp = cone_project(x0 - inv_rho * w.z_hat[r], x1 - inv_rho * w.z_hat[r + S],
-                                  x2 - inv_rho * w.z_hat[r + 2 * S], w.mu[r])
+                cp = cone_project(x0 - inv_rho * w.z_hat[r], x1 - inv_rho * w.z_hat[r + rs],
+                                  x2 - inv_rho * w.z_hat[r + 2 * rs], w.mu[r])
                 w.x[r] = x0
-                w.x[r + S] = x1
-                w.x[r + 2 * S] = x2
+                w.x[r + rs] = x1
+                w.x[r + 2 * rs] = x2
                 yz = zero
                 for t in range(3):
-                    rt = r + t * S
+                    rt = r + t * rs
                     y = cp[t]
                     w.y[rt] = y
                     du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho_u, p_ref)
@@ -531,7 +533,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                         w.rho_u[wid] = rho_n
                         w.k_rho[wid] = k
             for a in range(lane, n, LANES):
-                r = rb + a * S
+                r = rb + a * rs
                 y = w.y[r]
                 z = w.z[r]
                 if mode == RESTART_HERE:
