@@ -54,6 +54,10 @@ def sync():
     ...
 
 
+#: Rounds of fan-out update triples (32 per round) whose indices a thread of :func:`factor` loads together.
+FAN_BATCH = 4
+FanIdx = wp.types.vector(length=FAN_BATCH, dtype=wp.int32)
+
 #: The largest ``L_f`` (entries) that :func:`factor` factorises in shared memory; a larger one is factorised in
 #: device memory (the animatronic's 43,000 entries would leave room for one world per multiprocessor).
 STAGE_MAX_ENTRIES = 12288
@@ -94,6 +98,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
     zero = scalar(0.0)
+    FanVal = wp.types.vector(length=FAN_BATCH, dtype=scalar)
 
     @wp.func
     def lane_max(v: scalar):
@@ -131,6 +136,39 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             lset(lv, k, v)
         else:
             sp.val[vb + k * sp.val_stride] = v
+
+    @wp.func
+    def batch(a: wp.array(dtype=wp.int32), u: int, umax: int) -> FanIdx:
+        """``a[u + r LANES]`` for the FAN_BATCH rounds ``r`` of a thread, loaded together (indices clamped to
+        ``umax``)."""
+        v = FanIdx()
+        for r in range(FAN_BATCH):
+            v[r] = a[wp.min(u + r * LANES, umax)]
+        return v
+
+    @wp.func
+    def ltf_batch(sp: SP, vb: int, e0: int, tr: int, tc: int, kb: int, k1: int, s: scalar, lv: LVec) -> scalar:
+        """``s - sum_k L_pk l_k`` over the entries ``k = kb .. kb + FAN_BATCH - 1`` of row ``p`` before its diagonal
+        ``k1`` (``l``: the tail row at ``tr``): the FAN_BATCH column indices, then the FAN_BATCH values, each batch
+        loaded together (indices clamped, the surplus multiplied by zero), so that the sum waits on two load
+        latencies per batch instead of two per entry."""
+        cv = FanIdx()
+        for r in range(FAN_BATCH):
+            cv[r] = sp.col[e0 + wp.min(kb + r, k1 - 1)]
+        tv = FanVal()
+        for r in range(FAN_BATCH):
+            tv[r] = sp.tail[tr + cv[r] * tc]
+        for r in range(FAN_BATCH):
+            lk = fget(sp, vb, wp.min(kb + r, k1 - 1), lv)
+            s -= wp.where(kb + r < k1, lk * tv[r], zero)
+        return s
+
+    @wp.func
+    def fan_out(sp: SP, vb: int, tv: FanIdx, av: FanIdx, bv: FanIdx, u: int, f1: int, lv: LVec):
+        """The updates ``D~_tgt -= L_a L_b`` of the thread's FAN_BATCH rounds from ``u`` that lie before ``f1``."""
+        for r in range(FAN_BATCH):
+            if u + r * LANES < f1:
+                fset(sp, vb, tv[r], fget(sp, vb, tv[r], lv) - fget(sp, vb, av[r], lv) * fget(sp, vb, bv[r], lv), lv)
 
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
@@ -192,20 +230,58 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             for k in range(lane, nnz, LANES):
                 lset(lv, k, sp.val[vb + k * sp.val_stride])
             sync()
+        # Column q's pointers are loaded during column q - 1, and its indices (two rounds of entries, FAN_BATCH
+        # rounds of update triples) together at its start, unconditionally (indices clamped to the world's): a
+        # column then waits on about one load latency instead of one per round (docs/warp_backend.md, "Where it
+        # goes, measured part by part")
+        cmax = e0 + nnz - 1
+        fmax = wp.max(sp.fan_ptr[p0 + nf] - 1, 0)
+        kd_n = int(0)
+        c0_n = int(0)
+        c1_n = int(0)
+        f0_n = int(0)
+        f1_n = int(0)
+        if nf > 0:
+            kd_n = sp.row_ptr[p0 + 1] - 1
+            c0_n = sp.cptr[p0]
+            c1_n = sp.cptr[p0 + 1]
+            f0_n = sp.fan_ptr[p0]
+            f1_n = sp.fan_ptr[p0 + 1]
         for q in range(nf):
-            kd = sp.row_ptr[p0 + q + 1] - 1
+            kd = kd_n
+            c0 = c0_n
+            c1 = c1_n
+            f0 = f0_n
+            f1 = f1_n
+            qn = wp.min(q + 1, nf - 1)
+            kd_n = sp.row_ptr[p0 + qn + 1] - 1
+            c0_n = sp.cptr[p0 + qn]
+            c1_n = sp.cptr[p0 + qn + 1]
+            f0_n = sp.fan_ptr[p0 + qn]
+            f1_n = sp.fan_ptr[p0 + qn + 1]
+            ja = c0 + lane
+            ka = sp.cent[wp.min(e0 + ja, cmax)]
+            kb = sp.cent[wp.min(e0 + ja + LANES, cmax)]
+            ua = f0 + lane
+            tv = batch(sp.fan_tgt, ua, fmax)
+            av = batch(sp.fan_a, ua, fmax)
+            bv = batch(sp.fan_b, ua, fmax)
             d = wp.sqrt(fget(sp, vb, kd, lv))
             sync()  # every thread has read D~_qq before it becomes L_qq
             if lane == 0:
                 fset(sp, vb, kd, d, lv)
-            for j in range(sp.cptr[p0 + q] + lane, sp.cptr[p0 + q + 1], LANES):
+            if ja < c1:
+                fset(sp, vb, ka, fget(sp, vb, ka, lv) / d, lv)
+            if ja + LANES < c1:
+                fset(sp, vb, kb, fget(sp, vb, kb, lv) / d, lv)
+            for j in range(ja + 2 * LANES, c1, LANES):
                 k = sp.cent[e0 + j]
                 fset(sp, vb, k, fget(sp, vb, k, lv) / d, lv)
             sync()
-            for u in range(sp.fan_ptr[p0 + q] + lane, sp.fan_ptr[p0 + q + 1], LANES):
-                tgt = sp.fan_tgt[u]
-                upd = fget(sp, vb, sp.fan_a[u], lv) * fget(sp, vb, sp.fan_b[u], lv)
-                fset(sp, vb, tgt, fget(sp, vb, tgt, lv) - upd, lv)
+            fan_out(sp, vb, tv, av, bv, ua, f1, lv)
+            for ub in range(ua + FAN_BATCH * LANES, f1, FAN_BATCH * LANES):
+                fan_out(sp, vb, batch(sp.fan_tgt, ub, fmax), batch(sp.fan_a, ub, fmax), batch(sp.fan_b, ub, fmax),
+                        ub, f1, lv)
             sync()
         if wp.static(E > 0):
             for k in range(lane, nnz, LANES):
@@ -216,12 +292,14 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         nt = n - nf
         for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft (each thread its own tail rows)
             tr = tb + t * ts
+            k0 = sp.row_ptr[p0]
             for p in range(nf):
                 s = sp.tail[tr + p * tc]
-                k1 = sp.row_ptr[p0 + p + 1] - 1
-                for k in range(sp.row_ptr[p0 + p], k1):
-                    s -= fget(sp, vb, k, lv) * sp.tail[tr + sp.col[e0 + k] * tc]
+                k1 = sp.row_ptr[p0 + p + 1] - 1  # row p's diagonal; its other entries are k0 .. k1 - 1
+                for kb in range(k0, k1, FAN_BATCH):
+                    s = ltf_batch(sp, vb, e0, tr, tc, kb, k1, s, lv)
                 sp.tail[tr + p * tc] = s / fget(sp, vb, k1, lv)
+                k0 = k1 + 1
         sync()
         # S_t = D~_t - L_tf L_tf^T: the entries (t, j <= t), threads over all nt (nt + 1) / 2 of them (pair u is
         # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or sdiag, so no pair

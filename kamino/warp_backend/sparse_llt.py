@@ -271,7 +271,9 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     S.upd_a, S.upd_b = i32(cat(lambda s: s.upd_a)), i32(cat(lambda s: s.upd_b))
     S.cptr, S.cent, S.crow = (i32(cat(lambda s, f=f: getattr(s, f))) for f in ("cptr", "cent", "crow"))
     S.fan_ptr = i32(np.concatenate([s.fan_ptr + o for s, o in zip(syms, upd0_t, strict=True)]) if syms else [])
-    S.fan_tgt, S.fan_a, S.fan_b = (i32(cat(lambda s, f=f: getattr(s, f))) for f in ("fan_tgt", "fan_a", "fan_b"))
+    # one trailing 0 each, so that padmm_warp.factor's clamped batch loads have an entry to read in any model
+    S.fan_tgt, S.fan_a, S.fan_b = (i32(np.append(cat(lambda s, f=f: getattr(s, f)), 0))
+                                   for f in ("fan_tgt", "fan_a", "fan_b"))
     S.grp_val_start = i32(prefix(GROUP * g_nnz))
     S.grp_nnz = i32(g_nnz)
     S.val_stride = 1 if per_world else GROUP
