@@ -199,11 +199,12 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     @wp.func
     def by_columns(sp: SP, vb: int, e0: int, p0: int, nnz: int, nf: int, lane: int):
         """``L_f`` in column order into ``sp.valc`` for the forward sweep of :func:`solve`: the entries below the
-        diagonal in ``cent`` order, then the diagonal of each position (in ``cent``'s padding slots)."""
+        diagonal in ``cent`` order, then the reciprocal of the diagonal of each position (in ``cent``'s padding
+        slots), so that both sweeps multiply where they divided: a shorter dependent step."""
         for j in range(lane, nnz - nf, LANES):
             sp.valc[vb + j] = sp.val[vb + sp.cent[e0 + j] * sp.val_stride]
         for q in range(lane, nf, LANES):
-            sp.valc[vb + nnz - nf + q] = sp.val[vb + (sp.row_ptr[p0 + q + 1] - 1) * sp.val_stride]
+            sp.valc[vb + nnz - nf + q] = scalar(1.0) / sp.val[vb + (sp.row_ptr[p0 + q + 1] - 1) * sp.val_stride]
 
     @wp.kernel(module="unique", enable_backward=False)
     def order_columns(m: M, w: Work, sp: SP):
@@ -371,7 +372,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             j1_nn = sp.cptr[p0 + wp.min(2, nf)]
         for q in range(nf):
             a_q = a_n
-            yq = sget(xs, a_q) / d_n
+            yq = sget(xs, a_q) * d_n
             j0 = j0_n
             j1 = j1_n
             l_q = l_n
@@ -434,7 +435,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             a_n = sp.perm[q0 + nf - 1]
             j0_n = sp.row_ptr[p0 + nf - 1]
             j1_n = sp.row_ptr[p0 + nf] - 1
-            d_n = sp.val[vb + j1_n * sp.val_stride]
+            d_n = sp.valc[dg + nf - 1]
             kn = wp.min(j0_n + lane, kmax)
             l_n = sp.val[vb + kn * sp.val_stride]
             r_n = sp.colrow[e0 + kn]
@@ -442,7 +443,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         for pp in range(nf):
             p = nf - 1 - pp
             a_p = a_n
-            xp = sget(ys, a_p) / d_n
+            xp = sget(ys, a_p) * d_n
             j0 = j0_n
             j1 = j1_n
             l_p = l_n
@@ -450,7 +451,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             a_n = sp.perm[q0 + wp.max(p - 1, 0)]
             j1_n = j0_n - 1
             j0_n = j0_nn
-            d_n = sp.val[vb + wp.max(j1_n, 0) * sp.val_stride]
+            d_n = sp.valc[dg + wp.max(p - 1, 0)]
             kn = wp.min(j0_n + lane, kmax)
             l_n = sp.val[vb + kn * sp.val_stride]
             r_n = sp.colrow[e0 + kn]
