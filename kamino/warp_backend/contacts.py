@@ -14,7 +14,7 @@ import warp as wp
 from kamino.model import GeomType
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.model_data import GROUP, model_struct
+from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.rows import ROW_CONTACT, row_kernels
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
@@ -205,7 +205,7 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
         mu = w.ct_mu[s]
         for t in range(3):
             JB, JA = contact_blocks(w, s, vec3(C[0, t], C[1, t], C[2, t]))
-            rt = ridx(m, wid, a0 + t)
+            rt = ridx(m, w, wid, a0 + t)
             rk.set_blocks(w, rt, nblk, bb, JB, ba, JA)
             w.reg[rt] = scalar(0.0)
             w.lo[rt] = scalar(0.0)
@@ -217,7 +217,7 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
         # bias of the normal row: gap closes at most, penetration shrinks by gamma; or Newton's restitution
         d = deadband(w.ct_dist[s], deadband_c)
         gap_bias = (d - (scalar(1.0) - gamma) * wp.min(d, scalar(0.0))) / h
-        vn_minus = rk.row_dot(w, ridx(m, wid, a0 + 2), nblk, w.u)
+        vn_minus = rk.row_dot(w, ridx(m, w, wid, a0 + 2), nblk, w.u)
         e = w.ct_restitution[s]
         vn = gap_bias
         if e > scalar(0.0) and vn_minus < -restitution_threshold:
@@ -225,7 +225,7 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             if e < scalar(1.0):
                 corr = wp.min(gap_bias, scalar(0.0))
             vn = wp.min(e * vn_minus, corr)
-        w.vstar[ridx(m, wid, a0 + 2)] = vn
+        w.vstar[ridx(m, w, wid, a0 + 2)] = vn
         # warm start: previous contact of the same pair nearest on geom b (first on ties), within the distance
         pb = local_point_b(w, s)
         best = int(-1)
@@ -245,8 +245,8 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             v = wp.transpose(C) * w.con_velocity[best]
         v[2] = v[2] + cf.de_saxce(v[0], v[1], mu)
         for t in range(3):
-            w.f0[ridx(m, wid, a0 + t)] = f[t]
-            w.v0[ridx(m, wid, a0 + t)] = v[t]
+            w.f0[ridx(m, w, wid, a0 + t)] = f[t]
+            w.v0[ridx(m, w, wid, a0 + t)] = v[t]
 
     @wp.kernel(module="unique", enable_backward=False)
     def commit_contacts(m: M, w: Work, inv_dt: scalar):
@@ -256,9 +256,9 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             return
         s = m.con_start[wid] + i
         if i < w.n_con[wid]:
-            r = ridx(m, wid, w.n_box[wid] + 3 * i)
-            r1 = r + GROUP
-            r2 = r + 2 * GROUP
+            r = ridx(m, w, wid, w.n_box[wid] + 3 * i)
+            r1 = r + w.row_stride
+            r2 = r + 2 * w.row_stride
             C = contact_frame(w.ct_normal[s])
             w.con_pair[s] = w.ct_pair[s]
             w.con_pos[s] = w.ct_pos[s]

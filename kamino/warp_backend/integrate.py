@@ -35,7 +35,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         """``(J^T lambda)_b`` over the first ``n`` rows of world ``wid`` (block-sparse rows, summed in row order)."""
         acc = vec6()
         for a in range(n):
-            r = ridx(m, wid, a)
+            r = ridx(m, w, wid, a)
             for k in range(nblk):
                 if w.row_body[r * nblk + k] == b:
                     acc += lam[r] * w.row_J[r * nblk + k]
@@ -53,7 +53,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         acc = vec6()
         if dense != 0:
             for a in range(n):
-                lam = w.impulse[ridx(m, wid, a)]
+                lam = w.impulse[ridx(m, w, wid, a)]
                 for c in range(6):
                     acc[c] += lam * w.Jd[jidx(m, wid, a, 6 * i + c)]
         else:
@@ -89,7 +89,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         wid, a = wp.tid()
         if a >= w.n_box[wid] or w.failed[wid] != 0:
             return
-        r = ridx(m, wid, a)
+        r = ridx(m, w, wid, a)
         f = w.impulse[r] * inv_dt
         src = w.row_src[r]
         t = w.row_type[r]

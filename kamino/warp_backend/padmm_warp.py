@@ -36,7 +36,7 @@ import warp as wp
 
 from kamino.config import NULL_DIRECTION_RATIO
 from kamino.warp_backend.cone import cone_funcs
-from kamino.warp_backend.model_data import GROUP, model_struct
+from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.padmm_rules import padmm_funcs
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
 from kamino.warp_backend.types import types_of
@@ -53,6 +53,10 @@ def sync():
     """Barrier of the threads of a block (``__syncthreads`` on CUDA, the fiber barrier on the CPU)."""
     ...
 
+
+#: Rounds of fan-out update triples (32 per round) whose indices a thread of :func:`factor` loads together.
+FAN_BATCH = 4
+FanIdx = wp.types.vector(length=FAN_BATCH, dtype=wp.int32)
 
 #: The largest ``L_f`` (entries) that :func:`factor` factorises in shared memory; a larger one is factorised in
 #: device memory (the animatronic's 43,000 entries would leave room for one world per multiprocessor).
@@ -91,10 +95,10 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     balanced_penalty, dual_update = pf.balanced_penalty, pf.dual_update
     bases = sparse_llt_kernels(np_dtype).bases
     schur_entry = sparse_llt_kernels(np_dtype).schur_entry
-    S = GROUP  # storage distance between consecutive rows (entries) of a world
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
     zero = scalar(0.0)
+    FanVal = wp.types.vector(length=FAN_BATCH, dtype=scalar)
 
     @wp.func
     def lane_max(v: scalar):
@@ -134,17 +138,51 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             sp.val[vb + k * sp.val_stride] = v
 
     @wp.func
+    def batch(a: wp.array(dtype=wp.int32), u: int, umax: int) -> FanIdx:
+        """``a[u + r LANES]`` for the FAN_BATCH rounds ``r`` of a thread, loaded together (indices clamped to
+        ``umax``)."""
+        v = FanIdx()
+        for r in range(FAN_BATCH):
+            v[r] = a[wp.min(u + r * LANES, umax)]
+        return v
+
+    @wp.func
+    def ltf_batch(sp: SP, vb: int, e0: int, tr: int, tc: int, kb: int, k1: int, s: scalar, lv: LVec) -> scalar:
+        """``s - sum_k L_pk l_k`` over the entries ``k = kb .. kb + FAN_BATCH - 1`` of row ``p`` before its diagonal
+        ``k1`` (``l``: the tail row at ``tr``): the FAN_BATCH column indices, then the FAN_BATCH values, each batch
+        loaded together (indices clamped, the surplus multiplied by zero), so that the sum waits on two load
+        latencies per batch instead of two per entry."""
+        cv = FanIdx()
+        for r in range(FAN_BATCH):
+            cv[r] = sp.col[e0 + wp.min(kb + r, k1 - 1)]
+        tv = FanVal()
+        for r in range(FAN_BATCH):
+            tv[r] = sp.tail[tr + cv[r] * tc]
+        for r in range(FAN_BATCH):
+            lk = fget(sp, vb, wp.min(kb + r, k1 - 1), lv)
+            s -= wp.where(kb + r < k1, lk * tv[r], zero)
+        return s
+
+    @wp.func
+    def fan_out(sp: SP, vb: int, tv: FanIdx, av: FanIdx, bv: FanIdx, u: int, f1: int, lv: LVec):
+        """The updates ``D~_tgt -= L_a L_b`` of the thread's FAN_BATCH rounds from ``u`` that lie before ``f1``."""
+        for r in range(FAN_BATCH):
+            if u + r * LANES < f1:
+                fset(sp, vb, tv[r], fget(sp, vb, tv[r], lv) - fget(sp, vb, av[r], lv) * fget(sp, vb, bv[r], lv), lv)
+
+    @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
         """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
         products over the columns before it), from ``S_t`` in the tail rows' upper slots (``S_t[t, j]`` at row
         ``j``, column ``nf + t``) and ``w.sdiag``; the sums of ``sparse_llt.factor_tail``."""
-        base = bases(m, sp, wid)
+        rs = w.row_stride
+        base = bases(m, w, sp, wid)
         rb, tb, ts = base[0], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         for j in range(n - nf):
             jr = tb + j * ts
-            d = w.sdiag[rb + (nf + j) * S] + shift
+            d = w.sdiag[rb + (nf + j) * rs] + shift
             for i in range(j):
                 d -= sp.tail[jr + (nf + i) * tc] * sp.tail[jr + (nf + i) * tc]
             d = wp.sqrt(d)
@@ -161,17 +199,18 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     @wp.func
     def by_columns(sp: SP, vb: int, e0: int, p0: int, nnz: int, nf: int, lane: int):
         """``L_f`` in column order into ``sp.valc`` for the forward sweep of :func:`solve`: the entries below the
-        diagonal in ``cent`` order, then the diagonal of each position (in ``cent``'s padding slots)."""
+        diagonal in ``cent`` order, then the reciprocal of the diagonal of each position (in ``cent``'s padding
+        slots), so that both sweeps multiply where they divided: a shorter dependent step."""
         for j in range(lane, nnz - nf, LANES):
             sp.valc[vb + j] = sp.val[vb + sp.cent[e0 + j] * sp.val_stride]
         for q in range(lane, nf, LANES):
-            sp.valc[vb + nnz - nf + q] = sp.val[vb + (sp.row_ptr[p0 + q + 1] - 1) * sp.val_stride]
+            sp.valc[vb + nnz - nf + q] = scalar(1.0) / sp.val[vb + (sp.row_ptr[p0 + q + 1] - 1) * sp.val_stride]
 
     @wp.kernel(module="unique", enable_backward=False)
     def order_columns(m: M, w: Work, sp: SP):
         """:func:`by_columns` of a factor computed elsewhere (post-stabilisation's own, ``sparse_llt.factor_fixed``)."""
         wid, lane = wp.tid()
-        base = bases(m, sp, wid)
+        base = bases(m, w, sp, wid)
         by_columns(sp, base[1], sp.ent_start[wid], sp.ptr_start[wid], sp.nnz[wid], sp.n_fixed[wid], lane)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -180,7 +219,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         updates), then the tail rows' ``L_tf``, their Schur complement and :func:`factor_tail` with the world's
         penalty ``eta + rho_u``."""
         wid, lane = wp.tid()
-        base = bases(m, sp, wid)
+        base = bases(m, w, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -192,20 +231,58 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             for k in range(lane, nnz, LANES):
                 lset(lv, k, sp.val[vb + k * sp.val_stride])
             sync()
+        # Column q's pointers are loaded during column q - 1, and its indices (two rounds of entries, FAN_BATCH
+        # rounds of update triples) together at its start, unconditionally (indices clamped to the world's): a
+        # column then waits on about one load latency instead of one per round (docs/warp_backend.md, "Where it
+        # goes, measured part by part")
+        cmax = e0 + nnz - 1
+        fmax = wp.max(sp.fan_ptr[p0 + nf] - 1, 0)
+        kd_n = int(0)
+        c0_n = int(0)
+        c1_n = int(0)
+        f0_n = int(0)
+        f1_n = int(0)
+        if nf > 0:
+            kd_n = sp.row_ptr[p0 + 1] - 1
+            c0_n = sp.cptr[p0]
+            c1_n = sp.cptr[p0 + 1]
+            f0_n = sp.fan_ptr[p0]
+            f1_n = sp.fan_ptr[p0 + 1]
         for q in range(nf):
-            kd = sp.row_ptr[p0 + q + 1] - 1
+            kd = kd_n
+            c0 = c0_n
+            c1 = c1_n
+            f0 = f0_n
+            f1 = f1_n
+            qn = wp.min(q + 1, nf - 1)
+            kd_n = sp.row_ptr[p0 + qn + 1] - 1
+            c0_n = sp.cptr[p0 + qn]
+            c1_n = sp.cptr[p0 + qn + 1]
+            f0_n = sp.fan_ptr[p0 + qn]
+            f1_n = sp.fan_ptr[p0 + qn + 1]
+            ja = c0 + lane
+            ka = sp.cent[wp.min(e0 + ja, cmax)]
+            kb = sp.cent[wp.min(e0 + ja + LANES, cmax)]
+            ua = f0 + lane
+            tv = batch(sp.fan_tgt, ua, fmax)
+            av = batch(sp.fan_a, ua, fmax)
+            bv = batch(sp.fan_b, ua, fmax)
             d = wp.sqrt(fget(sp, vb, kd, lv))
             sync()  # every thread has read D~_qq before it becomes L_qq
             if lane == 0:
                 fset(sp, vb, kd, d, lv)
-            for j in range(sp.cptr[p0 + q] + lane, sp.cptr[p0 + q + 1], LANES):
+            if ja < c1:
+                fset(sp, vb, ka, fget(sp, vb, ka, lv) / d, lv)
+            if ja + LANES < c1:
+                fset(sp, vb, kb, fget(sp, vb, kb, lv) / d, lv)
+            for j in range(ja + 2 * LANES, c1, LANES):
                 k = sp.cent[e0 + j]
                 fset(sp, vb, k, fget(sp, vb, k, lv) / d, lv)
             sync()
-            for u in range(sp.fan_ptr[p0 + q] + lane, sp.fan_ptr[p0 + q + 1], LANES):
-                tgt = sp.fan_tgt[u]
-                upd = fget(sp, vb, sp.fan_a[u], lv) * fget(sp, vb, sp.fan_b[u], lv)
-                fset(sp, vb, tgt, fget(sp, vb, tgt, lv) - upd, lv)
+            fan_out(sp, vb, tv, av, bv, ua, f1, lv)
+            for ub in range(ua + FAN_BATCH * LANES, f1, FAN_BATCH * LANES):
+                fan_out(sp, vb, batch(sp.fan_tgt, ub, fmax), batch(sp.fan_a, ub, fmax), batch(sp.fan_b, ub, fmax),
+                        ub, f1, lv)
             sync()
         if wp.static(E > 0):
             for k in range(lane, nnz, LANES):
@@ -216,12 +293,14 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         nt = n - nf
         for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft (each thread its own tail rows)
             tr = tb + t * ts
+            k0 = sp.row_ptr[p0]
             for p in range(nf):
                 s = sp.tail[tr + p * tc]
-                k1 = sp.row_ptr[p0 + p + 1] - 1
-                for k in range(sp.row_ptr[p0 + p], k1):
-                    s -= fget(sp, vb, k, lv) * sp.tail[tr + sp.col[e0 + k] * tc]
+                k1 = sp.row_ptr[p0 + p + 1] - 1  # row p's diagonal; its other entries are k0 .. k1 - 1
+                for kb in range(k0, k1, FAN_BATCH):
+                    s = ltf_batch(sp, vb, e0, tr, tc, kb, k1, s, lv)
                 sp.tail[tr + p * tc] = s / fget(sp, vb, k1, lv)
+                k0 = k1 + 1
         sync()
         # S_t = D~_t - L_tf L_tf^T: the entries (t, j <= t), threads over all nt (nt + 1) / 2 of them (pair u is
         # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or sdiag, so no pair
@@ -261,7 +340,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         (row's) factor entries are loaded before the barrier of the current one, unconditionally (clamped indices), so
         that their latency overlaps the barrier instead of preceding it (docs/warp_backend.md, "Where it goes, measured
         part by part")."""
-        base = bases(m, sp, wid)
+        base = bases(m, w, sp, wid)
         vb, tb, ts = base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -293,7 +372,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             j1_nn = sp.cptr[p0 + wp.min(2, nf)]
         for q in range(nf):
             a_q = a_n
-            yq = sget(xs, a_q) / d_n
+            yq = sget(xs, a_q) * d_n
             j0 = j0_n
             j1 = j1_n
             l_q = l_n
@@ -356,7 +435,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             a_n = sp.perm[q0 + nf - 1]
             j0_n = sp.row_ptr[p0 + nf - 1]
             j1_n = sp.row_ptr[p0 + nf] - 1
-            d_n = sp.val[vb + j1_n * sp.val_stride]
+            d_n = sp.valc[dg + nf - 1]
             kn = wp.min(j0_n + lane, kmax)
             l_n = sp.val[vb + kn * sp.val_stride]
             r_n = sp.colrow[e0 + kn]
@@ -364,7 +443,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         for pp in range(nf):
             p = nf - 1 - pp
             a_p = a_n
-            xp = sget(ys, a_p) / d_n
+            xp = sget(ys, a_p) * d_n
             j0 = j0_n
             j1 = j1_n
             l_p = l_n
@@ -372,7 +451,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             a_n = sp.perm[q0 + wp.max(p - 1, 0)]
             j1_n = j0_n - 1
             j0_n = j0_nn
-            d_n = sp.val[vb + wp.max(j1_n, 0) * sp.val_stride]
+            d_n = sp.valc[dg + wp.max(p - 1, 0)]
             kn = wp.min(j0_n + lane, kmax)
             l_n = sp.val[vb + kn * sp.val_stride]
             r_n = sp.colrow[e0 + kn]
@@ -390,19 +469,20 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     def solve_fixed(m: M, w: Work, sp: SP, unconverged_only: int):
         """Post-stabilisation's solve with the fixed rows' factor, 32 threads per world (``post_stabilisation.solve``
         on this schedule): ``lambda = P (P D_ff P + s I)^-1 x`` into ``x``."""
+        rs = w.row_stride
         wid, lane = wp.tid()
         if unconverged_only != 0 and w.converged[wid] != 0:
             return
-        rb = bases(m, sp, wid)[0]
+        rb = bases(m, w, sp, wid)[0]
         nf = sp.n_fixed[wid]
         xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         for a in range(lane, nf, LANES):
-            sset(xs, a, w.x[rb + a * S])
+            sset(xs, a, w.x[rb + a * rs])
         sync()
         solve(m, w, sp, wid, nf, lane, xs, ys)
         for a in range(lane, nf, LANES):
-            w.x[rb + a * S] = w.P[rb + a * S] * sget(xs, a)
+            w.x[rb + a * rs] = w.P[rb + a * rs] * sget(xs, a)
 
     # --- iterations ---------------------------------------------------------------------------------------
     @wp.func
@@ -421,10 +501,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         with the sparse factor, rule for rule: §7.3-§7.5, the penalty of the limit and contact rows, the
         null-direction test), resuming from the stored iterate; a world that converges (unless ``fixed``) or
         reaches its cap is marked done and leaves ``remaining``."""
+        rs = w.row_stride
         wid, lane = wp.tid()
         if w.done[wid] != 0:
             return
-        rb = bases(m, sp, wid)[0]
+        rb = bases(m, w, sp, wid)[0]
         n = w.n_rows[wid]
         n_box = w.n_box[wid]
         nc = (n - n_box) // 3
@@ -436,11 +517,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         for step in range(chunk):
             # steps 1-2: De Saxcé correction, right-hand side (into xs), linear solve
             for a in range(lane, n, LANES):
-                r = rb + a * S
+                r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 rhs = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
                 if a >= n_box and (a - n_box) % 3 == 2:
-                    rhs -= de_saxce(w.z_hat[r - 2 * S], w.z_hat[r - S], w.mu[r - 2 * S])
+                    rhs -= de_saxce(w.z_hat[r - 2 * rs], w.z_hat[r - rs], w.mu[r - 2 * rs])
                 sset(xs, a, rhs)
             sync()
             solve(m, w, sp, wid, n, lane, xs, ys)
@@ -453,7 +534,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             de = zero
             dx = zero
             for a in range(lane, n_box, LANES):
-                r = rb + a * S
+                r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 x = sget(xs, a)
                 w.x[r] = x
@@ -478,18 +559,18 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             inv_rho = scalar(1.0) / rho_u
             for c in range(lane, nc, LANES):
                 a = n_box + 3 * c
-                r = rb + a * S
+                r = rb + a * rs
                 x0 = sget(xs, a)
                 x1 = sget(xs, a + 1)
                 x2 = sget(xs, a + 2)
-                cp = cone_project(x0 - inv_rho * w.z_hat[r], x1 - inv_rho * w.z_hat[r + S],
-                                  x2 - inv_rho * w.z_hat[r + 2 * S], w.mu[r])
+                cp = cone_project(x0 - inv_rho * w.z_hat[r], x1 - inv_rho * w.z_hat[r + rs],
+                                  x2 - inv_rho * w.z_hat[r + 2 * rs], w.mu[r])
                 w.x[r] = x0
-                w.x[r + S] = x1
-                w.x[r + 2 * S] = x2
+                w.x[r + rs] = x1
+                w.x[r + 2 * rs] = x2
                 yz = zero
                 for t in range(3):
-                    rt = r + t * S
+                    rt = r + t * rs
                     y = cp[t]
                     w.y[rt] = y
                     du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho_u, p_ref)
@@ -531,7 +612,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                         w.rho_u[wid] = rho_n
                         w.k_rho[wid] = k
             for a in range(lane, n, LANES):
-                r = rb + a * S
+                r = rb + a * rs
                 y = w.y[r]
                 z = w.z[r]
                 if mode == RESTART_HERE:

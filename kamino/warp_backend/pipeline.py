@@ -100,7 +100,9 @@ class Stepper:
         #: the LLT solve with block-sparse rows and one thread per world factorises sparsely (sparse_llt.py)
         self.sparse_factor = llt and not self.dense
         with wp.ScopedDevice(self.device):
-            self.work = allocate(wm, cfg.integrator == "euler", self.dense, llt and not self.sparse_factor)
+            # under the 32-thread schedule each world's rows are contiguous (its threads read consecutive rows)
+            self.work = allocate(wm, cfg.integrator == "euler", self.dense, llt and not self.sparse_factor,
+                                 rows_per_world=padmm == "warp")
             if self.sparse_factor:
                 self.sf = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy(),
                                            per_world=padmm == "warp")

@@ -62,7 +62,7 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
                 qb = kf.dof_position(m, w.q_new, db)
             ek, dp = kf.coupling_residual(m, k, kf.dof_position(m, w.q_new, m.cpl_dof_a[k]), qb)
             e = deadband(ek, delta)
-        r = ridx(m, wid, a)
+        r = ridx(m, w, wid, a)
         w.x[r] = -w.P[r] * e
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -74,7 +74,7 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
         nf = m.row_fixed[wid]
         sparse_solve(m, w, sp, wid, nf)
         for a in range(nf):  # lambda = P y
-            r = ridx(m, wid, a)
+            r = ridx(m, w, wid, a)
             w.x[r] = w.P[r] * w.x[r]
 
     @wp.kernel(module="unique", enable_backward=False)

@@ -181,7 +181,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             return
         k = m.dyn_start[wid] + i
         d = m.dyn_dof[k]
-        r = ridx(m, wid, i)
+        r = ridx(m, w, wid, i)
         dof_row(m, w, r, nblk, d, scalar(1.0))
         q = w.q_dof[d]
         mi = scalar(0.0)
@@ -234,7 +234,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = ridx(m, wid, m.dyn_count[wid] + i)
+        r = ridx(m, w, wid, m.dyn_count[wid] + i)
         j = m.cts_joint[c]
         e, JF, JB = kf.cts_row(m, w.q_eval, c)
         set_blocks(w, r, nblk, m.joint_child[j], JF, m.joint_parent[j], JB)
@@ -278,7 +278,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = ridx(m, wid, m.dyn_count[wid] + i)
+        r = ridx(m, w, wid, m.dyn_count[wid] + i)
         e = kf.cts_residual(m, w.q_eval, c)
         e_start = e
         if midpoint != 0:
@@ -294,7 +294,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cpl_count[wid]:
             return
         k = m.cpl_start[wid] + i
-        r = ridx(m, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
+        r = ridx(m, w, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
         da = m.cpl_dof_a[k]
         db = m.cpl_dof_b[k]
         qb = scalar(0.0)
@@ -320,7 +320,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.cpl_count[wid]:
             return
         k = m.cpl_start[wid] + i
-        r = ridx(m, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
+        r = ridx(m, w, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
         da = m.cpl_dof_a[k]
         db = m.cpl_dof_b[k]
         qb = scalar(0.0)
@@ -395,7 +395,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             if w.lim_active[k] != 0:
                 d = m.lim_dof[k]
                 side = w.lim_side[k]
-                r = ridx(m, wid, a0 + n)
+                r = ridx(m, w, wid, a0 + n)
                 dof_row(m, w, r, nblk, d, side)
                 w.vstar[r] = w.lim_bias[k]
                 w.reg[r] = scalar(0.0)

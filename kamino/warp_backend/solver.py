@@ -57,7 +57,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
     factor_tail_sparse = sparse_llt_kernels(np_dtype).factor_tail
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
-    S = GROUP  # storage distance between consecutive rows of a world
+    S = GROUP  # storage distance between consecutive entries of a world's dense Delassus matrix (w.D)
     eps = scalar(float(np.finfo(np_dtype).eps))
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
@@ -81,7 +81,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         wid, i = wp.tid()
         if i >= w.n_rows[wid]:
             return
-        r = ridx(m, wid, i)
+        r = ridx(m, w, wid, i)
         vf = w.vstar[r]
         for k in range(nblk):
             b = w.row_body[r * nblk + k]
@@ -132,7 +132,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             for c in range(nc):
                 s += w.Jd[jidx(m, wid, a, c)] * w.MJd[jidx(m, wid, b, c)]
             if b == a:
-                s += w.reg[ridx(m, wid, a)]
+                s += w.reg[ridx(m, w, wid, a)]
             w.D[didx(m, wid, a, b)] = s
             w.D[didx(m, wid, b, a)] = s
 
@@ -151,7 +151,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         n = w.n_rows[wid]
         if a >= n:
             return
-        r = ridx(m, wid, a)
+        r = ridx(m, w, wid, a)
         if enabled == 0:
             w.P[r] = scalar(1.0)
             return
@@ -177,12 +177,12 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         n = w.n_rows[wid]
         if a >= n:
             return
-        r = ridx(m, wid, a)
+        r = ridx(m, w, wid, a)
         Pa = w.P[r]
         if assembled != 0:
             for b in range(n):
                 k = didx(m, wid, a, b)
-                w.D[k] = Pa * w.D[k] * w.P[ridx(m, wid, b)]
+                w.D[k] = Pa * w.D[k] * w.P[ridx(m, w, wid, b)]
             if a < m.row_fixed[wid]:
                 if wp.isfinite(w.lo[r]) or wp.isfinite(w.hi[r]):
                     w.D[didx(m, wid, a, a)] += shift_box
@@ -204,30 +204,32 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     def project_into(m: M, w: Work, wid: int, n_box: int, n: int, src: wp.array(dtype=scalar),
                      shift: wp.array(dtype=scalar), inv_rho: scalar, dst: wp.array(dtype=scalar)):
         """``dst = Pi_K(src - inv_rho * shift)`` (§7.3 step 3): clip on box rows, cones on contacts."""
-        rb = row_base(m, wid)
+        rs = w.row_stride
+        rb = row_base(m, w, wid)
         for a in range(n_box):
-            r = rb + a * S
+            r = rb + a * rs
             dst[r] = wp.clamp(src[r] - inv_rho * shift[r], w.lo_s[r], w.hi_s[r])
         for c in range((n - n_box) // 3):
-            r = rb + (n_box + 3 * c) * S
-            p = cone_project(src[r] - inv_rho * shift[r], src[r + S] - inv_rho * shift[r + S],
-                             src[r + 2 * S] - inv_rho * shift[r + 2 * S], w.mu[r])
+            r = rb + (n_box + 3 * c) * rs
+            p = cone_project(src[r] - inv_rho * shift[r], src[r + rs] - inv_rho * shift[r + rs],
+                             src[r + 2 * rs] - inv_rho * shift[r + 2 * rs], w.mu[r])
             dst[r] = p[0]
-            dst[r + S] = p[1]
-            dst[r + 2 * S] = p[2]
+            dst[r + rs] = p[1]
+            dst[r + 2 * rs] = p[2]
 
     @wp.func
     def factor_tail_dense(m: M, w: Work, wid: int, n: int, shift: scalar):
         """``L_t = chol(S_t + shift I)`` of the dense factor's tail (limit and contact rows): the Schur
         complement ``S_t`` is kept in the tail block's upper triangle and ``sdiag``, so that a new penalty only
         redoes this part (``kamino.jax_ref.padmm.solve``, "Penalty")."""
+        rs = w.row_stride
         nf = m.row_fixed[wid]
-        rb = row_base(m, wid)
+        rb = row_base(m, w, wid)
         for t in range(n - nf):
             for j in range(t + 1):
                 s = scalar(0.0)
                 if j == t:
-                    s = w.sdiag[rb + (nf + t) * S] + shift
+                    s = w.sdiag[rb + (nf + t) * rs] + shift
                 else:
                     s = w.D[didx(m, wid, nf + j, nf + t)]
                 for i in range(j):
@@ -246,12 +248,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         Schur complement ``S_t`` (upper triangle of the tail block and ``sdiag``), then ``L_t`` for the penalty;
         ``L^T`` of the fixed columns is mirrored into the upper triangle so that the backward substitution
         reads rows."""
+        rs = w.row_stride
         wid = wp.tid()
-        rb = row_base(m, wid)
+        rb = row_base(m, w, wid)
         n = w.n_rows[wid]
         p_ref = scalar(0.0)
         for a in range(n):
-            r = rb + a * S
+            r = rb + a * rs
             w.x[r] = impulse_scale * w.f0[r] / w.P[r]
             w.z_p[r] = scalar(0.0)
             if use_velocity != 0:
@@ -266,7 +269,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         w.k_rho[wid] = 0
         project_into(m, w, wid, w.n_box[wid], n, w.x, w.x, scalar(0.0), w.x_p)
         for a in range(n):
-            r = rb + a * S
+            r = rb + a * rs
             w.y_p[r] = w.x_p[r]
             w.y_hat[r] = w.x_p[r]
         w.a_p[wid] = scalar(1.0)
@@ -300,7 +303,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     for k in range(nf):
                         s -= w.D[didx(m, wid, nf + t, k)] * w.D[didx(m, wid, nf + jj, k)]
                     if jj == t:
-                        w.sdiag[rb + (nf + t) * S] = s
+                        w.sdiag[rb + (nf + t) * rs] = s
                     else:
                         w.D[didx(m, wid, nf + jj, nf + t)] = s
             factor_tail_dense(m, w, wid, n, eta + w.rho_u[wid])
@@ -312,26 +315,27 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     def cho_solve_inplace(m: M, w: Work, wid: int, n: int):
         """``x <- L^-T L^-1 x`` with the cached factor (forward, then backward substitution reading ``L^T``
         from the upper triangle, and from the lower one in the tail block)."""
-        rb = row_base(m, wid)
+        rs = w.row_stride
+        rb = row_base(m, w, wid)
         g = wid // GROUP
         db = m.grp_mat_start[g] + (wid - g * GROUP)  # didx(m, wid, i, k) = db + (i * md + k) * S
         md = m.grp_maxdim[g]
         for i in range(n):
-            s = w.x[rb + i * S]
+            s = w.x[rb + i * rs]
             for k in range(i):
-                s -= w.D[db + (i * md + k) * S] * w.x[rb + k * S]
-            w.x[rb + i * S] = s / w.D[db + (i * md + i) * S]
+                s -= w.D[db + (i * md + k) * S] * w.x[rb + k * rs]
+            w.x[rb + i * rs] = s / w.D[db + (i * md + i) * S]
         nf = m.row_fixed[wid]
         for ii in range(n):
             i = n - 1 - ii
-            s = w.x[rb + i * S]
+            s = w.x[rb + i * rs]
             if i >= nf:  # the tail block keeps its Schur complement in the upper triangle: read L by columns
                 for k in range(i + 1, n):
-                    s -= w.D[db + (k * md + i) * S] * w.x[rb + k * S]
+                    s -= w.D[db + (k * md + i) * S] * w.x[rb + k * rs]
             else:
                 for k in range(i + 1, n):
-                    s -= w.D[db + (i * md + k) * S] * w.x[rb + k * S]
-            w.x[rb + i * S] = s / w.D[db + (i * md + i) * S]
+                    s -= w.D[db + (i * md + k) * S] * w.x[rb + k * rs]
+            w.x[rb + i * rs] = s / w.D[db + (i * md + i) * S]
 
     @wp.func
     def apply_operator(m: M, w: Work, wid: int, n: int, nblk: int, shift_f: scalar, shift_b: scalar,
@@ -339,19 +343,20 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free (§8.2, pre-baked blocks), with
         ``eta + rho = shift_f`` on the fixed rows (``shift_b`` on those with a finite bound) and ``shift_t`` on the
         limit and contact rows."""
-        rb = row_base(m, wid)
+        rs = w.row_stride
+        rb = row_base(m, w, wid)
         b0 = m.body_start[wid]
         for i in range(m.body_count[wid]):
             w.cr_w[b0 + i] = vec6()
         for a in range(n):
-            r = rb + a * S
+            r = rb + a * rs
             pv = w.P[r] * v[r]
             for k in range(nblk):
                 b = w.row_body[r * nblk + k]
                 if b >= 0:
                     w.cr_w[b] = w.cr_w[b] + pv * w.row_J[r * nblk + k]
         for a in range(n):
-            r = rb + a * S
+            r = rb + a * rs
             s = scalar(0.0)
             for k in range(nblk):
                 b = w.row_body[r * nblk + k]
@@ -376,20 +381,21 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         residual ``b - A x`` (the recurrence's, which follows the true one to rounding); ``padmm_iterate``
         folds it into the dual residual, so a world converges only when its linear solves are accurate to
         the tolerance too."""
-        rb = row_base(m, wid)
+        rs = w.row_stride
+        rb = row_base(m, w, wid)
         for a in range(n):
-            w.x[rb + a * S] = w.x_p[rb + a * S]
+            w.x[rb + a * rs] = w.x_p[rb + a * rs]
         apply_operator(m, w, wid, n, nblk, shift_f, shift_b, shift_t, w.x, w.cr_Ar)
         bb = scalar(0.0)
         for a in range(n):
-            r = rb + a * S
+            r = rb + a * rs
             w.cr_r[r] = w.y[r] - w.cr_Ar[r]
             w.cr_p[r] = w.cr_r[r]
             bb += w.y[r] * w.y[r]
         apply_operator(m, w, wid, n, nblk, shift_f, shift_b, shift_t, w.cr_r, w.cr_Ar)
         zeta = scalar(0.0)
         for a in range(n):
-            r = rb + a * S
+            r = rb + a * rs
             w.cr_Ap[r] = w.cr_Ar[r]
             zeta += w.cr_r[r] * w.cr_Ar[r]
         stop = scalar(1e-30) * bb
@@ -397,24 +403,24 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             rr = scalar(0.0)
             pp = scalar(0.0)
             for a in range(n):
-                r = rb + a * S
+                r = rb + a * rs
                 rr += w.cr_r[r] * w.cr_r[r]
                 pp += w.cr_Ap[r] * w.cr_Ap[r]
             if rr <= stop or pp <= scalar(0.0) or zeta == scalar(0.0):
                 break
             alpha = zeta / pp
             for a in range(n):
-                r = rb + a * S
+                r = rb + a * rs
                 w.x[r] += alpha * w.cr_p[r]
                 w.cr_r[r] -= alpha * w.cr_Ap[r]
             apply_operator(m, w, wid, n, nblk, shift_f, shift_b, shift_t, w.cr_r, w.cr_Ar)
             zeta_new = scalar(0.0)
             for a in range(n):
-                zeta_new += w.cr_r[rb + a * S] * w.cr_Ar[rb + a * S]
+                zeta_new += w.cr_r[rb + a * rs] * w.cr_Ar[rb + a * rs]
             beta = zeta_new / zeta
             zeta = zeta_new
             for a in range(n):
-                r = rb + a * S
+                r = rb + a * rs
                 w.cr_p[r] = w.cr_r[r] + beta * w.cr_p[r]
                 w.cr_Ap[r] = w.cr_Ar[r] + beta * w.cr_Ap[r]
 
@@ -439,8 +445,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         projection matter: effort-limited actuators), the limit and contact rows the world's
         ``rho_u``, rebalanced when ``adaptive`` (then the tail of the factor is recomputed). ``linear``:
         ``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE`` (``sparse_llt.py``)."""
+        rs = w.row_stride
         wid = wp.tid()
-        rb = row_base(m, wid)
+        rb = row_base(m, w, wid)
         if w.done[wid] != 0:
             return
         n = w.n_rows[wid]
@@ -455,12 +462,12 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             if linear == LINEAR_CR:
                 rhs = w.y
             for a in range(n):
-                r = rb + a * S
+                r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 rhs[r] = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
             for c in range((n - n_box) // 3):
-                r = rb + (n_box + 3 * c) * S
-                rhs[r + 2 * S] -= de_saxce(w.z_hat[r], w.z_hat[r + S], w.mu[r])
+                r = rb + (n_box + 3 * c) * rs
+                rhs[r + 2 * rs] -= de_saxce(w.z_hat[r], w.z_hat[r + rs], w.mu[r])
             if linear == LINEAR_CR:
                 cr_solve(m, w, wid, n, nblk, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
             elif linear == LINEAR_SPARSE:
@@ -480,7 +487,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             de = scalar(0.0)
             dx = scalar(0.0)
             for a in range(n_box):
-                r = rb + a * S
+                r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 x = w.x[r]
                 z_hat = w.z_hat[r]
@@ -503,12 +510,12 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     r_tail = wp.max(r_tail, du[2])
             inv_rho = scalar(1.0) / rho_u
             for c in range((n - n_box) // 3):
-                r = rb + (n_box + 3 * c) * S
-                cp = cone_project(w.x[r] - inv_rho * w.z_hat[r], w.x[r + S] - inv_rho * w.z_hat[r + S],
-                                  w.x[r + 2 * S] - inv_rho * w.z_hat[r + 2 * S], w.mu[r])
+                r = rb + (n_box + 3 * c) * rs
+                cp = cone_project(w.x[r] - inv_rho * w.z_hat[r], w.x[r + rs] - inv_rho * w.z_hat[r + rs],
+                                  w.x[r + 2 * rs] - inv_rho * w.z_hat[r + 2 * rs], w.mu[r])
                 yz = scalar(0.0)
                 for t in range(3):
-                    rt = r + t * S
+                    rt = r + t * rs
                     y = cp[t]
                     w.y[rt] = y
                     du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho_u, p_ref)
@@ -523,8 +530,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 # the inner solve's residual b - A x, a scaled velocity like the dual residual's rows: an
                 # inexact solve (a small cr_iterations budget) must not let the world report convergence
                 for a in range(n):
-                    r_d = wp.max(r_d, residual_weight(w.P[rb + a * S], p_ref) * wp.abs(w.cr_r[rb + a * S]))
-                    r_tail = wp.max(r_tail, residual_weight(w.P[rb + a * S], p_ref) * wp.abs(w.cr_r[rb + a * S]))
+                    r_d = wp.max(r_d, residual_weight(w.P[rb + a * rs], p_ref) * wp.abs(w.cr_r[rb + a * rs]))
+                    r_tail = wp.max(r_tail, residual_weight(w.P[rb + a * rs], p_ref) * wp.abs(w.cr_r[rb + a * rs]))
             k = w.iters[wid] + 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             # or a least-squares solution along a numerically null direction (e_p of iteration 1 is stale: k >= 2)
@@ -553,7 +560,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     elif linear == LINEAR_DENSE:
                         factor_tail_dense(m, w, wid, n, eta + rho_u)
             for a in range(n):
-                r = rb + a * S
+                r = rb + a * rs
                 y = w.y[r]
                 z = w.z[r]
                 if mode == RESTART_HERE:
@@ -584,7 +591,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         wid = wp.tid()
         n = w.n_rows[wid]
         for a in range(n):
-            r = ridx(m, wid, a)
+            r = ridx(m, w, wid, a)
             w.y_hat[r] = w.y_p[r]
             w.z_hat[r] = w.z_p[r]
         w.a_p[wid] = scalar(1.0)
@@ -599,17 +606,18 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     @wp.kernel(module="unique", enable_backward=False)
     def padmm_finish(m: M, w: Work):
         """Unscale (§7.7): ``lambda = P y``, ``v+ = (z - Gamma(z)) / P``; a non-finite impulse fails the world."""
+        rs = w.row_stride
         wid, a = wp.tid()
         n = w.n_rows[wid]
         if a >= n:
             return
-        r = ridx(m, wid, a)
+        r = ridx(m, w, wid, a)
         n_box = w.n_box[wid]
         Pa = w.P[r]
         lam = Pa * w.y_p[r]
         z = w.z_p[r]
         if a >= n_box and (a - n_box) % 3 == 2:
-            z -= de_saxce(w.z_p[r - 2 * S], w.z_p[r - S], w.mu[r])
+            z -= de_saxce(w.z_p[r - 2 * rs], w.z_p[r - rs], w.mu[r])
         w.impulse[r] = lam
         w.velocity[r] = z / Pa
         if not wp.isfinite(lam):

@@ -271,7 +271,9 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     S.upd_a, S.upd_b = i32(cat(lambda s: s.upd_a)), i32(cat(lambda s: s.upd_b))
     S.cptr, S.cent, S.crow = (i32(cat(lambda s, f=f: getattr(s, f))) for f in ("cptr", "cent", "crow"))
     S.fan_ptr = i32(np.concatenate([s.fan_ptr + o for s, o in zip(syms, upd0_t, strict=True)]) if syms else [])
-    S.fan_tgt, S.fan_a, S.fan_b = (i32(cat(lambda s, f=f: getattr(s, f))) for f in ("fan_tgt", "fan_a", "fan_b"))
+    # one trailing 0 each, so that padmm_warp.factor's clamped batch loads have an entry to read in any model
+    S.fan_tgt, S.fan_a, S.fan_b = (i32(np.append(cat(lambda s, f=f: getattr(s, f)), 0))
+                                   for f in ("fan_tgt", "fan_a", "fan_b"))
     S.grp_val_start = i32(prefix(GROUP * g_nnz))
     S.grp_nnz = i32(g_nnz)
     S.val_stride = 1 if per_world else GROUP
@@ -312,8 +314,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     Work = work_struct(np_dtype)
     SP = pattern_struct(np_dtype)
     ix = index_funcs(np_dtype)
-    ridx = ix.ridx
-    S = GROUP  # storage distance between consecutive rows (entries) of a world
+    ridx, row_base = ix.ridx, ix.row_base
 
     @wp.func
     def vidx(m: M, sp: SP, wid: int, k: int):
@@ -325,31 +326,32 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         return sp.grp_val_start[g] + k * GROUP + lane
 
     @wp.func
-    def bases(m: M, sp: SP, wid: int):
+    def bases(m: M, w: Work, sp: SP, wid: int):
         """Hoisted storage starts of world ``wid``: rows, factor values, tail rows, and the tail row stride
-        (``ridx = rows + a S``, ``vidx = vals + k sp.val_stride``, ``tidx = tail + t stride + c sp.tail_stride``)."""
+        (``ridx = rows + a w.row_stride``, ``vidx = vals + k sp.val_stride``, ``tidx = tail + t stride + c
+        sp.tail_stride``)."""
         g = wid // GROUP
         lane = wid - g * GROUP
         vb = sp.grp_val_start[g] + lane
         if sp.val_stride == 1:
             vb = sp.grp_val_start[g] + lane * sp.grp_nnz[g]
         if sp.tail_stride == 1:
-            return wp.vec4i(m.grp_row_start[g] + lane, vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
+            return wp.vec4i(row_base(m, w, wid), vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
                             m.grp_maxdim[g])
-        return wp.vec4i(m.grp_row_start[g] + lane, vb, sp.grp_tail_start[g] + lane, m.grp_maxdim[g] * GROUP)
+        return wp.vec4i(row_base(m, w, wid), vb, sp.grp_tail_start[g] + lane, m.grp_maxdim[g] * GROUP)
 
     @wp.func
-    def tidx(m: M, sp: SP, wid: int, t: int, c: int):
+    def tidx(m: M, w: Work, sp: SP, wid: int, t: int, c: int):
         """Storage index of column ``c`` (fixed position, or tail row index) of tail row ``t`` (the layout of
         :func:`bases`)."""
-        base = bases(m, sp, wid)
+        base = bases(m, w, sp, wid)
         return base[2] + t * base[3] + c * sp.tail_stride
 
     @wp.func
     def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):
         """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (blocks meet on shared bodies)."""
-        ra = ridx(m, wid, a)
-        rb = ridx(m, wid, b)
+        ra = ridx(m, w, wid, a)
+        rb = ridx(m, w, wid, b)
         s = scalar(0.0)
         for k in range(nblk):
             bk = w.row_body[ra * nblk + k]
@@ -373,9 +375,9 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         q = sp.col[e]
         a = sp.perm[sp.perm_start[wid] + p]
         b = sp.perm[sp.perm_start[wid] + q]
-        s = w.P[ridx(m, wid, a)] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
+        s = w.P[ridx(m, w, wid, a)] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
         if p == q:
-            ra = ridx(m, wid, a)
+            ra = ridx(m, w, wid, a)
             if wp.isfinite(w.lo[ra]) or wp.isfinite(w.hi[ra]):
                 s += shift_box
             else:
@@ -391,12 +393,12 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         if a < nf or a >= w.n_rows[wid]:
             return
         t = a - nf
-        Pa = w.P[ridx(m, wid, a)]
+        Pa = w.P[ridx(m, w, wid, a)]
         for p in range(nf):
             b = sp.perm[sp.perm_start[wid] + p]
-            sp.tail[tidx(m, sp, wid, t, p)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
+            sp.tail[tidx(m, w, sp, wid, t, p)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
         for b in range(nf, a + 1):
-            sp.tail[tidx(m, sp, wid, t, b)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, wid, b)]
+            sp.tail[tidx(m, w, sp, wid, t, b)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
 
     @wp.func
     def factor_fixed_rows(sp: SP, wid: int, vb: int):
@@ -417,7 +419,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     def factor_fixed(m: M, w: Work, sp: SP):
         """Cholesky of the fixed rows only (``D~_ff = L_f L_f^T``; post-stabilisation)."""
         wid = wp.tid()
-        factor_fixed_rows(sp, wid, bases(m, sp, wid)[1])
+        factor_fixed_rows(sp, wid, bases(m, w, sp, wid)[1])
 
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar):
@@ -425,7 +427,8 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         L_tf L_tf^T``, kept by :func:`factor` in the tail rows' upper slots (``S_t[t, j]`` at row ``j``, column
         ``nf + t``) and ``w.sdiag``; a new penalty of the limit and contact rows redoes only this
         (``kamino.jax_ref.padmm.solve``, "Penalty")."""
-        base = bases(m, sp, wid)
+        rs = w.row_stride
+        base = bases(m, w, sp, wid)
         rb, tb, ts = base[0], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -435,7 +438,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 jr = tb + j * ts
                 s = scalar(0.0)
                 if j == t:
-                    s = w.sdiag[rb + (nf + t) * S] + shift
+                    s = w.sdiag[rb + (nf + t) * rs] + shift
                 else:
                     s = sp.tail[jr + (nf + t) * tc]
                 for i in range(j):
@@ -450,6 +453,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     def schur_entry(w: Work, sp: SP, rb: int, tb: int, ts: int, nf: int, t: int, j: int):
         """``S_t[t, j] = D~_tj - L_t. L_j.`` (``j <= t``, tail rows, ``L_tf`` done) into row ``j``'s upper slot
         (column ``nf + t``), or ``w.sdiag`` for ``j == t``: it reads only lower slots, so entries are independent."""
+        rs = w.row_stride
         tr = tb + t * ts
         jr = tb + j * ts
         tc = sp.tail_stride
@@ -457,7 +461,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         for p in range(nf):
             s -= sp.tail[tr + p * tc] * sp.tail[jr + p * tc]
         if j == t:
-            w.sdiag[rb + (nf + t) * S] = s
+            w.sdiag[rb + (nf + t) * rs] = s
         else:
             sp.tail[jr + (nf + t) * tc] = s
 
@@ -467,7 +471,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         tail rows (forward substitution against the fixed rows, their Schur complement, and its dense Cholesky
         with the world's penalty ``eta + rho_u``, :func:`factor_tail`)."""
         wid = wp.tid()
-        base = bases(m, sp, wid)
+        base = bases(m, w, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -491,7 +495,8 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def solve_inplace(m: M, w: Work, sp: SP, wid: int, n: int):
         """``x <- L^-T L^-1 x`` with the sparse factor and its dense tail."""
-        base = bases(m, sp, wid)
+        rs = w.row_stride
+        base = bases(m, w, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -501,42 +506,42 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         nt = n - nf
         # forward: fixed rows, then tail rows
         for p in range(nf):
-            r = rb + sp.perm[q0 + p] * S
+            r = rb + sp.perm[q0 + p] * rs
             s = w.x[r]
             k1 = sp.row_ptr[p0 + p + 1] - 1
             for k in range(sp.row_ptr[p0 + p], k1):
-                s -= sp.val[vb + k * sp.val_stride] * w.x[rb + sp.colrow[e0 + k] * S]
+                s -= sp.val[vb + k * sp.val_stride] * w.x[rb + sp.colrow[e0 + k] * rs]
             w.x[r] = s / sp.val[vb + k1 * sp.val_stride]
         for t in range(nt):
             tr = tb + t * ts
-            s = w.x[rb + (nf + t) * S]
+            s = w.x[rb + (nf + t) * rs]
             for p in range(nf):
-                s -= sp.tail[tr + p * tc] * w.x[rb + sp.perm[q0 + p] * S]
+                s -= sp.tail[tr + p * tc] * w.x[rb + sp.perm[q0 + p] * rs]
             for i in range(t):
-                s -= sp.tail[tr + (nf + i) * tc] * w.x[rb + (nf + i) * S]
-            w.x[rb + (nf + t) * S] = s / sp.tail[tr + (nf + t) * tc]
+                s -= sp.tail[tr + (nf + i) * tc] * w.x[rb + (nf + i) * rs]
+            w.x[rb + (nf + t) * rs] = s / sp.tail[tr + (nf + t) * tc]
         # backward: tail rows, their share of the fixed rows, then the fixed rows (column sweeps of L_f)
         for tt in range(nt):
             t = nt - 1 - tt
-            s = w.x[rb + (nf + t) * S]
+            s = w.x[rb + (nf + t) * rs]
             for i in range(t + 1, nt):
-                s -= sp.tail[tb + i * ts + (nf + t) * tc] * w.x[rb + (nf + i) * S]
-            w.x[rb + (nf + t) * S] = s / sp.tail[tb + t * ts + (nf + t) * tc]
+                s -= sp.tail[tb + i * ts + (nf + t) * tc] * w.x[rb + (nf + i) * rs]
+            w.x[rb + (nf + t) * rs] = s / sp.tail[tb + t * ts + (nf + t) * tc]
         if nt > 0:
             for p in range(nf):
-                r = rb + sp.perm[q0 + p] * S
+                r = rb + sp.perm[q0 + p] * rs
                 s = w.x[r]
                 for t in range(nt):
-                    s -= sp.tail[tb + t * ts + p * tc] * w.x[rb + (nf + t) * S]
+                    s -= sp.tail[tb + t * ts + p * tc] * w.x[rb + (nf + t) * rs]
                 w.x[r] = s
         for pp in range(nf):
             p = nf - 1 - pp
-            r = rb + sp.perm[q0 + p] * S
+            r = rb + sp.perm[q0 + p] * rs
             k1 = sp.row_ptr[p0 + p + 1] - 1
             xp = w.x[r] / sp.val[vb + k1 * sp.val_stride]
             w.x[r] = xp
             for k in range(sp.row_ptr[p0 + p], k1):
-                rq = rb + sp.colrow[e0 + k] * S
+                rq = rb + sp.colrow[e0 + k] * rs
                 w.x[rq] = w.x[rq] - sp.val[vb + k * sp.val_stride] * xp
 
     return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor, bases=bases,

@@ -11,7 +11,7 @@ import functools
 import numpy as np
 import warp as wp
 
-from kamino.warp_backend.model_data import WarpModel
+from kamino.warp_backend.model_data import GROUP, WarpModel
 from kamino.warp_backend.types import types_of
 
 
@@ -26,6 +26,9 @@ def work_struct(np_dtype):
 
     @wp.struct
     class Work:
+        # storage distance between consecutive rows of a world: GROUP (rows interleaved over groups of 32 worlds,
+        # for the one-thread-per-world kernels) or 1 (each world's rows contiguous, for padmm_warp.py's threads)
+        row_stride: int
         # state (persistent) and controls
         q: wp.array(dtype=transform)
         u: v6
@@ -149,9 +152,10 @@ def work_struct(np_dtype):
     return Work
 
 
-def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True):
+def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, rows_per_world: bool = False):
     """A zero-initialised :func:`work_struct` for ``wm`` (``q_eval`` aliases ``q`` for Euler); ``dense``: the
-    dense per-world Jacobian, ``delassus``: the dense Delassus matrix (not needed by CR or the sparse factor)."""
+    dense per-world Jacobian, ``delassus``: the dense Delassus matrix (not needed by CR or the sparse factor);
+    ``rows_per_world``: each world's rows contiguous (``Work.row_stride = 1``) instead of interleaved."""
     T = types_of(wm.np_dtype)
     m = wm.model
     dev = wm.device
@@ -194,6 +198,7 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True):
     sizes["remaining"] = (1, wp.int32)
     for name, (n, dtype) in sizes.items():
         setattr(W, name, wp.zeros(max(n, 0), dtype=dtype, device=dev))
+    W.row_stride = 1 if rows_per_world else GROUP
     W.con_pair.fill_(-1)
     W.q_eval = W.q if euler else wp.zeros(B, dtype=T.transform, device=dev)
     return W
