@@ -9,7 +9,11 @@ The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS`` (``--steps
   starts afresh); ``--fresh`` ignores them.
 - ``curve.json``: every evaluation (step, mean and spread of the episode return, wall time, and the env steps/s of
   the training epoch before it: the first epoch includes compilation), over all runs;
-- ``reward_curve.png``: the evaluation return against environment steps (matplotlib);
+- ``train_curve.json`` (``--train-returns N``): the mean return and length of the training episodes that ended in
+  each window of about ``N`` environment steps (brax's ``log_training_metrics``), and the env steps/s of that window.
+  It costs no evaluation rollouts, so a run with ``--set run_evals=False`` still shows whether the policy learns;
+- ``reward_curve.png``: the evaluation return against environment steps, and the training episodes' return when
+  ``--train-returns`` is given (matplotlib);
 - ``report.json``: the task, backend, settings, device, versions, the first and last evaluation with every
   ``eval/`` metric (the reward terms of docs/envs.md), training throughput and wall time.
 
@@ -42,6 +46,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, help="PPO seed (default: the task's config)")
     p.add_argument("--out", type=Path, help="output folder (default: scratch/rl/TASK)")
     p.add_argument("--fresh", action="store_true", help="ignore existing checkpoints and curve; start over")
+    p.add_argument("--train-returns", type=int, metavar="N",
+                   help="log the training episodes' mean return every ~N env steps (train_curve.json)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other ppo.train keyword, VALUE a Python literal (repeatable): --set batch_size=32")
     args = p.parse_args(argv)
@@ -54,7 +60,7 @@ def parse_args(argv=None) -> argparse.Namespace:
             args.ppo_overrides[key] = ast.literal_eval(value)
         except (ValueError, SyntaxError):
             p.error(f"--set {key}: {value!r} is not a Python literal")
-    for name in ("steps", "num_envs", "evals"):
+    for name in ("steps", "num_envs", "evals", "train_returns"):
         value = getattr(args, name)
         if value is not None and value < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {value}")
@@ -93,7 +99,7 @@ class Progress:
             self.bar.close()
 
 
-def plot_curve(curve: list[dict], path: Path, title: str) -> None:
+def plot_curve(curve: list[dict], path: Path, title: str, train_curve: list[dict] = ()) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -104,10 +110,13 @@ def plot_curve(curve: list[dict], path: Path, title: str) -> None:
     mean = np.array([c["reward"] for c in curve])
     std = np.array([c["reward_std"] for c in curve])
     fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot(step, mean, marker="o")
-    ax.fill_between(step, mean - std, mean + std, alpha=0.25, label="spread of the episode returns")
+    if np.isfinite(mean).any():
+        ax.plot(step, mean, marker="o", label="evaluation episodes")
+        ax.fill_between(step, mean - std, mean + std, alpha=0.25, label="spread of the evaluation returns")
+    if train_curve:
+        ax.plot([c["step"] for c in train_curve], [c["reward"] for c in train_curve], label="training episodes (mean)")
     ax.set_xlabel("environment steps")
-    ax.set_ylabel("evaluation episode return")
+    ax.set_ylabel("episode return")
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend()
@@ -140,6 +149,9 @@ def main(argv=None) -> int:
     done, restore = (0, None) if args.fresh else latest_checkpoint(ckpt_dir)
     curve = json.loads(curve_path.read_text()) if curve_path.exists() and not args.fresh else []
     curve = [c for c in curve if c["step"] <= done]
+    train_path = out / "train_curve.json"
+    train_curve = json.loads(train_path.read_text()) if train_path.exists() and not args.fresh else []
+    train_curve = [c for c in train_curve if c["step"] <= done]
     remaining = total - done
     env = make(args.task, backend=args.backend, **cfg["env"])
     used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
@@ -156,9 +168,18 @@ def main(argv=None) -> int:
 
     def on_eval(step: int, metrics: dict) -> None:
         nonlocal last, first
+        metrics = {k: float(np.asarray(v)) for k, v in metrics.items()}
+        if "episode/sum_reward" in metrics:  # brax's training-episode logger (--train-returns), not an evaluation
+            train_curve.append({"step": done + step, "reward": metrics["episode/sum_reward"],
+                                "length": metrics.get("episode/length", float("nan")),
+                                "env_steps_per_s": metrics.get("episode/sps", float("nan")),
+                                "run_wall_s": time.perf_counter() - start})
+            train_path.write_text(json.dumps(train_curve, indent=1))
+            entry = train_curve[-1]
+            progress.update(entry["step"], entry["reward"], float("nan"), entry["env_steps_per_s"], entry["run_wall_s"])
+            return
         if restore is not None and step == 0:
             return  # the restored policy, evaluated by the previous run already
-        metrics = {k: float(np.asarray(v)) for k, v in metrics.items()}
         entry = {"step": done + step, "reward": metrics.get("eval/episode_reward", float("nan")),
                  "reward_std": metrics.get("eval/episode_reward_std", float("nan")),
                  "run_wall_s": time.perf_counter() - start}
@@ -179,27 +200,32 @@ def main(argv=None) -> int:
         run_evals = max(2, round(evals * remaining / total))
         kwargs.update(num_timesteps=remaining, num_evals=run_evals, progress_fn=on_eval, policy_params_fn=save,
                       restore_checkpoint_path=None if restore is None else str(restore))
+        if args.train_returns:
+            kwargs.update(log_training_metrics=True, training_metrics_steps=args.train_returns)
         with jax.enable_x64(False):  # brax's wrappers build float32 info entries at step only
             ppo.train(environment=env, **kwargs)
     progress.close()
     wall = time.perf_counter() - start
 
-    if curve:
-        plot_curve(curve, out / "reward_curve.png", f"{args.task} (PPO, kamino {args.backend} backend)")
+    if curve or train_curve:
+        plot_curve(curve, out / "reward_curve.png", f"{args.task} (PPO, kamino {args.backend} backend)", train_curve)
     report = {
         "task": args.task, "backend": args.backend, "command": " ".join(sys.argv),
         "env": cfg["env"], "network": cfg["network"],
         "ppo": {k: v for k, v in kwargs.items() if isinstance(v, (int, float, str, bool)) or v is None},
         "total_steps": total, "steps_before_this_run": done, "steps_this_run": max(remaining, 0),
         "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),
-        "first_eval": first, "last_eval": last, "curve": curve,
+        "first_eval": first, "last_eval": last, "curve": curve, "train_curve": train_curve,
         "checkpoint": str(latest_checkpoint(ckpt_dir)[1]),
         "device": str(jax.devices()[0]), "device_count": used, "platform": platform.platform(),
         "versions": {"kamino": kamino.__version__, "jax": jax.__version__, "brax": _version("brax"),
                      "python": platform.python_version()},
     }
     (out / "report.json").write_text(json.dumps(report, indent=1, default=str))
-    if curve:
+    if train_curve:
+        print(f"training episodes' return {train_curve[0]['reward']:.2f} (step {train_curve[0]['step']}) -> "
+              f"{train_curve[-1]['reward']:.2f} (step {train_curve[-1]['step']})")
+    if curve and np.isfinite([c["reward"] for c in curve]).any():
         print(f"return {curve[0]['reward']:.2f} (step {curve[0]['step']}) -> {curve[-1]['reward']:.2f} "
               f"(step {curve[-1]['step']}); {out / 'report.json'}, {out / 'reward_curve.png'}")
     return 0

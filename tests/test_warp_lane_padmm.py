@@ -77,7 +77,8 @@ def test_warp_schedule_rejects_what_it_cannot_solve():
 
 def test_the_automatic_schedule_follows_the_measured_crossover():
     # pipeline.resolve_padmm: the 32-thread schedule on CUDA where it measured faster (benchmarks/README.md
-    # "Session 18": few worlds, or worlds of 200 rows or more), one thread per world elsewhere and on every CPU run.
+    # "Session 24": up to 16384 worlds, or worlds of 200 rows or more), one thread per world elsewhere and on every
+    # CPU run.
     from types import SimpleNamespace
 
     from kamino.warp_backend.pipeline import resolve_padmm
@@ -85,7 +86,8 @@ def test_the_automatic_schedule_follows_the_measured_crossover():
     gpu, cpu = SimpleNamespace(is_cuda=True), SimpleNamespace(is_cuda=False)
     cfg = kamino.SolverConfig()
     assert resolve_padmm(cfg, gpu, 4096, 117, None) == "warp"  # four-bar at 4096 worlds
-    assert resolve_padmm(cfg, gpu, 16384, 117, None) == "thread"  # four-bar at 16384 worlds
+    assert resolve_padmm(cfg, gpu, 16384, 117, None) == "warp"  # four-bar at 16384 worlds
+    assert resolve_padmm(cfg, gpu, 65536, 117, None) == "thread"  # four-bar at 65536 worlds
     assert resolve_padmm(cfg, gpu, 16384, 576, None) == "warp"  # ladder32 at 16384 worlds
     assert resolve_padmm(cfg, cpu, 64, 240, None) == "thread"
     assert resolve_padmm(kamino.SolverConfig(jacobian="dense"), gpu, 64, 240, None) == "thread"

@@ -47,11 +47,12 @@ def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread
 
 
 #: the automatic PADMM schedule (``padmm=None``, :func:`resolve_padmm`), from the H100 measurements at the defaults
-#: (benchmarks/README.md "Session 18"): 32 threads per world wins on every scene up to 8192 worlds (ladder8 1.7x,
-#: dr_legs 3.2x, ladder32 5x at 4096) and on worlds of 200 rows or more at any count (ladder32 2x at 16384); one
-#: thread per world wins on small worlds beyond that (four-bar 1.4x, ladder8 1.1x at 16384), where the thread
-#: kernels alone fill the GPU.
-WARP_SCHEDULE_MAX_WORLDS = 8192
+#: (benchmarks/README.md "Session 24", the lane kernel of that session against one thread per world, same card):
+#: 32 threads per world wins on every scene up to 16384 worlds (at 16384: ladder8 1.56x, bdx 1.38x, the four-bar
+#: 1.04x) and on worlds of 200 rows or more at any count (dr_legs, olaf, ladder32, the animatronic); one thread per
+#: world wins on small worlds at 65536 (the four-bar 1.40x, bdx 1.54x, ladder8 1.03x), where the thread kernels
+#: alone fill the GPU.
+WARP_SCHEDULE_MAX_WORLDS = 16384
 WARP_SCHEDULE_MIN_ROWS = 200
 
 
