@@ -323,6 +323,27 @@ def test_dr_legs_joystick_stands_at_a_zero_action_with_its_own_gains():
         DrLegsJoystick(kp=15.0)
 
 
+def test_joystick_reward_is_the_sum_of_its_terms_clipped_at_zero():
+    """The joystick reward is the sum of its weighted terms (``metrics``), clipped at 0 from below
+    (``only_positive_rewards``, docs/envs.md "Training on the GPU"). A zero action from a reset earns about +1.1 per
+    policy step (the standing robot: tracking, upright, alive, little torque), so the sum is positive and passes
+    unchanged. A full-range action that flips every step makes the torque and action-rate penalties several units
+    (measured: -2.5 to -7 per step), so the sum is negative and the reward is exactly 0."""
+    env = make("dr_legs_joystick", reset_bank=8)
+    with jax.enable_x64(False):
+        s = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(3), 2))
+        step = jax.jit(jax.vmap(env.step))
+        s = step(s, jnp.zeros((2, 12), jnp.float32))
+        total = sum(np.asarray(v) for k, v in s.metrics.items() if k != "failed")
+        assert np.all(total > 0.5)
+        np.testing.assert_allclose(np.asarray(s.reward), total, rtol=1e-6)
+        for sign in (1.0, -1.0, 1.0):
+            s = step(s, jnp.full((2, 12), sign, jnp.float32))
+        total = sum(np.asarray(v) for k, v in s.metrics.items() if k != "failed")
+        assert np.all(total < -0.5)
+        np.testing.assert_array_equal(np.asarray(s.reward), 0.0)
+
+
 def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar, wrapped):
     """backend="warp": kamino's Warp step through its JAX FFI, batched over environments by a custom_vmap rule (one
     Warp call for all of them), on Warp's CPU device; the same trajectory as the JAX reference to float32 rounding

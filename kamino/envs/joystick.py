@@ -23,7 +23,8 @@ from kamino.model import Model
 from kamino.models import bdx, dr_legs
 from kamino.state import State
 
-#: reward weights (docs/envs.md); the reward is their weighted sum, per policy step
+#: reward weights (docs/envs.md); the reward is their weighted sum per policy step, clipped at 0
+#: (``only_positive_rewards``)
 REWARD_WEIGHTS = {"tracking_lin_vel": 1.0, "tracking_ang_vel": 0.5, "upright": 0.2, "action_rate": -0.01,
                   "torque": -2e-4, "alive": 0.2}
 
@@ -38,6 +39,11 @@ class Joystick(KaminoEnv):
         min_height: the base CoM height [m] below which the robot has fallen.
         max_tilt: the base tilt [rad] past which it has fallen.
         reward_weights: overrides of :data:`REWARD_WEIGHTS`.
+        only_positive_rewards: clip the reward of a policy step at 0 from below (the metrics keep every term). With
+            the torque and action-rate penalties a vigorous step is worth less than nothing, so without the clip an
+            episode that ends early beats one that lives, and PPO learned to fall: measured on dr_legs_joystick,
+            the training return rose to 238 and then collapsed to episodes of 5-6 steps (docs/envs.md, "Training
+            on the GPU"). legged_gym, whose RSL-RL the paper trains with, clips for the same reason.
         sim_dt, decimation: 4 ms, 5 per policy step (50 Hz).
         resample_steps: policy steps between command draws (250: 5 s).
         reset_noise: initial actuated angles drawn in ``reset_noise`` of each half-range about 0; the heading is
@@ -53,7 +59,8 @@ class Joystick(KaminoEnv):
 
     def __init__(self, model: Model, *, min_height: float, command_lin_x: float = 0.5, command_lin_y: float = 0.3,
                  command_yaw: float = 0.8, tracking_sigma: float = 0.25, max_tilt: float = 1.0,
-                 reward_weights: dict | None = None, sim_dt: float = 0.004, decimation: int = 5,
+                 reward_weights: dict | None = None, only_positive_rewards: bool = True, sim_dt: float = 0.004,
+                 decimation: int = 5,
                  resample_steps: int = 250, reset_noise: float = 0.1, obs_noise: float = 1.0,
                  reset_bank: int | None = 128, solver_config: SolverConfig | None = None, **kwargs):
         name = type(self).__name__
@@ -69,6 +76,7 @@ class Joystick(KaminoEnv):
             raise ValueError(f"{name}: reward_weights has unknown terms {unknown}; the terms are "
                              f"{list(REWARD_WEIGHTS)}")
         self._weights = {**REWARD_WEIGHTS, **(reward_weights or {})}
+        self._only_positive = bool(only_positive_rewards)
         self._command_range = np.array([command_lin_x, command_lin_y, command_yaw], float)
         self._sigma = float(tracking_sigma)
         self._min_height = float(min_height)
@@ -131,7 +139,8 @@ class Joystick(KaminoEnv):
             "alive": 1.0 - self._fallen(ps).astype(self.dtype),
         }
         terms = {k: self._weights[k] * v for k, v in raw.items()}
-        return sum(terms.values()), terms
+        total = sum(terms.values())
+        return (jnp.maximum(total, 0.0) if self._only_positive else total), terms
 
     def _terminated(self, ps: State, info: dict) -> jax.Array:
         return self._fallen(ps)

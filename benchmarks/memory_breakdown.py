@@ -1,0 +1,94 @@
+"""Device memory per world of the default Warp stepper, array by array: ``python benchmarks/memory_breakdown.py``.
+
+Builds ``kamino.SolverConfig(dt)``'s stepper for each scene (``benchmarks/throughput.py``'s scenes) with
+``--worlds`` identical worlds, walks every Warp array it holds (the work buffers, the factor's pattern and values,
+the model), and prints the total and the largest arrays per world. On a CUDA device the total is checked against
+the memory pool's count (``wp.get_mempool_used_mem_current``); patterns shared by all worlds of a type shrink per
+world as the worlds grow, so measure at the batch size of interest. ``--out`` writes every scene's record as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import throughput as tb  # the benchmark scenes
+
+
+def arrays_of(obj, path: str, seen: dict, depth: int = 0) -> None:
+    """Every ``wp.array`` reachable from ``obj`` (attributes, Warp struct fields, lists, dicts), by pointer."""
+    import warp as wp
+
+    if depth > 4 or obj is None:
+        return
+    if isinstance(obj, wp.array):
+        if obj.ptr is not None and obj.ptr not in seen:
+            seen[obj.ptr] = (path, obj.capacity)
+        return
+    for name in list(getattr(type(obj), "vars", {}) or {}):
+        arrays_of(getattr(obj, name, None), f"{path}.{name}", seen, depth + 1)
+    for name, value in (getattr(obj, "__dict__", None) or {}).items():
+        items = enumerate(value) if isinstance(value, (list, tuple)) else (
+            value.items() if isinstance(value, dict) else [(None, value)])
+        for key, item in items:
+            arrays_of(item, f"{path}.{name}" + ("" if key is None else f"[{key}]"), seen, depth + 1)
+
+
+def breakdown(scene: str, num_worlds: int, device: str) -> dict:
+    import warp as wp
+
+    import kamino
+    from kamino.warp_backend import backend as wb
+
+    base, _ = tb.load_scene(scene)
+    model = kamino.replicate(base, num_worlds) if num_worlds > 1 else base
+    cfg = kamino.SolverConfig(dt=tb.DT, **tb.SOLVER)
+    dev = wp.get_device(device)
+    wp.synchronize_device(dev)
+    pool0 = wp.get_mempool_used_mem_current(dev) if dev.is_cuda else 0
+    st = wb.stepper(model, cfg, np.float32, dev)
+    wp.synchronize_device(dev)
+    pool = (wp.get_mempool_used_mem_current(dev) - pool0) / num_worlds if dev.is_cuda else None
+    seen: dict = {}
+    arrays_of(st, "stepper", seen)
+    per_world = sorted(((p, b / num_worlds) for p, b in seen.values()), key=lambda x: -x[1])
+    return {"scene": scene, "num_worlds": num_worlds, "device": str(dev), "padmm": st.padmm,
+            "linear_solver": st.linear_solver, "rows_max": st.wm.max_rows, "mempool_per_world": pool,
+            "arrays_per_world": sum(b for _, b in per_world), "largest": per_world[:40]}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", nargs="+", default=["fourbar", "ladder8", "ladder32", "dr_legs", "bdx", "olaf",
+                                                   "animatronic"], choices=sorted({*tb.SCENES, *tb.ROBOTS}))
+    p.add_argument("--worlds", type=int, default=4096)
+    p.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
+    p.add_argument("--top", type=int, default=8, help="arrays printed per scene")
+    p.add_argument("--out", type=pathlib.Path, default=None)
+    args = p.parse_args(argv)
+    if args.worlds < 1:
+        p.error(f"--worlds must be >= 1, got {args.worlds}")
+    import warp as wp
+
+    wp.config.quiet = True
+    records = []
+    for scene in args.scenes:
+        rec = breakdown(scene, args.worlds, args.device or str(wp.get_device()))
+        records.append(rec)
+        pool = "" if rec["mempool_per_world"] is None else f", memory pool {rec['mempool_per_world']:.0f}"
+        print(f"{scene} ({rec['rows_max']} rows, {rec['padmm']}, {rec['linear_solver']}): "
+              f"{rec['arrays_per_world']:.0f} B per world{pool}")
+        for path, size in rec["largest"][:args.top]:
+            print(f"    {path:<45s} {size:10.0f}")
+    if args.out:
+        args.out.write_text(json.dumps(records, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
