@@ -100,6 +100,18 @@ class Joystick(KaminoEnv):
         r = jnp.asarray(self._command_range, self.dtype)
         return {"command": jax.random.uniform(rng, (3,), self.dtype, -1.0, 1.0) * r}
 
+    def with_command(self, state, command: jax.Array):
+        """``state`` (one environment, right after :meth:`reset`) with its command ``[3]`` replaced: in ``info``, in
+        the memory an auto-reset restores, and in the observation (entries 9-11, which carry no noise). For
+        evaluations at chosen commands (``benchmarks/rl_eval.py``); build the environment with
+        ``resample_steps=None`` to keep the command for the whole episode."""
+        command = jnp.asarray(command, self.dtype)
+        if command.shape != (3,):
+            raise ValueError(f"{type(self).__name__}.with_command: command has shape {command.shape}, expected (3,) "
+                             "(v_x, v_y [m/s], yaw rate [rad/s] in the base frame)")
+        info = dict(state.info, command=command, reset_memory=dict(state.info["reset_memory"], command=command))
+        return state.replace(info=info, obs=state.obs.at[9:12].set(command))
+
     # ---------------------------------------------------------------- observation
 
     def _obs_size(self) -> int:

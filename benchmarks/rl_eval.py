@@ -1,0 +1,154 @@
+"""Evaluate a trained joystick policy at chosen commands (issue 18): ``python benchmarks/rl_eval.py CHECKPOINT``.
+
+The issue's walking test: 256 episodes of 10 s, each with a forward command drawn uniformly in 0.3-0.5 m/s (no
+lateral or yaw command), the policy's deterministic action. It reports, over the episodes:
+
+- the **velocity-tracking error**: per episode, the mean over its policy steps (up to a fall) of
+  ``|cmd_xy - v_xy|``, the base body's planar velocity in its own frame (the quantity of the ``tracking_lin_vel``
+  reward, docs/envs.md), then the mean over episodes;
+- the **fall fraction**: episodes that end before 10 s (a fall, or the world-health flag);
+- the mean forward speed, and the pass/fail of the issue's bars (error <= 0.1 m/s, falls <= 5 %).
+
+``CHECKPOINT`` is a folder written by ``benchmarks/rl_train.py`` (``checkpoints/<step>/``; a run folder takes its
+newest checkpoint). ``--out`` writes the JSON report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def newest_checkpoint(path: Path) -> Path:
+    """``path`` itself if it holds a checkpoint, else the newest ``<step>`` folder under it or its ``checkpoints/``."""
+    if (path / "ppo_network_config.json").exists():
+        return path
+    for folder in (path / "checkpoints", path):
+        steps = sorted(d for d in folder.glob("*") if d.is_dir() and d.name.isdigit()) if folder.exists() else []
+        if steps:
+            return steps[-1]
+    raise FileNotFoundError(f"rl_eval: no brax PPO checkpoint in {path} (expected ppo_network_config.json, or "
+                            "checkpoints/<step>/ as benchmarks/rl_train.py writes)")
+
+
+def load_policy(ckpt: Path, task: str):
+    """The deterministic policy of a checkpoint, its networks built by the task's ``network_factory``
+    (``kamino.envs.configs``). brax's own ``checkpoint.load_policy`` cannot read the configs it writes for the
+    default networks (brax 0.14: ``mean_kernel_init_fn: null`` fails its lookup), so only the parameters are read."""
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import checkpoint as ppo_checkpoint
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    from kamino.envs.configs import ppo_kwargs
+
+    config = json.loads((ckpt / "ppo_network_config.json").read_text())
+    normalize = running_statistics.normalize if config.get("normalize_observations") else (lambda x, y: x)
+    net = ppo_kwargs(task)["network_factory"](config["observation_size"], config["action_size"],
+                                               preprocess_observations_fn=normalize)
+    return ppo_networks.make_inference_fn(net)(ppo_checkpoint.load(ckpt), deterministic=True)
+
+
+def evaluate(env, policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0) -> dict:
+    """Run ``episodes`` episodes of ``seconds`` at forward commands uniform in ``speed`` [m/s]; see the module doc."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from kamino.envs.geometry import body_frame_vectors
+
+    steps = round(seconds / env.dt)
+    key_reset, key_cmd, key_policy = jax.random.split(jax.random.PRNGKey(seed), 3)
+    vx = jax.random.uniform(key_cmd, (episodes,), jnp.float32, speed[0], speed[1])
+    commands = jnp.stack([vx, jnp.zeros_like(vx), jnp.zeros_like(vx)], -1)
+
+    def start(rng, command):
+        return env.with_command(env.reset(rng), command)
+
+    def rollout(state, key):
+        def body(carry, k):
+            s, alive = carry
+            action, _ = policy(s.obs, k)
+            s = env.step(s, action)
+            ps = env.full_state(s.pipeline_state)
+            v = body_frame_vectors(ps.body_q, ps.body_u, env._base)["lin_vel"][:2]
+            err = jnp.linalg.norm(s.info["command"][:2] - v)
+            # a step counts while the robot is up; the step that ends the episode is the last
+            out = (jnp.where(alive, err, 0.0), jnp.where(alive, v[0], 0.0), alive)
+            return (s, alive & (s.done == 0)), out
+
+        (_, alive_end), (err, v, counted) = jax.lax.scan(body, (state, jnp.bool_(True)), jax.random.split(key, steps))
+        n = jnp.maximum(jnp.sum(counted), 1)
+        return jnp.sum(err) / n, jnp.sum(v) / n, ~alive_end
+
+    t0 = time.perf_counter()
+    with jax.enable_x64(False):
+        states = jax.jit(jax.vmap(start))(jax.random.split(key_reset, episodes), commands)
+        err, v, fell = jax.jit(jax.vmap(rollout))(states, jax.random.split(key_policy, episodes))
+        err, v, fell = (np.asarray(x) for x in (err, v, fell))
+    return {"episodes": episodes, "seconds": seconds, "policy_steps": steps, "speed_range": list(speed),
+            "tracking_error_mean": float(err.mean()), "tracking_error_p90": float(np.quantile(err, 0.9)),
+            "forward_speed_mean": float(v.mean()), "command_mean": float(np.asarray(vx).mean()),
+            "fall_fraction": float(fell.mean()), "wall_s": time.perf_counter() - t0}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("checkpoint", type=Path, help="a checkpoint folder, or an rl_train.py output folder")
+    p.add_argument("--task", default="dr_legs_joystick")
+    p.add_argument("--backend", choices=("jax", "warp"), default="warp")
+    p.add_argument("--episodes", type=int, default=256)
+    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--speed", type=float, nargs=2, default=(0.3, 0.5), metavar=("LOW", "HIGH"),
+                   help="forward command range [m/s] (default 0.3 0.5)")
+    p.add_argument("--max-error", type=float, default=0.1, help="the bar on the mean tracking error [m/s]")
+    p.add_argument("--max-falls", type=float, default=0.05, help="the bar on the fall fraction")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                   help="environment keyword over the task's config, VALUE a Python literal (repeatable)")
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    if args.episodes < 1 or args.seconds <= 0 or not args.speed[0] <= args.speed[1]:
+        p.error("--episodes must be >= 1, --seconds > 0 and --speed LOW <= HIGH")
+    env_overrides = {}
+    for item in args.env:
+        key, sep, value = item.partition("=")
+        try:
+            env_overrides[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            p.error(f"--env {item!r}: expected KEY=VALUE with VALUE a Python literal")
+        if not sep or not key.isidentifier():
+            p.error(f"--env expects KEY=VALUE, got {item!r}")
+    from kamino.envs import make
+    from kamino.envs.configs import task_config
+
+    ckpt = newest_checkpoint(args.checkpoint.resolve())
+    env = make(args.task, backend=args.backend,
+               **{**task_config(args.task)["env"], **env_overrides, "resample_steps": None})
+    if not hasattr(env, "with_command"):
+        print(f"rl_eval: {args.task} has no velocity command (a joystick task is needed)", file=sys.stderr)
+        return 2
+    policy = load_policy(ckpt, args.task)
+    report = evaluate(env, policy, episodes=args.episodes, seconds=args.seconds, speed=tuple(args.speed),
+                      seed=args.seed)
+    report.update(task=args.task, backend=args.backend, checkpoint=str(ckpt), env=env_overrides,
+                  passed=report["tracking_error_mean"] <= args.max_error and report["fall_fraction"] <= args.max_falls,
+                  bars={"max_error": args.max_error, "max_falls": args.max_falls})
+    print(f"| episodes | command [m/s] | forward speed [m/s] | tracking error, mean / p90 [m/s] | falls | passes |\n"
+          f"|---|---|---|---|---|---|\n"
+          f"| {report['episodes']} x {args.seconds:g} s | {args.speed[0]:g}-{args.speed[1]:g} (mean "
+          f"{report['command_mean']:.3f}) | {report['forward_speed_mean']:.3f} | {report['tracking_error_mean']:.3f} / "
+          f"{report['tracking_error_p90']:.3f} | {100 * report['fall_fraction']:.1f} % | "
+          f"{'yes' if report['passed'] else 'no'} (<= {args.max_error:g} m/s, <= {100 * args.max_falls:g} %) |")
+    if args.out:
+        args.out.write_text(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,65 @@
+"""benchmarks/rl_eval.py, the walking evaluation of issue 18, on a policy whose action is exactly zero."""
+
+import json
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+
+@pytest.fixture(scope="module")
+def zero_policy_checkpoint(tmp_path_factory):
+    """A brax PPO checkpoint of dr_legs_joystick's networks (as benchmarks/rl_train.py saves them) whose policy's last
+    layer is zero: the deterministic action is tanh(0) = 0 in every state, the PD targets stay at the reference
+    pose."""
+    from brax.training.acme import running_statistics, specs
+    from brax.training.agents.ppo import checkpoint as ppo_checkpoint
+
+    from kamino.envs.configs import ppo_kwargs
+
+    obs_size, act_size = 48, 12
+    factory = ppo_kwargs("dr_legs_joystick")["network_factory"]
+    net = factory(obs_size, act_size, preprocess_observations_fn=running_statistics.normalize)
+    policy = net.policy_network.init(jax.random.PRNGKey(0))
+    last = sorted(policy["params"])[-1]
+    policy["params"][last] = jax.tree.map(jnp.zeros_like, policy["params"][last])
+    value = net.value_network.init(jax.random.PRNGKey(1))
+    normalizer = running_statistics.init_state(specs.Array((obs_size,), jnp.dtype("float32")))
+    config = ppo_checkpoint.network_config(obs_size, act_size, True, factory)
+    folder = tmp_path_factory.mktemp("run") / "checkpoints"
+    ppo_checkpoint.save(folder, 1000, (normalizer, policy, value), config)
+    return folder.parent
+
+
+def test_a_standing_policy_tracks_nothing_and_does_not_fall(zero_policy_checkpoint, tmp_path):
+    """A zero action holds dr_legs at its reference pose (tests/test_envs.py: the pelvis moves about 1 cm while the
+    feet settle), so the base does not follow the forward command: the tracking error is the command itself, here
+    uniform in 0.3-0.5 m/s, up to the settling motion (a few cm/s; the bound 0.05 m/s). No episode ends: the fall
+    fraction is 0, and the evaluation fails the issue's bar (error <= 0.1 m/s)."""
+    import rl_eval
+
+    out = tmp_path / "eval.json"
+    rc = rl_eval.main([str(zero_policy_checkpoint), "--backend", "jax", "--episodes", "4", "--seconds", "1",
+                       "--env", "reset_bank=8", "--out", str(out)])
+    assert rc == 0
+    r = json.loads(out.read_text())
+    assert r["policy_steps"] == 50 and r["episodes"] == 4
+    assert r["fall_fraction"] == 0.0
+    assert 0.3 <= r["command_mean"] <= 0.5
+    assert abs(r["forward_speed_mean"]) < 0.05
+    np.testing.assert_allclose(r["tracking_error_mean"], r["command_mean"], atol=0.05)
+    assert r["passed"] is False
+    assert r["checkpoint"].endswith("000000001000") or r["checkpoint"].endswith("1000")
+
+
+def test_no_checkpoint_is_a_clear_error(tmp_path):
+    import rl_eval
+
+    with pytest.raises(FileNotFoundError, match="no brax PPO checkpoint"):
+        rl_eval.newest_checkpoint(tmp_path)
