@@ -10,7 +10,8 @@ The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS`` (``--steps
 - ``curve.json``: every evaluation (step, mean and spread of the episode return, wall time, and the env steps/s of
   the training epoch before it: the first epoch includes compilation), over all runs;
 - ``train_curve.json`` (``--train-returns N``): the mean return and length of the training episodes that ended in
-  each window of about ``N`` environment steps (brax's ``log_training_metrics``), and the env steps/s of that window.
+  each window of about ``N`` environment steps (brax's ``log_training_metrics``), every episode metric (each reward
+  term and the world-health flag, summed over the episode), and the env steps/s of that window.
   It costs no evaluation rollouts, so a run with ``--set run_evals=False`` still shows whether the policy learns;
 - ``reward_curve.png``: the evaluation return against environment steps, and the training episodes' return when
   ``--train-returns`` is given (matplotlib);
@@ -173,7 +174,10 @@ def main(argv=None) -> int:
             train_curve.append({"step": done + step, "reward": metrics["episode/sum_reward"],
                                 "length": metrics.get("episode/length", float("nan")),
                                 "env_steps_per_s": metrics.get("episode/sps", float("nan")),
-                                "run_wall_s": time.perf_counter() - start})
+                                "run_wall_s": time.perf_counter() - start,
+                                # every episode metric: each reward term and `failed` summed over the episode
+                                "episode": {k[len("episode/"):]: v for k, v in metrics.items()
+                                            if k.startswith("episode/")}})
             train_path.write_text(json.dumps(train_curve, indent=1))
             entry = train_curve[-1]
             progress.update(entry["step"], entry["reward"], float("nan"), entry["env_steps_per_s"], entry["run_wall_s"])
