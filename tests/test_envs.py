@@ -323,6 +323,20 @@ def test_dr_legs_joystick_stands_at_a_zero_action_with_its_own_gains():
         DrLegsJoystick(kp=15.0)
 
 
+def test_with_command_sets_the_command_everywhere_the_episode_reads_it(legs):
+    """``Joystick.with_command`` (the walking evaluation's fixed commands): the command lands in ``info``, in the
+    memory an auto-reset restores, and in the observation's command entries (9-11); a wrong shape is refused."""
+    s = legs.reset(jax.random.PRNGKey(0))
+    cmd = jnp.array([0.4, 0.0, 0.0], jnp.float32)
+    s2 = legs.with_command(s, cmd)
+    np.testing.assert_array_equal(np.asarray(s2.info["command"]), cmd)
+    np.testing.assert_array_equal(np.asarray(s2.info["reset_memory"]["command"]), cmd)
+    np.testing.assert_array_equal(np.asarray(s2.obs[9:12]), cmd)
+    np.testing.assert_array_equal(np.asarray(s2.obs[:9]), np.asarray(s.obs[:9]))  # the rest is untouched
+    with pytest.raises(ValueError, match=r"command has shape \(2,\)"):
+        legs.with_command(s, jnp.zeros(2))
+
+
 def test_joystick_reward_is_the_sum_of_its_terms_clipped_at_zero():
     """The joystick reward is the sum of its weighted terms (``metrics``), clipped at 0 from below
     (``only_positive_rewards``, docs/envs.md "Training on the GPU"). A zero action from a reset earns about +1.1 per
