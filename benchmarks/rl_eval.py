@@ -22,17 +22,20 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # rl_train, beside this script
 
 
 def newest_checkpoint(path: Path) -> Path:
-    """``path`` itself if it holds a checkpoint, else the newest ``<step>`` folder under it or its ``checkpoints/``."""
+    """``path`` itself if it holds a checkpoint, else the newest one of an ``rl_train.py`` run folder (its
+    ``checkpoints/<step>/``, found as ``rl_train.py`` resumes) or of a ``checkpoints`` folder."""
+    from rl_train import latest_checkpoint
+
     if (path / "ppo_network_config.json").exists():
         return path
     for folder in (path / "checkpoints", path):
-        steps = sorted(d for d in folder.glob("*") if d.is_dir() and d.name.isdigit()) if folder.exists() else []
-        if steps:
-            return steps[-1]
+        _, newest = latest_checkpoint(folder)
+        if newest is not None:
+            return newest
     raise FileNotFoundError(f"rl_eval: no brax PPO checkpoint in {path} (expected ppo_network_config.json, or "
                             "checkpoints/<step>/ as benchmarks/rl_train.py writes)")
 
