@@ -35,6 +35,11 @@ RESIDUAL_LOOSENING_MAX = 30.0
 #: (converged) when the change of that error is below ``NULL_DIRECTION_RATIO`` times the proximal shift times the
 #: change of the impulse, a Rayleigh quotient below 1e-2 of the shift (docs/conventions.md, "Null directions")
 NULL_DIRECTION_RATIO = 1e-2
+#: an effort-limited row starts a PADMM solve saturated (penalty ``rho``) when its warm start lies within this
+#: fraction of its bound (kamino.jax_ref.padmm.solve, "Saturation"): a row saturated in the previous step comes back
+#: as ``P (bound / P)``, a few roundings off the bound, on either side; an exact test split such rows between the
+#: backends (measured on dr_legs in float64, 1 row in 12 on some steps)
+SATURATION_MARGIN = 1e-4
 
 
 def _rounding_floor(dtype) -> float:
@@ -167,14 +172,15 @@ class SolverConfig:
         return 1e-6 if np.dtype(dtype) == np.float32 else 1e-11
 
     def projection_shifts(self, dtype) -> tuple[float, float]:
-        """The diagonal shifts of post-stabilisation's scaled system ``P D_ff P + diag(s)``: ``s`` on an unbounded
-        row and on a row with a finite bound (an effort-limited actuator's joint-dynamics row).
+        """The diagonal shifts of post-stabilisation's scaled system ``P D_ff P + diag(s)``: ``s`` on a row with
+        PADMM's small shift and on a row with its larger penalty (a saturated effort-limited actuator's
+        joint-dynamics row, ``kamino.jax_ref.padmm.solve``, "Saturation").
 
         Redundant loop rows make ``D_ff`` singular; the shift keeps the Cholesky pivots above rounding, and leaves
         ``s / (sigma + s)`` of the error along a direction of scaled curvature ``sigma`` (docs/conventions.md,
         "Post-stabilisation"), so it is the smallest that rounding allows, ``sqrt(eps)`` of ``dtype`` (1.5e-8 in
         float64, 3.5e-4 in float32). Under the adaptive penalty PADMM has already factorised the same block with
-        the shifts ``eta + rho_free`` and ``eta + rho`` (a row with a finite bound); where the former is below
+        the shifts ``eta + rho_free`` and ``eta + rho`` (a saturated row); where the former is below
         ``sqrt(eps)`` (float32: 1.1e-4) the projection takes PADMM's shifts and the Warp backend its factor.
         ``projection_shift`` sets both shifts."""
         if self.projection_shift is not None:

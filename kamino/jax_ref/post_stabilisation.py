@@ -62,7 +62,8 @@ class Projector:
 def projector(J: jax.Array, D: jax.Array, P: jax.Array, n_fixed: int, bounded: jax.Array, bd: BodyDynamics,
               cfg: SolverConfig) -> Projector:
     """The projection's system from the step's ``J``, Delassus ``D`` (with ``R``) and scaling ``P``; ``bounded``
-    marks the always-active rows with a finite bound (they take the second of ``cfg.projection_shifts()``)."""
+    marks the always-active rows that carry PADMM's larger penalty (the saturated effort-limited rows,
+    ``PADMMResult.saturated``); they take the second of ``cfg.projection_shifts()``."""
     Pf = P[:n_fixed]
     free_shift, bounded_shift = cfg.projection_shifts(D.dtype)
     shift = jnp.where(bounded[:n_fixed], bounded_shift, free_shift).astype(D.dtype)

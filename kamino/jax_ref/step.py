@@ -275,7 +275,8 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     if J.shape[0] == 0:
         z = jnp.asarray(0.0, dtype)
         empty = jnp.zeros(0, dtype)
-        return u_f, padmm.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True), z), ct, side, None
+        return (u_f, padmm.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True), z, jnp.zeros(0, bool)),
+                ct, side, None)
     # warm start (§7.8): previous reactions, contacts matched by geom pair and point on geom b
     frames = cts.contact_frames(ct.normal)
     point_b = cts.local_point_b(ct, q_eval)
@@ -322,7 +323,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     proj = None
     if cfg.post_stabilisation and n_dyn + n_kin:
         P = padmm.jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
-        proj = post.projector(J, D, P, n_dyn + n_kin, jnp.isfinite(lo) | jnp.isfinite(hi), bd, cfg)
+        proj = post.projector(J, D, P, n_dyn + n_kin, res.saturated, bd, cfg)
     return u_plus, res, ct, side, proj
 
 

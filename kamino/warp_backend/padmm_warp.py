@@ -93,8 +93,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     balanced_penalty, dual_update = pf.balanced_penalty, pf.dual_update
-    bases = sparse_llt_kernels(np_dtype).bases
-    schur_entry = sparse_llt_kernels(np_dtype).schur_entry
+    slk = sparse_llt_kernels(np_dtype)
+    bases, schur_entry, fixed_entry, tail_row = slk.bases, slk.schur_entry, slk.fixed_entry, slk.tail_row
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
     zero = scalar(0.0)
@@ -214,11 +214,21 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         by_columns(sp, base[1], sp.ent_start[wid], sp.ptr_start[wid], sp.nnz[wid], sp.n_fixed[wid], lane)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def factor(m: M, w: Work, sp: SP, eta: scalar):
+    def factor(m: M, w: Work, sp: SP, eta: scalar, pending_only: int, nblk: int, shift: scalar, shift_sat: scalar):
         """Cholesky ``D~ = L L^T`` in place (§8.1) with the world's 32 threads: the fixed rows by columns (fan-out
         updates), then the tail rows' ``L_tf``, their Schur complement and :func:`factor_tail` with the world's
-        penalty ``eta + rho_u``."""
+        penalty ``eta + rho_u``. With ``pending_only`` only the worlds whose effort-limited rows saturated in the
+        last PADMM iteration (``w.pending``), which first assemble ``D~`` again with the shifts ``shift`` /
+        ``shift_sat`` (``sparse_llt.refactor``; kamino.jax_ref.padmm.solve, "Saturation")."""
         wid, lane = wp.tid()
+        if pending_only != 0:
+            if w.pending[wid] == 0:
+                return
+            for k in range(lane, sp.nnz[wid], LANES):
+                fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
+            for a in range(sp.n_fixed[wid] + lane, w.n_rows[wid], LANES):
+                tail_row(m, w, sp, wid, a, nblk)
+            sync()
         base = bases(m, w, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
@@ -318,6 +328,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 t += 1
         sync()
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid], lane)
+        if pending_only != 0 and lane == 0:
+            w.pending[wid] = 0
 
     # --- solve --------------------------------------------------------------------------------------------
     Vec = wp.tile(dtype=scalar, shape=(R,), storage="shared")
@@ -490,7 +502,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         """Row ``a``'s penalty (``solver.row_penalty``)."""
         if a >= nf:
             return rho_u
-        if wp.isfinite(w.lo_s[r]) or wp.isfinite(w.hi_s[r]):
+        if w.sat[r] != 0:
             return rho_box
         return rho_free
 
@@ -533,6 +545,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             r_tail = zero
             de = zero
             dx = zero
+            hit = zero  # effort-limited rows inside their box whose projection clips them ("Saturation")
             for a in range(lane, n_box, LANES):
                 r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
@@ -541,8 +554,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 z_hat = w.z_hat[r]
                 lo = w.lo_s[r]
                 hi = w.hi_s[r]
-                y = wp.clamp(x - z_hat / rho, lo, hi)
+                v = x - z_hat / rho
+                y = wp.clamp(v, lo, hi)
                 w.y[r] = y
+                if a < nf and y != v and w.sat[r] == 0:
+                    hit = scalar(1.0)
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
                 r_p = wp.max(r_p, du[1])
@@ -588,6 +604,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             r_tail = lane_max(r_tail)
             de = lane_max(de)
             dx = lane_max(dx)
+            hit = lane_max(hit)
             k = w.iters[wid] + 1
             converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
             if k >= 2 and r_p <= tol and r_tail <= tol and r_c <= tol and dx > zero:
@@ -599,6 +616,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             mode = int(mom[3])
             a_new = mom[0]
             c_new = mom[1]
+            # an effort-limited row that saturates: rho_box from now on, the momentum restarts, and the factor is
+            # redone before the next iteration (w.pending: factor with pending_only after this launch)
+            switch = adaptive != 0 and hit > zero and not converged
             if adaptive != 0 and n > nf and not converged:
                 rho_n = balanced_penalty(rho_u, r_p, r_d, k, w.k_rho[wid])
                 if rho_n != rho_u:
@@ -607,10 +627,19 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                     a_new = scalar(1.0)
                     c_new = big
                     sync()
-                    factor_tail(m, w, sp, wid, n, eta + rho_u, lane)
+                    if not switch:
+                        factor_tail(m, w, sp, wid, n, eta + rho_u, lane)
                     if lane == 0:
                         w.rho_u[wid] = rho_n
                         w.k_rho[wid] = k
+            if switch:
+                for a in range(lane, nf, LANES):  # this thread's own rows of the projection loop above
+                    r = rb + a * rs
+                    if w.sat[r] == 0 and w.y[r] != w.x[r] - w.z_hat[r] / rho_free:
+                        w.sat[r] = 1
+                mode = RESTART_HERE
+                a_new = scalar(1.0)
+                c_new = big
             for a in range(lane, n, LANES):
                 r = rb + a * rs
                 y = w.y[r]
@@ -633,12 +662,15 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 w.r_p[wid] = r_p
                 w.r_d[wid] = r_d
                 w.r_c[wid] = r_c
+                if switch:
+                    w.k_rho[wid] = k
+                    w.pending[wid] = 1
                 if done:
                     w.converged[wid] = int(converged)
                     w.done[wid] = 1
                     wp.atomic_sub(w.remaining, 0, 1)
             sync()
-            if done:
+            if done or switch:
                 return
 
     return SimpleNamespace(factor=factor, order_columns=order_columns, factor_tail=factor_tail, solve=solve,

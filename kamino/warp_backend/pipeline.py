@@ -16,6 +16,7 @@ import warp as wp
 
 from kamino.config import SolverConfig
 from kamino.model import Model
+from kamino.tables import DYN_ACTUATOR, row_tables
 from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import integrate_kernels
@@ -98,6 +99,9 @@ class Stepper:
         #: the fixed rows' penalty and whether the limit and contact rows' penalty adapts (kamino.jax_ref.padmm.solve)
         self.adaptive = cfg.penalty == "adaptive"
         self.rho_free = cfg.rho_free if self.adaptive else cfg.rho
+        #: the fixed rows' diagonal shifts in PADMM's factor: ``eta + rho_free``, and ``eta + rho`` on a saturated
+        #: effort-limited row (``Work.sat``)
+        self.padmm_shifts = (cfg.eta + self.rho_free, cfg.eta + cfg.rho)
         #: the LLT solve with block-sparse rows and one thread per world factorises sparsely (sparse_llt.py)
         self.sparse_factor = llt and not self.dense
         with wp.ScopedDevice(self.device):
@@ -125,6 +129,13 @@ class Stepper:
         self.ik = integrate_kernels(self.np_dtype)
         self.ck = contact_kernels(self.np_dtype) if model.num_pairs else None
         self.pk = post_stabilisation_kernels(self.np_dtype) if cfg.post_stabilisation else None
+        #: PADMM's effort-limited rows switch to the larger penalty when they saturate, and the world's factor is
+        #: redone (kamino.jax_ref.padmm.solve, "Saturation"): at most one switch per actuator row and step, so on
+        #: the CPU (no capture_while) a step launches PADMM that many times plus one
+        tab = row_tables(model)
+        dyn_world = np.repeat(np.arange(wm.num_worlds), tab.world_dyn_count)
+        act_rows = np.bincount(dyn_world[tab.dyn_kind == DYN_ACTUATOR], minlength=1)
+        self.max_switches = int(act_rows.max()) if self.adaptive and self.linear_solver == "llt" else 0
         self.use_graph = self.device.is_cuda
         self.padmm_chunk = cfg.max_iterations if not self.use_graph else min(cfg.max_iterations, 8)
         self._graphs: dict[int, object] = {}
@@ -180,18 +191,18 @@ class Stepper:
             else:
                 self._launch(sk.delassus_sparse, rows, nblk)
         self._launch(sk.precondition, rows, nblk, int(assembled), int(cfg.preconditioning))
-        shift_f, shift_b = cfg.eta + self.rho_free, cfg.eta + cfg.rho
-        self._launch(sk.scale, rows, shift_f, shift_b, 0.0, int(assembled))
+        shift_f, shift_b = self.padmm_shifts
+        scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
+        self._launch(sk.scale, rows, shift_f, shift_b, scale_ws, int(assembled))
         if self.sparse_factor:
             self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz), self.sp, nblk, shift_f, shift_b)
             self._launch(self.spk.assemble_tail, rows, self.sp, nblk)
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
-        scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
         self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled), cfg.max_iterations,
                      cfg.eta, cfg.rho, int(self.adaptive))
         if self.padmm == "warp":
-            self._launch_lanes(self.wk.factor, self.sp, cfg.eta)
+            self._launch_lanes(self.wk.factor, self.sp, cfg.eta, 0, nblk, shift_f, shift_b)
         elif self.sparse_factor:
             self._launch(self.spk.factor, W, self.sp, cfg.eta)
         self._padmm_loop()
@@ -245,25 +256,33 @@ class Stepper:
         """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds
         still iterating when capturing a CUDA graph, else one launch running each world to its cap."""
         cfg, w = self.cfg, self.work
-        W = self.wm.num_worlds
+        W, nblk = self.wm.num_worlds, self.wm.blocks_per_row
+        shift_f, shift_b = self.padmm_shifts
         if self.padmm == "warp":
             args = (cfg.eta, self.rho_free, cfg.rho, cfg.tolerance, cfg.restart_tolerance, int(cfg.acceleration),
                     int(cfg.fixed_iterations), int(self.adaptive))
-            if self.use_graph and self.device.is_capturing:
-                wp.capture_while(w.remaining, lambda: self._launch_lanes(self.wk.padmm_iterate, self.sp,
-                                                                         self.padmm_chunk, *args))
-            else:
-                self._launch_lanes(self.wk.padmm_iterate, self.sp, 2 * cfg.max_iterations, *args)
-            return
-        linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else LINEAR_DENSE
-        args = (self.wm.blocks_per_row, linear, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho,
-                cfg.tolerance, cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations),
-                int(self.adaptive))
-        if self.use_graph and self.device.is_capturing:
-            wp.capture_while(w.remaining,
-                             lambda: self._launch(self.sk.padmm_iterate, W, self.sp, self.padmm_chunk, *args))
+
+            def iterate(chunk):
+                self._launch_lanes(self.wk.padmm_iterate, self.sp, chunk, *args)
+                if self.max_switches:  # the factor of the worlds whose effort-limited rows saturated
+                    self._launch_lanes(self.wk.factor, self.sp, cfg.eta, 1, nblk, shift_f, shift_b)
         else:
-            self._launch(self.sk.padmm_iterate, W, self.sp, 2 * self.cfg.max_iterations, *args)
+            linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else (
+                LINEAR_DENSE)
+            args = (nblk, linear, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho, cfg.tolerance,
+                    cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations), int(self.adaptive))
+
+            def iterate(chunk):
+                self._launch(self.sk.padmm_iterate, W, self.sp, chunk, *args)
+                if self.max_switches and self.sparse_factor:
+                    self._launch(self.spk.refactor, W, self.sp, nblk, shift_f, shift_b, cfg.eta)
+                elif self.max_switches:
+                    self._launch(self.sk.refactor_dense, W, nblk, shift_f, shift_b, cfg.eta)
+        if self.use_graph and self.device.is_capturing:
+            wp.capture_while(w.remaining, lambda: iterate(self.padmm_chunk))
+        else:  # each launch runs the worlds to their cap or to a switch
+            for _ in range(self.max_switches + 1):
+                iterate(2 * cfg.max_iterations)
 
     def run(self, num_steps: int) -> None:
         """Advance ``num_steps`` steps in place (replaying a captured graph on CUDA)."""

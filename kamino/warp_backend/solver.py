@@ -20,7 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from kamino.config import NULL_DIRECTION_RATIO
+from kamino.config import NULL_DIRECTION_RATIO, SATURATION_MARGIN
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, model_struct
@@ -61,6 +61,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     eps = scalar(float(np.finfo(np_dtype).eps))
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
+    sat_margin = scalar(SATURATION_MARGIN)
 
     @wp.func
     def inv_mass_times(m: M, w: Work, b: int, J: vec6):
@@ -169,27 +170,18 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             w.P[r] = scalar(1.0)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def scale(m: M, w: Work, shift: scalar, shift_box: scalar, shift_tail: scalar, assembled: int):
-        """``D~ = P D P`` row by row (the dense path; ``shift = eta + rho_free`` on the fixed rows' diagonal,
-        ``shift_box`` on fixed rows with a finite bound, ``shift_tail`` on the others), ``v~_f = P v_f``, scaled
-        bounds."""
+    def scale(m: M, w: Work, shift: scalar, shift_sat: scalar, impulse_scale: scalar, assembled: int):
+        """``v~_f = P v_f``, scaled bounds, and whether an effort-limited fixed row starts saturated (``w.sat``:
+        its warm start ``impulse_scale f0 / P`` on a bound, to ``SATURATION_MARGIN``; kamino.jax_ref.padmm.solve,
+        "Saturation");
+        on the dense path ``D~ = P D P`` row by row with ``shift = eta + rho_free`` on the fixed rows' diagonal
+        (``shift_sat`` on the saturated ones; ``padmm_init`` adds the world's penalty to the others)."""
         wid, a = wp.tid()
         n = w.n_rows[wid]
         if a >= n:
             return
         r = ridx(m, w, wid, a)
         Pa = w.P[r]
-        if assembled != 0:
-            for b in range(n):
-                k = didx(m, wid, a, b)
-                w.D[k] = Pa * w.D[k] * w.P[ridx(m, w, wid, b)]
-            if a < m.row_fixed[wid]:
-                if wp.isfinite(w.lo[r]) or wp.isfinite(w.hi[r]):
-                    w.D[didx(m, wid, a, a)] += shift_box
-                else:
-                    w.D[didx(m, wid, a, a)] += shift
-            else:
-                w.D[didx(m, wid, a, a)] += shift_tail  # 0 when padmm_init adds the world's penalty
         w.vt[r] = Pa * w.vf[r]
         lo = w.lo[r]
         hi = w.hi[r]
@@ -199,6 +191,20 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             hi = hi / Pa
         w.lo_s[r] = lo
         w.hi_s[r] = hi
+        sat = int(0)
+        if a < m.row_fixed[wid]:
+            x0 = impulse_scale * w.f0[r] / Pa
+            if wp.isfinite(lo) and x0 <= lo + sat_margin * wp.abs(lo):
+                sat = 1
+            if wp.isfinite(hi) and x0 >= hi - sat_margin * wp.abs(hi):
+                sat = 1
+        w.sat[r] = sat
+        if assembled != 0:
+            for b in range(n):
+                k = didx(m, wid, a, b)
+                w.D[k] = Pa * w.D[k] * w.P[ridx(m, w, wid, b)]
+            if a < m.row_fixed[wid]:
+                w.D[didx(m, wid, a, a)] += wp.where(sat != 0, shift_sat, shift)
 
     @wp.func
     def project_into(m: M, w: Work, wid: int, n_box: int, n: int, src: wp.array(dtype=scalar),
@@ -240,14 +246,67 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     s = s / w.D[didx(m, wid, nf + j, nf + j)]
                 w.D[didx(m, wid, nf + t, nf + j)] = s
 
+    @wp.func
+    def factor_dense(m: M, w: Work, wid: int, n: int, eta: scalar):
+        """The dense Cholesky factor of ``D~`` in place (§8.1): the fixed rows' columns, the tail's Schur
+        complement ``S_t`` (upper triangle of the tail block and ``sdiag``), then ``L_t`` for the world's penalty;
+        ``L^T`` of the fixed columns is mirrored into the upper triangle so that the backward substitution reads
+        rows."""
+        rs = w.row_stride
+        rb = row_base(m, w, wid)
+        nf = wp.min(m.row_fixed[wid], n)
+        for j in range(nf):
+            s = w.D[didx(m, wid, j, j)]
+            for k in range(j):
+                l = w.D[didx(m, wid, j, k)]
+                s -= l * l
+            ljj = wp.sqrt(s)
+            w.D[didx(m, wid, j, j)] = ljj
+            for i in range(j + 1, n):
+                t = w.D[didx(m, wid, i, j)]
+                for k in range(j):
+                    t -= w.D[didx(m, wid, i, k)] * w.D[didx(m, wid, j, k)]
+                w.D[didx(m, wid, i, j)] = t / ljj
+        for t in range(n - nf):
+            for jj in range(t + 1):
+                s = w.D[didx(m, wid, nf + t, nf + jj)]
+                for k in range(nf):
+                    s -= w.D[didx(m, wid, nf + t, k)] * w.D[didx(m, wid, nf + jj, k)]
+                if jj == t:
+                    w.sdiag[rb + (nf + t) * rs] = s
+                else:
+                    w.D[didx(m, wid, nf + jj, nf + t)] = s
+        factor_tail_dense(m, w, wid, n, eta + w.rho_u[wid])
+        for i in range(n):
+            for k in range(wp.min(i, nf)):
+                w.D[didx(m, wid, k, i)] = w.D[didx(m, wid, i, k)]
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def refactor_dense(m: M, w: Work, nblk: int, shift: scalar, shift_sat: scalar, eta: scalar):
+        """The dense factor again for the worlds whose effort-limited rows saturated in the last PADMM iteration
+        (``w.pending``; kamino.jax_ref.padmm.solve, "Saturation"): ``D~ = P D P`` from the rows' blocks with the
+        new shifts, then :func:`factor_dense` (one thread per world)."""
+        wid = wp.tid()
+        if w.pending[wid] == 0:
+            return
+        w.pending[wid] = 0
+        n = w.n_rows[wid]
+        nf = m.row_fixed[wid]
+        for a in range(n):
+            ra = ridx(m, w, wid, a)
+            for b in range(a, n):
+                v = w.P[ra] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
+                if b == a and a < nf:
+                    v += wp.where(w.sat[ra] != 0, shift_sat, shift)
+                w.D[didx(m, wid, a, b)] = v
+                w.D[didx(m, wid, b, a)] = v
+        factor_dense(m, w, wid, n, eta)
+
     @wp.kernel(module="unique", enable_backward=False)
     def padmm_init(m: M, w: Work, impulse_scale: scalar, use_velocity: int, factorize: int, max_iterations: int,
                    eta: scalar, rho0: scalar, adaptive: int):
         """Warm start (§7.8: ``x0 = Pi_K(impulse0 / P)``, ``z0 = P v0``), the world's penalty and residual scale,
-        and the dense Cholesky factor of ``D~`` (lower, in place, §8.1): the fixed rows' columns, the tail's
-        Schur complement ``S_t`` (upper triangle of the tail block and ``sdiag``), then ``L_t`` for the penalty;
-        ``L^T`` of the fixed columns is mirrored into the upper triangle so that the backward substitution
-        reads rows."""
+        and with ``factorize`` the dense factor (:func:`factor_dense`)."""
         rs = w.row_stride
         wid = wp.tid()
         rb = row_base(m, w, wid)
@@ -284,32 +343,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         if w.done[wid] != 0:
             wp.atomic_sub(w.remaining, 0, 1)
         if factorize != 0:
-            nf = wp.min(m.row_fixed[wid], n)
-            for j in range(nf):
-                s = w.D[didx(m, wid, j, j)]
-                for k in range(j):
-                    l = w.D[didx(m, wid, j, k)]
-                    s -= l * l
-                ljj = wp.sqrt(s)
-                w.D[didx(m, wid, j, j)] = ljj
-                for i in range(j + 1, n):
-                    t = w.D[didx(m, wid, i, j)]
-                    for k in range(j):
-                        t -= w.D[didx(m, wid, i, k)] * w.D[didx(m, wid, j, k)]
-                    w.D[didx(m, wid, i, j)] = t / ljj
-            for t in range(n - nf):
-                for jj in range(t + 1):
-                    s = w.D[didx(m, wid, nf + t, nf + jj)]
-                    for k in range(nf):
-                        s -= w.D[didx(m, wid, nf + t, k)] * w.D[didx(m, wid, nf + jj, k)]
-                    if jj == t:
-                        w.sdiag[rb + (nf + t) * rs] = s
-                    else:
-                        w.D[didx(m, wid, nf + jj, nf + t)] = s
-            factor_tail_dense(m, w, wid, n, eta + w.rho_u[wid])
-            for i in range(n):
-                for k in range(wp.min(i, nf)):
-                    w.D[didx(m, wid, k, i)] = w.D[didx(m, wid, i, k)]
+            factor_dense(m, w, wid, n, eta)
 
     @wp.func
     def cho_solve_inplace(m: M, w: Work, wid: int, n: int):
@@ -365,9 +399,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             Pa = w.P[r]
             shift = shift_t
             if a < m.row_fixed[wid]:
-                shift = shift_f
-                if wp.isfinite(w.lo_s[r]) or wp.isfinite(w.hi_s[r]):
-                    shift = shift_b
+                shift = wp.where(w.sat[r] != 0, shift_b, shift_f)
             out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
 
     @wp.func
@@ -426,11 +458,12 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.func
     def row_penalty(w: Work, r: int, a: int, nf: int, rho_free: scalar, rho_box: scalar, rho_u: scalar):
-        """Row ``a``'s penalty (``kamino.jax_ref.padmm.solve``, "Penalty"): ``rho_free`` on an unbounded fixed row,
-        ``rho_box`` on a fixed row with a finite bound, the world's ``rho_u`` on limit and contact rows."""
+        """Row ``a``'s penalty (``kamino.jax_ref.padmm.solve``, "Penalty" and "Saturation"): ``rho_free`` on a fixed
+        row, ``rho_box`` on a saturated effort-limited one (``w.sat``), the world's ``rho_u`` on limit and contact
+        rows."""
         if a >= nf:
             return rho_u
-        if wp.isfinite(w.lo_s[r]) or wp.isfinite(w.hi_s[r]):
+        if w.sat[r] != 0:
             return rho_box
         return rho_free
 
@@ -441,10 +474,11 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         """Up to ``chunk`` accelerated PADMM iterations of one world (§7.3-§7.5; ``padmm.solve`` of the JAX
         reference, its penalty rule and residuals included), resuming from the stored iterate; a world that
         converges (unless ``fixed``) or reaches its iteration cap ``it_cap`` is marked done and leaves
-        ``remaining``. The fixed rows carry the penalty ``rho_free`` (``rho_box`` where a finite bound makes the
-        projection matter: effort-limited actuators), the limit and contact rows the world's
-        ``rho_u``, rebalanced when ``adaptive`` (then the tail of the factor is recomputed). ``linear``:
-        ``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE`` (``sparse_llt.py``)."""
+        ``remaining``. The fixed rows carry the penalty ``rho_free`` (``rho_box`` on a saturated effort-limited
+        actuator, ``w.sat``), the limit and contact rows the world's ``rho_u``, rebalanced when ``adaptive`` (then
+        the tail of the factor is recomputed). A row that saturates ends the launch with ``w.pending`` set:
+        ``refactor`` (or ``refactor_dense``) redoes the factor before the next launch (kamino.jax_ref.padmm.solve,
+        "Saturation"). ``linear``: ``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE`` (``sparse_llt.py``)."""
         rs = w.row_stride
         wid = wp.tid()
         rb = row_base(m, w, wid)
@@ -486,6 +520,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             r_tail = scalar(0.0)
             de = scalar(0.0)
             dx = scalar(0.0)
+            hit = int(0)  # effort-limited rows inside their box whose projection clips them ("Saturation")
             for a in range(n_box):
                 r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
@@ -493,8 +528,11 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 z_hat = w.z_hat[r]
                 lo = w.lo_s[r]
                 hi = w.hi_s[r]
-                y = wp.clamp(x - z_hat / rho, lo, hi)
+                v = x - z_hat / rho
+                y = wp.clamp(v, lo, hi)
                 w.y[r] = y
+                if a < nf and y != v and w.sat[r] == 0:
+                    hit = 1
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
                 r_p = wp.max(r_p, du[1])
@@ -545,7 +583,10 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             a_new = mom[0]
             c_new = mom[1]
             # the limit and contact rows' penalty (residual balancing); a change restarts the momentum from
-            # this iterate and refactorises the tail
+            # this iterate and refactorises the tail. An effort-limited row that saturates takes rho_box from now
+            # on: the momentum restarts, and the whole factor is redone before the next iteration (w.pending:
+            # refactor / refactor_dense after this launch; kamino.jax_ref.padmm.solve, "Saturation")
+            switch = adaptive != 0 and hit != 0 and not converged
             if adaptive != 0 and n > nf and not converged:
                 rho_n = balanced_penalty(rho_u, r_p, r_d, k, w.k_rho[wid])
                 if rho_n != rho_u:
@@ -555,10 +596,21 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                     mode = RESTART_HERE
                     a_new = scalar(1.0)
                     c_new = big
-                    if linear == LINEAR_SPARSE:
+                    if linear == LINEAR_SPARSE and not switch:
                         factor_tail_sparse(m, w, sp, wid, n, eta + rho_u)
-                    elif linear == LINEAR_DENSE:
+                    elif linear == LINEAR_DENSE and not switch:
                         factor_tail_dense(m, w, wid, n, eta + rho_u)
+            if switch:
+                for a in range(nf):
+                    r = rb + a * rs
+                    if w.sat[r] == 0 and w.y[r] != w.x[r] - w.z_hat[r] / rho_free:
+                        w.sat[r] = 1
+                mode = RESTART_HERE
+                a_new = scalar(1.0)
+                c_new = big
+                w.k_rho[wid] = k
+                if linear != LINEAR_CR:
+                    w.pending[wid] = 1
             for a in range(n):
                 r = rb + a * rs
                 y = w.y[r]
@@ -582,6 +634,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 w.converged[wid] = int(converged)
                 w.done[wid] = 1
                 wp.atomic_sub(w.remaining, 0, 1)
+                return
+            if w.pending[wid] != 0:
                 return
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -626,4 +680,5 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     return SimpleNamespace(count_rows=count_rows, prebake=prebake, delassus_sparse=delassus_sparse,
                            delassus_dense=delassus_dense, precondition=precondition, scale=scale,
                            padmm_init=padmm_init, padmm_resume=padmm_resume, padmm_iterate=padmm_iterate,
+                           refactor_dense=refactor_dense,
                            padmm_finish=padmm_finish)

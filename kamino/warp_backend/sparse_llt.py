@@ -363,13 +363,11 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             s += w.reg[ra]
         return s
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def assemble_fixed(m: M, w: Work, sp: SP, nblk: int, shift: scalar, shift_box: scalar):
+    @wp.func
+    def fixed_entry(m: M, w: Work, sp: SP, wid: int, k: int, nblk: int, shift: scalar, shift_sat: scalar):
         """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D_ab P_b`` (``+ shift`` on the diagonal,
-        ``shift_box`` on a row with a finite bound: the rows' penalty, kamino.jax_ref.padmm.solve)."""
-        wid, k = wp.tid()
-        if k >= sp.nnz[wid]:
-            return
+        ``shift_sat`` on a saturated effort-limited row, ``w.sat``: the rows' penalty, kamino.jax_ref.padmm.solve,
+        "Saturation")."""
         e = sp.ent_start[wid] + k
         p = sp.row[e]
         q = sp.col[e]
@@ -377,21 +375,25 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         b = sp.perm[sp.perm_start[wid] + q]
         s = w.P[ridx(m, w, wid, a)] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
         if p == q:
-            ra = ridx(m, w, wid, a)
-            if wp.isfinite(w.lo[ra]) or wp.isfinite(w.hi[ra]):
-                s += shift_box
+            if w.sat[ridx(m, w, wid, a)] != 0:
+                s += shift_sat
             else:
                 s += shift
         sp.val[vidx(m, sp, wid, k)] = s
 
     @wp.kernel(module="unique", enable_backward=False)
-    def assemble_tail(m: M, w: Work, sp: SP, nblk: int):
+    def assemble_fixed(m: M, w: Work, sp: SP, nblk: int, shift: scalar, shift_sat: scalar):
+        """:func:`fixed_entry` ``k`` of every world."""
+        wid, k = wp.tid()
+        if k >= sp.nnz[wid]:
+            return
+        fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
+
+    @wp.func
+    def tail_row(m: M, w: Work, sp: SP, wid: int, a: int, nblk: int):
         """Tail row ``a`` (an active limit or contact row): ``D~_ab`` for every fixed position and every tail
         row ``b <= a`` (no shift: :func:`factor` adds the world's penalty)."""
-        wid, a = wp.tid()
         nf = sp.n_fixed[wid]
-        if a < nf or a >= w.n_rows[wid]:
-            return
         t = a - nf
         Pa = w.P[ridx(m, w, wid, a)]
         for p in range(nf):
@@ -399,6 +401,14 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             sp.tail[tidx(m, w, sp, wid, t, p)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
         for b in range(nf, a + 1):
             sp.tail[tidx(m, w, sp, wid, t, b)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def assemble_tail(m: M, w: Work, sp: SP, nblk: int):
+        """:func:`tail_row` ``a`` of every world."""
+        wid, a = wp.tid()
+        if a < sp.n_fixed[wid] or a >= w.n_rows[wid]:
+            return
+        tail_row(m, w, sp, wid, a, nblk)
 
     @wp.func
     def factor_fixed_rows(sp: SP, wid: int, vb: int):
@@ -465,12 +475,11 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         else:
             sp.tail[jr + (nf + t) * tc] = s
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def factor(m: M, w: Work, sp: SP, eta: scalar):
+    @wp.func
+    def factor_world(m: M, w: Work, sp: SP, wid: int, eta: scalar):
         """Cholesky ``D~ = L L^T`` in place (§8.1): the fixed rows by the precomputed update lists, then the
         tail rows (forward substitution against the fixed rows, their Schur complement, and its dense Cholesky
         with the world's penalty ``eta + rho_u``, :func:`factor_tail`)."""
-        wid = wp.tid()
         base = bases(m, w, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
@@ -491,6 +500,26 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             for j in range(t + 1):  # S_t row t
                 schur_entry(w, sp, rb, tb, ts, nf, t, j)
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid])
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def factor(m: M, w: Work, sp: SP, eta: scalar):
+        """:func:`factor_world` of every world."""
+        factor_world(m, w, sp, wp.tid(), eta)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def refactor(m: M, w: Work, sp: SP, nblk: int, shift: scalar, shift_sat: scalar, eta: scalar):
+        """The whole factor again for the worlds whose effort-limited rows saturated in the last PADMM iteration
+        (``w.pending``; kamino.jax_ref.padmm.solve, "Saturation"): assembly with the new shifts, then
+        :func:`factor_world` (one thread per world)."""
+        wid = wp.tid()
+        if w.pending[wid] == 0:
+            return
+        w.pending[wid] = 0
+        for k in range(sp.nnz[wid]):
+            fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
+        for a in range(sp.n_fixed[wid], w.n_rows[wid]):
+            tail_row(m, w, sp, wid, a, nblk)
+        factor_world(m, w, sp, wid, eta)
 
     @wp.func
     def solve_inplace(m: M, w: Work, sp: SP, wid: int, n: int):
@@ -545,6 +574,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 w.x[rq] = w.x[rq] - sp.val[vb + k * sp.val_stride] * xp
 
     return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor, bases=bases,
-                           factor_tail=factor_tail,
+                           factor_tail=factor_tail, refactor=refactor, factor_world=factor_world,
+                           fixed_entry=fixed_entry, tail_row=tail_row,
                            factor_fixed=factor_fixed,
                            solve_inplace=solve_inplace, delassus_entry=delassus_entry, schur_entry=schur_entry)

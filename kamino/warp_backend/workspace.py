@@ -133,6 +133,8 @@ def work_struct(np_dtype):
         k_rho: iarr  # per world: the iteration of the last penalty change
         p_ref: farr  # per world: the largest P of the active rows (the residuals' velocity scale)
         sdiag: farr  # [rows] the diagonal of the tail rows' Schur complement (refactorisation on a new penalty)
+        sat: iarr  # [rows] an effort-limited fixed row that carries rho (saturated; kamino.jax_ref.padmm "Saturation")
+        pending: iarr  # per world: a row saturated in the last iteration; the factor is redone before the next
         converged: iarr
         done: iarr  # per world: 1 once converged or at the iteration cap
         remaining: iarr  # [1] worlds still iterating (the capture_while condition)
@@ -192,8 +194,9 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
         sizes[name] = (R, T.scalar)
     for name in ("a_p", "c_p", "r_p", "r_d", "r_c", "rho_u", "p_ref"):
         sizes[name] = (m.num_worlds, T.scalar)
+    sizes["sat"] = (R, wp.int32)
     for name in ("n_lim", "n_con", "n_box", "n_rows", "iters", "it_cap", "converged", "done", "failed", "k_rho",
-                 "unconverged", "frozen"):
+                 "unconverged", "frozen", "pending"):
         sizes[name] = (m.num_worlds, wp.int32)
     sizes["remaining"] = (1, wp.int32)
     for name, (n, dtype) in sizes.items():
