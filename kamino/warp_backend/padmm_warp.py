@@ -557,7 +557,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 v = x - z_hat / rho
                 y = wp.clamp(v, lo, hi)
                 w.y[r] = y
-                if a < nf and y != v and w.sat[r] == 0:
+                if a < nf and w.sat[r] == 0 and (wp.isfinite(lo) or wp.isfinite(hi)) and y != v:
                     hit = scalar(1.0)
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
@@ -635,8 +635,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             if switch:
                 for a in range(lane, nf, LANES):  # this thread's own rows of the projection loop above
                     r = rb + a * rs
-                    if w.sat[r] == 0 and w.y[r] != w.x[r] - w.z_hat[r] / rho_free:
-                        w.sat[r] = 1
+                    if w.sat[r] == 0 and (wp.isfinite(w.lo_s[r]) or wp.isfinite(w.hi_s[r])):
+                        if w.y[r] != w.x[r] - w.z_hat[r] / rho_free:
+                            w.sat[r] = 1
                 mode = RESTART_HERE
                 a_new = scalar(1.0)
                 c_new = big

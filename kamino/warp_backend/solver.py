@@ -326,6 +326,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         if adaptive == 0 or not (w.rho_u[wid] > scalar(0.0)):
             w.rho_u[wid] = rho0
         w.k_rho[wid] = 0
+        w.pending[wid] = 0
         project_into(m, w, wid, w.n_box[wid], n, w.x, w.x, scalar(0.0), w.x_p)
         for a in range(n):
             r = rb + a * rs
@@ -531,7 +532,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 v = x - z_hat / rho
                 y = wp.clamp(v, lo, hi)
                 w.y[r] = y
-                if a < nf and y != v and w.sat[r] == 0:
+                if a < nf and w.sat[r] == 0 and (wp.isfinite(lo) or wp.isfinite(hi)) and y != v:
                     hit = 1
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
@@ -603,8 +604,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             if switch:
                 for a in range(nf):
                     r = rb + a * rs
-                    if w.sat[r] == 0 and w.y[r] != w.x[r] - w.z_hat[r] / rho_free:
-                        w.sat[r] = 1
+                    if w.sat[r] == 0 and (wp.isfinite(w.lo_s[r]) or wp.isfinite(w.hi_s[r])):
+                        if w.y[r] != w.x[r] - w.z_hat[r] / rho_free:
+                            w.sat[r] = 1
                 mode = RESTART_HERE
                 a_new = scalar(1.0)
                 c_new = big
