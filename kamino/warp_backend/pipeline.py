@@ -131,7 +131,10 @@ class Stepper:
         self.pk = post_stabilisation_kernels(self.np_dtype) if cfg.post_stabilisation else None
         #: PADMM's effort-limited rows switch to the larger penalty when they saturate, and the world's factor is
         #: redone (kamino.jax_ref.padmm.solve, "Saturation"): at most one switch per actuator row and step, so on
-        #: the CPU (no capture_while) a step launches PADMM that many times plus one
+        #: the CPU (no capture_while) a step launches PADMM that many times plus one. The Conjugate Residual path
+        #: keeps the larger penalty on every effort-limited row instead (``solver.scale``'s ``always_sat``): with
+        #: the proximal shift on those rows its inexact solves stalled PADMM on standing robots (olaf's loops
+        #: 1.07e-5 m, dr_legs at 30 CR iterations unconverged; tests/test_robots.py), as in session 22's experiment
         tab = row_tables(model)
         dyn_world = np.repeat(np.arange(wm.num_worlds), tab.world_dyn_count)
         act_rows = np.bincount(dyn_world[tab.dyn_kind == DYN_ACTUATOR], minlength=1)
@@ -193,7 +196,7 @@ class Stepper:
         self._launch(sk.precondition, rows, nblk, int(assembled), int(cfg.preconditioning))
         shift_f, shift_b = self.padmm_shifts
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
-        self._launch(sk.scale, rows, shift_f, shift_b, scale_ws, int(assembled))
+        self._launch(sk.scale, rows, shift_f, shift_b, scale_ws, int(assembled), int(self.linear_solver == "cr"))
         if self.sparse_factor:
             self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz), self.sp, nblk, shift_f, shift_b)
             self._launch(self.spk.assemble_tail, rows, self.sp, nblk)

@@ -170,10 +170,11 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             w.P[r] = scalar(1.0)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def scale(m: M, w: Work, shift: scalar, shift_sat: scalar, impulse_scale: scalar, assembled: int):
+    def scale(m: M, w: Work, shift: scalar, shift_sat: scalar, impulse_scale: scalar, assembled: int,
+              always_sat: int):
         """``v~_f = P v_f``, scaled bounds, and whether an effort-limited fixed row starts saturated (``w.sat``:
         its warm start ``impulse_scale f0 / P`` on a bound, to ``SATURATION_MARGIN``; kamino.jax_ref.padmm.solve,
-        "Saturation");
+        "Saturation"; with ``always_sat``, every effort-limited row: the CR path, pipeline.Stepper);
         on the dense path ``D~ = P D P`` row by row with ``shift = eta + rho_free`` on the fixed rows' diagonal
         (``shift_sat`` on the saturated ones; ``padmm_init`` adds the world's penalty to the others)."""
         wid, a = wp.tid()
@@ -194,9 +195,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         sat = int(0)
         if a < m.row_fixed[wid]:
             x0 = impulse_scale * w.f0[r] / Pa
-            if wp.isfinite(lo) and x0 <= lo + sat_margin * wp.abs(lo):
+            if wp.isfinite(lo) and (always_sat != 0 or x0 <= lo + sat_margin * wp.abs(lo)):
                 sat = 1
-            if wp.isfinite(hi) and x0 >= hi - sat_margin * wp.abs(hi):
+            if wp.isfinite(hi) and (always_sat != 0 or x0 >= hi - sat_margin * wp.abs(hi)):
                 sat = 1
         w.sat[r] = sat
         if assembled != 0:
