@@ -257,7 +257,9 @@ class Stepper:
 
     def _padmm_loop(self) -> None:
         """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds
-        still iterating when capturing a CUDA graph, else one launch running each world to its cap."""
+        still iterating when capturing a CUDA graph, else launches running each world to its cap or to a switch
+        (one more than the switches a step can have, ``max_switches``). After each launch the worlds whose
+        effort-limited rows saturated have their factor redone (``Work.pending``)."""
         cfg, w = self.cfg, self.work
         W, nblk = self.wm.num_worlds, self.wm.blocks_per_row
         shift_f, shift_b = self.padmm_shifts
