@@ -92,6 +92,13 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
         return rho_u
 
     @wp.func
+    def saturates(sat: int, lo: scalar, hi: scalar, v: scalar, y: scalar):
+        """Whether a fixed row not yet saturated (``sat == 0``) saturates: it has a finite bound (an effort-limited
+        actuator) and its projection ``y = clamp(v, lo, hi)`` clipped ``v = x - z_hat / rho``
+        (``kamino.jax_ref.padmm.solve``, "Saturation")."""
+        return sat == 0 and (wp.isfinite(lo) or wp.isfinite(hi)) and y != v
+
+    @wp.func
     def box_complementarity(y: scalar, z: scalar, lo: scalar, hi: scalar):
         """``|z| * distance of y to its nearest finite bound`` (0 for an unbounded row), §7.5."""
         if not (wp.isfinite(lo) or wp.isfinite(hi)):
@@ -105,5 +112,5 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
 
     return SimpleNamespace(momentum=momentum, extrapolated=extrapolated, dual_update=dual_update,
                            residual_weight=residual_weight,
-                           balanced_penalty=balanced_penalty,
+                           balanced_penalty=balanced_penalty, saturates=saturates,
                            box_complementarity=box_complementarity)

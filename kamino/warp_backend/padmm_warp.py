@@ -92,7 +92,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
-    balanced_penalty, dual_update = pf.balanced_penalty, pf.dual_update
+    balanced_penalty, dual_update, saturates = pf.balanced_penalty, pf.dual_update, pf.saturates
     slk = sparse_llt_kernels(np_dtype)
     bases, schur_entry, fixed_entry, tail_row = slk.bases, slk.schur_entry, slk.fixed_entry, slk.tail_row
     big = scalar(float(np.finfo(np_dtype).max))
@@ -557,7 +557,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 v = x - z_hat / rho
                 y = wp.clamp(v, lo, hi)
                 w.y[r] = y
-                if a < nf and w.sat[r] == 0 and (wp.isfinite(lo) or wp.isfinite(hi)) and y != v:
+                if a < nf and saturates(w.sat[r], lo, hi, v, y):
                     hit = scalar(1.0)
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
@@ -635,9 +635,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             if switch:
                 for a in range(lane, nf, LANES):  # this thread's own rows of the projection loop above
                     r = rb + a * rs
-                    if w.sat[r] == 0 and (wp.isfinite(w.lo_s[r]) or wp.isfinite(w.hi_s[r])):
-                        if w.y[r] != w.x[r] - w.z_hat[r] / rho_free:
-                            w.sat[r] = 1
+                    if saturates(w.sat[r], w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
+                        w.sat[r] = 1
                 mode = RESTART_HERE
                 a_new = scalar(1.0)
                 c_new = big

@@ -50,7 +50,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     ridx, didx, jidx, row_base = ix.ridx, ix.didx, ix.jidx, ix.row_base
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
-    balanced_penalty = pf.balanced_penalty
+    balanced_penalty, saturates = pf.balanced_penalty, pf.saturates
     dual_update = pf.dual_update
     residual_weight = pf.residual_weight
     SP = pattern_struct(np_dtype)
@@ -533,7 +533,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 v = x - z_hat / rho
                 y = wp.clamp(v, lo, hi)
                 w.y[r] = y
-                if a < nf and w.sat[r] == 0 and (wp.isfinite(lo) or wp.isfinite(hi)) and y != v:
+                if a < nf and saturates(w.sat[r], lo, hi, v, y):
                     hit = 1
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
@@ -605,9 +605,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             if switch:
                 for a in range(nf):
                     r = rb + a * rs
-                    if w.sat[r] == 0 and (wp.isfinite(w.lo_s[r]) or wp.isfinite(w.hi_s[r])):
-                        if w.y[r] != w.x[r] - w.z_hat[r] / rho_free:
-                            w.sat[r] = 1
+                    if saturates(w.sat[r], w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
+                        w.sat[r] = 1
                 mode = RESTART_HERE
                 a_new = scalar(1.0)
                 c_new = big
