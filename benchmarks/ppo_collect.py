@@ -43,8 +43,13 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="a keyword of the task's constructor, VALUE a Python literal (repeatable): --env kp=75")
     p.add_argument("--no-effort-limits", action="store_true",
                    help="diagnostic: build the robot with unbounded actuator efforts (kamino.models' builders patched)")
+    p.add_argument("--profile", type=int, default=0, metavar="STEPS",
+                   help="Warp backend: after the collection, time each kernel of STEPS more simulator steps of the "
+                        "environments' stepper from where the collection left it (profile_step.profile)")
     p.add_argument("--out", type=pathlib.Path, default=None, help="append the JSON record to this file")
     args = p.parse_args(argv)
+    if args.profile and args.backend != "warp":
+        p.error("--profile times Warp kernels: it needs --backend warp")
     if args.num_envs < 1 or args.unroll < 1:
         p.error("--num-envs and --unroll must be positive")
     if not 0.0 <= args.action_scale <= 1.0:
@@ -141,6 +146,8 @@ def main(argv=None) -> int:
         "episodes_ended_fraction": float(np.concatenate(done).mean()),
         "closure_max_m": float(np.max(np.asarray(closure))), "device": str(jax.devices()[0]),
     }
+    if args.profile:
+        record["profile"] = _profile(raw.model, n, args.profile)
     line = json.dumps(record)
     print(line, flush=True)
     if args.out is not None:
@@ -148,6 +155,34 @@ def main(argv=None) -> int:
         with args.out.open("a") as f:
             f.write(line + "\n")
     return 0
+
+
+def _profile(model, num_envs: int, steps: int) -> dict:
+    """``profile_step.profile`` of the stepper that ran the batched environments (the ``num_envs``-world replica
+    of ``model`` behind ``jit.batchable_step``; un-graphed, as inside the FFI call), from its last state and
+    targets."""
+    sys.path.insert(0, str(HERE))  # profile_step, beside this script
+    from profile_step import _copy_state, profile
+
+    from kamino.warp_backend import backend as wb
+    from kamino.warp_backend import jit as wjit
+
+    replicas = [r[num_envs] for _, r in wjit._BATCHABLE[model].values() if num_envs in r]
+    steppers = [st for key, st in wb._STEPPERS[replicas[0]].items() if key[3]]  # key[3]: for_jit
+    st = steppers[0]
+    result = profile(st, steps)
+    # the same steps from the same state by a stepper of the same model that captures its step as a CUDA graph
+    # (the PADMM loop a wp.capture_while of chunks): what the FFI path would gain from it
+    graphed = wb.stepper(st.wm.model, st.cfg, st.np_dtype, st.device)
+    _copy_state(graphed, st)
+    result["graphed"] = profile(graphed, steps) if graphed.use_graph else None
+    for label, r in (("FFI (un-graphed)", result), ("graphed", result["graphed"])):
+        if r is None:
+            continue
+        print(f"{label}: {r['graph_step_time_s']} s per step, iterations {r['iterations']}", flush=True)
+        for name, k in sorted(r["kernels"].items(), key=lambda kv: -kv[1]["ms_per_step"])[:10]:
+            print(f"  {name:40s} {k['ms_per_step']:9.3f} ms/step {k['launches_per_step']:6.1f} launches", flush=True)
+    return result
 
 
 if __name__ == "__main__":

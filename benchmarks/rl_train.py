@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import dataclasses
 import json
 import platform
 import sys
@@ -51,16 +52,21 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="log the training episodes' mean return every ~N env steps (train_curve.json)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other ppo.train keyword, VALUE a Python literal (repeatable): --set batch_size=32")
+    p.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
+                   help="a field of the task's SolverConfig, VALUE a Python literal (repeatable): --solver "
+                        "max_iterations=100")
     args = p.parse_args(argv)
-    args.ppo_overrides = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep or not key.isidentifier():
-            p.error(f"--set expects KEY=VALUE, got {item!r}")
-        try:
-            args.ppo_overrides[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            p.error(f"--set {key}: {value!r} is not a Python literal")
+    args.ppo_overrides, args.solver_overrides = {}, {}
+    for flag, items, into in (("--set", args.set, args.ppo_overrides), ("--solver", args.solver,
+                                                                          args.solver_overrides)):
+        for item in items:
+            key, sep, value = item.partition("=")
+            if not sep or not key.isidentifier():
+                p.error(f"{flag} expects KEY=VALUE, got {item!r}")
+            try:
+                into[key] = ast.literal_eval(value)
+            except (ValueError, SyntaxError):
+                p.error(f"{flag} {key}: {value!r} is not a Python literal")
     for name in ("steps", "num_envs", "evals", "train_returns"):
         value = getattr(args, name)
         if value is not None and value < 1:
@@ -155,6 +161,9 @@ def main(argv=None) -> int:
     train_curve = [c for c in train_curve if c["step"] <= done]
     remaining = total - done
     env = make(args.task, backend=args.backend, **cfg["env"])
+    if args.solver_overrides:  # a field that SolverConfig lacks raises here, naming it
+        config = dataclasses.replace(env.solver_config, **args.solver_overrides)
+        env = make(args.task, backend=args.backend, solver_config=config, **cfg["env"])
     used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
     print(f"{args.task}: backend {args.backend}, {used} device(s) {jax.devices()[0].platform}, "
           f"{env.observation_size} observations, {env.action_size} actions, policy {1 / env.dt:.0f} Hz; "
@@ -215,7 +224,7 @@ def main(argv=None) -> int:
         plot_curve(curve, out / "reward_curve.png", f"{args.task} (PPO, kamino {args.backend} backend)", train_curve)
     report = {
         "task": args.task, "backend": args.backend, "command": " ".join(sys.argv),
-        "env": cfg["env"], "network": cfg["network"],
+        "env": cfg["env"], "solver_overrides": args.solver_overrides, "network": cfg["network"],
         "ppo": {k: v for k, v in kwargs.items() if isinstance(v, (int, float, str, bool)) or v is None},
         "total_steps": total, "steps_before_this_run": done, "steps_this_run": max(remaining, 0),
         "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),

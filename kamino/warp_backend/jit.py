@@ -4,9 +4,10 @@ When the State holds traced arrays (inside ``jax.jit``, ``lax.scan``, ...), the 
 its step through Warp's JAX FFI (``wp.jax_callable``): XLA allocates the output buffers, Warp reads
 and writes them in place (no host round trip), and the step's kernels are launched on XLA's stream.
 The callable copies the inputs into the stepper's persistent buffers and the results out of them
-(device-to-device, ~35 small copies per call; docs/warp_backend.md "JAX interop"). Inside the call
-the step runs without its own graph capture (``JaxCallableGraphMode.NONE``): the PADMM loop then
-runs each world to its end in one launch, with no host synchronisation.
+(device-to-device, ~35 small copies per call; docs/warp_backend.md "JAX interop"). XLA does not capture
+the call (``JaxCallableGraphMode.NONE``). On a GPU the call replays the step's own CUDA graph, captured when
+the callable is built, so that its PADMM loop is a ``wp.capture_while``; on the CPU the PADMM loop runs each
+world to its end, or to its next switch, in one launch. No host synchronisation either way.
 """
 
 from __future__ import annotations
@@ -85,7 +86,11 @@ def _callable(st: Stepper):
         s = _stepper_on(st, arrays[0].device)
         for arr, (_, buf, _) in zip(arrays[:len(ins)], ins, strict=True):
             wp.copy(getattr(s.work, buf), arr)
-        s.launch_step()
+        graph = s._graphs.get(1)
+        if graph is not None:  # the step's graph, captured below; it replays on XLA's stream
+            wp.capture_launch(graph)
+        else:
+            s.launch_step()
         for arr, (_, buf, _) in zip(arrays[len(ins):], outs, strict=True):
             wp.copy(arr, getattr(s.work, buf))
 
@@ -95,7 +100,15 @@ def _callable(st: Stepper):
     fn = ns["kamino_warp_step"]
     fn.__annotations__ = types
     fn.__module__ = __name__
-    st.launch_step()  # load (compile) every kernel before the first traced call
+    # load (compile) every kernel before the first traced call; on a GPU capture the step as a CUDA graph here, at
+    # trace time, outside XLA's execution: the callback replays it, so its PADMM loop is the graph's capture_while
+    # (every world advances in chunks, a switch's refactorisation after each chunk) instead of one launch per
+    # possible switch, each as long as its slowest world (benchmarks/README.md "Session 26"). A stepper first used
+    # inside a call (another device under pmap) launches without a graph.
+    if st.device.is_cuda:
+        st.graph(1)
+    else:
+        st.launch_step()
     call = wp.jax_callable(fn, num_outputs=len(outs), graph_mode=wp.JaxCallableGraphMode.NONE, vmap_method=None)
     per.update(call=call, ins=ins, outs=outs)
     return call, ins, outs

@@ -77,6 +77,16 @@ def shared_entries(max_nnz: int) -> int:
     return E if E <= STAGE_MAX_ENTRIES else 0
 
 
+#: Registers per thread of :func:`warp_kernels`' ``padmm_iterate`` for worlds of at least
+#: :data:`REGISTER_CAP_MIN_ROWS` rows (CUDA ``__maxnreg__``; ``None``: the compiler's choice). Left to the compiler it
+#: takes 122 on sm_90, so a multiprocessor holds 16 worlds (65,536 registers / (128 x 32)) of the 32 blocks it could;
+#: at 72 it holds 28, at the cost of some spilling. Measured on an H100 (benchmarks/README.md "Session 26"): PPO's
+#: collection on dr_legs at 16384 worlds 137 -> 120 ms per step, the standing robots at 4096 worlds +1 %, the
+#: four-bar (117 rows) 12 % slower, hence the threshold.
+ITERATE_MAX_REGISTERS: int | None = 72
+REGISTER_CAP_MIN_ROWS = 200
+
+
 @functools.cache
 def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     """``factor``, ``padmm_iterate`` and ``solve_fixed`` (post-stabilisation) for worlds of up to ``R`` rows; launch
@@ -506,7 +516,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             return rho_box
         return rho_free
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False,
+               cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else None)
     def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, eta: scalar, rho_free: scalar, rho_box: scalar,
                       tol: scalar, restart_tol: scalar, accelerate: int, fixed: int, adaptive: int):
         """Up to ``chunk`` accelerated PADMM iterations of one world with its 32 threads (``solver.padmm_iterate``

@@ -283,7 +283,7 @@ class Stepper:
                     self._launch(self.spk.refactor, W, self.sp, nblk, shift_f, shift_b, cfg.eta)
                 elif self.max_switches:
                     self._launch(self.sk.refactor_dense, W, nblk, shift_f, shift_b, cfg.eta)
-        if self.use_graph and self.device.is_capturing:
+        if self.device.is_capturing:
             wp.capture_while(w.remaining, lambda: iterate(self.padmm_chunk))
         else:  # each launch runs the worlds to their cap or to a switch
             for _ in range(self.max_switches + 1):
@@ -295,10 +295,15 @@ class Stepper:
             for _ in range(num_steps):
                 self.launch_step()
             return
+        wp.capture_launch(self.graph(num_steps))
+
+    def graph(self, num_steps: int):
+        """The CUDA graph of ``num_steps`` steps, captured on first use (on Warp's stream of the device; it replays
+        on any stream, XLA's included: ``jit.py``)."""
         graph = self._graphs.get(num_steps)
         if graph is None:
             with wp.ScopedCapture(device=self.device) as capture:
                 for _ in range(num_steps):
                     self.launch_step()
             graph = self._graphs[num_steps] = capture.graph
-        wp.capture_launch(graph)
+        return graph
