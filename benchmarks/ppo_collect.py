@@ -12,7 +12,10 @@ It reports collection env steps/s, ms per simulator step, the PADMM iterations o
 solves, and the worst loop closure over the environments at the end (``kamino.metrics``). ``--set KEY=VALUE``
 overrides a :class:`kamino.SolverConfig` field (the task's ``sim_dt`` is kept); ``--env KEY=VALUE`` passes a
 keyword to the task (``kamino.envs.make``), e.g. the PD gains. ``--no-effort-limits`` (a diagnostic) builds the
-robot with unbounded actuator efforts. The figure to compare with PPO's
+robot with unbounded actuator efforts. ``--profile STEPS`` (Warp) then times each kernel of STEPS more simulator
+steps of the environments' stepper from where the collection left it, and the same steps replayed as one CUDA
+graph, as the FFI call replays its step (``profile_step.profile``; the record's ``profile``). The figure to compare
+with PPO's
 end-to-end env steps/s (benchmarks/rl_train.py) is the collection share of it.
 """
 
@@ -45,7 +48,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="diagnostic: build the robot with unbounded actuator efforts (kamino.models' builders patched)")
     p.add_argument("--profile", type=int, default=0, metavar="STEPS",
                    help="Warp backend: after the collection, time each kernel of STEPS more simulator steps of the "
-                        "environments' stepper from where the collection left it (profile_step.profile)")
+                        "environments' stepper from where the collection left it, and their graph replay")
     p.add_argument("--out", type=pathlib.Path, default=None, help="append the JSON record to this file")
     args = p.parse_args(argv)
     if args.profile and args.backend != "warp":
@@ -159,29 +162,24 @@ def main(argv=None) -> int:
 
 def _profile(model, num_envs: int, steps: int) -> dict:
     """``profile_step.profile`` of the stepper that ran the batched environments (the ``num_envs``-world replica
-    of ``model`` behind ``jit.batchable_step``; un-graphed, as inside the FFI call), from its last state and
-    targets."""
+    of ``model`` behind ``jit.batchable_step``), from its last state and targets: each kernel timed in un-graphed
+    steps, then the wall time of the same steps replayed as one CUDA graph, as the FFI call replays its step."""
     sys.path.insert(0, str(HERE))  # profile_step, beside this script
-    from profile_step import _copy_state, profile
+    from profile_step import profile
 
     from kamino.warp_backend import backend as wb
     from kamino.warp_backend import jit as wjit
 
     replicas = [r[num_envs] for _, r in wjit._BATCHABLE[model].values() if num_envs in r]
-    steppers = [st for key, st in wb._STEPPERS[replicas[0]].items() if key[3]]  # key[3]: for_jit
-    st = steppers[0]
-    result = profile(st, steps)
-    # the same steps from the same state by a stepper of the same model that captures its step as a CUDA graph
-    # (the PADMM loop a wp.capture_while of chunks): what the FFI path would gain from it
-    graphed = wb.stepper(st.wm.model, st.cfg, st.np_dtype, st.device)
-    _copy_state(graphed, st)
-    result["graphed"] = profile(graphed, steps) if graphed.use_graph else None
-    for label, r in (("FFI (un-graphed)", result), ("graphed", result["graphed"])):
-        if r is None:
-            continue
-        print(f"{label}: {r['graph_step_time_s']} s per step, iterations {r['iterations']}", flush=True)
-        for name, k in sorted(r["kernels"].items(), key=lambda kv: -kv[1]["ms_per_step"])[:10]:
-            print(f"  {name:40s} {k['ms_per_step']:9.3f} ms/step {k['launches_per_step']:6.1f} launches", flush=True)
+    st = next(st for key, st in wb._STEPPERS[replicas[0]].items() if key[3])  # key[3]: for_jit
+    use_graph, st.use_graph = st.use_graph, st.device.is_cuda
+    try:
+        result = profile(st, steps)
+    finally:
+        st.use_graph = use_graph
+    print(f"{result['graph_step_time_s']} s per step (graph replay), iterations {result['iterations']}", flush=True)
+    for name, k in sorted(result["kernels"].items(), key=lambda kv: -kv[1]["ms_per_step"])[:10]:
+        print(f"  {name:40s} {k['ms_per_step']:9.3f} ms/step {k['launches_per_step']:6.1f} launches", flush=True)
     return result
 
 

@@ -1,0 +1,22 @@
+"""benchmarks/rl_train.py's command line: ``--solver`` overrides reach the task's SolverConfig, bad ones raise."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import rl_train
+
+
+def test_solver_overrides_are_parsed_as_literals():
+    args = rl_train.parse_args(["fourbar_track", "--solver", "max_iterations=100", "--solver", "tolerance=1e-3"])
+    assert args.solver_overrides == {"max_iterations": 100, "tolerance": 1e-3}
+    with pytest.raises(SystemExit):  # argparse's error: not KEY=VALUE
+        rl_train.parse_args(["fourbar_track", "--solver", "max_iterations"])
+
+
+def test_an_unknown_solver_field_raises_naming_it(tmp_path):
+    with pytest.raises(TypeError, match="no_such_field"):
+        rl_train.main(["fourbar_track", "--solver", "no_such_field=1", "--out", str(tmp_path)])
