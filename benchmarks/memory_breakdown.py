@@ -39,7 +39,7 @@ def arrays_of(obj, path: str, seen: dict, depth: int = 0) -> None:
             arrays_of(item, f"{path}.{name}" + ("" if key is None else f"[{key}]"), seen, depth + 1)
 
 
-def breakdown(scene: str, num_worlds: int, device: str) -> dict:
+def breakdown(scene: str, num_worlds: int, device: str, padmm: str | None = None) -> dict:
     import warp as wp
 
     import kamino
@@ -51,7 +51,7 @@ def breakdown(scene: str, num_worlds: int, device: str) -> dict:
     dev = wp.get_device(device)
     wp.synchronize_device(dev)
     pool0 = wp.get_mempool_used_mem_current(dev) if dev.is_cuda else 0
-    st = wb.stepper(model, cfg, np.float32, dev)
+    st = wb.stepper(model, cfg, np.float32, dev, padmm=padmm)
     wp.synchronize_device(dev)
     pool = (wp.get_mempool_used_mem_current(dev) - pool0) / num_worlds if dev.is_cuda else None
     seen: dict = {}
@@ -69,6 +69,9 @@ def main(argv=None) -> int:
     p.add_argument("--worlds", type=int, default=4096)
     p.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
     p.add_argument("--top", type=int, default=8, help="arrays printed per scene")
+    p.add_argument("--padmm", choices=("thread", "warp"), default=None,
+                   help="the PADMM schedule (default: the automatic choice on the device; 'warp' on the CPU counts "
+                        "what the GPU's 32-thread schedule allocates)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     args = p.parse_args(argv)
     if args.worlds < 1:
@@ -78,7 +81,7 @@ def main(argv=None) -> int:
     wp.config.quiet = True
     records = []
     for scene in args.scenes:
-        rec = breakdown(scene, args.worlds, args.device or str(wp.get_device()))
+        rec = breakdown(scene, args.worlds, args.device or str(wp.get_device()), args.padmm)
         records.append(rec)
         pool = "" if rec["mempool_per_world"] is None else f", memory pool {rec['mempool_per_world']:.0f}"
         print(f"{scene} ({rec['rows_max']} rows, {rec['padmm']}, {rec['linear_solver']}): "

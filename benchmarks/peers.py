@@ -433,7 +433,9 @@ def _mjw_build(scene: str, num_worlds: int, dev: Any) -> tuple[Any, Any, Any, fl
     mujoco.mj_forward(mjm, mjd)
     with wp.ScopedDevice(dev):
         m = mjw.put_model(mjm)
-        d = mjw.put_data(mjm, mjd, nworld=num_worlds)
+        # the file's <size nconmax> (contacts per world), as kamino's load_mjcf reads it; else MuJoCo Warp's default
+        sizes = {"nconmax": int(mjm.nconmax)} if int(mjm.nconmax) >= 0 else {}
+        d = mjw.put_data(mjm, mjd, nworld=num_worlds, **sizes)
     return mjm, m, d, file_dt
 
 

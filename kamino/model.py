@@ -938,6 +938,12 @@ class ModelBuilder:
             k = int(bad[0])
             raise ModelError(f"{what}: lower limit {lo[k]} > upper limit {hi[k]} (DoF {k})")
 
+    def full_contact_capacity(self, pairs: list[tuple[int, int]] | None = None) -> int:
+        """The contacts the candidate pairs can produce together (``CONTACT_POINTS`` per pair): the default
+        capacity of :meth:`finalize`, which never overflows."""
+        pairs = self._contact_pairs() if pairs is None else pairs
+        return sum(CONTACT_POINTS[(self._geoms[a].type, self._geoms[b].type)] for a, b in pairs)
+
     def finalize(self, contact_capacity: int | None = None) -> Model:
         """Validate and return the single-world :class:`Model`; raises :class:`ModelError`.
 
@@ -971,7 +977,7 @@ class ModelBuilder:
             dup = next(n for n in gnames if gnames.count(n) > 1)
             raise ModelError(f"geom name {dup!r} is used twice")
         pairs = self._contact_pairs()
-        full_capacity = sum(CONTACT_POINTS[(self._geoms[a].type, self._geoms[b].type)] for a, b in pairs)
+        full_capacity = self.full_contact_capacity(pairs)
         if contact_capacity is None:
             contact_capacity = full_capacity
         elif int(contact_capacity) < 0:

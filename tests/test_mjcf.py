@@ -650,3 +650,54 @@ def test_fourbar_connect_loop_stays_closed(variant):
     print(f"\nfour-bar: max loop closure {closure.max():.2e} m, crank range {np.ptp(crank):.2f} rad")
     assert np.ptp(crank) > 0.5  # the servo moves the mechanism
     assert closure.max() < 1e-6  # float64 hard constraint (measured ~1e-9)
+
+
+# --- <size nconmax>: the contact capacity per world -------------------------------------------------------------
+_FOURBAR = Path(__file__).resolve().parents[1] / "benchmarks" / "scenes" / "fourbar.xml"
+
+
+def _fourbar_with_size(size: str) -> str:
+    xml = re.sub(r"<size[^>]*/>", "", _FOURBAR.read_text())
+    return xml.replace("<option", size + "\n  <option")
+
+
+def test_nconmax_sets_the_contact_capacity_and_an_argument_overrides_it():
+    # 4 box-plane pairs (4 points each) and 2 box-box pairs (8 each): 32 contacts without <size>
+    assert int(load_mjcf(_fourbar_with_size("")).world_contact_capacity[0]) == 32
+    assert int(load_mjcf(_fourbar_with_size('<size nconmax="6"/>')).world_contact_capacity[0]) == 6
+    # never more than the pairs can produce; the argument wins over the file
+    assert int(load_mjcf(_fourbar_with_size('<size nconmax="500"/>')).world_contact_capacity[0]) == 32
+    m = load_mjcf(_fourbar_with_size('<size nconmax="6"/>'), contact_capacity=12)
+    assert int(m.world_contact_capacity[0]) == 12
+
+
+def test_nconmax_round_trips_through_save_mjcf():
+    small = load_mjcf(_fourbar_with_size('<size nconmax="8"/>'))
+    assert 'nconmax="8"' in kamino.save_mjcf(small)
+    assert int(load_mjcf(kamino.save_mjcf(small)).world_contact_capacity[0]) == 8
+    # the default capacity writes no <size>: MuJoCo's own default applies
+    assert "nconmax" not in kamino.save_mjcf(load_mjcf(_fourbar_with_size("")))
+
+
+def test_the_benchmark_fourbar_drops_no_contact_at_its_nconmax():
+    """The benchmark scene declares 8 contacts per world (the link on the ground touches with 4). Driven both ways
+    into its limits for 2 s, no contact is dropped. On the Warp backend the trajectory is the one at the full
+    capacity of 32, bit for bit: the same contacts in the same slots, each row's arithmetic unchanged. The JAX
+    reference reduces over the padded rows, so its rounding differs (1.6e-9 m after one step); the four-bar, whose
+    base slides on the ground, amplifies that (3e-5 m after 100 steps), so it is compared over the first 40."""
+    full = load_mjcf(_fourbar_with_size(""))
+    small = load_mjcf(_FOURBAR)
+    assert int(small.world_contact_capacity[0]) == 8
+    cfg = kamino.SolverConfig(dt=0.0025)
+    t = np.arange(800) * cfg.dt
+    effort = np.zeros((800, full.num_dofs), np.float32)
+    effort[:, int(np.ravel(full.actuator_dof[0])[0])] = 2.0 * np.sin(2 * np.pi * t)
+    warp = [kamino.rollout(m, kamino.init_state(m, np.float32), kamino.Control(dof_effort=effort), config=cfg,
+                           backend="warp") for m in (full, small)]
+    assert int(np.max(warp[1].info.contact_overflow)) == 0
+    assert 4 <= int(np.max(warp[1].info.num_contacts)) <= 8
+    np.testing.assert_array_equal(np.asarray(warp[0].body_q), np.asarray(warp[1].body_q))
+    ref = [kamino.rollout(m, kamino.init_state(m, np.float32), kamino.Control(dof_effort=effort[:40]), config=cfg)
+           for m in (full, small)]
+    assert int(np.max(ref[1].info.contact_overflow)) == 0
+    np.testing.assert_allclose(np.asarray(ref[0].body_q), np.asarray(ref[1].body_q), atol=1e-6)

@@ -628,6 +628,10 @@ class _Converter:
             kj, dof = self.actuated[i]
             spec = acts[int(mj.actuator_trnid[i, 0])]
             self.b.add_actuator(kj, name=spec.name, gear=spec.gear, ctrl_range=spec.ctrl_range, dof=dof)
+        if contact_capacity is None and int(mj.nconmax) >= 0:
+            # <size nconmax="N">: MuJoCo's (and MuJoCo Warp's) contacts per world, kamino's contact capacity; no
+            # more than the pairs can produce together (the default, which never overflows)
+            contact_capacity = min(int(mj.nconmax), self.b.full_contact_capacity())
         model = self.b.finalize(contact_capacity=contact_capacity)
         return MjcfImport(model=model, mj_model=mj, joints=tuple(self.joint_map[j] for j in range(mj.njnt)),
                           body_map=tuple(self.body_map), body_source=tuple(self.body_source),
@@ -640,8 +644,9 @@ def import_mjcf(source: str | os.PathLike | bytes, *, contact_capacity: int | No
 
     Args:
         source: a path to an MJCF file, or the XML itself (a string starting with ``'<'``).
-        contact_capacity: passed to :meth:`kamino.ModelBuilder.finalize` (default: what the
-            candidate pairs can produce, never overflowing).
+        contact_capacity: passed to :meth:`kamino.ModelBuilder.finalize`. Default: the file's
+            ``<size nconmax="N"/>`` (MuJoCo's contacts per world) if it sets one, at most what the
+            candidate pairs can produce; else what they can produce, which never overflows.
         light_mass_ratio: mass and inertia of the light intermediate bodies that chain MuJoCo joints
             of one body which form no exact composite joint, relative to that body's.
 

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from kamino.hostmath import quat_mul, quat_to_matrix
-from kamino.model import ActuationMode, GeomType, JointType, Model
+from kamino.model import CONTACT_POINTS, ActuationMode, GeomType, JointType, Model
 
 #: Distance [m] between the two ``<connect>`` points that close a revolute loop joint (along its axis).
 REVOLUTE_CONNECT_SPACING = 0.1
@@ -663,6 +663,9 @@ class _Exporter:
             root.append(ET.Comment(" dropped (lossy=True): " + "; ".join(self.dropped) + " "))
         ET.SubElement(root, "compiler", angle="radian", autolimits="true", inertiafromgeom="false")
         ET.SubElement(root, "option", gravity=_fmt(m.gravity[0]), integrator="implicitfast")
+        capacity = int(m.world_contact_capacity[0]) if m.num_pairs else 0
+        if capacity < _full_contact_capacity(m):  # a capacity chosen below the default: MuJoCo's contacts per world
+            ET.SubElement(root, "size", nconmax=str(capacity))
         if self.cut or m.num_couplings:
             # kamino's loop closures are hard; MuJoCo's equalities are soft: a 4 ms time constant (twice MuJoCo's
             # default time step) keeps the exported loops closed to ~1e-4 m where the default 20 ms lets them sag
@@ -691,6 +694,13 @@ class _Exporter:
                              f"{lines}")
         ET.indent(root, space="  ")
         return ET.tostring(root, encoding="unicode") + "\n"
+
+
+def _full_contact_capacity(m: Model) -> int:
+    """What the candidate pairs of a single-world model can produce together: ``finalize``'s default capacity."""
+    types = [(GeomType(int(m.geom_type[a])), GeomType(int(m.geom_type[b])))
+             for a, b in zip(m.pair_geom_a, m.pair_geom_b, strict=True)]
+    return sum(CONTACT_POINTS[(a, b) if a <= b else (b, a)] for a, b in types)
 
 
 def loop_closing_joints(model: Model) -> list[int]:

@@ -107,7 +107,7 @@ class Stepper:
         with wp.ScopedDevice(self.device):
             # under the 32-thread schedule each world's rows are contiguous (its threads read consecutive rows)
             self.work = allocate(wm, cfg.integrator == "euler", self.dense, llt and not self.sparse_factor,
-                                 rows_per_world=padmm == "warp")
+                                 rows_per_world=padmm == "warp", cr=not llt)
             if self.sparse_factor:
                 self.sf = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy(),
                                            per_world=padmm == "warp")

@@ -154,10 +154,12 @@ def work_struct(np_dtype):
     return Work
 
 
-def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, rows_per_world: bool = False):
+def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, rows_per_world: bool = False,
+             cr: bool = False):
     """A zero-initialised :func:`work_struct` for ``wm`` (``q_eval`` aliases ``q`` for Euler); ``dense``: the
     dense per-world Jacobian, ``delassus``: the dense Delassus matrix (not needed by CR or the sparse factor);
-    ``rows_per_world``: each world's rows contiguous (``Work.row_stride = 1``) instead of interleaved."""
+    ``rows_per_world``: each world's rows contiguous (``Work.row_stride = 1``) instead of interleaved; ``cr``: the
+    Conjugate Residual solve's scratch (``cr_*``; empty for the LLT paths, which never read it)."""
     T = types_of(wm.np_dtype)
     m = wm.model
     dev = wm.device
@@ -186,12 +188,13 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
         "row_type": (R, wp.int32), "row_src": (R, wp.int32), "row_side": (R, T.scalar),
         "Jd": (wm.total_jd if dense else 0, T.scalar), "MJd": (wm.total_jd if dense else 0, T.scalar),
         "D": (wm.total_mat if delassus else 0, T.scalar),
-        "cr_w": (B, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
+        "cr_w": (B if cr else 0, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
     }
     for name in ("vstar", "reg", "lo", "hi", "mu", "f0", "v0", "vf", "P", "vt", "lo_s", "hi_s", "x", "y", "z", "x_p",
-                 "y_p", "z_p", "y_hat", "z_hat", "e_p",
-                 "impulse", "velocity", "cr_r", "cr_p", "cr_Ap", "cr_Ar", "sdiag"):
+                 "y_p", "z_p", "y_hat", "z_hat", "e_p", "impulse", "velocity", "sdiag"):
         sizes[name] = (R, T.scalar)
+    for name in ("cr_r", "cr_p", "cr_Ap", "cr_Ar"):
+        sizes[name] = (R if cr else 0, T.scalar)
     for name in ("a_p", "c_p", "r_p", "r_d", "r_c", "rho_u", "p_ref"):
         sizes[name] = (m.num_worlds, T.scalar)
     sizes["sat"] = (R, wp.int32)
