@@ -86,7 +86,7 @@ def _callable(st: Stepper):
         s = _stepper_on(st, arrays[0].device)
         for arr, (_, buf, _) in zip(arrays[:len(ins)], ins, strict=True):
             wp.copy(getattr(s.work, buf), arr)
-        graph = s._graphs.get(1)
+        graph = s.captured(1)
         if graph is not None:  # the step's graph, captured below; it replays on XLA's stream
             wp.capture_launch(graph)
         else:

@@ -297,6 +297,10 @@ class Stepper:
             return
         wp.capture_launch(self.graph(num_steps))
 
+    def captured(self, num_steps: int):
+        """The CUDA graph of ``num_steps`` steps if :meth:`graph` captured it, else ``None``."""
+        return self._graphs.get(num_steps)
+
     def graph(self, num_steps: int):
         """The CUDA graph of ``num_steps`` steps, captured on first use (on Warp's stream of the device; it replays
         on any stream, XLA's included: ``jit.py``)."""
