@@ -30,6 +30,10 @@ PPO_CONFIGS: dict[str, dict] = {
             "num_eval_envs": 128, "unroll_length": 20, "batch_size": 256, "num_minibatches": 32,
             "num_updates_per_batch": 4, "learning_rate": 3e-4, "entropy_cost": 1e-2, "discounting": 0.97,
             "reward_scaling": 1.0, "normalize_observations": True, "max_grad_norm": 1.0, "seed": 0,
+            # RSL-RL's rule (the paper's and legged_gym's trainer): the rate adapts to a KL target between policy
+            # updates. A GPU run resumes every call with a fresh Adam state (brax restores only the parameters),
+            # and session 25's policy got worse after such resumes at a fixed rate (docs/envs.md)
+            "learning_rate_schedule": "ADAPTIVE_KL", "desired_kl": 0.01,
         },
     },
 }
