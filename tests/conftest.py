@@ -12,9 +12,6 @@ it. These settings cut that without touching what is computed:
 - A persistent compilation cache under ``.pytest_cache/jax-<worker>``, one per xdist worker. Many tests
   compile the same step (same model, shapes and config) in fresh closures; from the second one on, the
   executable comes from disk. A clean clone starts with an empty cache.
-- Each test module on one worker (``--dist loadfile`` in pyproject.toml): with xdist's default distribution the
-  tests of one module, which mostly step the same few models, were spread over both workers, and each worker
-  compiled those steps itself (the caches above are per process and per worker).
 
 CPU deadlock (why pyproject.toml excludes jaxlib 0.10.x and 0.11.0). Workers hung at 0 % CPU inside JAX rollouts
 on CI runs of 2026-11-23 and 24 (test_post_stabilisation, test_batching), and one died. gdb on a hung worker
@@ -125,19 +122,15 @@ def _hypothesis_examples_independent_of_imports() -> None:
 _hypothesis_examples_independent_of_imports()
 
 
-#: the test modules by their total time, longest first (CI clone of 2026-11-26, session 27, in worker-seconds: envs 391,
-#: notebooks 378, robots 297, contacts 244, actuation_limits 177, mjcf 169, cross_backend 164, physics 157, envs_ppo
-#: 149, forward_kinematics 148, world_health 137, post_stabilisation 124, save_mjcf 122; the rest under 115 each)
-_LONG_FIRST = ("test_envs.py", "test_notebooks.py", "test_robots.py", "test_contacts.py", "test_actuation_limits.py",
-               "test_mjcf.py", "test_cross_backend.py", "test_physics.py", "test_envs_ppo.py",
-               "test_forward_kinematics.py", "test_world_health.py", "test_post_stabilisation.py",
-               "test_save_mjcf.py")
+#: test modules that hold the suite's longest tests (CI of 2026-11-26: notebook 02 156 s, the animatronic's 5 s hold
+#: on the JAX backend 112 s, notebook 05 90 s, the PPO tests 49-68 s, sharding 45 s), collected first
+_LONG_FIRST = ("test_notebooks.py", "test_robots.py", "test_envs_ppo.py", "test_envs.py", "test_sharding.py")
 
 
 def pytest_collection_modifyitems(config, items) -> None:
-    """Start the longest test modules first. xdist hands the modules out (``--dist loadfile``) in collection order.
-    In alphabetical order the notebooks and test_robots.py came late, so one worker was still running them after the
-    other had finished. Longest first, the short modules fill in at the end. The order within a module is kept (a
-    stable sort), and each worker sorts the same way."""
+    """Start the longest test modules first. xdist hands tests out in collection order. In alphabetical order
+    the notebooks and test_robots.py came late, so one worker was still running them after the other had finished.
+    Started first, they overlap with the many short tests. The order within a module is kept (a stable sort), and
+    each worker sorts the same way."""
     rank = {name: i for i, name in enumerate(_LONG_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(_LONG_FIRST)))
