@@ -45,7 +45,7 @@ def test_a_standing_policy_tracks_nothing_and_does_not_fall(zero_policy_checkpoi
     import rl_eval
 
     out = tmp_path / "eval.json"
-    rc = rl_eval.main([str(zero_policy_checkpoint), "--backend", "jax", "--episodes", "4", "--seconds", "1",
+    rc = rl_eval.main([str(zero_policy_checkpoint), "--backend", "warp", "--episodes", "4", "--seconds", "1",
                        "--env", "reset_bank=8", "--out", str(out)])
     assert rc == 0
     r = json.loads(out.read_text())
