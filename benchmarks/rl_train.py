@@ -1,7 +1,8 @@
 """Train a kamino environment with brax's PPO (issue 18): ``python benchmarks/rl_train.py TASK``.
 
 The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS`` (``--steps``, ``--num-envs``, ``--evals``,
-``--seed`` override them). Writes into ``--out`` (default ``scratch/rl/TASK``, git-ignored):
+``--seed`` and ``--set`` override them; ``--env`` overrides the environment's keywords, ``--solver`` its
+``SolverConfig``). Writes into ``--out`` (default ``scratch/rl/TASK``, git-ignored):
 
 - ``checkpoints/<step>/``: the policy (normalizer, policy, value parameters; brax's orbax format and network config)
   after every evaluation, ``<step>`` counting environment steps over all runs. A later run of the same command
@@ -55,10 +56,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
                    help="a field of the task's SolverConfig, VALUE a Python literal (repeatable): --solver "
                         "max_iterations=100")
+    p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                   help="an environment keyword over the task's config, VALUE a Python literal (repeatable): "
+                        "--env tracking_sigma=0.1. A resumed run must repeat it: the checkpoint holds no env")
     args = p.parse_args(argv)
-    args.ppo_overrides, args.solver_overrides = {}, {}
+    args.ppo_overrides, args.solver_overrides, args.env_overrides = {}, {}, {}
     for flag, items, into in (("--set", args.set, args.ppo_overrides), ("--solver", args.solver,
-                                                                          args.solver_overrides)):
+                                                                          args.solver_overrides),
+                              ("--env", args.env, args.env_overrides)):
         for item in items:
             key, sep, value = item.partition("=")
             if not sep or not key.isidentifier():
@@ -160,10 +165,11 @@ def main(argv=None) -> int:
     train_curve = json.loads(train_path.read_text()) if train_path.exists() and not args.fresh else []
     train_curve = [c for c in train_curve if c["step"] <= done]
     remaining = total - done
-    env = make(args.task, backend=args.backend, **cfg["env"])
+    env_kwargs = {**cfg["env"], **args.env_overrides}
+    env = make(args.task, backend=args.backend, **env_kwargs)
     if args.solver_overrides:  # a field that SolverConfig lacks raises here, naming it
         config = dataclasses.replace(env.solver_config, **args.solver_overrides)
-        env = make(args.task, backend=args.backend, solver_config=config, **cfg["env"])
+        env = make(args.task, backend=args.backend, solver_config=config, **env_kwargs)
     used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
     print(f"{args.task}: backend {args.backend}, {used} device(s) {jax.devices()[0].platform}, "
           f"{env.observation_size} observations, {env.action_size} actions, policy {1 / env.dt:.0f} Hz; "
@@ -224,7 +230,7 @@ def main(argv=None) -> int:
         plot_curve(curve, out / "reward_curve.png", f"{args.task} (PPO, kamino {args.backend} backend)", train_curve)
     report = {
         "task": args.task, "backend": args.backend, "command": " ".join(sys.argv),
-        "env": cfg["env"], "solver_overrides": args.solver_overrides, "network": cfg["network"],
+        "env": env_kwargs, "solver_overrides": args.solver_overrides, "network": cfg["network"],
         "ppo": {k: v for k, v in kwargs.items() if isinstance(v, (int, float, str, bool)) or v is None},
         "total_steps": total, "steps_before_this_run": done, "steps_this_run": max(remaining, 0),
         "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),

@@ -110,10 +110,23 @@ WARP_SPARSE_CR = Variant("warp-sparse-cr", "warp", "sparse", "cr")
 WARP_VARIANTS = (WARP_DENSE_LLT, WARP_SPARSE_LLT, WARP_SPARSE_CR)
 VARIANTS = (JAX, *WARP_VARIANTS)
 
-#: ``@pytest.mark.parametrize("variant", BACKENDS)``: the four variants every physics test runs on
-BACKENDS = [pytest.param(v, id=v.id) for v in VARIANTS]
+
+def _tier(v: Variant) -> list:
+    """The JAX reference's variant of a physics test is in the ``slow`` tier (``pytest -m slow``; README.md, "Tests").
+
+    Its cost is XLA compiling the step on the CPU (10-20 s a test against 1-3 s for a Warp variant: 920 of CI's 3728
+    worker-seconds at c951ff7, benchmarks/results/s27_cpu/ci_durations_c951ff7.txt). The default tier still checks
+    the reference: the cross-backend tests compare every Warp variant with it step by step
+    (tests/test_cross_backend.py), and the environments, gradients and sharding tests run it."""
+    return [pytest.mark.slow] if not v.is_warp else []
+
+
+#: ``@pytest.mark.parametrize("variant", BACKENDS)``: the four variants every physics test runs on (the JAX one in
+#: the slow tier)
+BACKENDS = [pytest.param(v, id=v.id, marks=_tier(v)) for v in VARIANTS]
 #: the three Warp solver configurations (cross-backend tests)
 WARP_BACKENDS = [pytest.param(v, id=v.id) for v in WARP_VARIANTS]
+
 
 def backends(*, xfail_cr: str | None = None) -> list:
     """:data:`BACKENDS`, with the ``warp-sparse-cr`` variant marked ``xfail(strict=True, reason=xfail_cr)``
@@ -121,5 +134,5 @@ def backends(*, xfail_cr: str | None = None) -> list:
     out = []
     for v in VARIANTS:
         marks = [pytest.mark.xfail(strict=True, reason=xfail_cr)] if (xfail_cr and v.is_cr) else []
-        out.append(pytest.param(v, id=v.id, marks=marks))
+        out.append(pytest.param(v, id=v.id, marks=marks + _tier(v)))
     return out

@@ -679,13 +679,9 @@ def test_nconmax_round_trips_through_save_mjcf():
     assert "nconmax" not in kamino.save_mjcf(load_mjcf(_fourbar_with_size("")))
 
 
-def test_the_benchmark_fourbar_drops_no_contact_at_its_nconmax():
-    """The benchmark scene declares 8 contacts per world (the link on the ground touches with 4). Driven both ways
-    into its limits (one period of the benchmark's 1 Hz drive), no contact is dropped. On the Warp backend the
-    trajectory is the one at the full capacity of 32, bit for bit: the same contacts in the same slots, each row's
-    arithmetic unchanged. The JAX reference reduces over the padded rows, so its rounding differs (1.6e-9 m after
-    one step); the four-bar, whose base slides on the ground, amplifies that (3e-5 m after 100 steps), so it is
-    compared over the first 40."""
+def _benchmark_fourbar_runs():
+    """The benchmark four-bar at the full contact capacity of 32 and at its own ``nconmax`` 8, with the benchmark's
+    1 Hz drive of 400 steps (one period, into both limits): the two models, the config and the efforts."""
     full = load_mjcf(_fourbar_with_size(""))
     small = load_mjcf(_FOURBAR)
     assert int(small.world_contact_capacity[0]) == 8
@@ -693,12 +689,29 @@ def test_the_benchmark_fourbar_drops_no_contact_at_its_nconmax():
     t = np.arange(400) * cfg.dt
     effort = np.zeros((400, full.num_dofs), np.float32)
     effort[:, int(np.ravel(full.actuator_dof[0])[0])] = 2.0 * np.sin(2 * np.pi * t)
+    return (full, small), cfg, effort
+
+
+def test_the_benchmark_fourbar_drops_no_contact_at_its_nconmax():
+    """The benchmark scene declares 8 contacts per world (the link on the ground touches with 4). Driven both ways
+    into its limits (one period of the benchmark's 1 Hz drive), no contact is dropped. On the Warp backend the
+    trajectory is the one at the full capacity of 32, bit for bit: the same contacts in the same slots, each row's
+    arithmetic unchanged."""
+    models, cfg, effort = _benchmark_fourbar_runs()
     warp = [kamino.rollout(m, kamino.init_state(m, np.float32), kamino.Control(dof_effort=effort), config=cfg,
-                           backend="warp") for m in (full, small)]
+                           backend="warp") for m in models]
     assert int(np.max(warp[1].info.contact_overflow)) == 0
     assert 4 <= int(np.max(warp[1].info.num_contacts)) <= 8
     np.testing.assert_array_equal(np.asarray(warp[0].body_q), np.asarray(warp[1].body_q))
+
+
+@pytest.mark.slow
+def test_the_benchmark_fourbar_drops_no_contact_at_its_nconmax_on_the_reference():
+    """The same on the JAX reference (the slow tier: two compiles of the step, ~50 s of CI). The reference reduces
+    over the padded rows, so its rounding differs (1.6e-9 m after one step); the four-bar, whose base slides on the
+    ground, amplifies that (3e-5 m after 100 steps), so it is compared over the first 40 steps."""
+    models, cfg, effort = _benchmark_fourbar_runs()
     ref = [kamino.rollout(m, kamino.init_state(m, np.float32), kamino.Control(dof_effort=effort[:40]), config=cfg)
-           for m in (full, small)]
+           for m in models]
     assert int(np.max(ref[1].info.contact_overflow)) == 0
     np.testing.assert_allclose(np.asarray(ref[0].body_q), np.asarray(ref[1].body_q), atol=1e-6)

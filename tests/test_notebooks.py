@@ -22,8 +22,23 @@ NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
 CELL_TIMEOUT = 300
 
 
+#: notebooks whose execution is in the ``slow`` tier (``pytest -m slow``; README.md, "Tests"), with the default-tier
+#: tests that check what they show. Seconds are their execution in CI at c951ff7
+#: (benchmarks/results/s27_cpu/ci_durations_c951ff7.txt). Whether each is stored without outputs is checked in both.
+SLOW = {
+    "02_robots_and_resets": "86 s; the robots' resets and rollouts are test_fk_robots.py's and test_robots.py's",
+    "04_differentiable_design": "82 s; the gradients through the step are test_grad.py's",
+    "05_training": "199 s; the same PPO run (fourbar_track, 61 440 steps, seed 0) is test_envs_ppo.py's",
+}
+
+
 def _ids(path: Path) -> str:
     return path.stem
+
+
+def _executions() -> list:
+    return [pytest.param(path, id=path.stem, marks=[pytest.mark.slow] if path.stem in SLOW else [])
+            for path in NOTEBOOKS]
 
 
 def _strip_outputs_module():
@@ -35,6 +50,7 @@ def _strip_outputs_module():
 
 def test_there_are_notebooks():
     assert NOTEBOOKS, f"no notebooks found in {NOTEBOOK_DIR}"
+    assert set(SLOW) <= {path.stem for path in NOTEBOOKS}, f"SLOW names a notebook that is gone: {sorted(SLOW)}"
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=_ids)
@@ -49,7 +65,7 @@ def test_notebook_is_stored_without_outputs(path):
         f"{path.name} carries run metadata; run `python notebooks/strip_outputs.py` before committing")
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=_ids)
+@pytest.mark.parametrize("path", _executions())
 def test_notebook_executes(path):
     nbclient = pytest.importorskip("nbclient")
     pytest.importorskip("ipykernel")

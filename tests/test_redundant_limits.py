@@ -4,6 +4,10 @@ A parallelogram loop driven into its +-45 deg hinge limits activates three limit
 equal modulo the loop's bilateral rows: the split of the limit impulse between them is undetermined and PADMM
 creeps along that null direction up to its iteration cap. Fixing ``lambda = 0`` on all but the row with the
 smallest bias leaves the solution (``v+``, hence the bodies' velocities) unchanged and stops the creep.
+
+The option is the JAX reference's only (float64; the Warp backend refuses it) and off by default, so its two
+rollout tests (114 s of CI at c951ff7: the driven four-bar's compiles) are in the ``slow`` tier (README.md,
+"Tests"); the rule's own tests on constructed rows stay in the default tier.
 """
 
 from __future__ import annotations
@@ -67,6 +71,7 @@ def _spy_on_the_rule(record):
     return solve
 
 
+@pytest.mark.slow
 def test_parallelogram_limits_stop_creeping_and_keep_the_solution(fourbar_in_limits, monkeypatch):
     model, control, states = fourbar_in_limits
 
@@ -120,6 +125,7 @@ def _double_pendulum():
     return b.finalize()
 
 
+@pytest.mark.slow
 def test_independent_limits_are_left_alone():
     """A serial chain pressing two (independent) limits: the rule changes nothing, bitwise."""
     model = _double_pendulum()

@@ -20,3 +20,10 @@ def test_solver_overrides_are_parsed_as_literals():
 def test_an_unknown_solver_field_raises_naming_it(tmp_path):
     with pytest.raises(TypeError, match="no_such_field"):
         rl_train.main(["fourbar_track", "--solver", "no_such_field=1", "--out", str(tmp_path)])
+
+
+def test_env_overrides_are_parsed_as_literals_and_reach_the_environment(tmp_path):
+    args = rl_train.parse_args(["fourbar_track", "--env", "tracking_sigma=0.1"])
+    assert args.env_overrides == {"tracking_sigma": 0.1}
+    with pytest.raises(TypeError, match="no_such_keyword"):  # the task's constructor names what it does not take
+        rl_train.main(["fourbar_track", "--env", "no_such_keyword=1", "--out", str(tmp_path)])
