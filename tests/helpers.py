@@ -111,7 +111,7 @@ WARP_VARIANTS = (WARP_DENSE_LLT, WARP_SPARSE_LLT, WARP_SPARSE_CR)
 VARIANTS = (JAX, *WARP_VARIANTS)
 
 
-def _tier(v: Variant) -> list:
+def tier_marks(v: Variant) -> list:
     """The JAX reference's variant of a physics test is in the ``slow`` tier (``pytest -m slow``; README.md, "Tests").
 
     Its cost is XLA compiling the step on the CPU (10-20 s a test against 1-3 s for a Warp variant: 920 of CI's 3728
@@ -121,9 +121,15 @@ def _tier(v: Variant) -> list:
     return [pytest.mark.slow] if not v.is_warp else []
 
 
+def variant_param(v: Variant, *, id: str | None = None, marks: tuple = ()):
+    """``pytest.param(v)`` with the variant's tier mark (:func:`tier_marks`): how a test that picks its own variants
+    parametrizes over them."""
+    return pytest.param(v, id=id or v.id, marks=[*marks, *tier_marks(v)])
+
+
 #: ``@pytest.mark.parametrize("variant", BACKENDS)``: the four variants every physics test runs on (the JAX one in
 #: the slow tier)
-BACKENDS = [pytest.param(v, id=v.id, marks=_tier(v)) for v in VARIANTS]
+BACKENDS = [variant_param(v) for v in VARIANTS]
 #: the three Warp solver configurations (cross-backend tests)
 WARP_BACKENDS = [pytest.param(v, id=v.id) for v in WARP_VARIANTS]
 
@@ -134,5 +140,5 @@ def backends(*, xfail_cr: str | None = None) -> list:
     out = []
     for v in VARIANTS:
         marks = [pytest.mark.xfail(strict=True, reason=xfail_cr)] if (xfail_cr and v.is_cr) else []
-        out.append(pytest.param(v, id=v.id, marks=marks + _tier(v)))
+        out.append(variant_param(v, marks=tuple(marks)))
     return out

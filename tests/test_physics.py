@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import kamino
-from tests.helpers import BACKENDS, JAX, WARP_SPARSE_LLT, trajectory_joint_positions, trajectory_metrics
+from tests.helpers import BACKENDS, JAX, WARP_SPARSE_LLT, trajectory_joint_positions, trajectory_metrics, variant_param
 
 
 def _period_from_crossings(t: np.ndarray, x: np.ndarray) -> float:
@@ -64,7 +64,7 @@ def test_fourbar_stays_closed_and_conserves_energy(integrator, closure_bound, va
         assert met["kinetic_energy"].max() > 0.05  # it really swings (about 0.19 J)
 
 
-@pytest.mark.parametrize("variant", [JAX, WARP_SPARSE_LLT], ids=lambda v: v.id)
+@pytest.mark.parametrize("variant", [variant_param(JAX), variant_param(WARP_SPARSE_LLT)])
 def test_fourbar_keeps_its_energy_at_the_float32_defaults(variant):
     """Issue 16 acceptance: the passive four-bar keeps its energy within 1 % over 10 s at ``SolverConfig(dt)``,
     float32 (semi-implicit Euler, post-stabilisation). Measured on both backends: the total energy within 0.07 %,

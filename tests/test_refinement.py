@@ -24,7 +24,8 @@ def _max_violation(model, traj) -> float:
     return float(np.max(viol))
 
 
-@pytest.mark.parametrize("backend", ["jax", "warp"])
+# the JAX variant is in the slow tier, as tests/helpers.py tier_marks puts every JAX variant
+@pytest.mark.parametrize("backend", [pytest.param("jax", marks=pytest.mark.slow), "warp"])
 def test_refinement_cuts_the_loop_closure_error_of_a_swinging_ladder(backend):
     # the driven ladder of 8 parallelogram loops swings from 30 deg at up to ~14 rad/s; at dt = 2.5 ms the
     # curvature predicted along the free velocity misses the constraint impulse's share, O(h^2 |du| |u|)

@@ -20,7 +20,7 @@ from kamino.jax_ref.spatial import integrate_pose
 from kamino.kinematics import actuated_joints
 from kamino.model import ActuationMode, GeomType, JointType, count_loops
 from kamino.models import robots
-from tests.helpers import BACKENDS, VARIANTS, WARP_SPARSE_CR, trajectory_metrics
+from tests.helpers import BACKENDS, VARIANTS, WARP_SPARSE_CR, tier_marks, trajectory_metrics
 
 #: Table 1 of the paper: bodies, actuated joints, passive joints (without the FREE base joint), FREE
 #: base joint from the world, independent loops.
@@ -281,7 +281,7 @@ def _standing_cases() -> list:
         for v in VARIANTS:
             bug = v.is_cr and name == "dr_legs"
             marks = [pytest.mark.xfail(strict=True, reason=CR_BUDGET_DR_LEGS)] if bug else []
-            cases.append(pytest.param(name, v, id=f"{name}-{v.id}", marks=marks))
+            cases.append(pytest.param(name, v, id=f"{name}-{v.id}", marks=marks + tier_marks(v)))
     cases.append(pytest.param("dr_legs", WARP_SPARSE_CR30, id=f"dr_legs-{WARP_SPARSE_CR30.id}"))
     return cases
 

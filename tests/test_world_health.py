@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import kamino
-from tests.helpers import BACKENDS, JAX, WARP_DENSE_LLT, WARP_SPARSE_LLT
+from tests.helpers import BACKENDS, JAX, WARP_DENSE_LLT, WARP_SPARSE_LLT, variant_param
 
 SCENES = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "scenes"
 DT = 0.0025
@@ -218,7 +218,7 @@ _LIMIT_CYCLE_U = [
 _LIMIT_CYCLE_T, _LIMIT_CYCLE_PHASE = 1.2700053453445435, 2.0 * np.pi * 129 / 256
 
 
-@pytest.mark.parametrize("variant", [JAX, WARP_SPARSE_LLT], ids=lambda v: v.id)
+@pytest.mark.parametrize("variant", [variant_param(JAX), variant_param(WARP_SPARSE_LLT)])
 def test_penalty_balancing_converges_on_three_equivalent_limits(variant):
     """One step of the benchmark four-bar from a state where its three hinge limits bind together. The limit rows
     are equivalent modulo the loop's rows (their projected Gram matrix has rank 1): the solution carries the impulse
