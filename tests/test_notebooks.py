@@ -26,6 +26,8 @@ CELL_TIMEOUT = 300
 #: tests that check what they show. Seconds are their execution in CI at c951ff7
 #: (benchmarks/results/s27_cpu/ci_durations_c951ff7.txt). Whether each is stored without outputs is checked in both.
 SLOW = {
+    "01_quickstart": "36 s; its code is the README's quickstart, test_first_hour.py's snippets, and the loop against "
+                     "MuJoCo's <connect> is test_mjcf.py's",
     "02_robots_and_resets": "86 s; the robots' resets and rollouts are test_fk_robots.py's and test_robots.py's",
     "04_differentiable_design": "82 s; the gradients through the step are test_grad.py's",
     "05_training": "199 s; the same PPO run (fourbar_track, 61 440 steps, seed 0) is test_envs_ppo.py's",

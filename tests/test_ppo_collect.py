@@ -15,6 +15,7 @@ def ppo_collect():
     return load_benchmark("ppo_collect")
 
 
+@pytest.mark.slow  # 31-38 s of CI (its four-bar steps compile twice); every GPU session runs the script itself
 def test_records_the_solver_in_the_collection_loop(ppo_collect, tmp_path):
     """Both runs append one record each. At a zero action the four-bar rests at its reset and its solves need
     few iterations; random actions drive the crank and cost more. Every solve converges. At rest the loop stays
