@@ -112,7 +112,8 @@ VARIANTS = (JAX, *WARP_VARIANTS)
 
 
 def tier_marks(v: Variant) -> list:
-    """The JAX reference's variant of a physics test is in the ``slow`` tier (``pytest -m slow``; README.md, "Tests").
+    """The JAX reference's variant of a physics test is in the ``slow`` tier (``pytest -m slow``; README.md, under
+    the test command).
 
     Its cost is XLA compiling the step on the CPU (10-20 s a test against 1-3 s for a Warp variant: 920 of CI's 3728
     worker-seconds at c951ff7, benchmarks/results/s27_cpu/ci_durations_c951ff7.txt). The default tier still checks

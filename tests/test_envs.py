@@ -403,8 +403,8 @@ _TWO_DEVICES = textwrap.dedent("""
 """)
 
 
-# the Warp run is in the slow tier (README.md, "Tests"): the Warp step under pmap on two devices, each with its own
-# stepper, is test_sharding.py's, in the default tier
+# the Warp run is in the slow tier (README.md, under the test command): the Warp step under pmap on two devices,
+# each with its own stepper, is test_sharding.py's, in the default tier
 @pytest.mark.parametrize("backend", ["jax", pytest.param("warp", marks=pytest.mark.slow)])
 def test_ppo_pmaps_over_two_host_devices(backend):
     """brax's PPO pmaps over the local devices: two forced host devices (the XLA flag must be set before jax is

@@ -22,8 +22,8 @@ NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
 CELL_TIMEOUT = 300
 
 
-#: notebooks whose execution is in the ``slow`` tier (``pytest -m slow``; README.md, "Tests"), with the default-tier
-#: tests that check what they show. Seconds are their execution in CI at c951ff7
+#: notebooks whose execution is in the ``slow`` tier (``pytest -m slow``; README.md, under the test command), with
+#: the default-tier tests that check what they show. Seconds are their execution in CI at c951ff7
 #: (benchmarks/results/s27_cpu/ci_durations_c951ff7.txt). Whether each is stored without outputs is checked in both.
 SLOW = {
     "01_quickstart": "36 s; its code is the README's quickstart, test_first_hour.py's snippets, and the loop against "

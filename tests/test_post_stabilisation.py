@@ -92,10 +92,6 @@ def _coupled_hinges() -> kamino.Model:
     return b.finalize()
 
 
-# one worker for the three variants (pyproject.toml: --dist loadgroup): the reference's rollout compiles once and
-# the others read it from that worker's compilation cache. Spread over both workers, two of them compiled it, 54 s
-# each (CI at 1177b84)
-@pytest.mark.xdist_group("post_stabilisation_reference")
 @pytest.mark.parametrize("variant", WARP_BACKENDS)
 def test_warp_projects_as_the_reference(variant):
     """Loops, a coupling, actuators and contacts in one heterogeneous model, float64: the Warp backend's projection
