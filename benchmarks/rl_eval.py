@@ -57,8 +57,12 @@ def load_policy(ckpt: Path, task: str):
     return ppo_networks.make_inference_fn(net)(ppo_checkpoint.load(ckpt), deterministic=True)
 
 
-def evaluate(env, policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0) -> dict:
-    """Run ``episodes`` episodes of ``seconds`` at forward commands uniform in ``speed`` [m/s]; see the module doc."""
+def trace(env, policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0):
+    """The walking test's rollout: ``episodes`` episodes of ``seconds`` at forward commands uniform in ``speed``
+    [m/s] (no lateral or yaw command), the policy's deterministic action. Returns numpy arrays ``(commands [E],
+    lin_vel [E, T, 3], ang_vel [E, T, 3], counted [E, T], fell [E])``: the base body's velocities in its own frame
+    after each policy step; ``counted`` is True for the steps that began with the robot up (the step that ends an
+    episode is its last counted one); ``fell`` marks the episodes that ended before ``seconds``."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -79,24 +83,31 @@ def evaluate(env, policy, *, episodes: int, seconds: float, speed: tuple[float, 
             action, _ = policy(s.obs, k)
             s = env.step(s, action)
             ps = env.full_state(s.pipeline_state)
-            v = body_frame_vectors(ps.body_q, ps.body_u, env._base)["lin_vel"][:2]
-            err = jnp.linalg.norm(s.info["command"][:2] - v)
-            # a step counts while the robot is up; the step that ends the episode is the last
-            out = (jnp.where(alive, err, 0.0), jnp.where(alive, v[0], 0.0), alive)
-            return (s, alive & (s.done == 0)), out
+            frame = body_frame_vectors(ps.body_q, ps.body_u, env._base)
+            return (s, alive & (s.done == 0)), (frame["lin_vel"], frame["ang_vel"], alive)
 
-        (_, alive_end), (err, v, counted) = jax.lax.scan(body, (state, jnp.bool_(True)), jax.random.split(key, steps))
-        n = jnp.maximum(jnp.sum(counted), 1)
-        return jnp.sum(err) / n, jnp.sum(v) / n, ~alive_end
+        (_, alive_end), out = jax.lax.scan(body, (state, jnp.bool_(True)), jax.random.split(key, steps))
+        return (*out, ~alive_end)
 
-    t0 = time.perf_counter()
     with jax.enable_x64(False):
         states = jax.jit(jax.vmap(start))(jax.random.split(key_reset, episodes), commands)
-        err, v, fell = jax.jit(jax.vmap(rollout))(states, jax.random.split(key_policy, episodes))
-        err, v, fell = (np.asarray(x) for x in (err, v, fell))
-    return {"episodes": episodes, "seconds": seconds, "policy_steps": steps, "speed_range": list(speed),
+        out = jax.jit(jax.vmap(rollout))(states, jax.random.split(key_policy, episodes))
+    return (np.asarray(vx), *(np.asarray(x) for x in out))
+
+
+def evaluate(env, policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0) -> dict:
+    """The walking test's figures (the module doc) over :func:`trace`'s rollout."""
+    import numpy as np
+
+    t0 = time.perf_counter()
+    vx, lin, _, counted, fell = trace(env, policy, episodes=episodes, seconds=seconds, speed=speed, seed=seed)
+    err = np.linalg.norm(np.stack([vx, np.zeros_like(vx)], -1)[:, None, :] - lin[..., :2], axis=-1)
+    n = np.maximum(counted.sum(1), 1)
+    err = np.where(counted, err, 0.0).sum(1) / n
+    v = np.where(counted, lin[..., 0], 0.0).sum(1) / n
+    return {"episodes": episodes, "seconds": seconds, "policy_steps": lin.shape[1], "speed_range": list(speed),
             "tracking_error_mean": float(err.mean()), "tracking_error_p90": float(np.quantile(err, 0.9)),
-            "forward_speed_mean": float(v.mean()), "command_mean": float(np.asarray(vx).mean()),
+            "forward_speed_mean": float(v.mean()), "command_mean": float(vx.mean()),
             "fall_fraction": float(fell.mean()), "wall_s": time.perf_counter() - t0}
 
 

@@ -25,45 +25,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # rl_eval, beside this script
 
 
-def trace(env, policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0):
-    """Per-step base velocities of ``episodes`` episodes: ``(commands [E], lin_vel [E, T, 3], ang_vel [E, T, 3],
-    upright [E, T])`` in the base frame; ``upright`` is False from the step after a fall on."""
-    import jax
-    import jax.numpy as jnp
+def split_error(command: float, lin, ang, upright, dt: float, settle: float, fell: bool | None = None) -> dict:
+    """The error of one episode split as the module doc says; an episode that fell (``fell``, by default: not
+    ``upright`` throughout) reports only its upright steps."""
     import numpy as np
 
-    from kamino.envs.geometry import body_frame_vectors
-
-    steps = round(seconds / env.dt)
-    key_reset, key_cmd, key_policy = jax.random.split(jax.random.PRNGKey(seed), 3)
-    vx = jax.random.uniform(key_cmd, (episodes,), jnp.float32, speed[0], speed[1])
-    commands = jnp.stack([vx, jnp.zeros_like(vx), jnp.zeros_like(vx)], -1)
-
-    def start(rng, command):
-        return env.with_command(env.reset(rng), command)
-
-    def rollout(state, key):
-        def body(carry, k):
-            s, alive = carry
-            action, _ = policy(s.obs, k)
-            s = env.step(s, action)
-            ps = env.full_state(s.pipeline_state)
-            frame = body_frame_vectors(ps.body_q, ps.body_u, env._base)
-            return (s, alive & (s.done == 0)), (frame["lin_vel"], frame["ang_vel"], alive)
-
-        return jax.lax.scan(body, (state, jnp.bool_(True)), jax.random.split(key, steps))[1]
-
-    with jax.enable_x64(False):
-        states = jax.jit(jax.vmap(start))(jax.random.split(key_reset, episodes), commands)
-        lin, ang, upright = jax.jit(jax.vmap(rollout))(states, jax.random.split(key_policy, episodes))
-    return (np.asarray(vx), *(np.asarray(x) for x in (lin, ang, upright)))
-
-
-def split_error(command: float, lin, ang, upright, dt: float, settle: float) -> dict:
-    """The error of one episode split as the module doc says (``None`` entries for an episode that fell)."""
-    import numpy as np
-
-    fell = not bool(upright.all())
+    if fell is None:
+        fell = not bool(upright.all())
     if fell:
         return {"command": float(command), "fell": True, "steps_up": int(upright.sum())}
     v = lin[round(settle / dt):, :2]
@@ -83,7 +51,7 @@ def split_error(command: float, lin, ang, upright, dt: float, settle: float) -> 
 
 
 def main(argv=None) -> int:
-    from rl_eval import load_policy, newest_checkpoint
+    from rl_eval import load_policy, newest_checkpoint, trace
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("checkpoint", type=Path, help="a checkpoint folder, or an rl_train.py output folder")
@@ -106,9 +74,9 @@ def main(argv=None) -> int:
     ckpt = newest_checkpoint(args.checkpoint.resolve())
     env = make(args.task, backend=args.backend, **{**task_config(args.task)["env"], "resample_steps": None})
     t0 = time.perf_counter()
-    cmd, lin, ang, upright = trace(env, load_policy(ckpt, args.task), episodes=args.episodes, seconds=args.seconds,
-                                   speed=tuple(args.speed), seed=args.seed)
-    rows = [split_error(c, lin[i], ang[i], upright[i], env.dt, args.settle) for i, c in enumerate(cmd)]
+    cmd, lin, ang, upright, fell = trace(env, load_policy(ckpt, args.task), episodes=args.episodes,
+                                         seconds=args.seconds, speed=tuple(args.speed), seed=args.seed)
+    rows = [split_error(c, lin[i], ang[i], upright[i], env.dt, args.settle, bool(fell[i])) for i, c in enumerate(cmd)]
     up = [r for r in rows if not r["fell"]]
     keys = ("per_step_error", "oscillation", "mean_velocity_error", "forward_mean", "forward_std", "lateral_std",
             "yaw_rate_mean", "sway_hz")
