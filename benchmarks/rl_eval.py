@@ -41,9 +41,10 @@ def newest_checkpoint(path: Path) -> Path:
 
 
 def load_policy(ckpt: Path, task: str):
-    """The deterministic policy of a checkpoint, its networks built by the task's ``network_factory``
-    (``kamino.envs.configs``). brax's own ``checkpoint.load_policy`` cannot read the configs it writes for the
-    default networks (brax 0.14: ``mean_kernel_init_fn: null`` fails its lookup), so only the parameters are read."""
+    """``(make_policy, params)`` of a checkpoint: brax's inference-function factory for the task's networks
+    (``kamino.envs.configs``) and the saved parameters; ``make_policy(params, deterministic=True)`` is the policy.
+    brax's own ``checkpoint.load_policy`` cannot read the configs it writes for the default networks (brax 0.14:
+    ``mean_kernel_init_fn: null`` fails its lookup), so only the parameters are read."""
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import checkpoint as ppo_checkpoint
     from brax.training.agents.ppo import networks as ppo_networks
@@ -54,15 +55,17 @@ def load_policy(ckpt: Path, task: str):
     normalize = running_statistics.normalize if config.get("normalize_observations") else (lambda x, y: x)
     net = ppo_kwargs(task)["network_factory"](config["observation_size"], config["action_size"],
                                                preprocess_observations_fn=normalize)
-    return ppo_networks.make_inference_fn(net)(ppo_checkpoint.load(ckpt), deterministic=True)
+    return ppo_networks.make_inference_fn(net), ppo_checkpoint.load(ckpt)
 
 
-def trace(env, policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0):
-    """The walking test's rollout: ``episodes`` episodes of ``seconds`` at forward commands uniform in ``speed``
-    [m/s] (no lateral or yaw command), the policy's deterministic action. Returns numpy arrays ``(commands [E],
-    lin_vel [E, T, 3], ang_vel [E, T, 3], counted [E, T], fell [E])``: the base body's velocities in its own frame
-    after each policy step; ``counted`` is True for the steps that began with the robot up (the step that ends an
-    episode is its last counted one); ``fell`` marks the episodes that ended before ``seconds``."""
+def walking_test(env, make_policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0):
+    """The walking test's rollout, compiled once for any parameters of ``make_policy``: returns ``run(params)``.
+
+    ``run`` plays ``episodes`` episodes of ``seconds`` at forward commands uniform in ``speed`` [m/s] (no lateral or
+    yaw command), the policy's deterministic action, and returns numpy arrays ``(commands [E], lin_vel [E, T, 3],
+    ang_vel [E, T, 3], counted [E, T], fell [E])``: the base body's velocities in its own frame after each policy
+    step; ``counted`` is True for the steps that began with the robot up (the step that ends an episode is its
+    last counted one); ``fell`` marks the episodes that ended before ``seconds``."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -77,7 +80,9 @@ def trace(env, policy, *, episodes: int, seconds: float, speed: tuple[float, flo
     def start(rng, command):
         return env.with_command(env.reset(rng), command)
 
-    def rollout(state, key):
+    def rollout(params, state, key):
+        policy = make_policy(params, deterministic=True)
+
         def body(carry, k):
             s, alive = carry
             action, _ = policy(s.obs, k)
@@ -91,24 +96,28 @@ def trace(env, policy, *, episodes: int, seconds: float, speed: tuple[float, flo
 
     with jax.enable_x64(False):
         states = jax.jit(jax.vmap(start))(jax.random.split(key_reset, episodes), commands)
-        out = jax.jit(jax.vmap(rollout))(states, jax.random.split(key_policy, episodes))
-    return (np.asarray(vx), *(np.asarray(x) for x in out))
+    play = jax.jit(jax.vmap(rollout, in_axes=(None, 0, 0)))
+    keys = jax.random.split(key_policy, episodes)
+
+    def run(params):
+        with jax.enable_x64(False):
+            out = play(params, states, keys)
+        return (np.asarray(vx), *(np.asarray(x) for x in out))
+
+    return run
 
 
-def evaluate(env, policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0) -> dict:
-    """The walking test's figures (the module doc) over :func:`trace`'s rollout."""
+def summarize(vx, lin, counted, fell) -> dict:
+    """The walking test's figures (the module doc) of a :func:`walking_test` rollout."""
     import numpy as np
 
-    t0 = time.perf_counter()
-    vx, lin, _, counted, fell = trace(env, policy, episodes=episodes, seconds=seconds, speed=speed, seed=seed)
     err = np.linalg.norm(np.stack([vx, np.zeros_like(vx)], -1)[:, None, :] - lin[..., :2], axis=-1)
     n = np.maximum(counted.sum(1), 1)
     err = np.where(counted, err, 0.0).sum(1) / n
     v = np.where(counted, lin[..., 0], 0.0).sum(1) / n
-    return {"episodes": episodes, "seconds": seconds, "policy_steps": lin.shape[1], "speed_range": list(speed),
-            "tracking_error_mean": float(err.mean()), "tracking_error_p90": float(np.quantile(err, 0.9)),
-            "forward_speed_mean": float(v.mean()), "command_mean": float(vx.mean()),
-            "fall_fraction": float(fell.mean()), "wall_s": time.perf_counter() - t0}
+    return {"episodes": len(vx), "policy_steps": lin.shape[1], "tracking_error_mean": float(err.mean()),
+            "tracking_error_p90": float(np.quantile(err, 0.9)), "forward_speed_mean": float(v.mean()),
+            "command_mean": float(vx.mean()), "fall_fraction": float(fell.mean())}
 
 
 def main(argv=None) -> int:
@@ -147,9 +156,12 @@ def main(argv=None) -> int:
     if not hasattr(env, "with_command"):
         print(f"rl_eval: {args.task} has no velocity command (a joystick task is needed)", file=sys.stderr)
         return 2
-    policy = load_policy(ckpt, args.task)
-    report = evaluate(env, policy, episodes=args.episodes, seconds=args.seconds, speed=tuple(args.speed),
-                      seed=args.seed)
+    make_policy, params = load_policy(ckpt, args.task)
+    t0 = time.perf_counter()
+    vx, lin, _, counted, fell = walking_test(env, make_policy, episodes=args.episodes, seconds=args.seconds,
+                                             speed=tuple(args.speed), seed=args.seed)(params)
+    report = {**summarize(vx, lin, counted, fell), "seconds": args.seconds, "speed_range": list(args.speed),
+              "seed": args.seed, "wall_s": time.perf_counter() - t0}
     report.update(task=args.task, backend=args.backend, checkpoint=str(ckpt), env=env_overrides,
                   passed=report["tracking_error_mean"] <= args.max_error and report["fall_fraction"] <= args.max_falls,
                   bars={"max_error": args.max_error, "max_falls": args.max_falls})

@@ -14,6 +14,9 @@ The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS`` (``--steps
   each window of about ``N`` environment steps (brax's ``log_training_metrics``), every episode metric (each reward
   term and the world-health flag, summed over the episode), and the env steps/s of that window.
   It costs no evaluation rollouts, so a run with ``--set run_evals=False`` still shows whether the policy learns;
+- ``walk_tests.json`` (``--walk-test EPISODES``, joystick tasks): the walking test of ``benchmarks/rl_eval.py``
+  (forward commands 0.3-0.5 m/s, 10 s, deterministic actions; seed ``--walk-seed``, by default 1, not the issue's
+  0) on every checkpoint as it is saved, compiled once per run: the checkpoint to keep is chosen on it;
 - ``reward_curve.png``: the evaluation return against environment steps, and the training episodes' return when
   ``--train-returns`` is given (matplotlib);
 - ``report.json``: the task, backend, settings, device, versions, the first and last evaluation with every
@@ -51,6 +54,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--fresh", action="store_true", help="ignore existing checkpoints and curve; start over")
     p.add_argument("--train-returns", type=int, metavar="N",
                    help="log the training episodes' mean return every ~N env steps (train_curve.json)")
+    p.add_argument("--walk-test", type=int, default=0, metavar="EPISODES",
+                   help="run the walking test (benchmarks/rl_eval.py) with EPISODES episodes on every checkpoint")
+    p.add_argument("--walk-seed", type=int, default=1, help="the walking test's seed (default 1)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other ppo.train keyword, VALUE a Python literal (repeatable): --set batch_size=32")
     p.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
@@ -72,6 +78,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                 into[key] = ast.literal_eval(value)
             except (ValueError, SyntaxError):
                 p.error(f"{flag} {key}: {value!r} is not a Python literal")
+    if args.walk_test < 0:
+        p.error(f"--walk-test must be >= 0, got {args.walk_test}")
     for name in ("steps", "num_envs", "evals", "train_returns"):
         value = getattr(args, name)
         if value is not None and value < 1:
@@ -211,9 +219,34 @@ def main(argv=None) -> int:
         progress.update(done + step, entry["reward"], entry["reward_std"], metrics.get("training/sps", 0.0),
                         entry["run_wall_s"])
 
+    walk_path = out / "walk_tests.json"
+    walks = json.loads(walk_path.read_text()) if walk_path.exists() and not args.fresh else []
+    walks = [w for w in walks if w["step"] <= done]
+    walk_run = None
+    if args.walk_test:
+        if not hasattr(env, "with_command"):
+            raise SystemExit(f"rl_train: --walk-test needs a joystick task; {args.task} has no velocity command")
+        walk_env = make(args.task, backend=args.backend, **{**env_kwargs, "resample_steps": None})
+
     def save(step: int, make_policy, params) -> None:
-        if step > 0:
-            ppo_checkpoint.save(ckpt_dir, done + step, params, config)
+        nonlocal walk_run
+        if step == 0:
+            return
+        ppo_checkpoint.save(ckpt_dir, done + step, params, config)
+        if args.walk_test:
+            from rl_eval import summarize, walking_test
+
+            t0 = time.perf_counter()
+            walk_run = walk_run or walking_test(walk_env, make_policy, episodes=args.walk_test, seconds=10.0,
+                                                speed=(0.3, 0.5), seed=args.walk_seed)
+            vx, lin, _, counted, fell = walk_run(params)
+            walks.append({"step": done + step, **summarize(vx, lin, counted, fell), "seed": args.walk_seed,
+                          "wall_s": time.perf_counter() - t0})
+            walk_path.write_text(json.dumps(walks, indent=1))
+            w = walks[-1]
+            print(f"walking test at {w['step']}: error {w['tracking_error_mean']:.3f} m/s, falls "
+                  f"{100 * w['fall_fraction']:.1f} %, forward {w['forward_speed_mean']:.3f} m/s ({w['wall_s']:.0f} s)",
+                  flush=True)
 
     if remaining > 0:
         run_evals = max(2, round(evals * remaining / total))
@@ -235,7 +268,7 @@ def main(argv=None) -> int:
         "total_steps": total, "steps_before_this_run": done, "steps_this_run": max(remaining, 0),
         "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),
         "first_eval": first, "last_eval": last, "curve": curve, "train_curve": train_curve,
-        "checkpoint": str(latest_checkpoint(ckpt_dir)[1]),
+        "checkpoint": str(latest_checkpoint(ckpt_dir)[1]), "walk_tests": walks,
         "device": str(jax.devices()[0]), "device_count": used, "platform": platform.platform(),
         "versions": {"kamino": kamino.__version__, "jax": jax.__version__, "brax": _version("brax"),
                      "python": platform.python_version()},

@@ -51,7 +51,7 @@ def split_error(command: float, lin, ang, upright, dt: float, settle: float, fel
 
 
 def main(argv=None) -> int:
-    from rl_eval import load_policy, newest_checkpoint, trace
+    from rl_eval import load_policy, newest_checkpoint, walking_test
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("checkpoint", type=Path, help="a checkpoint folder, or an rl_train.py output folder")
@@ -74,8 +74,9 @@ def main(argv=None) -> int:
     ckpt = newest_checkpoint(args.checkpoint.resolve())
     env = make(args.task, backend=args.backend, **{**task_config(args.task)["env"], "resample_steps": None})
     t0 = time.perf_counter()
-    cmd, lin, ang, upright, fell = trace(env, load_policy(ckpt, args.task), episodes=args.episodes,
-                                         seconds=args.seconds, speed=tuple(args.speed), seed=args.seed)
+    make_policy, params = load_policy(ckpt, args.task)
+    cmd, lin, ang, upright, fell = walking_test(env, make_policy, episodes=args.episodes, seconds=args.seconds,
+                                                speed=tuple(args.speed), seed=args.seed)(params)
     rows = [split_error(c, lin[i], ang[i], upright[i], env.dt, args.settle, bool(fell[i])) for i, c in enumerate(cmd)]
     up = [r for r in rows if not r["fell"]]
     keys = ("per_step_error", "oscillation", "mean_velocity_error", "forward_mean", "forward_std", "lateral_std",

@@ -454,3 +454,26 @@ def test_substep_loop_holds_no_zero_size_array(backend):
     loops = _outer_loops(step) + _outer_loops(reset)
     assert len(_outer_loops(step)) >= 1  # the substep scan is found
     assert all(empty == [] for empty in loops), loops
+
+
+def test_feet_air_time_pays_a_landing_its_swing_time_past_the_target():
+    """legged_gym's feet-air-time term, step by step at a 50 Hz policy: a foot in the air for 20 steps earns, as it
+    lands, 20 x 0.02 s minus the 0.3 s target = 0.1 (the two-step contact filter drops its first step in the air
+    and the landing step counts); a one-step lift (a graze) is filtered out and earns nothing, and its clock stays
+    at zero."""
+    from kamino.envs.joystick import feet_air_time
+
+    dt, target = 0.02, 0.3
+    pattern = [True] * 3 + [False] * 20 + [True] * 3  # foot 0 swings for 20 steps
+    graze = [True] * 5 + [False] + [True] * 20  # foot 1 lifts for one step only
+    air, was = jnp.zeros(2), jnp.ones(2, bool)
+    paid = []
+    for d0, d1 in zip(pattern, graze, strict=True):
+        down = jnp.array([d0, d1])
+        r, air = feet_air_time(air, was, down, dt, target)
+        was = down
+        paid.append(float(r))
+    landing = pattern.index(True, 3)
+    assert paid[landing] == pytest.approx(20 * dt - target, abs=1e-6)
+    assert all(p == 0.0 for i, p in enumerate(paid) if i != landing)
+    assert float(air[1]) == 0.0

@@ -203,7 +203,8 @@ class KaminoEnv(Env):
         ps = self.reset_state(k_pose)
         task = {k: jnp.asarray(v) for k, v in self._sample_task(k_task).items()}
         last_action = jnp.zeros(self.action_size, self._dtype)
-        memory = {"last_action": last_action, "task_steps": jnp.zeros((), jnp.int32), **task}
+        memory = {"last_action": last_action, "task_steps": jnp.zeros((), jnp.int32), **task,
+                  **self._episode_memory()}
         info = {"rng": rng, **memory, "reset_memory": dict(memory)}
         obs = self._noisy(self._observe(ps, info), k_noise)
         zero = jnp.zeros((), self._dtype)
@@ -230,7 +231,7 @@ class KaminoEnv(Env):
         terminated = self._terminated(ps, info)
         rng, k_task, k_noise = jax.random.split(info["rng"], 3)
         steps = info["task_steps"] + 1
-        info.update(rng=rng, last_action=a, task_steps=steps)
+        info.update(self._update_memory(ps, info), rng=rng, last_action=a, task_steps=steps)
         if self.task_keys and self._resample_steps is not None:
             new = self._sample_task(k_task)
             due = steps % self._resample_steps == 0
@@ -416,6 +417,16 @@ class KaminoEnv(Env):
     def _ground_clearance(self) -> float:
         """Gap [m] between the lowest geom and the ground after placement."""
         return 0.0
+
+    def _episode_memory(self) -> dict[str, jax.Array]:
+        """Per-episode state a task's reward reads (``info`` entries), at its values at reset; an auto-reset restores
+        them (``info["reset_memory"]``). Default: none."""
+        return {}
+
+    def _update_memory(self, ps: State, info: dict) -> dict[str, jax.Array]:
+        """The entries of :meth:`_episode_memory` after a policy step that reached ``ps`` (``info`` as the reward saw
+        it). Default: none."""
+        return {}
 
     def _sample_task(self, rng: jax.Array) -> dict[str, jax.Array]:
         """Task variables (the keys of ``task_keys``), drawn at reset and every ``resample_steps``."""

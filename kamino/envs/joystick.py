@@ -2,10 +2,11 @@
 
 The command ``(v_x, v_y, yaw rate)`` in the base body's frame is drawn at reset and every ``resample_steps``;
 rewards follow the usual joystick recipe (velocity tracking through exponential kernels, upright, action rate,
-torque, alive) and an episode ends when the base body falls below ``min_height`` or tilts past ``max_tilt``, or
-the world's health flag is set. :class:`Joystick` holds the task for any one-world model with a floating base and
-PD actuators; ``dr_legs_joystick`` (:class:`DrLegsJoystick`, kinematic loops) and ``bdx_joystick``
-(:class:`BdxJoystick`, a tree) are its two robots. Observation, reward and termination tables: docs/envs.md,
+torque, alive, and legged_gym's base-steadiness and feet-air-time terms), and an episode ends when the base body
+falls below ``min_height`` or tilts past ``max_tilt``, or the world's health flag is set. :class:`Joystick` holds
+the task for any one-world model with a floating base and PD actuators; ``dr_legs_joystick``
+(:class:`DrLegsJoystick`, kinematic loops) and ``bdx_joystick`` (:class:`BdxJoystick`, a tree) are its two robots.
+Observation, reward and termination tables: docs/envs.md,
 "Joystick tasks".
 """
 
@@ -26,7 +27,20 @@ from kamino.state import State
 #: reward weights (docs/envs.md); the reward is their weighted sum per policy step, clipped at 0
 #: (``only_positive_rewards``)
 REWARD_WEIGHTS = {"tracking_lin_vel": 1.0, "tracking_ang_vel": 0.5, "upright": 0.2, "action_rate": -0.01,
-                  "torque": -2e-4, "alive": 0.2}
+                  "torque": -2e-4, "alive": 0.2, "lin_vel_z": -2.0, "ang_vel_xy": -0.05, "feet_air_time": 1.0}
+
+
+def feet_air_time(air: jax.Array, was_down: jax.Array, down: jax.Array, dt: float,
+                  target: float) -> tuple[jax.Array, jax.Array]:
+    """legged_gym's feet-air-time term over one policy step of length ``dt`` [s], per foot: a foot that lands (on the
+    ground now or at the previous step, after time in the air) earns its time in the air minus ``target`` [s]; a foot
+    on the ground has its clock reset. Counting contact over two steps filters a foot that grazes the ground for
+    one. Returns ``(reward summed over the feet, air times after the step)``. The filter drops a swing's first step
+    and the landing step counts, so a foot off the ground for ``n`` policy steps earns ``n dt - target``."""
+    touching = down | was_down
+    landing = touching & (air > 0)
+    air = air + dt
+    return jnp.sum(jnp.where(landing, air - target, 0.0)), jnp.where(touching, 0.0, air)
 
 
 class Joystick(KaminoEnv):
@@ -36,6 +50,10 @@ class Joystick(KaminoEnv):
         model: a one-world model; its first floating body is the base whose velocity follows the command.
         command_lin_x, command_lin_y, command_yaw: half-ranges of the uniform command draw [m/s], [m/s], [rad/s].
         tracking_sigma: variance [(m/s)^2, (rad/s)^2] of the tracking kernels ``exp(-err^2 / sigma)``.
+        feet: names of the foot bodies (default: every body whose name contains ``foot``) for ``feet_air_time``.
+        air_time_target: the swing time [s] at which a landing foot's ``feet_air_time`` turns positive.
+        contact_height: a foot is on the ground while its CoM is within this height [m] of where it stands at the
+            nominal reset (a box foot tilted on an edge or heel rises a few mm).
         min_height: the base CoM height [m] below which the robot has fallen.
         max_tilt: the base tilt [rad] past which it has fallen.
         reward_weights: overrides of :data:`REWARD_WEIGHTS`.
@@ -59,12 +77,14 @@ class Joystick(KaminoEnv):
 
     def __init__(self, model: Model, *, min_height: float, command_lin_x: float = 0.5, command_lin_y: float = 0.3,
                  command_yaw: float = 0.8, tracking_sigma: float = 0.25, max_tilt: float = 1.0,
+                 feet: tuple[str, ...] | None = None, air_time_target: float = 0.3, contact_height: float = 0.01,
                  reward_weights: dict | None = None, only_positive_rewards: bool = True, sim_dt: float = 0.004,
                  decimation: int = 5,
                  resample_steps: int = 250, reset_noise: float = 0.1, obs_noise: float = 1.0,
                  reset_bank: int | None = 128, solver_config: SolverConfig | None = None, **kwargs):
         name = type(self).__name__
-        for arg, value in (("tracking_sigma", tracking_sigma), ("min_height", min_height), ("max_tilt", max_tilt)):
+        for arg, value in (("tracking_sigma", tracking_sigma), ("min_height", min_height), ("max_tilt", max_tilt),
+                           ("air_time_target", air_time_target), ("contact_height", contact_height)):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: {arg} must be a positive number, got {value!r}")
         for arg, value in (("command_lin_x", command_lin_x), ("command_lin_y", command_lin_y),
@@ -81,8 +101,21 @@ class Joystick(KaminoEnv):
         self._sigma = float(tracking_sigma)
         self._min_height = float(min_height)
         self._min_up = float(np.cos(max_tilt))
+        names = list(model.body_names or [])
+        if feet is None:
+            feet = tuple(n for n in names if "foot" in n.lower())
+            if not feet and self._weights["feet_air_time"] != 0:
+                raise ValueError(f"{name}: no body name contains 'foot'; name the feet (feet=...) or set "
+                                 "reward_weights={'feet_air_time': 0}")
+        missing = [f for f in feet if f not in names]
+        if missing:
+            raise ValueError(f"{name}: feet {missing} are not bodies of the model (its bodies: {names})")
+        self._feet = np.array([names.index(f) for f in feet], np.int32)
+        self._air_target = float(air_time_target)
         super().__init__(model, sim_dt=sim_dt, decimation=decimation, reset_noise=reset_noise, obs_noise=obs_noise,
                          resample_steps=resample_steps, reset_bank=reset_bank, solver_config=solver_config, **kwargs)
+        placed = np.asarray(self._place(jnp.asarray(model.body_q0, self.dtype)))
+        self._foot_down_z = placed[self._feet, 2] + float(contact_height)
 
     # ---------------------------------------------------------------- reset and commands
 
@@ -138,10 +171,25 @@ class Joystick(KaminoEnv):
         base = body_frame_vectors(ps.body_q, ps.body_u, self._base)
         return (base["height"] < self._min_height) | (base["up"] < self._min_up)
 
+    def _episode_memory(self) -> dict[str, jax.Array]:
+        n = len(self._feet)
+        return {"feet_air_time": jnp.zeros(n, self.dtype), "feet_down": jnp.ones(n, bool)}
+
+    def _feet_down(self, ps: State) -> jax.Array:
+        return ps.body_q[self._feet, 2] < jnp.asarray(self._foot_down_z, ps.body_q.dtype)
+
+    def _air_time(self, ps: State, info: dict) -> tuple[jax.Array, jax.Array]:
+        return feet_air_time(info["feet_air_time"], info["feet_down"], self._feet_down(ps), self.dt,
+                             self._air_target)
+
+    def _update_memory(self, ps: State, info: dict) -> dict[str, jax.Array]:
+        return {"feet_air_time": self._air_time(ps, info)[1].astype(self.dtype), "feet_down": self._feet_down(ps)}
+
     def _reward(self, prev: State, ps: State, action: jax.Array, info: dict) -> tuple[jax.Array, dict]:
         base = body_frame_vectors(ps.body_q, ps.body_u, self._base)
         cmd = info["command"]
         torque = ps.actuator_force[self._act_dof]
+        moving = jnp.linalg.norm(cmd[:2]) > 0.1
         raw = {
             "tracking_lin_vel": jnp.exp(-jnp.sum((cmd[:2] - base["lin_vel"][:2]) ** 2) / self._sigma),
             "tracking_ang_vel": jnp.exp(-((cmd[2] - base["ang_vel"][2]) ** 2) / self._sigma),
@@ -149,6 +197,9 @@ class Joystick(KaminoEnv):
             "action_rate": jnp.sum((action - info["last_action"]) ** 2),
             "torque": jnp.sum(torque**2),
             "alive": 1.0 - self._fallen(ps).astype(self.dtype),
+            "lin_vel_z": base["lin_vel"][2] ** 2,
+            "ang_vel_xy": jnp.sum(base["ang_vel"][:2] ** 2),
+            "feet_air_time": jnp.where(moving, self._air_time(ps, info)[0], 0.0),
         }
         terms = {k: self._weights[k] * v for k, v in raw.items()}
         total = sum(terms.values())
@@ -201,4 +252,4 @@ class BdxJoystick(Joystick):
         super().__init__(model, min_height=min_height, **kwargs)
 
 
-__all__ = ["REWARD_WEIGHTS", "BdxJoystick", "DrLegsJoystick", "Joystick"]
+__all__ = ["REWARD_WEIGHTS", "BdxJoystick", "DrLegsJoystick", "Joystick", "feet_air_time"]
