@@ -58,11 +58,13 @@ def load_policy(ckpt: Path, task: str):
     return ppo_networks.make_inference_fn(net), ppo_checkpoint.load(ckpt)
 
 
-def walking_test(env, make_policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0):
+def walking_test(env, make_policy, *, episodes: int, seconds: float, speed: tuple[float, float], seed: int = 0,
+                 deterministic: bool = True):
     """The walking test's rollout, compiled once for any parameters of ``make_policy``: returns ``run(params)``.
 
     ``run`` plays ``episodes`` episodes of ``seconds`` at forward commands uniform in ``speed`` [m/s] (no lateral or
-    yaw command), the policy's deterministic action, and returns numpy arrays ``(commands [E], lin_vel [E, T, 3],
+    yaw command), the policy's deterministic action (its mode; ``deterministic=False``: actions sampled as in
+    training), and returns numpy arrays ``(commands [E], lin_vel [E, T, 3],
     ang_vel [E, T, 3], counted [E, T], fell [E])``: the base body's velocities in its own frame after each policy
     step; ``counted`` is True for the steps that began with the robot up (the step that ends an episode is its
     last counted one); ``fell`` marks the episodes that ended before ``seconds``."""
@@ -81,7 +83,7 @@ def walking_test(env, make_policy, *, episodes: int, seconds: float, speed: tupl
         return env.with_command(env.reset(rng), command)
 
     def rollout(params, state, key):
-        policy = make_policy(params, deterministic=True)
+        policy = make_policy(params, deterministic=deterministic)
 
         def body(carry, k):
             s, alive = carry
@@ -132,6 +134,8 @@ def main(argv=None) -> int:
     p.add_argument("--max-error", type=float, default=0.1, help="the bar on the mean tracking error [m/s]")
     p.add_argument("--max-falls", type=float, default=0.05, help="the bar on the fall fraction")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stochastic", action="store_true",
+                   help="sample the policy's actions as in training (default: its deterministic mode)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="environment keyword over the task's config, VALUE a Python literal (repeatable)")
     p.add_argument("--out", type=Path, default=None)
@@ -159,9 +163,10 @@ def main(argv=None) -> int:
     make_policy, params = load_policy(ckpt, args.task)
     t0 = time.perf_counter()
     vx, lin, _, counted, fell = walking_test(env, make_policy, episodes=args.episodes, seconds=args.seconds,
-                                             speed=tuple(args.speed), seed=args.seed)(params)
+                                             speed=tuple(args.speed), seed=args.seed,
+                                             deterministic=not args.stochastic)(params)
     report = {**summarize(vx, lin, counted, fell), "seconds": args.seconds, "speed_range": list(args.speed),
-              "seed": args.seed, "wall_s": time.perf_counter() - t0}
+              "seed": args.seed, "deterministic": not args.stochastic, "wall_s": time.perf_counter() - t0}
     report.update(task=args.task, backend=args.backend, checkpoint=str(ckpt), env=env_overrides,
                   passed=report["tracking_error_mean"] <= args.max_error and report["fall_fraction"] <= args.max_falls,
                   bars={"max_error": args.max_error, "max_falls": args.max_falls})

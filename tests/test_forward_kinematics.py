@@ -162,7 +162,7 @@ def test_coupled_joint_follows_actuated_joint():
     t = np.arange(1, 481) / 240.0
     target = 0.6 * np.cos(np.pi * t)  # a smooth 0.5 Hz swing of the driver through -0.6..0.6 rad
     ctrl = kamino.Control.from_ctrl(model, jnp.asarray(target)[:, None])
-    traj = kamino.rollout(model, state, ctrl, config=kamino.SolverConfig(dt=1 / 240, tolerance=1e-10))
+    traj = kamino.rollout(model, state, ctrl, config=kamino.SolverConfig(dt=1 / 240, tolerance=1e-10), backend="warp")
     qs = trajectory_joint_positions(model, state, traj)
     assert np.max(np.abs(qs[:, 0] - poly(qs[:, 1]))) < 1e-6
     assert np.max(np.abs(qs[:, 1] - target)) < 0.1  # the driver tracks: the coupling did not lock it
@@ -172,7 +172,7 @@ def test_coupled_joint_follows_actuated_joint():
 def test_set_joint_positions_resets_velocities_and_keeps_time():
     model = kamino.models.fourbar(actuated=True)
     state = kamino.init_state(model)
-    state = kamino.rollout(model, state, num_steps=10)
+    state = kamino.rollout(model, state, num_steps=10, backend="warp")
     state = jax.tree_util.tree_map(lambda x: x[-1], state)
     reset = kamino.set_joint_positions(model, state, actuated_positions=[0.25])
     assert float(jnp.abs(reset.body_u).max()) == 0.0 and float(reset.time[0]) == float(state.time[0])

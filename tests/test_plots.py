@@ -18,7 +18,7 @@ RESULTS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "results"
 @pytest.fixture(scope="module")
 def fourbar_rollout():
     model = kamino.replicate(kamino.models.fourbar(), 2)
-    traj = kamino.rollout(model, kamino.init_state(model), num_steps=50)
+    traj = kamino.rollout(model, kamino.init_state(model), num_steps=50, backend="warp")
     return model, traj, {k: np.asarray(v) for k, v in kamino.metrics(model, traj).items()}
 
 

@@ -102,19 +102,23 @@ _TWO_DEVICES = textwrap.dedent("""
         assert err == 0.0, err
 
     # benchmarks/multi_device.py runs (a smoke run: the figures are taken on GPUs)
-    import json, sys
-    sys.path.insert(0, "benchmarks")
-    import multi_device
-    multi_device.main(["--scenes", "fourbar", "--worlds-per-device", "2", "--block", "2", "--replays", "1",
-                       "--repeats", "1", "--out", OUT])
-    recs = json.load(open(OUT))["records"]
-    assert [(r["devices"], r["path"]) for r in recs] == [(1, "shard_map"), (1, "eager"), (2, "shard_map")], recs
-    assert all(r["throughput"] > 0 and r["converged_fraction"] == 1.0 for r in recs if r["path"] == "shard_map")
+    if SMOKE:
+        import json, sys
+        sys.path.insert(0, "benchmarks")
+        import multi_device
+        multi_device.main(["--scenes", "fourbar", "--worlds-per-device", "2", "--block", "2", "--replays", "1",
+                           "--repeats", "1", "--out", OUT])
+        recs = json.load(open(OUT))["records"]
+        assert [(r["devices"], r["path"]) for r in recs] == [(1, "shard_map"), (1, "eager"), (2, "shard_map")], recs
+        assert all(r["throughput"] > 0 and r["converged_fraction"] == 1.0 for r in recs if r["path"] == "shard_map")
     print("OK")
 """)
 
 
-def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path):
+# the benchmark's smoke run is in the slow tier: it compiles its own sharded and eager rollouts (README.md, under the
+# test command)
+@pytest.mark.parametrize("smoke", [False, pytest.param(True, marks=pytest.mark.slow, id="with-benchmark-smoke")])
+def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path, smoke):
     """Two forced host devices, a model of two identical groups (a four-bar and a two-box stack each): a rollout
     and a step of the sharded state give, block by block on each device, the unsharded result.
 
@@ -122,12 +126,12 @@ def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path):
     (test_cross_backend.py::test_heterogeneous_worlds_match_standalone_on_warp: exact), so its blocks are
     compared exactly. The JAX reference is the same program on half the worlds, which XLA may vectorise
     differently: float32 rounding over 12 steps, bounded at 1e-5 (m, rad, N s, and s for the time). Then
-    benchmarks/multi_device.py's smoke run (its records, not its speed)."""
+    benchmarks/multi_device.py's smoke run (its records, not its speed), in the slow tier."""
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     env["JAX_PLATFORMS"] = "cpu"
     out_json = str(tmp_path / "multi_device.json")
-    script = ALL_CORES + f"TOL = {{'jax': 1e-5, 'warp': 0.0}}\nOUT = {out_json!r}\n" + _TWO_DEVICES
+    script = ALL_CORES + f"TOL = {{'jax': 1e-5, 'warp': 0.0}}\nOUT = {out_json!r}\nSMOKE = {smoke}\n" + _TWO_DEVICES
     root = Path(__file__).resolve().parents[1]
     out = subprocess.run([sys.executable, "-c", script], env=env, cwd=root, capture_output=True, text=True,
                          timeout=600, check=False)

@@ -78,7 +78,7 @@ def fourbar_run():
     other = kamino.init_state(kamino.models.fourbar(crank_angle=-0.6))
     seg = _segment(model, "body", 1)
     state = state.replace(body_q=state.body_q.at[seg].set(other.body_q))
-    traj = kamino.rollout(model, state, num_steps=24, config=kamino.SolverConfig(dt=DT))
+    traj = kamino.rollout(model, state, num_steps=24, config=kamino.SolverConfig(dt=DT), backend="warp")
     return model, traj
 
 
