@@ -27,3 +27,12 @@ def test_env_overrides_are_parsed_as_literals_and_reach_the_environment(tmp_path
     assert args.env_overrides == {"tracking_sigma": 0.1}
     with pytest.raises(TypeError, match="no_such_keyword"):  # the task's constructor names what it does not take
         rl_train.main(["fourbar_track", "--env", "no_such_keyword=1", "--out", str(tmp_path)])
+
+
+def test_the_walking_test_needs_a_joystick_task(tmp_path):
+    """``--walk-test`` runs rl_eval's walking test on every checkpoint; a task without a velocity command refuses it
+    before training starts (the test itself: tests/test_rl_eval.py)."""
+    with pytest.raises(SystemExit, match="needs a joystick task"):
+        rl_train.main(["fourbar_track", "--walk-test", "4", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        rl_train.parse_args(["fourbar_track", "--walk-test", "-1"])
