@@ -153,7 +153,7 @@ def main(argv=None) -> int:
     from brax.training.agents.ppo import train as ppo
 
     import kamino
-    from kamino.envs import make
+    from kamino.envs import TASKS, make
     from kamino.envs.configs import ppo_kwargs, task_config
 
     cfg = task_config(args.task)
@@ -174,8 +174,12 @@ def main(argv=None) -> int:
     train_curve = [c for c in train_curve if c["step"] <= done]
     remaining = total - done
     env_kwargs = {**cfg["env"], **args.env_overrides}
+    # refused before any environment is built (a robot's construction solves its reset bank)
+    dataclasses.replace(kamino.SolverConfig(), **args.solver_overrides)  # a field it lacks raises, naming it
+    if args.walk_test and not hasattr(TASKS[args.task], "with_command"):
+        raise SystemExit(f"rl_train: --walk-test needs a joystick task; {args.task} has no velocity command")
     env = make(args.task, backend=args.backend, **env_kwargs)
-    if args.solver_overrides:  # a field that SolverConfig lacks raises here, naming it
+    if args.solver_overrides:
         config = dataclasses.replace(env.solver_config, **args.solver_overrides)
         env = make(args.task, backend=args.backend, solver_config=config, **env_kwargs)
     used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
@@ -224,8 +228,6 @@ def main(argv=None) -> int:
     walks = [w for w in walks if w["step"] <= done]
     walk_run = None
     if args.walk_test:
-        if not hasattr(env, "with_command"):
-            raise SystemExit(f"rl_train: --walk-test needs a joystick task; {args.task} has no velocity command")
         walk_env = make(args.task, backend=args.backend, **{**env_kwargs, "resample_steps": None})
 
     def save(step: int, make_policy, params) -> None:

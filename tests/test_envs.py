@@ -248,6 +248,12 @@ def legs():
     return DrLegsJoystick(kp=15.0, kd=0.6, reset_bank=32, backend="warp")
 
 
+@pytest.fixture(scope="module")
+def legs_own_gains():
+    """``dr_legs_joystick`` as registered (the model's gains), built once: its construction solves the reset bank."""
+    return make("dr_legs_joystick", reset_bank=8, backend="warp")
+
+
 def test_dr_legs_actions_map_inside_the_joint_limits(legs):
     """Actions (clipped to [-1, 1]) map onto the actuated joints' limits: -1 and +1 land on them exactly."""
     m = legs.model
@@ -319,11 +325,11 @@ def test_bdx_joystick_stands_at_a_zero_action():
     _assert_stands_at_a_zero_action(env, seed=0)
 
 
-def test_dr_legs_joystick_stands_at_a_zero_action_with_its_own_gains():
+def test_dr_legs_joystick_stands_at_a_zero_action_with_its_own_gains(legs_own_gains):
     """The default gains of ``dr_legs_joystick`` are the model's own (kp 300 N m/rad at the hips and knees, 150 at
     the ankles): a zero action holds the reference pose for 1 s. The pelvis stays within 2 cm of its height at
     reset, and no episode ends. With issue 18's kp 15 the same robot collapses (test_dr_legs_joystick_runs)."""
-    _assert_stands_at_a_zero_action(make("dr_legs_joystick", reset_bank=8, backend="warp"), seed=1)
+    _assert_stands_at_a_zero_action(legs_own_gains, seed=1)
     with pytest.raises(ValueError, match="kp and kd together"):
         DrLegsJoystick(kp=15.0)
 
@@ -342,13 +348,13 @@ def test_with_command_sets_the_command_everywhere_the_episode_reads_it(legs):
         legs.with_command(s, jnp.zeros(2))
 
 
-def test_joystick_reward_is_the_sum_of_its_terms_clipped_at_zero():
+def test_joystick_reward_is_the_sum_of_its_terms_clipped_at_zero(legs_own_gains):
     """The joystick reward is the sum of its weighted terms (``metrics``), clipped at 0 from below
     (``only_positive_rewards``, docs/envs.md "Training on the GPU"). A zero action from a reset earns about +1.1 per
     policy step (the standing robot: tracking, upright, alive, little torque), so the sum is positive and passes
     unchanged. A full-range action that flips every step makes the torque and action-rate penalties several units
     (measured: -2.5 to -7 per step), so the sum is negative and the reward is exactly 0."""
-    env = make("dr_legs_joystick", reset_bank=8, backend="warp")
+    env = legs_own_gains
     with jax.enable_x64(False):
         s = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(3), 2))
         step = jax.jit(jax.vmap(env.step))

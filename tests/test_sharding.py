@@ -65,7 +65,7 @@ _TWO_DEVICES = textwrap.dedent("""
     state = state.replace(body_u=jnp.asarray(twist, jnp.float32))
     cfg = kamino.SolverConfig(dt=0.004)
     steps = 12
-    for backend in ("jax", "warp"):
+    for backend in SHARD_BACKENDS:
         ref = kamino.rollout(model, state, num_steps=steps, config=cfg, backend=backend)
         sharded = shard_worlds(model, state)
         traj = kamino.rollout(model, sharded, num_steps=steps, config=cfg, backend=backend)
@@ -115,10 +115,11 @@ _TWO_DEVICES = textwrap.dedent("""
 """)
 
 
-# the benchmark's smoke run is in the slow tier: it compiles its own sharded and eager rollouts (README.md, under the
-# test command)
-@pytest.mark.parametrize("smoke", [False, pytest.param(True, marks=pytest.mark.slow, id="with-benchmark-smoke")])
-def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path, smoke):
+# the default tier shards the Warp backend's worlds; the JAX reference's sharded programs (about 50 s of compiling
+# on the 2-core machine) and the benchmark's smoke run are in the slow tier (README.md, under the test command)
+@pytest.mark.parametrize("full", [pytest.param(False, id="warp"),
+                                  pytest.param(True, marks=pytest.mark.slow, id="jax-warp-and-benchmark-smoke")])
+def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path, full):
     """Two forced host devices, a model of two identical groups (a four-bar and a two-box stack each): a rollout
     and a step of the sharded state give, block by block on each device, the unsharded result.
 
@@ -126,12 +127,14 @@ def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path, smoke):
     (test_cross_backend.py::test_heterogeneous_worlds_match_standalone_on_warp: exact), so its blocks are
     compared exactly. The JAX reference is the same program on half the worlds, which XLA may vectorise
     differently: float32 rounding over 12 steps, bounded at 1e-5 (m, rad, N s, and s for the time). Then
-    benchmarks/multi_device.py's smoke run (its records, not its speed), in the slow tier."""
+    benchmarks/multi_device.py's smoke run (its records, not its speed). The JAX half and the smoke run are in the
+    slow tier."""
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     env["JAX_PLATFORMS"] = "cpu"
     out_json = str(tmp_path / "multi_device.json")
-    script = ALL_CORES + f"TOL = {{'jax': 1e-5, 'warp': 0.0}}\nOUT = {out_json!r}\nSMOKE = {smoke}\n" + _TWO_DEVICES
+    script = (ALL_CORES + f"TOL = {{'jax': 1e-5, 'warp': 0.0}}\nOUT = {out_json!r}\nSMOKE = {full}\n"
+              f"SHARD_BACKENDS = {('jax', 'warp') if full else ('warp',)}\n" + _TWO_DEVICES)
     root = Path(__file__).resolve().parents[1]
     out = subprocess.run([sys.executable, "-c", script], env=env, cwd=root, capture_output=True, text=True,
                          timeout=600, check=False)
