@@ -20,7 +20,10 @@ fk_convergence = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(fk_convergence)
 
 
-@pytest.mark.parametrize("name, num", [("dr_legs", 1000), ("animatronic", 8)])
+# the animatronic's case is in the slow tier: its FK also assembles in the default tier's
+# test_robots.py::test_mechanism_assembles_over_the_box_of_actuated_limits[animatronic]
+@pytest.mark.parametrize("name, num", [("dr_legs", 1000),
+                                       pytest.param("animatronic", 8, marks=pytest.mark.slow, id="animatronic-8")])
 def test_random_actuated_configurations_converge(name, num):
     robot = getattr(kamino.models, name)()
     samples = fk_convergence.random_actuated(robot, num, seed=1)
