@@ -57,6 +57,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--walk-test", type=int, default=0, metavar="EPISODES",
                    help="run the walking test (benchmarks/rl_eval.py) with EPISODES episodes on every checkpoint")
     p.add_argument("--walk-seed", type=int, default=1, help="the walking test's seed (default 1)")
+    p.add_argument("--walk-test-from", type=int, default=0, metavar="STEPS",
+                   help="skip the walking test on checkpoints before STEPS environment steps (a run from scratch "
+                        "does not walk for its first tens of millions; each test costs about 40 s on an H100)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other ppo.train keyword, VALUE a Python literal (repeatable): --set batch_size=32")
     p.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
@@ -80,6 +83,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                 p.error(f"{flag} {key}: {value!r} is not a Python literal")
     if args.walk_test < 0:
         p.error(f"--walk-test must be >= 0, got {args.walk_test}")
+    if args.walk_test_from < 0:
+        p.error(f"--walk-test-from must be >= 0, got {args.walk_test_from}")
     for name in ("steps", "num_envs", "evals", "train_returns"):
         value = getattr(args, name)
         if value is not None and value < 1:
@@ -235,7 +240,7 @@ def main(argv=None) -> int:
         if step == 0:
             return
         ppo_checkpoint.save(ckpt_dir, done + step, params, config)
-        if args.walk_test:
+        if args.walk_test and done + step >= args.walk_test_from:
             from rl_eval import summarize, walking_test
 
             t0 = time.perf_counter()

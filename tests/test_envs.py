@@ -484,3 +484,43 @@ def test_feet_air_time_pays_a_landing_its_swing_time_past_the_target():
     assert paid[landing] == pytest.approx(20 * dt - target, abs=1e-6)
     assert all(p == 0.0 for i, p in enumerate(paid) if i != landing)
     assert float(air[1]) == 0.0
+
+
+def test_swing_heights_alternate_the_feet():
+    """The gait clock's targets for two feet: foot 0 swings in the first half of the cycle (peak at phase 0.25),
+    foot 1 in the second (peak at 0.75); a standing foot's target is 0; one cycle later the same."""
+    from kamino.envs.joystick import swing_heights
+
+    h = 0.05
+    np.testing.assert_allclose(np.asarray(swing_heights(jnp.float32(0.25), 2, h)), [h, 0.0], atol=1e-7)
+    np.testing.assert_allclose(np.asarray(swing_heights(jnp.float32(0.75), 2, h)), [0.0, h], atol=1e-7)
+    np.testing.assert_allclose(np.asarray(swing_heights(jnp.float32(1.0 / 12.0), 2, h)), [0.5 * h, 0.0], atol=1e-7)
+    np.testing.assert_allclose(np.asarray(swing_heights(jnp.float32(1.25), 2, h)), [h, 0.0], atol=1e-6)
+    phases = jnp.linspace(0.0, 1.0, 101)
+    both = np.asarray(jax.vmap(lambda p: swing_heights(p, 2, h))(phases))
+    assert np.all(both >= 0.0) and np.all(np.min(both, axis=1) < 1e-7)  # never both feet in the air
+
+
+def test_gait_clock_is_observed_and_its_reward_follows_the_swing(legs_own_gains):
+    """``gait_frequency``: two more observations, ``(sin, cos)(2 pi phase)``, the phase starting at 0 in every
+    episode (restored at auto-reset) and advancing by ``f dt`` per policy step. At the nominal pose (both feet
+    standing, lift 0 to float32 rounding) ``feet_phase`` is ``exp(-sum target^2 / sigma)``: 1 for a zero command,
+    and ``exp(-0.05^2 / 0.0025) = exp(-1)`` when the clock reaches a swing's peak (target 0.05 m on one foot) under a
+    moving command. Without the clock its weight is refused."""
+    from kamino.envs.joystick import Joystick
+
+    model = legs_own_gains.model  # its FK programs are compiled already
+    env = Joystick(model, min_height=0.45, reset_bank=8, reset_noise=1e-9, backend="warp", gait_frequency=1.25,
+                   reward_weights={"feet_phase": 1.0})
+    assert env.observation_size == legs_own_gains.observation_size + 2
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    assert s.obs.shape == (env.observation_size,)
+    np.testing.assert_array_equal(np.asarray(s.obs[-2:]), [0.0, 1.0])  # no noise on the clock
+    assert float(s.info["phase"]) == 0.0 and float(s.info["reset_memory"]["phase"]) == 0.0
+    assert float(env._phase_after(dict(s.info, phase=jnp.float32(0.99)))) == pytest.approx(0.015, abs=1e-6)
+    ps = env.full_state(s.pipeline_state)
+    peak = dict(s.info, phase=jnp.float32(0.25 - 1.25 * env.dt), command=jnp.array([0.4, 0.0, 0.0], jnp.float32))
+    assert float(env._feet_phase(ps, peak)) == pytest.approx(np.exp(-1.0), rel=1e-4)
+    assert float(env._feet_phase(ps, dict(peak, command=jnp.zeros(3, jnp.float32)))) == pytest.approx(1.0, abs=1e-4)
+    with pytest.raises(ValueError, match="gait_frequency"):
+        Joystick(model, min_height=0.45, reset_bank=8, backend="warp", reward_weights={"feet_phase": 1.0})

@@ -36,3 +36,5 @@ def test_the_walking_test_needs_a_joystick_task(tmp_path):
         rl_train.main(["fourbar_track", "--walk-test", "4", "--out", str(tmp_path)])
     with pytest.raises(SystemExit):
         rl_train.parse_args(["fourbar_track", "--walk-test", "-1"])
+    with pytest.raises(SystemExit):
+        rl_train.parse_args(["fourbar_track", "--walk-test-from", "-1"])

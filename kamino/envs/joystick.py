@@ -28,8 +28,10 @@ from kamino.state import State
 #: (``only_positive_rewards``). legged_gym's ``lin_vel_z`` (its weight -2.0), ``ang_vel_xy`` (-0.05) and
 #: ``feet_air_time`` (1.0) are off by default: the committed policy was trained without them, and switching them on
 #: for 28 M steps from it made the walking test worse (docs/envs.md, "The fifth run"); ``reward_weights`` sets them
+#: ``feet_phase`` (0 by default) rewards feet that follow the gait clock's swing heights; it needs ``gait_frequency``
 REWARD_WEIGHTS = {"tracking_lin_vel": 1.0, "tracking_ang_vel": 0.5, "upright": 0.2, "action_rate": -0.01,
-                  "torque": -2e-4, "alive": 0.2, "lin_vel_z": 0.0, "ang_vel_xy": 0.0, "feet_air_time": 0.0}
+                  "torque": -2e-4, "alive": 0.2, "lin_vel_z": 0.0, "ang_vel_xy": 0.0, "feet_air_time": 0.0,
+                  "feet_phase": 0.0}
 
 
 def feet_air_time(air: jax.Array, was_down: jax.Array, down: jax.Array, dt: float,
@@ -43,6 +45,15 @@ def feet_air_time(air: jax.Array, was_down: jax.Array, down: jax.Array, dt: floa
     landing = touching & (air > 0)
     air = air + dt
     return jnp.sum(jnp.where(landing, air - target, 0.0)), jnp.where(touching, 0.0, air)
+
+
+def swing_heights(phase: jax.Array, num_feet: int, height: float) -> jax.Array:
+    """Target lift [m] of each foot at gait ``phase`` (cycles, any real; the clock of the periodic-gait rewards of
+    Siekmann et al. 2021 and MuJoCo Playground's bipeds): foot ``i`` swings while ``sin(2 pi (phase - i / num_feet))``
+    is positive, along that half sine scaled to ``height``, and stands (target 0) in the other half of its cycle.
+    For two feet the swings alternate: foot 0 in ``[0, 0.5)``, foot 1 in ``[0.5, 1)``. Returns ``[num_feet]``."""
+    offsets = jnp.arange(num_feet, dtype=jnp.result_type(phase)) / num_feet
+    return height * jnp.maximum(jnp.sin(2.0 * jnp.pi * (phase - offsets)), 0.0)
 
 
 class Joystick(KaminoEnv):
@@ -72,6 +83,12 @@ class Joystick(KaminoEnv):
         reset_bank: leg configurations solved at construction (``None``: FK in every reset; base class); the
             heading is drawn in every reset (a rigid turn).
         obs_noise: scale on the per-entry noise of :meth:`_obs_noise_scale` (1: the documented levels).
+        gait_frequency: a gait clock [Hz] (default ``None``: none). Its phase starts at 0 in every episode, advances
+            by ``gait_frequency * dt`` per policy step and is observed as ``(sin, cos)(2 pi phase)`` (two more
+            entries); ``feet_phase`` rewards feet that follow :func:`swing_heights` while a command asks for motion,
+            and feet on the ground otherwise.
+        swing_height: the clock's peak foot lift [m] (foot CoM above where it stands at the nominal reset).
+        swing_sigma: variance [m^2] of the ``feet_phase`` kernel ``exp(-sum_feet (lift - target)^2 / swing_sigma)``.
         **kwargs: :class:`kamino.envs.base.KaminoEnv` (``backend``, ``solver_config``, ``dtype``).
     """
 
@@ -84,10 +101,13 @@ class Joystick(KaminoEnv):
                  reward_weights: dict | None = None, only_positive_rewards: bool = True, sim_dt: float = 0.004,
                  decimation: int = 5,
                  resample_steps: int = 250, reset_noise: float = 0.1, obs_noise: float = 1.0,
-                 reset_bank: int | None = 128, solver_config: SolverConfig | None = None, **kwargs):
+                 reset_bank: int | None = 128, gait_frequency: float | None = None, swing_height: float = 0.05,
+                 swing_sigma: float = 0.0025, solver_config: SolverConfig | None = None, **kwargs):
         name = type(self).__name__
         for arg, value in (("tracking_sigma", tracking_sigma), ("min_height", min_height), ("max_tilt", max_tilt),
-                           ("air_time_target", air_time_target), ("contact_height", contact_height)):
+                           ("air_time_target", air_time_target), ("contact_height", contact_height),
+                           ("swing_height", swing_height), ("swing_sigma", swing_sigma),
+                           *((("gait_frequency", gait_frequency),) if gait_frequency is not None else ())):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: {arg} must be a positive number, got {value!r}")
         for arg, value in (("command_lin_x", command_lin_x), ("command_lin_y", command_lin_y),
@@ -99,6 +119,11 @@ class Joystick(KaminoEnv):
             raise ValueError(f"{name}: reward_weights has unknown terms {unknown}; the terms are "
                              f"{list(REWARD_WEIGHTS)}")
         self._weights = {**REWARD_WEIGHTS, **(reward_weights or {})}
+        if gait_frequency is None and self._weights["feet_phase"] != 0:
+            raise ValueError(f"{name}: the feet_phase reward follows the gait clock; give gait_frequency (Hz) or set "
+                             "reward_weights={'feet_phase': 0}")
+        self._gait_frequency = None if gait_frequency is None else float(gait_frequency)
+        self._swing_height, self._swing_sigma = float(swing_height), float(swing_sigma)
         self._only_positive = bool(only_positive_rewards)
         self._command_range = np.array([command_lin_x, command_lin_y, command_yaw], float)
         self._sigma = float(tracking_sigma)
@@ -107,9 +132,9 @@ class Joystick(KaminoEnv):
         names = list(model.body_names or [])
         if feet is None:
             feet = tuple(n for n in names if "foot" in n.lower())
-            if not feet and self._weights["feet_air_time"] != 0:
+            if not feet and (self._weights["feet_air_time"] != 0 or self._gait_frequency is not None):
                 raise ValueError(f"{name}: no body name contains 'foot'; name the feet (feet=...) or set "
-                                 "reward_weights={'feet_air_time': 0}")
+                                 "reward_weights={'feet_air_time': 0} and no gait_frequency")
         missing = [f for f in feet if f not in names]
         if missing:
             raise ValueError(f"{name}: feet {missing} are not bodies of the model (its bodies: {names})")
@@ -118,7 +143,8 @@ class Joystick(KaminoEnv):
         super().__init__(model, sim_dt=sim_dt, decimation=decimation, reset_noise=reset_noise, obs_noise=obs_noise,
                          resample_steps=resample_steps, reset_bank=reset_bank, solver_config=solver_config, **kwargs)
         placed = np.asarray(self._place(jnp.asarray(model.body_q0, self.dtype)))
-        self._foot_down_z = placed[self._feet, 2] + float(contact_height)
+        self._foot_stand_z = placed[self._feet, 2]
+        self._foot_down_z = self._foot_stand_z + float(contact_height)
 
     # ---------------------------------------------------------------- reset and commands
 
@@ -151,22 +177,26 @@ class Joystick(KaminoEnv):
     # ---------------------------------------------------------------- observation
 
     def _obs_size(self) -> int:
-        return 12 + 3 * self.action_size
+        return 12 + 3 * self.action_size + (2 if self._gait_frequency is not None else 0)
 
     def _observe(self, ps: State, info: dict) -> jax.Array:
         base = body_frame_vectors(ps.body_q, ps.body_u, self._base)
         q, qd = self.actuated_state(ps)
         centre = jnp.asarray(0.5 * (self.action_lower + self.action_upper), self.dtype)
+        clock = []
+        if self._gait_frequency is not None:
+            angle = 2.0 * jnp.pi * info["phase"]
+            clock = [jnp.stack([jnp.sin(angle), jnp.cos(angle)])]
         return jnp.concatenate([0.25 * base["ang_vel"], base["gravity"], base["lin_vel"], info["command"],
-                                q - centre, 0.05 * qd, info["last_action"]]).astype(self.dtype)
+                                q - centre, 0.05 * qd, info["last_action"], *clock]).astype(self.dtype)
 
     def _obs_noise_scale(self) -> np.ndarray:
         """Noise standard deviation per entry at ``obs_noise = 1``, in observation units: angular velocity 0.05
         (0.2 rad/s), gravity 0.05, linear velocity 0.1 m/s, joint angles 0.01 rad, joint rates 0.075 (1.5 rad/s);
-        none on the command and the previous action."""
+        none on the command, the previous action and the gait clock."""
         n = self.action_size
         return np.concatenate([np.full(3, 0.05), np.full(3, 0.05), np.full(3, 0.1), np.zeros(3), np.full(n, 0.01),
-                               np.full(n, 0.075), np.zeros(n)])
+                               np.full(n, 0.075), np.zeros(n + self._obs_size() - 12 - 3 * n)])
 
     # ---------------------------------------------------------------- reward and termination
 
@@ -176,7 +206,22 @@ class Joystick(KaminoEnv):
 
     def _episode_memory(self) -> dict[str, jax.Array]:
         n = len(self._feet)
-        return {"feet_air_time": jnp.zeros(n, self.dtype), "feet_down": jnp.ones(n, bool)}
+        clock = {} if self._gait_frequency is None else {"phase": jnp.zeros((), self.dtype)}
+        return {"feet_air_time": jnp.zeros(n, self.dtype), "feet_down": jnp.ones(n, bool), **clock}
+
+    def _phase_after(self, info: dict) -> jax.Array:
+        """The gait phase [cycles, in [0, 1)] one policy step after ``info``'s."""
+        return jnp.mod(info["phase"] + self._gait_frequency * self.dt, 1.0)
+
+    def _feet_phase(self, ps: State, info: dict) -> jax.Array:
+        """``exp(-sum_feet (lift - target)^2 / swing_sigma)`` at the end of the step: the targets are
+        :func:`swing_heights` of the clock while the command asks for motion (``|v_xy| > 0.1 m/s`` or ``|yaw rate|
+        > 0.1 rad/s``), else 0 (both feet down)."""
+        cmd = info["command"]
+        moving = (jnp.linalg.norm(cmd[:2]) > 0.1) | (jnp.abs(cmd[2]) > 0.1)
+        target = jnp.where(moving, swing_heights(self._phase_after(info), len(self._feet), self._swing_height), 0.0)
+        lift = ps.body_q[self._feet, 2] - jnp.asarray(self._foot_stand_z, ps.body_q.dtype)
+        return jnp.exp(-jnp.sum((lift - target) ** 2) / self._swing_sigma)
 
     def _feet_down(self, ps: State) -> jax.Array:
         return ps.body_q[self._feet, 2] < jnp.asarray(self._foot_down_z, ps.body_q.dtype)
@@ -186,7 +231,9 @@ class Joystick(KaminoEnv):
                              self._air_target)
 
     def _update_memory(self, ps: State, info: dict) -> dict[str, jax.Array]:
-        return {"feet_air_time": self._air_time(ps, info)[1].astype(self.dtype), "feet_down": self._feet_down(ps)}
+        clock = {} if self._gait_frequency is None else {"phase": self._phase_after(info).astype(self.dtype)}
+        return {"feet_air_time": self._air_time(ps, info)[1].astype(self.dtype), "feet_down": self._feet_down(ps),
+                **clock}
 
     def _reward(self, prev: State, ps: State, action: jax.Array, info: dict) -> tuple[jax.Array, dict]:
         base = body_frame_vectors(ps.body_q, ps.body_u, self._base)
@@ -203,6 +250,7 @@ class Joystick(KaminoEnv):
             "lin_vel_z": base["lin_vel"][2] ** 2,
             "ang_vel_xy": jnp.sum(base["ang_vel"][:2] ** 2),
             "feet_air_time": jnp.where(moving, self._air_time(ps, info)[0], 0.0),
+            "feet_phase": self._feet_phase(ps, info) if self._gait_frequency is not None else jnp.zeros((), self.dtype),
         }
         terms = {k: self._weights[k] * v for k, v in raw.items()}
         total = sum(terms.values())
@@ -255,4 +303,4 @@ class BdxJoystick(Joystick):
         super().__init__(model, min_height=min_height, **kwargs)
 
 
-__all__ = ["REWARD_WEIGHTS", "BdxJoystick", "DrLegsJoystick", "Joystick", "feet_air_time"]
+__all__ = ["REWARD_WEIGHTS", "BdxJoystick", "DrLegsJoystick", "Joystick", "feet_air_time", "swing_heights"]
