@@ -184,7 +184,7 @@ class Stepper:
         if ck is not None:
             self._launch(ck.contact_rows, (W, wm.max_contacts), nblk, h, cfg.contact_baumgarte, cfg.contact_deadband,
                          cfg.restitution_threshold, cfg.contact_match_distance)
-        # dynamics: pre-baked blocks, v_f, Delassus (dense path) and preconditioning (§7.2, §8)
+        # dynamics: v_f (and the dense J, M^-1 J^T), Delassus (dense path) and preconditioning (§7.2, §8)
         rows = (W, wm.max_rows)
         self._launch(sk.prebake, rows, nblk, int(self.dense))
         assembled = self.linear_solver == "llt" and not self.sparse_factor  # the dense Delassus matrix

@@ -1,6 +1,6 @@
 """Delassus assembly and Proximal-ADMM in Warp (docs/formulation.md §7-§8; paper Alg. 1).
 
-Per step: the rows' blocks are pre-baked into ``M^-1 J^T`` blocks, ``v_f = J u_f + v*`` (§5), then
+Per step: ``v_f = J u_f + v*`` (§5) of the rows' blocks (``M^-1 J^T`` is formed where it is read), then
 either the dense Delassus ``D = J M^-1 J^T + R`` is assembled (from the block-sparse rows, or from a
 dense per-world ``J``), scaled by the Jacobi preconditioner ``P`` (§7.2) and factorised once by a
 Cholesky (§8.1), or PADMM runs matrix-free with a Conjugate Residual solve of the scaled operator
@@ -26,7 +26,6 @@ from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, model_struct
 from kamino.warp_backend.padmm_rules import padmm_funcs
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
-from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
@@ -42,8 +41,6 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     scalar, vec6 = T.scalar, T.vec6
     M = model_struct(np_dtype)
     Work = work_struct(np_dtype)
-    sp = spatial_funcs(np_dtype)
-    lin, ang, twist = sp.lin, sp.ang, sp.twist
     cf = cone_funcs(np_dtype)
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
     ix = index_funcs(np_dtype)
@@ -57,16 +54,12 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
     factor_tail_sparse = sparse_llt_kernels(np_dtype).factor_tail
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
+    inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
     S = GROUP  # storage distance between consecutive entries of a world's dense Delassus matrix (w.D)
     eps = scalar(float(np.finfo(np_dtype).eps))
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
     sat_margin = scalar(SATURATION_MARGIN)
-
-    @wp.func
-    def inv_mass_times(m: M, w: Work, b: int, J: vec6):
-        """``M_b^-1 J`` for a 1x6 block on body ``b`` (block-diagonal M, §1.3)."""
-        return twist(m.inv_mass[b] * lin(J), w.inv_inertia_w[b] * ang(J))
 
     @wp.kernel(module="unique", enable_backward=False)
     def count_rows(m: M, w: Work):
@@ -78,7 +71,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def prebake(m: M, w: Work, nblk: int, dense: int):
-        """``M^-1 J^T`` blocks and ``v_f = J u_f + v*`` of each active row; the dense ``J`` rows on request."""
+        """``v_f = J u_f + v*`` of each active row; the dense ``J`` and ``M^-1 J^T`` rows on request."""
         wid, i = wp.tid()
         if i >= w.n_rows[wid]:
             return
@@ -87,11 +80,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         for k in range(nblk):
             b = w.row_body[r * nblk + k]
             if b >= 0:
-                J = w.row_J[r * nblk + k]
-                w.row_MJ[r * nblk + k] = inv_mass_times(m, w, b, J)
-                vf += wp.dot(J, w.u_f[b])
-            else:
-                w.row_MJ[r * nblk + k] = vec6()
+                vf += wp.dot(w.row_J[r * nblk + k], w.u_f[b])
         w.vf[r] = vf
         if dense != 0:
             nc = 6 * m.body_count[wid]
@@ -103,7 +92,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 b = w.row_body[r * nblk + k]
                 if b >= 0:
                     J = w.row_J[r * nblk + k]
-                    MJ = w.row_MJ[r * nblk + k]
+                    MJ = inv_mass_times(m, w, b, J)
                     for c in range(6):
                         w.Jd[jidx(m, wid, i, 6 * (b - b0) + c)] += J[c]
                         w.MJd[jidx(m, wid, i, 6 * (b - b0) + c)] += MJ[c]
@@ -376,9 +365,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def apply_operator(m: M, w: Work, wid: int, n: int, nblk: int, shift_f: scalar, shift_b: scalar,
                        shift_t: scalar, v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
-        """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free (§8.2, pre-baked blocks), with
-        ``eta + rho = shift_f`` on the fixed rows (``shift_b`` on those with a finite bound) and ``shift_t`` on the
-        limit and contact rows."""
+        """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free (§8.2): ``cr_w = M^-1 J^T P v`` per
+        body, then ``J cr_w``; with ``eta + rho = shift_f`` on the fixed rows (``shift_b`` on those with a finite
+        bound) and ``shift_t`` on the limit and contact rows."""
         rs = w.row_stride
         rb = row_base(m, w, wid)
         b0 = m.body_start[wid]
@@ -391,13 +380,15 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 b = w.row_body[r * nblk + k]
                 if b >= 0:
                     w.cr_w[b] = w.cr_w[b] + pv * w.row_J[r * nblk + k]
+        for i in range(m.body_count[wid]):
+            w.cr_w[b0 + i] = inv_mass_times(m, w, b0 + i, w.cr_w[b0 + i])
         for a in range(n):
             r = rb + a * rs
             s = scalar(0.0)
             for k in range(nblk):
                 b = w.row_body[r * nblk + k]
                 if b >= 0:
-                    s += wp.dot(w.row_MJ[r * nblk + k], w.cr_w[b])
+                    s += wp.dot(w.row_J[r * nblk + k], w.cr_w[b])
             Pa = w.P[r]
             shift = shift_t
             if a < m.row_fixed[wid]:

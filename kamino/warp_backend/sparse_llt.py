@@ -29,6 +29,7 @@ from kamino.model import Model
 from kamino.tables import prefix, row_tables
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, group_sizes, model_struct
+from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
@@ -309,12 +310,14 @@ def empty(np_dtype, device) -> object:
 @functools.cache
 def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     T = types_of(np_dtype)
-    scalar = T.scalar
+    scalar, vec6 = T.scalar, T.vec6
     M = model_struct(np_dtype)
     Work = work_struct(np_dtype)
     SP = pattern_struct(np_dtype)
     ix = index_funcs(np_dtype)
     ridx, row_base = ix.ridx, ix.row_base
+    sf = spatial_funcs(np_dtype)
+    lin, ang, twist = sf.lin, sf.ang, sf.twist
 
     @wp.func
     def vidx(m: M, sp: SP, wid: int, k: int):
@@ -348,8 +351,16 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         return base[2] + t * base[3] + c * sp.tail_stride
 
     @wp.func
+    def inv_mass_times(m: M, w: Work, b: int, J: vec6):
+        """``M_b^-1 J`` for a 1x6 block (or a wrench) on body ``b`` (block-diagonal M, §1.3). The ``M^-1 J^T``
+        blocks are formed with it where they are read (the Delassus entries here, the dense ``M^-1 J^T`` and the
+        Conjugate Residual operator in ``solver.py``), not stored."""
+        return twist(m.inv_mass[b] * lin(J), w.inv_inertia_w[b] * ang(J))
+
+    @wp.func
     def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):
-        """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (blocks meet on shared bodies)."""
+        """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (blocks meet on shared bodies; ``M^-1 J_b^T`` is
+        formed per meeting)."""
         ra = ridx(m, w, wid, a)
         rb = ridx(m, w, wid, b)
         s = scalar(0.0)
@@ -358,7 +369,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             if bk >= 0:
                 for l in range(nblk):
                     if w.row_body[rb * nblk + l] == bk:
-                        s += wp.dot(w.row_J[ra * nblk + k], w.row_MJ[rb * nblk + l])
+                        s += wp.dot(w.row_J[ra * nblk + k], inv_mass_times(m, w, bk, w.row_J[rb * nblk + l]))
         if a == b:
             s += w.reg[ra]
         return s
@@ -577,4 +588,5 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                            factor_tail=factor_tail, refactor=refactor, factor_world=factor_world,
                            fixed_entry=fixed_entry, tail_row=tail_row,
                            factor_fixed=factor_fixed,
-                           solve_inplace=solve_inplace, delassus_entry=delassus_entry, schur_entry=schur_entry)
+                           solve_inplace=solve_inplace, delassus_entry=delassus_entry, schur_entry=schur_entry,
+                           inv_mass_times=inv_mass_times)

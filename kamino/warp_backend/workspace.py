@@ -85,7 +85,6 @@ def work_struct(np_dtype):
         # constraint rows (segment of maxdim rows per world)
         row_body: iarr  # [rows * nblk]
         row_J: v6
-        row_MJ: v6  # M^-1 J^T per block (pre-baked)
         row_type: iarr
         row_src: iarr
         row_side: farr
@@ -143,7 +142,7 @@ def work_struct(np_dtype):
         cr_p: farr
         cr_Ap: farr
         cr_Ar: farr
-        cr_w: v6  # [bodies] J^T x
+        cr_w: v6  # [bodies] M^-1 J^T P x (the Conjugate Residual operator)
         # results
         q_new: wp.array(dtype=transform)
         u_new: v6
@@ -184,7 +183,7 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
         "ct_pair": (cap, wp.int32), "ct_body_a": (cap, wp.int32), "ct_body_b": (cap, wp.int32),
         "ct_pos": (cap, T.vec3), "ct_normal": (cap, T.vec3), "ct_dist": (cap, T.scalar), "ct_mu": (cap, T.scalar),
         "ct_restitution": (cap, T.scalar), "ct_found": (m.num_worlds, wp.int32),
-        "row_body": (R * nblk, wp.int32), "row_J": (R * nblk, T.vec6), "row_MJ": (R * nblk, T.vec6),
+        "row_body": (R * nblk, wp.int32), "row_J": (R * nblk, T.vec6),
         "row_type": (R, wp.int32), "row_src": (R, wp.int32), "row_side": (R, T.scalar),
         "Jd": (wm.total_jd if dense else 0, T.scalar), "MJd": (wm.total_jd if dense else 0, T.scalar),
         "D": (wm.total_mat if delassus else 0, T.scalar),
