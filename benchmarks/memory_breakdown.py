@@ -5,6 +5,12 @@ Builds ``kamino.SolverConfig(dt)``'s stepper for each scene (``benchmarks/throug
 the model), and prints the total and the largest arrays per world. On a CUDA device the total is checked against
 the memory pool's count (``wp.get_mempool_used_mem_current``); patterns shared by all worlds of a type shrink per
 world as the worlds grow, so measure at the batch size of interest. ``--out`` writes every scene's record as JSON.
+
+``--tail-fill`` predicts what a static sparse pattern for the tail's ``L_tf`` would hold instead of its dense rows
+(issue 17's lead, not built): a tail row's entries of ``L_tf = D~_tf L_f^-T`` can be nonzero only on the fixed
+columns its bodies' fixed rows reach up the elimination tree of ``L_f`` (the reach of a sparse triangular solve).
+A limit row's bodies are its joint's; a contact slot may hold any candidate pair, so its reach is that of every
+body in the world's pairs.
 """
 
 from __future__ import annotations
@@ -62,6 +68,44 @@ def breakdown(scene: str, num_worlds: int, device: str, padmm: str | None = None
             "arrays_per_world": sum(b for _, b in per_world), "largest": per_world[:40]}
 
 
+def tail_fill(scene: str) -> dict:
+    """Entries of the dense tail (``n_tail x n_fixed``) against the static sparse pattern of ``L_tf`` (the module
+    docstring), for one world of ``scene``; ``L_t`` (``n_tail^2``) is dense either way."""
+    from kamino.tables import row_tables
+    from kamino.warp_backend.sparse_llt import fixed_row_bodies, symbolic
+
+    model, _ = tb.load_scene(scene)
+    bodies = fixed_row_bodies(model)[0]
+    sym = symbolic(bodies)
+    n = len(sym.perm)
+    pos = np.empty(n, np.int64)
+    pos[sym.perm] = np.arange(n)
+    parent = np.full(n, n, np.int64)  # elimination tree: the first row position below the diagonal of column q
+    off = sym.row != sym.col
+    np.minimum.at(parent, sym.col[off], sym.row[off])
+
+    def reach(body_set: set[int]) -> int:
+        seen: set[int] = set()
+        for q in (int(pos[r]) for r in range(n) if body_set & set(bodies[r][bodies[r] >= 0].tolist())):
+            while q < n and q not in seen:
+                seen.add(q)
+                q = int(parent[q])
+        return len(seen)
+
+    tab = row_tables(model)
+    jp, jc = np.asarray(model.joint_parent), np.asarray(model.joint_child)
+    limits = [reach({int(jp[tab.dof_joint[d]]), int(jc[tab.dof_joint[d]])}) for d in np.asarray(tab.lim_dof)]
+    gb = np.asarray(model.geom_body)
+    pair_bodies = {int(gb[g]) for g in np.concatenate([model.pair_geom_a, model.pair_geom_b]).astype(int)
+                   if gb[g] >= 0}
+    contact_rows = 3 * int(model.world_contact_capacity[0])
+    contact = reach(pair_bodies) if pair_bodies else 0
+    n_tail = len(limits) + contact_rows
+    return {"scene": scene, "fixed_rows": n, "tail_rows": n_tail, "limit_rows": len(limits),
+            "contact_rows": contact_rows, "dense_L_tf": n_tail * n, "sparse_L_tf": sum(limits) + contact_rows * contact,
+            "L_t": n_tail * n_tail}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["fourbar", "ladder8", "ladder32", "dr_legs", "bdx", "olaf",
@@ -73,9 +117,18 @@ def main(argv=None) -> int:
                    help="the PADMM schedule (default: the automatic choice on the device; 'warp' on the CPU counts "
                         "what the GPU's 32-thread schedule allocates)")
     p.add_argument("--out", type=pathlib.Path, default=None)
+    p.add_argument("--tail-fill", action="store_true",
+                   help="print the dense tail's L_tf entries against a static sparse pattern's and exit")
     args = p.parse_args(argv)
     if args.worlds < 1:
         p.error(f"--worlds must be >= 1, got {args.worlds}")
+    if args.tail_fill:
+        for scene in args.scenes:
+            r = tail_fill(scene)
+            print(f"{scene}: {r['fixed_rows']} fixed rows, {r['tail_rows']} tail rows ({r['limit_rows']} limit, "
+                  f"{r['contact_rows']} contact); L_tf dense {r['dense_L_tf']} entries, static pattern "
+                  f"{r['sparse_L_tf']} ({100 * r['sparse_L_tf'] / max(r['dense_L_tf'], 1):.0f} %); L_t {r['L_t']}")
+        return 0
     import warp as wp
 
     wp.config.quiet = True
