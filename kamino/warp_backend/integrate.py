@@ -29,6 +29,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
     ix = index_funcs(np_dtype)
     ridx, jidx = ix.ridx, ix.jidx
     lin, ang, twist, integrate_pose = sp.lin, sp.ang, sp.twist, sp.integrate_pose
+    inverse_mass_times = sp.inverse_mass_times
 
     @wp.func
     def rows_on_body(m: M, w: Work, wid: int, b: int, n: int, nblk: int, lam: wp.array(dtype=scalar)):
@@ -58,7 +59,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
                     acc[c] += lam * w.Jd[jidx(m, wid, a, 6 * i + c)]
         else:
             acc = rows_on_body(m, w, wid, b, n, nblk, w.impulse)
-        u = w.u_f[b] + twist(m.inv_mass[b] * lin(acc), w.inv_inertia_w[b] * ang(acc))
+        u = w.u_f[b] + inverse_mass_times(m.inv_mass[b], w.inv_inertia_w[b], acc)
         if damping != scalar(0.0):
             u = twist(lin(u), (scalar(1.0) - damping) * ang(u))
         x = integrate_pose(w.q_eval[b], u, h)

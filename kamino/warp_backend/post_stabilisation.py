@@ -38,7 +38,8 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
     sp = spatial_funcs(np_dtype)
     kf = kinematics_funcs(np_dtype)
     ridx = index_funcs(np_dtype).ridx
-    integrate_pose, deadband, lin, ang, twist = sp.integrate_pose, sp.deadband, sp.lin, sp.ang, sp.twist
+    integrate_pose, deadband = sp.integrate_pose, sp.deadband
+    inverse_mass_times = sp.inverse_mass_times
     sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
     rows_on_body = integrate_kernels(np_dtype).rows_on_body
 
@@ -85,7 +86,7 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
             return
         b = m.body_start[wid] + i
         acc = rows_on_body(m, w, wid, b, m.row_fixed[wid], nblk, w.x)
-        d = twist(m.inv_mass[b] * lin(acc), w.inv_inertia_w[b] * ang(acc))
+        d = inverse_mass_times(m.inv_mass[b], w.inv_inertia_w[b], acc)
         x = integrate_pose(w.q_new[b], d, scalar(1.0))
         ok = True
         for c in range(7):

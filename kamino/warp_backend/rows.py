@@ -39,6 +39,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
     kf = kinematics_funcs(np_dtype)
     ridx = index_funcs(np_dtype).ridx
     integrate_pose, deadband, lin, ang, twist = sp.integrate_pose, sp.deadband, sp.lin, sp.ang, sp.twist
+    inverse_mass_times = sp.inverse_mass_times
     inf = scalar(wp.inf)
 
     @wp.func
@@ -148,7 +149,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         u = w.u[b]
         om = ang(u)
         hf = twist(m.mass[b] * m.gravity[wid], -wp.cross(om, I * om)) + ext
-        uf = u + dt * twist(m.inv_mass[b] * lin(hf), Ii * ang(hf))
+        uf = u + dt * inverse_mass_times(m.inv_mass[b], Ii, hf)
         uf = twist(lin(uf), ang(uf) + gyroscopic_correction(m.inertia[b], R, om, ang(uf), dt))
         w.u_f[b] = uf
         w.q_pred[b] = integrate_pose(x, uf, h)

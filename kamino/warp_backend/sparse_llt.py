@@ -317,7 +317,6 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     ix = index_funcs(np_dtype)
     ridx, row_base = ix.ridx, ix.row_base
     sf = spatial_funcs(np_dtype)
-    lin, ang, twist = sf.lin, sf.ang, sf.twist
 
     @wp.func
     def vidx(m: M, sp: SP, wid: int, k: int):
@@ -352,10 +351,11 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.func
     def inv_mass_times(m: M, w: Work, b: int, J: vec6):
-        """``M_b^-1 J`` for a 1x6 block (or a wrench) on body ``b`` (block-diagonal M, §1.3). The ``M^-1 J^T``
-        blocks are formed with it where they are read (the Delassus entries here, the dense ``M^-1 J^T`` and the
-        Conjugate Residual operator in ``solver.py``), not stored."""
-        return twist(m.inv_mass[b] * lin(J), w.inv_inertia_w[b] * ang(J))
+        """``M_b^-1 J`` for a 1x6 block (or a wrench) on body ``b`` of world data ``m``, ``w``
+        (``spatial.inverse_mass_times``). The ``M^-1 J^T`` blocks are formed with it where they are read (the
+        Delassus entries here, the dense ``M^-1 J^T`` and the Conjugate Residual operator in ``solver.py``), not
+        stored."""
+        return sf.inverse_mass_times(m.inv_mass[b], w.inv_inertia_w[b], J)
 
     @wp.func
     def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):

@@ -15,7 +15,7 @@ from kamino.warp_backend.types import types_of
 @functools.cache
 def spatial_funcs(np_dtype) -> SimpleNamespace:
     T = types_of(np_dtype)
-    scalar, vec3, vec6, quat, transform = T.scalar, T.vec3, T.vec6, T.quat, T.transform
+    scalar, vec3, vec6, quat, transform, mat33 = T.scalar, T.vec3, T.vec6, T.quat, T.transform, T.mat33
 
     @wp.func
     def quat_exp(phi: vec3):
@@ -69,5 +69,11 @@ def spatial_funcs(np_dtype) -> SimpleNamespace:
     def twist(v: vec3, w: vec3):
         return vec6(v[0], v[1], v[2], w[0], w[1], w[2])
 
+    @wp.func
+    def inverse_mass_times(inv_mass: scalar, inv_inertia: mat33, f: vec6):
+        """``M_b^-1 f`` on one body for a wrench or a 1x6 Jacobian block ``f``: ``(f_lin / m, I_w^-1 f_ang)``
+        (the block-diagonal mass matrix of docs/formulation.md §1.3, ``I_w^-1`` in the world frame)."""
+        return twist(inv_mass * lin(f), inv_inertia * ang(f))
+
     return SimpleNamespace(quat_exp=quat_exp, quat_log=quat_log, integrate_pose=integrate_pose, deadband=deadband,
-                           lin=lin, ang=ang, twist=twist)
+                           lin=lin, ang=ang, twist=twist, inverse_mass_times=inverse_mass_times)
