@@ -9,8 +9,9 @@ world as the worlds grow, so measure at the batch size of interest. ``--out`` wr
 ``--tail-fill`` predicts what a static sparse pattern for the tail's ``L_tf`` would hold instead of its dense rows
 (issue 17's lead, not built): a tail row's entries of ``L_tf = D~_tf L_f^-T`` can be nonzero only on the fixed
 columns its bodies' fixed rows reach up the elimination tree of ``L_f`` (the reach of a sparse triangular solve).
-A limit row's bodies are its joint's; a contact slot may hold any candidate pair, so its reach is that of every
-body in the world's pairs.
+A limit row's bodies are its joint's (the active limits are packed in DoF order, so the pattern would be stored per
+limited DoF, not per slot); contacts are packed too and a slot may hold any candidate pair, so a contact slot's reach
+is that of every body in the world's pairs.
 """
 
 from __future__ import annotations
