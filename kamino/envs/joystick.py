@@ -2,11 +2,11 @@
 
 The command ``(v_x, v_y, yaw rate)`` in the base body's frame is drawn at reset and every ``resample_steps``;
 rewards follow the usual joystick recipe (velocity tracking through exponential kernels, upright, action rate,
-torque, alive, and legged_gym's base-steadiness and feet-air-time terms), and an episode ends when the base body
-falls below ``min_height`` or tilts past ``max_tilt``, or the world's health flag is set. :class:`Joystick` holds
-the task for any one-world model with a floating base and PD actuators; ``dr_legs_joystick``
-(:class:`DrLegsJoystick`, kinematic loops) and ``bdx_joystick`` (:class:`BdxJoystick`, a tree) are its two robots.
-Observation, reward and termination tables: docs/envs.md,
+torque, alive, legged_gym's base-steadiness and feet-air-time terms, and a gait clock's ``feet_phase``; the last
+four are off by default), and an episode ends when the base body falls below ``min_height`` or tilts past
+``max_tilt``, or the world's health flag is set. :class:`Joystick` holds the task for any one-world model with a
+floating base and PD actuators; ``dr_legs_joystick`` (:class:`DrLegsJoystick`, kinematic loops) and ``bdx_joystick``
+(:class:`BdxJoystick`, a tree) are its two robots. Observation, reward and termination tables: docs/envs.md,
 "Joystick tasks".
 """
 
