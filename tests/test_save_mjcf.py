@@ -282,8 +282,10 @@ def test_zoo_exports_what_it_should():
 #: bound on the body CoM positions [m], solver settings (float64, PADMM tolerance 1e-8 unless stated) and backend.
 #: The mechanisms and scenes run on the Warp backend (its CPU kernels are compiled once per CI worker; a new JAX
 #: program per batch costs 10-40 s there), with the same bounds as on the reference. The robots stay on the JAX
-#: reference: on Warp, dr_legs and its round trip ended 1.8e-5 m apart in this batch (session 29), which session 30
-#: traced to a sparse-factor bug that olaf's round trip triggers in its whole batch (the two xfails below).
+#: reference: on Warp, dr_legs and its round trip ended 1.8e-5 m apart in this batch (session 29). Session 30 traced
+#: it: olaf's round trip has 304 rows, above ``AUTO_CR_ROWS`` (300), so ``linear_solver="auto"`` takes the Conjugate
+#: Residual path for the whole batch on the CPU, where PADMM needs several times the iterations of the LLT path and
+#: dr_legs stops at the 1000-iteration cap (docs/warp_backend.md, "Open problems").
 #:
 #: The round trip is the same physics written in other constraint rows: load_mjcf completes a hinge axis into a
 #: joint frame its own way, places FIXED joints at the child's frame, puts both anchors of a joint at the MJCF
@@ -342,43 +344,6 @@ def test_round_trip_simulates_alike(batch):
         assert err <= bound, f"{name}: body positions differ by {err:.3g} m (bound {bound:g})"
         assert moved > 100 * bound or name in ("box_on_plane", "box_stack", "incline"), name  # resting scenes
     assert np.all(np.isfinite(q))
-
-
-def _iterations(names: list[str], backend: str) -> np.ndarray:
-    """PADMM iterations ``[steps, worlds]`` of two steps of ``concat`` of ``names`` (a name ending in ``_rt`` is the
-    round trip) under constant random controls in ±0.2 (seeded per name), float64, tolerance 1e-6."""
-    models, ctrls = [], []
-    for name in names:
-        m = _round_trip(name.removesuffix("_rt"))[1 if name.endswith("_rt") else 0]
-        rng = np.random.default_rng(len(name.removesuffix("_rt")))
-        lo, hi = np.maximum(m.actuator_ctrl_range[:, 0], -0.2), np.minimum(m.actuator_ctrl_range[:, 1], 0.2)
-        models.append(m)
-        ctrls.append(rng.uniform(lo, hi))
-    big = kamino.concat(models)
-    controls = kamino.Control.from_ctrl(big, np.tile(np.concatenate(ctrls), (2, 1)))
-    cfg = kamino.SolverConfig(tolerance=1e-6, max_iterations=1000)
-    traj = kamino.rollout(big, kamino.init_state(big), controls, config=cfg, backend=backend)
-    return np.asarray(traj.info.iterations)
-
-
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="found in session 30, not fixed: on the Warp backend olaf's round trip (its "
-                   "five revolute loop closures as pairs of SPHERICAL joints: redundant rows) takes 836 and 683 PADMM "
-                   "iterations where the reference takes 123 and 116")
-def test_warp_solves_olaf_round_trip_as_the_reference():
-    """The Warp backend converges on olaf's MJCF round trip in the reference's iterations (float64: the two agree
-    to rounding on every other robot and round trip, e.g. dr_legs: 5e-16 m after two steps)."""
-    np.testing.assert_array_equal(_iterations(["olaf_rt"], "warp"), _iterations(["olaf_rt"], "jax"))
-
-
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="found in session 30, not fixed: on the Warp backend bdx beside olaf's round "
-                   "trip takes 338 and 187 PADMM iterations where it takes 160 and 63 alone (the reference: 160 and 63 "
-                   "both ways); bdx beside dr_legs, olaf or dr_legs' round trip is unaffected")
-def test_warp_world_solves_as_standalone_beside_olaf_round_trip():
-    """A world's solve does not depend on its batch neighbours (tests/test_batching.py checks it on small
-    mechanisms): bdx's iterations beside olaf's round trip equal bdx's alone."""
-    np.testing.assert_array_equal(_iterations(["bdx", "olaf_rt"], "warp")[:, 0], _iterations(["bdx"], "warp")[:, 0])
 
 
 # ---------------------------------------------------------------------------------------------
