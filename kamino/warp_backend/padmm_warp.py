@@ -11,14 +11,14 @@ warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of abou
   targets are distinct, so no atomics). The tail rows (active limits and contacts): ``L_tf`` by a forward
   substitution per tail row (threads over tail rows), the Schur complement ``S_t`` (threads over all its entry
   pairs ``(t, j <= t)``) and its dense Cholesky by columns (:func:`factor_tail`). Same sums as
-  ``sparse_llt.factor``, in another order. Then ``L_f`` is copied in column order (``sp.valc``, :func:`by_columns`).
+  ``sparse_llt.factor``, in another order. ``L_f`` is stored once, in row order.
 - **Solve** (:func:`solve`, every iteration). Column sweeps: the forward substitution of the fixed rows walks the
   columns of ``L_f`` (``x_q = b_q / L_qq``, then the column's entries update the rows below, threads over the
-  entries; read from the column-ordered copy, so that no value waits on the load of its index: docs/warp_backend.md,
-  "Where a PADMM iteration's time goes"), the backward one walks its rows (``x_p``, then the entries of row ``p``
-  update the rows above); the tail's dense rows likewise, and the tail's share of the fixed rows is one parallel
-  pass. One barrier per row;
+  entries; each entry's index in ``L_f``'s row order, ``cent``, is loaded two columns ahead, so that the value waits
+  on no index load), the backward one walks its rows (``x_p``, then the entries of row ``p`` update the rows above);
+  the tail's dense rows likewise, and the tail's share of the fixed rows is one parallel pass. One barrier per row;
   the right-hand side is updated in ``w.y`` (free during the solve) and the solution lands in ``w.x``.
+  docs/warp_backend.md, "Where a PADMM iteration's time goes", has what each load ordering cost.
 - **Iterations** (:func:`padmm_iterate`). Every per-row rule (projection, dual update, residuals, the penalty of
   the limit and contact rows, the null-direction test, momentum) is ``padmm_rules.py``'s, the threads splitting the
   box rows and the contact triples; the world's maxima and sums are block reductions. Iteration counts equal the
@@ -206,23 +206,6 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 sp.tail[jr + (nf + j) * tc] = d
             sync()
 
-    @wp.func
-    def by_columns(sp: SP, vb: int, e0: int, p0: int, nnz: int, nf: int, lane: int):
-        """``L_f`` in column order into ``sp.valc`` for the forward sweep of :func:`solve`: the entries below the
-        diagonal in ``cent`` order, then the reciprocal of the diagonal of each position (in ``cent``'s padding
-        slots), so that both sweeps multiply where they divided: a shorter dependent step."""
-        for j in range(lane, nnz - nf, LANES):
-            sp.valc[vb + j] = sp.val[vb + sp.cent[e0 + j] * sp.val_stride]
-        for q in range(lane, nf, LANES):
-            sp.valc[vb + nnz - nf + q] = scalar(1.0) / sp.val[vb + (sp.row_ptr[p0 + q + 1] - 1) * sp.val_stride]
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def order_columns(m: M, w: Work, sp: SP):
-        """:func:`by_columns` of a factor computed elsewhere (post-stabilisation's own, ``sparse_llt.factor_fixed``)."""
-        wid, lane = wp.tid()
-        base = bases(m, w, sp, wid)
-        by_columns(sp, base[1], sp.ent_start[wid], sp.ptr_start[wid], sp.nnz[wid], sp.n_fixed[wid], lane)
-
     @wp.kernel(module="unique", enable_backward=False)
     def factor(m: M, w: Work, sp: SP, eta: scalar, pending_only: int, nblk: int, shift: scalar, shift_sat: scalar):
         """Cholesky ``D~ = L L^T`` in place (§8.1) with the world's 32 threads: the fixed rows by columns (fan-out
@@ -308,7 +291,6 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             for k in range(lane, nnz, LANES):
                 sp.val[vb + k * sp.val_stride] = lget(lv, k)
         sync()
-        by_columns(sp, vb, e0, p0, nnz, nf, lane)
         n = w.n_rows[wid]
         nt = n - nf
         for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft (each thread its own tail rows)
@@ -380,18 +362,22 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         j1_n = int(0)
         l_n = zero
         r_n = int(0)
+        vs = sp.val_stride
         kmax = sp.nnz[wid] - 1  # the world's last entry: where the clamped loads stop
-        dg = vb + sp.nnz[wid] - nf  # the diagonal's slots in valc
         j1_nn = int(0)  # the end of column q + 2's entries (its start is column q + 1's end): loaded two ahead
+        c_nn = int(0)  # the entry index (cent) of this thread's entry of column q + 1: loaded two ahead
+        kd_nn = int(0)  # the diagonal entry of column q + 1: loaded two ahead
         if nf > 0:
             a_n = sp.perm[q0]
-            d_n = sp.valc[dg]
+            d_n = scalar(1.0) / sp.val[vb + (sp.row_ptr[p0 + 1] - 1) * vs]
             j0_n = sp.cptr[p0]
             j1_n = sp.cptr[p0 + 1]
             kn = wp.min(j0_n + lane, kmax)
-            l_n = sp.valc[vb + kn]
+            l_n = sp.val[vb + sp.cent[e0 + kn] * vs]
             r_n = sp.crow[e0 + kn]
             j1_nn = sp.cptr[p0 + wp.min(2, nf)]
+            c_nn = sp.cent[e0 + wp.min(j1_n + lane, kmax)]
+            kd_nn = sp.row_ptr[p0 + wp.min(2, nf)] - 1
         for q in range(nf):
             a_q = a_n
             yq = sget(xs, a_q) * d_n
@@ -401,12 +387,13 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             r_q = r_n
             qn = wp.min(q + 1, nf - 1)
             a_n = sp.perm[q0 + qn]
-            d_n = sp.valc[dg + qn]
+            d_n = scalar(1.0) / sp.val[vb + kd_nn * vs]
+            kd_nn = sp.row_ptr[p0 + wp.min(q + 3, nf)] - 1
             j0_n = j1_n
             j1_n = j1_nn
-            kn = wp.min(j0_n + lane, kmax)
-            l_n = sp.valc[vb + kn]
-            r_n = sp.crow[e0 + kn]
+            l_n = sp.val[vb + c_nn * vs]
+            r_n = sp.crow[e0 + wp.min(j0_n + lane, kmax)]
+            c_nn = sp.cent[e0 + wp.min(j1_n + lane, kmax)]
             j1_nn = sp.cptr[p0 + wp.min(q + 3, nf)]
             if lane == 0:
                 sset(ys, a_q, yq)
@@ -414,7 +401,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 sset(xs, r_q, sget(xs, r_q) - l_q * yq)
             for j in range(j0 + lane + LANES, j1, LANES):
                 rp = sp.crow[e0 + j]
-                sset(xs, rp, sget(xs, rp) - sp.valc[vb + j] * yq)
+                sset(xs, rp, sget(xs, rp) - sp.val[vb + sp.cent[e0 + j] * vs] * yq)
             sync()
         # forward, tail rows: the fixed columns in parallel, then the dense tail by columns
         for t in range(lane, nt, LANES):
@@ -457,9 +444,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             a_n = sp.perm[q0 + nf - 1]
             j0_n = sp.row_ptr[p0 + nf - 1]
             j1_n = sp.row_ptr[p0 + nf] - 1
-            d_n = sp.valc[dg + nf - 1]
+            d_n = scalar(1.0) / sp.val[vb + j1_n * vs]
             kn = wp.min(j0_n + lane, kmax)
-            l_n = sp.val[vb + kn * sp.val_stride]
+            l_n = sp.val[vb + kn * vs]
             r_n = sp.colrow[e0 + kn]
             j0_nn = sp.row_ptr[p0 + wp.max(nf - 2, 0)]
         for pp in range(nf):
@@ -473,9 +460,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             a_n = sp.perm[q0 + wp.max(p - 1, 0)]
             j1_n = j0_n - 1
             j0_n = j0_nn
-            d_n = sp.valc[dg + wp.max(p - 1, 0)]
+            d_n = scalar(1.0) / sp.val[vb + wp.max(j1_n, 0) * vs]  # row p - 1's diagonal (unused at p = 0)
             kn = wp.min(j0_n + lane, kmax)
-            l_n = sp.val[vb + kn * sp.val_stride]
+            l_n = sp.val[vb + kn * vs]
             r_n = sp.colrow[e0 + kn]
             j0_nn = sp.row_ptr[p0 + wp.max(p - 2, 0)]
             if lane == 0:
@@ -484,7 +471,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 sset(ys, r_p, sget(ys, r_p) - l_p * xp)
             for k in range(j0 + lane + LANES, j1, LANES):
                 rq = sp.colrow[e0 + k]
-                sset(ys, rq, sget(ys, rq) - sp.val[vb + k * sp.val_stride] * xp)
+                sset(ys, rq, sget(ys, rq) - sp.val[vb + k * vs] * xp)
             sync()
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -684,6 +671,6 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             if done or switch:
                 return
 
-    return SimpleNamespace(factor=factor, order_columns=order_columns, factor_tail=factor_tail, solve=solve,
+    return SimpleNamespace(factor=factor, factor_tail=factor_tail, solve=solve,
                            solve_fixed=solve_fixed,
                            padmm_iterate=padmm_iterate, R=R, E=E)

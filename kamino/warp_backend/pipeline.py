@@ -229,8 +229,6 @@ class Stepper:
                 shift_f, shift_b = cfg.projection_shifts(self.np_dtype)
                 self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift_f, shift_b)
                 self._launch(self.spk.factor_fixed, W, post)
-                if self.padmm == "warp":
-                    self._launch_lanes(self.wk.order_columns, post)
             for k in range(cfg.post_stabilisation + 1):  # the last pass only where PADMM did not converge
                 extra = int(k == cfg.post_stabilisation)
                 self._launch(self.pk.residual, rows, delta, extra)

@@ -215,10 +215,6 @@ def pattern_struct(np_dtype):
         tail_stride: int
         grp_tail_size: iarr
         val: wp.array(dtype=scalar)  # the fixed rows' factor
-        # per_world storage only (padmm_warp.py): L_f again in column order, valc[j] the entry cent[j] below the
-        # diagonal and the diagonal L_qq of position q in the padding slot nnz - n + q, so that the forward column
-        # sweep reads each value without the load of its index
-        valc: wp.array(dtype=scalar)
         tail: wp.array(dtype=scalar)  # the tail rows (fixed positions, then tail columns)
 
     return Pattern
@@ -283,7 +279,6 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     S.grp_tail_size = i32(g_tail * g_dim)
     scalar = types_of(np.dtype(np_dtype)).scalar
     S.val = wp.zeros(int(GROUP * g_nnz.sum()), dtype=scalar, device=device)
-    S.valc = wp.zeros(int(GROUP * g_nnz.sum()) if per_world else 0, dtype=scalar, device=device)
     S.tail = wp.zeros(int(GROUP * (g_tail * g_dim).sum()), dtype=scalar, device=device)
     mx = lambda a: int(a.max()) if len(a) else 0  # noqa: E731
     return SparseFactor(arrays=S, max_nnz=mx(nnz), max_tail=mx(tail_rows), nnz_total=int(nnz.sum()))
@@ -300,7 +295,6 @@ def empty(np_dtype, device) -> object:
     S.val_stride = GROUP
     S.tail_stride = GROUP
     S.val = wp.zeros(0, dtype=scalar, device=device)
-    S.valc = wp.zeros(0, dtype=scalar, device=device)
     S.tail = wp.zeros(0, dtype=scalar, device=device)
     return S
 
