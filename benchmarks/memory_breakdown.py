@@ -11,7 +11,8 @@ world as the worlds grow, so measure at the batch size of interest. ``--out`` wr
 columns its bodies' fixed rows reach up the elimination tree of ``L_f`` (the reach of a sparse triangular solve).
 A limit row's bodies are its joint's (the active limits are packed in DoF order, so the pattern would be stored per
 limited DoF, not per slot); contacts are packed too and a slot may hold any candidate pair, so a contact slot's reach
-is that of every body in the world's pairs.
+is that of every body in the world's pairs. It also prints the simpler layout in which every tail row is sized for
+the widest pattern a slot can hold (one stride for all rows, the pattern chosen per row at run time).
 """
 
 from __future__ import annotations
@@ -102,9 +103,10 @@ def tail_fill(scene: str) -> dict:
     contact_rows = 3 * int(model.world_contact_capacity[0])
     contact = reach(pair_bodies) if pair_bodies else 0
     n_tail = len(limits) + contact_rows
+    widest = max([*limits, contact if contact_rows else 0, 0])
     return {"scene": scene, "fixed_rows": n, "tail_rows": n_tail, "limit_rows": len(limits),
             "contact_rows": contact_rows, "dense_L_tf": n_tail * n, "sparse_L_tf": sum(limits) + contact_rows * contact,
-            "L_t": n_tail * n_tail}
+            "widest_pattern": widest, "uniform_L_tf": n_tail * widest, "L_t": n_tail * n_tail}
 
 
 def main(argv=None) -> int:
@@ -128,7 +130,9 @@ def main(argv=None) -> int:
             r = tail_fill(scene)
             print(f"{scene}: {r['fixed_rows']} fixed rows, {r['tail_rows']} tail rows ({r['limit_rows']} limit, "
                   f"{r['contact_rows']} contact); L_tf dense {r['dense_L_tf']} entries, static pattern "
-                  f"{r['sparse_L_tf']} ({100 * r['sparse_L_tf'] / max(r['dense_L_tf'], 1):.0f} %); L_t {r['L_t']}")
+                  f"{r['sparse_L_tf']} ({100 * r['sparse_L_tf'] / max(r['dense_L_tf'], 1):.0f} %), every row sized for "
+                  f"the widest pattern ({r['widest_pattern']}) {r['uniform_L_tf']} "
+                  f"({100 * r['uniform_L_tf'] / max(r['dense_L_tf'], 1):.0f} %); L_t {r['L_t']}")
         return 0
     import warp as wp
 
