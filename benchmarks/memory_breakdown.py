@@ -6,13 +6,11 @@ the model), and prints the total and the largest arrays per world. On a CUDA dev
 the memory pool's count (``wp.get_mempool_used_mem_current``); patterns shared by all worlds of a type shrink per
 world as the worlds grow, so measure at the batch size of interest. ``--out`` writes every scene's record as JSON.
 
-``--tail-fill`` predicts what a static sparse pattern for the tail's ``L_tf`` would hold instead of its dense rows
-(issue 17's lead, not built): a tail row's entries of ``L_tf = D~_tf L_f^-T`` can be nonzero only on the fixed
-columns its bodies' fixed rows reach up the elimination tree of ``L_f`` (the reach of a sparse triangular solve).
-A limit row's bodies are its joint's (the active limits are packed in DoF order, so the pattern would be stored per
-limited DoF, not per slot); contacts are packed too and a slot may hold any candidate pair, so a contact slot's reach
-is that of every body in the world's pairs. It also prints the simpler layout in which every tail row is sized for
-the widest pattern a slot can hold (one stride for all rows, the pattern chosen per row at run time).
+``--tail-fill`` counts the tail's ``L_tf`` entries per world: dense (``n_tail x n_fixed``, the layout before
+session 31), as stored since then (every tail row sized for the widest pattern a slot can hold; a row's entries of
+``L_tf = D~_tf L_f^-T`` can be nonzero only on the fixed rows its bodies' rows reach up the elimination tree of
+``L_f``, ``sparse_llt.tail_patterns``), and sized per source (each limited DoF's row its own pattern), the further
+step not taken.
 """
 
 from __future__ import annotations
@@ -71,41 +69,32 @@ def breakdown(scene: str, num_worlds: int, device: str, padmm: str | None = None
 
 
 def tail_fill(scene: str) -> dict:
-    """Entries of the dense tail (``n_tail x n_fixed``) against the static sparse pattern of ``L_tf`` (the module
-    docstring), for one world of ``scene``; ``L_t`` (``n_tail^2``) is dense either way."""
+    """The tail's ``L_tf`` entries for one world of ``scene``: dense (``n_tail x n_fixed``, before session 31), as
+    stored (every row sized for the widest pattern ``K``, ``sparse_llt.tail_patterns``), and sized per source (each
+    limit row its own pattern, each contact slot the widest pair's); ``L_t`` (``n_tail^2``) is dense either way."""
     from kamino.tables import row_tables
-    from kamino.warp_backend.sparse_llt import fixed_row_bodies, symbolic
+    from kamino.warp_backend.sparse_llt import fixed_row_bodies, symbolic, tail_patterns, tail_row_bodies
 
     model, _ = tb.load_scene(scene)
     bodies = fixed_row_bodies(model)[0]
     sym = symbolic(bodies)
     n = len(sym.perm)
-    pos = np.empty(n, np.int64)
-    pos[sym.perm] = np.arange(n)
-    parent = np.full(n, n, np.int64)  # elimination tree: the first row position below the diagonal of column q
-    off = sym.row != sym.col
-    np.minimum.at(parent, sym.col[off], sym.row[off])
-
-    def reach(body_set: set[int]) -> int:
-        seen: set[int] = set()
-        for q in (int(pos[r]) for r in range(n) if body_set & set(bodies[r][bodies[r] >= 0].tolist())):
-            while q < n and q not in seen:
-                seen.add(q)
-                q = int(parent[q])
-        return len(seen)
-
-    tab = row_tables(model)
-    jp, jc = np.asarray(model.joint_parent), np.asarray(model.joint_child)
-    limits = [reach({int(jp[tab.dof_joint[d]]), int(jc[tab.dof_joint[d]])}) for d in np.asarray(tab.lim_dof)]
-    gb = np.asarray(model.geom_body)
-    pair_bodies = {int(gb[g]) for g in np.concatenate([model.pair_geom_a, model.pair_geom_b]).astype(int)
-                   if gb[g] >= 0}
+    lim, pairs = tail_row_bodies(model, row_tables(model), 0)
     contact_rows = 3 * int(model.world_contact_capacity[0])
-    contact = reach(pair_bodies) if pair_bodies else 0
-    n_tail = len(limits) + contact_rows
-    widest = max([*limits, contact if contact_rows else 0, 0])
-    return {"scene": scene, "fixed_rows": n, "tail_rows": n_tail, "limit_rows": len(limits),
-            "contact_rows": contact_rows, "dense_L_tf": n_tail * n, "sparse_L_tf": sum(limits) + contact_rows * contact,
+    sizes = [len(p) for p in tail_patterns(bodies, sym, lim, pairs if contact_rows else None)]
+    lim_sizes, pair_sizes = sizes[:len(lim)], sizes[len(lim):]
+    n_tail = len(lim) + contact_rows
+    widest = max(sizes, default=0)
+    on_body: dict[int, set[int]] = {}  # the fixed rows on each moving body: a clique of D~_ff
+    for a in range(n):
+        for b in bodies[a][bodies[a] >= 0]:
+            on_body.setdefault(int(b), set()).add(a)
+    coupled = [set().union(*(on_body[int(b)] for b in bodies[a][bodies[a] >= 0])) for a in range(n)]
+    return {"scene": scene, "fixed_rows": n, "D_ff_lower": sum(len(c) + 1 for c in coupled) // 2, "L_f": sym.nnz,
+            "busiest_body_rows": max((len(r) for r in on_body.values()), default=0), "tail_rows": n_tail,
+            "limit_rows": len(lim),
+            "contact_rows": contact_rows, "dense_L_tf": n_tail * n,
+            "sparse_L_tf": sum(lim_sizes) + contact_rows * max(pair_sizes, default=0),
             "widest_pattern": widest, "uniform_L_tf": n_tail * widest, "L_t": n_tail * n_tail}
 
 
@@ -121,7 +110,7 @@ def main(argv=None) -> int:
                         "what the GPU's 32-thread schedule allocates)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     p.add_argument("--tail-fill", action="store_true",
-                   help="print the dense tail's L_tf entries against a static sparse pattern's and exit")
+                   help="print the tail's L_tf entries (dense, as stored, per source) and exit")
     args = p.parse_args(argv)
     if args.worlds < 1:
         p.error(f"--worlds must be >= 1, got {args.worlds}")
@@ -129,10 +118,12 @@ def main(argv=None) -> int:
         for scene in args.scenes:
             r = tail_fill(scene)
             print(f"{scene}: {r['fixed_rows']} fixed rows, {r['tail_rows']} tail rows ({r['limit_rows']} limit, "
-                  f"{r['contact_rows']} contact); L_tf dense {r['dense_L_tf']} entries, static pattern "
-                  f"{r['sparse_L_tf']} ({100 * r['sparse_L_tf'] / max(r['dense_L_tf'], 1):.0f} %), every row sized for "
-                  f"the widest pattern ({r['widest_pattern']}) {r['uniform_L_tf']} "
-                  f"({100 * r['uniform_L_tf'] / max(r['dense_L_tf'], 1):.0f} %); L_t {r['L_t']}")
+                  f"{r['contact_rows']} contact); L_tf dense {r['dense_L_tf']} entries, "
+                  f"{r['uniform_L_tf']} as stored, every row sized for the widest pattern ({r['widest_pattern']}: "
+                  f"{100 * r['uniform_L_tf'] / max(r['dense_L_tf'], 1):.0f} %), {r['sparse_L_tf']} sized per source "
+                  f"({100 * r['sparse_L_tf'] / max(r['dense_L_tf'], 1):.0f} %); L_t {r['L_t']}; fixed rows: D~_ff "
+                  f"{r['D_ff_lower']} entries in its lower triangle, L_f {r['L_f']}, {r['busiest_body_rows']} rows on "
+                  "the busiest body")
         return 0
     import warp as wp
 

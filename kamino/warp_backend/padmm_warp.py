@@ -105,6 +105,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     balanced_penalty, dual_update, saturates = pf.balanced_penalty, pf.dual_update, pf.saturates
     slk = sparse_llt_kernels(np_dtype)
     bases, schur_entry, fixed_entry, tail_row = slk.bases, slk.schur_entry, slk.fixed_entry, slk.tail_row
+    tail_k, tail_pattern = slk.tail_k, slk.tail_pattern
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
     zero = scalar(0.0)
@@ -157,20 +158,22 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         return v
 
     @wp.func
-    def ltf_batch(sp: SP, vb: int, e0: int, tr: int, tc: int, kb: int, k1: int, s: scalar, lv: LVec) -> scalar:
-        """``s - sum_k L_pk l_k`` over the entries ``k = kb .. kb + FAN_BATCH - 1`` of row ``p`` before its diagonal
-        ``k1`` (``l``: the tail row at ``tr``): the FAN_BATCH column indices, then the FAN_BATCH values, each batch
-        loaded together (indices clamped, the surplus multiplied by zero), so that the sum waits on two load
-        latencies per batch instead of two per entry."""
-        cv = FanIdx()
+    def ltf_batch(sp: SP, vb: int, tr: int, tc: int, ub: int, u1: int, s: scalar, lv: LVec) -> scalar:
+        """``s - sum_u L_k(u) l_j(u)`` over the pattern's update pairs ``u = ub .. ub + FAN_BATCH - 1`` before ``u1``
+        (``l``: the tail row at ``tr``; ``sparse_llt.Pattern.pat_upd_*``): the FAN_BATCH pairs' indices, then their
+        values, each batch loaded together (indices clamped, the surplus multiplied by zero), so that the sum waits
+        on two load latencies per batch instead of two per entry."""
+        kv = FanIdx()
+        jv = FanIdx()
         for r in range(FAN_BATCH):
-            cv[r] = sp.col[e0 + wp.min(kb + r, k1 - 1)]
+            kv[r] = sp.pat_upd_k[wp.min(ub + r, u1 - 1)]
+            jv[r] = sp.pat_upd_j[wp.min(ub + r, u1 - 1)]
         tv = FanVal()
         for r in range(FAN_BATCH):
-            tv[r] = sp.tail[tr + cv[r] * tc]
+            tv[r] = sp.tail[tr + jv[r] * tc]
         for r in range(FAN_BATCH):
-            lk = fget(sp, vb, wp.min(kb + r, k1 - 1), lv)
-            s -= wp.where(kb + r < k1, lk * tv[r], zero)
+            lk = fget(sp, vb, kv[r], lv)
+            s -= wp.where(ub + r < u1, lk * tv[r], zero)
         return s
 
     @wp.func
@@ -184,26 +187,27 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
         """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
         products over the columns before it), from ``S_t`` in the tail rows' upper slots (``S_t[t, j]`` at row
-        ``j``, column ``nf + t``) and ``w.sdiag``; the sums of ``sparse_llt.factor_tail``."""
+        ``j``, tail column ``K + t``) and ``w.sdiag``; the sums of ``sparse_llt.factor_tail``."""
         rs = w.row_stride
         base = bases(m, w, sp, wid)
         rb, tb, ts = base[0], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
+        kt = tail_k(sp, wid)
         for j in range(n - nf):
             jr = tb + j * ts
             d = w.sdiag[rb + (nf + j) * rs] + shift
             for i in range(j):
-                d -= sp.tail[jr + (nf + i) * tc] * sp.tail[jr + (nf + i) * tc]
+                d -= sp.tail[jr + (kt + i) * tc] * sp.tail[jr + (kt + i) * tc]
             d = wp.sqrt(d)
             for t in range(j + 1 + lane, n - nf, LANES):
                 tr = tb + t * ts
-                s = sp.tail[jr + (nf + t) * tc]
+                s = sp.tail[jr + (kt + t) * tc]
                 for i in range(j):
-                    s -= sp.tail[tr + (nf + i) * tc] * sp.tail[jr + (nf + i) * tc]
-                sp.tail[tr + (nf + j) * tc] = s / d
+                    s -= sp.tail[tr + (kt + i) * tc] * sp.tail[jr + (kt + i) * tc]
+                sp.tail[tr + (kt + j) * tc] = s / d
             if lane == 0:
-                sp.tail[jr + (nf + j) * tc] = d
+                sp.tail[jr + (kt + j) * tc] = d
             sync()
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -293,16 +297,16 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         sync()
         n = w.n_rows[wid]
         nt = n - nf
-        for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft (each thread its own tail rows)
+        for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft over its pattern (each thread its rows)
             tr = tb + t * ts
-            k0 = sp.row_ptr[p0]
-            for p in range(nf):
-                s = sp.tail[tr + p * tc]
-                k1 = sp.row_ptr[p0 + p + 1] - 1  # row p's diagonal; its other entries are k0 .. k1 - 1
-                for kb in range(k0, k1, FAN_BATCH):
-                    s = ltf_batch(sp, vb, e0, tr, tc, kb, k1, s, lv)
-                sp.tail[tr + p * tc] = s / fget(sp, vb, k1, lv)
-                k0 = k1 + 1
+            pt = tail_pattern(sp, wid, t)
+            i0 = sp.pat_ptr[pt]
+            for i in range(sp.pat_ptr[pt + 1] - i0):
+                s = sp.tail[tr + i * tc]
+                u1 = sp.pat_upd_ptr[i0 + i + 1]
+                for ub in range(sp.pat_upd_ptr[i0 + i], u1, FAN_BATCH):
+                    s = ltf_batch(sp, vb, tr, tc, ub, u1, s, lv)
+                sp.tail[tr + i * tc] = s / fget(sp, vb, sp.row_ptr[p0 + sp.pat_pos[i0 + i] + 1] - 1, lv)
         sync()
         # S_t = D~_t - L_tf L_tf^T: the entries (t, j <= t), threads over all nt (nt + 1) / 2 of them (pair u is
         # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or sdiag, so no pair
@@ -313,7 +317,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             j -= t + 1
             t += 1
         while t < nt:
-            schur_entry(w, sp, rb, tb, ts, nf, t, j)
+            schur_entry(w, sp, wid, rb, tb, ts, nf, t, j)
             j += LANES
             while j > t:
                 j -= t + 1
@@ -404,37 +408,43 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 sset(xs, rp, sget(xs, rp) - sp.val[vb + sp.cent[e0 + j] * vs] * yq)
             sync()
         # forward, tail rows: the fixed columns in parallel, then the dense tail by columns
+        kt = tail_k(sp, wid)
         for t in range(lane, nt, LANES):
             tr = tb + t * ts
             s = sget(xs, nf + t)
-            for p in range(nf):
-                s -= sp.tail[tr + p * tc] * sget(ys, sp.perm[q0 + p])
+            pt = tail_pattern(sp, wid, t)
+            i0 = sp.pat_ptr[pt]
+            for i in range(sp.pat_ptr[pt + 1] - i0):
+                s -= sp.tail[tr + i * tc] * sget(ys, sp.pat_row[i0 + i])
             sset(xs, nf + t, s)
         sync()
         for t in range(nt):
-            yt = sget(xs, nf + t) / sp.tail[tb + t * ts + (nf + t) * tc]
+            yt = sget(xs, nf + t) / sp.tail[tb + t * ts + (kt + t) * tc]
             if lane == 0:
                 sset(ys, nf + t, yt)
             for i in range(t + 1 + lane, nt, LANES):
-                sset(xs, nf + i, sget(xs, nf + i) - sp.tail[tb + i * ts + (nf + t) * tc] * yt)
+                sset(xs, nf + i, sget(xs, nf + i) - sp.tail[tb + i * ts + (kt + t) * tc] * yt)
             sync()
         # backward, tail rows: x_t = y_t / L_tt (y_t final once the rows after t have updated it), then row t of
-        # L_t updates the tail rows before it; then the tail's share of the fixed rows in parallel
+        # L_t updates the tail rows before it; then the tail's share of the fixed rows in parallel, each thread
+        # finding its fixed positions in the tail rows' patterns through their lookups
         for tt in range(nt):
             t = nt - 1 - tt
             tr = tb + t * ts
-            xt = sget(ys, nf + t) / sp.tail[tr + (nf + t) * tc]
+            xt = sget(ys, nf + t) / sp.tail[tr + (kt + t) * tc]
             if lane == 0:
                 sset(xs, nf + t, xt)
             for i in range(lane, t, LANES):
-                sset(ys, nf + i, sget(ys, nf + i) - sp.tail[tr + (nf + i) * tc] * xt)
+                sset(ys, nf + i, sget(ys, nf + i) - sp.tail[tr + (kt + i) * tc] * xt)
             sync()
         if nt > 0:
             for p in range(lane, nf, LANES):
                 a = sp.perm[q0 + p]
                 s = sget(ys, a)
                 for t in range(nt):
-                    s -= sp.tail[tb + t * ts + p * tc] * sget(xs, nf + t)
+                    c = sp.pat_lut[sp.pat_lut_start[tail_pattern(sp, wid, t)] + p]
+                    if c >= 0:
+                        s -= sp.tail[tb + t * ts + c * tc] * sget(xs, nf + t)
                 sset(ys, a, s)
             sync()
         # backward, fixed rows, by rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it (loaded

@@ -10,9 +10,14 @@ share). On the device, a world's thread factorises by walking that list — no s
 values — and the PADMM iterations solve with the sparse factor.
 
 The rows that change from step to step (active limits, contacts; their bodies are only known at run
-time) form a dense *tail*: ``L = [[L_f, 0], [L_tf, L_t]]`` with ``L_tf = D~_tf L_f^-T`` (sparse forward
-substitutions) and ``L_t = chol(D~_t - L_tf L_tf^T)``. The tail rows of a world are stored as full rows
-(fixed-row positions, then tail columns), interleaved over groups of 32 worlds like the other row data.
+time) form a *tail*: ``L = [[L_f, 0], [L_tf, L_t]]`` with ``L_tf = D~_tf L_f^-T`` (sparse forward
+substitutions) and ``L_t = chol(D~_t - L_tf L_tf^T)``, dense. A tail row's ``L_tf`` can be nonzero only on the
+fixed positions its bodies' rows reach up the elimination tree of ``L_f`` (the reach of a sparse triangular
+solve), known when the model is built: a limit row's from its joint's bodies, a contact row's from its pair's.
+Limits and contacts are packed, so a tail slot may hold any of them: each tail row is stored as ``K`` entries (the
+world's widest pattern), then its tail columns, and the row's pattern is chosen at run time from its source
+(:func:`tail_patterns`). Stored values and sums are those of the dense rows with their
+exact zeros left out. The rows are interleaved over groups of 32 worlds like the other row data.
 
 Measured on ladder8 (144 fixed rows): 1688 factor entries instead of 10440 for the dense factor, 18k
 multiply-adds to factorise instead of 498k (docs/warp_backend.md, "Sparse factor").
@@ -29,6 +34,7 @@ from kamino.model import Model
 from kamino.tables import prefix, row_tables
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, group_sizes, model_struct
+from kamino.warp_backend.rows import ROW_LIMIT
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
@@ -169,6 +175,60 @@ def symbolic(bodies: np.ndarray) -> Symbolic:
                     fan_a=i64(upd_a)[fan] if upd_a else fan, fan_b=i64(upd_b)[fan] if upd_a else fan)
 
 
+def elimination_parents(sym: Symbolic) -> np.ndarray:
+    """The elimination tree of ``L_f``: the parent of position ``q`` is the first row below the diagonal in column
+    ``q`` (``n`` for a root)."""
+    n = len(sym.perm)
+    parent = np.full(n, n, np.int64)
+    off = sym.row != sym.col
+    np.minimum.at(parent, sym.col[off], sym.row[off])
+    return parent
+
+
+def tail_row_bodies(model: Model, tab, w: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The moving bodies (world-local, ``-1``: the world) of world ``w``'s tail rows: ``[n_lim, 2]`` for its limited
+    DoFs in DoF order (the joint's parent and child; ``tab``: :func:`kamino.tables.row_tables`), and ``[n_pairs, 2]``
+    for its contact pairs in the model's order (the warm-start key ``Contacts.pair``), or ``None`` without a contact
+    capacity."""
+    b0 = int(model.world_body_start[w])
+    l0 = int(prefix(tab.world_lim_count)[w])
+    joints = np.asarray(tab.dof_joint)[np.asarray(tab.lim_dof)[l0:l0 + int(tab.world_lim_count[w])]]
+    lim = np.stack([np.asarray(model.joint_parent)[joints], np.asarray(model.joint_child)[joints]], axis=-1)
+    lim = np.where(lim >= 0, lim - b0, -1).astype(np.int64).reshape(-1, 2)
+    if int(model.world_contact_capacity[w]) == 0:
+        return lim, None
+    p0, pc = int(model.world_pair_start[w]), int(model.world_pair_count[w])
+    geoms = np.concatenate([model.pair_geom_a[p0:p0 + pc], model.pair_geom_b[p0:p0 + pc]]).astype(np.int64)
+    gb = np.asarray(model.geom_body)[geoms]
+    return lim, np.where(gb >= 0, gb - b0, -1).astype(np.int64).reshape(2, pc).T.copy()
+
+
+def tail_patterns(bodies: np.ndarray, sym: Symbolic, lim_bodies: np.ndarray,
+                  contact_bodies: np.ndarray | None) -> list[np.ndarray]:
+    """The ``L_tf`` pattern (fixed positions, ascending) of each kind of tail row: one per limited DoF (``lim_bodies``,
+    in the order the active limits are packed), then one per contact pair (``contact_bodies``; a contact row takes
+    its pair's). A pattern is the union of the elimination-tree paths from the fixed rows on the row's bodies to the
+    root (``bodies``: the fixed rows' moving bodies; ``sym``: their factor pattern; :func:`tail_row_bodies`)."""
+    n = len(sym.perm)
+    parent = elimination_parents(sym)
+    pos = np.empty(n, np.int64)
+    pos[sym.perm] = np.arange(n)
+    row_sets = [set(int(b) for b in bodies[a] if b >= 0) for a in range(n)]
+
+    def reach(body_set: set[int]) -> np.ndarray:
+        seen: set[int] = set()
+        for a in range(n):
+            if body_set & row_sets[a]:
+                q = int(pos[a])
+                while q < n and q not in seen:
+                    seen.add(q)
+                    q = int(parent[q])
+        return np.asarray(sorted(seen), np.int64)
+
+    pairs = [*lim_bodies, *(contact_bodies if contact_bodies is not None else [])]
+    return [reach({int(b) for b in pair if b >= 0}) for pair in pairs]
+
+
 @functools.cache
 def pattern_struct(np_dtype):
     """The Warp struct of the factor patterns (shared by worlds of one type) and the factor's values."""
@@ -214,6 +274,25 @@ def pattern_struct(np_dtype):
         # entries per world
         tail_stride: int
         grp_tail_size: iarr
+        grp_tail_k: iarr  # per group: K, the stored entries of a tail row's L_tf (its tail columns start there)
+        grp_tail_dim: iarr  # per group: K + the tail rows, the entries of a tail row
+        # the L_tf patterns of all world types (tail_patterns), by global pattern id: pattern P's entries are
+        # pat_ptr[P] .. pat_ptr[P + 1] - 1 of pat_pos (fixed positions, ascending) and pat_row (their rows, perm[pos])
+        pat_ptr: iarr
+        pat_pos: iarr
+        pat_row: iarr
+        # L_tf's forward substitution: entry i of a pattern subtracts L_pk l_j for the pairs u in
+        # pat_upd_ptr[i] .. pat_upd_ptr[i + 1] - 1: k = pat_upd_k[u] (entry of L_f, world-type-local) and j =
+        # pat_upd_j[u] (the compressed index of column col[k] in the pattern; columns outside it hold zeros)
+        pat_upd_ptr: iarr
+        pat_upd_k: iarr
+        pat_upd_j: iarr
+        pat_lut_start: iarr  # [P] pattern P's lookup: pat_lut[pat_lut_start[P] + p] = compressed index of p, or -1
+        pat_lut: iarr
+        dof_pat: iarr  # [num_dofs] the pattern of a limit row on DoF d (global pattern id; -1: no limit)
+        con_pat: iarr  # [W] the pattern of the world's first contact pair (-1: none); pair k's is con_pat + k
+        tail_max: int  # tail rows per world in tail_pat
+        tail_pat: iarr  # [W tail_max] the pattern of each tail row, set by tail_row at assembly
         val: wp.array(dtype=scalar)  # the fixed rows' factor
         tail: wp.array(dtype=scalar)  # the tail rows (fixed positions, then tail columns)
 
@@ -230,18 +309,40 @@ class SparseFactor:
     nnz_total: int  # factor entries summed over worlds (fixed rows)
 
 
+def pattern_tables(sym: Symbolic, pattern: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For one ``L_tf`` pattern (fixed positions, ascending) of a world type with factor pattern ``sym``: the
+    forward substitution's pairs, ``(ptr [len + 1], k, j)`` (for entry ``i`` at position ``p``, each entry ``k`` of
+    row ``p`` of ``L_f`` before its diagonal whose column lies in the pattern, at compressed index ``j``; ascending
+    ``k``, the dense loop's order), and the lookup ``[n]``: compressed index of each fixed position, or -1."""
+    lut = np.full(len(sym.perm), -1, np.int64)
+    lut[pattern] = np.arange(len(pattern))
+    ks = [np.arange(sym.row_ptr[p], sym.row_ptr[p + 1] - 1) for p in pattern]
+    ks = [k[lut[sym.col[k]] >= 0] for k in ks]
+    ptr = np.concatenate([[0], np.cumsum([len(k) for k in ks], dtype=np.int64)]).astype(np.int64)
+    k = np.concatenate(ks).astype(np.int64) if ks else np.zeros(0, np.int64)
+    return ptr, k, lut[sym.col[k]], lut
+
+
 def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: bool = False) -> SparseFactor:
     """Symbolic analysis of every world type of ``model`` and the device storage of the factors (``per_world``: each
-    world's values contiguous, for the 32-threads-per-world schedule; else interleaved over groups of worlds)."""
+    world's values contiguous, for the 32-threads-per-world schedule; else interleaved over groups of worlds). A
+    world type is the fixed rows' bodies and its tail rows' (:func:`tail_row_bodies`)."""
     W = model.num_worlds
+    tab = row_tables(model)
+    tail_rows = np.asarray(row_maxdim, np.int64) - np.asarray(
+        [len(r) for r in fixed_row_bodies(model)], np.int64) if W else np.zeros(0, np.int64)
     types: dict[bytes, int] = {}
     syms: list[Symbolic] = []
+    pats: list[list[np.ndarray]] = []
     world_type = np.empty(W, np.int64)
     for w, rows in enumerate(fixed_row_bodies(model)):
-        key = rows.tobytes() + bytes(str(rows.shape), "ascii")
+        lim, con = tail_row_bodies(model, tab, w) if tail_rows[w] > 0 else (np.zeros((0, 2), np.int64), None)
+        key = b"|".join([rows.tobytes(), bytes(str(rows.shape), "ascii"), lim.tobytes(),
+                         b"-" if con is None else con.tobytes()])
         if key not in types:
             types[key] = len(syms)
             syms.append(symbolic(rows))
+            pats.append(tail_patterns(rows, syms[-1], lim, con) if tail_rows[w] > 0 else [])
         world_type[w] = types[key]
     n_t = np.array([len(s.perm) for s in syms], np.int64)
     nnz_t = np.array([s.nnz for s in syms], np.int64)
@@ -250,9 +351,15 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     cat = lambda f: np.concatenate([f(s) for s in syms]) if syms else np.zeros(0, np.int64)  # noqa: E731
     n_fixed = n_t[world_type]
     nnz = nnz_t[world_type]
-    tail_rows = np.asarray(row_maxdim, np.int64) - n_fixed
-    g_nnz, g_tail = group_sizes(nnz), group_sizes(tail_rows)
-    g_dim = group_sizes(np.asarray(row_maxdim, np.int64))
+    # the L_tf patterns, by global id: type t's are pat0_t .. pat0_t + len(pats[t]) - 1
+    pat0_t = prefix(np.array([len(p) for p in pats], np.int64))
+    flat = [(s, p) for s, ps in zip(syms, pats, strict=True) for p in ps]
+    tables = [pattern_tables(s, p) for s, p in flat]
+    lens = np.array([len(p) for _, p in flat], np.int64)
+    k_t = np.array([max((len(p) for p in ps), default=0) for ps in pats], np.int64)
+    K = k_t[world_type]
+    g_nnz, g_tail, g_k = group_sizes(nnz), group_sizes(tail_rows), group_sizes(K)
+    g_dim = g_k + g_tail
     S = pattern_struct(np.dtype(np_dtype))()
 
     def i32(a):
@@ -277,10 +384,38 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     S.grp_tail_start = i32(prefix(GROUP * g_tail * g_dim))
     S.tail_stride = 1 if per_world else GROUP
     S.grp_tail_size = i32(g_tail * g_dim)
+    S.grp_tail_k = i32(g_k)
+    S.grp_tail_dim = i32(g_dim)
+    S.pat_ptr = i32(np.append(prefix(lens), lens.sum()))
+    S.pat_pos = i32(np.concatenate([p for _, p in flat]) if flat else [])
+    S.pat_row = i32(np.concatenate([s.perm[p] for s, p in flat]) if flat else [])
+    n_upd = np.array([len(t[1]) for t in tables], np.int64)
+    S.pat_upd_ptr = i32(np.append(np.concatenate([t[0][:-1] + o for t, o in zip(tables, prefix(n_upd), strict=True)])
+                                  if flat else np.zeros(0, np.int64), n_upd.sum()))
+    # one trailing 0 each, for padmm_warp.factor's clamped batch loads
+    S.pat_upd_k = i32(np.append(np.concatenate([t[1] for t in tables]) if flat else [], 0))
+    S.pat_upd_j = i32(np.append(np.concatenate([t[2] for t in tables]) if flat else [], 0))
+    S.pat_lut_start = i32(prefix(np.array([len(t[3]) for t in tables], np.int64)))
+    S.pat_lut = i32(np.concatenate([t[3] for t in tables]) if flat else [])
+    dof_pat = np.full(max(len(tab.dof_joint), 1), -1, np.int64)
+    con_pat = np.full(W, -1, np.int64)
+    lim_start = prefix(tab.world_lim_count)
+    for w in range(W):
+        t = world_type[w]
+        if not pats[t]:
+            continue
+        nl = int(tab.world_lim_count[w])
+        dof_pat[np.asarray(tab.lim_dof)[lim_start[w]:lim_start[w] + nl]] = pat0_t[t] + np.arange(nl)
+        if len(pats[t]) > nl:
+            con_pat[w] = pat0_t[t] + nl
+    S.dof_pat = i32(dof_pat if (dof_pat >= 0).any() else dof_pat[:1])  # read only on limit rows
+    S.con_pat = i32(con_pat)
+    mx = lambda a: int(a.max()) if len(a) else 0  # noqa: E731
+    S.tail_max = max(mx(tail_rows), 1)
+    S.tail_pat = wp.zeros(W * S.tail_max, dtype=wp.int32, device=device)
     scalar = types_of(np.dtype(np_dtype)).scalar
     S.val = wp.zeros(int(GROUP * g_nnz.sum()), dtype=scalar, device=device)
     S.tail = wp.zeros(int(GROUP * (g_tail * g_dim).sum()), dtype=scalar, device=device)
-    mx = lambda a: int(a.max()) if len(a) else 0  # noqa: E731
     return SparseFactor(arrays=S, max_nnz=mx(nnz), max_tail=mx(tail_rows), nnz_total=int(nnz.sum()))
 
 
@@ -290,10 +425,14 @@ def empty(np_dtype, device) -> object:
     scalar = types_of(np.dtype(np_dtype)).scalar
     for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "perm", "row_ptr", "col", "colrow", "row",
                  "div", "upd_ptr", "upd_a", "upd_b", "cptr", "cent", "crow", "fan_ptr", "fan_tgt", "fan_a", "fan_b",
-                 "grp_val_start", "grp_nnz", "grp_tail_start", "grp_tail_size"):
+                 "grp_val_start", "grp_nnz", "grp_tail_start", "grp_tail_size", "grp_tail_k", "grp_tail_dim",
+                 "pat_ptr", "pat_pos",
+                 "pat_row", "pat_upd_ptr", "pat_upd_k", "pat_upd_j", "pat_lut_start", "pat_lut", "dof_pat", "con_pat",
+                 "tail_pat"):
         setattr(S, name, wp.zeros(0, dtype=wp.int32, device=device))
     S.val_stride = GROUP
     S.tail_stride = GROUP
+    S.tail_max = 1
     S.val = wp.zeros(0, dtype=scalar, device=device)
     S.tail = wp.zeros(0, dtype=scalar, device=device)
     return S
@@ -333,15 +472,25 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             vb = sp.grp_val_start[g] + lane * sp.grp_nnz[g]
         if sp.tail_stride == 1:
             return wp.vec4i(row_base(m, w, wid), vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
-                            m.grp_maxdim[g])
-        return wp.vec4i(row_base(m, w, wid), vb, sp.grp_tail_start[g] + lane, m.grp_maxdim[g] * GROUP)
+                            sp.grp_tail_dim[g])
+        return wp.vec4i(row_base(m, w, wid), vb, sp.grp_tail_start[g] + lane, sp.grp_tail_dim[g] * GROUP)
+
+    @wp.func
+    def tail_k(sp: SP, wid: int):
+        """Where the tail columns of a tail row of world ``wid`` start (after its ``K`` ``L_tf`` entries)."""
+        return sp.grp_tail_k[wid // GROUP]
 
     @wp.func
     def tidx(m: M, w: Work, sp: SP, wid: int, t: int, c: int):
-        """Storage index of column ``c`` (fixed position, or tail row index) of tail row ``t`` (the layout of
-        :func:`bases`)."""
+        """Storage index of entry ``c`` (``L_tf``'s compressed index below ``K``, then ``K`` + tail row index) of
+        tail row ``t`` (the layout of :func:`bases`)."""
         base = bases(m, w, sp, wid)
         return base[2] + t * base[3] + c * sp.tail_stride
+
+    @wp.func
+    def tail_pattern(sp: SP, wid: int, t: int):
+        """The ``L_tf`` pattern (global id) of tail row ``t`` of world ``wid``, as :func:`tail_row` recorded it."""
+        return sp.tail_pat[wid * sp.tail_max + t]
 
     @wp.func
     def inv_mass_times(m: M, w: Work, b: int, J: vec6):
@@ -396,16 +545,27 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.func
     def tail_row(m: M, w: Work, sp: SP, wid: int, a: int, nblk: int):
-        """Tail row ``a`` (an active limit or contact row): ``D~_ab`` for every fixed position and every tail
+        """Tail row ``a`` (an active limit or contact row): ``D~_ab`` for every fixed row ``b`` of its ``L_tf``
+        pattern (chosen by the row's source and recorded in ``sp.tail_pat``; the others are zero) and every tail
         row ``b <= a`` (no shift: :func:`factor` adds the world's penalty)."""
         nf = sp.n_fixed[wid]
         t = a - nf
-        Pa = w.P[ridx(m, w, wid, a)]
-        for p in range(nf):
-            b = sp.perm[sp.perm_start[wid] + p]
-            sp.tail[tidx(m, w, sp, wid, t, p)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
+        ra = ridx(m, w, wid, a)
+        Pa = w.P[ra]
+        pat = int(0)
+        if w.row_type[ra] == ROW_LIMIT:
+            pat = sp.dof_pat[w.row_src[ra]]
+        else:  # a contact row: its pair's
+            pat = sp.con_pat[wid] + w.ct_pair[w.row_src[ra]]
+        sp.tail_pat[wid * sp.tail_max + t] = pat
+        i0 = sp.pat_ptr[pat]
+        for i in range(sp.pat_ptr[pat + 1] - i0):
+            b = sp.pat_row[i0 + i]
+            sp.tail[tidx(m, w, sp, wid, t, i)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
+        kt = tail_k(sp, wid) - nf
         for b in range(nf, a + 1):
-            sp.tail[tidx(m, w, sp, wid, t, b)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
+            sp.tail[tidx(m, w, sp, wid, t, kt + b)] = (Pa * delassus_entry(m, w, wid, a, b, nblk)
+                                                       * w.P[ridx(m, w, wid, b)])
 
     @wp.kernel(module="unique", enable_backward=False)
     def assemble_tail(m: M, w: Work, sp: SP, nblk: int):
@@ -439,14 +599,15 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar):
         """``L_t = chol(S_t + shift I)``: the tail rows' Cholesky from their Schur complement ``S_t = D~_t -
-        L_tf L_tf^T``, kept by :func:`factor` in the tail rows' upper slots (``S_t[t, j]`` at row ``j``, column
-        ``nf + t``) and ``w.sdiag``; a new penalty of the limit and contact rows redoes only this
+        L_tf L_tf^T``, kept by :func:`factor` in the tail rows' upper slots (``S_t[t, j]`` at row ``j``, tail
+        column ``K + t``) and ``w.sdiag``; a new penalty of the limit and contact rows redoes only this
         (``kamino.jax_ref.padmm.solve``, "Penalty")."""
         rs = w.row_stride
         base = bases(m, w, sp, wid)
         rb, tb, ts = base[0], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
+        kt = tail_k(sp, wid)
         for t in range(n - nf):
             tr = tb + t * ts
             for j in range(t + 1):
@@ -455,30 +616,38 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 if j == t:
                     s = w.sdiag[rb + (nf + t) * rs] + shift
                 else:
-                    s = sp.tail[jr + (nf + t) * tc]
+                    s = sp.tail[jr + (kt + t) * tc]
                 for i in range(j):
-                    s -= sp.tail[tr + (nf + i) * tc] * sp.tail[jr + (nf + i) * tc]
+                    s -= sp.tail[tr + (kt + i) * tc] * sp.tail[jr + (kt + i) * tc]
                 if j == t:
                     s = wp.sqrt(s)
                 else:
-                    s = s / sp.tail[jr + (nf + j) * tc]
-                sp.tail[tr + (nf + j) * tc] = s
+                    s = s / sp.tail[jr + (kt + j) * tc]
+                sp.tail[tr + (kt + j) * tc] = s
 
     @wp.func
-    def schur_entry(w: Work, sp: SP, rb: int, tb: int, ts: int, nf: int, t: int, j: int):
+    def schur_entry(w: Work, sp: SP, wid: int, rb: int, tb: int, ts: int, nf: int, t: int, j: int):
         """``S_t[t, j] = D~_tj - L_t. L_j.`` (``j <= t``, tail rows, ``L_tf`` done) into row ``j``'s upper slot
-        (column ``nf + t``), or ``w.sdiag`` for ``j == t``: it reads only lower slots, so entries are independent."""
+        (tail column ``K + t``), or ``w.sdiag`` for ``j == t``: it reads only lower slots, so entries are
+        independent. The dot runs over row ``t``'s pattern, ascending, finding each position in row ``j``'s through
+        its lookup (the dense sum without its zero terms)."""
         rs = w.row_stride
         tr = tb + t * ts
         jr = tb + j * ts
         tc = sp.tail_stride
-        s = sp.tail[tr + (nf + j) * tc]
-        for p in range(nf):
-            s -= sp.tail[tr + p * tc] * sp.tail[jr + p * tc]
+        kt = tail_k(sp, wid)
+        pt = tail_pattern(sp, wid, t)
+        lut = sp.pat_lut_start[tail_pattern(sp, wid, j)]
+        i0 = sp.pat_ptr[pt]
+        s = sp.tail[tr + (kt + j) * tc]
+        for i in range(sp.pat_ptr[pt + 1] - i0):
+            c = sp.pat_lut[lut + sp.pat_pos[i0 + i]]
+            if c >= 0:
+                s -= sp.tail[tr + i * tc] * sp.tail[jr + c * tc]
         if j == t:
             w.sdiag[rb + (nf + t) * rs] = s
         else:
-            sp.tail[jr + (nf + t) * tc] = s
+            sp.tail[jr + (kt + t) * tc] = s
 
     @wp.func
     def factor_world(m: M, w: Work, sp: SP, wid: int, eta: scalar):
@@ -489,21 +658,23 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
-        e0 = sp.ent_start[wid]
         factor_fixed_rows(sp, wid, vb)
         n = w.n_rows[wid]
         p0 = sp.ptr_start[wid]
         for t in range(n - nf):
             tr = tb + t * ts
-            # L_tf: row t solves L_f l = D~_ft (forward substitution over the sparse rows)
-            for p in range(nf):
-                s = sp.tail[tr + p * tc]
-                k1 = sp.row_ptr[p0 + p + 1] - 1
-                for k in range(sp.row_ptr[p0 + p], k1):
-                    s -= sp.val[vb + k * sp.val_stride] * sp.tail[tr + sp.col[e0 + k] * tc]
-                sp.tail[tr + p * tc] = s / sp.val[vb + k1 * sp.val_stride]
+            # L_tf: row t solves L_f l = D~_ft over its pattern (forward substitution over the sparse rows; the
+            # columns outside the pattern hold zeros and are left out)
+            pt = tail_pattern(sp, wid, t)
+            i0 = sp.pat_ptr[pt]
+            for i in range(sp.pat_ptr[pt + 1] - i0):
+                s = sp.tail[tr + i * tc]
+                for u in range(sp.pat_upd_ptr[i0 + i], sp.pat_upd_ptr[i0 + i + 1]):
+                    s -= sp.val[vb + sp.pat_upd_k[u] * sp.val_stride] * sp.tail[tr + sp.pat_upd_j[u] * tc]
+                k1 = sp.row_ptr[p0 + sp.pat_pos[i0 + i] + 1] - 1
+                sp.tail[tr + i * tc] = s / sp.val[vb + k1 * sp.val_stride]
             for j in range(t + 1):  # S_t row t
-                schur_entry(w, sp, rb, tb, ts, nf, t, j)
+                schur_entry(w, sp, wid, rb, tb, ts, nf, t, j)
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid])
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -528,7 +699,8 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.func
     def solve_inplace(m: M, w: Work, sp: SP, wid: int, n: int):
-        """``x <- L^-T L^-1 x`` with the sparse factor and its dense tail."""
+        """``x <- L^-T L^-1 x`` with the sparse factor and its tail (each sum as the dense tail's, without its zero
+        terms)."""
         rs = w.row_stride
         base = bases(m, w, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
@@ -546,27 +718,32 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             for k in range(sp.row_ptr[p0 + p], k1):
                 s -= sp.val[vb + k * sp.val_stride] * w.x[rb + sp.colrow[e0 + k] * rs]
             w.x[r] = s / sp.val[vb + k1 * sp.val_stride]
+        kt = tail_k(sp, wid)
         for t in range(nt):
             tr = tb + t * ts
             s = w.x[rb + (nf + t) * rs]
-            for p in range(nf):
-                s -= sp.tail[tr + p * tc] * w.x[rb + sp.perm[q0 + p] * rs]
+            pt = tail_pattern(sp, wid, t)
+            i0 = sp.pat_ptr[pt]
+            for i in range(sp.pat_ptr[pt + 1] - i0):
+                s -= sp.tail[tr + i * tc] * w.x[rb + sp.pat_row[i0 + i] * rs]
             for i in range(t):
-                s -= sp.tail[tr + (nf + i) * tc] * w.x[rb + (nf + i) * rs]
-            w.x[rb + (nf + t) * rs] = s / sp.tail[tr + (nf + t) * tc]
+                s -= sp.tail[tr + (kt + i) * tc] * w.x[rb + (nf + i) * rs]
+            w.x[rb + (nf + t) * rs] = s / sp.tail[tr + (kt + t) * tc]
         # backward: tail rows, their share of the fixed rows, then the fixed rows (column sweeps of L_f)
         for tt in range(nt):
             t = nt - 1 - tt
             s = w.x[rb + (nf + t) * rs]
             for i in range(t + 1, nt):
-                s -= sp.tail[tb + i * ts + (nf + t) * tc] * w.x[rb + (nf + i) * rs]
-            w.x[rb + (nf + t) * rs] = s / sp.tail[tb + t * ts + (nf + t) * tc]
+                s -= sp.tail[tb + i * ts + (kt + t) * tc] * w.x[rb + (nf + i) * rs]
+            w.x[rb + (nf + t) * rs] = s / sp.tail[tb + t * ts + (kt + t) * tc]
         if nt > 0:
             for p in range(nf):
                 r = rb + sp.perm[q0 + p] * rs
                 s = w.x[r]
                 for t in range(nt):
-                    s -= sp.tail[tb + t * ts + p * tc] * w.x[rb + (nf + t) * rs]
+                    c = sp.pat_lut[sp.pat_lut_start[tail_pattern(sp, wid, t)] + p]
+                    if c >= 0:
+                        s -= sp.tail[tb + t * ts + c * tc] * w.x[rb + (nf + t) * rs]
                 w.x[r] = s
         for pp in range(nf):
             p = nf - 1 - pp
@@ -583,4 +760,4 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                            fixed_entry=fixed_entry, tail_row=tail_row,
                            factor_fixed=factor_fixed,
                            solve_inplace=solve_inplace, delassus_entry=delassus_entry, schur_entry=schur_entry,
-                           inv_mass_times=inv_mass_times)
+                           inv_mass_times=inv_mass_times, tail_k=tail_k, tail_pattern=tail_pattern)
