@@ -10,7 +10,8 @@ world as the worlds grow, so measure at the batch size of interest. ``--out`` wr
 session 31), as stored since then (every tail row sized for the widest pattern a slot can hold; a row's entries of
 ``L_tf = D~_tf L_f^-T`` can be nonzero only on the fixed rows its bodies' rows reach up the elimination tree of
 ``L_f``, ``sparse_llt.tail_patterns``), and sized per source (each limited DoF's row its own pattern), the further
-step not taken.
+step not taken. ``--hub-fill`` counts the fixed rows' factor entries if bodies carrying many rows kept their 6
+velocity unknowns in the factorised system (:func:`hub_fill`), a lead for the animatronic.
 """
 
 from __future__ import annotations
@@ -98,6 +99,57 @@ def tail_fill(scene: str) -> dict:
             "widest_pattern": widest, "uniform_L_tf": n_tail * widest, "L_t": n_tail * n_tail}
 
 
+def min_degree_fill(adj: list[set[int]], weight: list[int]) -> int:
+    """Scalar entries of the Cholesky (LDL^T) factor of a symmetric matrix with graph ``adj`` under greedy minimum
+    degree (the order of ``sparse_llt.symbolic``; a node of weight ``w`` stands for ``w`` scalar unknowns)."""
+    adj = [set(a) for a in adj]
+    alive = set(range(len(adj)))
+    nnz = 0
+    while alive:
+        v = min(alive, key=lambda a: (sum(weight[b] for b in adj[a]), a))
+        nb, w = adj[v], weight[v]
+        nnz += w * (w + 1) // 2 + w * sum(weight[b] for b in nb)  # the diagonal block and the columns below it
+        for a in nb:
+            adj[a] |= nb
+            adj[a].discard(a)
+            adj[a].discard(v)
+        alive.discard(v)
+    return nnz
+
+
+def hub_fill(scene: str, thresholds=(None, 48, 24, 12)) -> list[dict]:
+    """The fixed rows' factor entries if every body with more than ``threshold`` rows on it (a hub) kept its 6
+    velocity unknowns in the system instead of being eliminated first (the quasi-definite augmented system
+    ``[[R + sum_other J_b M_b^-1 J_b^T, J_h^T], [J_h, -M_h]]``, whose Schur complement on the rows is ``D``): the
+    rows on a hub then couple to its 6 unknowns, not to each other. ``None``: no hubs (the factor as built)."""
+    from kamino.warp_backend.sparse_llt import fixed_row_bodies
+
+    model, _ = tb.load_scene(scene)
+    bodies = fixed_row_bodies(model)[0]
+    n = len(bodies)
+    on_body: dict[int, set[int]] = {}
+    for a in range(n):
+        for b in bodies[a][bodies[a] >= 0]:
+            on_body.setdefault(int(b), set()).add(a)
+    out = []
+    for threshold in thresholds:
+        hubs = sorted(b for b, rows in on_body.items() if threshold is not None and len(rows) > threshold)
+        node = {b: n + i for i, b in enumerate(hubs)}
+        adj: list[set[int]] = [set() for _ in range(n + len(hubs))]
+        for b, rows in on_body.items():
+            for a in rows:
+                if b in node:
+                    adj[a].add(node[b])
+                    adj[node[b]].add(a)
+                else:
+                    adj[a] |= rows
+        for a, nb in enumerate(adj):
+            nb.discard(a)
+        out.append({"scene": scene, "hub_rows_over": threshold, "hubs": len(hubs),
+                    "factor_entries": min_degree_fill(adj, [1] * n + [6] * len(hubs))})
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["fourbar", "ladder8", "ladder32", "dr_legs", "bdx", "olaf",
@@ -109,11 +161,19 @@ def main(argv=None) -> int:
                    help="the PADMM schedule (default: the automatic choice on the device; 'warp' on the CPU counts "
                         "what the GPU's 32-thread schedule allocates)")
     p.add_argument("--out", type=pathlib.Path, default=None)
+    p.add_argument("--hub-fill", action="store_true",
+                   help="print the fixed rows' factor entries with hub bodies kept as unknowns (hub_fill) and exit")
     p.add_argument("--tail-fill", action="store_true",
                    help="print the tail's L_tf entries (dense, as stored, per source) and exit")
     args = p.parse_args(argv)
     if args.worlds < 1:
         p.error(f"--worlds must be >= 1, got {args.worlds}")
+    if args.hub_fill:
+        for scene in args.scenes:
+            for r in hub_fill(scene):
+                print(f"{scene}: hubs (bodies with more than {r['hub_rows_over']} rows) {r['hubs']}: "
+                      f"{r['factor_entries']} factor entries")
+        return 0
     if args.tail_fill:
         for scene in args.scenes:
             r = tail_fill(scene)
