@@ -5,12 +5,20 @@ structurally zero. Both are checked numerically on a Delassus-like matrix of the
 values (``J M^-1 J^T + I`` with random 6-vector blocks per row and body, ``M = I``), where structural nonzeros are
 numerically nonzero with probability one."""
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import kamino
 from kamino.tables import row_tables
+from kamino.warp_backend import sparse_llt
+from kamino.warp_backend.model_data import warp_model
 from kamino.warp_backend.sparse_llt import fixed_row_bodies, symbolic, tail_patterns, tail_row_bodies
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import memory_breakdown as mb  # the counts it predicts with
 
 
 @pytest.mark.parametrize("name", ["dr_legs", "bdx"])
@@ -45,3 +53,18 @@ def test_tail_patterns_hold_every_nonzero_of_L_tf_and_no_more(name):
         assert set(nonzero.tolist()) <= set(pattern.tolist()), f"{name}: L_tf of a row on {src} leaves its pattern"
         assert len(nonzero) == len(pattern), f"{name}: the pattern of a row on {src} is wider than its L_tf"
         assert np.all(np.diff(pattern) > 0)  # ascending: the sums run in the dense loops' order
+
+
+def test_memory_breakdown_counts_match_the_built_factor():
+    # benchmarks/memory_breakdown.py's predictions are read against what is built: without hubs its minimum-degree
+    # count is the built L_f's entry count (the same greedy order), and "as stored" is the built tail's K per row.
+    # A drift between the counter and sparse_llt would make its predictions for new layouts (--hub-fill) meaningless.
+    for scene in ("bdx", "fourbar"):
+        no_hubs = mb.hub_fill(scene, thresholds=(None,))[0]
+        fill = mb.tail_fill(scene)
+        model, _ = mb.tb.load_scene(scene)
+        maxdim = warp_model(model, np.float32, "cpu").arrays.row_maxdim.numpy()
+        built = sparse_llt.build(model, np.float32, "cpu", maxdim)
+        assert no_hubs["factor_entries"] == built.nnz_total == fill["L_f"]
+        assert fill["widest_pattern"] == int(built.arrays.grp_tail_k.numpy()[0])
+        assert fill["tail_rows"] == built.max_tail
