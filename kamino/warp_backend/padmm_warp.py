@@ -342,12 +342,12 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
 
     @wp.func
     def solve(m: M, w: Work, sp: SP, wid: int, n: int, lane: int, xs: Vec, ys: Vec):
-        """``x <- L^-T L^-1 x`` with the sparse factor and its dense tail, by column sweeps: one barrier per row
-        (``sparse_llt.solve_inplace``, the same products in another order). ``xs`` holds the right-hand side on
-        entry and the solution on exit, ``ys`` is scratch: both in shared memory, indexed by row. The next column's
-        (row's) factor entries are loaded before the barrier of the current one, unconditionally (clamped indices), so
-        that their latency overlaps the barrier instead of preceding it (docs/warp_backend.md, "Where it goes, measured
-        part by part")."""
+        """``x <- L^-T L^-1 x`` with the sparse factor and its tail (``L_tf`` on its patterns, ``L_t`` dense), by
+        column sweeps: one barrier per row (``sparse_llt.solve_inplace``, the same products in another order).
+        ``xs`` holds the right-hand side on entry and the solution on exit, ``ys`` is scratch: both in shared memory,
+        indexed by row. The next column's (row's) factor entries are loaded before the barrier of the current one,
+        unconditionally (clamped indices), so that their latency overlaps the barrier instead of preceding it
+        (docs/warp_backend.md, "Where it goes, measured part by part")."""
         base = bases(m, w, sp, wid)
         vb, tb, ts = base[1], base[2], base[3]
         tc = sp.tail_stride
