@@ -151,6 +151,26 @@ def test_world_health_sets_done_and_auto_reset_recovers(wrapped):
     assert not bool(out.pipeline_state.info.failed[0, 0])
 
 
+def test_a_blown_up_observation_ends_the_episode_as_failed():
+    """A finite state gone wild ends its episode: an observation entry beyond ``obs_limit`` (here the four-bar's
+    observation scaled 1e4-fold, standing in for a velocity blow-up that the world's health flag, which checks
+    finiteness and convergence, does not see) sets ``done``, counts in ``metrics["failed"]``, and reaches the policy
+    clipped to the limit, so that neither the policy nor the observation normaliser sees it. The same step of the
+    unscaled task goes on."""
+
+    class Wild(FourbarTrack):
+        def _observe(self, ps, info):
+            return super()._observe(ps, info) * 1e4
+
+    with jax.enable_x64(False):
+        for env, blown in ((Wild(obs_limit=50.0), True), (FourbarTrack(obs_limit=50.0), False)):
+            s = jax.jit(env.step)(jax.jit(env.reset)(jax.random.PRNGKey(0)), jnp.zeros(1, jnp.float32))
+            assert float(s.done) == float(blown) and float(s.metrics["failed"]) == float(blown)
+            assert not bool(s.pipeline_state.info.failed[0])  # the simulated world itself is healthy
+            obs = np.abs(np.asarray(s.obs))
+            assert obs.max() <= 50.0 and (obs.max() == 50.0) == blown
+
+
 def test_randomization_fn_changes_the_dynamics(fourbar):
     """brax's DomainRandomizationVmapWrapper with a randomization_fn: environments whose masses differ follow
     different trajectories from the same reset and actions; equal parameters give identical ones."""
@@ -219,6 +239,8 @@ def test_bad_arguments_raise_naming_them():
         FourbarTrack(action_range=4.0)
     with pytest.raises(ValueError, match="reset_bank"):
         FourbarTrack(reset_bank=0)
+    with pytest.raises(ValueError, match="obs_limit"):
+        FourbarTrack(obs_limit=0.0)
     with pytest.raises(ValueError, match="task"):
         make("cartpole")
     from kamino.envs import KaminoEnv

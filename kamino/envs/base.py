@@ -20,7 +20,9 @@ What every task shares:
   ``DomainRandomizationVmapWrapper`` (``randomization_fn``) randomizes the dynamics per environment (JAX backend).
 - **Observation noise** ``obs_noise`` times a per-entry scale the task gives.
 - **done** = the task's fall test, or the world's health flag (``state.info.failed``: non-finite or persistently
-  unconverged solve, docs/conventions.md "World health"), or a non-finite observation.
+  unconverged solve, docs/conventions.md "World health"), or an observation entry beyond ``obs_limit`` or non-finite
+  (a blown-up state, which the world's flag does not see while it stays finite). The last two count in
+  ``metrics["failed"]``; observations are clipped to ``obs_limit``.
 - **``pipeline_state``** is the world's :class:`kamino.State` without its zero-size arrays (``None`` in the fields the
   model does not use, e.g. ``contacts`` of a robot without contact capacity): XLA's GPU compiler crashes on a
   zero-size array carried through a loop on several GPUs (:func:`kamino.state.drop_empty`). ``env.full_state``
@@ -76,6 +78,11 @@ class KaminoEnv(Env):
         action_lower, action_upper: the PD-target range per actuator (scalars broadcast), intersected with the
             joint limits and ``ctrl_range``; required where those are unbounded.
         obs_noise: scale of the Gaussian observation noise (times the task's per-entry scale; 0: none).
+        obs_limit: the bound on every observation entry (legged_gym's ``clip_observations``, 100). An entry beyond
+            it, or non-finite, means the simulated state has blown up: the episode ends and counts as ``failed``, and
+            the observation passed on is clipped, so that such a state reaches neither the policy nor the
+            observation normaliser. A task scales its entries to order one (velocities by 0.05-0.25), so 100 lies
+            far beyond any state a robot reaches.
         reset_noise: half-width of the uniform draw of the actuated coordinates at reset, as a fraction of each
             actuator's half-range, about the nominal (centre) target.
         resample_steps: policy steps between draws of the task variables (``None``: once per episode).
@@ -95,7 +102,7 @@ class KaminoEnv(Env):
     def __init__(self, model: Model, *, sim_dt: float, decimation: int, backend: str = "jax",
                  solver_config: SolverConfig | None = None, action_lower=None, action_upper=None,
                  obs_noise: float = 0.0, reset_noise: float = 0.1, resample_steps: int | None = None,
-                 reset_bank: int | None = None, reset_seed: int = 0, dtype=jnp.float32):
+                 reset_bank: int | None = None, reset_seed: int = 0, obs_limit: float = 100.0, dtype=jnp.float32):
         if not isinstance(model, Model):
             raise TypeError(f"{type(self).__name__}: model must be a kamino.Model, got {type(model).__name__}")
         if model.num_worlds != 1:
@@ -111,6 +118,8 @@ class KaminoEnv(Env):
         for name, value in (("obs_noise", obs_noise), ("reset_noise", reset_noise)):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
                 raise ValueError(f"{type(self).__name__}: {name} must be a finite number >= 0, got {value!r}")
+        if not (isinstance(obs_limit, (int, float)) and np.isfinite(obs_limit) and obs_limit > 0):
+            raise ValueError(f"{type(self).__name__}: obs_limit must be a finite number > 0, got {obs_limit!r}")
         if resample_steps is not None and (not isinstance(resample_steps, (int, np.integer)) or resample_steps < 1):
             raise ValueError(f"{type(self).__name__}: resample_steps must be None or an integer >= 1, got "
                              f"{resample_steps!r}")
@@ -123,6 +132,7 @@ class KaminoEnv(Env):
         self._decimation = int(decimation)
         self._config = dataclasses.replace(solver_config or SolverConfig(), dt=float(sim_dt))
         self._obs_noise = float(obs_noise)
+        self._obs_limit = float(obs_limit)
         self._reset_noise = float(reset_noise)
         self._resample_steps = None if resample_steps is None else int(resample_steps)
         lay = layout_of(model, self._dtype)
@@ -206,7 +216,7 @@ class KaminoEnv(Env):
         memory = {"last_action": last_action, "task_steps": jnp.zeros((), jnp.int32), **task,
                   **self._episode_memory()}
         info = {"rng": rng, **memory, "reset_memory": dict(memory)}
-        obs = self._noisy(self._observe(ps, info), k_noise)
+        obs = self._bounded(self._noisy(self._observe(ps, info), k_noise))
         zero = jnp.zeros((), self._dtype)
         metrics = {name: zero for name in self.reward_terms} | {"failed": zero}
         return BraxState(pipeline_state=drop_empty(ps), obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
@@ -237,8 +247,10 @@ class KaminoEnv(Env):
             due = steps % self._resample_steps == 0
             info.update({k: jnp.where(due, jnp.asarray(new[k]), info[k]) for k in self.task_keys})
         obs = self._observe(ps, info)
-        done = terminated | failed | ~jnp.all(jnp.isfinite(obs))
-        obs = self._noisy(jnp.where(jnp.isfinite(obs), obs, 0.0), k_noise)
+        blown_up = ~jnp.all(jnp.abs(obs) <= self._obs_limit)  # also true for a non-finite entry
+        failed = failed | blown_up
+        done = terminated | failed
+        obs = self._bounded(self._noisy(jnp.where(jnp.isfinite(obs), obs, 0.0), k_noise))
         reward = jnp.where(jnp.isfinite(reward), reward, 0.0).astype(self._dtype)
         # update the incoming dicts: wrappers add their own keys (brax's EvalWrapper: metrics["reward"])
         metrics = dict(state.metrics)
@@ -312,6 +324,10 @@ class KaminoEnv(Env):
             raise ValueError(f"{type(self).__name__}.{where}: domain randomization (a randomization_fn changing "
                              "env.sys) needs backend='jax'; the Warp backend's stepper is built from the host Model's "
                              "parameters and cannot read per-environment traced ones")
+
+    def _bounded(self, obs: jax.Array) -> jax.Array:
+        """``obs`` clipped to ``[-obs_limit, obs_limit]`` (the constructor's ``obs_limit``)."""
+        return jnp.clip(obs, -self._obs_limit, self._obs_limit)
 
     def _noisy(self, obs: jax.Array, rng: jax.Array) -> jax.Array:
         obs = jnp.asarray(obs, self._dtype)
