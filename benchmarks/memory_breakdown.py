@@ -120,7 +120,8 @@ def min_degree_fill(adj: list[set[int]], weight: list[int]) -> int:
 def hub_fill(scene: str, thresholds=(None, 48, 24, 12)) -> list[dict]:
     """The fixed rows' factor entries if every body with more than ``threshold`` rows on it (a hub) kept its 6
     velocity unknowns in the system instead of being eliminated first (the quasi-definite augmented system
-    ``[[R + sum_other J_b M_b^-1 J_b^T, J_h^T], [J_h, -M_h]]``, whose Schur complement on the rows is ``D``): the
+    ``[[R + sum_other J_b M_b^-1 J_b^T, J_h], [J_h^T, -M_h]]``, ``J_h`` the rows' blocks on the hub, rows x 6, whose
+    Schur complement on the rows is ``D``): the
     rows on a hub then couple to its 6 unknowns, not to each other. ``None``: no hubs (the factor as built)."""
     from kamino.warp_backend.sparse_llt import fixed_row_bodies
 
