@@ -442,7 +442,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 a = sp.perm[q0 + p]
                 s = sget(ys, a)
                 for t in range(nt):
-                    c = sp.pat_lut[sp.pat_lut_start[tail_pattern(sp, wid, t)] + p]
+                    c = sp.pat_lut[tail_pattern(sp, wid, t) * sp.pat_lut_stride + p]
                     if c >= 0:
                         s -= sp.tail[tb + t * ts + c * tc] * sget(xs, nf + t)
                 sset(ys, a, s)

@@ -287,7 +287,9 @@ def pattern_struct(np_dtype):
         pat_upd_ptr: iarr
         pat_upd_k: iarr
         pat_upd_j: iarr
-        pat_lut_start: iarr  # [P] pattern P's lookup: pat_lut[pat_lut_start[P] + p] = compressed index of p, or -1
+        # pattern P's lookup: pat_lut[P pat_lut_stride + p] = compressed index of fixed position p, or -1 (one stride,
+        # the most fixed rows of any world type, so the solve finds a row's lookup from its pattern id without a load)
+        pat_lut_stride: int
         pat_lut: iarr
         dof_pat: iarr  # [num_dofs] the pattern of a limit row on DoF d (global pattern id; -1: no limit)
         con_pat: iarr  # [W] the pattern of the world's first contact pair (-1: none); pair k's is con_pat + k
@@ -395,8 +397,9 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     # one trailing 0 each, for padmm_warp.factor's clamped batch loads
     S.pat_upd_k = i32(np.append(np.concatenate([t[1] for t in tables]) if flat else [], 0))
     S.pat_upd_j = i32(np.append(np.concatenate([t[2] for t in tables]) if flat else [], 0))
-    S.pat_lut_start = i32(prefix(np.array([len(t[3]) for t in tables], np.int64)))
-    S.pat_lut = i32(np.concatenate([t[3] for t in tables]) if flat else [])
+    S.pat_lut_stride = max(int(n_t.max()) if len(n_t) else 0, 1)
+    S.pat_lut = i32(np.concatenate([np.pad(t[3], (0, S.pat_lut_stride - len(t[3])), constant_values=-1)
+                                    for t in tables]) if flat else [])
     dof_pat = np.full(max(len(tab.dof_joint), 1), -1, np.int64)
     con_pat = np.full(W, -1, np.int64)
     lim_start = prefix(tab.world_lim_count)
@@ -427,12 +430,13 @@ def empty(np_dtype, device) -> object:
                  "div", "upd_ptr", "upd_a", "upd_b", "cptr", "cent", "crow", "fan_ptr", "fan_tgt", "fan_a", "fan_b",
                  "grp_val_start", "grp_nnz", "grp_tail_start", "grp_tail_size", "grp_tail_k", "grp_tail_dim",
                  "pat_ptr", "pat_pos",
-                 "pat_row", "pat_upd_ptr", "pat_upd_k", "pat_upd_j", "pat_lut_start", "pat_lut", "dof_pat", "con_pat",
+                 "pat_row", "pat_upd_ptr", "pat_upd_k", "pat_upd_j", "pat_lut", "dof_pat", "con_pat",
                  "tail_pat"):
         setattr(S, name, wp.zeros(0, dtype=wp.int32, device=device))
     S.val_stride = GROUP
     S.tail_stride = GROUP
     S.tail_max = 1
+    S.pat_lut_stride = 1
     S.val = wp.zeros(0, dtype=scalar, device=device)
     S.tail = wp.zeros(0, dtype=scalar, device=device)
     return S
@@ -637,7 +641,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         tc = sp.tail_stride
         kt = tail_k(sp, wid)
         pt = tail_pattern(sp, wid, t)
-        lut = sp.pat_lut_start[tail_pattern(sp, wid, j)]
+        lut = tail_pattern(sp, wid, j) * sp.pat_lut_stride
         i0 = sp.pat_ptr[pt]
         s = sp.tail[tr + (kt + j) * tc]
         for i in range(sp.pat_ptr[pt + 1] - i0):
@@ -741,7 +745,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 r = rb + sp.perm[q0 + p] * rs
                 s = w.x[r]
                 for t in range(nt):
-                    c = sp.pat_lut[sp.pat_lut_start[tail_pattern(sp, wid, t)] + p]
+                    c = sp.pat_lut[tail_pattern(sp, wid, t) * sp.pat_lut_stride + p]
                     if c >= 0:
                         s -= sp.tail[tb + t * ts + c * tc] * w.x[rb + (nf + t) * rs]
                 w.x[r] = s
