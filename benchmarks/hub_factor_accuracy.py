@@ -15,7 +15,10 @@ whose Schur complement on the rows is ``A``, is factorised as ``L D L^T`` with `
 order factorises a quasi-definite matrix). This script builds both for one world at its initial pose in float64,
 factorises them densely in float32 in their minimum-degree orders (no pivoting, as the kernels), solves four random
 right-hand sides, and reports the relative error against a float64 solve, the smallest pivot, the count of negative
-pivots (6 per hub expected) and the factor's entries (structural, from the symbolic count).
+pivots (6 per hub expected) and the factor's entries (structural, from the symbolic count). The hub system is
+factorised twice: in the free minimum-degree order (``hub_ldlt``) and with the hubs' unknowns held back until every
+row is eliminated (``hub_ldlt_hubs_last``: the rows' block is then a plain Cholesky factor and the hubs' unknowns
+act as the first tail rows, docs/warp_backend.md "Open problems").
 """
 
 from __future__ import annotations
@@ -82,20 +85,24 @@ def fixed_row_system(scene: str) -> dict:
             "A": P[:, None] * D * P[None, :] + s * np.eye(n), "bodies": bodies}
 
 
-def min_degree_order(adj: list[set[int]], weight: list[int]) -> list[int]:
+def min_degree_order(adj: list[set[int]], weight: list[int], last: frozenset = frozenset()) -> tuple[list[int], int]:
     """Greedy minimum degree (the rule of ``sparse_llt.symbolic`` and ``memory_breakdown.min_degree_fill``; a node
-    of weight ``w`` stands for ``w`` scalar unknowns)."""
+    of weight ``w`` stands for ``w`` scalar unknowns), the nodes in ``last`` held back until the others are
+    eliminated. Returns ``(order, factor entries)``."""
     adj = [set(a) for a in adj]
-    alive, order = set(range(len(adj))), []
+    alive, order, nnz = set(range(len(adj))), [], 0
     while alive:
-        v = min(alive, key=lambda a: (sum(weight[b] for b in adj[a]), a))
+        pool = (alive - last) or alive
+        v = min(pool, key=lambda a: (sum(weight[b] for b in adj[a]), a))
         order.append(v)
+        w = weight[v]
+        nnz += w * (w + 1) // 2 + w * sum(weight[b] for b in adj[v])
         for a in adj[v]:
             adj[a] |= adj[v]
             adj[a].discard(a)
             adj[a].discard(v)
         alive.discard(v)
-    return order
+    return order, nnz
 
 
 def ldl(K: np.ndarray, dtype) -> tuple[np.ndarray, np.ndarray]:
@@ -118,8 +125,6 @@ def ldl_solve(L: np.ndarray, d: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def measure(scene: str, hub_rows: int, rhs: int = 4, seed: int = 0) -> dict:
     """Both factorisations of ``scene``'s fixed rows in float32 (see the module docstring)."""
-    from memory_breakdown import min_degree_fill
-
     from kamino.warp_backend.sparse_llt import symbolic
 
     sysm = fixed_row_system(scene)
@@ -163,16 +168,19 @@ def measure(scene: str, hub_rows: int, rhs: int = 4, seed: int = 0) -> dict:
     for a, nbh in enumerate(adj):
         nbh.discard(a)
     weight = [1] * n + [6] * len(hubs)
-    o = np.concatenate([[v] if v < n else np.arange(n + 6 * (v - n), n + 6 * (v - n) + 6)
-                        for v in min_degree_order(adj, weight)]).astype(np.int64)
-    L, d = ldl(K[np.ix_(o, o)], np.float32)
-    Z = np.zeros((N, rhs))
-    Z[o] = ldl_solve(L, d, np.concatenate([B, np.zeros((N - n, rhs))])[o])
     hub_only = sum({int(x) for x in bodies[a] if x >= 0} <= set(hubs) for a in range(n))
-    out["hub_ldlt"] = {"hub_rows_over": hub_rows, "hubs": len(hubs), "rows_on_hubs": [len(on_body[h]) for h in hubs],
-                       "rows_on_hubs_only": int(hub_only), "rel_error": err(Z[:n]),
-                       "min_abs_pivot": float(np.abs(d).min()), "negative_pivots": int((d < 0).sum()),
-                       "factor_entries": int(min_degree_fill(adj, weight))}
+    Baug = np.concatenate([B, np.zeros((N - n, rhs))])
+    for name, last in (("hub_ldlt", frozenset()), ("hub_ldlt_hubs_last", frozenset(node.values()))):
+        nodes, entries = min_degree_order(adj, weight, last)
+        o = np.concatenate([[v] if v < n else np.arange(n + 6 * (v - n), n + 6 * (v - n) + 6)
+                            for v in nodes]).astype(np.int64)
+        L, d = ldl(K[np.ix_(o, o)], np.float32)
+        Z = np.zeros_like(Baug)
+        Z[o] = ldl_solve(L, d, Baug[o])
+        out[name] = {"hub_rows_over": hub_rows, "hubs": len(hubs), "rows_on_hubs": [len(on_body[h]) for h in hubs],
+                     "rows_on_hubs_only": int(hub_only), "rel_error": err(Z[:n]),
+                     "min_abs_pivot": float(np.abs(d).min()), "negative_pivots": int((d < 0).sum()),
+                     "factor_entries": int(entries)}
     return out
 
 
@@ -186,13 +194,14 @@ def main(argv=None) -> int:
     for scene in args.scenes:
         r = measure(scene, args.hub_rows)
         results.append(r)
-        h = r["hub_ldlt"]
         llt = r["llt"]
         print(f"{scene}: {r['rows']} fixed rows, cond(A) {r['cond_A']:.2e}; LLT (float32): error "
-              f"{llt['rel_error']:.2e}, min pivot {llt['min_pivot']:.2e}, {llt['factor_entries']} entries | hub LDL^T "
-              f"({h['hubs']} hubs {h['rows_on_hubs']}, {h['rows_on_hubs_only']} rows on hubs only): error "
-              f"{h['rel_error']:.2e}, min |pivot| {h['min_abs_pivot']:.2e}, {h['negative_pivots']} negative, "
-              f"{h['factor_entries']} entries", flush=True)
+              f"{llt['rel_error']:.2e}, min pivot {llt['min_pivot']:.2e}, {llt['factor_entries']} entries", flush=True)
+        for name in ("hub_ldlt", "hub_ldlt_hubs_last"):
+            h = r[name]
+            print(f"  {name}: {h['hubs']} hubs {h['rows_on_hubs']} ({h['rows_on_hubs_only']} rows on hubs only): "
+                  f"error {h['rel_error']:.2e}, min |pivot| {h['min_abs_pivot']:.2e}, {h['negative_pivots']} "
+                  f"negative, {h['factor_entries']} entries", flush=True)
     if args.out:
         args.out.write_text(json.dumps(results, indent=1))
     return 0

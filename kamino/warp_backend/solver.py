@@ -161,7 +161,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     @wp.kernel(module="unique", enable_backward=False)
     def scale(m: M, w: Work, shift: scalar, shift_sat: scalar, impulse_scale: scalar, assembled: int,
               always_sat: int):
-        """``v~_f = P v_f``, scaled bounds, and whether an effort-limited fixed row starts saturated (``w.sat``:
+        """``v~_f = P v_f``, scaled bounds (in place: ``lo_s``/``hi_s`` are ``lo``/``hi``, workspace.allocate), and
+        whether an effort-limited fixed row starts saturated (``w.sat``:
         its warm start ``impulse_scale f0 / P`` on a bound, to ``SATURATION_MARGIN``; kamino.jax_ref.padmm.solve,
         "Saturation"; with ``always_sat``, every effort-limited row: the CR path, pipeline.Stepper);
         on the dense path ``D~ = P D P`` row by row with ``shift = eta + rho_free`` on the fixed rows' diagonal

@@ -90,11 +90,11 @@ def work_struct(np_dtype):
         row_side: farr
         vstar: farr
         reg: farr  # R (joint-dynamics regularisation)
-        lo: farr
+        lo: farr  # impulse bounds; ``solver.scale`` divides them by P in place (``lo_s``/``hi_s`` alias them)
         hi: farr
         mu: farr
-        f0: farr  # warm-start force (lambda/dt)
-        v0: farr  # warm-start velocity
+        f0: farr  # warm-start force (lambda/dt); the same array as ``impulse`` (see :func:`allocate`)
+        v0: farr  # warm-start velocity; the same array as ``velocity``
         vf: farr
         # per world row counts
         n_lim: iarr
@@ -108,7 +108,7 @@ def work_struct(np_dtype):
         # PADMM
         P: farr
         vt: farr
-        lo_s: farr
+        lo_s: farr  # the scaled bounds: the same arrays as ``lo``, ``hi``
         hi_s: farr
         x: farr
         y: farr
@@ -189,8 +189,8 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
         "D": (wm.total_mat if delassus else 0, T.scalar),
         "cr_w": (B if cr else 0, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
     }
-    for name in ("vstar", "reg", "lo", "hi", "mu", "f0", "v0", "vf", "P", "vt", "lo_s", "hi_s", "x", "y", "z", "x_p",
-                 "y_p", "z_p", "y_hat", "z_hat", "e_p", "impulse", "velocity", "sdiag"):
+    for name in ("vstar", "reg", "lo", "hi", "mu", "vf", "P", "vt", "x", "y", "z", "x_p", "y_p", "z_p", "y_hat",
+                 "z_hat", "e_p", "impulse", "velocity", "sdiag"):
         sizes[name] = (R, T.scalar)
     for name in ("cr_r", "cr_p", "cr_Ap", "cr_Ar"):
         sizes[name] = (R if cr else 0, T.scalar)
@@ -203,6 +203,13 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
     sizes["remaining"] = (1, wp.int32)
     for name, (n, dtype) in sizes.items():
         setattr(W, name, wp.zeros(max(n, 0), dtype=dtype, device=dev))
+    # Per-row vectors whose lives do not overlap share storage (4 of 28 per row). The warm start (``f0``, ``v0``) is
+    # written by the row assembly and read by ``solver.scale`` and ``padmm_init``; the solve's ``impulse`` and
+    # ``velocity`` are written by ``padmm_finish``, after both, and read until the step ends. ``solver.scale`` is the
+    # only reader of the unscaled bounds and divides them by ``P`` in place, once per step; everything after it
+    # reads the scaled ones.
+    W.f0, W.v0 = W.impulse, W.velocity
+    W.lo_s, W.hi_s = W.lo, W.hi
     W.row_stride = 1 if rows_per_world else GROUP
     W.con_pair.fill_(-1)
     W.q_eval = W.q if euler else wp.zeros(B, dtype=T.transform, device=dev)
