@@ -85,26 +85,6 @@ def fixed_row_system(scene: str) -> dict:
             "A": P[:, None] * D * P[None, :] + s * np.eye(n), "bodies": bodies}
 
 
-def min_degree_order(adj: list[set[int]], weight: list[int], last: frozenset = frozenset()) -> tuple[list[int], int]:
-    """Greedy minimum degree (the rule of ``sparse_llt.symbolic`` and ``memory_breakdown.min_degree_fill``; a node
-    of weight ``w`` stands for ``w`` scalar unknowns), the nodes in ``last`` held back until the others are
-    eliminated. Returns ``(order, factor entries)``."""
-    adj = [set(a) for a in adj]
-    alive, order, nnz = set(range(len(adj))), [], 0
-    while alive:
-        pool = (alive - last) or alive
-        v = min(pool, key=lambda a: (sum(weight[b] for b in adj[a]), a))
-        order.append(v)
-        w = weight[v]
-        nnz += w * (w + 1) // 2 + w * sum(weight[b] for b in adj[v])
-        for a in adj[v]:
-            adj[a] |= adj[v]
-            adj[a].discard(a)
-            adj[a].discard(v)
-        alive.discard(v)
-    return order, nnz
-
-
 def ldl(K: np.ndarray, dtype) -> tuple[np.ndarray, np.ndarray]:
     """Dense ``K = L diag(d) L^T`` without pivoting, computed in ``dtype`` (column by column, as the kernels)."""
     K = K.astype(dtype)
@@ -125,6 +105,8 @@ def ldl_solve(L: np.ndarray, d: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def measure(scene: str, hub_rows: int, rhs: int = 4, seed: int = 0) -> dict:
     """Both factorisations of ``scene``'s fixed rows in float32 (see the module docstring)."""
+    from memory_breakdown import hub_graph, min_degree_order
+
     from kamino.warp_backend.sparse_llt import symbolic
 
     sysm = fixed_row_system(scene)
@@ -142,31 +124,17 @@ def measure(scene: str, hub_rows: int, rhs: int = 4, seed: int = 0) -> dict:
     out = {"scene": scene, "rows": n, "cond_A": float(np.linalg.cond(A)),
            "llt": {"rel_error": err(Y), "min_pivot": float(d.min()), "factor_entries": int(sym.nnz)}}
 
-    on_body: dict[int, list[int]] = {}
-    for a in range(n):
-        for b in {int(x) for x in bodies[a] if x >= 0}:
-            on_body.setdefault(b, []).append(a)
-    hubs = sorted(b for b, rows in on_body.items() if len(rows) > hub_rows)
+    adj, node, on_body = hub_graph(bodies, hub_rows)
+    hubs = sorted(node)
     keep = np.ones(len(sysm["Minv"]), bool)
     keep[hubs] = False
     N = n + 6 * len(hubs)
     K = np.zeros((N, N))
     K[:n, :n] = (np.einsum("rbi,bij,sbj->rs", Js[:, keep], sysm["Minv"][keep], Js[:, keep])
                  + np.diag(sysm["R"]) + sysm["s"] * np.eye(n))  # A0: the hubs' terms left out, not subtracted
-    node = {h: n + i for i, h in enumerate(hubs)}
     for h, v in node.items():
         c = slice(n + 6 * (v - n), n + 6 * (v - n) + 6)
         K[:n, c], K[c, :n], K[c, c] = Js[:, h], Js[:, h].T, -sysm["M"][h]
-    adj: list[set[int]] = [set() for _ in range(n + len(hubs))]
-    for b, rows in on_body.items():
-        for a in rows:
-            if b in node:
-                adj[a].add(node[b])
-                adj[node[b]].add(a)
-            else:
-                adj[a] |= set(rows)
-    for a, nbh in enumerate(adj):
-        nbh.discard(a)
     weight = [1] * n + [6] * len(hubs)
     hub_only = sum({int(x) for x in bodies[a] if x >= 0} <= set(hubs) for a in range(n))
     Baug = np.concatenate([B, np.zeros((N - n, rhs))])

@@ -99,22 +99,54 @@ def tail_fill(scene: str) -> dict:
             "widest_pattern": widest, "uniform_L_tf": n_tail * widest, "L_t": n_tail * n_tail}
 
 
-def min_degree_fill(adj: list[set[int]], weight: list[int]) -> int:
-    """Scalar entries of the Cholesky (LDL^T) factor of a symmetric matrix with graph ``adj`` under greedy minimum
-    degree (the order of ``sparse_llt.symbolic``; a node of weight ``w`` stands for ``w`` scalar unknowns)."""
+def min_degree_order(adj: list[set[int]], weight: list[int], last: frozenset = frozenset()) -> tuple[list[int], int]:
+    """Greedy minimum degree on a symmetric matrix's graph ``adj`` (the order of ``sparse_llt.symbolic``; a node of
+    weight ``w`` stands for ``w`` scalar unknowns), the nodes in ``last`` held back until the others are eliminated.
+    Returns ``(order, scalar entries of the Cholesky / LDL^T factor)``."""
     adj = [set(a) for a in adj]
-    alive = set(range(len(adj)))
-    nnz = 0
+    alive, order, nnz = set(range(len(adj))), [], 0
     while alive:
-        v = min(alive, key=lambda a: (sum(weight[b] for b in adj[a]), a))
+        pool = (alive - last) or alive
+        v = min(pool, key=lambda a: (sum(weight[b] for b in adj[a]), a))
         nb, w = adj[v], weight[v]
+        order.append(v)
         nnz += w * (w + 1) // 2 + w * sum(weight[b] for b in nb)  # the diagonal block and the columns below it
         for a in nb:
             adj[a] |= nb
             adj[a].discard(a)
             adj[a].discard(v)
         alive.discard(v)
-    return nnz
+    return order, nnz
+
+
+def min_degree_fill(adj: list[set[int]], weight: list[int]) -> int:
+    """Scalar entries of the factor under greedy minimum degree (:func:`min_degree_order`)."""
+    return min_degree_order(adj, weight)[1]
+
+
+def hub_graph(bodies: np.ndarray, threshold: int | None) -> tuple[list[set[int]], dict[int, int], dict[int, set[int]]]:
+    """The graph of the fixed rows' system when every body with more than ``threshold`` rows (a hub; ``None``: no
+    hubs) keeps its 6 velocity unknowns as a node of its own (``bodies``: the rows' moving bodies,
+    ``sparse_llt.fixed_row_bodies``): rows on a hub couple to its node, rows on another body to each other.
+    Returns ``(adjacency over rows then hub nodes, hub body -> node, body -> its rows)``."""
+    n = len(bodies)
+    on_body: dict[int, set[int]] = {}
+    for a in range(n):
+        for b in bodies[a][bodies[a] >= 0]:
+            on_body.setdefault(int(b), set()).add(a)
+    hubs = sorted(b for b, rows in on_body.items() if threshold is not None and len(rows) > threshold)
+    node = {b: n + i for i, b in enumerate(hubs)}
+    adj: list[set[int]] = [set() for _ in range(n + len(hubs))]
+    for b, rows in on_body.items():
+        for a in rows:
+            if b in node:
+                adj[a].add(node[b])
+                adj[node[b]].add(a)
+            else:
+                adj[a] |= rows
+    for a, nb in enumerate(adj):
+        nb.discard(a)
+    return adj, node, on_body
 
 
 def hub_fill(scene: str, thresholds=(None, 48, 24, 12)) -> list[dict]:
@@ -127,27 +159,11 @@ def hub_fill(scene: str, thresholds=(None, 48, 24, 12)) -> list[dict]:
 
     model, _ = tb.load_scene(scene)
     bodies = fixed_row_bodies(model)[0]
-    n = len(bodies)
-    on_body: dict[int, set[int]] = {}
-    for a in range(n):
-        for b in bodies[a][bodies[a] >= 0]:
-            on_body.setdefault(int(b), set()).add(a)
     out = []
     for threshold in thresholds:
-        hubs = sorted(b for b, rows in on_body.items() if threshold is not None and len(rows) > threshold)
-        node = {b: n + i for i, b in enumerate(hubs)}
-        adj: list[set[int]] = [set() for _ in range(n + len(hubs))]
-        for b, rows in on_body.items():
-            for a in rows:
-                if b in node:
-                    adj[a].add(node[b])
-                    adj[node[b]].add(a)
-                else:
-                    adj[a] |= rows
-        for a, nb in enumerate(adj):
-            nb.discard(a)
-        out.append({"scene": scene, "hub_rows_over": threshold, "hubs": len(hubs),
-                    "factor_entries": min_degree_fill(adj, [1] * n + [6] * len(hubs))})
+        adj, node, _ = hub_graph(bodies, threshold)
+        out.append({"scene": scene, "hub_rows_over": threshold, "hubs": len(node),
+                    "factor_entries": min_degree_fill(adj, [1] * len(bodies) + [6] * len(node))})
     return out
 
 

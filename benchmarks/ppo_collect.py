@@ -22,7 +22,6 @@ end-to-end env steps/s (benchmarks/rl_train.py) is the collection share of it.
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
 import json
 import pathlib
@@ -57,16 +56,10 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--num-envs and --unroll must be positive")
     if not 0.0 <= args.action_scale <= 1.0:
         p.error(f"--action-scale must be in [0, 1] (actions are clipped to [-1, 1]), got {args.action_scale}")
-    args.overrides, args.env_kwargs = {}, {}
-    for flag, items, into in (("--set", args.set, args.overrides), ("--env", args.env, args.env_kwargs)):
-        for item in items:
-            key, sep, value = item.partition("=")
-            if not sep:
-                p.error(f"{flag} {item!r}: expected KEY=VALUE")
-            try:
-                into[key] = ast.literal_eval(value)
-            except (ValueError, SyntaxError):
-                p.error(f"{flag} {key}: {value!r} is not a Python literal")
+    sys.path.insert(0, str(HERE))  # rl_train, beside this script
+    from rl_train import key_values
+
+    args.overrides, args.env_kwargs = key_values(p, "--set", args.set), key_values(p, "--env", args.env)
     return args
 
 

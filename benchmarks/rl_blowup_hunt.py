@@ -33,19 +33,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # rl_eval, rl_train, beside this script
 
 
-def parse_env(items: list[str]) -> dict:
-    """``KEY=VALUE`` environment keywords (``VALUE`` a Python literal), as ``rl_train.py --env``."""
-    import ast
-
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.isidentifier():
-            raise SystemExit(f"rl_blowup_hunt: --env expects KEY=VALUE, got {item!r}")
-        out[key] = ast.literal_eval(value)
-    return out
-
-
 def base_spin(env, pipeline_state):
     """The base body's angular speed [rad/s] of a (batched) ``pipeline_state``."""
     import jax.numpy as jnp
@@ -159,11 +146,12 @@ def main(argv=None) -> int:
     if min(args.envs, args.chunks, args.chunk_steps) < 1:
         p.error("--envs, --chunks and --chunk-steps must be >= 1")
     from rl_eval import load_policy, newest_checkpoint
+    from rl_train import key_values
 
     from kamino.envs import make
     from kamino.envs.configs import task_config
 
-    env_kwargs = {**task_config(args.task)["env"], **parse_env(args.env)}
+    env_kwargs = {**task_config(args.task)["env"], **key_values(p, "--env", args.env)}
     env = make(args.task, backend=args.backend, **env_kwargs)
     make_policy, params = load_policy(newest_checkpoint(args.run.resolve()), args.task)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,6 @@ newest checkpoint). ``--out`` writes the JSON report.
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import sys
 import time
@@ -142,15 +141,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.episodes < 1 or args.seconds <= 0 or not args.speed[0] <= args.speed[1]:
         p.error("--episodes must be >= 1, --seconds > 0 and --speed LOW <= HIGH")
-    env_overrides = {}
-    for item in args.env:
-        key, sep, value = item.partition("=")
-        try:
-            env_overrides[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            p.error(f"--env {item!r}: expected KEY=VALUE with VALUE a Python literal")
-        if not sep or not key.isidentifier():
-            p.error(f"--env expects KEY=VALUE, got {item!r}")
+    from rl_train import key_values
+
+    env_overrides = key_values(p, "--env", args.env)
     from kamino.envs import make
     from kamino.envs.configs import task_config
 

@@ -40,6 +40,21 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def key_values(p: argparse.ArgumentParser, flag: str, items: list[str]) -> dict:
+    """``KEY=VALUE`` options (``VALUE`` a Python literal) as a dict; a malformed one is ``p.error`` naming ``flag``.
+    The benchmarks' ``--set``, ``--solver`` and ``--env`` options all read through it."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.isidentifier():
+            p.error(f"{flag} expects KEY=VALUE, got {item!r}")
+        try:
+            out[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            p.error(f"{flag} {key}: {value!r} is not a Python literal")
+    return out
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     from kamino.envs.configs import PPO_CONFIGS
 
@@ -69,18 +84,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="an environment keyword over the task's config, VALUE a Python literal (repeatable): "
                         "--env tracking_sigma=0.1. A resumed run must repeat it: the checkpoint holds no env")
     args = p.parse_args(argv)
-    args.ppo_overrides, args.solver_overrides, args.env_overrides = {}, {}, {}
-    for flag, items, into in (("--set", args.set, args.ppo_overrides), ("--solver", args.solver,
-                                                                          args.solver_overrides),
-                              ("--env", args.env, args.env_overrides)):
-        for item in items:
-            key, sep, value = item.partition("=")
-            if not sep or not key.isidentifier():
-                p.error(f"{flag} expects KEY=VALUE, got {item!r}")
-            try:
-                into[key] = ast.literal_eval(value)
-            except (ValueError, SyntaxError):
-                p.error(f"{flag} {key}: {value!r} is not a Python literal")
+    args.ppo_overrides = key_values(p, "--set", args.set)
+    args.solver_overrides = key_values(p, "--solver", args.solver)
+    args.env_overrides = key_values(p, "--env", args.env)
     if args.walk_test < 0:
         p.error(f"--walk-test must be >= 0, got {args.walk_test}")
     if args.walk_test_from < 0:
