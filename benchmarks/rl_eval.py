@@ -7,7 +7,11 @@ lateral or yaw command), the policy's deterministic action. It reports, over the
   ``|cmd_xy - v_xy|``, the base body's planar velocity in its own frame (the quantity of the ``tracking_lin_vel``
   reward, docs/envs.md), then the mean over episodes;
 - the **fall fraction**: episodes that end before 10 s (a fall, or the world-health flag);
-- the mean forward speed, and the pass/fail of the issue's bars (error <= 0.1 m/s, falls <= 5 %).
+- the mean forward speed, and the pass/fail of the issue's bars (error <= 0.1 m/s, falls <= 5 %);
+- where the error comes from (reported, not a bar): the **error of the mean velocity**, per episode ``|cmd_xy -
+  mean v_xy|`` over the same steps, and the **fluctuation**, per episode the standard deviation of ``v_x`` and of
+  ``v_y`` about their means (a gait's sway within its strides); the tracking error lies between the first and the
+  root of the sum of squares of all three.
 
 ``CHECKPOINT`` is a folder written by ``benchmarks/rl_train.py`` (``checkpoints/<step>/``; a run folder takes its
 newest checkpoint). ``--out`` writes the JSON report.
@@ -112,13 +116,18 @@ def summarize(vx, lin, counted, fell) -> dict:
     """The walking test's figures (the module doc) of a :func:`walking_test` rollout."""
     import numpy as np
 
-    err = np.linalg.norm(np.stack([vx, np.zeros_like(vx)], -1)[:, None, :] - lin[..., :2], axis=-1)
+    cmd = np.stack([vx, np.zeros_like(vx)], -1)
+    err = np.linalg.norm(cmd[:, None, :] - lin[..., :2], axis=-1)
     n = np.maximum(counted.sum(1), 1)
     err = np.where(counted, err, 0.0).sum(1) / n
-    v = np.where(counted, lin[..., 0], 0.0).sum(1) / n
+    mean_v = np.where(counted[..., None], lin[..., :2], 0.0).sum(1) / n[:, None]  # [E, 2] per episode
+    var = np.where(counted[..., None], (lin[..., :2] - mean_v[:, None, :]) ** 2, 0.0).sum(1) / n[:, None]
+    std = np.sqrt(var).mean(0)
     return {"episodes": len(vx), "policy_steps": lin.shape[1], "tracking_error_mean": float(err.mean()),
-            "tracking_error_p90": float(np.quantile(err, 0.9)), "forward_speed_mean": float(v.mean()),
-            "command_mean": float(vx.mean()), "fall_fraction": float(fell.mean())}
+            "tracking_error_p90": float(np.quantile(err, 0.9)), "forward_speed_mean": float(mean_v[:, 0].mean()),
+            "command_mean": float(vx.mean()), "fall_fraction": float(fell.mean()),
+            "mean_velocity_error": float(np.linalg.norm(cmd - mean_v, axis=-1).mean()),
+            "fluctuation_std_x": float(std[0]), "fluctuation_std_y": float(std[1])}
 
 
 def main(argv=None) -> int:
@@ -168,7 +177,9 @@ def main(argv=None) -> int:
           f"| {report['episodes']} x {args.seconds:g} s | {args.speed[0]:g}-{args.speed[1]:g} (mean "
           f"{report['command_mean']:.3f}) | {report['forward_speed_mean']:.3f} | {report['tracking_error_mean']:.3f} / "
           f"{report['tracking_error_p90']:.3f} | {100 * report['fall_fraction']:.1f} % | "
-          f"{'yes' if report['passed'] else 'no'} (<= {args.max_error:g} m/s, <= {100 * args.max_falls:g} %) |")
+          f"{'yes' if report['passed'] else 'no'} (<= {args.max_error:g} m/s, <= {100 * args.max_falls:g} %) |\n"
+          f"error of the mean velocity {report['mean_velocity_error']:.3f} m/s; fluctuation (std within episodes) "
+          f"v_x {report['fluctuation_std_x']:.3f}, v_y {report['fluctuation_std_y']:.3f} m/s")
     if args.out:
         args.out.write_text(json.dumps(report, indent=1))
     return 0

@@ -258,8 +258,9 @@ def main(argv=None) -> int:
             walk_path.write_text(json.dumps(walks, indent=1))
             w = walks[-1]
             print(f"walking test at {w['step']}: error {w['tracking_error_mean']:.3f} m/s, falls "
-                  f"{100 * w['fall_fraction']:.1f} %, forward {w['forward_speed_mean']:.3f} m/s ({w['wall_s']:.0f} s)",
-                  flush=True)
+                  f"{100 * w['fall_fraction']:.1f} %, forward {w['forward_speed_mean']:.3f} m/s; mean-velocity error "
+                  f"{w['mean_velocity_error']:.3f}, sway x/y {w['fluctuation_std_x']:.3f}/{w['fluctuation_std_y']:.3f} "
+                  f"({w['wall_s']:.0f} s)", flush=True)
 
     if remaining > 0:
         run_evals = max(2, round(evals * remaining / total))

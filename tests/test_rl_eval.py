@@ -54,6 +54,10 @@ def test_a_standing_policy_tracks_nothing_and_does_not_fall(zero_policy_checkpoi
     assert 0.3 <= r["command_mean"] <= 0.5
     assert abs(r["forward_speed_mean"]) < 0.05
     np.testing.assert_allclose(r["tracking_error_mean"], r["command_mean"], atol=0.05)
+    # standing still, the mean velocity misses the command by the command itself, and the base hardly fluctuates
+    np.testing.assert_allclose(r["mean_velocity_error"], r["command_mean"], atol=0.05)
+    assert r["mean_velocity_error"] <= r["tracking_error_mean"] + 1e-6  # |mean of a vector| <= mean of its norms
+    assert 0.0 <= r["fluctuation_std_x"] < 0.05 and 0.0 <= r["fluctuation_std_y"] < 0.05
     assert r["passed"] is False
     assert r["checkpoint"].endswith("checkpoints/000000001000")  # the run folder's newest (only) checkpoint
 
@@ -63,3 +67,29 @@ def test_no_checkpoint_is_a_clear_error(tmp_path):
 
     with pytest.raises(FileNotFoundError, match="no brax PPO checkpoint"):
         rl_eval.newest_checkpoint(tmp_path)
+
+
+def test_summary_separates_speed_deficit_from_sway():
+    """``summarize`` on synthetic velocities with known answers: an episode whose forward speed averages 0.05 m/s
+    below its command and sways sideways as ``0.1 sin`` over whole periods has a mean-velocity error of exactly 0.05
+    m/s and a lateral fluctuation of ``0.1 / sqrt(2)``; a fall cuts the steps counted, and the steps after it do not
+    count."""
+    import rl_eval
+
+    T = 200
+    phase = 2 * np.pi * np.arange(T) / 50  # four whole periods
+    lin = np.zeros((2, T, 3))
+    lin[0, :, 0] = 0.35
+    lin[0, :, 1] = 0.1 * np.sin(phase)
+    lin[1, :100, 0] = 0.4  # tracks exactly until it falls at step 100, then garbage that must not count
+    lin[1, 100:, 0] = 50.0
+    counted = np.ones((2, T), bool)
+    counted[1, 100:] = False
+    r = rl_eval.summarize(np.array([0.4, 0.4]), lin, counted, np.array([False, True]))
+    np.testing.assert_allclose(r["mean_velocity_error"], (0.05 + 0.0) / 2, atol=1e-12)
+    np.testing.assert_allclose(r["fluctuation_std_y"], (0.1 / np.sqrt(2) + 0.0) / 2, rtol=1e-12)
+    np.testing.assert_allclose(r["fluctuation_std_x"], 0.0, atol=1e-12)
+    np.testing.assert_allclose(r["forward_speed_mean"], (0.35 + 0.4) / 2, rtol=1e-12)
+    err0 = np.mean(np.hypot(0.05, 0.1 * np.sin(phase)))
+    np.testing.assert_allclose(r["tracking_error_mean"], err0 / 2, rtol=1e-12)
+    assert r["fall_fraction"] == 0.5
