@@ -149,11 +149,13 @@ class WarpModel:
     max_pairs: int
     max_contacts: int
     max_rows: int  # max over worlds of maxdim_w
+    max_slots: int  # max over worlds of maxdim_w + its virtual rows (6 per hub body, sparse_llt.hub_bodies)
     total_rows: int
     total_mat: int
     total_jd: int
     total_cand: int
     blocks_per_row: int  # 2, or 4 when a coupling row spans two joints
+    hub_min_rows: int | None = None  # the hub threshold the virtual rows were laid out for (sparse_llt.HUB_MIN_ROWS)
 
 
 def _bounding_radius(model: Model) -> np.ndarray:
@@ -173,14 +175,18 @@ _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 def warp_model(model: Model, np_dtype, device) -> WarpModel:
     """The (cached) :class:`WarpModel` of ``model`` in ``np_dtype`` on ``device``."""
-    key = (np.dtype(np_dtype), str(wp.get_device(device)))
+    from kamino.warp_backend import sparse_llt  # (imports this module)
+
+    key = (np.dtype(np_dtype), str(wp.get_device(device)), sparse_llt.HUB_MIN_ROWS)
     per_model = _CACHE.setdefault(model, {})
     if key not in per_model:
         per_model[key] = _upload(model, *key)
     return per_model[key]
 
 
-def _upload(model: Model, np_dtype: np.dtype, device: str) -> WarpModel:
+def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | None = None) -> WarpModel:
+    from kamino.warp_backend.sparse_llt import hub_counts
+
     T = types_of(np_dtype)
     W = model.num_worlds
     tab = row_tables(model)
@@ -201,7 +207,10 @@ def _upload(model: Model, np_dtype: np.dtype, device: str) -> WarpModel:
     cap = model.world_contact_capacity
     n_fixed = ndyn + ncts + ncpl
     maxdim = n_fixed + nlim + 3 * cap
-    g_dim = group_sizes(maxdim)
+    # 6 virtual rows per hub body after the row capacity: the hubs' unknowns during the sparse factor's solves
+    # (sparse_llt.hub_bodies; never real rows)
+    slots = maxdim + 6 * hub_counts(model, hub_min_rows) if W else maxdim
+    g_dim = group_sizes(slots)
     g_col = 6 * group_sizes(nb)
     # candidate contact points, in detection order
     order = tab.pair_order
@@ -258,7 +267,9 @@ def _upload(model: Model, np_dtype: np.dtype, device: str) -> WarpModel:
         model=model, device=device, np_dtype=np_dtype, arrays=S, num_worlds=W,
         max_bodies=mx(nb), max_joints=mx(nj), max_dofs=mx(nd), max_cts=mx(ncts), max_dyn=mx(ndyn),
         max_cpl=mx(ncpl), max_lim=mx(nlim), max_pairs=mx(pair_count), max_contacts=mx(cap), max_rows=mx(maxdim),
+        max_slots=mx(slots),
         total_rows=int(GROUP * g_dim.sum()), total_mat=int(GROUP * (g_dim * g_dim).sum()),
         total_jd=int(GROUP * (g_dim * g_col).sum()),
         total_cand=int(cand_count.sum()), blocks_per_row=4 if two_joint_couplings else 2,
+        hub_min_rows=hub_min_rows,
     )

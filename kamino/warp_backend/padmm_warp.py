@@ -177,11 +177,17 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         return s
 
     @wp.func
-    def fan_out(sp: SP, vb: int, tv: FanIdx, av: FanIdx, bv: FanIdx, u: int, f1: int, lv: LVec):
-        """The updates ``D~_tgt -= L_a L_b`` of the thread's FAN_BATCH rounds from ``u`` that lie before ``f1``."""
+    def fan_out(sp: SP, vb: int, tv: FanIdx, av: FanIdx, bv: FanIdx, u: int, f1: int, lv: LVec, neg: int):
+        """The updates ``D~_tgt -= s_q L_a L_b`` of the thread's FAN_BATCH rounds from ``u`` that lie before ``f1``
+        (``neg``: the column is a hub's unknown, ``s_q = -1``, ``sparse_llt.factor_fixed_rows``)."""
         for r in range(FAN_BATCH):
             if u + r * LANES < f1:
-                fset(sp, vb, tv[r], fget(sp, vb, tv[r], lv) - fget(sp, vb, av[r], lv) * fget(sp, vb, bv[r], lv), lv)
+                if neg != 0:
+                    fset(sp, vb, tv[r], fget(sp, vb, tv[r], lv) + fget(sp, vb, av[r], lv) * fget(sp, vb, bv[r], lv),
+                         lv)
+                else:
+                    fset(sp, vb, tv[r], fget(sp, vb, tv[r], lv) - fget(sp, vb, av[r], lv) * fget(sp, vb, bv[r], lv),
+                         lv)
 
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
@@ -230,6 +236,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
+        npos = sp.n_pos[wid]  # the fixed rows, then the hubs' unknowns (sign s_q = -1: sparse_llt.factor_fixed_rows)
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
         nnz = sp.nnz[wid]
@@ -243,25 +250,25 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         # column then waits on about one load latency instead of one per round (docs/warp_backend.md, "Where it
         # goes, measured part by part")
         cmax = e0 + nnz - 1
-        fmax = wp.max(sp.fan_ptr[p0 + nf] - 1, 0)
+        fmax = wp.max(sp.fan_ptr[p0 + npos] - 1, 0)
         kd_n = int(0)
         c0_n = int(0)
         c1_n = int(0)
         f0_n = int(0)
         f1_n = int(0)
-        if nf > 0:
+        if npos > 0:
             kd_n = sp.row_ptr[p0 + 1] - 1
             c0_n = sp.cptr[p0]
             c1_n = sp.cptr[p0 + 1]
             f0_n = sp.fan_ptr[p0]
             f1_n = sp.fan_ptr[p0 + 1]
-        for q in range(nf):
+        for q in range(npos):
             kd = kd_n
             c0 = c0_n
             c1 = c1_n
             f0 = f0_n
             f1 = f1_n
-            qn = wp.min(q + 1, nf - 1)
+            qn = wp.min(q + 1, npos - 1)
             kd_n = sp.row_ptr[p0 + qn + 1] - 1
             c0_n = sp.cptr[p0 + qn]
             c1_n = sp.cptr[p0 + qn + 1]
@@ -274,22 +281,30 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             tv = batch(sp.fan_tgt, ua, fmax)
             av = batch(sp.fan_a, ua, fmax)
             bv = batch(sp.fan_b, ua, fmax)
-            d = wp.sqrt(fget(sp, vb, kd, lv))
+            neg = int(q >= nf)
+            d = zero
+            dv = zero  # s_q L_qq, the divisor of column q
+            if neg != 0:
+                d = wp.sqrt(-fget(sp, vb, kd, lv))
+                dv = -d
+            else:
+                d = wp.sqrt(fget(sp, vb, kd, lv))
+                dv = d
             sync()  # every thread has read D~_qq before it becomes L_qq
             if lane == 0:
                 fset(sp, vb, kd, d, lv)
             if ja < c1:
-                fset(sp, vb, ka, fget(sp, vb, ka, lv) / d, lv)
+                fset(sp, vb, ka, fget(sp, vb, ka, lv) / dv, lv)
             if ja + LANES < c1:
-                fset(sp, vb, kb, fget(sp, vb, kb, lv) / d, lv)
+                fset(sp, vb, kb, fget(sp, vb, kb, lv) / dv, lv)
             for j in range(ja + 2 * LANES, c1, LANES):
                 k = sp.cent[e0 + j]
-                fset(sp, vb, k, fget(sp, vb, k, lv) / d, lv)
+                fset(sp, vb, k, fget(sp, vb, k, lv) / dv, lv)
             sync()
-            fan_out(sp, vb, tv, av, bv, ua, f1, lv)
+            fan_out(sp, vb, tv, av, bv, ua, f1, lv, neg)
             for ub in range(ua + FAN_BATCH * LANES, f1, FAN_BATCH * LANES):
                 fan_out(sp, vb, batch(sp.fan_tgt, ub, fmax), batch(sp.fan_a, ub, fmax), batch(sp.fan_b, ub, fmax),
-                        ub, f1, lv)
+                        ub, f1, lv, neg)
             sync()
         if wp.static(E > 0):
             for k in range(lane, nnz, LANES):
@@ -304,9 +319,19 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             for i in range(sp.pat_ptr[pt + 1] - i0):
                 s = sp.tail[tr + i * tc]
                 u1 = sp.pat_upd_ptr[i0 + i + 1]
-                for ub in range(sp.pat_upd_ptr[i0 + i], u1, FAN_BATCH):
-                    s = ltf_batch(sp, vb, tr, tc, ub, u1, s, lv)
-                sp.tail[tr + i * tc] = s / fget(sp, vb, sp.row_ptr[p0 + sp.pat_pos[i0 + i] + 1] - 1, lv)
+                pos = sp.pat_pos[i0 + i]
+                if pos >= nf:  # a hub position: the signed sum and divisor of sparse_llt.factor_world
+                    for u in range(sp.pat_upd_ptr[i0 + i], u1):
+                        uk = sp.pat_upd_k[u]
+                        if sp.col[e0 + uk] >= nf:
+                            s += fget(sp, vb, uk, lv) * sp.tail[tr + sp.pat_upd_j[u] * tc]
+                        else:
+                            s -= fget(sp, vb, uk, lv) * sp.tail[tr + sp.pat_upd_j[u] * tc]
+                    sp.tail[tr + i * tc] = -s / fget(sp, vb, sp.row_ptr[p0 + pos + 1] - 1, lv)
+                else:
+                    for ub in range(sp.pat_upd_ptr[i0 + i], u1, FAN_BATCH):
+                        s = ltf_batch(sp, vb, tr, tc, ub, u1, s, lv)
+                    sp.tail[tr + i * tc] = s / fget(sp, vb, sp.row_ptr[p0 + pos + 1] - 1, lv)
         sync()
         # S_t = D~_t - L_tf L_tf^T: the entries (t, j <= t), threads over all nt (nt + 1) / 2 of them (pair u is
         # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or sdiag, so no pair
@@ -343,7 +368,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     @wp.func
     def solve(m: M, w: Work, sp: SP, wid: int, n: int, lane: int, xs: Vec, ys: Vec):
         """``x <- L^-T L^-1 x`` with the sparse factor and its tail (``L_tf`` on its patterns, ``L_t`` dense), by
-        column sweeps: one barrier per row (``sparse_llt.solve_inplace``, the same products in another order).
+        column sweeps: one barrier per row (``sparse_llt.solve_inplace``, the same products in another order; with
+        hubs ``x <- L^-T S L^-1 x``, the hubs' unknowns in their virtual rows of ``xs`` / ``ys``).
         ``xs`` holds the right-hand side on entry and the solution on exit, ``ys`` is scratch: both in shared memory,
         indexed by row. The next column's (row's) factor entries are loaded before the barrier of the current one,
         unconditionally (clamped indices), so that their latency overlaps the barrier instead of preceding it
@@ -356,6 +382,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         p0 = sp.ptr_start[wid]
         q0 = sp.perm_start[wid]
         nt = n - nf
+        npos = sp.n_pos[wid]  # the fixed rows, then the hubs' unknowns (sparse_llt.solve_inplace: x <- L^-T S L^-1 x)
+        if npos > nf:  # the hubs' right-hand side: 0 in their virtual rows
+            for p in range(nf + lane, npos, LANES):
+                sset(xs, sp.perm[q0 + p], zero)
+            sync()
         # forward, fixed rows, by columns: y_q = x_q / L_qq (x_q final once the columns before q have updated it),
         # then column q updates the rows below. This thread's entry of the next column is loaded during column q,
         # without a branch: its index is clamped to the world's entries, so that nothing (a select, a branch) waits
@@ -371,7 +402,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         j1_nn = int(0)  # the end of column q + 2's entries (its start is column q + 1's end): loaded two ahead
         c_nn = int(0)  # the entry index (cent) of this thread's entry of column q + 1: loaded two ahead
         kd_nn = int(0)  # the diagonal entry of column q + 1: loaded two ahead
-        if nf > 0:
+        if npos > 0:
             a_n = sp.perm[q0]
             d_n = scalar(1.0) / sp.val[vb + (sp.row_ptr[p0 + 1] - 1) * vs]
             j0_n = sp.cptr[p0]
@@ -379,26 +410,26 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             kn = wp.min(j0_n + lane, kmax)
             l_n = sp.val[vb + sp.cent[e0 + kn] * vs]
             r_n = sp.crow[e0 + kn]
-            j1_nn = sp.cptr[p0 + wp.min(2, nf)]
+            j1_nn = sp.cptr[p0 + wp.min(2, npos)]
             c_nn = sp.cent[e0 + wp.min(j1_n + lane, kmax)]
-            kd_nn = sp.row_ptr[p0 + wp.min(2, nf)] - 1
-        for q in range(nf):
+            kd_nn = sp.row_ptr[p0 + wp.min(2, npos)] - 1
+        for q in range(npos):
             a_q = a_n
             yq = sget(xs, a_q) * d_n
             j0 = j0_n
             j1 = j1_n
             l_q = l_n
             r_q = r_n
-            qn = wp.min(q + 1, nf - 1)
+            qn = wp.min(q + 1, npos - 1)
             a_n = sp.perm[q0 + qn]
             d_n = scalar(1.0) / sp.val[vb + kd_nn * vs]
-            kd_nn = sp.row_ptr[p0 + wp.min(q + 3, nf)] - 1
+            kd_nn = sp.row_ptr[p0 + wp.min(q + 3, npos)] - 1
             j0_n = j1_n
             j1_n = j1_nn
             l_n = sp.val[vb + c_nn * vs]
             r_n = sp.crow[e0 + wp.min(j0_n + lane, kmax)]
             c_nn = sp.cent[e0 + wp.min(j1_n + lane, kmax)]
-            j1_nn = sp.cptr[p0 + wp.min(q + 3, nf)]
+            j1_nn = sp.cptr[p0 + wp.min(q + 3, npos)]
             if lane == 0:
                 sset(ys, a_q, yq)
             if j0 + lane < j1:
@@ -425,6 +456,11 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             for i in range(t + 1 + lane, nt, LANES):
                 sset(xs, nf + i, sget(xs, nf + i) - sp.tail[tb + i * ts + (kt + t) * tc] * yt)
             sync()
+        if npos > nf:  # y <- S y: the hubs' sign, after the tail's forward sweep read their unsigned y
+            for p in range(nf + lane, npos, LANES):
+                a = sp.perm[q0 + p]
+                sset(ys, a, -sget(ys, a))
+            sync()
         # backward, tail rows: x_t = y_t / L_tt (y_t final once the rows after t have updated it), then row t of
         # L_t updates the tail rows before it; then the tail's share of the fixed rows in parallel, each thread
         # finding its fixed positions in the tail rows' patterns through their lookups
@@ -438,7 +474,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 sset(ys, nf + i, sget(ys, nf + i) - sp.tail[tr + (kt + i) * tc] * xt)
             sync()
         if nt > 0:
-            for p in range(lane, nf, LANES):
+            for p in range(lane, npos, LANES):
                 a = sp.perm[q0 + p]
                 s = sget(ys, a)
                 for t in range(nt):
@@ -450,17 +486,17 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         # backward, fixed rows, by rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it (loaded
         # ahead like the forward sweep)
         j0_nn = int(0)  # the start of row p - 2's entries (its end is row p - 1's start): loaded two ahead
-        if nf > 0:
-            a_n = sp.perm[q0 + nf - 1]
-            j0_n = sp.row_ptr[p0 + nf - 1]
-            j1_n = sp.row_ptr[p0 + nf] - 1
+        if npos > 0:
+            a_n = sp.perm[q0 + npos - 1]
+            j0_n = sp.row_ptr[p0 + npos - 1]
+            j1_n = sp.row_ptr[p0 + npos] - 1
             d_n = scalar(1.0) / sp.val[vb + j1_n * vs]
             kn = wp.min(j0_n + lane, kmax)
             l_n = sp.val[vb + kn * vs]
             r_n = sp.colrow[e0 + kn]
-            j0_nn = sp.row_ptr[p0 + wp.max(nf - 2, 0)]
-        for pp in range(nf):
-            p = nf - 1 - pp
+            j0_nn = sp.row_ptr[p0 + wp.max(npos - 2, 0)]
+        for pp in range(npos):
+            p = npos - 1 - pp
             a_p = a_n
             xp = sget(ys, a_p) * d_n
             j0 = j0_n

@@ -110,7 +110,7 @@ class Stepper:
                                  rows_per_world=padmm == "warp", cr=not llt)
             if self.sparse_factor:
                 self.sf = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy(),
-                                           per_world=padmm == "warp")
+                                           per_world=padmm == "warp", hub_min_rows=wm.hub_min_rows)
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             self.sp = self.sf.arrays if self.sparse_factor else sparse_llt.empty(self.np_dtype, self.device)
             #: post-stabilisation solves with PADMM's sparse factor of the fixed rows when that factor carries the
@@ -119,11 +119,12 @@ class Stepper:
             if cfg.post_stabilisation and not self.post_shares_factor:
                 # the fixed rows' own pattern and factor (no tail rows)
                 self.post = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
-                                             per_world=padmm == "warp")
+                                             per_world=padmm == "warp", hub_min_rows=wm.hub_min_rows,
+                                             hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
-                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_rows), shared_entries(self.sf.max_nnz))
+                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), shared_entries(self.sf.max_nnz))
         self.rk = row_kernels(self.np_dtype)
         self.sk = solver_kernels(self.np_dtype)
         self.ik = integrate_kernels(self.np_dtype)

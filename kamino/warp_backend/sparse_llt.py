@@ -74,9 +74,34 @@ def fixed_row_bodies(model: Model) -> list[np.ndarray]:
     return out
 
 
+#: A body is a *hub* when more than this many fixed rows have it among their moving bodies: its 6 velocity unknowns
+#: then stay in the factorised system, ordered after every fixed row (:func:`symbolic`; docs/warp_backend.md, "Open
+#: problems": the animatronic's ``L_f`` 43,210 -> 16,678 entries at the same float32 accuracy). ``None``: no hubs.
+HUB_MIN_ROWS: int | None = 48
+
+
+def hub_bodies(bodies: np.ndarray, min_rows: int | None) -> np.ndarray:
+    """The hubs (world-local body indices, ascending) of a world whose fixed rows have the moving bodies ``bodies``
+    (:func:`fixed_row_bodies`): bodies on more than ``min_rows`` rows (``None``: none)."""
+    if min_rows is None or len(bodies) == 0:
+        return np.zeros(0, np.int64)
+    count: dict[int, int] = {}
+    for a in range(len(bodies)):
+        for b in set(int(x) for x in bodies[a] if x >= 0):
+            count[b] = count.get(b, 0) + 1
+    return np.asarray(sorted(b for b, c in count.items() if c > min_rows), np.int64)
+
+
+def hub_counts(model: Model, min_rows: int | None) -> np.ndarray:
+    """Per world, its number of hubs (:func:`hub_bodies`): the world has ``6 x`` that many virtual rows after its
+    row capacity (``model_data``), where the hubs' unknowns live during a solve."""
+    return np.asarray([len(hub_bodies(r, min_rows)) for r in fixed_row_bodies(model)], np.int64).reshape(-1)
+
+
 @dataclasses.dataclass(frozen=True)
 class Symbolic:
-    """The factor pattern of one world type (positions ``p`` = rows in elimination order)."""
+    """The factor pattern of one world type (positions ``p`` = rows in elimination order; with hubs, the ``n_real``
+    fixed rows first, then 6 positions per hub, whose "rows" are the world's virtual rows)."""
 
     perm: np.ndarray  # [n] row of position p
     row_ptr: np.ndarray  # [n + 1] entries of factor row p (columns ascending, the diagonal last)
@@ -95,31 +120,55 @@ class Symbolic:
     fan_tgt: np.ndarray  # [n_upd] entry (p, q) that L_pr L_qr is subtracted from
     fan_a: np.ndarray  # [n_upd] entry L_pr
     fan_b: np.ndarray  # [n_upd] entry L_qr
+    n_real: int = -1  # the fixed rows (positions 0 .. n_real - 1); the positions after them are the hubs' unknowns
+    node: np.ndarray | None = None  # [n] graph node of position p: a fixed row, or n_real + 6 h + c (component c of
+    # the h-th hub of the hubs as given to symbolic)
+    hubs: np.ndarray | None = None  # the hubs (world-local bodies) in position order: position n_real + 6 k + c is
+    # component c of hubs[k]
 
     @property
     def nnz(self) -> int:
         return len(self.col)
 
 
-def symbolic(bodies: np.ndarray) -> Symbolic:
+def symbolic(bodies: np.ndarray, hubs: np.ndarray | None = None, hub_row0: int = 0) -> Symbolic:
     """Minimum-degree ordering and the factor pattern of rows coupled through shared bodies (``bodies``:
-    ``[n, k]`` moving bodies per row, ``-1`` padding)."""
+    ``[n, k]`` moving bodies per row, ``-1`` padding).
+
+    With ``hubs`` (world-local bodies, :func:`hub_bodies`) the system is the quasi-definite one of
+    docs/warp_backend.md ("Open problems"), ``[[A0, Jh], [Jh^T, -Mh]]``: rows couple only through a shared body that
+    is not a hub, and each hub adds 6 nodes (its velocity components), adjacent to each other and to the rows on the
+    hub. The rows are ordered by minimum degree first, the hubs' nodes last (hub order, components 0..5), so the fill
+    is that of ``memory_breakdown.min_degree_order(..., last=hubs)``; the hub positions' rows are the world's virtual
+    rows ``hub_row0 + 6 h + c``. Without hubs: the order and pattern as before, bit for bit."""
     n = len(bodies)
-    adj: list[set[int]] = [set() for _ in range(n)]
+    hubs = np.zeros(0, np.int64) if hubs is None else np.asarray(hubs, np.int64)
+    hub_of = {int(b): h for h, b in enumerate(hubs)}
+    nh = 6 * len(hubs)
+    N = n + nh
+    adj: list[set[int]] = [set() for _ in range(N)]
     by_body: dict[int, list[int]] = {}
     for a in range(n):
         for b in set(int(x) for x in bodies[a] if x >= 0):
             by_body.setdefault(b, []).append(a)
-    for rows in by_body.values():
-        for a in rows:
-            adj[a].update(rows)
-    for a in range(n):
+    for b, rows in by_body.items():
+        if b in hub_of:
+            hn = [n + 6 * hub_of[b] + c for c in range(6)]
+            for a in rows:
+                adj[a].update(hn)
+            for v in hn:
+                adj[v].update(rows)
+                adj[v].update(hn)
+        else:
+            for a in rows:
+                adj[a].update(rows)
+    for a in range(N):
         adj[a].discard(a)
     alive = set(range(n))
     order: list[int] = []
     below: list[set[int]] = []  # rows (original) below the diagonal in the eliminated column
-    while alive:
-        v = min(alive, key=lambda a: (len(adj[a]), a))
+
+    def eliminate(v: int):
         nb = set(adj[v])
         order.append(v)
         below.append(nb)
@@ -128,6 +177,18 @@ def symbolic(bodies: np.ndarray) -> Symbolic:
             adj[a].discard(a)
             adj[a].discard(v)
         alive.discard(v)
+
+    while alive:
+        eliminate(min(alive, key=lambda a: (len(adj[a]), a)))
+    # then the hubs, each its 6 components in order, the hub of fewest neighbours first
+    alive_hubs = set(range(len(hubs)))
+    while alive_hubs:
+        h = min(alive_hubs, key=lambda h: (len(adj[n + 6 * h]), h))
+        for c in range(6):
+            eliminate(n + 6 * h + c)
+        alive_hubs.discard(h)
+    hubs = hubs[(np.asarray(order[n::6], np.int64) - n) // 6] if nh else hubs  # in position order
+    n_real, n = n, N
     pos = np.empty(n, np.int64)
     pos[np.asarray(order, np.int64)] = np.arange(n)
     cols: list[list[int]] = [[] for _ in range(n)]
@@ -158,6 +219,9 @@ def symbolic(bodies: np.ndarray) -> Symbolic:
                 upd_b.append(index[(q, r)])
         upd_ptr.append(len(upd_a))
     i64 = lambda a: np.asarray(a, np.int64)  # noqa: E731
+    node = i64(order)
+    # the row of each position: a hub position's is the world's virtual row hub_row0 + (p - n_real)
+    prow = np.where(np.arange(n) < n_real, node, hub_row0 + np.arange(n) - n_real)
     col_a, row_a = i64(col), i64(row)
     below = np.flatnonzero(row_a != col_a)
     cent = below[np.lexsort((row_a[below], col_a[below]))]  # by column, rows ascending
@@ -166,13 +230,14 @@ def symbolic(bodies: np.ndarray) -> Symbolic:
     fan = np.argsort(col_a[i64(upd_a)], kind="stable") if upd_a else np.zeros(0, np.int64)
     fan_r = col_a[i64(upd_a)][fan] if upd_a else np.zeros(0, np.int64)
     pad = np.zeros(n, np.int64)
-    return Symbolic(perm=i64(order), row_ptr=i64(row_ptr), col=col_a, colrow=i64(order)[col_a], row=row_a,
+    return Symbolic(perm=prow, row_ptr=i64(row_ptr), col=col_a, colrow=prow[col_a], row=row_a,
                     div=i64(div),
                     upd_ptr=i64(upd_ptr), upd_a=i64(upd_a), upd_b=i64(upd_b),
                     cptr=i64(cptr), cent=np.concatenate([cent, pad]),
-                    crow=np.concatenate([i64(order)[row_a[cent]], pad]),
+                    crow=np.concatenate([prow[row_a[cent]], pad]),
                     fan_ptr=np.searchsorted(fan_r, np.arange(n + 1)), fan_tgt=upd_tgt[fan],
-                    fan_a=i64(upd_a)[fan] if upd_a else fan, fan_b=i64(upd_b)[fan] if upd_a else fan)
+                    fan_a=i64(upd_a)[fan] if upd_a else fan, fan_b=i64(upd_b)[fan] if upd_a else fan,
+                    n_real=n_real, node=node, hubs=hubs)
 
 
 def elimination_parents(sym: Symbolic) -> np.ndarray:
@@ -211,15 +276,19 @@ def tail_patterns(bodies: np.ndarray, sym: Symbolic, lim_bodies: np.ndarray,
     root (``bodies``: the fixed rows' moving bodies; ``sym``: their factor pattern; :func:`tail_row_bodies`)."""
     n = len(sym.perm)
     parent = elimination_parents(sym)
-    pos = np.empty(n, np.int64)
-    pos[sym.perm] = np.arange(n)
-    row_sets = [set(int(b) for b in bodies[a] if b >= 0) for a in range(n)]
+    nr = sym.n_real if sym.n_real >= 0 else n
+    hubs = set() if sym.hubs is None else {int(b) for b in sym.hubs}
+    node = np.arange(n) if sym.node is None else sym.node
+    # each position's bodies: a fixed row's other than hubs (it meets a hub through the hub's unknowns), a hub
+    # unknown's its hub
+    pos_sets = [set(int(b) for b in bodies[v] if b >= 0 and int(b) not in hubs) if v < nr
+                else {int(sym.hubs[(q - nr) // 6])} for q, v in enumerate(int(x) for x in node)]
 
     def reach(body_set: set[int]) -> np.ndarray:
         seen: set[int] = set()
-        for a in range(n):
-            if body_set & row_sets[a]:
-                q = int(pos[a])
+        for q0 in range(n):
+            if body_set & pos_sets[q0]:
+                q = q0
                 while q < n and q not in seen:
                     seen.add(q)
                     q = int(parent[q])
@@ -242,7 +311,14 @@ def pattern_struct(np_dtype):
         ptr_start: iarr
         ent_start: iarr  # into col, row, div, upd_ptr
         nnz: iarr
-        n_fixed: iarr
+        n_fixed: iarr  # the fixed rows (the first tail row's index)
+        # positions of L_f: the fixed rows, then 6 per hub (their unknowns; n_pos = n_fixed without hubs)
+        n_pos: iarr
+        # hubs (symbolic): body_hub[b] = hub index of global body b in its world, or -1; a world's hubs are the global
+        # bodies hub_body[hub_start[wid] ..], in position order
+        body_hub: iarr
+        hub_start: iarr
+        hub_body: iarr
         perm: iarr
         row_ptr: iarr  # world-type-local entry indices
         col: iarr
@@ -309,6 +385,7 @@ class SparseFactor:
     max_nnz: int
     max_tail: int
     nnz_total: int  # factor entries summed over worlds (fixed rows)
+    hubs: int = 0  # hubs summed over worlds
 
 
 def pattern_tables(sym: Symbolic, pattern: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -325,10 +402,14 @@ def pattern_tables(sym: Symbolic, pattern: np.ndarray) -> tuple[np.ndarray, np.n
     return ptr, k, lut[sym.col[k]], lut
 
 
-def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: bool = False) -> SparseFactor:
+def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: bool = False,
+          hub_min_rows: int | None = HUB_MIN_ROWS, hub_row0: np.ndarray | None = None) -> SparseFactor:
     """Symbolic analysis of every world type of ``model`` and the device storage of the factors (``per_world``: each
     world's values contiguous, for the 32-threads-per-world schedule; else interleaved over groups of worlds). A
-    world type is the fixed rows' bodies and its tail rows' (:func:`tail_row_bodies`)."""
+    world type is the fixed rows' bodies and its tail rows' (:func:`tail_row_bodies`). ``row_maxdim``: the rows each
+    world factorises (its tail rows are those after the fixed ones). ``hub_min_rows``: the hub threshold
+    (:func:`hub_bodies`; ``None``: no hubs); a hub's unknowns use the world's virtual rows from ``hub_row0`` (the
+    world's row capacity, ``model_data``; default ``row_maxdim``)."""
     W = model.num_worlds
     tab = row_tables(model)
     tail_rows = np.asarray(row_maxdim, np.int64) - np.asarray(
@@ -337,13 +418,16 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     syms: list[Symbolic] = []
     pats: list[list[np.ndarray]] = []
     world_type = np.empty(W, np.int64)
+    h0 = np.asarray(row_maxdim if hub_row0 is None else hub_row0, np.int64).reshape(-1)
     for w, rows in enumerate(fixed_row_bodies(model)):
         lim, con = tail_row_bodies(model, tab, w) if tail_rows[w] > 0 else (np.zeros((0, 2), np.int64), None)
+        hubs = hub_bodies(rows, hub_min_rows)
         key = b"|".join([rows.tobytes(), bytes(str(rows.shape), "ascii"), lim.tobytes(),
-                         b"-" if con is None else con.tobytes()])
+                         b"-" if con is None else con.tobytes()]
+                        + ([hubs.tobytes(), bytes(str(int(h0[w])), "ascii")] if len(hubs) else []))
         if key not in types:
             types[key] = len(syms)
-            syms.append(symbolic(rows))
+            syms.append(symbolic(rows, hubs, int(h0[w])))
             pats.append(tail_patterns(rows, syms[-1], lim, con) if tail_rows[w] > 0 else [])
         world_type[w] = types[key]
     n_t = np.array([len(s.perm) for s in syms], np.int64)
@@ -351,7 +435,7 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     upd_t = np.array([len(s.upd_a) for s in syms], np.int64)
     perm_t, ptr_t, ent_t, upd0_t = prefix(n_t), prefix(n_t + 1), prefix(nnz_t), prefix(upd_t)
     cat = lambda f: np.concatenate([f(s) for s in syms]) if syms else np.zeros(0, np.int64)  # noqa: E731
-    n_fixed = n_t[world_type]
+    n_fixed = np.array([s.n_real for s in syms], np.int64)[world_type]
     nnz = nnz_t[world_type]
     # the L_tf patterns, by global id: type t's are pat0_t .. pat0_t + len(pats[t]) - 1
     pat0_t = prefix(np.array([len(p) for p in pats], np.int64))
@@ -368,7 +452,14 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
         return wp.array(np.asarray(a, np.int32).reshape(-1), dtype=wp.int32, device=device)
 
     S.perm_start, S.ptr_start, S.ent_start = i32(perm_t[world_type]), i32(ptr_t[world_type]), i32(ent_t[world_type])
-    S.nnz, S.n_fixed = i32(nnz), i32(n_fixed)
+    S.nnz, S.n_fixed, S.n_pos = i32(nnz), i32(n_fixed), i32(n_t[world_type])
+    body_hub = np.full(max(model.num_bodies, 1), -1, np.int64)
+    hub_n = np.array([len(syms[t].hubs) for t in world_type], np.int64)
+    hub_body = [int(model.world_body_start[w]) + syms[world_type[w]].hubs for w in range(W)]
+    for hb in hub_body:
+        body_hub[hb] = np.arange(len(hb))
+    S.body_hub, S.hub_start = i32(body_hub), i32(prefix(hub_n))
+    S.hub_body = i32(np.concatenate(hub_body) if hub_n.sum() else [0])
     S.perm, S.row_ptr, S.col, S.colrow, S.row, S.div = (i32(cat(lambda s, f=f: getattr(s, f)))
                                               for f in ("perm", "row_ptr", "col", "colrow", "row", "div"))
     # (start, end) of each entry's update pairs, as global indices into upd_a / upd_b
@@ -419,14 +510,16 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     scalar = types_of(np.dtype(np_dtype)).scalar
     S.val = wp.zeros(int(GROUP * g_nnz.sum()), dtype=scalar, device=device)
     S.tail = wp.zeros(int(GROUP * (g_tail * g_dim).sum()), dtype=scalar, device=device)
-    return SparseFactor(arrays=S, max_nnz=mx(nnz), max_tail=mx(tail_rows), nnz_total=int(nnz.sum()))
+    return SparseFactor(arrays=S, max_nnz=mx(nnz), max_tail=mx(tail_rows), nnz_total=int(nnz.sum()),
+                        hubs=int(hub_n.sum()))
 
 
 def empty(np_dtype, device) -> object:
     """A pattern struct with no worlds (the argument of kernels that take the dense or CR path)."""
     S = pattern_struct(np.dtype(np_dtype))()
     scalar = types_of(np.dtype(np_dtype)).scalar
-    for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "perm", "row_ptr", "col", "colrow", "row",
+    for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "n_pos", "body_hub", "hub_start",
+                 "hub_body", "perm", "row_ptr", "col", "colrow", "row",
                  "div", "upd_ptr", "upd_a", "upd_b", "cptr", "cent", "crow", "fan_ptr", "fan_tgt", "fan_a", "fan_b",
                  "grp_val_start", "grp_nnz", "grp_tail_start", "grp_tail_size", "grp_tail_k", "grp_tail_dim",
                  "pat_ptr", "pat_pos",
@@ -522,16 +615,76 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         return s
 
     @wp.func
+    def delassus0(m: M, w: Work, sp: SP, wid: int, a: int, b: int, nblk: int):
+        """:func:`delassus_entry` over the bodies that are not hubs (``D0 = sum_{b not a hub} J_b M_b^-1 J_b^T + R``:
+        the hubs' share is in the factor through their unknowns, docs/warp_backend.md "Open problems"); the same
+        sum, term for term, in a world without hubs."""
+        hubbed = sp.n_pos[wid] != sp.n_fixed[wid]
+        ra = ridx(m, w, wid, a)
+        rb = ridx(m, w, wid, b)
+        s = scalar(0.0)
+        for k in range(nblk):
+            bk = w.row_body[ra * nblk + k]
+            if bk >= 0:
+                skip = False
+                if hubbed:
+                    skip = sp.body_hub[bk] >= 0
+                if not skip:
+                    for l in range(nblk):
+                        if w.row_body[rb * nblk + l] == bk:
+                            s += wp.dot(w.row_J[ra * nblk + k], inv_mass_times(m, w, bk, w.row_J[rb * nblk + l]))
+        if a == b:
+            s += w.reg[ra]
+        return s
+
+    @wp.func
+    def row_on_body(w: Work, r: int, body: int, nblk: int):
+        """``J_a`` on body ``body``: the sum of row ``a``'s blocks there (``r``: the row's storage index)."""
+        J = vec6()
+        for l in range(nblk):
+            if w.row_body[r * nblk + l] == body:
+                J += w.row_J[r * nblk + l]
+        return J
+
+    @wp.func
+    def hub_entry(m: M, w: Work, sp: SP, wid: int, p: int, q: int, nblk: int):
+        """Entry ``(p, q)``, ``q <= p``, of the hub block rows of the quasi-definite system (``p`` the hub position
+        ``n_fixed + 6 h + c``: component ``c`` of hub ``h``): ``P_b (J_b on the hub)_c`` against fixed row ``b`` (at
+        position ``q``), ``-M_h[c, c']`` against component ``c'`` of the same hub (``M_h = diag(m I, I_w)``, the
+        body's spatial inertia in the world frame, in the ``(linear, angular)`` order of ``spatial.twist``), 0 against
+        another hub. No shift, regularisation or scaling on the hubs' unknowns."""
+        nf = sp.n_fixed[wid]
+        j = p - nf
+        h = j // 6
+        c = j - 6 * h
+        body = sp.hub_body[sp.hub_start[wid] + h]
+        s = scalar(0.0)
+        if q < nf:
+            rb = ridx(m, w, wid, sp.perm[sp.perm_start[wid] + q])
+            s = w.P[rb] * row_on_body(w, rb, body, nblk)[c]
+        elif (q - nf) // 6 == h:
+            c2 = q - nf - 6 * h
+            if c < 3 and c2 < 3:
+                if c == c2:
+                    s = -m.mass[body]
+            elif c >= 3 and c2 >= 3:
+                s = -w.inertia_w[body][c - 3, c2 - 3]
+        return s
+
+    @wp.func
     def fixed_entry(m: M, w: Work, sp: SP, wid: int, k: int, nblk: int, shift: scalar, shift_sat: scalar):
-        """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D_ab P_b`` (``+ shift`` on the diagonal,
+        """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D0_ab P_b`` (``+ shift`` on the diagonal,
         ``shift_sat`` on a saturated effort-limited row, ``w.sat``: the rows' penalty, kamino.jax_ref.padmm.solve,
-        "Saturation")."""
+        "Saturation"; ``D0``: :func:`delassus0`), or on a hub position's row :func:`hub_entry`."""
         e = sp.ent_start[wid] + k
         p = sp.row[e]
         q = sp.col[e]
+        if p >= sp.n_fixed[wid]:
+            sp.val[vidx(m, sp, wid, k)] = hub_entry(m, w, sp, wid, p, q, nblk)
+            return
         a = sp.perm[sp.perm_start[wid] + p]
         b = sp.perm[sp.perm_start[wid] + q]
-        s = w.P[ridx(m, w, wid, a)] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
+        s = w.P[ridx(m, w, wid, a)] * delassus0(m, w, sp, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
         if p == q:
             if w.sat[ridx(m, w, wid, a)] != 0:
                 s += shift_sat
@@ -564,11 +717,18 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         sp.tail_pat[wid * sp.tail_max + t] = pat
         i0 = sp.pat_ptr[pat]
         for i in range(sp.pat_ptr[pat + 1] - i0):
-            b = sp.pat_row[i0 + i]
-            sp.tail[tidx(m, w, sp, wid, t, i)] = Pa * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
+            pos = sp.pat_pos[i0 + i]
+            if pos >= nf:  # a hub's unknown (component c of hub h): P_a (J_a on the hub)_c
+                h = (pos - nf) // 6
+                sp.tail[tidx(m, w, sp, wid, t, i)] = Pa * row_on_body(
+                    w, ra, sp.hub_body[sp.hub_start[wid] + h], nblk)[pos - nf - 6 * h]
+            else:
+                b = sp.pat_row[i0 + i]
+                sp.tail[tidx(m, w, sp, wid, t, i)] = (Pa * delassus0(m, w, sp, wid, a, b, nblk)
+                                                      * w.P[ridx(m, w, wid, b)])
         kt = tail_k(sp, wid) - nf
         for b in range(nf, a + 1):
-            sp.tail[tidx(m, w, sp, wid, t, kt + b)] = (Pa * delassus_entry(m, w, wid, a, b, nblk)
+            sp.tail[tidx(m, w, sp, wid, t, kt + b)] = (Pa * delassus0(m, w, sp, wid, a, b, nblk)
                                                        * w.P[ridx(m, w, wid, b)])
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -581,15 +741,39 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.func
     def factor_fixed_rows(sp: SP, wid: int, vb: int):
-        """``L_f`` in place: the fixed rows' entries by the precomputed update lists."""
+        """``L_f`` in place: the fixed rows' entries by the precomputed update lists. With hubs, their positions
+        (the last rows, from entry ``kh`` on) take the signs of ``L S L^T``, ``S = diag(s)``, ``s = -1`` on a hub
+        position and +1 on a fixed row: ``L_pq = (A_pq - sum_r L_pr s_r L_qr) / (s_q L_qq)``, ``L_pp = sqrt(s_p
+        (A_pp - sum_r s_r L_pr^2))`` (``A``'s hub block is negative definite, so both roots are real); the fixed
+        rows' entries, whose updates come from fixed rows only, are today's Cholesky, operation for operation."""
         e0 = sp.ent_start[wid]
-        for k in range(sp.nnz[wid]):
+        nf = sp.n_fixed[wid]
+        kh = sp.nnz[wid]
+        if sp.n_pos[wid] != nf:
+            kh = sp.row_ptr[sp.ptr_start[wid] + nf]
+        for k in range(kh):
             s = sp.val[vb + k * sp.val_stride]
             for u in range(sp.upd_ptr[2 * (e0 + k)], sp.upd_ptr[2 * (e0 + k) + 1]):
                 s -= sp.val[vb + sp.upd_a[u] * sp.val_stride] * sp.val[vb + sp.upd_b[u] * sp.val_stride]
             d = sp.div[e0 + k]
             if d == k:
                 s = wp.sqrt(s)
+            else:
+                s = s / sp.val[vb + d * sp.val_stride]
+            sp.val[vb + k * sp.val_stride] = s
+        for k in range(kh, sp.nnz[wid]):
+            s = sp.val[vb + k * sp.val_stride]
+            for u in range(sp.upd_ptr[2 * (e0 + k)], sp.upd_ptr[2 * (e0 + k) + 1]):
+                ua = sp.upd_a[u]
+                if sp.col[e0 + ua] >= nf:
+                    s += sp.val[vb + ua * sp.val_stride] * sp.val[vb + sp.upd_b[u] * sp.val_stride]
+                else:
+                    s -= sp.val[vb + ua * sp.val_stride] * sp.val[vb + sp.upd_b[u] * sp.val_stride]
+            d = sp.div[e0 + k]
+            if d == k:
+                s = wp.sqrt(-s)
+            elif sp.col[e0 + k] >= nf:
+                s = -s / sp.val[vb + d * sp.val_stride]
             else:
                 s = s / sp.val[vb + d * sp.val_stride]
             sp.val[vb + k * sp.val_stride] = s
@@ -634,7 +818,8 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         """``S_t[t, j] = D~_tj - L_t. L_j.`` (``j <= t``, tail rows, ``L_tf`` done) into row ``j``'s upper slot
         (tail column ``K + t``), or ``w.sdiag`` for ``j == t``: it reads only lower slots, so entries are
         independent. The dot runs over row ``t``'s pattern, ascending, finding each position in row ``j``'s through
-        its lookup (the dense sum without its zero terms)."""
+        its lookup (the dense sum without its zero terms); a hub position's term carries its sign ``s_r = -1``
+        (:func:`factor_fixed_rows`)."""
         rs = w.row_stride
         tr = tb + t * ts
         jr = tb + j * ts
@@ -645,9 +830,13 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         i0 = sp.pat_ptr[pt]
         s = sp.tail[tr + (kt + j) * tc]
         for i in range(sp.pat_ptr[pt + 1] - i0):
-            c = sp.pat_lut[lut + sp.pat_pos[i0 + i]]
+            pos = sp.pat_pos[i0 + i]
+            c = sp.pat_lut[lut + pos]
             if c >= 0:
-                s -= sp.tail[tr + i * tc] * sp.tail[jr + c * tc]
+                if pos >= nf:  # a hub's unknown: s_r = -1 in S_tj = D~_tj - sum_r L_tr s_r L_jr
+                    s += sp.tail[tr + i * tc] * sp.tail[jr + c * tc]
+                else:
+                    s -= sp.tail[tr + i * tc] * sp.tail[jr + c * tc]
         if j == t:
             w.sdiag[rb + (nf + t) * rs] = s
         else:
@@ -673,10 +862,20 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             i0 = sp.pat_ptr[pt]
             for i in range(sp.pat_ptr[pt + 1] - i0):
                 s = sp.tail[tr + i * tc]
-                for u in range(sp.pat_upd_ptr[i0 + i], sp.pat_upd_ptr[i0 + i + 1]):
-                    s -= sp.val[vb + sp.pat_upd_k[u] * sp.val_stride] * sp.tail[tr + sp.pat_upd_j[u] * tc]
-                k1 = sp.row_ptr[p0 + sp.pat_pos[i0 + i] + 1] - 1
-                sp.tail[tr + i * tc] = s / sp.val[vb + k1 * sp.val_stride]
+                pos = sp.pat_pos[i0 + i]
+                k1 = sp.row_ptr[p0 + pos + 1] - 1
+                if pos >= nf:  # a hub position: L_tp = (D~_tp - sum_r L_tr s_r L_pr) / (s_p L_pp), s = -1 on hubs
+                    for u in range(sp.pat_upd_ptr[i0 + i], sp.pat_upd_ptr[i0 + i + 1]):
+                        uk = sp.pat_upd_k[u]
+                        if sp.col[sp.ent_start[wid] + uk] >= nf:
+                            s += sp.val[vb + uk * sp.val_stride] * sp.tail[tr + sp.pat_upd_j[u] * tc]
+                        else:
+                            s -= sp.val[vb + uk * sp.val_stride] * sp.tail[tr + sp.pat_upd_j[u] * tc]
+                    sp.tail[tr + i * tc] = -s / sp.val[vb + k1 * sp.val_stride]
+                else:
+                    for u in range(sp.pat_upd_ptr[i0 + i], sp.pat_upd_ptr[i0 + i + 1]):
+                        s -= sp.val[vb + sp.pat_upd_k[u] * sp.val_stride] * sp.tail[tr + sp.pat_upd_j[u] * tc]
+                    sp.tail[tr + i * tc] = s / sp.val[vb + k1 * sp.val_stride]
             for j in range(t + 1):  # S_t row t
                 schur_entry(w, sp, wid, rb, tb, ts, nf, t, j)
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid])
@@ -704,20 +903,25 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def solve_inplace(m: M, w: Work, sp: SP, wid: int, n: int):
         """``x <- L^-T L^-1 x`` with the sparse factor and its tail (each sum as the dense tail's, without its zero
-        terms)."""
+        terms). With hubs ``A = L S L^T`` (:func:`factor_fixed_rows`) and ``x <- L^-T S L^-1 x``: the hub positions'
+        right-hand side is 0 (their virtual rows), ``y`` is negated there between the sweeps (after the tail's
+        forward sweep, which reads the unsigned ``y``), and their solution is left in the virtual rows, unused."""
         rs = w.row_stride
         base = bases(m, w, sp, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
+        npos = sp.n_pos[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
         q0 = sp.perm_start[wid]
         nt = n - nf
-        # forward: fixed rows, then tail rows
-        for p in range(nf):
+        # forward: fixed rows (and the hubs' unknowns, right-hand side 0), then tail rows
+        for p in range(npos):
             r = rb + sp.perm[q0 + p] * rs
-            s = w.x[r]
+            s = scalar(0.0)
+            if p < nf:
+                s = w.x[r]
             k1 = sp.row_ptr[p0 + p + 1] - 1
             for k in range(sp.row_ptr[p0 + p], k1):
                 s -= sp.val[vb + k * sp.val_stride] * w.x[rb + sp.colrow[e0 + k] * rs]
@@ -733,6 +937,9 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             for i in range(t):
                 s -= sp.tail[tr + (kt + i) * tc] * w.x[rb + (nf + i) * rs]
             w.x[rb + (nf + t) * rs] = s / sp.tail[tr + (kt + t) * tc]
+        for p in range(nf, npos):  # y <- S y: the hubs' sign
+            r = rb + sp.perm[q0 + p] * rs
+            w.x[r] = -w.x[r]
         # backward: tail rows, their share of the fixed rows, then the fixed rows (column sweeps of L_f)
         for tt in range(nt):
             t = nt - 1 - tt
@@ -741,7 +948,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 s -= sp.tail[tb + i * ts + (kt + t) * tc] * w.x[rb + (nf + i) * rs]
             w.x[rb + (nf + t) * rs] = s / sp.tail[tb + t * ts + (kt + t) * tc]
         if nt > 0:
-            for p in range(nf):
+            for p in range(npos):
                 r = rb + sp.perm[q0 + p] * rs
                 s = w.x[r]
                 for t in range(nt):
@@ -749,8 +956,8 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                     if c >= 0:
                         s -= sp.tail[tb + t * ts + c * tc] * w.x[rb + (nf + t) * rs]
                 w.x[r] = s
-        for pp in range(nf):
-            p = nf - 1 - pp
+        for pp in range(npos):
+            p = npos - 1 - pp
             r = rb + sp.perm[q0 + p] * rs
             k1 = sp.row_ptr[p0 + p + 1] - 1
             xp = w.x[r] / sp.val[vb + k1 * sp.val_stride]
