@@ -36,6 +36,7 @@ import warp as wp
 
 from kamino.config import NULL_DIRECTION_RATIO
 from kamino.warp_backend.cone import cone_funcs
+from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.padmm_rules import padmm_funcs
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
@@ -106,6 +107,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     slk = sparse_llt_kernels(np_dtype)
     bases, schur_entry, fixed_entry, tail_row = slk.bases, slk.schur_entry, slk.fixed_entry, slk.tail_row
     tail_k, tail_pattern = slk.tail_k, slk.tail_pattern
+    ix = index_funcs(np_dtype)
+    row_saturated, set_saturated, row_mu = ix.row_saturated, ix.set_saturated, ix.row_mu
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
     zero = scalar(0.0)
@@ -545,7 +548,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         """Row ``a``'s penalty (``solver.row_penalty``)."""
         if a >= nf:
             return rho_u
-        if w.sat[r] != 0:
+        if row_saturated(w, r) != 0:
             return rho_box
         return rho_free
 
@@ -577,7 +580,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 rhs = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
                 if a >= n_box and (a - n_box) % 3 == 2:
-                    rhs -= de_saxce(w.z_hat[r - 2 * rs], w.z_hat[r - rs], w.mu[r - 2 * rs])
+                    rhs -= de_saxce(w.z_hat[r - 2 * rs], w.z_hat[r - rs], row_mu(w, r - 2 * rs))
                 sset(xs, a, rhs)
             sync()
             solve(m, w, sp, wid, n, lane, xs, ys)
@@ -601,7 +604,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 v = x - z_hat / rho
                 y = wp.clamp(v, lo, hi)
                 w.y[r] = y
-                if a < nf and saturates(w.sat[r], lo, hi, v, y):
+                if a < nf and saturates(row_saturated(w, r), lo, hi, v, y):
                     hit = scalar(1.0)
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
@@ -624,7 +627,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 x1 = sget(xs, a + 1)
                 x2 = sget(xs, a + 2)
                 cp = cone_project(x0 - inv_rho * w.z_hat[r], x1 - inv_rho * w.z_hat[r + rs],
-                                  x2 - inv_rho * w.z_hat[r + 2 * rs], w.mu[r])
+                                  x2 - inv_rho * w.z_hat[r + 2 * rs], row_mu(w, r))
                 w.x[r] = x0
                 w.x[r + rs] = x1
                 w.x[r + 2 * rs] = x2
@@ -679,8 +682,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             if switch:
                 for a in range(lane, nf, LANES):  # this thread's own rows of the projection loop above
                     r = rb + a * rs
-                    if saturates(w.sat[r], w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
-                        w.sat[r] = 1
+                    if saturates(row_saturated(w, r), w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
+                        set_saturated(w, r, 1)
                 mode = RESTART_HERE
                 a_new = scalar(1.0)
                 c_new = big

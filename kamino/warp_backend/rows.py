@@ -37,7 +37,8 @@ def row_kernels(np_dtype) -> SimpleNamespace:
     Work = work_struct(np_dtype)
     sp = spatial_funcs(np_dtype)
     kf = kinematics_funcs(np_dtype)
-    ridx = index_funcs(np_dtype).ridx
+    ix = index_funcs(np_dtype)
+    ridx, row_info = ix.ridx, ix.row_info
     integrate_pose, deadband, lin, ang, twist = sp.integrate_pose, sp.deadband, sp.lin, sp.ang, sp.twist
     inverse_mass_times = sp.inverse_mass_times
     inf = scalar(wp.inf)
@@ -196,14 +197,14 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             mi = dt * (kd + h * kp)
             p0 = dt * (w.effort[d] + kp * (w.position_target[d] - q) + kd * w.velocity_target[d])
             bound = dt * m.effort_limit[d]
-            w.row_type[r] = ROW_ACTUATOR
+            w.row_info[r] = row_info(ROW_ACTUATOR, d, scalar(1.0))
             w.f0[r] = w.act_force[d]
         else:
             a = m.armature[d]
             ks = m.stiffness[d]
             mi = a + dt * m.damping[d] + dt * h * ks
             p0 = a * w.qd_minus[d] + dt * ks * (m.springref[d] - q)
-            w.row_type[r] = ROW_PASSIVE
+            w.row_info[r] = row_info(ROW_PASSIVE, d, scalar(1.0))
             w.f0[r] = w.pas_force[d]
         mi = wp.max(mi, scalar(1e-30))
         w.reg[r] = scalar(1.0) / mi
@@ -211,7 +212,6 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.lo[r] = -bound
         w.hi[r] = bound
         w.v0[r] = scalar(0.0)
-        w.row_src[r] = d
 
     gamma = scalar(MIDPOINT_DAMPING)
 
@@ -252,8 +252,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.hi[r] = inf
         w.f0[r] = w.kin_force[c]
         w.v0[r] = scalar(0.0)
-        w.row_type[r] = ROW_JOINT
-        w.row_src[r] = c
+        w.row_info[r] = row_info(ROW_JOINT, c, scalar(1.0))
 
     @wp.kernel(module="unique", enable_backward=False)
     def predict_with(m: M, w: Work, h: scalar):
@@ -355,8 +354,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.hi[r] = inf
         w.f0[r] = w.cpl_force[k]
         w.v0[r] = scalar(0.0)
-        w.row_type[r] = ROW_COUPLING
-        w.row_src[r] = k
+        w.row_info[r] = row_info(ROW_COUPLING, k, scalar(1.0))
 
     @wp.kernel(module="unique", enable_backward=False)
     def limits(m: M, w: Work, h: scalar, margin: scalar, beta: scalar):
@@ -404,9 +402,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
                 w.hi[r] = inf
                 w.f0[r] = wp.max(side * w.lim_force[d], scalar(0.0))
                 w.v0[r] = scalar(0.0)
-                w.row_type[r] = ROW_LIMIT
-                w.row_src[r] = d
-                w.row_side[r] = side
+                w.row_info[r] = row_info(ROW_LIMIT, d, side)
                 n += 1
         w.n_lim[wid] = n
 

@@ -45,6 +45,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
     ix = index_funcs(np_dtype)
     ridx, didx, jidx, row_base = ix.ridx, ix.didx, ix.jidx, ix.row_base
+    row_saturated, set_saturated, row_mu = ix.row_saturated, ix.set_saturated, ix.row_mu
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     balanced_penalty, saturates = pf.balanced_penalty, pf.saturates
@@ -162,7 +163,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     def scale(m: M, w: Work, shift: scalar, shift_sat: scalar, impulse_scale: scalar, assembled: int,
               always_sat: int):
         """``v~_f = P v_f``, scaled bounds (in place: ``lo_s``/``hi_s`` are ``lo``/``hi``, workspace.allocate), and
-        whether an effort-limited fixed row starts saturated (``w.sat``:
+        whether an effort-limited fixed row starts saturated (the flag in ``w.row_info``, ``set_saturated``:
         its warm start ``impulse_scale f0 / P`` on a bound, to ``SATURATION_MARGIN``; kamino.jax_ref.padmm.solve,
         "Saturation"; with ``always_sat``, every effort-limited row: the CR path, pipeline.Stepper);
         on the dense path ``D~ = P D P`` row by row with ``shift = eta + rho_free`` on the fixed rows' diagonal
@@ -189,7 +190,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 sat = 1
             if wp.isfinite(hi) and (always_sat != 0 or x0 >= hi - sat_margin * wp.abs(hi)):
                 sat = 1
-        w.sat[r] = sat
+        set_saturated(w, r, sat)
         if assembled != 0:
             for b in range(n):
                 k = didx(m, wid, a, b)
@@ -209,7 +210,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         for c in range((n - n_box) // 3):
             r = rb + (n_box + 3 * c) * rs
             p = cone_project(src[r] - inv_rho * shift[r], src[r + rs] - inv_rho * shift[r + rs],
-                             src[r + 2 * rs] - inv_rho * shift[r + 2 * rs], w.mu[r])
+                             src[r + 2 * rs] - inv_rho * shift[r + 2 * rs], row_mu(w, r))
             dst[r] = p[0]
             dst[r + rs] = p[1]
             dst[r + 2 * rs] = p[2]
@@ -288,7 +289,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             for b in range(a, n):
                 v = w.P[ra] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
                 if b == a and a < nf:
-                    v += wp.where(w.sat[ra] != 0, shift_sat, shift)
+                    v += wp.where(row_saturated(w, ra) != 0, shift_sat, shift)
                 w.D[didx(m, wid, a, b)] = v
                 w.D[didx(m, wid, b, a)] = v
         factor_dense(m, w, wid, n, eta)
@@ -393,7 +394,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             Pa = w.P[r]
             shift = shift_t
             if a < m.row_fixed[wid]:
-                shift = wp.where(w.sat[r] != 0, shift_b, shift_f)
+                shift = wp.where(row_saturated(w, r) != 0, shift_b, shift_f)
             out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
 
     @wp.func
@@ -453,11 +454,11 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def row_penalty(w: Work, r: int, a: int, nf: int, rho_free: scalar, rho_box: scalar, rho_u: scalar):
         """Row ``a``'s penalty (``kamino.jax_ref.padmm.solve``, "Penalty" and "Saturation"): ``rho_free`` on a fixed
-        row, ``rho_box`` on a saturated effort-limited one (``w.sat``), the world's ``rho_u`` on limit and contact
+        row, ``rho_box`` on a saturated effort-limited one (a flag), the world's ``rho_u`` on limit and contact
         rows."""
         if a >= nf:
             return rho_u
-        if w.sat[r] != 0:
+        if row_saturated(w, r) != 0:
             return rho_box
         return rho_free
 
@@ -469,7 +470,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         reference, its penalty rule and residuals included), resuming from the stored iterate; a world that
         converges (unless ``fixed``) or reaches its iteration cap ``it_cap`` is marked done and leaves
         ``remaining``. The fixed rows carry the penalty ``rho_free`` (``rho_box`` on a saturated effort-limited
-        actuator, ``w.sat``), the limit and contact rows the world's ``rho_u``, rebalanced when ``adaptive`` (then
+        actuator), the limit and contact rows the world's ``rho_u``, rebalanced when ``adaptive`` (then
         the tail of the factor is recomputed). A row that saturates ends the launch with ``w.pending`` set:
         ``refactor`` (or ``refactor_dense``) redoes the factor before the next launch (kamino.jax_ref.padmm.solve,
         "Saturation"). ``linear``: ``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE`` (``sparse_llt.py``)."""
@@ -495,7 +496,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 rhs[r] = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
             for c in range((n - n_box) // 3):
                 r = rb + (n_box + 3 * c) * rs
-                rhs[r + 2 * rs] -= de_saxce(w.z_hat[r], w.z_hat[r + rs], w.mu[r])
+                rhs[r + 2 * rs] -= de_saxce(w.z_hat[r], w.z_hat[r + rs], row_mu(w, r))
             if linear == LINEAR_CR:
                 cr_solve(m, w, wid, n, nblk, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
             elif linear == LINEAR_SPARSE:
@@ -525,7 +526,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 v = x - z_hat / rho
                 y = wp.clamp(v, lo, hi)
                 w.y[r] = y
-                if a < nf and saturates(w.sat[r], lo, hi, v, y):
+                if a < nf and saturates(row_saturated(w, r), lo, hi, v, y):
                     hit = 1
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
@@ -544,7 +545,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             for c in range((n - n_box) // 3):
                 r = rb + (n_box + 3 * c) * rs
                 cp = cone_project(w.x[r] - inv_rho * w.z_hat[r], w.x[r + rs] - inv_rho * w.z_hat[r + rs],
-                                  w.x[r + 2 * rs] - inv_rho * w.z_hat[r + 2 * rs], w.mu[r])
+                                  w.x[r + 2 * rs] - inv_rho * w.z_hat[r + 2 * rs], row_mu(w, r))
                 yz = scalar(0.0)
                 for t in range(3):
                     rt = r + t * rs
@@ -597,8 +598,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             if switch:
                 for a in range(nf):
                     r = rb + a * rs
-                    if saturates(w.sat[r], w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
-                        w.sat[r] = 1
+                    if saturates(row_saturated(w, r), w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
+                        set_saturated(w, r, 1)
                 mode = RESTART_HERE
                 a_new = scalar(1.0)
                 c_new = big
@@ -665,7 +666,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         lam = Pa * w.y_p[r]
         z = w.z_p[r]
         if a >= n_box and (a - n_box) % 3 == 2:
-            z -= de_saxce(w.z_p[r - 2 * rs], w.z_p[r - rs], w.mu[r])
+            z -= de_saxce(w.z_p[r - 2 * rs], w.z_p[r - rs], row_mu(w, r))
         w.impulse[r] = lam
         w.velocity[r] = z / Pa
         if not wp.isfinite(lam):

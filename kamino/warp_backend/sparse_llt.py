@@ -546,6 +546,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     SP = pattern_struct(np_dtype)
     ix = index_funcs(np_dtype)
     ridx, row_base = ix.ridx, ix.row_base
+    row_kind, row_source, row_saturated = ix.row_kind, ix.row_source, ix.row_saturated
     sf = spatial_funcs(np_dtype)
 
     @wp.func
@@ -674,7 +675,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def fixed_entry(m: M, w: Work, sp: SP, wid: int, k: int, nblk: int, shift: scalar, shift_sat: scalar):
         """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D0_ab P_b`` (``+ shift`` on the diagonal,
-        ``shift_sat`` on a saturated effort-limited row, ``w.sat``: the rows' penalty, kamino.jax_ref.padmm.solve,
+        ``shift_sat`` on a saturated effort-limited row, ``row_saturated``: the penalty, kamino.jax_ref.padmm.solve,
         "Saturation"; ``D0``: :func:`delassus0`), or on a hub position's row :func:`hub_entry`."""
         e = sp.ent_start[wid] + k
         p = sp.row[e]
@@ -686,7 +687,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         b = sp.perm[sp.perm_start[wid] + q]
         s = w.P[ridx(m, w, wid, a)] * delassus0(m, w, sp, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
         if p == q:
-            if w.sat[ridx(m, w, wid, a)] != 0:
+            if row_saturated(w, ridx(m, w, wid, a)) != 0:
                 s += shift_sat
             else:
                 s += shift
@@ -710,10 +711,11 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         ra = ridx(m, w, wid, a)
         Pa = w.P[ra]
         pat = int(0)
-        if w.row_type[ra] == ROW_LIMIT:
-            pat = sp.dof_pat[w.row_src[ra]]
+        src = row_source(w, ra)
+        if row_kind(w, ra) == ROW_LIMIT:
+            pat = sp.dof_pat[src]
         else:  # a contact row: its pair's
-            pat = sp.con_pat[wid] + w.ct_pair[w.row_src[ra]]
+            pat = sp.con_pat[wid] + w.ct_pair[src]
         sp.tail_pat[wid * sp.tail_max + t] = pat
         i0 = sp.pat_ptr[pat]
         for i in range(sp.pat_ptr[pat + 1] - i0):
