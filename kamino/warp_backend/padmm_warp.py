@@ -106,7 +106,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     balanced_penalty, dual_update, saturates = pf.balanced_penalty, pf.dual_update, pf.saturates
     slk = sparse_llt_kernels(np_dtype)
     bases, schur_entry, fixed_entry, tail_row = slk.bases, slk.schur_entry, slk.fixed_entry, slk.tail_row
-    tail_k, tail_pattern = slk.tail_k, slk.tail_pattern
+    tail_k, tail_pattern, sdiag_col = slk.tail_k, slk.tail_pattern, slk.sdiag_col
     ix = index_funcs(np_dtype)
     row_saturated, set_saturated, row_mu = ix.row_saturated, ix.set_saturated, ix.row_mu
     big = scalar(float(np.finfo(np_dtype).max))
@@ -196,16 +196,17 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
         """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
         products over the columns before it), from ``S_t`` in the tail rows' upper slots (``S_t[t, j]`` at row
-        ``j``, tail column ``K + t``) and ``w.sdiag``; the sums of ``sparse_llt.factor_tail``."""
-        rs = w.row_stride
+        ``j``, tail column ``K + t``) and its diagonal (column ``sparse_llt.sdiag_col``); the sums of
+        ``sparse_llt.factor_tail``."""
         base = bases(m, w, sp, wid)
-        rb, tb, ts = base[0], base[2], base[3]
+        tb, ts = base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         kt = tail_k(sp, wid)
+        kd = sdiag_col(sp, wid)
         for j in range(n - nf):
             jr = tb + j * ts
-            d = w.sdiag[rb + (nf + j) * rs] + shift
+            d = sp.tail[jr + kd * tc] + shift
             for i in range(j):
                 d -= sp.tail[jr + (kt + i) * tc] * sp.tail[jr + (kt + i) * tc]
             d = wp.sqrt(d)
@@ -337,8 +338,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                     sp.tail[tr + i * tc] = s / fget(sp, vb, sp.row_ptr[p0 + pos + 1] - 1, lv)
         sync()
         # S_t = D~_t - L_tf L_tf^T: the entries (t, j <= t), threads over all nt (nt + 1) / 2 of them (pair u is
-        # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or sdiag, so no pair
-        # reads what another writes
+        # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or the diagonal column,
+        # so no pair reads what another writes
         t = int(0)
         j = lane
         while j > t:  # the lane's first pair

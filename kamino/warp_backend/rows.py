@@ -264,10 +264,22 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.q_pred[b] = integrate_pose(w.q_eval[b], w.u_new[b], h)
 
     @wp.func
-    def set_bias(w: Work, r: int, vs: scalar):
-        """Replace row ``r``'s bias, keeping ``v_f = J u_f + v*`` and ``v~_f = P v_f`` consistent."""
-        w.vf[r] = w.vf[r] - w.vstar[r] + vs
-        w.vt[r] = w.P[r] * w.vf[r]
+    def free_velocity(w: Work, r: int, nblk: int):
+        """``v_f = J u_f + v*`` of row ``r`` (``solver.prebake``; recomputed, the same sums, by :func:`set_bias`)."""
+        vf = w.vstar[r]
+        for k in range(nblk):
+            b = w.row_body[r * nblk + k]
+            if b >= 0:
+                vf += wp.dot(w.row_J[r * nblk + k], w.u_f[b])
+        return vf
+
+    @wp.func
+    def set_bias(w: Work, r: int, nblk: int, vs: scalar):
+        """Replace row ``r``'s bias and ``v~_f = P (v_f - v* + vs)``. ``v_f`` is not stored: it is recomputed from the
+        row's blocks and ``u_f`` (unchanged since ``solver.prebake``) with the old bias, so that the sum equals the
+        stored one's bit for bit."""
+        vf = free_velocity(w, r, nblk) - w.vstar[r] + vs
+        w.vt[r] = w.P[r] * vf
         w.vstar[r] = vs
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -285,7 +297,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             e_start = kf.cts_residual(m, w.q, c)
         e_pred = kf.cts_residual(m, w.q_pred, c)
         cv = e_pred - e - h * row_dot(w, r, nblk, w.u_new)
-        set_bias(w, r, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
+        set_bias(w, r, nblk, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
 
     @wp.kernel(module="unique", enable_backward=False)
     def refine_coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, midpoint: int):
@@ -310,7 +322,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             e_start, dp0 = kf.coupling_residual(m, k, kf.dof_position(m, w.q, da), qb0)
         e_pred, dp1 = kf.coupling_residual(m, k, kf.dof_position(m, w.q_pred, da), qb_pred)
         cv = e_pred - e - h * row_dot(w, r, nblk, w.u_new)
-        set_bias(w, r, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
+        set_bias(w, r, nblk, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
 
     @wp.kernel(module="unique", enable_backward=False)
     def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
@@ -410,4 +422,4 @@ def row_kernels(np_dtype) -> SimpleNamespace:
                            dyn_rows=dyn_rows, joint_rows=joint_rows, coupling_rows=coupling_rows, limits=limits,
                            pack_limits=pack_limits, predict_with=predict_with, refine_joint_rows=refine_joint_rows,
                            refine_coupling_rows=refine_coupling_rows, set_blocks=set_blocks, row_dot=row_dot,
-                           body_dot=body_dot, gyroscopic_correction=gyroscopic_correction)
+                           body_dot=body_dot, free_velocity=free_velocity, gyroscopic_correction=gyroscopic_correction)

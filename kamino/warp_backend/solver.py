@@ -25,6 +25,7 @@ from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, model_struct
 from kamino.warp_backend.padmm_rules import padmm_funcs
+from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
@@ -44,6 +45,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     cf = cone_funcs(np_dtype)
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
     ix = index_funcs(np_dtype)
+    free_velocity = row_kernels(np_dtype).free_velocity
     ridx, didx, jidx, row_base = ix.ridx, ix.didx, ix.jidx, ix.row_base
     row_saturated, set_saturated, row_mu = ix.row_saturated, ix.set_saturated, ix.row_mu
     pf = padmm_funcs(np_dtype)
@@ -72,17 +74,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def prebake(m: M, w: Work, nblk: int, dense: int):
-        """``v_f = J u_f + v*`` of each active row; the dense ``J`` and ``M^-1 J^T`` rows on request."""
+        """``v_f = J u_f + v*`` of each active row into ``vt`` (which :func:`scale` scales in place); the dense ``J``
+        and ``M^-1 J^T`` rows on request."""
         wid, i = wp.tid()
         if i >= w.n_rows[wid]:
             return
         r = ridx(m, w, wid, i)
-        vf = w.vstar[r]
-        for k in range(nblk):
-            b = w.row_body[r * nblk + k]
-            if b >= 0:
-                vf += wp.dot(w.row_J[r * nblk + k], w.u_f[b])
-        w.vf[r] = vf
+        w.vt[r] = free_velocity(w, r, nblk)
         if dense != 0:
             nc = 6 * m.body_count[wid]
             for c in range(nc):
@@ -162,19 +160,20 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     @wp.kernel(module="unique", enable_backward=False)
     def scale(m: M, w: Work, shift: scalar, shift_sat: scalar, impulse_scale: scalar, assembled: int,
               always_sat: int):
-        """``v~_f = P v_f``, scaled bounds (in place: ``lo_s``/``hi_s`` are ``lo``/``hi``, workspace.allocate), and
-        whether an effort-limited fixed row starts saturated (the flag in ``w.row_info``, ``set_saturated``:
-        its warm start ``impulse_scale f0 / P`` on a bound, to ``SATURATION_MARGIN``; kamino.jax_ref.padmm.solve,
-        "Saturation"; with ``always_sat``, every effort-limited row: the CR path, pipeline.Stepper);
-        on the dense path ``D~ = P D P`` row by row with ``shift = eta + rho_free`` on the fixed rows' diagonal
-        (``shift_sat`` on the saturated ones; ``padmm_init`` adds the world's penalty to the others)."""
+        """``v~_f = P v_f`` (in place: ``prebake`` wrote ``v_f`` into ``vt``), scaled bounds (in place: ``lo_s``/
+        ``hi_s`` are ``lo``/``hi``, workspace.allocate), and whether an effort-limited fixed row starts saturated (the
+        flag in ``w.row_info``, ``set_saturated``: its warm start ``impulse_scale f0 / P`` on a bound, to
+        ``SATURATION_MARGIN``; kamino.jax_ref.padmm.solve, "Saturation"; with ``always_sat``, every effort-limited
+        row: the CR path, pipeline.Stepper); on the dense path ``D~ = P D P`` row by row with ``shift = eta +
+        rho_free`` on the fixed rows' diagonal (``shift_sat`` on the saturated ones; ``padmm_init`` adds the world's
+        penalty to the others)."""
         wid, a = wp.tid()
         n = w.n_rows[wid]
         if a >= n:
             return
         r = ridx(m, w, wid, a)
         Pa = w.P[r]
-        w.vt[r] = Pa * w.vf[r]
+        w.vt[r] = Pa * w.vt[r]  # v_f from prebake
         lo = w.lo[r]
         hi = w.hi[r]
         if wp.isfinite(lo):

@@ -109,7 +109,6 @@ def work_struct(np_dtype):
         hi: farr
         f0: farr  # warm-start force (lambda/dt); the same array as ``impulse`` (see :func:`allocate`)
         v0: farr  # warm-start velocity; the same array as ``velocity``
-        vf: farr
         # per world row counts
         n_lim: iarr
         n_con: iarr
@@ -145,7 +144,8 @@ def work_struct(np_dtype):
         rho_u: farr  # per world: the penalty of the limit and contact rows (persists from step to step)
         k_rho: iarr  # per world: the iteration of the last penalty change
         p_ref: farr  # per world: the largest P of the active rows (the residuals' velocity scale)
-        sdiag: farr  # [rows] the diagonal of the tail rows' Schur complement (refactorisation on a new penalty)
+        sdiag: farr  # [rows] the dense factor's diagonal of the tail rows' Schur complement (refactorisation on a
+        # new penalty); empty on the sparse factor's paths, which keep it in a column of the tail rows (sparse_llt)
         pending: iarr  # per world: a row saturated in the last iteration; the factor is redone before the next
         converged: iarr
         done: iarr  # per world: 1 once converged or at the iteration cap
@@ -200,11 +200,11 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
         "row_body": (R * nblk, wp.int32), "row_J": (R * nblk, T.vec6),
         "row_info": (R, wp.int32),
         "Jd": (wm.total_jd if dense else 0, T.scalar), "MJd": (wm.total_jd if dense else 0, T.scalar),
-        "D": (wm.total_mat if delassus else 0, T.scalar),
+        "D": (wm.total_mat if delassus else 0, T.scalar), "sdiag": (R if delassus else 0, T.scalar),
         "cr_w": (B if cr else 0, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
     }
-    for name in ("vstar", "reg", "lo", "hi", "vf", "P", "vt", "x", "y", "z", "x_p", "y_p", "z_p", "y_hat",
-                 "z_hat", "e_p", "impulse", "velocity", "sdiag"):
+    for name in ("vstar", "reg", "lo", "hi", "P", "vt", "x", "y", "z", "x_p", "y_p", "z_p", "y_hat",
+                 "z_hat", "e_p", "impulse", "velocity"):
         sizes[name] = (R, T.scalar)
     for name in ("cr_r", "cr_p", "cr_Ap", "cr_Ar"):
         sizes[name] = (R if cr else 0, T.scalar)
@@ -216,11 +216,15 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
     sizes["remaining"] = (1, wp.int32)
     for name, (n, dtype) in sizes.items():
         setattr(W, name, wp.zeros(max(n, 0), dtype=dtype, device=dev))
-    # Per-row vectors whose lives do not overlap share storage (4 of 28 per row). The warm start (``f0``, ``v0``) is
-    # written by the row assembly and read by ``solver.scale`` and ``padmm_init``; the solve's ``impulse`` and
-    # ``velocity`` are written by ``padmm_finish``, after both, and read until the step ends. ``solver.scale`` is the
-    # only reader of the unscaled bounds and divides them by ``P`` in place, once per step; everything after it
-    # reads the scaled ones.
+    # Per-row vectors (issue 17's memory): 22 names, 18 allocations. Those whose lives do not overlap share storage:
+    # the warm start (``f0``, ``v0``) is written by the row assembly and read by ``solver.scale`` and ``padmm_init``;
+    # the solve's ``impulse`` and ``velocity`` are written by ``padmm_finish``, after both, and read until the step
+    # ends. ``solver.scale`` is the only reader of the unscaled bounds and divides them by ``P`` in place, once per
+    # step; everything after it reads the scaled ones. Six are gone (session 34), their information being elsewhere,
+    # bit for bit: the row family, source, limit sign and saturation flag are packed in ``row_info`` (4 -> 1); a
+    # contact row's friction is its slot's ``ct_mu`` (``mu``); ``prebake`` writes ``v_f`` into ``vt``, which
+    # ``scale`` scales in place, and ``rows.set_bias`` recomputes it with the same sums (``vf``); the diagonal of the
+    # tail's Schur complement is a column of the sparse tail (``sdiag``, allocated only for the dense factor).
     W.f0, W.v0 = W.impulse, W.velocity
     W.lo_s, W.hi_s = W.lo, W.hi
     W.row_stride = 1 if rows_per_world else GROUP
