@@ -14,7 +14,7 @@ from kamino.warp_backend import backend as wb
 from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.pipeline import Stepper
-from kamino.warp_backend.workspace import work_struct
+from kamino.warp_backend.workspace import saturated_rows, work_struct
 
 
 def _stepper(model, cfg, dtype, padmm, hub_min_rows, monkeypatch, steps):
@@ -60,7 +60,8 @@ def _dense_A(st, shift_f, shift_b, eta):
     nblk, rs, n = st.wm.blocks_per_row, w.row_stride, int(w.n_rows.numpy()[0])
     J = w.row_J.numpy().astype(np.float64).reshape(-1, nblk, 6)[: n * rs : rs]
     body = w.row_body.numpy().reshape(-1, nblk)[: n * rs : rs]
-    P, reg, sat = (a.numpy().astype(np.float64)[: n * rs : rs] for a in (w.P, w.reg, w.sat))
+    P, reg = (a.numpy().astype(np.float64)[: n * rs : rs] for a in (w.P, w.reg))
+    sat = saturated_rows(w.row_info.numpy())[: n * rs : rs]
     nb = st.wm.max_bodies
     Minv = np.zeros((nb, 6, 6))
     Minv[:, :3, :3] = m.inv_mass.numpy()[:nb, None, None] * np.eye(3)

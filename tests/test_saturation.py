@@ -16,6 +16,7 @@ pytest.importorskip("warp")
 
 from kamino.warp_backend import backend as wb
 from kamino.warp_backend.pipeline import Stepper
+from kamino.warp_backend.workspace import saturated_rows
 
 EFFORT = 0.3  # N m: a tenth of what the PD asks for at the targets below, so the crank's row saturates
 
@@ -46,7 +47,7 @@ def _warp_run(model, cfg, s0, targets, padmm):
         wb.load_control(st, kamino.Control(position_target=targets[t]))
         st.run(1)
         iters.append(st.work.iters.numpy().copy())
-        saturated.append(st.work.sat.numpy()[act_rows])
+        saturated.append(saturated_rows(st.work.row_info.numpy())[act_rows])
         force.append(st.work.act_force.numpy().copy())
     return np.array(iters), np.array(saturated), np.array(force)
 

@@ -34,7 +34,8 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
     cf = cone_funcs(np_dtype)
     rk = row_kernels(np_dtype)
     collide_pair = collision_funcs(np_dtype).collide_pair
-    ridx = index_funcs(np_dtype).ridx
+    ix = index_funcs(np_dtype)
+    ridx, row_info = ix.ridx, ix.row_info
     PLANE = int(GeomType.PLANE)
 
     @wp.func
@@ -210,9 +211,7 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             w.reg[rt] = scalar(0.0)
             w.lo[rt] = scalar(0.0)
             w.hi[rt] = scalar(0.0)
-            w.mu[rt] = mu
-            w.row_type[rt] = ROW_CONTACT
-            w.row_src[rt] = s
+            w.row_info[rt] = row_info(ROW_CONTACT, s, scalar(1.0))  # row_mu reads the slot's friction
             w.vstar[rt] = scalar(0.0)
         # bias of the normal row: gap closes at most, penetration shrinks by gamma; or Newton's restitution
         d = deadband(w.ct_dist[s], deadband_c)

@@ -17,13 +17,26 @@ from types import SimpleNamespace
 import warp as wp
 
 from kamino.warp_backend.model_data import GROUP, model_struct
-from kamino.warp_backend.workspace import work_struct
+from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import (
+    ROW_KIND_SHIFT,
+    ROW_NEG_BIT,
+    ROW_SAT_BIT,
+    ROW_SRC_BITS,
+    ROW_SRC_MASK,
+    work_struct,
+)
+
+_SRC_MASK, _SAT_BIT, _NEG_BIT = wp.constant(ROW_SRC_MASK), wp.constant(ROW_SAT_BIT), wp.constant(ROW_NEG_BIT)
+_SAT_SHIFT = wp.constant(ROW_SRC_BITS)
+_KIND_SHIFT, _NOT_SAT = wp.constant(ROW_KIND_SHIFT), wp.constant(~ROW_SAT_BIT)
 
 
 @functools.cache
 def index_funcs(np_dtype) -> SimpleNamespace:
     M = model_struct(np_dtype)
     Work = work_struct(np_dtype)
+    scalar = types_of(np_dtype).scalar
 
     @wp.func
     def row_base(m: M, w: Work, wid: int):
@@ -53,4 +66,53 @@ def index_funcs(np_dtype) -> SimpleNamespace:
         g = wid // GROUP
         return m.grp_jd_start[g] + (a * m.grp_ncol[g] + c) * GROUP + (wid - g * GROUP)
 
-    return SimpleNamespace(ridx=ridx, row_base=row_base, didx=didx, jidx=jidx)
+    # --- a row's packed description, Work.row_info (workspace.ROW_SRC_BITS) ---
+    @wp.func
+    def row_info(kind: int, src: int, side: scalar):
+        """The ``Work.row_info`` of a row of family ``kind`` (rows.ROW_*) from source ``src``; ``side < 0``: a limit
+        row on its upper limit. Not saturated (``solver.scale`` sets the flag)."""
+        info = (kind << _KIND_SHIFT) | src
+        if side < scalar(0.0):
+            info = info | _NEG_BIT
+        return info
+
+    @wp.func
+    def row_kind(w: Work, r: int):
+        """The family of row ``r`` (rows.ROW_*)."""
+        return w.row_info[r] >> _KIND_SHIFT
+
+    @wp.func
+    def row_source(w: Work, r: int):
+        """The source of row ``r``: its DoF (joint-dynamics and limit rows), kinematic constraint, coupling or
+        contact slot (global indices)."""
+        return w.row_info[r] & _SRC_MASK
+
+    @wp.func
+    def row_side(w: Work, r: int):
+        """``+1`` or ``-1``: the sign of a limit row (``-1`` on the upper limit); ``+1`` on the other rows."""
+        if (w.row_info[r] & _NEG_BIT) != 0:
+            return scalar(-1.0)
+        return scalar(1.0)
+
+    @wp.func
+    def row_saturated(w: Work, r: int):
+        """1 if row ``r`` is an effort-limited fixed row that carries ``rho`` (kamino.jax_ref.padmm.solve,
+        "Saturation"), else 0."""
+        return (w.row_info[r] >> _SAT_SHIFT) & 1
+
+    @wp.func
+    def set_saturated(w: Work, r: int, sat: int):
+        """Set (``sat != 0``) or clear row ``r``'s saturation flag (only row ``r``'s own thread writes it)."""
+        info = w.row_info[r] & _NOT_SAT
+        if sat != 0:
+            info = info | _SAT_BIT
+        w.row_info[r] = info
+
+    @wp.func
+    def row_mu(w: Work, r: int):
+        """The friction coefficient of a contact row ``r`` (any of its three): its contact slot's."""
+        return w.ct_mu[w.row_info[r] & _SRC_MASK]
+
+    return SimpleNamespace(ridx=ridx, row_base=row_base, didx=didx, jidx=jidx, row_info=row_info, row_kind=row_kind,
+                           row_source=row_source, row_side=row_side, row_saturated=row_saturated,
+                           set_saturated=set_saturated, row_mu=row_mu)

@@ -28,6 +28,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
     sp = spatial_funcs(np_dtype)
     ix = index_funcs(np_dtype)
     ridx, jidx = ix.ridx, ix.jidx
+    row_kind, row_source, row_side = ix.row_kind, ix.row_source, ix.row_side
     lin, ang, twist, integrate_pose = sp.lin, sp.ang, sp.twist, sp.integrate_pose
     inverse_mass_times = sp.inverse_mass_times
 
@@ -92,8 +93,8 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
             return
         r = ridx(m, w, wid, a)
         f = w.impulse[r] * inv_dt
-        src = w.row_src[r]
-        t = w.row_type[r]
+        src = row_source(w, r)
+        t = row_kind(w, r)
         if t == ROW_ACTUATOR:
             w.act_force[src] += f
         elif t == ROW_PASSIVE:
@@ -103,7 +104,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         elif t == ROW_COUPLING:
             w.cpl_force[src] = f
         elif t == ROW_LIMIT:
-            w.lim_force[src] = w.row_side[r] * f
+            w.lim_force[src] = row_side(w, r) * f
 
     @wp.kernel(module="unique", enable_backward=False)
     def commit_bodies(m: M, w: Work):

@@ -36,6 +36,7 @@ import warp as wp
 
 from kamino.config import NULL_DIRECTION_RATIO
 from kamino.warp_backend.cone import cone_funcs
+from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.padmm_rules import padmm_funcs
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
@@ -105,7 +106,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     balanced_penalty, dual_update, saturates = pf.balanced_penalty, pf.dual_update, pf.saturates
     slk = sparse_llt_kernels(np_dtype)
     bases, schur_entry, fixed_entry, tail_row = slk.bases, slk.schur_entry, slk.fixed_entry, slk.tail_row
-    tail_k, tail_pattern = slk.tail_k, slk.tail_pattern
+    tail_k, tail_pattern, sdiag_col = slk.tail_k, slk.tail_pattern, slk.sdiag_col
+    ix = index_funcs(np_dtype)
+    row_saturated, set_saturated, row_mu = ix.row_saturated, ix.set_saturated, ix.row_mu
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
     zero = scalar(0.0)
@@ -193,16 +196,17 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
         """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
         products over the columns before it), from ``S_t`` in the tail rows' upper slots (``S_t[t, j]`` at row
-        ``j``, tail column ``K + t``) and ``w.sdiag``; the sums of ``sparse_llt.factor_tail``."""
-        rs = w.row_stride
+        ``j``, tail column ``K + t``) and its diagonal (column ``sparse_llt.sdiag_col``); the sums of
+        ``sparse_llt.factor_tail``."""
         base = bases(m, w, sp, wid)
-        rb, tb, ts = base[0], base[2], base[3]
+        tb, ts = base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         kt = tail_k(sp, wid)
+        kd = sdiag_col(sp, wid)
         for j in range(n - nf):
             jr = tb + j * ts
-            d = w.sdiag[rb + (nf + j) * rs] + shift
+            d = sp.tail[jr + kd * tc] + shift
             for i in range(j):
                 d -= sp.tail[jr + (kt + i) * tc] * sp.tail[jr + (kt + i) * tc]
             d = wp.sqrt(d)
@@ -334,8 +338,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                     sp.tail[tr + i * tc] = s / fget(sp, vb, sp.row_ptr[p0 + pos + 1] - 1, lv)
         sync()
         # S_t = D~_t - L_tf L_tf^T: the entries (t, j <= t), threads over all nt (nt + 1) / 2 of them (pair u is
-        # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or sdiag, so no pair
-        # reads what another writes
+        # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or the diagonal column,
+        # so no pair reads what another writes
         t = int(0)
         j = lane
         while j > t:  # the lane's first pair
@@ -545,7 +549,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         """Row ``a``'s penalty (``solver.row_penalty``)."""
         if a >= nf:
             return rho_u
-        if w.sat[r] != 0:
+        if row_saturated(w, r) != 0:
             return rho_box
         return rho_free
 
@@ -577,7 +581,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 rhs = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
                 if a >= n_box and (a - n_box) % 3 == 2:
-                    rhs -= de_saxce(w.z_hat[r - 2 * rs], w.z_hat[r - rs], w.mu[r - 2 * rs])
+                    rhs -= de_saxce(w.z_hat[r - 2 * rs], w.z_hat[r - rs], row_mu(w, r - 2 * rs))
                 sset(xs, a, rhs)
             sync()
             solve(m, w, sp, wid, n, lane, xs, ys)
@@ -601,7 +605,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 v = x - z_hat / rho
                 y = wp.clamp(v, lo, hi)
                 w.y[r] = y
-                if a < nf and saturates(w.sat[r], lo, hi, v, y):
+                if a < nf and saturates(row_saturated(w, r), lo, hi, v, y):
                     hit = scalar(1.0)
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
@@ -624,7 +628,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 x1 = sget(xs, a + 1)
                 x2 = sget(xs, a + 2)
                 cp = cone_project(x0 - inv_rho * w.z_hat[r], x1 - inv_rho * w.z_hat[r + rs],
-                                  x2 - inv_rho * w.z_hat[r + 2 * rs], w.mu[r])
+                                  x2 - inv_rho * w.z_hat[r + 2 * rs], row_mu(w, r))
                 w.x[r] = x0
                 w.x[r + rs] = x1
                 w.x[r + 2 * rs] = x2
@@ -679,8 +683,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             if switch:
                 for a in range(lane, nf, LANES):  # this thread's own rows of the projection loop above
                     r = rb + a * rs
-                    if saturates(w.sat[r], w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
-                        w.sat[r] = 1
+                    if saturates(row_saturated(w, r), w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
+                        set_saturated(w, r, 1)
                 mode = RESTART_HERE
                 a_new = scalar(1.0)
                 c_new = big

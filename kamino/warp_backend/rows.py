@@ -37,7 +37,8 @@ def row_kernels(np_dtype) -> SimpleNamespace:
     Work = work_struct(np_dtype)
     sp = spatial_funcs(np_dtype)
     kf = kinematics_funcs(np_dtype)
-    ridx = index_funcs(np_dtype).ridx
+    ix = index_funcs(np_dtype)
+    ridx, row_info = ix.ridx, ix.row_info
     integrate_pose, deadband, lin, ang, twist = sp.integrate_pose, sp.deadband, sp.lin, sp.ang, sp.twist
     inverse_mass_times = sp.inverse_mass_times
     inf = scalar(wp.inf)
@@ -196,14 +197,14 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             mi = dt * (kd + h * kp)
             p0 = dt * (w.effort[d] + kp * (w.position_target[d] - q) + kd * w.velocity_target[d])
             bound = dt * m.effort_limit[d]
-            w.row_type[r] = ROW_ACTUATOR
+            w.row_info[r] = row_info(ROW_ACTUATOR, d, scalar(1.0))
             w.f0[r] = w.act_force[d]
         else:
             a = m.armature[d]
             ks = m.stiffness[d]
             mi = a + dt * m.damping[d] + dt * h * ks
             p0 = a * w.qd_minus[d] + dt * ks * (m.springref[d] - q)
-            w.row_type[r] = ROW_PASSIVE
+            w.row_info[r] = row_info(ROW_PASSIVE, d, scalar(1.0))
             w.f0[r] = w.pas_force[d]
         mi = wp.max(mi, scalar(1e-30))
         w.reg[r] = scalar(1.0) / mi
@@ -211,7 +212,6 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.lo[r] = -bound
         w.hi[r] = bound
         w.v0[r] = scalar(0.0)
-        w.row_src[r] = d
 
     gamma = scalar(MIDPOINT_DAMPING)
 
@@ -252,8 +252,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.hi[r] = inf
         w.f0[r] = w.kin_force[c]
         w.v0[r] = scalar(0.0)
-        w.row_type[r] = ROW_JOINT
-        w.row_src[r] = c
+        w.row_info[r] = row_info(ROW_JOINT, c, scalar(1.0))
 
     @wp.kernel(module="unique", enable_backward=False)
     def predict_with(m: M, w: Work, h: scalar):
@@ -265,10 +264,22 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.q_pred[b] = integrate_pose(w.q_eval[b], w.u_new[b], h)
 
     @wp.func
-    def set_bias(w: Work, r: int, vs: scalar):
-        """Replace row ``r``'s bias, keeping ``v_f = J u_f + v*`` and ``v~_f = P v_f`` consistent."""
-        w.vf[r] = w.vf[r] - w.vstar[r] + vs
-        w.vt[r] = w.P[r] * w.vf[r]
+    def free_velocity(w: Work, r: int, nblk: int):
+        """``v_f = J u_f + v*`` of row ``r`` (``solver.prebake``; recomputed, the same sums, by :func:`set_bias`)."""
+        vf = w.vstar[r]
+        for k in range(nblk):
+            b = w.row_body[r * nblk + k]
+            if b >= 0:
+                vf += wp.dot(w.row_J[r * nblk + k], w.u_f[b])
+        return vf
+
+    @wp.func
+    def set_bias(w: Work, r: int, nblk: int, vs: scalar):
+        """Replace row ``r``'s bias and ``v~_f = P (v_f - v* + vs)``. ``v_f`` is not stored: it is recomputed from the
+        row's blocks and ``u_f`` (unchanged since ``solver.prebake``) with the old bias, so that the sum equals the
+        stored one's bit for bit."""
+        vf = free_velocity(w, r, nblk) - w.vstar[r] + vs
+        w.vt[r] = w.P[r] * vf
         w.vstar[r] = vs
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -286,7 +297,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             e_start = kf.cts_residual(m, w.q, c)
         e_pred = kf.cts_residual(m, w.q_pred, c)
         cv = e_pred - e - h * row_dot(w, r, nblk, w.u_new)
-        set_bias(w, r, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
+        set_bias(w, r, nblk, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
 
     @wp.kernel(module="unique", enable_backward=False)
     def refine_coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, midpoint: int):
@@ -311,7 +322,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             e_start, dp0 = kf.coupling_residual(m, k, kf.dof_position(m, w.q, da), qb0)
         e_pred, dp1 = kf.coupling_residual(m, k, kf.dof_position(m, w.q_pred, da), qb_pred)
         cv = e_pred - e - h * row_dot(w, r, nblk, w.u_new)
-        set_bias(w, r, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
+        set_bias(w, r, nblk, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
 
     @wp.kernel(module="unique", enable_backward=False)
     def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
@@ -355,8 +366,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.hi[r] = inf
         w.f0[r] = w.cpl_force[k]
         w.v0[r] = scalar(0.0)
-        w.row_type[r] = ROW_COUPLING
-        w.row_src[r] = k
+        w.row_info[r] = row_info(ROW_COUPLING, k, scalar(1.0))
 
     @wp.kernel(module="unique", enable_backward=False)
     def limits(m: M, w: Work, h: scalar, margin: scalar, beta: scalar):
@@ -404,9 +414,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
                 w.hi[r] = inf
                 w.f0[r] = wp.max(side * w.lim_force[d], scalar(0.0))
                 w.v0[r] = scalar(0.0)
-                w.row_type[r] = ROW_LIMIT
-                w.row_src[r] = d
-                w.row_side[r] = side
+                w.row_info[r] = row_info(ROW_LIMIT, d, side)
                 n += 1
         w.n_lim[wid] = n
 
@@ -414,4 +422,4 @@ def row_kernels(np_dtype) -> SimpleNamespace:
                            dyn_rows=dyn_rows, joint_rows=joint_rows, coupling_rows=coupling_rows, limits=limits,
                            pack_limits=pack_limits, predict_with=predict_with, refine_joint_rows=refine_joint_rows,
                            refine_coupling_rows=refine_coupling_rows, set_blocks=set_blocks, row_dot=row_dot,
-                           body_dot=body_dot, gyroscopic_correction=gyroscopic_correction)
+                           body_dot=body_dot, free_velocity=free_velocity, gyroscopic_correction=gyroscopic_correction)

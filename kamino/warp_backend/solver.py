@@ -25,6 +25,7 @@ from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, model_struct
 from kamino.warp_backend.padmm_rules import padmm_funcs
+from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
@@ -44,7 +45,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     cf = cone_funcs(np_dtype)
     cone_project, de_saxce = cf.cone_project, cf.de_saxce
     ix = index_funcs(np_dtype)
+    free_velocity = row_kernels(np_dtype).free_velocity
     ridx, didx, jidx, row_base = ix.ridx, ix.didx, ix.jidx, ix.row_base
+    row_saturated, set_saturated, row_mu = ix.row_saturated, ix.set_saturated, ix.row_mu
     pf = padmm_funcs(np_dtype)
     momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
     balanced_penalty, saturates = pf.balanced_penalty, pf.saturates
@@ -71,17 +74,13 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def prebake(m: M, w: Work, nblk: int, dense: int):
-        """``v_f = J u_f + v*`` of each active row; the dense ``J`` and ``M^-1 J^T`` rows on request."""
+        """``v_f = J u_f + v*`` of each active row into ``vt`` (which :func:`scale` scales in place); the dense ``J``
+        and ``M^-1 J^T`` rows on request."""
         wid, i = wp.tid()
         if i >= w.n_rows[wid]:
             return
         r = ridx(m, w, wid, i)
-        vf = w.vstar[r]
-        for k in range(nblk):
-            b = w.row_body[r * nblk + k]
-            if b >= 0:
-                vf += wp.dot(w.row_J[r * nblk + k], w.u_f[b])
-        w.vf[r] = vf
+        w.vt[r] = free_velocity(w, r, nblk)
         if dense != 0:
             nc = 6 * m.body_count[wid]
             for c in range(nc):
@@ -161,19 +160,20 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     @wp.kernel(module="unique", enable_backward=False)
     def scale(m: M, w: Work, shift: scalar, shift_sat: scalar, impulse_scale: scalar, assembled: int,
               always_sat: int):
-        """``v~_f = P v_f``, scaled bounds (in place: ``lo_s``/``hi_s`` are ``lo``/``hi``, workspace.allocate), and
-        whether an effort-limited fixed row starts saturated (``w.sat``:
-        its warm start ``impulse_scale f0 / P`` on a bound, to ``SATURATION_MARGIN``; kamino.jax_ref.padmm.solve,
-        "Saturation"; with ``always_sat``, every effort-limited row: the CR path, pipeline.Stepper);
-        on the dense path ``D~ = P D P`` row by row with ``shift = eta + rho_free`` on the fixed rows' diagonal
-        (``shift_sat`` on the saturated ones; ``padmm_init`` adds the world's penalty to the others)."""
+        """``v~_f = P v_f`` (in place: ``prebake`` wrote ``v_f`` into ``vt``), scaled bounds (in place: ``lo_s``/
+        ``hi_s`` are ``lo``/``hi``, workspace.allocate), and whether an effort-limited fixed row starts saturated (the
+        flag in ``w.row_info``, ``set_saturated``: its warm start ``impulse_scale f0 / P`` on a bound, to
+        ``SATURATION_MARGIN``; kamino.jax_ref.padmm.solve, "Saturation"; with ``always_sat``, every effort-limited
+        row: the CR path, pipeline.Stepper); on the dense path ``D~ = P D P`` row by row with ``shift = eta +
+        rho_free`` on the fixed rows' diagonal (``shift_sat`` on the saturated ones; ``padmm_init`` adds the world's
+        penalty to the others)."""
         wid, a = wp.tid()
         n = w.n_rows[wid]
         if a >= n:
             return
         r = ridx(m, w, wid, a)
         Pa = w.P[r]
-        w.vt[r] = Pa * w.vf[r]
+        w.vt[r] = Pa * w.vt[r]  # v_f from prebake
         lo = w.lo[r]
         hi = w.hi[r]
         if wp.isfinite(lo):
@@ -189,7 +189,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 sat = 1
             if wp.isfinite(hi) and (always_sat != 0 or x0 >= hi - sat_margin * wp.abs(hi)):
                 sat = 1
-        w.sat[r] = sat
+        set_saturated(w, r, sat)
         if assembled != 0:
             for b in range(n):
                 k = didx(m, wid, a, b)
@@ -209,7 +209,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         for c in range((n - n_box) // 3):
             r = rb + (n_box + 3 * c) * rs
             p = cone_project(src[r] - inv_rho * shift[r], src[r + rs] - inv_rho * shift[r + rs],
-                             src[r + 2 * rs] - inv_rho * shift[r + 2 * rs], w.mu[r])
+                             src[r + 2 * rs] - inv_rho * shift[r + 2 * rs], row_mu(w, r))
             dst[r] = p[0]
             dst[r + rs] = p[1]
             dst[r + 2 * rs] = p[2]
@@ -288,7 +288,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             for b in range(a, n):
                 v = w.P[ra] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
                 if b == a and a < nf:
-                    v += wp.where(w.sat[ra] != 0, shift_sat, shift)
+                    v += wp.where(row_saturated(w, ra) != 0, shift_sat, shift)
                 w.D[didx(m, wid, a, b)] = v
                 w.D[didx(m, wid, b, a)] = v
         factor_dense(m, w, wid, n, eta)
@@ -393,7 +393,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             Pa = w.P[r]
             shift = shift_t
             if a < m.row_fixed[wid]:
-                shift = wp.where(w.sat[r] != 0, shift_b, shift_f)
+                shift = wp.where(row_saturated(w, r) != 0, shift_b, shift_f)
             out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
 
     @wp.func
@@ -453,11 +453,11 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def row_penalty(w: Work, r: int, a: int, nf: int, rho_free: scalar, rho_box: scalar, rho_u: scalar):
         """Row ``a``'s penalty (``kamino.jax_ref.padmm.solve``, "Penalty" and "Saturation"): ``rho_free`` on a fixed
-        row, ``rho_box`` on a saturated effort-limited one (``w.sat``), the world's ``rho_u`` on limit and contact
+        row, ``rho_box`` on a saturated effort-limited one (a flag), the world's ``rho_u`` on limit and contact
         rows."""
         if a >= nf:
             return rho_u
-        if w.sat[r] != 0:
+        if row_saturated(w, r) != 0:
             return rho_box
         return rho_free
 
@@ -469,7 +469,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         reference, its penalty rule and residuals included), resuming from the stored iterate; a world that
         converges (unless ``fixed``) or reaches its iteration cap ``it_cap`` is marked done and leaves
         ``remaining``. The fixed rows carry the penalty ``rho_free`` (``rho_box`` on a saturated effort-limited
-        actuator, ``w.sat``), the limit and contact rows the world's ``rho_u``, rebalanced when ``adaptive`` (then
+        actuator), the limit and contact rows the world's ``rho_u``, rebalanced when ``adaptive`` (then
         the tail of the factor is recomputed). A row that saturates ends the launch with ``w.pending`` set:
         ``refactor`` (or ``refactor_dense``) redoes the factor before the next launch (kamino.jax_ref.padmm.solve,
         "Saturation"). ``linear``: ``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE`` (``sparse_llt.py``)."""
@@ -495,7 +495,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 rhs[r] = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
             for c in range((n - n_box) // 3):
                 r = rb + (n_box + 3 * c) * rs
-                rhs[r + 2 * rs] -= de_saxce(w.z_hat[r], w.z_hat[r + rs], w.mu[r])
+                rhs[r + 2 * rs] -= de_saxce(w.z_hat[r], w.z_hat[r + rs], row_mu(w, r))
             if linear == LINEAR_CR:
                 cr_solve(m, w, wid, n, nblk, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
             elif linear == LINEAR_SPARSE:
@@ -525,7 +525,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
                 v = x - z_hat / rho
                 y = wp.clamp(v, lo, hi)
                 w.y[r] = y
-                if a < nf and saturates(w.sat[r], lo, hi, v, y):
+                if a < nf and saturates(row_saturated(w, r), lo, hi, v, y):
                     hit = 1
                 du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
                 w.z[r] = du[0]
@@ -544,7 +544,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             for c in range((n - n_box) // 3):
                 r = rb + (n_box + 3 * c) * rs
                 cp = cone_project(w.x[r] - inv_rho * w.z_hat[r], w.x[r + rs] - inv_rho * w.z_hat[r + rs],
-                                  w.x[r + 2 * rs] - inv_rho * w.z_hat[r + 2 * rs], w.mu[r])
+                                  w.x[r + 2 * rs] - inv_rho * w.z_hat[r + 2 * rs], row_mu(w, r))
                 yz = scalar(0.0)
                 for t in range(3):
                     rt = r + t * rs
@@ -597,8 +597,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
             if switch:
                 for a in range(nf):
                     r = rb + a * rs
-                    if saturates(w.sat[r], w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
-                        w.sat[r] = 1
+                    if saturates(row_saturated(w, r), w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
+                        set_saturated(w, r, 1)
                 mode = RESTART_HERE
                 a_new = scalar(1.0)
                 c_new = big
@@ -665,7 +665,7 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         lam = Pa * w.y_p[r]
         z = w.z_p[r]
         if a >= n_box and (a - n_box) % 3 == 2:
-            z -= de_saxce(w.z_p[r - 2 * rs], w.z_p[r - rs], w.mu[r])
+            z -= de_saxce(w.z_p[r - 2 * rs], w.z_p[r - rs], row_mu(w, r))
         w.impulse[r] = lam
         w.velocity[r] = z / Pa
         if not wp.isfinite(lam):

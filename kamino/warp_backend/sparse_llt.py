@@ -445,7 +445,7 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     k_t = np.array([max((len(p) for p in ps), default=0) for ps in pats], np.int64)
     K = k_t[world_type]
     g_nnz, g_tail, g_k = group_sizes(nnz), group_sizes(tail_rows), group_sizes(K)
-    g_dim = g_k + g_tail
+    g_dim = g_k + g_tail + (g_tail > 0)  # the last column: the diagonal of the tail's Schur complement (sdiag_col)
     S = pattern_struct(np.dtype(np_dtype))()
 
     def i32(a):
@@ -546,6 +546,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     SP = pattern_struct(np_dtype)
     ix = index_funcs(np_dtype)
     ridx, row_base = ix.ridx, ix.row_base
+    row_kind, row_source, row_saturated = ix.row_kind, ix.row_source, ix.row_saturated
     sf = spatial_funcs(np_dtype)
 
     @wp.func
@@ -576,6 +577,12 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     def tail_k(sp: SP, wid: int):
         """Where the tail columns of a tail row of world ``wid`` start (after its ``K`` ``L_tf`` entries)."""
         return sp.grp_tail_k[wid // GROUP]
+
+    @wp.func
+    def sdiag_col(sp: SP, wid: int):
+        """The column of a tail row of world ``wid`` that keeps the diagonal of the tail's Schur complement ``S_t``
+        (the last one, after the tail columns: the square's lower triangle holds ``L_t``, its upper ``S_t``)."""
+        return sp.grp_tail_dim[wid // GROUP] - 1
 
     @wp.func
     def tidx(m: M, w: Work, sp: SP, wid: int, t: int, c: int):
@@ -674,7 +681,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def fixed_entry(m: M, w: Work, sp: SP, wid: int, k: int, nblk: int, shift: scalar, shift_sat: scalar):
         """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D0_ab P_b`` (``+ shift`` on the diagonal,
-        ``shift_sat`` on a saturated effort-limited row, ``w.sat``: the rows' penalty, kamino.jax_ref.padmm.solve,
+        ``shift_sat`` on a saturated effort-limited row, ``row_saturated``: the penalty, kamino.jax_ref.padmm.solve,
         "Saturation"; ``D0``: :func:`delassus0`), or on a hub position's row :func:`hub_entry`."""
         e = sp.ent_start[wid] + k
         p = sp.row[e]
@@ -686,7 +693,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         b = sp.perm[sp.perm_start[wid] + q]
         s = w.P[ridx(m, w, wid, a)] * delassus0(m, w, sp, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
         if p == q:
-            if w.sat[ridx(m, w, wid, a)] != 0:
+            if row_saturated(w, ridx(m, w, wid, a)) != 0:
                 s += shift_sat
             else:
                 s += shift
@@ -710,10 +717,11 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         ra = ridx(m, w, wid, a)
         Pa = w.P[ra]
         pat = int(0)
-        if w.row_type[ra] == ROW_LIMIT:
-            pat = sp.dof_pat[w.row_src[ra]]
+        src = row_source(w, ra)
+        if row_kind(w, ra) == ROW_LIMIT:
+            pat = sp.dof_pat[src]
         else:  # a contact row: its pair's
-            pat = sp.con_pat[wid] + w.ct_pair[w.row_src[ra]]
+            pat = sp.con_pat[wid] + w.ct_pair[src]
         sp.tail_pat[wid * sp.tail_max + t] = pat
         i0 = sp.pat_ptr[pat]
         for i in range(sp.pat_ptr[pat + 1] - i0):
@@ -788,21 +796,21 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar):
         """``L_t = chol(S_t + shift I)``: the tail rows' Cholesky from their Schur complement ``S_t = D~_t -
         L_tf L_tf^T``, kept by :func:`factor` in the tail rows' upper slots (``S_t[t, j]`` at row ``j``, tail
-        column ``K + t``) and ``w.sdiag``; a new penalty of the limit and contact rows redoes only this
-        (``kamino.jax_ref.padmm.solve``, "Penalty")."""
-        rs = w.row_stride
+        column ``K + t``) and its diagonal in column :func:`sdiag_col`; a new penalty of the limit and contact rows
+        redoes only this (``kamino.jax_ref.padmm.solve``, "Penalty")."""
         base = bases(m, w, sp, wid)
-        rb, tb, ts = base[0], base[2], base[3]
+        tb, ts = base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         kt = tail_k(sp, wid)
+        kd = sdiag_col(sp, wid)
         for t in range(n - nf):
             tr = tb + t * ts
             for j in range(t + 1):
                 jr = tb + j * ts
                 s = scalar(0.0)
                 if j == t:
-                    s = w.sdiag[rb + (nf + t) * rs] + shift
+                    s = sp.tail[tr + kd * tc] + shift
                 else:
                     s = sp.tail[jr + (kt + t) * tc]
                 for i in range(j):
@@ -816,11 +824,10 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def schur_entry(w: Work, sp: SP, wid: int, rb: int, tb: int, ts: int, nf: int, t: int, j: int):
         """``S_t[t, j] = D~_tj - L_t. L_j.`` (``j <= t``, tail rows, ``L_tf`` done) into row ``j``'s upper slot
-        (tail column ``K + t``), or ``w.sdiag`` for ``j == t``: it reads only lower slots, so entries are
-        independent. The dot runs over row ``t``'s pattern, ascending, finding each position in row ``j``'s through
-        its lookup (the dense sum without its zero terms); a hub position's term carries its sign ``s_r = -1``
-        (:func:`factor_fixed_rows`)."""
-        rs = w.row_stride
+        (tail column ``K + t``), or into column :func:`sdiag_col` for ``j == t``: it reads only lower slots, so
+        entries are independent. The dot runs over row ``t``'s pattern, ascending, finding each position in row
+        ``j``'s through its lookup (the dense sum without its zero terms); a hub position's term carries its sign
+        ``s_r = -1`` (:func:`factor_fixed_rows`)."""
         tr = tb + t * ts
         jr = tb + j * ts
         tc = sp.tail_stride
@@ -838,7 +845,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 else:
                     s -= sp.tail[tr + i * tc] * sp.tail[jr + c * tc]
         if j == t:
-            w.sdiag[rb + (nf + t) * rs] = s
+            sp.tail[tr + sdiag_col(sp, wid) * tc] = s
         else:
             sp.tail[jr + (kt + t) * tc] = s
 
@@ -971,4 +978,5 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                            fixed_entry=fixed_entry, tail_row=tail_row,
                            factor_fixed=factor_fixed,
                            solve_inplace=solve_inplace, delassus_entry=delassus_entry, schur_entry=schur_entry,
-                           inv_mass_times=inv_mass_times, tail_k=tail_k, tail_pattern=tail_pattern)
+                           inv_mass_times=inv_mass_times, tail_k=tail_k, tail_pattern=tail_pattern,
+                           sdiag_col=sdiag_col)

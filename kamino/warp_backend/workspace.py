@@ -14,6 +14,23 @@ import warp as wp
 from kamino.warp_backend.model_data import GROUP, WarpModel
 from kamino.warp_backend.types import types_of
 
+#: ``Work.row_info``: one int32 per row packs what the row assembly knows about a row besides its numbers: its
+#: source (the DoF, kinematic constraint, coupling or contact slot it comes from; a global index) in the low
+#: :data:`ROW_SRC_BITS` bits, then the saturation flag of an effort-limited fixed row (kamino.jax_ref.padmm
+#: "Saturation"), the sign of a limit row (set: the upper limit, ``side = -1``) and the row family (rows.ROW_*)
+#: in the top bits. The accessors are ``indexing.index_funcs``' ``row_kind``, ``row_source``, ``row_side``,
+#: ``row_saturated``, ``set_saturated``, ``row_mu`` and ``row_info``.
+ROW_SRC_BITS = 26
+ROW_SRC_MASK = (1 << ROW_SRC_BITS) - 1
+ROW_SAT_BIT = 1 << ROW_SRC_BITS
+ROW_NEG_BIT = 1 << (ROW_SRC_BITS + 1)
+ROW_KIND_SHIFT = ROW_SRC_BITS + 2
+
+
+def saturated_rows(info: np.ndarray) -> np.ndarray:
+    """The saturation flags (0/1) of ``Work.row_info`` read back to the host."""
+    return (np.asarray(info) >> ROW_SRC_BITS) & 1
+
 
 @functools.cache
 def work_struct(np_dtype):
@@ -85,17 +102,13 @@ def work_struct(np_dtype):
         # constraint rows (segment of maxdim rows per world)
         row_body: iarr  # [rows * nblk]
         row_J: v6
-        row_type: iarr
-        row_src: iarr
-        row_side: farr
+        row_info: iarr  # family, source, limit sign and saturation flag, packed (ROW_SRC_BITS)
         vstar: farr
         reg: farr  # R (joint-dynamics regularisation)
         lo: farr  # impulse bounds; ``solver.scale`` divides them by P in place (``lo_s``/``hi_s`` alias them)
         hi: farr
-        mu: farr
         f0: farr  # warm-start force (lambda/dt); the same array as ``impulse`` (see :func:`allocate`)
         v0: farr  # warm-start velocity; the same array as ``velocity``
-        vf: farr
         # per world row counts
         n_lim: iarr
         n_con: iarr
@@ -131,8 +144,8 @@ def work_struct(np_dtype):
         rho_u: farr  # per world: the penalty of the limit and contact rows (persists from step to step)
         k_rho: iarr  # per world: the iteration of the last penalty change
         p_ref: farr  # per world: the largest P of the active rows (the residuals' velocity scale)
-        sdiag: farr  # [rows] the diagonal of the tail rows' Schur complement (refactorisation on a new penalty)
-        sat: iarr  # [rows] an effort-limited fixed row that carries rho (saturated; kamino.jax_ref.padmm "Saturation")
+        sdiag: farr  # [rows] the dense factor's diagonal of the tail rows' Schur complement (refactorisation on a
+        # new penalty); empty on the sparse factor's paths, which keep it in a column of the tail rows (sparse_llt)
         pending: iarr  # per world: a row saturated in the last iteration; the factor is redone before the next
         converged: iarr
         done: iarr  # per world: 1 once converged or at the iteration cap
@@ -166,6 +179,7 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
     B, D, C, K, cap = m.num_bodies, m.num_dofs, m.num_constraints, m.num_couplings, m.num_contacts
     R, nblk = wm.total_rows, wm.blocks_per_row
     L = int(np.sum(wm_lim_counts(wm)))
+    assert max(D, C, K, cap) <= ROW_SRC_MASK + 1, "Work.row_info: a row source does not fit in ROW_SRC_BITS"
     sizes = {
         "q": (B, T.transform), "u": (B, T.vec6), "time": (m.num_worlds, T.scalar),
         "kin_force": (C, T.scalar), "cpl_force": (K, T.scalar), "act_force": (D, T.scalar), "pas_force": (D, T.scalar),
@@ -184,30 +198,33 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
         "ct_pos": (cap, T.vec3), "ct_normal": (cap, T.vec3), "ct_dist": (cap, T.scalar), "ct_mu": (cap, T.scalar),
         "ct_restitution": (cap, T.scalar), "ct_found": (m.num_worlds, wp.int32),
         "row_body": (R * nblk, wp.int32), "row_J": (R * nblk, T.vec6),
-        "row_type": (R, wp.int32), "row_src": (R, wp.int32), "row_side": (R, T.scalar),
+        "row_info": (R, wp.int32),
         "Jd": (wm.total_jd if dense else 0, T.scalar), "MJd": (wm.total_jd if dense else 0, T.scalar),
-        "D": (wm.total_mat if delassus else 0, T.scalar),
+        "D": (wm.total_mat if delassus else 0, T.scalar), "sdiag": (R if delassus else 0, T.scalar),
         "cr_w": (B if cr else 0, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
     }
-    for name in ("vstar", "reg", "lo", "hi", "mu", "vf", "P", "vt", "x", "y", "z", "x_p", "y_p", "z_p", "y_hat",
-                 "z_hat", "e_p", "impulse", "velocity", "sdiag"):
+    for name in ("vstar", "reg", "lo", "hi", "P", "vt", "x", "y", "z", "x_p", "y_p", "z_p", "y_hat",
+                 "z_hat", "e_p", "impulse", "velocity"):
         sizes[name] = (R, T.scalar)
     for name in ("cr_r", "cr_p", "cr_Ap", "cr_Ar"):
         sizes[name] = (R if cr else 0, T.scalar)
     for name in ("a_p", "c_p", "r_p", "r_d", "r_c", "rho_u", "p_ref"):
         sizes[name] = (m.num_worlds, T.scalar)
-    sizes["sat"] = (R, wp.int32)
     for name in ("n_lim", "n_con", "n_box", "n_rows", "iters", "it_cap", "converged", "done", "failed", "k_rho",
                  "unconverged", "frozen", "pending"):
         sizes[name] = (m.num_worlds, wp.int32)
     sizes["remaining"] = (1, wp.int32)
     for name, (n, dtype) in sizes.items():
         setattr(W, name, wp.zeros(max(n, 0), dtype=dtype, device=dev))
-    # Per-row vectors whose lives do not overlap share storage (4 of 28 per row). The warm start (``f0``, ``v0``) is
-    # written by the row assembly and read by ``solver.scale`` and ``padmm_init``; the solve's ``impulse`` and
-    # ``velocity`` are written by ``padmm_finish``, after both, and read until the step ends. ``solver.scale`` is the
-    # only reader of the unscaled bounds and divides them by ``P`` in place, once per step; everything after it
-    # reads the scaled ones.
+    # Per-row vectors (issue 17's memory): 22 names, 18 allocations. Those whose lives do not overlap share storage:
+    # the warm start (``f0``, ``v0``) is written by the row assembly and read by ``solver.scale`` and ``padmm_init``;
+    # the solve's ``impulse`` and ``velocity`` are written by ``padmm_finish``, after both, and read until the step
+    # ends. ``solver.scale`` is the only reader of the unscaled bounds and divides them by ``P`` in place, once per
+    # step; everything after it reads the scaled ones. Six are gone (session 34), their information being elsewhere,
+    # bit for bit: the row family, source, limit sign and saturation flag are packed in ``row_info`` (4 -> 1); a
+    # contact row's friction is its slot's ``ct_mu`` (``mu``); ``prebake`` writes ``v_f`` into ``vt``, which
+    # ``scale`` scales in place, and ``rows.set_bias`` recomputes it with the same sums (``vf``); the diagonal of the
+    # tail's Schur complement is a column of the sparse tail (``sdiag``, allocated only for the dense factor).
     W.f0, W.v0 = W.impulse, W.velocity
     W.lo_s, W.hi_s = W.lo, W.hi
     W.row_stride = 1 if rows_per_world else GROUP
