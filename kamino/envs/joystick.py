@@ -47,6 +47,16 @@ def feet_air_time(air: jax.Array, was_down: jax.Array, down: jax.Array, dt: floa
     return jnp.sum(jnp.where(landing, air - target, 0.0)), jnp.where(touching, 0.0, air)
 
 
+#: The warm start's factor on the previous substep's reactions in the walking tasks (``SolverConfig.warmstart_scale``;
+#: the kamino default is 1). A robot's redundant loops (dr_legs' planar four-bars) admit internal loads that move no
+#: body (the left null space of the joint Jacobian): the solver never corrects them, float32 rounding adds to them
+#: each solve, and a warm start at 1 carries them over the whole episode. They grew to 1e5-1e6 N within 600 policy
+#: steps, where PADMM stops converging and the robot is thrown (docs/envs.md, "The ninth run"). At 0.99 they decay
+#: by 1 % per substep; measured over 600 policy steps of 32 walking dr_legs (Warp CPU): the median carried reaction
+#: stays at 1.1-1.6e3 N (at 1.0: 2.3e3 rising to 6.9e4 N), with the same mean PADMM iterations (about 10).
+WARMSTART_SCALE = 0.99
+
+
 def swing_heights(phase: jax.Array, num_feet: int, height: float) -> jax.Array:
     """Target lift [m] of each foot at gait ``phase`` (cycles, any real; the clock of the periodic-gait rewards of
     Siekmann et al. 2021 and MuJoCo Playground's bipeds): foot ``i`` swings while ``sin(2 pi (phase - i / num_feet))``
@@ -89,7 +99,9 @@ class Joystick(KaminoEnv):
             and feet on the ground otherwise.
         swing_height: the clock's peak foot lift [m] (foot CoM above where it stands at the nominal reset).
         swing_sigma: variance [m^2] of the ``feet_phase`` kernel ``exp(-sum_feet (lift - target)^2 / swing_sigma)``.
-        **kwargs: :class:`kamino.envs.base.KaminoEnv` (``backend``, ``solver_config``, ``dtype``).
+        solver_config: default ``SolverConfig(warmstart_scale=WARMSTART_SCALE)`` (a decaying warm start: see
+            :data:`WARMSTART_SCALE`).
+        **kwargs: :class:`kamino.envs.base.KaminoEnv` (``backend``, ``dtype``).
     """
 
     reward_terms = tuple(REWARD_WEIGHTS)
@@ -141,7 +153,8 @@ class Joystick(KaminoEnv):
         self._feet = np.array([names.index(f) for f in feet], np.int32)
         self._air_target = float(air_time_target)
         super().__init__(model, sim_dt=sim_dt, decimation=decimation, reset_noise=reset_noise, obs_noise=obs_noise,
-                         resample_steps=resample_steps, reset_bank=reset_bank, solver_config=solver_config, **kwargs)
+                         resample_steps=resample_steps, reset_bank=reset_bank,
+                         solver_config=solver_config or SolverConfig(warmstart_scale=WARMSTART_SCALE), **kwargs)
         placed = np.asarray(self._place(jnp.asarray(model.body_q0, self.dtype)))
         self._foot_stand_z = placed[self._feet, 2]
         self._foot_down_z = self._foot_stand_z + float(contact_height)

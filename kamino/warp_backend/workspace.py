@@ -179,7 +179,10 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
     B, D, C, K, cap = m.num_bodies, m.num_dofs, m.num_constraints, m.num_couplings, m.num_contacts
     R, nblk = wm.total_rows, wm.blocks_per_row
     L = int(np.sum(wm_lim_counts(wm)))
-    assert max(D, C, K, cap) <= ROW_SRC_MASK + 1, "Work.row_info: a row source does not fit in ROW_SRC_BITS"
+    if max(D, C, K, cap) > ROW_SRC_MASK + 1:
+        raise ValueError(f"Warp backend: the batch has {max(D, C, K, cap):,} DoFs, constraints, couplings or contact "
+                         f"slots over all worlds, more than the {ROW_SRC_MASK + 1:,} a row's source index can hold "
+                         f"(Work.row_info, ROW_SRC_BITS = {ROW_SRC_BITS}); split the batch into fewer worlds")
     sizes = {
         "q": (B, T.transform), "u": (B, T.vec6), "time": (m.num_worlds, T.scalar),
         "kin_force": (C, T.scalar), "cpl_force": (K, T.scalar), "act_force": (D, T.scalar), "pas_force": (D, T.scalar),
@@ -220,7 +223,7 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
     # the warm start (``f0``, ``v0``) is written by the row assembly and read by ``solver.scale`` and ``padmm_init``;
     # the solve's ``impulse`` and ``velocity`` are written by ``padmm_finish``, after both, and read until the step
     # ends. ``solver.scale`` is the only reader of the unscaled bounds and divides them by ``P`` in place, once per
-    # step; everything after it reads the scaled ones. Six are gone (session 34), their information being elsewhere,
+    # step; everything after it reads the scaled ones. Six are gone (session 33), their information being elsewhere,
     # bit for bit: the row family, source, limit sign and saturation flag are packed in ``row_info`` (4 -> 1); a
     # contact row's friction is its slot's ``ct_mu`` (``mu``); ``prebake`` writes ``v_f`` into ``vt``, which
     # ``scale`` scales in place, and ``rows.set_bias`` recomputes it with the same sums (``vf``); the diagonal of the
