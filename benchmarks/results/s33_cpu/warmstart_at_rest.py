@@ -9,11 +9,11 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # benchmarks/, for throughput's scenes
-import throughput as tb  # noqa: E402
+import throughput as tb
 
-import kamino  # noqa: E402
-from kamino.warp_backend import backend as wb  # noqa: E402
-from kamino.warp_backend.pipeline import Stepper  # noqa: E402
+import kamino
+from kamino.warp_backend import backend as wb
+from kamino.warp_backend.pipeline import Stepper
 
 wp.config.quiet = True
 for scene in ["fourbar", "ladder8", "dr_legs", "bdx", "olaf"]:
