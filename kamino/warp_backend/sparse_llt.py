@@ -605,28 +605,12 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         return sf.inverse_mass_times(m.inv_mass[b], w.inv_inertia_w[b], J)
 
     @wp.func
-    def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):
+    def delassus_sum(m: M, w: Work, wid: int, a: int, b: int, nblk: int, body_hub: wp.array(dtype=wp.int32),
+                     skip_hubs: int):
         """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (blocks meet on shared bodies; ``M^-1 J_b^T`` is
-        formed per meeting)."""
-        ra = ridx(m, w, wid, a)
-        rb = ridx(m, w, wid, b)
-        s = scalar(0.0)
-        for k in range(nblk):
-            bk = w.row_body[ra * nblk + k]
-            if bk >= 0:
-                for l in range(nblk):
-                    if w.row_body[rb * nblk + l] == bk:
-                        s += wp.dot(w.row_J[ra * nblk + k], inv_mass_times(m, w, bk, w.row_J[rb * nblk + l]))
-        if a == b:
-            s += w.reg[ra]
-        return s
-
-    @wp.func
-    def delassus0(m: M, w: Work, sp: SP, wid: int, a: int, b: int, nblk: int):
-        """:func:`delassus_entry` over the bodies that are not hubs (``D0 = sum_{b not a hub} J_b M_b^-1 J_b^T + R``:
-        the hubs' share is in the factor through their unknowns, docs/warp_backend.md "Open problems"); the same
-        sum, term for term, in a world without hubs."""
-        hubbed = sp.n_pos[wid] != sp.n_fixed[wid]
+        formed per meeting); with ``skip_hubs`` over the bodies that are not hubs (``body_hub[b] < 0``): ``D0 =
+        sum_{b not a hub} J_b M_b^-1 J_b^T + R``, the hubs' share being in the factor through their unknowns
+        (docs/warp_backend.md "Open problems"). The same sum, term for term, when no body is skipped."""
         ra = ridx(m, w, wid, a)
         rb = ridx(m, w, wid, b)
         s = scalar(0.0)
@@ -634,8 +618,8 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             bk = w.row_body[ra * nblk + k]
             if bk >= 0:
                 skip = False
-                if hubbed:
-                    skip = sp.body_hub[bk] >= 0
+                if skip_hubs != 0:
+                    skip = body_hub[bk] >= 0
                 if not skip:
                     for l in range(nblk):
                         if w.row_body[rb * nblk + l] == bk:
@@ -643,6 +627,17 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         if a == b:
             s += w.reg[ra]
         return s
+
+    @wp.func
+    def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):
+        """``(J M^-1 J^T + R)_ab`` over every body (:func:`delassus_sum`; ``row_body`` stands in for the unread hub
+        table)."""
+        return delassus_sum(m, w, wid, a, b, nblk, w.row_body, 0)
+
+    @wp.func
+    def delassus0(m: M, w: Work, sp: SP, wid: int, a: int, b: int, nblk: int):
+        """``D0_ab``: :func:`delassus_sum` without the world's hubs (every body in a world without hubs)."""
+        return delassus_sum(m, w, wid, a, b, nblk, sp.body_hub, int(sp.n_pos[wid] != sp.n_fixed[wid]))
 
     @wp.func
     def row_on_body(w: Work, r: int, body: int, nblk: int):
