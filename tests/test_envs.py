@@ -32,6 +32,7 @@ from brax.envs.wrappers import training
 
 import kamino
 from kamino.envs import DrLegsJoystick, EnvSystem, FourbarTrack, make, randomize
+from kamino.jax_ref.spatial import quat_to_matrix
 from tests.helpers import ALL_CORES
 
 N = 4  # environments per batch: small (CI has two cores), more than one (vmap)
@@ -546,6 +547,36 @@ def test_gait_clock_is_observed_and_its_reward_follows_the_swing(legs_own_gains)
     assert float(env._feet_phase(ps, dict(peak, command=jnp.zeros(3, jnp.float32)))) == pytest.approx(1.0, abs=1e-4)
     with pytest.raises(ValueError, match="gait_frequency"):
         Joystick(model, min_height=0.45, reset_bank=8, backend="warp", reward_weights={"feet_phase": 1.0})
+
+
+def test_feet_width_rewards_the_stance_in_the_base_heading(legs_own_gains):
+    """``feet_width`` is ``exp(-(width - stance_width)^2 / stance_sigma)`` with ``width`` the feet's distance along
+    the base's levelled lateral axis. dr_legs stands with its feet 0.2 m apart (CoMs at y = +-0.1 m): the default
+    target (the nominal stance) scores 1, a target of 0.15 m scores ``exp(-0.05^2 / 0.0025) = exp(-1)``, on every
+    heading the reset draws (the tolerance is float32 rounding of positions of order 1 m). Sliding the right foot
+    5 cm outward along the base's lateral axis widens the stance to 0.25 m: ``exp(-1)`` against the default target.
+    A robot without exactly two feet is refused."""
+    from kamino.envs.joystick import Joystick
+
+    model = legs_own_gains.model
+    nominal = Joystick(model, min_height=0.45, reset_bank=8, reset_noise=1e-9, backend="warp",
+                       reward_weights={"feet_width": 1.0})
+    narrow = Joystick(model, min_height=0.45, reset_bank=8, reset_noise=1e-9, backend="warp",
+                      reward_weights={"feet_width": 1.0}, stance_width=0.15)
+    assert nominal._stance_width == pytest.approx(0.2, abs=1e-6)
+    right = int(nominal._feet[1])
+    for seed in range(3):
+        s = jax.jit(nominal.reset)(jax.random.PRNGKey(seed))
+        ps = nominal.full_state(s.pipeline_state)
+        assert float(nominal._feet_width(ps)) == pytest.approx(1.0, abs=1e-4)
+        assert float(narrow._feet_width(ps)) == pytest.approx(np.exp(-1.0), rel=1e-3)
+        R = np.asarray(quat_to_matrix(ps.body_q[nominal._base, 3:]))
+        left = np.array([R[0, 1], R[1, 1], 0.0]) / np.hypot(R[0, 1], R[1, 1])
+        wide = ps.replace(body_q=ps.body_q.at[right, :3].add(jnp.asarray(-0.05 * left, ps.body_q.dtype)))
+        assert float(nominal._feet_width(wide)) == pytest.approx(np.exp(-1.0), rel=1e-3)
+    with pytest.raises(ValueError, match="exactly two feet"):
+        Joystick(model, min_height=0.45, reset_bank=8, backend="warp", feet=("l_foot",),
+                 reward_weights={"feet_width": 1.0})
 
 
 def test_joystick_warm_start_lets_an_internal_loop_load_decay(legs_own_gains):

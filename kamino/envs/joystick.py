@@ -19,7 +19,7 @@ import numpy as np
 from kamino.config import SolverConfig
 from kamino.envs.base import KaminoEnv
 from kamino.envs.geometry import body_frame_vectors
-from kamino.jax_ref.spatial import quat_mul
+from kamino.jax_ref.spatial import quat_mul, quat_to_matrix
 from kamino.model import Model
 from kamino.models import bdx, dr_legs
 from kamino.state import State
@@ -31,7 +31,7 @@ from kamino.state import State
 #: ``feet_phase`` (0 by default) rewards feet that follow the gait clock's swing heights; it needs ``gait_frequency``
 REWARD_WEIGHTS = {"tracking_lin_vel": 1.0, "tracking_ang_vel": 0.5, "upright": 0.2, "action_rate": -0.01,
                   "torque": -2e-4, "alive": 0.2, "lin_vel_z": 0.0, "ang_vel_xy": 0.0, "feet_air_time": 0.0,
-                  "feet_phase": 0.0}
+                  "feet_phase": 0.0, "feet_width": 0.0}
 
 
 def feet_air_time(air: jax.Array, was_down: jax.Array, down: jax.Array, dt: float,
@@ -99,6 +99,9 @@ class Joystick(KaminoEnv):
             and feet on the ground otherwise.
         swing_height: the clock's peak foot lift [m] (foot CoM above where it stands at the nominal reset).
         swing_sigma: variance [m^2] of the ``feet_phase`` kernel ``exp(-sum_feet (lift - target)^2 / swing_sigma)``.
+        stance_width: the lateral distance [m] between two feet that ``feet_width`` rewards (default: theirs at the
+            nominal reset). A narrower stance lowers the sway from foot to foot (docs/envs.md, "The lateral sway").
+        stance_sigma: variance [m^2] of the ``feet_width`` kernel ``exp(-(width - stance_width)^2 / stance_sigma)``.
         solver_config: default ``SolverConfig(warmstart_scale=WARMSTART_SCALE)`` (a decaying warm start: see
             :data:`WARMSTART_SCALE`).
         **kwargs: :class:`kamino.envs.base.KaminoEnv` (``backend``, ``dtype``).
@@ -114,11 +117,14 @@ class Joystick(KaminoEnv):
                  decimation: int = 5,
                  resample_steps: int = 250, reset_noise: float = 0.1, obs_noise: float = 1.0,
                  reset_bank: int | None = 128, gait_frequency: float | None = None, swing_height: float = 0.05,
-                 swing_sigma: float = 0.0025, solver_config: SolverConfig | None = None, **kwargs):
+                 swing_sigma: float = 0.0025, stance_width: float | None = None, stance_sigma: float = 0.0025,
+                 solver_config: SolverConfig | None = None, **kwargs):
         name = type(self).__name__
         for arg, value in (("tracking_sigma", tracking_sigma), ("min_height", min_height), ("max_tilt", max_tilt),
                            ("air_time_target", air_time_target), ("contact_height", contact_height),
                            ("swing_height", swing_height), ("swing_sigma", swing_sigma),
+                           ("stance_sigma", stance_sigma),
+                           *((("stance_width", stance_width),) if stance_width is not None else ()),
                            *((("gait_frequency", gait_frequency),) if gait_frequency is not None else ())):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: {arg} must be a positive number, got {value!r}")
@@ -151,6 +157,9 @@ class Joystick(KaminoEnv):
         if missing:
             raise ValueError(f"{name}: feet {missing} are not bodies of the model (its bodies: {names})")
         self._feet = np.array([names.index(f) for f in feet], np.int32)
+        if self._weights["feet_width"] != 0 and len(self._feet) != 2:
+            raise ValueError(f"{name}: the feet_width reward needs exactly two feet, got {list(feet)}")
+        self._stance_sigma = float(stance_sigma)
         self._air_target = float(air_time_target)
         super().__init__(model, sim_dt=sim_dt, decimation=decimation, reset_noise=reset_noise, obs_noise=obs_noise,
                          resample_steps=resample_steps, reset_bank=reset_bank,
@@ -158,6 +167,8 @@ class Joystick(KaminoEnv):
         placed = np.asarray(self._place(jnp.asarray(model.body_q0, self.dtype)))
         self._foot_stand_z = placed[self._feet, 2]
         self._foot_down_z = self._foot_stand_z + float(contact_height)
+        self._stance_width = (float(np.linalg.norm(placed[self._feet[0], :2] - placed[self._feet[1], :2]))
+                              if stance_width is None and len(self._feet) == 2 else stance_width)
 
     # ---------------------------------------------------------------- reset and commands
 
@@ -236,6 +247,17 @@ class Joystick(KaminoEnv):
         lift = ps.body_q[self._feet, 2] - jnp.asarray(self._foot_stand_z, ps.body_q.dtype)
         return jnp.exp(-jnp.sum((lift - target) ** 2) / self._swing_sigma)
 
+    def _feet_width(self, ps: State) -> jax.Array:
+        """``exp(-(width - stance_width)^2 / stance_sigma)``: ``width`` is the distance between the two feet's CoMs
+        along the base's lateral axis, levelled (its heading's left, in the ground plane), so a turned or tilted base
+        measures the same stance."""
+        R = quat_to_matrix(ps.body_q[self._base, 3:])
+        left = jnp.stack([R[0, 1], R[1, 1]])
+        left = left / jnp.maximum(jnp.linalg.norm(left), 1e-6)
+        gap = ps.body_q[self._feet[0], :2] - ps.body_q[self._feet[1], :2]
+        width = jnp.abs(jnp.dot(gap, left))
+        return jnp.exp(-((width - self._stance_width) ** 2) / self._stance_sigma)
+
     def _feet_down(self, ps: State) -> jax.Array:
         return ps.body_q[self._feet, 2] < jnp.asarray(self._foot_down_z, ps.body_q.dtype)
 
@@ -264,6 +286,8 @@ class Joystick(KaminoEnv):
             "ang_vel_xy": jnp.sum(base["ang_vel"][:2] ** 2),
             "feet_air_time": jnp.where(moving, self._air_time(ps, info)[0], 0.0),
             "feet_phase": self._feet_phase(ps, info) if self._gait_frequency is not None else jnp.zeros((), self.dtype),
+            "feet_width": (self._feet_width(ps) if self._weights["feet_width"] != 0
+                           else jnp.zeros((), self.dtype)),
         }
         terms = {k: self._weights[k] * v for k, v in raw.items()}
         total = sum(terms.values())
