@@ -4,6 +4,7 @@ JAX backend) and, when importable, the peers MuJoCo Warp and Newton SolverKamino
     python benchmarks/throughput.py [--scenes fourbar ladder8 ...] [--worlds 1 64 512 4096 16384]
                                     [--configs dense-llt sparse-llt sparse-cr jax] [--no-peers] [--out FILE]
     python benchmarks/throughput.py --plot benchmarks/results/throughput_h100.json   # PNG plots from a JSON
+    python benchmarks/throughput.py --table RUN.json [RUN2.json ...]               # one markdown table of saved runs
 
 Progress bars (tqdm, on stderr) over the runs and over each closure run's steps; ``--no-progress`` turns them off.
 stdout carries the JSON records only, one a line, as before.
@@ -318,6 +319,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="Newton SolverKamino variants run beside kamino (benchmarks/peers.py KAMINO_VARIANTS)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     p.add_argument("--plot", type=pathlib.Path, default=None, help="plot an existing JSON and exit")
+    p.add_argument("--table", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
+                   help="print one markdown table of existing JSONs (kamino's default config beside each peer) and "
+                        "exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bars (tqdm, on stderr)")
     return p
 
@@ -334,6 +338,10 @@ def main(argv=None) -> int:
     SOLVER.update(solver_overrides(args.solver))
     if args.plot:
         plot(json.loads(args.plot.read_text()), args.plot.with_suffix(""))
+        return 0
+    if args.table:
+        records = [r for f in args.table for r in json.loads(f.read_text())["records"]]
+        print(table(records))
         return 0
     results = {"environment": environment(), "records": []}
 
@@ -419,6 +427,55 @@ def run_peers(scene, args, emit) -> None:
                     emit({**rec, "scene": scene, "scene_source": source})
                 except Exception as e:
                     emit({"peer": fn.__name__, "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
+
+
+def _cell(rec: dict | None) -> str:
+    """One record as ``world-steps/s (closure, converged, memory per world)``; what a record lacks is left out."""
+    if rec is None:
+        return ""
+    if rec.get("throughput") is None:
+        reason = str(rec.get("reason") or "no figure")
+        return f"not run: {reason[:60]}" + ("..." if len(reason) > 60 else "")
+    notes = []
+    if rec.get("closure_max_m") is not None:
+        notes.append(f"{rec['closure_max_m']:.1e} m")
+    if rec.get("converged_fraction") is not None:
+        notes.append(f"{100 * rec['converged_fraction']:.0f} %")
+    if rec.get("memory_per_world_bytes") is not None:
+        notes.append(f"{rec['memory_per_world_bytes'] / 1e3:.1f} kB")
+    return f"{rec['throughput']:.2e}" + (f" ({', '.join(notes)})" if notes else "")
+
+
+def table(records: list[dict]) -> str:
+    """A markdown table of throughput records (this script's JSON ``records``): one row per scene and world count,
+    kamino's ``default`` configuration beside MuJoCo Warp and each SolverKamino variant, each cell
+    ``world-steps/s (closure, converged, memory per world)``, and kamino's speed and memory over MuJoCo Warp's.
+    A later record of the same scene, size and solver replaces an earlier one."""
+    cells: dict[tuple[str, int], dict[str, dict]] = {}
+    columns: list[str] = []
+    for r in records:
+        if "peer" in r:
+            col = "MuJoCo Warp" if r["peer"] == "mujoco_warp" else f"SolverKamino {r.get('variant')}"
+        elif r.get("config") == "default":
+            col = "kamino"
+        else:
+            continue
+        if col not in columns:
+            columns.append(col)
+        cells.setdefault((r["scene"], int(r["num_worlds"])), {})[col] = r
+    columns.sort(key=lambda c: (c != "kamino", c != "MuJoCo Warp", c))
+    lines = ["| scene | worlds | " + " | ".join(columns) + " | speed / MuJoCo Warp | memory / MuJoCo Warp |",
+             "|---|---|" + "---|" * (len(columns) + 2)]
+    for (scene, worlds), row in sorted(cells.items()):
+        k, mjw = row.get("kamino"), row.get("MuJoCo Warp")
+        speed = memory = ""
+        if k and mjw and k.get("throughput") and mjw.get("throughput"):
+            speed = f"{k['throughput'] / mjw['throughput']:.2f}x"
+        if k and mjw and k.get("memory_per_world_bytes") and mjw.get("memory_per_world_bytes"):
+            memory = f"{k['memory_per_world_bytes'] / mjw['memory_per_world_bytes']:.2f}x"
+        lines.append(f"| {scene} | {worlds} | " + " | ".join(_cell(row.get(c)) for c in columns)
+                     + f" | {speed} | {memory} |")
+    return "\n".join(lines)
 
 
 def plot(results: dict, stem: pathlib.Path) -> None:

@@ -18,3 +18,29 @@ def test_kamino_bench_writes_speed_next_to_error(tmp_path):
     # the MJCF four-bar's loop, 20 driven steps: closed to well below the 1e-5 m benchmark target
     assert rec["closure_max_m"] < 1e-5
     assert rec["converged_fraction"] == 1.0 and rec["iterations_max"] < 100
+
+
+def test_kamino_bench_tables_saved_runs_beside_the_peers(tmp_path, capsys):
+    """``--table``: one markdown row per scene and world count from several saved runs, kamino's default
+    configuration beside each peer, and kamino's speed and memory over MuJoCo Warp's (here 3e5 / 2e5 = 1.50x and
+    90 kB / 60 kB = 1.50x). A peer that did not run shows its reason; other kamino configurations are left out."""
+    kam = {"kamino": "warp", "config": "default", "scene": "ladder32", "num_worlds": 4096, "throughput": 3e5,
+           "closure_max_m": 1.5e-6, "converged_fraction": 1.0, "memory_per_world_bytes": 9e4}
+    other = dict(kam, config="sparse-cr", throughput=1.0)
+    mjw = {"peer": "mujoco_warp", "variant": "soft", "scene": "ladder32", "num_worlds": 4096, "throughput": 2e5,
+           "closure_max_m": 4.5e-3, "converged_fraction": None, "memory_per_world_bytes": 6e4}
+    sk = {"peer": "newton_solver_kamino", "variant": "dvi", "scene": "ladder32", "num_worlds": 4096,
+          "throughput": None, "reason": "load: int32 overflow"}
+    files = []
+    for i, recs in enumerate(([kam, other], [mjw, sk])):
+        files.append(tmp_path / f"run{i}.json")
+        files[-1].write_text(json.dumps({"records": recs}))
+    with pytest.raises(SystemExit) as done:
+        cli.main(["bench", "--table", *map(str, files)])
+    assert done.value.code == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0] == ("| scene | worlds | kamino | MuJoCo Warp | SolverKamino dvi | speed / MuJoCo Warp "
+                        "| memory / MuJoCo Warp |")
+    assert lines[2] == ("| ladder32 | 4096 | 3.00e+05 (1.5e-06 m, 100 %, 90.0 kB) | 2.00e+05 (4.5e-03 m, 60.0 kB) "
+                        "| not run: load: int32 overflow | 1.50x | 1.50x |")
+    assert len(lines) == 3
