@@ -1,7 +1,7 @@
 # watch for $1 s, one line a minute, then collect into $OUT (at most 8 files): per training run its records and
 # newest checkpoint, and the acceptance run's folder. Every call collects, so a machine that goes back loses little.
 END=$(( $(date +%s) + $1 ))
-RUNS="F25 F2W F25W F2"
+RUNS="F25 F2W F25W"
 while :; do
   echo "== $(date +%T) deadline in $(( $(cat /tmp/deadline) - $(date +%s) )) s"
   for n in $RUNS; do f=/tmp/rl_$n/train.log; [ -f $f ] && echo "$n: $(tail -c 3000 $f | tr '\r' '\n' | grep -a "env_steps" | tail -n 1 | cut -c1-160)"; done
