@@ -28,7 +28,9 @@ from kamino.state import State
 #: (``only_positive_rewards``). legged_gym's ``lin_vel_z`` (its weight -2.0), ``ang_vel_xy`` (-0.05) and
 #: ``feet_air_time`` (1.0) are off by default: the committed policy was trained without them, and switching them on
 #: for 28 M steps from it made the walking test worse (docs/envs.md, "The fifth run"); ``reward_weights`` sets them
-#: ``feet_phase`` (0 by default) rewards feet that follow the gait clock's swing heights; it needs ``gait_frequency``
+#: ``feet_phase`` (0 by default) rewards feet that follow the gait clock's swing heights; it needs ``gait_frequency``.
+#: ``feet_width`` (0 by default) rewards a lateral distance ``stance_width`` between two feet (a narrower stance sways
+#: less: docs/envs.md, "The lateral sway")
 REWARD_WEIGHTS = {"tracking_lin_vel": 1.0, "tracking_ang_vel": 0.5, "upright": 0.2, "action_rate": -0.01,
                   "torque": -2e-4, "alive": 0.2, "lin_vel_z": 0.0, "ang_vel_xy": 0.0, "feet_air_time": 0.0,
                   "feet_phase": 0.0, "feet_width": 0.0}
@@ -168,7 +170,8 @@ class Joystick(KaminoEnv):
         self._foot_stand_z = placed[self._feet, 2]
         self._foot_down_z = self._foot_stand_z + float(contact_height)
         self._stance_width = (float(np.linalg.norm(placed[self._feet[0], :2] - placed[self._feet[1], :2]))
-                              if stance_width is None and len(self._feet) == 2 else stance_width)
+                              if stance_width is None and len(self._feet) == 2 else
+                              None if stance_width is None else float(stance_width))
 
     # ---------------------------------------------------------------- reset and commands
 
