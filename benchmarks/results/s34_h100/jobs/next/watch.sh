@@ -6,8 +6,8 @@ while :; do
   echo "== $(date +%T) deadline in $(( $(cat /tmp/deadline) - $(date +%s) )) s"
   for n in $RUNS; do f=/tmp/rl_$n/train.log; [ -f $f ] && echo "$n: $(tail -c 3000 $f | tr '\r' '\n' | grep -a "env_steps" | tail -n 1 | cut -c1-160)"; done
   tail -n 2 /tmp/accept/steps.txt 2>/dev/null
-  [ $(date +%s) -ge $END ] && break
-  sleep 60
+  left=$(( END - $(date +%s) )); [ $left -le 0 ] && break
+  sleep $(( left < 60 ? left : 60 ))
 done
 mkdir -p $OUT
 for n in $RUNS; do
