@@ -38,3 +38,17 @@ def test_the_walking_test_needs_a_joystick_task(tmp_path):
         rl_train.parse_args(["fourbar_track", "--walk-test", "-1"])
     with pytest.raises(SystemExit):
         rl_train.parse_args(["fourbar_track", "--walk-test-from", "-1"])
+    with pytest.raises(SystemExit):
+        rl_train.parse_args(["dr_legs_joystick", "--walk-test-every", "-1"])
+
+
+def test_the_walking_test_skips_checkpoints_closer_than_every():
+    """Checkpoints every 4 M steps, tests from 36 M, every 8 M: 36, 44, 52 M tested, 40 and 48 M skipped; a resumed
+    run counts from its saved list's last test."""
+    tested: list[int] = []
+    for step in range(4, 56, 4):
+        if rl_train.walk_test_due(step, tested, start=36, every=8):
+            tested.append(step)
+    assert tested == [36, 44, 52]
+    assert not rl_train.walk_test_due(56, [36, 44, 52], start=36, every=8)
+    assert rl_train.walk_test_due(56, [36, 44, 52], start=36, every=0)  # the default: every checkpoint
