@@ -43,7 +43,8 @@ one FLOP, comparisons as none.
 
 docs/warp_backend.md's "Predicted cost" table (session 17) predates the sparse tail (session 31) and the hubs: its
 "factor multiply-adds" are ``n_upd + n_t nnz + n_t (n_t + 1) / 2 n_f + n_t^3 / 6`` of the factor without hubs, a
-dense ``L_tf``, which this script's counts reproduce for every scene with the tail capacities of that time.
+dense ``L_tf`` (``sparse_llt.symbolic`` with ``hubs=None`` reproduces every row of it with that time's tail
+capacities, the four-bar's 99 rows; e.g. dr_legs 30,428 + 36 x 3,473 + 666 x 204 + 7,776 = 3.0e5).
 """
 
 import argparse
