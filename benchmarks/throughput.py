@@ -31,6 +31,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Iterable
 
 import numpy as np
 from tqdm import tqdm
@@ -318,7 +319,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--kamino-variants", nargs="+", default=["padmm_dense", "dvi"],
                    help="Newton SolverKamino variants run beside kamino (benchmarks/peers.py KAMINO_VARIANTS)")
     p.add_argument("--out", type=pathlib.Path, default=None)
-    p.add_argument("--plot", type=pathlib.Path, default=None, help="plot an existing JSON and exit")
+    p.add_argument("--plot", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
+                   help="plot existing JSONs and exit: PNGs beside the first (or named after --out); a later "
+                        "record of the same scene, size and solver replaces an earlier one")
     p.add_argument("--table", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
                    help="print one markdown table of existing JSONs (kamino's default config beside each peer) and "
                         "exit")
@@ -337,11 +340,11 @@ def main(argv=None) -> int:
         SOLVER["rho"] = args.rho
     SOLVER.update(solver_overrides(args.solver))
     if args.plot:
-        plot(json.loads(args.plot.read_text()), args.plot.with_suffix(""))
+        records = latest_records(r for f in args.plot for r in json.loads(f.read_text())["records"])
+        plot({"records": records}, (args.out or args.plot[0]).with_suffix(""))
         return 0
     if args.table:
-        records = [r for f in args.table for r in json.loads(f.read_text())["records"]]
-        print(table(records))
+        print(table(latest_records(r for f in args.table for r in json.loads(f.read_text())["records"])))
         return 0
     results = {"environment": environment(), "records": []}
 
@@ -444,6 +447,23 @@ def _cell(rec: dict | None) -> str:
     if rec.get("memory_per_world_bytes") is not None:
         notes.append(f"{rec['memory_per_world_bytes'] / 1e3:.1f} kB")
     return f"{rec['throughput']:.2e}" + (f" ({', '.join(notes)})" if notes else "")
+
+
+def record_key(r: dict) -> tuple:
+    """What a record measures: scene, world count, and the solver (kamino's backend and configuration, or the
+    peer and its variant)."""
+    who = (r["peer"], r.get("variant")) if "peer" in r else (r.get("kamino"), r.get("config"))
+    return (r.get("scene"), r.get("num_worlds"), *who)
+
+
+def latest_records(records: Iterable[dict]) -> list[dict]:
+    """``records`` with a later record of the same :func:`record_key` replacing an earlier one (kept where the later
+    one stands: runs merged from several files give the newest measurement of each thing)."""
+    latest: dict[tuple, dict] = {}
+    for r in records:
+        latest.pop(record_key(r), None)
+        latest[record_key(r)] = r
+    return list(latest.values())
 
 
 def table(records: list[dict]) -> str:

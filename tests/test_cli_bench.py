@@ -44,3 +44,30 @@ def test_kamino_bench_tables_saved_runs_beside_the_peers(tmp_path, capsys):
     assert lines[2] == ("| ladder32 | 4096 | 3.00e+05 (1.5e-06 m, 100 %, 90.0 kB) | 2.00e+05 (4.5e-03 m, 60.0 kB) "
                         "| not run: load: int32 overflow | 1.50x | 1.50x |")
     assert len(lines) == 3
+
+
+def test_kamino_bench_plots_several_runs_with_the_later_record_of_each_thing(tmp_path):
+    """``--plot A.json B.json --out STEM.json``: one plot of both runs, named after ``--out``; a record of the same
+    scene, size and solver in the later file replaces the earlier one (session 35 measured the four-bar at 16384
+    worlds in two processes), so each series keeps one point per size."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import throughput
+
+    kam = {"kamino": "warp", "config": "default", "scene": "fourbar", "closure_max_m": 1.4e-6}
+    runs = [[dict(kam, num_worlds=4096, throughput=3.3e6), dict(kam, num_worlds=16384, throughput=3.9e6)],
+            [dict(kam, num_worlds=16384, throughput=6.1e6),
+             {"peer": "mujoco_warp", "variant": "soft", "scene": "fourbar", "num_worlds": 16384, "throughput": 7e6}]]
+    merged = throughput.latest_records(r for recs in runs for r in recs)
+    assert [(r.get("peer"), r["num_worlds"], r["throughput"]) for r in merged] == [
+        (None, 4096, 3.3e6), (None, 16384, 6.1e6), ("mujoco_warp", 16384, 7e6)]
+    files = []
+    for i, recs in enumerate(runs):
+        files.append(tmp_path / f"run{i}.json")
+        files[-1].write_text(json.dumps({"records": recs}))
+    with pytest.raises(SystemExit) as done:
+        cli.main(["bench", "--plot", *map(str, files), "--out", str(tmp_path / "both.json")])
+    assert done.value.code == 0
+    assert (tmp_path / "both_throughput.png").stat().st_size > 0 and (tmp_path / "both_error.png").exists()
