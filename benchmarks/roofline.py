@@ -341,18 +341,11 @@ def world_memory_bytes(name: str, group: int = 32) -> float:
 # --- records and the table ------------------------------------------------------------------------------------
 
 def kamino_records(results: Iterable[dict], worlds: Sequence[int] | None = None) -> list[dict]:
-    """The kamino records at the default configuration (no peers), at ``worlds`` (all if ``None``), each once."""
-    out, seen = [], set()
-    for res in results:
-        for r in res.get("records", []):
-            if "peer" in r or r.get("config") != "default" or r.get("throughput") is None:
-                continue
-            if worlds is not None and int(r["num_worlds"]) not in worlds:
-                continue
-            key = (r["scene"], int(r["num_worlds"]), float(r["throughput"]))
-            if key not in seen:
-                seen.add(key)
-                out.append(r)
+    """The kamino records at the default configuration (no peers), at ``worlds`` (all if ``None``); of several of
+    the same scene and size, the later one (``throughput.latest_records``, the rule of ``--table`` and ``--plot``)."""
+    out = [r for r in tb.latest_records(r for res in results for r in res.get("records", []))
+           if "peer" not in r and r.get("config") == "default" and r.get("throughput") is not None
+           and (worlds is None or int(r["num_worlds"]) in worlds)]
     order = {s: i for i, s in enumerate((*tb.SCENES, *tb.ROBOTS))}
     return sorted(out, key=lambda r: (order.get(r["scene"], len(order)), r["scene"], int(r["num_worlds"])))
 

@@ -83,6 +83,8 @@ def test_table_is_throughput_times_cost(roofline):
                            {"peer": "mujoco_warp", "scene": "ladder8", "num_worlds": 4096, "throughput": 9e6}]}
     recs = roofline.kamino_records([results], [4096])
     assert recs == [rec]
+    later = dict(rec, throughput=3e6)  # the same scene and size measured again in a later file: that one counts
+    assert roofline.kamino_records([results, {"records": [later]}], [4096]) == [later]
     (row,) = roofline.roofline_rows(recs, lambda s: shape, lambda s: 0.0, peak_flops=1e13, peak_bandwidth=1e12)
     it = roofline.iteration_cost(shape)
     flop = roofline.factor_flops(f) + 3.0 * it.flops
