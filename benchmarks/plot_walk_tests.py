@@ -2,9 +2,11 @@
 ``python benchmarks/plot_walk_tests.py RUN [RUN ...] --out walk_tests.png``.
 
 Each ``RUN`` is a folder written by ``rl_train.py --walk-test`` (``walk_tests.json``, ``train_curve.json``); its
-name labels it. Three panels against environment steps: the walking test's mean tracking error and fall fraction,
-with issue 18's bars (0.1 m/s, 5 %) drawn, and the training episodes' mean return per policy step (the return
-divided by the episode length, comparable across runs whose episodes differ in length).
+name labels it. Four panels against environment steps: the walking test's mean tracking error and fall fraction,
+with issue 18's bars (0.1 m/s, 5 %) drawn, the training episodes' mean return per policy step (the return divided
+by the episode length, comparable across runs whose episodes differ in length), and the learning rate PPO used in
+each training window (brax's ``learning_rate`` metric, log scale: with ``ADAPTIVE_KL`` it is what the KL rule left
+of the configured rate; docs/envs.md, "The eleventh run").
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ def plot(runs: list[Path], out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    fig, axes = plt.subplots(1, 4, figsize=(18, 4))
     for run in runs:
         walks, train = load(run)
         if not walks and not train:
@@ -42,10 +44,16 @@ def plot(runs: list[Path], out: Path) -> None:
         axes[1].plot(steps, [100 * w["fall_fraction"] for w in walks], marker="o", label=run.name)
         axes[2].plot([t["step"] / 1e6 for t in train], [t["reward"] / max(t["length"], 1.0) for t in train],
                      label=run.name)
+        lr = [(t["step"] / 1e6, t["episode"]["learning_rate"]) for t in train
+              if "learning_rate" in t.get("episode", {})]
+        if lr:
+            axes[3].plot(*zip(*lr, strict=True), label=run.name)
+    axes[3].set_yscale("log")
     axes[0].axhline(ERROR_BAR, color="k", ls="--", lw=1, label="issue 18's bar")
     axes[1].axhline(100 * FALL_BAR, color="k", ls="--", lw=1, label="issue 18's bar")
     for ax, ylabel in zip(axes, ("walking test: mean tracking error [m/s]", "walking test: episodes fallen [%]",
-                                 "training: return per policy step"), strict=True):
+                                 "training: return per policy step", "training: PPO learning rate"),
+                              strict=True):
         ax.set_xlabel("environment steps [M]")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
