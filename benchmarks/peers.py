@@ -4,11 +4,27 @@ Each ``run_*`` function loads one benchmark scene (an MJCF file from ``benchmark
 ``num_worlds`` copies of it on one Warp device, and measures what docs/benchmark_scenes.md reports for
 the peers, with the same method, so our numbers and theirs compare:
 
-* **throughput**: steps/s x worlds at dt = 0.0025 s. On CUDA, ``graph_steps`` steps are captured in one
-  CUDA graph (``wp.ScopedCapture``), replayed a few times to warm up, then ``repeats`` trials of N replays
-  are timed (``wp.synchronize_device`` before reading the clock) and the median trial is reported. N is
-  picked so that one trial lasts at least ``min_trial_s``. On the CPU device the steps are a plain Python
-  loop of ``graph_steps`` steps per trial (smoke tests only; ``use_graph=True`` tries Warp's CPU graphs).
+* **throughput**: steps/s x worlds at dt = 0.0025 s over the same simulated window as kamino's figures
+  (benchmarks/timed_window.py, the one rule of benchmarks/throughput.py). On CUDA, ``graph_steps`` steps are
+  captured in one CUDA graph (``wp.ScopedCapture``); on the CPU device a block is a plain Python loop of
+  ``graph_steps`` steps (smoke tests only; ``use_graph=True`` tries Warp's CPU graphs). Each of ``repeats``
+  trials resets the peer to its initial state, runs ``warmup`` blocks untimed and times ``replays`` blocks
+  (``wp.synchronize_device`` before reading the clock); the median trial is reported. So the figure covers
+  steps ``[warmup * graph_steps, (warmup + replays) * graph_steps)`` of the driven motion, the record's
+  ``window_steps`` (``window_s`` in simulated seconds), as kamino's do. (Until this rule, a trial here was
+  sized to last 0.5 s from a replay count calibrated on one replay, and the simulation went on from trial to
+  trial: a window of its own, while a step's cost follows the motion: on the four-bar kamino's PADMM
+  iterations per block of 10 steps run 21, 20, 20, 27, 22, 38, 56, 160, 54, 36, 164 from reset.)
+  The resets: **MuJoCo Warp** copies back every array of its ``Data`` (found by walking it, nested containers
+  included), saved right after ``put_data``: ``time``, ``qpos``, ``qvel``, ``act``, ``ctrl``, the solver's warm
+  start ``qacc_warmstart``, the applied forces, mocap and ``eq_active`` (MuJoCo's integration state) and every
+  derived quantity as well, so nothing of a trial reaches the next (a second copy of ``Data`` on the device,
+  made after the memory figure is read). **SolverKamino**: its public ``reset(state)`` clears the solver's own
+  buffers (PADMM and the limit/contact warm-start caches, as far as the installed Newton's ``reset`` clears
+  them; a Newton without it, or whose ``reset`` raises, keeps them, noted in ``notes``), then both states,
+  the control and the drive's step counter are copied back from the arrays saved before the first step
+  (``_newton_reset``). The graph is captured once, before the first trial, and the resets write into the
+  arrays it was captured on.
 * **drive**: before every step, the first actuator's control is set to ``A sin(2 pi 1.0 t)`` in every world
   by a small Warp kernel that reads a device time counter (MuJoCo Warp: ``Data.time``; Newton: a step
   counter bumped after every step), so that the timed loop is pure graph replay. ``A`` is the ``amplitude``
@@ -44,8 +60,9 @@ the peers, with the same method, so our numbers and theirs compare:
 Results are plain JSON-serialisable dicts with the keys ``peer, variant, scene`` (file stem), ``scene_path,
 drive`` (what is driven, in words), ``drive_amplitude, num_worlds, throughput`` (steps/s x worlds),
 ``step_time_s, closure_max_m, joint_error_max_m, closure_steps, memory_per_world_bytes, memory_per_world_arrays_bytes,
-memory_method, device, timing`` (``graph_replay`` or ``python_loop``), ``graph_steps, replays_per_trial,
-trials_s, dt, versions, notes, reason`` (plus ``source`` and ``settings`` for SolverKamino). A peer that is not
+memory_method, device, timing`` (``graph_replay`` or ``python_loop``), ``graph_steps, warmup_blocks,
+replays_per_trial, repeats, trials_s, window_steps, window_s, dt, versions, notes, reason`` (plus ``source`` and
+``settings`` for SolverKamino). A peer that is not
 importable, or that cannot load or run the scene, gives a dict whose measurements are ``None`` and whose
 ``reason`` says why (``traceback`` holds the details). The closure run does not depend on ``num_worlds``: when
 sweeping world counts, pass ``closure_steps=0`` after the first.
@@ -67,9 +84,7 @@ import gc
 import importlib.metadata
 import json
 import math
-import statistics
 import sys
-import time
 import traceback
 import warnings
 import xml.etree.ElementTree as ET
@@ -83,14 +98,16 @@ try:  # the peers run on Warp; without it every runner returns a result whose ``
 except ImportError:  # pragma: no cover
     wp = None
 
+if str(Path(__file__).resolve().parent) not in sys.path:  # timed_window, beside this file
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+import timed_window
+
 DT = 0.0025
 """Time step [s] of every scene (their ``<option timestep>``); the peers are stepped with it."""
 DRIVE_AMPLITUDE = 2.0
 """Drive torque amplitude [N m] on the first actuator."""
 DRIVE_FREQUENCY = 1.0
 """Drive frequency [Hz]."""
-MIN_TRIAL_S = 0.5
-"""Default lower bound on the duration of one timed trial on CUDA [s]."""
 KAMINO_VARIANTS = ("padmm_dense", "padmm_sparse_cr", "dvi", "dvi_sparse", "lox")
 """SolverKamino configurations: the first three are the README's; ``dvi_sparse`` and ``lox`` are extras."""
 SCENE_SOURCES = ("mjcf", "newton_basics")
@@ -99,7 +116,6 @@ KAMINO_SETTINGS = ("newton_example", "defaults")
 """PADMM settings: those of Newton's ``example_kamino_basic_fourbar`` (default here), or the Config defaults."""
 
 _DISTRIBUTIONS = {"mujoco_warp": "mujoco-warp", "mujoco": "mujoco", "newton": "newton", "warp": "warp-lang"}
-_MAX_REPLAYS = 1_000_000
 
 
 def peer_versions() -> dict[str, str | None]:
@@ -141,8 +157,12 @@ def _new_result(peer: str, variant: str, scene: str, num_worlds: int) -> dict[st
         "device": None,
         "timing": None,
         "graph_steps": None,
+        "warmup_blocks": None,
         "replays_per_trial": None,
+        "repeats": None,
         "trials_s": None,
+        "window_steps": None,
+        "window_s": None,
         "closure_steps": None,
         "iterations_mean": None,
         "iterations_max": None,
@@ -267,16 +287,16 @@ def _memory_in_use(dev: Any) -> tuple[int | None, str]:
     return int(dev.total_memory - dev.free_memory), "cudaMemGetInfo used bytes (memory pool off)"
 
 
-def _owned_array_bytes(*roots: Any, max_objects: int = 2_000_000) -> int:
-    """Bytes of the distinct owning ``wp.array`` allocations reachable from ``roots``.
+def _reachable_arrays(*roots: Any, max_objects: int = 2_000_000) -> list[Any]:
+    """The distinct ``wp.array`` objects reachable from ``roots`` (views included), in the order found.
 
-    Walks attributes, dataclass fields and containers of objects from the ``newton`` and ``mujoco_warp``
-    packages (plus builtin containers); views (arrays without a deleter) are not counted, and each
-    allocation is counted once by pointer.
+    Walks the attributes, dataclass fields and slots of ``roots`` themselves and of the objects from the ``newton``
+    and ``mujoco_warp`` packages they reach, and builtin containers.
     """
     seen: set[int] = set()
-    allocations: dict[int, int] = {}
-    stack = list(roots)
+    arrays: list[Any] = []
+    stack = list(reversed(roots))
+    root_ids = {id(r) for r in roots}
     visited = 0
     while stack and visited < max_objects:
         obj = stack.pop()
@@ -285,8 +305,7 @@ def _owned_array_bytes(*roots: Any, max_objects: int = 2_000_000) -> int:
         seen.add(id(obj))
         visited += 1
         if isinstance(obj, wp.array):
-            if obj.ptr and getattr(obj, "deleter", None) is not None:
-                allocations[int(obj.ptr)] = max(allocations.get(int(obj.ptr), 0), int(obj.capacity))
+            arrays.append(obj)
             continue
         if isinstance(obj, dict):
             stack.extend(obj.values())
@@ -295,7 +314,7 @@ def _owned_array_bytes(*roots: Any, max_objects: int = 2_000_000) -> int:
             stack.extend(obj)
             continue
         module = type(obj).__module__ or ""
-        if not (module.startswith("newton") or module.startswith("mujoco_warp")):
+        if id(obj) not in root_ids and not (module.startswith("newton") or module.startswith("mujoco_warp")):
             continue
         if isinstance(obj, type):
             continue
@@ -305,24 +324,52 @@ def _owned_array_bytes(*roots: Any, max_objects: int = 2_000_000) -> int:
         for slot in getattr(type(obj), "__slots__", ()):
             if hasattr(obj, slot):
                 stack.append(getattr(obj, slot))
+    return arrays
+
+
+def _owned_array_bytes(*roots: Any, max_objects: int = 2_000_000) -> int:
+    """Bytes of the distinct owning ``wp.array`` allocations reachable from ``roots`` (:func:`_reachable_arrays`).
+
+    Views (arrays without a deleter) are not counted, and each allocation is counted once by pointer.
+    """
+    allocations: dict[int, int] = {}
+    for arr in _reachable_arrays(*roots, max_objects=max_objects):
+        if arr.ptr and getattr(arr, "deleter", None) is not None:
+            allocations[int(arr.ptr)] = max(allocations.get(int(arr.ptr), 0), int(arr.capacity))
     return sum(allocations.values())
+
+
+def _snapshot(*roots: Any) -> list[tuple[Any, Any]]:
+    """``(array, copy)`` for every non-empty ``wp.array`` reachable from ``roots`` (:func:`_reachable_arrays`): what
+    :func:`_restore` writes back in place, so that a captured graph keeps its addresses."""
+    return [(arr, wp.clone(arr)) for arr in _reachable_arrays(*roots) if arr.ptr and arr.size]
+
+
+def _restore(snapshot: list[tuple[Any, Any]]) -> None:
+    """Copy a :func:`_snapshot` back into its arrays (enqueued on the device; the caller synchronises)."""
+    for arr, saved in snapshot:
+        wp.copy(arr, saved)
 
 
 def _time_steps(
     step: Callable[[], None],
+    reset: Callable[[], None],
     dev: Any,
     *,
     graph_steps: int,
+    replays: int,
     repeats: int,
     use_graph: bool,
-    min_trial_s: float,
-    warmup_batches: int = 2,
+    warmup: int = timed_window.WARMUP_BLOCKS,
+    after_trial: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
-    """Time batches of ``graph_steps`` calls of ``step`` and return the median trial.
+    """Time the benchmark's window of blocks of ``graph_steps`` calls of ``step`` (benchmarks/timed_window.py).
 
-    With ``use_graph`` one batch is captured as a Warp graph and each trial replays it N times (N chosen
-    from one calibration replay so that a trial lasts ``min_trial_s``); otherwise each trial is a Python
-    loop of one batch. The device is synchronised before every clock read.
+    With ``use_graph`` one block is captured as a Warp graph (before the first trial: capturing runs nothing) and
+    replayed; otherwise a block is a Python loop of ``graph_steps`` steps. Each of ``repeats`` trials calls ``reset``
+    (the peer's initial state back into the arrays the graph was captured on), runs ``warmup`` blocks untimed and
+    times ``replays`` blocks; the median trial is reported, with the window it covers. The device is synchronised
+    before every clock read; ``after_trial(i)`` (untimed) may read the state trial ``i`` ends in.
     """
     if use_graph:
         with wp.ScopedCapture(device=dev) as capture:
@@ -330,41 +377,27 @@ def _time_steps(
                 step()
         graph = capture.graph
 
-        def batch() -> None:
+        def block() -> None:
             wp.capture_launch(graph)
 
     else:
 
-        def batch() -> None:
+        def block() -> None:
             for _ in range(graph_steps):
                 step()
 
-    for _ in range(warmup_batches):
-        batch()
-    wp.synchronize_device(dev)
-    replays = 1
-    if use_graph:
-        t0 = time.perf_counter()
-        batch()
-        wp.synchronize_device(dev)
-        one = max(time.perf_counter() - t0, 1e-7)
-        replays = int(min(_MAX_REPLAYS, max(1, math.ceil(min_trial_s / one))))
-    trials = []
-    for _ in range(repeats):
-        wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        for _ in range(replays):
-            batch()
-        wp.synchronize_device(dev)
-        trials.append(time.perf_counter() - t0)
-    median = statistics.median(trials)
-    return {
-        "timing": "graph_replay" if use_graph else "python_loop",
-        "graph_steps": graph_steps,
-        "replays_per_trial": replays,
-        "trials_s": trials,
-        "step_time_s": median / (replays * graph_steps),
-    }
+    timing = timed_window.time_window(
+        reset,
+        block,
+        lambda: wp.synchronize_device(dev),
+        graph_steps=graph_steps,
+        warmup=warmup,
+        replays=replays,
+        repeats=repeats,
+        dt=DT,
+        after_trial=after_trial,
+    )
+    return {"timing": "graph_replay" if use_graph else "python_loop", **timing}
 
 
 def _run_closure_steps(step: Callable[[], None], dev: Any, n: int, graph_steps: int, use_graph: bool) -> None:
@@ -516,9 +549,10 @@ def run_mujoco_warp(
     *,
     device: str | None = None,
     graph_steps: int = 10,
+    warmup: int = timed_window.WARMUP_BLOCKS,
+    replays: int = 10,
     repeats: int = 3,
     closure_steps: int = 1000,
-    min_trial_s: float = MIN_TRIAL_S,
     use_graph: bool | None = None,
     amplitude: float = DRIVE_AMPLITUDE,
 ) -> dict[str, Any]:
@@ -534,10 +568,11 @@ def run_mujoco_warp(
         scene: MJCF path.
         num_worlds: number of worlds stepped together for the throughput.
         device: Warp device (``"cuda:0"``, ``"cpu"``); ``None`` picks Warp's preferred device.
-        graph_steps: steps captured per graph (CUDA) or per timed batch (CPU).
-        repeats: timed trials; the median is reported.
+        graph_steps: steps captured per graph (CUDA) or per timed block (CPU).
+        warmup: untimed blocks after each trial's reset.
+        replays: timed blocks per trial.
+        repeats: timed trials, each from the initial ``Data`` (module docstring); the median is reported.
         closure_steps: steps of the one-world closure run; 0 skips it.
-        min_trial_s: lower bound on one trial's duration when replaying graphs.
         use_graph: capture graphs; ``None`` means on CUDA only.
         amplitude: drive amplitude ``A`` of ``ctrl[:, 0] = A sin(2 pi t)``: N m for a ``<motor>``, rad for a
             ``<position>`` actuator (the robots: 0.2).
@@ -583,18 +618,26 @@ def run_mujoco_warp(
 
     try:
         with wp.ScopedDevice(dev):
+            initial = _snapshot(d)  # the Data put_data made: every trial starts from it
             step = _mjw_stepper(m, d, num_worlds, drive=mjm.nu > 0, amplitude=amplitude)
             step()  # compile and load the kernels outside any capture
             wp.synchronize_device(dev)
             timing = _time_steps(
-                step, dev, graph_steps=graph_steps, repeats=repeats, use_graph=graph, min_trial_s=min_trial_s
+                step,
+                functools.partial(_restore, initial),
+                dev,
+                graph_steps=graph_steps,
+                warmup=warmup,
+                replays=replays,
+                repeats=repeats,
+                use_graph=graph,
             )
             result.update(timing)
             result["throughput"] = num_worlds / timing["step_time_s"]
             overflow = _mjw_overflow_note(d)
             if overflow:
                 _add_note(result, f"capacity hit during throughput run: {overflow}")
-        del step, m, d  # free the N-world data before the closure run
+        del step, m, d, initial  # free the N-world data before the closure run
         gc.collect()
     except Exception as exc:
         return _fail(result, "throughput", exc)
@@ -960,6 +1003,39 @@ def _newton_stepper(
     return step
 
 
+def _newton_reset(sim: SimpleNamespace, result: dict[str, Any]) -> Callable[[], None]:
+    """The reset of a Newton run between timed trials, its initial state saved now (before any step).
+
+    Each call asks SolverKamino to clear its internal buffers (its public ``reset(state)``: the PADMM warm start, the
+    limit and contact warm-start caches and its internal time, as far as the installed Newton's ``reset`` clears
+    them), then copies the saved initial arrays back into both states (poses, twists, the custom
+    ``joint_q_prev``/``joint_lambdas`` attributes), the control and the drive's step counter. The copies come last,
+    so that what ``reset`` writes into the state is replaced by the exact initial values. A Newton without
+    ``SolverKamino.reset``, or one whose ``reset`` raises, keeps its internal caches from trial to trial; the
+    result's ``notes`` say so.
+    """
+    initial = _snapshot(sim.states[0], sim.states[1], sim.control, sim.counter)
+    solver_reset = getattr(sim.solver, "reset", None)
+    if solver_reset is None:
+        _add_note(result, "SolverKamino has no reset(): its internal warm starts carry over between timed trials")
+
+    def reset() -> None:
+        nonlocal solver_reset
+        if solver_reset is not None:
+            try:
+                solver_reset(sim.states[0])
+            except Exception as exc:  # keep timing; say what was not reset
+                solver_reset = None
+                _add_note(
+                    result,
+                    f"SolverKamino.reset failed ({type(exc).__name__}: {exc}); its internal warm starts carry over "
+                    "between timed trials",
+                )
+        _restore(initial)
+
+    return reset
+
+
 def _even(n: int) -> int:
     """``n`` rounded up to an even count (captured Newton graphs must end on the state they start from)."""
     return n + (n % 2)
@@ -972,9 +1048,10 @@ def run_solver_kamino(
     device: str | None = None,
     variant: str = "padmm_dense",
     graph_steps: int = 10,
+    warmup: int = timed_window.WARMUP_BLOCKS,
+    replays: int = 10,
     repeats: int = 3,
     closure_steps: int = 1000,
-    min_trial_s: float = MIN_TRIAL_S,
     use_graph: bool | None = None,
     source: str = "mjcf",
     settings: str = "newton_example",
@@ -995,10 +1072,11 @@ def run_solver_kamino(
         device: Warp device; ``None`` picks Warp's preferred device.
         variant: one of ``KAMINO_VARIANTS`` (``padmm_dense``, ``padmm_sparse_cr``, ``dvi``; extras
             ``dvi_sparse``, ``lox``).
-        graph_steps: steps per captured graph / timed batch; rounded up to even (state ping-pong).
-        repeats: timed trials; the median is reported.
+        graph_steps: steps per captured graph / timed block; rounded up to even (state ping-pong).
+        warmup: untimed blocks after each trial's reset.
+        replays: timed blocks per trial.
+        repeats: timed trials, each from the initial state (see ``_newton_reset``); the median is reported.
         closure_steps: steps of the one-world closure run; 0 skips it.
-        min_trial_s: lower bound on one trial's duration when replaying graphs.
         use_graph: capture graphs; ``None`` means on CUDA only.
         source: ``"mjcf"`` or ``"newton_basics"`` (fourbar only), see ``SCENE_SOURCES``.
         settings: ``"newton_example"`` (PADMM tolerances 1e-4 etc., see ``_kamino_config``) or ``"defaults"``.
@@ -1062,16 +1140,24 @@ def run_solver_kamino(
 
     try:
         with wp.ScopedDevice(dev):
+            reset = _newton_reset(sim, result)  # saves the initial state before any step
             step = _newton_stepper(built, sim, amplitude=amplitude)
             step()  # compile and load the kernels outside any capture
             step()
             wp.synchronize_device(dev)
             timing = _time_steps(
-                step, dev, graph_steps=graph_steps, repeats=repeats, use_graph=graph, min_trial_s=min_trial_s
+                step,
+                reset,
+                dev,
+                graph_steps=graph_steps,
+                warmup=warmup,
+                replays=replays,
+                repeats=repeats,
+                use_graph=graph,
             )
             result.update(timing)
             result["throughput"] = num_worlds / timing["step_time_s"]
-        del step, built, sim  # free the N-world model before the closure run
+        del step, reset, built, sim  # free the N-world model before the closure run
         gc.collect()
     except Exception as exc:
         return _fail(result, "throughput", exc)
@@ -1142,10 +1228,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variants", default="padmm_dense,padmm_sparse_cr,dvi", help="SolverKamino variants")
     parser.add_argument("--source", default="mjcf", choices=SCENE_SOURCES, help="Newton scene source")
     parser.add_argument("--kamino-settings", default="newton_example", choices=KAMINO_SETTINGS)
-    parser.add_argument("--graph-steps", type=int, default=10)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--graph-steps", type=int, default=10, help="steps per block (one graph)")
+    parser.add_argument("--warmup", type=int, default=timed_window.WARMUP_BLOCKS, help="untimed blocks per trial")
+    parser.add_argument("--replays", type=int, default=10, help="timed blocks per trial")
+    parser.add_argument("--repeats", type=int, default=3, help="trials, each from a reset; the median is reported")
     parser.add_argument("--closure-steps", type=int, default=1000, help="closure run once per peer/variant")
-    parser.add_argument("--min-trial-s", type=float, default=MIN_TRIAL_S)
     parser.add_argument(
         "--amplitude", type=float, default=DRIVE_AMPLITUDE, help="drive amplitude: N m (<motor>), rad (<position>)"
     )
@@ -1161,8 +1248,9 @@ def main(argv: list[str] | None = None) -> int:
     common = {
         "device": args.device,
         "graph_steps": args.graph_steps,
+        "warmup": args.warmup,
+        "replays": args.replays,
         "repeats": args.repeats,
-        "min_trial_s": args.min_trial_s,
         "use_graph": args.graph,
         "amplitude": args.amplitude,
     }

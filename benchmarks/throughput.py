@@ -12,12 +12,28 @@ stdout carries the JSON records only, one a line, as before.
 Method (docs/architecture.md "Performance method", the same as the peers' figures in benchmarks/README.md):
 float32, dt = 0.0025 s, the drive ``2 N m sin(2 pi t)`` on the scene's first actuator set on the device
 every step (inside the graph); throughput = steps/s x worlds with a CUDA graph of ``--graph-steps`` steps
-replayed, after warm-up, median of ``--repeats`` trials. Next to each figure: the PADMM iterations and
-residuals and the loop closure (largest anchor distance of any joint with translational rows) over a
-``--closure-steps`` run of one world, and the device memory per world. The robots (``--scenes dr_legs bdx olaf
-animatronic``) stand in their reference pose under PD, with the position target ``0.2 sin(2 pi t)`` rad on the
-first actuator. The peers run fourbar, ladder8, ladder32 from benchmarks/scenes and the robots from their
-``kamino.save_mjcf`` export, with the same drive (benchmarks/peers.py, :func:`run_peers`).
+replayed. Next to each figure: the PADMM iterations and residuals and the loop closure (largest anchor distance of
+any joint with translational rows) over a ``--closure-steps`` run of one world, and the device memory per world.
+The robots (``--scenes dr_legs bdx olaf animatronic``) stand in their reference pose under PD, with the position
+target ``0.2 sin(2 pi t)`` rad on the first actuator. The peers run fourbar, ladder8, ladder32 from
+benchmarks/scenes and the robots from their ``kamino.save_mjcf`` export, with the same drive (benchmarks/peers.py,
+:func:`run_peers`).
+
+The timed window (one rule for kamino Warp, kamino JAX, MuJoCo Warp and SolverKamino: benchmarks/timed_window.py):
+each of ``--repeats`` trials resets the simulation to its initial state (state, time, controls, warm start: see
+:func:`time_warp`, :func:`bench_jax` and benchmarks/peers.py for what each solver's reset covers), runs ``--warmup``
+blocks of ``--graph-steps`` steps untimed, synchronises and times ``--replays`` blocks; the figure is the median
+trial. Every figure therefore covers steps ``[warmup * graph_steps, (warmup + replays) * graph_steps)`` of the same
+driven motion from the same start, written into each record as ``window_steps`` and ``window_s`` (simulated
+seconds). Why: a step costs in proportion to its PADMM iterations, which follow the motion; on the four-bar they
+run 21, 20, 20, 27, 22, 38, 56, 160, 54, 36, 164 per block of 10 steps from reset, so the earlier rule (trials
+continuing the simulation, the median trial's window depending on ``--replays``) gave the same GPU and code
+6.06e6 world-steps/s at 16384 worlds with ``--replays 2`` and 3.95e6 with ``--replays 3``, and the peers (trials
+sized to last 0.5 s) another window again. The defaults are kept (``--graph-steps 10 --warmup 2 --replays 10
+--repeats 3``): the window is steps [20, 120), 0.05 to 0.30 s, which holds the four-bar's hard stretch (the 160 at
+steps 70-80 and the 164 at 100-110), and a sweep takes about as long as before (each trial adds its 20 warm-up
+steps). Figures of runs with other ``--graph-steps``, ``--warmup`` or ``--replays`` cover another window: compare
+records whose ``window_steps`` agree.
 """
 
 
@@ -27,7 +43,6 @@ import json
 import math
 import pathlib
 import platform
-import statistics
 import sys
 import tempfile
 import time
@@ -38,6 +53,10 @@ from tqdm import tqdm
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
+if str(HERE) not in sys.path:  # timed_window and peers, also where this file is run by path (kamino bench)
+    sys.path.insert(1, str(HERE))
+
+import timed_window  # noqa: E402
 
 import kamino  # noqa: E402
 from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType  # noqa: E402
@@ -147,7 +166,9 @@ def _initial(model, name):
     return state, None, np.zeros(model.num_dofs)
 
 
-def bench_warp(name, config_name, num_worlds, args) -> dict:
+def warp_stepper(name, config_name, num_worlds):
+    """``(stepper, state, control)``: the Warp stepper of a scene at ``num_worlds`` worlds with its drive hook, and the
+    initial state and controls that :func:`time_warp` resets it to (loaded once here)."""
     import warp as wp
 
     from kamino.warp_backend import backend as wb
@@ -156,36 +177,62 @@ def bench_warp(name, config_name, num_worlds, args) -> dict:
     model = kamino.replicate(base, num_worlds) if num_worlds > 1 else base
     cfg = kamino.SolverConfig(dt=DT, **SOLVER, **CONFIGS[config_name])
     state, control, base_targets = _initial(model, name)
+    st = wb.stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
+    wb.load_state(st, state, control)
+    st.pre_step.append(_drive_hook(st, model, drive, base_targets))
+    return st, state, control
+
+
+def time_warp(st, state, control, args, after_trial=None) -> dict:
+    """The timed window (benchmarks/timed_window.py) of a Warp stepper: each trial resets the stepper, runs
+    ``--warmup`` blocks of ``--graph-steps`` steps (one CUDA graph each, captured on the stepper's buffers during the
+    first trial's warm-up; plain launches on the CPU) untimed, then times ``--replays`` blocks.
+
+    The reset is :func:`kamino.warp_backend.backend.load_state` of the initial ``state`` and ``control`` into the
+    buffers the graph was captured on: poses, twists, time (the drive hook reads it), the previous step's reactions
+    and contacts (PADMM's warm start, ``Work.f0``/``v0`` are rebuilt from them every step), the penalty that adapts
+    from step to step (``Work.rho_u``), the unconverged-step counters and frozen flags, and the controls. Everything
+    else in the workspace is rewritten by every step before it is read, so a trial after a reset repeats the first
+    bit for bit on the CPU (tests/test_timed_window.py); on a GPU the atomics' order may still differ."""
+    import warp as wp
+
+    from kamino.warp_backend import backend as wb
+
+    return timed_window.time_window(
+        lambda: wb.load_state(st, state, control), lambda: st.run(args.graph_steps),
+        lambda: wp.synchronize_device(st.device), graph_steps=args.graph_steps, warmup=args.warmup,
+        replays=args.replays, repeats=args.repeats, dt=DT, after_trial=after_trial)
+
+
+def _window_fields(timing: dict) -> dict:
+    """The record's share of a :func:`timed_window.time_window` result: step time, the trials and the window."""
+    keys = ("step_time_s", "trials_s", "graph_steps", "warmup_blocks", "replays_per_trial", "repeats", "window_steps",
+            "window_s")
+    return {k: timing[k] for k in keys}
+
+
+def bench_warp(name, config_name, num_worlds, args) -> dict:
+    """Throughput of the Warp backend: :func:`time_warp`'s window; the memory is what the stepper allocates."""
+    import warp as wp
+
     dev = wp.get_device()
     wp.synchronize_device(dev)
     mem0 = wp.get_mempool_used_mem_current(dev) if dev.is_cuda else 0
-    st = wb.stepper(model, cfg, np.float32, dev, padmm=PADMM.get(config_name))
-    wb.load_state(st, state, control)
-    st.pre_step.append(_drive_hook(st, model, drive, base_targets))
+    st, state, control = warp_stepper(name, config_name, num_worlds)
     wp.synchronize_device(dev)
     mem = (wp.get_mempool_used_mem_current(dev) - mem0) if dev.is_cuda else 0
-    n = args.graph_steps
-    st.run(n)  # capture + warm-up
-    st.run(n)
-    wp.synchronize_device(dev)
-    trials = []
-    replays = max(1, args.replays)
-    for _ in range(args.repeats):
-        t0 = time.perf_counter()
-        for _ in range(replays):
-            st.run(n)
-        wp.synchronize_device(dev)
-        trials.append(time.perf_counter() - t0)
-    step_time = statistics.median(trials) / (replays * n)
+    timing = time_warp(st, state, control, args)
     return {"kamino": "warp", "config": config_name, "scene": name, "num_worlds": num_worlds,
-            "throughput": num_worlds / step_time, "step_time_s": step_time, "memory_per_world_bytes": mem / num_worlds,
-            "rows_max": st.wm.max_rows, "linear_solver": st.linear_solver, "padmm": st.padmm, "solver": dict(SOLVER)}
+            "throughput": num_worlds / timing["step_time_s"], **_window_fields(timing),
+            "memory_per_world_bytes": mem / num_worlds, "rows_max": st.wm.max_rows, "linear_solver": st.linear_solver,
+            "padmm": st.padmm, "solver": dict(SOLVER)}
 
 
 def bench_jax(name, num_worlds, args) -> dict:
-    """The JAX backend on the same schedule as :func:`bench_warp`: blocks of ``--graph-steps`` jitted steps, the
-    drive evaluated at each world's simulated time (so both backends see the same part of the motion), two
-    warm-up blocks, then the median over ``--repeats`` trials of ``--replays`` blocks."""
+    """The JAX backend over the same window as :func:`bench_warp` (benchmarks/timed_window.py): blocks of
+    ``--graph-steps`` jitted steps, the drive evaluated at each world's simulated time (so both backends see the same
+    part of the motion); each trial starts again from the initial ``state`` (the JAX state is a value: that is the
+    whole reset, warm start included), runs ``--warmup`` blocks untimed and times ``--replays`` blocks."""
     import jax
     import jax.numpy as jnp
 
@@ -204,20 +251,19 @@ def bench_jax(name, num_worlds, args) -> dict:
         return jax.tree_util.tree_map(lambda x: x[-1], traj)
 
     run = jax.jit(block)
-    s = run(run(state))
-    jax.block_until_ready(s)
-    trials = []
-    replays = max(1, args.replays)
-    for _ in range(args.repeats):
-        t0 = time.perf_counter()
-        for _ in range(replays):
-            s = run(s)
-        jax.block_until_ready(s)
-        trials.append(time.perf_counter() - t0)
-    step_time = statistics.median(trials) / (replays * n)
+    sim = {"s": state}
+
+    def reset():
+        sim["s"] = state
+
+    def advance():
+        sim["s"] = run(sim["s"])
+
+    timing = timed_window.time_window(reset, advance, lambda: jax.block_until_ready(sim["s"]), graph_steps=n,
+                                      warmup=args.warmup, replays=args.replays, repeats=args.repeats, dt=DT)
     return {"kamino": "jax", "config": "jax", "scene": name, "num_worlds": num_worlds,
-            "throughput": num_worlds / step_time, "step_time_s": step_time,
-            "iterations_last_step_max": int(np.max(np.asarray(s.info.iterations)))}
+            "throughput": num_worlds / timing["step_time_s"], **_window_fields(timing),
+            "iterations_last_step_max": int(np.max(np.asarray(sim["s"].info.iterations)))}
 
 
 def closure_run(name, config_name, args) -> dict:
@@ -306,9 +352,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=sorted({*SCENES, *ROBOTS}))
     p.add_argument("--worlds", nargs="+", type=int, default=[1, 64, 512, 4096, 16384])
     p.add_argument("--configs", nargs="+", default=[*CONFIGS, "jax"])
-    p.add_argument("--graph-steps", type=int, default=10)
-    p.add_argument("--replays", type=int, default=10)
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--graph-steps", type=int, default=10, help="steps per block (one CUDA graph)")
+    p.add_argument("--warmup", type=int, default=timed_window.WARMUP_BLOCKS,
+                   help="untimed blocks after each trial's reset (the window starts after them)")
+    p.add_argument("--replays", type=int, default=10, help="timed blocks per trial (the window's length)")
+    p.add_argument("--repeats", type=int, default=3, help="trials, each from a reset; the median is reported")
     p.add_argument("--closure-steps", type=int, default=1000)
     p.add_argument("--tolerance", type=float, default=None, help="PADMM tolerance (default: SolverConfig's)")
     p.add_argument("--rho", type=float, default=None, help="PADMM starting penalty (default: SolverConfig's)")
@@ -424,8 +472,8 @@ def run_peers(scene, args, emit) -> None:
         for nw in args.worlds:
             for fn, kw in runs:
                 try:
-                    rec = fn(path, nw, graph_steps=args.graph_steps, repeats=args.repeats,
-                             closure_steps=args.closure_steps if nw == args.worlds[0] else 0,
+                    rec = fn(path, nw, graph_steps=args.graph_steps, warmup=args.warmup, replays=args.replays,
+                             repeats=args.repeats, closure_steps=args.closure_steps if nw == args.worlds[0] else 0,
                              amplitude=drive["amplitude"], **kw)
                     emit({**rec, "scene": scene, "scene_source": source})
                 except Exception as e:

@@ -52,7 +52,8 @@ def _fake_peers(calls: list) -> types.ModuleType:
 
 
 def _args(**kw) -> argparse.Namespace:
-    base = dict(worlds=[2, 4], graph_steps=1, repeats=1, closure_steps=5, kamino_variants=["padmm_dense"])
+    base = dict(worlds=[2, 4], graph_steps=1, warmup=2, replays=3, repeats=1, closure_steps=5,
+                kamino_variants=["padmm_dense"])
     return argparse.Namespace(**{**base, **kw})
 
 
@@ -72,6 +73,8 @@ def test_run_peers_exports_the_robot_and_drives_its_position_target(monkeypatch)
     assert [(c["peer"], c["num_worlds"]) for c in calls] == [
         ("mujoco_warp", 2), ("solver_kamino", 2), ("mujoco_warp", 4), ("solver_kamino", 4)]
     assert [c["closure_steps"] for c in calls] == [5, 5, 0, 0]
+    # the peers time kamino's window: the same warm-up and replays (benchmarks/timed_window.py)
+    assert all((c["graph_steps"], c["warmup"], c["replays"], c["repeats"]) == (1, 2, 3, 1) for c in calls)
     assert calls[1]["variant"] == "padmm_dense"
     assert all(c["amplitude"] == 0.2 for c in calls)  # rad, as kamino's own drive of the robots
     assert len({c["path"] for c in calls}) == 1
@@ -117,7 +120,8 @@ def test_mujoco_warp_runs_an_exported_robot(tmp_path):
     peers = _module("peers")
     path = tmp_path / "dr_legs.xml"
     kamino.save_mjcf(kamino.models.dr_legs(), path)
-    r = peers.run_mujoco_warp(str(path), 1, device="cpu", graph_steps=1, repeats=1, closure_steps=2, amplitude=0.2)
+    r = peers.run_mujoco_warp(str(path), 1, device="cpu", graph_steps=1, replays=1, repeats=1, closure_steps=2,
+                              amplitude=0.2)
     assert r["reason"] is None, r.get("traceback")
     assert r["scene"] == "dr_legs" and r["drive"].startswith("position target 0.2 sin")
     assert math.isfinite(r["throughput"]) and r["throughput"] > 0
@@ -146,8 +150,8 @@ def test_solver_kamino_drives_the_joint_target_of_an_exported_robot(tmp_path):
         np.testing.assert_allclose(target, 0.2 * math.sin(2 * math.pi * peers.DT), rtol=1e-6)
         assert not np.any(sim.control.joint_f.numpy())  # no torque drive
         assert np.all(np.isfinite(sim.states[0].body_q.numpy()))
-    r = peers.run_solver_kamino(str(path), 1, device="cpu", variant="dvi", graph_steps=2, repeats=1, closure_steps=2,
-                                amplitude=0.2)
+    r = peers.run_solver_kamino(str(path), 1, device="cpu", variant="dvi", graph_steps=2, replays=1, repeats=1,
+                                closure_steps=2, amplitude=0.2)
     assert r["reason"] is None, r.get("traceback")
     assert math.isfinite(r["throughput"]) and r["throughput"] > 0
     assert 0 <= r["closure_max_m"] <= r["joint_error_max_m"] < 1e-3
