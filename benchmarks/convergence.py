@@ -34,8 +34,9 @@ Measured per scene (:func:`measure`), over every (world, step) pair of the run:
   ``|J(q_t) u+ + v*|`` (the residual of the rows PADMM solved, bias ``v*`` included), ``pre`` ``|J(q_t) u+|``
   and ``post`` ``|J(q_{t+1}) u+|`` (the constraint velocity of the new state), max over translational [m/s]
   and rotational [rad/s] rows;
-- ``throughput``: world-steps/s of a CUDA graph of ``--graph-steps`` steps replayed ``--replays`` times,
-  median of ``--repeats`` trials, after the run (as ``throughput.bench_warp``); ``None`` on the CPU;
+- ``throughput``: world-steps/s after the run, over ``throughput.time_warp``'s timed window (each trial resets to the
+  state the run ended in, ``--warmup`` blocks of ``--graph-steps`` steps untimed, ``--replays`` blocks timed; median
+  of ``--repeats`` trials); ``None`` on the CPU;
 - ``diverged``: a failed or non-finite world, or a closure above 1e-2 m;
 - ``steps`` and ``truncated``: the steps run; with ``--time-limit`` a run that would pass the limit stops at the
   next sample and reports what it ran (``truncated: true``) instead of losing the record at a device call's
@@ -51,7 +52,6 @@ import math
 import os
 import pathlib
 import platform
-import statistics
 import subprocess
 import sys
 import time
@@ -67,7 +67,8 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 import stress_models  # noqa: E402
-from throughput import progress, solver_overrides  # noqa: E402
+from throughput import progress, solver_overrides, time_warp  # noqa: E402
+from timed_window import WARMUP_BLOCKS  # noqa: E402
 
 import kamino  # noqa: E402
 from kamino.model import JOINT_CONSTRAINT_ROWS, RES_TRANS, ActuationMode, JointType  # noqa: E402
@@ -377,26 +378,17 @@ def _world_slice(arr, w: int, per: int, width: int) -> np.ndarray:
     return arr[w * per:(w + 1) * per].numpy().reshape(per, width)
 
 
-def _throughput(st, args) -> tuple[float | None, float | None]:
-    """(world-steps/s, s per step) of the stepper's graph of ``--graph-steps`` steps replayed ``--replays``
-    times, median of ``--repeats`` trials after two warm-up blocks (``throughput.bench_warp``); ``None`` on CPU."""
-    import warp as wp
+def _throughput(st, control, args) -> tuple[float | None, float | None]:
+    """(world-steps/s, s per step) after the run, by ``throughput.time_warp``'s timed window
+    (benchmarks/timed_window.py): every trial starts again from the state the run ended in, runs ``--warmup`` blocks
+    of ``--graph-steps`` steps untimed and times ``--replays`` blocks; the median of ``--repeats`` trials. ``None`` on
+    the CPU."""
+    from kamino.warp_backend import backend as wb
 
     if not st.device.is_cuda:
         return None, None
-    n = args.graph_steps
-    st.run(n)
-    st.run(n)
-    wp.synchronize_device(st.device)
-    trials = []
-    for _ in range(args.repeats):
-        t0 = time.perf_counter()
-        for _ in range(args.replays):
-            st.run(n)
-        wp.synchronize_device(st.device)
-        trials.append(time.perf_counter() - t0)
-    step_time = statistics.median(trials) / (args.replays * n)
-    return st.wm.num_worlds / step_time, step_time
+    timing = time_warp(st, wb.read_state(st), control, args)
+    return st.wm.num_worlds / timing["step_time_s"], timing["step_time_s"]
 
 
 def _release(model: kamino.Model) -> None:
@@ -512,7 +504,7 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
                            or not rec["closure_max_m"] <= DIVERGED_CLOSURE)
     st.pre_step.remove(stats.hook)
     st.invalidate_graphs()
-    rec["throughput_world_steps_per_s"], rec["step_time_s"] = _throughput(st, args)
+    rec["throughput_world_steps_per_s"], rec["step_time_s"] = _throughput(st, control, args)
     rec["config"] = dataclasses.asdict(cfg)
     return rec
 
@@ -550,6 +542,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--sample-every", type=int, default=10, help="closure / |J u| sample period [steps]")
     p.add_argument("--sample-worlds", type=int, default=4, help="worlds whose |J u| is computed")
     p.add_argument("--graph-steps", type=int, default=10)
+    p.add_argument("--warmup", type=int, default=WARMUP_BLOCKS)
     p.add_argument("--replays", type=int, default=10)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--solver", nargs="+", default=[], metavar="FIELD=VALUE",
