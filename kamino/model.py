@@ -1144,7 +1144,6 @@ def concat(models: Sequence[Model]) -> Model:
     shifts = {"body": _prefix([m.num_bodies for m in models]), "geom": _prefix([m.num_geoms for m in models]),
               "world": _prefix([m.num_worlds for m in models]), "joint": _prefix([m.num_joints for m in models]),
               "dof": _prefix([m.num_dofs for m in models])}
-    offsets = [{entity: off[k] for entity, off in shifts.items()} for k in range(len(models))]
     for f in dataclasses.fields(Model):
         name = f.name
         if name == "num_worlds" or (name.startswith("world_") and name.endswith("_start")):
@@ -1153,12 +1152,20 @@ def concat(models: Sequence[Model]) -> Model:
         if isinstance(first, tuple):
             out[name] = tuple(itertools.chain.from_iterable(getattr(m, name) for m in models))
             continue
-        parts = []
-        for k, m in enumerate(models):
-            v = getattr(m, name)
-            parts.append(_shift_index(name, v, offsets[k]))
-        out[name] = np.concatenate(parts, axis=0)
+        out[name] = _concat_shifted(name, [getattr(m, name) for m in models], shifts)
     return _with_starts(out)
+
+
+def _concat_shifted(name: str, parts: list[np.ndarray], shifts: dict[str, np.ndarray]) -> np.ndarray:
+    """The parts (field ``name`` of each model) concatenated, each part's entity indices moved by its model's offset
+    ``shifts[entity][k]`` if ``name`` is an index field (:data:`_INDEX_FIELDS`), as :func:`_shift_index` moves them:
+    one numpy operation over all parts, whatever their number."""
+    cat = np.concatenate(parts, axis=0)
+    entity = _INDEX_FIELDS.get(name)
+    if entity is None:
+        return cat
+    off = np.repeat(shifts[entity], [len(p) for p in parts]).reshape(-1, *([1] * (cat.ndim - 1)))
+    return np.where(cat >= 0, cat + off, cat) if entity in ("body", "joint") else cat + off
 
 
 def _shift_index(name: str, v: np.ndarray, offsets: dict[str, int]) -> np.ndarray:

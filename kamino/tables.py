@@ -10,6 +10,7 @@ reference pads these per world; the Warp backend uses them flat.
 from __future__ import annotations
 
 import dataclasses
+import weakref
 
 import numpy as np
 
@@ -47,8 +48,48 @@ def prefix(counts: np.ndarray) -> np.ndarray:
     return np.cumsum(counts) - counts
 
 
+def is_frozen(model: Model) -> bool:
+    """Whether every array of ``model`` is read-only, as :class:`~kamino.model.ModelBuilder`, ``concat`` and
+    ``replicate`` leave them. ``Model`` is a frozen dataclass compared by identity, so a value derived from a frozen
+    model and cached under the model object cannot go stale."""
+    return all(not v.flags.writeable for f in dataclasses.fields(model)
+               if isinstance(v := getattr(model, f.name), np.ndarray))
+
+
+_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def row_tables(model: Model) -> RowTables:
-    """The tables of ``model`` (computed in numpy; cache the result if it is needed often)."""
+    """The tables of ``model``, computed in numpy. A frozen model's (:func:`is_frozen`) are computed once and cached
+    under the model object (the entry goes with the model), their arrays read-only."""
+    if not is_frozen(model):
+        return _row_tables(model)
+    tab = _TABLES.get(model)
+    if tab is None:
+        tab = _TABLES[model] = _read_only(_row_tables(model))
+    return tab
+
+
+def _read_only(tab: RowTables) -> RowTables:
+    """``tab`` with its arrays made read-only (a cached value is shared by every caller)."""
+    for f in dataclasses.fields(tab):
+        v = getattr(tab, f.name)
+        if isinstance(v, np.ndarray):
+            v.flags.writeable = False
+    return tab
+
+
+def _pair_kinds(model: Model) -> tuple[tuple[tuple[int, int], ...], np.ndarray]:
+    """The geom type combinations of the candidate pairs, sorted, and the index of each pair's among them."""
+    if not model.num_pairs:
+        return (), np.zeros(0, np.int64)
+    types = np.stack([model.geom_type[model.pair_geom_a], model.geom_type[model.pair_geom_b]], axis=1)
+    kinds, pair_kind = np.unique(types, axis=0, return_inverse=True)
+    return tuple((int(a), int(b)) for a, b in kinds), np.asarray(pair_kind, np.int64).reshape(-1)
+
+
+def _row_tables(model: Model) -> RowTables:
+    """The tables of ``model`` (uncached: :func:`row_tables`)."""
     W = model.num_worlds
     n_rows, n_dofs = model.num_constraints, model.num_dofs
     cts_joint, cts_axis, cts_kind = (np.zeros(n_rows, np.int64) for _ in range(3))
@@ -80,10 +121,7 @@ def row_tables(model: Model) -> RowTables:
              else np.zeros(0, np.int64))
     cpl_wrap = model.joint_type[ja] == int(JointType.REVOLUTE) if model.num_couplings else np.zeros(0, bool)
 
-    ta, tb = model.geom_type[model.pair_geom_a], model.geom_type[model.pair_geom_b]
-    kinds = tuple(sorted({(int(a), int(b)) for a, b in zip(ta, tb, strict=True)}))
-    kind_of = {k: i for i, k in enumerate(kinds)}
-    pair_kind = np.array([kind_of[(int(a), int(b))] for a, b in zip(ta, tb, strict=True)], np.int64)
+    kinds, pair_kind = _pair_kinds(model)
     pair_order = np.lexsort((np.arange(model.num_pairs), pair_kind, model.pair_world)) if model.num_pairs else (
         np.zeros(0, np.int64))
     return RowTables(

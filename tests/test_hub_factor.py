@@ -8,6 +8,9 @@ import functools
 import numpy as np
 import pytest
 import warp as wp
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 import kamino
 from kamino.warp_backend import backend as wb
@@ -38,6 +41,28 @@ def test_hub_entry_counts_match_the_counted_fill():
         a, b = sparse_llt.symbolic(rows), sparse_llt.symbolic(rows, np.zeros(0, np.int64))
         for f in ("perm", "row_ptr", "col", "colrow", "div", "upd_a", "upd_b", "cent", "crow", "fan_tgt", "fan_a"):
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+
+
+def _hub_bodies_loop(bodies, min_rows):
+    """``sparse_llt.hub_bodies`` as a plain loop (its former code): each row's bodies as a set, counted per body."""
+    if min_rows is None or len(bodies) == 0:
+        return np.zeros(0, np.int64)
+    count: dict[int, int] = {}
+    for row in bodies:
+        for b in set(int(x) for x in row if x >= 0):
+            count[b] = count.get(b, 0) + 1
+    return np.asarray(sorted(b for b, c in count.items() if c > min_rows), np.int64)
+
+
+@settings(max_examples=200, deadline=None, derandomize=True, database=None)
+@given(bodies=hnp.arrays(np.int64, st.tuples(st.integers(0, 40), st.integers(1, 4)), elements=st.integers(-1, 7)),
+       min_rows=st.one_of(st.none(), st.integers(0, 12)))
+def test_hub_bodies_counts_each_body_once_per_row(bodies, min_rows):
+    # random body tables: -1 padding anywhere, a body repeated within a row, rows of the width 4 of fixed_row_bodies
+    # and narrower ones, no rows at all
+    hubs = sparse_llt.hub_bodies(bodies, min_rows)
+    assert hubs.dtype == np.int64
+    np.testing.assert_array_equal(hubs, _hub_bodies_loop(bodies, min_rows))
 
 
 @functools.cache

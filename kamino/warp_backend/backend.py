@@ -42,10 +42,12 @@ def release(model: Model | None = None) -> None:
 
     Their values refer to the model, so these ``WeakKeyDictionary`` entries never expire by themselves: a process
     that steps many models (a benchmark over scenes, a test suite) keeps every stepper's device buffers until it
-    releases them. The next step of a released model builds its stepper again."""
-    from kamino.warp_backend import jit, model_data
+    releases them. The next step of a released model builds its stepper again. The host tables a stepper is built
+    from (``kamino.tables.row_tables``, ``sparse_llt.fixed_row_types``) go too."""
+    from kamino import tables
+    from kamino.warp_backend import jit, model_data, sparse_llt
 
-    for cache in (_STEPPERS, model_data._CACHE, jit._BATCHABLE):
+    for cache in (_STEPPERS, model_data._CACHE, jit._BATCHABLE, tables._TABLES, sparse_llt._FIXED_ROW_TYPES):
         if model is None:
             cache.clear()
         else:

@@ -215,8 +215,8 @@ def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | N
     # candidate contact points, in detection order
     order = tab.pair_order
     kinds = tab.pair_kinds
-    pair_points = np.array([CONTACT_POINTS[tuple(GeomType(t) for t in kinds[k])] for k in tab.pair_kind[order]],
-                           np.int64) if order.size else np.zeros(0, np.int64)
+    kind_points = np.array([CONTACT_POINTS[tuple(GeomType(t) for t in kind)] for kind in kinds], np.int64)
+    pair_points = kind_points[tab.pair_kind[order]] if order.size else np.zeros(0, np.int64)
     pair_world = model.pair_world[order]
     pair_count = np.bincount(pair_world, minlength=W)
     cand_count = np.bincount(pair_world, weights=pair_points, minlength=W).astype(np.int64)

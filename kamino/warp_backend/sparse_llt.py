@@ -25,13 +25,15 @@ multiply-adds to factorise instead of 498k (docs/warp_backend.md, "Sparse factor
 
 import dataclasses
 import functools
+import itertools
+import weakref
 from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
 from kamino.model import Model
-from kamino.tables import prefix, row_tables
+from kamino.tables import is_frozen, prefix, row_tables
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, group_sizes, model_struct
 from kamino.warp_backend.rows import ROW_LIMIT
@@ -40,38 +42,124 @@ from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
 # --- host: symbolic analysis ---------------------------------------------------------------------------
+#
+# Everything here that depends on a world's structure runs once per distinct structure, not once per world: worlds
+# made by ``kamino.replicate`` (or a few robot types put together by ``kamino.concat``) share a handful. The per-world
+# work is numpy over all worlds at once (the tables below), or one dictionary look-up per world.
+
+def segments(start: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """The indices ``start[i] .. start[i] + count[i] - 1`` of every segment ``i``, segment after segment."""
+    start = np.asarray(start, np.int64).reshape(-1)
+    count = np.asarray(count, np.int64).reshape(-1)
+    return np.repeat(start - prefix(count), count) + np.arange(int(count.sum()), dtype=np.int64)
+
+
+def _local(bodies: np.ndarray, body_start: np.ndarray) -> np.ndarray:
+    """Global body indices ``bodies`` (``-1``: the world or padding) made world-local by subtracting their row's world's
+    first body ``body_start`` (one per row)."""
+    start = np.asarray(body_start, np.int64)
+    return np.where(bodies >= 0, bodies - (start[:, None] if bodies.ndim > 1 else start), -1).astype(np.int64)
+
+
+def _fixed_row_bodies_of(model: Model, w0: int, w1: int) -> tuple[np.ndarray, np.ndarray]:
+    """The moving bodies (world-local, ``-1`` padding) of the always-active rows of worlds ``w0 .. w1 - 1``, world
+    after world, each world's in row order (:func:`fixed_row_bodies`): ``[sum n_fixed, 4]``, and each world's
+    ``n_fixed``.
+
+    A row's bodies are the parent and child of its joint ``a`` (a joint-dynamics row's DoF's, a joint row's, a coupling
+    row's first), then those of a coupling row's joint ``b`` (``-1`` without one)."""
+    tab = row_tables(model)
+    jp, jc = np.asarray(model.joint_parent), np.asarray(model.joint_child)
+    dof_joint = np.asarray(tab.dof_joint)
+    ws = slice(w0, w1)
+    n_dyn, n_cts, n_cpl = (np.asarray(c[ws], np.int64) for c in (tab.world_dyn_count, model.world_cts_count,
+                                                                     model.world_coupling_count))
+    dyn0 = int(np.sum(tab.world_dyn_count[:w0]))  # the joint-dynamics rows are stored world after world
+    dyn = np.asarray(tab.dyn_dof)[dyn0:dyn0 + int(n_dyn.sum())]
+    cts = segments(model.world_cts_start[ws], n_cts)
+    cpl = segments(model.world_coupling_start[ws], n_cpl)
+    # joints a and b of the worlds' joint-dynamics, joint and coupling rows, family after family
+    joint_a = np.concatenate([dof_joint[dyn], np.asarray(tab.cts_joint)[cts], dof_joint[tab.cpl_dof_a[cpl]]])
+    cpl_b = np.asarray(tab.cpl_dof_b)[cpl]
+    joint_b = np.where(cpl_b >= 0, dof_joint[np.maximum(cpl_b, 0)], -1)
+    # each world's rows: segments (world, family) of those
+    count = np.stack([n_dyn, n_cts, n_cpl], axis=1)
+    start = np.stack([prefix(n_dyn), len(dyn) + prefix(n_cts), len(dyn) + len(cts) + prefix(n_cpl)], axis=1)
+    rows = segments(start, count)
+    n_fixed = count.sum(axis=1)
+    b0 = np.repeat(np.asarray(model.world_body_start[ws], np.int64), n_fixed)
+    out = np.full((len(rows), 4), -1, np.int64)
+    ja = joint_a[rows]
+    out[:, 0], out[:, 1] = _local(jp[ja], b0), _local(jc[ja], b0)
+    on_b = np.flatnonzero(rows >= len(dyn) + len(cts))  # coupling rows: joint b's bodies where it has one
+    jb = joint_b[rows[on_b] - len(dyn) - len(cts)]
+    on_b, jb = on_b[jb >= 0], jb[jb >= 0]
+    out[on_b, 2], out[on_b, 3] = _local(jp[jb], b0[on_b]), _local(jc[jb], b0[on_b])
+    return out, n_fixed
+
 
 def fixed_row_bodies(model: Model) -> list[np.ndarray]:
     """Per world, the moving bodies (world-local indices, ``-1`` padding) of each always-active row, in row
     order: joint-dynamics rows, joint rows, coupling rows (``kamino/warp_backend/rows.py``). Shape
-    ``[n_fixed, 4]`` per world."""
+    ``[n_fixed, 4]`` per world (views into one array of all worlds')."""
+    rows, n_fixed = _fixed_row_bodies_of(model, 0, model.num_worlds)
+    return np.split(rows, np.cumsum(n_fixed)[:-1]) if model.num_worlds else []
+
+
+#: :func:`fixed_row_types` computes the worlds' rows this many at a time (a few MB of buffers, reused: the arrays of
+#: all worlds at once would take most of the time in first touches of fresh memory)
+CHUNK_ROWS = 1 << 17
+
+
+def _world_chunks(n_rows: np.ndarray, chunk: int) -> list[tuple[int, int]]:
+    """Consecutive ranges ``(w0, w1)`` of worlds covering all, each of at most ``chunk`` rows or of one world."""
+    ends = np.cumsum(n_rows)
+    bounds = [0]
+    while bounds[-1] < len(n_rows):
+        w0 = bounds[-1]
+        w1 = int(np.searchsorted(ends, (ends[w0 - 1] if w0 else 0) + chunk, side="right"))
+        bounds.append(max(w1, w0 + 1))
+    return list(itertools.pairwise(bounds))
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedRowTypes:
+    """The distinct fixed-row structures of a model's worlds (:func:`fixed_row_bodies`)."""
+
+    rows: tuple[np.ndarray, ...]  # each distinct structure's moving bodies [n_fixed, 4], in order of first appearance
+    world_type: np.ndarray  # [W] each world's structure: an index into rows
+    n_fixed: np.ndarray  # [W] each world's fixed rows
+
+
+_FIXED_ROW_TYPES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def fixed_row_types(model: Model) -> FixedRowTypes:
+    """The worlds of ``model`` grouped by the moving bodies of their fixed rows (equal arrays: one type). Cached
+    under a frozen model (:func:`kamino.tables.is_frozen`: the model cannot change under the entry, which goes
+    with it); the arrays of all worlds are not kept."""
+    if is_frozen(model) and model in _FIXED_ROW_TYPES:
+        return _FIXED_ROW_TYPES[model]
     tab = row_tables(model)
-    jp, jc = np.asarray(model.joint_parent), np.asarray(model.joint_child)
-
-    def joint_bodies(j: np.ndarray) -> np.ndarray:
-        return np.stack([jp[j], jc[j]], axis=-1)
-
-    dyn = joint_bodies(tab.dof_joint[tab.dyn_dof]) if len(tab.dyn_dof) else np.zeros((0, 2), np.int64)
-    cts = joint_bodies(tab.cts_joint) if len(tab.cts_joint) else np.zeros((0, 2), np.int64)
-    if len(tab.cpl_dof_a):
-        ja = tab.dof_joint[tab.cpl_dof_a]
-        jb = np.where(tab.cpl_dof_b >= 0, tab.dof_joint[np.maximum(tab.cpl_dof_b, 0)], -1)
-        cpl = np.concatenate([joint_bodies(ja), np.where(jb[:, None] >= 0, joint_bodies(np.maximum(jb, 0)), -1)],
-                             axis=1)
-    else:
-        cpl = np.zeros((0, 4), np.int64)
-    pad = lambda a: np.concatenate([a, -np.ones((len(a), 4 - a.shape[1]), np.int64)], axis=1)  # noqa: E731
-    dyn, cts = pad(dyn), pad(cts)
-    dyn_start = prefix(tab.world_dyn_count)
-    out = []
-    for w in range(model.num_worlds):
-        b0 = int(model.world_body_start[w])
-        s, c = int(model.world_cts_start[w]), int(model.world_cts_count[w])
-        k0, k1 = int(model.world_coupling_start[w]), int(model.world_coupling_count[w])
-        d0, d1 = int(dyn_start[w]), int(tab.world_dyn_count[w])
-        rows = np.concatenate([dyn[d0:d0 + d1], cts[s:s + c], cpl[k0:k0 + k1]])
-        out.append(np.where(rows >= 0, rows - b0, -1).astype(np.int64))
-    return out
+    n_fixed = (tab.world_dyn_count + model.world_cts_count + model.world_coupling_count).astype(np.int64)
+    types: dict[bytes, int] = {}
+    reps: list[np.ndarray] = []
+    world_type = np.empty(model.num_worlds, np.int64)
+    for w0, w1 in _world_chunks(n_fixed, CHUNK_ROWS):
+        rows, n = _fixed_row_bodies_of(model, w0, w1)
+        ends = np.cumsum(n)
+        for w in range(w0, w1):
+            r = rows[ends[w - w0] - n[w - w0]:ends[w - w0]]
+            t = types.setdefault(r.tobytes(), len(reps))  # the width is 4: the bytes fix the shape
+            if t == len(reps):
+                reps.append(r.copy())
+            world_type[w] = t
+    for a in (*reps, world_type, n_fixed):
+        a.flags.writeable = False  # shared by every caller of a cached entry
+    ft = FixedRowTypes(rows=tuple(reps), world_type=world_type, n_fixed=n_fixed)
+    if is_frozen(model):
+        _FIXED_ROW_TYPES[model] = ft
+    return ft
 
 
 #: A body is a *hub* when more than this many fixed rows have it among their moving bodies: its 6 velocity unknowns
@@ -82,20 +170,23 @@ HUB_MIN_ROWS: int | None = 48
 
 def hub_bodies(bodies: np.ndarray, min_rows: int | None) -> np.ndarray:
     """The hubs (world-local body indices, ascending) of a world whose fixed rows have the moving bodies ``bodies``
-    (:func:`fixed_row_bodies`): bodies on more than ``min_rows`` rows (``None``: none)."""
+    (:func:`fixed_row_bodies`): bodies on more than ``min_rows`` rows (``None``: none). A body counts once per row
+    however often the row lists it; ``-1`` (padding, the world) is no body."""
     if min_rows is None or len(bodies) == 0:
         return np.zeros(0, np.int64)
-    count: dict[int, int] = {}
-    for a in range(len(bodies)):
-        for b in set(int(x) for x in bodies[a] if x >= 0):
-            count[b] = count.get(b, 0) + 1
-    return np.asarray(sorted(b for b, c in count.items() if c > min_rows), np.int64)
+    b = np.sort(np.asarray(bodies, np.int64).reshape(len(bodies), -1), axis=1)
+    first = np.ones(b.shape, bool)  # the first of each run of equal bodies in a (sorted) row
+    first[:, 1:] = b[:, 1:] != b[:, :-1]
+    body, rows = np.unique(b[first & (b >= 0)], return_counts=True)
+    return body[rows > min_rows].astype(np.int64)
 
 
 def hub_counts(model: Model, min_rows: int | None) -> np.ndarray:
     """Per world, its number of hubs (:func:`hub_bodies`): the world has ``6 x`` that many virtual rows after its
     row capacity (``model_data``), where the hubs' unknowns live during a solve."""
-    return np.asarray([len(hub_bodies(r, min_rows)) for r in fixed_row_bodies(model)], np.int64).reshape(-1)
+    ft = fixed_row_types(model)
+    per_type = np.array([len(hub_bodies(r, min_rows)) for r in ft.rows], np.int64)
+    return per_type[ft.world_type].reshape(-1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -268,6 +359,24 @@ def tail_row_bodies(model: Model, tab, w: int) -> tuple[np.ndarray, np.ndarray |
     return lim, np.where(gb >= 0, gb - b0, -1).astype(np.int64).reshape(2, pc).T.copy()
 
 
+def all_tail_row_bodies(model: Model, tab) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """:func:`tail_row_bodies` of every world, computed for all worlds at once (views into two arrays)."""
+    W = model.num_worlds
+    jp, jc = np.asarray(model.joint_parent), np.asarray(model.joint_child)
+    n_lim = np.asarray(tab.world_lim_count, np.int64)
+    joints = np.asarray(tab.dof_joint)[np.asarray(tab.lim_dof)[:int(n_lim.sum())]]
+    lim = _local(np.stack([jp[joints], jc[joints]], axis=-1).reshape(-1, 2),
+                 np.repeat(model.world_body_start, n_lim))
+    n_pair = np.asarray(model.world_pair_count, np.int64)
+    pairs = segments(model.world_pair_start, n_pair)
+    gb = np.asarray(model.geom_body)
+    con = _local(np.stack([gb[model.pair_geom_a[pairs]], gb[model.pair_geom_b[pairs]]], axis=-1).reshape(-1, 2),
+                 np.repeat(model.world_body_start, n_pair))
+    l0, p0 = prefix(n_lim), prefix(n_pair)
+    cap = np.asarray(model.world_contact_capacity)
+    return [(lim[l0[w]:l0[w] + n_lim[w]], con[p0[w]:p0[w] + n_pair[w]] if cap[w] != 0 else None) for w in range(W)]
+
+
 def tail_patterns(bodies: np.ndarray, sym: Symbolic, lim_bodies: np.ndarray,
                   contact_bodies: np.ndarray | None) -> list[np.ndarray]:
     """The ``L_tf`` pattern (fixed positions, ascending) of each kind of tail row: one per limited DoF (``lim_bodies``,
@@ -402,6 +511,72 @@ def pattern_tables(sym: Symbolic, pattern: np.ndarray) -> tuple[np.ndarray, np.n
     return ptr, k, lut[sym.col[k]], lut
 
 
+def world_types(model: Model, tab, ft: FixedRowTypes, tail_rows: np.ndarray, h0: np.ndarray,
+                hub_min_rows: int | None) -> tuple[np.ndarray, list[Symbolic], list[list[np.ndarray]]]:
+    """The world types of :func:`build`: ``(world_type [W], the factor pattern of each type, its L_tf patterns)``.
+
+    A type is the fixed rows' bodies (``ft``, :func:`fixed_row_types`), with tail rows (``tail_rows > 0``) the tail
+    rows' bodies (:func:`tail_row_bodies`), and with hubs the first virtual row ``h0`` of the world; types are
+    numbered in order of first appearance. :func:`hub_bodies` runs once per fixed-row structure, :func:`symbolic` once
+    per structure and ``h0``, :func:`tail_patterns` once per type; per world there is one dictionary look-up."""
+    hubs = [hub_bodies(r, hub_min_rows) for r in ft.rows]
+    tails = all_tail_row_bodies(model, tab) if (tail_rows > 0).any() else []
+    no_tail = (np.zeros((0, 2), np.int64), None)
+    types: dict[tuple, int] = {}
+    by_structure: dict[tuple[int, int | None], Symbolic] = {}
+    syms: list[Symbolic] = []
+    pats: list[list[np.ndarray]] = []
+    world_type = np.empty(model.num_worlds, np.int64)
+    for w in range(model.num_worlds):
+        f = int(ft.world_type[w])
+        lim, con = tails[w] if tail_rows[w] > 0 else no_tail
+        row0 = int(h0[w]) if len(hubs[f]) else None  # the hubs' virtual rows: part of the type only with hubs
+        key = (f, lim.tobytes(), None if con is None else con.tobytes(), row0)
+        t = types.get(key)
+        if t is None:
+            t = types[key] = len(syms)
+            if (f, row0) not in by_structure:
+                by_structure[f, row0] = symbolic(ft.rows[f], hubs[f], int(h0[w]))
+            syms.append(by_structure[f, row0])
+            pats.append(tail_patterns(ft.rows[f], syms[-1], lim, con) if tail_rows[w] > 0 else [])
+        world_type[w] = t
+    return world_type, syms, pats
+
+
+def _hub_tables(model: Model, world_type: np.ndarray, syms: list[Symbolic]) -> tuple[np.ndarray, np.ndarray,
+                                                                                       np.ndarray]:
+    """Every world's hubs: ``(hub_body, hub_n, body_hub)``, the hubs as global bodies world after world (each world's
+    in its type's position order), each world's count, and per global body its hub index in its world or -1."""
+    hub_n_t = np.array([len(s.hubs) for s in syms], np.int64)
+    hub0_t = prefix(hub_n_t)
+    hub_n = hub_n_t[world_type]
+    hubs_t = np.concatenate([s.hubs for s in syms]) if syms else np.zeros(0, np.int64)
+    k = segments(hub0_t[world_type], hub_n)  # into hubs_t
+    hub_body = hubs_t[k] + np.repeat(np.asarray(model.world_body_start, np.int64), hub_n)
+    body_hub = np.full(max(model.num_bodies, 1), -1, np.int64)
+    body_hub[hub_body] = k - np.repeat(hub0_t[world_type], hub_n)
+    return hub_body, hub_n, body_hub
+
+
+def _tail_pattern_ids(model: Model, tab, world_type: np.ndarray, pats: list[list[np.ndarray]],
+                      pat0_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The global ``L_tf`` pattern ids of :func:`build`: ``dof_pat`` (per DoF, its limit row's; -1: none) and
+    ``con_pat`` (per world, its first contact pair's; -1: none), type ``t``'s patterns being ``pat0_t[t] ..``: a
+    world's limited DoFs first, in order, then its pairs."""
+    W = model.num_worlds
+    n_pat = np.array([len(p) for p in pats], np.int64)[world_type]
+    n_lim = np.asarray(tab.world_lim_count, np.int64)
+    lim_world = np.repeat(np.arange(W), n_lim)
+    k = np.arange(len(lim_world)) - np.repeat(prefix(n_lim), n_lim)  # each limit's index in its world
+    on = (n_pat > 0)[lim_world]  # worlds whose type has patterns (tail rows)
+    dof_pat = np.full(max(len(tab.dof_joint), 1), -1, np.int64)
+    dof_pat[np.asarray(tab.lim_dof)[:len(lim_world)][on]] = pat0_t[world_type[lim_world[on]]] + k[on]
+    con_pat = np.full(W, -1, np.int64)
+    has_con = n_pat > n_lim
+    con_pat[has_con] = pat0_t[world_type[has_con]] + n_lim[has_con]
+    return dof_pat, con_pat
+
+
 def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: bool = False,
           hub_min_rows: int | None = HUB_MIN_ROWS, hub_row0: np.ndarray | None = None) -> SparseFactor:
     """Symbolic analysis of every world type of ``model`` and the device storage of the factors (``per_world``: each
@@ -412,24 +587,10 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     world's row capacity, ``model_data``; default ``row_maxdim``)."""
     W = model.num_worlds
     tab = row_tables(model)
-    tail_rows = np.asarray(row_maxdim, np.int64) - np.asarray(
-        [len(r) for r in fixed_row_bodies(model)], np.int64) if W else np.zeros(0, np.int64)
-    types: dict[bytes, int] = {}
-    syms: list[Symbolic] = []
-    pats: list[list[np.ndarray]] = []
-    world_type = np.empty(W, np.int64)
+    ft = fixed_row_types(model)
+    tail_rows = np.asarray(row_maxdim, np.int64) - ft.n_fixed if W else np.zeros(0, np.int64)
     h0 = np.asarray(row_maxdim if hub_row0 is None else hub_row0, np.int64).reshape(-1)
-    for w, rows in enumerate(fixed_row_bodies(model)):
-        lim, con = tail_row_bodies(model, tab, w) if tail_rows[w] > 0 else (np.zeros((0, 2), np.int64), None)
-        hubs = hub_bodies(rows, hub_min_rows)
-        key = b"|".join([rows.tobytes(), bytes(str(rows.shape), "ascii"), lim.tobytes(),
-                         b"-" if con is None else con.tobytes()]
-                        + ([hubs.tobytes(), bytes(str(int(h0[w])), "ascii")] if len(hubs) else []))
-        if key not in types:
-            types[key] = len(syms)
-            syms.append(symbolic(rows, hubs, int(h0[w])))
-            pats.append(tail_patterns(rows, syms[-1], lim, con) if tail_rows[w] > 0 else [])
-        world_type[w] = types[key]
+    world_type, syms, pats = world_types(model, tab, ft, tail_rows, h0, hub_min_rows)
     n_t = np.array([len(s.perm) for s in syms], np.int64)
     nnz_t = np.array([s.nnz for s in syms], np.int64)
     upd_t = np.array([len(s.upd_a) for s in syms], np.int64)
@@ -453,13 +614,9 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
 
     S.perm_start, S.ptr_start, S.ent_start = i32(perm_t[world_type]), i32(ptr_t[world_type]), i32(ent_t[world_type])
     S.nnz, S.n_fixed, S.n_pos = i32(nnz), i32(n_fixed), i32(n_t[world_type])
-    body_hub = np.full(max(model.num_bodies, 1), -1, np.int64)
-    hub_n = np.array([len(syms[t].hubs) for t in world_type], np.int64)
-    hub_body = [int(model.world_body_start[w]) + syms[world_type[w]].hubs for w in range(W)]
-    for hb in hub_body:
-        body_hub[hb] = np.arange(len(hb))
+    hub_body, hub_n, body_hub = _hub_tables(model, world_type, syms)
     S.body_hub, S.hub_start = i32(body_hub), i32(prefix(hub_n))
-    S.hub_body = i32(np.concatenate(hub_body) if hub_n.sum() else [0])
+    S.hub_body = i32(hub_body if hub_n.sum() else [0])
     S.perm, S.row_ptr, S.col, S.colrow, S.row, S.div = (i32(cat(lambda s, f=f: getattr(s, f)))
                                               for f in ("perm", "row_ptr", "col", "colrow", "row", "div"))
     # (start, end) of each entry's update pairs, as global indices into upd_a / upd_b
@@ -491,17 +648,7 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     S.pat_lut_stride = max(int(n_t.max()) if len(n_t) else 0, 1)
     S.pat_lut = i32(np.concatenate([np.pad(t[3], (0, S.pat_lut_stride - len(t[3])), constant_values=-1)
                                     for t in tables]) if flat else [])
-    dof_pat = np.full(max(len(tab.dof_joint), 1), -1, np.int64)
-    con_pat = np.full(W, -1, np.int64)
-    lim_start = prefix(tab.world_lim_count)
-    for w in range(W):
-        t = world_type[w]
-        if not pats[t]:
-            continue
-        nl = int(tab.world_lim_count[w])
-        dof_pat[np.asarray(tab.lim_dof)[lim_start[w]:lim_start[w] + nl]] = pat0_t[t] + np.arange(nl)
-        if len(pats[t]) > nl:
-            con_pat[w] = pat0_t[t] + nl
+    dof_pat, con_pat = _tail_pattern_ids(model, tab, world_type, pats, pat0_t)
     S.dof_pat = i32(dof_pat if (dof_pat >= 0).any() else dof_pat[:1])  # read only on limit rows
     S.con_pat = i32(con_pat)
     mx = lambda a: int(a.max()) if len(a) else 0  # noqa: E731
