@@ -28,7 +28,8 @@ def load(run: Path) -> tuple[list[dict], list[dict]]:
     return read("walk_tests.json"), read("train_curve.json")
 
 
-def plot(runs: list[Path], out: Path) -> None:
+def figure(runs: list[Path]):
+    """The four panels of ``runs`` (a matplotlib Figure; the caller closes it)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -59,6 +60,14 @@ def plot(runs: list[Path], out: Path) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
+    return fig
+
+
+def plot(runs: list[Path], out: Path) -> None:
+    """Write :func:`figure` of ``runs`` to ``out`` (PNG)."""
+    import matplotlib.pyplot as plt
+
+    fig = figure(runs)
     fig.savefig(out, dpi=110)
     plt.close(fig)
 
