@@ -1100,19 +1100,21 @@ class ModelBuilder:
             world_actuator_start=one.copy(),
             world_actuator_count=np.array([na], dtype=np.int64),
         )
-        return _freeze(model)
+        return freeze_arrays(model)
 
 
 # ---------------------------------------------------------------------------------------
 # Multi-world models
 # ---------------------------------------------------------------------------------------
 
-def _freeze(model: Model) -> Model:
-    for f in dataclasses.fields(model):
-        v = getattr(model, f.name)
+def freeze_arrays(obj):
+    """``obj`` (a dataclass: a :class:`Model`, or tables derived from one and cached) with every numpy array field
+    made read-only, so that a value shared by its callers cannot be changed under them."""
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
         if isinstance(v, np.ndarray):
             v.flags.writeable = False
-    return model
+    return obj
 
 
 def _prefix(counts: np.ndarray) -> np.ndarray:
@@ -1185,7 +1187,7 @@ def _with_starts(out: dict[str, Any]) -> Model:
             out[f.name] = _prefix(out[f.name[: -len("_start")] + "_count"])
     for entity in ("joint_dof", "joint_coord", "joint_cts"):
         out[entity + "_start"] = _prefix(out[entity + "_count"])
-    return _freeze(Model(**out))
+    return freeze_arrays(Model(**out))
 
 
 #: Index fields shifted by ``concat``: which entity's offset they get (-1 stays -1 for bodies).

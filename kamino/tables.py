@@ -14,7 +14,7 @@ import weakref
 
 import numpy as np
 
-from kamino.model import JOINT_CONSTRAINT_ROWS, JOINT_DOF_ROWS, ActuationMode, JointType, Model
+from kamino.model import JOINT_CONSTRAINT_ROWS, JOINT_DOF_ROWS, ActuationMode, JointType, Model, freeze_arrays
 
 DYN_ACTUATOR, DYN_PASSIVE = 0, 1
 
@@ -66,16 +66,7 @@ def row_tables(model: Model) -> RowTables:
         return _row_tables(model)
     tab = _TABLES.get(model)
     if tab is None:
-        tab = _TABLES[model] = _read_only(_row_tables(model))
-    return tab
-
-
-def _read_only(tab: RowTables) -> RowTables:
-    """``tab`` with its arrays made read-only (a cached value is shared by every caller)."""
-    for f in dataclasses.fields(tab):
-        v = getattr(tab, f.name)
-        if isinstance(v, np.ndarray):
-            v.flags.writeable = False
+        tab = _TABLES[model] = freeze_arrays(_row_tables(model))
     return tab
 
 
