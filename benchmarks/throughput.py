@@ -364,8 +364,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="further kamino.SolverConfig fields for kamino's runs, e.g. baumgarte=0.01 "
                         "curvature_refinement=false (values parsed as JSON)")
     p.add_argument("--no-peers", action="store_true")
-    p.add_argument("--kamino-variants", nargs="+", default=["padmm_dense", "dvi"],
-                   help="Newton SolverKamino variants run beside kamino (benchmarks/peers.py KAMINO_VARIANTS)")
+    p.add_argument("--kamino-variants", nargs="*", default=["padmm_dense", "dvi"],
+                   help="Newton SolverKamino variants run beside kamino (benchmarks/peers.py KAMINO_VARIANTS; none: "
+                        "MuJoCo Warp alone)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     p.add_argument("--plot", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
                    help="plot existing JSONs and exit: PNGs beside the first (or named after --out); a later "

@@ -119,7 +119,7 @@ class Stepper:
             if cfg.post_stabilisation and not self.post_shares_factor:
                 # the fixed rows' own pattern and factor (no tail rows)
                 self.post = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
-                                             per_world=padmm == "warp", hub_min_rows=wm.hub_min_rows,
+                                             per_world=padmm == "warp", fan=False, hub_min_rows=wm.hub_min_rows,
                                              hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":

@@ -577,14 +577,21 @@ def _tail_pattern_ids(model: Model, tab, world_type: np.ndarray, pats: list[list
     return dof_pat, con_pat
 
 
-def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: bool = False,
+def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: bool = False, fan: bool | None = None,
           hub_min_rows: int | None = HUB_MIN_ROWS, hub_row0: np.ndarray | None = None) -> SparseFactor:
     """Symbolic analysis of every world type of ``model`` and the device storage of the factors (``per_world``: each
     world's values contiguous, for the 32-threads-per-world schedule; else interleaved over groups of worlds). A
     world type is the fixed rows' bodies and its tail rows' (:func:`tail_row_bodies`). ``row_maxdim``: the rows each
     world factorises (its tail rows are those after the fixed ones). ``hub_min_rows``: the hub threshold
     (:func:`hub_bodies`; ``None``: no hubs); a hub's unknowns use the world's virtual rows from ``hub_row0`` (the
-    world's row capacity, ``model_data``; default ``row_maxdim``)."""
+    world's row capacity, ``model_data``; default ``row_maxdim``).
+
+    Only the tables the kernels read are uploaded; the others hold a single 0. The update lists: ``fan`` (default
+    ``per_world``), the column-order triples ``fan_*`` of ``padmm_warp.factor``; else the row-order pairs ``upd_*``
+    of the one-thread kernels (:func:`factor`, ``refactor``, ``factor_fixed``: post-stabilisation's own factor is
+    built with ``fan=False`` under either schedule). The column index ``cptr``, ``cent``, ``crow`` is read by the
+    32-thread kernels only (``per_world``). Both lists of a type are as long as its fill-in updates (the
+    animatronic's: 132,568 entries, 0.5 MB each)."""
     W = model.num_worlds
     tab = row_tables(model)
     ft = fixed_row_types(model)
@@ -619,14 +626,18 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     S.hub_body = i32(hub_body if hub_n.sum() else [0])
     S.perm, S.row_ptr, S.col, S.colrow, S.row, S.div = (i32(cat(lambda s, f=f: getattr(s, f)))
                                               for f in ("perm", "row_ptr", "col", "colrow", "row", "div"))
+    fan = per_world if fan is None else fan
+    unread = [0]  # a table no kernel of this schedule reads
     # (start, end) of each entry's update pairs, as global indices into upd_a / upd_b
     S.upd_ptr = i32(np.concatenate([np.stack([s.upd_ptr[:-1], s.upd_ptr[1:]], axis=1) + o
-                                    for s, o in zip(syms, upd0_t, strict=True)]) if syms else [])
-    S.upd_a, S.upd_b = i32(cat(lambda s: s.upd_a)), i32(cat(lambda s: s.upd_b))
-    S.cptr, S.cent, S.crow = (i32(cat(lambda s, f=f: getattr(s, f))) for f in ("cptr", "cent", "crow"))
-    S.fan_ptr = i32(np.concatenate([s.fan_ptr + o for s, o in zip(syms, upd0_t, strict=True)]) if syms else [])
+                                    for s, o in zip(syms, upd0_t, strict=True)]) if syms and not fan else unread)
+    S.upd_a, S.upd_b = (i32(unread if fan else cat(lambda s, f=f: getattr(s, f))) for f in ("upd_a", "upd_b"))
+    S.cptr, S.cent, S.crow = (i32(cat(lambda s, f=f: getattr(s, f)) if per_world else unread)
+                              for f in ("cptr", "cent", "crow"))
+    S.fan_ptr = i32(np.concatenate([s.fan_ptr + o for s, o in zip(syms, upd0_t, strict=True)]) if syms and fan
+                    else unread)
     # one trailing 0 each, so that padmm_warp.factor's clamped batch loads have an entry to read in any model
-    S.fan_tgt, S.fan_a, S.fan_b = (i32(np.append(cat(lambda s, f=f: getattr(s, f)), 0))
+    S.fan_tgt, S.fan_a, S.fan_b = (i32(np.append(cat(lambda s, f=f: getattr(s, f)), 0) if fan else unread)
                                    for f in ("fan_tgt", "fan_a", "fan_b"))
     S.grp_val_start = i32(prefix(GROUP * g_nnz))
     S.grp_nnz = i32(g_nnz)
