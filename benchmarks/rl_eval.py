@@ -150,15 +150,14 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.episodes < 1 or args.seconds <= 0 or not args.speed[0] <= args.speed[1]:
         p.error("--episodes must be >= 1, --seconds > 0 and --speed LOW <= HIGH")
-    from rl_train import key_values
+    from rl_train import key_values, run_env
 
     env_overrides = key_values(p, "--env", args.env)
     from kamino.envs import make
-    from kamino.envs.configs import task_config
 
     ckpt = newest_checkpoint(args.checkpoint.resolve())
     env = make(args.task, backend=args.backend,
-               **{**task_config(args.task)["env"], **env_overrides, "resample_steps": None})
+               **{**run_env(args.checkpoint.resolve(), args.task), **env_overrides, "resample_steps": None})
     if not hasattr(env, "with_command"):
         print(f"rl_eval: {args.task} has no velocity command (a joystick task is needed)", file=sys.stderr)
         return 2

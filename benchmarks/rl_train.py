@@ -4,6 +4,8 @@ The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS`` (``--steps
 ``--seed`` and ``--set`` override them; ``--env`` overrides the environment's keywords, ``--solver`` its
 ``SolverConfig``). Writes into ``--out`` (default ``scratch/rl/TASK``, git-ignored):
 
+- ``env.json``: the environment's keywords (the task's config with ``--env`` over it). A resumed run starts from
+  these instead of the config, and ``rl_eval.py`` and ``rl_velocity_trace.py`` build the environment from them;
 - ``checkpoints/<step>/``: the policy (normalizer, policy, value parameters; brax's orbax format and network config)
   after every evaluation, ``<step>`` counting environment steps over all runs. A later run of the same command
   resumes from the newest one and trains the steps that remain (brax restores the parameters; the optimizer state
@@ -86,7 +88,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "max_iterations=100")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="an environment keyword over the task's config, VALUE a Python literal (repeatable): "
-                        "--env tracking_sigma=0.1. A resumed run must repeat it: the checkpoint holds no env")
+                        "--env tracking_sigma=0.1 (over the run's env.json when resuming)")
     args = p.parse_args(argv)
     args.ppo_overrides = key_values(p, "--set", args.set)
     args.solver_overrides = key_values(p, "--solver", args.solver)
@@ -108,6 +110,18 @@ def walk_test_due(step: int, tested: list[int], start: int, every: int) -> bool:
     """Whether the checkpoint at ``step`` gets the walking test: from ``start`` steps on, and at least ``every``
     steps after the last tested checkpoint (``tested``, ascending; a resumed run continues the saved list)."""
     return step >= start and (not tested or step - tested[-1] >= every)
+
+
+def run_env(path: Path, task: str) -> dict:
+    """The environment keywords a run was trained with: ``env.json`` of the run folder ``path`` (or of the run that
+    holds the checkpoint ``path``: ``RUN/checkpoints/<step>``), else the task's config (a run written before
+    session 37, which saved none, trained with the config of its day: docs/envs.md names it)."""
+    from kamino.envs.configs import task_config
+
+    for folder in (path, path.parent, path.parent.parent):
+        if (folder / "env.json").exists():
+            return json.loads((folder / "env.json").read_text())
+    return task_config(task)["env"]
 
 
 def latest_checkpoint(folder: Path) -> tuple[int, Path | None]:
@@ -196,12 +210,15 @@ def main(argv=None) -> int:
     train_curve = json.loads(train_path.read_text()) if train_path.exists() and not args.fresh else []
     train_curve = [c for c in train_curve if c["step"] <= done]
     remaining = total - done
-    env_kwargs = {**cfg["env"], **args.env_overrides}
+    # a resumed run keeps the environment it was trained with (env.json), a new one starts from the task's config
+    base = json.loads((out / "env.json").read_text()) if restore and (out / "env.json").exists() else cfg["env"]
+    env_kwargs = {**base, **args.env_overrides}
     # refused before any environment is built (a robot's construction solves its reset bank)
     dataclasses.replace(kamino.SolverConfig(), **args.solver_overrides)  # a field it lacks raises, naming it
     if args.walk_test and not hasattr(TASKS[args.task], "with_command"):
         raise SystemExit(f"rl_train: --walk-test needs a joystick task; {args.task} has no velocity command")
     env = make(args.task, backend=args.backend, **env_kwargs)
+    (out / "env.json").write_text(json.dumps(env_kwargs, indent=1) + "\n")
     if args.solver_overrides:
         config = dataclasses.replace(env.solver_config, **args.solver_overrides)
         env = make(args.task, backend=args.backend, solver_config=config, **env_kwargs)

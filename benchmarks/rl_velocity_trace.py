@@ -67,12 +67,13 @@ def main(argv=None) -> int:
     if args.episodes < 1 or not 0 <= args.settle < args.seconds or not args.speed[0] <= args.speed[1]:
         p.error("--episodes must be >= 1, 0 <= --settle < --seconds and --speed LOW <= HIGH")
     import numpy as np
+    from rl_train import run_env
 
     from kamino.envs import make
-    from kamino.envs.configs import task_config
 
     ckpt = newest_checkpoint(args.checkpoint.resolve())
-    env = make(args.task, backend=args.backend, **{**task_config(args.task)["env"], "resample_steps": None})
+    env = make(args.task, backend=args.backend, **{**run_env(args.checkpoint.resolve(), args.task),
+                                                   "resample_steps": None})
     t0 = time.perf_counter()
     make_policy, params = load_policy(ckpt, args.task)
     cmd, lin, ang, upright, fell = walking_test(env, make_policy, episodes=args.episodes, seconds=args.seconds,

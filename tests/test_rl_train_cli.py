@@ -52,3 +52,18 @@ def test_the_walking_test_skips_checkpoints_closer_than_every():
     assert tested == [36, 44, 52]
     assert not rl_train.walk_test_due(56, [36, 44, 52], start=36, every=8)
     assert rl_train.walk_test_due(56, [36, 44, 52], start=36, every=0)  # the default: every checkpoint
+
+
+def test_a_run_keeps_its_environment(tmp_path):
+    """``env.json`` of a run folder is the environment ``rl_eval.py`` and ``rl_velocity_trace.py`` build for its
+    checkpoints (a gait clock adds observations, so the config of another day would not fit the policy), found from
+    the run, its ``checkpoints`` folder or one checkpoint; a run without it reads the task's config."""
+    from kamino.envs.configs import task_config
+
+    run = tmp_path / "run"
+    step = run / "checkpoints" / "000000131072"
+    step.mkdir(parents=True)
+    assert rl_train.run_env(step, "dr_legs_joystick") == task_config("dr_legs_joystick")["env"]
+    (run / "env.json").write_text('{"gait_frequency": null, "command_lin_x": 0.4}')
+    for path in (run, run / "checkpoints", step):
+        assert rl_train.run_env(path, "dr_legs_joystick") == {"gait_frequency": None, "command_lin_x": 0.4}

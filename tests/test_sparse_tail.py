@@ -194,3 +194,26 @@ def test_setup_tables_are_cached_only_under_frozen_models():
     assert row_tables(loose) is not row_tables(loose)
     assert sparse_llt.fixed_row_types(loose) is not sparse_llt.fixed_row_types(loose)
     np.testing.assert_array_equal(row_tables(loose).cts_joint, tab.cts_joint)
+
+
+def test_build_uploads_only_the_tables_its_kernels_read():
+    # memory (issue 17): the one-thread factor kernels read the row-order update pairs (upd_*), padmm_warp.factor the
+    # column-order triples (fan_*), and only the 32-thread kernels the column index (cptr, cent, crow); each build
+    # holds its schedule's, the other tables a single 0. Both lists count the same fill-in updates (a type's, shared
+    # by its worlds), and the values they give are checked by the factor tests of each schedule.
+    model = kamino.replicate(kamino.models.dr_legs(), 3)
+    maxdim = warp_model(model, np.float32, "cpu").arrays.row_maxdim.numpy()
+    thread = sparse_llt.build(model, np.float32, "cpu", maxdim).arrays
+    warp = sparse_llt.build(model, np.float32, "cpu", maxdim, per_world=True).arrays
+    post = sparse_llt.build(model, np.float32, "cpu", maxdim, per_world=True, fan=False).arrays  # factor_fixed's
+    n_upd = thread.upd_a.shape[0]
+    assert n_upd > 1000 and thread.nnz.numpy()[0] == warp.nnz.numpy()[0]
+    assert warp.fan_a.shape[0] == warp.fan_tgt.shape[0] == n_upd + 1  # + the clamped loads' trailing 0
+    for name in ("fan_ptr", "fan_tgt", "fan_a", "fan_b", "cptr", "cent", "crow"):
+        assert getattr(thread, name).shape[0] == 1, name
+    for name in ("upd_ptr", "upd_a", "upd_b"):
+        assert getattr(warp, name).shape[0] == 1, name
+        assert getattr(post, name).shape[0] == getattr(thread, name).shape[0], name
+    for name in ("cptr", "cent", "crow"):
+        assert getattr(post, name).shape[0] == getattr(warp, name).shape[0] > 1, name
+    assert post.fan_a.shape[0] == 1
