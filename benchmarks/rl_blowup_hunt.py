@@ -146,12 +146,11 @@ def main(argv=None) -> int:
     if min(args.envs, args.chunks, args.chunk_steps) < 1:
         p.error("--envs, --chunks and --chunk-steps must be >= 1")
     from rl_eval import load_policy, newest_checkpoint
-    from rl_train import key_values
+    from rl_train import key_values, run_env
 
     from kamino.envs import make
-    from kamino.envs.configs import task_config
 
-    env_kwargs = {**task_config(args.task)["env"], **key_values(p, "--env", args.env)}
+    env_kwargs = {**run_env(args.run.resolve(), args.task), **key_values(p, "--env", args.env)}
     env = make(args.task, backend=args.backend, **env_kwargs)
     make_policy, params = load_policy(newest_checkpoint(args.run.resolve()), args.task)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -34,6 +34,9 @@ def zero_policy_checkpoint(tmp_path_factory):
     config = ppo_checkpoint.network_config(obs_size, act_size, True, factory)
     folder = tmp_path_factory.mktemp("run") / "checkpoints"
     ppo_checkpoint.save(folder, 1000, (normalizer, policy, value), config)
+    # the run's environment (rl_train.py's env.json, read by rl_eval.py): the defaults, whose 48 observations the
+    # networks take (the task's config adds a gait clock: 50)
+    (folder.parent / "env.json").write_text("{}\n")
     return folder.parent
 
 
