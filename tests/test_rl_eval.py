@@ -1,4 +1,5 @@
-"""benchmarks/rl_eval.py, the walking evaluation of issue 18, on a policy whose action is exactly zero."""
+"""benchmarks/rl_eval.py, the walking evaluation of issue 18: on a policy whose action is exactly zero, and on the
+shipped walking policy."""
 
 import json
 import sys
@@ -96,3 +97,29 @@ def test_summary_separates_speed_deficit_from_sway():
     err0 = np.mean(np.hypot(0.05, 0.1 * np.sin(phase)))
     np.testing.assert_allclose(r["tracking_error_mean"], err0 / 2, rtol=1e-12)
     assert r["fall_fraction"] == 0.5
+
+
+#: the walking policy that passes issue 18's test on the GPU (docs/envs.md, "The thirteenth run")
+SHIPPED_POLICY = ROOT / "benchmarks" / "results" / "s38_h100" / "S3"
+
+
+def test_the_shipped_dr_legs_policy_walks(tmp_path):
+    """The committed checkpoint, evaluated as a user would (its run folder, its ``env.json``, the Warp backend on the
+    CPU device), walks: 4 episodes of 4 s at forward commands in 0.3-0.5 m/s. None falls, and the mean tracking
+    error stays under issue 18's bar of 0.1 m/s. On the GPU the same policy scored 0.070 m/s (p90 0.078) over 256
+    episodes of 10 s, and Warp's CPU device gave the same 0.070 on those episodes. Here it measured 0.068 m/s, with a
+    forward speed of 0.336 m/s at a mean command of 0.349. The short episodes weigh the start from rest more, and
+    the bound's margin allows for that. A checkpoint that no longer loads, an environment that drifted from the one
+    it was trained in (observation layout, gains, gait clock), or a simulator change that breaks the gait fails
+    here."""
+    import rl_eval
+
+    out = tmp_path / "eval.json"
+    rc = rl_eval.main([str(SHIPPED_POLICY), "--backend", "warp", "--episodes", "4", "--seconds", "4",
+                       "--env", "reset_bank=8", "--out", str(out)])
+    assert rc == 0
+    r = json.loads(out.read_text())
+    assert r["episodes"] == 4 and r["policy_steps"] == 200
+    assert r["fall_fraction"] == 0.0
+    assert r["forward_speed_mean"] > 0.25
+    assert r["tracking_error_mean"] < 0.1
