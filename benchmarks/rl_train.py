@@ -211,8 +211,7 @@ def main(argv=None) -> int:
     train_curve = [c for c in train_curve if c["step"] <= done]
     remaining = total - done
     # a resumed run keeps the environment it was trained with (env.json), a new one starts from the task's config
-    base = json.loads((out / "env.json").read_text()) if restore and (out / "env.json").exists() else cfg["env"]
-    env_kwargs = {**base, **args.env_overrides}
+    env_kwargs = {**(run_env(out, args.task) if restore else cfg["env"]), **args.env_overrides}
     # refused before any environment is built (a robot's construction solves its reset bank)
     dataclasses.replace(kamino.SolverConfig(), **args.solver_overrides)  # a field it lacks raises, naming it
     if args.walk_test and not hasattr(TASKS[args.task], "with_command"):

@@ -14,6 +14,18 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
+def evaluate(run: Path, tmp_path: Path, *, episodes: int, seconds: float) -> dict:
+    """``rl_eval.py RUN`` on the Warp backend (here Warp's CPU device) with a reset bank of 8, as a user runs it from
+    the command line; its exit status must be 0. Returns the JSON report."""
+    import rl_eval
+
+    out = tmp_path / "eval.json"
+    rc = rl_eval.main([str(run), "--backend", "warp", "--episodes", str(episodes), "--seconds", str(seconds),
+                       "--env", "reset_bank=8", "--out", str(out)])
+    assert rc == 0
+    return json.loads(out.read_text())
+
+
 @pytest.fixture(scope="module")
 def zero_policy_checkpoint(tmp_path_factory):
     """A brax PPO checkpoint of dr_legs_joystick's networks (as benchmarks/rl_train.py saves them) whose policy's last
@@ -46,13 +58,7 @@ def test_a_standing_policy_tracks_nothing_and_does_not_fall(zero_policy_checkpoi
     feet settle), so the base does not follow the forward command: the tracking error is the command itself, here
     uniform in 0.3-0.5 m/s, up to the settling motion (a few cm/s; the bound 0.05 m/s). No episode ends: the fall
     fraction is 0, and the evaluation fails the issue's bar (error <= 0.1 m/s)."""
-    import rl_eval
-
-    out = tmp_path / "eval.json"
-    rc = rl_eval.main([str(zero_policy_checkpoint), "--backend", "warp", "--episodes", "4", "--seconds", "1",
-                       "--env", "reset_bank=8", "--out", str(out)])
-    assert rc == 0
-    r = json.loads(out.read_text())
+    r = evaluate(zero_policy_checkpoint, tmp_path, episodes=4, seconds=1)
     assert r["policy_steps"] == 50 and r["episodes"] == 4
     assert r["fall_fraction"] == 0.0
     assert 0.3 <= r["command_mean"] <= 0.5
@@ -112,13 +118,7 @@ def test_the_shipped_dr_legs_policy_walks(tmp_path):
     the bound's margin allows for that. A checkpoint that no longer loads, an environment that drifted from the one
     it was trained in (observation layout, gains, gait clock), or a simulator change that breaks the gait fails
     here."""
-    import rl_eval
-
-    out = tmp_path / "eval.json"
-    rc = rl_eval.main([str(SHIPPED_POLICY), "--backend", "warp", "--episodes", "4", "--seconds", "4",
-                       "--env", "reset_bank=8", "--out", str(out)])
-    assert rc == 0
-    r = json.loads(out.read_text())
+    r = evaluate(SHIPPED_POLICY, tmp_path, episodes=4, seconds=4)
     assert r["episodes"] == 4 and r["policy_steps"] == 200
     assert r["fall_fraction"] == 0.0
     assert r["forward_speed_mean"] > 0.25

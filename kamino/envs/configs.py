@@ -48,7 +48,6 @@ PPO_CONFIGS: dict[str, dict] = {
 PPO_CONFIGS["bdx_joystick"] = {**PPO_CONFIGS["dr_legs_joystick"], "env": {}}
 
 
-
 def task_config(task: str) -> dict:
     """A deep copy of ``PPO_CONFIGS[task]`` (raises naming the known tasks)."""
     if task not in PPO_CONFIGS:
