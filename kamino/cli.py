@@ -1,15 +1,13 @@
-"""``kamino`` command line: ``kamino demo`` simulates the four-bar and reports closure, energy and speed;
-``kamino bench`` runs the throughput-against-error benchmark (``benchmarks/throughput.py``)."""
+"""The ``kamino`` command: ``demo`` simulates the four-bar and reports closure, energy and speed; ``train`` trains a
+registered environment with Brax's PPO; ``eval`` scores a trained policy; ``bench`` measures throughput against
+error. Each subcommand's options: ``kamino SUBCOMMAND --help``."""
 
 from __future__ import annotations
 
 import argparse
 import math
-import runpy
 import sys
-import textwrap
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -61,55 +59,26 @@ def demo(seconds: float = 5.0, dt: float = 1.0 / 240.0, integrator: str = "midpo
     return out
 
 
-def bench_script() -> Path:
-    """``benchmarks/throughput.py`` of the source checkout this package runs from."""
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "throughput.py"
-    if not path.is_file():
-        raise SystemExit(f"kamino bench: {path} not found; it runs from a source checkout of kamino "
-                         "(pip install -e .), where benchmarks/ holds the scenes and the peers' runners")
-    return path
+#: subcommands whose options belong to a library module: name -> (module, one-line help)
+DELEGATED = {
+    "train": ("kamino.envs.train", "train a registered environment with Brax's PPO (kamino train --help)"),
+    "eval": ("kamino.envs.evaluate", "score a trained policy or a shipped one (kamino eval --help)"),
+    "bench": ("kamino.bench.cli", "throughput against error on the benchmark scenes (kamino bench --help)"),
+}
 
 
-#: printed after ``kamino bench --help``: where the method, the scenes and the settings are documented
-BENCH_DOCS = ("Documentation (in the repository): docs/architecture.md (\"Performance method\"), "
-              "docs/benchmark_scenes.md (the scenes and the peers' figures), docs/settings.md (the solver defaults "
-              "and the speed-against-accuracy knob), benchmarks/README.md (the measurements).")
+def delegate(command: str, args: list[str]) -> int:
+    """Run ``kamino COMMAND ARGS`` through the ``main(argv)`` of the module that owns ``COMMAND``."""
+    import importlib
 
-
-def check_bench_plot(args: list[str]) -> None:
-    """``kamino bench --plot`` draws with matplotlib, the ``bench`` extra: without it, exit with a message that
-    names the option and the extra before the benchmark script starts."""
-    if not any(a == "--plot" or a.startswith("--plot=") for a in args):
-        return
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        raise SystemExit("kamino bench: --plot needs matplotlib, which is not installed; install the bench extra: "
-                         "pip install 'kamino[bench]' (or pip install -e '.[bench]' in a source checkout)") from None
-
-
-def bench(args: list[str]) -> int:
-    """``kamino bench ARGS``: run ``benchmarks/throughput.py`` with ``ARGS`` (every option is the script's)."""
-    check_bench_plot(args)
-    script = bench_script()
-    from kamino._warp import quiet_warp
-
-    quiet_warp()  # the benchmark imports Warp itself; keep its banner and module-load lines off
-    sys.argv = [f"kamino bench ({script})", *args]
-    try:
-        runpy.run_path(str(script), run_name="__main__")
-    except SystemExit:
-        if any(a in ("-h", "--help") for a in args):
-            print("\n" + textwrap.fill(BENCH_DOCS, 100, break_on_hyphens=False))
-        raise
-    return 0
+    module = importlib.import_module(DELEGATED[command][0])
+    return int(module.main(args) or 0)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["bench"]:
-        # every option belongs to benchmarks/throughput.py (see `kamino bench --help`)
-        return bench(argv[1:])
+    if argv[:1] and argv[0] in DELEGATED:
+        return delegate(argv[0], argv[1:])
     parser = argparse.ArgumentParser(prog="kamino", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     d = sub.add_parser("demo", help="simulate the four-bar linkage and report closure, energy, speed")
@@ -117,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--dt", type=float, default=1.0 / 240.0, help="time step [s], > 0 (default 1/240)")
     d.add_argument("--integrator", choices=["euler", "midpoint"], default="midpoint")
     d.add_argument("--x64", action="store_true", help="simulate in float64")
-    sub.add_parser("bench", help="GPU throughput against error, with the peers (benchmarks/throughput.py; "
-                                 "options: kamino bench --help; method: docs/architecture.md)")
+    for name, (_, help_line) in DELEGATED.items():
+        sub.add_parser(name, help=help_line, add_help=False)
     args = parser.parse_args(argv)
     if args.command == "demo":
         try:
