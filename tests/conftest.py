@@ -1,4 +1,4 @@
-"""Tests run in float64 unless a test asks for float32 (issue 2: "float64 unless stated").
+"""Tests run in float64 unless a test asks for float32 (the reference physics is checked in float64).
 
 CI time (a 2-core machine, 20-minute budget) goes mostly to XLA compiling the step on the CPU, not to running
 it. These settings cut that without touching what is computed:
@@ -14,8 +14,8 @@ it. These settings cut that without touching what is computed:
   executable comes from disk. A clean clone starts with an empty cache.
 
 CPU deadlock (why pyproject.toml excludes jaxlib 0.10.x and 0.11.0). Workers hung at 0 % CPU inside JAX rollouts
-on CI runs of 2026-11-23 and 24 (test_post_stabilisation, test_batching), and one died. gdb on a hung worker
-(2026-11-24, jaxlib 0.10.2, ``tests/test_post_stabilisation.py::test_warp_projects_as_the_reference`` alone in
+on CI runs (test_post_stabilisation, test_batching), and one died. gdb on a hung worker
+(jaxlib 0.10.2, ``tests/test_post_stabilisation.py::test_warp_projects_as_the_reference`` alone in
 one process) showed both threads of XLA's intra-op pool inside ``lapack_dpotrf_ffi`` -> ``jax::ParallelBatchMap``
 -> ``BlockingCounter::Wait``: two batched Cholesky factorisations ran concurrently, each on a pool thread, each
 waiting for batch chunks it had queued on the same, now full, pool. jaxlib 0.10 added that parallel batch path and
@@ -47,7 +47,7 @@ def _one_core_per_worker() -> None:
     """Pin each xdist worker to its own share of the cores, before jax starts. JAX sizes its CPU thread pool from
     the process's affinity (jax-ml/jax#1539), so two workers on a 2-core machine each ran a pool as wide as the
     machine. XLA:CPU then slowed down far more than 2x when both computed at once: notebook 02's landing rollout
-    (14-17 s alone) took 54 s and 387 s beside the animatronic's JAX hold test (2026-11-26). The notebook kernels and
+    (14-17 s alone) took 54 s and 387 s beside the animatronic's JAX hold test. The notebook kernels and
     other subprocesses inherit the affinity. The runs on two forced host devices get every core back
     (``helpers.ALL_CORES``): their collectives wait for a thread per device."""
     worker, count = os.environ.get("PYTEST_XDIST_WORKER"), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
@@ -109,7 +109,7 @@ def _hypothesis_examples_independent_of_imports() -> None:
     6.131 it also draws literals mined from the project's modules loaded at the time (``_get_local_constants``:
     every module in ``sys.modules`` outside site-packages and the tests). Which of kamino's modules a worker has
     loaded depends on the tests xdist gave it before, so a property test drew other examples in the full suite
-    than alone: CI of 2026-11-25 failed ``test_cross_backend`` on examples no local run of that file could
+    than alone: a CI run failed ``test_cross_backend`` on examples no local run of that file could
     produce. Emptying that pool (the global constants stay: zeros, denormals, extremes of each range) makes the
     examples a function of the test's source only. A Hypothesis without this hook is left as it is."""
     from hypothesis.internal.conjecture import providers
@@ -122,7 +122,7 @@ def _hypothesis_examples_independent_of_imports() -> None:
 _hypothesis_examples_independent_of_imports()
 
 
-#: test modules that hold the suite's longest tests (CI of 2026-11-26: notebook 02 156 s, the animatronic's 5 s hold
+#: test modules that hold the suite's longest tests (on CI: notebook 02 156 s, the animatronic's 5 s hold
 #: on the JAX backend 112 s, notebook 05 90 s, the PPO tests 49-68 s, sharding 45 s), collected first
 _LONG_FIRST = ("test_notebooks.py", "test_robots.py", "test_envs_ppo.py", "test_envs.py", "test_sharding.py")
 

@@ -1,4 +1,4 @@
-"""Implicit PD actuation, armature, damping, effort limits and joint limits (issue 3; docs/formulation.md §3-§4.1)."""
+"""Implicit PD actuation, armature, damping, effort limits and joint limits (docs/formulation.md §3-§4.1)."""
 
 from __future__ import annotations
 

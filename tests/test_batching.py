@@ -1,4 +1,4 @@
-"""Many worlds: replicated and heterogeneous worlds reproduce their standalone results (issue 2)."""
+"""Many worlds: replicated and heterogeneous worlds reproduce their standalone results."""
 
 from __future__ import annotations
 

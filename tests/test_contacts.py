@@ -1,5 +1,5 @@
-"""Frictional contacts with the De Saxcé correction, restitution, stacking, warm start (issue 3;
-docs/formulation.md §4.2, §7.8)."""
+"""Frictional contacts with the De Saxcé correction, restitution, stacking, warm start
+(docs/formulation.md §4.2, §7.8)."""
 
 from __future__ import annotations
 

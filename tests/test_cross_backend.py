@@ -40,14 +40,14 @@ ROT_TOL = 1e-4
 #: the tolerance (1e-5 below) on each backend, and the chaotic mechanisms amplify the difference. Measured worst
 #: with the cap at 10: 1.25e-4 rad locally and 3.0e-4 rad on a CI run (light bodies of random mechanisms whose
 #: positions agree to 1.4e-5 and 3.3e-5 m), the XLA CPU summation order alone moves it; the cap at 30 and
-#: rho_free 1e-4 pass locally (2026-11-24)
+#: rho_free 1e-4 pass locally
 ROT_TOL_LAST = 5e-4
 #: the same for the CR configuration on the chaotic random mechanisms. CR's inexact inner solve takes PADMM along
 #: another path (21 iterations against 3 on ``CR_STOP_POINT_MECHANISM``), so it stops at another point inside the
 #: tolerance ball, and the mechanism amplifies that difference. Measured on that mechanism after 100 steps: 8.1e-4 rad
 #: for CR, 2.2e-5 for both LLT configurations; the reference against itself at 10x the tolerance (1e-6): 7e-5; CR
 #: against the reference both at 1e-6: 3e-5 (the gap shrinks with the tolerance: a stop point, not another
-#: trajectory). Worst seen: 8.1e-4 there, 7.3e-4 on the CI run of 2026-11-25; the bound leaves 2.5x
+#: trajectory). Worst seen: 8.1e-4 there, 7.3e-4 on a CI run; the bound leaves 2.5x
 ROT_TOL_LAST_CR = 2e-3
 
 #: derandomised (the examples are a function of the test's source: CI runs the same ones every time), no example
@@ -297,7 +297,7 @@ NEUTRAL_DOUBLE_HINGE = {"scale": 10.0 ** 0.5, "loops": [], "bodies": [
     _body(0, JointType.REVOLUTE, 10.0 ** 0.5, (0.25, 0.25, 0.25), 0.25)]}
 
 
-#: Drawn by the CI run of 2026-11-25 (rounded to three digits, which keeps the effect): nine bodies hanging from
+#: Drawn by a CI run (rounded to three digits, which keeps the effect): nine bodies hanging from
 #: three world joints, two prismatic loops and a universal loop. Every configuration converges on every step, the
 #: reference and the LLT ones in 3 iterations, CR in up to 21, and after 100 steps CR's body 3 is 8.1e-4 rad from the
 #: reference where the LLT configurations are within 2.2e-5: the case behind ``ROT_TOL_LAST_CR``.
@@ -438,7 +438,7 @@ def test_random_shapes_dropped_on_a_plane_agree_across_backends(specs):
     <= 3e-5 m and rad). Poses and converged flags are compared where the reference settles (``_settled_worlds``);
     a world whose contact solve ends steps at the 200-iteration cap ends them on an iterate that rounding decides.
     That was not amplified in the first examples (frictional impacts of tumbling boxes, 3-10 % of the steps at the
-    cap), but it was on the CI run of 2026-11-25. There, a 45 g capsule beside a 14 g sphere, in a world at the
+    cap), but it was on a CI run. There, a 45 g capsule beside a 14 g sphere, in a world at the
     cap, rolled 1.1e-3 rad away from the reference on the dense LLT after 100 steps. Rolling is neutral: a
     velocity difference integrates, and the angle is the distance over a radius of 3-15 cm. Run again at
     tolerance 1e-6 (fewer steps at the cap), the gap was 5e-5 rad. The reported residuals are checked in every
@@ -506,8 +506,8 @@ def test_light_slider_with_a_hinged_load_stays_bounded(variant):
     """The 40:1 mass ratio across the hinge at the defaults (float64, 100 steps): formerly (rho=1, baumgarte=1)
     PADMM did not converge and the mechanism blew up within 0.4 s; with ``rho_free = 1e-3`` every step converged
     but the joints opened by 2.7e-5 m (the proximal shift left velocity errors of 6.3e-4 m per step before
-    post-stabilisation). At ``rho_free = 1e-4`` (the default since 2026-11-24) they stay within 1.8e-6 m
-    (docs/conventions.md, 'Penalty'): the bound 1e-5 m is the loop-closure target of issue 16."""
+    post-stabilisation). At ``rho_free = 1e-4`` (the default) they stay within 1.8e-6 m
+    (docs/conventions.md, 'Penalty'): the bound 1e-5 m is kamino's loop-closure target."""
     model = _slider_with_a_hinged_load()
     state = kamino.init_state(model)  # float64
     traj = variant.rollout(model, state, num_steps=100, config=kamino.SolverConfig())

@@ -1,4 +1,4 @@
-"""Differentiating through ``step`` in fixed-iteration mode (issue 2)."""
+"""Differentiating through ``step`` in fixed-iteration mode."""
 
 from __future__ import annotations
 

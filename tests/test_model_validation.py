@@ -542,7 +542,7 @@ def test_derived_models_do_not_alias_the_source():
         assert not np.shares_memory(getattr(cat, f), getattr(base, f)), f
 
 
-# ---- geoms and actuation (issue 3) ------------------------------------------------------
+# ---- geoms and actuation ------------------------------------------------------------
 
 
 def test_geom_errors_name_the_geom():

@@ -1,4 +1,4 @@
-"""The notebooks in ``notebooks/`` (issue 19): each one executes top to bottom without an error, and each is stored
+"""The notebooks in ``notebooks/``: each one executes top to bottom without an error, and each is stored
 without outputs (``python notebooks/strip_outputs.py`` strips them).
 
 A notebook added to the folder is picked up here automatically. Each runs in a fresh ``python3`` kernel of this

@@ -1,4 +1,4 @@
-"""Physics of the JAX reference on jointed mechanisms without contacts (issue 2 acceptance)."""
+"""Physics of the JAX reference on jointed mechanisms without contacts."""
 
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ def test_fourbar_stays_closed_and_conserves_energy(integrator, closure_bound, va
 
 @pytest.mark.parametrize("variant", [variant_param(JAX), variant_param(WARP_SPARSE_LLT)])
 def test_fourbar_keeps_its_energy_at_the_float32_defaults(variant):
-    """Issue 16 acceptance: the passive four-bar keeps its energy within 1 % over 10 s at ``SolverConfig(dt)``,
+    """The passive four-bar keeps its energy within 1 % over 10 s at ``SolverConfig(dt)``,
     float32 (semi-implicit Euler, post-stabilisation). Measured on both backends: the total energy within 0.07 %,
     bounded at 1 %. Against the peak kinetic energy (the energy that moves) the float32 run loses 7.2 % (float64:
     1.2 %): the joint dead band shrinks the curvature term every step (docs/conventions.md, "Stabilisation", an

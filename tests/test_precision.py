@@ -1,7 +1,7 @@
 """The JAX reference traces its float32 matrix products at full precision (kamino/jax_ref/precision.py).
 
 On NVIDIA GPUs JAX's default float32 product is TF32 (10-bit mantissa). At that precision ``dr_legs`` on the JAX
-backend diverged within 2.5 s on an H200 (loop closure 1.5e5 m, session 20); with every product of the step at
+backend diverged within 2.5 s on an H200 (loop closure 1.5e5 m); with every product of the step at
 ``Precision.HIGHEST`` the same run closed its loops to 4.4e-6 m. A CPU computes float32 products in full either way,
 so CI cannot see the divergence itself. It checks the cause instead: every ``dot_general`` traced by
 the step, a rollout inside a user's ``jax.jit``, the metrics and forward kinematics carries ``HIGHEST``.

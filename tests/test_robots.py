@@ -222,7 +222,7 @@ def test_feet_touch_the_ground_and_the_com_is_over_them(name):
 #: the CPU (one thread per world runs the whole PADMM loop). 3 s covers the settling on the ground and the
 #: last second at rest that ``_check_hold`` asks for: bdx's base (Warp, sparse LLT) moves 2.3, 0.73, 0.78, 0.35,
 #: 0.39, 0.23 mm in successive half seconds with the residual cap at 30 (0.10 mm in the last half second with the
-#: cap at 10), so its second second still moves by up to 1.09 mm and the third by 0.59 mm (measured 2026-11-24).
+#: cap at 10), so its second second still moves by up to 1.09 mm and the third by 0.59 mm.
 WARP_STAND_STEPS = round(3.0 / DT)
 
 
@@ -294,12 +294,11 @@ def test_floating_robot_stands_for_5_s_in_float32(name, variant):
 @pytest.mark.slow
 @pytest.mark.parametrize("variant", BACKENDS)
 def test_animatronic_holds_its_pose_for_5_s_in_float32(variant):
-    """Until 2026-11-25 the float32 JAX reference let the worst joint error grow to 1.1-1.5e-5 over the 5 s (a
-    strict xfail). Since the session-16 changes (the penalty cap, the projection with PADMM's shift of 1.1e-4
-    instead of 3.5e-4: docs/conventions.md, "Penalty" and "Post-stabilisation"; which of the two did it was not
-    measured) it holds under the 1e-5 bound here. It is at float32's limit: the same run outside the test
-    session (JAX's x64 mode off, so some constants of the step round to float32 as well) peaks at 1.2e-5 with this
-    conftest's XLA flags and 2.4e-5 with XLA's defaults, ending at 6e-6 / 1.2e-5 (measured 2026-11-25)."""
+    """The float32 JAX reference holds the worst joint error under the 1e-5 bound over the 5 s, with the penalty cap
+    and the projection's shift of 1.1e-4 (docs/conventions.md, "Penalty" and "Post-stabilisation"); with a shift
+    of 3.5e-4 and no cap it grew to 1.1-1.5e-5. It is at float32's limit: the same run outside pytest
+    (JAX's x64 mode off, so some constants of the step round to float32 as well) peaks at 1.2e-5 with this
+    conftest's XLA flags and 2.4e-5 with XLA's defaults, ending at 6e-6 / 1.2e-5."""
     if variant.is_warp and variant.linear_solver == "llt":
         # ~1000 constraint rows in one world: the per-world Cholesky (one CPU thread) costs 2 s (sparse J) and
         # 11 s (dense J) per step here, hours for the test. This size is what linear_solver="auto" hands to CR

@@ -282,8 +282,8 @@ def test_zoo_exports_what_it_should():
 #: bound on the body CoM positions [m], solver settings (float64, PADMM tolerance 1e-8 unless stated) and backend.
 #: The mechanisms and scenes run on the Warp backend (its CPU kernels are compiled once per CI worker; a new JAX
 #: program per batch costs 10-40 s there), with the same bounds as on the reference. The robots stay on the JAX
-#: reference: on Warp, dr_legs and its round trip ended 1.8e-5 m apart in this batch (session 29). Session 30 traced
-#: it: olaf's round trip has 304 rows, above ``AUTO_CR_ROWS`` (300), so ``linear_solver="auto"`` takes the Conjugate
+#: reference: on Warp, dr_legs and its round trip ended 1.8e-5 m apart in this batch. The cause:
+#: olaf's round trip has 304 rows, above ``AUTO_CR_ROWS`` (300), so ``linear_solver="auto"`` takes the Conjugate
 #: Residual path for the whole batch on the CPU, where PADMM needs several times the iterations of the LLT path and
 #: dr_legs stops at the 1000-iteration cap (docs/warp_backend.md, "Open problems").
 #:

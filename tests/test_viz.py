@@ -390,7 +390,7 @@ def test_viewer_template_is_package_data():
 
 
 def test_html_plays_a_robot_with_loops():
-    # issue 19: the viewer opens a robot (dr_legs: 31 bodies, its leg linkages closed by loop joints) and plays it:
+    # the viewer opens a robot (dr_legs: 31 bodies, its leg linkages closed by loop joints) and plays it:
     # every frame's poses are the trajectory's, every body is drawn, the loop joints are the export's cuts.
     robot = kamino.models.dr_legs()
     traj = _synthetic(robot, 4)

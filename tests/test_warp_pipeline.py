@@ -41,7 +41,7 @@ def test_the_warp_step_runs_inside_jax_jit_and_scan():
 def test_a_returned_state_is_not_changed_by_later_steps():
     """The eager step reuses its stepper's buffers: every State it returns must own its arrays. jaxlib 0.9 made
     ``jnp.asarray`` of a numpy view alias the buffer, and a state returned by one step then took the values of the
-    next step of another state (2026-11-24). Here a falling box's first state must survive a step of a state moving
+    next step of another state. Here a falling box's first state must survive a step of a state moving
     the other way, field by field."""
     model = kamino.models.box_stack(1)
     s0 = kamino.init_state(model, jnp.float32)

@@ -3,7 +3,7 @@
 JAX lowers a float32 ``dot_general`` at its default precision, which on NVIDIA GPUs since Ampere is TF32: a
 10-bit mantissa, relative error about 1e-3 per product. The step's Delassus operator, its Cholesky factor and the
 PADMM residuals (formulation.md, the dual problem) need the full 24 bits: at TF32 the tolerance of 1e-6 is out of
-reach and ``dr_legs`` diverged in 2.5 s (session 20, H200: loop closure 1.5e5 m). :func:`full_precision` traces a
+reach and ``dr_legs`` diverged in 2.5 s (on an H200: loop closure 1.5e5 m). :func:`full_precision` traces a
 function under ``jax.default_matmul_precision("highest")``; the precision is fixed when each product is traced, so
 it holds inside a caller's ``jax.jit``, ``vmap`` or ``scan`` too. CPUs compute float32 products in full either way.
 """

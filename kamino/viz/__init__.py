@@ -1,4 +1,4 @@
-"""Looking at a rollout (issue 19): one world of a trajectory as an interactive HTML page or an animated GIF.
+"""Looking at a rollout: one world of a trajectory as an interactive HTML page or an animated GIF.
 
 - :func:`html` writes a self-contained page (three.js from a pinned CDN URL through an import map, as Brax's HTML
   viewer does; the trajectory embedded as JSON): bodies from their geoms, loop-closing joints highlighted,
