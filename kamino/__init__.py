@@ -14,6 +14,7 @@ moves it (``kamino/_jax_cache.py``; docs/first_step.md).
 
 from kamino import models
 from kamino._jax_cache import enable as _enable_jax_cache
+from kamino._jax_cache import quiet_cache_loads as _quiet_cache_loads
 from kamino.api import init_state, joint_positions, load_mjcf, metrics, rollout, save_mjcf, step
 from kamino.config import SolverConfig
 from kamino.kinematics import FKResult, forward_kinematics, set_joint_positions
@@ -31,6 +32,7 @@ from kamino.model import (
 from kamino.state import ContactState, Control, State, StepInfo
 
 _enable_jax_cache()  # before the first compile: kamino/_jax_cache.py
+_quiet_cache_loads()  # no XLA log lines when an entry loads: kamino/_jax_cache.py
 
 __version__ = "0.1.0"
 
