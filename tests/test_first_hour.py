@@ -5,6 +5,7 @@ compiles are announced, and Warp is quiet unless asked (no banner, no missing-dr
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import subprocess
@@ -359,6 +360,7 @@ def test_progress_draws_on_stderr_unless_quiet(capsys, monkeypatch):
     assert capsys.readouterr().err == ""
 
 
+@pytest.mark.slow  # compiles the four-bar's rollout in a fresh process, as a user's first `kamino demo` does
 def test_cold_demo_says_it_is_compiling(tmp_path):
     # a fresh cache directory: the rollout compiles, and a line on stderr says so before the numbers come
     env = {k: v for k, v in os.environ.items() if k not in ("KAMINO_QUIET", "JAX_COMPILATION_CACHE_DIR")}
@@ -435,7 +437,29 @@ def test_body_frame_reads_velocity_gravity_and_height_in_body_axes():
         kamino.body_frame(model, state, "base")
 
 
-def test_body_contact_forces_carry_each_resting_box(fourbar):
+def test_body_contact_forces_sum_each_pairs_force_on_its_two_bodies(fourbar):
+    # hand-made contacts on two worlds of two stacked boxes (geoms: ground, box0, box1; pairs: ground-box0,
+    # ground-box1, box0-box1): ContactState.force acts on geom b's body, its opposite on geom a's
+    model = kamino.replicate(kamino.models.box_stack(2), 2)
+    assert [tuple(model.geom_body[[a, b]]) for a, b in zip(model.pair_geom_a[:3], model.pair_geom_b[:3],
+                                                          strict=True)] == [(-1, 0), (-1, 1), (0, 1)]
+    cap = int(model.world_contact_capacity[0])
+    pair = np.full(2 * cap, -1)
+    force = np.full((2 * cap, 3), 100.0)  # empty slots carry garbage that must not count
+    pair[[0, 1, 2]], force[[0, 1, 2]] = [0, 2, 0], [[0, 0, 5.0], [1.0, 0, 2.0], [0, 0, 1.0]]  # world 0
+    pair[cap], force[cap] = 2, [0, 0.5, 3.0]  # world 1: its pairs count from world_pair_start[1]
+    state = kamino.init_state(model)
+    state = state.replace(contacts=dataclasses.replace(state.contacts, pair=jnp.asarray(pair),
+                                                       force=jnp.asarray(force)))
+    expected = [[-1.0, 0, 6.0 - 2.0], [1.0, 0, 2.0], [0, -0.5, -3.0], [0, 0.5, 3.0]]  # box0, box1 of each world
+    np.testing.assert_allclose(kamino.body_contact_forces(model, state), expected, atol=1e-12)
+    # a model without contacts reads zeros
+    four, four_state = fourbar
+    np.testing.assert_array_equal(kamino.body_contact_forces(four, four_state), np.zeros((four.num_bodies, 3)))
+
+
+@pytest.mark.slow  # a 30-step rollout of two box stacks (one compile)
+def test_body_contact_forces_carry_each_resting_box():
     # two worlds of two stacked boxes, 1 kg and 2 kg: at rest, each box's net contact force (the ground's or the
     # lower box's push, less the upper box's weight on it) holds up its own weight, m g upwards
     model = kamino.concat([kamino.models.box_stack(2, mass=1.0), kamino.models.box_stack(2, mass=2.0)])
@@ -447,6 +471,3 @@ def test_body_contact_forces_carry_each_resting_box(fourbar):
     np.testing.assert_allclose(forces[:, :, 2], np.broadcast_to(weight, (30, 4)), rtol=1e-2)
     np.testing.assert_allclose(forces[-1, :, 2], weight, rtol=1e-4)  # settled
     np.testing.assert_allclose(forces[:, :, :2], 0.0, atol=1e-6 * weight.max())  # no sideways push
-    # a model without contacts reads zeros
-    four, state = fourbar
-    np.testing.assert_array_equal(kamino.body_contact_forces(four, state), np.zeros((four.num_bodies, 3)))
