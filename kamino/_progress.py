@@ -1,7 +1,7 @@
 """Words for long waits: an announced compile and a progress bar, both on stderr.
 
-kamino's command-line entry points (``kamino demo``, ``kamino train``, ``kamino eval``, ``kamino bench``) let no wait
-of more than a few seconds pass in silence:
+The helpers that kamino's command-line entry points use so that no wait of more than a few seconds passes in
+silence (``kamino demo`` announces the compiles of its rollout and of its diagnostics):
 
 - :func:`announce_compile` wraps work that may compile (the first call of a jitted function, a Warp module load).
   If the work is still running after ``after`` seconds (:data:`ANNOUNCE_AFTER`, 2 s), one line on stderr says what
@@ -45,11 +45,13 @@ def quiet() -> bool:
 
 def cache_note() -> str:
     """What the next run gains: "the first run on a machine takes longest; later runs load it from the cache" when
-    JAX's persistent compilation cache is on (kamino/_jax_cache.py), else "JAX's compilation cache is off"."""
+    JAX's persistent compilation cache is on (kamino/_jax_cache.py), "JAX's compilation cache is off" when it is
+    off, and nothing before JAX is imported."""
     jax = sys.modules.get("jax")
+    if jax is None:
+        return ""
     try:
-        on = jax is not None and bool(jax.config.jax_enable_compilation_cache) and \
-            bool(jax.config.jax_compilation_cache_dir)
+        on = bool(jax.config.jax_enable_compilation_cache) and bool(jax.config.jax_compilation_cache_dir)
     except AttributeError:
         on = False
     if on:
