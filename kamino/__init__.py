@@ -3,8 +3,11 @@
 Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``GeomType``,
 ``Actuation``, ``ActuationMode``, ``ModelError``, ``replicate``, ``concat``, ``SolverConfig``,
 ``State``, ``ContactState``, ``Control``, ``StepInfo``, ``init_state``, ``step``, ``rollout``,
-``metrics``, ``joint_positions``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``,
-``load_mjcf``, ``save_mjcf`` and the procedural ``models``. Submodules imported on use: ``kamino.viz`` (an HTML
+``metrics``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``, ``load_mjcf``, ``save_mjcf``, the
+procedural ``models``, and the read-outs a task needs: ``joint_positions`` (every joint's coordinates),
+``joint_coordinates`` (one joint's, by name), ``body_frame`` (a body's velocity, gravity direction and height in
+its own frame) and ``body_contact_forces`` (the net contact force on each body). The API reference is built from
+these docstrings (docs/api.md). Submodules imported on use: ``kamino.viz`` (an HTML
 page or a GIF of a rollout), ``kamino.plots`` (matplotlib), ``kamino.envs`` (Brax environments).
 
 Importing kamino turns on JAX's persistent compilation cache in the user's cache directory (``~/.cache/kamino/jax``
@@ -14,7 +17,19 @@ moves it (``kamino/_jax_cache.py``; docs/first_step.md).
 
 from kamino import models
 from kamino._jax_cache import enable as _enable_jax_cache
-from kamino.api import init_state, joint_positions, load_mjcf, metrics, rollout, save_mjcf, step
+from kamino._jax_cache import quiet_cache_loads as _quiet_cache_loads
+from kamino.api import (
+    body_contact_forces,
+    body_frame,
+    init_state,
+    joint_coordinates,
+    joint_positions,
+    load_mjcf,
+    metrics,
+    rollout,
+    save_mjcf,
+    step,
+)
 from kamino.config import SolverConfig
 from kamino.kinematics import FKResult, forward_kinematics, set_joint_positions
 from kamino.model import (
@@ -31,6 +46,7 @@ from kamino.model import (
 from kamino.state import ContactState, Control, State, StepInfo
 
 _enable_jax_cache()  # before the first compile: kamino/_jax_cache.py
+_quiet_cache_loads()  # no XLA log lines when an entry loads: kamino/_jax_cache.py
 
 __version__ = "0.1.0"
 
@@ -48,9 +64,12 @@ __all__ = [
     "SolverConfig",
     "State",
     "StepInfo",
+    "body_contact_forces",
+    "body_frame",
     "concat",
     "forward_kinematics",
     "init_state",
+    "joint_coordinates",
     "joint_positions",
     "load_mjcf",
     "metrics",

@@ -1,4 +1,4 @@
-"""JAX's persistent compilation cache, on by default for kamino (issue 19, "time to first step").
+"""JAX's persistent compilation cache, on by default for kamino, and quiet when it loads an entry.
 
 JAX compiles ``kamino.step``, ``kamino.rollout`` and every ``jax.jit`` around them anew in each process: seconds to
 minutes on the CPU for a robot (docs/first_step.md). With the persistent cache, XLA's executables are written to disk
@@ -26,12 +26,24 @@ executable built for another CPU.
 Failures never pass in silence: a directory that cannot be created or written, or a JAX whose config lacks one of the
 names above, gives a ``RuntimeWarning`` naming what failed and the way out (``KAMINO_JAX_CACHE=/writable/path`` or
 ``KAMINO_JAX_CACHE=0``); the import then goes on without the cache. :data:`choice` holds what happened.
+
+Loading an entry makes XLA log lines the user cannot act on: ``pjrt_executable.cc ... Assume version compatibility.
+PjRt-IFRT does not track XLA executable versions.`` (a warning) and, on some CPUs, ``cpu_aot_loader.cc ... Target
+machine feature +prefer-no-gather is not supported on the host machine`` (logged as an error, but the feature is an
+LLVM tuning hint, not an instruction set, and the entry's key already holds the CPU's features).
+:func:`quiet_cache_loads` (called by ``import kamino``) raises XLA's C++ log threshold to fatal while JAX reads one
+entry, and puts jaxlib's default (warnings and errors) back right after; every other compile, run and log line is
+untouched. A load that fails still raises inside JAX, which warns in Python ("Error reading persistent compilation
+cache entry"). A user who chose XLA's log level (``TF_CPP_MIN_LOG_LEVEL=0`` to see everything, or 2, 3; or JAX's
+``jax_logging_level`` / ``JAX_LOGGING_LEVEL``) sees every line at that level: kamino then leaves the threshold alone.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
+import threading
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -157,3 +169,90 @@ def enable(environ: Mapping[str, str] | None = None) -> CacheChoice:
               f"jax_persistent_cache_min_compile_time_secs failed ({type(exc).__name__}: {exc}): JAX's own threshold "
               "decides which compiles are kept.")
     return choice
+
+
+#: XLA's C++ log thresholds (absl): 0 info, 1 warning, 2 error, 3 fatal. jaxlib's default is 1.
+XLA_DEFAULT_MIN_LOG_LEVEL = 1
+_XLA_FATAL = 3
+
+_loads_lock = threading.Lock()
+_loads_in_flight = 0
+
+
+def user_chose_xla_logging(environ: Mapping[str, str] | None = None) -> bool:
+    """Whether the user set XLA's C++ log level: ``TF_CPP_MIN_LOG_LEVEL`` in ``environ`` (default ``os.environ``) to
+    a level other than 1 (``import jax`` sets 1 when the variable is unset), or JAX's ``jax_logging_level``
+    (``JAX_LOGGING_LEVEL``) to a level other than ``NOTSET``."""
+    env = os.environ if environ is None else environ
+    if env.get("TF_CPP_MIN_LOG_LEVEL", "").strip() not in ("", str(XLA_DEFAULT_MIN_LOG_LEVEL)):
+        return True
+    try:
+        level = _jax_value("jax_logging_level")
+    except Exception:  # a JAX without this option
+        return False
+    return level not in (None, "", "NOTSET")
+
+
+def _set_xla_min_log_level(level: int) -> None:
+    from jax._src.lib import utils
+
+    utils.absl_set_min_log_level(level)
+
+
+@functools.lru_cache(maxsize=1)
+def _can_set_xla_log_level() -> bool:
+    try:
+        from jax._src.lib import utils
+    except ImportError:
+        return False
+    return hasattr(utils, "absl_set_min_log_level")
+
+
+class _XlaLogsOff:
+    """XLA's C++ log threshold at fatal while inside (re-entrant and thread-safe: the threshold is process-wide, and
+    jaxlib's default comes back when the last one leaves)."""
+
+    def __enter__(self) -> None:
+        global _loads_in_flight
+        with _loads_lock:
+            _loads_in_flight += 1
+            if _loads_in_flight == 1:
+                _set_xla_min_log_level(_XLA_FATAL)
+
+    def __exit__(self, *exc) -> None:
+        global _loads_in_flight
+        with _loads_lock:
+            _loads_in_flight -= 1
+            if _loads_in_flight == 0:
+                _set_xla_min_log_level(XLA_DEFAULT_MIN_LOG_LEVEL)
+
+
+def _quiet_loader(load):
+    """``load`` (JAX's ``compilation_cache.get_executable_and_time``) run with XLA's C++ log lines off, unless the
+    user chose XLA's log level (:func:`user_chose_xla_logging`)."""
+
+    @functools.wraps(load)
+    def quiet_load(*args, **kwargs):
+        if user_chose_xla_logging():
+            return load(*args, **kwargs)
+        with _XlaLogsOff():
+            return load(*args, **kwargs)
+
+    quiet_load.kamino_quiet = True
+    return quiet_load
+
+
+def quiet_cache_loads() -> bool:
+    """Keep XLA's log lines about a loaded cache entry off stderr (module docstring). Idempotent; returns whether
+    the loads are quiet. A JAX whose internals differ (no ``jax._src.compilation_cache.get_executable_and_time``,
+    or no way to set the C++ log threshold) is left as it is, and its lines stay."""
+    try:
+        from jax._src import compilation_cache
+    except ImportError:
+        return False
+    load = getattr(compilation_cache, "get_executable_and_time", None)
+    if load is None or not _can_set_xla_log_level():
+        return False
+    if not getattr(load, "kamino_quiet", False):
+        compilation_cache.get_executable_and_time = _quiet_loader(load)
+    return True

@@ -15,10 +15,10 @@ import numpy as np
 #: the adaptive penalty of the limit and contact rows changes at most every ``PENALTY_INTERVAL`` PADMM iterations,
 #: and only when the primal and dual residuals are out of balance by more than ``PENALTY_THRESHOLD`` (on the square
 #: root of their ratio); it stays in ``[RHO_MIN, RHO_MAX]`` (the scaled problem has a unit diagonal). Both backends
-#: use these (docs/conventions.md, "Penalty"). 5 and 2 since 2026-11-26 (10 and 5 before): the slowest steps were
-#: solves whose primal residual stayed 2-5x the dual one for 100+ iterations, under the old threshold; measured on
-#: 64 worlds x 400 steps of every benchmark scene (Warp CPU, float32, defaults), the 99th percentile of iterations
-#: per step fell 15-22 % on the robots and the four-bar, no scene converged less often or closed its loops worse
+#: use these (docs/conventions.md, "Penalty"). Against 10 and 5, where the slowest steps are solves whose primal
+#: residual stays 2-5x the dual one for 100+ iterations, 5 and 2 lower the 99th percentile of iterations per step by
+#: 15-22 % on the robots and the four-bar (64 worlds x 400 steps of every benchmark scene, Warp CPU, float32,
+#: defaults); no scene converges less often or closes its loops worse
 PENALTY_INTERVAL, PENALTY_THRESHOLD = 5, 2.0
 RHO_MIN, RHO_MAX = 1e-3, 10.0
 #: one balancing step changes the penalty by at most this factor: the uncapped ``sqrt(r_p / r_d)`` is 0 when every
@@ -50,119 +50,113 @@ def _rounding_floor(dtype) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class SolverConfig:
-    """Time stepping, stabilisation and Proximal-ADMM settings (docs/formulation.md §5-§8).
-
-    Attributes:
-        dt: time step [s].
-        integrator: ``"euler"`` (semi-implicit Euler, §6.2) or ``"midpoint"`` (Moreau-Jean, §6.3).
-        baumgarte: fraction ``alpha`` of a joint's position error removed by the end of a step (§5).
-        curvature_correction: add the second-order drift of the pose update to the joint bias, so
-            that velocity-level constraints hold at position level to O(dt^3) per step
-            (docs/conventions.md, "Stabilisation").
-        curvature_refinement: after PADMM converges, evaluate the curvature term once more along the
-            solved velocity ``u+`` and continue PADMM from its iterate (docs/conventions.md,
-            "Stabilisation"): the loop closure error of a step drops from ``O(h^2 |u+ - u_f| |u|)`` to third
-            order, at the price of the extra iterations (up to ``max_iterations`` more).
-        post_stabilisation: number of position projections after the pose update (0: none; a world whose PADMM
-            did not converge gets one more). Each one
-            removes the joint and coupling rows' position errors by the smallest mass-weighted displacement
-            of the bodies (a Gauss-Newton step with the step's Jacobian and a sparse Cholesky of the
-            always-active rows' Delassus block), so that a soft ``baumgarte`` can keep PADMM well conditioned
-            while the loops stay closed (docs/conventions.md, "Post-stabilisation").
-        projection_shift: the diagonal shift of post-stabilisation's scaled system (``None``: ``sqrt(eps)`` of the
-            state's dtype, or PADMM's own shifts of the always-active rows where those are smaller, as in float32,
-            so that the Warp backend solves with PADMM's factor; :meth:`projection_shifts`).
-        joint_deadband: joint position errors below this [m or rad] get no bias (rounding noise
-            on redundant loop rows would otherwise be an inconsistent right-hand side);
-            ``None`` picks 1e-6 in float32 and 1e-11 in float64.
-        max_iterations: PADMM iteration cap per step.
-        tolerance: the one knob that trades speed for accuracy. PADMM stops when its primal and dual residuals
-            are below it as velocities [m/s or rad/s] of the world's heaviest constrained direction (each row's
-            impulse and velocity error weighted by the square root of its effective mass: a row's kinetic-energy
-            error is at most that of a ``tolerance`` velocity error on the heaviest row, and no row's velocity error
-            exceeds ``RESIDUAL_LOOSENING_MAX`` times ``tolerance``), and the complementarity residual ``|lambda v|``
-            below it too (``kamino.jax_ref.padmm.solve``; docs/conventions.md, "PADMM defaults"). 1e-3 m/s moves a
-            body by at most 2.5 um in a 2.5 ms step; post-stabilisation removes the joints' share of that drift.
-            A robot at rest to below 1 mm/s asks for 1e-4; in float32 a tighter tolerance buys no loop closure
-            (docs/settings.md: what each value buys and costs).
-        redundant_limits: fix ``lambda = 0`` up front on limit rows that are equivalent, modulo the bilateral
-            rows, to another limit row with a smaller bias (all three hinge limits of a parallelogram loop);
-            the solution is unchanged and PADMM stops creeping along the null direction
-            (``kamino.jax_ref.padmm.redundant_limits``). JAX reference, float64 only (float32 and the Warp
-            backend raise).
-        fixed_iterations: run exactly ``max_iterations`` PADMM iterations with no early exit
-            (``lax.fori_loop``: what makes ``jax.grad`` through ``step`` possible).
-        rho, eta: ADMM penalty and proximal parameters (§7.3). With ``penalty="adaptive"`` ``rho`` is the
-            starting penalty of the limit and contact rows, which each world then balances (and carries to its
-            next step in ``state.info.penalty``).
-        penalty: ``"adaptive"`` (default): the always-active rows carry ``rho_free``, the limit and contact rows
-            a per-world penalty balanced by the residuals (docs/conventions.md, "Penalty"); ``"fixed"``: every
-            row carries ``rho`` (docs/formulation.md §7.6).
-        rho_free: the penalty of the always-active rows (joint-dynamics, joint, coupling) under
-            ``penalty="adaptive"``: only a proximal shift there, small for fast convergence, large enough to keep
-            float32 factors of redundant loops well conditioned.
-        warm_start: start PADMM from the previous step's constraint forces (§7.8).
-        warmstart_scale: factor on the warm-start reactions (§7.8).
-        acceleration: Nesterov acceleration with restart (§7.4).
-        restart_tolerance: restart when the combined residual fails to drop below this factor (§7.4).
-        preconditioning: Jacobi preconditioning ``P = diag(D)^-1/2`` (§7.2).
-        angular_damping: optional angular velocity damping rate [1/s] (§6.2 step 4).
-        contact_baumgarte: fraction ``gamma`` of a contact penetration removed per step (§4.2, §5).
-        limit_baumgarte: fraction ``beta`` of a joint-limit violation removed per step (§4.1, §5).
-        contact_deadband: gaps and penetrations below this [m] get no bias (``delta`` of §4.2).
-        restitution_threshold: approach speed [m/s] below which contacts are inelastic (§4.2).
-        contact_match_distance: a new contact continues a previous one of the same geom pair when
-            their points on geom b are closer than this [m] (warm start, §7.8).
-        limit_margin: a limit row is active when the DoF is within this distance [m or rad] of the
-            limit, plus what its velocity covers in the step (§4.1). The free velocity of a body
-            does not see what its joints transmit (gravity on a pendulum is a joint reaction), so a
-            margin is needed for a DoF that rests on its limit not to fall through for a step.
-        contact_margin: likewise for contacts [m], added to the geoms' own margins (§4.2).
-        jacobian: Warp backend: ``"sparse"`` block rows (default) or a ``"dense"`` per-world Jacobian. The JAX
-            reference always computes densely (and solves by a dense Cholesky factorisation: it warns when given
-            ``linear_solver="cr"`` or a non-default ``cr_iterations``, ``kamino.checks.check_config``); the physics
-            is the same.
-        linear_solver: Warp backend: ``"llt"`` Cholesky (sparse factor with ``jacobian="sparse"``), ``"cr"``
-            matrix-free Conjugate Residual, ``"auto"`` (default): CR above ``AUTO_CR_ROWS`` rows per world.
-        cr_iterations: Conjugate Residual budget per PADMM iteration (Warp backend).
-        max_unconverged_steps: a world whose PADMM has not converged for more than this many consecutive steps
-            is marked ``state.info.failed`` and frozen, like a world whose state went non-finite
-            (docs/conventions.md, "World health").
-    """
+    """Time stepping, stabilisation and Proximal-ADMM settings (docs/formulation.md §5-§8)."""
 
     dt: float = 1.0 / 240.0
+    """time step [s]."""
     integrator: Literal["euler", "midpoint"] = "euler"
+    """``"euler"`` (semi-implicit Euler, §6.2) or ``"midpoint"`` (Moreau-Jean, §6.3)."""
     baumgarte: float = 0.01
+    """fraction ``alpha`` of a joint's position error removed by the end of a step (§5)."""
     curvature_correction: bool = True
+    """add the second-order drift of the pose update to the joint bias, so that velocity-level constraints hold at
+    position level to O(dt^3) per step (docs/conventions.md, "Stabilisation")."""
     curvature_refinement: bool = False
+    """after PADMM converges, evaluate the curvature term once more along the solved velocity ``u+`` and continue
+    PADMM from its iterate (docs/conventions.md, "Stabilisation"): the loop closure error of a step drops from
+    ``O(h^2 |u+ - u_f| |u|)`` to third order, at the price of the extra iterations (up to ``max_iterations`` more)."""
     post_stabilisation: int = 1
+    """number of position projections after the pose update (0: none; a world whose PADMM did not converge gets one
+    more). Each one removes the joint and coupling rows' position errors by the smallest mass-weighted displacement
+    of the bodies (a Gauss-Newton step with the step's Jacobian and a sparse Cholesky of the always-active rows'
+    Delassus block), so that a soft ``baumgarte`` can keep PADMM well conditioned while the loops stay closed
+    (docs/conventions.md, "Post-stabilisation")."""
     projection_shift: float | None = None
+    """the diagonal shift of post-stabilisation's scaled system (``None``: ``sqrt(eps)`` of the state's dtype, or
+    PADMM's own shifts of the always-active rows where those are smaller, as in float32, so that the Warp backend
+    solves with PADMM's factor; :meth:`projection_shifts`)."""
     joint_deadband: float | None = None
+    """joint position errors below this [m or rad] get no bias (rounding noise on redundant loop rows would
+    otherwise be an inconsistent right-hand side); ``None`` picks 1e-6 in float32 and 1e-11 in float64."""
     max_iterations: int = 200
+    """PADMM iteration cap per step."""
     tolerance: float = 1e-3
+    """the one knob that trades speed for accuracy. PADMM stops when its primal and dual residuals are below it as
+    velocities [m/s or rad/s] of the world's heaviest constrained direction (each row's impulse and velocity error
+    weighted by the square root of its effective mass: a row's kinetic-energy error is at most that of a
+    ``tolerance`` velocity error on the heaviest row, and no row's velocity error exceeds ``RESIDUAL_LOOSENING_MAX``
+    times ``tolerance``), and the complementarity residual ``|lambda v|`` below it too
+    (``kamino.jax_ref.padmm.solve``; docs/conventions.md, "PADMM defaults"). 1e-3 m/s moves a body by at most 2.5 um
+    in a 2.5 ms step; post-stabilisation removes the joints' share of that drift. A robot at rest to below 1 mm/s
+    asks for 1e-4; in float32 a tighter tolerance buys no loop closure (docs/settings.md: what each value buys and
+    costs)."""
     fixed_iterations: bool = False
+    """run exactly ``max_iterations`` PADMM iterations with no early exit (``lax.fori_loop``: what makes
+    ``jax.grad`` through ``step`` possible)."""
     redundant_limits: bool = False
+    """fix ``lambda = 0`` up front on limit rows that are equivalent, modulo the bilateral rows, to another limit
+    row with a smaller bias (all three hinge limits of a parallelogram loop); the solution is unchanged and PADMM
+    stops creeping along the null direction (``kamino.jax_ref.padmm.redundant_limits``). JAX reference, float64 only
+    (float32 and the Warp backend raise)."""
     rho: float = 0.1
+    """ADMM penalty and proximal parameters (§7.3). With ``penalty="adaptive"`` ``rho`` is the starting penalty of
+    the limit and contact rows, which each world then balances (and carries to its next step in
+    ``state.info.penalty``)."""
     eta: float = 1e-5
+    """ADMM penalty and proximal parameters (§7.3). With ``penalty="adaptive"`` ``rho`` is the starting penalty of
+    the limit and contact rows, which each world then balances (and carries to its next step in
+    ``state.info.penalty``)."""
     penalty: Literal["fixed", "adaptive"] = "adaptive"
+    """``"adaptive"`` (default): the always-active rows carry ``rho_free``, the limit and contact rows a per-world
+    penalty balanced by the residuals (docs/conventions.md, "Penalty"); ``"fixed"``: every row carries ``rho``
+    (docs/formulation.md §7.6)."""
     rho_free: float = 1e-4
+    """the penalty of the always-active rows (joint-dynamics, joint, coupling) under ``penalty="adaptive"``: only a
+    proximal shift there, small for fast convergence, large enough to keep float32 factors of redundant loops well
+    conditioned."""
     warm_start: bool = True
+    """start PADMM from the previous step's constraint forces (§7.8)."""
     warmstart_scale: float = 1.0
+    """factor on the warm-start reactions (§7.8)."""
     acceleration: bool = True
+    """Nesterov acceleration with restart (§7.4)."""
     restart_tolerance: float = 0.999
+    """restart when the combined residual fails to drop below this factor (§7.4)."""
     preconditioning: bool = True
+    """Jacobi preconditioning ``P = diag(D)^-1/2`` (§7.2)."""
     angular_damping: float = 0.0
+    """optional angular velocity damping rate [1/s] (§6.2 step 4)."""
     contact_baumgarte: float = 0.2
+    """fraction ``gamma`` of a contact penetration removed per step (§4.2, §5)."""
     limit_baumgarte: float = 0.2
+    """fraction ``beta`` of a joint-limit violation removed per step (§4.1, §5)."""
     contact_deadband: float = 1e-6
+    """gaps and penetrations below this [m] get no bias (``delta`` of §4.2)."""
     restitution_threshold: float = 0.1
+    """approach speed [m/s] below which contacts are inelastic (§4.2)."""
     contact_match_distance: float = 2e-3
+    """a new contact continues a previous one of the same geom pair when their points on geom b are closer than this
+    [m] (warm start, §7.8)."""
     limit_margin: float = 1e-2
+    """a limit row is active when the DoF is within this distance [m or rad] of the limit, plus what its velocity
+    covers in the step (§4.1). The free velocity of a body does not see what its joints transmit (gravity on a
+    pendulum is a joint reaction), so a margin is needed for a DoF that rests on its limit not to fall through for a
+    step."""
     contact_margin: float = 1e-3
+    """likewise for contacts [m], added to the geoms' own margins (§4.2)."""
     jacobian: Literal["dense", "sparse"] = "sparse"
+    """Warp backend: ``"sparse"`` block rows (default) or a ``"dense"`` per-world Jacobian. The JAX reference always
+    computes densely (and solves by a dense Cholesky factorisation: it warns when given ``linear_solver="cr"`` or a
+    non-default ``cr_iterations``, ``kamino.checks.check_config``); the physics is the same."""
     linear_solver: Literal["llt", "cr", "auto"] = "auto"
+    """Warp backend: ``"llt"`` Cholesky (sparse factor with ``jacobian="sparse"``), ``"cr"`` matrix-free Conjugate
+    Residual, ``"auto"`` (default): CR above ``AUTO_CR_ROWS`` rows per world."""
     cr_iterations: int = 9
+    """Conjugate Residual budget per PADMM iteration (Warp backend)."""
     max_unconverged_steps: int = 50
+    """a world whose PADMM has not converged for more than this many consecutive steps is marked
+    ``state.info.failed`` and frozen, like a world whose state went non-finite (docs/conventions.md, "World
+    health")."""
 
     def deadband_for(self, dtype) -> float:
         """The joint dead band in effect for states of ``dtype``: ``joint_deadband``, or 1e-6 in

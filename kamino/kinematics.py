@@ -25,19 +25,16 @@ from kamino.state import State
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class FKResult:
-    """Result of :func:`forward_kinematics`.
-
-    Attributes:
-        body_q: ``[total_bodies, 7]`` CoM poses (flat, like ``State.body_q``).
-        converged: ``[num_worlds]`` bool: ``residual <= tolerance``.
-        residual: ``[num_worlds]`` max |constraint residual| (m or rad) at the returned poses.
-        iterations: ``[num_worlds]`` Gauss-Newton iterations used.
-    """
+    """Result of :func:`forward_kinematics`."""
 
     body_q: jax.Array
+    """``[total_bodies, 7]`` CoM poses (flat, like ``State.body_q``)."""
     converged: jax.Array
+    """``[num_worlds]`` bool: ``residual <= tolerance``."""
     residual: jax.Array
+    """``[num_worlds]`` max |constraint residual| (m or rad) at the returned poses."""
     iterations: jax.Array
+    """``[num_worlds]`` Gauss-Newton iterations used."""
 
 
 _FIXED_ROWS = ((0, RES_TRANS), (1, RES_TRANS), (2, RES_TRANS), (3, RES_LOG), (4, RES_LOG), (5, RES_LOG))

@@ -27,13 +27,21 @@ class JointType(enum.IntEnum):
     """Joint types of docs/formulation.md §2.4. Every joint may close a loop; none is special."""
 
     FIXED = 0
+    """No relative motion: 6 constraint rows, no DoF, no coordinate."""
     REVOLUTE = 1
+    """A hinge: rotation about the joint frame's x axis (1 DoF; coordinate: the angle [rad])."""
     PRISMATIC = 2
+    """A slider: translation along the joint frame's x axis (1 DoF; coordinate: ``t_x`` [m])."""
     CYLINDRICAL = 3
+    """Translation along and rotation about the joint frame's x axis (2 DoFs; coordinates ``(t_x, angle)``)."""
     UNIVERSAL = 4
+    """Rotations about the joint frame's x and y axes (2 DoFs; coordinates ``(theta_1, theta_2)`` [rad])."""
     SPHERICAL = 5
+    """A ball joint: any rotation about the joint origin (3 DoFs; coordinates: a quaternion ``(x, y, z, w)``)."""
     CARTESIAN = 6
+    """Translation along the joint frame's three axes, no rotation (3 DoFs; coordinates ``t`` [m])."""
     FREE = 7
+    """No constraint: a floating body, e.g. a robot's base (6 DoFs; coordinates ``(t, quaternion)``, 7)."""
 
 
 class GeomType(enum.IntEnum):
@@ -47,11 +55,17 @@ class GeomType(enum.IntEnum):
     """
 
     PLANE = 0
+    """Infinite half-space below local ``z = 0`` (normal ``+z``); ``size`` ignored."""
     SPHERE = 1
+    """Sphere of radius ``size[0]``."""
     CAPSULE = 2
+    """Capsule of radius ``size[0]`` around a segment of half-length ``size[1]`` along local z."""
     BOX = 3
+    """Box of half-extents ``size[0:3]``."""
     CYLINDER = 4
+    """Cylinder of radius ``size[0]`` and half-height ``size[1]`` along local z."""
     ELLIPSOID = 5
+    """Ellipsoid of semi-axes ``size[0:3]`` along local x, y, z (collides with planes only)."""
 
 
 class ActuationMode(enum.IntEnum):
@@ -64,9 +78,13 @@ class ActuationMode(enum.IntEnum):
     """
 
     PASSIVE = 0
+    """No actuator (``Control.dof_effort`` is still applied as an external joint effort)."""
     EFFORT = 1
+    """The commanded effort, clipped to the effort limit, applied explicitly."""
     POSITION = 2
+    """Implicit PD towards ``Control.position_target`` (and ``velocity_target``)."""
     VELOCITY = 3
+    """Implicit D towards ``Control.velocity_target``."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,9 +96,13 @@ class Actuation:
     """
 
     mode: ActuationMode | str = ActuationMode.POSITION
+    """How the DoFs are driven: an :class:`ActuationMode` or its name (case-insensitive, ``"position"``)."""
     kp: float = 0.0
+    """PD stiffness [N m/rad or N/m] (POSITION only)."""
     kd: float = 0.0
+    """PD damping [N m s/rad or N s/m] (POSITION and VELOCITY)."""
     effort_limit: float = float("inf")
+    """Bound on the actuator's generalized force [N m or N], enforced by the solver (``inf``: unlimited)."""
 
     def __post_init__(self) -> None:
         self.resolved_mode()  # an unknown mode fails here, where the Actuation is written, not at add_joint
@@ -168,7 +190,7 @@ CONTACT_POINTS: dict[tuple[GeomType, GeomType], int] = {
 _GEOM_SIZE_COUNT = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, GeomType.BOX: 3, GeomType.CYLINDER: 2,
                     GeomType.ELLIPSOID: 3}
 
-_QUAT_UNIT_TOL = 1e-6  # issue 2: "zero or non-unit quaternion (beyond 1e-6)"
+_QUAT_UNIT_TOL = 1e-6  # a quaternion whose norm is further than this from 1 is a ModelError
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -185,111 +207,208 @@ class Model:
     """
 
     num_worlds: int
-    gravity: np.ndarray  # [W, 3]
+    """Number of worlds ``W`` (independent copies or variants simulated side by side)."""
+    gravity: np.ndarray
+    """``[W, 3]`` gravitational acceleration per world [m/s^2], world frame."""
+
     # bodies
-    body_mass: np.ndarray  # [B]
-    body_inertia: np.ndarray  # [B, 3, 3]
-    body_q0: np.ndarray  # [B, 7]
-    body_u0: np.ndarray  # [B, 6]
-    body_world: np.ndarray  # [B]
+    body_mass: np.ndarray
+    """``[B]`` body masses [kg] (``B``: bodies over all worlds)."""
+    body_inertia: np.ndarray
+    """``[B, 3, 3]`` inertia about the CoM in the body's CoM frame [kg m^2]."""
+    body_q0: np.ndarray
+    """``[B, 7]`` initial (reference) CoM poses ``(px, py, pz, qx, qy, qz, qw)``, world frame."""
+    body_u0: np.ndarray
+    """``[B, 6]`` initial twists ``(v, w)``: CoM linear then angular velocity, world frame."""
+    body_world: np.ndarray
+    """``[B]`` world of each body."""
     body_names: tuple[str, ...]
-    world_body_start: np.ndarray  # [W]
-    world_body_count: np.ndarray  # [W]
+    """``[B]`` body names (unique within a world; :meth:`body_index` looks one up)."""
+    world_body_start: np.ndarray
+    """``[W]`` index of each world's first body."""
+    world_body_count: np.ndarray
+    """``[W]`` bodies per world."""
+
     # joints
-    joint_type: np.ndarray  # [J]
-    joint_parent: np.ndarray  # [J] global body index or -1
-    joint_child: np.ndarray  # [J] global body index
-    joint_world: np.ndarray  # [J]
-    joint_anchor_B: np.ndarray  # [J, 3]
-    joint_anchor_F: np.ndarray  # [J, 3]
-    joint_frame_B: np.ndarray  # [J, 4]
-    joint_frame_F: np.ndarray  # [J, 4]
+    joint_type: np.ndarray
+    """``[J]`` :class:`JointType` of each joint (``J``: joints over all worlds)."""
+    joint_parent: np.ndarray
+    """``[J]`` global index of the base body (``-1``: the world)."""
+    joint_child: np.ndarray
+    """``[J]`` global index of the follower body."""
+    joint_world: np.ndarray
+    """``[J]`` world of each joint."""
+    joint_anchor_B: np.ndarray
+    """``[J, 3]`` joint frame origin in the base body's CoM frame (world frame for a world-attached joint) [m]."""
+    joint_anchor_F: np.ndarray
+    """``[J, 3]`` joint frame origin in the follower body's CoM frame [m]."""
+    joint_frame_B: np.ndarray
+    """``[J, 4]`` joint frame orientation ``X_B`` in the base body's CoM frame (quaternion ``(x, y, z, w)``); its
+    local x axis is the joint's first motion axis."""
+    joint_frame_F: np.ndarray
+    """``[J, 4]`` joint frame orientation in the follower body's CoM frame (quaternion ``(x, y, z, w)``)."""
     joint_names: tuple[str, ...]
+    """``[J]`` joint names (unique within a world; :meth:`joint_index` looks one up)."""
     world_joint_start: np.ndarray
+    """``[W]`` index of each world's first joint."""
     world_joint_count: np.ndarray
+    """``[W]`` joints per world."""
+
     # joint DoFs (global flat), coordinates, kinematic constraint rows
     joint_dof_start: np.ndarray
+    """``[J]`` index of each joint's first DoF in the flat DoF arrays (``dof_*``, ``Control.dof_effort``,
+    ``State.actuator_force``)."""
     joint_dof_count: np.ndarray
+    """``[J]`` DoFs per joint (REVOLUTE 1, ..., FREE 6)."""
     joint_coord_start: np.ndarray
+    """``[J]`` index of each joint's first coordinate in :func:`kamino.joint_positions`'s flat vector
+    (:func:`kamino.joint_coordinates` reads one joint's by name)."""
     joint_coord_count: np.ndarray
+    """``[J]`` coordinates per joint (REVOLUTE 1, SPHERICAL 4 (a quaternion), FREE 7, ...)."""
     joint_cts_start: np.ndarray
+    """``[J]`` index of each joint's first constraint row in ``State.constraint_force``."""
     joint_cts_count: np.ndarray
-    dof_lower: np.ndarray  # [D]
-    dof_upper: np.ndarray  # [D]
-    dof_act_mode: np.ndarray  # [D] ActuationMode
-    dof_kp: np.ndarray  # [D]
-    dof_kd: np.ndarray  # [D]
-    dof_effort_limit: np.ndarray  # [D] (inf: unlimited)
-    dof_armature: np.ndarray  # [D] reflected inertia
-    dof_damping: np.ndarray  # [D] viscous damping
-    dof_stiffness: np.ndarray  # [D] passive spring
-    dof_springref: np.ndarray  # [D] spring rest position
+    """``[J]`` constraint rows per joint (6 minus its DoFs)."""
+    dof_lower: np.ndarray
+    """``[D]`` lower position limit of each DoF [m or rad] (``-inf``: none; ``D``: DoFs over all worlds)."""
+    dof_upper: np.ndarray
+    """``[D]`` upper position limit of each DoF [m or rad] (``inf``: none)."""
+    dof_act_mode: np.ndarray
+    """``[D]`` :class:`ActuationMode` of each DoF."""
+    dof_kp: np.ndarray
+    """``[D]`` PD stiffness [N/m or N m/rad] of POSITION DoFs."""
+    dof_kd: np.ndarray
+    """``[D]`` PD damping [N s/m or N m s/rad] of POSITION and VELOCITY DoFs."""
+    dof_effort_limit: np.ndarray
+    """``[D]`` bound on the actuator's generalized force [N or N m] (``inf``: unlimited)."""
+    dof_armature: np.ndarray
+    """``[D]`` armature: reflected rotor inertia added along the DoF [kg or kg m^2]."""
+    dof_damping: np.ndarray
+    """``[D]`` passive viscous damping [N s/m or N m s/rad]."""
+    dof_stiffness: np.ndarray
+    """``[D]`` passive spring stiffness [N/m or N m/rad]."""
+    dof_springref: np.ndarray
+    """``[D]`` rest position of the passive spring [m or rad]."""
     world_dof_start: np.ndarray
+    """``[W]`` index of each world's first DoF."""
     world_dof_count: np.ndarray
+    """``[W]`` DoFs per world."""
     world_coord_start: np.ndarray
+    """``[W]`` index of each world's first joint coordinate."""
     world_coord_count: np.ndarray
+    """``[W]`` joint coordinates per world."""
     world_cts_start: np.ndarray
+    """``[W]`` index of each world's first constraint row."""
     world_cts_count: np.ndarray
+    """``[W]`` constraint rows per world."""
+
     # collision geometry (pose in the body's CoM frame; world frame for body -1)
-    geom_type: np.ndarray  # [G] GeomType
-    geom_body: np.ndarray  # [G] global body index or -1
-    geom_world: np.ndarray  # [G]
-    geom_pos: np.ndarray  # [G, 3]
-    geom_quat: np.ndarray  # [G, 4]
-    geom_size: np.ndarray  # [G, 3]
-    geom_friction: np.ndarray  # [G]
-    geom_restitution: np.ndarray  # [G]
-    geom_margin: np.ndarray  # [G]
+    geom_type: np.ndarray
+    """``[G]`` :class:`GeomType` of each collision geom (``G``: geoms over all worlds)."""
+    geom_body: np.ndarray
+    """``[G]`` global index of the body a geom is attached to (``-1``: the world, e.g. the ground plane)."""
+    geom_world: np.ndarray
+    """``[G]`` world of each geom."""
+    geom_pos: np.ndarray
+    """``[G, 3]`` geom position in its body's CoM frame (world frame for ``geom_body == -1``) [m]."""
+    geom_quat: np.ndarray
+    """``[G, 4]`` geom orientation in the same frame (quaternion ``(x, y, z, w)``)."""
+    geom_size: np.ndarray
+    """``[G, 3]`` size parameters in MuJoCo's conventions (:class:`GeomType`) [m]."""
+    geom_friction: np.ndarray
+    """``[G]`` Coulomb friction coefficient (a contact takes the larger of its two geoms')."""
+    geom_restitution: np.ndarray
+    """``[G]`` coefficient of restitution (a contact takes the larger of its two geoms')."""
+    geom_margin: np.ndarray
+    """``[G]`` contact margin [m]: a contact is active once its gap is within the two geoms' margins plus
+    ``SolverConfig.contact_margin`` (plus what the approach speed closes in the step)."""
     geom_names: tuple[str, ...]
+    """``[G]`` geom names."""
     world_geom_start: np.ndarray
+    """``[W]`` index of each world's first geom."""
     world_geom_count: np.ndarray
+    """``[W]`` geoms per world."""
+
     # candidate contact pairs (filtered at build time; geom a has the smaller type)
-    pair_geom_a: np.ndarray  # [P] global geom index
-    pair_geom_b: np.ndarray  # [P]
-    pair_world: np.ndarray  # [P]
+    pair_geom_a: np.ndarray
+    """``[P]`` global index of each candidate contact pair's first geom (the one with the smaller type; ``P``:
+    pairs over all worlds, filtered at build time). ``ContactState.pair`` indexes a world's pairs from
+    ``world_pair_start``."""
+    pair_geom_b: np.ndarray
+    """``[P]`` global index of each pair's second geom (``ContactState.force`` acts on its body)."""
+    pair_world: np.ndarray
+    """``[P]`` world of each pair."""
     world_pair_start: np.ndarray
+    """``[W]`` index of each world's first pair."""
     world_pair_count: np.ndarray
-    world_contact_capacity: np.ndarray  # [W] max contacts per world
+    """``[W]`` candidate pairs per world."""
+    world_contact_capacity: np.ndarray
+    """``[W]`` contact slots per world (the most contacts a step keeps); ``State.contacts`` holds them world after
+    world."""
+
     # joint couplings (mimic joints): q_a = sum_k coef[k] q_b^k (docs/conventions.md "Couplings")
-    coupling_joint_a: np.ndarray  # [K] global joint index
-    coupling_joint_b: np.ndarray  # [K] global joint index or -1 (q_a = coef[0])
-    coupling_coef: np.ndarray  # [K, 5] polynomial coefficients a_0..a_4
-    coupling_world: np.ndarray  # [K]
+    coupling_joint_a: np.ndarray
+    """``[K]`` global index of each coupling's driven joint ``a``: ``q_a = sum_k coef[k] q_b^k``
+    (docs/conventions.md, "Couplings"; ``K``: couplings over all worlds)."""
+    coupling_joint_b: np.ndarray
+    """``[K]`` global index of the driving joint ``b`` (``-1``: none, ``q_a = coef[0]``)."""
+    coupling_coef: np.ndarray
+    """``[K, 5]`` polynomial coefficients ``a_0 .. a_4``."""
+    coupling_world: np.ndarray
+    """``[K]`` world of each coupling."""
     coupling_names: tuple[str, ...]
+    """``[K]`` coupling names."""
     world_coupling_start: np.ndarray
+    """``[W]`` index of each world's first coupling."""
     world_coupling_count: np.ndarray
+    """``[W]`` couplings per world."""
+
     # named actuators: one per actuated DoF (the DoF's Actuation sets mode and gains)
-    actuator_dof: np.ndarray  # [A] global DoF index
-    actuator_gear: np.ndarray  # [A] ctrl -> effort factor (EFFORT DoFs)
-    actuator_ctrl_range: np.ndarray  # [A, 2] ctrl clip range (-inf, inf: none)
-    actuator_world: np.ndarray  # [A]
+    actuator_dof: np.ndarray
+    """``[A]`` global DoF index of each named actuator (one per actuated DoF; the DoF's :class:`Actuation` sets
+    mode and gains; ``A``: actuators over all worlds)."""
+    actuator_gear: np.ndarray
+    """``[A]`` factor from a control value to an effort (EFFORT DoFs; :meth:`Control.from_ctrl`)."""
+    actuator_ctrl_range: np.ndarray
+    """``[A, 2]`` range a control value is clipped to (``(-inf, inf)``: none)."""
+    actuator_world: np.ndarray
+    """``[A]`` world of each actuator."""
     actuator_names: tuple[str, ...]
+    """``[A]`` actuator names (the order of a MuJoCo-style control vector; :meth:`actuator_index`)."""
     world_actuator_start: np.ndarray
+    """``[W]`` index of each world's first actuator."""
     world_actuator_count: np.ndarray
+    """``[W]`` actuators per world."""
 
     # ---- sizes -------------------------------------------------------------------------
     @property
     def num_bodies(self) -> int:
+        """Bodies over all worlds (``B``)."""
         return int(self.body_mass.shape[0])
 
     @property
     def num_joints(self) -> int:
+        """Joints over all worlds (``J``)."""
         return int(self.joint_type.shape[0])
 
     @property
     def num_dofs(self) -> int:
+        """Joint DoFs over all worlds (``D``): the length of ``Control.dof_effort``."""
         return int(self.dof_lower.shape[0])
 
     @property
     def num_coords(self) -> int:
+        """Joint coordinates over all worlds: the length of :func:`kamino.joint_positions`."""
         return int(self.joint_coord_count.sum())
 
     @property
     def num_geoms(self) -> int:
+        """Collision geoms over all worlds (``G``)."""
         return int(self.geom_type.shape[0])
 
     @property
     def num_pairs(self) -> int:
+        """Candidate contact pairs over all worlds (``P``)."""
         return int(self.pair_geom_a.shape[0])
 
     @property
@@ -299,10 +418,12 @@ class Model:
 
     @property
     def num_couplings(self) -> int:
+        """Joint couplings over all worlds (``K``)."""
         return int(self.coupling_joint_a.shape[0])
 
     @property
     def num_actuators(self) -> int:
+        """Named actuators over all worlds (``A``): the length of a MuJoCo-style control vector."""
         return int(self.actuator_dof.shape[0])
 
     @property
@@ -529,6 +650,7 @@ class ModelBuilder:
 
     def __init__(self, gravity: Sequence[float] = (0.0, 0.0, -9.81)):
         self.gravity = np.asarray(gravity, dtype=float)
+        """Gravitational acceleration of the world being built [m/s^2], world frame."""
         self._bodies: list[_Body] = []
         self._joints: list[_Joint] = []
         self._geoms: list[_Geom] = []
@@ -837,7 +959,7 @@ class ModelBuilder:
             raise ModelError(f"{what}: margin must be >= 0, got {g.margin}")
 
     def _contact_pairs(self) -> list[tuple[int, int]]:
-        """Candidate pairs ``(a, b)`` with ``type_a <= type_b`` after filtering (issue 3: only pairs
+        """Candidate pairs ``(a, b)`` with ``type_a <= type_b`` after filtering (only pairs
         that can touch generate work; docs/conventions.md, "Contacts"). A FREE joint constrains nothing
         (no rows in ``JOINT_CONSTRAINT_ROWS``, docs/formulation.md §2.4), so it does not exclude its bodies'
         pairs: a free body collides with the world's geoms. Every other joint type excludes them."""

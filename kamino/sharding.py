@@ -28,8 +28,8 @@ from jax.sharding import PartitionSpec as P
 
 from kamino.model import Model, same_model, take_worlds
 
-#: the mesh axis name :func:`shard_worlds` uses
 WORLD_AXIS = "worlds"
+"""The mesh axis name :func:`shard_worlds` uses."""
 
 
 def group_model(model: Model, num_shards: int, fn: str = "shard_worlds") -> Model:

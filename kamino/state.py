@@ -21,18 +21,33 @@ class StepInfo:
     """
 
     iterations: jax.Array
+    """PADMM iterations the step's solve took (int32; 0 for a failed world)."""
     primal_residual: jax.Array
+    """The solve's final primal residual, as a velocity [m/s or rad/s] of the world's heaviest constrained direction
+    (``SolverConfig.tolerance``; docs/conventions.md, "PADMM defaults")."""
     dual_residual: jax.Array
+    """The solve's final dual residual, in the units of :attr:`primal_residual`."""
     complementarity_residual: jax.Array
+    """The solve's final complementarity residual ``|lambda v|`` of the limit and contact rows."""
     converged: jax.Array
+    """Whether the solve met ``SolverConfig.tolerance`` within ``max_iterations`` (bool)."""
     failed: jax.Array
+    """Whether the world is failed and frozen (bool): its new state was non-finite, or it went unconverged for more
+    than ``SolverConfig.max_unconverged_steps`` steps (docs/conventions.md, "World health")."""
     num_contacts: jax.Array
+    """Active contacts the step found (int32; at most the world's contact capacity)."""
     contact_overflow: jax.Array
+    """Contacts dropped because the world's contact capacity was full (int32; 0 unless
+    ``ModelBuilder.finalize(contact_capacity=...)`` lowered it)."""
     penalty: jax.Array
+    """The adaptive PADMM penalty of the limit and contact rows at the end of the step, the next step's start
+    (``SolverConfig.penalty``)."""
     unconverged_steps: jax.Array
+    """Consecutive steps whose solve did not converge (int32; a converged step resets it)."""
 
     @staticmethod
     def empty(num_worlds: int, dtype=jnp.float32) -> StepInfo:
+        """The report of a state no step has made: zero iterations and residuals, converged, not failed."""
         z = jnp.zeros(num_worlds, dtype)
         zi = jnp.zeros(num_worlds, jnp.int32)
         return StepInfo(
@@ -54,27 +69,26 @@ class StepInfo:
 class ContactState:
     """The last step's contacts, flat over worlds (``[total_contact_capacity, ...]``, world 0 first,
     each world's slots in detection order; empty slots have ``pair = -1`` and zeros).
-
-    Attributes:
-        pair: world-local index of the geom pair (``-1``: empty slot).
-        pos: world point midway between the two surfaces.
-        normal: unit normal from geom a to geom b.
-        dist: signed gap [m] (negative: penetration).
-        force: contact force on geom b's body [N], world frame (``C lambda / dt``).
-        velocity: relative velocity of b with respect to a at the contact after the step, world frame.
-        point_b: the contact point on geom b in its body's CoM frame (the warm-start key).
     """
 
     pair: jax.Array
+    """world-local index of the geom pair (``-1``: empty slot)."""
     pos: jax.Array
+    """world point midway between the two surfaces."""
     normal: jax.Array
+    """unit normal from geom a to geom b."""
     dist: jax.Array
+    """signed gap [m] (negative: penetration)."""
     force: jax.Array
+    """contact force on geom b's body [N], world frame (``C lambda / dt``)."""
     velocity: jax.Array
+    """relative velocity of b with respect to a at the contact after the step, world frame."""
     point_b: jax.Array
+    """the contact point on geom b in its body's CoM frame (the warm-start key)."""
 
     @staticmethod
     def empty(capacity: int, dtype=jnp.float32) -> ContactState:
+        """``capacity`` empty contact slots (``pair = -1``, zeros elsewhere)."""
         v = jnp.zeros((capacity, 3), dtype)
         return ContactState(pair=jnp.full(capacity, -1, jnp.int32), pos=v, normal=v, dist=jnp.zeros(capacity, dtype),
                             force=v, velocity=v, point_b=v)
@@ -83,36 +97,33 @@ class ContactState:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class State:
-    """Simulation state of all worlds (flat storage, world 0's entities first).
-
-    Attributes:
-        body_q: ``[total_bodies, 7]`` CoM poses ``(px, py, pz, qx, qy, qz, qw)`` in world.
-        body_u: ``[total_bodies, 6]`` twists ``(v, w)``: CoM linear then angular velocity, world frame.
-        time: ``[num_worlds]`` simulated time [s].
-        constraint_force: ``[total_constraint_rows]`` last step's joint-row reactions ``lambda/dt``
-            (the warm start of the next solve), in the row order of docs/conventions.md.
-        actuator_force: ``[total_dofs]`` generalized force each DoF's actuator applied in the last step
-            (implicit PD/D force, or the clipped commanded effort; for passive DoFs the applied effort).
-        passive_force: ``[total_dofs]`` generalized force of armature, damping and springs.
-        limit_force: ``[total_dofs]`` generalized force of the joint limits (positive pushes the DoF up).
-        coupling_force: ``[total_couplings]`` reaction of each joint coupling (generalized force on
-            joint a's DoF, ``lambda / dt``).
-        contacts: the last step's :class:`ContactState`.
-        info: the last solve's :class:`StepInfo`.
-    """
+    """Simulation state of all worlds (flat storage, world 0's entities first)."""
 
     body_q: jax.Array
+    """``[total_bodies, 7]`` CoM poses ``(px, py, pz, qx, qy, qz, qw)`` in world."""
     body_u: jax.Array
+    """``[total_bodies, 6]`` twists ``(v, w)``: CoM linear then angular velocity, world frame."""
     time: jax.Array
+    """``[num_worlds]`` simulated time [s]."""
     constraint_force: jax.Array
+    """``[total_constraint_rows]`` last step's joint-row reactions ``lambda/dt`` (the warm start of the next solve),
+    in the row order of docs/conventions.md."""
     actuator_force: jax.Array
+    """``[total_dofs]`` generalized force each DoF's actuator applied in the last step (implicit PD/D force, or the
+    clipped commanded effort; for passive DoFs the applied effort)."""
     passive_force: jax.Array
+    """``[total_dofs]`` generalized force of armature, damping and springs."""
     limit_force: jax.Array
+    """``[total_dofs]`` generalized force of the joint limits (positive pushes the DoF up)."""
     coupling_force: jax.Array
+    """``[total_couplings]`` reaction of each joint coupling (generalized force on joint a's DoF, ``lambda / dt``)."""
     contacts: ContactState
+    """the last step's :class:`ContactState`."""
     info: StepInfo
+    """the last solve's :class:`StepInfo`."""
 
     def replace(self, **changes) -> State:
+        """A copy with the fields named in ``changes`` replaced (``state.replace(body_q=q)``)."""
         return dataclasses.replace(self, **changes)
 
 
@@ -147,23 +158,19 @@ def fill_empty(tree, like):
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Control:
-    """Inputs of one step. ``None`` fields mean zero.
-
-    Attributes:
-        dof_effort: ``[total_dofs]`` generalized joint efforts (N for translational DoFs, N m for
-            rotational ones; a FREE joint's six are a world-aligned force and torque at the child CoM).
-            On PASSIVE DoFs it is applied as is, on EFFORT DoFs clipped to the effort limit, both
-            explicitly as body wrenches ``J_dofs^T tau`` (docs/formulation.md §3.1); on POSITION/VELOCITY
-            DoFs it is the actuator's feed-forward, inside the effort limit.
-        body_wrench: ``[total_bodies, 6]`` external wrenches ``(f, tau)`` in world, torque about the CoM.
-        position_target: ``[total_dofs]`` targets of POSITION DoFs (DoF space, docs/formulation.md §4.1).
-        velocity_target: ``[total_dofs]`` velocity targets of POSITION and VELOCITY DoFs.
-    """
+    """Inputs of one step. ``None`` fields mean zero."""
 
     dof_effort: jax.Array | None = None
+    """``[total_dofs]`` generalized joint efforts (N for translational DoFs, N m for rotational ones; a FREE joint's
+    six are a world-aligned force and torque at the child CoM). On PASSIVE DoFs it is applied as is, on EFFORT DoFs
+    clipped to the effort limit, both explicitly as body wrenches ``J_dofs^T tau`` (docs/formulation.md §3.1); on
+    POSITION/VELOCITY DoFs it is the actuator's feed-forward, inside the effort limit."""
     body_wrench: jax.Array | None = None
+    """``[total_bodies, 6]`` external wrenches ``(f, tau)`` in world, torque about the CoM."""
     position_target: jax.Array | None = None
+    """``[total_dofs]`` targets of POSITION DoFs (DoF space, docs/formulation.md §4.1)."""
     velocity_target: jax.Array | None = None
+    """``[total_dofs]`` velocity targets of POSITION and VELOCITY DoFs."""
 
     @staticmethod
     def from_ctrl(model: Model, ctrl) -> Control:

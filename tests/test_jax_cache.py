@@ -1,10 +1,14 @@
-"""JAX's persistent compilation cache, as ``import kamino`` sets it up (kamino/_jax_cache.py, issue 19).
+"""JAX's persistent compilation cache, as ``import kamino`` sets it up (kamino/_jax_cache.py).
 
 The choice of directory (``KAMINO_JAX_CACHE`` off / a path / the user's cache directory, and an existing JAX setting
 respected) is tested by calling the module with a monkeypatched environment; the JAX config values it may change are
-saved and restored around every test, and no test compiles anything.
+saved and restored around every test. Loading an entry prints no XLA log line: tested on a fake loader, and end to
+end in subprocesses that compile one small function and load it back.
 """
 
+import os
+import re
+import subprocess
 import sys
 import warnings
 from pathlib import Path
@@ -188,3 +192,76 @@ def test_a_failing_update_warns_naming_the_option(monkeypatch, tmp_path):
         choice = _jax_cache.enable()
     assert choice.source == "env"  # the directory is set; only the threshold is JAX's
     assert jax.config.jax_compilation_cache_dir == str(tmp_path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading an entry prints no XLA log line
+# ---------------------------------------------------------------------------------------------
+
+def test_import_kamino_makes_cache_loads_quiet():
+    from jax._src import compilation_cache
+
+    assert getattr(compilation_cache.get_executable_and_time, "kamino_quiet", False)
+    assert _jax_cache.quiet_cache_loads()  # idempotent: the loader is wrapped once
+    assert not getattr(compilation_cache.get_executable_and_time.__wrapped__, "kamino_quiet", False)
+
+
+def test_a_load_runs_with_xla_logs_off_and_restores_them(monkeypatch):
+    levels: list[int] = []
+    monkeypatch.setattr(_jax_cache, "_set_xla_min_log_level", levels.append)
+    monkeypatch.setenv("TF_CPP_MIN_LOG_LEVEL", "1")  # what `import jax` sets when the user set nothing
+
+    inside: list[list[int]] = []
+
+    def load(key, **options):
+        inside.append(list(levels))
+        if key == "broken":
+            raise ValueError("a corrupt entry")
+        return "executable", options["devices"]
+
+    quiet = _jax_cache._quiet_loader(load)
+    assert quiet("key", devices=2) == ("executable", 2)
+    assert inside == [[3]]  # fatal only while the entry loads
+    assert levels == [3, _jax_cache.XLA_DEFAULT_MIN_LOG_LEVEL]  # jaxlib's default back: warnings and errors
+    levels.clear()
+    with pytest.raises(ValueError, match="a corrupt entry"):  # JAX turns this into its own Python warning
+        quiet("broken", devices=1)
+    assert levels == [3, 1]
+    # a level the user chose stands: nothing is changed
+    for env, value in (("TF_CPP_MIN_LOG_LEVEL", "0"), ("TF_CPP_MIN_LOG_LEVEL", "2")):
+        levels.clear()
+        monkeypatch.setenv(env, value)
+        assert quiet("key", devices=1) == ("executable", 1)
+        assert levels == [] and inside[-1] == []
+    assert _jax_cache.user_chose_xla_logging({"TF_CPP_MIN_LOG_LEVEL": "0"})
+    assert not _jax_cache.user_chose_xla_logging({"TF_CPP_MIN_LOG_LEVEL": "1"})
+
+
+_COMPILE_ONE = """
+import jax, jax.numpy as jnp
+import kamino
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # keep even this small program
+f = jax.jit(lambda x: jnp.sin(x) @ x.T + 1.0)
+print(float(f(jnp.ones((4, 4))).sum()))
+"""
+
+
+def _compile_one(cache: Path, **env: str) -> subprocess.CompletedProcess:
+    environ = {k: v for k, v in os.environ.items() if k not in ("TF_CPP_MIN_LOG_LEVEL", "JAX_LOGGING_LEVEL")}
+    environ.update({_jax_cache.ENV: str(cache), **env})
+    return subprocess.run([sys.executable, "-c", _COMPILE_ONE], capture_output=True, text=True, env=environ,
+                          timeout=300, check=True)
+
+
+def test_a_warm_process_prints_no_xla_log_lines(tmp_path):
+    cache = tmp_path / "jax"
+    cold = _compile_one(cache)
+    assert any(cache.iterdir()), "the first process writes its executable"
+    warm = _compile_one(cache)
+    assert warm.stdout == cold.stdout
+    xla_line = re.compile(r"^[IWEF]\d{4} .*\.cc:\d+\]", re.M)  # absl's format: W1128 21:50:50.366 ... file.cc:642]
+    assert not xla_line.search(warm.stderr), warm.stderr  # no pjrt_executable.cc / cpu_aot_loader.cc lines
+    # the same load with the user's own log level shows XLA's lines: the entry is loaded, and its lines are there
+    # to be hidden
+    chosen = _compile_one(cache, TF_CPP_MIN_LOG_LEVEL="0")
+    assert "pjrt_executable.cc" in chosen.stderr and "Assume version compatibility" in chosen.stderr, chosen.stderr

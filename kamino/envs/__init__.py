@@ -18,9 +18,12 @@ from kamino.envs.joystick import BdxJoystick, DrLegsJoystick, Joystick
 from kamino.envs.randomization import randomize
 from kamino.envs.system import EnvSystem
 
-#: task name -> environment class (each also registered with brax.envs)
+BACKENDS: tuple[str, ...]  # the imported tuple, declared here for its docstring in the API reference
+"""The simulator backends an environment runs on (``backend=``: ``"jax"`` or ``"warp"``)."""
+
 TASKS: dict[str, type[KaminoEnv]] = {"fourbar_track": FourbarTrack, "dr_legs_joystick": DrLegsJoystick,
                                      "bdx_joystick": BdxJoystick}
+"""Task name -> environment class (each also registered with brax.envs)."""
 
 brax_compat.install()
 for _name, _cls in TASKS.items():

@@ -1,10 +1,19 @@
-"""Kinematic read-outs for environments: actuated joint positions and rates, base frames, ground placement.
+"""Kinematic read-outs for environments: DoF positions and rates, a base body's frame, ground placement.
 
-Everything here reads one world's State with the JAX reference's joint kinematics (``kamino/jax_ref/joints.py``:
-``joint_frames``, ``dof_positions``, ``dof_jacobian``), the functions ``kamino.joint_positions`` and the step use,
-so an observation and the PD actuator read the same angle. A DoF's rate is ``J_dofs u`` (the actuation Jacobian
-of docs/formulation.md §2.5 applied to the body twists): the time derivative of the DoF position for hinges and
-slides.
+An environment steps one world at a time inside ``jax.vmap``, so these read one world's arrays: a padded one-world
+model (:func:`one_world`) and that world's ``body_q`` / ``body_u``. Whole-model read-outs by name, for any number of
+worlds and for trajectories, are in ``kamino`` itself: ``kamino.joint_coordinates`` (one joint's coordinates),
+``kamino.body_frame`` (a body's velocity, gravity direction and height in its own frame) and
+``kamino.body_contact_forces`` (the net contact force on each body).
+
+- :func:`dof_state`: every DoF's position and rate, what an actuated joint's observation reads;
+- :func:`body_frame_vectors`: a base body's frame (gravity direction, linear and angular velocity, height, up);
+- :func:`support_points`, :func:`ground_height`, :func:`place_on_ground`: a floating robot set down on the ground.
+
+DoF positions come from the JAX reference's joint kinematics (``kamino/jax_ref/joints.py``: ``joint_frames``,
+``dof_positions``, ``dof_jacobian``), which ``kamino.joint_positions`` and the step use too, so an observation and
+the PD actuator read the same angle. A DoF's rate is ``J_dofs u`` (the actuation Jacobian of docs/formulation.md
+§2.5 applied to the body twists): the time derivative of the DoF position for hinges and slides.
 """
 
 from __future__ import annotations
@@ -13,20 +22,26 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from kamino.api import frame_vectors
 from kamino.hostmath import quat_to_matrix as host_quat_to_matrix
 from kamino.jax_ref.joints import dof_jacobian, dof_positions, joint_frames
 from kamino.jax_ref.layout import PaddedModel
-from kamino.jax_ref.spatial import quat_to_matrix, rotate
+from kamino.jax_ref.spatial import rotate
 from kamino.model import GeomType, Model
 
 
 def one_world(pm: PaddedModel) -> PaddedModel:
-    """World 0 of a padded model (drops the leading world axis)."""
+    """World 0 of a padded model (drops the leading world axis). The padded model is the JAX reference's layout
+    of a :class:`kamino.Model` (``kamino.jax_ref.layout.layout_of(model, dtype).padded``), the input of
+    :func:`dof_state`."""
     return jax.tree.map(lambda x: x[0], pm)
 
 
 def dof_state(pm0: PaddedModel, body_q: jax.Array, body_u: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``(positions, rates)`` of every DoF ``[nd]`` of a one-world model (``pm0`` from :func:`one_world`)."""
+    """``(positions, rates)`` of every DoF of a one-world model, each ``[nd]`` in the world's DoF order
+    (``model.joint_dof_start``): a hinge's angle [rad] and angular rate [rad/s], a slider's offset [m] and speed
+    [m/s]. ``pm0`` comes from :func:`one_world`; ``body_q`` ``[nb, 7]`` and ``body_u`` ``[nb, 6]`` are the world's
+    rows of ``State.body_q`` / ``body_u``."""
     jf = joint_frames(pm0, body_q)
     q = dof_positions(pm0, jf)
     J = dof_jacobian(pm0, jf, body_q.shape[0])
@@ -34,20 +49,19 @@ def dof_state(pm0: PaddedModel, body_q: jax.Array, body_u: jax.Array) -> tuple[j
 
 
 def body_frame_vectors(body_q: jax.Array, body_u: jax.Array, body: int) -> dict[str, jax.Array]:
-    """A body's gravity direction, linear and angular velocity in its own frame, and its height:
-    ``gravity`` (the unit vector ``-z`` of the world in body axes: ``(0, 0, -1)`` when upright), ``lin_vel``,
-    ``ang_vel``, ``height`` (CoM z) and ``up`` (the world z component of the body's z axis)."""
-    quat = body_q[body, 3:]
-    R = quat_to_matrix(quat)
-    down = jnp.asarray([0.0, 0.0, -1.0], body_q.dtype)
-    return {"gravity": R.T @ down, "lin_vel": R.T @ body_u[body, :3], "ang_vel": R.T @ body_u[body, 3:],
-            "height": body_q[body, 2], "up": R[2, 2]}
+    """A body's frame, what a legged robot's base observes: ``gravity`` (the world's ``-z`` in body axes,
+    ``(0, 0, -1)`` when upright), ``lin_vel`` (CoM velocity [m/s] in body axes), ``ang_vel`` (angular velocity
+    [rad/s] in body axes), ``height`` (CoM z [m]) and ``up`` (the world z component of the body's z axis: 1
+    upright). ``body`` indexes the rows of ``body_q`` ``[nb, 7]`` / ``body_u`` ``[nb, 6]``; by name and for a whole
+    model: ``kamino.body_frame``."""
+    return frame_vectors(body_q, body_u, body)
 
 
 def support_points(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points whose lowest one touches the ground when a floating robot is placed: per body-attached geom, the
-    box corners, the sphere centre or the capsule's segment ends, in the body's CoM frame, with the body index
-    and the radius to subtract. Other geom types (cylinder, ellipsoid) are not used for placement."""
+    """Points whose lowest one touches the ground when a floating robot is placed: ``(points [n, 3], bodies [n],
+    radii [n])``. Per body-attached geom of a one-world ``model``: the box corners, the sphere centre or the
+    capsule's segment ends, in the body's CoM frame, with the body index and the radius to subtract. Other geom
+    types (cylinder, ellipsoid) are not used for placement. Host NumPy, computed once per model."""
     pts, bodies, radii = [], [], []
     for g in np.nonzero(model.geom_body >= 0)[0]:
         t, size = int(model.geom_type[g]), model.geom_size[g]
@@ -71,7 +85,8 @@ def support_points(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def ground_height(model: Model) -> float:
-    """Height of the highest world-attached PLANE geom whose normal is +z (0 without one)."""
+    """Height [m] of the ground: the highest world-attached PLANE geom of ``model`` (its normal is +z; 0 without
+    one)."""
     heights = [float(model.geom_pos[g, 2]) for g in range(model.num_geoms)
                if model.geom_body[g] < 0 and model.geom_type[g] == GeomType.PLANE]
     return max(heights, default=0.0)
@@ -79,7 +94,9 @@ def ground_height(model: Model) -> float:
 
 def place_on_ground(body_q: jax.Array, points: jax.Array, bodies: np.ndarray, radii: jax.Array,
                     height: float) -> jax.Array:
-    """``body_q`` moved vertically so that its lowest support point (:func:`support_points`) is at ``height``."""
+    """``body_q`` ``[nb, 7]`` moved vertically so that its lowest support point (``points``, ``bodies``, ``radii``
+    from :func:`support_points`) is at ``height`` (:func:`ground_height`): a floating robot set down on the ground
+    without penetration. Every body moves by the same offset, so joints and loops stay closed."""
     if bodies.size == 0:
         return body_q
     world = body_q[bodies, :3] + rotate(body_q[bodies, 3:], points)

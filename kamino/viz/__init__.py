@@ -16,4 +16,7 @@ from kamino.viz._html import html
 from kamino.viz._scene import loop_joints
 from kamino.viz._world import world_model
 
+RENDERERS: tuple[str, ...]  # the imported tuple, declared here for its docstring in the API reference
+"""The renderers :func:`gif` takes (``renderer=``): ``"auto"`` picks MuJoCo's when it can render, else matplotlib."""
+
 __all__ = ["RENDERERS", "gif", "html", "loop_joints", "world_model"]
