@@ -46,8 +46,6 @@ Measured per scene (:func:`measure`), over every (world, step) pair of the run:
 - for the free spinning body, the drift of the kinetic energy and of ``|L|`` relative to each world's start.
 """
 
-from __future__ import annotations
-
 import argparse
 import dataclasses
 import functools

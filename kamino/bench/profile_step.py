@@ -11,8 +11,6 @@ the profiled steps), and the step time from a graph replay of the same steps (wh
 with ``--out``; a table on stdout.
 """
 
-from __future__ import annotations
-
 import argparse
 import json
 import math

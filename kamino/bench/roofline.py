@@ -46,8 +46,6 @@ without hubs and with a dense ``L_tf`` (``sparse_llt.symbolic`` with ``hubs=None
 30,428 + 36 x 3,473 + 666 x 204 + 7,776 = 3.0e5), an upper bound of the counts here.
 """
 
-from __future__ import annotations
-
 import argparse
 import dataclasses
 import json

@@ -36,10 +36,9 @@ at 100-110). Figures of runs with other ``--graph-steps``, ``--warmup`` or ``--r
 records whose ``window_steps`` agree.
 """
 
-from __future__ import annotations
-
 import argparse
 import dataclasses
+import importlib
 import json
 import math
 import pathlib
@@ -495,7 +494,7 @@ def run_peers(scene, args, emit) -> None:
     if scene not in PEER_SCENES and scene not in ROBOTS:
         return
     try:
-        from kamino.bench import peers
+        peers = importlib.import_module("kamino.bench.peers")
     except ImportError as e:
         emit({"peer": "all", "scene": scene, "error": f"kamino.bench.peers not importable: {e}"})
         return
