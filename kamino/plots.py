@@ -1,4 +1,4 @@
-"""Plots people want from kamino runs, drawn in one place (issue 19): a rollout's loop closure, energy, PADMM
+"""Plots people want from kamino runs, drawn in one place: a rollout's loop closure, energy, PADMM
 iterations and residuals over time (:func:`rollout_diagnostics`); the benchmark JSONs' throughput against loop
 closure (:func:`speed_against_error`), throughput against world count (:func:`throughput_against_worlds`) and the
 iterations-per-step histograms (:func:`iterations_histogram`). :func:`save_figure` writes a PNG and closes it.
@@ -192,11 +192,11 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
                         ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """Throughput (y, log) against max loop closure (x, log), one panel per scene, from a benchmark JSON.
 
-    - ``benchmarks/throughput.py`` records: one series per kamino configuration (``kamino <config>``) and per
+    - ``kamino.bench.throughput`` records: one series per kamino configuration (``kamino <config>``) and per
       peer (``<peer> <variant>``), one point per world count run, labelled with it. The closure is measured once
       per scene and simulator (on one world count), so a record without ``closure_max_m`` takes its series'; a
       series with no closure at all is left out.
-    - ``benchmarks/convergence.py`` records: one series per scene and world count over the tolerance sweep, one
+    - ``kamino.bench.convergence`` records: one series per scene and world count over the tolerance sweep, one
       point per tolerance (labelled with it and the converged fraction; a default run at a tolerance the sweep
       also ran is drawn once), the y value its
       ``throughput_world_steps_per_s`` (or, where a point has none, e.g. on the CPU, every point's
@@ -271,7 +271,7 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
 def throughput_against_worlds(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
                               ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """Throughput (world-steps/s, log) against world count (log), one panel per scene (sorted), one series per
-    kamino configuration and per peer, from ``benchmarks/throughput.py`` records (those with a ``throughput``)."""
+    kamino configuration and per peer, from ``kamino.bench.throughput`` records (those with a ``throughput``)."""
     panels: dict[str, dict[str, list[tuple[int, float]]]] = {}
     for r in _records(results):
         if r.get("throughput") and not _is_convergence(r):
@@ -294,7 +294,7 @@ def throughput_against_worlds(results: Mapping[str, Any] | Sequence[Mapping[str,
 def iterations_histogram(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
                          ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """The PADMM iterations-per-step histogram (log counts of (world, step) pairs) of each
-    ``benchmarks/convergence.py`` record that has one (its ``iterations_histogram``: ``[[iterations, count]...]``),
+    ``kamino.bench.convergence`` record that has one (its ``iterations_histogram``: ``[[iterations, count]...]``),
     one panel per record in record order, up to four a row."""
     recs = [r for r in _records(results) if r.get("iterations_histogram")]
     if not recs:

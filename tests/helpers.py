@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import pathlib
-from types import ModuleType
 
 import jax
 import numpy as np
@@ -23,15 +20,6 @@ def trajectory_metrics(model: kamino.Model, state: kamino.State, traj: kamino.St
 def trajectory_joint_positions(model: kamino.Model, state: kamino.State, traj: kamino.State) -> np.ndarray:
     """``kamino.joint_positions`` on every state of a trajectory: ``[T, num_coords]``."""
     return np.asarray(jax.vmap(lambda q: kamino.joint_positions(model, state.replace(body_q=q)))(traj.body_q))
-
-
-def load_benchmark(name: str, alias: str | None = None) -> ModuleType:
-    """``benchmarks/NAME.py`` imported as a module (the folder is not a package), under ``alias`` if given."""
-    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(alias or f"{name}_bench", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 #: first lines of a subprocess script that needs every core back (before it imports jax): conftest pins each xdist
@@ -115,8 +103,8 @@ def tier_marks(v: Variant) -> list:
     """The JAX reference's variant of a physics test is in the ``slow`` tier (``pytest -m slow``; README.md, under
     the test command).
 
-    Its cost is XLA compiling the step on the CPU (10-20 s a test against 1-3 s for a Warp variant: 920 of CI's 3728
-    worker-seconds at c951ff7, benchmarks/results/s27_cpu/ci_durations_c951ff7.txt). The default tier still checks
+    Its cost is XLA compiling the step on the CPU (10-20 s a test against 1-3 s for a Warp variant: 920 of 3728
+    worker-seconds of a CI run). The default tier still checks
     the reference: the cross-backend tests compare every Warp variant with it step by step
     (tests/test_cross_backend.py), and the environments, gradients and sharding tests run it."""
     return [pytest.mark.slow] if not v.is_warp else []

@@ -9,10 +9,9 @@ from kamino import cli
 
 def test_kamino_bench_writes_speed_next_to_error(tmp_path):
     out = tmp_path / "bench.json"
-    with pytest.raises(SystemExit) as done:
-        cli.main(["bench", "--scenes", "fourbar", "--worlds", "2", "--configs", "sparse-llt", "--no-peers",
-                  "--closure-steps", "20", "--graph-steps", "2", "--replays", "1", "--repeats", "1", "--out", str(out)])
-    assert done.value.code == 0
+    assert cli.main(["bench", "--scenes", "fourbar", "--worlds", "2", "--configs", "sparse-llt", "--no-peers",
+                     "--closure-steps", "20", "--graph-steps", "2", "--replays", "1", "--repeats", "1",
+                     "--out", str(out)]) == 0
     (rec,) = json.loads(out.read_text())["records"]
     assert rec["scene"] == "fourbar" and rec["num_worlds"] == 2 and rec["throughput"] > 0
     # the MJCF four-bar's loop, 20 driven steps: closed to well below the 1e-5 m benchmark target
@@ -35,9 +34,7 @@ def test_kamino_bench_tables_saved_runs_beside_the_peers(tmp_path, capsys):
     for i, recs in enumerate(([kam, other], [mjw, sk])):
         files.append(tmp_path / f"run{i}.json")
         files[-1].write_text(json.dumps({"records": recs}))
-    with pytest.raises(SystemExit) as done:
-        cli.main(["bench", "--table", *map(str, files)])
-    assert done.value.code == 0
+    assert cli.main(["bench", "--table", *map(str, files)]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0] == ("| scene | worlds | kamino | MuJoCo Warp | SolverKamino dvi | speed / MuJoCo Warp "
                         "| memory / MuJoCo Warp |")
@@ -48,13 +45,10 @@ def test_kamino_bench_tables_saved_runs_beside_the_peers(tmp_path, capsys):
 
 def test_kamino_bench_plots_several_runs_with_the_later_record_of_each_thing(tmp_path):
     """``--plot A.json B.json --out STEM.json``: one plot of both runs, named after ``--out``; a record of the same
-    scene, size and solver in the later file replaces the earlier one (session 35 measured the four-bar at 16384
-    worlds in two processes), so each series keeps one point per size."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import throughput
+    scene, size and solver in the later file replaces the earlier one (a size measured again in a second process),
+    so each series keeps one point per size."""
+    pytest.importorskip("matplotlib")
+    from kamino.bench import throughput
 
     kam = {"kamino": "warp", "config": "default", "scene": "fourbar", "closure_max_m": 1.4e-6}
     runs = [[dict(kam, num_worlds=4096, throughput=3.3e6), dict(kam, num_worlds=16384, throughput=3.9e6)],
@@ -67,7 +61,59 @@ def test_kamino_bench_plots_several_runs_with_the_later_record_of_each_thing(tmp
     for i, recs in enumerate(runs):
         files.append(tmp_path / f"run{i}.json")
         files[-1].write_text(json.dumps({"records": recs}))
-    with pytest.raises(SystemExit) as done:
-        cli.main(["bench", "--plot", *map(str, files), "--out", str(tmp_path / "both.json")])
-    assert done.value.code == 0
+    assert cli.main(["bench", "--plot", *map(str, files), "--out", str(tmp_path / "both.json")]) == 0
     assert (tmp_path / "both_throughput.png").stat().st_size > 0 and (tmp_path / "both_error.png").exists()
+
+
+def test_kamino_bench_help_is_short_and_names_the_command(capsys):
+    """``kamino bench --help``: the usage line names ``kamino bench``, the options fit a screen, and the other
+    benchmarks are listed; ``kamino bench NAME --help`` is that module's help under ``kamino bench NAME``."""
+    with pytest.raises(SystemExit) as done:
+        cli.main(["bench", "--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: kamino bench ") and len(out.splitlines()) <= 32
+    assert "--configs" in out and "convergence" in out and "time_to_first_step" in out
+    with pytest.raises(SystemExit) as done:
+        cli.main(["bench", "roofline", "--help"])
+    assert done.value.code == 0
+    assert capsys.readouterr().out.startswith("usage: kamino bench roofline ")
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["--configs", "nosuch"], ["--configs", "'nosuch'", "sparse-llt", "jax"]),
+    (["--scenes", "nosuch"], ["--scenes", "'nosuch'", "ladder8", "dr_legs"]),
+    (["--worlds", "0"], ["--worlds", ">= 1"]),
+    (["--solver", "nosuch=1"], ["--solver", "'nosuch=1'", "tolerance"]),
+    (["--table", "missing.json"], ["--table", "missing.json"]),
+])
+def test_kamino_bench_bad_values_name_the_option_and_the_choices(argv, names, capsys, tmp_path, monkeypatch):
+    """A bad value ends in a one-line message that names the option, the value and what is valid (argparse's
+    exit status 2 for a bad option), never a traceback; nothing is simulated."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as done:
+        cli.main(["bench", *argv])
+    err = capsys.readouterr().err
+    message = err if done.value.code == 2 else str(done.value.code)
+    assert done.value.code not in (0, None) and "Traceback" not in err
+    assert all(n in message for n in names), message
+
+
+def test_kamino_bench_unknown_name_lists_the_benchmarks(capsys):
+    assert cli.main(["bench", "nosuch"]) == 2
+    err = capsys.readouterr().err
+    assert "'nosuch'" in err and "convergence" in err and "profile_step" in err
+
+
+def test_kamino_bench_plot_without_matplotlib_names_the_extra(tmp_path, capsys, monkeypatch):
+    """``--plot`` needs matplotlib (the bench extra): without it, a message that says so, not an ImportError."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib now raises ImportError
+    run = tmp_path / "run.json"
+    run.write_text(json.dumps({"records": []}))
+    with pytest.raises(SystemExit) as done:
+        cli.main(["bench", "--plot", str(run)])
+    assert done.value.code == 2
+    err = capsys.readouterr().err
+    assert "--plot needs matplotlib" in err and "kamino[bench]" in err

@@ -1,4 +1,4 @@
-"""``benchmarks/convergence.py`` end to end on Warp's CPU device: the MJCF four-bar and one stress model
+"""``kamino.bench.convergence`` end to end on Warp's CPU device: the MJCF four-bar and one stress model
 (the four-bar with a hinge tilted by 10 degrees), 2 worlds x 30 steps at the library defaults."""
 
 import json
@@ -7,13 +7,13 @@ import pathlib
 
 import pytest
 
-from tests.helpers import load_benchmark
-
 
 @pytest.fixture(scope="module")
 def convergence():
     pytest.importorskip("warp")
-    return load_benchmark("convergence")
+    from kamino.bench import convergence
+
+    return convergence
 
 
 def test_convergence_benchmark_writes_every_field(convergence, tmp_path):

@@ -1,23 +1,15 @@
-"""Forward kinematics on the procedural robots with loops (issue 4 acceptance): random actuated
-configurations within the joint limits converge to max |C| <= 1e-6; a world that does not is
-flagged and finite. The full 1000-configuration run of ``animatronic`` is in
-``benchmarks/fk_convergence.py`` (GPU; benchmarks/README.md) — here it gets a CPU-sized sample."""
+"""Forward kinematics on the procedural robots with loops: random actuated configurations within the joint limits
+converge to max |C| <= 1e-6; a world that does not is flagged and finite. The full 1000-configuration run of
+``animatronic`` is ``kamino bench fk_convergence`` (GPU) — here it gets a CPU-sized sample."""
 
 from __future__ import annotations
-
-import importlib.util
-import pathlib
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import kamino
-
-_spec = importlib.util.spec_from_file_location(
-    "fk_convergence", pathlib.Path(__file__).parents[1] / "benchmarks" / "fk_convergence.py")
-fk_convergence = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(fk_convergence)
+from kamino.bench import fk_convergence
 
 
 # the animatronic's case is in the slow tier: its FK also assembles in the default tier's

@@ -29,8 +29,8 @@ def _stepper(model, cfg, dtype, padmm, hub_min_rows, monkeypatch, steps):
 
 
 def test_hub_entry_counts_match_the_counted_fill():
-    # memory_breakdown.py --hub-fill's greedy count with the hubs held back (docs/warp_backend.md: bdx 1645, dr_legs
-    # 3271 with hubs of more than 24 rows); without hubs the order and pattern are today's, array for array
+    # kamino bench memory_breakdown --hub-fill's greedy count with the hubs held back (docs/warp_backend.md: bdx 1645,
+    # dr_legs 3271 with hubs of more than 24 rows); without hubs the order and pattern are today's, array for array
     for scene, hubs, nnz in [(kamino.models.bdx(), [0, 17], 1645), (kamino.models.dr_legs(), [4, 19], 3271)]:
         rows = sparse_llt.fixed_row_bodies(scene)[0]
         assert list(sparse_llt.hub_bodies(rows, 24)) == hubs

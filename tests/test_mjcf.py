@@ -7,13 +7,13 @@ the ``mujoco`` package itself (CPU, Euler at the same time step).
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
 import kamino
+from kamino.bench import scene_path
 from kamino.io import import_mjcf, load_mjcf
 from tests.helpers import BACKENDS, trajectory_joint_positions, trajectory_metrics
 
@@ -21,7 +21,7 @@ mujoco = pytest.importorskip("mujoco")
 
 jax.config.update("jax_enable_x64", True)
 
-FOURBAR_XML = Path(__file__).resolve().parents[1] / "benchmarks" / "scenes" / "fourbar_connect.xml"
+FOURBAR_XML = scene_path("fourbar_connect")
 
 # A humanoid-like tree: free torso, ball neck/shoulder/hip, hinge elbows and knees, a universal
 # (two orthogonal hinges with a common anchor) at the left shoulder and hip; off-axis CoMs, rotated
@@ -653,7 +653,7 @@ def test_fourbar_connect_loop_stays_closed(variant):
 
 
 # --- <size nconmax>: the contact capacity per world -------------------------------------------------------------
-_FOURBAR = Path(__file__).resolve().parents[1] / "benchmarks" / "scenes" / "fourbar.xml"
+_FOURBAR = scene_path("fourbar")
 
 
 def _fourbar_with_size(size: str) -> str:

@@ -1,13 +1,14 @@
-"""The peers of the throughput benchmark (benchmarks/peers.py: MuJoCo Warp, Newton SolverKamino) on kamino's robots.
+"""The peers of the throughput benchmark (``kamino.bench.peers``: MuJoCo Warp, Newton SolverKamino) on kamino's
+robots.
 
-``benchmarks/throughput.py``'s ``run_peers`` exports a robot with ``kamino.save_mjcf`` into a temporary directory and
+``kamino.bench.throughput``'s ``run_peers`` exports a robot with ``kamino.save_mjcf`` into a temporary directory and
 hands the file to both peers with the robot's drive (position target ``0.2 sin(2 pi t)`` rad on the first actuator);
 the MJCF scenes keep their file and the 2 N m torque. The first tests replace the peers by a stand-in (no peer
 needed); the last two run the real peers on Warp's CPU device and skip where ``mujoco_warp`` / ``newton`` are not
 installed (CI)."""
 
 import argparse
-import importlib.util
+import importlib
 import math
 import sys
 import types
@@ -18,24 +19,18 @@ import numpy as np
 import pytest
 
 import kamino
+from kamino.bench import scene_path
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module(name: str):
-    """A module of benchmarks/ (``throughput``, ``peers``), imported under its own name once."""
-    if str(BENCH) not in sys.path:
-        sys.path.insert(0, str(BENCH))
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
+    """The benchmark module ``kamino.bench.NAME`` (``throughput``, ``peers``)."""
+    return importlib.import_module(f"kamino.bench.{name}")
 
 
 def _fake_peers(calls: list) -> types.ModuleType:
-    """A ``peers`` module whose runners record their arguments and the MJCF text they were given."""
+    """A stand-in for ``kamino.bench.peers`` whose runners record their arguments and the MJCF text they were given."""
 
     def runner(peer: str):
         def run(path, num_worlds, **kw):
@@ -45,7 +40,7 @@ def _fake_peers(calls: list) -> types.ModuleType:
         run.__name__ = f"run_{peer}"
         return run
 
-    fake = types.ModuleType("peers")
+    fake = types.ModuleType("kamino.bench.peers")
     fake.run_mujoco_warp = runner("mujoco_warp")
     fake.run_solver_kamino = runner("solver_kamino")
     return fake
@@ -66,21 +61,21 @@ def _first_actuated_joint(model) -> str:
 def test_run_peers_exports_the_robot_and_drives_its_position_target(monkeypatch):
     tp = _module("throughput")
     calls, records = [], []
-    monkeypatch.setitem(sys.modules, "peers", _fake_peers(calls))
+    monkeypatch.setitem(sys.modules, "kamino.bench.peers", _fake_peers(calls))
     tp.run_peers("dr_legs", _args(), records.append)
 
     # both peers at both world counts, on one exported file; the closure run only at the first world count
     assert [(c["peer"], c["num_worlds"]) for c in calls] == [
         ("mujoco_warp", 2), ("solver_kamino", 2), ("mujoco_warp", 4), ("solver_kamino", 4)]
     assert [c["closure_steps"] for c in calls] == [5, 5, 0, 0]
-    # the peers time kamino's window: the same warm-up and replays (benchmarks/timed_window.py)
+    # the peers time kamino's window: the same warm-up and replays (kamino.bench.timed_window)
     assert all((c["graph_steps"], c["warmup"], c["replays"], c["repeats"]) == (1, 2, 3, 1) for c in calls)
     assert calls[1]["variant"] == "padmm_dense"
     assert all(c["amplitude"] == 0.2 for c in calls)  # rad, as kamino's own drive of the robots
     assert len({c["path"] for c in calls}) == 1
     path = Path(calls[0]["path"])
     assert not path.exists()  # a temporary directory, removed after the runs
-    assert BENCH.parent not in path.parents
+    assert ROOT not in path.parents and scene_path("fourbar").parent not in path.parents
     for rec in records:
         assert rec["scene"] == "dr_legs" and rec["scene_source"] == "kamino.save_mjcf(kamino.models.dr_legs())"
 
@@ -97,11 +92,11 @@ def test_run_peers_exports_the_robot_and_drives_its_position_target(monkeypatch)
 def test_run_peers_keeps_the_mjcf_scenes_and_their_torque(monkeypatch):
     tp = _module("throughput")
     calls, records = [], []
-    monkeypatch.setitem(sys.modules, "peers", _fake_peers(calls))
+    monkeypatch.setitem(sys.modules, "kamino.bench.peers", _fake_peers(calls))
     tp.run_peers("fourbar", _args(worlds=[2]), records.append)
-    assert [Path(c["path"]) for c in calls] == [BENCH / "scenes" / "fourbar.xml"] * 2
+    assert [Path(c["path"]) for c in calls] == [scene_path("fourbar")] * 2
     assert all(c["amplitude"] == 2.0 for c in calls)
-    assert all(r["scene"] == "fourbar" and r["scene_source"] == "benchmarks/scenes/fourbar.xml" for r in records)
+    assert all(r["scene"] == "fourbar" and r["scene_source"] == "kamino/bench/scenes/fourbar.xml" for r in records)
 
 
 def test_peers_read_the_first_actuator_of_an_export(tmp_path):
@@ -111,7 +106,7 @@ def test_peers_read_the_first_actuator_of_an_export(tmp_path):
     kamino.save_mjcf(kamino.models.bdx(), path)
     joint, kind = peers._first_actuator(str(path))
     assert (joint, kind) == (_first_actuated_joint(kamino.models.bdx()), "position")
-    assert peers._first_actuator(str(BENCH / "scenes" / "fourbar.xml")) == ("link1_to_link2", "motor")
+    assert peers._first_actuator(str(scene_path("fourbar"))) == ("link1_to_link2", "motor")
     assert "0.2 sin" in peers._drive_text(kind, joint, 0.2)
 
 

@@ -1,17 +1,18 @@
-"""Progress bars (issue 19): ``--no-progress`` in both benchmark scripts' parsers (nothing is run), and the Warp
+"""Progress bars: ``--no-progress`` in both benchmark modules' parsers (nothing is run), and the Warp
 backend's host-side rollout, silent below ``PROGRESS_MIN_STEPS`` steps and with a tqdm bar on stderr above."""
 
+import importlib
 import json
 
 import numpy as np
 import pytest
 
 import kamino
-from tests.helpers import load_benchmark
 
 
 def _script(name: str):
-    return load_benchmark(name, f"{name}_bench_progress")
+    """The benchmark module ``kamino.bench.NAME``."""
+    return importlib.import_module(f"kamino.bench.{name}")
 
 
 @pytest.mark.parametrize("name", ["throughput", "convergence"])
@@ -27,7 +28,7 @@ def test_benchmarks_accept_no_progress(name, capsys):
 
 @pytest.mark.parametrize("disable", [True, False])
 def test_benchmark_bar_follows_no_progress(disable, capsys):
-    """``throughput.progress`` (both scripts' bars) draws on stderr unless ``--no-progress``; stdout stays clean."""
+    """``throughput.progress`` (both modules' bars) draws on stderr unless ``--no-progress``; stdout stays clean."""
     module = _script("throughput")
     args = module._parser().parse_args(["--no-progress"] if disable else [])
     for _ in module.progress(range(3), args=args, desc="bench-bar"):
@@ -56,7 +57,7 @@ def test_warp_rollout_bar_only_for_long_rollouts(capsys, monkeypatch):
 
 
 def test_convergence_bars_on_stderr_only(capsys):
-    """A tiny ``benchmarks/convergence.py`` run on Warp's CPU device: the bars go to stderr (none with
+    """A tiny ``kamino bench convergence`` run on Warp's CPU device: the bars go to stderr (none with
     ``--no-progress``); stdout holds the JSON record lines alone either way."""
     pytest.importorskip("warp")
     module = _script("convergence")

@@ -13,7 +13,6 @@ rollout tests (114 s of CI at c951ff7: the driven four-bar's compiles) are in th
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -22,10 +21,11 @@ import pytest
 
 import kamino
 from kamino import JointType
+from kamino.bench import scene_path
 from kamino.jax_ref import padmm
 
-FOURBAR_XML = Path(__file__).resolve().parents[1] / "benchmarks" / "scenes" / "fourbar.xml"
-DT = 0.0025  # the benchmark's step and drive (benchmarks/throughput.py)
+FOURBAR_XML = scene_path("fourbar")
+DT = 0.0025  # the benchmark's step and drive (kamino.bench.throughput)
 # the benchmark's solver settings
 BENCH = dict(dt=DT, rho=0.1, eta=1e-5, tolerance=1e-5, max_iterations=200, curvature_refinement=False,
              penalty="fixed", baumgarte=1.0, post_stabilisation=0)

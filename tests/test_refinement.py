@@ -1,19 +1,19 @@
 """Curvature refinement (``SolverConfig.curvature_refinement``): the bilateral rows' second-order term
 re-evaluated along the solved velocity (docs/conventions.md, "Stabilisation")."""
 
-import pathlib
 
 import jax
 import numpy as np
 import pytest
 
 import kamino
+from kamino.bench import scene_path
 
-LADDER = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "scenes" / "ladder8.xml"
+LADDER = scene_path("ladder8")
 
 
 def _drive(model, num_steps: int) -> kamino.Control:
-    """The benchmark drive: 2 N m sin(2 pi t) on the ladder's motor (benchmarks/README.md)."""
+    """The benchmark drive: 2 N m sin(2 pi t) on the ladder's motor (``kamino bench``)."""
     t = np.arange(num_steps) * 0.0025
     return kamino.Control.from_ctrl(model, (2.0 * np.sin(2 * np.pi * t))[:, None])
 

@@ -1,16 +1,16 @@
-"""``benchmarks/roofline.py``: its counts come from the factor the Warp backend builds, agree with the textbook counts
+"""``kamino.bench.roofline``: its counts come from the factor the Warp backend builds, agree with the textbook counts
 on dense patterns, and its table is throughput x cost per world-step."""
 
 import numpy as np
 import pytest
 
-from tests.helpers import load_benchmark
-
 
 @pytest.fixture(scope="module")
 def roofline():
     pytest.importorskip("warp")
-    return load_benchmark("roofline")
+    from kamino.bench import roofline
+
+    return roofline
 
 
 def test_fourbar_counts_are_the_symbolic_factors(roofline):

@@ -1,4 +1,4 @@
-"""Worlds sharded over devices (issue 20; kamino/sharding.py): on two forced host devices a sharded batch steps to
+"""Worlds sharded over devices (kamino/sharding.py): on two forced host devices a sharded batch steps to
 the unsharded result, world by world, on both backends, and each block stays on its device. The Warp step also
 runs under ``pmap`` (what brax's PPO does over local devices).
 
@@ -101,11 +101,10 @@ _TWO_DEVICES = textwrap.dedent("""
         print("pmap device", k, "max |pmap - alone|", err)
         assert err == 0.0, err
 
-    # benchmarks/multi_device.py runs (a smoke run: the figures are taken on GPUs)
+    # kamino bench multi_device runs (a smoke run: the figures are taken on GPUs)
     if SMOKE:
-        import json, sys
-        sys.path.insert(0, "benchmarks")
-        import multi_device
+        import json
+        from kamino.bench import multi_device
         multi_device.main(["--scenes", "fourbar", "--worlds-per-device", "2", "--block", "2", "--replays", "1",
                            "--repeats", "1", "--out", OUT])
         recs = json.load(open(OUT))["records"]
@@ -127,7 +126,7 @@ def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path, full):
     (test_cross_backend.py::test_heterogeneous_worlds_match_standalone_on_warp: exact), so its blocks are
     compared exactly. The JAX reference is the same program on half the worlds, which XLA may vectorise
     differently: float32 rounding over 12 steps, bounded at 1e-5 (m, rad, N s, and s for the time). Then
-    benchmarks/multi_device.py's smoke run (its records, not its speed). The JAX half and the smoke run are in the
+    ``kamino bench multi_device``'s smoke run (its records, not its speed). The JAX half and the smoke run are in the
     slow tier."""
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()

@@ -5,21 +5,17 @@ structurally zero. Both are checked numerically on a Delassus-like matrix of the
 values (``J M^-1 J^T + I`` with random 6-vector blocks per row and body, ``M = I``), where structural nonzeros are
 numerically nonzero with probability one."""
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import warp as wp
 
 import kamino
+from kamino.bench import memory_breakdown as mb  # the counts it predicts with
 from kamino.tables import row_tables
 from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.model_data import warp_model
 from kamino.warp_backend.sparse_llt import fixed_row_bodies, symbolic, tail_patterns, tail_row_bodies
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import memory_breakdown as mb  # the counts it predicts with
 
 
 @pytest.mark.parametrize("name", ["dr_legs", "bdx"])
@@ -57,7 +53,7 @@ def test_tail_patterns_hold_every_nonzero_of_L_tf_and_no_more(name):
 
 
 def test_memory_breakdown_counts_match_the_built_factor():
-    # benchmarks/memory_breakdown.py's predictions are read against what is built: without hubs its minimum-degree
+    # kamino.bench.memory_breakdown's predictions are read against what is built: without hubs its minimum-degree
     # count is the built L_f's entry count (the same greedy order), and "as stored" is the built tail's K per row.
     # A drift between the counter and sparse_llt would make its predictions for new layouts (--hub-fill) meaningless.
     for scene in ("bdx", "fourbar"):
@@ -197,7 +193,7 @@ def test_setup_tables_are_cached_only_under_frozen_models():
 
 
 def test_build_uploads_only_the_tables_its_kernels_read():
-    # memory (issue 17): the one-thread factor kernels read the row-order update pairs (upd_*), padmm_warp.factor the
+    # memory: the one-thread factor kernels read the row-order update pairs (upd_*), padmm_warp.factor the
     # column-order triples (fan_*), and only the 32-thread kernels the column index (cptr, cent, crow); each build
     # holds its schedule's, the other tables a single 0. Both lists count the same fill-in updates (a type's, shared
     # by its worlds), and the values they give are checked by the factor tests of each schedule.

@@ -1,7 +1,7 @@
-"""The throughput benchmark's timing rule (benchmarks/timed_window.py): every trial resets the simulation, runs the
+"""The throughput benchmark's timing rule (``kamino.bench.timed_window``): every trial resets the simulation, runs the
 warm-up blocks untimed and times ``--replays`` blocks, so each figure covers steps
 ``[warmup * graph_steps, (warmup + replays) * graph_steps)`` of the same driven motion whatever ``--repeats`` is, for
-kamino Warp (benchmarks/throughput.py) and the peers (benchmarks/peers.py). Here on Warp's CPU device with a few
+kamino Warp (``kamino.bench.throughput``) and the peers (``kamino.bench.peers``). Here on Warp's CPU device with a few
 worlds and steps; the MuJoCo Warp and Newton tests skip where those peers are not installed."""
 
 import argparse
@@ -9,19 +9,23 @@ import argparse
 import numpy as np
 import pytest
 
-from tests.helpers import load_benchmark
+from kamino.bench import scene_path, timed_window
 
 wp = pytest.importorskip("warp")
 
 
 @pytest.fixture(scope="module")
 def throughput():
-    return load_benchmark("throughput", "throughput_bench_window")
+    from kamino.bench import throughput
+
+    return throughput
 
 
 @pytest.fixture(scope="module")
 def peers():
-    return load_benchmark("peers", "peers_bench_window")
+    from kamino.bench import peers
+
+    return peers
 
 
 def _args(**kw) -> argparse.Namespace:
@@ -31,7 +35,6 @@ def _args(**kw) -> argparse.Namespace:
 def test_every_trial_times_the_same_steps():
     """A stand-in simulation (a step counter): each trial's clock starts at step warmup * graph_steps after a reset,
     and the record names that window in steps and simulated seconds."""
-    timed_window = load_benchmark("timed_window")
     sim = {"step": 0, "starts": []}
 
     def reset():
@@ -98,7 +101,7 @@ def test_warp_window_does_not_depend_on_repeats_or_replays(throughput):
 
 
 def test_peer_reset_restores_what_a_trial_changed(peers):
-    """The peers' reset (``_snapshot`` / ``_restore``, benchmarks/peers.py) on a stand-in Warp simulation: a state
+    """The peers' reset (``_snapshot`` / ``_restore``, ``kamino.bench.peers``) on a stand-in Warp simulation: a state
     array and a step counter advanced by a kernel. Every trial ends in the same state, after the window's last step,
     and the record carries the window (no MuJoCo Warp or Newton needed)."""
 
@@ -141,7 +144,7 @@ def test_mujoco_warp_trials_cover_the_same_window(peers):
     """MuJoCo Warp (the four-bar, 2 worlds): its ``Data`` copied back before every trial, so that trials end in the
     same ``qpos``/``qvel``/``qacc_warmstart``/``time``, bit for bit, and ``--repeats`` does not move the window."""
     pytest.importorskip("mujoco_warp", reason="MuJoCo Warp (the peer) is not installed")
-    scene = str(peers.Path(__file__).resolve().parents[1] / "benchmarks" / "scenes" / "fourbar.xml")
+    scene = str(scene_path("fourbar"))
     dev = wp.get_device("cpu")
     with wp.ScopedDevice(dev):
         _, m, d, _ = peers._mjw_build(scene, 2, dev)
@@ -167,7 +170,7 @@ def test_solver_kamino_trials_cover_the_same_window(peers):
     """Newton's SolverKamino (the four-bar, 2 worlds, DVI): ``_newton_reset`` before every trial, so that trials end
     in the same body poses and ``--repeats`` does not move the window."""
     pytest.importorskip("newton", reason="Newton (the peer) is not installed")
-    scene = str(peers.Path(__file__).resolve().parents[1] / "benchmarks" / "scenes" / "fourbar.xml")
+    scene = str(scene_path("fourbar"))
     dev = wp.get_device("cpu")
     result = peers._new_result("newton_solver_kamino", "dvi", scene, 2)
     with wp.ScopedDevice(dev):

@@ -10,6 +10,7 @@ import pytest
 import warp as wp
 
 import kamino
+from kamino.bench import scene_path
 from kamino.warp_backend import backend as wb
 from kamino.warp_backend.workspace import saturated_rows
 
@@ -30,7 +31,7 @@ def test_from_jax_shares_the_device_pointer():
 
 
 def test_a_captured_step_replays_the_uncaptured_one():
-    model = kamino.replicate(kamino.load_mjcf("benchmarks/scenes/fourbar.xml"), 64)
+    model = kamino.replicate(kamino.load_mjcf(scene_path("fourbar")), 64)
     state = kamino.init_state(model, jnp.float32)
     cfg = kamino.SolverConfig(dt=0.0025)
     ctrl = kamino.Control.from_ctrl(model, np.full(model.num_actuators, 1.5, np.float32))

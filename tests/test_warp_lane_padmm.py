@@ -76,9 +76,8 @@ def test_warp_schedule_rejects_what_it_cannot_solve():
 
 
 def test_the_automatic_schedule_follows_the_measured_crossover():
-    # pipeline.resolve_padmm: the 32-thread schedule on CUDA where it measured faster (benchmarks/README.md
-    # "Session 24": up to 16384 worlds, or worlds of 200 rows or more), one thread per world elsewhere and on every
-    # CPU run.
+    # pipeline.resolve_padmm: the 32-thread schedule on CUDA where it measures faster (up to 16384 worlds, or worlds
+    # of 200 rows or more), one thread per world elsewhere and on every CPU run.
     from types import SimpleNamespace
 
     from kamino.warp_backend.pipeline import resolve_padmm

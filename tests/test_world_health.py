@@ -1,4 +1,4 @@
-"""Issue 16: the adaptive penalty and world health, on both backends.
+"""The adaptive penalty and world health, on both backends.
 
 - The penalty rule (kamino.jax_ref.padmm.solve, docs/conventions.md "Penalty") is the same in the JAX reference and
   every Warp linear solve: in float64 both report the same iterations and the same penalty on every step of the
@@ -13,23 +13,22 @@
 
 from __future__ import annotations
 
-import pathlib
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import kamino
+from kamino.bench import scene_path, stress_models
+from kamino.bench.throughput import closure_distance
 from tests.helpers import BACKENDS, JAX, WARP_DENSE_LLT, WARP_SPARSE_LLT, variant_param
 
-SCENES = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "scenes"
 DT = 0.0025
 
 
 def _driven_fourbar(steps: int, dtype):
     """The benchmark four-bar (MJCF) and the benchmark drive ``2 N m sin(2 pi t)`` on its actuated DoF."""
-    model = kamino.load_mjcf(SCENES / "fourbar.xml")
+    model = kamino.load_mjcf(scene_path("fourbar"))
     dof = int(model.actuator_dof[0])
     effort = np.zeros((steps, model.num_dofs))
     effort[:, dof] = 2.0 * np.sin(2 * np.pi * DT * np.arange(steps))
@@ -129,28 +128,13 @@ def test_a_world_unconverged_too_long_fails(variant):
     np.testing.assert_array_equal(np.asarray(s.body_q), np.asarray(prev.body_q))
 
 
-def _benchmark_module(name: str):
-    """A module of benchmarks/ (``stress_models``, ``throughput``), loaded by path."""
-    import importlib.util
-
-    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def _stress_models():
-    return _benchmark_module("stress_models")
-
-
 def test_mass_ratio_world_that_stalled_holds():
-    """Warp CPU, float32, defaults: the 1e4 mass-ratio pendulum (``benchmarks/convergence.py``'s stress scene) with
+    """Warp CPU, float32, defaults: the 1e4 mass-ratio pendulum (``kamino bench convergence``'s stress scene) with
     the initial twist perturbation of world 3425 of 4096, the one world that failed there on Warp CPU before the
     null-direction test (10.6 % of 1000 steps converged; docs/conventions.md, "Null directions"). The stress suite
     asks 99 % of the steps converged and no failure (measured: 100 %, 2.2 iterations per step)."""
     pytest.importorskip("warp")
-    base = _stress_models().mass_ratio_pendulum()
+    base = stress_models.mass_ratio_pendulum()
     phase = 2.0 * np.pi * 3425 / 4096
     d = 1e-2 * np.array([np.cos(phase), np.sin(phase), 0.0])
     s0 = kamino.init_state(base, jnp.float32)
@@ -164,7 +148,7 @@ def test_mass_ratio_world_that_stalled_holds():
 def test_tilted_fourbar_converges_at_the_defaults():
     """Warp backend (dense LLT), float32, defaults: the four-bar with a hinge tilted by 1° (a rigid loop next to a
     singular configuration: three eigenvalues of its scaled Delassus matrix at 1e-8, below float32's resolution;
-    ``benchmarks/stress_models.tilted_fourbar``) under the benchmark drive with 32 phases, 1000 steps. The stress
+    ``kamino.bench.stress_models.tilted_fourbar``) under the benchmark drive with 32 phases, 1000 steps. The stress
     suite asks 99 % of the steps converged and no failure (before the null-direction test: 90.6 %, 5 worlds failed;
     measured with it: 100 %, 2.8 iterations per step on the JAX reference, 2.65 on Warp).
 
@@ -177,7 +161,7 @@ def test_tilted_fourbar_converges_at_the_defaults():
     rad on Warp; bounded by 2e-2 rad (a drift that kept growing would pass it). The Warp backend runs it in the
     default tier (the reference's rollout compiled for 20 s there); the backends' agreement on this rule is
     test_both_backends_run_the_same_penalty_rule's."""
-    base = _stress_models().tilted_fourbar(1.0)
+    base = stress_models.tilted_fourbar(1.0)
     W, steps = 32, 1000
     model = kamino.replicate(base, W)
     dof = int(base.actuator_dof[0])
@@ -192,12 +176,12 @@ def test_tilted_fourbar_converges_at_the_defaults():
     viol = np.asarray(jax.vmap(lambda q: kamino.metrics(model, kamino.init_state(model, jnp.float32).replace(
         body_q=q))["constraint_violation"])(tr.body_q[::10]))
     assert viol.max() <= 2e-2
-    closure = _benchmark_module("throughput").closure_distance  # the benchmarks' loop closure (joint anchors)
-    assert max(closure(model, q) for q in np.asarray(tr.body_q[::10])) <= 1e-3
+    # the benchmarks' loop closure (joint anchors)
+    assert max(closure_distance(model, q) for q in np.asarray(tr.body_q[::10])) <= 1e-3
 
 
 
-# World 129 of 256 of benchmarks/convergence.py's four-bar (Warp CPU, float32, defaults before the penalty cap) after
+# World 129 of 256 of kamino bench convergence's four-bar (Warp CPU, float32, defaults before the penalty cap) after
 # 508 steps: the parallelogram sits on all three hinge limits at once (+-45 deg), which are equivalent modulo the
 # loop's rows, with the base's contacts clear of the ground.
 _LIMIT_CYCLE_Q = [
@@ -233,7 +217,7 @@ def test_penalty_balancing_converges_on_three_equivalent_limits(variant):
     ``PENALTY_MAX_FACTOR`` both backends converge in 34 iterations and close the loop to 2.1e-7 m (measured);
     bounded at 5e-6 m (the benchmarks' float32 floor is 2-5e-6 m; a third of the loop left open before)."""
     dtype = jnp.float64  # in float32 the step from a cold start happened to converge (23 iterations)
-    model = kamino.load_mjcf(SCENES / "fourbar.xml")
+    model = kamino.load_mjcf(scene_path("fourbar"))
     s0 = kamino.init_state(model, dtype)
     s0 = s0.replace(body_q=jnp.asarray(_LIMIT_CYCLE_Q, dtype), body_u=jnp.asarray(_LIMIT_CYCLE_U, dtype),
                     time=jnp.full_like(s0.time, _LIMIT_CYCLE_T))
@@ -245,5 +229,4 @@ def test_penalty_balancing_converges_on_three_equivalent_limits(variant):
     s1 = variant.step(model, s0, kamino.Control(dof_effort=jnp.asarray(effort, dtype)),
                       config=kamino.SolverConfig(dt=DT))
     assert bool(s1.info.converged[0]) and int(s1.info.iterations[0]) < 200, int(s1.info.iterations[0])
-    closure = _benchmark_module("throughput").closure_distance
-    assert closure(model, np.asarray(s1.body_q)) <= 5e-6
+    assert closure_distance(model, np.asarray(s1.body_q)) <= 5e-6

@@ -1,12 +1,14 @@
 """Convergence of kamino's PADMM at the library defaults, scene by scene, on the Warp backend in float32.
 
-    python benchmarks/convergence.py [--scenes fourbar dr_legs ...] [--worlds 4096] [--steps 1000]
-                                     [--no-sweep] [--no-stress] [--out FILE.json]
-    python benchmarks/convergence.py --plot FILE.json     # FILE_speed_error.png, FILE_iterations.png
-    python benchmarks/convergence.py --table FILE.json    # a markdown table on stdout
+    kamino bench convergence [--scenes fourbar dr_legs ...] [--worlds 4096] [--steps 1000]
+                             [--no-sweep] [--no-stress] [--out FILE.json]
+    kamino bench convergence --plot FILE.json     # FILE_speed_error.png, FILE_iterations.png (the bench extra)
+    kamino bench convergence --table FILE.json    # a markdown table on stdout
+
+(``python -m kamino.bench.convergence`` is the same command.)
 
 Progress bars (tqdm, on stderr) over the scenes' runs and over each run's steps; ``--no-progress`` turns them off.
-stdout carries the JSON records only, one a line, as before.
+stdout carries the JSON records only, one a line.
 
 Configuration: ``kamino.SolverConfig(dt=0.0025)`` and nothing else (every solver setting at its library
 default: the adaptive penalty, tolerance 1e-3, ...), float32, Warp's CUDA device (its CPU device when there
@@ -62,20 +64,15 @@ from tqdm import tqdm
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # JAX (host probes) must not take Warp's GPU memory
 
-HERE = pathlib.Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
-sys.path.insert(0, str(HERE))
-
-import stress_models  # noqa: E402
-from throughput import progress, solver_overrides, time_warp  # noqa: E402
-from timed_window import WARMUP_BLOCKS  # noqa: E402
-
-import kamino  # noqa: E402
-from kamino.model import JOINT_CONSTRAINT_ROWS, RES_TRANS, ActuationMode, JointType  # noqa: E402
+import kamino
+from kamino.bench import scene_path, stress_models
+from kamino.bench.throughput import progress, solver_overrides, time_warp
+from kamino.bench.timed_window import WARMUP_BLOCKS
+from kamino.model import JOINT_CONSTRAINT_ROWS, RES_TRANS, ActuationMode, JointType
 
 DT = 0.0025
 TOLERANCES = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
-#: effort drive of the MJCF scenes (throughput.py): ``2 N m sin(2 pi t + phase)`` on the first actuator
+#: effort drive of the MJCF scenes (:mod:`kamino.bench.throughput`): ``2 N m sin(2 pi t + phase)`` on the first actuator
 EFFORT_AMPLITUDE = 2.0
 #: joint-space drive of the robots: every position target ``0.1 rad sin(2 pi t + phase)`` around its reference
 TARGET_AMPLITUDE = 0.1
@@ -103,7 +100,7 @@ class Scene:
 
 
 def _mjcf(name: str) -> Callable[[], kamino.Model]:
-    return lambda: kamino.load_mjcf(HERE / "scenes" / f"{name}.xml")
+    return lambda: kamino.load_mjcf(scene_path(name))
 
 
 MAIN = (
@@ -380,9 +377,9 @@ def _world_slice(arr, w: int, per: int, width: int) -> np.ndarray:
 
 def _throughput(st, control, args) -> tuple[float | None, float | None]:
     """(world-steps/s, s per step) after the run, by ``throughput.time_warp``'s timed window
-    (benchmarks/timed_window.py): every trial starts again from the state the run ended in, runs ``--warmup`` blocks
-    of ``--graph-steps`` steps untimed and times ``--replays`` blocks; the median of ``--repeats`` trials. ``None`` on
-    the CPU."""
+    (:mod:`kamino.bench.timed_window`): every trial starts again from the state the run ended in, runs ``--warmup``
+    blocks of ``--graph-steps`` steps untimed and times ``--replays`` blocks; the median of ``--repeats`` trials.
+    ``None`` on the CPU."""
     from kamino.warp_backend import backend as wb
 
     if not st.device.is_cuda:
@@ -517,21 +514,22 @@ def environment(argv: list[str], device, overrides: dict | None = None) -> dict:
     import warp as wp
 
     try:
-        rev = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=HERE, capture_output=True, text=True,
-                             timeout=10).stdout.strip()
+        rev = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=pathlib.Path(__file__).resolve().parent,
+                             capture_output=True, text=True, timeout=10).stdout.strip() or None
     except (OSError, subprocess.SubprocessError):
         rev = None
     return {"device": str(device), "gpu": device.name if device.is_cuda else None,
             "cpu": platform.processor() or platform.machine(), "warp": wp.__version__, "jax": jax.__version__,
             "kamino": kamino.__version__, "python": platform.python_version(), "git": rev,
             "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-            "command": " ".join(["python benchmarks/convergence.py", *argv]),
+            "command": " ".join(["kamino bench convergence", *argv]),
             "dtype": "float32", "solver_config": dataclasses.asdict(kamino.SolverConfig(dt=DT, **(overrides or {}))),
             "solver_overrides": overrides or {}}
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def _parser(prog: str | None = None) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0],
+                                epilog="The method and what each record holds: help(kamino.bench.convergence).")
     p.add_argument("--scenes", nargs="+", default=None, choices=list(SCENES), metavar="SCENE",
                    help=f"default: every scene ({', '.join(SCENES)})")
     p.add_argument("--worlds", type=int, default=4096)
@@ -560,13 +558,19 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """``kamino bench convergence ARGS`` (``prog`` names the command in the help and errors); 0 when done."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = _parser().parse_args(argv)
+    p = _parser(prog)
+    args = p.parse_args(argv)
     from kamino._warp import quiet_warp
 
     quiet_warp()  # Warp's banner and module-load lines off stdout (KAMINO_WARP_VERBOSE=1 keeps them)
     if args.plot:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            p.error("--plot needs matplotlib, which is not installed: pip install 'kamino[bench]'")
         plot(json.loads(args.plot.read_text()), args.plot.with_suffix(""))
         return 0
     if args.table:

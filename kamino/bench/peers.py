@@ -1,11 +1,11 @@
 """Peer simulators for kamino's throughput benchmark: MuJoCo Warp and Newton's ``SolverKamino``.
 
-Each ``run_*`` function loads one benchmark scene (an MJCF file from ``benchmarks/scenes/``), builds
+Each ``run_*`` function loads one benchmark scene (an MJCF file, such as the shipped ``kamino/bench/scenes/``), builds
 ``num_worlds`` copies of it on one Warp device, and measures what docs/benchmark_scenes.md reports for
 the peers, with the same method, so our numbers and theirs compare:
 
 * **throughput**: steps/s x worlds at dt = 0.0025 s over the same simulated window as kamino's figures
-  (benchmarks/timed_window.py, the one rule of benchmarks/throughput.py). On CUDA, ``graph_steps`` steps are
+  (:mod:`kamino.bench.timed_window`, the one rule of :mod:`kamino.bench.throughput`). On CUDA, ``graph_steps`` steps are
   captured in one CUDA graph (``wp.ScopedCapture``); on the CPU device a block is a plain Python loop of
   ``graph_steps`` steps (smoke tests only; ``use_graph=True`` tries Warp's CPU graphs). Each of ``repeats``
   trials resets the peer to its initial state, runs ``warmup`` blocks untimed and times ``replays`` blocks
@@ -73,7 +73,7 @@ becomes two BALL joints between the same bodies: 6 rows, one redundant, as in ka
 ``source="newton_basics"`` instead builds the four-bar with ``newton.tests.utils.basics.build_boxes_fourbar``
 (REVOLUTE loop joint), where the README's SolverKamino four-bar figures come from.
 
-CLI smoke test: ``python benchmarks/peers.py benchmarks/scenes/fourbar.xml 1 4 [--device cpu]``.
+CLI smoke test: ``kamino bench peers fourbar 1 4 [--device cpu]`` (a shipped scene by name, or an MJCF file).
 """
 
 from __future__ import annotations
@@ -98,9 +98,7 @@ try:  # the peers run on Warp; without it every runner returns a result whose ``
 except ImportError:  # pragma: no cover
     wp = None
 
-if str(Path(__file__).resolve().parent) not in sys.path:  # timed_window, beside this file
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-import timed_window
+from kamino.bench import scene_path, timed_window
 
 DT = 0.0025
 """Time step [s] of every scene (their ``<option timestep>``); the peers are stepped with it."""
@@ -363,7 +361,7 @@ def _time_steps(
     warmup: int = timed_window.WARMUP_BLOCKS,
     after_trial: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
-    """Time the benchmark's window of blocks of ``graph_steps`` calls of ``step`` (benchmarks/timed_window.py).
+    """Time the benchmark's window of blocks of ``graph_steps`` calls of ``step`` (:mod:`kamino.bench.timed_window`).
 
     With ``use_graph`` one block is captured as a Warp graph (before the first trial: capturing runs nothing) and
     replayed; otherwise a block is a Python loop of ``graph_steps`` steps. Each of ``repeats`` trials calls ``reset``
@@ -891,7 +889,7 @@ def _newton_anchored_joints(model: Any) -> Any:
 
     SolverKamino keeps every joint as constraint rows (maximal coordinates), so its tree joints drift too; the
     largest anchor distance over these is kamino's own closure measure (``closure_distance`` in
-    benchmarks/throughput.py: every joint whose first three rows are translational).
+    :mod:`kamino.bench.throughput`: every joint whose first three rows are translational).
     """
     import newton
     import numpy as np
@@ -1218,10 +1216,10 @@ def _format(r: dict[str, Any]) -> str:
     return line
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """Run both peers on one scene for the given world counts and print one line per result."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("scene", help="MJCF scene, e.g. benchmarks/scenes/fourbar.xml")
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+    parser.add_argument("scene", help="a shipped scene's name (e.g. fourbar) or an MJCF file")
     parser.add_argument("worlds", nargs="+", type=int, help="world counts")
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's preferred)")
     parser.add_argument("--peers", default="mujoco_warp,solver_kamino", help="comma list")
@@ -1240,7 +1238,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", default=None, help="write all results to this JSON file")
     parser.add_argument("--verbose", action="store_true", help="keep Warp's module-load messages")
     args = parser.parse_args(argv)
-
+    if not Path(args.scene).is_file():
+        try:
+            args.scene = str(scene_path(args.scene))
+        except ValueError as e:
+            parser.error(f"scene: {args.scene} is not a file, and {e}")
+    if wp is None:
+        parser.error("the peers need warp-lang, which is not importable")
     if not args.verbose:
         wp.config.quiet = True
         wp.config.log_level = wp.LOG_WARNING

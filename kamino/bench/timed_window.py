@@ -1,5 +1,5 @@
-"""The one timing rule of the throughput benchmark (benchmarks/throughput.py: kamino Warp and JAX; benchmarks/peers.py:
-MuJoCo Warp and Newton's SolverKamino): every timed figure covers the same simulated window.
+"""The one timing rule of the throughput benchmark (:mod:`kamino.bench.throughput`: kamino Warp and JAX;
+:mod:`kamino.bench.peers`: MuJoCo Warp and Newton's SolverKamino): every timed figure covers the same simulated window.
 
 Each of ``repeats`` trials
 
@@ -15,12 +15,11 @@ The figure is the median trial over ``replays * graph_steps`` steps. So every tr
 
 Why: the PADMM loop runs until every world converges, so a step costs in proportion to the iterations it needs, and
 those follow the driven motion. On the four-bar (the 1 Hz sine drive) the iterations per block of 10 steps from
-reset are 21, 20, 20, 27, 22, 38, 56, 160, 54, 36, 164. The earlier rule continued the simulation from trial to
-trial, so the median trial of ``--replays 2`` saw about 30 iterations per block and that of ``--replays 3`` about
-85: the same H100 and code gave the four-bar 6.06e6 world-steps/s at 16384 worlds in one process (``--replays 2``)
-and 3.95e6 in another (``--replays 3``; benchmarks/README.md). Scenes with flat iteration counts (ladder8: 20 per
-block throughout) gave the same figure either way. The peers, for their part, sized a trial to last
-``min_trial_s`` (a replay count calibrated from one replay), so they were timed over yet another window.
+reset are 21, 20, 20, 27, 22, 38, 56, 160, 54, 36, 164. Trials that continue the simulation from one to the next
+give the median trial of ``--replays 2`` about 30 iterations per block and that of ``--replays 3`` about 85: the
+same H100 and code then measure the four-bar at 6.06e6 world-steps/s at 16384 worlds with ``--replays 2`` and 3.95e6
+with ``--replays 3``. Scenes with flat iteration counts (ladder8: 20 per block throughout) give the same figure
+either way; trials sized by wall time (a replay count calibrated to last a set time) would time yet another window.
 """
 
 from __future__ import annotations

@@ -1,20 +1,21 @@
-"""Time to first step (issue 19): the wall time from ``import kamino`` to the first completed ``kamino.step``, the first
+"""Time to first step: the wall time from ``import kamino`` to the first completed ``kamino.step``, the first
 ``kamino.rollout`` of ``--steps`` steps, and the first ``jax.jit``-wrapped rollout, each in a fresh Python process (so
 nothing compiled in memory helps), with JAX's persistent compilation cache cold (an empty directory) and then warm (the
 same directory, a second process).
 
-    python benchmarks/time_to_first_step.py [--models fourbar dr_legs humanoid10] [--entries step rollout jit_rollout]
-                                            [--worlds 1] [--steps 100] [--cpus 0] [--out results.json]
+    kamino bench time_to_first_step [--models fourbar dr_legs humanoid10] [--entries step rollout jit_rollout]
+                                    [--worlds 1] [--steps 100] [--cpus 0] [--out results.json]
 
 Each (model, entry) gets its own empty temporary cache directory, passed to the child through ``KAMINO_JAX_CACHE``
 (kamino/_jax_cache.py); ``--phases`` adds ``off`` (``KAMINO_JAX_CACHE=0``: no persistent cache at all). A child times,
-from just before ``import kamino``: the import, building the model (``humanoid10`` is benchmarks/scenes/humanoid10.xml
-through ``kamino.load_mjcf``), ``init_state``, and the first call until its result is ready (``block_until_ready``);
-then a second, identical call (the run time alone, compiled). JAX's own monitoring events split the first call into
-XLA's compilation (or the load from the persistent cache) and the rest: Python (tracing, lowering to MLIR, kamino's
-checks and padded layout) and the run. The defaults are a user's: float32, no XLA flags (``--xla-flags`` passes some,
-e.g. ``--xla_cpu_use_fusion_emitters=false`` as tests/conftest.py does), every CPU (``--cpus 0`` pins the children to
-one: on a shared machine XLA's threads otherwise stall each other, docs/first_step.md). Results: docs/first_step.md.
+from just before ``import kamino``: the import, building the model (``humanoid10`` is the shipped scene
+kamino/bench/scenes/humanoid10.xml through ``kamino.load_mjcf``), ``init_state``, and the first call until its result is
+ready (``block_until_ready``); then a second, identical call (the run time alone, compiled). JAX's own monitoring events
+split the first call into XLA's compilation (or the load from the persistent cache) and the rest: Python (tracing,
+lowering to MLIR, kamino's checks and padded layout) and the run. The defaults are a user's: float32, no XLA flags
+(``--xla-flags`` passes some, e.g. ``--xla_cpu_use_fusion_emitters=false`` as tests/conftest.py does), every CPU
+(``--cpus 0`` pins the children to one: on a shared machine XLA's threads otherwise stall each other,
+docs/first_step.md). Results: docs/first_step.md.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import sys
 import tempfile
 import time
 
+# Only the standard library at the top: a child runs this file by path and times ``import kamino`` itself.
 HERE = pathlib.Path(__file__).resolve().parent
 SCENES = HERE / "scenes"
 MODELS = ("fourbar", "dr_legs", "humanoid10")
@@ -177,8 +179,10 @@ def _table(rows: list[dict]) -> str:
     return "\n".join(f"| {line} |" for line in lines)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """``kamino bench time_to_first_step ARGS`` (``prog`` names the command in the help and errors); 0 when done."""
+    ap = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--child", nargs=2, metavar=("MODEL", "ENTRY"), help=argparse.SUPPRESS)
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
     ap.add_argument("--entries", nargs="+", default=list(ENTRIES), choices=ENTRIES)

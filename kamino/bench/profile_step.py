@@ -1,13 +1,13 @@
 """Where a step's time goes: the Warp kernels of one step, timed one by one (CUDA events, Warp's timing API), for a
 scene at its defaults, after a warm-up run, on both PADMM schedules from the same state.
 
-    python benchmarks/profile_step.py --scene dr_legs --worlds 4096 --warmup 100 --steps 10 [--padmm thread warp]
+    kamino bench profile_step --scene dr_legs --worlds 4096 --warmup 100 --steps 10 [--padmm thread warp]
 
-The worlds are convergence.py's (distinct drive phases), run ``--warmup`` steps with the CUDA graph of the first
-schedule; that state is copied, and each schedule then steps ``--steps`` times from it without a graph (each kernel
-launched and timed alone; the PADMM loop is one launch that runs every world to convergence). Reported per kernel:
-milliseconds per step, launches per step; per schedule: the PADMM iterations of the worlds (mean, p99, max of the
-profiled steps), and the step time from a graph replay of the same steps (what the throughput figures time). JSON
+The worlds are :mod:`kamino.bench.convergence`'s (distinct drive phases), run ``--warmup`` steps with the CUDA graph of
+the first schedule; that state is copied, and each schedule then steps ``--steps`` times from it without a graph (each
+kernel launched and timed alone; the PADMM loop is one launch that runs every world to convergence). Reported per
+kernel: milliseconds per step, launches per step; per schedule: the PADMM iterations of the worlds (mean, p99, max of
+the profiled steps), and the step time from a graph replay of the same steps (what the throughput figures time). JSON
 with ``--out``; a table on stdout.
 """
 
@@ -21,13 +21,8 @@ from collections import defaultdict
 
 import numpy as np
 
-HERE = pathlib.Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
-sys.path.insert(0, str(HERE))
-
-from convergence import SCENES, drive_hook, perturb  # noqa: E402
-
-import kamino  # noqa: E402
+import kamino
+from kamino.bench.convergence import SCENES, drive_hook, perturb
 
 
 def _stepper(model, scene, padmm, device):
@@ -98,8 +93,10 @@ def profile(st, steps: int) -> dict:
             "graph_world_steps_per_s": (st.wm.num_worlds / graph_s) if graph_s else None}
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """``kamino bench profile_step ARGS`` (``prog`` names the command in the help and errors); 0 when done."""
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0],
+                                epilog="What is measured: help(kamino.bench.profile_step).")
     p.add_argument("--scene", default="dr_legs", choices=sorted(SCENES))
     p.add_argument("--worlds", type=int, default=4096)
     p.add_argument("--warmup", type=int, default=100)

@@ -1,7 +1,7 @@
 """Simulation throughput over 1..n devices of one host: worlds sharded over the devices (kamino/sharding.py).
 
-    python benchmarks/multi_device.py [--scenes dr_legs ladder8] [--worlds-per-device 4096] [--devices 1 2]
-                                      [--backend warp] [--out FILE]
+    kamino bench multi_device [--scenes dr_legs ladder8] [--worlds-per-device 4096] [--devices 1 2]
+                              [--backend warp] [--out FILE]
 
 Weak scaling, the figure an RL user needs: ``--worlds-per-device`` worlds on each device, so ``k`` devices step
 ``k`` times the worlds. For each ``k``: the scene replicated ``k * N`` times, its state placed with
@@ -10,9 +10,9 @@ Weak scaling, the figure an RL user needs: ``--worlds-per-device`` worlds on eac
 that every ``k`` runs the same program). Throughput = worlds x steps / s, median of ``--repeats`` trials of
 ``--replays`` blocks after two warm-up blocks; parallel efficiency = throughput(k) / (k x throughput(1)).
 
-The drive and the solver settings are throughput.py's (float32, ``SolverConfig(dt=0.0025)``, the robots standing
-under PD with ``0.2 sin(2 pi t)`` rad on the first actuator, the scenes driven by ``2 N m sin(2 pi t)``), written
-into the controls of each block. On one device, the eager rollout (the Warp backend's own CUDA graph, no JAX
+The drive and the solver settings are :mod:`kamino.bench.throughput`'s (float32, ``SolverConfig(dt=0.0025)``, the robots
+standing under PD with ``0.2 sin(2 pi t)`` rad on the first actuator, the scenes driven by ``2 N m sin(2 pi t)``),
+written into the controls of each block. On one device, the eager rollout (the Warp backend's own CUDA graph, no JAX
 boundary per step) is recorded beside it as ``"path": "eager"``: what sharding costs against it.
 
 On a CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` gives two host devices (for a smoke run, not for
@@ -25,26 +25,20 @@ import argparse
 import json
 import pathlib
 import statistics
-import sys
 import time
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-HERE = pathlib.Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
-sys.path.insert(0, str(HERE))
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-
-import kamino  # noqa: E402
-from kamino.sharding import shard_worlds, sharded_call  # noqa: E402
+import kamino
+from kamino.sharding import shard_worlds, sharded_call
 
 DT = 0.0025
 
 
 def _controls(model, name: str, t0: float, steps: int, throughput) -> kamino.Control:
-    """throughput.py's drive over ``steps`` steps from time ``t0``, as controls with a leading time axis."""
+    """The throughput benchmark's drive over ``steps`` steps from time ``t0``, as controls with a leading time axis."""
     t = t0 + DT * np.arange(1, steps + 1)
     dof = np.asarray(model.actuator_dof[model.world_actuator_start]) if model.num_actuators else np.zeros(0, int)
     values = np.zeros((steps, model.num_dofs), np.float32)
@@ -106,9 +100,14 @@ def bench(name: str, k: int, args, throughput) -> list[dict]:
     return records
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--scenes", nargs="+", default=["dr_legs", "ladder8"])
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """``kamino bench multi_device ARGS`` (``prog`` names the command in the help and errors); 0 when done."""
+    from kamino.bench import throughput
+
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
+    p.add_argument("--scenes", nargs="+", default=["dr_legs", "ladder8"],
+                   choices=sorted({*throughput.SCENES, *throughput.ROBOTS}), metavar="SCENE",
+                   help=f"of {', '.join(sorted({*throughput.SCENES, *throughput.ROBOTS}))} (default: dr_legs ladder8)")
     p.add_argument("--worlds-per-device", type=int, default=4096)
     p.add_argument("--devices", nargs="+", type=int, default=None, help="device counts (default 1..all)")
     p.add_argument("--backend", default="warp", choices=["warp", "jax"])
@@ -120,8 +119,6 @@ def main(argv=None) -> int:
     from kamino._warp import quiet_warp
 
     quiet_warp()
-    import throughput
-
     counts = args.devices or list(range(1, len(jax.devices()) + 1))
     if max(counts) > len(jax.devices()):
         p.error(f"--devices {max(counts)}: only {len(jax.devices())} devices ({jax.devices()})")

@@ -1,13 +1,13 @@
-"""Roofline note per scene (issue 17): the achieved fraction of the GPU's FLOP rate and memory bandwidth, from the
-throughput records of ``benchmarks/throughput.py`` and a cost per world-step counted on the code's own structures.
+"""Roofline note per scene: the achieved fraction of the GPU's FLOP rate and memory bandwidth, from the
+throughput records of :mod:`kamino.bench.throughput` and a cost per world-step counted on the code's own structures.
 
-    python benchmarks/roofline.py RESULTS.json [RESULTS.json ...] [--worlds 4096] [--details]
-                                  [--peak-flops 67e12] [--peak-bandwidth 3.35e12] [--world-bytes-only]
+    kamino bench roofline RESULTS.json [RESULTS.json ...] [--worlds 4096] [--details]
+                          [--peak-flops 67e12] [--peak-bandwidth 3.35e12] [--world-bytes-only]
 
-Reads the kamino records (``"config": "default"``, no ``"peer"`` key) of each file, builds each scene's model as
-``throughput.py`` does (:func:`throughput.load_scene`) and its Warp stepper on the CPU under the 32-thread schedule
-(``Stepper(padmm="warp")``: ``sparse_llt.build(per_world=True)`` with the hub threshold of the run), reads one
-world's factor pattern back from the device structures (``sparse_llt.Pattern``: ``nnz``, the fan-out triples
+Reads the kamino records (``"config": "default"``, no ``"peer"`` key) of each file, builds each scene's model as the
+throughput benchmark does (:func:`kamino.bench.throughput.load_scene`) and its Warp stepper on the CPU under the
+32-thread schedule (``Stepper(padmm="warp")``: ``sparse_llt.build(per_world=True)`` with the hub threshold of the run),
+reads one world's factor pattern back from the device structures (``sparse_llt.Pattern``: ``nnz``, the fan-out triples
 ``fan_*``, the ``L_tf`` patterns ``pat_*`` and their forward-substitution pairs ``pat_upd_*``), and prints a markdown
 table. Identical worlds: one world's count is every world's.
 
@@ -30,8 +30,8 @@ Cost model (docs/warp_backend.md, "Robot-sized worlds: 32 threads per world on t
   mostly L2 hits; ``--world-bytes-only`` leaves them out) and the row vectors the passes read and write
   (:func:`solve_words`, :func:`row_pass_words`). The solve's two vectors live in shared memory and are not counted.
 - The tail at capacity: every limit row active and every contact slot's three rows on the contact pair with the
-  widest ``L_tf`` pattern (as ``memory_breakdown.py --tail-fill`` sizes it). The active tail is usually smaller, so
-  a scene with a tail (limits or contact slots) gets ``<=``: its figures are upper bounds.
+  widest ``L_tf`` pattern (as ``kamino bench memory_breakdown --tail-fill`` sizes it). The active tail is usually
+  smaller, so a scene with a tail (limits or contact slots) gets ``<=``: its figures are upper bounds.
 
 Not counted: the assembly of ``D~`` (``sparse_llt.assemble_fixed`` / ``assemble_tail``: the Delassus entries) and
 the other kernels of the step (kinematics, rows, collision, integration: their traffic is in the one pass over the
@@ -41,10 +41,9 @@ not in the records), and the factorisation's index traffic (the fan-out triples,
 Counts are of the arithmetic and the words in the source, not of compiled instructions; min, max and abs count as
 one FLOP, comparisons as none.
 
-docs/warp_backend.md's "Predicted cost" table (session 17) predates the sparse tail (session 31) and the hubs: its
-"factor multiply-adds" are ``n_upd + n_t nnz + n_t (n_t + 1) / 2 n_f + n_t^3 / 6`` of the factor without hubs, a
-dense ``L_tf`` (``sparse_llt.symbolic`` with ``hubs=None`` reproduces every row of it with that time's tail
-capacities, the four-bar's 99 rows; e.g. dr_legs 30,428 + 36 x 3,473 + 666 x 204 + 7,776 = 3.0e5).
+A count of "factor multiply-adds" as ``n_upd + n_t nnz + n_t (n_t + 1) / 2 n_f + n_t^3 / 6`` is that of the factor
+without hubs and with a dense ``L_tf`` (``sparse_llt.symbolic`` with ``hubs=None``; e.g. dr_legs with a 36-row tail:
+30,428 + 36 x 3,473 + 666 x 204 + 7,776 = 3.0e5), an upper bound of the counts here.
 """
 
 import argparse
@@ -57,11 +56,7 @@ from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
-HERE = pathlib.Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(HERE.parent))
-
-import throughput as tb  # noqa: E402  (the benchmark scenes)
+from kamino.bench import throughput as tb  # the benchmark scenes
 
 #: bytes of a float32 or int32 word
 WORD = 4
@@ -359,7 +354,7 @@ def sig(x: float, digits: int = 2) -> str:
 
 
 def sci(x: float, digits: int = 2) -> str:
-    """``x`` in scientific notation, as benchmarks/README.md writes it: ``sci(3.06e5) == "3.1e5"``."""
+    """``x`` in scientific notation, as the benchmark tables write it: ``sci(3.06e5) == "3.1e5"``."""
     mantissa, exponent = f"{x:.{digits - 1}e}".split("e")
     return f"{mantissa}e{int(exponent)}"
 
@@ -425,9 +420,12 @@ def details(scenes: Iterable[str], shape_of: Callable[[str], SceneShape]) -> str
     return "\n".join(lines)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("results", nargs="+", type=pathlib.Path, help="throughput.py JSON files")
+def main(argv: Sequence[str] | None = None, prog: str | None = None) -> int:
+    """``kamino bench roofline ARGS`` (``prog`` names the command in the help and errors); 0 when done."""
+    ap = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawTextHelpFormatter,
+                                 epilog="The cost model: help(kamino.bench.roofline).")
+    ap.add_argument("results", nargs="+", type=pathlib.Path, help="JSON files of kamino bench (throughput) runs")
     ap.add_argument("--worlds", nargs="+", type=int, default=[4096], help="world counts to report (default 4096)")
     ap.add_argument("--peak-flops", type=float, default=PEAK_FLOPS, help="FLOP/s (default: H100 SXM float32)")
     ap.add_argument("--peak-bandwidth", type=float, default=PEAK_BANDWIDTH, help="B/s (default: H100 SXM HBM3)")
@@ -458,7 +456,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"\nPeaks: {si(args.peak_flops, 'FLOP/s', 3)}, {si(args.peak_bandwidth, 'B/s', 3)}. `<=`: the tail (limit "
           "rows, contact slots) counted at capacity, an upper bound. (thread): a run with one thread per world, "
           "counted as the 32-thread schedule. Bytes " + ("without" if args.world_bytes_only else "with")
-          + " the index arrays shared by the worlds of a type. Cost model: benchmarks/roofline.py's docstring.")
+          + " the index arrays shared by the worlds of a type. Cost model: kamino.bench.roofline's docstring.")
     if args.details:
         print()
         print(details(dict.fromkeys(r["scene"] for r in rows), shape_of))

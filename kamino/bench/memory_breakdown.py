@@ -1,17 +1,17 @@
-"""Device memory per world of the default Warp stepper, array by array: ``python benchmarks/memory_breakdown.py``.
+"""Device memory per world of the default Warp stepper, array by array: ``kamino bench memory_breakdown``.
 
-Builds ``kamino.SolverConfig(dt)``'s stepper for each scene (``benchmarks/throughput.py``'s scenes) with
+Builds ``kamino.SolverConfig(dt)``'s stepper for each scene (:mod:`kamino.bench.throughput`'s scenes) with
 ``--worlds`` identical worlds, walks every Warp array it holds (the work buffers, the factor's pattern and values,
 the model), and prints the total and the largest arrays per world. On a CUDA device the total is checked against
 the memory pool's count (``wp.get_mempool_used_mem_current``); patterns shared by all worlds of a type shrink per
 world as the worlds grow, so measure at the batch size of interest. ``--out`` writes every scene's record as JSON.
 
-``--tail-fill`` counts the tail's ``L_tf`` entries per world: dense (``n_tail x n_fixed``, the layout before
-session 31), as stored since then (every tail row sized for the widest pattern a slot can hold; a row's entries of
-``L_tf = D~_tf L_f^-T`` can be nonzero only on the fixed rows its bodies' rows reach up the elimination tree of
-``L_f``, ``sparse_llt.tail_patterns``), and sized per source (each limited DoF's row its own pattern), the further
-step not taken. ``--hub-fill`` counts the fixed rows' factor entries if bodies carrying many rows kept their 6
-velocity unknowns in the factorised system (:func:`hub_fill`), a lead for the animatronic.
+``--tail-fill`` counts the tail's ``L_tf`` entries per world: dense (``n_tail x n_fixed``), as stored (every tail row
+sized for the widest pattern a slot can hold; a row's entries of ``L_tf = D~_tf L_f^-T`` can be nonzero only on the
+fixed rows its bodies' rows reach up the elimination tree of ``L_f``, ``sparse_llt.tail_patterns``), and sized per
+source (each limited DoF's row its own pattern), a layout the backend does not use. ``--hub-fill`` counts the
+fixed rows' factor entries if bodies carrying many rows kept their 6 velocity unknowns in the factorised system
+(:func:`hub_fill`), a lead for the animatronic.
 """
 
 from __future__ import annotations
@@ -19,12 +19,10 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import sys
 
 import numpy as np
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-import throughput as tb  # the benchmark scenes
+from kamino.bench import throughput as tb  # the benchmark scenes
 
 
 def arrays_of(obj, path: str, seen: dict, depth: int = 0) -> None:
@@ -70,7 +68,7 @@ def breakdown(scene: str, num_worlds: int, device: str, padmm: str | None = None
 
 
 def tail_fill(scene: str) -> dict:
-    """The tail's ``L_tf`` entries for one world of ``scene``: dense (``n_tail x n_fixed``, before session 31), as
+    """The tail's ``L_tf`` entries for one world of ``scene``: dense (``n_tail x n_fixed``), as
     stored (every row sized for the widest pattern ``K``, ``sparse_llt.tail_patterns``), and sized per source (each
     limit row its own pattern, each contact slot the widest pair's); ``L_t`` (``n_tail^2``) is dense either way."""
     from kamino.tables import row_tables
@@ -167,8 +165,9 @@ def hub_fill(scene: str, thresholds=(None, 48, 24, 12)) -> list[dict]:
     return out
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """``kamino bench memory_breakdown ARGS`` (``prog`` names the command in the help and errors); 0 when done."""
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["fourbar", "ladder8", "ladder32", "dr_legs", "bdx", "olaf",
                                                    "animatronic"], choices=sorted({*tb.SCENES, *tb.ROBOTS}))
     p.add_argument("--worlds", type=int, default=4096)

@@ -1,4 +1,4 @@
-"""float32 stress models for benchmarks/convergence.py, built with :class:`kamino.ModelBuilder`.
+"""float32 stress models for :mod:`kamino.bench.convergence`, built with :class:`kamino.ModelBuilder`.
 
 Each function returns a validated single-world :class:`kamino.Model` that is hard for PADMM in float32 for
 one named reason (the docstrings say which):
@@ -9,22 +9,20 @@ one named reason (the docstrings say which):
   whose constraint Jacobian is nearly rank deficient for a small tilt);
 - :func:`spinning_body`: a torque-free body spinning about its intermediate axis (Dzhanibekov; no constraints:
   the invariants measure the integrator, docs/conventions.md "Gyroscopic term");
-- ``benchmarks/scenes/biped_connect.xml`` (:func:`biped_connect`): a MuJoCo-Menagerie-style biped on a free
+- the shipped scene ``biped_connect.xml`` (:func:`biped_connect`): a MuJoCo-Menagerie-style biped on a free
   joint, with parallel four-bar knees closed by ``<connect>`` equalities, stiff joint springs, position
   actuators and box feet on a ground plane, loaded with :func:`kamino.load_mjcf`.
 """
 
 from __future__ import annotations
 
-import pathlib
-
 import numpy as np
 
 import kamino
+from kamino.bench import scene_path
 from kamino.model import Actuation, JointType
 from kamino.models.shapes import add_link, box_inertia
 
-SCENES_DIR = pathlib.Path(__file__).resolve().parent / "scenes"
 Y = (0.0, 1.0, 0.0)
 #: the free body of :func:`spinning_body`: principal inertia, body-frame angular velocity (30 rad/s about the
 #: intermediate axis, perturbed by 0.05 rad/s as in tests/test_gyroscopic.py) and a generic orientation
@@ -99,7 +97,7 @@ def tilted_fourbar(tilt_deg: float, ground: float = 0.3, crank: float = 0.18, co
     With a tilted axis the loop is a spatial RRRR that is not a Bennett linkage: it is rigid (mobility 0),
     and for a small tilt its constraint Jacobian has a singular value of order ``sin(tilt)`` (near the planar
     mechanism's one-DoF motion). The crank hinge ``drive`` is an EFFORT actuator (driven by
-    ``benchmarks/convergence.py`` like the MJCF four-bar): the drive loads the nearly singular direction.
+    :mod:`kamino.bench.convergence` like the MJCF four-bar): the drive loads the nearly singular direction.
     The loop closes exactly at the builder pose (every anchor coincides; only the axis is tilted)."""
     b = kamino.ModelBuilder()
     A = np.array([0.0, 0.0, height])
@@ -128,5 +126,6 @@ def spinning_body() -> kamino.Model:
 
 
 def biped_connect() -> kamino.Model:
-    """``benchmarks/scenes/biped_connect.xml`` through :func:`kamino.load_mjcf` (see the file's comment)."""
-    return kamino.load_mjcf(SCENES_DIR / "biped_connect.xml")
+    """The shipped scene ``biped_connect.xml`` (:func:`kamino.bench.scene_path`) through :func:`kamino.load_mjcf`
+    (see the file's comment)."""
+    return kamino.load_mjcf(scene_path("biped_connect"))

@@ -1,44 +1,44 @@
 """Throughput against error on the GPU: kamino (Warp backend, each Jacobian/solver configuration, and the
 JAX backend) and, when importable, the peers MuJoCo Warp and Newton SolverKamino on the same scenes.
 
-    python benchmarks/throughput.py [--scenes fourbar ladder8 ...] [--worlds 1 64 512 4096 16384]
-                                    [--configs dense-llt sparse-llt sparse-cr jax] [--no-peers] [--out FILE]
-    python benchmarks/throughput.py --plot benchmarks/results/throughput_h100.json   # PNG plots from a JSON
-    python benchmarks/throughput.py --table RUN.json [RUN2.json ...]               # one markdown table of saved runs
+    kamino bench [--scenes fourbar ladder8 ...] [--worlds 1 64 512 4096 16384]
+                 [--configs dense-llt sparse-llt sparse-cr jax] [--no-peers] [--out FILE]
+    kamino bench --plot RUN.json [RUN2.json ...] [--out STEM.json]   # PNG plots of saved runs (the bench extra)
+    kamino bench --table RUN.json [RUN2.json ...]                    # one markdown table of saved runs
+
+(``python -m kamino.bench.throughput`` is the same command.)
 
 Progress bars (tqdm, on stderr) over the runs and over each closure run's steps; ``--no-progress`` turns them off.
-stdout carries the JSON records only, one a line, as before.
+stdout carries the JSON records only, one a line.
 
-Method (docs/architecture.md "Performance method", the same as the peers' figures in benchmarks/README.md):
+Method (docs/architecture.md "Performance method", the same for kamino and the peers):
 float32, dt = 0.0025 s, the drive ``2 N m sin(2 pi t)`` on the scene's first actuator set on the device
 every step (inside the graph); throughput = steps/s x worlds with a CUDA graph of ``--graph-steps`` steps
 replayed. Next to each figure: the PADMM iterations and residuals and the loop closure (largest anchor distance of
 any joint with translational rows) over a ``--closure-steps`` run of one world, and the device memory per world.
 The robots (``--scenes dr_legs bdx olaf animatronic``) stand in their reference pose under PD, with the position
 target ``0.2 sin(2 pi t)`` rad on the first actuator. The peers run fourbar, ladder8, ladder32 from
-benchmarks/scenes and the robots from their ``kamino.save_mjcf`` export, with the same drive (benchmarks/peers.py,
-:func:`run_peers`).
+kamino/bench/scenes and the robots from their ``kamino.save_mjcf`` export, with the same drive
+(:mod:`kamino.bench.peers`, :func:`run_peers`).
 
-The timed window (one rule for kamino Warp, kamino JAX, MuJoCo Warp and SolverKamino: benchmarks/timed_window.py):
+The timed window (one rule for kamino Warp, kamino JAX, MuJoCo Warp and SolverKamino, :mod:`kamino.bench.timed_window`):
 each of ``--repeats`` trials resets the simulation to its initial state (state, time, controls, warm start: see
-:func:`time_warp`, :func:`bench_jax` and benchmarks/peers.py for what each solver's reset covers), runs ``--warmup``
-blocks of ``--graph-steps`` steps untimed, synchronises and times ``--replays`` blocks; the figure is the median
-trial. Every figure therefore covers steps ``[warmup * graph_steps, (warmup + replays) * graph_steps)`` of the same
-driven motion from the same start, written into each record as ``window_steps`` and ``window_s`` (simulated
-seconds). Why: a step costs in proportion to its PADMM iterations, which follow the motion; on the four-bar they
-run 21, 20, 20, 27, 22, 38, 56, 160, 54, 36, 164 per block of 10 steps from reset, so the earlier rule (trials
-continuing the simulation, the median trial's window depending on ``--replays``) gave the same GPU and code
-6.06e6 world-steps/s at 16384 worlds with ``--replays 2`` and 3.95e6 with ``--replays 3``, and the peers (trials
-sized to last 0.5 s) another window again. The defaults are kept (``--graph-steps 10 --warmup 2 --replays 10
---repeats 3``): the window is steps [20, 120), 0.05 to 0.30 s, which holds the four-bar's hard stretch (the 160 at
-steps 70-80 and the 164 at 100-110), and a sweep takes about as long as before (each trial adds its 20 warm-up
-steps). Figures of runs with other ``--graph-steps``, ``--warmup`` or ``--replays`` cover another window: compare
+:func:`time_warp`, :func:`bench_jax` and :mod:`kamino.bench.peers` for what each solver's reset covers), runs
+``--warmup`` blocks of ``--graph-steps`` steps untimed, synchronises and times ``--replays`` blocks; the figure is the
+median trial. Every figure therefore covers steps ``[warmup * graph_steps, (warmup + replays) * graph_steps)`` of the
+same driven motion from the same start, written into each record as ``window_steps`` and ``window_s`` (simulated
+seconds). Why: a step costs in proportion to its PADMM iterations, which follow the motion; on the four-bar they run 21,
+20, 20, 27, 22, 38, 56, 160, 54, 36, 164 per block of 10 steps from reset, so trials that continued the simulation would
+give the same GPU and code 6.06e6 world-steps/s at 16384 worlds with ``--replays 2`` and 3.95e6 with ``--replays 3``
+(:mod:`kamino.bench.timed_window`). With the defaults (``--graph-steps 10 --warmup 2 --replays 10 --repeats 3``) the
+window is steps [20, 120), 0.05 to 0.30 s, which holds the four-bar's hard stretch (the 160 at steps 70-80 and the 164
+at 100-110). Figures of runs with other ``--graph-steps``, ``--warmup`` or ``--replays`` cover another window: compare
 records whose ``window_steps`` agree.
 """
 
-
 import argparse
 import dataclasses
+import importlib
 import json
 import math
 import pathlib
@@ -51,15 +51,9 @@ from collections.abc import Iterable
 import numpy as np
 from tqdm import tqdm
 
-HERE = pathlib.Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
-if str(HERE) not in sys.path:  # timed_window and peers, also where this file is run by path (kamino bench)
-    sys.path.insert(1, str(HERE))
-
-import timed_window  # noqa: E402
-
-import kamino  # noqa: E402
-from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType  # noqa: E402
+import kamino
+from kamino.bench import MODULES, scene_path, timed_window
+from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType
 
 SCENES = ("fourbar", "ladder8", "ladder32", "dr_legs")
 #: the procedural robots (kamino.models), standing under PD with the joint-space drive on their first actuator
@@ -76,7 +70,8 @@ CONFIGS = {
 PADMM = {"sparse-llt-warp": "warp"}
 DT = 0.0025
 #: solver settings of every kamino configuration here on top of ``kamino.SolverConfig(dt=DT)``: none, the library
-#: defaults are the measured configuration (issue 16; ``--solver FIELD=VALUE`` overrides for experiments)
+#: defaults are the measured configuration (``--tolerance``, ``--rho`` and ``--solver FIELD=VALUE`` set them for one
+#: run of :func:`main`)
 SOLVER: dict = {}
 AMPLITUDE, FREQUENCY = 2.0, 1.0
 #: the progress bars' least refresh period [s] (tqdm ``mininterval``): a bar redrawn at most twice a second
@@ -90,12 +85,12 @@ def progress(iterable=None, *, args=None, **kw) -> tqdm:
 
 
 def load_scene(name: str):
-    """(model, drive) of a benchmark scene: MJCF files from benchmarks/scenes, or a robot of :data:`ROBOTS`
-    (position targets ``0.2 sin(2 pi t)`` rad about its reference pose on the first actuator)."""
+    """(model, drive) of a benchmark scene: an MJCF file of :func:`kamino.bench.scene_path`, or a robot of
+    :data:`ROBOTS` (position targets ``0.2 sin(2 pi t)`` rad about its reference pose on the first actuator)."""
     if name in ROBOTS:
         model = getattr(kamino.models, name)()
         return model, {"offset_from_state": True, "amplitude": 0.2}
-    return kamino.load_mjcf(HERE / "scenes" / f"{name}.xml"), {"offset_from_state": False, "amplitude": AMPLITUDE}
+    return kamino.load_mjcf(scene_path(name)), {"offset_from_state": False, "amplitude": AMPLITUDE}
 
 
 def closure_distance(model, body_q: np.ndarray) -> float:
@@ -184,7 +179,7 @@ def warp_stepper(name, config_name, num_worlds):
 
 
 def time_warp(st, state, control, args, after_trial=None) -> dict:
-    """The timed window (benchmarks/timed_window.py) of a Warp stepper: each trial resets the stepper, runs
+    """The timed window (:mod:`kamino.bench.timed_window`) of a Warp stepper: each trial resets the stepper, runs
     ``--warmup`` blocks of ``--graph-steps`` steps (one CUDA graph each, captured on the stepper's buffers during the
     first trial's warm-up; plain launches on the CPU) untimed, then times ``--replays`` blocks.
 
@@ -229,7 +224,7 @@ def bench_warp(name, config_name, num_worlds, args) -> dict:
 
 
 def bench_jax(name, num_worlds, args) -> dict:
-    """The JAX backend over the same window as :func:`bench_warp` (benchmarks/timed_window.py): blocks of
+    """The JAX backend over the same window as :func:`bench_warp` (:mod:`kamino.bench.timed_window`): blocks of
     ``--graph-steps`` jitted steps, the drive evaluated at each world's simulated time (so both backends see the same
     part of the motion); each trial starts again from the initial ``state`` (the JAX state is a value: that is the
     whole reset, warm start included), runs ``--warmup`` blocks untimed and times ``--replays`` blocks."""
@@ -339,7 +334,8 @@ def solver_overrides(items: list[str]) -> dict:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or key not in fields:
-            raise SystemExit(f"--solver {item!r}: expected FIELD=VALUE with FIELD one of kamino.SolverConfig's fields")
+            raise SystemExit(f"--solver {item!r}: expected FIELD=VALUE with FIELD one of kamino.SolverConfig's "
+                             f"fields: {', '.join(sorted(fields))}")
         try:
             out[key] = json.loads(value)
         except json.JSONDecodeError:
@@ -347,54 +343,100 @@ def solver_overrides(items: list[str]) -> dict:
     return out
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=sorted({*SCENES, *ROBOTS}))
-    p.add_argument("--worlds", nargs="+", type=int, default=[1, 64, 512, 4096, 16384])
-    p.add_argument("--configs", nargs="+", default=[*CONFIGS, "jax"])
-    p.add_argument("--graph-steps", type=int, default=10, help="steps per block (one CUDA graph)")
-    p.add_argument("--warmup", type=int, default=timed_window.WARMUP_BLOCKS,
-                   help="untimed blocks after each trial's reset (the window starts after them)")
-    p.add_argument("--replays", type=int, default=10, help="timed blocks per trial (the window's length)")
-    p.add_argument("--repeats", type=int, default=3, help="trials, each from a reset; the median is reported")
-    p.add_argument("--closure-steps", type=int, default=1000)
-    p.add_argument("--tolerance", type=float, default=None, help="PADMM tolerance (default: SolverConfig's)")
+#: the ``--configs`` choices: the Warp configurations of :data:`CONFIGS` and the JAX backend
+CONFIG_CHOICES = (*CONFIGS, "jax")
+#: the first line of ``kamino bench --help``
+SUMMARY = ("Throughput (world-steps/s) against error of kamino's Warp and JAX backends and, when importable,\n"
+           "MuJoCo Warp and Newton's SolverKamino, on the benchmark scenes and robots.")
+
+
+def _parser(prog: str | None = None) -> argparse.ArgumentParser:
+    others = ", ".join(m for m in MODULES if m != "throughput")
+    p = argparse.ArgumentParser(
+        prog=prog, description=SUMMARY,
+        formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=36, width=110),
+        usage=f"{prog or '%(prog)s'} [options]   |   {prog or '%(prog)s'} --plot/--table JSON...",
+        epilog=f"Other benchmarks: kamino bench NAME --help, NAME one of\n  {others}.\n"
+               "The method: help(kamino.bench.throughput).")
+    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=sorted({*SCENES, *ROBOTS}), metavar="SCENE",
+                   help=f"of {', '.join(sorted({*SCENES, *ROBOTS}))} (default: {' '.join(SCENES)})")
+    p.add_argument("--worlds", nargs="+", type=int, default=[1, 64, 512, 4096, 16384], metavar="N",
+                   help="world counts (default: 1 64 512 4096 16384)")
+    p.add_argument("--configs", nargs="+", default=list(CONFIG_CHOICES), choices=CONFIG_CHOICES, metavar="CONFIG",
+                   help=f"of {', '.join(CONFIG_CHOICES)} (default: all)")
+    p.add_argument("--graph-steps", type=int, default=10, metavar="N", help="steps per block, one CUDA graph (10)")
+    p.add_argument("--warmup", type=int, default=timed_window.WARMUP_BLOCKS, metavar="N",
+                   help=f"untimed blocks after each trial's reset ({timed_window.WARMUP_BLOCKS})")
+    p.add_argument("--replays", type=int, default=10, metavar="N", help="timed blocks per trial (10)")
+    p.add_argument("--repeats", type=int, default=3, metavar="N", help="trials from a reset; the median counts (3)")
+    p.add_argument("--closure-steps", type=int, default=1000, metavar="N",
+                   help="steps of the one-world closure run (1000; 0: none)")
+    p.add_argument("--tolerance", type=float, default=None, metavar="TOL",
+                   help="PADMM tolerance (default: SolverConfig's)")
     p.add_argument("--rho", type=float, default=None, help="PADMM starting penalty (default: SolverConfig's)")
-    p.add_argument("--solver", nargs="+", default=[], metavar="FIELD=VALUE",
-                   help="further kamino.SolverConfig fields for kamino's runs, e.g. baumgarte=0.01 "
-                        "curvature_refinement=false (values parsed as JSON)")
-    p.add_argument("--no-peers", action="store_true")
-    p.add_argument("--kamino-variants", nargs="*", default=["padmm_dense", "dvi"],
-                   help="Newton SolverKamino variants run beside kamino (benchmarks/peers.py KAMINO_VARIANTS; none: "
-                        "MuJoCo Warp alone)")
-    p.add_argument("--out", type=pathlib.Path, default=None)
+    p.add_argument("--solver", nargs="+", default=[], metavar="F=V",
+                   help="further kamino.SolverConfig fields F, values V as JSON")
+    p.add_argument("--no-peers", action="store_true", help="run kamino only")
+    p.add_argument("--kamino-variants", nargs="*", default=["padmm_dense", "dvi"], metavar="VARIANT",
+                   help="SolverKamino variants (default: padmm_dense dvi; none: MuJoCo Warp alone)")
+    p.add_argument("--out", type=pathlib.Path, default=None, metavar="JSON",
+                   help="write the records here (default: stdout only)")
     p.add_argument("--plot", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
-                   help="plot existing JSONs and exit: PNGs beside the first (or named after --out); a later "
-                        "record of the same scene, size and solver replaces an earlier one")
+                   help="PNG plots of saved runs, beside the first JSON or named after --out, and exit")
     p.add_argument("--table", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
-                   help="print one markdown table of existing JSONs (kamino's default config beside each peer) and "
-                        "exit")
+                   help="print a markdown table of saved runs and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bars (tqdm, on stderr)")
     return p
 
 
-def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+def _check_counts(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """A parser error naming the option for a world count, block count or step count out of range."""
+    if min(args.worlds) < 1:
+        p.error(f"--worlds: every world count must be >= 1, got {min(args.worlds)}")
+    for name in ("graph_steps", "replays", "repeats"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    for name in ("warmup", "closure_steps"):
+        if getattr(args, name) < 0:
+            p.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
+
+
+def _read_records(p: argparse.ArgumentParser, option: str, files: list[pathlib.Path]) -> list[dict]:
+    """The records of saved runs, a later record of the same thing replacing an earlier one; a parser error names
+    a file that is missing or not a run's JSON."""
+    records = []
+    for f in files:
+        try:
+            records.extend(json.loads(f.read_text())["records"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            p.error(f"{option} {f}: not a saved run's JSON with 'records' ({type(e).__name__}: {e})")
+    return latest_records(records)
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """``kamino bench ARGS`` (``prog`` names the command in the help and errors); 0 when done."""
+    p = _parser(prog)
+    args = p.parse_args(argv)
+    _check_counts(p, args)
+    if args.plot:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            p.error("--plot needs matplotlib, which is not installed: pip install 'kamino[bench]'")
+        plot({"records": _read_records(p, "--plot", args.plot)}, (args.out or args.plot[0]).with_suffix(""))
+        return 0
+    if args.table:
+        print(table(_read_records(p, "--table", args.table)))
+        return 0
     from kamino._warp import quiet_warp
 
     quiet_warp()  # Warp's banner and module-load lines off stdout (KAMINO_WARP_VERBOSE=1 keeps them)
+    SOLVER.clear()  # this run's settings only, also where main runs twice in one process
     if args.tolerance is not None:
         SOLVER["tolerance"] = args.tolerance
     if args.rho is not None:
         SOLVER["rho"] = args.rho
     SOLVER.update(solver_overrides(args.solver))
-    if args.plot:
-        records = latest_records(r for f in args.plot for r in json.loads(f.read_text())["records"])
-        plot({"records": records}, (args.out or args.plot[0]).with_suffix(""))
-        return 0
-    if args.table:
-        print(table(latest_records(r for f in args.table for r in json.loads(f.read_text())["records"])))
-        return 0
     results = {"environment": environment(), "records": []}
 
     def emit(rec):
@@ -435,14 +477,15 @@ def main(argv=None) -> int:
     return 0
 
 
-#: the MJCF scenes the peers run from benchmarks/scenes (the robots of :data:`ROBOTS` run from kamino's export)
+#: the MJCF scenes the peers run from kamino/bench/scenes (the robots of :data:`ROBOTS` run from kamino's export)
 PEER_SCENES = ("fourbar", "ladder8", "ladder32")
 
 
 def run_peers(scene, args, emit) -> None:
-    """MuJoCo Warp and Newton SolverKamino on the same MJCF and drive as kamino, when importable (benchmarks/peers.py).
+    """MuJoCo Warp and Newton SolverKamino on the same MJCF and drive as kamino, when importable
+    (:mod:`kamino.bench.peers`).
 
-    The MJCF scenes (:data:`PEER_SCENES`) run from benchmarks/scenes with the torque drive of amplitude
+    The MJCF scenes (:data:`PEER_SCENES`) run from kamino/bench/scenes with the torque drive of amplitude
     :data:`AMPLITUDE`. A robot of :data:`ROBOTS` is exported by ``kamino.save_mjcf`` (position actuators become
     ``<position kp kv>``, loop-closing joints ``<connect>`` with ``solref`` 0.004) into a temporary directory, and
     the peers drive the position target of its first actuator with ``0.2 sin(2 pi t)`` rad, as kamino does
@@ -451,9 +494,9 @@ def run_peers(scene, args, emit) -> None:
     if scene not in PEER_SCENES and scene not in ROBOTS:
         return
     try:
-        import peers
+        peers = importlib.import_module("kamino.bench.peers")
     except ImportError as e:
-        emit({"peer": "all", "scene": scene, "error": f"benchmarks/peers.py not importable: {e}"})
+        emit({"peer": "all", "scene": scene, "error": f"kamino.bench.peers not importable: {e}"})
         return
     runs = [(peers.run_mujoco_warp, {})] + [(peers.run_solver_kamino, {"variant": v}) for v in args.kamino_variants]
     with tempfile.TemporaryDirectory(prefix="kamino_peers_") as tmp:
@@ -464,8 +507,8 @@ def run_peers(scene, args, emit) -> None:
                 kamino.save_mjcf(model, path, model_name=scene)
                 source = f"kamino.save_mjcf(kamino.models.{scene}())"
             else:
-                path = str(HERE / "scenes" / f"{scene}.xml")
-                source = f"benchmarks/scenes/{scene}.xml"
+                path = str(scene_path(scene))
+                source = f"kamino/bench/scenes/{scene}.xml"
         except Exception as e:  # the export raises ValueError for what MJCF cannot represent
             for fn, _ in runs:
                 emit({"peer": fn.__name__, "scene": scene, "error": f"MJCF for the peers: {e!r}"[:300]})
@@ -516,7 +559,7 @@ def latest_records(records: Iterable[dict]) -> list[dict]:
 
 
 def table(records: list[dict]) -> str:
-    """A markdown table of throughput records (this script's JSON ``records``): one row per scene and world count,
+    """A markdown table of throughput records (this module's JSON ``records``): one row per scene and world count,
     kamino's ``default`` configuration beside MuJoCo Warp and each SolverKamino variant, each cell
     ``world-steps/s (closure, converged, memory per world)``, and kamino's speed and memory over MuJoCo Warp's.
     A later record of the same scene, size and solver replaces an earlier one."""
