@@ -9,9 +9,11 @@ it. These settings cut that without touching what is computed:
   unchanged. Set only where this XLA still has the flag (probed below).
 - ``--xla_cpu_multi_thread_eigen=false``: Eigen's own matrix kernels stay on the calling thread (CI has two
   cores and runs two workers).
-- A persistent compilation cache under ``.pytest_cache/jax-<worker>``, one per xdist worker. Many tests
-  compile the same step (same model, shapes and config) in fresh closures; from the second one on, the
-  executable comes from disk. A clean clone starts with an empty cache.
+- One persistent compilation cache under ``.pytest_cache/jax``, shared by the xdist workers and the subprocesses
+  they start. Many tests compile the same step (same model, shapes and config) in fresh closures, often on the
+  other worker; from the second one on, the executable comes from disk. A size bound turns on JAX's file lock
+  around every read and write of the cache (``jax._src.lru_cache``, the ``filelock`` package), so two processes
+  never see each other's half-written entry. A clean clone starts with an empty cache.
 
 CPU deadlock (why pyproject.toml excludes jaxlib 0.10.x and 0.11.0). Workers hung at 0 % CPU inside JAX rollouts
 on CI runs (test_post_stabilisation, test_batching), and one died. gdb on a hung worker
@@ -78,12 +80,15 @@ import pytest  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 # Synchronous CPU dispatch: a JAX computation runs to its end on the calling thread before the next Warp CPU launch.
 jax.config.update("jax_cpu_enable_async_dispatch", False)
-_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "main")
-_JAX_CACHE = Path(__file__).resolve().parents[1] / ".pytest_cache" / f"jax-{_WORKER}"
+_JAX_CACHE = Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"
+#: the cache's bound [bytes]: far above what the suite writes; any bound makes JAX lock the cache
+_JAX_CACHE_BYTES = 16 * 2**30
 jax.config.update("jax_compilation_cache_dir", str(_JAX_CACHE))
-# the same directory for what the tests start in subprocesses (README snippets, notebook kernels, the two-device
-# run): kamino's own default (kamino/_jax_cache.py) would write to the user's cache directory
+jax.config.update("jax_compilation_cache_max_size", _JAX_CACHE_BYTES)
+# the same directory and lock for what the tests start in subprocesses (README snippets, notebook kernels, the
+# two-device run): kamino's own default (kamino/_jax_cache.py) would write to the user's cache directory
 os.environ["KAMINO_JAX_CACHE"] = str(_JAX_CACHE)
+os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"] = str(_JAX_CACHE_BYTES)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.3)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
