@@ -149,23 +149,6 @@ def test_demo_with_no_time_names_seconds(capsys):
         cli.demo(seconds=0.001)
 
 
-def test_bench_plot_without_matplotlib_names_the_extra(monkeypatch, tmp_path):
-    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib now raises ImportError
-    with pytest.raises(SystemExit) as done:
-        cli.main(["bench", "--plot", str(tmp_path / "results.json")])
-    message = str(done.value.code)
-    assert "--plot needs matplotlib" in message and "pip install 'kamino[bench]'" in message
-
-
-def test_bench_help_points_inside_the_repository(capsys):
-    with pytest.raises(SystemExit) as done:
-        cli.main(["bench", "--help"])
-    assert done.value.code == 0
-    out = capsys.readouterr().out
-    for doc in ("docs/architecture.md", "docs/benchmark_scenes.md", "docs/settings.md"):
-        assert doc in out and (ROOT / doc).is_file()
-
-
 def test_unknown_actuation_mode_fails_where_it_is_written():
     with pytest.raises(kamino.ModelError, match=r"Actuation\(mode='postion'\): unknown actuation mode.*'position'"):
         kamino.Actuation("postion", kp=1.0, kd=0.1)
