@@ -185,9 +185,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = "jax", ste
     curve_path, train_path, walk_path = out / "curve.json", out / "train_curve.json", out / "walk_tests.json"
 
     done, restore = runs.latest_checkpoint(ckpt_dir)
-    curve = [c for c in runs.read_json(curve_path, []) if c["step"] <= done]
-    train_curve = [c for c in runs.read_json(train_path, []) if c["step"] <= done]
-    walks = [w for w in runs.read_json(walk_path, []) if w["step"] <= done]
+    # rows up to the restored checkpoint stay; without one, the rows of a run that committed nothing go
+    curve, train_curve, walks = ([r for r in runs.read_json(path, []) if restore is not None and r["step"] <= done]
+                                 for path in (curve_path, train_path, walk_path))
     remaining = total - done
     # a resumed run keeps the environment it was trained with (env.json), a new one starts from the task's config
     env_kwargs = {**(runs.run_env(out, task) if restore else cfg["env"]), **env_overrides}

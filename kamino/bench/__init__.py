@@ -1,0 +1,1 @@
+"""Benchmarks of kamino as library code: ``kamino bench`` and ``python -m kamino.bench.NAME``."""
