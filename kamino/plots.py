@@ -1,4 +1,4 @@
-"""Plots people want from kamino runs, drawn in one place (issue 19): a rollout's loop closure, energy, PADMM
+"""Plots people want from kamino runs, drawn in one place: a rollout's loop closure, energy, PADMM
 iterations and residuals over time (:func:`rollout_diagnostics`); the benchmark JSONs' throughput against loop
 closure (:func:`speed_against_error`), throughput against world count (:func:`throughput_against_worlds`) and the
 iterations-per-step histograms (:func:`iterations_histogram`). :func:`save_figure` writes a PNG and closes it.
