@@ -211,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     from kamino.envs.policy import shipped_policies
     from kamino.envs.train import OptionError, key_values
 
-    p = argparse.ArgumentParser(prog="kamino eval", description=__doc__.splitlines()[0].rstrip("."),
+    p = argparse.ArgumentParser(prog="kamino eval", description="Score a trained policy: the walking test for a "
+                                "joystick task, the episode return for any other.",
                                 epilog=f"Shipped policies: {', '.join(shipped_policies())}.")
     p.add_argument("policy", metavar="RUN_OR_POLICY", help="a shipped policy's name, a run folder or a checkpoint")
     p.add_argument("--task", help="the task (default: the run's, else dr_legs_joystick)")

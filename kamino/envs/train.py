@@ -310,8 +310,9 @@ def parser() -> argparse.ArgumentParser:
     """The options of ``kamino train``."""
     from kamino.envs.configs import PPO_CONFIGS
 
-    p = argparse.ArgumentParser(prog="kamino train", description=__doc__.splitlines()[0].rstrip("."),
-                                epilog="A run folder resumes when trained again; see kamino.envs.runs for its files.")
+    p = argparse.ArgumentParser(prog="kamino train", description="Train a registered environment with Brax's PPO. "
+                                "Training into a run folder again resumes it from its newest checkpoint.",
+                                epilog="The run folder's files: kamino.envs.runs. Evaluate a run: kamino eval RUN.")
     p.add_argument("task", choices=sorted(PPO_CONFIGS), help="the environment")
     p.add_argument("steps_pos", nargs="?", type=int, metavar="STEPS", help="total environment steps (as --steps)")
     p.add_argument("--backend", choices=("jax", "warp"), default="jax", help="kamino backend (default jax)")
