@@ -32,7 +32,7 @@ from kamino.envs.policy import load_checkpoint
 STEPS = 480
 ARGS = ["fourbar_track", "--backend", "warp", "--steps", str(STEPS), "--num-envs", "8", "--evals", "3",
         "--set", "batch_size=8", "--set", "num_minibatches=2", "--set", "unroll_length=5",
-        "--set", "num_eval_envs=4", "--set", "episode_length=20", "--env", "reset_bank=8"]
+        "--set", "num_eval_envs=4", "--set", "episode_length=20", "--set", "run_evals=False", "--env", "reset_bank=8"]
 
 #: runs ``kamino train`` with a hook: KILL_AT=checkpoint marks (KILL_MARKER) a checkpoint that is written to the
 #: staging area but not renamed into place, and sleeps there until killed
