@@ -27,25 +27,27 @@ pytest.importorskip("brax")
 from kamino.envs import runs
 from kamino.envs.policy import load_checkpoint
 
-#: the training: an evaluation (and a checkpoint) every 240 env steps, two in all; a PPO iteration collects
-#: batch_size x num_minibatches x unroll_length = 80 env steps, three of them between evaluations
-STEPS = 480
-ARGS = ["fourbar_track", "--backend", "warp", "--steps", str(STEPS), "--num-envs", "8", "--evals", "3",
+#: the training: a checkpoint every 240 env steps, three in all; a PPO iteration collects batch_size x
+#: num_minibatches x unroll_length = 80 env steps, three of them between checkpoints (no evaluation rollouts)
+STEPS, EVERY = 720, 240
+ARGS = ["fourbar_track", "--backend", "warp", "--steps", str(STEPS), "--num-envs", "8", "--evals", "4",
         "--set", "batch_size=8", "--set", "num_minibatches=2", "--set", "unroll_length=5",
         "--set", "num_eval_envs=4", "--set", "episode_length=20", "--set", "run_evals=False", "--env", "reset_bank=8"]
 
-#: runs ``kamino train`` with a hook: KILL_AT=checkpoint marks (KILL_MARKER) a checkpoint that is written to the
-#: staging area but not renamed into place, and sleeps there until killed
+#: runs ``kamino train`` with a hook: KILL_AT=N marks (KILL_MARKER) the N-th checkpoint of the process once it is
+#: written to the staging area, before its rename into place, and sleeps there until killed
 HOOKED = """
 import os, sys, time, pathlib
 from kamino.envs import runs, train
 marker = pathlib.Path(os.environ["KILL_MARKER"])
-if os.environ.get("KILL_AT") == "checkpoint":
-    written = runs.stage_checkpoint
+if os.environ.get("KILL_AT"):
+    written, calls = runs.stage_checkpoint, []
     def stage(*args, **kwargs):
         folder = written(*args, **kwargs)
-        marker.write_text(str(folder))
-        time.sleep(600)
+        calls.append(folder)
+        if len(calls) == int(os.environ["KILL_AT"]):
+            marker.write_text(str(folder))
+            time.sleep(600)
         return folder
     runs.stage_checkpoint = stage
 marker.with_suffix(".started").write_text("")
@@ -93,20 +95,20 @@ def test_training_killed_anywhere_resumes_to_completion(tmp_path):
     rng = random.Random(int.from_bytes(os.urandom(4), "little"))
     t0 = time.monotonic()
 
-    # 1. killed inside the first checkpoint write: the checkpoint is staged, not committed
-    proc = _start(out, marker, "checkpoint")
+    # 1. killed inside the second checkpoint write: that checkpoint is staged, not committed; the first one is
+    proc = _start(out, marker, "2")
     _wait_for(marker, proc, timeout=300)
-    to_first_write = time.monotonic() - t0
+    to_write = time.monotonic() - t0
     _kill(proc)
     staged = Path(marker.read_text())
-    assert staged.exists() and runs.STAGING in staged.parts
-    assert runs.committed_checkpoints(out / "checkpoints") == []
+    assert staged.exists() and runs.STAGING in staged.parts and staged.name == f"{2 * EVERY:012d}"
+    assert [s for s, _ in runs.committed_checkpoints(out / "checkpoints")] == [EVERY]
     _plant_debris(out)
 
-    # 2. resumed and killed at a random moment, from its start to after its first checkpoint
+    # 2. resumed from the first checkpoint and killed at a random moment, up to about its own second write
     marker.unlink()
-    delay = rng.uniform(0.2, 1.3) * to_first_write
-    print(f"random kill after {delay:.1f} s (first write came after {to_first_write:.1f} s)")
+    delay = rng.uniform(0.2, 1.1) * to_write
+    print(f"random kill after {delay:.1f} s (the second write came after {to_write:.1f} s)")
     t1 = time.monotonic()
     proc = _start(out, marker, "")
     while time.monotonic() - t1 < delay and proc.poll() is None:
@@ -121,11 +123,12 @@ def test_training_killed_anywhere_resumes_to_completion(tmp_path):
     proc = subprocess.run([sys.executable, "-c", HOOKED, *ARGS, "--out", str(out)], capture_output=True, text=True,
                           env={**os.environ, "KILL_MARKER": str(marker), "KILL_AT": ""}, timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "resuming at step" in proc.stdout, proc.stdout
     print(f"three runs in {time.monotonic() - t0:.1f} s")
 
     found = runs.committed_checkpoints(out / "checkpoints")
     steps = [s for s, _ in found]
-    assert steps[-1] >= STEPS and steps == sorted(set(steps))
+    assert steps[-1] >= STEPS and steps == sorted(set(steps)) and steps[0] == EVERY
     assert not (out / "checkpoints" / runs.STAGING).exists()
     curve = json.loads((out / "curve.json").read_text())
     curve_steps = [c["step"] for c in curve]
