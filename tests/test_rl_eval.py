@@ -73,6 +73,21 @@ def test_a_standing_policy_tracks_nothing_and_does_not_fall(zero_policy_checkpoi
     assert r["checkpoint"].endswith("checkpoints/000000001000")  # the run folder's newest (only) checkpoint
 
 
+def test_an_exported_policy_reads_back_without_pickle(zero_policy_checkpoint, tmp_path):
+    """``export_policy`` writes a checkpoint's normalizer and policy network as plain arrays; read back, they give
+    the same actions bit for bit, and ``params.npz`` opens with ``allow_pickle=False``."""
+    from kamino.envs.policy import export_policy, load_checkpoint, read_policy
+
+    policy = load_checkpoint(zero_policy_checkpoint)
+    assert policy.task == "dr_legs_joystick" and policy.step == 1000
+    back = read_policy(export_policy(policy, tmp_path / "zero", description="zero action"))
+    obs = np.random.default_rng(1).normal(size=(4, 48)).astype(np.float32)
+    np.testing.assert_array_equal(np.asarray(back.act(obs)), np.asarray(policy.act(obs)))
+    assert back.env == policy.env == {} and back.config == policy.config
+    with np.load(tmp_path / "zero" / "params.npz", allow_pickle=False) as z:
+        assert all(z[k].dtype != object for k in z.files)
+
+
 def test_no_checkpoint_is_a_clear_error(tmp_path):
     """An empty folder, and one whose only step folder was left half-written (no commit marker), hold no
     checkpoint; an unknown name is neither a shipped policy nor a path."""

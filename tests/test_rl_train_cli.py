@@ -133,3 +133,20 @@ def test_a_run_keeps_its_environment(tmp_path):
     assert runs.run_task(step) is None
     runs.write_json(run / "run.json", {"task": "dr_legs_joystick", "backend": "warp"})
     assert runs.run_task(step) == "dr_legs_joystick"
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+def test_the_kamino_command_reaches_the_library(command, capsys):
+    """``kamino train`` and ``kamino eval`` are the library modules' own command lines: their help names them, and
+    ``kamino eval`` of a name that is neither a shipped policy nor a path is an error naming the shipped ones."""
+    from kamino import cli
+
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([command, "--help"])
+    assert exit_.value.code == 0
+    assert f"usage: kamino {command}" in capsys.readouterr().out
+    if command == "eval":
+        with pytest.raises(SystemExit) as exit_:
+            cli.main(["eval", "no_such_policy"])
+        assert exit_.value.code == 2
+        assert "dr_legs_walk" in capsys.readouterr().err

@@ -163,12 +163,18 @@ def newest_checkpoint(path: Path) -> Path:
 def export_policy(policy: Policy, folder: Path, **info: Any) -> Path:
     """Write ``policy`` to ``folder`` as a shipped policy (``policy.json`` with ``info`` merged in, and
     ``params.npz``: the normalizer and the policy network, not the value network)."""
+    from brax.training import types
+
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     normalizer, policy_params = policy.params
     arrays = {f"normalizer/{k}": np.asarray(getattr(normalizer, k), np.float32) for k in _NORMALIZER_ARRAYS}
-    arrays["normalizer/count_hi"] = np.asarray(normalizer.count.hi, np.uint32)
-    arrays["normalizer/count_lo"] = np.asarray(normalizer.count.lo, np.uint32)
+    count = normalizer.count
+    if not hasattr(count, "hi"):  # a plain count: split into the 64-bit halves Brax's UInt64 holds
+        total = int(np.asarray(count))
+        count = types.UInt64(hi=total >> 32, lo=total & 0xFFFFFFFF)
+    arrays["normalizer/count_hi"] = np.asarray(count.hi, np.uint32)
+    arrays["normalizer/count_lo"] = np.asarray(count.lo, np.uint32)
 
     def flatten(node: dict, prefix: str) -> None:
         for key, value in node.items():
