@@ -158,9 +158,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = "jax", ste
     config; ``env`` overrides the environment's keywords (over the run's ``env.json`` when resuming) and ``solver``
     fields of its ``SolverConfig``. ``fresh`` starts over (``overwrite`` allows it in a used folder).
     ``walk_test`` > 0 runs the walking test with that many episodes on each checkpoint (joystick tasks), from
-    ``walk_test_from`` steps on and at least ``walk_test_every`` steps apart. Raises :class:`OptionError` (a
-    ``ValueError``; or
-    ``TypeError`` for a keyword the environment or ``SolverConfig`` lacks) before training when an option is bad."""
+    ``walk_test_from`` steps on and at least ``walk_test_every`` steps apart. A bad option raises before training:
+    :class:`OptionError` (a ``ValueError``), or ``TypeError`` for a keyword the environment or ``SolverConfig``
+    lacks."""
     ppo, solver, env_overrides = dict(ppo or {}), dict(solver or {}), dict(env or {})
     _check_options(task, steps, num_envs, evals, train_returns, walk_test, walk_test_from, walk_test_every, solver)
     import jax
