@@ -202,7 +202,7 @@ def train(task: str, *, out: Path | str | None = None, backend: str = "jax", ste
         print(f"{task}: backend {backend}, {used} device(s) {jax.devices()[0].platform}, "
               f"{environment.observation_size} observations, {environment.action_size} actions, policy "
               f"{1 / environment.dt:.0f} Hz; {'resuming at step ' + str(done) if restore else 'starting'}, "
-              f"{max(remaining, 0)} steps to go (compiling first)", flush=True)
+              f"{max(remaining, 0)} steps to go{' (compiling first)' if remaining > 0 else ''}", flush=True)
 
     bar = Progress(total, done, progress)
     start = time.perf_counter()
