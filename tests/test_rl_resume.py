@@ -107,7 +107,7 @@ def test_training_killed_anywhere_resumes_to_completion(tmp_path):
 
     # 2. resumed from the first checkpoint and killed at a random moment, up to about its own second write
     marker.unlink()
-    delay = rng.uniform(0.2, 1.1) * to_write
+    delay = rng.uniform(0.4, 1.1) * to_write  # past most of the imports, up to about its second write
     print(f"random kill after {delay:.1f} s (the second write came after {to_write:.1f} s)")
     t1 = time.monotonic()
     proc = _start(out, marker, "")
