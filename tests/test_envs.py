@@ -1,4 +1,4 @@
-"""Environments on Brax's API (kamino/envs, issue 18; docs/envs.md).
+"""Environments on Brax's API (kamino/envs; docs/envs.md).
 
 Brax's wrappers build ``info`` entries with the default float (``jp.zeros``) at reset and float32 ones at step, so
 they need ``jax_enable_x64`` off (this suite turns it on: tests/conftest.py); every test that goes through them runs
@@ -6,8 +6,8 @@ under ``jax.enable_x64(False)``. The environments themselves keep their own dtyp
 first test checks with x64 on.
 
 The four-bar's contract tests run on the JAX backend. The robots' (dr_legs, bdx) run on the Warp backend, on Warp's
-CPU device: dr_legs' JAX step takes 18 s to trace, lower and compile on the 2-core machine (5.0, 1.1 and 11.9 s,
-2026-11-26), and the environment code above the step is the same on both backends
+CPU device: dr_legs' JAX step takes 18 s to trace, lower and compile on the 2-core machine (5.0, 1.1 and 11.9
+s), and the environment code above the step is the same on both backends
 (test_warp_backend_env_matches_jax_under_jit_and_vmap checks the two steps agree).
 """
 
@@ -290,7 +290,7 @@ def test_dr_legs_actions_map_inside_the_joint_limits(legs):
 
 def test_dr_legs_joystick_runs(legs):
     """Reset and step under jit + vmap on the CPU: loops closed at reset, feet on the ground, the documented
-    observation, and falls end episodes (issue 18's gains, kp 15 N m/rad, cannot hold the 17 kg robot at a zero
+    observation, and falls end episodes (the paper's gains, kp 15 N m/rad, cannot hold the 17 kg robot at a zero
     action: it collapses in about 50 steps, 1 s; measured)."""
     assert legs.observation_size == 48 and legs.action_size == 12 and legs.dt == pytest.approx(0.02)
     assert _violation(legs, jnp.asarray(legs._bank)).max() < 1e-5
@@ -342,7 +342,7 @@ def test_bdx_joystick_stands_at_a_zero_action():
     """``bdx_joystick`` (a tree biped, 14 actions): resets on the ground, and with its model's leg gains (kp 400
     N m/rad) a zero action holds the reference pose. Over 1 s the pelvis stays within 2 cm of its height at
     reset and no episode ends; the robot does settle onto its feet, by about 1 cm (measured). This is the
-    counterpart of dr_legs at issue 18's kp 15, which collapses."""
+    counterpart of dr_legs at the paper's kp 15, which collapses."""
     env = make("bdx_joystick", reset_bank=8, backend="warp")
     assert env.observation_size == 12 + 3 * 14 and env.action_size == 14
     _assert_stands_at_a_zero_action(env, seed=0)
@@ -351,7 +351,7 @@ def test_bdx_joystick_stands_at_a_zero_action():
 def test_dr_legs_joystick_stands_at_a_zero_action_with_its_own_gains(legs_own_gains):
     """The default gains of ``dr_legs_joystick`` are the model's own (kp 300 N m/rad at the hips and knees, 150 at
     the ankles): a zero action holds the reference pose for 1 s. The pelvis stays within 2 cm of its height at
-    reset, and no episode ends. With issue 18's kp 15 the same robot collapses (test_dr_legs_joystick_runs)."""
+    reset, and no episode ends. With the paper's kp 15 the same robot collapses (test_dr_legs_joystick_runs)."""
     _assert_stands_at_a_zero_action(legs_own_gains, seed=1)
     with pytest.raises(ValueError, match="kp and kd together"):
         DrLegsJoystick(kp=15.0)

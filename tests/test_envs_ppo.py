@@ -1,4 +1,4 @@
-"""brax's PPO learns the small loop task (issue 18, tests): ``fourbar_track`` on the CPU in about a minute and a half.
+"""brax's PPO learns the small loop task: ``fourbar_track`` on the CPU in about a minute and a half.
 
 It trains on the Warp backend (Warp's CPU device, through the JAX FFI inside brax's jit), the backend PPO uses on the
 GPU; the JAX backend's training runs in test_envs.py's two-device test. Measured on the 2-core CPU machine
@@ -9,16 +9,15 @@ steps, brax's ``eval/episode_reward``):
   12.7, 14.4, 12.8, 22.3), with a spread of the 64 episode returns of 17-23, so each eval mean has a standard error
   of at most 23 / 8 = 2.9;
 - a uniformly random policy: 11.6 (episode spread 5.4);
-- after training, Warp backend, seeds 0-3: 90.3, 83.7, 88.4, 90.7 (2026-11-27). The JAX backend's were 90.5, 81.7,
+- after training, Warp backend, seeds 0-3: 90.3, 83.7, 88.4, 90.7. The JAX backend's were 90.5, 81.7,
   89.4, 90.0 (100 is the most a policy can score: exact tracking at every step; the crank needs about 20 steps to
   swing to a new target, twice per episode).
 
 The test asks for an improvement of 40 over the initial eval and a final eval above 60: 40 is over ten standard
 errors of the two evals and under two thirds of the smallest improvement measured (59.4, seed 1 on the JAX backend;
 68.3, seed 3 on Warp); 60 is four times the best untrained score. Pinned to one core, as CI's workers are, the run takes
-79-98 s on the Warp backend (15-31 s of it before the first eval: compiling) and 166 s on the JAX backend
-(2026-11-27). Issue 18 allows 2 minutes, which is not asserted (a timing under CI's parallel workers would make the
-test flaky).
+79-98 s on the Warp backend (15-31 s of it before the first eval: compiling) and 166 s on the JAX backend. The
+time is not asserted (a timing under CI's parallel workers would make the test flaky).
 """
 
 from __future__ import annotations

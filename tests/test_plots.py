@@ -130,27 +130,3 @@ def test_without_matplotlib_the_error_names_the_extra(monkeypatch):
     with pytest.raises(ImportError, match=r"pip install 'kamino\[bench\]'"):
         plots.throughput_against_worlds({"records": [{"scene": "x", "num_worlds": 1, "throughput": 1.0}]})
 
-
-def test_walk_tests_figure_draws_the_committed_runs_and_their_learning_rates():
-    """benchmarks/plot_walk_tests.py on session 36's committed runs: the walking test's error and falls, and the
-    learning rate PPO used in each training window (the panel that showed brax's ADAPTIVE_KL at its 1e-5 floor),
-    are the records' values, one line per run, the rate on a log scale."""
-    import matplotlib.pyplot as plt
-
-    sys.path.insert(0, str(RESULTS.parent))
-    import plot_walk_tests
-
-    runs = [RESULTS / "s36_h100" / name for name in ("F25", "F2W")]
-    fig = plot_walk_tests.figure(runs)
-    try:
-        error, falls, _, rate = fig.axes
-        assert rate.get_yscale() == "log"
-        for run in runs:
-            walks = json.loads((run / "walk_tests.json").read_text())
-            train = json.loads((run / "train_curve.json").read_text())
-            np.testing.assert_allclose(_lines(error)[run.name], [w["tracking_error_mean"] for w in walks])
-            np.testing.assert_allclose(_lines(falls)[run.name], [100 * w["fall_fraction"] for w in walks])
-            np.testing.assert_allclose(_lines(rate)[run.name], [t["episode"]["learning_rate"] for t in train])
-            assert max(_lines(rate)[run.name]) < 2e-4  # the configured 3e-4 was never reached (docs/envs.md)
-    finally:
-        plt.close(fig)

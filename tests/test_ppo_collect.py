@@ -1,21 +1,21 @@
-"""``benchmarks/ppo_collect.py`` end to end on Warp's CPU device: the four-bar task through brax's wrappers, 2
+"""``kamino.bench.ppo_collect`` end to end on Warp's CPU device: the four-bar task through brax's wrappers, 2
 environments x 3 env steps, at a zero action and at full random actions."""
 
 import json
 
 import pytest
 
-from tests.helpers import load_benchmark
-
 
 @pytest.fixture(scope="module")
 def ppo_collect():
     pytest.importorskip("warp")
     pytest.importorskip("brax")
-    return load_benchmark("ppo_collect")
+    from kamino.bench import ppo_collect
+
+    return ppo_collect
 
 
-@pytest.mark.slow  # 31-38 s of CI (its four-bar steps compile twice); every GPU session runs the script itself
+@pytest.mark.slow  # 31-38 s of CI (its four-bar steps compile twice); GPU benchmarks run the module itself
 def test_records_the_solver_in_the_collection_loop(ppo_collect, tmp_path):
     """Both runs append one record each. At a zero action the four-bar rests at its reset and its solves need
     few iterations; random actions drive the crank and cost more. Every solve converges. At rest the loop stays

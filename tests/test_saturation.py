@@ -82,7 +82,7 @@ def test_saturation_rule_cuts_the_iterations_of_a_robot_under_random_targets():
     """dr_legs (12 effort-limited actuators) with random PD targets redrawn every 5 steps, PPO's exploration
     regime, float32 at the defaults, Warp's CPU device. With the constant penalty ``rho`` on every effort-limited
     row (before the rule) the solves took 45 iterations on average in this run (float64; 52 under
-    ``benchmarks/ppo_collect.py``); with the rule 27 (float64) and 20.6. The bound 35 sits between the two, above
+    ``kamino.bench.ppo_collect``); with the rule 27 (float64) and 20.6. The bound 35 sits between the two, above
     float32's spread."""
     model = kamino.replicate(kamino.models.dr_legs(), 4)
     cfg = kamino.SolverConfig(dt=0.004)

@@ -14,7 +14,7 @@ import pathlib
 #: :mod:`~kamino.bench.timed_window` holds the timing rule and :mod:`~kamino.bench.stress_models` the float32 stress
 #: models that these share)
 MODULES = ("throughput", "convergence", "peers", "roofline", "memory_breakdown", "multi_device", "fk_convergence",
-           "time_to_first_step", "profile_step")
+           "time_to_first_step", "profile_step", "ppo_collect")
 
 SCENES_DIR = pathlib.Path(__file__).resolve().parent / "scenes"
 

@@ -1,7 +1,9 @@
-"""Environments on Brax's API (issue 18; docs/envs.md): ``KaminoEnv`` and the registered tasks.
+"""Environments on Brax's API (docs/envs.md): ``KaminoEnv``, the registered tasks, and trained policies.
 
 Importing this package registers the tasks with ``brax.envs.register_environment`` (``brax.envs.get_environment``
-then builds them by name). Needs the ``rl`` extra (``pip install -e ".[rl]"``: brax).
+then builds them by name). Training and evaluation: :mod:`kamino.envs.train` (``kamino train``) and
+:mod:`kamino.envs.evaluate` (``kamino eval``); :func:`load_policy` loads a policy that ships with kamino. Needs the
+``rl`` extra (``pip install "kamino[rl]"``: brax).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from kamino.envs import brax_compat
 from kamino.envs.base import BACKENDS, KaminoEnv
 from kamino.envs.fourbar_track import FourbarTrack
 from kamino.envs.joystick import BdxJoystick, DrLegsJoystick, Joystick
+from kamino.envs.policy import Policy, load_policy, shipped_policies
 from kamino.envs.randomization import randomize
 from kamino.envs.system import EnvSystem
 
@@ -38,4 +41,4 @@ def make(task: str, **kwargs) -> KaminoEnv:
 
 
 __all__ = ["BACKENDS", "TASKS", "BdxJoystick", "DrLegsJoystick", "EnvSystem", "FourbarTrack", "Joystick", "KaminoEnv",
-           "make", "randomize"]
+           "Policy", "load_policy", "make", "randomize", "shipped_policies"]

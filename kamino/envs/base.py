@@ -1,4 +1,4 @@
-"""``KaminoEnv``: a Brax environment (``brax.envs.base.Env``) around one kamino world (issue 18; docs/envs.md).
+"""``KaminoEnv``: a Brax environment (``brax.envs.base.Env``) around one kamino world (docs/envs.md).
 
 What every task shares:
 

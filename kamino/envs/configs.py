@@ -1,9 +1,9 @@
 """Per-task PPO settings (``brax.training.agents.ppo.train`` keyword arguments) and environment arguments.
 
-``benchmarks/rl_train.py TASK`` and tests/test_envs_ppo.py read them through :func:`ppo_kwargs`. Each entry:
+``kamino train TASK`` and tests/test_envs_ppo.py read them through :func:`ppo_kwargs`. Each entry:
 ``env`` (keyword arguments of the task's class), ``network`` (hidden layer sizes of the policy and value MLPs) and
 ``ppo`` (``ppo.train`` keywords). ``fourbar_track`` is sized for a 2-core CPU (about a minute); ``dr_legs_joystick``
-and ``bdx_joystick`` for a GPU (untested here: issue 18 asks only for working environments).
+and ``bdx_joystick`` for a GPU (``bdx_joystick``'s settings are dr_legs', not tuned for it).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ PPO_CONFIGS: dict[str, dict] = {
         },
     },
     "dr_legs_joystick": {
-        # the recipe that passes issue 18's walking test from scratch (docs/envs.md, "The thirteenth run": S3, 0.070
+        # the recipe that passes the walking test from scratch (docs/envs.md, "The thirteenth run": S3, 0.070
         # m/s mean tracking error and no falls in 256 episodes at 55 M steps): a 2.5 Hz gait clock whose swing
         # heights are rewarded (feet_phase), forward commands up to 0.6 m/s, a narrow tracking kernel, and a
         # stance of 0.13 m between the feet (feet_width; the model's own is 0.2 m), which cuts the lateral sway by a
@@ -38,7 +38,7 @@ PPO_CONFIGS: dict[str, dict] = {
             "num_updates_per_batch": 4, "learning_rate": 3e-4, "entropy_cost": 5e-3, "discounting": 0.98,
             "reward_scaling": 1.0, "normalize_observations": True, "max_grad_norm": 1.0, "seed": 0,
             # a fixed rate (brax's default schedule), as Playground trains its joysticks. Brax's ADAPTIVE_KL adapts
-            # after each of the 128 minibatch steps of an update and held every run of sessions 27-36 at its 1e-5
+            # after each of the 128 minibatch steps of an update and held every run trained with it at its 1e-5
             # floor; at 3e-4 the walking test's error fell from 0.282 to 0.144 m/s in 38 M steps (docs/envs.md,
             # "The eleventh run" and "The twelfth run")
         },

@@ -1,4 +1,4 @@
-"""``fourbar_track``: the actuated four-bar's crank tracks a target angle (issue 18, "a small loop task").
+"""``fourbar_track``: the actuated four-bar's crank tracks a target angle: a small loop task.
 
 ``kamino.models.fourbar(actuated=True)``: a Grashof crank-rocker (one loop) whose crank hinge ``ground_crank`` is
 driven by an implicit PD actuator. Every ``resample_steps`` policy steps a new target crank angle is drawn; the

@@ -1,4 +1,4 @@
-"""Velocity-command following for a legged robot on a ground plane: the joystick task (issue 18, tasks b and c).
+"""Velocity-command following for a legged robot on a ground plane: the joystick task.
 
 The command ``(v_x, v_y, yaw rate)`` in the base body's frame is drawn at reset and every ``resample_steps``;
 rewards follow the usual joystick recipe (velocity tracking through exponential kernels, upright, action rate,
@@ -192,7 +192,7 @@ class Joystick(KaminoEnv):
     def with_command(self, state, command: jax.Array):
         """``state`` (one environment, right after :meth:`reset`) with its command ``[3]`` replaced: in ``info``, in
         the memory an auto-reset restores, and in the observation (entries 9-11, which carry no noise). For
-        evaluations at chosen commands (``benchmarks/rl_eval.py``); build the environment with
+        evaluations at chosen commands (:func:`kamino.envs.evaluate.walking_test`); build the environment with
         ``resample_steps=None`` to keep the command for the whole episode."""
         command = jnp.asarray(command, self.dtype)
         if command.shape != (3,):
@@ -311,8 +311,8 @@ class DrLegsJoystick(Joystick):
     """``dr_legs_joystick``: ``kamino.models.dr_legs()`` (31 bodies, 12 PD actuators, 6 kinematic loops: knee and
     ankle four-bars, a spatial ankle-roll loop per leg; box feet), fallen below a pelvis height of 0.45 m (0.77 m
     standing). The gains default to the model's own: ``kp`` 300 N m/rad and ``kd`` 8 N m s/rad at the hips and
-    knees, 150 and 4 at the ankles. Numbers ``kp``, ``kd`` put those gains on every actuator instead: issue 18's
-    15 / 0.6 are the paper's robot's, a third of this one's size, and cannot hold this one up (docs/envs.md).
+    knees, 150 and 4 at the ankles. Numbers ``kp``, ``kd`` put those gains on every actuator instead: the
+    paper's 15 / 0.6, for a robot a third of this one's size, cannot hold this one up (docs/envs.md).
     Other arguments: :class:`Joystick`."""
 
     def __init__(self, *, kp: float | None = None, kd: float | None = None, min_height: float = 0.45, **kwargs):

@@ -1,4 +1,4 @@
-"""Domain randomization in Brax's form: ``randomization_fn(sys, rng) -> (sys_batched, in_axes)`` (issue 18).
+"""Domain randomization in Brax's form: ``randomization_fn(sys, rng) -> (sys_batched, in_axes)``.
 
 ``brax.training.agents.ppo.train(randomization_fn=...)`` calls it with the environment's ``sys``
 (:class:`kamino.envs.system.EnvSystem`) and one key per environment of a device (``rng [num_envs, 2]``); Brax's

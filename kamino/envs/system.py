@@ -1,4 +1,4 @@
-"""The randomizable parameters of an environment: ``env.sys`` (issue 18, "a ``sys`` pytree").
+"""The randomizable parameters of an environment: ``env.sys``, a pytree.
 
 Brax's domain randomization (``brax.envs.wrappers.training.DomainRandomizationVmapWrapper``) calls
 ``randomization_fn(env.sys, rng)`` once, gets a batched copy and its ``in_axes`` back, and ``vmap``s ``reset`` /

@@ -1,7 +1,7 @@
 """The simulator in PPO's regime: brax-style collection with random actions, and what the solver does there.
 
-    python benchmarks/ppo_collect.py [TASK] [--backend warp] [--num-envs 4096] [--unroll 20] [--action-scale 1]
-                                     [--set tolerance=0.01 ...] [--env kp=75 ...] [--out FILE]
+    python -m kamino.bench.ppo_collect [TASK] [--backend warp] [--num-envs 4096] [--unroll 20] [--action-scale 1]
+                                         [--set tolerance=0.01 ...] [--env kp=75 ...] [--out FILE]
 
 brax's PPO collects ``unroll_length`` env steps of every environment per batch, with actions drawn around its
 policy's mean; early in training that is close to uniform noise in ``[-1, 1]``. This runs the same loop without the
@@ -14,9 +14,8 @@ overrides a :class:`kamino.SolverConfig` field (the task's ``sim_dt`` is kept); 
 keyword to the task (``kamino.envs.make``), e.g. the PD gains. ``--no-effort-limits`` (a diagnostic) builds the
 robot with unbounded actuator efforts. ``--profile STEPS`` (Warp) then times each kernel of STEPS more simulator
 steps of the environments' stepper from where the collection left it, and the same steps replayed as one CUDA
-graph, as the FFI call replays its step (``profile_step.profile``; the record's ``profile``). The figure to compare
-with PPO's
-end-to-end env steps/s (benchmarks/rl_train.py) is the collection share of it.
+graph, as the FFI call replays its step (``kamino.bench.profile_step.profile``; the record's ``profile``). The
+figure to compare with PPO's end-to-end env steps/s (``kamino train``) is the collection share of it.
 """
 
 from __future__ import annotations
@@ -25,15 +24,11 @@ import argparse
 import dataclasses
 import json
 import pathlib
-import sys
 import time
 
-HERE = pathlib.Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
 
-
-def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog=prog or "kamino bench ppo_collect", description=__doc__.splitlines()[0])
     p.add_argument("task", nargs="?", default="dr_legs_joystick", help="a kamino.envs task (default dr_legs_joystick)")
     p.add_argument("--backend", choices=("jax", "warp"), default="warp")
     p.add_argument("--num-envs", type=int, default=4096)
@@ -56,10 +51,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--num-envs and --unroll must be positive")
     if not 0.0 <= args.action_scale <= 1.0:
         p.error(f"--action-scale must be in [0, 1] (actions are clipped to [-1, 1]), got {args.action_scale}")
-    sys.path.insert(0, str(HERE))  # rl_train, beside this script
-    from rl_train import key_values
+    from kamino.envs.train import OptionError, key_values
 
-    args.overrides, args.env_kwargs = key_values(p, "--set", args.set), key_values(p, "--env", args.env)
+    try:
+        args.overrides, args.env_kwargs = key_values(args.set, "--set"), key_values(args.env, "--env")
+    except OptionError as e:
+        p.error(str(e))
     return args
 
 
@@ -86,8 +83,8 @@ def _unbounded_efforts() -> None:
                 setattr(module, name, unbounded)
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    args = parse_args(argv, prog)
     import jax
     import numpy as np
     from brax.envs.wrappers import training
@@ -157,9 +154,7 @@ def _profile(model, num_envs: int, steps: int) -> dict:
     """``profile_step.profile`` of the stepper that ran the batched environments (the ``num_envs``-world replica
     of ``model`` behind ``jit.batchable_step``), from its last state and targets: each kernel timed in un-graphed
     steps, then the wall time of the same steps replayed as one CUDA graph, as the FFI call replays its step."""
-    sys.path.insert(0, str(HERE))  # profile_step, beside this script
-    from profile_step import profile
-
+    from kamino.bench.profile_step import profile
     from kamino.warp_backend import backend as wb
     from kamino.warp_backend import jit as wjit
 

@@ -1,0 +1,175 @@
+"""Run folders of ``kamino train``: atomic side files, committed checkpoints, and what a run was trained with.
+
+A run folder ``RUN`` holds:
+
+- ``run.json``: the task and backend;
+- ``env.json``: the environment's keywords (the task's config with ``--env`` over it);
+- ``checkpoints/<step>/``: Brax's PPO checkpoint (orbax parameters and ``ppo_network_config.json``) after each
+  evaluation, ``<step>`` the environment steps over all runs, zero-padded to 12 digits;
+- ``curve.json``, ``train_curve.json``, ``walk_tests.json``, ``report.json``, ``reward_curve.png``.
+
+Every JSON file is written whole or not at all (:func:`write_json`: a temporary file in the same folder, then
+``os.replace``). A checkpoint is written complete under ``checkpoints/.staging/`` and renamed into place
+(:func:`save_checkpoint`), so ``checkpoints/<step>/`` exists only once every file in it does; a folder that lacks
+orbax's ``commit_success.txt`` marker or the network config is not a checkpoint (:func:`committed_checkpoints`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+#: the network config Brax writes beside the parameters
+NETWORK_CONFIG = "ppo_network_config.json"
+#: orbax's marker of a finished save
+COMMIT_MARKER = "commit_success.txt"
+#: where a checkpoint is assembled before its rename into ``checkpoints/``
+STAGING = ".staging"
+#: the files a run writes; ``--fresh --overwrite`` removes these and nothing else
+RUN_FILES = ("run.json", "env.json", "curve.json", "train_curve.json", "walk_tests.json", "report.json",
+             "reward_curve.png")
+
+
+def write_json(path: Path, data: Any, **dump_kwargs) -> None:
+    """Write ``data`` as JSON to ``path`` atomically: a reader (or a resumed run) sees the old file or the new one,
+    never a part of either, whenever the writer is killed."""
+    text = json.dumps(data, indent=1, **dump_kwargs) + "\n"
+    write_text(path, text)
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (a temporary file beside it, flushed to disk, then ``os.replace``)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def replace(src: str | Path, dst: str | Path) -> None:
+    """``os.replace(src, dst)``: the one rename that commits a side file or a checkpoint."""
+    os.replace(src, dst)
+
+
+def read_json(path: Path, default: Any = None) -> Any:
+    """The JSON in ``path``, or ``default`` when it does not exist."""
+    path = Path(path)
+    return json.loads(path.read_text()) if path.exists() else default
+
+
+def is_checkpoint(path: Path) -> bool:
+    """Whether ``path`` is a complete Brax PPO checkpoint: orbax's commit marker and the network config present."""
+    path = Path(path)
+    return (path / COMMIT_MARKER).is_file() and (path / NETWORK_CONFIG).is_file()
+
+
+def committed_checkpoints(folder: Path) -> list[tuple[int, Path]]:
+    """``(step, path)`` of every complete checkpoint ``folder/<step>/``, ascending; anything else (a half-written
+    folder, the staging area, a stray file) is skipped."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    found = [(int(d.name), d) for d in folder.iterdir() if d.name.isdigit() and d.is_dir() and is_checkpoint(d)]
+    return sorted(found)
+
+
+def latest_checkpoint(folder: Path) -> tuple[int, Path | None]:
+    """``(step, path)`` of the newest complete checkpoint under ``folder`` (``(0, None)`` without one)."""
+    found = committed_checkpoints(folder)
+    return found[-1] if found else (0, None)
+
+
+def stage_checkpoint(staging: Path, step: int, params: Any, config: Any) -> Path:
+    """Write the checkpoint of ``step`` under ``staging`` with Brax's writer; returns its folder."""
+    from brax.training.agents.ppo import checkpoint as ppo_checkpoint
+
+    ppo_checkpoint.save(staging, step, params, config)
+    return staging / f"{step:012d}"
+
+
+def save_checkpoint(folder: Path, step: int, params: Any, config: Any) -> Path:
+    """Save a checkpoint as ``folder/<step>/`` so that it appears complete or not at all: written under
+    ``folder/.staging/``, then renamed into place (a previous checkpoint of the same step is replaced)."""
+    folder = Path(folder).resolve()
+    staging = folder / STAGING
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    written = stage_checkpoint(staging, step, params, config)
+    if not is_checkpoint(written):
+        raise RuntimeError(f"save_checkpoint: the checkpoint written to {written} lacks {COMMIT_MARKER} or "
+                           f"{NETWORK_CONFIG}")
+    target = folder / f"{step:012d}"
+    if target.exists():
+        shutil.rmtree(target)
+    replace(written, target)
+    shutil.rmtree(staging, ignore_errors=True)
+    return target
+
+
+def clear_partial(folder: Path) -> None:
+    """Remove what a killed run left half-written in the checkpoint folder: the staging area, and step folders that
+    are not complete checkpoints."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    shutil.rmtree(folder / STAGING, ignore_errors=True)
+    for d in folder.iterdir():
+        if d.name.isdigit() and d.is_dir() and not is_checkpoint(d):
+            shutil.rmtree(d, ignore_errors=True)
+
+
+def is_used(out: Path) -> bool:
+    """Whether ``out`` already holds a run: a checkpoint folder or one of the files a run writes."""
+    out = Path(out)
+    return (out / "checkpoints").exists() or any((out / name).exists() for name in RUN_FILES)
+
+
+def clear_run(out: Path) -> None:
+    """Remove the run in ``out`` (its checkpoints and the files of :data:`RUN_FILES`); other files stay."""
+    out = Path(out)
+    shutil.rmtree(out / "checkpoints", ignore_errors=True)
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
+
+
+def run_folder(path: Path) -> Path | None:
+    """The run folder of ``path``: ``path`` itself, or the run that holds it when ``path`` is its ``checkpoints``
+    folder or one checkpoint; ``None`` when none of these has ``env.json`` or ``run.json``."""
+    path = Path(path)
+    for folder in (path, path.parent, path.parent.parent):
+        if (folder / "env.json").exists() or (folder / "run.json").exists():
+            return folder
+    return None
+
+
+def run_env(path: Path, task: str) -> dict:
+    """The environment keywords a run was trained with: ``env.json`` of the run folder of ``path``
+    (:func:`run_folder`), else the task's config."""
+    from kamino.envs.configs import task_config
+
+    folder = run_folder(path)
+    if folder is not None and (folder / "env.json").exists():
+        return json.loads((folder / "env.json").read_text())
+    return task_config(task)["env"]
+
+
+def run_task(path: Path) -> str | None:
+    """The task a run was trained on (``run.json`` of the run folder of ``path``), ``None`` when not recorded."""
+    folder = run_folder(path)
+    info = read_json(folder / "run.json", {}) if folder is not None else {}
+    return info.get("task")
+
+
+__all__ = ["COMMIT_MARKER", "NETWORK_CONFIG", "RUN_FILES", "clear_partial", "clear_run", "committed_checkpoints",
+           "is_checkpoint", "is_used", "latest_checkpoint", "read_json", "run_env", "run_folder", "run_task",
+           "save_checkpoint", "write_json", "write_text"]

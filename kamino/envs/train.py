@@ -1,0 +1,381 @@
+"""Train a registered environment with Brax's PPO: ``kamino train TASK`` or :func:`train`.
+
+The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS``; ``--steps``, ``--num-envs``, ``--evals``,
+``--seed`` and ``--set`` override them, ``--env`` the environment's keywords and ``--solver`` its ``SolverConfig``.
+The run folder (``--out``, default ``scratch/rl/TASK``; its layout: :mod:`kamino.envs.runs`) gets a checkpoint
+after every evaluation. Running the same command again resumes from the newest complete checkpoint and trains the
+steps that remain (Brax restores the parameters; the optimizer state starts afresh), with the environment of the
+run's ``env.json``. ``--fresh`` starts over, and refuses a folder that holds a run unless ``--overwrite`` is given.
+
+Besides the checkpoints the run writes ``curve.json`` (each evaluation: step, mean and spread of the episode
+return, wall time, env steps/s of the epoch before it), ``train_curve.json`` (``--train-returns N``: the training
+episodes' return every ~N steps and each episode metric), ``walk_tests.json`` (``--walk-test EPISODES``, joystick
+tasks: :func:`kamino.envs.evaluate.walking_test` on each checkpoint), ``reward_curve.png`` and ``report.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from kamino.envs import runs
+
+
+class OptionError(ValueError):
+    """A training option that cannot work (named in the message), raised before anything is trained."""
+
+
+def key_values(items: list[str], flag: str) -> dict[str, Any]:
+    """``KEY=VALUE`` options (``VALUE`` a Python literal) as a dict; a malformed one raises ``ValueError`` naming
+    ``flag``."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.isidentifier():
+            raise OptionError(f"{flag} expects KEY=VALUE, got {item!r}")
+        try:
+            out[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            raise OptionError(f"{flag} {key}: {value!r} is not a Python literal") from None
+    return out
+
+
+def walk_test_due(step: int, tested: list[int], start: int, every: int) -> bool:
+    """Whether the checkpoint at ``step`` gets the walking test: from ``start`` steps on, and at least ``every``
+    steps after the last tested checkpoint (``tested``, ascending; a resumed run continues the saved list)."""
+    return step >= start and (not tested or step - tested[-1] >= every)
+
+
+class Progress:
+    """A tqdm bar over environment steps if tqdm is installed, else a printed line per update."""
+
+    def __init__(self, total: int, start: int, enabled: bool = True):
+        self.total, self.start, self.enabled = total, start, enabled
+        self.bar = None
+        if enabled:
+            try:
+                from tqdm import tqdm
+            except ImportError:
+                pass
+            else:
+                self.bar = tqdm(total=total, initial=start, unit="step", unit_scale=True, dynamic_ncols=True)
+
+    def update(self, step: int, reward: float, std: float, sps: float, elapsed: float) -> None:
+        if not self.enabled:
+            return
+        if self.bar is not None:
+            self.bar.n = step
+            self.bar.set_postfix(reward=f"{reward:.2f}", env_steps_per_s=f"{sps:.0f}")
+            self.bar.refresh()
+            return
+        print(f"[{step:>10d}/{self.total}] {100 * step / self.total:5.1f}%  eval return {reward:9.3f} +- {std:7.3f}  "
+              f"{sps:9.0f} env steps/s  {elapsed:7.1f} s", flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def plot_curve(curve: list[dict], path: Path, title: str, train_curve: list[dict] = ()) -> None:
+    """The evaluation return (and the training episodes' return) against environment steps, saved atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    step = np.array([c["step"] for c in curve], float)
+    mean = np.array([c["reward"] for c in curve])
+    std = np.array([c["reward_std"] for c in curve])
+    fig, ax = plt.subplots(figsize=(6, 4))
+    if np.isfinite(mean).any():
+        ax.plot(step, mean, marker="o", label="evaluation episodes")
+        ax.fill_between(step, mean - std, mean + std, alpha=0.25, label="spread of the evaluation returns")
+    if train_curve:
+        ax.plot([c["step"] for c in train_curve], [c["reward"] for c in train_curve], label="training episodes (mean)")
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("episode return")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    runs.replace(tmp, path)
+
+
+def _check_options(task: str, steps, num_envs, evals, train_returns, walk_test, walk_test_from, walk_test_every,
+                   solver: dict) -> None:
+    """Refuse bad options before anything is built, naming the option."""
+    import kamino
+    from kamino.envs.configs import PPO_CONFIGS
+
+    if task not in PPO_CONFIGS:
+        raise OptionError(f"unknown task {task!r}; choose one of {sorted(PPO_CONFIGS)}")
+    for name, value in (("steps", steps), ("num_envs", num_envs), ("evals", evals), ("train_returns", train_returns)):
+        if value is not None and value < 1:
+            raise OptionError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    for name, value in (("walk_test", walk_test), ("walk_test_from", walk_test_from),
+                        ("walk_test_every", walk_test_every)):
+        if value < 0:
+            raise OptionError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+    fields = {f.name for f in dataclasses.fields(kamino.SolverConfig)}
+    unknown = sorted(set(solver) - fields)
+    if unknown:
+        raise TypeError(f"--solver: SolverConfig has no field {', '.join(map(repr, unknown))}")
+
+
+def _prepare_folder(out: Path, task: str, fresh: bool, overwrite: bool) -> None:
+    """Create ``out``; refuse a run of another task, or ``fresh`` into a used folder without ``overwrite``."""
+    if fresh and runs.is_used(out):
+        if not overwrite:
+            raise OptionError(f"{out} already holds a run; pass --overwrite to replace it (its checkpoints and "
+                             "curves are deleted), or choose another --out")
+        runs.clear_run(out)
+    recorded = runs.read_json(out / "run.json", {}).get("task")
+    if recorded is not None and recorded != task:
+        raise OptionError(f"{out} holds a run of {recorded!r}, not {task!r}; choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    runs.clear_partial(out / "checkpoints")
+
+
+def train(task: str, *, out: Path | str | None = None, backend: str = "jax", steps: int | None = None,
+          num_envs: int | None = None, evals: int | None = None, seed: int | None = None, fresh: bool = False,
+          overwrite: bool = False, train_returns: int | None = None, walk_test: int = 0, walk_seed: int = 1,
+          walk_test_from: int = 0, walk_test_every: int = 0, ppo: dict | None = None, solver: dict | None = None,
+          env: dict | None = None, progress: bool = True, command: str = "") -> dict:
+    """Train ``task`` with Brax's PPO into the run folder ``out`` (resuming it when it holds a run) and return the
+    report (also written to ``out/report.json``).
+
+    ``steps``, ``num_envs``, ``evals``, ``seed`` and ``ppo`` (any ``ppo.train`` keyword) override the task's PPO
+    config; ``env`` overrides the environment's keywords (over the run's ``env.json`` when resuming) and ``solver``
+    fields of its ``SolverConfig``. ``fresh`` starts over (``overwrite`` allows it in a used folder).
+    ``walk_test`` > 0 runs the walking test with that many episodes on each checkpoint (joystick tasks), from
+    ``walk_test_from`` steps on and at least ``walk_test_every`` steps apart. A bad option raises before training:
+    :class:`OptionError` (a ``ValueError``), or ``TypeError`` for a keyword the environment or ``SolverConfig``
+    lacks."""
+    ppo, solver, env_overrides = dict(ppo or {}), dict(solver or {}), dict(env or {})
+    _check_options(task, steps, num_envs, evals, train_returns, walk_test, walk_test_from, walk_test_every, solver)
+    import jax
+    import numpy as np
+    from brax.training.agents.ppo import checkpoint as ppo_checkpoint
+    from brax.training.agents.ppo import train as ppo_train
+
+    import kamino
+    from kamino.envs import TASKS, make
+    from kamino.envs.configs import ppo_kwargs, task_config
+
+    if walk_test and not hasattr(TASKS[task], "with_command"):
+        raise OptionError(f"--walk-test needs a joystick task; {task} has no velocity command")
+    out = Path(out if out is not None else Path("scratch") / "rl" / task).resolve()
+    _prepare_folder(out, task, fresh, overwrite)
+    cfg = task_config(task)
+    overrides = {k: v for k, v in (("num_timesteps", steps), ("num_envs", num_envs), ("num_evals", evals),
+                                   ("seed", seed)) if v is not None}
+    kwargs = ppo_kwargs(task, **{**ppo, **overrides})
+    total, num_evals = int(kwargs["num_timesteps"]), int(kwargs["num_evals"])
+    ckpt_dir = out / "checkpoints"
+    curve_path, train_path, walk_path = out / "curve.json", out / "train_curve.json", out / "walk_tests.json"
+
+    done, restore = runs.latest_checkpoint(ckpt_dir)
+    # rows up to the restored checkpoint stay; without one, the rows of a run that committed nothing go
+    curve, train_curve, walks = ([r for r in runs.read_json(path, []) if restore is not None and r["step"] <= done]
+                                 for path in (curve_path, train_path, walk_path))
+    remaining = total - done
+    # a resumed run keeps the environment it was trained with (env.json), a new one starts from the task's config
+    env_kwargs = {**(runs.run_env(out, task) if restore else cfg["env"]), **env_overrides}
+    environment = make(task, backend=backend, **env_kwargs)
+    runs.write_json(out / "run.json", {"task": task, "backend": backend})
+    runs.write_json(out / "env.json", env_kwargs)
+    if solver:
+        config = dataclasses.replace(environment.solver_config, **solver)
+        environment = make(task, backend=backend, solver_config=config, **env_kwargs)
+    used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
+    if progress:
+        print(f"{task}: backend {backend}, {used} device(s) {jax.devices()[0].platform}, "
+              f"{environment.observation_size} observations, {environment.action_size} actions, policy "
+              f"{1 / environment.dt:.0f} Hz; {'resuming at step ' + str(done) if restore else 'starting'}, "
+              f"{max(remaining, 0)} steps to go{' (compiling first)' if remaining > 0 else ''}", flush=True)
+
+    bar = Progress(total, done, progress)
+    start = time.perf_counter()
+    last: dict = {}
+    first: dict = {}
+    net_config = ppo_checkpoint.network_config(environment.observation_size, environment.action_size,
+                                               kwargs.get("normalize_observations", False), kwargs["network_factory"])
+
+    def on_metrics(step: int, metrics: dict) -> None:
+        nonlocal last, first
+        metrics = {k: float(np.asarray(v)) for k, v in metrics.items()}
+        if "episode/sum_reward" in metrics:  # brax's training-episode logger (train_returns), not an evaluation
+            train_curve.append({"step": done + step, "reward": metrics["episode/sum_reward"],
+                                "length": metrics.get("episode/length", float("nan")),
+                                "env_steps_per_s": metrics.get("episode/sps", float("nan")),
+                                "run_wall_s": time.perf_counter() - start,
+                                "episode": {k[len("episode/"):]: v for k, v in metrics.items()
+                                            if k.startswith("episode/")}})
+            runs.write_json(train_path, train_curve)
+            e = train_curve[-1]
+            bar.update(e["step"], e["reward"], float("nan"), e["env_steps_per_s"], e["run_wall_s"])
+            return
+        if restore is not None and step == 0:
+            return  # the restored policy, evaluated by the previous run already
+        entry = {"step": done + step, "reward": metrics.get("eval/episode_reward", float("nan")),
+                 "reward_std": metrics.get("eval/episode_reward_std", float("nan")),
+                 "run_wall_s": time.perf_counter() - start}
+        if "training/sps" in metrics:  # the epoch before this evaluation; the first one includes compilation
+            entry["env_steps_per_s"] = metrics["training/sps"]
+        curve.append(entry)
+        runs.write_json(curve_path, curve)
+        first = first or metrics
+        last = metrics
+        bar.update(done + step, entry["reward"], entry["reward_std"], metrics.get("training/sps", 0.0),
+                   entry["run_wall_s"])
+
+    walk_run = None
+    walk_env = make(task, backend=backend, **{**env_kwargs, "resample_steps": None}) if walk_test else None
+
+    def on_params(step: int, make_policy, params) -> None:
+        nonlocal walk_run
+        if step == 0:
+            return
+        runs.save_checkpoint(ckpt_dir, done + step, params, net_config)
+        if walk_test and walk_test_due(done + step, [w["step"] for w in walks], walk_test_from, walk_test_every):
+            from kamino.envs.evaluate import summarize, walking_test
+
+            t0 = time.perf_counter()
+            walk_run = walk_run or walking_test(walk_env, make_policy, episodes=walk_test, seconds=10.0,
+                                                speed=(0.3, 0.5), seed=walk_seed)
+            vx, lin, _, counted, fell = walk_run(params)
+            walks.append({"step": done + step, **summarize(vx, lin, counted, fell), "seed": walk_seed,
+                          "wall_s": time.perf_counter() - t0})
+            runs.write_json(walk_path, walks)
+            w = walks[-1]
+            print(f"walking test at {w['step']}: error {w['tracking_error_mean']:.3f} m/s, falls "
+                  f"{100 * w['fall_fraction']:.1f} %, forward {w['forward_speed_mean']:.3f} m/s ({w['wall_s']:.0f} s)",
+                  flush=True)
+
+    if remaining > 0:
+        run_evals = max(2, round(num_evals * remaining / total))
+        kwargs.update(num_timesteps=remaining, num_evals=run_evals, progress_fn=on_metrics, policy_params_fn=on_params,
+                      restore_checkpoint_path=None if restore is None else str(restore))
+        if train_returns:
+            kwargs.update(log_training_metrics=True, training_metrics_steps=train_returns)
+        with jax.enable_x64(False):  # brax's wrappers build float32 info entries at step only
+            ppo_train.train(environment=environment, **kwargs)
+    bar.close()
+    wall = time.perf_counter() - start
+
+    if curve or train_curve:
+        try:
+            plot_curve(curve, out / "reward_curve.png", f"{task} (PPO, kamino {backend} backend)", train_curve)
+        except ImportError:
+            pass  # matplotlib is optional: the curve stays in curve.json
+    report = {
+        "task": task, "backend": backend, "command": command, "env": env_kwargs, "solver_overrides": solver,
+        "network": cfg["network"],
+        "ppo": {k: v for k, v in kwargs.items() if isinstance(v, (int, float, str, bool)) or v is None},
+        "total_steps": total, "steps_before_this_run": done, "steps_this_run": max(remaining, 0),
+        "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),
+        "first_eval": first, "last_eval": last, "curve": curve, "train_curve": train_curve,
+        "checkpoint": str(runs.latest_checkpoint(ckpt_dir)[1]), "walk_tests": walks,
+        "device": str(jax.devices()[0]), "device_count": used, "platform": platform.platform(),
+        "versions": {"kamino": kamino.__version__, "jax": jax.__version__, "brax": _version("brax"),
+                     "python": platform.python_version()},
+    }
+    runs.write_json(out / "report.json", report, default=str)
+    if progress and curve and np.isfinite([c["reward"] for c in curve]).any():
+        print(f"return {curve[0]['reward']:.2f} (step {curve[0]['step']}) -> {curve[-1]['reward']:.2f} "
+              f"(step {curve[-1]['step']}); run folder {out}", flush=True)
+    return report
+
+
+def _version(package: str) -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(package)
+    except PackageNotFoundError:
+        return "not installed"
+
+
+def parser() -> argparse.ArgumentParser:
+    """The options of ``kamino train``."""
+    from kamino.envs.configs import PPO_CONFIGS
+
+    p = argparse.ArgumentParser(prog="kamino train", description="Train a registered environment with Brax's PPO. "
+                                "Training into a run folder again resumes it from its newest checkpoint.",
+                                epilog="The run folder's files: kamino.envs.runs. Evaluate a run: kamino eval RUN.")
+    p.add_argument("task", choices=sorted(PPO_CONFIGS), help="the environment")
+    p.add_argument("steps_pos", nargs="?", type=int, metavar="STEPS", help="total environment steps (as --steps)")
+    p.add_argument("--backend", choices=("jax", "warp"), default="jax", help="kamino backend (default jax)")
+    p.add_argument("--steps", type=int, help="total environment steps over all runs (default: the task's config)")
+    p.add_argument("--num-envs", type=int, help="parallel environments (default: the task's config)")
+    p.add_argument("--evals", type=int, help="evaluations (and checkpoints) over the whole training")
+    p.add_argument("--seed", type=int, help="PPO seed (default: the task's config)")
+    p.add_argument("--out", type=Path, help="run folder (default: scratch/rl/TASK)")
+    p.add_argument("--fresh", action="store_true", help="start over instead of resuming")
+    p.add_argument("--overwrite", action="store_true", help="with --fresh: delete the run already in --out")
+    p.add_argument("--train-returns", type=int, metavar="N", help="log the training episodes' return every ~N steps")
+    p.add_argument("--walk-test", type=int, default=0, metavar="EPISODES",
+                   help="joystick tasks: the walking test with EPISODES episodes on each checkpoint")
+    p.add_argument("--walk-seed", type=int, default=1, help="the walking test's seed (default 1)")
+    p.add_argument("--walk-test-from", type=int, default=0, metavar="STEPS", help="no walking test before STEPS")
+    p.add_argument("--walk-test-every", type=int, default=0, metavar="STEPS",
+                   help="at least STEPS between walking tests (default 0: every checkpoint)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a ppo.train keyword, VALUE a Python literal (repeatable)")
+    p.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
+                   help="a SolverConfig field, VALUE a Python literal (repeatable)")
+    p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                   help="an environment keyword, VALUE a Python literal (repeatable)")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """``kamino train``'s options, with ``--set``, ``--solver`` and ``--env`` read into ``ppo_overrides``,
+    ``solver_overrides`` and ``env_overrides``; a bad option exits through argparse, naming it."""
+    p = parser()
+    args = p.parse_args(argv)
+    if args.steps_pos is not None:
+        if args.steps is not None and args.steps != args.steps_pos:
+            p.error(f"STEPS {args.steps_pos} and --steps {args.steps} disagree")
+        args.steps = args.steps_pos
+    try:
+        args.ppo_overrides = key_values(args.set, "--set")
+        args.solver_overrides = key_values(args.solver, "--solver")
+        args.env_overrides = key_values(args.env, "--env")
+        _check_options(args.task, args.steps, args.num_envs, args.evals, args.train_returns, args.walk_test,
+                       args.walk_test_from, args.walk_test_every, args.solver_overrides)
+    except (ValueError, TypeError) as e:
+        p.error(str(e))
+    if args.overwrite and not args.fresh:
+        p.error("--overwrite only goes with --fresh")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``kamino train ARGS``: returns the exit status."""
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        train(args.task, out=args.out, backend=args.backend, steps=args.steps, num_envs=args.num_envs,
+              evals=args.evals, seed=args.seed, fresh=args.fresh, overwrite=args.overwrite,
+              train_returns=args.train_returns, walk_test=args.walk_test, walk_seed=args.walk_seed,
+              walk_test_from=args.walk_test_from, walk_test_every=args.walk_test_every, ppo=args.ppo_overrides,
+              solver=args.solver_overrides, env=args.env_overrides,
+              command=" ".join(["kamino", "train", *(sys.argv[1:] if argv is None else argv)]))
+    except OptionError as e:
+        print(f"kamino train: error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
