@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import pathlib
 
-#: the benchmark modules ``kamino bench NAME`` runs, each with a ``main(argv, prog) -> int`` (beside them,
-#: :mod:`~kamino.bench.timed_window` holds the timing rule and :mod:`~kamino.bench.stress_models` the float32 stress
-#: models that these share)
+__all__ = ["MODULES", "SCENES_DIR", "scene_names", "scene_path"]
+
 MODULES = ("throughput", "convergence", "peers", "roofline", "memory_breakdown", "multi_device", "fk_convergence",
            "time_to_first_step", "profile_step", "ppo_collect")
+"""The benchmark modules ``kamino bench NAME`` runs, each with a ``main(argv, prog) -> int`` (beside them,
+:mod:`~kamino.bench.timed_window` holds the timing rule and :mod:`~kamino.bench.stress_models` the float32 stress
+models that these share)."""
 
 SCENES_DIR = pathlib.Path(__file__).resolve().parent / "scenes"
+"""The folder of the shipped MJCF scenes (``kamino/bench/scenes`` in the installed package)."""
 
 
 def scene_names() -> list[str]:
