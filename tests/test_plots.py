@@ -69,26 +69,36 @@ def test_rollout_diagnostics_step_axis_and_caller_axes(fourbar_rollout):
         plt.close(fig)
 
 
+def _records(*names: str) -> dict:
+    """The throughput records of several committed result files, merged as ``kamino bench --plot`` merges them."""
+    return {"records": [r for n in names for r in json.loads((RESULTS / n).read_text())["records"]]}
+
+
+#: the fourbar and ladder8 records at 4096 and 16384 worlds: kamino and both peers at two world counts each
+_PEER_RUNS = ("throughput_fourbar_4096_h100_2026-11-28.json", "throughput_fourbar_16384_h100_2026-11-28.json",
+              "throughput_ladder8_4096_h100_2026-11-28.json", "throughput_ladder8_16384_h100_2026-11-28.json")
+#: the tolerance sweep on the benchmark four-bar: five tolerances, each with its iterations histogram
+_SWEEP = "convergence_tolerance_fourbar_h100_2026-11-24.json"
+
+
 def test_speed_against_error_one_panel_per_scene():
     import matplotlib.pyplot as plt
 
-    results = json.loads((RESULTS / "s16_h100" / "throughput_peers.json").read_text())
+    results = _records(*_PEER_RUNS)
     fig = plots.speed_against_error(results)
     try:
         assert [ax.get_title() for ax in fig.axes] == ["fourbar", "ladder8"]
         for ax in fig.axes:
             assert ax.get_xscale() == "log" and ax.get_yscale() == "log"
             lines = {line.get_label(): line for line in ax.get_lines()}
-            assert set(lines) == {"kamino default", "mujoco_warp newton_solver_soft_connect",
-                                  "newton_solver_kamino padmm_dense"}
             recs = [r for r in results["records"] if r["scene"] == ax.get_title()]
+            assert set(lines) == {plots._series(r) for r in recs}  # one line per simulator, kamino and the peers
+            assert len(lines) == 4
             for label, line in lines.items():
                 series = sorted((r for r in recs if plots._series(r) == label), key=lambda r: r["num_worlds"])
-                assert len(line.get_xdata()) == len(series) == 2  # one point per world count
+                assert len(line.get_xdata()) == len(series)  # one point per world count
                 np.testing.assert_allclose(line.get_ydata(), [r["throughput"] for r in series])
-                # the closure is measured at one world count; the other takes it
-                closure = next(r["closure_max_m"] for r in series if r.get("closure_max_m") is not None)
-                np.testing.assert_allclose(line.get_xdata(), closure)
+                np.testing.assert_allclose(line.get_xdata(), [r["closure_max_m"] for r in series])
     finally:
         plt.close(fig)
 
@@ -96,12 +106,12 @@ def test_speed_against_error_one_panel_per_scene():
 def test_speed_against_error_reads_a_convergence_sweep():
     import matplotlib.pyplot as plt
 
-    results = json.loads((RESULTS / "convergence_sweep_k30_h100.json").read_text())
+    results = json.loads((RESULTS / _SWEEP).read_text())
     fig = plots.speed_against_error(results)
     try:
         (ax,) = fig.axes
         (line,) = ax.get_lines()
-        recs = sorted(results["records"], key=lambda r: -r["tolerance"])  # the default run is the 1e-3 point
+        recs = sorted(results["records"], key=lambda r: -r["tolerance"])
         assert ax.get_title() == "fourbar" and len(line.get_xdata()) == len(recs) == 5
         np.testing.assert_allclose(line.get_xdata(), [r["closure_max_m"] for r in recs])
         np.testing.assert_allclose(line.get_ydata(), [r["throughput_world_steps_per_s"] for r in recs])
@@ -110,12 +120,14 @@ def test_speed_against_error_reads_a_convergence_sweep():
 
 
 def test_benchmark_results_helpers_and_save(tmp_path):
-    results = json.loads((RESULTS / "throughput_h100_fourbar.json").read_text())
+    results = _records(*_PEER_RUNS)
     fig = plots.throughput_against_worlds(results)
-    (ax,) = fig.axes
-    assert len(ax.get_lines()) == len({plots._series(r) for r in results["records"]}) == 7
+    assert [ax.get_title() for ax in fig.axes] == ["fourbar", "ladder8"]  # one panel per scene
+    for ax in fig.axes:
+        series = {plots._series(r) for r in results["records"] if r["scene"] == ax.get_title()}
+        assert {line.get_label() for line in ax.get_lines()} == series and len(series) == 4
     assert plots.save_figure(fig, tmp_path / "t.png") == str(tmp_path / "t.png") and (tmp_path / "t.png").stat().st_size
-    conv = json.loads((RESULTS / "convergence_sweep_k30_h100.json").read_text())
+    conv = json.loads((RESULTS / _SWEEP).read_text())
     fig = plots.iterations_histogram(conv)
     drawn = [ax for ax in fig.axes if ax.axison]  # 5 panels in a 2 x 4 grid, the rest blank
     assert len(drawn) == sum(bool(r.get("iterations_histogram")) for r in conv["records"]) == 5
