@@ -129,7 +129,7 @@ _hypothesis_examples_independent_of_imports()
 
 #: test modules that hold the suite's longest tests (on CI: notebook 02 156 s, the animatronic's 5 s hold
 #: on the JAX backend 112 s, notebook 05 90 s, the PPO tests 49-68 s, sharding 45 s), collected first
-_LONG_FIRST = ("test_notebooks.py", "test_robots.py", "test_envs_ppo.py", "test_envs.py", "test_sharding.py")
+_LONG_FIRST = ("test_notebooks.py", "test_robots.py", "test_envs.py", "test_rl_resume.py", "test_sharding.py")
 
 
 def pytest_collection_modifyitems(config, items) -> None:

@@ -8,8 +8,8 @@ process's environment, so ``tests/conftest.py``'s ``XLA_FLAGS`` apply to it as w
 
 from __future__ import annotations
 
-import copy
-import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -22,16 +22,27 @@ NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
 CELL_TIMEOUT = 300
 
 
-#: notebooks whose execution is in the ``slow`` tier (``pytest -m slow``; README.md, under the test command), with
-#: the default-tier tests that check what they show. Seconds are their execution in CI at c951ff7
-#: (benchmarks/results/s27_cpu/ci_durations_c951ff7.txt). Whether each is stored without outputs is checked in both.
+#: notebooks whose execution is left out of the quick tier (``pytest -m "not slow"``; README.md), with the quick
+#: tier's tests that check what they show. Whether each is stored without outputs is checked in both tiers.
 SLOW = {
-    "01_quickstart": "36 s; its code is the README's quickstart, test_first_hour.py's snippets, and the loop against "
+    "01_quickstart": "its code is the README's quickstart, test_first_hour.py's snippets, and the loop against "
                      "MuJoCo's <connect> is test_mjcf.py's",
-    "02_robots_and_resets": "86 s; the robots' resets and rollouts are test_fk_robots.py's and test_robots.py's",
-    "04_differentiable_design": "82 s; the gradients through the step are test_grad.py's",
-    "05_training": "199 s; the same PPO run (fourbar_track, 61 440 steps, seed 0) is test_envs_ppo.py's",
+    "02_robots_and_resets": "the robots' resets and rollouts are test_fk_robots.py's and test_robots.py's",
+    "04_differentiable_design": "the gradients through the step are test_grad.py's",
+    "05_training": "brax's PPO learning fourbar_track is checked by its run alone (the bar below); the quick tier "
+                   "checks PPO's pieces: test_envs.py's environment API and test_rl_resume.py's training runs",
 }
+
+# Notebook 05 trains ``fourbar_track`` with brax's PPO on the Warp backend (Warp's CPU device through the JAX FFI
+# inside brax's jit, the backend PPO uses on the GPU): float32, 61 440 environment steps, seed 0, and asserts an
+# improvement of the evaluation return over the initial policy of more than 40, to a final return above 60. The
+# eval is the mean return of 64 deterministic episodes of 100 steps (brax's ``eval/episode_reward``; 100 is exact
+# tracking at every step). Measured on the 2-core CPU machine: the initial policy scores 12.8, 14.4, 12.8, 22.3
+# for seeds 0-3 on either backend, with an episode spread of 17-23, so each eval mean has a standard error of at
+# most 23 / 8 = 2.9; a uniformly random policy scores 11.6. After training, seeds 0-3 score 90.3, 83.7, 88.4, 90.7
+# on the Warp backend and 90.5, 81.7, 89.4, 90.0 on the JAX backend. 40 is over ten standard errors of the two
+# evals and under two thirds of the smallest improvement measured (59.4, seed 1 on the JAX backend); 60 is four
+# times the best untrained score.
 
 
 def _ids(path: Path) -> str:
@@ -41,13 +52,6 @@ def _ids(path: Path) -> str:
 def _executions() -> list:
     return [pytest.param(path, id=path.stem, marks=[pytest.mark.slow] if path.stem in SLOW else [])
             for path in NOTEBOOKS]
-
-
-def _strip_outputs_module():
-    spec = importlib.util.spec_from_file_location("strip_outputs", NOTEBOOK_DIR / "strip_outputs.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_there_are_notebooks():
@@ -63,8 +67,10 @@ def test_notebook_is_stored_without_outputs(path):
            if cell.cell_type == "code" and (cell.get("outputs") or cell.get("execution_count") is not None)]
     assert not ran, (f"{path.name}: code cells {ran} carry outputs or execution counts; "
                      "run `python notebooks/strip_outputs.py` before committing")
-    assert not _strip_outputs_module().strip(copy.deepcopy(nb)), (
-        f"{path.name} carries run metadata; run `python notebooks/strip_outputs.py` before committing")
+    check = subprocess.run([sys.executable, str(NOTEBOOK_DIR / "strip_outputs.py"), "--check", str(path)],
+                           capture_output=True, text=True, check=False)
+    assert check.returncode == 0, (f"{path.name} carries run metadata; run `python notebooks/strip_outputs.py` "
+                                   f"before committing\n{check.stdout}{check.stderr}")
 
 
 @pytest.mark.parametrize("path", _executions())

@@ -1,6 +1,6 @@
 """Per-task PPO settings (``brax.training.agents.ppo.train`` keyword arguments) and environment arguments.
 
-``kamino train TASK`` and tests/test_envs_ppo.py read them through :func:`ppo_kwargs`. Each entry:
+``kamino train TASK`` and notebook 05 read them through :func:`ppo_kwargs`. Each entry:
 ``env`` (keyword arguments of the task's class), ``network`` (hidden layer sizes of the policy and value MLPs) and
 ``ppo`` (``ppo.train`` keywords). ``fourbar_track`` is sized for a 2-core CPU (about a minute); ``dr_legs_joystick``
 and ``bdx_joystick`` for a GPU (``bdx_joystick``'s settings are dr_legs', not tuned for it).

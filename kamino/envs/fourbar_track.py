@@ -7,7 +7,7 @@ rocker load the crank with a gravity torque and an inertia that change along the
 makes a large move take about a second and overshoot, so tracking is a matter of mapping the target (observed as an
 angle) to a PD target (an action in ``[-1, 1]``) and shaping the moves. A uniformly random policy scores about 0.12
 per step, PPO reaches about 0.9 (of at most 1) within 60 000 environment steps. Small (4 bodies, 26 rows) so that
-brax's PPO trains it on a CPU in about a minute (docs/envs.md, "fourbar_track"; tests/test_envs_ppo.py).
+brax's PPO trains it on a CPU in about a minute (docs/envs.md, "fourbar_track"; notebooks/05_training.ipynb).
 """
 
 from __future__ import annotations
