@@ -48,7 +48,7 @@ def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread
 
 
 #: the automatic PADMM schedule (``padmm=None``, :func:`resolve_padmm`), from the H100 measurements at the defaults
-#: (benchmarks/README.md "Session 24", the lane kernel of that session against one thread per world, same card):
+#: (benchmarks/README.md, every scene with the peers; the lane kernel against one thread per world, same card):
 #: 32 threads per world wins on every scene up to 16384 worlds (at 16384: ladder8 1.56x, bdx 1.38x, the four-bar
 #: 1.04x) and on worlds of 200 rows or more at any count (dr_legs, olaf, ladder32, the animatronic); one thread per
 #: world wins on small worlds at 65536 (the four-bar 1.40x, bdx 1.54x, ladder8 1.03x), where the thread kernels
@@ -135,7 +135,7 @@ class Stepper:
         #: the CPU (no capture_while) a step launches PADMM that many times plus one. The Conjugate Residual path
         #: keeps the larger penalty on every effort-limited row instead (``solver.scale``'s ``always_sat``): with
         #: the proximal shift on those rows its inexact solves stalled PADMM on standing robots (olaf's loops
-        #: 1.07e-5 m, dr_legs at 30 CR iterations unconverged; tests/test_robots.py), as in session 22's experiment
+        #: 1.07e-5 m, dr_legs at 30 CR iterations unconverged; tests/test_robots.py)
         tab = row_tables(model)
         dyn_world = np.repeat(np.arange(wm.num_worlds), tab.world_dyn_count)
         act_rows = np.bincount(dyn_world[tab.dyn_kind == DYN_ACTUATOR], minlength=1)
