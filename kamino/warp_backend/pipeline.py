@@ -19,7 +19,7 @@ from kamino.model import Model
 from kamino.tables import DYN_ACTUATOR, row_tables
 from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
-from kamino.warp_backend.integrate import integrate_kernels
+from kamino.warp_backend.integrate import LOOP_OPEN_BOUND, integrate_kernels
 from kamino.warp_backend.model_data import warp_model
 from kamino.warp_backend.padmm_warp import LANES, shared_entries, shared_rows, warp_kernels
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
@@ -238,6 +238,8 @@ class Stepper:
                 else:
                     self._launch(self.pk.solve, W, post, extra)
                 self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
+        if wm.max_cts:  # world health: a world whose joints opened past the bound in this step fails on it
+            self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND)
         self._launch(ik.dof_forces, (W, wm.max_dofs))
         self._launch(ik.row_forces, rows, 1.0 / dt)
         if ck is not None:
