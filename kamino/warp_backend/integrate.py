@@ -13,6 +13,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.kinematics import kinematics_funcs
 from kamino.warp_backend.model_data import model_struct
@@ -21,10 +22,12 @@ from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
-#: A world whose largest joint residual (m on a translational row, rad on a rotational one) exceeds this after a step,
-#: and exceeds the residual it had before the step, is flagged ``failed`` on that step and frozen (docs/conventions.md,
-#: "World health"). A healthy world keeps its loops closed to ~1e-5 m in float32 (post-stabilisation); a world whose
-#: solve diverges opens them by millimetres a few steps before its state turns non-finite.
+#: A world whose largest anchor gap (a translational joint row's residual) exceeds this [m] after a step, and exceeds
+#: the gap it had before the step, is flagged ``failed`` on that step and frozen (docs/conventions.md, "World health").
+#: Rotational rows are not checked: along a jammed loop's numerically null direction they drift by up to 1e-2 rad in
+#: float32 in a healthy world (tests/test_world_health.py, the tilted four-bar). A healthy world keeps its anchors
+#: within ~1e-5 m in float32 (post-stabilisation); a world whose solve diverges opens them by millimetres a few steps
+#: before its state turns non-finite.
 LOOP_OPEN_BOUND = 1e-3
 
 
@@ -148,12 +151,15 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def closure_check(m: M, w: Work, bound: scalar):
-        """Flag ``failed`` on a world whose joint row ``i`` opens past ``bound`` in this step: ``|e(q_new)| > bound``
-        and ``|e(q_new)| > |e(q)|`` (a world assembled open, and closing, is not flagged)."""
+        """Flag ``failed`` on a world whose translational joint row ``i`` (an anchor gap) opens past ``bound`` in this
+        step: ``|e(q_new)| > bound`` and ``|e(q_new)| > |e(q)|`` (a world assembled open, and closing, is not
+        flagged)."""
         wid, i = wp.tid()
         if i >= m.cts_count[wid] or w.failed[wid] != 0:
             return
         c = m.cts_start[wid] + i
+        if m.cts_kind[c] != RES_TRANS:
+            return
         e_new = wp.abs(kf.cts_residual(m, w.q_new, c))
         if e_new > bound or not wp.isfinite(e_new):
             if not (e_new <= wp.abs(kf.cts_residual(m, w.q, c))):

@@ -18,6 +18,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.kinematics import kinematics_funcs
@@ -44,16 +45,29 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
     rows_on_body = integrate_kernels(np_dtype).rows_on_body
 
     @wp.kernel(module="unique", enable_backward=False)
-    def residual(m: M, w: Work, delta: scalar, unconverged_only: int):
+    def residual(m: M, w: Work, delta: scalar, unconverged_only: int, open_bound: scalar):
         """``x_a = -P_a e_a(q_new)`` on the always-active rows (``fixed_row_residual`` of the reference); with
-        ``unconverged_only`` (the extra pass) only in the worlds whose PADMM did not converge."""
+        ``unconverged_only`` (the extra pass) only in the worlds whose PADMM did not converge. The extra pass also
+        checks world health (``integrate.LOOP_OPEN_BOUND``): a translational joint row whose residual at ``q_new``
+        exceeds ``open_bound`` and its residual at the step's start fails the world, in a converged world at its final
+        pose, in an unconverged one before its extra projection (the check of ``integrate``'s ``closure_check``,
+        without a launch of its own)."""
         wid, a = wp.tid()
-        if a >= m.row_fixed[wid] or (unconverged_only != 0 and w.converged[wid] != 0):
+        if a >= m.row_fixed[wid]:
             return
         nd = m.dyn_count[wid]
         nc = m.cts_count[wid]
+        on_joint = a >= nd and a < nd + nc
+        if unconverged_only != 0 and on_joint and m.cts_kind[m.cts_start[wid] + a - nd] == RES_TRANS:
+            c = m.cts_start[wid] + a - nd
+            e_new = wp.abs(kf.cts_residual(m, w.q_new, c))
+            if e_new > open_bound or not wp.isfinite(e_new):
+                if not (e_new <= wp.abs(kf.cts_residual(m, w.q, c))):
+                    w.failed[wid] = 1
+        if unconverged_only != 0 and w.converged[wid] != 0:
+            return
         e = scalar(0.0)
-        if a >= nd and a < nd + nc:
+        if on_joint:
             e = deadband(kf.cts_residual(m, w.q_new, m.cts_start[wid] + a - nd), delta)
         elif a >= nd + nc:
             k = m.cpl_start[wid] + a - nd - nc
