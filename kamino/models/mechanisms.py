@@ -206,7 +206,8 @@ def _add_triangle(b: ModelBuilder, pts, mass: float, name: str) -> int:
     return b.add_body(mass=mass, inertia=inertia, pos=c, name=name)
 
 
-def jansen_walker(legs: int = 8, scale: float = 0.01, crank_angle: float = 0.0, chassis_mass: float = 4.0,
+def jansen_walker(legs: int = 8, phases: int | None = None, scale: float = 0.01, crank_angle: float = 0.0,
+                  chassis_mass: float = 4.0,
                   linear_density: float = 0.5, radius: float = 0.01, foot_radius: float = 0.02,
                   leg_spacing: float = 0.1, drive_kd: float = 50.0, friction: float = 1.0,
                   gravity: float = 9.81) -> Model:
@@ -216,7 +217,8 @@ def jansen_walker(legs: int = 8, scale: float = 0.01, crank_angle: float = 0.0, 
     (links ``j``, ``k``, ``c``, ``f`` as capsules of ``linear_density`` kg/m, the triangles ``b d e`` and ``g h i``
     as plates of the same mass per length of side) and 9 hinges about world y, so 3 planar loops per leg: in 3-D
     three rows of each loop are redundant. The legs come in mirrored pairs (the second one's x reversed); pair ``p``
-    has its crank tip at ``crank_angle + 2 pi p / (legs / 2)``; leg ``n`` lies in the plane ``y = (n - (legs -
+    has its crank tip at ``crank_angle + 2 pi (p mod phases) / phases`` (``phases``: a divisor of the number of
+    pairs, by default the number of pairs: every pair its own phase); leg ``n`` lies in the plane ``y = (n - (legs -
     1) / 2) leg_spacing``. Bodies: ``chassis`` (a box of ``chassis_mass``, FREE joint ``floating_base``),
     ``crank`` (all legs' crank tips, hinged to the chassis at the crank axis by the joint ``drive``), then the
     legs'. The drive is a VELOCITY actuator of gain ``drive_kd`` [N m s/rad] (its DoF is ``model.actuator_dof[0]``;
@@ -229,7 +231,10 @@ def jansen_walker(legs: int = 8, scale: float = 0.01, crank_angle: float = 0.0, 
     if scale <= 0:
         raise ValueError(f"jansen_walker: scale must be positive, got {scale}")
     pairs = legs // 2
-    angles = [crank_angle + 2 * np.pi * p / pairs for p in range(pairs)]
+    phases = pairs if phases is None else phases
+    if phases < 1 or pairs % phases:
+        raise ValueError(f"jansen_walker: phases must divide the {pairs} leg pairs, got {phases}")
+    angles = [crank_angle + 2 * np.pi * (p % phases) / phases for p in range(pairs)]
     leg_pts = []
     for n in range(legs):
         psi = angles[n // 2]
