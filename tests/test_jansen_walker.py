@@ -31,8 +31,8 @@ def _drive(model: kamino.Model, seconds: float) -> kamino.Control:
     return kamino.Control(velocity_target=jnp.asarray(target))
 
 
-def _walk(variant: Variant, legs: int, seconds: float) -> dict[str, np.ndarray]:
-    model = kamino.models.jansen_walker(legs=legs)
+def _walk(variant: Variant, legs: int, seconds: float, phases: int | None = None) -> dict[str, np.ndarray]:
+    model = kamino.models.jansen_walker(legs=legs, phases=phases)
     s0 = kamino.init_state(model, jnp.float32)
     tr = variant.rollout(model, s0, _drive(model, seconds), config=kamino.SolverConfig(dt=DT))
     q = np.asarray(tr.body_q)
@@ -67,6 +67,25 @@ def test_four_legged_walker_walks_with_its_loops_closed(variant):
         assert r["closure"].max() <= 2e-5, r["closure"].max()
         if variant.id == WARP_SPARSE_LLT.id:
             _LLT_WALK["walked"] = r["walked"]
+
+
+@pytest.mark.parametrize("variant", [
+    variant_param(JAX),
+    variant_param(Variant("warp-sparse-cr30", "warp", "sparse", "cr", cr_iterations=30)),
+    pytest.param(WARP_SPARSE_LLT, id=WARP_SPARSE_LLT.id, marks=pytest.mark.xfail(strict=True, reason=(
+        "from the state after step 290 (1.21 s) the JAX reference converges in 8 iterations and CR (30) in 16, while "
+        "the Warp LLT solves (sparse and dense factor alike) keep the dual residual at 2e-3 from their second "
+        "iteration on, run 200 iterations, drive the penalty to its minimum and fail the world at 1.23 s; the "
+        "factor and the assembled matrix match a float64 dense solve and the dense path's matrix there")))])
+def test_eight_legged_walker_in_two_phases_walks(variant):
+    """Eight legs in two crank phases (two mirrored pairs per phase), 2 s: no failed world, at least 99 % of the
+    steps converged, anchors within 1e-4 m, at least 1 m walked (measured: the JAX reference 100 % at 10.6
+    iterations, 1.87e-5 m, 1.711 m in 3 s; CR at 30 iterations 99.8 % at 9.5, 4.7e-5 m, 1.03 m in 2 s)."""
+    r = _walk(variant, legs=8, seconds=2.0, phases=2)
+    assert not r["failed"].any()
+    assert r["converged"].mean() >= 0.99, r["converged"].mean()
+    assert r["closure"].max() <= 1e-4, r["closure"].max()
+    assert r["walked"] >= 1.0, r["walked"]
 
 
 def test_eight_legged_walker_never_reports_open_loops_as_healthy():
