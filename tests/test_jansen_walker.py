@@ -3,6 +3,8 @@
 - Four legs (12 loops, 1.5 s, float32, ``SolverConfig(dt=1/240)``): the Warp sparse LLT converges on every step and
   keeps the loops closed; the Conjugate Residual path at its default budget walks the same distance; the JAX
   reference (slow tier: XLA's compile) walks it too.
+- Eight legs in two crank phases (24 loops, 2 s): the JAX reference and CR at 30 iterations walk it; the Warp LLT
+  solves stall at 1.21 s (a strict xfail stating what is measured).
 - Eight legs (24 loops): no step reports a healthy world whose loops are open past 1 mm (world health,
   ``kamino.warp_backend.integrate.LOOP_OPEN_BOUND``): a world either keeps its loops closed or is flagged failed on
   the step they open.
