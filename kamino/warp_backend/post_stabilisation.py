@@ -47,28 +47,25 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
     @wp.kernel(module="unique", enable_backward=False)
     def residual(m: M, w: Work, delta: scalar, unconverged_only: int, open_bound: scalar):
         """``x_a = -P_a e_a(q_new)`` on the always-active rows (``fixed_row_residual`` of the reference); with
-        ``unconverged_only`` (the extra pass) only in the worlds whose PADMM did not converge. The extra pass also
-        checks world health (``integrate.LOOP_OPEN_BOUND``): a translational joint row whose residual at ``q_new``
-        exceeds ``open_bound`` and its residual at the step's start fails the world, in a converged world at its final
-        pose, in an unconverged one before its extra projection (the check of ``integrate``'s ``closure_check``,
-        without a launch of its own)."""
+        ``unconverged_only`` (the extra pass) only in the worlds whose PADMM did not converge. The first pass also
+        checks world health (``integrate.LOOP_OPEN_BOUND``; ``open_bound``, infinite in the other passes): a
+        translational joint row whose residual at the pose PADMM's velocities reach exceeds ``open_bound`` and its
+        residual at the step's start fails the world (``integrate``'s ``closure_check`` on the residual this kernel
+        computes anyway: PADMM converged to ``tolerance`` moves an anchor by ``tolerance dt``, micrometres, so an
+        anchor a millimetre open there is a failed solve whatever the projection does next)."""
         wid, a = wp.tid()
-        if a >= m.row_fixed[wid]:
+        if a >= m.row_fixed[wid] or (unconverged_only != 0 and w.converged[wid] != 0):
             return
         nd = m.dyn_count[wid]
         nc = m.cts_count[wid]
-        on_joint = a >= nd and a < nd + nc
-        if unconverged_only != 0 and on_joint and m.cts_kind[m.cts_start[wid] + a - nd] == RES_TRANS:
-            c = m.cts_start[wid] + a - nd
-            e_new = wp.abs(kf.cts_residual(m, w.q_new, c))
-            if e_new > open_bound or not wp.isfinite(e_new):
-                if not (e_new <= wp.abs(kf.cts_residual(m, w.q, c))):
-                    w.failed[wid] = 1
-        if unconverged_only != 0 and w.converged[wid] != 0:
-            return
         e = scalar(0.0)
-        if on_joint:
-            e = deadband(kf.cts_residual(m, w.q_new, m.cts_start[wid] + a - nd), delta)
+        if a >= nd and a < nd + nc:
+            c = m.cts_start[wid] + a - nd
+            e = kf.cts_residual(m, w.q_new, c)
+            if not (wp.abs(e) <= open_bound) and m.cts_kind[c] == RES_TRANS:
+                if not (wp.abs(e) <= wp.abs(kf.cts_residual(m, w.q, c))):
+                    w.failed[wid] = 1
+            e = deadband(e, delta)
         elif a >= nd + nc:
             k = m.cpl_start[wid] + a - nd - nc
             db = m.cpl_dof_b[k]
