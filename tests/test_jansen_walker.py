@@ -79,10 +79,9 @@ def test_four_legged_walker_walks_with_its_loops_closed(variant):
         "the Warp LLT solves (sparse and dense factor alike) keep the dual residual at 2e-3 from their second "
         "iteration on, run 200 iterations, drive the penalty to its minimum and fail the world at 1.23 s. The factor "
         "solves its assembled matrix as accurately as a dense float32 Cholesky; in float64 the same Warp step "
-        "converges "
-        "in 8 iterations with the reference's residuals and penalty, and with rho_free = 1e-3 in 9: float32 Delassus "
-        "entries 1.1e-5 off their float64 values, a tenth of the proximal shift that alone keeps the redundant rows "
-        "definite")))])
+        "converges in 8 iterations with the reference's residuals and penalty, and with rho_free = 1e-3 in 9: "
+        "float32 Delassus entries 1.1e-5 off their float64 values, a tenth of the proximal shift that alone keeps the "
+        "redundant rows definite")))])
 def test_eight_legged_walker_in_two_phases_walks(variant):
     """Eight legs in two crank phases (two mirrored pairs per phase), 2 s: no failed world, at least 99 % of the
     steps converged, anchors within 1e-4 m, at least 1 m walked (measured: the JAX reference 100 % at 10.6
