@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kamino.model import Actuation, JointType, Model, ModelBuilder
+from kamino.model import Actuation, GeomType, JointType, Model, ModelBuilder
 from kamino.models.shapes import add_link, box_inertia
 
 Y = (0.0, 1.0, 0.0)
@@ -161,4 +161,119 @@ def chain_of_loops(n: int = 8, rung: float = 0.2, rail: float = 0.1, tilt: float
         b.add_joint_at(JointType.REVOLUTE, prev, bb, anchor=left + w, axis=Y, name=f"jB{k}")
         b.add_joint_at(close_type, bb, r, anchor=left + d + w, axis=Y, name=f"close{k}")
         left, prev = left + d, r
+    return b.finalize()
+
+
+#: Jansen's link lengths ("holy numbers", in his units; :func:`jansen_walker` scales them by ``scale``)
+JANSEN_LENGTHS = {"a": 38.0, "b": 41.5, "c": 39.3, "d": 40.1, "e": 55.8, "f": 39.4, "g": 36.7, "h": 65.7,
+                  "i": 49.0, "j": 50.0, "k": 61.9, "l": 7.8, "m": 15.0}
+
+
+def jansen_leg_points(crank_angle: float, scale: float = 0.01) -> dict[str, np.ndarray]:
+    """The joint points of one Jansen leg in its plane (xz; crank axis at the origin, fixed pivot ``Y`` at
+    ``(-a, -l)``), for the crank tip ``Z`` at ``crank_angle`` [rad] from +x about -y (counterclockwise in xz).
+
+    Points: ``Z`` crank tip (radius ``m``); ``A`` = circles (Z, j) and (Y, b), upper; ``C`` = (Z, k) and
+    (Y, c), lower; ``D`` apex of the rigid triangle ``Y A D`` (sides ``Y A = b``, ``A D = e``, ``Y D = d``)
+    away from the crank; ``E`` = (D, f) and (C, g), away from the crank; ``F`` the foot, apex of the rigid
+    triangle ``C E F`` (sides ``C E = g``, ``C F = i``, ``E F = h``), below."""
+    L = {k: v * scale for k, v in JANSEN_LENGTHS.items()}
+    Y = np.array([-L["a"], 0.0, -L["l"]])
+    Z = L["m"] * np.array([np.cos(crank_angle), 0.0, np.sin(crank_angle)])
+    A = _circle_intersection(Z, L["j"], Y, L["b"], upper=True)
+    C = _circle_intersection(Z, L["k"], Y, L["c"], upper=False)
+    D = _far_intersection(Y, L["d"], A, L["e"])
+    E = _far_intersection(D, L["f"], C, L["g"])
+    F = _circle_intersection(E, L["h"], C, L["i"], upper=False)
+    return {"O": np.zeros(3), "Y": Y, "Z": Z, "A": A, "C": C, "D": D, "E": E, "F": F}
+
+
+def _far_intersection(c0, r0, c1, r1) -> np.ndarray:
+    """The intersection of two circles in the xz plane with the smaller x (away from a crank at the origin)."""
+    p = _circle_intersection(c0, r0, c1, r1, upper=True)
+    q = _circle_intersection(c0, r0, c1, r1, upper=False)
+    return p if p[0] <= q[0] else q
+
+
+def _add_triangle(b: ModelBuilder, pts, mass: float, name: str) -> int:
+    """A rigid triangular plate with vertices ``pts`` (world), CoM at the centroid, the inertia of its three
+    vertices' point masses plus a thin plate's own thickness term."""
+    pts = np.asarray(pts, float)
+    c = pts.mean(axis=0)
+    r = pts - c
+    inertia = (mass / 3.0) * sum(np.dot(v, v) * np.eye(3) - np.outer(v, v) for v in r)
+    inertia = inertia + np.eye(3) * mass * 1e-4  # the plate's thickness: keeps every principal moment positive
+    return b.add_body(mass=mass, inertia=inertia, pos=c, name=name)
+
+
+def jansen_walker(legs: int = 8, phases: int | None = None, scale: float = 0.01, crank_angle: float = 0.0,
+                  chassis_mass: float = 4.0,
+                  linear_density: float = 0.5, radius: float = 0.01, foot_radius: float = 0.02,
+                  leg_spacing: float = 0.1, drive_kd: float = 50.0, friction: float = 1.0,
+                  gravity: float = 9.81) -> Model:
+    """A walker of ``legs`` Jansen linkages (Strandbeest legs) on one crankshaft: a free chassis on a ground plane.
+
+    Each leg is Jansen's linkage (:data:`JANSEN_LENGTHS` times ``scale`` [m]; :func:`jansen_leg_points`): 6 bodies
+    (links ``j``, ``k``, ``c``, ``f`` as capsules of ``linear_density`` kg/m, the triangles ``b d e`` and ``g h i``
+    as plates of the same mass per length of side) and 9 hinges about world y, so 3 planar loops per leg: in 3-D
+    three rows of each loop are redundant. The legs come in mirrored pairs (the second one's x reversed); pair ``p``
+    has its crank tip at ``crank_angle + 2 pi (p mod phases) / phases`` (``phases``: a divisor of the number of
+    pairs, by default the number of pairs: every pair its own phase); leg ``n`` lies in the plane ``y = (n - (legs -
+    1) / 2) leg_spacing``. Bodies: ``chassis`` (a box of ``chassis_mass``, FREE joint ``floating_base``),
+    ``crank`` (all legs' crank tips, hinged to the chassis at the crank axis by the joint ``drive``), then the
+    legs'. The drive is a VELOCITY actuator of gain ``drive_kd`` [N m s/rad] (its DoF is ``model.actuator_dof[0]``;
+    a positive target turns the crank about +y, which walks the chassis towards -x). A SPHERE foot of
+    ``foot_radius`` on each foot point ``F``; the lowest foot starts touching the ground plane (z = 0).
+
+    ``legs=8`` is the 24-loop walker: 50 bodies, 74 joints, 365 joint rows."""
+    if legs < 2 or legs % 2:
+        raise ValueError(f"jansen_walker: legs must be an even number >= 2 (mirrored pairs), got {legs}")
+    if scale <= 0:
+        raise ValueError(f"jansen_walker: scale must be positive, got {scale}")
+    pairs = legs // 2
+    phases = pairs if phases is None else phases
+    if phases < 1 or pairs % phases:
+        raise ValueError(f"jansen_walker: phases must divide the {pairs} leg pairs, got {phases}")
+    angles = [crank_angle + 2 * np.pi * (p % phases) / phases for p in range(pairs)]
+    leg_pts = []
+    for n in range(legs):
+        psi = angles[n // 2]
+        if n % 2 == 0:
+            leg_pts.append(jansen_leg_points(psi, scale))
+        else:  # the mirrored leg: its own crank angle is pi - psi, then x -> -x
+            mirror = np.array([-1.0, 1.0, 1.0])
+            leg_pts.append({k: v * mirror for k, v in jansen_leg_points(np.pi - psi, scale).items()})
+    lowest = min(p["F"][2] for p in leg_pts)
+    height = foot_radius - lowest
+    b = ModelBuilder(gravity=(0.0, 0.0, -gravity))
+    width = leg_spacing * legs
+    span = 2 * JANSEN_LENGTHS["a"] * scale
+    O = np.array([0.0, 0.0, height])
+    chassis = b.add_body(mass=chassis_mass, inertia=box_inertia(chassis_mass, (span, width, 0.05)), pos=O,
+                         name="chassis")
+    b.add_joint_at(JointType.FREE, -1, chassis, anchor=O, name="floating_base")
+    rho = linear_density
+    crank_mass = rho * (JANSEN_LENGTHS["m"] * scale * legs + width)
+    crank = b.add_body(mass=crank_mass, inertia=box_inertia(crank_mass, (0.05, width, 0.05)), pos=O, name="crank")
+    b.add_joint_at(JointType.REVOLUTE, chassis, crank, anchor=O, axis=Y, name="drive",
+                   actuation=Actuation(mode="velocity", kd=drive_kd))
+    L = {k: v * scale for k, v in JANSEN_LENGTHS.items()}
+    for n, pts in enumerate(leg_pts):
+        y = np.array([0.0, (n - (legs - 1) / 2) * leg_spacing, 0.0])
+        P = {k: v + O + y for k, v in pts.items()}
+        link_j = add_link(b, P["Z"], P["A"], rho * L["j"], radius, f"leg{n}_j")
+        link_k = add_link(b, P["Z"], P["C"], rho * L["k"], radius, f"leg{n}_k")
+        link_c = add_link(b, P["Y"], P["C"], rho * L["c"], radius, f"leg{n}_c")
+        link_f = add_link(b, P["D"], P["E"], rho * L["f"], radius, f"leg{n}_f")
+        upper = _add_triangle(b, (P["Y"], P["A"], P["D"]), rho * (L["b"] + L["d"] + L["e"]), f"leg{n}_bde")
+        lower = _add_triangle(b, (P["C"], P["E"], P["F"]), rho * (L["g"] + L["h"] + L["i"]), f"leg{n}_ghi")
+        for parent, child, at, name in ((crank, link_j, "Z", "crank_j"), (crank, link_k, "Z", "crank_k"),
+                                        (link_j, upper, "A", "j_bde"), (chassis, upper, "Y", "frame_bde"),
+                                        (chassis, link_c, "Y", "frame_c"), (link_k, link_c, "C", "k_c"),
+                                        (link_c, lower, "C", "c_ghi"), (upper, link_f, "D", "bde_f"),
+                                        (link_f, lower, "E", "f_ghi")):
+            b.add_joint_at(JointType.REVOLUTE, parent, child, anchor=P[at], axis=Y, name=f"leg{n}_{name}")
+        b.add_geom(GeomType.SPHERE, lower, size=(foot_radius, 0.0, 0.0), pos=P["F"] - (P["C"] + P["E"] + P["F"]) / 3,
+                   friction=friction, group=2, mask=1, name=f"leg{n}_foot")
+    b.add_geom(GeomType.PLANE, -1, friction=friction, group=1, name="ground")
     return b.finalize()

@@ -3,7 +3,9 @@
 Formulation.md §6.2 (Euler: ``q+ = q ⊕ dt u+``) and §6.3 (midpoint: ``q+ = q_m ⊕ dt/2 u+``); the
 forces are ``lambda / dt`` split by row family as ``_new_cache`` of the JAX reference. A world
 whose new pose, twist or impulses are not finite keeps its previous state and is flagged
-``failed`` (docs/architecture.md: never a silent NaN, never contaminating other worlds).
+``failed`` (docs/architecture.md: never a silent NaN, never contaminating other worlds). So is a world whose
+joints open past :data:`LOOP_OPEN_BOUND` in a step (:func:`integrate_kernels`' ``closure_check``): its finite
+state is already meaningless.
 """
 
 import functools
@@ -11,12 +13,24 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
+from kamino.warp_backend.kinematics import kinematics_funcs
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.rows import ROW_ACTUATOR, ROW_COUPLING, ROW_JOINT, ROW_LIMIT, ROW_PASSIVE
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
+
+#: A world whose largest anchor gap (a translational joint row's residual) exceeds this [m] at the pose PADMM's
+#: velocities reach in a step (before post-stabilisation's projection, which checks it in its first residual launch;
+#: :func:`integrate_kernels`' ``closure_check`` without post-stabilisation), and exceeds the gap it had before the
+#: step, is flagged ``failed`` on that step and frozen (docs/conventions.md, "World health").
+#: Rotational rows are not checked: along a jammed loop's numerically null direction they drift by up to 1e-2 rad in
+#: float32 in a healthy world (tests/test_world_health.py, the tilted four-bar). A healthy world keeps its anchors
+#: within ~1e-5 m in float32 (post-stabilisation); a world whose solve diverges opens them by millimetres a few steps
+#: before its state turns non-finite.
+LOOP_OPEN_BOUND = 1e-3
 
 
 @functools.cache
@@ -31,6 +45,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
     row_kind, row_source, row_side = ix.row_kind, ix.row_source, ix.row_side
     lin, ang, twist, integrate_pose = sp.lin, sp.ang, sp.twist, sp.integrate_pose
     inverse_mass_times = sp.inverse_mass_times
+    kf = kinematics_funcs(np_dtype)
 
     @wp.func
     def rows_on_body(m: M, w: Work, wid: int, b: int, n: int, nblk: int, lam: wp.array(dtype=scalar)):
@@ -136,5 +151,22 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
                 w.failed[wid] = 1
                 w.frozen[wid] = 1
 
-    return SimpleNamespace(rows_on_body=rows_on_body, integrate=integrate, dof_forces=dof_forces, row_forces=row_forces,
+    @wp.kernel(module="unique", enable_backward=False)
+    def closure_check(m: M, w: Work, bound: scalar):
+        """Flag ``failed`` on a world whose translational joint row ``i`` (an anchor gap) opens past ``bound`` in this
+        step: ``|e(q_new)| > bound`` and ``|e(q_new)| > |e(q)|`` (a world assembled open, and closing, is not
+        flagged)."""
+        wid, i = wp.tid()
+        if i >= m.cts_count[wid] or w.failed[wid] != 0:
+            return
+        c = m.cts_start[wid] + i
+        if m.cts_kind[c] != RES_TRANS:
+            return
+        e_new = wp.abs(kf.cts_residual(m, w.q_new, c))
+        if e_new > bound or not wp.isfinite(e_new):
+            if not (e_new <= wp.abs(kf.cts_residual(m, w.q, c))):
+                w.failed[wid] = 1
+
+    return SimpleNamespace(closure_check=closure_check,
+                           rows_on_body=rows_on_body, integrate=integrate, dof_forces=dof_forces, row_forces=row_forces,
                            commit_bodies=commit_bodies, commit_time=commit_time)

@@ -103,8 +103,8 @@ def _callable(st: Stepper):
     # load (compile) every kernel before the first traced call; on a GPU capture the step as a CUDA graph here, at
     # trace time, outside XLA's execution: the callback replays it, so its PADMM loop is the graph's capture_while
     # (every world advances in chunks, a switch's refactorisation after each chunk) instead of one launch per
-    # possible switch, each as long as its slowest world (benchmarks/README.md "Session 26"). A stepper first used
-    # inside a call (another device under pmap) launches without a graph.
+    # possible switch, each as long as its slowest world (benchmarks/README.md, PPO's collection on the GPU). A stepper
+    # first used inside a call (another device under pmap) launches without a graph.
     if st.device.is_cuda:
         st.graph(1)
     else:

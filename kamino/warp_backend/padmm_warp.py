@@ -81,7 +81,7 @@ def shared_entries(max_nnz: int) -> int:
 #: Registers per thread of :func:`warp_kernels`' ``padmm_iterate`` for worlds of at least
 #: :data:`REGISTER_CAP_MIN_ROWS` rows (CUDA ``__maxnreg__``; ``None``: the compiler's choice). Left to the compiler it
 #: takes 122 on sm_90, so a multiprocessor holds 16 worlds (65,536 registers / (128 x 32)) of the 32 blocks it could;
-#: at 72 it holds 28, at the cost of some spilling. Measured on an H100 (benchmarks/README.md "Session 26"): PPO's
+#: at 72 it holds 28, at the cost of some spilling. Measured on an H100 (benchmarks/README.md, the register cap): PPO's
 #: collection on dr_legs at 16384 worlds 137 -> 120 ms per step, the standing robots at 4096 worlds +1 %, the
 #: four-bar (117 rows) 12 % slower, hence the threshold.
 ITERATE_MAX_REGISTERS: int | None = 72

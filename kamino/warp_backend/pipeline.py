@@ -19,7 +19,7 @@ from kamino.model import Model
 from kamino.tables import DYN_ACTUATOR, row_tables
 from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
-from kamino.warp_backend.integrate import integrate_kernels
+from kamino.warp_backend.integrate import LOOP_OPEN_BOUND, integrate_kernels
 from kamino.warp_backend.model_data import warp_model
 from kamino.warp_backend.padmm_warp import LANES, shared_entries, shared_rows, warp_kernels
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
@@ -48,7 +48,7 @@ def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread
 
 
 #: the automatic PADMM schedule (``padmm=None``, :func:`resolve_padmm`), from the H100 measurements at the defaults
-#: (benchmarks/README.md "Session 24", the lane kernel of that session against one thread per world, same card):
+#: (benchmarks/README.md, every scene with the peers; the lane kernel against one thread per world, same card):
 #: 32 threads per world wins on every scene up to 16384 worlds (at 16384: ladder8 1.56x, bdx 1.38x, the four-bar
 #: 1.04x) and on worlds of 200 rows or more at any count (dr_legs, olaf, ladder32, the animatronic); one thread per
 #: world wins on small worlds at 65536 (the four-bar 1.40x, bdx 1.54x, ladder8 1.03x), where the thread kernels
@@ -135,7 +135,7 @@ class Stepper:
         #: the CPU (no capture_while) a step launches PADMM that many times plus one. The Conjugate Residual path
         #: keeps the larger penalty on every effort-limited row instead (``solver.scale``'s ``always_sat``): with
         #: the proximal shift on those rows its inexact solves stalled PADMM on standing robots (olaf's loops
-        #: 1.07e-5 m, dr_legs at 30 CR iterations unconverged; tests/test_robots.py), as in session 22's experiment
+        #: 1.07e-5 m, dr_legs at 30 CR iterations unconverged; tests/test_robots.py)
         tab = row_tables(model)
         dyn_world = np.repeat(np.arange(wm.num_worlds), tab.world_dyn_count)
         act_rows = np.bincount(dyn_world[tab.dyn_kind == DYN_ACTUATOR], minlength=1)
@@ -232,12 +232,16 @@ class Stepper:
                 self._launch(self.spk.factor_fixed, W, post)
             for k in range(cfg.post_stabilisation + 1):  # the last pass only where PADMM did not converge
                 extra = int(k == cfg.post_stabilisation)
-                self._launch(self.pk.residual, rows, delta, extra)
+                bound = LOOP_OPEN_BOUND if k == 0 else float("inf")  # world health: the first pass checks
+                self._launch(self.pk.residual, rows, delta, extra, bound)
                 if self.padmm == "warp":
                     self._launch_lanes(self.wk.solve_fixed, post, extra)
                 else:
                     self._launch(self.pk.solve, W, post, extra)
                 self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
+        if wm.max_cts and not cfg.post_stabilisation:  # world health: a world whose joints opened past the bound in
+            # this step fails on it (with post-stabilisation, its first pass's residual kernel checks)
+            self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND)
         self._launch(ik.dof_forces, (W, wm.max_dofs))
         self._launch(ik.row_forces, rows, 1.0 / dt)
         if ck is not None:

@@ -219,11 +219,11 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
     sizes["remaining"] = (1, wp.int32)
     for name, (n, dtype) in sizes.items():
         setattr(W, name, wp.zeros(max(n, 0), dtype=dtype, device=dev))
-    # Per-row vectors (issue 17's memory): 22 names, 18 allocations. Those whose lives do not overlap share storage:
+    # Per-row vectors: 22 names, 18 allocations. Those whose lives do not overlap share storage:
     # the warm start (``f0``, ``v0``) is written by the row assembly and read by ``solver.scale`` and ``padmm_init``;
     # the solve's ``impulse`` and ``velocity`` are written by ``padmm_finish``, after both, and read until the step
     # ends. ``solver.scale`` is the only reader of the unscaled bounds and divides them by ``P`` in place, once per
-    # step; everything after it reads the scaled ones. Six are gone (session 33), their information being elsewhere,
+    # step; everything after it reads the scaled ones. Six vectors are not stored, their information being elsewhere,
     # bit for bit: the row family, source, limit sign and saturation flag are packed in ``row_info`` (4 -> 1); a
     # contact row's friction is its slot's ``ct_mu`` (``mu``); ``prebake`` writes ``v_f`` into ``vt``, which
     # ``scale`` scales in place, and ``rows.set_bias`` recomputes it with the same sums (``vf``); the diagonal of the
