@@ -132,10 +132,30 @@ _hypothesis_examples_independent_of_imports()
 _LONG_FIRST = ("test_notebooks.py", "test_robots.py", "test_envs.py", "test_rl_resume.py", "test_sharding.py")
 
 
+#: node ids of the tests outside the quick tier that carry no ``slow`` mark in their files (tests/slow_tests.txt)
+_SLOW_IDS = frozenset(line.strip() for line in (Path(__file__).parent / "slow_tests.txt").read_text().splitlines()
+                      if line.strip() and not line.startswith("#"))
+
+
+def _mark_listed_slow(config, items) -> None:
+    """Mark the tests of ``_SLOW_IDS`` ``slow``. When whole files are collected, a listed test that its file no
+    longer has (renamed or removed) is an error, so the list cannot go stale silently."""
+    collected = {item.nodeid for item in items}
+    if not any("::" in arg for arg in config.args):
+        files = {nodeid.split("::")[0] for nodeid in collected}
+        stale = sorted(i for i in _SLOW_IDS if i.split("::")[0] in files and i not in collected)
+        if stale:
+            raise pytest.UsageError(f"tests/slow_tests.txt lists tests that do not exist: {stale}")
+    for item in items:
+        if item.nodeid in _SLOW_IDS:
+            item.add_marker(pytest.mark.slow)
+
+
 def pytest_collection_modifyitems(config, items) -> None:
-    """Start the longest test modules first. xdist hands tests out in collection order. In alphabetical order
-    the notebooks and test_robots.py came late, so one worker was still running them after the other had finished.
-    Started first, they overlap with the many short tests. The order within a module is kept (a stable sort), and
-    each worker sorts the same way."""
+    """Mark the listed slow tests (``_mark_listed_slow``), then start the longest test modules first. xdist hands
+    tests out in collection order. In alphabetical order the notebooks and test_robots.py came late, so one worker
+    was still running them after the other had finished. Started first, they overlap with the many short tests. The
+    order within a module is kept (a stable sort), and each worker sorts the same way."""
+    _mark_listed_slow(config, items)
     rank = {name: i for i, name in enumerate(_LONG_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(_LONG_FIRST)))
