@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from kamino._progress import announce_compile
 from kamino.envs import runs
 from kamino.envs.policy import Policy
 
@@ -68,7 +69,7 @@ def walking_test(env, make_policy, *, episodes: int, seconds: float, speed: tupl
     keys = jax.random.split(key_policy, episodes)
 
     def run(params):
-        with jax.enable_x64(False):
+        with jax.enable_x64(False), announce_compile(f"and running {episodes} walking episodes"):
             out = play(params, states, keys)
         return (np.asarray(vx), *(np.asarray(x) for x in out))
 
@@ -117,7 +118,7 @@ def episode_returns(env, make_policy, params, *, episodes: int, seconds: float, 
                                             jax.random.split(key, steps))
         return total, ~alive
 
-    with jax.enable_x64(False):
+    with jax.enable_x64(False), announce_compile(f"and running {episodes} episodes"):
         states = jax.jit(jax.vmap(env.reset))(jax.random.split(key_reset, episodes))
         total, ended = jax.jit(jax.vmap(rollout))(states, jax.random.split(key_policy, episodes))
     total, ended = np.asarray(total), np.asarray(ended)
