@@ -22,10 +22,9 @@ from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
-#: A world whose largest anchor gap (a translational joint row's residual) exceeds this [m] at the pose PADMM's
-#: velocities reach in a step (before post-stabilisation's projection, which checks it in its first residual launch;
-#: :func:`integrate_kernels`' ``closure_check`` without post-stabilisation), and exceeds the gap it had before the
-#: step, is flagged ``failed`` on that step and frozen (docs/conventions.md, "World health").
+#: A world whose largest anchor gap (a translational joint row's residual) exceeds this [m] at the pose a step ends
+#: in (after post-stabilisation's projection), and exceeds the gap it had before the step, is flagged ``failed`` on
+#: that step and frozen (:func:`integrate_kernels`' ``closure_check``; docs/conventions.md, "World health").
 #: Rotational rows are not checked: along a jammed loop's numerically null direction they drift by up to 1e-2 rad in
 #: float32 in a healthy world (tests/test_world_health.py, the tilted four-bar). A healthy world keeps its anchors
 #: within ~1e-5 m in float32 (post-stabilisation); a world whose solve diverges opens them by millimetres a few steps

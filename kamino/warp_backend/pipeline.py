@@ -232,15 +232,13 @@ class Stepper:
                 self._launch(self.spk.factor_fixed, W, post)
             for k in range(cfg.post_stabilisation + 1):  # the last pass only where PADMM did not converge
                 extra = int(k == cfg.post_stabilisation)
-                bound = LOOP_OPEN_BOUND if k == 0 else float("inf")  # world health: the first pass checks
-                self._launch(self.pk.residual, rows, delta, extra, bound)
+                self._launch(self.pk.residual, rows, delta, extra)
                 if self.padmm == "warp":
                     self._launch_lanes(self.wk.solve_fixed, post, extra)
                 else:
                     self._launch(self.pk.solve, W, post, extra)
                 self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
-        if wm.max_cts and not cfg.post_stabilisation:  # world health: a world whose joints opened past the bound in
-            # this step fails on it (with post-stabilisation, its first pass's residual kernel checks)
+        if wm.max_cts:  # world health: a world whose joints the step left open past the bound fails on this step
             self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND)
         self._launch(ik.dof_forces, (W, wm.max_dofs))
         self._launch(ik.row_forces, rows, 1.0 / dt)

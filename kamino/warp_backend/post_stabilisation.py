@@ -18,7 +18,6 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.kinematics import kinematics_funcs
@@ -45,14 +44,9 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
     rows_on_body = integrate_kernels(np_dtype).rows_on_body
 
     @wp.kernel(module="unique", enable_backward=False)
-    def residual(m: M, w: Work, delta: scalar, unconverged_only: int, open_bound: scalar):
+    def residual(m: M, w: Work, delta: scalar, unconverged_only: int):
         """``x_a = -P_a e_a(q_new)`` on the always-active rows (``fixed_row_residual`` of the reference); with
-        ``unconverged_only`` (the extra pass) only in the worlds whose PADMM did not converge. The first pass also
-        checks world health (``integrate.LOOP_OPEN_BOUND``; ``open_bound``, infinite in the other passes): a
-        translational joint row whose residual at the pose PADMM's velocities reach exceeds ``open_bound`` and its
-        residual at the step's start fails the world (``integrate``'s ``closure_check`` on the residual this kernel
-        computes anyway: PADMM converged to ``tolerance`` moves an anchor by ``tolerance dt``, micrometres, so an
-        anchor a millimetre open there is a failed solve whatever the projection does next)."""
+        ``unconverged_only`` (the extra pass) only in the worlds whose PADMM did not converge."""
         wid, a = wp.tid()
         if a >= m.row_fixed[wid] or (unconverged_only != 0 and w.converged[wid] != 0):
             return
@@ -60,12 +54,7 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
         nc = m.cts_count[wid]
         e = scalar(0.0)
         if a >= nd and a < nd + nc:
-            c = m.cts_start[wid] + a - nd
-            e = kf.cts_residual(m, w.q_new, c)
-            if not (wp.abs(e) <= open_bound) and m.cts_kind[c] == RES_TRANS:
-                if not (wp.abs(e) <= wp.abs(kf.cts_residual(m, w.q, c))):
-                    w.failed[wid] = 1
-            e = deadband(e, delta)
+            e = deadband(kf.cts_residual(m, w.q_new, m.cts_start[wid] + a - nd), delta)
         elif a >= nd + nc:
             k = m.cpl_start[wid] + a - nd - nc
             db = m.cpl_dof_b[k]
