@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] and argv[0] in DELEGATED:
         return delegate(argv[0], argv[1:])
-    parser = argparse.ArgumentParser(prog="kamino", description=__doc__)
+    parser = argparse.ArgumentParser(prog="kamino", description=__doc__.replace("``", ""))
     sub = parser.add_subparsers(dest="command", required=True)
     d = sub.add_parser("demo", help="simulate the four-bar linkage and report closure, energy, speed")
     d.add_argument("--seconds", type=float, default=5.0, help="simulated time [s], > 0 (default 5)")
