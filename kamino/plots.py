@@ -188,6 +188,15 @@ def _is_convergence(r: Mapping[str, Any]) -> bool:
     return "throughput_world_steps_per_s" in r or "run_world_steps_per_s" in r
 
 
+def _distinct_runs(recs: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    """The records with each convergence run once: ``kamino bench convergence`` records the default run, and its
+    tolerance sweep repeats it at the default tolerance; the sweep's copy is kept, in record order."""
+    swept = {(r["scene"], r["num_worlds"], r.get("dt"), r["tolerance"]) for r in recs
+             if _is_convergence(r) and r.get("sweep")}
+    return [r for r in recs if not (_is_convergence(r) and not r.get("sweep")
+                                    and (r["scene"], r["num_worlds"], r.get("dt"), r["tolerance"]) in swept)]
+
+
 def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
                         ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """Throughput (y, log) against max loop closure (x, log), one panel per scene, from a benchmark JSON.
@@ -213,7 +222,7 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
     # scene -> series -> [(closure, throughput, label, order)]
     panels: dict[str, dict[str, list[tuple[float, float, str, float]]]] = {}
     run_rate: dict[str, bool] = {}
-    recs = _records(results)
+    recs = _distinct_runs(_records(results))
     closures: dict[tuple[str, str], float] = {}
     for r in recs:
         if not _is_convergence(r) and r.get("closure_max_m") is not None:
@@ -228,11 +237,7 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
                 panels.setdefault(r["scene"], {}).setdefault(_series(r), []).append(
                     (max(closure, 1e-12), r["throughput"], f"{r['num_worlds']} w", r["num_worlds"]))
     for (scene, name), rs in conv.items():
-        by_tol: dict[float, Mapping[str, Any]] = {}
-        for r in sorted(rs, key=lambda r: not r.get("sweep")):  # a sweep point before a default run's duplicate
-            if r.get("closure_max_m") is not None:
-                by_tol.setdefault(r["tolerance"], r)
-        rs = sorted(by_tol.values(), key=lambda r: -r["tolerance"])
+        rs = sorted((r for r in rs if r.get("closure_max_m") is not None), key=lambda r: -r["tolerance"])
         gpu = all(r.get("throughput_world_steps_per_s") for r in rs)
         run_rate[scene] = run_rate.get(scene, False) or not gpu
         pts = []
@@ -295,8 +300,9 @@ def iterations_histogram(results: Mapping[str, Any] | Sequence[Mapping[str, Any]
                          ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """The PADMM iterations-per-step histogram (log counts of (world, step) pairs) of each
     ``kamino.bench.convergence`` record that has one (its ``iterations_histogram``: ``[[iterations, count]...]``),
-    one panel per record in record order, up to four a row."""
-    recs = [r for r in _records(results) if r.get("iterations_histogram")]
+    one panel per run in record order (a default run that the tolerance sweep repeats is drawn once), up to four
+    a row."""
+    recs = [r for r in _distinct_runs(_records(results)) if r.get("iterations_histogram")]
     if not recs:
         raise ValueError("iterations_histogram: no record has an iterations_histogram")
     fig, axes = _axes(ax, len(recs), ncols=4, panel=(4.0, 3.0))
