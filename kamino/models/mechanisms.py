@@ -230,8 +230,8 @@ def jansen_walker(legs: int = 8, phases: int | None = None, scale: float = 0.01,
     pair ``p`` has its crank tip at ``crank_angle + 2 pi k_p / phases`` (``phases``: a divisor of the number of
     pairs, by default the number of pairs: every pair its own phase), where consecutive pairs take opposite phases
     (:func:`_phase_index`: with four phases ``k = 0, 2, 1, 3``), so that either side of the chassis keeps a foot on
-    the ground; in the order ``0, 1, 2, 3`` the four-phase walker's feet on the ground all lay on one side at times,
-    and it rolled over within 2 s. Leg ``n`` lies in the plane ``y = (n - (legs - 1) / 2) leg_spacing``. Bodies:
+    the ground (in the order ``0, 1, 2, 3`` the feet on the ground can all lie on one side, and the four-phase walker
+    rolls over within 2 s). Leg ``n`` lies in the plane ``y = (n - (legs - 1) / 2) leg_spacing``. Bodies:
     ``chassis`` (a box of ``chassis_mass``, FREE joint ``floating_base``), ``crank`` (all legs' crank tips, hinged
     to the chassis at the crank axis by the joint ``drive``), then the legs'. The drive is a VELOCITY actuator of gain
     ``drive_kd`` [N m s/rad] (its DoF is ``model.actuator_dof[0]``; a positive target turns the crank about +y, which
