@@ -110,7 +110,9 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False)
     def delassus_dense(m: M, w: Work):
-        """Row ``a`` of ``D = J M^-1 J^T + R`` from the dense per-world ``J`` (``6 n_bodies`` columns)."""
+        """Row ``a`` of ``D = J M^-1 J^T + R`` from the dense per-world ``J`` (``6 n_bodies`` columns), each entry
+        ``(J_a M^-1 J_b^T + J_b M^-1 J_a^T) / 2`` as the sparse rows' (``sparse_llt``'s ``delassus_term``: so that the
+        rounding of ``M^-1 J^T`` vanishes on the null space of ``J^T``)."""
         wid, a = wp.tid()
         n = w.n_rows[wid]
         if a >= n:
@@ -119,7 +121,8 @@ def solver_kernels(np_dtype) -> SimpleNamespace:
         for b in range(a, n):
             s = scalar(0.0)
             for c in range(nc):
-                s += w.Jd[jidx(m, wid, a, c)] * w.MJd[jidx(m, wid, b, c)]
+                s += scalar(0.5) * (w.Jd[jidx(m, wid, a, c)] * w.MJd[jidx(m, wid, b, c)]
+                                    + w.Jd[jidx(m, wid, b, c)] * w.MJd[jidx(m, wid, a, c)])
             if b == a:
                 s += w.reg[ridx(m, w, wid, a)]
             w.D[didx(m, wid, a, b)] = s

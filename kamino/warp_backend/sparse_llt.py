@@ -763,10 +763,22 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         return sf.inverse_mass_times(m.inv_mass[b], w.inv_inertia_w[b], J)
 
     @wp.func
+    def delassus_term(m: M, w: Work, body: int, Ja: vec6, Jb: vec6):
+        """One body's share of a Delassus entry, ``(J_a M^-1 J_b^T + J_b M^-1 J_a^T) / 2`` (docs/formulation.md
+        §7.1; the JAX reference symmetrises ``D`` the same way, ``jax_ref.dynamics.delassus``). The rounding of the
+        formed ``M^-1 J^T`` then enters as ``(J E^T + E J^T) / 2``, which vanishes on the null space of ``J^T``: the
+        redundant rows of planar loops keep their eigenvalues of ``D`` at zero to the rounding of the sums. Taken
+        from one side only, ``J_a (M^-1 J_b^T + E_b)``, it does not: on the eight-legged walker the scaled ``D``
+        had eigenvalues down to -2.4e-6, and PADMM's proximal shift does not hold such a direction
+        (docs/warp_backend.md, "Redundant planar loops in float32")."""
+        half = scalar(0.5)
+        return half * (wp.dot(Ja, inv_mass_times(m, w, body, Jb)) + wp.dot(Jb, inv_mass_times(m, w, body, Ja)))
+
+    @wp.func
     def delassus_sum(m: M, w: Work, wid: int, a: int, b: int, nblk: int, body_hub: wp.array(dtype=wp.int32),
                      skip_hubs: int):
-        """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (blocks meet on shared bodies; ``M^-1 J_b^T`` is
-        formed per meeting); with ``skip_hubs`` over the bodies that are not hubs (``body_hub[b] < 0``): ``D0 =
+        """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (blocks meet on shared bodies; each meeting adds
+        :func:`delassus_term`); with ``skip_hubs`` over the bodies that are not hubs (``body_hub[b] < 0``): ``D0 =
         sum_{b not a hub} J_b M_b^-1 J_b^T + R``, the hubs' share being in the factor through their unknowns
         (docs/warp_backend.md "Open problems"). The same sum, term for term, when no body is skipped."""
         ra = ridx(m, w, wid, a)
@@ -781,7 +793,7 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 if not skip:
                     for l in range(nblk):
                         if w.row_body[rb * nblk + l] == bk:
-                            s += wp.dot(w.row_J[ra * nblk + k], inv_mass_times(m, w, bk, w.row_J[rb * nblk + l]))
+                            s += delassus_term(m, w, bk, w.row_J[ra * nblk + k], w.row_J[rb * nblk + l])
         if a == b:
             s += w.reg[ra]
         return s
