@@ -51,7 +51,7 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
         p.error("--num-envs and --unroll must be positive")
     if not 0.0 <= args.action_scale <= 1.0:
         p.error(f"--action-scale must be in [0, 1] (actions are clipped to [-1, 1]), got {args.action_scale}")
-    from kamino.envs.train import OptionError, key_values
+    from kamino.envs.runs import OptionError, key_values
 
     try:
         args.overrides, args.env_kwargs = key_values(args.set, "--set"), key_values(args.env, "--env")

@@ -210,7 +210,6 @@ def format_report(r: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     """``kamino eval ARGS``: returns the exit status."""
     from kamino.envs.policy import shipped_policies
-    from kamino.envs.train import OptionError, key_values
 
     p = argparse.ArgumentParser(prog="kamino eval", description="Score a trained policy: the walking test for a "
                                 "joystick task, the episode return for any other.",
@@ -233,9 +232,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.episodes < 1 or args.seconds <= 0 or not args.speed[0] <= args.speed[1]:
         p.error("--episodes must be >= 1, --seconds > 0 and --speed LOW <= HIGH")
     try:
-        env_overrides = key_values(args.env, "--env")
+        env_overrides = runs.key_values(args.env, "--env")
         policy = resolve(args.policy, args.task)
-    except (OptionError, FileNotFoundError, ValueError) as e:
+    except (runs.OptionError, FileNotFoundError, ValueError) as e:
         p.error(str(e))
     report = evaluate(policy, backend=args.backend, episodes=args.episodes, seconds=args.seconds,
                       speed=tuple(args.speed), seed=args.seed, deterministic=not args.stochastic, env=env_overrides,

@@ -16,6 +16,7 @@ orbax's ``commit_success.txt`` marker or the network config is not a checkpoint 
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import shutil
@@ -170,6 +171,25 @@ def run_task(path: Path) -> str | None:
     return info.get("task")
 
 
-__all__ = ["COMMIT_MARKER", "NETWORK_CONFIG", "RUN_FILES", "clear_partial", "clear_run", "committed_checkpoints",
-           "is_checkpoint", "is_used", "latest_checkpoint", "read_json", "run_env", "run_folder", "run_task",
-           "save_checkpoint", "write_json", "write_text"]
+class OptionError(ValueError):
+    """A training or evaluation option that cannot work (named in the message), raised before anything runs."""
+
+
+def key_values(items: list[str], flag: str) -> dict[str, Any]:
+    """``KEY=VALUE`` options (``VALUE`` a Python literal) as a dict; a malformed one raises ``ValueError`` naming
+    ``flag``."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.isidentifier():
+            raise OptionError(f"{flag} expects KEY=VALUE, got {item!r}")
+        try:
+            out[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            raise OptionError(f"{flag} {key}: {value!r} is not a Python literal") from None
+    return out
+
+
+__all__ = ["COMMIT_MARKER", "NETWORK_CONFIG", "RUN_FILES", "OptionError", "clear_partial", "clear_run",
+           "committed_checkpoints", "is_checkpoint", "is_used", "key_values", "latest_checkpoint", "read_json",
+           "run_env", "run_folder", "run_task", "save_checkpoint", "write_json", "write_text"]

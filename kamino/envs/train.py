@@ -16,34 +16,15 @@ tasks: :func:`kamino.envs.evaluate.walking_test` on each checkpoint), ``reward_c
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
 import platform
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 from kamino.envs import runs
-
-
-class OptionError(ValueError):
-    """A training option that cannot work (named in the message), raised before anything is trained."""
-
-
-def key_values(items: list[str], flag: str) -> dict[str, Any]:
-    """``KEY=VALUE`` options (``VALUE`` a Python literal) as a dict; a malformed one raises ``ValueError`` naming
-    ``flag``."""
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.isidentifier():
-            raise OptionError(f"{flag} expects KEY=VALUE, got {item!r}")
-        try:
-            out[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            raise OptionError(f"{flag} {key}: {value!r} is not a Python literal") from None
-    return out
+from kamino.envs.evaluate import summarize, walking_test
+from kamino.envs.runs import OptionError, key_values
 
 
 def walk_test_due(step: int, tested: list[int], start: int, every: int) -> bool:
@@ -248,8 +229,6 @@ def train(task: str, *, out: Path | str | None = None, backend: str = "jax", ste
             return
         runs.save_checkpoint(ckpt_dir, done + step, params, net_config)
         if walk_test and walk_test_due(done + step, [w["step"] for w in walks], walk_test_from, walk_test_every):
-            from kamino.envs.evaluate import summarize, walking_test
-
             t0 = time.perf_counter()
             walk_run = walk_run or walking_test(walk_env, make_policy, episodes=walk_test, seconds=10.0,
                                                 speed=(0.3, 0.5), seed=walk_seed)
