@@ -40,6 +40,13 @@ NULL_DIRECTION_RATIO = 1e-2
 #: as ``P (bound / P)``, a few roundings off the bound, on either side; an exact test split such rows between the
 #: backends (measured on dr_legs in float64, 1 row in 12 on some steps)
 SATURATION_MARGIN = 1e-4
+#: post-stabilisation gives a world one projection pass more when, after its ``post_stabilisation`` passes, an anchor
+#: gap (a translational joint row's residual) is still above this [m], as it does when PADMM did not converge
+#: (docs/conventions.md, "Post-stabilisation"). A pass leaves about ``h |omega|`` of the error it starts from, and
+#: more along the directions its shift holds back; a healthy float32 world keeps its anchors within a few 1e-6 m,
+#: and the eight-legged Jansen walker's one-pass gap after a foot lands (1.6e-5 m on an H200) closes to below this
+#: with the second pass
+REPROJECTION_GAP = 1e-5
 
 
 def _rounding_floor(dtype) -> float:
@@ -66,11 +73,12 @@ class SolverConfig:
     PADMM from its iterate (docs/conventions.md, "Stabilisation"): the loop closure error of a step drops from
     ``O(h^2 |u+ - u_f| |u|)`` to third order, at the price of the extra iterations (up to ``max_iterations`` more)."""
     post_stabilisation: int = 1
-    """number of position projections after the pose update (0: none; a world whose PADMM did not converge gets one
-    more). Each one removes the joint and coupling rows' position errors by the smallest mass-weighted displacement
-    of the bodies (a Gauss-Newton step with the step's Jacobian and a sparse Cholesky of the always-active rows'
-    Delassus block), so that a soft ``baumgarte`` can keep PADMM well conditioned while the loops stay closed
-    (docs/conventions.md, "Post-stabilisation")."""
+    """number of position projections after the pose update (0: none; a world whose PADMM did not converge, or whose
+    anchors are still open past ``REPROJECTION_GAP`` after them, gets one more). Each one removes the joint and
+    coupling rows' position errors by the smallest mass-weighted displacement of the bodies (a Gauss-Newton step with
+    the step's Jacobian and a sparse Cholesky of the always-active rows' Delassus block), so that a soft
+    ``baumgarte`` can keep PADMM well conditioned while the loops stay closed (docs/conventions.md,
+    "Post-stabilisation")."""
     projection_shift: float | None = None
     """the diagonal shift of post-stabilisation's scaled system (``None``: ``sqrt(eps)`` of the state's dtype, or
     PADMM's own shifts of the always-active rows where those are smaller, as in float32, so that the Warp backend

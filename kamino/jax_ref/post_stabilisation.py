@@ -26,8 +26,9 @@ measured; docs/conventions.md, "Post-stabilisation".)
 An unconverged step: PADMM's residuals bound a converged step's velocity error by the tolerance, so the position
 error a pass starts from is at most about ``dt`` times it; a step that ran to ``max_iterations`` has no such bound
 (light rows' velocity errors of several ``tolerance`` times ``RESIDUAL_LOOSENING_MAX``), and one pass with the
-step's ``J`` left the benchmark four-bar open by up to 1.4e-4 m after such steps. Such a world gets one pass more
-(docs/conventions.md, "Post-stabilisation").
+step's ``J`` left the benchmark four-bar open by up to 1.4e-4 m after such steps. Such a world gets one pass more,
+and so does a world whose anchors a converged step's passes left open past ``kamino.config.REPROJECTION_GAP`` (a
+foot landing on the Jansen walker; docs/conventions.md, "Post-stabilisation").
 """
 
 from __future__ import annotations
@@ -38,13 +39,14 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_factor, cho_solve
 
-from kamino.config import SolverConfig
+from kamino.config import REPROJECTION_GAP, SolverConfig
 from kamino.jax_ref.contacts import deadband
 from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.dynamics import BodyDynamics, apply_inv_mass
 from kamino.jax_ref.joints import constraint_residual, dof_positions, joint_frames
 from kamino.jax_ref.layout import PaddedModel
 from kamino.jax_ref.spatial import integrate_pose
+from kamino.model import RES_TRANS
 
 
 @jax.tree_util.register_dataclass
@@ -80,9 +82,18 @@ def fixed_row_residual(pm: PaddedModel, q: jax.Array, delta) -> jax.Array:
     return jnp.concatenate([jnp.zeros(pm.dyn_mask.shape[0], q.dtype), e_kin, e_cpl])
 
 
+def anchors_open(pm: PaddedModel, e: jax.Array) -> jax.Array:
+    """Whether an anchor gap of ``e`` (``fixed_row_residual``: a translational joint row's residual, dead band
+    applied) exceeds ``REPROJECTION_GAP`` or is not finite."""
+    nd, nr = pm.dyn_mask.shape[0], pm.row_mask.shape[0]
+    gap = jnp.where(pm.row_mask & (pm.row_kind == RES_TRANS), jnp.abs(e[nd:nd + nr]), 0.0)
+    return ~jnp.all(gap <= REPROJECTION_GAP)
+
+
 def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, converged: jax.Array) -> jax.Array:
     """``cfg.post_stabilisation`` projection passes of the poses ``q`` [nb, 7], and one more where PADMM did not
-    converge (``converged`` False; module docstring, "An unconverged step")."""
+    converge (``converged`` False; module docstring, "An unconverged step") or where the passes left an anchor gap
+    above ``REPROJECTION_GAP`` (:func:`anchors_open`)."""
     delta = cfg.deadband_for(q.dtype)
     nb = q.shape[0]
     for k in range(cfg.post_stabilisation + 1):
@@ -90,5 +101,8 @@ def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, c
         y = cho_solve((proj.factor, True), -proj.P * e)
         d = apply_inv_mass(proj.bodies, (proj.J.T @ (proj.P * y)).reshape(nb, 6))
         q_next = integrate_pose(q, d, 1.0)
-        q = q_next if k < cfg.post_stabilisation else jnp.where(converged, q, q_next)
+        if k < cfg.post_stabilisation:
+            q = q_next
+        else:
+            q = jnp.where(converged & ~anchors_open(pm, e), q, q_next)
     return q

@@ -151,12 +151,16 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
                 w.frozen[wid] = 1
 
     @wp.kernel(module="unique", enable_backward=False)
-    def closure_check(m: M, w: Work, bound: scalar):
+    def closure_check(m: M, w: Work, bound: scalar, screened: int):
         """Flag ``failed`` on a world whose translational joint row ``i`` (an anchor gap) opens past ``bound`` in this
         step: ``|e(q_new)| > bound`` and ``|e(q_new)| > |e(q)|`` (a world assembled open, and closing, is not
-        flagged)."""
+        flagged). ``screened``: post-stabilisation's extra pass has screened the worlds (``post_stabilisation.py``),
+        and a world it did not project has every anchor gap within ``REPROJECTION_GAP``, below ``bound``: only the
+        projected worlds are checked."""
         wid, i = wp.tid()
         if i >= m.cts_count[wid] or w.failed[wid] != 0:
+            return
+        if screened != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0:
             return
         c = m.cts_start[wid] + i
         if m.cts_kind[c] != RES_TRANS:

@@ -525,12 +525,13 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             sync()
 
     @wp.kernel(module="unique", enable_backward=False)
-    def solve_fixed(m: M, w: Work, sp: SP, unconverged_only: int):
+    def solve_fixed(m: M, w: Work, sp: SP, extra: int):
         """Post-stabilisation's solve with the fixed rows' factor, 32 threads per world (``post_stabilisation.solve``
-        on this schedule): ``lambda = P (P D_ff P + s I)^-1 x`` into ``x``."""
+        on this schedule): ``lambda = P (P D_ff P + s I)^-1 x`` into ``x``; in the ``extra`` pass only where PADMM
+        did not converge or ``reproject`` is set."""
         rs = w.row_stride
         wid, lane = wp.tid()
-        if unconverged_only != 0 and w.converged[wid] != 0:
+        if extra != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0:
             return
         rb = bases(m, w, sp, wid)[0]
         nf = sp.n_fixed[wid]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from kamino.config import SolverConfig
+from kamino.config import REPROJECTION_GAP, SolverConfig
 from kamino.model import Model
 from kamino.tables import DYN_ACTUATOR, row_tables
 from kamino.warp_backend import sparse_llt
@@ -230,7 +230,7 @@ class Stepper:
                 shift_f, shift_b = cfg.projection_shifts(self.np_dtype)
                 self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift_f, shift_b)
                 self._launch(self.spk.factor_fixed, W, post)
-            for k in range(cfg.post_stabilisation + 1):  # the last pass only where PADMM did not converge
+            for k in range(cfg.post_stabilisation + 1):  # the last pass: unconverged worlds, gaps left open
                 extra = int(k == cfg.post_stabilisation)
                 self._launch(self.pk.residual, rows, delta, extra)
                 if self.padmm == "warp":
@@ -239,7 +239,9 @@ class Stepper:
                     self._launch(self.pk.solve, W, post, extra)
                 self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
         if wm.max_cts:  # world health: a world whose joints the step left open past the bound fails on this step
-            self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND)
+            # (only where the extra pass projected, when its screen, a gap of REPROJECTION_GAP + delta, is below it)
+            screened = cfg.post_stabilisation > 0 and REPROJECTION_GAP + delta < LOOP_OPEN_BOUND
+            self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND, int(screened))
         self._launch(ik.dof_forces, (W, wm.max_dofs))
         self._launch(ik.row_forces, rows, 1.0 / dt)
         if ck is not None:

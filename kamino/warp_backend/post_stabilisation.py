@@ -5,8 +5,10 @@ Once per step, after the pose update, the always-active rows' scaled block ``P D
 leading block ``L_f`` of PADMM's factor carries the shifts ``eta + rho_free`` / ``eta + rho``), the projection
 solves with that ``L_f``; otherwise the block is assembled on the fixed rows' static sparse pattern and
 factorised in a storage of its own (``sparse_llt.assemble_fixed`` / ``factor_fixed``,
-``kamino/warp_backend/pipeline.py``). A world whose PADMM did not converge gets one pass more (the kernels' flag
-``unconverged_only``; the reference's docstring). One pass is three launches: the
+``kamino/warp_backend/pipeline.py``). A world whose PADMM did not converge, or whose anchors the passes left open
+past ``REPROJECTION_GAP``, gets one pass more (the kernels' flag ``extra``; the reference's docstring):
+the extra pass's ``residual`` sets ``w.reproject`` where a gap is open, and its solve and displacement run where
+PADMM did not converge or that flag is set. One pass is three launches: the
 residuals at ``q_new`` in PADMM's units (``x = -P e``), one thread per world solving with the sparse factor,
 and the displacement ``d = M^-1 J_f^T P y`` applied as ``q_new ⊕ d``. The factorisation and the solve read
 the block-sparse rows, which every configuration builds, so the projection works with either Jacobian and
@@ -18,6 +20,8 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.config import REPROJECTION_GAP
+from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.integrate import integrate_kernels
 from kamino.warp_backend.kinematics import kinematics_funcs
@@ -44,17 +48,23 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
     rows_on_body = integrate_kernels(np_dtype).rows_on_body
 
     @wp.kernel(module="unique", enable_backward=False)
-    def residual(m: M, w: Work, delta: scalar, unconverged_only: int):
-        """``x_a = -P_a e_a(q_new)`` on the always-active rows (``fixed_row_residual`` of the reference); with
-        ``unconverged_only`` (the extra pass) only in the worlds whose PADMM did not converge."""
+    def residual(m: M, w: Work, delta: scalar, extra: int):
+        """``x_a = -P_a e_a(q_new)`` on the always-active rows (``fixed_row_residual`` of the reference); in the
+        ``extra`` pass it also sets ``reproject`` where an anchor gap exceeds ``REPROJECTION_GAP`` or is not finite
+        (``anchors_open`` of the reference), which the first pass clears."""
         wid, a = wp.tid()
-        if a >= m.row_fixed[wid] or (unconverged_only != 0 and w.converged[wid] != 0):
+        if extra == 0 and a == 0:
+            w.reproject[wid] = 0
+        if a >= m.row_fixed[wid]:
             return
         nd = m.dyn_count[wid]
         nc = m.cts_count[wid]
         e = scalar(0.0)
         if a >= nd and a < nd + nc:
-            e = deadband(kf.cts_residual(m, w.q_new, m.cts_start[wid] + a - nd), delta)
+            c = m.cts_start[wid] + a - nd
+            e = deadband(kf.cts_residual(m, w.q_new, c), delta)
+            if extra != 0 and m.cts_kind[c] == RES_TRANS and not (wp.abs(e) <= scalar(REPROJECTION_GAP)):
+                w.reproject[wid] = 1
         elif a >= nd + nc:
             k = m.cpl_start[wid] + a - nd - nc
             db = m.cpl_dof_b[k]
@@ -67,10 +77,11 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
         w.x[r] = -w.P[r] * e
 
     @wp.kernel(module="unique", enable_backward=False)
-    def solve(m: M, w: Work, sp: SP, unconverged_only: int):
-        """``lambda = P (P D_ff P + s I)^-1 x`` with the fixed rows' sparse factor (into ``x``)."""
+    def solve(m: M, w: Work, sp: SP, extra: int):
+        """``lambda = P (P D_ff P + s I)^-1 x`` with the fixed rows' sparse factor (into ``x``); in the ``extra`` pass
+        only where PADMM did not converge or ``reproject`` is set."""
         wid = wp.tid()
-        if unconverged_only != 0 and w.converged[wid] != 0:
+        if extra != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0:
             return
         nf = m.row_fixed[wid]
         sparse_solve(m, w, sp, wid, nf)
@@ -79,10 +90,11 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
             w.x[r] = w.P[r] * w.x[r]
 
     @wp.kernel(module="unique", enable_backward=False)
-    def displace(m: M, w: Work, nblk: int, unconverged_only: int):
-        """``q_new <- q_new ⊕ M^-1 J_f^T lambda`` (the body's share of every fixed row, summed in row order)."""
+    def displace(m: M, w: Work, nblk: int, extra: int):
+        """``q_new <- q_new ⊕ M^-1 J_f^T lambda`` (the body's share of every fixed row, summed in row order); in the
+        ``extra`` pass only where PADMM did not converge or ``reproject`` is set."""
         wid, i = wp.tid()
-        if i >= m.body_count[wid] or (unconverged_only != 0 and w.converged[wid] != 0):
+        if i >= m.body_count[wid] or (extra != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0):
             return
         b = m.body_start[wid] + i
         acc = rows_on_body(m, w, wid, b, m.row_fixed[wid], nblk, w.x)

@@ -148,6 +148,7 @@ def work_struct(np_dtype):
         # new penalty); empty on the sparse factor's paths, which keep it in a column of the tail rows (sparse_llt)
         pending: iarr  # per world: a row saturated in the last iteration; the factor is redone before the next
         converged: iarr
+        reproject: iarr  # per world: the passes left an anchor gap open (post-stabilisation's extra pass)
         done: iarr  # per world: 1 once converged or at the iteration cap
         remaining: iarr  # [1] worlds still iterating (the capture_while condition)
         # Conjugate Residual scratch
@@ -213,8 +214,8 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
         sizes[name] = (R if cr else 0, T.scalar)
     for name in ("a_p", "c_p", "r_p", "r_d", "r_c", "rho_u", "p_ref"):
         sizes[name] = (m.num_worlds, T.scalar)
-    for name in ("n_lim", "n_con", "n_box", "n_rows", "iters", "it_cap", "converged", "done", "failed", "k_rho",
-                 "unconverged", "frozen", "pending"):
+    for name in ("n_lim", "n_con", "n_box", "n_rows", "iters", "it_cap", "converged", "reproject", "done", "failed",
+                 "k_rho", "unconverged", "frozen", "pending"):
         sizes[name] = (m.num_worlds, wp.int32)
     sizes["remaining"] = (1, wp.int32)
     for name, (n, dtype) in sizes.items():
