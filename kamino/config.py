@@ -158,9 +158,11 @@ class SolverConfig:
     non-default ``cr_iterations``, ``kamino.checks.check_config``); the physics is the same."""
     linear_solver: Literal["llt", "cr", "auto"] = "auto"
     """Warp backend: ``"llt"`` Cholesky (sparse factor with ``jacobian="sparse"``), ``"cr"`` matrix-free Conjugate
-    Residual, ``"auto"`` (default): CR above ``AUTO_CR_ROWS`` rows per world."""
-    cr_iterations: int = 9
-    """Conjugate Residual budget per PADMM iteration (Warp backend)."""
+    Residual, ``"auto"`` (default): the LLT, except CR above ``AUTO_CR_ROWS`` rows per world on a GPU with one thread
+    per world (``kamino.warp_backend.pipeline.resolve_linear_solver``)."""
+    cr_iterations: int = 30
+    """Conjugate Residual iterations per PADMM iteration (Warp backend): 9 left dr_legs' first steps and 9 % of the
+    eight-legged Jansen walker's steps unconverged (docs/warp_backend.md, "Linear solvers")."""
     max_unconverged_steps: int = 50
     """a world whose PADMM has not converged for more than this many consecutive steps is marked
     ``state.info.failed`` and frozen, like a world whose state went non-finite (docs/conventions.md, "World

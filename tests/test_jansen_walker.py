@@ -50,7 +50,7 @@ def _walk(variant: Variant, legs: int, seconds: float, phases: int | None = None
 
 
 #: the four-legged walk, measured (CPU, float32, 1.5 s): the sparse LLT 100 % converged at 3.3 iterations, closure
-#: 5.9e-6 m, 0.690 m; CR at 9 iterations 99.7 % at 9.1 iterations, closure 1.6e-5 m, 0.702 m
+#: 5.9e-6 m, 0.690 m; CR at its default 30 iterations 100 % at 4.6 iterations, closure 9.3e-6 m, 0.692 m
 _LLT_WALK = {}
 
 
@@ -60,7 +60,7 @@ def test_four_legged_walker_walks_with_its_loops_closed(variant):
     """Four legs, 1.5 s: no failed world; the chassis walks 0.6-0.8 m forward (+x: a positive crank velocity);
     the sparse LLT (and the JAX reference) converge on at least 99 % of the steps with every loop closed to 2e-5 m
     (post-stabilisation; float32 rounding of ~1 m coordinates is ~1e-7 m, the worst step measured 5.9e-6 m); CR
-    at its default budget of 9 iterations per PADMM iteration on at least 90 % (measured 99.7 %) with loops closed
+    at its default budget of 30 iterations per PADMM iteration on at least 90 % (measured 100 %) with loops closed
     to 1e-4 m, and within 5 % of the sparse LLT's distance."""
     r = _walk(variant, legs=4, seconds=1.5)
     assert not r["failed"].any()
@@ -117,15 +117,16 @@ def test_eight_legged_walker_llt_solves_what_the_reference_solves(eight_legs):
 
 
 def test_eight_legged_walker_cr_at_its_default_budget(eight_legs):
-    """Conjugate Residual at its default budget (9 iterations per PADMM iteration; what ``linear_solver="auto"``
-    takes on the CPU for this 375-row world), eight legs in four phases, 1.5 s: no failed world, the walked distance
-    within 5 % of the reference's, at least 90 % of the steps converged with the loops closed to 2e-5 m (measured:
-    92.5 % at 39 iterations, 1.42e-5 m, 0.583 m against 0.573 m). Its unconverged steps are reported as such: an
-    inexact inner solve adds its residual to PADMM's dual residual (``solver.padmm_iterate``)."""
+    """Conjugate Residual at its default budget (30 iterations per PADMM iteration), eight legs in four phases, 1.5 s:
+    no failed world, the walked distance within 5 % of the reference's, at least 99 % of the steps converged with
+    every joint row closed to 2e-5 (m or rad; measured: 100 % at 14.9 iterations, anchors within 2.1e-6 m, hinge rows
+    within 1.2e-5 rad, 0.579 m against 0.573 m). At 9 iterations 92.5 % of the steps converged (1.4e-5): an inexact
+    inner solve adds its residual to PADMM's dual residual (``solver.padmm_iterate``), so such a step is reported
+    unconverged."""
     r = eight_legs(WARP_SPARSE_CR)
     ref = eight_legs(JAX)["walked"]
     assert not r["failed"].any()
-    assert r["converged"].mean() >= 0.90, r["converged"].mean()
+    assert r["converged"].mean() >= 0.99, r["converged"].mean()
     assert r["closure"].max() <= 2e-5, r["closure"].max()
     assert abs(r["walked"] - ref) <= 0.05 * abs(ref), (r["walked"], ref)
 
@@ -192,13 +193,13 @@ def test_eight_legged_walker_for_6_s_on_the_gpu(linear_solver, eight_legs):
     """On the GPU, the default eight-legged walker (four phases) for 6 s on the sparse ``linear_solver`` choices
     (``auto`` and ``llt``: the 32-lane sparse LLT) against the JAX reference there: no failed world; the LLT
     converges on at least 99 % of the steps with every loop closed to 1e-5 m, as the reference does; CR at its
-    default budget on at least 90 % with the loops closed to 3e-5 m. The walked distance is within 5 % of the
+    default budget on at least 99 % with the loops closed to 3e-5 m. The walked distance is within 5 % of the
     reference's after 1.5 s and within 15 % after 6 s: foot contact makes the walk chaotic, and a start 1 or 2 mrad
     of crank angle apart moves the 6-s distance by up to 11 % on either backend. Measured on an H200: the reference
     99.93 %, 7.9e-6 m, 3.10 m; the 32-lane LLT 99.86 %, 8.5e-6 m, 3.27 m (1.60e-5 m, one step after a foot lands,
     without post-stabilisation's pass for a gap left open, ``REPROJECTION_GAP``). On the CPU: the reference 100 %,
     8.5e-6 m, 0.573 m and 3.41 m (3.04 and 3.36 m from the perturbed starts); the sparse LLT 99.7 %, 9.5e-6 m,
-    0.571 m and 3.67 m; CR 90.6 %, 2.4e-5 m, 0.583 m and 3.66 m."""
+    0.571 m and 3.67 m; CR 99.8 %, 1.4e-5 m (hinge rows; anchors 2.5e-6 m), 0.579 m and 3.64 m."""
     if not any(d.platform == "gpu" for d in jax.devices()):
         pytest.skip("needs JAX on the GPU")
     variant = (Variant("warp-dense-llt", "warp", "dense", "llt") if linear_solver == "dense"
@@ -208,7 +209,7 @@ def test_eight_legged_walker_for_6_s_on_the_gpu(linear_solver, eight_legs):
     assert not ref["failed"].any() and not r["failed"].any()
     assert ref["converged"].mean() >= 0.99, ref["converged"].mean()
     if linear_solver == "cr":
-        assert r["converged"].mean() >= 0.90, r["converged"].mean()
+        assert r["converged"].mean() >= 0.99, r["converged"].mean()
         assert r["closure"].max() <= 3e-5, r["closure"].max()
     else:
         assert r["converged"].mean() >= 0.99, r["converged"].mean()

@@ -27,20 +27,24 @@ from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, solver_kernels
 from kamino.warp_backend.workspace import allocate
 
-#: linear_solver="auto" takes the Conjugate Residual path above this many constraint rows per world:
-#: measured on an H100 at 4096 worlds, LLT is faster up to 240 rows and CR 14x faster at 576
-#: (benchmarks/README.md, "LLT/CR crossover").
+#: linear_solver="auto" takes the Conjugate Residual path above this many constraint rows per world on a GPU with
+#: one thread per world: measured on an H100 at 4096 worlds, LLT is faster up to 240 rows and CR 14x faster at 576.
+#: The CPU (one thread per world, a few worlds per core) keeps the sparse LLT at every size: at 4 worlds on 2 cores
+#: it is 1.2-1.5x faster than CR on ladder32 (576 rows), olaf, dr_legs and the animatronic (1089 rows), as fast
+#: on bdx, and it solves the eight-legged Jansen walker to the tolerance where CR at 9 iterations did not.
 AUTO_CR_ROWS = 300
 #: threads per block of the one-thread-per-world kernels
 PER_WORLD_BLOCK = 32
 
 
-def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread") -> str:
+def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread", cuda: bool = False) -> str:
     """``"llt"`` or ``"cr"`` for ``cfg`` on worlds of up to ``max_rows`` rows (CR needs the sparse J; the 32-thread
-    schedule, ``padmm="warp"``, solves with the sparse factor at every size)."""
+    schedule, ``padmm="warp"``, solves with the sparse factor at every size; ``"auto"`` takes CR only with one thread
+    per world on a GPU (``cuda``) above ``AUTO_CR_ROWS`` rows)."""
     choice = cfg.linear_solver
     if choice == "auto":
-        choice = "cr" if (cfg.jacobian == "sparse" and max_rows > AUTO_CR_ROWS and padmm != "warp") else "llt"
+        large = cuda and padmm != "warp" and max_rows > AUTO_CR_ROWS
+        choice = "cr" if (cfg.jacobian == "sparse" and large) else "llt"
     if choice == "cr" and cfg.jacobian == "dense":
         raise ValueError("SolverConfig: linear_solver='cr' works on the block-sparse Jacobian; "
                          "use jacobian='sparse' (or linear_solver='llt' with jacobian='dense')")
@@ -86,7 +90,7 @@ class Stepper:
         self.np_dtype = np.dtype(np_dtype)
         self.wm = wm = warp_model(model, self.np_dtype, str(self.device))
         padmm = resolve_padmm(cfg, self.device, wm.num_worlds, wm.max_rows, padmm)
-        self.linear_solver = resolve_linear_solver(cfg, wm.max_rows, padmm)
+        self.linear_solver = resolve_linear_solver(cfg, wm.max_rows, padmm, self.device.is_cuda)
         self.dense = cfg.jacobian == "dense"
         llt = self.linear_solver == "llt"
         if cfg.redundant_limits:
