@@ -4,7 +4,6 @@ the box of actuated limits, and standing / holding the nominal pose for 5 s in f
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import jax
@@ -20,7 +19,7 @@ from kamino.jax_ref.spatial import integrate_pose
 from kamino.kinematics import actuated_joints
 from kamino.model import ActuationMode, GeomType, JointType, count_loops
 from kamino.models import robots
-from tests.helpers import BACKENDS, VARIANTS, WARP_SPARSE_CR, tier_marks, trajectory_metrics
+from tests.helpers import BACKENDS, VARIANTS, tier_marks, trajectory_metrics
 
 #: Table 1 of the paper: bodies, actuated joints, passive joints (without the FREE base joint), FREE
 #: base joint from the world, independent loops.
@@ -261,29 +260,11 @@ def _check_hold(name: str, model, state, traj) -> None:
     assert disp.max() < 0.05
 
 
-#: Measured limitation of linear_solver="cr" at its default budget (cr_iterations=9), strict xfail
-CR_BUDGET_DR_LEGS = (
-    "dr_legs on warp-sparse-cr with the default cr_iterations=9: 9 CR iterations do not solve this robot's "
-    "~180-row system on its first steps, so the inner residual "
-    "keeps PADMM's dual residual at up to 3.4e-3 > 1e-4: steps 1-6 reach the 200-iteration cap and are honestly "
-    "reported unconverged, and their inexact impulses open the loops by up to 3.4e-5 m > the 1e-5 bound "
-    "(LLT: 3.7e-6). With cr_iterations=20 or 30 every step converges (30: 17.5 PADMM iterations per step "
-    "against LLT's 16.7) and the test passes: the dr_legs-warp-sparse-cr30 case")
-#: the CR variant with a budget that solves dr_legs' inner systems
-WARP_SPARSE_CR30 = dataclasses.replace(WARP_SPARSE_CR, id="warp-sparse-cr30", cr_iterations=30)
-
-
 def _standing_cases() -> list:
-    """(name, variant) of every floating robot on every backend; dr_legs on CR at the default budget is a
-    measured limitation (CR_BUDGET_DR_LEGS), run with a budget of 30 as well."""
-    cases = []
-    for name in FLOATING:
-        for v in VARIANTS:
-            bug = v.is_cr and name == "dr_legs"
-            marks = [pytest.mark.xfail(strict=True, reason=CR_BUDGET_DR_LEGS)] if bug else []
-            cases.append(pytest.param(name, v, id=f"{name}-{v.id}", marks=marks + tier_marks(v)))
-    cases.append(pytest.param("dr_legs", WARP_SPARSE_CR30, id=f"dr_legs-{WARP_SPARSE_CR30.id}"))
-    return cases
+    """(name, variant) of every floating robot on every backend. (CR at 9 iterations per PADMM iteration, the
+    former default budget, did not solve dr_legs' ~180-row system on its first steps: they reached the iteration
+    cap, reported unconverged, and opened the loops by 3.4e-5 m; at the default 30 every step converges.)"""
+    return [pytest.param(name, v, id=f"{name}-{v.id}", marks=tier_marks(v)) for name in FLOATING for v in VARIANTS]
 
 
 @pytest.mark.parametrize("name, variant", _standing_cases())
@@ -299,12 +280,11 @@ def test_animatronic_holds_its_pose_for_5_s_in_float32(variant):
     of 3.5e-4 and no cap it grew to 1.1-1.5e-5. It is at float32's limit: the same run outside pytest
     (JAX's x64 mode off, so some constants of the step round to float32 as well) peaks at 1.2e-5 with this
     conftest's XLA flags and 2.4e-5 with XLA's defaults, ending at 6e-6 / 1.2e-5."""
-    if variant.is_warp and variant.linear_solver == "llt":
-        # ~1000 constraint rows in one world: the per-world Cholesky (one CPU thread) costs 2 s (sparse J) and
-        # 11 s (dense J) per step here, hours for the test. This size is what linear_solver="auto" hands to CR
-        # (pipeline.AUTO_CR_ROWS = 300); the warp-sparse-cr variant runs the test
-        pytest.skip("per-world Cholesky of ~1000 rows: 2-11 s per Warp CPU step; covered by warp-sparse-cr")
-    # the full 5 s on Warp too (~35 s on the CPU for CR): its first ~20 steps, the mechanism settling from the builder
-    # pose, do not reach 1e-4 with CR's default budget of 9 iterations (measured); 20 of 500 steps stay under the
-    # 5 % that _check_hold allows, 20 of 150 would not
+    if variant.is_warp and variant.jacobian == "dense":
+        # ~1000 constraint rows in one world: the dense per-world Cholesky (one CPU thread) costs 11 s per step
+        # here, hours for the test; the sparse factor and CR run it
+        pytest.skip("dense per-world Cholesky of ~1000 rows: 11 s per Warp CPU step; covered by the sparse paths")
+    # the full 5 s on Warp too: its first ~20 steps, the mechanism settling from the builder pose, are the hard ones
+    # (CR at 9 iterations did not reach 1e-4 there); 20 of 500 steps stay under the 5 % that _check_hold allows,
+    # 20 of 150 would not
     _check_hold("animatronic", *_hold("animatronic", variant, full=True))

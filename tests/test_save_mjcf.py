@@ -280,12 +280,8 @@ def test_zoo_exports_what_it_should():
 
 #: Batches compiled together (one ``kamino.concat`` of each model and its round trip per batch): models, steps,
 #: bound on the body CoM positions [m], solver settings (float64, PADMM tolerance 1e-8 unless stated) and backend.
-#: The mechanisms and scenes run on the Warp backend (its CPU kernels are compiled once per CI worker; a new JAX
-#: program per batch costs 10-40 s there), with the same bounds as on the reference. The robots stay on the JAX
-#: reference: on Warp, dr_legs and its round trip ended 1.8e-5 m apart in this batch. The cause:
-#: olaf's round trip has 304 rows, above ``AUTO_CR_ROWS`` (300), so ``linear_solver="auto"`` takes the Conjugate
-#: Residual path for the whole batch on the CPU, where PADMM needs several times the iterations of the LLT path and
-#: dr_legs stops at the 1000-iteration cap (docs/warp_backend.md, "Open problems").
+#: Every batch runs on the Warp backend (its CPU kernels are compiled once per CI worker; a new JAX program per batch
+#: costs 10-40 s there), with the bounds measured on the reference.
 #:
 #: The round trip is the same physics written in other constraint rows: load_mjcf completes a hinge axis into a
 #: joint frame its own way, places FIXED joints at the child's frame, puts both anchors of a joint at the MJCF
@@ -311,8 +307,8 @@ SIM_BATCHES = {
                    {"max_iterations": 1000}, "warp"),
     "scenes": (["box_on_plane", "box_stack", "incline", "sphere_drop", "newtons_cradle"], 2, 1e-12,
                {"max_iterations": 1000}, "warp"),
-    "robots": (["bdx", "dr_legs", "olaf"], 2, 1e-6, {"max_iterations": 1000, "tolerance": 1e-6}, "jax"),
-    "animatronic": (["animatronic"], 2, 1e-6, {"max_iterations": 300}, "jax"),
+    "robots": (["bdx", "dr_legs", "olaf"], 2, 1e-6, {"max_iterations": 1000, "tolerance": 1e-6}, "warp"),
+    "animatronic": (["animatronic"], 2, 1e-6, {"max_iterations": 300}, "warp"),
 }
 
 
