@@ -123,7 +123,7 @@ def test_driven_fourbar_midpoint_is_stable(variant, name, jax_runs):
     assert w[half:].max() < 1.5 * w[:half].max() and w.max() < 1e-2, (w[:half].max(), w[half:].max())
 
     if variant.is_warp and not variant.is_cr:
-        # the oracle's computation, up to rounding (CR solves each PADMM iteration inexactly: 9 iterations)
+        # the oracle's computation, up to rounding (CR solves each PADMM iteration inexactly: cr_iterations)
         ref = _jax_run(jax_runs, name)
         assert np.abs(np.asarray(traj.body_q) - np.asarray(ref.body_q)).max() < 1e-9
         assert np.abs(np.asarray(traj.body_u) - np.asarray(ref.body_u)).max() < 1e-9

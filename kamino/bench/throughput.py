@@ -59,7 +59,7 @@ SCENES = ("fourbar", "ladder8", "ladder32", "dr_legs")
 #: the procedural robots (kamino.models), standing under PD with the joint-space drive on their first actuator
 ROBOTS = ("dr_legs", "bdx", "olaf", "animatronic")
 CONFIGS = {
-    "default": {},  # kamino.SolverConfig(dt=DT) as it comes: sparse J, LLT (CR above AUTO_CR_ROWS rows)
+    "default": {},  # kamino.SolverConfig(dt=DT) as it comes: sparse J, LLT (CR: pipeline.resolve_linear_solver)
     "dense-llt": dict(jacobian="dense", linear_solver="llt"),
     "sparse-llt": dict(jacobian="sparse", linear_solver="llt"),
     "sparse-cr": dict(jacobian="sparse", linear_solver="cr"),
