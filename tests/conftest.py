@@ -1,6 +1,6 @@
 """Tests run in float64 unless a test asks for float32 (the reference physics is checked in float64).
 
-CI time (a 2-core machine, 20-minute budget) goes mostly to XLA compiling the step on the CPU, not to running
+CI time (a 2-core machine, 15-minute budget) goes mostly to XLA compiling the step on the CPU, not to running
 it. These settings cut that without touching what is computed:
 
 - ``--xla_cpu_use_fusion_emitters=false``: XLA's older CPU fusion code generator. Measured on this project's
@@ -181,12 +181,14 @@ def pytest_collection_modifyitems(config, items) -> None:
     items.sort(key=lambda item: rank.get(item.path.name, len(_LONG_FIRST)))
 
 
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: no error where it is not installed
 def pytest_xdist_make_scheduler(config, log):
     """``pytest -n N`` hands out whole test modules (xdist's ``loadfile``), in collection order, instead of single
-    tests (its default, ``load``). A module's tests then share one process: its module-scoped fixtures (the
-    environments of test_envs.py, the compiled runs of test_redundant_limits.py) are built once instead of on every
-    worker, and its tests reuse one another's traced and compiled steps. Another ``--dist`` mode given on the
-    command line is left as it is."""
+    tests (its default, ``load``). A module's tests then share one process: its module-scoped fixtures are built
+    once, and its tests reuse one another's traced and compiled steps. Handing out single tests, xdist split some
+    modules over both workers (test_actuation_limits.py, test_mjcf.py, test_physics.py and test_world_health.py in
+    one run), and each worker traced and compiled their steps. A ``--dist`` mode other than xdist's default is left
+    as it is."""
     if config.getvalue("dist") != "load":
         return None
     from xdist.scheduler import LoadFileScheduling
