@@ -1,6 +1,6 @@
 """Tests run in float64 unless a test asks for float32 (the reference physics is checked in float64).
 
-CI time (a 2-core machine, 20-minute budget) goes mostly to XLA compiling the step on the CPU, not to running
+CI time (a 2-core machine, 15-minute budget) goes mostly to XLA compiling the step on the CPU, not to running
 it. These settings cut that without touching what is computed:
 
 - ``--xla_cpu_use_fusion_emitters=false``: XLA's older CPU fusion code generator. Measured on this project's
@@ -9,6 +9,11 @@ it. These settings cut that without touching what is computed:
   unchanged. Set only where this XLA still has the flag (probed below).
 - ``--xla_cpu_multi_thread_eigen=false``: Eigen's own matrix kernels stay on the calling thread (CI has two
   cores and runs two workers).
+- Not ``--xla_backend_optimization_level=0``: it cuts the suite's CPU time by 17 % (compiles are faster, the 5 s
+  animatronic hold runs twice as long), but results then change in their last bits, and three comparisons at
+  rounding level fail: two runs of one step compiled in two programs (test_sharding.py's sharded run against the
+  unsharded one, test_redundant_limits.py's bitwise check), and the shipped policy's actions against the recorded
+  ones (test_rl_eval.py, to 2e-7).
 - One persistent compilation cache under ``.pytest_cache/jax``, shared by the xdist workers and the subprocesses
   they start. Many tests compile the same step (same model, shapes and config) in fresh closures, often on the
   other worker; from the second one on, the executable comes from disk. A size bound turns on JAX's file lock
@@ -26,6 +31,7 @@ the pool has two threads, so two concurrent batched LAPACK calls (the PADMM fact
 or two worlds' groups) suffice.
 """
 
+import ctypes
 import os
 import subprocess
 import sys
@@ -93,12 +99,23 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.3)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
+def _return_freed_memory() -> None:
+    """Hand the heap's free pages back to the system (glibc's ``malloc_trim``): without it the memory of the
+    dropped executables stays resident, and a worker's resident size only ever grows. Nothing happens where the C
+    library has no ``malloc_trim``."""
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_steps():
     """After each test module, drop what the module compiled: JAX's in-memory executables and the Warp backend's
-    per-model steppers and device models (``kamino.warp_backend.backend.release``). Without this a worker grew to
-    6.8 GB over the suite, and workers died mid-run on CI. The on-disk compilation cache still serves later
-    modules."""
+    per-model steppers and device models (``kamino.warp_backend.backend.release``), and return the freed memory to
+    the system. Without this a worker grew to 6.8 GB over the suite, and workers died mid-run on CI. The on-disk
+    compilation cache still serves later modules. (Keeping the executables while a worker holds under 2 GB saved
+    nothing measurable: the modules hardly share a compiled step.)"""
     yield
     import gc
 
@@ -107,6 +124,7 @@ def _release_compiled_steps():
     release()
     jax.clear_caches()
     gc.collect()
+    _return_freed_memory()
 
 
 def _hypothesis_examples_independent_of_imports() -> None:
@@ -127,9 +145,16 @@ def _hypothesis_examples_independent_of_imports() -> None:
 _hypothesis_examples_independent_of_imports()
 
 
-#: test modules that hold the suite's longest tests (on CI: notebook 02 156 s, the animatronic's 5 s hold
-#: on the JAX backend 112 s, notebook 05 90 s, the PPO tests 49-68 s, sharding 45 s), collected first
-_LONG_FIRST = ("test_notebooks.py", "test_robots.py", "test_envs.py", "test_rl_resume.py", "test_sharding.py")
+#: test modules in descending order of their time on one worker (seconds in a full run on the 2-core machine:
+#: envs 244, notebooks 220, robots 177, contacts 123, actuation_limits 100, mjcf 95, physics 84, cross_backend 84,
+#: world_health 83, forward_kinematics 71, rl_resume 69, first_hour 64, redundant_limits 63, jansen_walker 57,
+#: post_stabilisation 54, batching 54, sharding 48, rl_eval 41, fk_robots 38; every other module takes under 31 s):
+#: collected first, in this order, the rest after them in alphabetical order
+_LONG_FIRST = ("test_envs.py", "test_notebooks.py", "test_robots.py", "test_contacts.py", "test_actuation_limits.py",
+               "test_mjcf.py", "test_physics.py", "test_cross_backend.py", "test_world_health.py",
+               "test_forward_kinematics.py", "test_rl_resume.py", "test_first_hour.py", "test_redundant_limits.py",
+               "test_jansen_walker.py", "test_post_stabilisation.py", "test_batching.py", "test_sharding.py",
+               "test_rl_eval.py", "test_fk_robots.py")
 
 
 #: node ids of the tests outside the quick tier that carry no ``slow`` mark in their files (tests/slow_tests.txt)
@@ -152,10 +177,26 @@ def _mark_listed_slow(config, items) -> None:
 
 
 def pytest_collection_modifyitems(config, items) -> None:
-    """Mark the listed slow tests (``_mark_listed_slow``), then start the longest test modules first. xdist hands
-    tests out in collection order. In alphabetical order the notebooks and test_robots.py came late, so one worker
-    was still running them after the other had finished. Started first, they overlap with the many short tests. The
-    order within a module is kept (a stable sort), and each worker sorts the same way."""
+    """Mark the listed slow tests (``_mark_listed_slow``), then order the test modules longest first
+    (``_LONG_FIRST``). xdist hands the modules out in collection order (``pytest_xdist_make_scheduler``); started
+    first, the long ones overlap with the many short modules, and the last modules to finish are short. The order
+    within a module is kept (a stable sort), and each worker sorts the same way."""
     _mark_listed_slow(config, items)
     rank = {name: i for i, name in enumerate(_LONG_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(_LONG_FIRST)))
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: no error where it is not installed
+def pytest_xdist_make_scheduler(config, log):
+    """``pytest -n N`` hands out whole test modules (xdist's ``loadfile``), in collection order, instead of single
+    tests (its default, ``load``). A module's tests then share one process: its module-scoped fixtures are built
+    once, and its tests reuse one another's traced and compiled steps. Handing out single tests, xdist split some
+    modules over both workers (test_actuation_limits.py, test_mjcf.py, test_physics.py and test_world_health.py in
+    one run), and each worker traced and compiled their steps. A ``--dist`` mode other than xdist's default is left
+    as it is."""
+    if config.getvalue("dist") != "load":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    config.option.loadscopereorder = False  # keep the collection order (xdist would sort modules by test count)
+    return LoadFileScheduling(config, log)

@@ -61,10 +61,12 @@ def _start(out: Path, marker: Path, kill_at: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
-def _kill(proc: subprocess.Popen) -> str:
+def _kill(proc: subprocess.Popen, *, may_have_finished: bool = False) -> str:
+    """SIGKILL ``proc``; with ``may_have_finished``, a run that completed between the caller's last look at it and
+    the signal passes as well (the random kill of step 2 can come after a short resumed run has ended)."""
     proc.send_signal(signal.SIGKILL)
     out, _ = proc.communicate(timeout=60)
-    assert proc.returncode == -signal.SIGKILL, out
+    assert proc.returncode == -signal.SIGKILL or (may_have_finished and proc.returncode == 0), out
     return out
 
 
@@ -114,7 +116,7 @@ def test_training_killed_anywhere_resumes_to_completion(tmp_path):
     while time.monotonic() - t1 < delay and proc.poll() is None:
         time.sleep(0.05)
     if proc.poll() is None:
-        _kill(proc)
+        _kill(proc, may_have_finished=True)
     for path in ("run.json", "env.json", "curve.json"):  # whatever exists is whole
         if (out / path).exists():
             json.loads((out / path).read_text())
