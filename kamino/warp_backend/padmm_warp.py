@@ -1,5 +1,5 @@
-"""Proximal-ADMM with one GPU warp (32 threads) per world on the sparse factor (docs/formulation.md §7-§8.1; paper
-Alg. 1): the schedule for robot-sized worlds (``Stepper(padmm="warp")``).
+"""Proximal-ADMM with one GPU warp (32 threads) per world on the sparse factor or with Conjugate Residual
+(docs/formulation.md §7-§8.2; paper Alg. 1): the schedule for robot-sized worlds (``Stepper(padmm="warp")``).
 
 One thread per world (``solver.padmm_iterate``) walks a world's factor and vectors alone: at 4096 worlds that is one
 warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of about 16,000 dependent loads. Here the
@@ -23,6 +23,10 @@ warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of abou
   the limit and contact rows, the null-direction test, momentum) is ``padmm_rules.py``'s, the threads splitting the
   box rows and the contact triples; the world's maxima and sums are block reductions. Iteration counts equal the
   thread kernel's (``tests/test_warp_lane_padmm.py``).
+- **Conjugate Residual** (``warp_kernels(cr=True)``: :func:`cr_solve`, §8.2, instead of the factor). The operator
+  ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for ``M^-1 J^T P
+  v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no atomics and
+  keeps ``solver.apply_operator``'s order), then the rows for ``J`` times it; CR's dot products are block sums.
 
 Threads of a world meet at block barriers (``sync``); on the CPU the block runs as cooperative fibers
 (``warp.config.enable_cpu_blocks``), which is how CI checks this kernel against the thread kernel.
