@@ -89,6 +89,28 @@ def test_warp_schedule_with_inexact_cr_solves_converges_like_the_thread_kernel()
     np.testing.assert_allclose(rho_w, rho_t, rtol=1e-9)
 
 
+def test_warp_schedule_with_cr_on_rows_of_four_blocks():
+    # A coupling of two joints spans four bodies' blocks (blocks_per_row = 4): cr_pattern lists all four slots of
+    # every row. Two position-driven hinges coupled 2:1, next to a four-bar; as exact as the comparison above.
+    from kamino.models.shapes import box_inertia
+
+    b = kamino.ModelBuilder()
+    la = b.add_body(1.0, box_inertia(1.0, (0.1, 0.1, 1.0)), pos=(0, 0, 0.5), name="a")
+    lb = b.add_body(1.0, box_inertia(1.0, (0.1, 0.1, 1.0)), pos=(1, 0, 0.5), name="b")
+    ja = b.add_joint_at(kamino.JointType.REVOLUTE, -1, la, anchor=(0, 0, 1), axis=(0, 1, 0), name="ja")
+    jb = b.add_joint_at(kamino.JointType.REVOLUTE, -1, lb, anchor=(1, 0, 1), axis=(0, 1, 0), name="jb",
+                        actuation=kamino.Actuation("position", kp=10.0, kd=1.0))
+    b.add_coupling(ja, jb, (0.0, 2.0), name="m")
+    model = kamino.concat([b.finalize(), kamino.models.fourbar()])
+    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8, linear_solver="cr")
+    q_t, it_t, _, _ = _run(model, cfg, "thread", 30)
+    q_w, it_w, _, st = _run(model, cfg, "warp", 30)
+    assert st.padmm == "warp" and st.wm.blocks_per_row == 4
+    np.testing.assert_allclose(q_w, q_t, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(it_w, it_t)
+    assert bool(np.all(st.work.converged.numpy()))
+
+
 def test_warp_schedule_on_a_robot_at_the_float32_defaults():
     # dr_legs (31 bodies, 204 fixed rows, feet contacts) at SolverConfig(dt) in float32, where post-stabilisation
     # solves with PADMM's own L_f: the float32 rounding of the two summation orders may move an iteration count
