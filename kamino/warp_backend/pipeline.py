@@ -38,9 +38,9 @@ PER_WORLD_BLOCK = 32
 
 
 def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread", cuda: bool = False) -> str:
-    """``"llt"`` or ``"cr"`` for ``cfg`` on worlds of up to ``max_rows`` rows (CR needs the sparse J; the 32-thread
-    schedule, ``padmm="warp"``, solves with the sparse factor at every size; ``"auto"`` takes CR only with one thread
-    per world on a GPU (``cuda``) above ``AUTO_CR_ROWS`` rows)."""
+    """``"llt"`` or ``"cr"`` for ``cfg`` on worlds of up to ``max_rows`` rows (CR needs the sparse J; under the
+    32-thread schedule, ``padmm="warp"``, ``"auto"`` is the sparse factor at every size; ``"auto"`` takes CR only with
+    one thread per world on a GPU (``cuda``) above ``AUTO_CR_ROWS`` rows)."""
     choice = cfg.linear_solver
     if choice == "auto":
         large = cuda and padmm != "warp" and max_rows > AUTO_CR_ROWS
