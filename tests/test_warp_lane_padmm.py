@@ -1,6 +1,6 @@
-"""The 32-threads-per-world schedule (``Stepper(padmm="warp")``, padmm_warp.py: the sparse factorisation, the PADMM
-iterations and post-stabilisation's solve) against the one-thread-per-world kernels, on Warp's CPU device
-(cooperative CPU blocks)."""
+"""The 32-threads-per-world schedule (``Stepper(padmm="warp")``, padmm_warp.py: the sparse factorisation or the
+Conjugate Residual solve, the PADMM iterations and post-stabilisation's solve) against the one-thread-per-world
+kernels, on Warp's CPU device (cooperative CPU blocks)."""
 
 import numpy as np
 import pytest
@@ -49,6 +49,68 @@ def test_warp_schedule_solves_what_the_thread_kernel_solves(staged, monkeypatch)
     assert bool(np.all(st.work.converged.numpy()))
 
 
+def _cr_comparison(budget: int):
+    """The scenes of the LLT comparison above on CR with ``budget`` iterations per solve, on both schedules."""
+    model = kamino.concat([kamino.models.fourbar(), kamino.models.box_stack(2), kamino.models.chain_of_loops(3)])
+    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8, linear_solver="cr", cr_iterations=budget)
+    q_t, it_t, rho_t, _ = _run(model, cfg, "thread", 60)
+    q_w, it_w, rho_w, st = _run(model, cfg, "warp", 60)
+    assert st.padmm == "warp" and st.linear_solver == "cr" and st.wk.cr and not st.sparse_factor
+    assert len(np.unique(rho_t)) > 1  # the penalty did change inside the iterations
+    assert bool(np.all(st.work.converged.numpy())) and not bool(np.any(st.work.failed.numpy()))
+    return cfg, (q_t, it_t, rho_t), (q_w, it_w, rho_w)
+
+
+def test_warp_schedule_with_cr_solves_what_the_thread_kernel_solves():
+    # Conjugate Residual with 32 threads per world against one thread per world, on the scenes of the LLT comparison
+    # above (loops driven into their limits, contacts, float64 at a tight tolerance, the adaptive penalty changing
+    # inside the iterations, post-stabilisation with the fixed rows' own factor and the 32-thread solve), at CR's
+    # default budget (30 iterations for worlds of 24-66 rows). The operator's sums are the thread kernel's, in its
+    # order (cr_pattern's lists of row blocks by body); the dot products are block sums, in another
+    # order. So the two agree to rounding amplified by the iterations (1e-10 m over 60 steps, as the LLT's), with the
+    # same iterations and penalties on every step.
+    _, (q_t, it_t, rho_t), (q_w, it_w, rho_w) = _cr_comparison(30)
+    np.testing.assert_allclose(q_w, q_t, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(it_w, it_t)
+    np.testing.assert_allclose(rho_w, rho_t, rtol=1e-9)
+
+
+def test_warp_schedule_with_inexact_cr_solves_converges_like_the_thread_kernel():
+    # At 4 CR iterations per solve the solves are inexact: their exit residual, folded into the dual residual,
+    # decides when a world converges (the chain of loops takes ~80 PADMM iterations a step instead of 2). PADMM
+    # then amplifies the rounding of the dot products' other order into a different stopping iteration now and then
+    # (measured: up to 3 of ~80, on 25 of 60 steps); both stop within the tolerance 1e-8 m/s, which over 60 steps
+    # of 1/240 s moves a pose by at most 60 * 1e-8 / 240 = 2.5e-9 m (measured 1.4e-10 m), and take the same PADMM
+    # iterations to 1 % in all (measured 0.15 %).
+    cfg, (q_t, it_t, rho_t), (q_w, it_w, rho_w) = _cr_comparison(4)
+    np.testing.assert_allclose(q_w, q_t, rtol=0, atol=60 * cfg.tolerance * cfg.dt)
+    assert it_t[:, 2].mean() > 20  # the inexact solves did cost PADMM iterations
+    np.testing.assert_allclose(it_w.sum(axis=0), it_t.sum(axis=0), rtol=0.01)
+    np.testing.assert_allclose(rho_w, rho_t, rtol=1e-9)
+
+
+def test_warp_schedule_with_cr_on_rows_of_four_blocks():
+    # A coupling of two joints spans four bodies' blocks (blocks_per_row = 4): cr_pattern lists all four slots of
+    # every row. Two position-driven hinges coupled 2:1, next to a four-bar; as exact as the comparison above.
+    from kamino.models.shapes import box_inertia
+
+    b = kamino.ModelBuilder()
+    la = b.add_body(1.0, box_inertia(1.0, (0.1, 0.1, 1.0)), pos=(0, 0, 0.5), name="a")
+    lb = b.add_body(1.0, box_inertia(1.0, (0.1, 0.1, 1.0)), pos=(1, 0, 0.5), name="b")
+    ja = b.add_joint_at(kamino.JointType.REVOLUTE, -1, la, anchor=(0, 0, 1), axis=(0, 1, 0), name="ja")
+    jb = b.add_joint_at(kamino.JointType.REVOLUTE, -1, lb, anchor=(1, 0, 1), axis=(0, 1, 0), name="jb",
+                        actuation=kamino.Actuation("position", kp=10.0, kd=1.0))
+    b.add_coupling(ja, jb, (0.0, 2.0), name="m")
+    model = kamino.concat([b.finalize(), kamino.models.fourbar()])
+    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8, linear_solver="cr")
+    q_t, it_t, _, _ = _run(model, cfg, "thread", 30)
+    q_w, it_w, _, st = _run(model, cfg, "warp", 30)
+    assert st.padmm == "warp" and st.wm.blocks_per_row == 4
+    np.testing.assert_allclose(q_w, q_t, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(it_w, it_t)
+    assert bool(np.all(st.work.converged.numpy()))
+
+
 def test_warp_schedule_on_a_robot_at_the_float32_defaults():
     # dr_legs (31 bodies, 204 fixed rows, feet contacts) at SolverConfig(dt) in float32, where post-stabilisation
     # solves with PADMM's own L_f: the float32 rounding of the two summation orders may move an iteration count
@@ -65,19 +127,35 @@ def test_warp_schedule_on_a_robot_at_the_float32_defaults():
     assert bool(np.all(st.work.converged.numpy())) and not bool(np.any(st.work.failed.numpy()))
 
 
+def test_warp_schedule_with_cr_on_a_robot_in_float32():
+    # dr_legs (204 fixed rows, 31 bodies, feet contacts) on CR at its default budget in float32: the dot products'
+    # float32 rounding in another order may move an iteration count by one, so the check is the physics, with the
+    # float32 robot test's reasoning above: poses within 1e-5 m over 20 steps (measured 1.2e-7 m) and the same mean
+    # iterations to 5 % (measured equal).
+    model = kamino.replicate(kamino.models.dr_legs(), 2)
+    cfg = kamino.SolverConfig(dt=0.0025, linear_solver="cr")
+    q_t, it_t, _, _ = _run(model, cfg, "thread", 20, np.float32)
+    q_w, it_w, _, st = _run(model, cfg, "warp", 20, np.float32)
+    assert st.padmm == "warp" and st.linear_solver == "cr"
+    np.testing.assert_allclose(q_w[:, :3], q_t[:, :3], rtol=0, atol=1e-5)
+    assert abs(it_w.mean() - it_t.mean()) <= 0.05 * it_t.mean()
+    assert bool(np.all(st.work.converged.numpy())) and not bool(np.any(st.work.failed.numpy()))
+
+
 def test_warp_schedule_rejects_what_it_cannot_solve():
+    # the 32-thread schedule solves with the block-sparse Jacobian (the sparse LLT or CR), not the dense one
     model = kamino.models.fourbar()
-    with pytest.raises(ValueError, match="sparse LLT"):
-        Stepper(model, kamino.SolverConfig(linear_solver="cr"), np.float32, "cpu", padmm="warp")
-    with pytest.raises(ValueError, match="sparse LLT"):
+    with pytest.raises(ValueError, match="block-sparse Jacobian"):
         Stepper(model, kamino.SolverConfig(jacobian="dense"), np.float32, "cpu", padmm="warp")
+    with pytest.raises(ValueError, match="block-sparse Jacobian"):
+        Stepper(model, kamino.SolverConfig(jacobian="dense", linear_solver="cr"), np.float32, "cpu", padmm="warp")
     with pytest.raises(ValueError, match="padmm must be"):
         Stepper(model, kamino.SolverConfig(), np.float32, "cpu", padmm="block")
 
 
 def test_the_automatic_schedule_follows_the_measured_crossover():
     # pipeline.resolve_padmm: the 32-thread schedule on CUDA where it measures faster (up to 16384 worlds, or worlds
-    # of 200 rows or more), one thread per world elsewhere and on every CPU run.
+    # of 200 rows or more), with the sparse LLT or CR, one thread per world elsewhere and on every CPU run.
     from types import SimpleNamespace
 
     from kamino.warp_backend.pipeline import resolve_padmm
@@ -90,5 +168,10 @@ def test_the_automatic_schedule_follows_the_measured_crossover():
     assert resolve_padmm(cfg, gpu, 16384, 576, None) == "warp"  # ladder32 at 16384 worlds
     assert resolve_padmm(cfg, cpu, 64, 240, None) == "thread"
     assert resolve_padmm(kamino.SolverConfig(jacobian="dense"), gpu, 64, 240, None) == "thread"
-    assert resolve_padmm(kamino.SolverConfig(linear_solver="cr"), gpu, 64, 240, None) == "thread"
+    cr = kamino.SolverConfig(linear_solver="cr")
+    assert resolve_padmm(cr, gpu, 64, 240, None) == "warp"
+    assert resolve_padmm(cr, gpu, 1, 365, None) == "warp"  # one eight-legged Jansen walker
+    assert resolve_padmm(cr, gpu, 65536, 117, None) == "thread"
+    assert resolve_padmm(cr, gpu, 65536, 365, None) == "warp"
+    assert resolve_padmm(cr, cpu, 64, 240, None) == "thread"
     assert resolve_padmm(cfg, cpu, 64, 240, "warp") == "warp"  # an explicit choice is kept

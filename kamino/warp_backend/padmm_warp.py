@@ -1,5 +1,5 @@
-"""Proximal-ADMM with one GPU warp (32 threads) per world on the sparse factor (docs/formulation.md §7-§8.1; paper
-Alg. 1): the schedule for robot-sized worlds (``Stepper(padmm="warp")``).
+"""Proximal-ADMM with one GPU warp (32 threads) per world on the sparse factor or with Conjugate Residual
+(docs/formulation.md §7-§8.2; paper Alg. 1): the schedule for robot-sized worlds (``Stepper(padmm="warp")``).
 
 One thread per world (``solver.padmm_iterate``) walks a world's factor and vectors alone: at 4096 worlds that is one
 warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of about 16,000 dependent loads. Here the
@@ -23,6 +23,10 @@ warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of abou
   the limit and contact rows, the null-direction test, momentum) is ``padmm_rules.py``'s, the threads splitting the
   box rows and the contact triples; the world's maxima and sums are block reductions. Iteration counts equal the
   thread kernel's (``tests/test_warp_lane_padmm.py``).
+- **Conjugate Residual** (``warp_kernels(cr=True)``: :func:`cr_solve`, §8.2, instead of the factor). The operator
+  ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for ``M^-1 J^T P
+  v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no atomics and
+  keeps ``solver.apply_operator``'s order), then the rows for ``J`` times it; CR's dot products are block sums.
 
 Threads of a world meet at block barriers (``sync``); on the CPU the block runs as cooperative fibers
 (``warp.config.enable_cpu_blocks``), which is how CI checks this kernel against the thread kernel.
@@ -89,13 +93,18 @@ REGISTER_CAP_MIN_ROWS = 200
 
 
 @functools.cache
-def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
+def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamespace:
     """``factor``, ``padmm_iterate`` and ``solve_fixed`` (post-stabilisation) for worlds of up to ``R`` rows; launch
     each with ``wp.launch_tiled(dim=[num_worlds], block_dim=LANES)``. The solve keeps two vectors of ``R`` rows in
     shared memory (2 R scalars per world). With ``E > 0`` the factorisation copies the world's ``D~_f`` (up to ``E``
     entries) into shared memory, factorises it there and writes ``L_f`` back: its chain of dependent
-    read-modify-writes, one per update, then waits on shared memory instead of device memory."""
-    scalar = types_of(np_dtype).scalar
+    read-modify-writes, one per update, then waits on shared memory instead of device memory.
+
+    With ``cr`` the iterations solve with Conjugate Residual instead of the factor (§8.2: :func:`cr_solve`, the
+    vectors in the ``Work`` rows, no shared vectors), after ``cr_pattern`` (one thread per world, ``wp.launch``) has
+    grouped the world's row blocks by body for the step; ``factor`` is not launched then."""
+    T = types_of(np_dtype)
+    scalar, vec6 = T.scalar, T.vec6
     M = model_struct(np_dtype)
     Work = work_struct(np_dtype)
     SP = pattern_struct(np_dtype)
@@ -107,8 +116,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
     slk = sparse_llt_kernels(np_dtype)
     bases, schur_entry, fixed_entry, tail_row = slk.bases, slk.schur_entry, slk.fixed_entry, slk.tail_row
     tail_k, tail_pattern, sdiag_col = slk.tail_k, slk.tail_pattern, slk.sdiag_col
+    inv_mass_times, residual_weight = slk.inv_mass_times, pf.residual_weight
     ix = index_funcs(np_dtype)
-    row_saturated, set_saturated, row_mu = ix.row_saturated, ix.set_saturated, ix.row_mu
+    row_saturated, set_saturated, row_mu, row_base = ix.row_saturated, ix.set_saturated, ix.row_mu, ix.row_base
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(NULL_DIRECTION_RATIO)
     zero = scalar(0.0)
@@ -544,6 +554,140 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
         for a in range(lane, nf, LANES):
             w.x[rb + a * rs] = w.P[rb + a * rs] * sget(xs, a)
 
+    # --- Conjugate Residual (§8.2) ------------------------------------------------------------------------
+    @wp.func
+    def ent_slot(rb: int, rs: int, nblk: int, j: int) -> int:
+        """Where entry ``j`` of a world's body-grouped row blocks (``Work.cr_ent``) is stored: in the slots of the
+        world's row blocks (``w.row_body``'s layout), which hold as many."""
+        return (rb + (j // nblk) * rs) * nblk + j % nblk
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def cr_pattern(m: M, w: Work, nblk: int):
+        """The world's row blocks grouped by body, in row order within a body (a counting sort, one thread per
+        world, once per step after the rows are assembled): ``w.cr_ent`` lists the blocks' indices ``r nblk + k``
+        body after body, ``w.cr_end[b]`` where body ``b``'s list ends (it starts where the previous body's ends, or
+        at 0). :func:`cr_apply` sums a body's share of ``J^T`` from it in the order of ``solver.apply_operator``,
+        with no atomics."""
+        wid = wp.tid()
+        rs = w.row_stride
+        rb = row_base(m, w, wid)
+        b0 = m.body_start[wid]
+        nb = m.body_count[wid]
+        n = w.n_rows[wid]
+        for i in range(nb):
+            w.cr_end[b0 + i] = 0
+        for a in range(n):
+            r = rb + a * rs
+            for k in range(nblk):
+                b = w.row_body[r * nblk + k]
+                if b >= 0:
+                    w.cr_end[b] = w.cr_end[b] + 1
+        start = int(0)
+        for i in range(nb):  # counts -> starts
+            c = w.cr_end[b0 + i]
+            w.cr_end[b0 + i] = start
+            start += c
+        for a in range(n):  # starts -> ends
+            r = rb + a * rs
+            for k in range(nblk):
+                b = w.row_body[r * nblk + k]
+                if b >= 0:
+                    j = w.cr_end[b]
+                    w.cr_ent[ent_slot(rb, rs, nblk, j)] = r * nblk + k
+                    w.cr_end[b] = j + 1
+
+    @wp.func
+    def cr_apply(m: M, w: Work, wid: int, rb: int, n: int, nblk: int, lane: int, shift_f: scalar, shift_b: scalar,
+                 shift_t: scalar, v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
+        """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free with the world's threads (§8.2;
+        ``solver.apply_operator``, the same sums in the same order): the threads split the bodies for ``cr_w =
+        M^-1 J^T P v`` (each body's row blocks from ``cr_pattern``'s lists), then the rows for ``J cr_w`` and the
+        diagonal (``shift_f`` on the fixed rows, ``shift_b`` on the saturated ones, ``shift_t`` on the limit and
+        contact rows). A barrier before each phase: every thread's rows of ``v``, then every body of ``cr_w``."""
+        rs = w.row_stride
+        b0 = m.body_start[wid]
+        sync()
+        for i in range(lane, m.body_count[wid], LANES):
+            b = b0 + i
+            j0 = int(0)
+            if i > 0:
+                j0 = w.cr_end[b - 1]
+            acc = vec6()
+            for j in range(j0, w.cr_end[b]):
+                e = w.cr_ent[ent_slot(rb, rs, nblk, j)]
+                r = e // nblk
+                acc = acc + (w.P[r] * v[r]) * w.row_J[e]
+            w.cr_w[b] = inv_mass_times(m, w, b, acc)
+        sync()
+        nf = m.row_fixed[wid]
+        for a in range(lane, n, LANES):
+            r = rb + a * rs
+            s = zero
+            for k in range(nblk):
+                b = w.row_body[r * nblk + k]
+                if b >= 0:
+                    s += wp.dot(w.row_J[r * nblk + k], w.cr_w[b])
+            Pa = w.P[r]
+            shift = shift_t
+            if a < nf:
+                shift = wp.where(row_saturated(w, r) != 0, shift_b, shift_f)
+            out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
+
+    @wp.func
+    def cr_solve(m: M, w: Work, wid: int, rb: int, n: int, nblk: int, lane: int, shift_f: scalar, shift_b: scalar,
+                 shift_t: scalar, budget: int):
+        """Conjugate Residual on ``A x = b`` (``b`` in ``y``) from ``x = x_p`` with the world's threads (§8.2;
+        ``solver.cr_solve`` rule for rule: at most ``budget`` iterations, stopping early only when
+        ``|r|^2 <= 1e-30 |b|^2`` or the recurrence breaks down, ``cr_r`` the residual on exit). Each thread updates
+        its own rows of the vectors; the dot products are block sums, so every thread takes the same branch."""
+        rs = w.row_stride
+        for a in range(lane, n, LANES):
+            r = rb + a * rs
+            w.x[r] = w.x_p[r]
+        cr_apply(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, w.x, w.cr_Ar)
+        bb = zero
+        for a in range(lane, n, LANES):
+            r = rb + a * rs
+            w.cr_r[r] = w.y[r] - w.cr_Ar[r]
+            w.cr_p[r] = w.cr_r[r]
+            bb += w.y[r] * w.y[r]
+        bb = lane_sum(bb)
+        cr_apply(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, w.cr_r, w.cr_Ar)
+        zeta = zero
+        for a in range(lane, n, LANES):
+            r = rb + a * rs
+            w.cr_Ap[r] = w.cr_Ar[r]
+            zeta += w.cr_r[r] * w.cr_Ar[r]
+        zeta = lane_sum(zeta)
+        stop = scalar(1e-30) * bb
+        for it in range(budget):
+            rr = zero
+            pp = zero
+            for a in range(lane, n, LANES):
+                r = rb + a * rs
+                rr += w.cr_r[r] * w.cr_r[r]
+                pp += w.cr_Ap[r] * w.cr_Ap[r]
+            rr = lane_sum(rr)
+            pp = lane_sum(pp)
+            if rr <= stop or pp <= zero or zeta == zero:
+                break
+            alpha = zeta / pp
+            for a in range(lane, n, LANES):
+                r = rb + a * rs
+                w.x[r] = w.x[r] + alpha * w.cr_p[r]
+                w.cr_r[r] = w.cr_r[r] - alpha * w.cr_Ap[r]
+            cr_apply(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, w.cr_r, w.cr_Ar)
+            zeta_new = zero
+            for a in range(lane, n, LANES):
+                zeta_new += w.cr_r[rb + a * rs] * w.cr_Ar[rb + a * rs]
+            zeta_new = lane_sum(zeta_new)
+            beta = zeta_new / zeta
+            zeta = zeta_new
+            for a in range(lane, n, LANES):
+                r = rb + a * rs
+                w.cr_p[r] = w.cr_r[r] + beta * w.cr_p[r]
+                w.cr_Ap[r] = w.cr_Ar[r] + beta * w.cr_Ap[r]
+
     # --- iterations ---------------------------------------------------------------------------------------
     @wp.func
     def row_penalty(w: Work, r: int, a: int, nf: int, rho_free: scalar, rho_box: scalar, rho_u: scalar):
@@ -556,36 +700,46 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
 
     @wp.kernel(module="unique", enable_backward=False,
                cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else None)
-    def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, eta: scalar, rho_free: scalar, rho_box: scalar,
-                      tol: scalar, restart_tol: scalar, accelerate: int, fixed: int, adaptive: int):
+    def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar,
+                      rho_box: scalar, tol: scalar, restart_tol: scalar, accelerate: int, fixed: int, adaptive: int):
         """Up to ``chunk`` accelerated PADMM iterations of one world with its 32 threads (``solver.padmm_iterate``
-        with the sparse factor, rule for rule: §7.3-§7.5, the penalty of the limit and contact rows, the
-        null-direction test), resuming from the stored iterate; a world that converges (unless ``fixed``) or
-        reaches its cap is marked done and leaves ``remaining``."""
+        with the sparse factor, or with Conjugate Residual under ``cr`` (at most ``cr_budget`` iterations per
+        solve), rule for rule: §7.3-§7.5, the penalty of the limit and contact rows, the null-direction test),
+        resuming from the stored iterate; a world that converges (unless ``fixed``) or reaches its cap is marked
+        done and leaves ``remaining``. Under ``cr`` the solution lands in ``w.x`` (the factor's solve: in
+        ``xs``), CR's exit residual joins the dual residual, a new penalty refactorises nothing and a row that
+        saturates takes ``rho_box`` in the next solve's operator without ending the launch."""
         rs = w.row_stride
         wid, lane = wp.tid()
         if w.done[wid] != 0:
             return
-        rb = bases(m, w, sp, wid)[0]
+        rb = row_base(m, w, wid)
         n = w.n_rows[wid]
         n_box = w.n_box[wid]
         nc = (n - n_box) // 3
         nf = m.row_fixed[wid]
         p_ref = w.p_ref[wid]
         rho_u = w.rho_u[wid]
-        xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
-        ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        if wp.static(not cr):
+            xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+            ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         for step in range(chunk):
-            # steps 1-2: De Saxcé correction, right-hand side (into xs), linear solve
+            # steps 1-2: De Saxcé correction, right-hand side (into xs; CR's into y), linear solve
             for a in range(lane, n, LANES):
                 r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
                 rhs = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
                 if a >= n_box and (a - n_box) % 3 == 2:
                     rhs -= de_saxce(w.z_hat[r - 2 * rs], w.z_hat[r - rs], row_mu(w, r - 2 * rs))
-                sset(xs, a, rhs)
-            sync()
-            solve(m, w, sp, wid, n, lane, xs, ys)
+                if wp.static(cr):
+                    w.y[r] = rhs
+                else:
+                    sset(xs, a, rhs)
+            if wp.static(cr):
+                cr_solve(m, w, wid, rb, n, nblk, lane, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
+            else:
+                sync()
+                solve(m, w, sp, wid, n, lane, xs, ys)
             # steps 3-4: projection, dual update and the residuals: box rows, then contact triples
             r_p = zero
             r_d = zero
@@ -598,8 +752,12 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             for a in range(lane, n_box, LANES):
                 r = rb + a * rs
                 rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
-                x = sget(xs, a)
-                w.x[r] = x
+                x = zero
+                if wp.static(cr):
+                    x = w.x[r]
+                else:
+                    x = sget(xs, a)
+                    w.x[r] = x
                 z_hat = w.z_hat[r]
                 lo = w.lo_s[r]
                 hi = w.hi_s[r]
@@ -625,14 +783,23 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
             for c in range(lane, nc, LANES):
                 a = n_box + 3 * c
                 r = rb + a * rs
-                x0 = sget(xs, a)
-                x1 = sget(xs, a + 1)
-                x2 = sget(xs, a + 2)
+                x0 = zero
+                x1 = zero
+                x2 = zero
+                if wp.static(cr):
+                    x0 = w.x[r]
+                    x1 = w.x[r + rs]
+                    x2 = w.x[r + 2 * rs]
+                else:
+                    x0 = sget(xs, a)
+                    x1 = sget(xs, a + 1)
+                    x2 = sget(xs, a + 2)
                 cp = cone_project(x0 - inv_rho * w.z_hat[r], x1 - inv_rho * w.z_hat[r + rs],
                                   x2 - inv_rho * w.z_hat[r + 2 * rs], row_mu(w, r))
-                w.x[r] = x0
-                w.x[r + rs] = x1
-                w.x[r + 2 * rs] = x2
+                if wp.static(not cr):
+                    w.x[r] = x0
+                    w.x[r + rs] = x1
+                    w.x[r + 2 * rs] = x2
                 yz = zero
                 for t in range(3):
                     rt = r + t * rs
@@ -646,6 +813,14 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                     c_sum += du[3]
                     yz += y * du[0]
                 r_c = wp.max(r_c, wp.abs(yz))
+            if wp.static(cr):
+                # the inner solve's residual b - A x, a scaled velocity like the dual residual's rows: an inexact
+                # solve must not let the world report convergence (solver.padmm_iterate)
+                for a in range(lane, n, LANES):
+                    r = rb + a * rs
+                    e_cr = residual_weight(w.P[r], p_ref) * wp.abs(w.cr_r[r])
+                    r_d = wp.max(r_d, e_cr)
+                    r_tail = wp.max(r_tail, e_cr)
             r_p = lane_max(r_p)
             r_d = lane_max(r_d)
             r_c = lane_max(r_c)
@@ -675,9 +850,10 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                     mode = RESTART_HERE
                     a_new = scalar(1.0)
                     c_new = big
-                    sync()
-                    if not switch:
-                        factor_tail(m, w, sp, wid, n, eta + rho_u, lane)
+                    sync()  # every thread has read k_rho (balanced_penalty) before it changes
+                    if wp.static(not cr):
+                        if not switch:
+                            factor_tail(m, w, sp, wid, n, eta + rho_u, lane)
                     if lane == 0:
                         w.rho_u[wid] = rho_n
                         w.k_rho[wid] = k
@@ -699,7 +875,10 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 else:
                     w.y_hat[r] = extrapolated(y, w.y_p[r], beta, mode)
                     w.z_hat[r] = extrapolated(z, w.z_p[r], beta, mode)
-                w.x_p[r] = sget(xs, a)
+                if wp.static(cr):
+                    w.x_p[r] = w.x[r]
+                else:
+                    w.x_p[r] = sget(xs, a)
                 w.y_p[r] = y
                 w.z_p[r] = z
             done = (converged and fixed == 0) or k >= w.it_cap[wid]
@@ -713,15 +892,19 @@ def warp_kernels(np_dtype, R: int, E: int = 0) -> SimpleNamespace:
                 w.r_c[wid] = r_c
                 if switch:
                     w.k_rho[wid] = k
-                    w.pending[wid] = 1
+                    if wp.static(not cr):  # CR has no factor to redo: the next solve's operator takes rho_box
+                        w.pending[wid] = 1
                 if done:
                     w.converged[wid] = int(converged)
                     w.done[wid] = 1
                     wp.atomic_sub(w.remaining, 0, 1)
             sync()
-            if done or switch:
+            if wp.static(cr):
+                if done:
+                    return
+            elif done or switch:
                 return
 
     return SimpleNamespace(factor=factor, factor_tail=factor_tail, solve=solve,
-                           solve_fixed=solve_fixed,
-                           padmm_iterate=padmm_iterate, R=R, E=E)
+                           solve_fixed=solve_fixed, cr_pattern=cr_pattern,
+                           padmm_iterate=padmm_iterate, R=R, E=E, cr=cr)

@@ -38,9 +38,9 @@ PER_WORLD_BLOCK = 32
 
 
 def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread", cuda: bool = False) -> str:
-    """``"llt"`` or ``"cr"`` for ``cfg`` on worlds of up to ``max_rows`` rows (CR needs the sparse J; the 32-thread
-    schedule, ``padmm="warp"``, solves with the sparse factor at every size; ``"auto"`` takes CR only with one thread
-    per world on a GPU (``cuda``) above ``AUTO_CR_ROWS`` rows)."""
+    """``"llt"`` or ``"cr"`` for ``cfg`` on worlds of up to ``max_rows`` rows (CR needs the sparse J; under the
+    32-thread schedule, ``padmm="warp"``, ``"auto"`` is the sparse factor at every size; ``"auto"`` takes CR only with
+    one thread per world on a GPU (``cuda``) above ``AUTO_CR_ROWS`` rows)."""
     choice = cfg.linear_solver
     if choice == "auto":
         large = cuda and padmm != "warp" and max_rows > AUTO_CR_ROWS
@@ -62,26 +62,25 @@ WARP_SCHEDULE_MIN_ROWS = 200
 
 
 def resolve_padmm(cfg: SolverConfig, device, num_worlds: int, max_rows: int, padmm: str | None) -> str:
-    """The PADMM schedule: ``padmm`` if given, else ``"warp"`` on a CUDA device where the configuration solves with
-    the sparse LLT (``jacobian="sparse"``, ``linear_solver`` ``"auto"`` or ``"llt"``) and the worlds are few
+    """The PADMM schedule: ``padmm`` if given, else ``"warp"`` on a CUDA device where the configuration uses the
+    block-sparse Jacobian (``jacobian="sparse"``, with the sparse LLT or Conjugate Residual) and the worlds are few
     (:data:`WARP_SCHEDULE_MAX_WORLDS`) or large (:data:`WARP_SCHEDULE_MIN_ROWS`); else ``"thread"`` (every CPU
     run: the 32 threads of a world run as fibers there)."""
     if padmm is not None:
         if padmm not in ("thread", "warp"):
             raise ValueError(f"padmm must be 'thread' or 'warp' (got {padmm!r})")
         return padmm
-    sparse_llt_config = cfg.jacobian == "sparse" and cfg.linear_solver in ("auto", "llt")
     size_wins = num_worlds <= WARP_SCHEDULE_MAX_WORLDS or max_rows >= WARP_SCHEDULE_MIN_ROWS
-    return "warp" if (device.is_cuda and sparse_llt_config and size_wins and max_rows > 0) else "thread"
+    return "warp" if (device.is_cuda and cfg.jacobian == "sparse" and size_wins and max_rows > 0) else "thread"
 
 
 class Stepper:
     """Device buffers and launches for stepping ``model`` with ``cfg``.
 
     ``padmm``: ``"thread"`` runs PADMM with one thread per world (``solver.py``, LLT or CR); ``"warp"`` runs the
-    sparse factorisation, the PADMM iterations and post-stabilisation's solve with 32 threads per world
-    (``padmm_warp.py``; the sparse LLT path: ``jacobian="sparse"``, ``linear_solver="llt"``); ``None`` chooses by
-    device, configuration and size (:func:`resolve_padmm`).
+    sparse factorisation (or Conjugate Residual's operator), the PADMM iterations and post-stabilisation's solve
+    with 32 threads per world (``padmm_warp.py``; ``jacobian="sparse"``, ``linear_solver`` ``"llt"`` or ``"cr"``);
+    ``None`` chooses by device, configuration and size (:func:`resolve_padmm`).
     """
 
     def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None, padmm: str | None = None):
@@ -96,9 +95,9 @@ class Stepper:
         if cfg.redundant_limits:
             raise ValueError("SolverConfig.redundant_limits is implemented in the JAX reference only (float64); "
                              "use backend='jax' or leave it off")
-        if padmm == "warp" and not (llt and not self.dense):
-            raise ValueError("padmm='warp' runs the sparse LLT solve: use jacobian='sparse' and linear_solver='llt' "
-                             f"or 'auto' (got jacobian={cfg.jacobian!r}, linear_solver={self.linear_solver!r})")
+        if padmm == "warp" and self.dense:
+            raise ValueError("padmm='warp' solves with the block-sparse Jacobian (the sparse LLT or CR): use "
+                             f"jacobian='sparse' (got jacobian={cfg.jacobian!r})")
         self.padmm = padmm
         #: the fixed rows' penalty and whether the limit and contact rows' penalty adapts (kamino.jax_ref.padmm.solve)
         self.adaptive = cfg.penalty == "adaptive"
@@ -128,7 +127,8 @@ class Stepper:
                 self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
-                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), shared_entries(self.sf.max_nnz))
+                E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
+                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt)
         self.rk = row_kernels(self.np_dtype)
         self.sk = solver_kernels(self.np_dtype)
         self.ik = integrate_kernels(self.np_dtype)
@@ -209,8 +209,10 @@ class Stepper:
         w.remaining.fill_(W)
         self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled), cfg.max_iterations,
                      cfg.eta, cfg.rho, int(self.adaptive))
-        if self.padmm == "warp":
+        if self.padmm == "warp" and self.sparse_factor:
             self._launch_lanes(self.wk.factor, self.sp, cfg.eta, 0, nblk, shift_f, shift_b)
+        elif self.padmm == "warp":  # CR: the row blocks grouped by body for the operator
+            self._launch(self.wk.cr_pattern, W, nblk)
         elif self.sparse_factor:
             self._launch(self.spk.factor, W, self.sp, cfg.eta)
         self._padmm_loop()
@@ -271,8 +273,8 @@ class Stepper:
         W, nblk = self.wm.num_worlds, self.wm.blocks_per_row
         shift_f, shift_b = self.padmm_shifts
         if self.padmm == "warp":
-            args = (cfg.eta, self.rho_free, cfg.rho, cfg.tolerance, cfg.restart_tolerance, int(cfg.acceleration),
-                    int(cfg.fixed_iterations), int(self.adaptive))
+            args = (nblk, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho, cfg.tolerance,
+                    cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations), int(self.adaptive))
 
             def iterate(chunk):
                 self._launch_lanes(self.wk.padmm_iterate, self.sp, chunk, *args)

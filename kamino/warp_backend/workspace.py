@@ -157,6 +157,8 @@ def work_struct(np_dtype):
         cr_Ap: farr
         cr_Ar: farr
         cr_w: v6  # [bodies] M^-1 J^T P x (the Conjugate Residual operator)
+        cr_ent: iarr  # [rows * nblk] the row blocks grouped by body (padmm_warp.cr_pattern; 32-thread schedule)
+        cr_end: iarr  # [bodies] where each body's row blocks end in cr_ent
         # results
         q_new: wp.array(dtype=transform)
         u_new: v6
@@ -172,7 +174,8 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
     """A zero-initialised :func:`work_struct` for ``wm`` (``q_eval`` aliases ``q`` for Euler); ``dense``: the
     dense per-world Jacobian, ``delassus``: the dense Delassus matrix (not needed by CR or the sparse factor);
     ``rows_per_world``: each world's rows contiguous (``Work.row_stride = 1``) instead of interleaved; ``cr``: the
-    Conjugate Residual solve's scratch (``cr_*``; empty for the LLT paths, which never read it)."""
+    Conjugate Residual solve's scratch (``cr_*``; empty for the LLT paths, which never read it), with the row blocks
+    grouped by body (``cr_ent``, ``cr_end``) where ``rows_per_world`` (the 32-thread schedule's operator)."""
     T = types_of(wm.np_dtype)
     m = wm.model
     dev = wm.device
@@ -205,7 +208,8 @@ def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, row
         "row_info": (R, wp.int32),
         "Jd": (wm.total_jd if dense else 0, T.scalar), "MJd": (wm.total_jd if dense else 0, T.scalar),
         "D": (wm.total_mat if delassus else 0, T.scalar), "sdiag": (R if delassus else 0, T.scalar),
-        "cr_w": (B if cr else 0, T.vec6), "q_new": (B, T.transform), "u_new": (B, T.vec6),
+        "cr_w": (B if cr else 0, T.vec6), "cr_ent": (R * nblk if cr and rows_per_world else 0, wp.int32),
+        "cr_end": (B if cr and rows_per_world else 0, wp.int32), "q_new": (B, T.transform), "u_new": (B, T.vec6),
     }
     for name in ("vstar", "reg", "lo", "hi", "P", "vt", "x", "y", "z", "x_p", "y_p", "z_p", "y_hat",
                  "z_hat", "e_p", "impulse", "velocity"):
