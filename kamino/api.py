@@ -141,7 +141,9 @@ def rollout(model: Model, state: State, controls: Control | None = None, *, num_
 
 def metrics(model: Model, state: State) -> dict[str, jax.Array]:
     """Per-world diagnostics ``[num_worlds]``: ``constraint_violation`` (max |residual| of the joint
-    rows and couplings: m for translational rows, rad for rotational ones), ``kinetic_energy``,
+    rows and couplings: m for translational rows, rad for rotational ones), ``anchor_gap`` (max |residual| of the
+    translational joint rows [m]: how far the joints' anchor points, loop closures included, sit apart),
+    ``kinetic_energy``,
     ``potential_energy`` (``-m g . r``) and ``total_energy``.
 
     ``state`` may also be a trajectory from :func:`rollout` (a leading time axis on every field): then each

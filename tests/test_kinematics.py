@@ -87,3 +87,27 @@ def test_revolute_angle_reads_back():
         s = state.replace(body_q=jnp.asarray(q))
         assert abs(float(kamino.joint_positions(model, s)[0]) - angle) < 1e-12
         assert float(kamino.metrics(model, s)["constraint_violation"][0]) < 1e-12
+
+
+def test_anchor_gap_reads_the_anchors_apart_and_not_a_tilt():
+    """``metrics()["anchor_gap"]`` is the largest translational residual [m]: moving the child of a hinge 0.5 mm
+    along the axis opens its anchors by exactly that, and tilting it by 1 mrad about its anchor opens the hinge's
+    rotational rows (``constraint_violation``, 1e-3 rad to first order) but no anchor gap (the anchor stays put)."""
+    b = kamino.ModelBuilder()
+    p = b.add_body(mass=1.0, inertia=np.eye(3), name="p")
+    c = b.add_body(mass=1.0, inertia=np.eye(3), pos=(1, 0, 0), name="c")
+    b.add_joint_at(JT.REVOLUTE, p, c, anchor=(0.5, 0, 0), axis=(0, 0, 1), name="hinge")
+    model = b.finalize()
+    state = kamino.init_state(model)
+    q = np.array(model.body_q0)
+    q[1, 2] += 5e-4
+    shifted = kamino.metrics(model, state.replace(body_q=jnp.asarray(q)))
+    assert abs(float(shifted["anchor_gap"][0]) - 5e-4) < 1e-15
+    assert float(shifted["constraint_violation"][0]) >= float(shifted["anchor_gap"][0])
+    tilt = 1e-3
+    q = np.array(model.body_q0)
+    q[1, :3] = np.array([0.5, 0, 0]) + np.array([0.5, 0, 0])  # about the x axis through the anchor: x stays
+    q[1, 3:] = quat_mul(quat_from_axis_angle((1, 0, 0), tilt), q[1, 3:])
+    tilted = kamino.metrics(model, state.replace(body_q=jnp.asarray(q)))
+    assert float(tilted["anchor_gap"][0]) < 1e-15
+    assert abs(float(tilted["constraint_violation"][0]) - tilt) < tilt**2

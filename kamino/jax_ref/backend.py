@@ -17,7 +17,7 @@ from kamino.jax_ref.joints import constraint_residual, dof_positions, joint_coor
 from kamino.jax_ref.layout import PaddedModel, layout_of, to_flat, to_padded
 from kamino.jax_ref.precision import full_precision
 from kamino.jax_ref.step import WorldCache, WorldControl, step_batch
-from kamino.model import Model
+from kamino.model import RES_TRANS, Model
 from kamino.state import ContactState, Control, State, StepInfo
 
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
@@ -157,12 +157,14 @@ def _metrics_jit(pm: PaddedModel, t: dict, body_q, body_u):
     def one(pm_w, q_w, u_w):
         bd = body_dynamics(pm_w, q_w)
         jf = joint_frames(pm_w, q_w)
-        e = constraint_residual(pm_w, jf) if pm_w.row_mask.shape[0] else jnp.zeros(1)
-        e = jnp.concatenate([e, coupling_residual(pm_w, dof_positions(pm_w, jf))])
-        return jnp.max(jnp.abs(e), initial=0.0), kinetic_energy(bd, pm_w, u_w), potential_energy(pm_w, q_w)
+        rows = constraint_residual(pm_w, jf) if pm_w.row_mask.shape[0] else jnp.zeros(0, q_w.dtype)
+        e = jnp.concatenate([rows, coupling_residual(pm_w, dof_positions(pm_w, jf))])
+        gap = jnp.max(jnp.where(pm_w.row_kind == RES_TRANS, jnp.abs(rows), 0.0), initial=0.0)
+        return (jnp.max(jnp.abs(e), initial=0.0), gap, kinetic_energy(bd, pm_w, u_w),
+                potential_energy(pm_w, q_w))
 
-    viol, ke, pe = jax.vmap(one)(pm, q, u)
-    return {"constraint_violation": viol, "kinetic_energy": ke, "potential_energy": pe,
+    viol, gap, ke, pe = jax.vmap(one)(pm, q, u)
+    return {"constraint_violation": viol, "anchor_gap": gap, "kinetic_energy": ke, "potential_energy": pe,
             "total_energy": ke + pe}
 
 
