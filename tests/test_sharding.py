@@ -3,7 +3,7 @@ the unsharded result, world by world, on both backends, and each block stays on 
 runs under ``pmap`` (what brax's PPO does over local devices).
 
 The two-device runs need ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` before jax is imported: one
-subprocess runs them all.
+subprocess runs them all, on both backends, and the benchmark's smoke run.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ _TWO_DEVICES = textwrap.dedent("""
     state = state.replace(body_u=jnp.asarray(twist, jnp.float32))
     cfg = kamino.SolverConfig(dt=0.004)
     steps = 12
-    for backend in SHARD_BACKENDS:
+    for backend in ("jax", "warp"):
         ref = kamino.rollout(model, state, num_steps=steps, config=cfg, backend=backend)
         sharded = shard_worlds(model, state)
         traj = kamino.rollout(model, sharded, num_steps=steps, config=cfg, backend=backend)
@@ -102,38 +102,33 @@ _TWO_DEVICES = textwrap.dedent("""
         assert err == 0.0, err
 
     # kamino bench multi_device runs (a smoke run: the figures are taken on GPUs)
-    if SMOKE:
-        import json
-        from kamino.bench import multi_device
-        multi_device.main(["--scenes", "fourbar", "--worlds-per-device", "2", "--block", "2", "--replays", "1",
-                           "--repeats", "1", "--out", OUT])
-        recs = json.load(open(OUT))["records"]
-        assert [(r["devices"], r["path"]) for r in recs] == [(1, "shard_map"), (1, "eager"), (2, "shard_map")], recs
-        assert all(r["throughput"] > 0 and r["converged_fraction"] == 1.0 for r in recs if r["path"] == "shard_map")
+    import json
+    from kamino.bench import multi_device
+    multi_device.main(["--scenes", "fourbar", "--worlds-per-device", "2", "--block", "2", "--replays", "1",
+                       "--repeats", "1", "--out", OUT])
+    recs = json.load(open(OUT))["records"]
+    assert [(r["devices"], r["path"]) for r in recs] == [(1, "shard_map"), (1, "eager"), (2, "shard_map")], recs
+    assert all(r["throughput"] > 0 and r["converged_fraction"] == 1.0 for r in recs if r["path"] == "shard_map")
     print("OK")
 """)
 
 
-# the default tier shards the Warp backend's worlds; the JAX reference's sharded programs (about 50 s of compiling
-# on the 2-core machine) and the benchmark's smoke run are in the slow tier (README.md, under the test command)
-@pytest.mark.parametrize("full", [pytest.param(False, id="warp"),
-                                  pytest.param(True, marks=pytest.mark.slow, id="jax-warp-and-benchmark-smoke")])
-def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path, full):
+@pytest.mark.slow  # the JAX reference's sharded programs: about 50 s of compiling on the 2-core machine
+def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path):
     """Two forced host devices, a model of two identical groups (a four-bar and a two-box stack each): a rollout
-    and a step of the sharded state give, block by block on each device, the unsharded result.
+    and a step of the sharded state give, block by block on each device, the unsharded result, on both backends.
 
     Tolerances: the Warp backend computes each world in its own threads whatever the other worlds are
     (test_cross_backend.py::test_heterogeneous_worlds_match_standalone_on_warp: exact), so its blocks are
     compared exactly. The JAX reference is the same program on half the worlds, which XLA may vectorise
-    differently: float32 rounding over 12 steps, bounded at 1e-5 (m, rad, N s, and s for the time). Then
-    ``kamino bench multi_device``'s smoke run (its records, not its speed). The JAX half and the smoke run are in the
-    slow tier."""
+    differently: float32 rounding over 12 steps, bounded at 1e-5 (m, rad, N s, and s for the time). Then the Warp
+    step under ``pmap`` and ``kamino bench multi_device``'s smoke run (its records, not its speed). Everything runs
+    in one subprocess: one start-up of jax and Warp on the two devices."""
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     env["JAX_PLATFORMS"] = "cpu"
     out_json = str(tmp_path / "multi_device.json")
-    script = (ALL_CORES + f"TOL = {{'jax': 1e-5, 'warp': 0.0}}\nOUT = {out_json!r}\nSMOKE = {full}\n"
-              f"SHARD_BACKENDS = {('jax', 'warp') if full else ('warp',)}\n" + _TWO_DEVICES)
+    script = (ALL_CORES + f"TOL = {{'jax': 1e-5, 'warp': 0.0}}\nOUT = {out_json!r}\n" + _TWO_DEVICES)
     root = Path(__file__).resolve().parents[1]
     out = subprocess.run([sys.executable, "-c", script], env=env, cwd=root, capture_output=True, text=True,
                          timeout=600, check=False)
