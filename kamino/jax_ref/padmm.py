@@ -16,6 +16,7 @@ Cholesky and reused by every iteration (§8.1).
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -160,6 +161,29 @@ def redundant_limits(Dt: jax.Array, vt: jax.Array, lo: jax.Array, hi: jax.Array,
     worse = (g[:, None] > g[None, :]) | ((g[:, None] == g[None, :]) & (idx[:, None] > idx[None, :]))
     equivalent = ok[:, None] & ok[None, :] & (corr >= 1.0 - tau) & (idx[:, None] != idx[None, :])
     return jnp.any(equivalent & worse, axis=1)
+
+
+class Carry(NamedTuple):
+    """The PADMM loop's state after iteration ``k`` (:func:`solve`; scaled units, §7.3-§7.5)."""
+
+    k: jax.Array  #: iterations done
+    x_p: jax.Array  #: the last linear solve's ``x``
+    y_p: jax.Array  #: the projected iterate ``y``
+    z_p: jax.Array  #: the dual iterate ``z``
+    y_hat: jax.Array  #: the extrapolated ``y`` the next iteration starts from (§7.4)
+    z_hat: jax.Array  #: the extrapolated ``z``
+    a_p: jax.Array  #: the momentum coefficient ``a`` (§7.4)
+    c_p: jax.Array  #: the combined residual of the restart test (§7.4)
+    r_p: jax.Array  #: primal residual
+    r_d: jax.Array  #: dual residual
+    r_c: jax.Array  #: complementarity residual
+    converged: jax.Array
+    rho_u: jax.Array  #: the limit and contact rows' penalty ("Penalty")
+    L: tuple  #: the factor of the scaled system (``factor``)
+    k_rho: jax.Array  #: the iteration of the last penalty change or saturation
+    e_p: jax.Array  #: the previous iteration's dual residual vector ("Null directions")
+    sat: jax.Array  #: the saturated effort-limited rows ("Saturation")
+    pending: jax.Array  #: a row saturated: the factor is redone before the next iteration
 
 
 def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
@@ -324,18 +348,17 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
     tiny = jnp.asarray(jnp.finfo(dtype).tiny, dtype)
     any_bound = jnp.any(bound_rows)
-    # carry: k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, r_p, r_d, r_c, converged, rho_u, L, k_rho, e_p (the previous
-    # iteration's dual residual vector: the null-direction test)
     # the effort-limited rows that start saturated: the warm start on a bound, to SATURATION_MARGIN of it
     lo_m = jnp.where(finite_lo, lo_s + SATURATION_MARGIN * jnp.abs(jnp.where(finite_lo, lo_s, 0.0)), lo_s)
     hi_m = jnp.where(finite_hi, hi_s - SATURATION_MARGIN * jnp.abs(jnp.where(finite_hi, hi_s, 0.0)), hi_s)
     sat0 = fixed_box & jnp.concatenate([(finite_lo & (x0[:n_box] <= lo_m)) | (finite_hi & (x0[:n_box] >= hi_m)),
                                         jnp.zeros(n - n_box, bool)])
-    init = (jnp.int32(0), x0, x0, z0, x0, z0, jnp.asarray(1.0, dtype), big,
-            big, big, big, jnp.asarray(False), rho0, factor(factor_fixed(sat0), rho0, sat0), jnp.int32(0),
-            jnp.full(n, big, dtype), sat0, jnp.asarray(False))
+    init = Carry(k=jnp.int32(0), x_p=x0, y_p=x0, z_p=z0, y_hat=x0, z_hat=z0, a_p=jnp.asarray(1.0, dtype), c_p=big,
+                 r_p=big, r_d=big, r_c=big, converged=jnp.asarray(False), rho_u=rho0,
+                 L=factor(factor_fixed(sat0), rho0, sat0), k_rho=jnp.int32(0), e_p=jnp.full(n, big, dtype), sat=sat0,
+                 pending=jnp.asarray(False))
 
-    def iterate(carry, vt, hi_v, inline=True):
+    def iterate(carry: Carry, vt, hi_v, inline=True) -> Carry:
         """One PADMM iteration. A row that saturates refactorises here (``inline``) or marks the carry's
         ``pending`` for the caller to refactorise (the while loop: under ``vmap`` a ``lax.cond`` runs both
         branches, so an inline refactorisation would cost a factorisation per iteration)."""
@@ -398,43 +421,43 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
             z_hat_n = jnp.where(change, z, z_hat_n)
             c_n = jnp.where(change, big, c_n)
             k_rho = jnp.where(change, k + 1, k_rho)
-        return (k + 1, x, y, z, y_hat_n, z_hat_n, a, c_n, r_p, r_d, r_c, converged, rho_u, L, k_rho, e, sat,
-                pending)
+        return Carry(k=k + 1, x_p=x, y_p=y, z_p=z, y_hat=y_hat_n, z_hat=z_hat_n, a_p=a, c_p=c_n, r_p=r_p, r_d=r_d,
+                     r_c=r_c, converged=converged, rho_u=rho_u, L=L, k_rho=k_rho, e_p=e, sat=sat, pending=pending)
 
-    def run(carry, vt, hi_v, cap):
+    def run(carry: Carry, vt, hi_v, cap) -> Carry:
         if cfg.fixed_iterations:
             return jax.lax.fori_loop(0, cfg.max_iterations, lambda _, c: iterate(c, vt, hi_v), carry)
 
-        def phase(c):
+        def phase(c: Carry) -> Carry:
             # the factor for the rows saturated so far (where a row saturated), then iterations until the solve
             # converges, reaches the cap or another row saturates
-            L = jax.lax.cond(c[17], lambda: factor(factor_fixed(c[16]), c[12], c[16]), lambda: c[13])
-            c = (*c[:13], L, *c[14:17], jnp.asarray(False))
-            return jax.lax.while_loop(lambda c: (~c[11]) & (c[0] < cap) & ~c[17],
+            L = jax.lax.cond(c.pending, lambda: factor(factor_fixed(c.sat), c.rho_u, c.sat), lambda: c.L)
+            c = c._replace(L=L, pending=jnp.asarray(False))
+            return jax.lax.while_loop(lambda c: (~c.converged) & (c.k < cap) & ~c.pending,
                                       lambda c: iterate(c, vt, hi_v, inline=False), c)
 
-        return jax.lax.while_loop(lambda c: (~c[11]) & (c[0] < cap), phase, carry)
+        return jax.lax.while_loop(lambda c: (~c.converged) & (c.k < cap), phase, carry)
 
     out = run(init, vt, hi_v, cfg.max_iterations)
     if refine is not None:
-        k, x, y, z = out[0], out[1], out[2], out[3]
+        k, y, z = out.k, out.y_p, out.z_p
         vt2 = jnp.where(row_mask, P * refine(jnp.where(row_mask, P * y, 0.0)), 0.0)
         hi_v2 = upper(vt2)
         if cfg.redundant_limits:
             y = proj(y, hi_v2)  # the set of fixed rows may change with the right-hand side
-        restart = (k, x, y, z, y, z, jnp.asarray(1.0, dtype), big, out[8], out[9], out[10], jnp.asarray(False),
-                   out[12], out[13], k, out[15], out[16], out[17])
+        restart = out._replace(y_p=y, y_hat=y, z_hat=z, a_p=jnp.asarray(1.0, dtype), c_p=big,
+                               converged=jnp.asarray(False), k_rho=k)
         out = run(restart, vt2, hi_v2, k + cfg.max_iterations)
-    k, _, y, z, _, _, _, _, r_p, r_d, r_c, converged, rho_u = out[:13]
+    k, y, z = out.k, out.y_p, out.z_p
     v = (z - de_saxce(z, mu, n_box)) / P  # §7.7: v+ = z - Gamma(z), unscaled
     return PADMMResult(
         impulse=jnp.where(row_mask, P * y, 0.0),
         velocity=jnp.where(row_mask, v, 0.0),
         iterations=k,
-        primal_residual=r_p,
-        dual_residual=r_d,
-        complementarity_residual=r_c,
-        converged=converged,
-        penalty=rho_u,
-        saturated=out[16],
+        primal_residual=out.r_p,
+        dual_residual=out.r_d,
+        complementarity_residual=out.r_c,
+        converged=out.converged,
+        penalty=out.rho_u,
+        saturated=out.sat,
     )
