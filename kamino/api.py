@@ -14,13 +14,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from kamino.checks import check_config, check_control, check_control_type, check_model, check_state
-from kamino.config import SolverConfig
+from kamino.config import BACKENDS, SolverConfig
 from kamino.jax_ref.spatial import quat_to_matrix
 from kamino.model import JointType, Model
 from kamino.sharding import sharded_call, world_sharding
 from kamino.state import ContactState, Control, State, StepInfo
-
-BACKENDS = ("jax", "warp")
 
 
 def _backend(name: str):

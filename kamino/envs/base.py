@@ -50,7 +50,7 @@ from brax.envs.base import State as BraxState
 from kamino.api import init_state
 from kamino.api import step as kamino_step
 from kamino.checks import check_state
-from kamino.config import SolverConfig
+from kamino.config import BACKENDS, SolverConfig
 from kamino.envs.geometry import dof_state, ground_height, one_world, place_on_ground, support_points
 from kamino.envs.system import EnvSystem
 from kamino.jax_ref.backend import step_padded
@@ -58,8 +58,6 @@ from kamino.jax_ref.layout import layout_of
 from kamino.kinematics import base_bodies, forward_kinematics
 from kamino.model import ActuationMode, Model, replicate
 from kamino.state import Control, State, drop_empty, fill_empty
-
-BACKENDS = ("jax", "warp")
 
 
 class KaminoEnv(Env):

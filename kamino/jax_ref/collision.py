@@ -78,6 +78,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from kamino.config import BISECTION_STEPS, GOLDEN_STEPS, PARALLEL_SIN2, PROJECTION_ROUNDS
 from kamino.jax_ref.spatial import quat_to_matrix
 from kamino.model import GeomType
 
@@ -97,10 +98,6 @@ class ContactPoints:
 # constants and small helpers
 # ---------------------------------------------------------------------------------------------
 
-_GOLDEN_ITERS = 48  # golden-section steps: bracket 0.618**48 ~ 1e-10 of the segment
-_AP_ITERS = 64  # alternating-projection rounds (cylinder pairs)
-_BISECT_ITERS = 32  # bisection steps: 2**-32 of the segment
-_PARALLEL_SIN2 = 1e-2  # capsule segments count as near parallel below sin(angle) = 0.1
 _EDGE_BIAS_REL = 0.05  # an edge axis must beat the best face axis by 5 % of its separation ...
 _EDGE_BIAS_ABS = 1e-5  # ... plus this fraction of the boxes' size
 _BOX_SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))  # [8, 3] corner pattern
@@ -201,7 +198,7 @@ def _golden_min(f, tol):
         fc, fd = jnp.where(left, fn, fd), jnp.where(left, fc, fn)
         return lo, hi, c, d, fc, fd
 
-    lo, hi, *_ = jax.lax.fori_loop(0, _GOLDEN_ITERS, step, (zero, one, c, d, f(c), f(d)))
+    lo, hi, *_ = jax.lax.fori_loop(0, GOLDEN_STEPS, step, (zero, one, c, d, f(c), f(d)))
     t = 0.5 * (lo + hi)
     ft, f0, f1 = f(t), f(zero), f(one)
     t = jnp.where(f1 <= ft + tol, one, t)
@@ -432,7 +429,7 @@ def _capsule_capsule(pose_a, size_a, pose_b, size_b, margin):
     s2 = jnp.clip(jnp.where(jnp.abs(s1 - lo) >= jnp.abs(s1 - hi), lo, hi), 0.0, 1.0)
     t2 = jnp.clip(_safe_div((pa + s2 * da - pb) @ db, e), 0.0, 1.0)
     cross = jnp.cross(da, db)
-    parallel = cross @ cross <= _PARALLEL_SIN2 * a * e
+    parallel = cross @ cross <= PARALLEL_SIN2 * a * e
     second = parallel & (lo <= hi) & (jnp.abs(s2 - s1) > 1e-3) & (a > 0)
     fallback, _ = _normalize(cross, Ra[:, 0])
     s, t = jnp.stack([s1, s2]), jnp.stack([t1, t2])
@@ -673,10 +670,10 @@ def _project(sdf, y):
 
 def _alternating_projections(own_sdf, other_sdf, start):
     """A point of the own solid nearest to the other solid, by alternating projections between them
-    (von Neumann; ``_AP_ITERS`` rounds from the own point nearest ``start``). For separated solids it
+    (von Neumann; ``PROJECTION_ROUNDS`` rounds from the own point nearest ``start``). For separated solids it
     converges to a closest pair; for overlapping ones to a common point."""
     x = _project(own_sdf, start)
-    return jax.lax.fori_loop(0, _AP_ITERS, lambda _, x: _project(own_sdf, _project(other_sdf, x)), x)
+    return jax.lax.fori_loop(0, PROJECTION_ROUNDS, lambda _, x: _project(own_sdf, _project(other_sdf, x)), x)
 
 
 def _first_min(dist, tol):
@@ -694,7 +691,7 @@ def _reach(f, start, end, level):
         ok = f(start + mid * (end - start)) <= level
         return jnp.where(ok, mid, lo), jnp.where(ok, hi, mid)
 
-    lo, _ = jax.lax.fori_loop(0, _BISECT_ITERS, step, (jnp.zeros_like(level), jnp.ones_like(level)))
+    lo, _ = jax.lax.fori_loop(0, BISECTION_STEPS, step, (jnp.zeros_like(level), jnp.ones_like(level)))
     return jnp.where(f(end) <= level, end, start + lo * (end - start))
 
 

@@ -8,6 +8,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from kamino.config import GYRO_ITERATIONS
 from kamino.jax_ref.layout import PaddedModel
 from kamino.jax_ref.spatial import quat_to_matrix
 
@@ -58,10 +59,6 @@ def nonlinear_force(pm: PaddedModel, bd: BodyDynamics, body_u: jax.Array, gravit
     return jnp.where(pm.body_mask[:, None], h, 0.0)
 
 
-#: Newton iterations of the implicit-midpoint gyroscopic solve (docs/conventions.md, "Gyroscopic term"), fixed so
-#: that the step stays capturable and differentiable. From the explicit guess 2 reach float64 rounding on the
-#: 30 rad/s plate at dt = 2.5e-3; 4 also on bodies with a 70:1 inertia ratio at dt |w| = 0.35 (3 leave 3e-12)
-GYRO_ITERATIONS = 4
 
 
 def _skew(a: jax.Array) -> jax.Array:

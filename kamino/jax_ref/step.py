@@ -14,7 +14,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from kamino.config import SolverConfig
+from kamino.config import MIDPOINT_DAMPING, SolverConfig
 from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import padmm
 from kamino.jax_ref import post_stabilisation as post
@@ -86,12 +86,6 @@ def joint_deadband(cfg: SolverConfig, dtype) -> float:
     return cfg.deadband_for(dtype)
 
 
-#: Moreau-Jean midpoint rule: fraction ``gamma`` of the start pose's constraint velocity (as a displacement
-#: over the half-step) that the end-of-step target keeps (docs/conventions.md "Stabilisation"). It makes
-#: the end pose's constraint velocity ``w+ = -(1 - gamma) w- - alpha e- / h``; with ``gamma = 0`` the
-#: target reverses ``w-`` every step (the trapezoidal rule's undamped alternating mode).
-#: ``kamino/warp_backend/rows.py`` (``MIDPOINT_DAMPING``) uses the same value.
-MIDPOINT_DAMPING = 1.0 / 3.0
 
 
 def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: jax.Array, e_start: jax.Array,

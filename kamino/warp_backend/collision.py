@@ -36,6 +36,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
+from kamino.config import BISECTION_STEPS, GOLDEN_STEPS, PARALLEL_SIN2, PROJECTION_ROUNDS
 from kamino.model import GeomType
 from kamino.warp_backend.types import types_of
 
@@ -63,11 +64,6 @@ MAX_POINTS: dict[tuple[GeomType, GeomType], int] = {
 KERNEL_OPTIONS: dict[str, object] = {"enable_backward": False}
 """Module options of :func:`collide_kernel` (forward only)."""
 
-# iteration counts and tolerances of kamino.jax_ref.collision (kept equal to them)
-_GOLDEN_ITERS = 48  # golden-section steps: bracket 0.618**48 ~ 1e-10 of the segment
-_AP_ITERS = 64  # alternating-projection rounds (cylinder pairs)
-_BISECT_ITERS = 32  # bisection steps: 2**-32 of the segment
-_PARALLEL_SIN2 = 1e-2  # capsule segments count as near parallel below sin(angle) = 0.1
 _EDGE_BIAS_REL = 0.05  # an edge axis must beat the best face axis by 5 % of its separation ...
 _EDGE_BIAS_ABS = 1e-5  # ... plus this fraction of the boxes' size
 
@@ -113,11 +109,11 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
     GOLD = scalar((math.sqrt(5.0) - 1.0) / 2.0)
     SQRT3_2 = scalar(0.5 * math.sqrt(3.0))
     MILLI = scalar(1e-3)
-    PAR = scalar(_PARALLEL_SIN2)
+    PAR = scalar(PARALLEL_SIN2)
     BIAS_REL, BIAS_ABS = scalar(_EDGE_BIAS_REL), scalar(_EDGE_BIAS_ABS)
     PLANE, SPHERE, CAPSULE = int(_G.PLANE), int(_G.SPHERE), int(_G.CAPSULE)
     BOX, CYLINDER, ELLIPSOID = int(_G.BOX), int(_G.CYLINDER), int(_G.ELLIPSOID)
-    GOLDEN_ITERS, AP_ITERS, BISECT_ITERS = _GOLDEN_ITERS, _AP_ITERS, _BISECT_ITERS
+    GOLDEN_ITERS, AP_ITERS, BISECT_ITERS = GOLDEN_STEPS, PROJECTION_ROUNDS, BISECTION_STEPS
 
     # -----------------------------------------------------------------------------------------
     # small helpers
@@ -316,7 +312,7 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
     @func
     def _golden_min(gtype: int, size: vec3, c: vec3, R: mat33, p0: vec3, d: vec3, tol: scalar) -> scalar:
         """Minimise ``t -> dist(p0 + t d)`` on ``[0, 1]`` (``dist``: ``_dist_world`` of the geom at
-        ``(c, R)``) by ``_GOLDEN_ITERS`` golden-section steps; values within ``tol`` are ties, which
+        ``(c, R)``) by ``GOLDEN_STEPS`` golden-section steps; values within ``tol`` are ties, which
         move right; the result snaps to an end as good as it (``_golden_min``)."""
         lo = ZERO
         hi = ONE
@@ -899,7 +895,7 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
     @func
     def _reach(gtype: int, size: vec3, c: vec3, R: mat33, start: vec3, end: vec3, level: scalar) -> vec3:
         """The point farthest along ``start -> end`` where the distance to the geom at ``(c, R)`` is still
-        ``<= level``: ``end`` if possible, else by ``_BISECT_ITERS`` bisection steps (``_reach``)."""
+        ``<= level``: ``end`` if possible, else by ``BISECTION_STEPS`` bisection steps (``_reach``)."""
         lo = ZERO
         hi = ONE
         for _it in range(int(BISECT_ITERS)):

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.config import GYRO_ITERATIONS, MIDPOINT_DAMPING
 from kamino.model import ActuationMode
 from kamino.tables import DYN_ACTUATOR
 from kamino.warp_backend.indexing import index_funcs
@@ -22,11 +23,6 @@ from kamino.warp_backend.workspace import work_struct
 # row families (for splitting the solution into the State's force fields)
 ROW_ACTUATOR, ROW_PASSIVE, ROW_JOINT, ROW_COUPLING, ROW_LIMIT, ROW_CONTACT = 0, 1, 2, 3, 4, 5
 _PASSIVE, _EFFORT, _POSITION = int(ActuationMode.PASSIVE), int(ActuationMode.EFFORT), int(ActuationMode.POSITION)
-#: midpoint rule: share of the start pose's constraint velocity kept by the end-of-step target:
-#: ``kamino.jax_ref.step.MIDPOINT_DAMPING`` (tests/test_midpoint.py checks)
-MIDPOINT_DAMPING = 1.0 / 3.0
-#: Newton iterations of the implicit gyroscopic solve: ``kamino.jax_ref.dynamics.GYRO_ITERATIONS`` (tests check)
-GYRO_ITERATIONS = 4
 
 
 @functools.cache
