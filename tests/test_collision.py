@@ -580,13 +580,3 @@ def test_float32_follows_dtype_and_matches_float64(ta, tb):
     # float32 rounding (~1e-7 relative, amplified by near-parallel features) and its looser tie
     # tolerance in the searches (1e-4 of the geoms' size, about 2e-4 m here)
     np.testing.assert_allclose(d32, d64, atol=1e-3)
-
-
-def test_model_contact_capacity_table_matches_the_narrow_phase():
-    # the model sizes each pair's share of the contact capacity from CONTACT_POINTS
-    from kamino.jax_ref.collision import MAX_POINTS
-    from kamino.model import CONTACT_POINTS
-
-    assert {tuple(int(t) for t in k): v for k, v in MAX_POINTS.items()} == {
-        tuple(int(t) for t in k): v for k, v in CONTACT_POINTS.items()
-    }

@@ -80,7 +80,7 @@ import numpy as np
 
 from kamino.config import BISECTION_STEPS, GOLDEN_STEPS, PARALLEL_SIN2, PROJECTION_ROUNDS
 from kamino.jax_ref.spatial import quat_to_matrix
-from kamino.model import GeomType
+from kamino.model import CONTACT_POINTS, GeomType
 
 
 @jax.tree_util.register_dataclass
@@ -782,24 +782,25 @@ def _cylinder_cylinder(pose_a, size_a, pose_b, size_b, margin):
 
 _G = GeomType
 _PAIRS = {
-    (_G.PLANE, _G.SPHERE): (_plane_sphere, 1),
-    (_G.PLANE, _G.CAPSULE): (_plane_capsule, 2),
-    (_G.PLANE, _G.BOX): (_plane_box, 4),
-    (_G.PLANE, _G.CYLINDER): (_plane_cylinder, 4),
-    (_G.PLANE, _G.ELLIPSOID): (_plane_ellipsoid, 1),
-    (_G.SPHERE, _G.SPHERE): (_sphere_sphere, 1),
-    (_G.SPHERE, _G.CAPSULE): (_sphere_capsule, 1),
-    (_G.SPHERE, _G.BOX): (_sphere_box, 1),
-    (_G.SPHERE, _G.CYLINDER): (_sphere_cylinder, 1),
-    (_G.CAPSULE, _G.CAPSULE): (_capsule_capsule, 2),
-    (_G.CAPSULE, _G.BOX): (_capsule_box, 2),
-    (_G.CAPSULE, _G.CYLINDER): (_capsule_cylinder, 2),
-    (_G.BOX, _G.BOX): (_box_box, 8),
-    (_G.BOX, _G.CYLINDER): (_box_cylinder, 4),
-    (_G.CYLINDER, _G.CYLINDER): (_cylinder_cylinder, 4),
+    (_G.PLANE, _G.SPHERE): _plane_sphere,
+    (_G.PLANE, _G.CAPSULE): _plane_capsule,
+    (_G.PLANE, _G.BOX): _plane_box,
+    (_G.PLANE, _G.CYLINDER): _plane_cylinder,
+    (_G.PLANE, _G.ELLIPSOID): _plane_ellipsoid,
+    (_G.SPHERE, _G.SPHERE): _sphere_sphere,
+    (_G.SPHERE, _G.CAPSULE): _sphere_capsule,
+    (_G.SPHERE, _G.BOX): _sphere_box,
+    (_G.SPHERE, _G.CYLINDER): _sphere_cylinder,
+    (_G.CAPSULE, _G.CAPSULE): _capsule_capsule,
+    (_G.CAPSULE, _G.BOX): _capsule_box,
+    (_G.CAPSULE, _G.CYLINDER): _capsule_cylinder,
+    (_G.BOX, _G.BOX): _box_box,
+    (_G.BOX, _G.CYLINDER): _box_cylinder,
+    (_G.CYLINDER, _G.CYLINDER): _cylinder_cylinder,
 }
 
-MAX_POINTS: dict[tuple[GeomType, GeomType], int] = {pair: k for pair, (_, k) in _PAIRS.items()}
+#: candidate points per pair: the model's table (``kamino.model.CONTACT_POINTS``), which sizes the contact capacity
+MAX_POINTS = CONTACT_POINTS
 
 
 def _pair(type_a, type_b) -> tuple[GeomType, GeomType]:
@@ -822,7 +823,7 @@ def collide(type_a, type_b, pose_a, size_a, pose_b, size_b, margin) -> ContactPo
     ``size_*`` ``[3]``, ``margin`` a scalar >= 0 (may be traced). Returns ``K = MAX_POINTS[(type_a,
     type_b)]`` points; raises ``ValueError`` for an unsupported or unordered pair.
     """
-    fn, _ = _PAIRS[_pair(type_a, type_b)]
+    fn = _PAIRS[_pair(type_a, type_b)]
     dtype = jnp.result_type(pose_a, size_a, pose_b, size_b)
     if not jnp.issubdtype(dtype, jnp.floating):
         dtype = jnp.result_type(float)

@@ -37,29 +37,13 @@ import numpy as np
 import warp as wp
 
 from kamino.config import BISECTION_STEPS, GOLDEN_STEPS, PARALLEL_SIN2, PROJECTION_ROUNDS
-from kamino.model import GeomType
+from kamino.model import CONTACT_POINTS, GeomType
 from kamino.warp_backend.types import types_of
 
 _G = GeomType
 
-MAX_POINTS: dict[tuple[GeomType, GeomType], int] = {
-    (_G.PLANE, _G.SPHERE): 1,
-    (_G.PLANE, _G.CAPSULE): 2,
-    (_G.PLANE, _G.BOX): 4,
-    (_G.PLANE, _G.CYLINDER): 4,
-    (_G.PLANE, _G.ELLIPSOID): 1,
-    (_G.SPHERE, _G.SPHERE): 1,
-    (_G.SPHERE, _G.CAPSULE): 1,
-    (_G.SPHERE, _G.BOX): 1,
-    (_G.SPHERE, _G.CYLINDER): 1,
-    (_G.CAPSULE, _G.CAPSULE): 2,
-    (_G.CAPSULE, _G.BOX): 2,
-    (_G.CAPSULE, _G.CYLINDER): 2,
-    (_G.BOX, _G.BOX): 8,
-    (_G.BOX, _G.CYLINDER): 4,
-    (_G.CYLINDER, _G.CYLINDER): 4,
-}
-"""Candidate points per supported pair (``type_a <= type_b``); equal to the JAX backend's table."""
+#: candidate points per supported pair (``type_a <= type_b``): the model's table (``kamino.model.CONTACT_POINTS``)
+MAX_POINTS = CONTACT_POINTS
 
 KERNEL_OPTIONS: dict[str, object] = {"enable_backward": False}
 """Module options of :func:`collide_kernel` (forward only)."""
