@@ -71,13 +71,18 @@ def test_joint_coordinate_rates_match_dof_jacobian(jtype):
     np.testing.assert_allclose(np.asarray(Jd @ u.reshape(-1)), np.asarray(fd), atol=1e-7)  # FD error
 
 
-def test_revolute_angle_reads_back():
-    """Rotating the child about the hinge axis by a known angle reads back that angle."""
+def _hinge() -> kamino.Model:
+    """Two unit bodies 1 m apart along x, joined by a hinge about z at their midpoint (0.5, 0, 0)."""
     b = kamino.ModelBuilder()
     p = b.add_body(mass=1.0, inertia=np.eye(3), name="p")
     c = b.add_body(mass=1.0, inertia=np.eye(3), pos=(1, 0, 0), name="c")
     b.add_joint_at(JT.REVOLUTE, p, c, anchor=(0.5, 0, 0), axis=(0, 0, 1), name="hinge")
-    model = b.finalize()
+    return b.finalize()
+
+
+def test_revolute_angle_reads_back():
+    """Rotating the child about the hinge axis by a known angle reads back that angle."""
+    model = _hinge()
     state = kamino.init_state(model)
     for angle in (-2.5, -0.3, 0.0, 1.1, 3.0):
         rot = quat_from_axis_angle((0, 0, 1), angle)
@@ -93,11 +98,7 @@ def test_anchor_gap_reads_the_anchors_apart_and_not_a_tilt():
     """``metrics()["anchor_gap"]`` is the largest translational residual [m]: moving the child of a hinge 0.5 mm
     along the axis opens its anchors by exactly that, and tilting it by 1 mrad about its anchor opens the hinge's
     rotational rows (``constraint_violation``, 1e-3 rad to first order) but no anchor gap (the anchor stays put)."""
-    b = kamino.ModelBuilder()
-    p = b.add_body(mass=1.0, inertia=np.eye(3), name="p")
-    c = b.add_body(mass=1.0, inertia=np.eye(3), pos=(1, 0, 0), name="c")
-    b.add_joint_at(JT.REVOLUTE, p, c, anchor=(0.5, 0, 0), axis=(0, 0, 1), name="hinge")
-    model = b.finalize()
+    model = _hinge()
     state = kamino.init_state(model)
     q = np.array(model.body_q0)
     q[1, 2] += 5e-4
