@@ -11,8 +11,9 @@ import dataclasses
 import enum
 import itertools
 import numbers
-from collections.abc import Sequence
-from typing import Any
+import threading
+from collections.abc import Callable, Hashable, Sequence
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -191,6 +192,7 @@ _GEOM_SIZE_COUNT = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, 
                     GeomType.ELLIPSOID: 3}
 
 _QUAT_UNIT_TOL = 1e-6  # a quaternion whose norm is further than this from 1 is a ModelError
+T = TypeVar("T")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -205,6 +207,11 @@ class Model:
     orientation ``joint_frame_B`` (quaternion ``X_B``), and at ``joint_anchor_F`` /
     ``joint_frame_F`` on the follower; its local x axis is the joint's (first) motion axis.
     """
+
+    def __getstate__(self) -> dict:
+        """The model's fields for ``pickle`` / ``copy``: without what :func:`derived` keeps (compiled programs,
+        device buffers), which the copy builds again when it needs it."""
+        return {k: v for k, v in self.__dict__.items() if k != _DERIVED}
 
     num_worlds: int
     """Number of worlds ``W`` (independent copies or variants simulated side by side)."""
@@ -1228,6 +1235,36 @@ class ModelBuilder:
 # ---------------------------------------------------------------------------------------
 # Multi-world models
 # ---------------------------------------------------------------------------------------
+
+def is_frozen(model: Model) -> bool:
+    """Whether every array of ``model`` is read-only, as :class:`ModelBuilder`, ``concat`` and ``replicate`` leave
+    them. ``Model`` is a frozen dataclass compared by identity, so a value derived from a frozen model and kept on
+    the model object (:func:`derived`) cannot go stale."""
+    return all(not v.flags.writeable for f in dataclasses.fields(model)
+               if isinstance(v := getattr(model, f.name), np.ndarray))
+
+
+_DERIVED = "_derived"  # the attribute of a Model that holds what :func:`derived` keeps
+_DERIVED_LOCK = threading.Lock()
+
+
+def derived(model: Model, key: Hashable, build: Callable[[], T]) -> T:
+    """``build()``, a value computed from ``model`` alone (host tables, a compiled program, the simulators of the
+    one-call entry points ``kamino.step`` / ``rollout``), kept on the model object under ``key`` when the model is
+    frozen (:func:`is_frozen`): it lives and goes with the model. A model whose arrays can still change gets a new
+    value on every call. Two threads asking for the same key at once get the same value (the first one stored)."""
+    if not is_frozen(model):
+        return build()
+    store = model.__dict__.get(_DERIVED)
+    if store is None:
+        with _DERIVED_LOCK:
+            store = model.__dict__.setdefault(_DERIVED, {})
+    if key not in store:
+        value = build()
+        with _DERIVED_LOCK:
+            store.setdefault(key, value)
+    return store[key]
+
 
 def freeze_arrays(obj):
     """``obj`` (a dataclass: a :class:`Model`, or tables derived from one and cached) with every numpy array field

@@ -10,11 +10,18 @@ reference pads these per world; the Warp backend uses them flat.
 from __future__ import annotations
 
 import dataclasses
-import weakref
 
 import numpy as np
 
-from kamino.model import JOINT_CONSTRAINT_ROWS, JOINT_DOF_ROWS, ActuationMode, JointType, Model, freeze_arrays
+from kamino.model import (
+    JOINT_CONSTRAINT_ROWS,
+    JOINT_DOF_ROWS,
+    ActuationMode,
+    JointType,
+    Model,
+    derived,
+    freeze_arrays,
+)
 
 DYN_ACTUATOR, DYN_PASSIVE = 0, 1
 
@@ -48,26 +55,10 @@ def prefix(counts: np.ndarray) -> np.ndarray:
     return np.cumsum(counts) - counts
 
 
-def is_frozen(model: Model) -> bool:
-    """Whether every array of ``model`` is read-only, as :class:`~kamino.model.ModelBuilder`, ``concat`` and
-    ``replicate`` leave them. ``Model`` is a frozen dataclass compared by identity, so a value derived from a frozen
-    model and cached under the model object cannot go stale."""
-    return all(not v.flags.writeable for f in dataclasses.fields(model)
-               if isinstance(v := getattr(model, f.name), np.ndarray))
-
-
-_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
 def row_tables(model: Model) -> RowTables:
-    """The tables of ``model``, computed in numpy. A frozen model's (:func:`is_frozen`) are computed once and cached
-    under the model object (the entry goes with the model), their arrays read-only."""
-    if not is_frozen(model):
-        return _row_tables(model)
-    tab = _TABLES.get(model)
-    if tab is None:
-        tab = _TABLES[model] = freeze_arrays(_row_tables(model))
-    return tab
+    """The tables of ``model``, computed in numpy; a frozen model's once, kept on the model
+    (:func:`kamino.model.derived`), their arrays read-only."""
+    return derived(model, "row_tables", lambda: freeze_arrays(_row_tables(model)))
 
 
 def _pair_kinds(model: Model) -> tuple[tuple[tuple[int, int], ...], np.ndarray]:

@@ -170,11 +170,11 @@ def test_heterogeneous_model_builds_each_robots_patterns(monkeypatch):
 def test_setup_tables_are_cached_only_under_frozen_models():
     # row_tables and fixed_row_types are cached under the model object only when the model's arrays are read-only
     # (as every built, concatenated or replicated model's are): such an entry cannot go stale. A model whose arrays
-    # are writeable gets fresh tables on every call; backend.release drops the cached ones.
+    # are writeable gets fresh tables on every call. A copy of the model (pickle, copy.copy) builds its own.
+    import copy
     import dataclasses
 
-    from kamino.tables import is_frozen
-    from kamino.warp_backend.backend import release
+    from kamino.model import is_frozen
 
     model = kamino.replicate(kamino.models.bdx(), 3)
     assert is_frozen(model)
@@ -182,8 +182,8 @@ def test_setup_tables_are_cached_only_under_frozen_models():
     assert row_tables(model) is tab and sparse_llt.fixed_row_types(model) is ft
     assert not tab.cts_joint.flags.writeable and not ft.world_type.flags.writeable
     assert list(ft.world_type) == [0, 0, 0] and len(ft.rows) == 1
-    release(model)
-    assert row_tables(model) is not tab and sparse_llt.fixed_row_types(model) is not ft
+    twin = copy.copy(model)
+    assert row_tables(twin) is not tab and sparse_llt.fixed_row_types(twin) is not ft
     loose = dataclasses.replace(model, **{f.name: np.array(getattr(model, f.name)) for f in dataclasses.fields(model)
                                           if isinstance(getattr(model, f.name), np.ndarray)})
     assert not is_frozen(loose)

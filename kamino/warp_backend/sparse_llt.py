@@ -26,14 +26,13 @@ multiply-adds to factorise instead of 498k (docs/warp_backend.md, "Sparse factor
 import dataclasses
 import functools
 import itertools
-import weakref
 from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
-from kamino.model import Model
-from kamino.tables import is_frozen, prefix, row_tables
+from kamino.model import Model, derived
+from kamino.tables import prefix, row_tables
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP, group_sizes, model_struct
 from kamino.warp_backend.rows import ROW_LIMIT
@@ -131,15 +130,14 @@ class FixedRowTypes:
     n_fixed: np.ndarray  # [W] each world's fixed rows
 
 
-_FIXED_ROW_TYPES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
 def fixed_row_types(model: Model) -> FixedRowTypes:
-    """The worlds of ``model`` grouped by the moving bodies of their fixed rows (equal arrays: one type). Cached
-    under a frozen model (:func:`kamino.tables.is_frozen`: the model cannot change under the entry, which goes
-    with it); the arrays of all worlds are not kept."""
-    if is_frozen(model) and model in _FIXED_ROW_TYPES:
-        return _FIXED_ROW_TYPES[model]
+    """The worlds of ``model`` grouped by the moving bodies of their fixed rows (equal arrays: one type). A frozen
+    model's are computed once and kept on the model (:func:`kamino.model.derived`); the arrays of all worlds are
+    not kept."""
+    return derived(model, "fixed_row_types", lambda: _fixed_row_types(model))
+
+
+def _fixed_row_types(model: Model) -> FixedRowTypes:
     tab = row_tables(model)
     n_fixed = (tab.world_dyn_count + model.world_cts_count + model.world_coupling_count).astype(np.int64)
     types: dict[bytes, int] = {}
@@ -156,10 +154,7 @@ def fixed_row_types(model: Model) -> FixedRowTypes:
             world_type[w] = t
     for a in (*reps, world_type, n_fixed):
         a.flags.writeable = False  # shared by every caller of a cached entry
-    ft = FixedRowTypes(rows=tuple(reps), world_type=world_type, n_fixed=n_fixed)
-    if is_frozen(model):
-        _FIXED_ROW_TYPES[model] = ft
-    return ft
+    return FixedRowTypes(rows=tuple(reps), world_type=world_type, n_fixed=n_fixed)
 
 
 #: A body is a *hub* when more than this many fixed rows have it among their moving bodies: its 6 velocity unknowns
