@@ -1,7 +1,8 @@
 """kamino: simulation of robots and mechanisms with kinematic loops, in maximal coordinates.
 
 Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``GeomType``,
-``Actuation``, ``ActuationMode``, ``ModelError``, ``replicate``, ``concat``, ``SolverConfig``,
+``Actuation``, ``ActuationMode``, ``ModelError``, ``replicate``, ``concat``, ``SolverConfig``, ``Simulator``
+(one model stepped with one configuration on one backend: it owns what stepping builds),
 ``State``, ``ContactState``, ``Control``, ``StepInfo``, ``init_state``, ``step``, ``rollout``,
 ``metrics``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``, ``load_mjcf``, ``save_mjcf``, the
 procedural ``models``, and the read-outs a task needs: ``joint_positions`` (every joint's coordinates),
@@ -43,6 +44,7 @@ from kamino.model import (
     concat,
     replicate,
 )
+from kamino.simulator import Simulator
 from kamino.state import ContactState, Control, State, StepInfo
 
 _enable_jax_cache()  # before the first compile: kamino/_jax_cache.py
@@ -61,6 +63,7 @@ __all__ = [
     "Model",
     "ModelBuilder",
     "ModelError",
+    "Simulator",
     "SolverConfig",
     "State",
     "StepInfo",

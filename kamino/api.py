@@ -3,8 +3,9 @@
 body's velocity, gravity direction and height in its own frame) and ``body_contact_forces`` (the net contact force
 on each body).
 
-Backends are looked up by name: ``"jax"`` is the reference in ``kamino/jax_ref``, ``"warp"`` the
-production backend in ``kamino/warp_backend`` (docs/warp_backend.md).
+``step`` and ``rollout`` run the :class:`~kamino.simulator.Simulator` a model keeps for each backend and
+configuration: ``"jax"`` is the reference in ``kamino/jax_ref``, ``"warp"`` the production backend in
+``kamino/warp_backend`` (docs/warp_backend.md).
 """
 
 from __future__ import annotations
@@ -13,42 +14,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kamino.checks import check_config, check_control, check_control_type, check_model, check_state
-from kamino.config import BACKENDS, SolverConfig
-from kamino.jax_ref.spatial import quat_to_matrix
+from kamino.checks import check_model
+from kamino.config import SolverConfig
 from kamino.model import JointType, Model
-from kamino.sharding import sharded_call, world_sharding
+from kamino.simulator import DEFAULT_BACKEND, Simulator, simulator_of
+from kamino.spatial import quat_to_matrix
 from kamino.state import ContactState, Control, State, StepInfo
-
-
-def _backend(name: str):
-    if name == "jax":
-        from kamino.jax_ref import backend
-
-        return backend
-    if name == "warp":
-        from kamino._warp import quiet_warp
-
-        quiet_warp()  # Warp's banner and module-load lines off, unless asked for (kamino/_warp.py)
-        from kamino.warp_backend import backend
-
-        return backend
-    raise ValueError(f"unknown backend {name!r} (the backend= argument); choose one of {BACKENDS}")
-
-
-def _check_call(fn: str, model, state, control, config, backend: str) -> None:
-    """What ``step`` / ``rollout`` check before a backend runs (``kamino/checks.py``): the kinds of the arguments,
-    the backend's name, the config against the backend, and the state's and a step's control's shapes."""
-    if backend not in BACKENDS:
-        raise ValueError(f"{fn}: unknown backend {backend!r} (the backend= argument); choose one of "
-                         f"{BACKENDS}")
-    check_model(model, fn)
-    check_config(config, backend, fn)
-    check_state(model, state, fn)
-    if fn == "step":
-        check_control(model, control)
-    else:
-        check_control_type(control, "controls", fn)
 
 
 def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_positions=None, base_pose=None,
@@ -108,33 +79,26 @@ def save_mjcf(model: Model, path=None, **options) -> str:
 
 
 def step(model: Model, state: State, control: Control | None = None, *, config: SolverConfig | None = None,
-         backend: str = "jax") -> State:
-    """Advance every world by ``config.dt``; returns a new :class:`State` (inputs are not mutated).
+         backend: str = DEFAULT_BACKEND) -> State:
+    """Advance every world by ``config.dt``; returns a new :class:`State` (inputs are not mutated): one call of
+    :meth:`Simulator.step` with the simulator that ``model`` keeps for ``(backend, config)``.
 
     ``control`` holds one step's inputs (arrays flat over all worlds, no time axis); ``config`` is a
     :class:`SolverConfig` (docs/settings.md: the defaults and the speed-against-accuracy knob). Arguments of the
     wrong kind or shape raise a ``TypeError`` / ``ValueError`` naming the argument before a backend runs. A state
     whose worlds are sharded over devices (``kamino.sharding.shard_worlds``) is stepped on each device in place.
     """
-    _check_call("step", model, state, control, config, backend)
-    sharding = world_sharding(state)
-    if sharding is not None:  # worlds spread over devices: each steps its own (kamino/sharding.py)
-        return sharded_call("step", _backend(backend), model, state, control, sharding, config or SolverConfig())
-    return _backend(backend).step(model, state, control, config or SolverConfig())
+    return simulator_of(model, config, backend, "step").step(state, control)
 
 
 def rollout(model: Model, state: State, controls: Control | None = None, *, num_steps: int | None = None,
-            config: SolverConfig | None = None, backend: str = "jax") -> State:
-    """Run many steps. ``controls`` fields carry a leading time axis (or pass ``num_steps`` and no
+            config: SolverConfig | None = None, backend: str = DEFAULT_BACKEND) -> State:
+    """Run many steps: one call of :meth:`Simulator.rollout` with the simulator that ``model`` keeps for
+    ``(backend, config)``. ``controls`` fields carry a leading time axis (or pass ``num_steps`` and no
     controls). Returns the trajectory: a :class:`State` whose arrays have a leading time axis
     (the state after each step); :func:`metrics` reads it whole (``[num_steps, num_worlds]``). A state sharded
     over devices (``kamino.sharding.shard_worlds``) gives a trajectory sharded the same way along its world axis."""
-    _check_call("rollout", model, state, controls, config, backend)
-    sharding = world_sharding(state)
-    if sharding is not None:
-        return sharded_call("rollout", _backend(backend), model, state, controls, sharding, config or SolverConfig(),
-                            num_steps)
-    return _backend(backend).rollout(model, state, controls, num_steps, config or SolverConfig())
+    return simulator_of(model, config, backend, "rollout").rollout(state, controls, num_steps=num_steps)
 
 
 def metrics(model: Model, state: State) -> dict[str, jax.Array]:
@@ -167,6 +131,17 @@ def joint_positions(model: Model, state: State) -> jax.Array:
 
     packed = backend.joint_coordinates_padded(model, state.body_q)
     return packed.reshape(-1)[_coord_gather(model)]
+
+
+def dof_state(model: Model, state: State) -> tuple[jax.Array, jax.Array]:
+    """``(positions, rates)`` of every DoF, each flat ``[model.num_dofs]`` in DoF order (``model.joint_dof_start``):
+    a hinge's angle [rad] and angular rate [rad/s], a slider's offset [m] and speed [m/s], what an actuated joint's
+    observation reads. Positions come from the joint kinematics the step's PD actuators read; a rate is ``J_dofs u``
+    (the actuation Jacobian of docs/formulation.md §2.5 applied to the body twists), the time derivative of the DoF
+    position for hinges and slides. A trajectory from :func:`rollout` adds a leading ``num_steps`` axis."""
+    from kamino.jax_ref import backend
+
+    return _per_step(state, "dof_state", lambda s: backend.dof_state(model, s.body_q, s.body_u))
 
 
 def _world_index(model: Model, world: int, fn: str) -> int:
@@ -282,5 +257,6 @@ def _coord_gather(model: Model) -> np.ndarray:
     return np.repeat(slot * 7, counts) + (np.arange(int(counts.sum())) - np.repeat(model.joint_coord_start, counts))
 
 
-__all__ = ["Control", "JointType", "SolverConfig", "State", "body_contact_forces", "body_frame", "frame_vectors",
-           "init_state", "joint_coordinates", "joint_positions", "load_mjcf", "metrics", "rollout", "save_mjcf", "step"]
+__all__ = ["Control", "JointType", "Simulator", "SolverConfig", "State", "body_contact_forces", "body_frame",
+           "dof_state", "frame_vectors", "init_state", "joint_coordinates", "joint_positions", "load_mjcf", "metrics",
+           "rollout", "save_mjcf", "step"]

@@ -1,7 +1,7 @@
 """Host-side (NumPy) rotation helpers used when building models.
 
 Quaternions are ``(x, y, z, w)`` (scalar last, Warp's order) everywhere in kamino.
-The JAX reference has its own differentiable versions in ``kamino/jax_ref/spatial.py``;
+The JAX reference has its own differentiable versions in ``kamino/spatial.py``;
 these are only for model construction and validation on the host.
 """
 

@@ -9,7 +9,6 @@ does not converge is flagged in ``FKResult.converged`` and keeps its best (finit
 from __future__ import annotations
 
 import dataclasses
-import weakref
 
 import jax
 import jax.numpy as jnp
@@ -17,8 +16,8 @@ import numpy as np
 
 from kamino.jax_ref.fk import FKSettings, FKTables, solve_batch
 from kamino.jax_ref.layout import _pad_index, layout_of, to_flat, to_padded
-from kamino.jax_ref.spatial import quat_exp
-from kamino.model import JOINT_CONSTRAINT_ROWS, RES_LOG, RES_TRANS, ActuationMode, JointType, Model
+from kamino.model import JOINT_CONSTRAINT_ROWS, RES_LOG, RES_TRANS, ActuationMode, JointType, Model, derived
+from kamino.spatial import quat_exp
 from kamino.state import State
 
 
@@ -38,7 +37,6 @@ class FKResult:
 
 
 _FIXED_ROWS = ((0, RES_TRANS), (1, RES_TRANS), (2, RES_TRANS), (3, RES_LOG), (4, RES_LOG), (5, RES_LOG))
-_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def actuated_joints(model: Model) -> np.ndarray:
@@ -61,15 +59,14 @@ def base_bodies(model: Model) -> np.ndarray:
 
 
 def _tables(model: Model, mode: str, use_base: bool) -> tuple[FKTables, np.ndarray, np.ndarray]:
-    """Host-built FK row tables (cached per model), the joint gather table and its mask. Built under
-    ``jax.ensure_compile_time_eval()`` (as ``layout_of``): a first call from inside ``jax.jit`` would otherwise cache
-    tracers of that trace for every later call (``UnexpectedTracerError``)."""
-    key = (mode, use_base)
-    per_model = _TABLES.setdefault(model, {})
-    if key not in per_model:
+    """Host-built FK row tables (kept on the model: :func:`kamino.model.derived`), the joint gather table and its
+    mask. Built under ``jax.ensure_compile_time_eval()`` (as ``layout_of``): a first call from inside ``jax.jit``
+    would otherwise keep tracers of that trace for every later call (``UnexpectedTracerError``)."""
+    def build():
         with jax.ensure_compile_time_eval():
-            per_model[key] = _build_tables(model, mode, use_base)
-    return per_model[key]
+            return _build_tables(model, mode, use_base)
+
+    return derived(model, ("fk_tables", mode, use_base), build)
 
 
 def _build_tables(model: Model, mode: str, use_base: bool) -> tuple[FKTables, np.ndarray, np.ndarray]:
@@ -136,10 +133,6 @@ def _concrete(x) -> np.ndarray | None:
         return None
 
 
-#: per model: the compiled :func:`forward_kinematics` of each argument pattern, for eager calls
-_PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
 def forward_kinematics(model: Model, joint_positions=None, actuated_positions=None, base_pose=None, *,
                        initial_body_q=None, tolerance: float = 1e-6, max_iterations: int = 30,
                        dtype=None) -> FKResult:
@@ -170,12 +163,10 @@ def forward_kinematics(model: Model, joint_positions=None, actuated_positions=No
         if value is not None and not np.all(np.isfinite(np.asarray(value, float))):
             raise ValueError(f"forward_kinematics: {name} contains NaN or inf")
     dtype = jnp.zeros(0).dtype if dtype is None else jnp.dtype(dtype)
-    key = (tuple(x is None for x in args), float(tolerance), int(max_iterations), str(dtype))
-    per_model = _PROGRAMS.setdefault(model, {})
-    if key not in per_model:
-        per_model[key] = jax.jit(lambda *a: _forward_kinematics(model, *a, tolerance=tolerance,
-                                                                 max_iterations=max_iterations, dtype=dtype))
-    return per_model[key](*(None if x is None else jnp.asarray(x) for x in args))
+    key = ("fk_program", tuple(x is None for x in args), float(tolerance), int(max_iterations), str(dtype))
+    program = derived(model, key, lambda: jax.jit(lambda *a: _forward_kinematics(
+        model, *a, tolerance=tolerance, max_iterations=max_iterations, dtype=dtype)))
+    return program(*(None if x is None else jnp.asarray(x) for x in args))
 
 
 def _forward_kinematics(model: Model, joint_positions, actuated_positions, base_pose, initial_body_q, *,
@@ -239,7 +230,7 @@ def _forward_kinematics(model: Model, joint_positions, actuated_positions, base_
 
 def _move_rigidly(model: Model, q0: jax.Array, base: np.ndarray, target: jax.Array) -> jax.Array:
     """Move every body of each world by the rigid transform taking its base body to ``target``."""
-    from kamino.jax_ref.spatial import quat_conj, quat_mul, rotate
+    from kamino.spatial import quat_conj, quat_mul, rotate
 
     world = model.body_world
     b = base[world]

@@ -18,8 +18,7 @@ n)``); any other split raises a ``ValueError`` naming the group that differs.
 
 from __future__ import annotations
 
-import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import jax
 import numpy as np
@@ -88,40 +87,32 @@ def world_sharding(state) -> tuple[Mesh, str | tuple[str, ...]] | None:
     return sharding.mesh, spec[0]
 
 
-def _num_shards(mesh: Mesh, axis) -> int:
+def num_shards(mesh: Mesh, axis) -> int:
+    """How many blocks ``axis`` (a mesh axis name, or a tuple of them) cuts the worlds into."""
     names = axis if isinstance(axis, tuple) else (axis,)
     return int(np.prod([mesh.shape[a] for a in names]))
 
 
-_JITTED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def sharded_call(fn: str, backend, model: Model, state, control, sharding, config, num_steps: int | None = None):
-    """``backend.step`` (``fn == "step"``) or a rollout of every device's block of worlds as the group model
-    (``jax.shard_map`` of one step), jitted once per (model, backend, config, steps, mesh). A rollout is a
-    ``lax.scan`` whose body is that sharded step: the carry stays sharded, so each device still steps its own
-    block in place. The scan is outside the ``shard_map`` on purpose: XLA's GPU compiler (jax 0.11.2) crashes on a
-    loop inside a per-device program that carries a zero-size array, which a State holds for what its model does
+def sharded_program(fn: str, group_step: Callable, mesh: Mesh, axis, num_steps: int | None = None) -> Callable:
+    """The jitted ``(state, control) -> State`` that runs ``group_step`` (one step of the group model, every
+    device's block of worlds: :func:`group_model`) under ``jax.shard_map`` (``fn == "step"``), or a rollout of it.
+    A rollout is a ``lax.scan`` whose body is that sharded step: the carry stays sharded, so each device still steps
+    its own block in place. The scan is outside the ``shard_map`` on purpose: XLA's GPU compiler (jax 0.11.2) crashes
+    on a loop inside a per-device program that carries a zero-size array, which a State holds for what its model does
     not use (docs/warp_backend.md, "Several devices"; :func:`kamino.state.drop_empty`). The control and a rollout's
-    trajectory keep their leading time axis unsharded."""
-    mesh, axis = sharding
-    key = (fn, backend.__name__, config, num_steps, mesh, axis)
-    per_model = _JITTED.setdefault(model, {})
-    if key not in per_model:
-        sub = group_model(model, _num_shards(mesh, axis), fn)
-        one = jax.shard_map(lambda s, c: backend.step(sub, s, c, config), mesh=mesh, in_specs=(P(axis), P(axis)),
-                            out_specs=P(axis), check_vma=False)
-        if fn == "step":
-            run = one
-        else:
-            def run(s, cs):
-                def body(carry, c):
-                    nxt = one(carry, c)
-                    return nxt, nxt
+    trajectory keep their leading time axis unsharded. ``kamino.Simulator`` keeps one per (call, steps, mesh)."""
+    one = jax.shard_map(group_step, mesh=mesh, in_specs=(P(axis), P(axis)), out_specs=P(axis), check_vma=False)
+    if fn == "step":
+        return jax.jit(one)
 
-                return jax.lax.scan(body, s, cs, length=num_steps)[1]
-        per_model[key] = jax.jit(run)
-    return per_model[key](state, control)
+    def run(s, cs):
+        def body(carry, c):
+            nxt = one(carry, c)
+            return nxt, nxt
+
+        return jax.lax.scan(body, s, cs, length=num_steps)[1]
+
+    return jax.jit(run)
 
 
 __all__ = ["WORLD_AXIS", "group_model", "shard_worlds", "world_sharding"]

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from kamino.jax_ref.collision import MAX_POINTS, collide
-from kamino.jax_ref.spatial import quat_mul, quat_to_matrix
 from kamino.model import GeomType as G
+from kamino.spatial import quat_mul, quat_to_matrix
 
 IDENT = (0.0, 0.0, 0.0, 1.0)
 S2 = np.sqrt(2.0)

@@ -32,7 +32,7 @@ from brax.envs.wrappers import training
 
 import kamino
 from kamino.envs import DrLegsJoystick, EnvSystem, FourbarTrack, make, randomize
-from kamino.jax_ref.spatial import quat_to_matrix
+from kamino.spatial import quat_to_matrix
 from tests.helpers import ALL_CORES
 
 N = 4  # environments per batch: small (CI has two cores), more than one (vmap)
@@ -603,7 +603,6 @@ def test_joystick_warm_start_lets_an_internal_loop_load_decay(legs_own_gains):
     take another 5-25 %; at a warm start of 1 they take 11 % and the rest stays: 0.89 after the same steps). The
     bounds 0.3-0.7 hold the decay and exclude the undecayed 0.89. The robot must move as without the load (base
     position within 0.1 mm; measured 2e-5 m: its net wrench is the float32 rounding of 1e5 N)."""
-    from kamino.envs.geometry import one_world
     from kamino.envs.joystick import WARMSTART_SCALE
     from kamino.jax_ref.joints import constraint_jacobian, joint_frames
     from kamino.jax_ref.layout import layout_of
@@ -615,7 +614,7 @@ def test_joystick_warm_start_lets_an_internal_loop_load_decay(legs_own_gains):
         step = jax.jit(env.step)
         s0 = jax.jit(env.reset)(jax.random.PRNGKey(3))
         ps = env.full_state(s0.pipeline_state)
-        pm = one_world(layout_of(env.model, jnp.float32).padded)
+        pm = jax.tree.map(lambda x: x[0], layout_of(env.model, jnp.float32).padded)  # the world's padded model
         J = np.asarray(constraint_jacobian(pm, joint_frames(pm, ps.body_q), env.model.num_bodies), np.float64)
         U, S, _ = np.linalg.svd(J)
         null = U[:, np.concatenate([S, np.zeros(len(U) - len(S))]) < 1e-9 * S[0]]  # exact: 1e-16 relative

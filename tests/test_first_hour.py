@@ -231,7 +231,7 @@ def test_float32_forward_kinematics_of_a_floating_base_converges():
 
 def test_warp_prints_no_banner_when_kamino_starts_it():
     code = ("import kamino, warp as wp\n"
-            "kamino.api._backend('warp')\n"
+            "kamino.Simulator(kamino.models.pendulum(), backend='warp')\n"
             "wp.init()\n"
             "print('log_level', wp.config.log_level)\n")
     env = {k: v for k, v in os.environ.items() if k != "KAMINO_WARP_VERBOSE"}
@@ -268,7 +268,8 @@ def test_warp_keeps_the_missing_driver_line_off_a_cpu_only_machine():
 
     if _warp.cuda_driver_loads():
         pytest.skip("a CUDA driver is installed: Warp has nothing to report")
-    code = "import kamino\nkamino.api._backend('warp')\nimport warp as wp\nprint('cuda', wp.is_cuda_available())\n"
+    code = ("import kamino\nkamino.Simulator(kamino.models.pendulum(), backend='warp')\nimport warp as wp\n"
+            "print('cuda', wp.is_cuda_available())\n")
     env = {k: v for k, v in os.environ.items() if k != _warp.VERBOSE_ENV}
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT, timeout=120,
                          check=True)

@@ -17,7 +17,7 @@ import pytest
 import kamino
 from kamino.jax_ref import dynamics
 from kamino.jax_ref.layout import layout_of
-from kamino.jax_ref.spatial import quat_to_matrix
+from kamino.spatial import quat_to_matrix
 from tests.helpers import BACKENDS, JAX, Variant
 
 jax.config.update("jax_enable_x64", True)  # tests in this project run in float64 unless stated

@@ -15,10 +15,10 @@ import kamino
 from kamino.hostmath import quat_to_matrix
 from kamino.jax_ref.joints import constraint_jacobian, constraint_residual, dof_jacobian, dof_positions, joint_frames
 from kamino.jax_ref.layout import layout_of
-from kamino.jax_ref.spatial import integrate_pose
 from kamino.kinematics import actuated_joints
 from kamino.model import ActuationMode, GeomType, JointType, count_loops
 from kamino.models import robots
+from kamino.spatial import integrate_pose
 from tests.helpers import BACKENDS, VARIANTS, tier_marks, trajectory_metrics
 
 #: Table 1 of the paper: bodies, actuated joints, passive joints (without the FREE base joint), FREE

@@ -93,8 +93,9 @@ def test_the_traced_step_replays_its_graph_with_the_launches_results():
     for _ in range(5):
         a = step(a)
         iters.append(np.asarray(a.info.iterations))
-    traced = [st for key, st in wb._STEPPERS[model].items() if key[3]]  # key[3]: the FFI call's stepper
-    assert traced[0].captured(1) is not None  # the call replayed the captured step
+    traced = kamino.simulator.simulator_of(model, cfg, "warp", "step").engine.stepper(np.float32, "cuda:0",
+                                                                                       for_jit=True)
+    assert traced.captured(1) is not None  # the FFI call's stepper replayed the captured step
     plain = wb.Stepper(model, cfg, np.float32, "cuda:0")
     plain.use_graph = False
     wb.load_state(plain, state, ctrl)

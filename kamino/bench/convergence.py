@@ -49,6 +49,7 @@ Measured per scene (:func:`measure`), over every (world, step) pair of the run:
 import argparse
 import dataclasses
 import functools
+import gc
 import json
 import math
 import os
@@ -388,17 +389,6 @@ def _throughput(st, control, args) -> tuple[float | None, float | None]:
     return st.wm.num_worlds / timing["step_time_s"], timing["step_time_s"]
 
 
-def _release(model: kamino.Model) -> None:
-    """Drop the Warp backend's per-model caches of ``model`` (``warp_backend.backend.release``): without this a run
-    over many scenes and tolerances would keep every stepper's device buffers."""
-    import gc
-
-    from kamino.warp_backend import backend as wb
-
-    wb.release(model)
-    gc.collect()
-
-
 def measure(scene: Scene, base: kamino.Model, cfg: kamino.SolverConfig, args, device,
             probe: VelocityProbe | None) -> dict:
     """Run ``scene`` for ``--steps`` steps on ``--worlds`` worlds with ``cfg``; return its record (module doc)."""
@@ -406,7 +396,7 @@ def measure(scene: Scene, base: kamino.Model, cfg: kamino.SolverConfig, args, de
     try:
         return _measure(scene, base, model, cfg, args, device, probe)
     finally:
-        _release(model)
+        gc.collect()  # the run's stepper (device buffers) goes before the next scene's is built
 
 
 def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.SolverConfig, args, device,
@@ -414,12 +404,13 @@ def _measure(scene: Scene, base: kamino.Model, model: kamino.Model, cfg: kamino.
     import warp as wp
 
     from kamino.warp_backend import backend as wb
+    from kamino.warp_backend.pipeline import Stepper
 
     W, steps, every = args.worlds, args.steps, max(1, args.sample_every)
     state = kamino.init_state(model, np.float32)
     control = (kamino.Control(position_target=np.zeros(model.num_dofs, np.float32))
                if scene.drive == "targets" else None)
-    st = wb.stepper(model, cfg, np.float32, device, padmm=args.padmm)
+    st = Stepper(model, cfg, np.float32, device, padmm=args.padmm)
     st.pre_step.clear()
     st.invalidate_graphs()
     wb.load_state(st, state, control)

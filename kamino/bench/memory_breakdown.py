@@ -48,7 +48,7 @@ def breakdown(scene: str, num_worlds: int, device: str, padmm: str | None = None
     import warp as wp
 
     import kamino
-    from kamino.warp_backend import backend as wb
+    from kamino.warp_backend.pipeline import Stepper
 
     base, _ = tb.load_scene(scene)
     model = kamino.replicate(base, num_worlds) if num_worlds > 1 else base
@@ -56,7 +56,7 @@ def breakdown(scene: str, num_worlds: int, device: str, padmm: str | None = None
     dev = wp.get_device(device)
     wp.synchronize_device(dev)
     pool0 = wp.get_mempool_used_mem_current(dev) if dev.is_cuda else 0
-    st = wb.stepper(model, cfg, np.float32, dev, padmm=padmm)
+    st = Stepper(model, cfg, np.float32, dev, padmm=padmm)
     wp.synchronize_device(dev)
     pool = (wp.get_mempool_used_mem_current(dev) - pool0) / num_worlds if dev.is_cuda else None
     seen: dict = {}

@@ -6,9 +6,10 @@
 Weak scaling, the figure an RL user needs: ``--worlds-per-device`` worlds on each device, so ``k`` devices step
 ``k`` times the worlds. For each ``k``: the scene replicated ``k * N`` times, its state placed with
 ``kamino.sharding.shard_worlds`` on the first ``k`` devices, and blocks of ``--block`` steps run by
-``kamino.sharding.sharded_call`` (a scan of the backend's step under ``jax.shard_map``; on one device too, so
-that every ``k`` runs the same program). Throughput = worlds x steps / s, median of ``--repeats`` trials of
-``--replays`` blocks after two warm-up blocks; parallel efficiency = throughput(k) / (k x throughput(1)).
+``kamino.sharding.sharded_program`` (a scan of the group model's ``Simulator.step`` under ``jax.shard_map``; on
+one device too, so that every ``k`` runs the same program). Throughput = worlds x steps / s, median of
+``--repeats`` trials of ``--replays`` blocks after two warm-up blocks; parallel efficiency = throughput(k) /
+(k x throughput(1)).
 
 The drive and the solver settings are :mod:`kamino.bench.throughput`'s (float32, ``SolverConfig(dt=0.0025)``, the robots
 standing under PD with ``0.2 sin(2 pi t)`` rad on the first actuator, the scenes driven by ``2 N m sin(2 pi t)``),
@@ -32,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import kamino
-from kamino.sharding import shard_worlds, sharded_call
+from kamino.sharding import group_model, shard_worlds, sharded_program
 
 DT = 0.0025
 
@@ -71,17 +72,16 @@ def bench(name: str, k: int, args, throughput) -> list[dict]:
     state = kamino.init_state(model, jnp.float32)
     controls = _controls(model, name, 0.0, args.block, throughput)  # the same block each time: timing only
     last = lambda traj: jax.tree.map(lambda x: x[-1], traj)  # noqa: E731
-    import importlib
-
-    backend = importlib.import_module("kamino.jax_ref.backend" if args.backend == "jax" else
-                                      "kamino.warp_backend.backend")
+    group = kamino.Simulator(group_model(model, k), cfg, backend=args.backend)
     mesh = jax.sharding.Mesh(np.asarray(devices), ("worlds",))
     sharded = shard_worlds(model, state, mesh)
     ctrl = jax.tree.map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(
         mesh, jax.sharding.PartitionSpec(None, "worlds"))), controls)
 
+    program = sharded_program("rollout", group.step, mesh, "worlds", args.block)
+
     def run(s):
-        return last(sharded_call("rollout", backend, model, s, ctrl, (mesh, "worlds"), cfg))
+        return last(program(s, ctrl))
 
     seconds, end = _time(run, sharded, args)
     worlds = model.num_worlds

@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         "closure_max_m": float(np.max(np.asarray(closure))), "device": str(jax.devices()[0]),
     }
     if args.profile:
-        record["profile"] = _profile(raw.model, n, args.profile)
+        record["profile"] = _profile(raw.simulator, n, args.profile)
     line = json.dumps(record)
     print(line, flush=True)
     if args.out is not None:
@@ -150,16 +150,16 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     return 0
 
 
-def _profile(model, num_envs: int, steps: int) -> dict:
+def _profile(sim, num_envs: int, steps: int) -> dict:
     """``profile_step.profile`` of the stepper that ran the batched environments (the ``num_envs``-world replica
-    of ``model`` behind ``jit.batchable_step``), from its last state and targets: each kernel timed in un-graphed
-    steps, then the wall time of the same steps replayed as one CUDA graph, as the FFI call replays its step."""
-    from kamino.bench.profile_step import profile
-    from kamino.warp_backend import backend as wb
-    from kamino.warp_backend import jit as wjit
+    of the environment's model, ``Engine.replica``, behind ``jit.batchable_step``), from its last state and targets:
+    each kernel timed in un-graphed steps, then the wall time of the same steps replayed as one CUDA graph, as the FFI
+    call replays its step."""
+    import warp as wp
 
-    replicas = [r[num_envs] for _, r in wjit._BATCHABLE[model].values() if num_envs in r]
-    st = next(st for key, st in wb._STEPPERS[replicas[0]].items() if key[3])  # key[3]: for_jit
+    from kamino.bench.profile_step import profile
+
+    st = sim.engine.replica(num_envs).stepper("float32", wp.get_device(), for_jit=True)
     use_graph, st.use_graph = st.use_graph, st.device.is_cuda
     try:
         result = profile(st, steps)

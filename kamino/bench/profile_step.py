@@ -27,9 +27,10 @@ from kamino.bench.convergence import SCENES, drive_hook, perturb
 
 def _stepper(model, scene, padmm, device):
     from kamino.warp_backend import backend as wb
+    from kamino.warp_backend.pipeline import Stepper
 
     cfg = kamino.SolverConfig(dt=scene.dt)
-    st = wb.stepper(model, cfg, np.float32, device, padmm=padmm)
+    st = Stepper(model, cfg, np.float32, device, padmm=padmm)
     st.pre_step.clear()
     st.invalidate_graphs()
     control = (kamino.Control(position_target=np.zeros(model.num_dofs, np.float32))

@@ -260,10 +260,10 @@ def stepper_of(model):
     import warp as wp
 
     import kamino
-    from kamino.warp_backend import backend as wb
+    from kamino.warp_backend.pipeline import Stepper
 
     cfg = kamino.SolverConfig(dt=tb.DT, **tb.SOLVER, **tb.CONFIGS["default"])
-    return wb.stepper(model, cfg, np.float32, wp.get_device("cpu"), padmm="warp")
+    return Stepper(model, cfg, np.float32, wp.get_device("cpu"), padmm="warp")
 
 
 def factor_shape(sp, lim_dofs: np.ndarray, contact_slots: int, pairs: int) -> FactorShape:

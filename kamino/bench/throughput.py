@@ -167,12 +167,13 @@ def warp_stepper(name, config_name, num_worlds):
     import warp as wp
 
     from kamino.warp_backend import backend as wb
+    from kamino.warp_backend.pipeline import Stepper
 
     base, drive = load_scene(name)
     model = kamino.replicate(base, num_worlds) if num_worlds > 1 else base
     cfg = kamino.SolverConfig(dt=DT, **SOLVER, **CONFIGS[config_name])
     state, control, base_targets = _initial(model, name)
-    st = wb.stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
+    st = Stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
     wb.load_state(st, state, control)
     st.pre_step.append(_drive_hook(st, model, drive, base_targets))
     return st, state, control
@@ -266,11 +267,12 @@ def closure_run(name, config_name, args) -> dict:
     import warp as wp
 
     from kamino.warp_backend import backend as wb
+    from kamino.warp_backend.pipeline import Stepper
 
     model, drive = load_scene(name)
     cfg = kamino.SolverConfig(dt=DT, **SOLVER, **CONFIGS[config_name])
     state, control, base_targets = _initial(model, name)
-    st = wb.stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
+    st = Stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
     wb.load_state(st, state, control)
     st.pre_step.append(_drive_hook(st, model, drive, base_targets))
     closure, iters, r_p, r_d, conv, ju = 0.0, [], [], [], [], 0.0

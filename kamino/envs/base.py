@@ -47,16 +47,14 @@ import numpy as np
 from brax.envs.base import Env
 from brax.envs.base import State as BraxState
 
-from kamino.api import init_state
-from kamino.api import step as kamino_step
+from kamino.api import dof_state, init_state
 from kamino.checks import check_state
 from kamino.config import BACKENDS, SolverConfig
-from kamino.envs.geometry import dof_state, ground_height, one_world, place_on_ground, support_points
+from kamino.envs.geometry import ground_height, place_on_ground, support_points
 from kamino.envs.system import EnvSystem
-from kamino.jax_ref.backend import step_padded
-from kamino.jax_ref.layout import layout_of
 from kamino.kinematics import base_bodies, forward_kinematics
 from kamino.model import ActuationMode, Model, replicate
+from kamino.simulator import Simulator
 from kamino.state import Control, State, drop_empty, fill_empty
 
 
@@ -133,9 +131,8 @@ class KaminoEnv(Env):
         self._obs_limit = float(obs_limit)
         self._reset_noise = float(reset_noise)
         self._resample_steps = None if resample_steps is None else int(resample_steps)
-        lay = layout_of(model, self._dtype)
-        self._pm, self._tables = lay.padded, lay.tables
-        self._pm0 = one_world(self._pm)
+        self._sim = Simulator(model, self._config, backend=backend)
+        self._pm = self._sim.parameters(self._dtype) if backend == "jax" else None
         self.sys = EnvSystem.from_model(model, self._dtype)
         self._nominal_sys = self.sys
         self._act_dof = np.asarray(model.actuator_dof, np.int32)  # int32: indices stay valid whatever x64 says
@@ -154,6 +151,11 @@ class KaminoEnv(Env):
                                  f"reset) or an integer >= 1 (configurations solved at construction), got "
                                  f"{reset_bank!r}")
             self._bank = self._solve_bank(int(reset_bank), int(reset_seed))
+
+    @property
+    def simulator(self) -> Simulator:
+        """The :class:`kamino.Simulator` that steps this environment's world."""
+        return self._sim
 
     # ------------------------------------------------------------------ Brax's Env interface
 
@@ -285,7 +287,7 @@ class KaminoEnv(Env):
 
     def actuated_state(self, ps: State) -> tuple[jax.Array, jax.Array]:
         """``(positions, rates)`` of the actuated DoFs ``[action_size]`` (actuator order)."""
-        q, qd = dof_state(self._pm0, ps.body_q, ps.body_u)
+        q, qd = dof_state(self._model, ps)
         return q[self._act_dof], qd[self._act_dof]
 
     def _simulate(self, ps: State, prev_target: jax.Array, target: jax.Array) -> State:
@@ -297,25 +299,25 @@ class KaminoEnv(Env):
             return Control(position_target=jnp.zeros(nd, self._dtype).at[self._act_dof].set(tgt))
 
         # the loop neither carries nor closes over a zero-size array (kamino.state.drop_empty says why)
-        arrays = (sys.apply(self._pm), self._tables) if self._backend == "jax" else None
-        compact = drop_empty(arrays)
+        params = sys.apply(self._pm) if self._backend == "jax" else None
+        compact = drop_empty(params)
 
         def body(s, k):
             late = k * self._config.dt < sys.action_delay
-            pm_tables = None if arrays is None else fill_empty(compact, arrays)
-            s = self._physics_step(pm_tables, self.full_state(s), control(jnp.where(late, prev_target, target)))
+            s = self._physics_step(None if params is None else fill_empty(compact, params), self.full_state(s),
+                                   control(jnp.where(late, prev_target, target)))
             return drop_empty(s), None
 
         ps, _ = jax.lax.scan(body, drop_empty(ps), jnp.arange(self._decimation, dtype=self._dtype))
         return self.full_state(ps)
 
-    def _physics_step(self, pm_tables, ps: State, control: Control) -> State:
-        """One simulator step: the Warp FFI step (``pm_tables`` is ``None``), or the JAX reference's jitted step on
-        ``pm_tables = (padded model, layout tables)`` carrying this environment's parameters (``sys.apply``;
-        kamino.step reads its padded model from the host Model, which cannot carry traced parameters)."""
-        if self._backend == "warp":
-            return kamino_step(self._model, ps, control, config=self._config, backend="warp")
-        return step_padded(*pm_tables, ps, control, self._config)
+    def _physics_step(self, params, ps: State, control: Control) -> State:
+        """One simulator step: the Warp FFI step (``params`` is ``None``), or the JAX reference's step with
+        ``params``, the padded model carrying this environment's parameters (``sys.apply``;
+        ``Simulator.step_with``: the host Model cannot carry traced parameters)."""
+        if params is None:
+            return self._sim.step(ps, control)
+        return self._sim.step_with(params, ps, control)
 
     def _check_sys(self, where: str) -> None:
         if self._backend == "warp" and self.sys is not self._nominal_sys:

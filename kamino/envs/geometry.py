@@ -1,19 +1,13 @@
-"""Kinematic read-outs for environments: DoF positions and rates, a base body's frame, ground placement.
+"""Kinematic read-outs for environments: a base body's frame, ground placement.
 
-An environment steps one world at a time inside ``jax.vmap``, so these read one world's arrays: a padded one-world
-model (:func:`one_world`) and that world's ``body_q`` / ``body_u``. Whole-model read-outs by name, for any number of
-worlds and for trajectories, are in ``kamino`` itself: ``kamino.joint_coordinates`` (one joint's coordinates),
-``kamino.body_frame`` (a body's velocity, gravity direction and height in its own frame) and
-``kamino.body_contact_forces`` (the net contact force on each body).
+An environment steps one world at a time inside ``jax.vmap``, so these read one world's arrays (``body_q`` /
+``body_u``). Whole-model read-outs by name, for any number of worlds and for trajectories, are in ``kamino`` itself:
+``kamino.dof_state`` (every DoF's position and rate, what an actuated joint's observation reads),
+``kamino.joint_coordinates`` (one joint's coordinates), ``kamino.body_frame`` (a body's velocity, gravity direction
+and height in its own frame) and ``kamino.body_contact_forces`` (the net contact force on each body).
 
-- :func:`dof_state`: every DoF's position and rate, what an actuated joint's observation reads;
 - :func:`body_frame_vectors`: a base body's frame (gravity direction, linear and angular velocity, height, up);
 - :func:`support_points`, :func:`ground_height`, :func:`place_on_ground`: a floating robot set down on the ground.
-
-DoF positions come from the JAX reference's joint kinematics (``kamino/jax_ref/joints.py``: ``joint_frames``,
-``dof_positions``, ``dof_jacobian``), which ``kamino.joint_positions`` and the step use too, so an observation and
-the PD actuator read the same angle. A DoF's rate is ``J_dofs u`` (the actuation Jacobian of docs/formulation.md
-§2.5 applied to the body twists): the time derivative of the DoF position for hinges and slides.
 """
 
 from __future__ import annotations
@@ -24,28 +18,8 @@ import numpy as np
 
 from kamino.api import frame_vectors
 from kamino.hostmath import quat_to_matrix as host_quat_to_matrix
-from kamino.jax_ref.joints import dof_jacobian, dof_positions, joint_frames
-from kamino.jax_ref.layout import PaddedModel
-from kamino.jax_ref.spatial import rotate
 from kamino.model import GeomType, Model
-
-
-def one_world(pm: PaddedModel) -> PaddedModel:
-    """World 0 of a padded model (drops the leading world axis). The padded model is the JAX reference's layout
-    of a :class:`kamino.Model` (``kamino.jax_ref.layout.layout_of(model, dtype).padded``), the input of
-    :func:`dof_state`."""
-    return jax.tree.map(lambda x: x[0], pm)
-
-
-def dof_state(pm0: PaddedModel, body_q: jax.Array, body_u: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``(positions, rates)`` of every DoF of a one-world model, each ``[nd]`` in the world's DoF order
-    (``model.joint_dof_start``): a hinge's angle [rad] and angular rate [rad/s], a slider's offset [m] and speed
-    [m/s]. ``pm0`` comes from :func:`one_world`; ``body_q`` ``[nb, 7]`` and ``body_u`` ``[nb, 6]`` are the world's
-    rows of ``State.body_q`` / ``body_u``."""
-    jf = joint_frames(pm0, body_q)
-    q = dof_positions(pm0, jf)
-    J = dof_jacobian(pm0, jf, body_q.shape[0])
-    return q, J @ body_u.reshape(-1)
+from kamino.spatial import rotate
 
 
 def body_frame_vectors(body_q: jax.Array, body_u: jax.Array, body: int) -> dict[str, jax.Array]:
@@ -104,4 +78,4 @@ def place_on_ground(body_q: jax.Array, points: jax.Array, bodies: np.ndarray, ra
     return body_q.at[:, 2].add(height - lowest)
 
 
-__all__ = ["body_frame_vectors", "dof_state", "ground_height", "one_world", "place_on_ground", "support_points"]
+__all__ = ["body_frame_vectors", "ground_height", "place_on_ground", "support_points"]

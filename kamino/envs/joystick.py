@@ -19,9 +19,9 @@ import numpy as np
 from kamino.config import SolverConfig
 from kamino.envs.base import KaminoEnv
 from kamino.envs.geometry import body_frame_vectors
-from kamino.jax_ref.spatial import quat_mul, quat_to_matrix
 from kamino.model import Model
 from kamino.models import bdx, dr_legs
+from kamino.spatial import quat_mul, quat_to_matrix
 from kamino.state import State
 
 #: reward weights (docs/envs.md); the reward is their weighted sum per policy step, clipped at 0

@@ -6,7 +6,7 @@ Brax's domain randomization (``brax.envs.wrappers.training.DomainRandomizationVm
 arrays of the one-world :class:`kamino.Model` that a randomization may change, under the Model's own names
 (``body_mass``, ``geom_friction``, ``dof_kp``, ...), world-local (for a one-world model they are the Model's arrays
 themselves). :meth:`EnvSystem.apply` writes them into the JAX reference's padded model
-(``kamino.jax_ref.layout.PaddedModel``) before each simulator step, so every step of an environment reads its own
+(``kamino.Simulator.parameters``) before each simulator step, so every step of an environment reads its own
 parameters. Geometry (joint frames, geom sizes) is not randomizable: resets are solved by forward kinematics on the
 nominal geometry.
 """
@@ -19,7 +19,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kamino.jax_ref.layout import PaddedModel
 from kamino.model import Model
 
 
@@ -76,8 +75,9 @@ class EnvSystem:
             dof_damping=f(model.dof_damping), dof_effort_limit=f(model.dof_effort_limit),
             gravity=f(model.gravity).reshape(3), action_delay=jnp.zeros((), dtype))
 
-    def apply(self, pm: PaddedModel) -> PaddedModel:
-        """``pm`` (the one-world padded model, leading axis 1) with these parameters written in."""
+    def apply(self, pm):
+        """``pm`` (the one-world padded model of ``kamino.Simulator.parameters``, leading axis 1) with these
+        parameters written in."""
         dt = pm.mass.dtype
         c = lambda x: jnp.asarray(x, dt)[None]  # noqa: E731
         return dataclasses.replace(

@@ -1,20 +1,25 @@
-"""The JAX backend behind ``kamino.step``/``rollout``: flat State <-> padded worlds, jitted."""
+"""The JAX reference behind ``kamino.Simulator(..., backend="jax")``: flat State <-> padded worlds, jitted."""
 
 from __future__ import annotations
 
 import functools
+import threading
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from kamino.checks import check_control as _check_control
-from kamino.checks import check_rollout_controls
-from kamino.checks import check_state as _check_state
 from kamino.config import SolverConfig
 from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.dynamics import body_dynamics, kinetic_energy, potential_energy
-from kamino.jax_ref.joints import constraint_residual, dof_positions, joint_coordinates, joint_frames
-from kamino.jax_ref.layout import PaddedModel, layout_of, to_flat, to_padded
+from kamino.jax_ref.joints import (
+    constraint_residual,
+    dof_jacobian,
+    dof_positions,
+    joint_coordinates,
+    joint_frames,
+)
+from kamino.jax_ref.layout import Layout, PaddedModel, build_layout, layout_of, to_flat, to_padded
 from kamino.jax_ref.precision import full_precision
 from kamino.jax_ref.step import WorldCache, WorldControl, step_batch
 from kamino.model import RES_TRANS, Model
@@ -120,13 +125,6 @@ def step_padded(pm: PaddedModel, t: dict, state: State, control: Control | None,
     )
 
 
-def step(model: Model, state: State, control: Control | None, cfg: SolverConfig) -> State:
-    _check_state(model, state)
-    _check_control(model, control)
-    lay = layout_of(model, state.body_q.dtype)
-    return step_padded(lay.padded, lay.tables, state, control, cfg)
-
-
 @functools.partial(jax.jit, static_argnames=("cfg", "num_steps"))
 def _rollout_jit(pm, t, state, controls, cfg, num_steps):
     def body(s, c):
@@ -140,12 +138,37 @@ def _rollout_jit(pm, t, state, controls, cfg, num_steps):
     return traj
 
 
-def rollout(model: Model, state: State, controls: Control | None, num_steps: int | None,
-            cfg: SolverConfig) -> State:
-    _check_state(model, state)
-    lay = layout_of(model, state.body_q.dtype)
-    num_steps = check_rollout_controls(model, controls, num_steps)
-    return _rollout_jit(lay.padded, lay.tables, state, controls, cfg, int(num_steps))
+class Engine:
+    """The JAX reference stepping one model with one configuration (what ``kamino.Simulator(..., backend="jax")``
+    holds): the padded layout of each precision it has stepped, built on first use (:func:`build_layout`) and freed
+    with the engine, and the jitted step and rollout. XLA's compiled programs are shared by every engine of the same
+    padded shapes and configuration (the layout is an argument, not a constant)."""
+
+    def __init__(self, model: Model, cfg: SolverConfig) -> None:
+        self.model, self.cfg = model, cfg
+        self._layouts: dict[np.dtype, Layout] = {}
+        self._lock = threading.Lock()
+
+    def layout(self, dtype) -> Layout:
+        """The padded layout in ``dtype`` (built once)."""
+        dtype = np.dtype(dtype)
+        with self._lock:
+            if dtype not in self._layouts:
+                self._layouts[dtype] = build_layout(self.model, dtype)
+            return self._layouts[dtype]
+
+    def parameters(self, dtype) -> PaddedModel:
+        """The padded model in ``dtype``: the arrays :meth:`step` reads, which a caller may replace with traced
+        per-environment values (``kamino.envs``' domain randomization)."""
+        return self.layout(dtype).padded
+
+    def step(self, state: State, control: Control | None, parameters: PaddedModel | None = None) -> State:
+        lay = self.layout(state.body_q.dtype)
+        return step_padded(lay.padded if parameters is None else parameters, lay.tables, state, control, self.cfg)
+
+    def rollout(self, state: State, controls: Control | None, num_steps: int) -> State:
+        lay = self.layout(state.body_q.dtype)
+        return _rollout_jit(lay.padded, lay.tables, state, controls, self.cfg, int(num_steps))
 
 
 @jax.jit
@@ -184,3 +207,24 @@ def joint_coordinates_padded(model: Model, body_q: jax.Array) -> jax.Array:
     """``[W, max_joints, 7]`` packed joint coordinates (see ``joints.joint_coordinates``)."""
     lay = layout_of(model, body_q.dtype)
     return _joint_coords_jit(lay.padded, lay.tables, body_q)
+
+
+@jax.jit
+@full_precision
+def _dof_state_jit(pm: PaddedModel, t: dict, body_q, body_u):
+    q = _padded_poses(pm, t, body_q)
+    u = to_padded(body_u, t["bg"], pm.body_mask, 0.0)
+
+    def one(p, x, v):
+        jf = joint_frames(p, x)
+        return dof_positions(p, jf), dof_jacobian(p, jf, x.shape[0]) @ v.reshape(-1)
+
+    pos, rate = jax.vmap(one)(pm, q, u)
+    return to_flat(pos, t["ds"]), to_flat(rate, t["ds"])
+
+
+def dof_state(model: Model, body_q: jax.Array, body_u: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(positions, rates)`` of every DoF, flat ``[num_dofs]``: ``dof_positions`` and ``J_dofs u``
+    (docs/formulation.md §2.5) at the poses ``body_q`` and twists ``body_u``."""
+    lay = layout_of(model, body_q.dtype)
+    return _dof_state_jit(lay.padded, lay.tables, body_q, body_u)

@@ -79,8 +79,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from kamino.config import BISECTION_STEPS, GOLDEN_STEPS, PARALLEL_SIN2, PROJECTION_ROUNDS
-from kamino.jax_ref.spatial import quat_to_matrix
 from kamino.model import CONTACT_POINTS, GeomType
+from kamino.spatial import quat_to_matrix
 
 
 @jax.tree_util.register_dataclass

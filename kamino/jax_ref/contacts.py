@@ -17,8 +17,8 @@ import jax.numpy as jnp
 from kamino.config import SolverConfig
 from kamino.jax_ref.collision import collide
 from kamino.jax_ref.layout import PaddedModel
-from kamino.jax_ref.spatial import quat_mul, quat_to_matrix
 from kamino.model import GeomType
+from kamino.spatial import quat_mul, quat_to_matrix
 
 
 @jax.tree_util.register_dataclass

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 
 from kamino.config import GYRO_ITERATIONS
 from kamino.jax_ref.layout import PaddedModel
-from kamino.jax_ref.spatial import quat_to_matrix
+from kamino.spatial import quat_to_matrix
 
 
 @jax.tree_util.register_dataclass

@@ -39,8 +39,8 @@ from kamino.jax_ref.joints import (
 )
 from kamino.jax_ref.layout import PaddedModel
 from kamino.jax_ref.precision import full_precision
-from kamino.jax_ref.spatial import integrate_pose, quat_conj, quat_exp, quat_log, quat_mul, rotate
 from kamino.model import JointType
+from kamino.spatial import integrate_pose, quat_conj, quat_exp, quat_log, quat_mul, rotate
 
 _ALPHAS = tuple(0.5**k for k in range(10))
 _ARMIJO = 1e-4

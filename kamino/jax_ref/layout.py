@@ -9,13 +9,12 @@ This module also holds the gather tables between the flat and padded layouts.
 from __future__ import annotations
 
 import dataclasses
-import weakref
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kamino.model import Model
+from kamino.model import Model, derived
 from kamino.tables import DYN_ACTUATOR, DYN_PASSIVE, row_tables
 
 __all__ = ["DYN_ACTUATOR", "DYN_PASSIVE", "Layout", "PaddedModel", "layout_of", "to_flat", "to_padded"]
@@ -142,23 +141,23 @@ def _local_ranks(counts: np.ndarray) -> np.ndarray:
     return np.arange(total) - np.repeat(starts, counts)
 
 
-_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
 def layout_of(model: Model, dtype=None) -> Layout:
-    """The (cached) padded layout of ``model`` in ``dtype`` (default: JAX's float dtype).
+    """The padded layout of ``model`` in ``dtype`` (default: JAX's float dtype), built once per dtype and kept on the
+    model (:func:`kamino.model.derived`).
 
     Built under ``jax.ensure_compile_time_eval()``: when the first call comes from inside a trace
     (``jax.jit`` of ``kamino.metrics``, say), ``jnp.asarray`` would otherwise return tracers of that
-    trace, and the cache would hand them to every later call (``UnexpectedTracerError``). Its arrays are
+    trace, and the kept layout would hand them to every later call (``UnexpectedTracerError``). Its arrays are
     therefore always concrete device arrays, whatever traces the caller is in (tests/test_layout_cache.py).
     """
     dtype = np.dtype(dtype if dtype is not None else jnp.zeros(0).dtype)
-    per_model = _CACHE.setdefault(model, {})
-    if dtype not in per_model:
-        with jax.ensure_compile_time_eval():
-            per_model[dtype] = _build_layout(model, dtype)
-    return per_model[dtype]
+    return derived(model, ("layout", dtype), lambda: build_layout(model, dtype))
+
+
+def build_layout(model: Model, dtype: np.dtype) -> Layout:
+    """:func:`layout_of` built anew (concrete arrays, whatever trace the caller is in)."""
+    with jax.ensure_compile_time_eval():
+        return _build_layout(model, np.dtype(dtype))
 
 
 def _build_layout(model: Model, dtype: np.dtype) -> Layout:

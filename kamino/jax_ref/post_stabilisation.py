@@ -45,8 +45,8 @@ from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.dynamics import BodyDynamics, apply_inv_mass
 from kamino.jax_ref.joints import constraint_residual, dof_positions, joint_frames
 from kamino.jax_ref.layout import PaddedModel
-from kamino.jax_ref.spatial import integrate_pose
 from kamino.model import RES_TRANS
+from kamino.spatial import integrate_pose
 
 
 @jax.tree_util.register_dataclass

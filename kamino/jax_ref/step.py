@@ -29,8 +29,8 @@ from kamino.jax_ref.joints import (
 )
 from kamino.jax_ref.layout import DYN_ACTUATOR, PaddedModel
 from kamino.jax_ref.precision import full_precision
-from kamino.jax_ref.spatial import integrate_pose
 from kamino.model import ActuationMode
+from kamino.spatial import integrate_pose
 
 
 @jax.tree_util.register_dataclass

@@ -1,4 +1,4 @@
-"""The Warp backend behind ``kamino.step(..., backend="warp")`` / ``rollout``: State <-> device buffers.
+"""The Warp backend behind ``kamino.Simulator(..., backend="warp")``: State <-> device buffers.
 
 ``State``/``Control`` stay JAX pytrees. A :class:`~kamino.warp_backend.pipeline.Stepper` holds the
 device buffers of one (model, config, precision, device); a call copies the State into them, runs
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-import weakref
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -21,37 +21,17 @@ import numpy as np
 import warp as wp
 from tqdm import tqdm
 
-from kamino.checks import check_control, check_rollout_controls, check_state
 from kamino.config import SolverConfig
-from kamino.model import Model
+from kamino.model import Model, replicate
 from kamino.state import ContactState, Control, State, StepInfo
 from kamino.warp_backend.jit import batchable_step, is_traced
+from kamino.warp_backend.model_data import warp_model
 from kamino.warp_backend.pipeline import Stepper
 from kamino.warp_backend.types import types_of
 
-_STEPPERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-#: an eager :func:`rollout` of at least this many steps shows a progress bar (tqdm, on stderr, cleared at the end);
+#: an eager rollout of at least this many steps shows a progress bar (tqdm, on stderr, cleared at the end);
 #: shorter ones print nothing. Set it to ``float("inf")`` for none.
 PROGRESS_MIN_STEPS = 1000
-
-
-def release(model: Model | None = None) -> None:
-    """Drop the Warp backend's cached steppers, device models and batchable steps of ``model`` (of every model when
-    ``None``).
-
-    Their values refer to the model, so these ``WeakKeyDictionary`` entries never expire by themselves: a process
-    that steps many models (a benchmark over scenes, a test suite) keeps every stepper's device buffers until it
-    releases them. The next step of a released model builds its stepper again. The host tables a stepper is built
-    from (``kamino.tables.row_tables``, ``sparse_llt.fixed_row_types``) go too."""
-    from kamino import tables
-    from kamino.warp_backend import jit, model_data, sparse_llt
-
-    for cache in (_STEPPERS, model_data._CACHE, jit._BATCHABLE, tables._TABLES, sparse_llt._FIXED_ROW_TYPES):
-        if model is None:
-            cache.clear()
-        else:
-            cache.pop(model, None)
 
 
 def default_device() -> wp.context.Device:
@@ -59,18 +39,86 @@ def default_device() -> wp.context.Device:
     return wp.get_device()
 
 
-def stepper(model: Model, cfg: SolverConfig, np_dtype, device=None, *, for_jit: bool = False,
-            padmm: str | None = None) -> Stepper:
-    """The cached :class:`Stepper` of ``model`` for ``cfg``, precision and device (``for_jit``: the one
-    called from inside JAX transformations, which launches without its own graph capture; ``padmm``: see
-    :class:`Stepper`)."""
-    dev = wp.get_device(device)
-    key = (cfg, np.dtype(np_dtype), str(dev), for_jit, padmm)
-    per_model = _STEPPERS.setdefault(model, {})
-    if key not in per_model:
-        per_model[key] = st = Stepper(model, cfg, np_dtype, dev, padmm=padmm)
-        st.use_graph = st.use_graph and not for_jit
-    return per_model[key]
+class Engine:
+    """The Warp backend stepping one model with one configuration (what ``kamino.Simulator(..., backend="warp")``
+    holds). It builds on first use, and frees with itself:
+
+    - a device model per (precision, device) (:func:`~kamino.warp_backend.model_data.warp_model`);
+    - a :class:`Stepper` per (precision, device, traced or eager): device buffers, loaded kernels, CUDA graphs;
+    - the traced step that ``jax.jit`` / ``vmap`` call (:func:`~kamino.warp_backend.jit.batchable_step`), and the
+      engines of the replicated models a ``vmap`` of ``B`` states steps as one.
+
+    An eager step or rollout holds the engine's lock from loading the state to reading the result: the steppers'
+    buffers are the engine's, so two threads sharing one engine take turns. ``padmm`` picks the PADMM schedule
+    (:class:`Stepper`; ``None``: by device and size)."""
+
+    def __init__(self, model: Model, cfg: SolverConfig, padmm: str | None = None) -> None:
+        self.model, self.cfg, self.padmm = model, cfg, padmm
+        self._models: dict = {}
+        self._steppers: dict = {}
+        self._traced: dict = {}
+        self._replicas: dict[int, Engine] = {}
+        self._lock = threading.RLock()
+
+    def stepper(self, np_dtype, device=None, *, for_jit: bool = False) -> Stepper:
+        """The :class:`Stepper` in ``np_dtype`` on ``device`` (Warp's preferred one by default); ``for_jit``: the one
+        called from inside JAX transformations, which launches without its own graph capture."""
+        dev = wp.get_device(device)
+        key = (np.dtype(np_dtype), str(dev), for_jit)
+        with self._lock:
+            if key not in self._steppers:
+                wm_key = key[:2]
+                if wm_key not in self._models:
+                    self._models[wm_key] = warp_model(self.model, *wm_key)
+                st = Stepper(self.model, self.cfg, np_dtype, dev, padmm=self.padmm, wm=self._models[wm_key])
+                st.use_graph = st.use_graph and not for_jit
+                self._steppers[key] = st
+            return self._steppers[key]
+
+    def replica(self, copies: int) -> Engine:
+        """The engine of ``kamino.replicate(model, copies)`` with this configuration (a ``vmap`` over ``copies``
+        states steps them as that model's worlds)."""
+        with self._lock:
+            if copies not in self._replicas:
+                self._replicas[copies] = Engine(replicate(self.model, copies), self.cfg, self.padmm)
+            return self._replicas[copies]
+
+    def traced_step(self, np_dtype):
+        """The step called with traced arrays (inside ``jax.jit``, ``lax.scan``, ``vmap``), built once per
+        precision."""
+        dtype = np.dtype(np_dtype)
+        with self._lock:
+            if dtype not in self._traced:
+                self._traced[dtype] = batchable_step(self, dtype, _jax_device())
+            return self._traced[dtype]
+
+    def step(self, state: State, control: Control | None) -> State:
+        if is_traced(state) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(control)):
+            return self.traced_step(_dtype_of(state))(state, control)
+        with self._lock:
+            st = self.stepper(_dtype_of(state))
+            load_state(st, state, control)
+            st.run(1)
+            return read_state(st)
+
+    def rollout(self, state: State, controls: Control | None, num_steps: int) -> State:
+        if is_traced(state) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(controls)):
+            def body(s, c):
+                s2 = self.step(s, c)
+                return s2, s2
+
+            return jax.lax.scan(body, state, controls, length=num_steps)[1]
+        with self._lock:
+            st = self.stepper(_dtype_of(state))
+            load_state(st, state, None)
+            traj = _Trajectory(st, num_steps)
+            for t in tqdm(range(num_steps), desc="kamino rollout (warp)", unit="step", leave=False, mininterval=0.5,
+                          dynamic_ncols=True, file=sys.stderr, disable=num_steps < PROGRESS_MIN_STEPS):
+                if controls is not None:
+                    load_control(st, jax.tree_util.tree_map(lambda x, t=t: x[t], controls))
+                st.run(1)
+                traj.record(t)
+            return traj.result()
 
 
 def _jax_device() -> str:
@@ -224,42 +272,6 @@ def _dtype_of(state: State):
     dt = np.dtype(state.body_q.dtype)
     types_of(dt)  # raises for unsupported precisions
     return dt
-
-
-def step(model: Model, state: State, control: Control | None, cfg: SolverConfig) -> State:
-    check_state(model, state)
-    check_control(model, control)
-    if is_traced(state) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(control)):
-        dtype, device = _dtype_of(state), _jax_device()
-        fn = batchable_step(model, cfg, dtype, lambda m: stepper(m, cfg, dtype, device, for_jit=True))
-        return fn(state, control)
-    st = stepper(model, cfg, _dtype_of(state))
-    load_state(st, state, control)
-    st.run(1)
-    return read_state(st)
-
-
-def rollout(model: Model, state: State, controls: Control | None, num_steps: int | None,
-            cfg: SolverConfig) -> State:
-    check_state(model, state)
-    num_steps = check_rollout_controls(model, controls, num_steps)
-    if is_traced(state) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(controls)):
-        def body(s, c):
-            s2 = step(model, s, c, cfg)
-            return s2, s2
-
-        _, traj = jax.lax.scan(body, state, controls, length=num_steps)
-        return traj
-    st = stepper(model, cfg, _dtype_of(state))
-    load_state(st, state, None)
-    traj = _Trajectory(st, num_steps)
-    for t in tqdm(range(num_steps), desc="kamino rollout (warp)", unit="step", leave=False, mininterval=0.5,
-                  dynamic_ncols=True, file=sys.stderr, disable=num_steps < PROGRESS_MIN_STEPS):
-        if controls is not None:
-            load_control(st, jax.tree_util.tree_map(lambda x, t=t: x[t], controls))
-        st.run(1)
-        traj.record(t)
-    return traj.result()
 
 
 class _Trajectory:

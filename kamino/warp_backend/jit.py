@@ -12,19 +12,16 @@ world to its end, or to its next switch, in one launch. No host synchronisation 
 
 from __future__ import annotations
 
-import weakref
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import warp as wp
 
 from kamino.model import Model
 from kamino.state import ContactState, Control, State, StepInfo
 from kamino.warp_backend.pipeline import Stepper
 from kamino.warp_backend.types import types_of
-
-_CALLABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 # (State/Control field path, Work buffer, kind) of every input; kind picks the Warp dtype
 _INPUTS = (
@@ -57,23 +54,14 @@ def _warp_dtype(T, kind):
     return {"transform": T.transform, "vec6": T.vec6, "vec3": T.vec3, "scalar": T.scalar, "int": wp.int32}[kind]
 
 
-def _stepper_on(st: Stepper, device) -> Stepper:
-    """The stepper of ``st``'s model and configuration on ``device``: the device XLA runs the call on. Under
-    ``pmap`` or ``shard_map`` over several GPUs every device has its own stepper (buffers, kernels loaded there);
-    the call's arrays live on that device. Warp runs the callbacks one at a time (its FFI lock), so the forced host
-    devices of a CPU, which all map to Warp's one CPU device, share its stepper safely."""
-    if device == st.device:
-        return st
-    from kamino.warp_backend.backend import stepper
-
-    return stepper(st.wm.model, st.cfg, st.np_dtype, device, for_jit=True, padmm=st.padmm)
-
-
-def _callable(st: Stepper):
-    """The ``wp.jax_callable`` of one stepper (cached), with the non-empty fields as arguments."""
-    per = _CALLABLES.setdefault(st, {})
-    if "call" in per:
-        return per["call"], per["ins"], per["outs"]
+def _callable(st: Stepper, stepper_on: Callable):
+    """The ``wp.jax_callable`` of one stepper (built once, kept on the stepper), with the non-empty fields as
+    arguments. ``stepper_on(device)`` is the stepper of the same model, configuration and precision on the device
+    XLA runs the call on: under ``pmap`` or ``shard_map`` over several GPUs every device has its own (buffers,
+    kernels loaded there). Warp runs the callbacks one at a time (its FFI lock), so the forced host devices of a
+    CPU, which all map to Warp's one CPU device, share its stepper safely."""
+    if st.ffi is not None:
+        return st.ffi
     T = types_of(st.np_dtype)
     w = st.work
     ins = [f for f in _INPUTS if getattr(w, f[1]).size]
@@ -83,7 +71,7 @@ def _callable(st: Stepper):
     types = {n: wp.array(dtype=_warp_dtype(T, f[2])) for n, f in zip(names, ins + outs, strict=True)}
 
     def body(arrays):
-        s = _stepper_on(st, arrays[0].device)
+        s = st if arrays[0].device == st.device else stepper_on(arrays[0].device)
         for arr, (_, buf, _) in zip(arrays[:len(ins)], ins, strict=True):
             wp.copy(getattr(s.work, buf), arr)
         graph = s.captured(1)
@@ -110,34 +98,28 @@ def _callable(st: Stepper):
     else:
         st.launch_step()
     call = wp.jax_callable(fn, num_outputs=len(outs), graph_mode=wp.JaxCallableGraphMode.NONE, vmap_method=None)
-    per.update(call=call, ins=ins, outs=outs)
-    return call, ins, outs
+    st.ffi = (call, ins, outs)
+    return st.ffi
 
 
-_BATCHABLE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def batchable_step(model: Model, cfg, np_dtype, stepper_of):
-    """The traced step of ``model`` as a function ``(state, control) -> State`` that ``jax.vmap`` batches.
+def batchable_step(engine, np_dtype, device: str):
+    """The traced step of ``engine`` (a :class:`~kamino.warp_backend.backend.Engine`: one model and configuration)
+    in ``np_dtype`` as a function ``(state, control) -> State`` that ``jax.vmap`` batches; its stepper lives on the
+    Warp device ``device`` (where JAX's traced arrays live).
 
     The FFI call itself has no batching rule (``vmap_method=None``). The rule here (``jax.custom_batching``) uses
     the storage layout instead: arrays are world after world (docs/conventions.md, "Data layout"), so a batch of
-    ``B`` states of ``model`` is, flattened, the state of ``kamino.replicate(model, B)``. The rule reshapes every
-    ``[B, n, ...]`` array to ``[B * n, ...]``, makes one call for all ``B * N`` worlds and reshapes back; nested
-    ``vmap`` recurses through the replica's own function. Cached per (model, config, dtype); the replicas are kept
-    alive with it (the steppers are cached per model, weakly). ``stepper_of(model)`` gives the stepper of a model
-    (``backend.stepper`` with the configuration and device bound)."""
-    from kamino.model import replicate
+    ``B`` states of the model is, flattened, the state of ``kamino.replicate(model, B)``. The rule reshapes every
+    ``[B, n, ...]`` array to ``[B * n, ...]``, makes one call for all ``B * N`` worlds with the replica's engine
+    (``engine.replica(B)``) and reshapes back; nested ``vmap`` recurses through the replica's own function."""
+    model = engine.model
 
-    per = _BATCHABLE.setdefault(model, {})
-    key = (cfg, np.dtype(np_dtype))
-    if key in per:
-        return per[key][0]
-    replicas: dict[int, Model] = {}
+    def stepper_on(dev):
+        return engine.stepper(np_dtype, dev, for_jit=True)
 
     @jax.custom_batching.custom_vmap
     def step(state: State, control: Control | None) -> State:
-        return traced_step(stepper_of(model), model, state, control)
+        return traced_step(stepper_on(device), stepper_on, model, state, control)
 
     @step.def_vmap
     def rule(axis_size: int, in_batched, state: State, control: Control | None):
@@ -146,22 +128,19 @@ def batchable_step(model: Model, cfg, np_dtype, stepper_of):
 
         state = jax.tree.map(lift, state, in_batched[0])
         control = jax.tree.map(lift, control, in_batched[1])
-        if axis_size not in replicas:
-            replicas[axis_size] = replicate(model, axis_size)
-        big = replicas[axis_size]
         merge = lambda x: x.reshape((axis_size * x.shape[1], *x.shape[2:]))  # noqa: E731
-        out = batchable_step(big, cfg, np_dtype, stepper_of)(jax.tree.map(merge, state), jax.tree.map(merge, control))
+        big = engine.replica(axis_size).traced_step(np_dtype)
+        out = big(jax.tree.map(merge, state), jax.tree.map(merge, control))
         split = lambda x: x.reshape((axis_size, x.shape[0] // axis_size, *x.shape[1:]))  # noqa: E731
         out = jax.tree.map(split, out)
         return out, jax.tree.map(lambda _: True, out)
 
-    per[key] = (step, replicas)
     return step
 
 
-def traced_step(st: Stepper, model: Model, state: State, control: Control | None) -> State:
-    """One step with traced inputs, through the Warp FFI."""
-    call, ins, outs = _callable(st)
+def traced_step(st: Stepper, stepper_on: Callable, model: Model, state: State, control: Control | None) -> State:
+    """One step with traced inputs, through the Warp FFI (``stepper_on``: :func:`_callable`)."""
+    call, ins, outs = _callable(st, stepper_on)
     dtype = jnp.dtype(st.np_dtype)
     args = []
     for path, buf, _ in ins:

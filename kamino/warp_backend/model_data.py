@@ -12,7 +12,6 @@ Delassus matrix and the dense Jacobian are interleaved over groups of 32 worlds
 
 import dataclasses
 import functools
-import weakref
 
 import numpy as np
 import warp as wp
@@ -170,18 +169,12 @@ def _bounding_radius(model: Model) -> np.ndarray:
     return r + np.linalg.norm(model.geom_pos, axis=-1) if model.num_geoms else r
 
 
-_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
 def warp_model(model: Model, np_dtype, device) -> WarpModel:
-    """The (cached) :class:`WarpModel` of ``model`` in ``np_dtype`` on ``device``."""
+    """The :class:`WarpModel` of ``model`` in ``np_dtype`` on ``device``, uploaded (each call uploads anew: the
+    owner, a ``kamino.Simulator``'s engine, keeps one per precision and device)."""
     from kamino.warp_backend import sparse_llt  # (imports this module)
 
-    key = (np.dtype(np_dtype), str(wp.get_device(device)), sparse_llt.HUB_MIN_ROWS)
-    per_model = _CACHE.setdefault(model, {})
-    if key not in per_model:
-        per_model[key] = _upload(model, *key)
-    return per_model[key]
+    return _upload(model, np.dtype(np_dtype), str(wp.get_device(device)), sparse_llt.HUB_MIN_ROWS)
 
 
 def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | None = None) -> WarpModel:

@@ -20,7 +20,7 @@ from kamino.tables import DYN_ACTUATOR, row_tables
 from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import LOOP_OPEN_BOUND, integrate_kernels
-from kamino.warp_backend.model_data import warp_model
+from kamino.warp_backend.model_data import WarpModel, warp_model
 from kamino.warp_backend.padmm_warp import LANES, shared_entries, shared_rows, warp_kernels
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import row_kernels
@@ -83,11 +83,15 @@ class Stepper:
     ``None`` chooses by device, configuration and size (:func:`resolve_padmm`).
     """
 
-    def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None, padmm: str | None = None):
+    def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None, padmm: str | None = None,
+                 wm: WarpModel | None = None):
         self.device = wp.get_device(device)
         self.cfg = cfg
         self.np_dtype = np.dtype(np_dtype)
-        self.wm = wm = warp_model(model, self.np_dtype, str(self.device))
+        #: the model on the device (uploaded here unless given: one per precision and device serves every stepper)
+        self.wm = wm = warp_model(model, self.np_dtype, str(self.device)) if wm is None else wm
+        #: the step as a JAX FFI call, built on the first traced step (kamino/warp_backend/jit.py)
+        self.ffi = None
         padmm = resolve_padmm(cfg, self.device, wm.num_worlds, wm.max_rows, padmm)
         self.linear_solver = resolve_linear_solver(cfg, wm.max_rows, padmm, self.device.is_cuda)
         self.dense = cfg.jacobian == "dense"

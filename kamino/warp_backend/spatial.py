@@ -1,6 +1,6 @@
 """Quaternion and SE(3) helpers as Warp functions (docs/formulation.md §1.1, §2.3, §6.1).
 
-The same formulas as ``kamino/jax_ref/spatial.py`` (small-angle series below ``|phi|^2 < 1e-12``),
+The same formulas as ``kamino/spatial.py`` (small-angle series below ``|phi|^2 < 1e-12``),
 so that both backends round the same way up to the order of operations.
 """
 
