@@ -114,8 +114,8 @@ def _release_compiled_steps():
     """After each test module, drop what the module compiled: JAX's in-memory executables, and the simulators
     (Warp steppers, device models) of the module's models, which go with the models (``gc.collect``), and return
     the freed memory to the system. Without this a worker grew to 6.8 GB over the suite, and workers died mid-run on
-    CI. The on-disk compilation cache still serves later modules. (Keeping the executables while a worker holds under 2 GB saved
-    nothing measurable: the modules hardly share a compiled step.)"""
+    CI. The on-disk compilation cache still serves later modules. (Keeping the executables while a worker holds
+    under 2 GB saved nothing measurable: the modules hardly share a compiled step.)"""
     yield
     import gc
 
