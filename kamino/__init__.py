@@ -6,6 +6,7 @@ Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``
 ``State``, ``ContactState``, ``Control``, ``StepInfo``, ``init_state``, ``step``, ``rollout``,
 ``metrics``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``, ``load_mjcf``, ``save_mjcf``, the
 procedural ``models``, and the read-outs a task needs: ``joint_positions`` (every joint's coordinates),
+``dof_state`` (every DoF's position and rate),
 ``joint_coordinates`` (one joint's, by name), ``body_frame`` (a body's velocity, gravity direction and height in
 its own frame) and ``body_contact_forces`` (the net contact force on each body). The API reference is built from
 these docstrings (docs/api.md). Submodules imported on use: ``kamino.viz`` (an HTML
@@ -22,6 +23,7 @@ from kamino._jax_cache import quiet_cache_loads as _quiet_cache_loads
 from kamino.api import (
     body_contact_forces,
     body_frame,
+    dof_state,
     init_state,
     joint_coordinates,
     joint_positions,
@@ -70,6 +72,7 @@ __all__ = [
     "body_contact_forces",
     "body_frame",
     "concat",
+    "dof_state",
     "forward_kinematics",
     "init_state",
     "joint_coordinates",

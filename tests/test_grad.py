@@ -26,6 +26,6 @@ def test_grad_of_pendulum_angle_matches_finite_differences():
     g = float(jax.grad(final_angle)(jnp.asarray(w0)))
     h = 1e-5
     fd = (float(final_angle(w0 + h)) - float(final_angle(w0 - h))) / (2 * h)
-    # central difference error O(h^2) ~ 1e-10 relative; issue bound 1e-4 relative
+    # central difference error O(h^2) ~ 1e-10 relative; the bound is 1e-4 relative
     assert abs(g - fd) <= 1e-4 * abs(fd), (g, fd)
     assert abs(fd) > 0.05  # the angle really depends on the initial speed

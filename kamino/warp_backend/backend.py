@@ -93,7 +93,7 @@ class Engine:
             return self._traced[dtype]
 
     def step(self, state: State, control: Control | None) -> State:
-        if is_traced(state) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(control)):
+        if is_traced(state, control):
             return self.traced_step(_dtype_of(state))(state, control)
         with self._lock:
             st = self.stepper(_dtype_of(state))
@@ -102,7 +102,7 @@ class Engine:
             return read_state(st)
 
     def rollout(self, state: State, controls: Control | None, num_steps: int) -> State:
-        if is_traced(state) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(controls)):
+        if is_traced(state, controls):
             def body(s, c):
                 s2 = self.step(s, c)
                 return s2, s2

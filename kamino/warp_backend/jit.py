@@ -45,9 +45,10 @@ _INFO_OUTPUTS = (("iterations", "iters", "int"), ("primal_residual", "r_p", "sca
                  ("unconverged_steps", "unconverged", "int"))
 
 
-def is_traced(state: State) -> bool:
-    """Whether ``state`` holds JAX tracers (we are inside a JAX transformation)."""
-    return isinstance(state.body_q, jax.core.Tracer)
+def is_traced(*trees) -> bool:
+    """Whether any array of ``trees`` (a State, a Control, ...) is a JAX tracer (we are inside a JAX
+    transformation: ``jit``, ``vmap``, ``grad``, ...)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
 def _warp_dtype(T, kind):
@@ -111,17 +112,27 @@ def batchable_step(engine, np_dtype, device: str):
     the storage layout instead: arrays are world after world (docs/conventions.md, "Data layout"), so a batch of
     ``B`` states of the model is, flattened, the state of ``kamino.replicate(model, B)``. The rule reshapes every
     ``[B, n, ...]`` array to ``[B * n, ...]``, makes one call for all ``B * N`` worlds with the replica's engine
-    (``engine.replica(B)``) and reshapes back; nested ``vmap`` recurses through the replica's own function."""
+    (``engine.replica(B)``) and reshapes back; nested ``vmap`` recurses through the replica's own function. The step
+    has no derivatives: differentiating it raises a ``NotImplementedError`` that names ``backend="jax"``."""
     model = engine.model
 
     def stepper_on(dev):
         return engine.stepper(np_dtype, dev, for_jit=True)
 
-    @jax.custom_batching.custom_vmap
+    @jax.custom_jvp
     def step(state: State, control: Control | None) -> State:
+        return batched(state, control)
+
+    @step.defjvp
+    def no_gradient(primals, tangents):
+        raise NotImplementedError("kamino's Warp backend has no derivatives: differentiate the step with "
+                                  "backend='jax' (kamino.Simulator(model, config, backend='jax'))")
+
+    @jax.custom_batching.custom_vmap
+    def batched(state: State, control: Control | None) -> State:
         return traced_step(stepper_on(device), stepper_on, model, state, control)
 
-    @step.def_vmap
+    @batched.def_vmap
     def rule(axis_size: int, in_batched, state: State, control: Control | None):
         def lift(x, batched):
             return x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x)))
