@@ -63,6 +63,11 @@ BOX, CYLINDER, ELLIPSOID = int(GeomType.BOX), int(GeomType.CYLINDER), int(GeomTy
 _func = functools.partial(wp.func, module="unique")  # one module per func: no key clash between precisions
 
 
+def _namespace(*funcs: wp.Function) -> SimpleNamespace:
+    """The Warp functions of a builder, by name."""
+    return SimpleNamespace(**{f.func.__name__: f for f in funcs})
+
+
 def max_points(type_a: int, type_b: int) -> int:
     """``K`` of an ordered pair of geom types (``ValueError`` for an unsupported or unordered pair)."""
     try:
@@ -109,7 +114,9 @@ def quad_y(c: int) -> int:
 
 @functools.cache
 def basic_funcs(np_dtype) -> SimpleNamespace:
-    """Rotation, columns, guarded normalisation and division, and the writer of one candidate point."""
+    """Small helpers of every routine: the rotation of a quaternion, matrix columns, the guarded
+    normalisation, sign and division of :mod:`kamino.jax_ref.collision` (``_normalize``, ``_sign``,
+    ``_safe_div``), ``clip01`` and ``put_point``, the writer of one candidate point."""
     T = types_of(np_dtype)
     scalar, vec3, quat, mat33 = T.scalar, T.vec3, T.quat, T.mat33
     K = _constants(np_dtype)
@@ -158,24 +165,24 @@ def basic_funcs(np_dtype) -> SimpleNamespace:
 
     @_func
     def put_point(slot: int, pos: vec3, normal: vec3, dist: scalar, exists: bool, margin: scalar,
-             out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3), out_dist: wp.array(dtype=scalar),
-             out_valid: wp.array(dtype=wp.int32)):
+                  out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3), out_dist: wp.array(dtype=scalar),
+                  out_valid: wp.array(dtype=wp.int32)):
         """Write one candidate point; valid = exists and ``dist <= margin``."""
         out_pos[slot] = pos
         out_normal[slot] = normal
         out_dist[slot] = dist
         out_valid[slot] = wp.where(exists and dist <= margin, 1, 0)
 
-    return SimpleNamespace(rot=rot, col=col, normalize=normalize, sign=sign, safe_div=safe_div, clip01=clip01, put_point=put_point)
+    return _namespace(rot, col, normalize, sign, safe_div, clip01, put_point)
 
 
 @functools.cache
 def box_feature_funcs(np_dtype) -> SimpleNamespace:
-    """Corners and edges of a box in the fixed orders of the JAX reference."""
+    """The corners and edges of a box in the fixed orders of ``_box_corners`` and ``_box_edges``
+    (:mod:`kamino.jax_ref.collision`)."""
     T = types_of(np_dtype)
     scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
-    K = _constants(np_dtype)
-    TWO = K.TWO
+    TWO = _constants(np_dtype).TWO
 
     @_func
     def box_corner(c: vec3, R: mat33, half: vec3, i: int) -> vec3:
@@ -196,12 +203,14 @@ def box_feature_funcs(np_dtype) -> SimpleNamespace:
         dw = R * d
         return c + R * mid - dw, TWO * dw
 
-    return SimpleNamespace(box_corner=box_corner, box_edge=box_edge)
+    return _namespace(box_corner, box_edge)
 
 
 @functools.cache
 def sdf_funcs(np_dtype) -> SimpleNamespace:
-    """Signed distances of the box and the cylinder, local and world, and the projection onto them."""
+    """Signed distances of the primitive solids (``_box_sdf``, ``_cylinder_sdf``, ``_world_sdf``,
+    ``_project`` of :mod:`kamino.jax_ref.collision`): local and world frame, with the outward normal and
+    the nearest surface point, and the projection onto the solid."""
     T = types_of(np_dtype)
     scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
     K = _constants(np_dtype)
@@ -276,12 +285,14 @@ def sdf_funcs(np_dtype) -> SimpleNamespace:
         d, _n, q = sdf_world(gtype, size, c, R, y)
         return wp.where(d > ZERO, q, y)
 
-    return SimpleNamespace(box_sdf=box_sdf, cylinder_sdf=cylinder_sdf, sdf=sdf, sdf_world=sdf_world, dist_world=dist_world, project=project)
+    return _namespace(box_sdf, cylinder_sdf, sdf, sdf_world, dist_world, project)
 
 
 @functools.cache
 def face_interval_funcs(np_dtype) -> SimpleNamespace:
-    """Parameter intervals of a segment lying over the touched face of a box or cylinder."""
+    """The ``t``-intervals where a segment lies over the touched feature of a box or cylinder
+    (``_slab_interval``, ``_box_face_interval``, ``_cylinder_face_interval`` of
+    :mod:`kamino.jax_ref.collision`): the second point of the capsule pairs."""
     T = types_of(np_dtype)
     scalar, vec3 = T.scalar, T.vec3
     K = _constants(np_dtype)
@@ -342,18 +353,19 @@ def face_interval_funcs(np_dtype) -> SimpleNamespace:
             return box_face_interval(p0, d, n_out, size)
         return cylinder_face_interval(p0, d, n_out, size[0], size[1])
 
-    return SimpleNamespace(slab=slab, box_face_interval=box_face_interval, cylinder_face_interval=cylinder_face_interval, face_interval=face_interval)
+    return _namespace(slab, box_face_interval, cylinder_face_interval, face_interval)
 
 
 @functools.cache
 def search_funcs(np_dtype) -> SimpleNamespace:
-    """The golden-section minimum and the bisection reach along a segment."""
+    """The searches along a segment against a geom's signed distance (``_golden_min`` and ``_reach`` of
+    :mod:`kamino.jax_ref.collision`): ``GOLDEN_STEPS`` golden-section and ``BISECTION_STEPS`` bisection
+    steps."""
     T = types_of(np_dtype)
     scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
     K = _constants(np_dtype)
     ZERO, HALF, ONE, GOLD = K.ZERO, K.HALF, K.ONE, K.GOLD
-    sd = sdf_funcs(np_dtype)
-    dist_world = sd.dist_world
+    dist_world = sdf_funcs(np_dtype).dist_world
 
     @_func
     def golden_min(gtype: int, size: vec3, c: vec3, R: mat33, p0: vec3, d: vec3, tol: scalar) -> scalar:
@@ -409,16 +421,19 @@ def search_funcs(np_dtype) -> SimpleNamespace:
             return end
         return start + lo * (end - start)
 
-    return SimpleNamespace(golden_min=golden_min, reach=reach)
+    return _namespace(golden_min, reach)
 
 
 @functools.cache
 def segment_funcs(np_dtype) -> SimpleNamespace:
-    """Spheres, segments and cylinder rims: the closest-point building blocks."""
+    """Closest-point building blocks (:mod:`kamino.jax_ref.collision`): two spheres (``_sphere_pair``),
+    a capsule's segment (``_capsule_segment``), the closest points of two segments (``_segment_closest``)
+    and the support rim points of a cylinder (``_cylinder_support``)."""
     T = types_of(np_dtype)
     scalar, vec3, mat33, transform = T.scalar, T.vec3, T.mat33, T.transform
     K = _constants(np_dtype)
-    mat43, TINY, RTOL2, ZERO, HALF, ONE, TWO, SQRT3_2 = K.mat43, K.TINY, K.RTOL2, K.ZERO, K.HALF, K.ONE, K.TWO, K.SQRT3_2
+    mat43, TINY, RTOL2, SQRT3_2 = K.mat43, K.TINY, K.RTOL2, K.SQRT3_2
+    ZERO, HALF, ONE, TWO = K.ZERO, K.HALF, K.ONE, K.TWO
     bf = basic_funcs(np_dtype)
     clip01, col, normalize, rot, safe_div, sign = bf.clip01, bf.col, bf.normalize, bf.rot, bf.safe_div, bf.sign
 
@@ -487,44 +502,44 @@ def segment_funcs(np_dtype) -> SimpleNamespace:
         rim[3] = cap + radius * (-HALF * r_dir - SQRT3_2 * t_dir)
         return rim, cap
 
-    return SimpleNamespace(sphere_pair=sphere_pair, capsule_segment=capsule_segment, segment_closest=segment_closest, cylinder_support=cylinder_support)
+    return _namespace(sphere_pair, capsule_segment, segment_closest, cylinder_support)
 
 
 @functools.cache
 def plane_pair_funcs(np_dtype) -> SimpleNamespace:
-    """The pairs of a plane."""
+    """The routines of the plane pairs (``_plane_sphere`` .. ``_plane_cylinder`` of
+    :mod:`kamino.jax_ref.collision`): points of geom b, each a sphere against the plane."""
     T = types_of(np_dtype)
     scalar, vec3, transform = T.scalar, T.vec3, T.transform
     K = _constants(np_dtype)
     ZERO, HALF, ONE = K.ZERO, K.HALF, K.ONE
-    bx = box_feature_funcs(np_dtype)
-    box_corner = bx.box_corner
+    box_corner = box_feature_funcs(np_dtype).box_corner
     bf = basic_funcs(np_dtype)
     col, put_point, rot = bf.col, bf.put_point, bf.rot
-    sg = segment_funcs(np_dtype)
-    cylinder_support = sg.cylinder_support
+    cylinder_support = segment_funcs(np_dtype).cylinder_support
 
     @_func
     def plane_point(pose_plane: transform, pt: vec3, radius: scalar, slot: int, margin: scalar,
-                     out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                     out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                    out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                    out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """A sphere of ``radius`` centred at ``pt`` against the plane (``_plane_vs_points``)."""
         n = col(rot(wp.transform_get_rotation(pose_plane)), 2)
         dist = wp.dot(pt - wp.transform_get_translation(pose_plane), n) - radius
-        put_point(slot, pt - n * (radius + HALF * dist), n, dist, True, margin, out_pos, out_normal, out_dist, out_valid)
+        put_point(slot, pt - n * (radius + HALF * dist), n, dist, True, margin, out_pos, out_normal, out_dist,
+                  out_valid)
 
     @_func
     def plane_sphere(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                      out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                     out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                     out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 1, exact (``_plane_sphere``)."""
         plane_point(pose_a, wp.transform_get_translation(pose_b), size_b[0], base, margin,
-                     out_pos, out_normal, out_dist, out_valid)
+                    out_pos, out_normal, out_dist, out_valid)
 
     @_func
     def plane_capsule(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                       out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                      out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 2, exact: the end spheres, local -z first (``_plane_capsule``)."""
         c = wp.transform_get_translation(pose_b)
         ax = size_b[1] * col(rot(wp.transform_get_rotation(pose_b)), 2)
@@ -533,8 +548,8 @@ def plane_pair_funcs(np_dtype) -> SimpleNamespace:
 
     @_func
     def plane_box(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                   out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                   out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                  out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                  out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 4, exact: the 4 corners deepest below the plane, ties in corner order (``_plane_box``)."""
         c = wp.transform_get_translation(pose_b)
         R = rot(wp.transform_get_rotation(pose_b))
@@ -548,12 +563,12 @@ def plane_pair_funcs(np_dtype) -> SimpleNamespace:
                     rank += 1
             if rank < 4:
                 plane_point(pose_a, box_corner(c, R, size_b, i), ZERO, base + rank, margin,
-                             out_pos, out_normal, out_dist, out_valid)
+                            out_pos, out_normal, out_dist, out_valid)
 
     @_func
     def plane_ellipsoid(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar,
-                         base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                         out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                        base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 1, exact: the support point ``c + R S^2 d / |S d|``, ``d = -R^T n`` (``_plane_ellipsoid``)."""
         n = col(rot(wp.transform_get_rotation(pose_a)), 2)
         R = rot(wp.transform_get_rotation(pose_b))
@@ -561,25 +576,27 @@ def plane_pair_funcs(np_dtype) -> SimpleNamespace:
         sd = wp.cw_mul(size_b, d)
         x = wp.cw_mul(size_b, sd) / wp.sqrt(wp.dot(sd, sd))
         plane_point(pose_a, wp.transform_get_translation(pose_b) + R * x, ZERO, base, margin,
-                     out_pos, out_normal, out_dist, out_valid)
+                    out_pos, out_normal, out_dist, out_valid)
 
     @_func
     def plane_cylinder(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                        out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                       out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 4, MuJoCo's four rim points with their exact heights (``_plane_cylinder``)."""
         n = col(rot(wp.transform_get_rotation(pose_a)), 2)
         rim, _cap = cylinder_support(wp.transform_get_translation(pose_b), rot(wp.transform_get_rotation(pose_b)),
-                                      size_b, -n)
+                                     size_b, -n)
         for i in range(4):
             plane_point(pose_a, rim[i], ZERO, base + i, margin, out_pos, out_normal, out_dist, out_valid)
 
-    return SimpleNamespace(plane_point=plane_point, plane_sphere=plane_sphere, plane_capsule=plane_capsule, plane_box=plane_box, plane_ellipsoid=plane_ellipsoid, plane_cylinder=plane_cylinder)
+    return _namespace(plane_point, plane_sphere, plane_capsule, plane_box, plane_ellipsoid, plane_cylinder)
 
 
 @functools.cache
 def sphere_capsule_pair_funcs(np_dtype) -> SimpleNamespace:
-    """The sphere and capsule pairs."""
+    """The routines of the sphere and capsule pairs (``_sphere_sphere``, ``_sphere_capsule``,
+    ``_capsule_capsule`` of :mod:`kamino.jax_ref.collision`): closest points of their core point or
+    segment."""
     T = types_of(np_dtype)
     scalar, vec3, transform = T.scalar, T.vec3, T.transform
     K = _constants(np_dtype)
@@ -587,22 +604,23 @@ def sphere_capsule_pair_funcs(np_dtype) -> SimpleNamespace:
     sg = segment_funcs(np_dtype)
     capsule_segment, segment_closest, sphere_pair = sg.capsule_segment, sg.segment_closest, sg.sphere_pair
     bf = basic_funcs(np_dtype)
-    clip01, col, normalize, put_point, rot, safe_div = bf.clip01, bf.col, bf.normalize, bf.put_point, bf.rot, bf.safe_div
+    clip01, col, normalize, rot, safe_div = bf.clip01, bf.col, bf.normalize, bf.rot, bf.safe_div
+    put_point = bf.put_point
 
     @_func
     def sphere_sphere(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                       out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                      out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 1, exact; concentric spheres get a's local +z (``_sphere_sphere``)."""
         pos, n, dist = sphere_pair(wp.transform_get_translation(pose_a), size_a[0],
-                                    wp.transform_get_translation(pose_b), size_b[0],
-                                    col(rot(wp.transform_get_rotation(pose_a)), 2))
+                                   wp.transform_get_translation(pose_b), size_b[0],
+                                   col(rot(wp.transform_get_rotation(pose_a)), 2))
         put_point(base, pos, n, dist, True, margin, out_pos, out_normal, out_dist, out_valid)
 
     @_func
     def sphere_capsule(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                        out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                       out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 1, exact; a centre on the segment uses the capsule's local +x (``_sphere_capsule``)."""
         p0, d, R = capsule_segment(pose_b, size_b)
         ca = wp.transform_get_translation(pose_a)
@@ -612,8 +630,8 @@ def sphere_capsule_pair_funcs(np_dtype) -> SimpleNamespace:
 
     @_func
     def capsule_capsule(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar,
-                         base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                         out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                        base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 2: closest points of the segments, and for near-parallel segments the far end of their
         overlap (``_capsule_capsule``)."""
         pa, da, Ra = capsule_segment(pose_a, size_a)
@@ -636,44 +654,43 @@ def sphere_capsule_pair_funcs(np_dtype) -> SimpleNamespace:
         pos, n, dist = sphere_pair(pa + s2 * da, size_a[0], pb + t2 * db, size_b[0], fallback)
         put_point(base + 1, pos, n, dist, second, margin, out_pos, out_normal, out_dist, out_valid)
 
-    return SimpleNamespace(sphere_sphere=sphere_sphere, sphere_capsule=sphere_capsule, capsule_capsule=capsule_capsule)
+    return _namespace(sphere_sphere, sphere_capsule, capsule_capsule)
 
 
 @functools.cache
 def sdf_pair_funcs(np_dtype) -> SimpleNamespace:
-    """Spheres and capsules against a box or cylinder."""
+    """The routines of a sphere or capsule against a box or cylinder (``_sphere_vs_sdf`` and
+    ``_capsule_vs_sdf`` of :mod:`kamino.jax_ref.collision`): the core point or segment against the exact
+    signed distance of geom b, whose type stays a run-time argument."""
     T = types_of(np_dtype)
     scalar, vec3, transform = T.scalar, T.vec3, T.transform
     K = _constants(np_dtype)
     TIE, ZERO, HALF, ONE, MILLI = K.TIE, K.ZERO, K.HALF, K.ONE, K.MILLI
-    sg = segment_funcs(np_dtype)
-    capsule_segment = sg.capsule_segment
+    capsule_segment = segment_funcs(np_dtype).capsule_segment
     bf = basic_funcs(np_dtype)
     clip01, put_point, rot = bf.clip01, bf.put_point, bf.rot
-    fi = face_interval_funcs(np_dtype)
-    face_interval = fi.face_interval
-    se = search_funcs(np_dtype)
-    golden_min = se.golden_min
+    face_interval = face_interval_funcs(np_dtype).face_interval
+    golden_min = search_funcs(np_dtype).golden_min
     sd = sdf_funcs(np_dtype)
     sdf, sdf_world = sd.sdf, sd.sdf_world
 
     @_func
     def sphere_sdf_pair(type_b: int, pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3,
-                         margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                         out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                        margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 1, exact: the sphere centre against the signed distance of the box or cylinder b, minus the
         radius (``_sphere_box``, ``_sphere_cylinder`` via ``_sphere_vs_sdf``)."""
         x = wp.transform_get_translation(pose_a)
         d, n_out, q = sdf_world(type_b, size_b, wp.transform_get_translation(pose_b),
-                                 rot(wp.transform_get_rotation(pose_b)), x)
+                                rot(wp.transform_get_rotation(pose_b)), x)
         n = -n_out
         r = size_a[0]
         put_point(base, HALF * (x + q) + HALF * r * n, n, d - r, True, margin, out_pos, out_normal, out_dist, out_valid)
 
     @_func
     def capsule_sdf_pair(type_b: int, pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3,
-                          margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                          out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                         margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                         out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 2: a capsule against the signed distance of the box or cylinder b (``_capsule_vs_sdf``):
         the minimum along the segment (golden section), and the far end of the part of the segment
         lying over the feature it touches."""
@@ -703,9 +720,9 @@ def sdf_pair_funcs(np_dtype) -> SimpleNamespace:
             n = -n_out
             pos = HALF * (x + q) + HALF * r * n
             put_point(base + i, cb + Rb * pos, Rb * n, dist - r, i == 0 or second, margin,
-                 out_pos, out_normal, out_dist, out_valid)
+                      out_pos, out_normal, out_dist, out_valid)
 
-    return SimpleNamespace(sphere_sdf_pair=sphere_sdf_pair, capsule_sdf_pair=capsule_sdf_pair)
+    return _namespace(sphere_sdf_pair, capsule_sdf_pair)
 
 
 @functools.cache
@@ -775,12 +792,13 @@ def box_box_sat_funcs(np_dtype) -> SimpleNamespace:
         use_edge = s_edge > s_face + BIAS_REL * wp.abs(s_face) + BIAS_ABS * scale
         return separated, face, use_edge, ie, s_edge
 
-    return SimpleNamespace(bb_axis=bb_axis, bb_sep=bb_sep, bb_sat=bb_sat)
+    return _namespace(bb_axis, bb_sep, bb_sat)
 
 
 @functools.cache
 def face_manifold_func(np_dtype) -> wp.Function:
-    """face manifold"""
+    """Step 2a of the box-box routine (``_face_manifold`` of :mod:`kamino.jax_ref.collision`):
+    the 24 clipping candidates of the incident face against the reference face."""
     T = types_of(np_dtype)
     scalar, vec3, vec4, mat33 = T.scalar, T.vec3, T.vec4, T.mat33
     K = _constants(np_dtype)
@@ -790,7 +808,7 @@ def face_manifold_func(np_dtype) -> wp.Function:
 
     @_func
     def face_manifold(c_ref: vec3, R_ref: mat33, e_ref: vec3, k: int, nf: vec3, c_inc: vec3, R_inc: mat33,
-                       e_inc: vec3):
+                      e_inc: vec3):
         """The 24 clipping candidates of ``_face_manifold``: incident corners inside the reference face,
         reference corners inside the incident face, incident edges crossing the reference face's sides
         (edge-major, lines ``x = +e, x = -e, y = +e, y = -e``); near-duplicates of an earlier existing
@@ -921,8 +939,9 @@ def box_box_step_funcs(np_dtype) -> SimpleNamespace:
     @_func
     def face_slots(F: vec24i, H: vec24, margin: scalar):
         """The 8 slots of the face manifold: the kept candidates (existing, ``h <= margin``) first, then the
-        others, in candidate order. Returns the candidate of each slot, whether one is kept, the least height
-        of the existing ones in the slots and the slot of the greatest (the first on ties)."""
+        others, in candidate order. Returns the candidate of each slot, whether one is kept, and, over the
+        slots with a missing candidate counting as ``+inf`` high, the least height and the first slot of the
+        greatest."""
         sel = vec8i()
         n_kept = int(0)
         for i in range(int(24)):
@@ -1003,7 +1022,7 @@ def box_box_step_funcs(np_dtype) -> SimpleNamespace:
                 on_b = pb
         return on_a, on_b
 
-    return SimpleNamespace(face_slots=face_slots, edge_point=edge_point, bb_closest=bb_closest)
+    return _namespace(face_slots, edge_point, bb_closest)
 
 
 @functools.cache
@@ -1089,15 +1108,16 @@ def box_box_func(np_dtype) -> wp.Function:
 
 @functools.cache
 def cylinder_family_funcs(np_dtype) -> SimpleNamespace:
-    """cylinder family"""
+    """The point families of the cylinder pairs (``_cylinder_family`` and ``_pick_family`` of
+    :mod:`kamino.jax_ref.collision`): four points of a cylinder against the exact signed distance of the
+    other geom, their writer, and the choice between two families."""
     T = types_of(np_dtype)
     scalar, vec3, vec4, mat33 = T.scalar, T.vec3, T.vec4, T.mat33
     K = _constants(np_dtype)
     mat43, TIE, INF, ZERO, HALF, ONE, MILLI = K.mat43, K.TIE, K.INF, K.ZERO, K.HALF, K.ONE, K.MILLI
     bf = basic_funcs(np_dtype)
     col, normalize, put_point = bf.col, bf.normalize, bf.put_point
-    sg = segment_funcs(np_dtype)
-    cylinder_support = sg.cylinder_support
+    cylinder_support = segment_funcs(np_dtype).cylinder_support
     sd = sdf_funcs(np_dtype)
     dist_world, project, sdf_world = sd.dist_world, sd.project, sd.sdf_world
     se = search_funcs(np_dtype)
@@ -1105,7 +1125,7 @@ def cylinder_family_funcs(np_dtype) -> SimpleNamespace:
 
     @_func
     def cylinder_family(c: vec3, R: mat33, size: vec3, type_o: int, size_o: vec3, c_o: vec3, R_o: mat33,
-                         margin: scalar, tol: scalar):
+                        margin: scalar, tol: scalar):
         """Four points of the cylinder at ``(c, R)`` against the exact signed distance of the other geom
         (box or cylinder at ``(c_o, R_o)``): three pulled rim points of the cap facing it, and the first
         nearest of the support-generator minimum, the alternating-projection point and the anchor
@@ -1162,8 +1182,8 @@ def cylinder_family_funcs(np_dtype) -> SimpleNamespace:
 
     @_func
     def put_family(P: mat43, N: mat43, D: vec4, Ex: vec4, margin: scalar, base: int,
-                    out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                    out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                   out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                   out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """Write the 4 points of a family."""
         for i in range(4):
             put_point(base + i, P[i], N[i], D[i], Ex[i] > ZERO, margin, out_pos, out_normal, out_dist, out_valid)
@@ -1187,29 +1207,28 @@ def cylinder_family_funcs(np_dtype) -> SimpleNamespace:
                     n2 += 1
         return m2 < m1 - tol or (m2 <= m1 + tol and n2 > n1)
 
-    return SimpleNamespace(cylinder_family=cylinder_family, put_family=put_family, pick_second=pick_second)
+    return _namespace(cylinder_family, put_family, pick_second)
 
 
 @functools.cache
 def cylinder_pair_funcs(np_dtype) -> SimpleNamespace:
-    """box-cylinder and cylinder-cylinder"""
+    """The routines of the cylinder pairs, K = 4 (``_box_cylinder`` and ``_cylinder_cylinder``
+    of :mod:`kamino.jax_ref.collision`): approximations, the better of two point families."""
     T = types_of(np_dtype)
     scalar, vec3, vec4, transform = T.scalar, T.vec3, T.vec4, T.transform
     K = _constants(np_dtype)
     mat43, RTOL, HALF, ONE = K.mat43, K.RTOL, K.HALF, K.ONE
-    bx = box_feature_funcs(np_dtype)
-    box_corner = bx.box_corner
+    box_corner = box_feature_funcs(np_dtype).box_corner
     cy = cylinder_family_funcs(np_dtype)
     cylinder_family, pick_second, put_family = cy.cylinder_family, cy.pick_second, cy.put_family
     sd = sdf_funcs(np_dtype)
     dist_world, sdf_world = sd.dist_world, sd.sdf_world
-    bf = basic_funcs(np_dtype)
-    rot = bf.rot
+    rot = basic_funcs(np_dtype).rot
 
     @_func
     def box_cylinder(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                      out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                     out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                     out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 4, approximation: the cylinder's family against the box, or the 4 box corners nearest the
         cylinder, stable order (``_box_cylinder``)."""
         ca = wp.transform_get_translation(pose_a)
@@ -1241,8 +1260,8 @@ def cylinder_pair_funcs(np_dtype) -> SimpleNamespace:
 
     @_func
     def cylinder_cylinder(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar,
-                           base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                           out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+                          base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                          out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 4, approximation: each cylinder's family against the other; the better one is kept
         (``_cylinder_cylinder``)."""
         ca = wp.transform_get_translation(pose_a)
@@ -1257,7 +1276,7 @@ def cylinder_pair_funcs(np_dtype) -> SimpleNamespace:
         else:  # a's points: flip the normals to point from a to b
             put_family(P1, -N1, D1, E1, margin, base, out_pos, out_normal, out_dist, out_valid)
 
-    return SimpleNamespace(box_cylinder=box_cylinder, cylinder_cylinder=cylinder_cylinder)
+    return _namespace(box_cylinder, cylinder_cylinder)
 
 
 @functools.cache
