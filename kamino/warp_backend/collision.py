@@ -268,14 +268,14 @@ def sdf_funcs(np_dtype) -> SimpleNamespace:
 
     @_func
     def sdf_world(gtype: int, size: vec3, c: vec3, R: mat33, x: vec3):
-        """``_sdf`` of the geom at ``(c, R)`` for the world point ``x``: distance, world outward normal,
+        """``sdf`` of the geom at ``(c, R)`` for the world point ``x``: distance, world outward normal,
         world nearest surface point (``_world_sdf``)."""
         d, n, q = sdf(gtype, size, wp.transpose(R) * (x - c))
         return d, R * n, c + R * q
 
     @_func
     def dist_world(gtype: int, size: vec3, c: vec3, R: mat33, x: vec3) -> scalar:
-        """The distance of ``_sdf_world`` only."""
+        """The distance of ``sdf_world`` only."""
         d, n, q = sdf_world(gtype, size, c, R, x)
         return d
 
@@ -369,7 +369,7 @@ def search_funcs(np_dtype) -> SimpleNamespace:
 
     @_func
     def golden_min(gtype: int, size: vec3, c: vec3, R: mat33, p0: vec3, d: vec3, tol: scalar) -> scalar:
-        """Minimise ``t -> dist(p0 + t d)`` on ``[0, 1]`` (``dist``: ``_dist_world`` of the geom at
+        """Minimise ``t -> dist(p0 + t d)`` on ``[0, 1]`` (``dist``: ``dist_world`` of the geom at
         ``(c, R)``) by ``GOLDEN_STEPS`` golden-section steps; values within ``tol`` are ties, which
         move right; the result snaps to an end as good as it (``_golden_min``)."""
         lo = ZERO
