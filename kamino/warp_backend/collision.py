@@ -4,9 +4,10 @@ A port of :mod:`kamino.jax_ref.collision` (read its module docstring for the pai
 the accuracy and the degenerate fallbacks): the same candidate points, in the same order, by the
 same algorithms (the same SAT axes and 5 % edge bias, the same golden-section, bisection and
 alternating-projection iteration counts, the same tolerances), so that both backends produce the
-same contacts up to rounding. The Warp backend does not import the JAX one.
+same contacts up to rounding. The Warp backend does not import the JAX one. The candidate points
+feed the contacts of docs/formulation.md §4.2 (:mod:`kamino.warp_backend.contacts`).
 
-``collision_funcs(np_dtype)`` builds, once per precision, the ``@wp.func`` ``collide_pair``::
+``collide_pair_func(np_dtype)`` builds, once per precision, the ``@wp.func`` ``collide_pair``::
 
     collide_pair(type_a: int, type_b: int, pose_a: transform, size_a: vec3, pose_b: transform,
                  size_b: vec3, margin: scalar, base: int, out_pos: wp.array(dtype=vec3),
@@ -19,6 +20,13 @@ type_b``) into the slots ``base .. base + K - 1``: ``pos`` (midpoint of the witn
 1 where the point exists and ``dist <= margin``). Every written entry is finite. An unsupported or
 unordered pair writes nothing (the JAX backend raises a ``ValueError`` instead; on the host,
 :func:`max_points` raises it). ``collide_kernel(np_dtype)`` is a kernel calling it, one thread per pair.
+
+The routines come from small builders cached per precision, each named after what it builds: the
+per-pair routines (:func:`plane_pair_funcs`, :func:`sphere_capsule_pair_funcs`,
+:func:`sdf_pair_funcs`, :func:`box_box_func`, :func:`cylinder_pair_funcs`) and the helpers they share
+(:func:`basic_funcs`, :func:`box_feature_funcs`, :func:`sdf_funcs`, :func:`face_interval_funcs`,
+:func:`search_funcs`, :func:`segment_funcs`, the box-box steps and the cylinder families). The pair
+types stay runtime values: they vary from pair to pair within a world.
 
 Poses are Warp transforms (position, then the quaternion ``(x, y, z, w)``: the same 7 numbers as
 the JAX pose), sizes ``vec3`` as in :class:`kamino.model.GeomType`.
@@ -40,8 +48,6 @@ from kamino.config import BISECTION_STEPS, GOLDEN_STEPS, PARALLEL_SIN2, PROJECTI
 from kamino.model import CONTACT_POINTS, GeomType
 from kamino.warp_backend.types import types_of
 
-_G = GeomType
-
 #: candidate points per supported pair (``type_a <= type_b``): the model's table (``kamino.model.CONTACT_POINTS``)
 MAX_POINTS = CONTACT_POINTS
 
@@ -50,6 +56,16 @@ KERNEL_OPTIONS: dict[str, object] = {"enable_backward": False}
 
 _EDGE_BIAS_REL = 0.05  # an edge axis must beat the best face axis by 5 % of its separation ...
 _EDGE_BIAS_ABS = 1e-5  # ... plus this fraction of the boxes' size
+
+PLANE, SPHERE, CAPSULE = int(GeomType.PLANE), int(GeomType.SPHERE), int(GeomType.CAPSULE)
+BOX, CYLINDER, ELLIPSOID = int(GeomType.BOX), int(GeomType.CYLINDER), int(GeomType.ELLIPSOID)
+
+_func = functools.partial(wp.func, module="unique")  # one module per func: no key clash between precisions
+
+
+def _namespace(*funcs: wp.Function) -> SimpleNamespace:
+    """The Warp functions of a builder, by name."""
+    return SimpleNamespace(**{f.func.__name__: f for f in funcs})
 
 
 def max_points(type_a: int, type_b: int) -> int:
@@ -64,47 +80,50 @@ def max_points(type_a: int, type_b: int) -> int:
 
 
 @functools.cache
-def collision_funcs(np_dtype) -> SimpleNamespace:
-    """The narrow-phase ``@wp.func`` s of one precision (``float32`` or ``float64``), see the module
-    docstring. Returns a namespace with ``collide_pair``, ``max_points`` (the :data:`MAX_POINTS`
-    dict), the Warp types ``scalar, vec3, quat, transform`` and the per-pair functions."""
+def _constants(np_dtype) -> SimpleNamespace:
+    """The narrow phase's numbers in one precision, rounded once like the Python floats of the JAX code
+    (``_rtol``, ``_tie_tol`` and the literals of :mod:`kamino.jax_ref.collision`), and its fixed-size
+    vector and matrix types."""
     T = types_of(np_dtype)
-    scalar, vec3, vec4, quat, mat33, transform = T.scalar, T.vec3, T.vec4, T.quat, T.mat33, T.transform
-    dt = T.np_dtype
+    scalar, dt = T.scalar, T.np_dtype
     f64 = dt == np.float64
-    func = functools.partial(wp.func, module="unique")  # one module per func: no key clash between precisions
-
-    vec24 = wp.types.vector(24, scalar)
-    vec24i = wp.types.vector(24, wp.int32)
-    vec8i = wp.types.vector(8, wp.int32)
-    mat43 = wp.types.matrix((4, 3), scalar)
-
-    # dtype-dependent constants, rounded once like the Python floats of the JAX code
     rtol = 1e-7 if f64 else 1e-4  # _rtol
     tie = 1e-12 if f64 else 1e-5  # _tie_tol
-    EPS2 = scalar(float(np.finfo(dt).eps) ** 2)
-    TINY = scalar(float(np.finfo(dt).tiny) ** 0.5)
-    RTOL = scalar(rtol)
-    RTOL2 = scalar(rtol * rtol)
-    RTOL10 = scalar(10.0 * rtol)
-    TIE = scalar(tie)
-    INF = scalar(math.inf)
-    ZERO, HALF, ONE, TWO = scalar(0.0), scalar(0.5), scalar(1.0), scalar(2.0)
-    GOLD = scalar((math.sqrt(5.0) - 1.0) / 2.0)
-    SQRT3_2 = scalar(0.5 * math.sqrt(3.0))
-    MILLI = scalar(1e-3)
-    PAR = scalar(PARALLEL_SIN2)
-    BIAS_REL, BIAS_ABS = scalar(_EDGE_BIAS_REL), scalar(_EDGE_BIAS_ABS)
-    PLANE, SPHERE, CAPSULE = int(_G.PLANE), int(_G.SPHERE), int(_G.CAPSULE)
-    BOX, CYLINDER, ELLIPSOID = int(_G.BOX), int(_G.CYLINDER), int(_G.ELLIPSOID)
-    GOLDEN_ITERS, AP_ITERS, BISECT_ITERS = GOLDEN_STEPS, PROJECTION_ROUNDS, BISECTION_STEPS
+    return SimpleNamespace(
+        vec24=wp.types.vector(24, scalar), vec24i=wp.types.vector(24, wp.int32), vec8i=wp.types.vector(8, wp.int32),
+        mat43=wp.types.matrix((4, 3), scalar),
+        EPS2=scalar(float(np.finfo(dt).eps) ** 2), TINY=scalar(float(np.finfo(dt).tiny) ** 0.5),
+        RTOL=scalar(rtol), RTOL2=scalar(rtol * rtol), RTOL10=scalar(10.0 * rtol), TIE=scalar(tie),
+        INF=scalar(math.inf), ZERO=scalar(0.0), HALF=scalar(0.5), ONE=scalar(1.0), TWO=scalar(2.0),
+        GOLD=scalar((math.sqrt(5.0) - 1.0) / 2.0), SQRT3_2=scalar(0.5 * math.sqrt(3.0)), MILLI=scalar(1e-3),
+        PAR=scalar(PARALLEL_SIN2), BIAS_REL=scalar(_EDGE_BIAS_REL), BIAS_ABS=scalar(_EDGE_BIAS_ABS),
+    )
 
-    # -----------------------------------------------------------------------------------------
-    # small helpers
-    # -----------------------------------------------------------------------------------------
 
-    @func
-    def _rot(q: quat) -> mat33:
+@_func
+def quad_x(c: int) -> int:
+    """x sign of corner ``c`` of a face quad ``(1, 1), (-1, 1), (-1, -1), (1, -1)`` (``_QUAD``)."""
+    return wp.where(c == 0 or c == 3, 1, -1)
+
+
+@_func
+def quad_y(c: int) -> int:
+    """y sign of corner ``c`` of a face quad (``_QUAD``)."""
+    return wp.where(c < 2, 1, -1)
+
+
+@functools.cache
+def basic_funcs(np_dtype) -> SimpleNamespace:
+    """Small helpers of every routine: the rotation of a quaternion, matrix columns, the guarded
+    normalisation, sign and division of :mod:`kamino.jax_ref.collision` (``_normalize``, ``_sign``,
+    ``_safe_div``), ``clip01`` and ``put_point``, the writer of one candidate point."""
+    T = types_of(np_dtype)
+    scalar, vec3, quat, mat33 = T.scalar, T.vec3, T.quat, T.mat33
+    K = _constants(np_dtype)
+    EPS2, TINY, ZERO, ONE, TWO = K.EPS2, K.TINY, K.ZERO, K.ONE, K.TWO
+
+    @_func
+    def rot(q: quat) -> mat33:
         """Rotation matrix of a unit quaternion ``(x, y, z, w)`` (``jax_ref.spatial.quat_to_matrix``)."""
         x, y, z, w = q[0], q[1], q[2], q[3]
         return mat33(
@@ -113,13 +132,13 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             TWO * (x * z - y * w), TWO * (y * z + x * w), ONE - TWO * (x * x + y * y),
         )
 
-    @func
-    def _col(R: mat33, k: int) -> vec3:
+    @_func
+    def col(R: mat33, k: int) -> vec3:
         """Column ``k`` of ``R`` (``R[:, k]``)."""
         return vec3(R[0, k], R[1, k], R[2, k])
 
-    @func
-    def _normalize(v: vec3, fallback: vec3):
+    @_func
+    def normalize(v: vec3, fallback: vec3):
         """``(v / |v|, |v|)``, ``(fallback, 0)`` where ``|v|`` is ~0 (``_normalize``)."""
         n2 = wp.dot(v, v)
         if n2 > EPS2:
@@ -127,31 +146,52 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             return v / n, n
         return fallback, ZERO
 
-    @func
-    def _sign(x: scalar) -> scalar:
+    @_func
+    def sign(x: scalar) -> scalar:
         """``+1`` for ``x >= 0``, else ``-1`` (``_sign``)."""
         return wp.where(x >= ZERO, ONE, -ONE)
 
-    @func
-    def _safe_div(num: scalar, den: scalar) -> scalar:
+    @_func
+    def safe_div(num: scalar, den: scalar) -> scalar:
         """``num / den``, 0 where ``den`` is ~0 (``_safe_div``)."""
         if wp.abs(den) > TINY:
             return num / den
         return ZERO
 
-    @func
-    def _clip01(x: scalar) -> scalar:
+    @_func
+    def clip01(x: scalar) -> scalar:
         """``clip(x, 0, 1)``."""
         return wp.min(wp.max(x, ZERO), ONE)
 
-    @func
-    def _box_corner(c: vec3, R: mat33, half: vec3, i: int) -> vec3:
+    @_func
+    def put_point(slot: int, pos: vec3, normal: vec3, dist: scalar, exists: bool, margin: scalar,
+                  out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3), out_dist: wp.array(dtype=scalar),
+                  out_valid: wp.array(dtype=wp.int32)):
+        """Write one candidate point; valid = exists and ``dist <= margin``."""
+        out_pos[slot] = pos
+        out_normal[slot] = normal
+        out_dist[slot] = dist
+        out_valid[slot] = wp.where(exists and dist <= margin, 1, 0)
+
+    return _namespace(rot, col, normalize, sign, safe_div, clip01, put_point)
+
+
+@functools.cache
+def box_feature_funcs(np_dtype) -> SimpleNamespace:
+    """The corners and edges of a box in the fixed orders of ``_box_corners`` and ``_box_edges``
+    (:mod:`kamino.jax_ref.collision`)."""
+    T = types_of(np_dtype)
+    scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
+    TWO = _constants(np_dtype).TWO
+
+    @_func
+    def box_corner(c: vec3, R: mat33, half: vec3, i: int) -> vec3:
         """Corner ``i`` of a box in the ``itertools.product((-1, 1), repeat=3)`` order (``_box_corners``)."""
         s = vec3(scalar(2 * ((i // 4) % 2) - 1), scalar(2 * ((i // 2) % 2) - 1), scalar(2 * (i % 2) - 1))
         return c + R * wp.cw_mul(s, half)
 
-    @func
-    def _box_edge(c: vec3, R: mat33, half: vec3, e: int):
+    @_func
+    def box_edge(c: vec3, R: mat33, half: vec3, e: int):
         """Start point and direction vector of box edge ``e`` in the fixed order of ``_box_edges``
         (axis ``e // 4``, then the sign pattern of the two other coordinates)."""
         i = e // 4
@@ -163,22 +203,23 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
         dw = R * d
         return c + R * mid - dw, TWO * dw
 
-    @func
-    def _put(slot: int, pos: vec3, normal: vec3, dist: scalar, exists: bool, margin: scalar,
-             out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3), out_dist: wp.array(dtype=scalar),
-             out_valid: wp.array(dtype=wp.int32)):
-        """Write one candidate point; valid = exists and ``dist <= margin``."""
-        out_pos[slot] = pos
-        out_normal[slot] = normal
-        out_dist[slot] = dist
-        out_valid[slot] = wp.where(exists and dist <= margin, 1, 0)
+    return _namespace(box_corner, box_edge)
 
-    # -----------------------------------------------------------------------------------------
-    # signed distances of the primitive solids (local frame)
-    # -----------------------------------------------------------------------------------------
 
-    @func
-    def _box_sdf(p: vec3, half: vec3):
+@functools.cache
+def sdf_funcs(np_dtype) -> SimpleNamespace:
+    """Signed distances of the primitive solids (``_box_sdf``, ``_cylinder_sdf``, ``_world_sdf``,
+    ``_project`` of :mod:`kamino.jax_ref.collision`): local and world frame, with the outward normal and
+    the nearest surface point, and the projection onto the solid."""
+    T = types_of(np_dtype)
+    scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
+    K = _constants(np_dtype)
+    ZERO, ONE = K.ZERO, K.ONE
+    bf = basic_funcs(np_dtype)
+    normalize, sign = bf.normalize, bf.sign
+
+    @_func
+    def box_sdf(p: vec3, half: vec3):
         """Signed distance from local ``p`` to the box, outward normal at the nearest surface point and
         that point; inside, out through the face of least depth, the first on ties (``_box_sdf``)."""
         q = vec3(wp.abs(p[0]) - half[0], wp.abs(p[1]) - half[1], wp.abs(p[2]) - half[2])
@@ -187,59 +228,78 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             if q[i] > q[k]:
                 k = i
         face_n = vec3()
-        face_n[k] = _sign(p[k])
+        face_n[k] = sign(p[k])
         face_pt = vec3(p[0], p[1], p[2])
-        face_pt[k] = _sign(p[k]) * half[k]
+        face_pt[k] = sign(p[k]) * half[k]
         clamped = vec3(wp.min(wp.max(p[0], -half[0]), half[0]), wp.min(wp.max(p[1], -half[1]), half[1]),
                        wp.min(wp.max(p[2], -half[2]), half[2]))
         if q[0] > ZERO or q[1] > ZERO or q[2] > ZERO:
-            n_out, d_out = _normalize(p - clamped, face_n)
+            n_out, d_out = normalize(p - clamped, face_n)
             return d_out, n_out, clamped
         return q[k], face_n, face_pt
 
-    @func
-    def _cylinder_sdf(p: vec3, radius: scalar, half_height: scalar):
+    @_func
+    def cylinder_sdf(p: vec3, radius: scalar, half_height: scalar):
         """Signed distance from local ``p`` to the solid cylinder (axis local z), outward normal at the
         nearest surface point and that point; inside, out through the side or a cap, whichever is
         nearer, the side on ties (``_cylinder_sdf``)."""
-        e_r, rho = _normalize(vec3(p[0], p[1], ZERO), vec3(ONE, ZERO, ZERO))
+        e_r, rho = normalize(vec3(p[0], p[1], ZERO), vec3(ONE, ZERO, ZERO))
         z = p[2]
         qr = rho - radius
         qz = wp.abs(z) - half_height
-        in_n = vec3(ZERO, ZERO, _sign(z))
-        in_pt = vec3(p[0], p[1], _sign(z) * half_height)
+        in_n = vec3(ZERO, ZERO, sign(z))
+        in_pt = vec3(p[0], p[1], sign(z) * half_height)
         if qr >= qz:
             in_n = e_r
             in_pt = vec3(radius * e_r[0], radius * e_r[1], z)
         rc = wp.min(rho, radius)
         clamped = vec3(rc * e_r[0], rc * e_r[1], wp.min(wp.max(z, -half_height), half_height))
         if qr > ZERO or qz > ZERO:
-            n_out, d_out = _normalize(p - clamped, in_n)
+            n_out, d_out = normalize(p - clamped, in_n)
             return d_out, n_out, clamped
         return wp.max(qr, qz), in_n, in_pt
 
-    @func
-    def _sdf(gtype: int, size: vec3, p: vec3):
+    @_func
+    def sdf(gtype: int, size: vec3, p: vec3):
         """Local signed distance of a BOX or (otherwise) a CYLINDER of ``size``."""
         if gtype == BOX:
-            return _box_sdf(p, size)
-        return _cylinder_sdf(p, size[0], size[1])
+            return box_sdf(p, size)
+        return cylinder_sdf(p, size[0], size[1])
 
-    @func
-    def _sdf_world(gtype: int, size: vec3, c: vec3, R: mat33, x: vec3):
-        """``_sdf`` of the geom at ``(c, R)`` for the world point ``x``: distance, world outward normal,
+    @_func
+    def sdf_world(gtype: int, size: vec3, c: vec3, R: mat33, x: vec3):
+        """``sdf`` of the geom at ``(c, R)`` for the world point ``x``: distance, world outward normal,
         world nearest surface point (``_world_sdf``)."""
-        d, n, q = _sdf(gtype, size, wp.transpose(R) * (x - c))
+        d, n, q = sdf(gtype, size, wp.transpose(R) * (x - c))
         return d, R * n, c + R * q
 
-    @func
-    def _dist_world(gtype: int, size: vec3, c: vec3, R: mat33, x: vec3) -> scalar:
-        """The distance of ``_sdf_world`` only."""
-        d, n, q = _sdf_world(gtype, size, c, R, x)
+    @_func
+    def dist_world(gtype: int, size: vec3, c: vec3, R: mat33, x: vec3) -> scalar:
+        """The distance of ``sdf_world`` only."""
+        d, n, q = sdf_world(gtype, size, c, R, x)
         return d
 
-    @func
-    def _slab(p0: scalar, d: scalar, half: scalar):
+    @_func
+    def project(gtype: int, size: vec3, c: vec3, R: mat33, y: vec3) -> vec3:
+        """Nearest point of the solid to ``y`` (``y`` itself inside) (``_project``)."""
+        d, _n, q = sdf_world(gtype, size, c, R, y)
+        return wp.where(d > ZERO, q, y)
+
+    return _namespace(box_sdf, cylinder_sdf, sdf, sdf_world, dist_world, project)
+
+
+@functools.cache
+def face_interval_funcs(np_dtype) -> SimpleNamespace:
+    """The ``t``-intervals where a segment lies over the touched feature of a box or cylinder
+    (``_slab_interval``, ``_box_face_interval``, ``_cylinder_face_interval`` of
+    :mod:`kamino.jax_ref.collision`): the second point of the capsule pairs."""
+    T = types_of(np_dtype)
+    scalar, vec3 = T.scalar, T.vec3
+    K = _constants(np_dtype)
+    TINY, INF, ZERO = K.TINY, K.INF, K.ZERO
+
+    @_func
+    def slab(p0: scalar, d: scalar, half: scalar):
         """Interval of ``t`` with ``|p0 + t d| <= half`` (empty: lo > hi) (``_slab_interval``)."""
         inside = wp.abs(p0) <= half
         if wp.abs(d) > TINY:
@@ -250,8 +310,8 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             return -INF, INF
         return INF, -INF
 
-    @func
-    def _box_face_interval(p0: vec3, d: vec3, n_out: vec3, half: vec3):
+    @_func
+    def box_face_interval(p0: vec3, d: vec3, n_out: vec3, half: vec3):
         """``t``-interval where the segment ``p0 + t d`` lies over the box face whose normal is the
         dominant direction of ``n_out``, box frame (``_box_face_interval``)."""
         k = int(0)
@@ -262,13 +322,13 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
         hi = INF
         for i in range(3):
             if i != k:
-                a, b = _slab(p0[i], d[i], half[i])
+                a, b = slab(p0[i], d[i], half[i])
                 lo = wp.max(lo, a)
                 hi = wp.min(hi, b)
         return lo, hi
 
-    @func
-    def _cylinder_face_interval(p0: vec3, d: vec3, n_out: vec3, radius: scalar, half_height: scalar):
+    @_func
+    def cylinder_face_interval(p0: vec3, d: vec3, n_out: vec3, radius: scalar, half_height: scalar):
         """``t``-interval where the segment lies over the cylinder feature touched with normal ``n_out``:
         the cap disk for a cap normal, the axial band for a side normal (``_cylinder_face_interval``)."""
         if wp.abs(n_out[2]) >= wp.sqrt(n_out[0] * n_out[0] + n_out[1] * n_out[1]):
@@ -284,31 +344,45 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             if c <= ZERO:
                 return -INF, INF
             return INF, -INF
-        return _slab(p0[2], d[2], half_height)
+        return slab(p0[2], d[2], half_height)
 
-    @func
-    def _face_interval(gtype: int, size: vec3, p0: vec3, d: vec3, n_out: vec3):
+    @_func
+    def face_interval(gtype: int, size: vec3, p0: vec3, d: vec3, n_out: vec3):
         """``_box_face_interval`` for a BOX, else ``_cylinder_face_interval``."""
         if gtype == BOX:
-            return _box_face_interval(p0, d, n_out, size)
-        return _cylinder_face_interval(p0, d, n_out, size[0], size[1])
+            return box_face_interval(p0, d, n_out, size)
+        return cylinder_face_interval(p0, d, n_out, size[0], size[1])
 
-    @func
-    def _golden_min(gtype: int, size: vec3, c: vec3, R: mat33, p0: vec3, d: vec3, tol: scalar) -> scalar:
-        """Minimise ``t -> dist(p0 + t d)`` on ``[0, 1]`` (``dist``: ``_dist_world`` of the geom at
+    return _namespace(slab, box_face_interval, cylinder_face_interval, face_interval)
+
+
+@functools.cache
+def search_funcs(np_dtype) -> SimpleNamespace:
+    """The searches along a segment against a geom's signed distance (``_golden_min`` and ``_reach`` of
+    :mod:`kamino.jax_ref.collision`): ``GOLDEN_STEPS`` golden-section and ``BISECTION_STEPS`` bisection
+    steps."""
+    T = types_of(np_dtype)
+    scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
+    K = _constants(np_dtype)
+    ZERO, HALF, ONE, GOLD = K.ZERO, K.HALF, K.ONE, K.GOLD
+    dist_world = sdf_funcs(np_dtype).dist_world
+
+    @_func
+    def golden_min(gtype: int, size: vec3, c: vec3, R: mat33, p0: vec3, d: vec3, tol: scalar) -> scalar:
+        """Minimise ``t -> dist(p0 + t d)`` on ``[0, 1]`` (``dist``: ``dist_world`` of the geom at
         ``(c, R)``) by ``GOLDEN_STEPS`` golden-section steps; values within ``tol`` are ties, which
         move right; the result snaps to an end as good as it (``_golden_min``)."""
         lo = ZERO
         hi = ONE
         a = ONE - GOLD
         b = ZERO + GOLD
-        fa = _dist_world(gtype, size, c, R, p0 + a * d)
-        fb = _dist_world(gtype, size, c, R, p0 + b * d)
-        for _it in range(int(GOLDEN_ITERS)):
+        fa = dist_world(gtype, size, c, R, p0 + a * d)
+        fb = dist_world(gtype, size, c, R, p0 + b * d)
+        for _it in range(int(GOLDEN_STEPS)):
             if fa < fb - tol:  # the minimum lies in [lo, b]
                 hi = b
                 new = hi - GOLD * (hi - lo)
-                fn = _dist_world(gtype, size, c, R, p0 + new * d)
+                fn = dist_world(gtype, size, c, R, p0 + new * d)
                 b = a
                 fb = fa
                 a = new
@@ -316,157 +390,70 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             else:
                 lo = a
                 new = lo + GOLD * (hi - lo)
-                fn = _dist_world(gtype, size, c, R, p0 + new * d)
+                fn = dist_world(gtype, size, c, R, p0 + new * d)
                 a = b
                 fa = fb
                 b = new
                 fb = fn
         t = HALF * (lo + hi)
-        ft = _dist_world(gtype, size, c, R, p0 + t * d)
-        f0 = _dist_world(gtype, size, c, R, p0 + ZERO * d)
-        f1 = _dist_world(gtype, size, c, R, p0 + ONE * d)
+        ft = dist_world(gtype, size, c, R, p0 + t * d)
+        f0 = dist_world(gtype, size, c, R, p0 + ZERO * d)
+        f1 = dist_world(gtype, size, c, R, p0 + ONE * d)
         if f1 <= ft + tol:
             t = ONE
         if f0 < wp.min(ft, f1) - tol:
             t = ZERO
         return t
 
-    # -----------------------------------------------------------------------------------------
-    # plane pairs
-    # -----------------------------------------------------------------------------------------
+    @_func
+    def reach(gtype: int, size: vec3, c: vec3, R: mat33, start: vec3, end: vec3, level: scalar) -> vec3:
+        """The point farthest along ``start -> end`` where the distance to the geom at ``(c, R)`` is still
+        ``<= level``: ``end`` if possible, else by ``BISECTION_STEPS`` bisection steps (``_reach``)."""
+        lo = ZERO
+        hi = ONE
+        for _it in range(int(BISECTION_STEPS)):
+            mid = HALF * (lo + hi)
+            if dist_world(gtype, size, c, R, start + mid * (end - start)) <= level:
+                lo = mid
+            else:
+                hi = mid
+        if dist_world(gtype, size, c, R, end) <= level:
+            return end
+        return start + lo * (end - start)
 
-    @func
-    def _plane_point(pose_plane: transform, pt: vec3, radius: scalar, slot: int, margin: scalar,
-                     out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                     out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
-        """A sphere of ``radius`` centred at ``pt`` against the plane (``_plane_vs_points``)."""
-        n = _col(_rot(wp.transform_get_rotation(pose_plane)), 2)
-        dist = wp.dot(pt - wp.transform_get_translation(pose_plane), n) - radius
-        _put(slot, pt - n * (radius + HALF * dist), n, dist, True, margin, out_pos, out_normal, out_dist, out_valid)
+    return _namespace(golden_min, reach)
 
-    @func
-    def _plane_sphere(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                      out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
-        """K = 1, exact (``_plane_sphere``)."""
-        _plane_point(pose_a, wp.transform_get_translation(pose_b), size_b[0], base, margin,
-                     out_pos, out_normal, out_dist, out_valid)
 
-    @func
-    def _plane_capsule(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                       out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
-        """K = 2, exact: the end spheres, local -z first (``_plane_capsule``)."""
-        c = wp.transform_get_translation(pose_b)
-        ax = size_b[1] * _col(_rot(wp.transform_get_rotation(pose_b)), 2)
-        _plane_point(pose_a, c + -ONE * ax, size_b[0], base, margin, out_pos, out_normal, out_dist, out_valid)
-        _plane_point(pose_a, c + ONE * ax, size_b[0], base + 1, margin, out_pos, out_normal, out_dist, out_valid)
+@functools.cache
+def segment_funcs(np_dtype) -> SimpleNamespace:
+    """Closest-point building blocks (:mod:`kamino.jax_ref.collision`): two spheres (``_sphere_pair``),
+    a capsule's segment (``_capsule_segment``), the closest points of two segments (``_segment_closest``)
+    and the support rim points of a cylinder (``_cylinder_support``)."""
+    T = types_of(np_dtype)
+    scalar, vec3, mat33, transform = T.scalar, T.vec3, T.mat33, T.transform
+    K = _constants(np_dtype)
+    mat43, TINY, RTOL2, SQRT3_2 = K.mat43, K.TINY, K.RTOL2, K.SQRT3_2
+    ZERO, HALF, ONE, TWO = K.ZERO, K.HALF, K.ONE, K.TWO
+    bf = basic_funcs(np_dtype)
+    clip01, col, normalize, rot, safe_div, sign = bf.clip01, bf.col, bf.normalize, bf.rot, bf.safe_div, bf.sign
 
-    @func
-    def _plane_box(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                   out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                   out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
-        """K = 4, exact: the 4 corners deepest below the plane, ties in corner order (``_plane_box``)."""
-        c = wp.transform_get_translation(pose_b)
-        R = _rot(wp.transform_get_rotation(pose_b))
-        n = _col(_rot(wp.transform_get_rotation(pose_a)), 2)
-        for i in range(int(8)):
-            hi = wp.dot(_box_corner(c, R, size_b, i), n)
-            rank = int(0)  # position of corner i in a stable sort by height
-            for j in range(int(8)):
-                hj = wp.dot(_box_corner(c, R, size_b, j), n)
-                if hj < hi or (hj == hi and j < i):
-                    rank += 1
-            if rank < 4:
-                _plane_point(pose_a, _box_corner(c, R, size_b, i), ZERO, base + rank, margin,
-                             out_pos, out_normal, out_dist, out_valid)
-
-    @func
-    def _plane_ellipsoid(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar,
-                         base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                         out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
-        """K = 1, exact: the support point ``c + R S^2 d / |S d|``, ``d = -R^T n`` (``_plane_ellipsoid``)."""
-        n = _col(_rot(wp.transform_get_rotation(pose_a)), 2)
-        R = _rot(wp.transform_get_rotation(pose_b))
-        d = -(wp.transpose(R) * n)
-        sd = wp.cw_mul(size_b, d)
-        x = wp.cw_mul(size_b, sd) / wp.sqrt(wp.dot(sd, sd))
-        _plane_point(pose_a, wp.transform_get_translation(pose_b) + R * x, ZERO, base, margin,
-                     out_pos, out_normal, out_dist, out_valid)
-
-    @func
-    def _cylinder_support(c: vec3, R: mat33, size: vec3, direction: vec3):
-        """Rim points of a cylinder for a support ``direction``: deepest rim point of the cap further
-        along it, the same on the other cap, the two points of the first cap at +-120 deg (as the rows
-        of a 4x3 matrix), and that cap's centre (``_cylinder_support``)."""
-        radius = size[0]
-        hh = size[1]
-        axis = _col(R, 2)
-        s = _sign(wp.dot(direction, axis))
-        cap = c + s * hh * axis
-        other = c - s * hh * axis
-        r_dir, _n = _normalize(direction - wp.dot(direction, axis) * axis, _col(R, 0))
-        t_dir = wp.cross(axis, r_dir)
-        rim = mat43()
-        rim[0] = cap + radius * r_dir
-        rim[1] = other + radius * r_dir
-        rim[2] = cap + radius * (-HALF * r_dir + SQRT3_2 * t_dir)
-        rim[3] = cap + radius * (-HALF * r_dir - SQRT3_2 * t_dir)
-        return rim, cap
-
-    @func
-    def _plane_cylinder(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                        out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
-        """K = 4, MuJoCo's four rim points with their exact heights (``_plane_cylinder``)."""
-        n = _col(_rot(wp.transform_get_rotation(pose_a)), 2)
-        rim, _cap = _cylinder_support(wp.transform_get_translation(pose_b), _rot(wp.transform_get_rotation(pose_b)),
-                                      size_b, -n)
-        for i in range(4):
-            _plane_point(pose_a, rim[i], ZERO, base + i, margin, out_pos, out_normal, out_dist, out_valid)
-
-    # -----------------------------------------------------------------------------------------
-    # sphere and capsule pairs
-    # -----------------------------------------------------------------------------------------
-
-    @func
-    def _sphere_pair(ca: vec3, ra: scalar, cb: vec3, rb: scalar, fallback: vec3):
+    @_func
+    def sphere_pair(ca: vec3, ra: scalar, cb: vec3, rb: scalar, fallback: vec3):
         """Two spheres, exact; ``fallback`` is the normal for coincident centres (``_sphere_pair``)."""
-        n, length = _normalize(cb - ca, fallback)
+        n, length = normalize(cb - ca, fallback)
         dist = length - ra - rb
         return ca + n * (ra + HALF * dist), n, dist
 
-    @func
-    def _sphere_sphere(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                       out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
-        """K = 1, exact; concentric spheres get a's local +z (``_sphere_sphere``)."""
-        pos, n, dist = _sphere_pair(wp.transform_get_translation(pose_a), size_a[0],
-                                    wp.transform_get_translation(pose_b), size_b[0],
-                                    _col(_rot(wp.transform_get_rotation(pose_a)), 2))
-        _put(base, pos, n, dist, True, margin, out_pos, out_normal, out_dist, out_valid)
-
-    @func
-    def _capsule_segment(pose: transform, size: vec3):
+    @_func
+    def capsule_segment(pose: transform, size: vec3):
         """Start point (local z = -half-length), direction vector and rotation of a capsule's segment
         (``_capsule_segment``)."""
-        R = _rot(wp.transform_get_rotation(pose))
-        axis = _col(R, 2) * size[1]
+        R = rot(wp.transform_get_rotation(pose))
+        axis = col(R, 2) * size[1]
         return wp.transform_get_translation(pose) - axis, TWO * axis, R
 
-    @func
-    def _sphere_capsule(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                        out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
-        """K = 1, exact; a centre on the segment uses the capsule's local +x (``_sphere_capsule``)."""
-        p0, d, R = _capsule_segment(pose_b, size_b)
-        ca = wp.transform_get_translation(pose_a)
-        t = _clip01(_safe_div(wp.dot(ca - p0, d), wp.dot(d, d)))
-        pos, n, dist = _sphere_pair(ca, size_a[0], p0 + t * d, size_b[0], _col(R, 0))
-        _put(base, pos, n, dist, True, margin, out_pos, out_normal, out_dist, out_valid)
-
-    @func
-    def _segment_closest(p1: vec3, d1: vec3, p2: vec3, d2: vec3):
+    @_func
+    def segment_closest(p1: vec3, d1: vec3, p2: vec3, d2: vec3):
         """Parameters ``(s, t)`` of the closest points of two segments ``p1 + s d1``, ``p2 + t d2``
         (Ericson 5.1.9; parallel: ``s = 0`` first; zero-length segments handled) (``_segment_closest``)."""
         r = p1 - p2
@@ -478,133 +465,350 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
         denom = a * e - b * b
         s = ZERO
         if denom > RTOL2 * a * e:
-            s = _clip01(_safe_div(b * f - c * e, denom))
-        t = _safe_div(b * s + f, e)
+            s = clip01(safe_div(b * f - c * e, denom))
+        t = safe_div(b * s + f, e)
         if t < ZERO:
-            s = _clip01(_safe_div(-c, a))
+            s = clip01(safe_div(-c, a))
         elif t > ONE:
-            s = _clip01(_safe_div(b - c, a))
-        t = _clip01(t)
+            s = clip01(safe_div(b - c, a))
+        t = clip01(t)
         if e <= TINY:
             t = ZERO
         elif a <= TINY:
-            t = _clip01(_safe_div(f, e))
+            t = clip01(safe_div(f, e))
         if a <= TINY:
             s = ZERO
         elif e <= TINY:
-            s = _clip01(_safe_div(-c, a))
+            s = clip01(safe_div(-c, a))
         return s, t
 
-    @func
-    def _capsule_capsule(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar,
-                         base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                         out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+    @_func
+    def cylinder_support(c: vec3, R: mat33, size: vec3, direction: vec3):
+        """Rim points of a cylinder for a support ``direction``: deepest rim point of the cap further
+        along it, the same on the other cap, the two points of the first cap at +-120 deg (as the rows
+        of a 4x3 matrix), and that cap's centre (``_cylinder_support``)."""
+        radius = size[0]
+        hh = size[1]
+        axis = col(R, 2)
+        s = sign(wp.dot(direction, axis))
+        cap = c + s * hh * axis
+        other = c - s * hh * axis
+        r_dir, _n = normalize(direction - wp.dot(direction, axis) * axis, col(R, 0))
+        t_dir = wp.cross(axis, r_dir)
+        rim = mat43()
+        rim[0] = cap + radius * r_dir
+        rim[1] = other + radius * r_dir
+        rim[2] = cap + radius * (-HALF * r_dir + SQRT3_2 * t_dir)
+        rim[3] = cap + radius * (-HALF * r_dir - SQRT3_2 * t_dir)
+        return rim, cap
+
+    return _namespace(sphere_pair, capsule_segment, segment_closest, cylinder_support)
+
+
+@functools.cache
+def plane_pair_funcs(np_dtype) -> SimpleNamespace:
+    """The routines of the plane pairs (``_plane_sphere`` .. ``_plane_cylinder`` of
+    :mod:`kamino.jax_ref.collision`): points of geom b, each a sphere against the plane."""
+    T = types_of(np_dtype)
+    scalar, vec3, transform = T.scalar, T.vec3, T.transform
+    K = _constants(np_dtype)
+    ZERO, HALF, ONE = K.ZERO, K.HALF, K.ONE
+    box_corner = box_feature_funcs(np_dtype).box_corner
+    bf = basic_funcs(np_dtype)
+    col, put_point, rot = bf.col, bf.put_point, bf.rot
+    cylinder_support = segment_funcs(np_dtype).cylinder_support
+
+    @_func
+    def plane_point(pose_plane: transform, pt: vec3, radius: scalar, slot: int, margin: scalar,
+                    out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                    out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """A sphere of ``radius`` centred at ``pt`` against the plane (``_plane_vs_points``)."""
+        n = col(rot(wp.transform_get_rotation(pose_plane)), 2)
+        dist = wp.dot(pt - wp.transform_get_translation(pose_plane), n) - radius
+        put_point(slot, pt - n * (radius + HALF * dist), n, dist, True, margin, out_pos, out_normal, out_dist,
+                  out_valid)
+
+    @_func
+    def plane_sphere(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
+                     out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                     out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 1, exact (``_plane_sphere``)."""
+        plane_point(pose_a, wp.transform_get_translation(pose_b), size_b[0], base, margin,
+                    out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def plane_capsule(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
+                      out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 2, exact: the end spheres, local -z first (``_plane_capsule``)."""
+        c = wp.transform_get_translation(pose_b)
+        ax = size_b[1] * col(rot(wp.transform_get_rotation(pose_b)), 2)
+        plane_point(pose_a, c + -ONE * ax, size_b[0], base, margin, out_pos, out_normal, out_dist, out_valid)
+        plane_point(pose_a, c + ONE * ax, size_b[0], base + 1, margin, out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def plane_box(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
+                  out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                  out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 4, exact: the 4 corners deepest below the plane, ties in corner order (``_plane_box``)."""
+        c = wp.transform_get_translation(pose_b)
+        R = rot(wp.transform_get_rotation(pose_b))
+        n = col(rot(wp.transform_get_rotation(pose_a)), 2)
+        for i in range(int(8)):
+            hi = wp.dot(box_corner(c, R, size_b, i), n)
+            rank = int(0)  # position of corner i in a stable sort by height
+            for j in range(int(8)):
+                hj = wp.dot(box_corner(c, R, size_b, j), n)
+                if hj < hi or (hj == hi and j < i):
+                    rank += 1
+            if rank < 4:
+                plane_point(pose_a, box_corner(c, R, size_b, i), ZERO, base + rank, margin,
+                            out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def plane_ellipsoid(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar,
+                        base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 1, exact: the support point ``c + R S^2 d / |S d|``, ``d = -R^T n`` (``_plane_ellipsoid``)."""
+        n = col(rot(wp.transform_get_rotation(pose_a)), 2)
+        R = rot(wp.transform_get_rotation(pose_b))
+        d = -(wp.transpose(R) * n)
+        sd = wp.cw_mul(size_b, d)
+        x = wp.cw_mul(size_b, sd) / wp.sqrt(wp.dot(sd, sd))
+        plane_point(pose_a, wp.transform_get_translation(pose_b) + R * x, ZERO, base, margin,
+                    out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def plane_cylinder(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
+                       out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 4, MuJoCo's four rim points with their exact heights (``_plane_cylinder``)."""
+        n = col(rot(wp.transform_get_rotation(pose_a)), 2)
+        rim, _cap = cylinder_support(wp.transform_get_translation(pose_b), rot(wp.transform_get_rotation(pose_b)),
+                                     size_b, -n)
+        for i in range(4):
+            plane_point(pose_a, rim[i], ZERO, base + i, margin, out_pos, out_normal, out_dist, out_valid)
+
+    return _namespace(plane_point, plane_sphere, plane_capsule, plane_box, plane_ellipsoid, plane_cylinder)
+
+
+@functools.cache
+def sphere_capsule_pair_funcs(np_dtype) -> SimpleNamespace:
+    """The routines of the sphere and capsule pairs (``_sphere_sphere``, ``_sphere_capsule``,
+    ``_capsule_capsule`` of :mod:`kamino.jax_ref.collision`): closest points of their core point or
+    segment."""
+    T = types_of(np_dtype)
+    scalar, vec3, transform = T.scalar, T.vec3, T.transform
+    K = _constants(np_dtype)
+    ZERO, ONE, MILLI, PAR = K.ZERO, K.ONE, K.MILLI, K.PAR
+    sg = segment_funcs(np_dtype)
+    capsule_segment, segment_closest, sphere_pair = sg.capsule_segment, sg.segment_closest, sg.sphere_pair
+    bf = basic_funcs(np_dtype)
+    clip01, col, normalize, rot, safe_div = bf.clip01, bf.col, bf.normalize, bf.rot, bf.safe_div
+    put_point = bf.put_point
+
+    @_func
+    def sphere_sphere(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
+                      out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 1, exact; concentric spheres get a's local +z (``_sphere_sphere``)."""
+        pos, n, dist = sphere_pair(wp.transform_get_translation(pose_a), size_a[0],
+                                   wp.transform_get_translation(pose_b), size_b[0],
+                                   col(rot(wp.transform_get_rotation(pose_a)), 2))
+        put_point(base, pos, n, dist, True, margin, out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def sphere_capsule(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
+                       out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 1, exact; a centre on the segment uses the capsule's local +x (``_sphere_capsule``)."""
+        p0, d, R = capsule_segment(pose_b, size_b)
+        ca = wp.transform_get_translation(pose_a)
+        t = clip01(safe_div(wp.dot(ca - p0, d), wp.dot(d, d)))
+        pos, n, dist = sphere_pair(ca, size_a[0], p0 + t * d, size_b[0], col(R, 0))
+        put_point(base, pos, n, dist, True, margin, out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def capsule_capsule(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar,
+                        base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 2: closest points of the segments, and for near-parallel segments the far end of their
         overlap (``_capsule_capsule``)."""
-        pa, da, Ra = _capsule_segment(pose_a, size_a)
-        pb, db, _Rb = _capsule_segment(pose_b, size_b)
-        s1, t1 = _segment_closest(pa, da, pb, db)
+        pa, da, Ra = capsule_segment(pose_a, size_a)
+        pb, db, _Rb = capsule_segment(pose_b, size_b)
+        s1, t1 = segment_closest(pa, da, pb, db)
         a = wp.dot(da, da)
         e = wp.dot(db, db)
-        sb0 = _safe_div(wp.dot(pb - pa, da), a)
-        sb1 = _safe_div(wp.dot(pb + db - pa, da), a)
+        sb0 = safe_div(wp.dot(pb - pa, da), a)
+        sb1 = safe_div(wp.dot(pb + db - pa, da), a)
         lo = wp.max(wp.min(sb0, sb1), ZERO)
         hi = wp.min(wp.max(sb0, sb1), ONE)
-        s2 = _clip01(wp.where(wp.abs(s1 - lo) >= wp.abs(s1 - hi), lo, hi))
-        t2 = _clip01(_safe_div(wp.dot(pa + s2 * da - pb, db), e))
+        s2 = clip01(wp.where(wp.abs(s1 - lo) >= wp.abs(s1 - hi), lo, hi))
+        t2 = clip01(safe_div(wp.dot(pa + s2 * da - pb, db), e))
         cross = wp.cross(da, db)
         parallel = wp.dot(cross, cross) <= PAR * a * e
         second = parallel and lo <= hi and wp.abs(s2 - s1) > MILLI and a > ZERO
-        fallback, _n = _normalize(cross, _col(Ra, 0))
-        pos, n, dist = _sphere_pair(pa + s1 * da, size_a[0], pb + t1 * db, size_b[0], fallback)
-        _put(base, pos, n, dist, True, margin, out_pos, out_normal, out_dist, out_valid)
-        pos, n, dist = _sphere_pair(pa + s2 * da, size_a[0], pb + t2 * db, size_b[0], fallback)
-        _put(base + 1, pos, n, dist, second, margin, out_pos, out_normal, out_dist, out_valid)
+        fallback, _n = normalize(cross, col(Ra, 0))
+        pos, n, dist = sphere_pair(pa + s1 * da, size_a[0], pb + t1 * db, size_b[0], fallback)
+        put_point(base, pos, n, dist, True, margin, out_pos, out_normal, out_dist, out_valid)
+        pos, n, dist = sphere_pair(pa + s2 * da, size_a[0], pb + t2 * db, size_b[0], fallback)
+        put_point(base + 1, pos, n, dist, second, margin, out_pos, out_normal, out_dist, out_valid)
 
-    @func
-    def _sphere_sdf_pair(type_b: int, pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3,
-                         margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                         out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+    return _namespace(sphere_sphere, sphere_capsule, capsule_capsule)
+
+
+@functools.cache
+def sdf_pair_funcs(np_dtype) -> SimpleNamespace:
+    """The routines of a sphere or capsule against a box or cylinder (``_sphere_vs_sdf`` and
+    ``_capsule_vs_sdf`` of :mod:`kamino.jax_ref.collision`): the core point or segment against the exact
+    signed distance of geom b, whose type stays a run-time argument."""
+    T = types_of(np_dtype)
+    scalar, vec3, transform = T.scalar, T.vec3, T.transform
+    K = _constants(np_dtype)
+    TIE, ZERO, HALF, ONE, MILLI = K.TIE, K.ZERO, K.HALF, K.ONE, K.MILLI
+    capsule_segment = segment_funcs(np_dtype).capsule_segment
+    bf = basic_funcs(np_dtype)
+    clip01, put_point, rot = bf.clip01, bf.put_point, bf.rot
+    face_interval = face_interval_funcs(np_dtype).face_interval
+    golden_min = search_funcs(np_dtype).golden_min
+    sd = sdf_funcs(np_dtype)
+    sdf, sdf_world = sd.sdf, sd.sdf_world
+
+    @_func
+    def sphere_sdf_pair(type_b: int, pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3,
+                        margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 1, exact: the sphere centre against the signed distance of the box or cylinder b, minus the
         radius (``_sphere_box``, ``_sphere_cylinder`` via ``_sphere_vs_sdf``)."""
         x = wp.transform_get_translation(pose_a)
-        d, n_out, q = _sdf_world(type_b, size_b, wp.transform_get_translation(pose_b),
-                                 _rot(wp.transform_get_rotation(pose_b)), x)
+        d, n_out, q = sdf_world(type_b, size_b, wp.transform_get_translation(pose_b),
+                                rot(wp.transform_get_rotation(pose_b)), x)
         n = -n_out
         r = size_a[0]
-        _put(base, HALF * (x + q) + HALF * r * n, n, d - r, True, margin, out_pos, out_normal, out_dist, out_valid)
+        put_point(base, HALF * (x + q) + HALF * r * n, n, d - r, True, margin, out_pos, out_normal, out_dist, out_valid)
 
-    @func
-    def _capsule_sdf_pair(type_b: int, pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3,
-                          margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                          out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+    @_func
+    def capsule_sdf_pair(type_b: int, pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3,
+                         margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                         out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 2: a capsule against the signed distance of the box or cylinder b (``_capsule_vs_sdf``):
         the minimum along the segment (golden section), and the far end of the part of the segment
         lying over the feature it touches."""
-        p0w, dw, _Ra = _capsule_segment(pose_a, size_a)
+        p0w, dw, _Ra = capsule_segment(pose_a, size_a)
         cb = wp.transform_get_translation(pose_b)
-        Rb = _rot(wp.transform_get_rotation(pose_b))
+        Rb = rot(wp.transform_get_rotation(pose_b))
         Rt = wp.transpose(Rb)
         p0 = Rt * (p0w - cb)
         d = Rt * dw
         tol = TIE * (size_a[0] + size_a[1] + (size_b[0] + size_b[1] + size_b[2]))
         eye = wp.identity(n=3, dtype=scalar)
-        t1 = _golden_min(type_b, size_b, vec3(), eye, p0, d, tol)
-        _d1, n1, _q1 = _sdf(type_b, size_b, p0 + t1 * d)
-        lo, hi = _face_interval(type_b, size_b, p0, d, n1)
+        t1 = golden_min(type_b, size_b, vec3(), eye, p0, d, tol)
+        _d1, n1, _q1 = sdf(type_b, size_b, p0 + t1 * d)
+        lo, hi = face_interval(type_b, size_b, p0, d, n1)
         lo = wp.max(lo, ZERO)
         hi = wp.min(hi, ONE)
         has = lo <= hi
-        lo = _clip01(lo)
-        hi = _clip01(hi)
+        lo = clip01(lo)
+        hi = clip01(hi)
         t2 = wp.where(wp.abs(t1 - lo) >= wp.abs(t1 - hi), lo, hi)
         second = has and wp.abs(t2 - t1) > MILLI and wp.dot(d, d) > ZERO
         r = size_a[0]
         for i in range(2):
             t = wp.where(i == 0, t1, t2)
             x = p0 + t * d
-            dist, n_out, q = _sdf(type_b, size_b, x)
+            dist, n_out, q = sdf(type_b, size_b, x)
             n = -n_out
             pos = HALF * (x + q) + HALF * r * n
-            _put(base + i, cb + Rb * pos, Rb * n, dist - r, i == 0 or second, margin,
-                 out_pos, out_normal, out_dist, out_valid)
+            put_point(base + i, cb + Rb * pos, Rb * n, dist - r, i == 0 or second, margin,
+                      out_pos, out_normal, out_dist, out_valid)
 
-    # -----------------------------------------------------------------------------------------
-    # box-box
-    # -----------------------------------------------------------------------------------------
+    return _namespace(sphere_sdf_pair, capsule_sdf_pair)
 
-    @func
-    def _bb_axis(idx: int, Ra: mat33, Rb: mat33):
+
+@functools.cache
+def box_box_sat_funcs(np_dtype) -> SimpleNamespace:
+    """Step 1 of the box-box routine (``_box_box`` of :mod:`kamino.jax_ref.collision`): the separating-axis
+    test over the 15 axes (3 + 3 face normals, 9 edge crosses) with the 5 % edge bias."""
+    T = types_of(np_dtype)
+    scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
+    K = _constants(np_dtype)
+    RTOL, RTOL10, INF, ZERO, ONE = K.RTOL, K.RTOL10, K.INF, K.ZERO, K.ONE
+    BIAS_REL, BIAS_ABS = K.BIAS_REL, K.BIAS_ABS
+    bf = basic_funcs(np_dtype)
+    col, normalize = bf.col, bf.normalize
+
+    @_func
+    def bb_axis(idx: int, Ra: mat33, Rb: mat33):
         """SAT axis ``idx`` of ``_box_box``: a's face normals, b's, then the 9 normalised edge crosses
         ``a_i x b_j`` (``i = (idx - 6) // 3``; fallback a's x axis), with the cross's length."""
         if idx < 3:
-            return _col(Ra, idx), ONE
+            return col(Ra, idx), ONE
         if idx < 6:
-            return _col(Rb, idx - 3), ONE
-        return _normalize(wp.cross(_col(Ra, (idx - 6) // 3), _col(Rb, (idx - 6) % 3)), _col(Ra, 0))
+            return col(Rb, idx - 3), ONE
+        return normalize(wp.cross(col(Ra, (idx - 6) // 3), col(Rb, (idx - 6) % 3)), col(Ra, 0))
 
-    @func
-    def _bb_sep(axis: vec3, t: vec3, Ra: mat33, ea: vec3, Rb: mat33, eb: vec3) -> scalar:
+    @_func
+    def bb_sep(axis: vec3, t: vec3, Ra: mat33, ea: vec3, Rb: mat33, eb: vec3) -> scalar:
         """Separation of the boxes along ``axis`` (``|axis.t|`` minus the two projected radii)."""
-        ra = wp.abs(wp.dot(axis, _col(Ra, 0))) * ea[0] + wp.abs(wp.dot(axis, _col(Ra, 1))) * ea[1] + wp.abs(
-            wp.dot(axis, _col(Ra, 2))) * ea[2]
-        rb = wp.abs(wp.dot(axis, _col(Rb, 0))) * eb[0] + wp.abs(wp.dot(axis, _col(Rb, 1))) * eb[1] + wp.abs(
-            wp.dot(axis, _col(Rb, 2))) * eb[2]
+        ra = wp.abs(wp.dot(axis, col(Ra, 0))) * ea[0] + wp.abs(wp.dot(axis, col(Ra, 1))) * ea[1] + wp.abs(
+            wp.dot(axis, col(Ra, 2))) * ea[2]
+        rb = wp.abs(wp.dot(axis, col(Rb, 0))) * eb[0] + wp.abs(wp.dot(axis, col(Rb, 1))) * eb[1] + wp.abs(
+            wp.dot(axis, col(Rb, 2))) * eb[2]
         return wp.abs(wp.dot(axis, t)) - ra - rb
 
-    @func
-    def _quad_x(c: int) -> int:
-        """x sign of corner ``c`` of a face quad ``(1, 1), (-1, 1), (-1, -1), (1, -1)`` (``_QUAD``)."""
-        return wp.where(c == 0 or c == 3, 1, -1)
+    @_func
+    def bb_sat(t: vec3, Ra: mat33, ea: vec3, Rb: mat33, eb: vec3, scale: scalar):
+        """The 15 axes for boxes at ``c_b - c_a = t``: whether a usable axis (a face axis, or an edge cross
+        longer than ``10 RTOL``) separates them; the reference face (0-2 on a, 3-5 on b: b's best face when
+        it beats a's by ``RTOL`` of ``scale``); whether the best usable edge axis beats that face by the
+        bias; that edge pair ``3 i + j`` and its separation (``-inf`` when no edge axis is usable)."""
+        separated = bool(False)
+        ia = int(0)
+        sa = -INF
+        ib = int(0)
+        sb = -INF
+        ie = int(0)
+        s_edge = -INF
+        for idx in range(int(15)):
+            axis, length = bb_axis(idx, Ra, Rb)
+            s = bb_sep(axis, t, Ra, ea, Rb, eb)
+            usable = idx < 6 or length > RTOL10
+            if usable and s > ZERO:
+                separated = True
+            if idx < 3:
+                if idx == 0 or s > sa:
+                    ia = idx
+                    sa = s
+            elif idx < 6:
+                if idx == 3 or s > sb:
+                    ib = idx - 3
+                    sb = s
+            elif usable and s > s_edge:
+                ie = idx - 6
+                s_edge = s
+        use_b = sb > sa + RTOL * scale
+        face = wp.where(use_b, 3 + ib, ia)
+        s_face = wp.where(use_b, sb, sa)
+        use_edge = s_edge > s_face + BIAS_REL * wp.abs(s_face) + BIAS_ABS * scale
+        return separated, face, use_edge, ie, s_edge
 
-    @func
-    def _quad_y(c: int) -> int:
-        """y sign of corner ``c`` of a face quad (``_QUAD``)."""
-        return wp.where(c < 2, 1, -1)
+    return _namespace(bb_axis, bb_sep, bb_sat)
 
-    @func
-    def _face_manifold(c_ref: vec3, R_ref: mat33, e_ref: vec3, k: int, nf: vec3, c_inc: vec3, R_inc: mat33,
-                       e_inc: vec3):
+
+@functools.cache
+def face_manifold_func(np_dtype) -> wp.Function:
+    """Step 2a of the box-box routine (``_face_manifold`` of :mod:`kamino.jax_ref.collision`):
+    the 24 clipping candidates of the incident face against the reference face."""
+    T = types_of(np_dtype)
+    scalar, vec3, vec4, mat33 = T.scalar, T.vec3, T.vec4, T.mat33
+    K = _constants(np_dtype)
+    vec24, vec24i, RTOL, ZERO, ONE = K.vec24, K.vec24i, K.RTOL, K.ZERO, K.ONE
+    bf = basic_funcs(np_dtype)
+    col, sign = bf.col, bf.sign
+
+    @_func
+    def face_manifold(c_ref: vec3, R_ref: mat33, e_ref: vec3, k: int, nf: vec3, c_inc: vec3, R_inc: mat33,
+                      e_inc: vec3):
         """The 24 clipping candidates of ``_face_manifold``: incident corners inside the reference face,
         reference corners inside the incident face, incident edges crossing the reference face's sides
         (edge-major, lines ``x = +e, x = -e, y = +e, y = -e``); near-duplicates of an earlier existing
@@ -613,8 +817,8 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
         k1 = (k + 1) % 3
         k2 = (k + 2) % 3
         cf = c_ref + e_ref[k] * nf
-        t1 = _col(R_ref, k1)
-        t2 = _col(R_ref, k2)
+        t1 = col(R_ref, k1)
+        t2 = col(R_ref, k2)
         ext0 = e_ref[k1]
         ext1 = e_ref[k2]
         tol = RTOL * wp.max(wp.max(e_ref[0], e_ref[1]), e_ref[2])
@@ -624,17 +828,17 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
         for i in range(1, 3):
             if wp.abs(proj[i]) > wp.abs(proj[j]):
                 j = i
-        n_inc = -_sign(proj[j]) * _col(R_inc, j)
+        n_inc = -sign(proj[j]) * col(R_inc, j)
         j1 = (j + 1) % 3
         j2 = (j + 2) % 3
         fc = c_inc + e_inc[j] * n_inc
-        u1 = e_inc[j1] * _col(R_inc, j1)
-        u2 = e_inc[j2] * _col(R_inc, j2)
+        u1 = e_inc[j1] * col(R_inc, j1)
+        u2 = e_inc[j2] * col(R_inc, j2)
         qx = vec4()
         qy = vec4()
         hq = vec4()
         for c in range(4):
-            rel = fc + (scalar(_quad_x(c)) * u1 + scalar(_quad_y(c)) * u2) - cf
+            rel = fc + (scalar(quad_x(c)) * u1 + scalar(quad_y(c)) * u2) - cf
             qx[c] = wp.dot(rel, t1)
             qy[c] = wp.dot(rel, t2)
             hq[c] = wp.dot(rel, nf)
@@ -647,7 +851,7 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             ey[c] = qy[(c + 1) % 4] - qy[c]
             el[c] = wp.sqrt(ex[c] * ex[c] + ey[c] * ey[c])
             area += qx[c] * qy[(c + 1) % 4] - qy[c] * qx[(c + 1) % 4]
-        orient = _sign(area)
+        orient = sign(area)
         X = vec24()
         Y = vec24()
         H = vec24()
@@ -664,8 +868,8 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
         tn2 = wp.dot(t2, n_inc)
         nn = wp.dot(nf, n_inc)
         for r in range(4):
-            rx = scalar(_quad_x(r)) * ext0
-            ry = scalar(_quad_y(r)) * ext1
+            rx = scalar(quad_x(r)) * ext0
+            ry = scalar(quad_y(r)) * ext1
             inside = int(1)
             for c in range(4):
                 side = orient * (ex[c] * (ry - qy[c]) - ey[c] * (rx - qx[c]))
@@ -713,94 +917,31 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
                     F[i] = 0
         return X, Y, H, F, cf, t1, t2
 
-    @func
-    def _bb_closest(ca: vec3, Ra: mat33, ea: vec3, cb: vec3, Rb: mat33, eb: vec3):
-        """Closest pair of two boxes among: a's corners and their nearest points of b, b's corners and
-        their nearest points of a, the closest points of the 144 edge pairs (first minimum, in that
-        order); exact for separated boxes (``_box_box`` step 3). Returns the points on a and on b."""
-        best = INF
-        on_a = vec3()
-        on_b = vec3()
-        for idx in range(int(160)):
-            pa = vec3()
-            pb = vec3()
-            if idx < 8:
-                pa = _box_corner(ca, Ra, ea, idx)
-                _d, _n, pb = _sdf_world(BOX, eb, cb, Rb, pa)
-            elif idx < 16:
-                pb = _box_corner(cb, Rb, eb, idx - 8)
-                _d, _n, pa = _sdf_world(BOX, ea, ca, Ra, pb)
-            else:
-                pe, de = _box_edge(ca, Ra, ea, (idx - 16) // 12)
-                qe, fe = _box_edge(cb, Rb, eb, (idx - 16) % 12)
-                s, u = _segment_closest(pe, de, qe, fe)
-                pa = pe + s * de
-                pb = qe + u * fe
-            gap = wp.length(pb - pa)
-            if gap < best:
-                best = gap
-                on_a = pa
-                on_b = pb
-        return on_a, on_b
+    return face_manifold
 
-    @func
-    def _box_box(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                 out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                 out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
-        """K = 8: separating-axis test, face clipping or one edge-edge point, exact closest pair of
-        separated boxes (``_box_box``; its docstring has the details)."""
-        ca = wp.transform_get_translation(pose_a)
-        cb = wp.transform_get_translation(pose_b)
-        Ra = _rot(wp.transform_get_rotation(pose_a))
-        Rb = _rot(wp.transform_get_rotation(pose_b))
-        ea = size_a
-        eb = size_b
-        scale = (ea[0] + ea[1] + ea[2]) + (eb[0] + eb[1] + eb[2])
-        t = cb - ca
 
-        # 1. separating axes
-        separated = bool(False)
-        ia = int(0)
-        sa = -INF
-        ib = int(0)
-        sb = -INF
-        ie = int(0)
-        s_edge = -INF
-        for idx in range(int(15)):
-            axis, length = _bb_axis(idx, Ra, Rb)
-            s = _bb_sep(axis, t, Ra, ea, Rb, eb)
-            usable = idx < 6 or length > RTOL10
-            if usable and s > ZERO:
-                separated = True
-            if idx < 3:
-                if idx == 0 or s > sa:
-                    ia = idx
-                    sa = s
-            elif idx < 6:
-                if idx == 3 or s > sb:
-                    ib = idx - 3
-                    sb = s
-            elif usable and s > s_edge:
-                ie = idx - 6
-                s_edge = s
-        use_b = sb > sa + RTOL * scale
-        face = wp.where(use_b, 3 + ib, ia)
-        s_face = wp.where(use_b, sb, sa)
-        use_edge = s_edge > s_face + BIAS_REL * wp.abs(s_face) + BIAS_ABS * scale
+@functools.cache
+def box_box_step_funcs(np_dtype) -> SimpleNamespace:
+    """Steps 2 and 3 of the box-box routine (``_box_box`` of :mod:`kamino.jax_ref.collision`): the 8 slots
+    of the face manifold, the edge-edge point, the exact closest pair of separated boxes."""
+    T = types_of(np_dtype)
+    scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
+    K = _constants(np_dtype)
+    vec24, vec24i, vec8i, INF, HALF, TWO = K.vec24, K.vec24i, K.vec8i, K.INF, K.HALF, K.TWO
+    bx = box_feature_funcs(np_dtype)
+    box_corner, box_edge = bx.box_corner, bx.box_edge
+    bf = basic_funcs(np_dtype)
+    col, sign = bf.col, bf.sign
+    sdf_world = sdf_funcs(np_dtype).sdf_world
+    segment_closest = segment_funcs(np_dtype).segment_closest
+    bb_axis = box_box_sat_funcs(np_dtype).bb_axis
 
-        # 2a. face manifold
-        ref_a = face < 3
-        c_ref = wp.where(ref_a, ca, cb)
-        R_ref = wp.where(ref_a, Ra, Rb)
-        e_ref = wp.where(ref_a, ea, eb)
-        c_inc = wp.where(ref_a, cb, ca)
-        R_inc = wp.where(ref_a, Rb, Ra)
-        e_inc = wp.where(ref_a, eb, ea)
-        k = face % 3
-        axis_f = _col(R_ref, k)
-        nf = _sign(wp.dot(c_inc - c_ref, axis_f)) * axis_f
-        X, Y, H, F, cf, t1, t2 = _face_manifold(c_ref, R_ref, e_ref, k, nf, c_inc, R_inc, e_inc)
-        # the 8 slots: kept candidates (existing, h <= margin) first, then the others, candidate order
+    @_func
+    def face_slots(F: vec24i, H: vec24, margin: scalar):
+        """The 8 slots of the face manifold: the kept candidates (existing, ``h <= margin``) first, then the
+        others, in candidate order. Returns the candidate of each slot, whether one is kept, and, over the
+        slots with a missing candidate counting as ``+inf`` high, the least height and the first slot of the
+        greatest."""
         sel = vec8i()
         n_kept = int(0)
         for i in range(int(24)):
@@ -812,7 +953,6 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             if not (F[i] == 1 and H[i] <= margin) and n_sel < 8:
                 sel[n_sel] = i
                 n_sel += 1
-        f_normal = wp.where(ref_a, nf, -nf)
         any_in = bool(False)
         f_min = INF
         slot = int(0)
@@ -826,25 +966,116 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             if v > slot_val:
                 slot = i
                 slot_val = v
+        return sel, any_in, f_min, slot
 
-        # 2b. edge-edge point
+    @_func
+    def edge_point(ie: int, t: vec3, ca: vec3, Ra: mat33, ea: vec3, cb: vec3, Rb: mat33, eb: vec3):
+        """The edge-edge point of edge pair ``ie`` (a's axis ``ie // 3``, b's ``ie % 3``): the normal along
+        their cross, pointing from a to b, and the midpoint of the closest points of the two edges most
+        advanced along it."""
         ia_e = ie // 3
         ib_e = ie % 3
-        axis_e, _len_e = _bb_axis(6 + ie, Ra, Rb)
-        n_e = _sign(wp.dot(axis_e, t)) * axis_e
+        axis_e, _len_e = bb_axis(6 + ie, Ra, Rb)
+        n_e = sign(wp.dot(axis_e, t)) * axis_e
         va = vec3()
         vb = vec3()
         for i in range(3):
             if i != ia_e:
-                va[i] = _sign(wp.dot(n_e, _col(Ra, i))) * ea[i]
+                va[i] = sign(wp.dot(n_e, col(Ra, i))) * ea[i]
             if i != ib_e:
-                vb[i] = _sign(-wp.dot(n_e, _col(Rb, i))) * eb[i]
+                vb[i] = sign(-wp.dot(n_e, col(Rb, i))) * eb[i]
         mid_a = ca + Ra * va
         mid_b = cb + Rb * vb
-        da = _col(Ra, ia_e) * ea[ia_e]
-        db = _col(Rb, ib_e) * eb[ib_e]
-        s_a, s_b = _segment_closest(mid_a - da, TWO * da, mid_b - db, TWO * db)
+        da = col(Ra, ia_e) * ea[ia_e]
+        db = col(Rb, ib_e) * eb[ib_e]
+        s_a, s_b = segment_closest(mid_a - da, TWO * da, mid_b - db, TWO * db)
         e_pos = HALF * (mid_a - da + s_a * TWO * da + mid_b - db + s_b * TWO * db)
+        return n_e, e_pos
+
+    @_func
+    def bb_closest(ca: vec3, Ra: mat33, ea: vec3, cb: vec3, Rb: mat33, eb: vec3):
+        """Closest pair of two boxes among: a's corners and their nearest points of b, b's corners and
+        their nearest points of a, the closest points of the 144 edge pairs (first minimum, in that
+        order); exact for separated boxes (``_box_box`` step 3). Returns the points on a and on b."""
+        best = INF
+        on_a = vec3()
+        on_b = vec3()
+        for idx in range(int(160)):
+            pa = vec3()
+            pb = vec3()
+            if idx < 8:
+                pa = box_corner(ca, Ra, ea, idx)
+                _d, _n, pb = sdf_world(BOX, eb, cb, Rb, pa)
+            elif idx < 16:
+                pb = box_corner(cb, Rb, eb, idx - 8)
+                _d, _n, pa = sdf_world(BOX, ea, ca, Ra, pb)
+            else:
+                pe, de = box_edge(ca, Ra, ea, (idx - 16) // 12)
+                qe, fe = box_edge(cb, Rb, eb, (idx - 16) % 12)
+                s, u = segment_closest(pe, de, qe, fe)
+                pa = pe + s * de
+                pb = qe + u * fe
+            gap = wp.length(pb - pa)
+            if gap < best:
+                best = gap
+                on_a = pa
+                on_b = pb
+        return on_a, on_b
+
+    return _namespace(face_slots, edge_point, bb_closest)
+
+
+@functools.cache
+def box_box_func(np_dtype) -> wp.Function:
+    """The box-box routine, K = 8 (``_box_box`` of :mod:`kamino.jax_ref.collision`): the separating-axis
+    test, then the clipped face manifold or one edge-edge point, and for separated boxes their exact
+    closest pair."""
+    T = types_of(np_dtype)
+    scalar, vec3, transform = T.scalar, T.vec3, T.transform
+    K = _constants(np_dtype)
+    RTOL, INF, ZERO, HALF = K.RTOL, K.INF, K.ZERO, K.HALF
+    bf = basic_funcs(np_dtype)
+    col, normalize, put_point, rot, sign = bf.col, bf.normalize, bf.put_point, bf.rot, bf.sign
+    bb_sat = box_box_sat_funcs(np_dtype).bb_sat
+    st = box_box_step_funcs(np_dtype)
+    face_slots, edge_point, bb_closest = st.face_slots, st.edge_point, st.bb_closest
+    face_manifold = face_manifold_func(np_dtype)
+
+    @_func
+    def box_box(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
+                out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 8: separating-axis test, face clipping or one edge-edge point, exact closest pair of
+        separated boxes (``_box_box``; its docstring has the details)."""
+        ca = wp.transform_get_translation(pose_a)
+        cb = wp.transform_get_translation(pose_b)
+        Ra = rot(wp.transform_get_rotation(pose_a))
+        Rb = rot(wp.transform_get_rotation(pose_b))
+        ea = size_a
+        eb = size_b
+        scale = (ea[0] + ea[1] + ea[2]) + (eb[0] + eb[1] + eb[2])
+        t = cb - ca
+
+        # 1. separating axes
+        separated, face, use_edge, ie, s_edge = bb_sat(t, Ra, ea, Rb, eb, scale)
+
+        # 2a. face manifold
+        ref_a = face < 3
+        c_ref = wp.where(ref_a, ca, cb)
+        R_ref = wp.where(ref_a, Ra, Rb)
+        e_ref = wp.where(ref_a, ea, eb)
+        c_inc = wp.where(ref_a, cb, ca)
+        R_inc = wp.where(ref_a, Rb, Ra)
+        e_inc = wp.where(ref_a, eb, ea)
+        k = face % 3
+        axis_f = col(R_ref, k)
+        nf = sign(wp.dot(c_inc - c_ref, axis_f)) * axis_f
+        X, Y, H, F, cf, t1, t2 = face_manifold(c_ref, R_ref, e_ref, k, nf, c_inc, R_inc, e_inc)
+        sel, any_in, f_min, slot = face_slots(F, H, margin)
+        f_normal = wp.where(ref_a, nf, -nf)
+
+        # 2b. edge-edge point
+        n_e, e_pos = edge_point(ie, t, ca, Ra, ea, cb, Rb, eb)
         edge_ok = s_edge > -INF
 
         # 3. exact closest pair of separated boxes (only used when separated)
@@ -852,8 +1083,8 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
         x_n = vec3()
         x_d = ZERO
         if separated:
-            on_a, on_b = _bb_closest(ca, Ra, ea, cb, Rb, eb)
-            x_n, x_d = _normalize(on_b - on_a, wp.where(use_edge, n_e, f_normal))
+            on_a, on_b = bb_closest(ca, Ra, ea, cb, Rb, eb)
+            x_n, x_d = normalize(on_b - on_a, wp.where(use_edge, n_e, f_normal))
             x_pos = HALF * (on_a + on_b)
 
         # assemble
@@ -868,39 +1099,33 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             exists = wp.where(point_case, i == 0, F[c] == 1 or put)
             pos = cf + X[c] * t1 + Y[c] * t2 + HALF * H[c] * nf
             if put:
-                _put(base + i, p_pos, p_n, p_d, exists, margin, out_pos, out_normal, out_dist, out_valid)
+                put_point(base + i, p_pos, p_n, p_d, exists, margin, out_pos, out_normal, out_dist, out_valid)
             else:
-                _put(base + i, pos, f_normal, H[c], exists, margin, out_pos, out_normal, out_dist, out_valid)
+                put_point(base + i, pos, f_normal, H[c], exists, margin, out_pos, out_normal, out_dist, out_valid)
 
-    # -----------------------------------------------------------------------------------------
-    # cylinder pairs (approximations)
-    # -----------------------------------------------------------------------------------------
+    return box_box
 
-    @func
-    def _reach(gtype: int, size: vec3, c: vec3, R: mat33, start: vec3, end: vec3, level: scalar) -> vec3:
-        """The point farthest along ``start -> end`` where the distance to the geom at ``(c, R)`` is still
-        ``<= level``: ``end`` if possible, else by ``BISECTION_STEPS`` bisection steps (``_reach``)."""
-        lo = ZERO
-        hi = ONE
-        for _it in range(int(BISECT_ITERS)):
-            mid = HALF * (lo + hi)
-            if _dist_world(gtype, size, c, R, start + mid * (end - start)) <= level:
-                lo = mid
-            else:
-                hi = mid
-        if _dist_world(gtype, size, c, R, end) <= level:
-            return end
-        return start + lo * (end - start)
 
-    @func
-    def _project(gtype: int, size: vec3, c: vec3, R: mat33, y: vec3) -> vec3:
-        """Nearest point of the solid to ``y`` (``y`` itself inside) (``_project``)."""
-        d, _n, q = _sdf_world(gtype, size, c, R, y)
-        return wp.where(d > ZERO, q, y)
+@functools.cache
+def cylinder_family_funcs(np_dtype) -> SimpleNamespace:
+    """The point families of the cylinder pairs (``_cylinder_family`` and ``_pick_family`` of
+    :mod:`kamino.jax_ref.collision`): four points of a cylinder against the exact signed distance of the
+    other geom, their writer, and the choice between two families."""
+    T = types_of(np_dtype)
+    scalar, vec3, vec4, mat33 = T.scalar, T.vec3, T.vec4, T.mat33
+    K = _constants(np_dtype)
+    mat43, TIE, INF, ZERO, HALF, ONE, MILLI = K.mat43, K.TIE, K.INF, K.ZERO, K.HALF, K.ONE, K.MILLI
+    bf = basic_funcs(np_dtype)
+    col, normalize, put_point = bf.col, bf.normalize, bf.put_point
+    cylinder_support = segment_funcs(np_dtype).cylinder_support
+    sd = sdf_funcs(np_dtype)
+    dist_world, project, sdf_world = sd.dist_world, sd.project, sd.sdf_world
+    se = search_funcs(np_dtype)
+    golden_min, reach = se.golden_min, se.reach
 
-    @func
-    def _cylinder_family(c: vec3, R: mat33, size: vec3, type_o: int, size_o: vec3, c_o: vec3, R_o: mat33,
-                         margin: scalar, tol: scalar):
+    @_func
+    def cylinder_family(c: vec3, R: mat33, size: vec3, type_o: int, size_o: vec3, c_o: vec3, R_o: mat33,
+                        margin: scalar, tol: scalar):
         """Four points of the cylinder at ``(c, R)`` against the exact signed distance of the other geom
         (box or cylinder at ``(c_o, R_o)``): three pulled rim points of the cap facing it, and the first
         nearest of the support-generator minimum, the alternating-projection point and the anchor
@@ -908,29 +1133,29 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
         matrices; normals are the other geom's outward normals), distances, existence (1/0)."""
         radius = size[0]
         hh = size[1]
-        _d0, u, q = _sdf_world(type_o, size_o, c_o, R_o, c)
-        rim, cap = _cylinder_support(c, R, size, -u)
-        axis = _col(R, 2)
+        _d0, u, q = sdf_world(type_o, size_o, c_o, R_o, c)
+        rim, cap = cylinder_support(c, R, size, -u)
+        axis = col(R, 2)
         off = q - cap
         off = off - wp.dot(off, axis) * axis
-        off_u, off_len = _normalize(off, _col(R, 0))
+        off_u, off_len = normalize(off, col(R, 0))
         anchor = cap + wp.min(off_len, radius) * off_u
-        level = wp.max(_dist_world(type_o, size_o, c_o, R_o, anchor), margin)
+        level = wp.max(dist_world(type_o, size_o, c_o, R_o, anchor), margin)
         pts = mat43()
         for i in range(int(3)):
-            pts[i] = _reach(type_o, size_o, c_o, R_o, anchor, rim[wp.where(i == 0, 0, i + 1)], level)
+            pts[i] = reach(type_o, size_o, c_o, R_o, anchor, rim[wp.where(i == 0, 0, i + 1)], level)
         gen = rim[1] - rim[0]
-        tg = _golden_min(type_o, size_o, c_o, R_o, rim[0], gen, TIE * (radius + hh))
+        tg = golden_min(type_o, size_o, c_o, R_o, rim[0], gen, TIE * (radius + hh))
         # alternating projections from the other geom's centre
-        x = _project(CYLINDER, size, c, R, c_o)
-        for _it in range(int(AP_ITERS)):
-            x = _project(CYLINDER, size, c, R, _project(type_o, size_o, c_o, R_o, x))
+        x = project(CYLINDER, size, c, R, c_o)
+        for _it in range(int(PROJECTION_ROUNDS)):
+            x = project(CYLINDER, size, c, R, project(type_o, size_o, c_o, R_o, x))
         e0 = rim[0] + tg * gen
-        d0 = _dist_world(type_o, size_o, c_o, R_o, e0)
+        d0 = dist_world(type_o, size_o, c_o, R_o, e0)
         if not (tg > MILLI and hh > ZERO):
             d0 = INF
-        d1 = _dist_world(type_o, size_o, c_o, R_o, x)
-        d2 = _dist_world(type_o, size_o, c_o, R_o, anchor)
+        d1 = dist_world(type_o, size_o, c_o, R_o, x)
+        d2 = dist_world(type_o, size_o, c_o, R_o, anchor)
         m = wp.min(wp.min(d0, d1), d2)
         fourth = anchor
         if d1 <= m + tol:
@@ -949,22 +1174,22 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
             for j in range(i):
                 if wp.length_sq(xi - pts[j]) <= near:
                     Ex[i] = ZERO
-            di, ni, qi = _sdf_world(type_o, size_o, c_o, R_o, xi)
+            di, ni, qi = sdf_world(type_o, size_o, c_o, R_o, xi)
             P[i] = HALF * (xi + qi)
             N[i] = ni
             D[i] = di
         return P, N, D, Ex
 
-    @func
-    def _put_family(P: mat43, N: mat43, D: vec4, Ex: vec4, margin: scalar, base: int,
-                    out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                    out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+    @_func
+    def put_family(P: mat43, N: mat43, D: vec4, Ex: vec4, margin: scalar, base: int,
+                   out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                   out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """Write the 4 points of a family."""
         for i in range(4):
-            _put(base + i, P[i], N[i], D[i], Ex[i] > ZERO, margin, out_pos, out_normal, out_dist, out_valid)
+            put_point(base + i, P[i], N[i], D[i], Ex[i] > ZERO, margin, out_pos, out_normal, out_dist, out_valid)
 
-    @func
-    def _pick_second(D1: vec4, E1: vec4, D2: vec4, E2: vec4, margin: scalar, tol: scalar) -> bool:
+    @_func
+    def pick_second(D1: vec4, E1: vec4, D2: vec4, E2: vec4, margin: scalar, tol: scalar) -> bool:
         """Whether the second family is kept: smaller minimum distance, or within ``tol`` of a tie more
         points within the margin (``_pick_family``)."""
         m1 = INF
@@ -982,128 +1207,113 @@ def collision_funcs(np_dtype) -> SimpleNamespace:
                     n2 += 1
         return m2 < m1 - tol or (m2 <= m1 + tol and n2 > n1)
 
-    @func
-    def _box_cylinder(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
-                      out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+    return _namespace(cylinder_family, put_family, pick_second)
+
+
+@functools.cache
+def cylinder_pair_funcs(np_dtype) -> SimpleNamespace:
+    """The routines of the cylinder pairs, K = 4 (``_box_cylinder`` and ``_cylinder_cylinder``
+    of :mod:`kamino.jax_ref.collision`): approximations, the better of two point families."""
+    T = types_of(np_dtype)
+    scalar, vec3, vec4, transform = T.scalar, T.vec3, T.vec4, T.transform
+    K = _constants(np_dtype)
+    mat43, RTOL, HALF, ONE = K.mat43, K.RTOL, K.HALF, K.ONE
+    box_corner = box_feature_funcs(np_dtype).box_corner
+    cy = cylinder_family_funcs(np_dtype)
+    cylinder_family, pick_second, put_family = cy.cylinder_family, cy.pick_second, cy.put_family
+    sd = sdf_funcs(np_dtype)
+    dist_world, sdf_world = sd.dist_world, sd.sdf_world
+    rot = basic_funcs(np_dtype).rot
+
+    @_func
+    def box_cylinder(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar, base: int,
+                     out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                     out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 4, approximation: the cylinder's family against the box, or the 4 box corners nearest the
         cylinder, stable order (``_box_cylinder``)."""
         ca = wp.transform_get_translation(pose_a)
         cb = wp.transform_get_translation(pose_b)
-        Ra = _rot(wp.transform_get_rotation(pose_a))
-        Rb = _rot(wp.transform_get_rotation(pose_b))
+        Ra = rot(wp.transform_get_rotation(pose_a))
+        Rb = rot(wp.transform_get_rotation(pose_b))
         tol = RTOL * ((size_a[0] + size_a[1] + size_a[2]) + (size_b[0] + size_b[1] + size_b[2]))
-        P1, N1, D1, E1 = _cylinder_family(cb, Rb, size_b, BOX, size_a, ca, Ra, margin, tol)
+        P1, N1, D1, E1 = cylinder_family(cb, Rb, size_b, BOX, size_a, ca, Ra, margin, tol)
         P2 = mat43()
         N2 = mat43()
         D2 = vec4()
         E2 = vec4(ONE, ONE, ONE, ONE)
         for i in range(int(8)):
-            x = _box_corner(ca, Ra, size_a, i)
-            di, ni, qi = _sdf_world(CYLINDER, size_b, cb, Rb, x)
+            x = box_corner(ca, Ra, size_a, i)
+            di, ni, qi = sdf_world(CYLINDER, size_b, cb, Rb, x)
             rank = int(0)  # position of corner i in a stable sort by distance
             for j in range(int(8)):
-                dj = _dist_world(CYLINDER, size_b, cb, Rb, _box_corner(ca, Ra, size_a, j))
+                dj = dist_world(CYLINDER, size_b, cb, Rb, box_corner(ca, Ra, size_a, j))
                 if dj < di or (dj == di and j < i):
                     rank += 1
             if rank < 4:
                 P2[rank] = HALF * (x + qi)
                 N2[rank] = -ni
                 D2[rank] = di
-        if _pick_second(D1, E1, D2, E2, margin, tol):
-            _put_family(P2, N2, D2, E2, margin, base, out_pos, out_normal, out_dist, out_valid)
+        if pick_second(D1, E1, D2, E2, margin, tol):
+            put_family(P2, N2, D2, E2, margin, base, out_pos, out_normal, out_dist, out_valid)
         else:
-            _put_family(P1, N1, D1, E1, margin, base, out_pos, out_normal, out_dist, out_valid)
+            put_family(P1, N1, D1, E1, margin, base, out_pos, out_normal, out_dist, out_valid)
 
-    @func
-    def _cylinder_cylinder(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar,
-                           base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
-                           out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+    @_func
+    def cylinder_cylinder(pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3, margin: scalar,
+                          base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                          out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """K = 4, approximation: each cylinder's family against the other; the better one is kept
         (``_cylinder_cylinder``)."""
         ca = wp.transform_get_translation(pose_a)
         cb = wp.transform_get_translation(pose_b)
-        Ra = _rot(wp.transform_get_rotation(pose_a))
-        Rb = _rot(wp.transform_get_rotation(pose_b))
+        Ra = rot(wp.transform_get_rotation(pose_a))
+        Rb = rot(wp.transform_get_rotation(pose_b))
         tol = RTOL * ((size_a[0] + size_a[1]) + (size_b[0] + size_b[1]))
-        P1, N1, D1, E1 = _cylinder_family(ca, Ra, size_a, CYLINDER, size_b, cb, Rb, margin, tol)
-        P2, N2, D2, E2 = _cylinder_family(cb, Rb, size_b, CYLINDER, size_a, ca, Ra, margin, tol)
-        if _pick_second(D1, E1, D2, E2, margin, tol):
-            _put_family(P2, N2, D2, E2, margin, base, out_pos, out_normal, out_dist, out_valid)
+        P1, N1, D1, E1 = cylinder_family(ca, Ra, size_a, CYLINDER, size_b, cb, Rb, margin, tol)
+        P2, N2, D2, E2 = cylinder_family(cb, Rb, size_b, CYLINDER, size_a, ca, Ra, margin, tol)
+        if pick_second(D1, E1, D2, E2, margin, tol):
+            put_family(P2, N2, D2, E2, margin, base, out_pos, out_normal, out_dist, out_valid)
         else:  # a's points: flip the normals to point from a to b
-            _put_family(P1, -N1, D1, E1, margin, base, out_pos, out_normal, out_dist, out_valid)
+            put_family(P1, -N1, D1, E1, margin, base, out_pos, out_normal, out_dist, out_valid)
 
-    # -----------------------------------------------------------------------------------------
-    # dispatch
-    # -----------------------------------------------------------------------------------------
+    return _namespace(box_cylinder, cylinder_cylinder)
 
-    @func
+
+@functools.cache
+def collide_pair_func(np_dtype) -> wp.Function:
+    """``collide_pair`` of one precision (see the module docstring; ``collide`` of
+    :mod:`kamino.jax_ref.collision`): the routine of the pair's types, found at run time in a table unrolled
+    at compile time (the types vary from pair to pair)."""
+    T = types_of(np_dtype)
+    scalar, vec3, transform = T.scalar, T.vec3, T.transform
+    pp, sc, cp = plane_pair_funcs(np_dtype), sphere_capsule_pair_funcs(np_dtype), cylinder_pair_funcs(np_dtype)
+    sp = sdf_pair_funcs(np_dtype)
+    #: ``(type_a, type_b, routine)``: the routines of one pair of types
+    pairs = ((PLANE, SPHERE, pp.plane_sphere), (PLANE, CAPSULE, pp.plane_capsule), (PLANE, BOX, pp.plane_box),
+             (PLANE, CYLINDER, pp.plane_cylinder), (PLANE, ELLIPSOID, pp.plane_ellipsoid),
+             (SPHERE, SPHERE, sc.sphere_sphere), (SPHERE, CAPSULE, sc.sphere_capsule),
+             (CAPSULE, CAPSULE, sc.capsule_capsule), (BOX, BOX, box_box_func(np_dtype)),
+             (BOX, CYLINDER, cp.box_cylinder), (CYLINDER, CYLINDER, cp.cylinder_cylinder))
+    #: ``(type_a, routine)``: a sphere or capsule against a box or cylinder, the routine taking ``type_b`` first
+    sdf_pairs = ((SPHERE, sp.sphere_sdf_pair), (CAPSULE, sp.capsule_sdf_pair))
+
+    @_func
     def collide_pair(type_a: int, type_b: int, pose_a: transform, size_a: vec3, pose_b: transform, size_b: vec3,
                      margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
         """Write the ``K = MAX_POINTS[(type_a, type_b)]`` candidate points of one geom pair
         (``type_a <= type_b``) into slots ``base .. base + K - 1`` (``jax_ref.collision.collide``); an
         unsupported or unordered pair writes nothing."""
-        if type_a == PLANE:
-            if type_b == SPHERE:
-                _plane_sphere(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist, out_valid)
-            elif type_b == CAPSULE:
-                _plane_capsule(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist, out_valid)
-            elif type_b == BOX:
-                _plane_box(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist, out_valid)
-            elif type_b == CYLINDER:
-                _plane_cylinder(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist,
-                                out_valid)
-            elif type_b == ELLIPSOID:
-                _plane_ellipsoid(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist,
-                                 out_valid)
-        elif type_a == SPHERE:
-            if type_b == SPHERE:
-                _sphere_sphere(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist, out_valid)
-            elif type_b == CAPSULE:
-                _sphere_capsule(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist,
-                                out_valid)
-            elif type_b == BOX or type_b == CYLINDER:
-                _sphere_sdf_pair(type_b, pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal,
-                                 out_dist, out_valid)
-        elif type_a == CAPSULE:
-            if type_b == CAPSULE:
-                _capsule_capsule(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist,
-                                 out_valid)
-            elif type_b == BOX or type_b == CYLINDER:
-                _capsule_sdf_pair(type_b, pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal,
-                                  out_dist, out_valid)
-        elif type_a == BOX:
-            if type_b == BOX:
-                _box_box(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist, out_valid)
-            elif type_b == CYLINDER:
-                _box_cylinder(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist,
-                              out_valid)
-        elif type_a == CYLINDER and type_b == CYLINDER:
-            _cylinder_cylinder(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist,
-                               out_valid)
+        for i in range(wp.static(len(pairs))):
+            if type_a == wp.static(pairs[i][0]) and type_b == wp.static(pairs[i][1]):
+                wp.static(pairs[i][2])(pose_a, size_a, pose_b, size_b, margin, base, out_pos, out_normal, out_dist,
+                                       out_valid)
+        for i in range(wp.static(len(sdf_pairs))):
+            if type_a == wp.static(sdf_pairs[i][0]) and (type_b == BOX or type_b == CYLINDER):
+                wp.static(sdf_pairs[i][1])(type_b, pose_a, size_a, pose_b, size_b, margin, base, out_pos,
+                                           out_normal, out_dist, out_valid)
 
-    return SimpleNamespace(
-        collide_pair=collide_pair,
-        max_points=MAX_POINTS,
-        scalar=scalar,
-        vec3=vec3,
-        quat=quat,
-        transform=transform,
-        plane_sphere=_plane_sphere,
-        plane_capsule=_plane_capsule,
-        plane_box=_plane_box,
-        plane_cylinder=_plane_cylinder,
-        plane_ellipsoid=_plane_ellipsoid,
-        sphere_sphere=_sphere_sphere,
-        sphere_capsule=_sphere_capsule,
-        sphere_sdf_pair=_sphere_sdf_pair,
-        capsule_capsule=_capsule_capsule,
-        capsule_sdf_pair=_capsule_sdf_pair,
-        box_box=_box_box,
-        box_cylinder=_box_cylinder,
-        cylinder_cylinder=_cylinder_cylinder,
-    )
+    return collide_pair
 
 
 @functools.cache
@@ -1117,9 +1327,9 @@ def collide_kernel(np_dtype) -> wp.Kernel:
     wp.array(dtype=scalar)``, ``out_valid: wp.array(dtype=wp.int32)`` sized for the slots. Launch with
     ``dim=n``.
     """
-    F = collision_funcs(np_dtype)
-    scalar, vec3, transform = F.scalar, F.vec3, F.transform
-    collide_pair = F.collide_pair
+    T = types_of(np_dtype)
+    scalar, vec3, transform = T.scalar, T.vec3, T.transform
+    collide_pair = collide_pair_func(np_dtype)
 
     @wp.kernel(module="unique", module_options=KERNEL_OPTIONS)
     def collide_pairs(type_a: wp.array(dtype=wp.int32), type_b: wp.array(dtype=wp.int32),

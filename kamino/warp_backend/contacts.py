@@ -4,6 +4,10 @@ The same rules as ``kamino/jax_ref/contacts.py`` (docs/formulation.md §4.2, §7
 activation with the free velocity, restitution timing, packing in detection order into the world's
 capacity (deterministic: one thread per world walks its candidates), rows ``(t1, t2, n)`` with the
 gap / Newton-restitution bias, and the warm start by geom pair and nearest point on geom b.
+
+Each kernel comes from its own builder cached per precision (``narrow_phase_kernel``, ``pack_kernel``,
+``contact_rows_kernel``, ``commit_contacts_kernel``); :func:`contact_kernels` gathers the four for the
+stepper.
 """
 
 import functools
@@ -12,6 +16,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from kamino.model import GeomType
+from kamino.warp_backend.collision import collide_pair_func
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import model_struct
@@ -20,23 +25,26 @@ from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
+PLANE = int(GeomType.PLANE)
+
 
 @functools.cache
 def contact_kernels(np_dtype) -> SimpleNamespace:
-    from kamino.warp_backend.collision import collision_funcs
+    """The contact kernels of one precision, in launch order: ``narrow_phase``, ``pack``, ``contact_rows``,
+    ``commit_contacts``."""
+    return SimpleNamespace(narrow_phase=narrow_phase_kernel(np_dtype), pack=pack_kernel(np_dtype),
+                           contact_rows=contact_rows_kernel(np_dtype),
+                           commit_contacts=commit_contacts_kernel(np_dtype))
 
+
+@functools.cache
+def point_funcs(np_dtype) -> SimpleNamespace:
+    """Geom poses and point velocities of the candidate points (§4.2: ``x_A``, ``x_B`` and their velocities)."""
     T = types_of(np_dtype)
     scalar, vec3, vec6, transform = T.scalar, T.vec3, T.vec6, T.transform
     M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
     sp = spatial_funcs(np_dtype)
-    lin, ang, twist, deadband = sp.lin, sp.ang, sp.twist, sp.deadband
-    cf = cone_funcs(np_dtype)
-    rk = row_kernels(np_dtype)
-    collide_pair = collision_funcs(np_dtype).collide_pair
-    ix = index_funcs(np_dtype)
-    ridx, row_info = ix.ridx, ix.row_info
-    PLANE = int(GeomType.PLANE)
+    lin, ang = sp.lin, sp.ang
 
     @wp.func
     def geom_pose(m: M, body_q: wp.array(dtype=transform), g: int):
@@ -50,6 +58,7 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
 
     @wp.func
     def point_velocity(body_q: wp.array(dtype=transform), u: wp.array(dtype=vec6), b: int, x: vec3):
+        """Velocity of the world point ``x`` moving with body ``b`` (zero for the world, ``b < 0``)."""
         if b < 0:
             return vec3()
         return lin(u[b]) + wp.cross(ang(u[b]), x - wp.transform_get_translation(body_q[b]))
@@ -57,9 +66,26 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
     @wp.func
     def approach_velocity(body_q: wp.array(dtype=transform), u: wp.array(dtype=vec6), ba: int, bb: int, pos: vec3,
                           normal: vec3, dist: scalar):
+        """Normal velocity of geom b's witness point relative to geom a's (negative: approaching)."""
         x_a = pos - scalar(0.5) * dist * normal
         x_b = pos + scalar(0.5) * dist * normal
         return wp.dot(point_velocity(body_q, u, bb, x_b) - point_velocity(body_q, u, ba, x_a), normal)
+
+    return SimpleNamespace(geom_pose=geom_pose, point_velocity=point_velocity, approach_velocity=approach_velocity)
+
+
+@functools.cache
+def narrow_phase_kernel(np_dtype) -> wp.Kernel:
+    """``narrow_phase(m, w, h, contact_margin)``: the candidate points of every geom pair (§4.2, activation
+    margin), one thread per pair, by :func:`kamino.warp_backend.collision.collide_pair_func`."""
+    T = types_of(np_dtype)
+    scalar, vec3 = T.scalar, T.vec3
+    M = model_struct(np_dtype)
+    Work = work_struct(np_dtype)
+    sp = spatial_funcs(np_dtype)
+    lin, ang = sp.lin, sp.ang
+    collide_pair = collide_pair_func(np_dtype)
+    geom_pose = point_funcs(np_dtype).geom_pose
 
     @wp.kernel(module="unique", enable_backward=False)
     def narrow_phase(m: M, w: Work, h: scalar, contact_margin: scalar):
@@ -100,6 +126,18 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
         collide_pair(m.geom_type[ga], m.geom_type[gb], geom_pose(m, w.q_eval, ga), m.geom_size[ga],
                      geom_pose(m, w.q_eval, gb), m.geom_size[gb], margin, m.pair_cand[p], w.cand_pos,
                      w.cand_normal, w.cand_dist, w.cand_valid)
+
+    return narrow_phase
+
+
+@functools.cache
+def pack_kernel(np_dtype) -> wp.Kernel:
+    """``pack(m, w, h, contact_margin, deadband_c, restitution_threshold)``: activation (speculative, or
+    restitution timing) and packing into the world's capacity, one thread per world (§4.2)."""
+    scalar = types_of(np_dtype).scalar
+    M = model_struct(np_dtype)
+    Work = work_struct(np_dtype)
+    approach_velocity = point_funcs(np_dtype).approach_velocity
 
     @wp.kernel(module="unique", enable_backward=False)
     def pack(m: M, w: Work, h: scalar, contact_margin: scalar, deadband_c: scalar, restitution_threshold: scalar):
@@ -148,6 +186,17 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
         w.ct_found[wid] = count
         w.n_con[wid] = wp.min(count, cap)
 
+    return pack
+
+
+@functools.cache
+def frame_funcs(np_dtype) -> SimpleNamespace:
+    """The contact frame, the warm-start key point and the Jacobian blocks of a contact row (§4.2, §7.8)."""
+    T = types_of(np_dtype)
+    scalar, vec3, vec6 = T.scalar, T.vec3, T.vec6
+    Work = work_struct(np_dtype)
+    twist = spatial_funcs(np_dtype).twist
+
     @wp.func
     def contact_frame(nrm: vec3):
         """``C = [t1 t2 n]`` (columns), right-handed (``contact_frames`` of the JAX reference)."""
@@ -190,6 +239,25 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
         if ba >= 0:
             JA = -twist(dirn, wp.cross(x_a - wp.transform_get_translation(w.q_eval[ba]), dirn))
         return JB, JA
+
+    return SimpleNamespace(contact_frame=contact_frame, local_point_b=local_point_b, contact_blocks=contact_blocks)
+
+
+@functools.cache
+def contact_rows_kernel(np_dtype) -> wp.Kernel:
+    """``contact_rows(m, w, nblk, h, gamma, deadband_c, restitution_threshold, match_distance)``: three rows
+    per active contact with the gap or restitution bias (§4.2) and the warm start (§7.8)."""
+    T = types_of(np_dtype)
+    scalar, vec3 = T.scalar, T.vec3
+    M = model_struct(np_dtype)
+    Work = work_struct(np_dtype)
+    deadband = spatial_funcs(np_dtype).deadband
+    cf = cone_funcs(np_dtype)
+    rk = row_kernels(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_info = ix.ridx, ix.row_info
+    ff = frame_funcs(np_dtype)
+    contact_frame, local_point_b, contact_blocks = ff.contact_frame, ff.local_point_b, ff.contact_blocks
 
     @wp.kernel(module="unique", enable_backward=False)
     def contact_rows(m: M, w: Work, nblk: int, h: scalar, gamma: scalar, deadband_c: scalar,
@@ -247,6 +315,21 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             w.f0[ridx(m, w, wid, a0 + t)] = f[t]
             w.v0[ridx(m, w, wid, a0 + t)] = v[t]
 
+    return contact_rows
+
+
+@functools.cache
+def commit_contacts_kernel(np_dtype) -> wp.Kernel:
+    """``commit_contacts(m, w, inv_dt)``: the step's contacts into the State, world-frame force on geom b's body
+    and relative velocity (§4.2), kept for the next step's warm start (§7.8)."""
+    T = types_of(np_dtype)
+    scalar, vec3 = T.scalar, T.vec3
+    M = model_struct(np_dtype)
+    Work = work_struct(np_dtype)
+    ridx = index_funcs(np_dtype).ridx
+    ff = frame_funcs(np_dtype)
+    contact_frame, local_point_b = ff.contact_frame, ff.local_point_b
+
     @wp.kernel(module="unique", enable_backward=False)
     def commit_contacts(m: M, w: Work, inv_dt: scalar):
         """The step's contacts into the State (world-frame force on geom b's body and relative velocity)."""
@@ -275,5 +358,4 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
             w.con_velocity[s] = vec3()
             w.con_point_b[s] = vec3()
 
-    return SimpleNamespace(narrow_phase=narrow_phase, pack=pack, contact_rows=contact_rows,
-                           commit_contacts=commit_contacts)
+    return commit_contacts
