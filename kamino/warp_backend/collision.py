@@ -124,7 +124,7 @@ def basic_funcs(np_dtype) -> SimpleNamespace:
 
     @_func
     def rot(q: quat) -> mat33:
-        """Rotation matrix of a unit quaternion ``(x, y, z, w)`` (``jax_ref.spatial.quat_to_matrix``)."""
+        """Rotation matrix of a unit quaternion ``(x, y, z, w)`` (``kamino.spatial.quat_to_matrix``)."""
         x, y, z, w = q[0], q[1], q[2], q[3]
         return mat33(
             ONE - TWO * (y * y + z * z), TWO * (x * y - z * w), TWO * (x * z + y * w),
