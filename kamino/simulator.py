@@ -120,9 +120,10 @@ class Simulator:
         return self._engine.rollout(state, controls, num_steps)
 
     def parameters(self, dtype):
-        """The JAX reference's padded model in ``dtype`` (``kamino.jax_ref.layout.PaddedModel``): the physical
-        parameters every step reads. :meth:`step_with` steps with a copy whose arrays a caller has replaced, traced
-        per environment (``kamino.envs``' domain randomization)."""
+        """``(padded model, layout tables)``: the JAX reference's arrays in ``dtype`` that every step reads (the
+        padded model, ``kamino.jax_ref.layout.PaddedModel``, holds the physical parameters). :meth:`step_with` steps
+        with a copy whose arrays a caller has replaced, traced per environment (``kamino.envs``' domain
+        randomization)."""
         self._require_jax("parameters")
         return self._engine.parameters(dtype)
 

@@ -132,7 +132,7 @@ class KaminoEnv(Env):
         self._reset_noise = float(reset_noise)
         self._resample_steps = None if resample_steps is None else int(resample_steps)
         self._sim = Simulator(model, self._config, backend=backend)
-        self._pm = self._sim.parameters(self._dtype) if backend == "jax" else None
+        self._pm, self._tables = self._sim.parameters(self._dtype) if backend == "jax" else (None, None)
         self.sys = EnvSystem.from_model(model, self._dtype)
         self._nominal_sys = self.sys
         self._act_dof = np.asarray(model.actuator_dof, np.int32)  # int32: indices stay valid whatever x64 says
@@ -299,7 +299,7 @@ class KaminoEnv(Env):
             return Control(position_target=jnp.zeros(nd, self._dtype).at[self._act_dof].set(tgt))
 
         # the loop neither carries nor closes over a zero-size array (kamino.state.drop_empty says why)
-        params = sys.apply(self._pm) if self._backend == "jax" else None
+        params = (sys.apply(self._pm), self._tables) if self._backend == "jax" else None
         compact = drop_empty(params)
 
         def body(s, k):
@@ -313,8 +313,8 @@ class KaminoEnv(Env):
 
     def _physics_step(self, params, ps: State, control: Control) -> State:
         """One simulator step: the Warp FFI step (``params`` is ``None``), or the JAX reference's step with
-        ``params``, the padded model carrying this environment's parameters (``sys.apply``;
-        ``Simulator.step_with``: the host Model cannot carry traced parameters)."""
+        ``params``, the padded model carrying this environment's parameters (``sys.apply``) and the layout tables
+        (``Simulator.step_with``: the host Model cannot carry traced parameters)."""
         if params is None:
             return self._sim.step(ps, control)
         return self._sim.step_with(params, ps, control)

@@ -157,14 +157,16 @@ class Engine:
                 self._layouts[dtype] = build_layout(self.model, dtype)
             return self._layouts[dtype]
 
-    def parameters(self, dtype) -> PaddedModel:
-        """The padded model in ``dtype``: the arrays :meth:`step` reads, which a caller may replace with traced
-        per-environment values (``kamino.envs``' domain randomization)."""
-        return self.layout(dtype).padded
+    def parameters(self, dtype) -> tuple[PaddedModel, dict]:
+        """``(padded model, layout tables)`` in ``dtype``: every array :meth:`step` reads. A caller may replace the
+        padded model's arrays with traced per-environment values (``kamino.envs``' domain randomization), and pass
+        the pair through a loop's carry rather than close over it (``kamino.state.drop_empty`` says why)."""
+        lay = self.layout(dtype)
+        return lay.padded, lay.tables
 
-    def step(self, state: State, control: Control | None, parameters: PaddedModel | None = None) -> State:
-        lay = self.layout(state.body_q.dtype)
-        return step_padded(lay.padded if parameters is None else parameters, lay.tables, state, control, self.cfg)
+    def step(self, state: State, control: Control | None, parameters: tuple[PaddedModel, dict] | None = None) -> State:
+        pm, tables = self.parameters(state.body_q.dtype) if parameters is None else parameters
+        return step_padded(pm, tables, state, control, self.cfg)
 
     def rollout(self, state: State, controls: Control | None, num_steps: int) -> State:
         lay = self.layout(state.body_q.dtype)
