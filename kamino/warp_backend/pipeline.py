@@ -175,7 +175,7 @@ class Stepper:
         for hook in self.pre_step:
             hook(self)
         if midpoint:
-            self._launch(rk.half_step, (W, wm.max_bodies), h)
+            self._launch(rk.advance_poses, (W, wm.max_bodies), w.q, w.u, h, w.q_eval)  # the midpoint pose
         self._launch(rk.dof_blocks, (W, wm.max_dofs))
         self._launch(rk.bodies, (W, wm.max_bodies), dt, h)
         self._launch(rk.dof_rates, (W, wm.max_dofs))
@@ -221,7 +221,7 @@ class Stepper:
         self._launch(sk.padmm_finish, rows)
         if cfg.curvature_refinement and cfg.curvature_correction and (wm.max_cts or wm.max_cpl):
             self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, cfg.angular_damping * dt)
-            self._launch(rk.predict_with, (W, wm.max_bodies), h)
+            self._launch(rk.advance_poses, (W, wm.max_bodies), w.q_eval, w.u_new, h, w.q_pred)  # q_pred along u+
             self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta)
             self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta)
             w.remaining.fill_(W)

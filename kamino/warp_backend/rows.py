@@ -45,13 +45,12 @@ def step_row_kernels(np_dtype, curvature: bool, midpoint: bool) -> SimpleNamespa
     """The body and row kernels of a step (the launches in ``pipeline.py``), for the curvature term on or off and the
     midpoint rule or Euler."""
     curvature, midpoint = bool(curvature), bool(midpoint)
-    return SimpleNamespace(half_step=half_step_kernel(np_dtype), dof_blocks=dof_blocks_kernel(np_dtype),
+    return SimpleNamespace(advance_poses=advance_poses_kernel(np_dtype), dof_blocks=dof_blocks_kernel(np_dtype),
                            bodies=bodies_kernel(np_dtype), dof_rates=dof_rates_kernel(np_dtype),
                            dyn_rows=dyn_rows_kernel(np_dtype),
                            joint_rows=joint_rows_kernel(np_dtype, curvature, midpoint),
                            coupling_rows=coupling_rows_kernel(np_dtype, curvature, midpoint),
                            limits=limits_kernel(np_dtype), pack_limits=pack_limits_kernel(np_dtype),
-                           predict_with=predict_with_kernel(np_dtype),
                            refine_joint_rows=refine_joint_rows_kernel(np_dtype, midpoint),
                            refine_coupling_rows=refine_coupling_rows_kernel(np_dtype, midpoint))
 
@@ -152,22 +151,26 @@ def set_row_func(np_dtype):
 # --- body dynamics (docs/formulation.md §1.4, §3.1, §6.3) ----------------------------------------------------------
 
 @functools.cache
-def half_step_kernel(np_dtype):
-    """The midpoint pose (docs/formulation.md §6.3)."""
-    scalar = types_of(np_dtype).scalar
+def advance_poses_kernel(np_dtype):
+    """A pose update of every body (docs/formulation.md §6.1): the midpoint pose (§6.3) and the predicted pose along
+    the solved velocity (curvature refinement, §5)."""
+    T = types_of(np_dtype)
+    scalar, vec6, transform = T.scalar, T.vec6, T.transform
     M, Work = model_struct(np_dtype), work_struct(np_dtype)
     integrate_pose = spatial_funcs(np_dtype).integrate_pose
 
     @wp.kernel(module="unique", enable_backward=False)
-    def half_step(m: M, w: Work, h: scalar):
-        """Midpoint pose ``q_m = q ⊕ h u`` (docs/formulation.md §6.3)."""
+    def advance_poses(m: M, w: Work, x: wp.array(dtype=transform), u: wp.array(dtype=vec6), h: scalar,
+                      out: wp.array(dtype=transform)):
+        """``out = x ⊕ h u``: the midpoint pose ``q_m = q ⊕ h u`` (docs/formulation.md §6.3), or ``q_pred = q_eval
+        ⊕ h u_new``, the predicted pose along the solved velocity (curvature refinement)."""
         wid, i = wp.tid()
         if i >= m.body_count[wid]:
             return
         b = m.body_start[wid] + i
-        w.q_eval[b] = integrate_pose(w.q[b], w.u[b], h)
+        out[b] = integrate_pose(x[b], u[b], h)
 
-    return half_step
+    return advance_poses
 
 
 @functools.cache
@@ -301,25 +304,6 @@ def dof_rates_kernel(np_dtype):
         w.q_dof_pred[d] = dof_position(m, w.q_pred, d)
 
     return dof_rates
-
-
-@functools.cache
-def predict_with_kernel(np_dtype):
-    """The predicted pose along the solved velocity (curvature refinement, docs/formulation.md §5)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
-    integrate_pose = spatial_funcs(np_dtype).integrate_pose
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def predict_with(m: M, w: Work, h: scalar):
-        """``q_pred = q_eval ⊕ h u_new``: the predicted pose along the solved velocity (curvature refinement)."""
-        wid, i = wp.tid()
-        if i >= m.body_count[wid]:
-            return
-        b = m.body_start[wid] + i
-        w.q_pred[b] = integrate_pose(w.q_eval[b], w.u_new[b], h)
-
-    return predict_with
 
 
 # --- joint-dynamics rows (docs/formulation.md §3.2) ----------------------------------------------------------------

@@ -694,13 +694,14 @@ def empty(np_dtype, device) -> object:
 
 
 # --- device: assembly, factorisation, solve ---------------------------------------------------------------
-
+#
+# Each kernel and each ``wp.func`` comes from its own builder, cached per precision (``np_dtype``);
+# :func:`sparse_llt_kernels` names them all.
 
 @functools.cache
 def vidx_func(np_dtype):
     """The storage index of a factor entry (docs/formulation.md §8.1; the layout of :func:`build`)."""
-    M = model_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
+    M, SP = model_struct(np_dtype), pattern_struct(np_dtype)
 
     @wp.func
     def vidx(m: M, sp: SP, wid: int, k: int):
@@ -717,9 +718,7 @@ def vidx_func(np_dtype):
 @functools.cache
 def bases_func(np_dtype):
     """The hoisted storage starts of a world's rows, factor values and tail rows (§8.1)."""
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
     row_base = index_funcs(np_dtype).row_base
 
     @wp.func
@@ -770,9 +769,7 @@ def sdiag_col_func(np_dtype):
 @functools.cache
 def tidx_func(np_dtype):
     """The storage index of a tail-row entry (§8.1)."""
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
     bases = bases_func(np_dtype)
 
     @wp.func
@@ -802,8 +799,7 @@ def tail_pattern_func(np_dtype):
 def inv_mass_times_func(np_dtype):
     """``M_b^-1 J`` for a 1x6 block on one body (docs/formulation.md §1.3)."""
     vec6 = types_of(np_dtype).vec6
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
     sf = spatial_funcs(np_dtype)
 
     @wp.func
@@ -820,10 +816,8 @@ def inv_mass_times_func(np_dtype):
 @functools.cache
 def delassus_term_func(np_dtype):
     """One body's share of a Delassus entry (docs/formulation.md §7.1)."""
-    scalar = types_of(np_dtype).scalar
-    vec6 = types_of(np_dtype).vec6
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
+    scalar, vec6 = types_of(np_dtype).scalar, types_of(np_dtype).vec6
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
     inv_mass_times = inv_mass_times_func(np_dtype)
 
     @wp.func
@@ -845,8 +839,7 @@ def delassus_term_func(np_dtype):
 def delassus_sum_func(np_dtype):
     """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (docs/formulation.md §7.1)."""
     scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
     ridx = index_funcs(np_dtype).ridx
     delassus_term = delassus_term_func(np_dtype)
 
@@ -880,8 +873,7 @@ def delassus_sum_func(np_dtype):
 @functools.cache
 def delassus_entry_func(np_dtype):
     """``(J M^-1 J^T + R)_ab`` over every body (docs/formulation.md §7.1)."""
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
     delassus_sum = delassus_sum_func(np_dtype)
 
     @wp.func
@@ -896,9 +888,7 @@ def delassus_entry_func(np_dtype):
 @functools.cache
 def delassus0_func(np_dtype):
     """``D0_ab``: the Delassus entry without the world's hubs (§7.1; docs/warp_backend.md "Open problems")."""
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
     delassus_sum = delassus_sum_func(np_dtype)
 
     @wp.func
@@ -931,9 +921,7 @@ def row_on_body_func(np_dtype):
 def hub_entry_func(np_dtype):
     """An entry of the hub block rows of the quasi-definite system (docs/warp_backend.md "Open problems")."""
     scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
     ridx = index_funcs(np_dtype).ridx
     row_on_body = row_on_body_func(np_dtype)
 
@@ -969,13 +957,10 @@ def hub_entry_func(np_dtype):
 def fixed_entry_func(np_dtype):
     """An entry of the fixed rows' scaled Delassus pattern, ``D~_pq`` (docs/formulation.md §8.1)."""
     scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    ridx = index_funcs(np_dtype).ridx
-    row_saturated = index_funcs(np_dtype).row_saturated
-    vidx = vidx_func(np_dtype)
-    delassus0 = delassus0_func(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_saturated = ix.ridx, ix.row_saturated
+    vidx, delassus0 = vidx_func(np_dtype), delassus0_func(np_dtype)
     hub_entry = hub_entry_func(np_dtype)
 
     @wp.func
@@ -1006,9 +991,7 @@ def fixed_entry_func(np_dtype):
 def assemble_fixed_kernel(np_dtype):
     """The fixed rows' pattern of ``D~`` of every world (docs/formulation.md §8.1)."""
     scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
     fixed_entry = fixed_entry_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -1025,16 +1008,11 @@ def assemble_fixed_kernel(np_dtype):
 @functools.cache
 def tail_row_func(np_dtype):
     """A tail row's entries of ``D~`` (docs/formulation.md §8.1)."""
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    ridx = index_funcs(np_dtype).ridx
-    row_kind = index_funcs(np_dtype).row_kind
-    row_source = index_funcs(np_dtype).row_source
-    tail_k = tail_k_func(np_dtype)
-    tidx = tidx_func(np_dtype)
-    delassus0 = delassus0_func(np_dtype)
-    row_on_body = row_on_body_func(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_kind, row_source = ix.ridx, ix.row_kind, ix.row_source
+    tail_k, tidx = tail_k_func(np_dtype), tidx_func(np_dtype)
+    delassus0, row_on_body = delassus0_func(np_dtype), row_on_body_func(np_dtype)
 
     @wp.func
     def tail_row(m: M, w: Work, sp: SP, wid: int, a: int, nblk: int):
@@ -1074,9 +1052,7 @@ def tail_row_func(np_dtype):
 @functools.cache
 def assemble_tail_kernel(np_dtype):
     """The tail rows' entries of ``D~`` of every world (docs/formulation.md §8.1)."""
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
     tail_row = tail_row_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -1140,11 +1116,8 @@ def factor_fixed_rows_func(np_dtype):
 @functools.cache
 def factor_fixed_kernel(np_dtype):
     """The Cholesky factor of the fixed rows only (post-stabilisation; docs/formulation.md §8.1)."""
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    bases = bases_func(np_dtype)
-    factor_fixed_rows = factor_fixed_rows_func(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    bases, factor_fixed_rows = bases_func(np_dtype), factor_fixed_rows_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def factor_fixed(m: M, w: Work, sp: SP):
@@ -1159,11 +1132,8 @@ def factor_fixed_kernel(np_dtype):
 def factor_tail_func(np_dtype):
     """``L_t``, the tail rows' dense Cholesky with the world's penalty (docs/formulation.md §8.1)."""
     scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    bases = bases_func(np_dtype)
-    tail_k = tail_k_func(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    bases, tail_k = bases_func(np_dtype), tail_k_func(np_dtype)
     sdiag_col = sdiag_col_func(np_dtype)
 
     @wp.func
@@ -1201,10 +1171,8 @@ def factor_tail_func(np_dtype):
 @functools.cache
 def schur_entry_func(np_dtype):
     """An entry of the tail rows' Schur complement ``S_t`` (docs/formulation.md §8.1)."""
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    tail_k = tail_k_func(np_dtype)
-    sdiag_col = sdiag_col_func(np_dtype)
+    Work, SP = work_struct(np_dtype), pattern_struct(np_dtype)
+    tail_k, sdiag_col = tail_k_func(np_dtype), sdiag_col_func(np_dtype)
     tail_pattern = tail_pattern_func(np_dtype)
 
     @wp.func
@@ -1242,13 +1210,9 @@ def schur_entry_func(np_dtype):
 def factor_world_func(np_dtype):
     """A world's whole Cholesky factor ``D~ = L L^T`` (docs/formulation.md §8.1)."""
     scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    bases = bases_func(np_dtype)
-    tail_pattern = tail_pattern_func(np_dtype)
-    factor_fixed_rows = factor_fixed_rows_func(np_dtype)
-    factor_tail = factor_tail_func(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    bases, tail_pattern = bases_func(np_dtype), tail_pattern_func(np_dtype)
+    factor_fixed_rows, factor_tail = factor_fixed_rows_func(np_dtype), factor_tail_func(np_dtype)
     schur_entry = schur_entry_func(np_dtype)
 
     @wp.func
@@ -1296,9 +1260,7 @@ def factor_world_func(np_dtype):
 def factor_kernel(np_dtype):
     """Every world's Cholesky factor (docs/formulation.md §8.1)."""
     scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
     factor_world = factor_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -1313,11 +1275,8 @@ def factor_kernel(np_dtype):
 def refactor_kernel(np_dtype):
     """The factor again of the worlds whose effort-limited rows saturated (docs/formulation.md §8.1)."""
     scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    fixed_entry = fixed_entry_func(np_dtype)
-    tail_row = tail_row_func(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    fixed_entry, tail_row = fixed_entry_func(np_dtype), tail_row_func(np_dtype)
     factor_world = factor_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -1342,11 +1301,8 @@ def refactor_kernel(np_dtype):
 def solve_inplace_func(np_dtype):
     """``x <- L^-T L^-1 x`` with the sparse factor and its tail (docs/formulation.md §8.1)."""
     scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    bases = bases_func(np_dtype)
-    tail_k = tail_k_func(np_dtype)
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    bases, tail_k = bases_func(np_dtype), tail_k_func(np_dtype)
     tail_pattern = tail_pattern_func(np_dtype)
 
     @wp.func
