@@ -9,6 +9,8 @@ of its worlds, so storage is the per-world sum for identical worlds and stays cl
 worlds ordered by size (docs/warp_backend.md, "Memory layout"). Under the 32-threads-per-world schedule
 (padmm_warp.py) the rows are stored world after world instead (``Work.row_stride = 1``: the world in lane ``l``
 starts at ``group_start + l * maxdim_g``), so that the 32 threads of one world read consecutive rows.
+
+Each ``wp.func`` comes from its own builder, cached per precision (``np_dtype``); :func:`index_funcs` names them all.
 """
 
 import functools
@@ -32,11 +34,19 @@ _SAT_SHIFT = wp.constant(ROW_SRC_BITS)
 _KIND_SHIFT, _NOT_SAT = wp.constant(ROW_KIND_SHIFT), wp.constant(~ROW_SAT_BIT)
 
 
-@functools.cache
 def index_funcs(np_dtype) -> SimpleNamespace:
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    scalar = types_of(np_dtype).scalar
+    """The indexing ``wp.func``s by name, each from its builder (cached per precision, ``np_dtype``)."""
+    return SimpleNamespace(row_base=row_base_func(np_dtype), ridx=ridx_func(np_dtype), didx=didx_func(np_dtype),
+                           jidx=jidx_func(np_dtype), row_info=row_info_func(np_dtype),
+                           row_kind=row_kind_func(np_dtype), row_source=row_source_func(np_dtype),
+                           row_side=row_side_func(np_dtype), row_saturated=row_saturated_func(np_dtype),
+                           set_saturated=set_saturated_func(np_dtype), row_mu=row_mu_func(np_dtype))
+
+
+@functools.cache
+def row_base_func(np_dtype):
+    """Where a world's rows start (the layouts of the module docstring)."""
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
 
     @wp.func
     def row_base(m: M, w: Work, wid: int):
@@ -48,11 +58,28 @@ def index_funcs(np_dtype) -> SimpleNamespace:
             return m.grp_row_start[g] + (wid - g * GROUP) * m.grp_maxdim[g]
         return m.grp_row_start[g] + (wid - g * GROUP)
 
+    return row_base
+
+
+@functools.cache
+def ridx_func(np_dtype):
+    """The storage index of a world's row (the layouts of the module docstring)."""
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    row_base = row_base_func(np_dtype)
+
     @wp.func
     def ridx(m: M, w: Work, wid: int, a: int):
         """Storage index of row ``a`` of world ``wid`` (interleaved over the group, or the world's rows contiguous:
         ``w.row_stride``)."""
         return row_base(m, w, wid) + a * w.row_stride
+
+    return ridx
+
+
+@functools.cache
+def didx_func(np_dtype):
+    """The storage index of a world's Delassus entry."""
+    M = model_struct(np_dtype)
 
     @wp.func
     def didx(m: M, wid: int, a: int, b: int):
@@ -60,13 +87,28 @@ def index_funcs(np_dtype) -> SimpleNamespace:
         g = wid // GROUP
         return m.grp_mat_start[g] + (a * m.grp_maxdim[g] + b) * GROUP + (wid - g * GROUP)
 
+    return didx
+
+
+@functools.cache
+def jidx_func(np_dtype):
+    """The storage index of a world's dense-Jacobian entry."""
+    M = model_struct(np_dtype)
+
     @wp.func
     def jidx(m: M, wid: int, a: int, c: int):
         """Storage index of the dense-Jacobian entry ``(a, c)`` (column ``c`` = 6 x local body + axis)."""
         g = wid // GROUP
         return m.grp_jd_start[g] + (a * m.grp_ncol[g] + c) * GROUP + (wid - g * GROUP)
 
-    # --- a row's packed description, Work.row_info (workspace.ROW_SRC_BITS) ---
+    return jidx
+
+
+@functools.cache
+def row_info_func(np_dtype):
+    """A row's packed description ``Work.row_info`` (``workspace.ROW_SRC_BITS``)."""
+    scalar = types_of(np_dtype).scalar
+
     @wp.func
     def row_info(kind: int, src: int, side: scalar):
         """The ``Work.row_info`` of a row of family ``kind`` (rows.ROW_*) from source ``src``; ``side < 0``: a limit
@@ -76,16 +118,41 @@ def index_funcs(np_dtype) -> SimpleNamespace:
             info = info | _NEG_BIT
         return info
 
+    return row_info
+
+
+@functools.cache
+def row_kind_func(np_dtype):
+    """A row's family, from ``Work.row_info``."""
+    Work = work_struct(np_dtype)
+
     @wp.func
     def row_kind(w: Work, r: int):
         """The family of row ``r`` (rows.ROW_*)."""
         return w.row_info[r] >> _KIND_SHIFT
+
+    return row_kind
+
+
+@functools.cache
+def row_source_func(np_dtype):
+    """A row's source, from ``Work.row_info``."""
+    Work = work_struct(np_dtype)
 
     @wp.func
     def row_source(w: Work, r: int):
         """The source of row ``r``: its DoF (joint-dynamics and limit rows), kinematic constraint, coupling or
         contact slot (global indices)."""
         return w.row_info[r] & _SRC_MASK
+
+    return row_source
+
+
+@functools.cache
+def row_side_func(np_dtype):
+    """A limit row's sign, from ``Work.row_info``."""
+    scalar = types_of(np_dtype).scalar
+    Work = work_struct(np_dtype)
 
     @wp.func
     def row_side(w: Work, r: int):
@@ -94,11 +161,27 @@ def index_funcs(np_dtype) -> SimpleNamespace:
             return scalar(-1.0)
         return scalar(1.0)
 
+    return row_side
+
+
+@functools.cache
+def row_saturated_func(np_dtype):
+    """A row's saturation flag, from ``Work.row_info``."""
+    Work = work_struct(np_dtype)
+
     @wp.func
     def row_saturated(w: Work, r: int):
         """1 if row ``r`` is an effort-limited fixed row that carries ``rho`` (kamino.jax_ref.padmm.solve,
         "Saturation"), else 0."""
         return (w.row_info[r] >> _SAT_SHIFT) & 1
+
+    return row_saturated
+
+
+@functools.cache
+def set_saturated_func(np_dtype):
+    """A row's saturation flag set or cleared in ``Work.row_info``."""
+    Work = work_struct(np_dtype)
 
     @wp.func
     def set_saturated(w: Work, r: int, sat: int):
@@ -108,11 +191,17 @@ def index_funcs(np_dtype) -> SimpleNamespace:
             info = info | _SAT_BIT
         w.row_info[r] = info
 
+    return set_saturated
+
+
+@functools.cache
+def row_mu_func(np_dtype):
+    """A contact row's friction coefficient."""
+    Work = work_struct(np_dtype)
+
     @wp.func
     def row_mu(w: Work, r: int):
         """The friction coefficient of a contact row ``r`` (any of its three): its contact slot's."""
         return w.ct_mu[w.row_info[r] & _SRC_MASK]
 
-    return SimpleNamespace(ridx=ridx, row_base=row_base, didx=didx, jidx=jidx, row_info=row_info, row_kind=row_kind,
-                           row_source=row_source, row_side=row_side, row_saturated=row_saturated,
-                           set_saturated=set_saturated, row_mu=row_mu)
+    return row_mu

@@ -4,8 +4,10 @@ Formulation.md §6.2 (Euler: ``q+ = q ⊕ dt u+``) and §6.3 (midpoint: ``q+ = q
 forces are ``lambda / dt`` split by row family as ``_new_cache`` of the JAX reference. A world
 whose new pose, twist or impulses are not finite keeps its previous state and is flagged
 ``failed`` (docs/architecture.md: never a silent NaN, never contaminating other worlds). So is a world whose
-joints open past :data:`LOOP_OPEN_BOUND` in a step (:func:`integrate_kernels`' ``closure_check``): its finite
+joints open past :data:`LOOP_OPEN_BOUND` in a step (:func:`closure_check_kernel`): its finite
 state is already meaningless.
+
+Each kernel and each ``wp.func`` comes from its own builder, cached per precision (``np_dtype``).
 """
 
 import functools
@@ -15,7 +17,7 @@ import warp as wp
 
 from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.kinematics import kinematics_funcs
+from kamino.warp_backend.jacobians import cts_residual_func
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.rows import ROW_ACTUATOR, ROW_COUPLING, ROW_JOINT, ROW_LIMIT, ROW_PASSIVE
 from kamino.warp_backend.spatial import spatial_funcs
@@ -24,7 +26,7 @@ from kamino.warp_backend.workspace import work_struct
 
 #: A world whose largest anchor gap (a translational joint row's residual) exceeds this [m] at the pose a step ends
 #: in (after post-stabilisation's projection), and exceeds the gap it had before the step, is flagged ``failed`` on
-#: that step and frozen (:func:`integrate_kernels`' ``closure_check``; docs/conventions.md, "World health").
+#: that step and frozen (:func:`closure_check_kernel`; docs/conventions.md, "World health").
 #: Rotational rows are not checked: along a jammed loop's numerically null direction they drift by up to 1e-2 rad in
 #: float32 in a healthy world (tests/test_world_health.py, the tilted four-bar). A healthy world keeps its anchors
 #: within ~1e-5 m in float32 (post-stabilisation); a world whose solve diverges opens them by millimetres a few steps
@@ -32,19 +34,23 @@ from kamino.warp_backend.workspace import work_struct
 LOOP_OPEN_BOUND = 1e-3
 
 
+def end_step_kernels(np_dtype, dense: bool, screened: bool) -> SimpleNamespace:
+    """The kernels of the end of a step (the launches in ``pipeline.py``): ``u+`` from the dense Jacobian (``dense``)
+    or the block-sparse rows, the closure check of every world or of the projected ones (``screened``,
+    :func:`closure_check_kernel`)."""
+    return SimpleNamespace(integrate=integrate_kernel(np_dtype, bool(dense)), dof_forces=dof_forces_kernel(np_dtype),
+                           row_forces=row_forces_kernel(np_dtype), commit_bodies=commit_bodies_kernel(np_dtype),
+                           commit_time=commit_time_kernel(np_dtype),
+                           closure_check=closure_check_kernel(np_dtype, bool(screened)))
+
+
 @functools.cache
-def integrate_kernels(np_dtype) -> SimpleNamespace:
+def rows_on_body_func(np_dtype):
+    """``rows_on_body(m, w, wid, b, n, nblk, lam)``: ``(J^T lambda)_b`` from the block-sparse rows (§6.2)."""
     T = types_of(np_dtype)
     scalar, vec6 = T.scalar, T.vec6
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    sp = spatial_funcs(np_dtype)
-    ix = index_funcs(np_dtype)
-    ridx, jidx = ix.ridx, ix.jidx
-    row_kind, row_source, row_side = ix.row_kind, ix.row_source, ix.row_side
-    lin, ang, twist, integrate_pose = sp.lin, sp.ang, sp.twist, sp.integrate_pose
-    inverse_mass_times = sp.inverse_mass_times
-    kf = kinematics_funcs(np_dtype)
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ridx = index_funcs(np_dtype).ridx
 
     @wp.func
     def rows_on_body(m: M, w: Work, wid: int, b: int, n: int, nblk: int, lam: wp.array(dtype=scalar)):
@@ -57,8 +63,40 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
                     acc += lam[r] * w.row_J[r * nblk + k]
         return acc
 
+    return rows_on_body
+
+
+@functools.cache
+def live_item_func(np_dtype):
+    """``live_item(w, wid, i, start, count)``: item ``i`` of a world's segment, or -1 (the commit kernels, §6.2)."""
+    Work = work_struct(np_dtype)
+
+    @wp.func
+    def live_item(w: Work, wid: int, i: int, start: int, count: int):
+        """``start + i`` (a body or DoF of world ``wid``), or -1 past the world's ``count`` or in a failed world."""
+        if i >= count or w.failed[wid] != 0:
+            return -1
+        return start + i
+
+    return live_item
+
+
+@functools.cache
+def integrate_kernel(np_dtype, dense: bool):
+    """``u+`` and the pose update (docs/formulation.md §6.2, §6.3), from the dense Jacobian (``dense``) or the
+    block-sparse rows."""
+    T = types_of(np_dtype)
+    scalar, vec6 = T.scalar, T.vec6
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, jidx = ix.ridx, ix.jidx
+    sp = spatial_funcs(np_dtype)
+    lin, ang, twist, integrate_pose, inverse_mass_times = (sp.lin, sp.ang, sp.twist, sp.integrate_pose,
+                                                           sp.inverse_mass_times)
+    rows_on_body = rows_on_body_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
-    def integrate(m: M, w: Work, nblk: int, dense: int, h: scalar, damping: scalar):
+    def integrate(m: M, w: Work, nblk: int, h: scalar, damping: scalar):
         """``u+ = u_f + M^-1 J^T lambda`` (the body's share of every active row, summed in row order) and
         ``q+ = q_eval ⊕ h u+``."""
         wid, i = wp.tid()
@@ -67,7 +105,7 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         b = m.body_start[wid] + i
         n = w.n_rows[wid]
         acc = vec6()
-        if dense != 0:
+        if wp.static(dense):
             for a in range(n):
                 lam = w.impulse[ridx(m, w, wid, a)]
                 for c in range(6):
@@ -88,16 +126,37 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         if not ok:
             w.failed[wid] = 1
 
+    return integrate
+
+
+@functools.cache
+def dof_forces_kernel(np_dtype):
+    """The per-DoF forces' reset before the rows' share (§6.2)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    live_item = live_item_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
     def dof_forces(m: M, w: Work):
         """Reset the per-DoF forces: the actuator force starts from the explicit effort."""
         wid, i = wp.tid()
-        if i >= m.dof_count[wid] or w.failed[wid] != 0:
+        d = live_item(w, wid, i, m.dof_start[wid], m.dof_count[wid])
+        if d < 0:
             return
-        d = m.dof_start[wid] + i
         w.act_force[d] = w.tau_explicit[d]
         w.pas_force[d] = scalar(0.0)
         w.lim_force[d] = scalar(0.0)
+
+    return dof_forces
+
+
+@functools.cache
+def row_forces_kernel(np_dtype):
+    """The State's forces ``lambda / dt`` by row family (docs/formulation.md §6.2)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_kind, row_source, row_side = ix.ridx, ix.row_kind, ix.row_source, ix.row_side
 
     @wp.kernel(module="unique", enable_backward=False)
     def row_forces(m: M, w: Work, inv_dt: scalar):
@@ -120,14 +179,33 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         elif t == ROW_LIMIT:
             w.lim_force[src] = row_side(w, r) * f
 
+    return row_forces
+
+
+@functools.cache
+def commit_bodies_kernel(np_dtype):
+    """The new body state committed (§6.2)."""
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    live_item = live_item_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
     def commit_bodies(m: M, w: Work):
+        """``q <- q+``, ``u <- u+`` in the worlds that did not fail."""
         wid, i = wp.tid()
-        if i >= m.body_count[wid] or w.failed[wid] != 0:
+        b = live_item(w, wid, i, m.body_start[wid], m.body_count[wid])
+        if b < 0:
             return
-        b = m.body_start[wid] + i
         w.q[b] = w.q_new[b]
         w.u[b] = w.u_new[b]
+
+    return commit_bodies
+
+
+@functools.cache
+def commit_time_kernel(np_dtype):
+    """The worlds' time and health after a step (docs/conventions.md, "World health")."""
+    scalar = types_of(np_dtype).scalar
+    Work = work_struct(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def commit_time(w: Work, dt: scalar, max_unconverged: int):
@@ -150,8 +228,19 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
                 w.failed[wid] = 1
                 w.frozen[wid] = 1
 
+    return commit_time
+
+
+@functools.cache
+def closure_check_kernel(np_dtype, screened: bool):
+    """The loop-closure health check (docs/conventions.md, "World health"; :data:`LOOP_OPEN_BOUND`) of every world
+    or, ``screened``, of the worlds post-stabilisation's extra pass projected."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    cts_residual = cts_residual_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
-    def closure_check(m: M, w: Work, bound: scalar, screened: int):
+    def closure_check(m: M, w: Work, bound: scalar):
         """Flag ``failed`` on a world whose translational joint row ``i`` (an anchor gap) opens past ``bound`` in this
         step: ``|e(q_new)| > bound`` and ``|e(q_new)| > |e(q)|`` (a world assembled open, and closing, is not
         flagged). ``screened``: post-stabilisation's extra pass has screened the worlds (``post_stabilisation.py``),
@@ -160,16 +249,15 @@ def integrate_kernels(np_dtype) -> SimpleNamespace:
         wid, i = wp.tid()
         if i >= m.cts_count[wid] or w.failed[wid] != 0:
             return
-        if screened != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0:
-            return
+        if wp.static(screened):
+            if w.converged[wid] != 0 and w.reproject[wid] == 0:
+                return
         c = m.cts_start[wid] + i
         if m.cts_kind[c] != RES_TRANS:
             return
-        e_new = wp.abs(kf.cts_residual(m, w.q_new, c))
+        e_new = wp.abs(cts_residual(m, w.q_new, c))
         if e_new > bound or not wp.isfinite(e_new):
-            if not (e_new <= wp.abs(kf.cts_residual(m, w.q, c))):
+            if not (e_new <= wp.abs(cts_residual(m, w.q, c))):
                 w.failed[wid] = 1
 
-    return SimpleNamespace(closure_check=closure_check,
-                           rows_on_body=rows_on_body, integrate=integrate, dof_forces=dof_forces, row_forces=row_forces,
-                           commit_bodies=commit_bodies, commit_time=commit_time)
+    return closure_check

@@ -19,11 +19,11 @@ from kamino.model import Model
 from kamino.tables import DYN_ACTUATOR, row_tables
 from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
-from kamino.warp_backend.integrate import LOOP_OPEN_BOUND, integrate_kernels
+from kamino.warp_backend.integrate import LOOP_OPEN_BOUND, end_step_kernels
 from kamino.warp_backend.model_data import WarpModel, warp_model
 from kamino.warp_backend.padmm_warp import LANES, shared_entries, shared_rows, warp_kernels
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
-from kamino.warp_backend.rows import row_kernels
+from kamino.warp_backend.rows import step_row_kernels
 from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, solver_kernels
 from kamino.warp_backend.workspace import allocate
 
@@ -133,9 +133,12 @@ class Stepper:
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt)
-        self.rk = row_kernels(self.np_dtype)
+        self.rk = step_row_kernels(self.np_dtype, cfg.curvature_correction, cfg.integrator == "midpoint")
         self.sk = solver_kernels(self.np_dtype)
-        self.ik = integrate_kernels(self.np_dtype)
+        # world health: only where post-stabilisation's extra pass projected, when its screen (a gap of
+        # REPROJECTION_GAP + the dead band) is below the bound
+        screened = cfg.post_stabilisation > 0 and REPROJECTION_GAP + cfg.deadband_for(self.np_dtype) < LOOP_OPEN_BOUND
+        self.ik = end_step_kernels(self.np_dtype, self.dense, screened)
         self.ck = contact_kernels(self.np_dtype) if model.num_pairs else None
         self.pk = post_stabilisation_kernels(self.np_dtype) if cfg.post_stabilisation else None
         #: PADMM's effort-limited rows switch to the larger penalty when they saturate, and the world's factor is
@@ -176,14 +179,13 @@ class Stepper:
         for hook in self.pre_step:
             hook(self)
         if midpoint:
-            self._launch(rk.half_step, (W, wm.max_bodies), h)
+            self._launch(rk.advance_poses, (W, wm.max_bodies), w.q, w.u, h, w.q_eval)  # the midpoint pose
         self._launch(rk.dof_blocks, (W, wm.max_dofs))
         self._launch(rk.bodies, (W, wm.max_bodies), dt, h)
         self._launch(rk.dof_rates, (W, wm.max_dofs))
         self._launch(rk.dyn_rows, (W, wm.max_dyn), nblk, dt, h)
-        curv, mid = int(cfg.curvature_correction), int(midpoint)
-        self._launch(rk.joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta, curv, mid)
-        self._launch(rk.coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta, curv, mid)
+        self._launch(rk.joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta)
+        self._launch(rk.coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta)
         self._launch(rk.limits, (W, wm.max_lim), h, cfg.limit_margin, cfg.limit_baumgarte)
         self._launch(rk.pack_limits, W, nblk)
         if ck is not None:
@@ -222,16 +224,16 @@ class Stepper:
         self._padmm_loop()
         self._launch(sk.padmm_finish, rows)
         if cfg.curvature_refinement and cfg.curvature_correction and (wm.max_cts or wm.max_cpl):
-            self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
-            self._launch(rk.predict_with, (W, wm.max_bodies), h)
-            self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta, mid)
-            self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta, mid)
+            self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, cfg.angular_damping * dt)
+            self._launch(rk.advance_poses, (W, wm.max_bodies), w.q_eval, w.u_new, h, w.q_pred)  # q_pred along u+
+            self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta)
+            self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta)
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W, cfg.max_iterations)
             self._padmm_loop()
             self._launch(sk.padmm_finish, rows)
         # integrate, split the forces, commit (§6)
-        self._launch(ik.integrate, (W, wm.max_bodies), nblk, int(self.dense), h, cfg.angular_damping * dt)
+        self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, cfg.angular_damping * dt)
         if cfg.post_stabilisation:  # position projections (post_stabilisation.py)
             if self.post_shares_factor:  # L_f of PADMM's factor: the same matrix, the tail is not read
                 post = self.sp
@@ -249,9 +251,7 @@ class Stepper:
                     self._launch(self.pk.solve, W, post, extra)
                 self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
         if wm.max_cts:  # world health: a world whose joints the step left open past the bound fails on this step
-            # (only where the extra pass projected, when its screen, a gap of REPROJECTION_GAP + delta, is below it)
-            screened = cfg.post_stabilisation > 0 and REPROJECTION_GAP + delta < LOOP_OPEN_BOUND
-            self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND, int(screened))
+            self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND)
         self._launch(ik.dof_forces, (W, wm.max_dofs))
         self._launch(ik.row_forces, rows, 1.0 / dt)
         if ck is not None:

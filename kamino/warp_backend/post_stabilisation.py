@@ -13,6 +13,8 @@ residuals at ``q_new`` in PADMM's units (``x = -P e``), one thread per world sol
 and the displacement ``d = M^-1 J_f^T P y`` applied as ``q_new ⊕ d``. The factorisation and the solve read
 the block-sparse rows, which every configuration builds, so the projection works with either Jacobian and
 either linear solver.
+
+Each kernel comes from its own builder, cached per precision (``np_dtype``).
 """
 
 import functools
@@ -23,29 +25,30 @@ import warp as wp
 from kamino.config import REPROJECTION_GAP
 from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.integrate import integrate_kernels
-from kamino.warp_backend.kinematics import kinematics_funcs
+from kamino.warp_backend.integrate import rows_on_body_func
+from kamino.warp_backend.jacobians import coupling_residual_func, cts_residual_func, dof_position_func
 from kamino.warp_backend.model_data import model_struct
-from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
+from kamino.warp_backend.sparse_llt import pattern_struct, solve_inplace_func
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
 
-@functools.cache
 def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
-    T = types_of(np_dtype)
-    scalar = T.scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    sp = spatial_funcs(np_dtype)
-    kf = kinematics_funcs(np_dtype)
+    """The three kernels of a projection pass (the launches in ``pipeline.py``)."""
+    return SimpleNamespace(residual=residual_kernel(np_dtype), solve=solve_kernel(np_dtype),
+                           displace=displace_kernel(np_dtype))
+
+
+@functools.cache
+def residual_kernel(np_dtype):
+    """The fixed rows' position residuals in PADMM's units, ``x = -P e(q_new)`` (docs/formulation.md §2.3, §8)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
     ridx = index_funcs(np_dtype).ridx
-    integrate_pose, deadband = sp.integrate_pose, sp.deadband
-    inverse_mass_times = sp.inverse_mass_times
-    sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
-    rows_on_body = integrate_kernels(np_dtype).rows_on_body
+    deadband = spatial_funcs(np_dtype).deadband
+    cts_residual, dof_position = cts_residual_func(np_dtype), dof_position_func(np_dtype)
+    coupling_residual = coupling_residual_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def residual(m: M, w: Work, delta: scalar, extra: int):
@@ -62,7 +65,7 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
         e = scalar(0.0)
         if a >= nd and a < nd + nc:
             c = m.cts_start[wid] + a - nd
-            e = deadband(kf.cts_residual(m, w.q_new, c), delta)
+            e = deadband(cts_residual(m, w.q_new, c), delta)
             if extra != 0 and m.cts_kind[c] == RES_TRANS and not (wp.abs(e) <= scalar(REPROJECTION_GAP)):
                 w.reproject[wid] = 1
         elif a >= nd + nc:
@@ -70,11 +73,21 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
             db = m.cpl_dof_b[k]
             qb = scalar(0.0)
             if db >= 0:
-                qb = kf.dof_position(m, w.q_new, db)
-            ek, dp = kf.coupling_residual(m, k, kf.dof_position(m, w.q_new, m.cpl_dof_a[k]), qb)
+                qb = dof_position(m, w.q_new, db)
+            ek, dp = coupling_residual(m, k, dof_position(m, w.q_new, m.cpl_dof_a[k]), qb)
             e = deadband(ek, delta)
         r = ridx(m, w, wid, a)
         w.x[r] = -w.P[r] * e
+
+    return residual
+
+
+@functools.cache
+def solve_kernel(np_dtype):
+    """The projection's solve with the fixed rows' sparse factor, one thread per world (docs/formulation.md §8.1)."""
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    ridx = index_funcs(np_dtype).ridx
+    sparse_solve = solve_inplace_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def solve(m: M, w: Work, sp: SP, extra: int):
@@ -88,6 +101,18 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
         for a in range(nf):  # lambda = P y
             r = ridx(m, w, wid, a)
             w.x[r] = w.P[r] * w.x[r]
+
+    return solve
+
+
+@functools.cache
+def displace_kernel(np_dtype):
+    """The projection's displacement ``q_new <- q_new ⊕ M^-1 J_f^T lambda`` (docs/formulation.md §6.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    sp = spatial_funcs(np_dtype)
+    integrate_pose, inverse_mass_times = sp.integrate_pose, sp.inverse_mass_times
+    rows_on_body = rows_on_body_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def displace(m: M, w: Work, nblk: int, extra: int):
@@ -107,4 +132,4 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
             w.failed[wid] = 1
         w.q_new[b] = x
 
-    return SimpleNamespace(residual=residual, solve=solve, displace=displace)
+    return displace

@@ -3,6 +3,9 @@
 Formulas of ``kamino/jax_ref/step.py`` and ``dynamics.py`` (docs/formulation.md §1.4, §3.2, §4.1, §5).
 Kernels run on ``(num_worlds, max_count)`` grids; a world's rows are written into its segment:
 ``[joint-dynamics | kinematic | coupling | active limits (compacted) | contacts]``.
+
+Each kernel and each ``wp.func`` comes from its own builder, cached per precision (``np_dtype``) and, where a kernel
+depends on the integrator or on the curvature term, per mode (``midpoint``, ``curvature``: compile-time).
 """
 
 import functools
@@ -14,7 +17,13 @@ from kamino.config import GYRO_ITERATIONS, MIDPOINT_DAMPING
 from kamino.model import ActuationMode
 from kamino.tables import DYN_ACTUATOR
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.kinematics import kinematics_funcs
+from kamino.warp_backend.jacobians import (
+    coupling_residual_func,
+    cts_residual_func,
+    cts_row_func,
+    dof_blocks_func,
+    dof_position_func,
+)
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
@@ -25,25 +34,49 @@ ROW_ACTUATOR, ROW_PASSIVE, ROW_JOINT, ROW_COUPLING, ROW_LIMIT, ROW_CONTACT = 0, 
 _PASSIVE, _EFFORT, _POSITION = int(ActuationMode.PASSIVE), int(ActuationMode.EFFORT), int(ActuationMode.POSITION)
 
 
-@functools.cache
 def row_kernels(np_dtype) -> SimpleNamespace:
+    """The row helpers other modules call by name (``contacts.py``, ``solver.py``): the builders' ``wp.func``s."""
+    return SimpleNamespace(set_blocks=set_blocks_func(np_dtype), row_dot=row_dot_func(np_dtype),
+                           body_dot=body_dot_func(np_dtype), free_velocity=free_velocity_func(np_dtype),
+                           gyroscopic_correction=gyroscopic_correction_func(np_dtype))
+
+
+def step_row_kernels(np_dtype, curvature: bool, midpoint: bool) -> SimpleNamespace:
+    """The body and row kernels of a step (the launches in ``pipeline.py``), for the curvature term on or off and the
+    midpoint rule or Euler."""
+    curvature, midpoint = bool(curvature), bool(midpoint)
+    return SimpleNamespace(advance_poses=advance_poses_kernel(np_dtype), dof_blocks=dof_blocks_kernel(np_dtype),
+                           bodies=bodies_kernel(np_dtype), dof_rates=dof_rates_kernel(np_dtype),
+                           dyn_rows=dyn_rows_kernel(np_dtype),
+                           joint_rows=joint_rows_kernel(np_dtype, curvature, midpoint),
+                           coupling_rows=coupling_rows_kernel(np_dtype, curvature, midpoint),
+                           limits=limits_kernel(np_dtype), pack_limits=pack_limits_kernel(np_dtype),
+                           refine_joint_rows=refine_joint_rows_kernel(np_dtype, midpoint),
+                           refine_coupling_rows=refine_coupling_rows_kernel(np_dtype, midpoint))
+
+
+# --- block-sparse rows (docs/formulation.md §2.5) ------------------------------------------------------------------
+
+@functools.cache
+def body_dot_func(np_dtype):
+    """``body_dot(u, b, J)``: one block's share ``J u_b`` of a row's product with a twist array (0 on the world)."""
     T = types_of(np_dtype)
-    scalar, vec3, vec6, mat33 = T.scalar, T.vec3, T.vec6, T.mat33
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    sp = spatial_funcs(np_dtype)
-    kf = kinematics_funcs(np_dtype)
-    ix = index_funcs(np_dtype)
-    ridx, row_info = ix.ridx, ix.row_info
-    integrate_pose, deadband, lin, ang, twist = sp.integrate_pose, sp.deadband, sp.lin, sp.ang, sp.twist
-    inverse_mass_times = sp.inverse_mass_times
-    inf = scalar(wp.inf)
+    scalar, vec6 = T.scalar, T.vec6
 
     @wp.func
     def body_dot(u: wp.array(dtype=vec6), b: int, J: vec6):
         if b < 0:
             return scalar(0.0)
         return wp.dot(J, u[b])
+
+    return body_dot
+
+
+@functools.cache
+def set_blocks_func(np_dtype):
+    """``set_blocks(w, r, nblk, bF, JF, bB, JB)``: row ``r``'s two blocks (§2.5)."""
+    vec6 = types_of(np_dtype).vec6
+    Work = work_struct(np_dtype)
 
     @wp.func
     def set_blocks(w: Work, r: int, nblk: int, bF: int, JF: vec6, bB: int, JB: vec6):
@@ -57,6 +90,17 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if bB >= 0:
             w.row_J[r * nblk + 1] = JB
 
+    return set_blocks
+
+
+@functools.cache
+def row_dot_func(np_dtype):
+    """``row_dot(w, r, nblk, u)``: ``J_r u`` over row ``r``'s blocks (§2.5)."""
+    T = types_of(np_dtype)
+    scalar, vec6 = T.scalar, T.vec6
+    Work = work_struct(np_dtype)
+    body_dot = body_dot_func(np_dtype)
+
     @wp.func
     def row_dot(w: Work, r: int, nblk: int, u: wp.array(dtype=vec6)):
         """``J_r u`` over the row's blocks."""
@@ -65,14 +109,76 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             s += body_dot(u, w.row_body[r * nblk + k], w.row_J[r * nblk + k])
         return s
 
+    return row_dot
+
+
+@functools.cache
+def dof_row_func(np_dtype):
+    """``dof_row(m, w, r, nblk, d, sign)``: row ``r``'s blocks are ``sign`` times DoF ``d``'s (§2.5, §3.2, §4.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    set_blocks = set_blocks_func(np_dtype)
+
+    @wp.func
+    def dof_row(m: M, w: Work, r: int, nblk: int, d: int, sign: scalar):
+        j = m.dof_joint[d]
+        set_blocks(w, r, nblk, m.joint_child[j], sign * w.dof_JF[d], m.joint_parent[j], sign * w.dof_JB[d])
+
+    return dof_row
+
+
+@functools.cache
+def set_row_func(np_dtype):
+    """``set_row(w, r, vstar, reg, lo, hi, f0, info)``: the numbers of row ``r`` besides its blocks (§7.1)."""
+    scalar = types_of(np_dtype).scalar
+    Work = work_struct(np_dtype)
+
+    @wp.func
+    def set_row(w: Work, r: int, vstar: scalar, reg: scalar, lo: scalar, hi: scalar, f0: scalar, info: int):
+        """Row ``r``'s bias ``v*``, regularisation ``R``, box ``[lo, hi]``, warm-start force ``f0`` and its packed
+        description ``row_info``; no restitution target (``v0 = 0``)."""
+        w.vstar[r] = vstar
+        w.reg[r] = reg
+        w.lo[r] = lo
+        w.hi[r] = hi
+        w.f0[r] = f0
+        w.v0[r] = scalar(0.0)
+        w.row_info[r] = info
+
+    return set_row
+
+
+# --- body dynamics (docs/formulation.md §1.4, §3.1, §6.3) ----------------------------------------------------------
+
+@functools.cache
+def advance_poses_kernel(np_dtype):
+    """A pose update of every body (docs/formulation.md §6.1): the midpoint pose (§6.3) and the predicted pose along
+    the solved velocity (curvature refinement, §5)."""
+    T = types_of(np_dtype)
+    scalar, vec6, transform = T.scalar, T.vec6, T.transform
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    integrate_pose = spatial_funcs(np_dtype).integrate_pose
+
     @wp.kernel(module="unique", enable_backward=False)
-    def half_step(m: M, w: Work, h: scalar):
-        """Midpoint pose ``q_m = q ⊕ h u`` (docs/formulation.md §6.3)."""
+    def advance_poses(m: M, w: Work, x: wp.array(dtype=transform), u: wp.array(dtype=vec6), h: scalar,
+                      out: wp.array(dtype=transform)):
+        """``out = x ⊕ h u``: the midpoint pose ``q_m = q ⊕ h u`` (docs/formulation.md §6.3), or ``q_pred = q_eval
+        ⊕ h u_new``, the predicted pose along the solved velocity (curvature refinement)."""
         wid, i = wp.tid()
         if i >= m.body_count[wid]:
             return
         b = m.body_start[wid] + i
-        w.q_eval[b] = integrate_pose(w.q[b], w.u[b], h)
+        out[b] = integrate_pose(x[b], u[b], h)
+
+    return advance_poses
+
+
+@functools.cache
+def dof_blocks_kernel(np_dtype):
+    """``J_dofs`` and the explicit efforts (docs/formulation.md §2.5, §3.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    joint_dof_blocks, dof_position = dof_blocks_func(np_dtype), dof_position_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def dof_blocks(m: M, w: Work):
@@ -81,10 +187,10 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if i >= m.dof_count[wid]:
             return
         d = m.dof_start[wid] + i
-        JF, JB = kf.dof_blocks(m, w.q_eval, d)
+        JF, JB = joint_dof_blocks(m, w.q_eval, d)
         w.dof_JF[d] = JF
         w.dof_JB[d] = JB
-        w.q_dof[d] = kf.dof_position(m, w.q_eval, d)
+        w.q_dof[d] = dof_position(m, w.q_eval, d)
         mode = m.act_mode[d]
         tau = w.effort[d]
         if mode == _EFFORT:
@@ -92,6 +198,16 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         elif mode != _PASSIVE:
             tau = scalar(0.0)
         w.tau_explicit[d] = tau
+
+    return dof_blocks
+
+
+@functools.cache
+def gyroscopic_correction_func(np_dtype):
+    """``gyroscopic_correction(Ib, R, w0, we, dt)``: the implicit-midpoint gyroscopic term (docs/conventions.md,
+    "Gyroscopic term (departure from formulation.md §1.4)")."""
+    T = types_of(np_dtype)
+    scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
 
     @wp.func
     def gyroscopic_correction(Ib: mat33, R: mat33, w0: vec3, we: vec3, dt: scalar):
@@ -114,10 +230,23 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             d = d - wp.inverse(Jac) * F
         return R * d
 
+    return gyroscopic_correction
+
+
+@functools.cache
+def bodies_kernel(np_dtype):
+    """World inertia, the free velocity and the predicted pose (docs/formulation.md §1.4, §5)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    sp = spatial_funcs(np_dtype)
+    integrate_pose, lin, ang, twist, inverse_mass_times = (sp.integrate_pose, sp.lin, sp.ang, sp.twist,
+                                                           sp.inverse_mass_times)
+    gyroscopic_correction = gyroscopic_correction_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
     def bodies(m: M, w: Work, dt: scalar, h: scalar):
         """World inertia, ``h = (m g, -w x I w) + w_ext + J_dofs^T tau`` (§1.4), free velocity
-        ``u_f = u + dt M^-1 h`` with the implicit-midpoint gyroscopic term (:func:`gyroscopic_correction`,
+        ``u_f = u + dt M^-1 h`` with the implicit-midpoint gyroscopic term (:func:`gyroscopic_correction_func`,
         docs/conventions.md "Gyroscopic term") and the predicted pose ``q_eval ⊕ h u_f`` (curvature term, §5)."""
         wid, i = wp.tid()
         if i >= m.body_count[wid]:
@@ -151,6 +280,15 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         w.u_f[b] = uf
         w.q_pred[b] = integrate_pose(x, uf, h)
 
+    return bodies
+
+
+@functools.cache
+def dof_rates_kernel(np_dtype):
+    """DoF velocities and predicted DoF positions (docs/formulation.md §3.2, §4.1, §5)."""
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    body_dot, dof_position = body_dot_func(np_dtype), dof_position_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
     def dof_rates(m: M, w: Work):
         """DoF velocities before the step and of the free motion, DoF positions at the predicted pose."""
@@ -163,12 +301,22 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         bB = m.joint_parent[j]
         w.qd_minus[d] = body_dot(w.u, bF, w.dof_JF[d]) + body_dot(w.u, bB, w.dof_JB[d])
         w.qd_free[d] = body_dot(w.u_f, bF, w.dof_JF[d]) + body_dot(w.u_f, bB, w.dof_JB[d])
-        w.q_dof_pred[d] = kf.dof_position(m, w.q_pred, d)
+        w.q_dof_pred[d] = dof_position(m, w.q_pred, d)
 
-    @wp.func
-    def dof_row(m: M, w: Work, r: int, nblk: int, d: int, sign: scalar):
-        j = m.dof_joint[d]
-        set_blocks(w, r, nblk, m.joint_child[j], sign * w.dof_JF[d], m.joint_parent[j], sign * w.dof_JB[d])
+    return dof_rates
+
+
+# --- joint-dynamics rows (docs/formulation.md §3.2) ----------------------------------------------------------------
+
+@functools.cache
+def dyn_rows_kernel(np_dtype):
+    """The joint-dynamics rows (docs/formulation.md §3.2)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_info = ix.ridx, ix.row_info
+    dof_row, set_row = dof_row_func(np_dtype), set_row_func(np_dtype)
+    inf = scalar(wp.inf)
 
     @wp.kernel(module="unique", enable_backward=False)
     def dyn_rows(m: M, w: Work, nblk: int, dt: scalar, h: scalar):
@@ -185,6 +333,8 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         mi = scalar(0.0)
         p0 = scalar(0.0)
         bound = inf
+        info = int(0)
+        f0 = scalar(0.0)
         if m.dyn_kind[k] == DYN_ACTUATOR:
             kp = scalar(0.0)
             if m.act_mode[d] == _POSITION:
@@ -193,38 +343,121 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             mi = dt * (kd + h * kp)
             p0 = dt * (w.effort[d] + kp * (w.position_target[d] - q) + kd * w.velocity_target[d])
             bound = dt * m.effort_limit[d]
-            w.row_info[r] = row_info(ROW_ACTUATOR, d, scalar(1.0))
-            w.f0[r] = w.act_force[d]
+            info = row_info(ROW_ACTUATOR, d, scalar(1.0))
+            f0 = w.act_force[d]
         else:
             a = m.armature[d]
             ks = m.stiffness[d]
             mi = a + dt * m.damping[d] + dt * h * ks
             p0 = a * w.qd_minus[d] + dt * ks * (m.springref[d] - q)
-            w.row_info[r] = row_info(ROW_PASSIVE, d, scalar(1.0))
-            w.f0[r] = w.pas_force[d]
+            info = row_info(ROW_PASSIVE, d, scalar(1.0))
+            f0 = w.pas_force[d]
         mi = wp.max(mi, scalar(1e-30))
-        w.reg[r] = scalar(1.0) / mi
-        w.vstar[r] = -p0 / mi
-        w.lo[r] = -bound
-        w.hi[r] = bound
-        w.v0[r] = scalar(0.0)
+        set_row(w, r, -p0 / mi, scalar(1.0) / mi, -bound, bound, f0, info)
 
+    return dyn_rows
+
+
+# --- joint and coupling rows and their bias (docs/formulation.md §5; docs/conventions.md "Stabilisation") ----------
+
+@functools.cache
+def stabilisation_bias_func(np_dtype, midpoint: bool):
+    """``stabilisation_bias(e, e_start, c, alpha, delta)``: ``h v*`` of a joint or coupling row (docs/formulation.md
+    §5) for the midpoint rule (``midpoint``) or Euler."""
+    scalar = types_of(np_dtype).scalar
+    deadband = spatial_funcs(np_dtype).deadband
     gamma = scalar(MIDPOINT_DAMPING)
 
     @wp.func
-    def stabilisation_bias(e: scalar, e_start: scalar, c: scalar, alpha: scalar, delta: scalar, midpoint: int):
+    def stabilisation_bias(e: scalar, e_start: scalar, c: scalar, alpha: scalar, delta: scalar):
         """``h v*`` of a joint or coupling row (``joint_bias`` of the JAX reference; docs/conventions.md
         "Stabilisation"): the end-of-step target ``(1 - alpha) e_start``, plus for the midpoint rule the share
         ``MIDPOINT_DAMPING`` of the first half-step's move ``e - e_start - c`` (which damps the alternating mode),
         and the curvature term ``c``, each through the dead band."""
         target = (scalar(1.0) - alpha) * e_start
-        if midpoint != 0:
+        if wp.static(midpoint):
             target += gamma * (e - e_start - c)
         return deadband(e - target, delta) + deadband(c, delta)
 
+    return stabilisation_bias
+
+
+@functools.cache
+def curved_bias_func(np_dtype, midpoint: bool):
+    """``curved_bias(w, r, nblk, e, e_start, e_pred, u, h, alpha, delta)``: row ``r``'s bias ``v*`` with the
+    curvature term along the twists ``u`` (docs/formulation.md §5)."""
+    T = types_of(np_dtype)
+    scalar, vec6 = T.scalar, T.vec6
+    Work = work_struct(np_dtype)
+    row_dot, stabilisation_bias = row_dot_func(np_dtype), stabilisation_bias_func(np_dtype, midpoint)
+
+    @wp.func
+    def curved_bias(w: Work, r: int, nblk: int, e: scalar, e_start: scalar, e_pred: scalar, u: wp.array(dtype=vec6),
+                    h: scalar, alpha: scalar, delta: scalar):
+        """``v*`` of row ``r`` with the curvature term ``c = e_pred - e - h J_r u`` (the residual's second-order
+        change along the step; ``e_pred`` at the pose predicted along ``u``)."""
+        cv = e_pred - e - h * row_dot(w, r, nblk, u)
+        return stabilisation_bias(e, e_start, cv, alpha, delta) / h
+
+    return curved_bias
+
+
+@functools.cache
+def joint_start_residual_func(np_dtype, midpoint: bool):
+    """``joint_start_residual(m, w, c, e)``: the residual of kinematic row ``c`` the bias aims from (§5)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    cts_residual = cts_residual_func(np_dtype)
+
+    @wp.func
+    def joint_start_residual(m: M, w: Work, c: int, e: scalar):
+        """``e_start``: the residual at the start pose ``q`` for the midpoint rule, else ``e`` (at ``q_eval = q``)."""
+        e_start = e
+        if wp.static(midpoint):
+            e_start = cts_residual(m, w.q, c)
+        return e_start
+
+    return joint_start_residual
+
+
+@functools.cache
+def coupling_start_residual_func(np_dtype, midpoint: bool):
+    """``coupling_start_residual(m, w, k, e)``: the residual of coupling row ``k`` the bias aims from (§5)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    coupling_residual, dof_position = coupling_residual_func(np_dtype), dof_position_func(np_dtype)
+
+    @wp.func
+    def coupling_start_residual(m: M, w: Work, k: int, e: scalar):
+        """``e_start``: the residual at the DoF positions of the start pose ``q`` for the midpoint rule (only it
+        needs them), else ``e``."""
+        e_start = e
+        if wp.static(midpoint):
+            db = m.cpl_dof_b[k]
+            qb0 = scalar(0.0)
+            if db >= 0:
+                qb0 = dof_position(m, w.q, db)
+            e_start, dp0 = coupling_residual(m, k, dof_position(m, w.q, m.cpl_dof_a[k]), qb0)
+        return e_start
+
+    return coupling_start_residual
+
+
+@functools.cache
+def joint_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
+    """The kinematic joint rows (docs/formulation.md §2.5, §5), with or without the curvature term."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_info = ix.ridx, ix.row_info
+    cts_row, cts_residual = cts_row_func(np_dtype), cts_residual_func(np_dtype)
+    set_blocks, set_row = set_blocks_func(np_dtype), set_row_func(np_dtype)
+    stabilisation_bias, curved_bias = stabilisation_bias_func(np_dtype, midpoint), curved_bias_func(np_dtype, midpoint)
+    joint_start_residual = joint_start_residual_func(np_dtype, midpoint)
+    inf = scalar(wp.inf)
+
     @wp.kernel(module="unique", enable_backward=False)
-    def joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
-                   midpoint: int):
+    def joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
         """Kinematic joint rows: blocks and the stabilisation bias of ``joint_bias`` (docs/formulation.md §5;
         docs/conventions.md "Stabilisation")."""
         wid, i = wp.tid()
@@ -233,96 +466,35 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         c = m.cts_start[wid] + i
         r = ridx(m, w, wid, m.dyn_count[wid] + i)
         j = m.cts_joint[c]
-        e, JF, JB = kf.cts_row(m, w.q_eval, c)
+        e, JF, JB = cts_row(m, w.q_eval, c)
         set_blocks(w, r, nblk, m.joint_child[j], JF, m.joint_parent[j], JB)
-        e_start = e
-        if midpoint != 0:
-            e_start = kf.cts_residual(m, w.q, c)
-        cv = scalar(0.0)
-        if curvature != 0:
-            e_pred = kf.cts_residual(m, w.q_pred, c)
-            cv = e_pred - e - h * row_dot(w, r, nblk, w.u_f)
-        w.vstar[r] = stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h
-        w.reg[r] = scalar(0.0)
-        w.lo[r] = -inf
-        w.hi[r] = inf
-        w.f0[r] = w.kin_force[c]
-        w.v0[r] = scalar(0.0)
-        w.row_info[r] = row_info(ROW_JOINT, c, scalar(1.0))
+        e_start = joint_start_residual(m, w, c, e)
+        vstar = scalar(0.0)
+        if wp.static(curvature):
+            vstar = curved_bias(w, r, nblk, e, e_start, cts_residual(m, w.q_pred, c), w.u_f, h, alpha, delta)
+        else:
+            vstar = stabilisation_bias(e, e_start, scalar(0.0), alpha, delta) / h
+        set_row(w, r, vstar, scalar(0.0), -inf, inf, w.kin_force[c], row_info(ROW_JOINT, c, scalar(1.0)))
+
+    return joint_rows
+
+
+@functools.cache
+def coupling_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
+    """The coupling rows (docs/conventions.md "Couplings"; docs/formulation.md §5), with or without the curvature
+    term."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_info = ix.ridx, ix.row_info
+    coupling_residual = coupling_residual_func(np_dtype)
+    dof_row, set_row = dof_row_func(np_dtype), set_row_func(np_dtype)
+    stabilisation_bias, curved_bias = stabilisation_bias_func(np_dtype, midpoint), curved_bias_func(np_dtype, midpoint)
+    coupling_start_residual = coupling_start_residual_func(np_dtype, midpoint)
+    inf = scalar(wp.inf)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def predict_with(m: M, w: Work, h: scalar):
-        """``q_pred = q_eval ⊕ h u_new``: the predicted pose along the solved velocity (curvature refinement)."""
-        wid, i = wp.tid()
-        if i >= m.body_count[wid]:
-            return
-        b = m.body_start[wid] + i
-        w.q_pred[b] = integrate_pose(w.q_eval[b], w.u_new[b], h)
-
-    @wp.func
-    def free_velocity(w: Work, r: int, nblk: int):
-        """``v_f = J u_f + v*`` of row ``r`` (``solver.prebake``; recomputed, the same sums, by :func:`set_bias`)."""
-        vf = w.vstar[r]
-        for k in range(nblk):
-            b = w.row_body[r * nblk + k]
-            if b >= 0:
-                vf += wp.dot(w.row_J[r * nblk + k], w.u_f[b])
-        return vf
-
-    @wp.func
-    def set_bias(w: Work, r: int, nblk: int, vs: scalar):
-        """Replace row ``r``'s bias and ``v~_f = P (v_f - v* + vs)``. ``v_f`` is not stored: it is recomputed from the
-        row's blocks and ``u_f`` (unchanged since ``solver.prebake``) with the old bias, so that the sum equals the
-        stored one's bit for bit."""
-        vf = free_velocity(w, r, nblk) - w.vstar[r] + vs
-        w.vt[r] = w.P[r] * vf
-        w.vstar[r] = vs
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def refine_joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, midpoint: int):
-        """The joint rows' bias with the curvature term predicted along the solved velocity ``u_new``
-        (``SolverConfig.curvature_refinement``; ``joint_bias`` of the JAX reference with ``u_pred = u+``)."""
-        wid, i = wp.tid()
-        if i >= m.cts_count[wid]:
-            return
-        c = m.cts_start[wid] + i
-        r = ridx(m, w, wid, m.dyn_count[wid] + i)
-        e = kf.cts_residual(m, w.q_eval, c)
-        e_start = e
-        if midpoint != 0:
-            e_start = kf.cts_residual(m, w.q, c)
-        e_pred = kf.cts_residual(m, w.q_pred, c)
-        cv = e_pred - e - h * row_dot(w, r, nblk, w.u_new)
-        set_bias(w, r, nblk, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def refine_coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, midpoint: int):
-        """The coupling rows' bias along the solved velocity (as :func:`refine_joint_rows`)."""
-        wid, i = wp.tid()
-        if i >= m.cpl_count[wid]:
-            return
-        k = m.cpl_start[wid] + i
-        r = ridx(m, w, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
-        da = m.cpl_dof_a[k]
-        db = m.cpl_dof_b[k]
-        qb = scalar(0.0)
-        qb_pred = scalar(0.0)
-        qb0 = scalar(0.0)
-        if db >= 0:
-            qb = w.q_dof[db]
-            qb_pred = kf.dof_position(m, w.q_pred, db)
-            qb0 = kf.dof_position(m, w.q, db)
-        e, dp = kf.coupling_residual(m, k, w.q_dof[da], qb)
-        e_start = e
-        if midpoint != 0:
-            e_start, dp0 = kf.coupling_residual(m, k, kf.dof_position(m, w.q, da), qb0)
-        e_pred, dp1 = kf.coupling_residual(m, k, kf.dof_position(m, w.q_pred, da), qb_pred)
-        cv = e_pred - e - h * row_dot(w, r, nblk, w.u_new)
-        set_bias(w, r, nblk, stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar, curvature: int,
-                      midpoint: int):
+    def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
         """Coupling rows ``q_a - p(q_b)``: blocks ``J_a - p'(q_b) J_b`` (four) and the bias of ``coupling_bias``."""
         wid, i = wp.tid()
         if i >= m.cpl_count[wid]:
@@ -336,7 +508,7 @@ def row_kernels(np_dtype) -> SimpleNamespace:
         if db >= 0:
             qb = w.q_dof[db]
             qb_pred = w.q_dof_pred[db]
-        e, dp = kf.coupling_residual(m, k, w.q_dof[da], qb)
+        e, dp = coupling_residual(m, k, w.q_dof[da], qb)
         dof_row(m, w, r, nblk, da, scalar(1.0))
         if db >= 0:
             jb = m.dof_joint[db]
@@ -344,25 +516,125 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             w.row_J[r * nblk + 2] = -dp * w.dof_JF[db]
             w.row_body[r * nblk + 3] = m.joint_parent[jb]
             w.row_J[r * nblk + 3] = -dp * w.dof_JB[db]
-        e_start = e
-        if midpoint != 0:
-            # DoF positions at the start pose: only needed by the midpoint rule
-            qa0 = kf.dof_position(m, w.q, da)
-            qb0 = scalar(0.0)
-            if db >= 0:
-                qb0 = kf.dof_position(m, w.q, db)
-            e_start, dp0 = kf.coupling_residual(m, k, qa0, qb0)
-        cv = scalar(0.0)
-        if curvature != 0:
-            e_pred, dp1 = kf.coupling_residual(m, k, w.q_dof_pred[da], qb_pred)
-            cv = e_pred - e - h * row_dot(w, r, nblk, w.u_f)
-        w.vstar[r] = stabilisation_bias(e, e_start, cv, alpha, delta, midpoint) / h
-        w.reg[r] = scalar(0.0)
-        w.lo[r] = -inf
-        w.hi[r] = inf
-        w.f0[r] = w.cpl_force[k]
-        w.v0[r] = scalar(0.0)
-        w.row_info[r] = row_info(ROW_COUPLING, k, scalar(1.0))
+        e_start = coupling_start_residual(m, w, k, e)
+        vstar = scalar(0.0)
+        if wp.static(curvature):
+            e_pred, dp1 = coupling_residual(m, k, w.q_dof_pred[da], qb_pred)
+            vstar = curved_bias(w, r, nblk, e, e_start, e_pred, w.u_f, h, alpha, delta)
+        else:
+            vstar = stabilisation_bias(e, e_start, scalar(0.0), alpha, delta) / h
+        set_row(w, r, vstar, scalar(0.0), -inf, inf, w.cpl_force[k], row_info(ROW_COUPLING, k, scalar(1.0)))
+
+    return coupling_rows
+
+
+# --- curvature refinement: the bias along the solved velocity (docs/formulation.md §5) -----------------------------
+
+@functools.cache
+def free_velocity_func(np_dtype):
+    """``free_velocity(w, r, nblk)``: ``v_f = J u_f + v*`` of row ``r`` (docs/formulation.md §7.1)."""
+    Work = work_struct(np_dtype)
+
+    @wp.func
+    def free_velocity(w: Work, r: int, nblk: int):
+        """``v_f = J u_f + v*`` of row ``r`` (``solver.prebake``; recomputed, the same sums, by
+        :func:`set_bias_func`)."""
+        vf = w.vstar[r]
+        for k in range(nblk):
+            b = w.row_body[r * nblk + k]
+            if b >= 0:
+                vf += wp.dot(w.row_J[r * nblk + k], w.u_f[b])
+        return vf
+
+    return free_velocity
+
+
+@functools.cache
+def set_bias_func(np_dtype):
+    """``set_bias(w, r, nblk, vs)``: a new bias of row ``r`` and its scaled free velocity (docs/formulation.md §8)."""
+    scalar = types_of(np_dtype).scalar
+    Work = work_struct(np_dtype)
+    free_velocity = free_velocity_func(np_dtype)
+
+    @wp.func
+    def set_bias(w: Work, r: int, nblk: int, vs: scalar):
+        """Replace row ``r``'s bias and ``v~_f = P (v_f - v* + vs)``. ``v_f`` is not stored: it is recomputed from the
+        row's blocks and ``u_f`` (unchanged since ``solver.prebake``) with the old bias, so that the sum equals the
+        stored one's bit for bit."""
+        vf = free_velocity(w, r, nblk) - w.vstar[r] + vs
+        w.vt[r] = w.P[r] * vf
+        w.vstar[r] = vs
+
+    return set_bias
+
+
+@functools.cache
+def refine_joint_rows_kernel(np_dtype, midpoint: bool):
+    """The joint rows' bias along the solved velocity (docs/formulation.md §5)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ridx = index_funcs(np_dtype).ridx
+    cts_residual = cts_residual_func(np_dtype)
+    set_bias, curved_bias = set_bias_func(np_dtype), curved_bias_func(np_dtype, midpoint)
+    joint_start_residual = joint_start_residual_func(np_dtype, midpoint)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def refine_joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
+        """The joint rows' bias with the curvature term predicted along the solved velocity ``u_new``
+        (``SolverConfig.curvature_refinement``; ``joint_bias`` of the JAX reference with ``u_pred = u+``)."""
+        wid, i = wp.tid()
+        if i >= m.cts_count[wid]:
+            return
+        c = m.cts_start[wid] + i
+        r = ridx(m, w, wid, m.dyn_count[wid] + i)
+        e = cts_residual(m, w.q_eval, c)
+        e_start = joint_start_residual(m, w, c, e)
+        set_bias(w, r, nblk, curved_bias(w, r, nblk, e, e_start, cts_residual(m, w.q_pred, c), w.u_new, h, alpha,
+                                         delta))
+
+    return refine_joint_rows
+
+
+@functools.cache
+def refine_coupling_rows_kernel(np_dtype, midpoint: bool):
+    """The coupling rows' bias along the solved velocity (docs/formulation.md §5)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ridx = index_funcs(np_dtype).ridx
+    coupling_residual, dof_position = coupling_residual_func(np_dtype), dof_position_func(np_dtype)
+    set_bias, curved_bias = set_bias_func(np_dtype), curved_bias_func(np_dtype, midpoint)
+    coupling_start_residual = coupling_start_residual_func(np_dtype, midpoint)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def refine_coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
+        """The coupling rows' bias along the solved velocity (as :func:`refine_joint_rows_kernel`)."""
+        wid, i = wp.tid()
+        if i >= m.cpl_count[wid]:
+            return
+        k = m.cpl_start[wid] + i
+        r = ridx(m, w, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
+        da = m.cpl_dof_a[k]
+        db = m.cpl_dof_b[k]
+        qb = scalar(0.0)
+        qb_pred = scalar(0.0)
+        if db >= 0:
+            qb = w.q_dof[db]
+            qb_pred = dof_position(m, w.q_pred, db)
+        e, dp = coupling_residual(m, k, w.q_dof[da], qb)
+        e_start = coupling_start_residual(m, w, k, e)
+        e_pred, dp1 = coupling_residual(m, k, dof_position(m, w.q_pred, da), qb_pred)
+        set_bias(w, r, nblk, curved_bias(w, r, nblk, e, e_start, e_pred, w.u_new, h, alpha, delta))
+
+    return refine_coupling_rows
+
+
+# --- limit rows (docs/formulation.md §4.1) -------------------------------------------------------------------------
+
+@functools.cache
+def limits_kernel(np_dtype):
+    """Which limit rows are active, and their bias (docs/formulation.md §4.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def limits(m: M, w: Work, h: scalar, margin: scalar, beta: scalar):
@@ -391,6 +663,19 @@ def row_kernels(np_dtype) -> SimpleNamespace:
             w.lim_active[k] = 0
             w.lim_bias[k] = scalar(0.0)
 
+    return limits
+
+
+@functools.cache
+def pack_limits_kernel(np_dtype):
+    """The active limit rows, compacted after the fixed rows (docs/formulation.md §4.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_info = ix.ridx, ix.row_info
+    dof_row, set_row = dof_row_func(np_dtype), set_row_func(np_dtype)
+    inf = scalar(wp.inf)
+
     @wp.kernel(module="unique", enable_backward=False)
     def pack_limits(m: M, w: Work, nblk: int):
         """Append the active limit rows after the fixed rows, in DoF order (deterministic)."""
@@ -404,18 +689,9 @@ def row_kernels(np_dtype) -> SimpleNamespace:
                 side = w.lim_side[k]
                 r = ridx(m, w, wid, a0 + n)
                 dof_row(m, w, r, nblk, d, side)
-                w.vstar[r] = w.lim_bias[k]
-                w.reg[r] = scalar(0.0)
-                w.lo[r] = scalar(0.0)
-                w.hi[r] = inf
-                w.f0[r] = wp.max(side * w.lim_force[d], scalar(0.0))
-                w.v0[r] = scalar(0.0)
-                w.row_info[r] = row_info(ROW_LIMIT, d, side)
+                set_row(w, r, w.lim_bias[k], scalar(0.0), scalar(0.0), inf, wp.max(side * w.lim_force[d], scalar(0.0)),
+                        row_info(ROW_LIMIT, d, side))
                 n += 1
         w.n_lim[wid] = n
 
-    return SimpleNamespace(half_step=half_step, dof_blocks=dof_blocks, bodies=bodies, dof_rates=dof_rates,
-                           dyn_rows=dyn_rows, joint_rows=joint_rows, coupling_rows=coupling_rows, limits=limits,
-                           pack_limits=pack_limits, predict_with=predict_with, refine_joint_rows=refine_joint_rows,
-                           refine_coupling_rows=refine_coupling_rows, set_blocks=set_blocks, row_dot=row_dot,
-                           body_dot=body_dot, free_velocity=free_velocity, gyroscopic_correction=gyroscopic_correction)
+    return pack_limits

@@ -689,18 +689,14 @@ def empty(np_dtype, device) -> object:
 
 
 # --- device: assembly, factorisation, solve ---------------------------------------------------------------
+#
+# Each kernel and each ``wp.func`` comes from its own builder, cached per precision (``np_dtype``);
+# :func:`sparse_llt_kernels` names them all.
 
 @functools.cache
-def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
-    T = types_of(np_dtype)
-    scalar, vec6 = T.scalar, T.vec6
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    ix = index_funcs(np_dtype)
-    ridx, row_base = ix.ridx, ix.row_base
-    row_kind, row_source, row_saturated = ix.row_kind, ix.row_source, ix.row_saturated
-    sf = spatial_funcs(np_dtype)
+def vidx_func(np_dtype):
+    """The storage index of a factor entry (docs/formulation.md §8.1; the layout of :func:`build`)."""
+    M, SP = model_struct(np_dtype), pattern_struct(np_dtype)
 
     @wp.func
     def vidx(m: M, sp: SP, wid: int, k: int):
@@ -710,6 +706,15 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         if sp.val_stride == 1:
             return sp.grp_val_start[g] + lane * sp.grp_nnz[g] + k
         return sp.grp_val_start[g] + k * GROUP + lane
+
+    return vidx
+
+
+@functools.cache
+def bases_func(np_dtype):
+    """The hoisted storage starts of a world's rows, factor values and tail rows (§8.1)."""
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    row_base = index_funcs(np_dtype).row_base
 
     @wp.func
     def bases(m: M, w: Work, sp: SP, wid: int):
@@ -726,16 +731,41 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                             sp.grp_tail_dim[g])
         return wp.vec4i(row_base(m, w, wid), vb, sp.grp_tail_start[g] + lane, sp.grp_tail_dim[g] * GROUP)
 
+    return bases
+
+
+@functools.cache
+def tail_k_func(np_dtype):
+    """Where a tail row's tail columns start (§8.1)."""
+    SP = pattern_struct(np_dtype)
+
     @wp.func
     def tail_k(sp: SP, wid: int):
         """Where the tail columns of a tail row of world ``wid`` start (after its ``K`` ``L_tf`` entries)."""
         return sp.grp_tail_k[wid // GROUP]
+
+    return tail_k
+
+
+@functools.cache
+def sdiag_col_func(np_dtype):
+    """The column that keeps the diagonal of the tail's Schur complement (§8.1)."""
+    SP = pattern_struct(np_dtype)
 
     @wp.func
     def sdiag_col(sp: SP, wid: int):
         """The column of a tail row of world ``wid`` that keeps the diagonal of the tail's Schur complement ``S_t``
         (the last one, after the tail columns: the square's lower triangle holds ``L_t``, its upper ``S_t``)."""
         return sp.grp_tail_dim[wid // GROUP] - 1
+
+    return sdiag_col
+
+
+@functools.cache
+def tidx_func(np_dtype):
+    """The storage index of a tail-row entry (§8.1)."""
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    bases = bases_func(np_dtype)
 
     @wp.func
     def tidx(m: M, w: Work, sp: SP, wid: int, t: int, c: int):
@@ -744,10 +774,28 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         base = bases(m, w, sp, wid)
         return base[2] + t * base[3] + c * sp.tail_stride
 
+    return tidx
+
+
+@functools.cache
+def tail_pattern_func(np_dtype):
+    """A tail row's ``L_tf`` pattern (§8.1)."""
+    SP = pattern_struct(np_dtype)
+
     @wp.func
     def tail_pattern(sp: SP, wid: int, t: int):
         """The ``L_tf`` pattern (global id) of tail row ``t`` of world ``wid``, as :func:`tail_row` recorded it."""
         return sp.tail_pat[wid * sp.tail_max + t]
+
+    return tail_pattern
+
+
+@functools.cache
+def inv_mass_times_func(np_dtype):
+    """``M_b^-1 J`` for a 1x6 block on one body (docs/formulation.md §1.3)."""
+    vec6 = types_of(np_dtype).vec6
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    sf = spatial_funcs(np_dtype)
 
     @wp.func
     def inv_mass_times(m: M, w: Work, b: int, J: vec6):
@@ -756,6 +804,16 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         Delassus entries here, the dense ``M^-1 J^T`` and the Conjugate Residual operator in ``solver.py``), not
         stored."""
         return sf.inverse_mass_times(m.inv_mass[b], w.inv_inertia_w[b], J)
+
+    return inv_mass_times
+
+
+@functools.cache
+def delassus_term_func(np_dtype):
+    """One body's share of a Delassus entry (docs/formulation.md §7.1)."""
+    scalar, vec6 = types_of(np_dtype).scalar, types_of(np_dtype).vec6
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    inv_mass_times = inv_mass_times_func(np_dtype)
 
     @wp.func
     def delassus_term(m: M, w: Work, body: int, Ja: vec6, Jb: vec6):
@@ -768,6 +826,17 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         (docs/warp_backend.md, "Redundant planar loops in float32")."""
         half = scalar(0.5)
         return half * (wp.dot(Ja, inv_mass_times(m, w, body, Jb)) + wp.dot(Jb, inv_mass_times(m, w, body, Ja)))
+
+    return delassus_term
+
+
+@functools.cache
+def delassus_sum_func(np_dtype):
+    """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (docs/formulation.md §7.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    ridx = index_funcs(np_dtype).ridx
+    delassus_term = delassus_term_func(np_dtype)
 
     @wp.func
     def delassus_sum(m: M, w: Work, wid: int, a: int, b: int, nblk: int, body_hub: wp.array(dtype=wp.int32),
@@ -793,16 +862,43 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             s += w.reg[ra]
         return s
 
+    return delassus_sum
+
+
+@functools.cache
+def delassus_entry_func(np_dtype):
+    """``(J M^-1 J^T + R)_ab`` over every body (docs/formulation.md §7.1)."""
+    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    delassus_sum = delassus_sum_func(np_dtype)
+
     @wp.func
     def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):
         """``(J M^-1 J^T + R)_ab`` over every body (:func:`delassus_sum`; ``row_body`` stands in for the unread hub
         table)."""
         return delassus_sum(m, w, wid, a, b, nblk, w.row_body, 0)
 
+    return delassus_entry
+
+
+@functools.cache
+def delassus0_func(np_dtype):
+    """``D0_ab``: the Delassus entry without the world's hubs (§7.1; docs/warp_backend.md "Open problems")."""
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    delassus_sum = delassus_sum_func(np_dtype)
+
     @wp.func
     def delassus0(m: M, w: Work, sp: SP, wid: int, a: int, b: int, nblk: int):
         """``D0_ab``: :func:`delassus_sum` without the world's hubs (every body in a world without hubs)."""
         return delassus_sum(m, w, wid, a, b, nblk, sp.body_hub, int(sp.n_pos[wid] != sp.n_fixed[wid]))
+
+    return delassus0
+
+
+@functools.cache
+def row_on_body_func(np_dtype):
+    """A row's blocks on one body, summed (§2.5)."""
+    vec6 = types_of(np_dtype).vec6
+    Work = work_struct(np_dtype)
 
     @wp.func
     def row_on_body(w: Work, r: int, body: int, nblk: int):
@@ -812,6 +908,17 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             if w.row_body[r * nblk + l] == body:
                 J += w.row_J[r * nblk + l]
         return J
+
+    return row_on_body
+
+
+@functools.cache
+def hub_entry_func(np_dtype):
+    """An entry of the hub block rows of the quasi-definite system (docs/warp_backend.md "Open problems")."""
+    scalar = types_of(np_dtype).scalar
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    ridx = index_funcs(np_dtype).ridx
+    row_on_body = row_on_body_func(np_dtype)
 
     @wp.func
     def hub_entry(m: M, w: Work, sp: SP, wid: int, p: int, q: int, nblk: int):
@@ -838,6 +945,19 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 s = -w.inertia_w[body][c - 3, c2 - 3]
         return s
 
+    return hub_entry
+
+
+@functools.cache
+def fixed_entry_func(np_dtype):
+    """An entry of the fixed rows' scaled Delassus pattern, ``D~_pq`` (docs/formulation.md §8.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_saturated = ix.ridx, ix.row_saturated
+    vidx, delassus0 = vidx_func(np_dtype), delassus0_func(np_dtype)
+    hub_entry = hub_entry_func(np_dtype)
+
     @wp.func
     def fixed_entry(m: M, w: Work, sp: SP, wid: int, k: int, nblk: int, shift: scalar, shift_sat: scalar):
         """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D0_ab P_b`` (``+ shift`` on the diagonal,
@@ -859,6 +979,16 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 s += shift
         sp.val[vidx(m, sp, wid, k)] = s
 
+    return fixed_entry
+
+
+@functools.cache
+def assemble_fixed_kernel(np_dtype):
+    """The fixed rows' pattern of ``D~`` of every world (docs/formulation.md §8.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    fixed_entry = fixed_entry_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
     def assemble_fixed(m: M, w: Work, sp: SP, nblk: int, shift: scalar, shift_sat: scalar):
         """:func:`fixed_entry` ``k`` of every world."""
@@ -866,6 +996,18 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         if k >= sp.nnz[wid]:
             return
         fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
+
+    return assemble_fixed
+
+
+@functools.cache
+def tail_row_func(np_dtype):
+    """A tail row's entries of ``D~`` (docs/formulation.md §8.1)."""
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    ix = index_funcs(np_dtype)
+    ridx, row_kind, row_source = ix.ridx, ix.row_kind, ix.row_source
+    tail_k, tidx = tail_k_func(np_dtype), tidx_func(np_dtype)
+    delassus0, row_on_body = delassus0_func(np_dtype), row_on_body_func(np_dtype)
 
     @wp.func
     def tail_row(m: M, w: Work, sp: SP, wid: int, a: int, nblk: int):
@@ -899,6 +1041,15 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             sp.tail[tidx(m, w, sp, wid, t, kt + b)] = (Pa * delassus0(m, w, sp, wid, a, b, nblk)
                                                        * w.P[ridx(m, w, wid, b)])
 
+    return tail_row
+
+
+@functools.cache
+def assemble_tail_kernel(np_dtype):
+    """The tail rows' entries of ``D~`` of every world (docs/formulation.md §8.1)."""
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    tail_row = tail_row_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
     def assemble_tail(m: M, w: Work, sp: SP, nblk: int):
         """:func:`tail_row` ``a`` of every world."""
@@ -906,6 +1057,14 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         if a < sp.n_fixed[wid] or a >= w.n_rows[wid]:
             return
         tail_row(m, w, sp, wid, a, nblk)
+
+    return assemble_tail
+
+
+@functools.cache
+def factor_fixed_rows_func(np_dtype):
+    """``L_f`` in place by the precomputed update lists (docs/formulation.md §8.1)."""
+    SP = pattern_struct(np_dtype)
 
     @wp.func
     def factor_fixed_rows(sp: SP, wid: int, vb: int):
@@ -946,11 +1105,31 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 s = s / sp.val[vb + d * sp.val_stride]
             sp.val[vb + k * sp.val_stride] = s
 
+    return factor_fixed_rows
+
+
+@functools.cache
+def factor_fixed_kernel(np_dtype):
+    """The Cholesky factor of the fixed rows only (post-stabilisation; docs/formulation.md §8.1)."""
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    bases, factor_fixed_rows = bases_func(np_dtype), factor_fixed_rows_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
     def factor_fixed(m: M, w: Work, sp: SP):
         """Cholesky of the fixed rows only (``D~_ff = L_f L_f^T``; post-stabilisation)."""
         wid = wp.tid()
         factor_fixed_rows(sp, wid, bases(m, w, sp, wid)[1])
+
+    return factor_fixed
+
+
+@functools.cache
+def factor_tail_func(np_dtype):
+    """``L_t``, the tail rows' dense Cholesky with the world's penalty (docs/formulation.md §8.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    bases, tail_k = bases_func(np_dtype), tail_k_func(np_dtype)
+    sdiag_col = sdiag_col_func(np_dtype)
 
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar):
@@ -981,6 +1160,16 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                     s = s / sp.tail[jr + (kt + j) * tc]
                 sp.tail[tr + (kt + j) * tc] = s
 
+    return factor_tail
+
+
+@functools.cache
+def schur_entry_func(np_dtype):
+    """An entry of the tail rows' Schur complement ``S_t`` (docs/formulation.md §8.1)."""
+    Work, SP = work_struct(np_dtype), pattern_struct(np_dtype)
+    tail_k, sdiag_col = tail_k_func(np_dtype), sdiag_col_func(np_dtype)
+    tail_pattern = tail_pattern_func(np_dtype)
+
     @wp.func
     def schur_entry(w: Work, sp: SP, wid: int, rb: int, tb: int, ts: int, nf: int, t: int, j: int):
         """``S_t[t, j] = D~_tj - L_t. L_j.`` (``j <= t``, tail rows, ``L_tf`` done) into row ``j``'s upper slot
@@ -1008,6 +1197,18 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
             sp.tail[tr + sdiag_col(sp, wid) * tc] = s
         else:
             sp.tail[jr + (kt + t) * tc] = s
+
+    return schur_entry
+
+
+@functools.cache
+def factor_world_func(np_dtype):
+    """A world's whole Cholesky factor ``D~ = L L^T`` (docs/formulation.md §8.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    bases, tail_pattern = bases_func(np_dtype), tail_pattern_func(np_dtype)
+    factor_fixed_rows, factor_tail = factor_fixed_rows_func(np_dtype), factor_tail_func(np_dtype)
+    schur_entry = schur_entry_func(np_dtype)
 
     @wp.func
     def factor_world(m: M, w: Work, sp: SP, wid: int, eta: scalar):
@@ -1047,10 +1248,31 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 schur_entry(w, sp, wid, rb, tb, ts, nf, t, j)
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid])
 
+    return factor_world
+
+
+@functools.cache
+def factor_kernel(np_dtype):
+    """Every world's Cholesky factor (docs/formulation.md §8.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    factor_world = factor_world_func(np_dtype)
+
     @wp.kernel(module="unique", enable_backward=False)
     def factor(m: M, w: Work, sp: SP, eta: scalar):
         """:func:`factor_world` of every world."""
         factor_world(m, w, sp, wp.tid(), eta)
+
+    return factor
+
+
+@functools.cache
+def refactor_kernel(np_dtype):
+    """The factor again of the worlds whose effort-limited rows saturated (docs/formulation.md §8.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    fixed_entry, tail_row = fixed_entry_func(np_dtype), tail_row_func(np_dtype)
+    factor_world = factor_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def refactor(m: M, w: Work, sp: SP, nblk: int, shift: scalar, shift_sat: scalar, eta: scalar):
@@ -1066,6 +1288,17 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
         for a in range(sp.n_fixed[wid], w.n_rows[wid]):
             tail_row(m, w, sp, wid, a, nblk)
         factor_world(m, w, sp, wid, eta)
+
+    return refactor
+
+
+@functools.cache
+def solve_inplace_func(np_dtype):
+    """``x <- L^-T L^-1 x`` with the sparse factor and its tail (docs/formulation.md §8.1)."""
+    scalar = types_of(np_dtype).scalar
+    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    bases, tail_k = bases_func(np_dtype), tail_k_func(np_dtype)
+    tail_pattern = tail_pattern_func(np_dtype)
 
     @wp.func
     def solve_inplace(m: M, w: Work, sp: SP, wid: int, n: int):
@@ -1133,10 +1366,18 @@ def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
                 rq = rb + sp.colrow[e0 + k] * rs
                 w.x[rq] = w.x[rq] - sp.val[vb + k * sp.val_stride] * xp
 
-    return SimpleNamespace(assemble_fixed=assemble_fixed, assemble_tail=assemble_tail, factor=factor, bases=bases,
-                           factor_tail=factor_tail, refactor=refactor, factor_world=factor_world,
-                           fixed_entry=fixed_entry, tail_row=tail_row,
-                           factor_fixed=factor_fixed,
-                           solve_inplace=solve_inplace, delassus_entry=delassus_entry, schur_entry=schur_entry,
-                           inv_mass_times=inv_mass_times, tail_k=tail_k, tail_pattern=tail_pattern,
-                           sdiag_col=sdiag_col)
+    return solve_inplace
+
+
+def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
+    """The sparse factor's kernels and ``wp.func``s by name (the launches in ``pipeline.py``, the callers in
+    ``solver.py``, ``post_stabilisation.py`` and ``padmm_warp.py``), each from its builder."""
+    return SimpleNamespace(assemble_fixed=assemble_fixed_kernel(np_dtype),
+                           assemble_tail=assemble_tail_kernel(np_dtype), factor=factor_kernel(np_dtype),
+                           factor_fixed=factor_fixed_kernel(np_dtype), refactor=refactor_kernel(np_dtype),
+                           bases=bases_func(np_dtype), factor_tail=factor_tail_func(np_dtype),
+                           factor_world=factor_world_func(np_dtype), fixed_entry=fixed_entry_func(np_dtype),
+                           tail_row=tail_row_func(np_dtype), solve_inplace=solve_inplace_func(np_dtype),
+                           delassus_entry=delassus_entry_func(np_dtype), schur_entry=schur_entry_func(np_dtype),
+                           inv_mass_times=inv_mass_times_func(np_dtype), tail_k=tail_k_func(np_dtype),
+                           tail_pattern=tail_pattern_func(np_dtype), sdiag_col=sdiag_col_func(np_dtype))

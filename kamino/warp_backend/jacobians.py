@@ -1,13 +1,15 @@
-"""Joint kinematics in Warp: joint frames, residuals and Jacobian blocks (docs/formulation.md §2).
+"""Joint Jacobians in Warp: joint frames, residuals and the Jacobian blocks of DoF and constraint rows
+(docs/formulation.md §2).
 
 The same formulas as ``kamino/jax_ref/joints.py`` and ``couplings.py``. A Jacobian row is stored
 block-sparse: up to ``nblk`` pairs (body, 1x6 block) per row — the follower ``F`` and the base ``B``
 of its joint (§2.5); a coupling row spans the DoF rows of two joints (four blocks). A block on the
 world (body ``-1``) is dropped.
+
+Each ``wp.func`` comes from its own builder, cached per precision (``np_dtype``).
 """
 
 import functools
-from types import SimpleNamespace
 
 import warp as wp
 
@@ -17,16 +19,14 @@ from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 
 _UNIVERSAL = int(JointType.UNIVERSAL)
-_REVOLUTE = int(JointType.REVOLUTE)
 
+
+# --- joint frames (§2.1-2.4) ---------------------------------------------------------------------------------------
 
 @functools.cache
-def kinematics_funcs(np_dtype) -> SimpleNamespace:
-    T = types_of(np_dtype)
-    scalar, vec3, vec6, quat, transform = T.scalar, T.vec3, T.vec6, T.quat, T.transform
-    sp = spatial_funcs(np_dtype)
-    quat_log, twist = sp.quat_log, sp.twist
-    M = model_struct(np_dtype)
+def body_pose_func(np_dtype):
+    """``body_pose(body_q, b)``: the pose of body ``b``, the identity for the world (§2.1)."""
+    transform, scalar = types_of(np_dtype).transform, types_of(np_dtype).scalar
 
     @wp.func
     def body_pose(body_q: wp.array(dtype=transform), b: int):
@@ -34,6 +34,16 @@ def kinematics_funcs(np_dtype) -> SimpleNamespace:
         if b < 0:
             return wp.transform_identity(dtype=scalar)
         return body_q[b]
+
+    return body_pose
+
+
+@functools.cache
+def joint_frame_func(np_dtype):
+    """``joint_frame(m, body_q, j)``: the world quantities of joint ``j`` (§2.1-2.2)."""
+    transform = types_of(np_dtype).transform
+    M = model_struct(np_dtype)
+    body_pose = body_pose_func(np_dtype)
 
     @wp.func
     def joint_frame(m: M, body_q: wp.array(dtype=transform), j: int):
@@ -54,6 +64,15 @@ def kinematics_funcs(np_dtype) -> SimpleNamespace:
         t = wp.transpose(R_j) * (p_F - p_B)
         return r_B, r_F, p_B, R_j, Q, t
 
+    return joint_frame
+
+
+@functools.cache
+def universal_axes_func(np_dtype):
+    """``universal_axes(Q)``: the intermediate frame of a universal joint (§2.4)."""
+    T = types_of(np_dtype)
+    scalar, vec3, quat = T.scalar, T.vec3, T.quat
+
     @wp.func
     def universal_axes(Q: quat):
         """Intermediate frame ``[e_x, a_y, a_z]`` (columns, joint coordinates) of a universal joint (§2.4)."""
@@ -64,6 +83,16 @@ def kinematics_funcs(np_dtype) -> SimpleNamespace:
         a_y = a_y / wp.max(wp.length(a_y), scalar(1e-12))
         a_z = wp.cross(e_x, a_y)
         return wp.matrix_from_cols(e_x, a_y, a_z)
+
+    return universal_axes
+
+
+@functools.cache
+def residual_func(np_dtype):
+    """``residual(kind, axis, Q, t)``: the position residual of one kinematic row (§2.3)."""
+    T = types_of(np_dtype)
+    scalar, vec3, quat = T.scalar, T.vec3, T.quat
+    quat_log = spatial_funcs(np_dtype).quat_log
 
     @wp.func
     def residual(kind: int, axis: int, Q: quat, t: vec3):
@@ -80,6 +109,18 @@ def kinematics_funcs(np_dtype) -> SimpleNamespace:
         univ = vec3(scalar(0.0), scalar(0.0), -R[0, 1])  # RES_UNIV
         return univ[k]
 
+    return residual
+
+
+# --- Jacobian blocks (§2.5) ----------------------------------------------------------------------------------------
+
+@functools.cache
+def axis_blocks_func(np_dtype):
+    """``axis_blocks(is_trans, a, p, r_F, r_B)``: the follower and base blocks of a row along a world axis (§2.5)."""
+    T = types_of(np_dtype)
+    scalar, vec3 = T.scalar, T.vec3
+    twist = spatial_funcs(np_dtype).twist
+
     @wp.func
     def axis_blocks(is_trans: int, a: vec3, p: vec3, r_F: vec3, r_B: vec3):
         """Follower and base 1x6 blocks of a row along world axis ``a`` (§2.5): translational
@@ -88,6 +129,44 @@ def kinematics_funcs(np_dtype) -> SimpleNamespace:
             return twist(a, wp.cross(p - r_F, a)), -twist(a, wp.cross(p - r_B, a))
         z = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
         return twist(z, a), -twist(z, a)
+
+    return axis_blocks
+
+
+@functools.cache
+def row_axis_func(np_dtype):
+    """``row_axis(is_trans, is_univ, axis, R_j, Q)``: the world axis of a DoF or kinematic row (§2.4-2.5)."""
+    T = types_of(np_dtype)
+    vec3, quat, mat33 = T.vec3, T.quat, T.mat33
+    universal_axes = universal_axes_func(np_dtype)
+
+    @wp.func
+    def row_axis(is_trans: int, is_univ: int, axis: int, R_j: mat33, Q: quat):
+        """World axis of a row on joint axis ``axis`` (0-2 translational, 3-5 rotational): column ``axis`` of the
+        joint rotation ``R_j`` for a translation, column ``axis - 3`` of ``R_j`` for a rotation, or of ``R_j``
+        times the intermediate frame (:func:`universal_axes_func`) on a universal joint's rotation."""
+        a = vec3()
+        if is_trans != 0:
+            a = vec3(R_j[0, axis], R_j[1, axis], R_j[2, axis])
+        else:
+            k = axis - 3
+            if is_univ != 0:
+                U = R_j * universal_axes(Q)
+                a = vec3(U[0, k], U[1, k], U[2, k])
+            else:
+                a = vec3(R_j[0, k], R_j[1, k], R_j[2, k])
+        return a
+
+    return row_axis
+
+
+@functools.cache
+def cts_row_func(np_dtype):
+    """``cts_row(m, body_q, c)``: the residual and blocks of kinematic row ``c`` (§2.3-2.5)."""
+    transform = types_of(np_dtype).transform
+    M = model_struct(np_dtype)
+    joint_frame, residual = joint_frame_func(np_dtype), residual_func(np_dtype)
+    row_axis, axis_blocks = row_axis_func(np_dtype), axis_blocks_func(np_dtype)
 
     @wp.func
     def cts_row(m: M, body_q: wp.array(dtype=transform), c: int):
@@ -99,24 +178,38 @@ def kinematics_funcs(np_dtype) -> SimpleNamespace:
         r_B, r_F, p_B, R_j, Q, t = joint_frame(m, body_q, j)
         e = residual(kind, axis, Q, t)
         is_trans = int(kind == RES_TRANS)
-        a = vec3()
-        if is_trans != 0:
-            a = vec3(R_j[0, axis], R_j[1, axis], R_j[2, axis])
-        else:
-            k = axis - 3
-            if kind == RES_UNIV:
-                U = R_j * universal_axes(Q)
-                a = vec3(U[0, k], U[1, k], U[2, k])
-            else:
-                a = vec3(R_j[0, k], R_j[1, k], R_j[2, k])
+        a = row_axis(is_trans, int(kind == RES_UNIV), axis, R_j, Q)
         JF, JB = axis_blocks(is_trans, a, p_B, r_F, r_B)
         return e, JF, JB
 
+    return cts_row
+
+
+@functools.cache
+def cts_residual_func(np_dtype):
+    """``cts_residual(m, body_q, c)``: the residual of kinematic row ``c`` (§2.3)."""
+    transform = types_of(np_dtype).transform
+    M = model_struct(np_dtype)
+    joint_frame, residual = joint_frame_func(np_dtype), residual_func(np_dtype)
+
     @wp.func
     def cts_residual(m: M, body_q: wp.array(dtype=transform), c: int):
+        """Residual of kinematic row ``c`` at the poses ``body_q`` (``constraint_residual`` of the JAX reference)."""
         j = m.cts_joint[c]
         r_B, r_F, p_B, R_j, Q, t = joint_frame(m, body_q, j)
         return residual(m.cts_kind[c], m.cts_axis[c], Q, t)
+
+    return cts_residual
+
+
+@functools.cache
+def dof_position_func(np_dtype):
+    """``dof_position(m, body_q, d)``: the position of DoF ``d`` (§2.4)."""
+    T = types_of(np_dtype)
+    scalar, vec3, transform = T.scalar, T.vec3, T.transform
+    M = model_struct(np_dtype)
+    joint_frame = joint_frame_func(np_dtype)
+    quat_log = spatial_funcs(np_dtype).quat_log
 
     @wp.func
     def dof_position(m: M, body_q: wp.array(dtype=transform), d: int):
@@ -137,6 +230,19 @@ def kinematics_funcs(np_dtype) -> SimpleNamespace:
             return wp.atan2(wp.dot(wp.cross(e_x, x_F), y_F), x_F[0])
         return quat_log(Q)[axis - 3]
 
+    return dof_position
+
+
+@functools.cache
+def dof_blocks_func(np_dtype):
+    """``dof_blocks(m, body_q, d)``: the (follower, base) blocks of DoF row ``d`` of ``J_dofs`` (§2.5)."""
+    T = types_of(np_dtype)
+    scalar, vec3, vec6, transform = T.scalar, T.vec3, T.vec6, T.transform
+    M = model_struct(np_dtype)
+    joint_frame = joint_frame_func(np_dtype)
+    row_axis, axis_blocks = row_axis_func(np_dtype), axis_blocks_func(np_dtype)
+    twist = spatial_funcs(np_dtype).twist
+
     @wp.func
     def dof_blocks(m: M, body_q: wp.array(dtype=transform), d: int):
         """(follower, base) blocks of DoF row ``d`` of ``J_dofs`` (§2.5). FREE joints: ``J_F = I_6`` rows and
@@ -156,17 +262,19 @@ def kinematics_funcs(np_dtype) -> SimpleNamespace:
                 e_ang[axis - 3] = scalar(1.0)
             return JF, -twist(e_lin, wp.cross(r_F - r_B, e_lin) + e_ang)
         is_trans = int(kind == DOF_TRANS)
-        a = vec3()
-        if is_trans != 0:
-            a = vec3(R_j[0, axis], R_j[1, axis], R_j[2, axis])
-        else:
-            k = axis - 3
-            if kind == DOF_UNIV:
-                U = R_j * universal_axes(Q)
-                a = vec3(U[0, k], U[1, k], U[2, k])
-            else:
-                a = vec3(R_j[0, k], R_j[1, k], R_j[2, k])
+        a = row_axis(is_trans, int(kind == DOF_UNIV), axis, R_j, Q)
         return axis_blocks(is_trans, a, p_B, r_F, r_B)
+
+    return dof_blocks
+
+
+# --- couplings (docs/conventions.md "Couplings") -------------------------------------------------------------------
+
+@functools.cache
+def coupling_residual_func(np_dtype):
+    """``coupling_residual(m, k, q_a, q_b)``: the residual ``q_a - p(q_b)`` of coupling ``k`` and ``p'(q_b)``."""
+    scalar = types_of(np_dtype).scalar
+    M = model_struct(np_dtype)
 
     @wp.func
     def poly(m: M, k: int, x: scalar):
@@ -196,6 +304,4 @@ def kinematics_funcs(np_dtype) -> SimpleNamespace:
             dp = scalar(0.0)
         return e, dp
 
-    return SimpleNamespace(body_pose=body_pose, joint_frame=joint_frame, cts_row=cts_row, cts_residual=cts_residual,
-                           dof_position=dof_position, dof_blocks=dof_blocks, coupling_residual=coupling_residual,
-                           universal_axes=universal_axes)
+    return coupling_residual
