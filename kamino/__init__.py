@@ -20,21 +20,9 @@ moves it (``kamino/_jax_cache.py``; docs/first_step.md).
 from kamino import models
 from kamino._jax_cache import enable as _enable_jax_cache
 from kamino._jax_cache import quiet_cache_loads as _quiet_cache_loads
-from kamino.api import (
-    body_contact_forces,
-    body_frame,
-    dof_state,
-    init_state,
-    joint_coordinates,
-    joint_positions,
-    load_mjcf,
-    metrics,
-    rollout,
-    save_mjcf,
-    step,
-)
+from kamino.api import load_mjcf, rollout, save_mjcf, step
 from kamino.config import SolverConfig
-from kamino.kinematics import FKResult, forward_kinematics, set_joint_positions
+from kamino.kinematics import FKResult, forward_kinematics, init_state, set_joint_positions
 from kamino.model import (
     Actuation,
     ActuationMode,
@@ -45,6 +33,14 @@ from kamino.model import (
     ModelError,
     concat,
     replicate,
+)
+from kamino.readouts import (
+    body_contact_forces,
+    body_frame,
+    dof_state,
+    joint_coordinates,
+    joint_positions,
+    metrics,
 )
 from kamino.simulator import Simulator
 from kamino.state import ContactState, Control, State, StepInfo

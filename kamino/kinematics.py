@@ -1,4 +1,5 @@
-"""Forward kinematics for resets: ``forward_kinematics`` and ``set_joint_positions`` (docs/formulation.md §9).
+"""Loop-closing forward kinematics for resets: ``forward_kinematics``, ``set_joint_positions`` and ``init_state``
+(a model's initial state, at given coordinates) (docs/formulation.md §9).
 
 Given joint coordinates — all of them, or only the actuated ones — find body poses that satisfy
 every joint, loop-closure and coupling constraint, for all worlds at once. The solver
@@ -14,11 +15,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from kamino.jax_ref.backend import padded_poses
 from kamino.jax_ref.fk import FKSettings, FKTables, solve_batch
 from kamino.jax_ref.layout import _pad_index, layout_of, to_flat, to_padded
 from kamino.model import JOINT_CONSTRAINT_ROWS, RES_LOG, RES_TRANS, ActuationMode, JointType, Model, derived
-from kamino.spatial import quat_exp
-from kamino.state import State
+from kamino.spatial import quat_conj, quat_exp, quat_mul, rotate
+from kamino.state import ContactState, State, StepInfo
 
 
 @jax.tree_util.register_dataclass
@@ -219,9 +221,8 @@ def _forward_kinematics(model: Model, joint_positions, actuated_positions, base_
                                                                                        keepdims=True))
         if initial_body_q is None:
             q0 = _move_rigidly(model, q0, base, base_target)
-    from kamino.jax_ref.backend import _padded_poses
 
-    q_pad = _padded_poses(pm, t, q0)
+    q_pad = padded_poses(pm, t, q0)
     settings = FKSettings(tolerance=float(tolerance), max_iterations=int(max_iterations))
     q, converged, residual, iterations = solve_batch(pm, tab, q_pad, coords_p, base_target, settings)
     return FKResult(body_q=to_flat(q, t["bs"]), converged=converged, residual=residual,
@@ -230,7 +231,6 @@ def _forward_kinematics(model: Model, joint_positions, actuated_positions, base_
 
 def _move_rigidly(model: Model, q0: jax.Array, base: np.ndarray, target: jax.Array) -> jax.Array:
     """Move every body of each world by the rigid transform taking its base body to ``target``."""
-    from kamino.spatial import quat_conj, quat_mul, rotate
 
     world = model.body_world
     b = base[world]
@@ -241,12 +241,46 @@ def _move_rigidly(model: Model, q0: jax.Array, base: np.ndarray, target: jax.Arr
     return jnp.concatenate([pos, rot / jnp.linalg.norm(rot, axis=-1, keepdims=True)], axis=-1)
 
 
+def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_positions=None, base_pose=None,
+               **fk_options) -> State:
+    """The model's initial state: zero twists (the builder's, if set), reactions and contacts.
+
+    Without coordinates the bodies are at the builder's (reference) poses. With ``joint_positions``,
+    ``actuated_positions`` and/or ``base_pose`` the poses come from :func:`kamino.forward_kinematics`
+    (consistent with every joint and loop closure; ``fk_options`` are passed on), which raises a
+    ``ValueError`` naming the worlds that do not converge. ``dtype`` defaults to JAX's default float
+    (float32, or float64 with ``jax_enable_x64``).
+    """
+    dtype = jnp.zeros(0).dtype if dtype is None else jnp.dtype(dtype)
+    body_q = jnp.asarray(model.body_q0, dtype)
+    body_u = jnp.asarray(model.body_u0, dtype)
+    if joint_positions is not None or actuated_positions is not None or base_pose is not None:
+        fk = forward_kinematics(model, joint_positions, actuated_positions, base_pose, dtype=dtype, **fk_options)
+        bad = np.nonzero(~np.asarray(fk.converged))[0]
+        if bad.size:
+            raise ValueError(f"init_state: forward kinematics did not converge in worlds {bad[:8].tolist()} "
+                             f"(residual {np.asarray(fk.residual)[bad[:8]].tolist()}); the coordinates may be "
+                             "unreachable")
+        body_q, body_u = fk.body_q, jnp.zeros_like(body_u)
+    return State(
+        body_q=body_q,
+        body_u=body_u,
+        time=jnp.zeros(model.num_worlds, dtype),
+        constraint_force=jnp.zeros(model.num_constraints, dtype),
+        actuator_force=jnp.zeros(model.num_dofs, dtype),
+        passive_force=jnp.zeros(model.num_dofs, dtype),
+        limit_force=jnp.zeros(model.num_dofs, dtype),
+        coupling_force=jnp.zeros(model.num_couplings, dtype),
+        contacts=ContactState.empty(model.num_contacts, dtype),
+        info=StepInfo.empty(model.num_worlds, dtype),
+    )
+
+
 def set_joint_positions(model: Model, state: State, joint_positions=None, actuated_positions=None,
                         base_pose=None, **options) -> State:
     """``state`` reset to the poses that :func:`forward_kinematics` finds from the given coordinates,
     starting from ``state.body_q``; twists, reactions and contacts are zeroed, time is kept. Worlds
     that do not converge keep the best iterate; call :func:`forward_kinematics` for the flags."""
-    from kamino.api import init_state
 
     fk = forward_kinematics(model, joint_positions, actuated_positions, base_pose,
                             initial_body_q=state.body_q, dtype=state.body_q.dtype, **options)

@@ -121,7 +121,7 @@ def rollout_diagnostics(model: Model, traj: State, *, world: int | None = 0, dt:
     Returns:
         The figure drawn on. Each panel's lines hold exactly the plotted arrays (``line.get_ydata()``).
     """
-    from kamino.api import metrics
+    from kamino.readouts import metrics
 
     m = {k: np.asarray(v) for k, v in metrics(model, traj).items()}
     num_steps, num_worlds = m["constraint_violation"].shape

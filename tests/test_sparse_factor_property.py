@@ -1,5 +1,6 @@
-"""Property: the sparse factor's symbolic analysis (``kamino.warp_backend.sparse_llt.symbolic``: minimum-degree order,
-fill pattern, update lists) factorises what a dense Cholesky factorises, on random systems of redundant planar loops.
+"""Property: the sparse factor's symbolic analysis (``kamino.warp_backend.sparse_pattern.symbolic``: minimum-degree
+order, fill pattern, update lists) factorises what a dense Cholesky factorises, on random systems of redundant planar
+loops.
 
 A system is ``D~ = P J M^-1 J^T P + sigma I`` of random bodies joined by hinges about world y (a random tree plus
 random loop-closing hinges): 5 rows per hinge, three of each loop's rows redundant in 3-D, so the proximal shift
@@ -19,7 +20,7 @@ import scipy.linalg
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from kamino.warp_backend.sparse_llt import symbolic
+from kamino.warp_backend.sparse_pattern import symbolic
 
 SIGMA = 1e-5 + 1e-4  # SolverConfig's eta + rho_free
 

@@ -13,9 +13,9 @@ import warp as wp
 import kamino
 from kamino.bench import memory_breakdown as mb  # the counts it predicts with
 from kamino.tables import row_tables
-from kamino.warp_backend import sparse_llt
+from kamino.warp_backend import sparse_llt, sparse_pattern
 from kamino.warp_backend.model_data import warp_model
-from kamino.warp_backend.sparse_llt import fixed_row_bodies, symbolic, tail_patterns, tail_row_bodies
+from kamino.warp_backend.sparse_pattern import fixed_row_bodies, symbolic, tail_patterns, tail_row_bodies
 
 
 @pytest.mark.parametrize("name", ["dr_legs", "bdx"])
@@ -102,7 +102,7 @@ def _reference_pattern(robot: kamino.Model, n_rows: int, hub_min_rows: int | Non
     """What :func:`_world_pattern` must find for a one-world ``robot`` factorising ``n_rows`` rows, straight from
     ``symbolic`` and ``tail_patterns`` (the per-world path)."""
     rows = fixed_row_bodies(robot)[0]
-    sym = symbolic(rows, sparse_llt.hub_bodies(rows, hub_min_rows), hub_row0)
+    sym = symbolic(rows, sparse_pattern.hub_bodies(rows, hub_min_rows), hub_row0)
     out = dict(n_fixed=[len(rows)], perm=sym.perm, row_ptr=sym.row_ptr, upd_ptr=np.stack(
         [sym.upd_ptr[:-1], sym.upd_ptr[1:]], axis=1).reshape(-1), hub_body=sym.hubs, col=sym.col,
         colrow=sym.colrow, row=sym.row, div=sym.div)
@@ -121,19 +121,19 @@ def _reference_pattern(robot: kamino.Model, n_rows: int, hub_min_rows: int | Non
 
 
 def test_heterogeneous_model_builds_each_robots_patterns(monkeypatch):
-    # Stepper construction analyses each distinct world structure once (sparse_llt.fixed_row_types, world_types) and
+    # Stepper construction analyses each distinct world structure once (sparse_pattern.fixed_row_types, world_types) and
     # lays the worlds' arrays out with numpy over all worlds. In a model of several robot types (concat), every world
     # must get the factor pattern, hubs and L_tf patterns that its robot alone gets. Small chunks make
     # fixed_row_types compute the worlds' rows in several pieces; hubs of more than 24 rows (dr_legs, bdx: two each)
     # exercise the hub tables.
-    monkeypatch.setattr(sparse_llt, "CHUNK_ROWS", 100)
+    monkeypatch.setattr(sparse_pattern, "CHUNK_ROWS", 100)
     robots = [kamino.models.dr_legs(), kamino.models.bdx(), kamino.models.fourbar(), kamino.models.olaf()]
     order = [0, 1, 0, 2, 3, 1, 0]
     model = kamino.concat([robots[k] for k in order])
     tab = row_tables(model)
-    ft = sparse_llt.fixed_row_types(model)
+    ft = sparse_pattern.fixed_row_types(model)
     assert len(ft.rows) == len(robots)  # one analysis per robot type, not per world
-    for w, (rows, tails) in enumerate(zip(fixed_row_bodies(model), sparse_llt.all_tail_row_bodies(model, tab),
+    for w, (rows, tails) in enumerate(zip(fixed_row_bodies(model), sparse_pattern.all_tail_row_bodies(model, tab),
                                           strict=True)):
         np.testing.assert_array_equal(ft.rows[ft.world_type[w]], rows)
         lim, pairs = tail_row_bodies(model, tab, w)
@@ -178,17 +178,17 @@ def test_setup_tables_are_cached_only_under_frozen_models():
 
     model = kamino.replicate(kamino.models.bdx(), 3)
     assert is_frozen(model)
-    tab, ft = row_tables(model), sparse_llt.fixed_row_types(model)
-    assert row_tables(model) is tab and sparse_llt.fixed_row_types(model) is ft
+    tab, ft = row_tables(model), sparse_pattern.fixed_row_types(model)
+    assert row_tables(model) is tab and sparse_pattern.fixed_row_types(model) is ft
     assert not tab.cts_joint.flags.writeable and not ft.world_type.flags.writeable
     assert list(ft.world_type) == [0, 0, 0] and len(ft.rows) == 1
     twin = copy.copy(model)
-    assert row_tables(twin) is not tab and sparse_llt.fixed_row_types(twin) is not ft
+    assert row_tables(twin) is not tab and sparse_pattern.fixed_row_types(twin) is not ft
     loose = dataclasses.replace(model, **{f.name: np.array(getattr(model, f.name)) for f in dataclasses.fields(model)
                                           if isinstance(getattr(model, f.name), np.ndarray)})
     assert not is_frozen(loose)
     assert row_tables(loose) is not row_tables(loose)
-    assert sparse_llt.fixed_row_types(loose) is not sparse_llt.fixed_row_types(loose)
+    assert sparse_pattern.fixed_row_types(loose) is not sparse_pattern.fixed_row_types(loose)
     np.testing.assert_array_equal(row_tables(loose).cts_joint, tab.cts_joint)
 
 

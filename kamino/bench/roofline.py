@@ -42,7 +42,7 @@ Counts are of the arithmetic and the words in the source, not of compiled instru
 one FLOP, comparisons as none.
 
 A count of "factor multiply-adds" as ``n_upd + n_t nnz + n_t (n_t + 1) / 2 n_f + n_t^3 / 6`` is that of the factor
-without hubs and with a dense ``L_tf`` (``sparse_llt.symbolic`` with ``hubs=None``; e.g. dr_legs with a 36-row tail:
+without hubs and with a dense ``L_tf`` (``sparse_pattern.symbolic`` with ``hubs=None``; e.g. dr_legs with a 36-row tail:
 30,428 + 36 x 3,473 + 666 x 204 + 7,776 = 3.0e5), an upper bound of the counts here.
 """
 
@@ -73,7 +73,7 @@ REDUCTIONS = 8
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class FactorShape:
-    """One world's factor (``sparse_llt.Symbolic`` / ``Pattern``), with its tail at capacity."""
+    """One world's factor (``sparse_pattern.Symbolic`` / ``Pattern``), with its tail at capacity."""
 
     n_fixed: int  # fixed rows (joint-dynamics, joint, coupling)
     n_pos: int  # positions of L_f: the fixed rows, then 6 per hub

@@ -47,13 +47,13 @@ import numpy as np
 from brax.envs.base import Env
 from brax.envs.base import State as BraxState
 
-from kamino.api import dof_state, init_state
 from kamino.checks import check_state
 from kamino.config import BACKENDS, SolverConfig
 from kamino.envs.geometry import ground_height, place_on_ground, support_points
 from kamino.envs.system import EnvSystem
-from kamino.kinematics import base_bodies, forward_kinematics
+from kamino.kinematics import base_bodies, forward_kinematics, init_state
 from kamino.model import ActuationMode, Model, replicate
+from kamino.readouts import dof_state
 from kamino.simulator import Simulator
 from kamino.state import Control, State, drop_empty, fill_empty
 

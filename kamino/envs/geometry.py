@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kamino.api import frame_vectors
 from kamino.hostmath import quat_to_matrix as host_quat_to_matrix
 from kamino.model import GeomType, Model
+from kamino.readouts import frame_vectors
 from kamino.spatial import rotate
 
 

@@ -38,7 +38,9 @@ from kamino.io._mjcf_features import (
     joint_problems,
     obj_name,
 )
+from kamino.kinematics import init_state
 from kamino.model import CONTACT_POINTS, Actuation, ActuationMode, GeomType, JointType, Model, ModelBuilder, ModelError
+from kamino.readouts import joint_positions
 
 #: Default mass (and inertia) of a light intermediate body relative to the body it leads to.
 LIGHT_MASS_RATIO = 1e-2
@@ -103,8 +105,6 @@ class MjcfImport:
         quaternions in MuJoCo's (w, x, y, z) order."""
         import jax
 
-        from kamino.api import init_state, joint_positions
-
         body_q = np.asarray(body_q)
         lead = body_q.shape[:-2]
         flat = body_q.reshape((-1, *body_q.shape[-2:]))
@@ -168,8 +168,6 @@ class MjcfImport:
     def state(self, qpos: Any = None, qvel: Any = None, dtype: Any = None):
         """A kamino :class:`~kamino.State` at MuJoCo's ``qpos``/``qvel`` (see :meth:`body_state`)."""
         import jax.numpy as jnp
-
-        from kamino.api import init_state
 
         body_q, body_u = self.body_state(qpos, qvel)
         state = init_state(self.model, dtype=dtype)

@@ -28,7 +28,7 @@ from kamino.state import ContactState, Control, State, StepInfo
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
-def _padded_poses(pm: PaddedModel, t: dict, body_q: jax.Array) -> jax.Array:
+def padded_poses(pm: PaddedModel, t: dict, body_q: jax.Array) -> jax.Array:
     """Flat poses -> padded ``[W, nb, 7]``, identity poses on padding."""
     q = to_padded(body_q, t["bg"], pm.body_mask, 0.0)
     return jnp.where(pm.body_mask[..., None], q, jnp.asarray(_IDENTITY_POSE, body_q.dtype))
@@ -37,7 +37,7 @@ def _padded_poses(pm: PaddedModel, t: dict, body_q: jax.Array) -> jax.Array:
 def _padded_state(pm: PaddedModel, t: dict, state: State, control: Control | None):
     """Flat State/Control -> padded poses, twists, warm-start cache and controls per world."""
     dtype = state.body_q.dtype
-    q = _padded_poses(pm, t, state.body_q)
+    q = padded_poses(pm, t, state.body_q)
     u = to_padded(state.body_u, t["bg"], pm.body_mask, 0.0)
     dof = lambda x: to_padded(x, t["dg"], pm.dof_mask, 0.0)  # noqa: E731
     con = lambda x, fill=0.0: to_padded(x, t["cg"], t["cm"], fill)  # noqa: E731
@@ -176,7 +176,7 @@ class Engine:
 @jax.jit
 @full_precision
 def _metrics_jit(pm: PaddedModel, t: dict, body_q, body_u):
-    q = _padded_poses(pm, t, body_q)
+    q = padded_poses(pm, t, body_q)
     u = to_padded(body_u, t["bg"], pm.body_mask, 0.0)
 
     def one(pm_w, q_w, u_w):
@@ -201,7 +201,7 @@ def metrics(model: Model, state: State) -> dict:
 @jax.jit
 @full_precision
 def _joint_coords_jit(pm: PaddedModel, gather_j: dict, body_q):
-    q = _padded_poses(pm, gather_j, body_q)
+    q = padded_poses(pm, gather_j, body_q)
     return jax.vmap(lambda p, x: joint_coordinates(p, joint_frames(p, x)))(pm, q)
 
 
@@ -214,7 +214,7 @@ def joint_coordinates_padded(model: Model, body_q: jax.Array) -> jax.Array:
 @jax.jit
 @full_precision
 def _dof_state_jit(pm: PaddedModel, t: dict, body_q, body_u):
-    q = _padded_poses(pm, t, body_q)
+    q = padded_poses(pm, t, body_q)
     u = to_padded(body_u, t["bg"], pm.body_mask, 0.0)
 
     def one(p, x, v):
