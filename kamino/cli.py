@@ -25,11 +25,14 @@ def demo_steps(seconds: float, dt: float) -> int:
     return n
 
 
-def demo(seconds: float = 5.0, dt: float = 1.0 / 240.0, integrator: str = "midpoint") -> dict[str, float]:
-    """Simulate ``kamino.models.fourbar()`` and print loop-closure violation, energy drift and step rate.
+def demo(seconds: float = 5.0, dt: float = 1.0 / 240.0, integrator: str = "midpoint",
+         backend: str | None = None) -> dict[str, float]:
+    """Simulate ``kamino.models.fourbar()`` on ``backend`` (kamino's default: Warp) and print loop-closure violation,
+    energy drift and step rate.
 
-    The first run on a machine compiles the rollout (tens of seconds on a CPU); a line on stderr says so
-    (``kamino._progress.announce_compile``), and JAX's compilation cache makes the next run start in seconds."""
+    The first run on a machine compiles the rollout (Warp's kernels, or the JAX reference's XLA program: tens of
+    seconds on a CPU); a line on stderr says so (``kamino._progress.announce_compile``), and Warp's kernel cache or
+    JAX's compilation cache makes the next run start in seconds."""
     n = demo_steps(seconds, dt)
     import jax
 
@@ -39,12 +42,14 @@ def demo(seconds: float = 5.0, dt: float = 1.0 / 240.0, integrator: str = "midpo
     model = kamino.models.fourbar()
     state = kamino.init_state(model)
     cfg = kamino.SolverConfig(dt=dt, integrator=integrator)
-    print(f"kamino demo: four-bar linkage, {seconds:g} s at dt = {dt:.5g} s ({integrator}, {jax.default_backend()})",
+    sim = kamino.Simulator(model, cfg) if backend is None else kamino.Simulator(model, cfg, backend=backend)
+    print(f"kamino demo: four-bar linkage, {seconds:g} s at dt = {dt:.5g} s ({integrator}, {sim.backend} backend)",
           flush=True)
-    with announce_compile("the four-bar's rollout"):
-        kamino.rollout(model, state, num_steps=n, config=cfg).body_q.block_until_ready()
+    warp_note = "the first run on a machine takes longest; Warp keeps the kernels for later runs"
+    with announce_compile("the four-bar's rollout", note=warp_note if sim.backend == "warp" else None):
+        sim.rollout(state, num_steps=n).body_q.block_until_ready()
     t0 = time.perf_counter()
-    traj = kamino.rollout(model, state, num_steps=n, config=cfg)
+    traj = sim.rollout(state, num_steps=n)
     traj.body_q.block_until_ready()
     elapsed = time.perf_counter() - t0
     with announce_compile("the diagnostics"):
@@ -93,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--dt", type=float, default=1.0 / 240.0, help="time step [s], > 0 (default 1/240)")
     d.add_argument("--integrator", choices=["euler", "midpoint"], default="midpoint")
     d.add_argument("--x64", action="store_true", help="simulate in float64")
+    d.add_argument("--backend", choices=["warp", "jax"], default=None,
+                   help="warp (the default: the production backend) or jax (the reference)")
     for name, (_, help_line) in DELEGATED.items():
         sub.add_parser(name, help=help_line, add_help=False)
     args = parser.parse_args(argv)
@@ -105,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             import jax
 
             jax.config.update("jax_enable_x64", True)
-        demo(args.seconds, args.dt, args.integrator)
+        demo(args.seconds, args.dt, args.integrator, args.backend)
     return 0
 
 

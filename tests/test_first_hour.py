@@ -347,10 +347,12 @@ def test_progress_draws_on_stderr_unless_quiet(capsys, monkeypatch):
 
 @pytest.mark.slow  # compiles the four-bar's rollout in a fresh process, as a user's first `kamino demo` does
 def test_cold_demo_says_it_is_compiling(tmp_path):
-    # a fresh cache directory: the rollout compiles, and a line on stderr says so before the numbers come
+    # a fresh JAX cache directory and the JAX reference (Warp's kernel cache is the machine's, warm after the first
+    # run: that demo takes seconds): the rollout compiles, and a line on stderr says so before the numbers come
     env = {k: v for k, v in os.environ.items() if k not in ("KAMINO_QUIET", "JAX_COMPILATION_CACHE_DIR")}
     env["KAMINO_JAX_CACHE"] = str(tmp_path / "jax")
-    run = subprocess.run([sys.executable, "-m", "kamino.cli", "demo", "--seconds", "0.05"], capture_output=True,
+    run = subprocess.run([sys.executable, "-m", "kamino.cli", "demo", "--seconds", "0.05", "--backend", "jax"],
+                         capture_output=True,
                          text=True, env=env, cwd=ROOT, timeout=600, check=True)
     assert "kamino: compiling the four-bar's rollout (the first run on a machine takes longest; later runs load " \
            "it from the cache) ... done in" in run.stderr, run.stderr

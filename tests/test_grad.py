@@ -19,7 +19,7 @@ def test_grad_of_pendulum_angle_matches_finite_differences():
         omega = jnp.array([0.0, 1.0, 0.0]) * w0
         twist = jnp.concatenate([jnp.cross(omega, lever), omega])  # rigid rotation about the pivot
         s = state0.replace(body_u=twist[None, :])
-        traj = kamino.rollout(model, s, num_steps=50, config=cfg)
+        traj = kamino.rollout(model, s, num_steps=50, config=cfg, backend="jax")  # the differentiable one
         return kamino.joint_positions(model, jax.tree.map(lambda x: x[-1], traj))[0]
 
     w0 = 0.7

@@ -711,7 +711,8 @@ def test_the_benchmark_fourbar_drops_no_contact_at_its_nconmax_on_the_reference(
     over the padded rows, so its rounding differs (1.6e-9 m after one step); the four-bar, whose base slides on the
     ground, amplifies that (3e-5 m after 100 steps), so it is compared over the first 40 steps."""
     models, cfg, effort = _benchmark_fourbar_runs()
-    ref = [kamino.rollout(m, kamino.init_state(m, np.float32), kamino.Control(dof_effort=effort[:40]), config=cfg)
+    ref = [kamino.rollout(m, kamino.init_state(m, np.float32), kamino.Control(dof_effort=effort[:40]), config=cfg,
+                          backend="jax")
            for m in models]
     assert int(np.max(ref[1].info.contact_overflow)) == 0
     np.testing.assert_allclose(np.asarray(ref[0].body_q), np.asarray(ref[1].body_q), atol=1e-6)

@@ -42,7 +42,7 @@ def _driven_fourbar_states(num_steps: int):
         return kamino.Control(dof_effort=jnp.zeros(model.num_dofs).at[dof].set(2.0 * jnp.sin(2 * jnp.pi * i * DT)))
 
     def step(s, i):  # kamino.step compiles once per configuration
-        return kamino.step(model, s, control(i), config=cfg)
+        return kamino.step(model, s, control(i), config=cfg, backend="jax")
 
     states = [kamino.init_state(model, jnp.float64)]
     for i in range(num_steps):
@@ -77,7 +77,7 @@ def test_parallelogram_limits_stop_creeping_and_keep_the_solution(fourbar_in_lim
 
     def stepper(**kw):
         cfg = kamino.SolverConfig(**{**BENCH, **kw})
-        return lambda s, i: kamino.step(model, s, control(i), config=cfg)
+        return lambda s, i: kamino.step(model, s, control(i), config=cfg, backend="jax")
 
     plain, rule = stepper(), stepper(redundant_limits=True)
     tight = dict(tolerance=1e-10, max_iterations=20000)
@@ -131,8 +131,9 @@ def test_independent_limits_are_left_alone():
     model = _double_pendulum()
     state = kamino.init_state(model)
     cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8)
-    a = kamino.rollout(model, state, num_steps=120, config=cfg)
-    b = kamino.rollout(model, state, num_steps=120, config=dataclasses.replace(cfg, redundant_limits=True))
+    a = kamino.rollout(model, state, num_steps=120, config=cfg, backend="jax")
+    b = kamino.rollout(model, state, num_steps=120, config=dataclasses.replace(cfg, redundant_limits=True),
+                       backend="jax")
     assert np.all(np.count_nonzero(np.asarray(a.limit_force)[-20:], axis=1) == 2)  # both limits hold at the end
     np.testing.assert_array_equal(np.asarray(a.body_u), np.asarray(b.body_u))
     np.testing.assert_array_equal(np.asarray(a.info.iterations), np.asarray(b.info.iterations))
@@ -175,7 +176,7 @@ def test_rule_refuses_what_it_cannot_do():
     model = _double_pendulum()
     cfg = kamino.SolverConfig(dt=1.0 / 240.0, redundant_limits=True)
     with pytest.raises(ValueError, match="float64"):
-        kamino.step(model, kamino.init_state(model, dtype=np.float32), config=cfg)
+        kamino.step(model, kamino.init_state(model, dtype=np.float32), config=cfg, backend="jax")
     pytest.importorskip("warp")
     with pytest.raises(ValueError, match="JAX reference only"):
         kamino.step(model, kamino.init_state(model, dtype=np.float64), config=cfg, backend="warp")

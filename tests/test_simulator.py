@@ -141,6 +141,6 @@ def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="parameters need backend='jax'"):
         kamino.Simulator(model, backend="warp").parameters(jnp.float32)
     sim = kamino.Simulator(model)
-    assert sim.model is model and sim.backend == "jax" and isinstance(sim.config, kamino.SolverConfig)
+    assert sim.model is model and sim.backend == "warp" and isinstance(sim.config, kamino.SolverConfig)
     with pytest.raises(ValueError, match="rollout"):
         sim.rollout(kamino.init_state(model))

@@ -243,7 +243,7 @@ def bench_jax(name, num_worlds, args) -> dict:
         t = s.time[0] + DT * jnp.arange(n, dtype=s.time.dtype)
         effort = jnp.zeros((n, model.num_dofs), s.time.dtype)
         effort = effort.at[:, dof].set((AMPLITUDE * jnp.sin(2 * jnp.pi * FREQUENCY * t))[:, None])
-        traj = kamino.rollout(model, s, kamino.Control(dof_effort=effort), config=cfg)
+        traj = kamino.rollout(model, s, kamino.Control(dof_effort=effort), config=cfg, backend="jax")
         return jax.tree_util.tree_map(lambda x: x[-1], traj)
 
     run = jax.jit(block)
