@@ -186,6 +186,217 @@ class Carry(NamedTuple):
     pending: jax.Array  #: a row saturated: the factor is redone before the next iteration
 
 
+class _Problem:
+    """One world's PADMM problem in scaled units (docs/formulation.md §7.2-§7.3) and the operations every iteration
+    of :func:`solve` uses: the rows' penalties, the block factor and its solve, the projection on ``K`` and the
+    complementarity residual. Built while tracing :func:`solve`: its arrays are traced values."""
+
+    def __init__(self, D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array,
+                 row_mask: jax.Array, cfg: SolverConfig, rho0, n_fixed: int) -> None:
+        dtype = self.dtype = D.dtype
+        n = self.n = D.shape[0]
+        n_box = self.n_box = lo.shape[0]
+        self.cfg, self.mu, self.row_mask, self.lo, self.hi = cfg, mu, row_mask, lo, hi
+        self.eta = jnp.asarray(cfg.eta, dtype)
+        P = self.P = jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
+        self.Dt = P[:, None] * D * P[None, :]
+        self.vt = jnp.where(row_mask, P * v_f, 0.0)
+        P_ref = jnp.max(jnp.where(row_mask, P, 0.0), initial=0.0)
+        P_ref = jnp.where(P_ref > 0, P_ref, 1.0)
+        # residual weight of each row (solve's docstring, "Residuals")
+        self.W = 1.0 / jnp.minimum(RESIDUAL_LOOSENING_MAX * jnp.where(row_mask & (P > 0), P, P_ref), P_ref)
+        adaptive = self.adaptive = cfg.penalty == "adaptive"
+        fixed_row = self.fixed_row = jnp.arange(n) < n_fixed
+        self.bound_rows = row_mask & ~fixed_row
+        # fixed rows with a finite bound (effort-limited actuators): the proximal shift rho_free while the row is
+        # inside its box (there it is a bilateral row), the constant rho once saturated (solve's docstring,
+        # "Saturation")
+        boxed = jnp.concatenate([jnp.isfinite(lo) | jnp.isfinite(hi), jnp.zeros(n - n_box, bool)])
+        self.fixed_box = fixed_row & boxed & row_mask
+        self.rho0 = jnp.asarray(cfg.rho if rho0 is None else rho0, dtype)
+        self.rho_free = jnp.asarray(cfg.rho_free if adaptive else cfg.rho, dtype)
+        self.rho_sat = jnp.asarray(cfg.rho, dtype)
+        self.free_row = fixed_row & ~boxed  # the unbounded rows, whose penalty is always the proximal shift rho_free
+        # block Cholesky [[L_f, 0], [L_tf, L_t]] of Dt + diag(eta + penalty): L_f and L_tf do not depend on the
+        # limit and contact rows' penalty rho_u, so a new rho_u only redoes L_t = chol(S_t + (eta + rho_u) I) from
+        # the tail's Schur complement S_t (the Warp backend's scheme, docs/conventions.md "Penalty"); a fixed row
+        # that saturates redoes all of it
+        self.nf = min(n_fixed, n) if adaptive else 0
+        finite_lo, finite_hi = self.finite_lo, self.finite_hi = jnp.isfinite(lo), jnp.isfinite(hi)
+        # bounds on scaled box rows (P > 0); infinite bounds stay infinite without touching P (no inf*0 in grads)
+        self.lo_s = jnp.where(finite_lo, jnp.where(finite_lo, lo, 0.0) / P[:n_box], lo)
+        self.hi_s = jnp.where(finite_hi, jnp.where(finite_hi, hi, 0.0) / P[:n_box], hi)
+        self.tol = jnp.asarray(cfg.tolerance, dtype)
+        self.restart_tol = jnp.asarray(cfg.restart_tolerance, dtype)
+        self.box_bounded = (finite_lo | finite_hi) & row_mask[:n_box]
+        self.active_contact = row_mask[n_box:].reshape(-1, 3)[:, 2]
+
+    def penalty(self, rho_u, sat) -> jax.Array:
+        """Every row's penalty: the fixed rows' ``rho_free`` (``rho`` when saturated), the others' ``rho_u``."""
+        if not self.adaptive:
+            return jnp.full(self.n, self.cfg.rho, self.dtype)
+        return jnp.where(self.fixed_row, jnp.where(sat, self.rho_sat, self.rho_free), rho_u)
+
+    def factor_fixed(self, sat) -> tuple:
+        """``(L_f, L_tf, S_t)``: the fixed rows' factor, the coupling block and the tail's Schur complement."""
+        nf, n, dtype = self.nf, self.n, self.dtype
+        A = self.Dt + jnp.diag(self.eta + self.penalty(self.rho0, sat))
+        L_f = jnp.linalg.cholesky(A[:nf, :nf]) if nf else jnp.zeros((0, 0), dtype)
+        L_tf = solve_triangular(L_f, A[:nf, nf:], lower=True).T if nf else jnp.zeros((n - nf, 0), dtype)
+        return L_f, L_tf, self.Dt[nf:, nf:] - L_tf @ L_tf.T
+
+    def factor(self, fixed, rho_u, sat) -> tuple:
+        """The whole block factor ``(L_f, L_tf, S_t, L_t)`` from the fixed part ``fixed = (L_f, L_tf, S_t)``."""
+        L_f, L_tf, S_t = fixed
+        nf, n = self.nf, self.n
+        if nf == n:
+            return L_f, L_tf, S_t, jnp.zeros((0, 0), self.dtype)
+        tail = self.penalty(rho_u, sat)[nf:] if self.adaptive else jnp.full(n - nf, self.cfg.rho, self.dtype)
+        return L_f, L_tf, S_t, jnp.linalg.cholesky(S_t + jnp.diag(self.eta + tail))
+
+    def lin_solve(self, L, b) -> jax.Array:
+        """``x = (Dt + diag(eta + rho))^-1 b`` with the block factor (§8.1)."""
+        L_f, L_tf, _, L_t = L
+        nf, n = self.nf, self.n
+        y_f = solve_triangular(L_f, b[:nf], lower=True) if nf else b[:0]
+        if nf == n:
+            return solve_triangular(L_f, y_f, lower=True, trans="T")
+        y_t = solve_triangular(L_t, b[nf:] - L_tf @ y_f, lower=True)
+        x_t = solve_triangular(L_t, y_t, lower=True, trans="T")
+        x_f = solve_triangular(L_f, y_f - L_tf.T @ x_t, lower=True, trans="T") if nf else b[:0]
+        return jnp.concatenate([x_f, x_t])
+
+    def upper(self, vt) -> jax.Array:
+        """The box rows' scaled upper bounds; the redundant limit rows get 0 (their lower bound): ``lambda = 0``."""
+        if not self.cfg.redundant_limits:
+            return self.hi_s
+        return jnp.where(redundant_limits(self.Dt, vt, self.lo, self.hi, self.row_mask)[:self.n_box], 0.0, self.hi_s)
+
+    def proj(self, x, hi_v) -> jax.Array:
+        """The projection on ``K`` (§4.3) with upper bounds ``hi_v``; zero on padded rows."""
+        return jnp.where(self.row_mask, project(x, self.lo_s, hi_v, self.mu, self.n_box), 0.0)
+
+    def complementarity(self, y, z) -> jax.Array:
+        """``r_c`` (§7.5): the box rows' distance-to-bound times velocity, the contacts' ``|y . z|``."""
+        n_box, lo_s, hi_s, finite_lo, finite_hi = self.n_box, self.lo_s, self.hi_s, self.finite_lo, self.finite_hi
+        yb, zb = y[:n_box], z[:n_box]
+        gap = jnp.minimum(jnp.where(finite_lo, jnp.abs(yb - jnp.where(finite_lo, lo_s, 0.0)), jnp.inf),
+                          jnp.where(finite_hi, jnp.abs(jnp.where(finite_hi, hi_s, 0.0) - yb), jnp.inf))
+        r_box = jnp.where(self.box_bounded, jnp.abs(zb) * jnp.where(self.box_bounded, gap, 0.0), 0.0)
+        yc, zc = y[n_box:].reshape(-1, 3), z[n_box:].reshape(-1, 3)
+        r_con = jnp.where(self.active_contact, jnp.abs(jnp.sum(yc * zc, axis=1)), 0.0)
+        return jnp.maximum(jnp.max(r_box, initial=0.0), jnp.max(r_con, initial=0.0))
+
+    def start(self, impulse0, velocity0) -> tuple[Carry, jax.Array]:
+        """The warm-started first carry (§7.8) and the box rows' upper bounds for ``vt``. Effort-limited rows whose
+        warm start lies on a bound (to ``SATURATION_MARGIN`` of it) start saturated."""
+        dtype, n, n_box, P, row_mask = self.dtype, self.n, self.n_box, self.P, self.row_mask
+        finite_lo, finite_hi, lo_s, hi_s = self.finite_lo, self.finite_hi, self.lo_s, self.hi_s
+        hi_v = self.upper(self.vt)
+        x0 = self.proj(jnp.where(row_mask, impulse0 / P, 0.0), hi_v)
+        z0 = jnp.where(row_mask, P * velocity0, 0.0)
+        big = self.big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+        self.tiny = jnp.asarray(jnp.finfo(dtype).tiny, dtype)
+        self.any_bound = jnp.any(self.bound_rows)
+        lo_m = jnp.where(finite_lo, lo_s + SATURATION_MARGIN * jnp.abs(jnp.where(finite_lo, lo_s, 0.0)), lo_s)
+        hi_m = jnp.where(finite_hi, hi_s - SATURATION_MARGIN * jnp.abs(jnp.where(finite_hi, hi_s, 0.0)), hi_s)
+        on_bound = (finite_lo & (x0[:n_box] <= lo_m)) | (finite_hi & (x0[:n_box] >= hi_m))
+        sat0 = self.fixed_box & jnp.concatenate([on_bound, jnp.zeros(n - n_box, bool)])
+        init = Carry(k=jnp.int32(0), x_p=x0, y_p=x0, z_p=z0, y_hat=x0, z_hat=z0, a_p=jnp.asarray(1.0, dtype),
+                     c_p=big, r_p=big, r_d=big, r_c=big, converged=jnp.asarray(False), rho_u=self.rho0,
+                     L=self.factor(self.factor_fixed(sat0), self.rho0, sat0), k_rho=jnp.int32(0),
+                     e_p=jnp.full(n, big, dtype), sat=sat0, pending=jnp.asarray(False))
+        return init, hi_v
+
+
+def _iterate(p: _Problem, carry: Carry, vt, hi_v, inline: bool = True) -> Carry:
+    """One PADMM iteration (Alg. 1, §7.3-§7.5). A row that saturates refactorises here (``inline``) or marks the
+    carry's ``pending`` for the caller to refactorise (the while loop: under ``vmap`` a ``lax.cond`` runs both
+    branches, so an inline refactorisation would cost a factorisation per iteration)."""
+    k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _, rho_u, L, k_rho, e_p, sat, pending = carry
+    cfg, eta, tol, W, P, big = p.cfg, p.eta, p.tol, p.W, p.P, p.big
+    rho = p.penalty(rho_u, sat)
+    # step 1-2: De Saxcé correction, linear solve with the cached factor
+    s = de_saxce(z_hat, p.mu, p.n_box)
+    x = p.lin_solve(L, -vt - s + eta * x_p + rho * y_hat + z_hat)
+    # steps 3-4: projection on K, dual update
+    y = p.proj(x - z_hat / rho, hi_v)
+    z = jnp.where(p.row_mask, z_hat + rho * (y - x), 0.0)
+    # residuals in the energy norm, capped for light rows (solve's docstring, "Residuals")
+    r_p = jnp.max(W * jnp.abs(x - y), initial=0.0)
+    e = eta * (x - x_p) + rho * (y - y_hat)
+    r_d = jnp.max(W * jnp.abs(e), initial=0.0)
+    r_c = p.complementarity(y, z)
+    converged = (k + 1 >= 2) & (r_p <= tol) & (r_d <= tol) & (r_c <= tol)
+    if p.adaptive:
+        # or a least-squares solution along a numerically null direction of Dt (solve's docstring, "Null
+        # directions")
+        free_row = p.free_row
+        r_tail = jnp.max(jnp.where(free_row, 0.0, W * jnp.abs(e)), initial=0.0)
+        de = jnp.max(jnp.where(free_row, jnp.abs(e - e_p), 0.0), initial=0.0)
+        dx = jnp.max(jnp.where(free_row, jnp.abs(x - x_p), 0.0), initial=0.0)
+        null = (de <= NULL_DIRECTION_RATIO * (eta + p.rho_free) * dx) & (dx > 0)
+        converged |= (k + 1 >= 2) & (r_p <= tol) & (r_tail <= tol) & (r_c <= tol) & null
+    # §7.4 Fast ADMM with restart on the combined residual (unscaled units)
+    c = jnp.sum(rho * (P * (y - y_hat)) ** 2) + jnp.sum(((z - z_hat) / P) ** 2 / rho)
+    if cfg.acceleration:
+        keep = c < p.restart_tol * c_p
+        a = jnp.where(keep, 0.5 * (1.0 + jnp.sqrt(1.0 + 4.0 * a_p * a_p)), 1.0)
+        beta = jnp.where(keep, (a_p - 1.0) / a, 0.0)
+        y_hat_n = jnp.where(keep, y + beta * (y - y_p), y_p)
+        z_hat_n = jnp.where(keep, z + beta * (z - z_p), z_p)
+        c_n = jnp.where(keep, c, c_p / p.restart_tol)
+    else:
+        a, y_hat_n, z_hat_n, c_n = a_p, y, z, c_p
+    if p.adaptive:
+        # residual balancing of the bounded rows' penalty; a change refactorises and restarts the momentum
+        # a discrete choice: no gradient flows through it (fixed_iterations under jax.grad)
+        ratio = jax.lax.stop_gradient(jnp.sqrt((r_p + p.tiny) / (r_d + p.tiny)))
+        due = (k + 1 - k_rho >= PENALTY_INTERVAL) & p.any_bound & ~converged
+        gain = jnp.clip(ratio, 1.0 / PENALTY_MAX_FACTOR, PENALTY_MAX_FACTOR)
+        rho_n = jnp.clip(rho_u * gain, RHO_MIN, RHO_MAX).astype(p.dtype)
+        change = due & ((ratio > PENALTY_THRESHOLD) | (ratio * PENALTY_THRESHOLD < 1.0)) & (rho_n != rho_u)
+        rho_u = jnp.where(change, rho_n, rho_u)
+        # an effort-limited row inside its box whose projection became active saturates: it takes rho from
+        # now on, and the whole factor is redone (solve's docstring, "Saturation")
+        clipped = jax.lax.stop_gradient(y != x - z_hat / rho)
+        hit = p.fixed_box & ~sat & clipped & ~converged
+        switch = jnp.any(hit)
+        sat = sat | hit
+        if inline:
+            L = jax.lax.cond(switch, lambda: p.factor(p.factor_fixed(sat), rho_u, sat),
+                             lambda: jax.lax.cond(change, lambda: p.factor(L[:3], rho_u, sat), lambda: L))
+        else:
+            L = jax.lax.cond(change & ~switch, lambda: p.factor(L[:3], rho_u, sat), lambda: L)
+            pending = pending | switch
+        change = change | switch
+        a = jnp.where(change, 1.0, a)
+        y_hat_n = jnp.where(change, y, y_hat_n)
+        z_hat_n = jnp.where(change, z, z_hat_n)
+        c_n = jnp.where(change, big, c_n)
+        k_rho = jnp.where(change, k + 1, k_rho)
+    return Carry(k=k + 1, x_p=x, y_p=y, z_p=z, y_hat=y_hat_n, z_hat=z_hat_n, a_p=a, c_p=c_n, r_p=r_p, r_d=r_d,
+                 r_c=r_c, converged=converged, rho_u=rho_u, L=L, k_rho=k_rho, e_p=e, sat=sat, pending=pending)
+
+
+def _run(p: _Problem, carry: Carry, vt, hi_v, cap) -> Carry:
+    """Iterations from ``carry`` until the solve converges or reaches ``cap`` iterations (``cfg.fixed_iterations``:
+    exactly ``cfg.max_iterations``, a differentiable ``fori_loop``)."""
+    cfg = p.cfg
+    if cfg.fixed_iterations:
+        return jax.lax.fori_loop(0, cfg.max_iterations, lambda _, c: _iterate(p, c, vt, hi_v), carry)
+
+    def phase(c: Carry) -> Carry:
+        # the factor for the rows saturated so far (where a row saturated), then iterations until the solve
+        # converges, reaches the cap or another row saturates
+        L = jax.lax.cond(c.pending, lambda: p.factor(p.factor_fixed(c.sat), c.rho_u, c.sat), lambda: c.L)
+        c = c._replace(L=L, pending=jnp.asarray(False))
+        return jax.lax.while_loop(lambda c: (~c.converged) & (c.k < cap) & ~c.pending,
+                                  lambda c: _iterate(p, c, vt, hi_v, inline=False), c)
+
+    return jax.lax.while_loop(lambda c: (~c.converged) & (c.k < cap), phase, carry)
+
+
 def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
           impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig, refine=None, rho0=None,
           n_fixed: int = 0) -> PADMMResult:
@@ -256,202 +467,22 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     limits of a parallelogram loop), evaluated again for the refined right-hand side: the solution keeps
     ``v+`` and each group's generalised impulse, and PADMM no longer creeps along the null direction.
     """
-    dtype = D.dtype
-    n = D.shape[0]
-    n_box = lo.shape[0]
-    eta = jnp.asarray(cfg.eta, dtype)
-    P = jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
-    Dt = P[:, None] * D * P[None, :]
-    vt = jnp.where(row_mask, P * v_f, 0.0)
-    P_ref = jnp.max(jnp.where(row_mask, P, 0.0), initial=0.0)
-    P_ref = jnp.where(P_ref > 0, P_ref, 1.0)
-    # residual weight of each row (docstring, "Residuals")
-    W = 1.0 / jnp.minimum(RESIDUAL_LOOSENING_MAX * jnp.where(row_mask & (P > 0), P, P_ref), P_ref)
-    adaptive = cfg.penalty == "adaptive"
-    fixed_row = jnp.arange(n) < n_fixed
-    bound_rows = row_mask & ~fixed_row
-    # fixed rows with a finite bound (effort-limited actuators): the proximal shift rho_free while the row is inside
-    # its box (there it is a bilateral row), the constant rho once saturated (docstring, "Saturation")
-    boxed = jnp.concatenate([jnp.isfinite(lo) | jnp.isfinite(hi), jnp.zeros(n - n_box, bool)])
-    fixed_box = fixed_row & boxed & row_mask
-    rho0 = jnp.asarray(cfg.rho if rho0 is None else rho0, dtype)
-    rho_free = jnp.asarray(cfg.rho_free if adaptive else cfg.rho, dtype)
-    rho_sat = jnp.asarray(cfg.rho, dtype)
-    free_row = fixed_row & ~boxed  # the unbounded rows, whose penalty is always the proximal shift rho_free
-
-    def penalty(rho_u, sat):
-        if not adaptive:
-            return jnp.full(n, cfg.rho, dtype)
-        return jnp.where(fixed_row, jnp.where(sat, rho_sat, rho_free), rho_u)
-
-    # block Cholesky [[L_f, 0], [L_tf, L_t]] of Dt + diag(eta + penalty): L_f and L_tf do not depend on the
-    # limit and contact rows' penalty rho_u, so a new rho_u only redoes L_t = chol(S_t + (eta + rho_u) I) from the
-    # tail's Schur complement S_t (the Warp backend's scheme, docs/conventions.md "Penalty"); a fixed row that
-    # saturates redoes all of it
-    nf = min(n_fixed, n) if adaptive else 0
-
-    def factor_fixed(sat):
-        A = Dt + jnp.diag(eta + penalty(rho0, sat))
-        L_f = jnp.linalg.cholesky(A[:nf, :nf]) if nf else jnp.zeros((0, 0), dtype)
-        L_tf = solve_triangular(L_f, A[:nf, nf:], lower=True).T if nf else jnp.zeros((n - nf, 0), dtype)
-        return L_f, L_tf, Dt[nf:, nf:] - L_tf @ L_tf.T
-
-    def factor(fixed, rho_u, sat):
-        """The whole block factor ``(L_f, L_tf, S_t, L_t)`` from the fixed part ``fixed = (L_f, L_tf, S_t)``."""
-        L_f, L_tf, S_t = fixed
-        if nf == n:
-            return L_f, L_tf, S_t, jnp.zeros((0, 0), dtype)
-        tail = penalty(rho_u, sat)[nf:] if adaptive else jnp.full(n - nf, cfg.rho, dtype)
-        return L_f, L_tf, S_t, jnp.linalg.cholesky(S_t + jnp.diag(eta + tail))
-
-    def lin_solve(L, b):
-        """``x = (Dt + diag(eta + rho))^-1 b`` with the block factor."""
-        L_f, L_tf, _, L_t = L
-        y_f = solve_triangular(L_f, b[:nf], lower=True) if nf else b[:0]
-        if nf == n:
-            return solve_triangular(L_f, y_f, lower=True, trans="T")
-        y_t = solve_triangular(L_t, b[nf:] - L_tf @ y_f, lower=True)
-        x_t = solve_triangular(L_t, y_t, lower=True, trans="T")
-        x_f = solve_triangular(L_f, y_f - L_tf.T @ x_t, lower=True, trans="T") if nf else b[:0]
-        return jnp.concatenate([x_f, x_t])
-
-    finite_lo, finite_hi = jnp.isfinite(lo), jnp.isfinite(hi)
-    # bounds on scaled box rows (P > 0); infinite bounds stay infinite without touching P (no inf*0 in grads)
-    lo_s = jnp.where(finite_lo, jnp.where(finite_lo, lo, 0.0) / P[:n_box], lo)
-    hi_s = jnp.where(finite_hi, jnp.where(finite_hi, hi, 0.0) / P[:n_box], hi)
-    tol = jnp.asarray(cfg.tolerance, dtype)
-    restart_tol = jnp.asarray(cfg.restart_tolerance, dtype)
-    box_bounded = (finite_lo | finite_hi) & row_mask[:n_box]
-    active_contact = row_mask[n_box:].reshape(-1, 3)[:, 2]
-
-    def upper(vt):
-        # the redundant limit rows get the upper bound 0 (their lower bound): lambda = 0
-        if not cfg.redundant_limits:
-            return hi_s
-        return jnp.where(redundant_limits(Dt, vt, lo, hi, row_mask)[:n_box], 0.0, hi_s)
-
-    def proj(x, hi_v):
-        return jnp.where(row_mask, project(x, lo_s, hi_v, mu, n_box), 0.0)
-
-    def complementarity(y, z):
-        yb, zb = y[:n_box], z[:n_box]
-        gap = jnp.minimum(jnp.where(finite_lo, jnp.abs(yb - jnp.where(finite_lo, lo_s, 0.0)), jnp.inf),
-                          jnp.where(finite_hi, jnp.abs(jnp.where(finite_hi, hi_s, 0.0) - yb), jnp.inf))
-        r_box = jnp.where(box_bounded, jnp.abs(zb) * jnp.where(box_bounded, gap, 0.0), 0.0)
-        yc, zc = y[n_box:].reshape(-1, 3), z[n_box:].reshape(-1, 3)
-        r_con = jnp.where(active_contact, jnp.abs(jnp.sum(yc * zc, axis=1)), 0.0)
-        return jnp.maximum(jnp.max(r_box, initial=0.0), jnp.max(r_con, initial=0.0))
-
-    hi_v = upper(vt)
-    x0 = proj(jnp.where(row_mask, impulse0 / P, 0.0), hi_v)
-    z0 = jnp.where(row_mask, P * velocity0, 0.0)
-    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
-    tiny = jnp.asarray(jnp.finfo(dtype).tiny, dtype)
-    any_bound = jnp.any(bound_rows)
-    # the effort-limited rows that start saturated: the warm start on a bound, to SATURATION_MARGIN of it
-    lo_m = jnp.where(finite_lo, lo_s + SATURATION_MARGIN * jnp.abs(jnp.where(finite_lo, lo_s, 0.0)), lo_s)
-    hi_m = jnp.where(finite_hi, hi_s - SATURATION_MARGIN * jnp.abs(jnp.where(finite_hi, hi_s, 0.0)), hi_s)
-    sat0 = fixed_box & jnp.concatenate([(finite_lo & (x0[:n_box] <= lo_m)) | (finite_hi & (x0[:n_box] >= hi_m)),
-                                        jnp.zeros(n - n_box, bool)])
-    init = Carry(k=jnp.int32(0), x_p=x0, y_p=x0, z_p=z0, y_hat=x0, z_hat=z0, a_p=jnp.asarray(1.0, dtype), c_p=big,
-                 r_p=big, r_d=big, r_c=big, converged=jnp.asarray(False), rho_u=rho0,
-                 L=factor(factor_fixed(sat0), rho0, sat0), k_rho=jnp.int32(0), e_p=jnp.full(n, big, dtype), sat=sat0,
-                 pending=jnp.asarray(False))
-
-    def iterate(carry: Carry, vt, hi_v, inline=True) -> Carry:
-        """One PADMM iteration. A row that saturates refactorises here (``inline``) or marks the carry's
-        ``pending`` for the caller to refactorise (the while loop: under ``vmap`` a ``lax.cond`` runs both
-        branches, so an inline refactorisation would cost a factorisation per iteration)."""
-        k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _, rho_u, L, k_rho, e_p, sat, pending = carry
-        rho = penalty(rho_u, sat)
-        # step 1-2: De Saxcé correction, linear solve with the cached factor
-        s = de_saxce(z_hat, mu, n_box)
-        x = lin_solve(L, -vt - s + eta * x_p + rho * y_hat + z_hat)
-        # steps 3-4: projection on K, dual update
-        y = proj(x - z_hat / rho, hi_v)
-        z = jnp.where(row_mask, z_hat + rho * (y - x), 0.0)
-        # residuals in the energy norm, capped for light rows (docstring)
-        r_p = jnp.max(W * jnp.abs(x - y), initial=0.0)
-        e = eta * (x - x_p) + rho * (y - y_hat)
-        r_d = jnp.max(W * jnp.abs(e), initial=0.0)
-        r_c = complementarity(y, z)
-        converged = (k + 1 >= 2) & (r_p <= tol) & (r_d <= tol) & (r_c <= tol)
-        if adaptive:
-            # or a least-squares solution along a numerically null direction of Dt (docstring, "Null directions")
-            r_tail = jnp.max(jnp.where(free_row, 0.0, W * jnp.abs(e)), initial=0.0)
-            de = jnp.max(jnp.where(free_row, jnp.abs(e - e_p), 0.0), initial=0.0)
-            dx = jnp.max(jnp.where(free_row, jnp.abs(x - x_p), 0.0), initial=0.0)
-            null = (de <= NULL_DIRECTION_RATIO * (eta + rho_free) * dx) & (dx > 0)
-            converged |= (k + 1 >= 2) & (r_p <= tol) & (r_tail <= tol) & (r_c <= tol) & null
-        # §7.4 Fast ADMM with restart on the combined residual (unscaled units)
-        c = jnp.sum(rho * (P * (y - y_hat)) ** 2) + jnp.sum(((z - z_hat) / P) ** 2 / rho)
-        if cfg.acceleration:
-            keep = c < restart_tol * c_p
-            a = jnp.where(keep, 0.5 * (1.0 + jnp.sqrt(1.0 + 4.0 * a_p * a_p)), 1.0)
-            beta = jnp.where(keep, (a_p - 1.0) / a, 0.0)
-            y_hat_n = jnp.where(keep, y + beta * (y - y_p), y_p)
-            z_hat_n = jnp.where(keep, z + beta * (z - z_p), z_p)
-            c_n = jnp.where(keep, c, c_p / restart_tol)
-        else:
-            a, y_hat_n, z_hat_n, c_n = a_p, y, z, c_p
-        if adaptive:
-            # residual balancing of the bounded rows' penalty; a change refactorises and restarts the momentum
-            # a discrete choice: no gradient flows through it (fixed_iterations under jax.grad)
-            ratio = jax.lax.stop_gradient(jnp.sqrt((r_p + tiny) / (r_d + tiny)))
-            due = (k + 1 - k_rho >= PENALTY_INTERVAL) & any_bound & ~converged
-            gain = jnp.clip(ratio, 1.0 / PENALTY_MAX_FACTOR, PENALTY_MAX_FACTOR)
-            rho_n = jnp.clip(rho_u * gain, RHO_MIN, RHO_MAX).astype(dtype)
-            change = due & ((ratio > PENALTY_THRESHOLD) | (ratio * PENALTY_THRESHOLD < 1.0)) & (rho_n != rho_u)
-            rho_u = jnp.where(change, rho_n, rho_u)
-            # an effort-limited row inside its box whose projection became active saturates: it takes rho from
-            # now on, and the whole factor is redone (docstring, "Saturation")
-            clipped = jax.lax.stop_gradient(y != x - z_hat / rho)
-            hit = fixed_box & ~sat & clipped & ~converged
-            switch = jnp.any(hit)
-            sat = sat | hit
-            if inline:
-                L = jax.lax.cond(switch, lambda: factor(factor_fixed(sat), rho_u, sat),
-                                 lambda: jax.lax.cond(change, lambda: factor(L[:3], rho_u, sat), lambda: L))
-            else:
-                L = jax.lax.cond(change & ~switch, lambda: factor(L[:3], rho_u, sat), lambda: L)
-                pending = pending | switch
-            change = change | switch
-            a = jnp.where(change, 1.0, a)
-            y_hat_n = jnp.where(change, y, y_hat_n)
-            z_hat_n = jnp.where(change, z, z_hat_n)
-            c_n = jnp.where(change, big, c_n)
-            k_rho = jnp.where(change, k + 1, k_rho)
-        return Carry(k=k + 1, x_p=x, y_p=y, z_p=z, y_hat=y_hat_n, z_hat=z_hat_n, a_p=a, c_p=c_n, r_p=r_p, r_d=r_d,
-                     r_c=r_c, converged=converged, rho_u=rho_u, L=L, k_rho=k_rho, e_p=e, sat=sat, pending=pending)
-
-    def run(carry: Carry, vt, hi_v, cap) -> Carry:
-        if cfg.fixed_iterations:
-            return jax.lax.fori_loop(0, cfg.max_iterations, lambda _, c: iterate(c, vt, hi_v), carry)
-
-        def phase(c: Carry) -> Carry:
-            # the factor for the rows saturated so far (where a row saturated), then iterations until the solve
-            # converges, reaches the cap or another row saturates
-            L = jax.lax.cond(c.pending, lambda: factor(factor_fixed(c.sat), c.rho_u, c.sat), lambda: c.L)
-            c = c._replace(L=L, pending=jnp.asarray(False))
-            return jax.lax.while_loop(lambda c: (~c.converged) & (c.k < cap) & ~c.pending,
-                                      lambda c: iterate(c, vt, hi_v, inline=False), c)
-
-        return jax.lax.while_loop(lambda c: (~c.converged) & (c.k < cap), phase, carry)
-
-    out = run(init, vt, hi_v, cfg.max_iterations)
+    p = _Problem(D, v_f, lo, hi, mu, row_mask, cfg, rho0, n_fixed)
+    init, hi_v = p.start(impulse0, velocity0)
+    out = _run(p, init, p.vt, hi_v, cfg.max_iterations)
     if refine is not None:
         k, y, z = out.k, out.y_p, out.z_p
-        vt2 = jnp.where(row_mask, P * refine(jnp.where(row_mask, P * y, 0.0)), 0.0)
-        hi_v2 = upper(vt2)
+        vt2 = jnp.where(row_mask, p.P * refine(jnp.where(row_mask, p.P * y, 0.0)), 0.0)
+        hi_v2 = p.upper(vt2)
         if cfg.redundant_limits:
-            y = proj(y, hi_v2)  # the set of fixed rows may change with the right-hand side
-        restart = out._replace(y_p=y, y_hat=y, z_hat=z, a_p=jnp.asarray(1.0, dtype), c_p=big,
+            y = p.proj(y, hi_v2)  # the set of fixed rows may change with the right-hand side
+        restart = out._replace(y_p=y, y_hat=y, z_hat=z, a_p=jnp.asarray(1.0, p.dtype), c_p=p.big,
                                converged=jnp.asarray(False), k_rho=k)
-        out = run(restart, vt2, hi_v2, k + cfg.max_iterations)
+        out = _run(p, restart, vt2, hi_v2, k + cfg.max_iterations)
     k, y, z = out.k, out.y_p, out.z_p
-    v = (z - de_saxce(z, mu, n_box)) / P  # §7.7: v+ = z - Gamma(z), unscaled
+    v = (z - de_saxce(z, mu, p.n_box)) / p.P  # §7.7: v+ = z - Gamma(z), unscaled
     return PADMMResult(
-        impulse=jnp.where(row_mask, P * y, 0.0),
+        impulse=jnp.where(row_mask, p.P * y, 0.0),
         velocity=jnp.where(row_mask, v, 0.0),
         iterations=k,
         primal_residual=out.r_p,
