@@ -147,8 +147,7 @@ def apply_func(np_dtype, lanes: int):
 def cr_solve_func(np_dtype, lanes: int):
     """Conjugate Residual by a world's ``lanes`` threads (1 or ``LANES``; §8.2)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    T = types_of(np_dtype)
-    scalar = T.scalar
+    scalar = types_of(np_dtype).scalar
     apply = apply_func(np_dtype, lanes)
     lane_sum = lane_reduce_func(np_dtype, lanes, "sum")
     zero = scalar(0.0)

@@ -430,8 +430,8 @@ def outcome_struct(np_dtype):
 def outcome_func(np_dtype, adaptive: bool):
     """The convergence test (§7.5 and "Null directions"), the penalty rule and the momentum (§7.4) of a world after
     an iteration; ``adaptive`` (compile-time): the penalty adapts."""
-    T = types_of(np_dtype)
-    scalar, vec4 = T.scalar, T.vec4
+    scalar = types_of(np_dtype).scalar
+    vec4 = types_of(np_dtype).vec4
     Work = work_struct(np_dtype)
     Residuals = residuals_struct(np_dtype)
     Outcome = outcome_struct(np_dtype)
@@ -474,8 +474,8 @@ def mark_saturated_func(np_dtype):
     """An effort-limited row that saturated takes ``rho_box`` from now on (``kamino.jax_ref.padmm.solve``,
     "Saturation")."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    ix = index_funcs(np_dtype)
-    row_saturated, set_saturated = ix.row_saturated, ix.set_saturated
+    row_saturated = index_funcs(np_dtype).row_saturated
+    set_saturated = index_funcs(np_dtype).set_saturated
     saturates = saturates_func(np_dtype)
 
     @wp.func
@@ -490,8 +490,8 @@ def mark_saturated_func(np_dtype):
 @functools.cache
 def advance_row_func(np_dtype):
     """§7.4 steps 5-6 on a row: the next ``(y_hat, z_hat)`` and the previous iterate."""
-    T = types_of(np_dtype)
-    scalar, vec4 = T.scalar, T.vec4
+    scalar = types_of(np_dtype).scalar
+    vec4 = types_of(np_dtype).vec4
     Work = work_struct(np_dtype)
     extrapolated = extrapolated_func(np_dtype)
 

@@ -37,26 +37,10 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.warp_backend import padmm_rules as rules
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.padmm_cr import cr_pattern_kernel, cr_solve_func
-from kamino.warp_backend.padmm_rules import (
-    LANES,
-    advance_row_func,
-    box_row_func,
-    contact_correction_func,
-    contact_rows_func,
-    cr_residual_func,
-    kernel_types,
-    mark_saturated_func,
-    outcome_func,
-    reduce_residuals_func,
-    residuals_struct,
-    row_penalty_func,
-    row_rhs_func,
-    store_world_func,
-    sync,
-    tail_dot_func,
-)
+from kamino.warp_backend.padmm_rules import LANES, kernel_types, sync
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
 from kamino.warp_backend.types import types_of
 
@@ -344,8 +328,8 @@ def tail_rows_func(np_dtype, E: int):
 def schur_func(np_dtype):
     """The tail rows' Schur complement with the world's threads (``sparse_llt.schur_entry``'s sums)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    slk = sparse_llt_kernels(np_dtype)
-    bases, schur_entry = slk.bases, slk.schur_entry
+    bases = sparse_llt_kernels(np_dtype).bases
+    schur_entry = sparse_llt_kernels(np_dtype).schur_entry
 
     @wp.func
     def schur(m: M, w: Work, sp: SP, wid: int, n: int, lane: int):
@@ -374,9 +358,10 @@ def schur_func(np_dtype):
 def factor_tail_func(np_dtype):
     """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty")."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    slk = sparse_llt_kernels(np_dtype)
-    bases, tail_k, sdiag_col = slk.bases, slk.tail_k, slk.sdiag_col
-    tail_dot = tail_dot_func(np_dtype)
+    bases = sparse_llt_kernels(np_dtype).bases
+    tail_k = sparse_llt_kernels(np_dtype).tail_k
+    sdiag_col = sparse_llt_kernels(np_dtype).sdiag_col
+    tail_dot = rules.tail_dot_func(np_dtype)
 
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
@@ -385,19 +370,17 @@ def factor_tail_func(np_dtype):
         upper slots (``S_t[t, j]`` at row ``j``, tail column ``K + t``) and its diagonal (column
         ``sparse_llt.sdiag_col``); the sums of ``sparse_llt.factor_tail``."""
         base = bases(m, w, sp, wid)
-        tb, ts = base[2], base[3]
-        tc = sp.tail_stride
-        nf = sp.n_fixed[wid]
+        nt = n - sp.n_fixed[wid]
         kt = tail_k(sp, wid)
-        kd = sdiag_col(sp, wid)
-        for j in range(n - nf):
-            jr = tb + j * ts
-            d = wp.sqrt(tail_dot(sp, jr, jr, kt, j, sp.tail[jr + kd * tc] + shift))
-            for t in range(j + 1 + lane, n - nf, LANES):
-                tr = tb + t * ts
-                sp.tail[tr + (kt + j) * tc] = tail_dot(sp, tr, jr, kt, j, sp.tail[jr + (kt + t) * tc]) / d
+        col = sp.tail_stride  # the distance between a tail row's slots
+        for j in range(nt):  # L_t[t, j] of the rows t >= j at tr (tail column kt + j), from row j at jr
+            jr = base[2] + j * base[3]
+            d = wp.sqrt(tail_dot(sp, jr, jr, kt, j, sp.tail[jr + sdiag_col(sp, wid) * col] + shift))
+            for t in range(j + 1 + lane, nt, LANES):
+                tr = base[2] + t * base[3]
+                sp.tail[tr + (kt + j) * col] = tail_dot(sp, tr, jr, kt, j, sp.tail[jr + (kt + t) * col]) / d
             if lane == 0:
-                sp.tail[jr + (kt + j) * tc] = d
+                sp.tail[jr + (kt + j) * col] = d
             sync()
 
     return factor_tail
@@ -407,8 +390,9 @@ def factor_tail_func(np_dtype):
 def factor_kernel(np_dtype, E: int = 0):
     """Cholesky ``D~ = L L^T`` with the world's 32 threads (§8.1); with ``E > 0`` ``L_f`` staged in shared memory."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    slk = sparse_llt_kernels(np_dtype)
-    bases, fixed_entry, tail_row = slk.bases, slk.fixed_entry, slk.tail_row
+    bases = sparse_llt_kernels(np_dtype).bases
+    fixed_entry = sparse_llt_kernels(np_dtype).fixed_entry
+    tail_row = sparse_llt_kernels(np_dtype).tail_row
     EL = max(E, 1)  # staged length (1: not staged)
     lset, lget = shared_set_func(np_dtype, EL), shared_get_func(np_dtype, EL)
     factor_columns = factor_columns_func(np_dtype, E)
@@ -465,8 +449,9 @@ def solve_func(np_dtype, R: int):
     scalar, M, Work, SP = kernel_types(np_dtype)
     Vec = shared_vector(np_dtype, R)
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
-    slk = sparse_llt_kernels(np_dtype)
-    bases, tail_k, tail_pattern = slk.bases, slk.tail_k, slk.tail_pattern
+    bases = sparse_llt_kernels(np_dtype).bases
+    tail_k = sparse_llt_kernels(np_dtype).tail_k
+    tail_pattern = sparse_llt_kernels(np_dtype).tail_pattern
     zero = scalar(0.0)
 
     @wp.func
@@ -663,9 +648,9 @@ def solve_fixed_kernel(np_dtype, R: int):
 def lane_rhs_func(np_dtype):
     """§7.3 steps 1-2 on one row of the 32-thread schedule."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    row_penalty = row_penalty_func(np_dtype)
-    row_rhs = row_rhs_func(np_dtype)
-    contact_correction = contact_correction_func(np_dtype)
+    row_penalty = rules.row_penalty_func(np_dtype)
+    row_rhs = rules.row_rhs_func(np_dtype)
+    contact_correction = rules.contact_correction_func(np_dtype)
 
     @wp.func
     def lane_rhs(w: Work, r: int, a: int, nf: int, n_box: int, rho_free: scalar, rho_box: scalar, rho_u: scalar,
@@ -687,24 +672,24 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool):
     factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), and with ``adaptive`` the adaptive
     penalty (all compile-time)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    T = types_of(np_dtype)
-    scalar, vec3 = T.scalar, T.vec3
-    Residuals = residuals_struct(np_dtype)
+    scalar = types_of(np_dtype).scalar
+    vec3 = types_of(np_dtype).vec3
+    Residuals = rules.residuals_struct(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
     solve = solve_func(np_dtype, R)
     cr_solve = cr_solve_func(np_dtype, LANES)
     factor_tail = factor_tail_func(np_dtype)
     lane_rhs = lane_rhs_func(np_dtype)
-    row_penalty = row_penalty_func(np_dtype)
-    box_row = box_row_func(np_dtype, adaptive)
-    contact_rows = contact_rows_func(np_dtype)
-    cr_residual = cr_residual_func(np_dtype)
-    reduce_residuals = reduce_residuals_func(np_dtype, LANES)
-    outcome = outcome_func(np_dtype, adaptive)
-    mark_saturated = mark_saturated_func(np_dtype)
-    advance_row = advance_row_func(np_dtype)
-    store_world = store_world_func(np_dtype)
+    row_penalty = rules.row_penalty_func(np_dtype)
+    box_row = rules.box_row_func(np_dtype, adaptive)
+    contact_rows = rules.contact_rows_func(np_dtype)
+    cr_residual = rules.cr_residual_func(np_dtype)
+    reduce_residuals = rules.reduce_residuals_func(np_dtype, LANES)
+    outcome = rules.outcome_func(np_dtype, adaptive)
+    mark_saturated = rules.mark_saturated_func(np_dtype)
+    advance_row = rules.advance_row_func(np_dtype)
+    store_world = rules.store_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False,
                cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else None)

@@ -21,24 +21,12 @@ import numpy as np
 import warp as wp
 
 from kamino.config import SATURATION_MARGIN
+from kamino.warp_backend import padmm_rules as rules
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.model_data import GROUP
 from kamino.warp_backend.padmm_cr import cr_solve_func
-from kamino.warp_backend.padmm_rules import (
-    advance_row_func,
-    box_row_func,
-    contact_correction_func,
-    contact_rows_func,
-    cr_residual_func,
-    kernel_types,
-    mark_saturated_func,
-    outcome_func,
-    residuals_struct,
-    row_penalty_func,
-    row_rhs_func,
-    store_world_func,
-)
+from kamino.warp_backend.padmm_rules import kernel_types
 from kamino.warp_backend.rows import row_kernels
 from kamino.warp_backend.sparse_llt import sparse_llt_kernels
 from kamino.warp_backend.types import types_of
@@ -144,8 +132,9 @@ def delassus_sparse_kernel(np_dtype):
 def delassus_dense_kernel(np_dtype):
     """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the dense per-world ``J`` (§8.1)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    ix = index_funcs(np_dtype)
-    ridx, didx, jidx = ix.ridx, ix.didx, ix.jidx
+    ridx = index_funcs(np_dtype).ridx
+    didx = index_funcs(np_dtype).didx
+    jidx = index_funcs(np_dtype).jidx
 
     @wp.kernel(module="unique", enable_backward=False)
     def delassus_dense(m: M, w: Work):
@@ -217,8 +206,9 @@ def precondition_kernel(np_dtype):
 def scale_kernel(np_dtype):
     """The scaled problem of §7.2 and the effort-limited rows' starting saturation ("Saturation")."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    ix = index_funcs(np_dtype)
-    ridx, didx, set_saturated = ix.ridx, ix.didx, ix.set_saturated
+    ridx = index_funcs(np_dtype).ridx
+    didx = index_funcs(np_dtype).didx
+    set_saturated = index_funcs(np_dtype).set_saturated
     world_row = world_row_func(np_dtype)
     sat_margin = scalar(SATURATION_MARGIN)
 
@@ -270,8 +260,8 @@ def scale_kernel(np_dtype):
 def factor_tail_dense_func(np_dtype):
     """The dense factor's tail for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty")."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    ix = index_funcs(np_dtype)
-    didx, row_base = ix.didx, ix.row_base
+    didx = index_funcs(np_dtype).didx
+    row_base = index_funcs(np_dtype).row_base
 
     @wp.func
     def factor_tail_dense(m: M, w: Work, wid: int, n: int, shift: scalar):
@@ -303,8 +293,8 @@ def factor_tail_dense_func(np_dtype):
 def factor_dense_func(np_dtype):
     """The dense Cholesky factor of ``D~`` (§8.1)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    ix = index_funcs(np_dtype)
-    didx, row_base = ix.didx, ix.row_base
+    didx = index_funcs(np_dtype).didx
+    row_base = index_funcs(np_dtype).row_base
     factor_tail_dense = factor_tail_dense_func(np_dtype)
 
     @wp.func
@@ -348,8 +338,9 @@ def factor_dense_func(np_dtype):
 def refactor_dense_kernel(np_dtype):
     """The dense factor again after a saturation (``kamino.jax_ref.padmm.solve``, "Saturation")."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    ix = index_funcs(np_dtype)
-    ridx, didx, row_saturated = ix.ridx, ix.didx, ix.row_saturated
+    ridx = index_funcs(np_dtype).ridx
+    didx = index_funcs(np_dtype).didx
+    row_saturated = index_funcs(np_dtype).row_saturated
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
     factor_dense = factor_dense_func(np_dtype)
 
@@ -418,8 +409,8 @@ def cho_solve_func(np_dtype):
 def project_into_func(np_dtype):
     """The projection on the feasible set ``K`` (§7.3 step 3)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    ix = index_funcs(np_dtype)
-    row_base, row_mu = ix.row_base, ix.row_mu
+    row_base = index_funcs(np_dtype).row_base
+    row_mu = index_funcs(np_dtype).row_mu
     cone_project = cone_funcs(np_dtype).cone_project
 
     @wp.func
@@ -519,9 +510,9 @@ def linear_step_func(np_dtype, linear: int):
     """§7.3 steps 1-2 of one thread per world: the right-hand side and the linear solve ``linear``
     (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``: ``sparse_llt.py``) of one iteration."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    row_penalty = row_penalty_func(np_dtype)
-    row_rhs = row_rhs_func(np_dtype)
-    contact_correction = contact_correction_func(np_dtype)
+    row_penalty = rules.row_penalty_func(np_dtype)
+    row_rhs = rules.row_rhs_func(np_dtype)
+    contact_correction = rules.contact_correction_func(np_dtype)
     cr_solve = cr_solve_func(np_dtype, 1)
     sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
     cho_solve_inplace = cho_solve_func(np_dtype)
@@ -556,13 +547,13 @@ def linear_step_func(np_dtype, linear: int):
 def project_rows_func(np_dtype, linear: int, adaptive: bool):
     """§7.3 steps 3-4 of one thread per world: every row's projection, dual update and residual terms."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    T = types_of(np_dtype)
-    scalar, vec3 = T.scalar, T.vec3
-    Residuals = residuals_struct(np_dtype)
-    row_penalty = row_penalty_func(np_dtype)
-    box_row = box_row_func(np_dtype, adaptive)
-    contact_rows = contact_rows_func(np_dtype)
-    cr_residual = cr_residual_func(np_dtype)
+    scalar = types_of(np_dtype).scalar
+    vec3 = types_of(np_dtype).vec3
+    Residuals = rules.residuals_struct(np_dtype)
+    row_penalty = rules.row_penalty_func(np_dtype)
+    box_row = rules.box_row_func(np_dtype, adaptive)
+    contact_rows = rules.contact_rows_func(np_dtype)
+    cr_residual = rules.cr_residual_func(np_dtype)
 
     @wp.func
     def project_rows(m: M, w: Work, wid: int, rb: int, n: int, n_box: int, eta: scalar, rho_free: scalar,
@@ -594,10 +585,10 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool):
     row_base = index_funcs(np_dtype).row_base
     linear_step = linear_step_func(np_dtype, linear)
     project_rows = project_rows_func(np_dtype, linear, adaptive)
-    outcome = outcome_func(np_dtype, adaptive)
-    mark_saturated = mark_saturated_func(np_dtype)
-    advance_row = advance_row_func(np_dtype)
-    store_world = store_world_func(np_dtype)
+    outcome = rules.outcome_func(np_dtype, adaptive)
+    mark_saturated = rules.mark_saturated_func(np_dtype)
+    advance_row = rules.advance_row_func(np_dtype)
+    store_world = rules.store_world_func(np_dtype)
     factor_tail_sparse = sparse_llt_kernels(np_dtype).factor_tail
     factor_tail_dense = factor_tail_dense_func(np_dtype)
 
