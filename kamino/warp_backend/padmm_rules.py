@@ -65,20 +65,20 @@ def lane_reduce_func(np_dtype, lanes: int, op: str):
 # --- the momentum and the penalty (§7.4) ---------------------------------------------------------------------
 
 @functools.cache
-def momentum_func(np_dtype):
-    """§7.4 step 5, the fast-ADMM momentum with restart."""
+def momentum_func(np_dtype, accelerate: bool):
+    """§7.4 step 5, the fast-ADMM momentum with restart (``accelerate``, compile-time; else none)."""
     scalar = types_of(np_dtype).scalar
     vec4 = types_of(np_dtype).vec4
     one = scalar(1.0)
     zero = scalar(0.0)
 
     @wp.func
-    def momentum(a_p: scalar, c_p: scalar, c_sum: scalar, restart_tol: scalar, accelerate: int):
+    def momentum(a_p: scalar, c_p: scalar, c_sum: scalar, restart_tol: scalar):
         """``(a, c, beta, mode)`` from the previous momentum ``a_p``, the previous combined residual ``c_p`` and
         this iteration's ``c_sum``. ``mode`` (stored as a scalar): ``NO_ACCELERATION`` (``hat = new``),
         ``EXTRAPOLATE`` (``hat = new + beta (new - prev)``, the residual dropped by ``restart_tol``) or ``RESTART``
         (``hat = prev``, momentum reset, ``c = c_p / restart_tol``)."""
-        if accelerate == 0:
+        if wp.static(not accelerate):
             return vec4(a_p, c_p, zero, scalar(NO_ACCELERATION))
         if c_sum < restart_tol * c_p:
             a_new = scalar(0.5) * (one + wp.sqrt(one + scalar(4.0) * a_p * a_p))
@@ -427,15 +427,15 @@ def outcome_struct(np_dtype):
 
 
 @functools.cache
-def outcome_func(np_dtype, adaptive: bool):
+def outcome_func(np_dtype, adaptive: bool, accelerate: bool):
     """The convergence test (§7.5 and "Null directions"), the penalty rule and the momentum (§7.4) of a world after
-    an iteration; ``adaptive`` (compile-time): the penalty adapts."""
+    an iteration; compile-time: ``adaptive``, the penalty adapts; ``accelerate``, the momentum extrapolates."""
     scalar = types_of(np_dtype).scalar
     vec4 = types_of(np_dtype).vec4
     Work = work_struct(np_dtype)
     Residuals = residuals_struct(np_dtype)
     Outcome = outcome_struct(np_dtype)
-    momentum = momentum_func(np_dtype)
+    momentum = momentum_func(np_dtype, accelerate)
     balanced_penalty = balanced_penalty_func(np_dtype)
     big = scalar(float(np.finfo(np_dtype).max))
     null_ratio = scalar(config.NULL_DIRECTION_RATIO)
@@ -443,7 +443,7 @@ def outcome_func(np_dtype, adaptive: bool):
 
     @wp.func
     def outcome(w: Work, wid: int, acc: Residuals, k: int, n: int, nf: int, rho_u: scalar, tol: scalar,
-                eta: scalar, rho_free: scalar, restart_tol: scalar, accelerate: int) -> Outcome:
+                eta: scalar, rho_free: scalar, restart_tol: scalar) -> Outcome:
         """Iteration ``k`` of world ``wid`` (``n`` rows, ``nf`` fixed, the world's reduced ``acc``): converged when
         every residual is below ``tol`` from ``k = 2`` on, or along a numerically null direction (the free rows'
         change of ``e`` small against the change of ``x``; ``e_p`` of iteration 1 is stale); else (adaptive) a
@@ -463,7 +463,7 @@ def outcome_func(np_dtype, adaptive: bool):
         if out.saturates != 0 or out.rho != rho_u:
             out.mom = vec4(scalar(1.0), big, zero, scalar(RESTART_HERE))
         else:
-            out.mom = momentum(w.a_p[wid], w.c_p[wid], acc.c_sum, restart_tol, accelerate)
+            out.mom = momentum(w.a_p[wid], w.c_p[wid], acc.c_sum, restart_tol)
         return out
 
     return outcome

@@ -1,32 +1,32 @@
 """Proximal-ADMM with one GPU warp (32 threads) per world on the sparse factor or with Conjugate Residual
 (docs/formulation.md §7-§8.2; paper Alg. 1): the schedule for robot-sized worlds (``Stepper(padmm="warp")``).
 
-One thread per world (``solver.padmm_iterate``) walks a world's factor and vectors alone: at 4096 worlds that is one
-warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of about 16,000 dependent loads. Here the
-32 threads of a block share one world and the chain is cut down to the rows:
+One thread per world (``solver.padmm_iterate_kernel``) walks a world's factor and vectors alone: at 4096 worlds that
+is one warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of about 16,000 dependent loads. Here
+the 32 threads of a block share one world and the chain is cut down to the rows:
 
-- **Factorisation** (:func:`factor`, once per step). The fixed rows by columns ("fan-out"): for column ``q``,
+- **Factorisation** (:func:`factor_kernel`, once per step). The fixed rows by columns ("fan-out"): for column ``q``,
   ``L_qq = sqrt(D~_qq)``, the column's entries ``L_pq = D~_pq / L_qq`` (threads over the entries), then every update
   ``D~_pr -= L_pq L_rq`` that column ``q`` feeds (threads over the precomputed triples, ``Symbolic.fan_*``: their
   targets are distinct, so no atomics). The tail rows (active limits and contacts): ``L_tf`` by a forward
   substitution per tail row (threads over tail rows), the Schur complement ``S_t`` (threads over all its entry
-  pairs ``(t, j <= t)``) and its dense Cholesky by columns (:func:`factor_tail`). Same sums as
+  pairs ``(t, j <= t)``) and its dense Cholesky by columns (:func:`factor_tail_func`). Same sums as
   ``sparse_llt.factor``, in another order. ``L_f`` is stored once, in row order.
-- **Solve** (:func:`solve`, every iteration). Column sweeps: the forward substitution of the fixed rows walks the
+- **Solve** (:func:`solve_func`, every iteration). Column sweeps: the forward substitution of the fixed rows walks the
   columns of ``L_f`` (``x_q = b_q / L_qq``, then the column's entries update the rows below, threads over the
   entries; each entry's index in ``L_f``'s row order, ``cent``, is loaded two columns ahead, so that the value waits
   on no index load), the backward one walks its rows (``x_p``, then the entries of row ``p`` update the rows above);
   the tail's dense rows likewise, and the tail's share of the fixed rows is one parallel pass. One barrier per row;
   the right-hand side is updated in ``w.y`` (free during the solve) and the solution lands in ``w.x``.
   docs/warp_backend.md, "Where a PADMM iteration's time goes", has what each load ordering cost.
-- **Iterations** (:func:`padmm_iterate`). Every per-row rule (projection, dual update, residuals, the penalty of
-  the limit and contact rows, the null-direction test, momentum) is ``padmm_rules.py``'s, the threads splitting the
-  box rows and the contact triples; the world's maxima and sums are block reductions. Iteration counts equal the
-  thread kernel's (``tests/test_warp_lane_padmm.py``).
-- **Conjugate Residual** (``warp_kernels(cr=True)``: :func:`cr_solve`, §8.2, instead of the factor). The operator
-  ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for ``M^-1 J^T P
-  v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no atomics and
-  keeps ``solver.apply_operator``'s order), then the rows for ``J`` times it; CR's dot products are block sums.
+- **Iterations** (:func:`iterate_kernel`). Every rule of an iteration (right-hand side, projection, dual update,
+  residuals, the penalty of the limit and contact rows, the null-direction test, momentum) is ``padmm_rules.py``'s,
+  as in the one-thread schedule; here the threads split the box rows and the contact triples and the world's maxima
+  and sums are block reductions. Iteration counts equal the thread kernel's (``tests/test_warp_lane_padmm.py``).
+- **Conjugate Residual** (``iterate_kernel(cr=True)``: ``padmm_cr.cr_solve_func``, §8.2, instead of the factor).
+  The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
+  ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
+  atomics and keeps the one-thread order), then the rows for ``J`` times it; CR's dot products are block sums.
 
 Threads of a world meet at block barriers (``sync``); on the CPU the block runs as cooperative fibers
 (``warp.config.enable_cpu_blocks``), which is how CI checks this kernel against the thread kernel.
@@ -667,10 +667,10 @@ def lane_rhs_func(np_dtype):
 
 
 @functools.cache
-def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool):
+def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool, fixed_iterations: bool):
     """Accelerated PADMM with the world's 32 threads (§7.3-§7.5; the rules of ``padmm_rules.py``), with the sparse
-    factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), and with ``adaptive`` the adaptive
-    penalty (all compile-time)."""
+    factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), the adaptive penalty (``adaptive``),
+    the momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     scalar = types_of(np_dtype).scalar
     vec3 = types_of(np_dtype).vec3
@@ -686,7 +686,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool):
     contact_rows = rules.contact_rows_func(np_dtype)
     cr_residual = rules.cr_residual_func(np_dtype)
     reduce_residuals = rules.reduce_residuals_func(np_dtype, LANES)
-    outcome = rules.outcome_func(np_dtype, adaptive)
+    outcome = rules.outcome_func(np_dtype, adaptive, accelerate)
     mark_saturated = rules.mark_saturated_func(np_dtype)
     advance_row = rules.advance_row_func(np_dtype)
     store_world = rules.store_world_func(np_dtype)
@@ -694,10 +694,10 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool):
     @wp.kernel(module="unique", enable_backward=False,
                cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else None)
     def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar,
-                      rho_box: scalar, tol: scalar, restart_tol: scalar, accelerate: int, fixed: int):
+                      rho_box: scalar, tol: scalar, restart_tol: scalar):
         """Up to ``chunk`` iterations of one world (``solver.padmm_iterate_kernel`` rule for rule), resuming from the
-        stored iterate; a world that converges (unless ``fixed``) or reaches its cap is marked done and leaves
-        ``remaining``. The threads split the box rows and the contact triples; the world's residuals are block
+        stored iterate; a world that converges (unless ``fixed_iterations``) or reaches its cap is marked done and
+        leaves ``remaining``. The threads split the box rows and the contact triples; the world's residuals are block
         reductions. Under ``cr`` (at most ``cr_budget`` iterations per solve) the solution lands in ``w.x`` (the
         factor's solve: in ``xs``), a new penalty refactorises nothing and a row that saturates takes ``rho_box`` in
         the next solve's operator without ending the launch."""
@@ -752,7 +752,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool):
                     acc = cr_residual(w, rb + a * rs, p_ref, acc)
             acc = reduce_residuals(acc)
             k = w.iters[wid] + 1
-            res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol, accelerate)
+            res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
             if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a switch redoes the whole factor
                 rho_u = res.rho
                 sync()  # every thread has read k_rho (outcome) before it changes
@@ -770,7 +770,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool):
                     advance_row(w, rb + a * rs, w.x[rb + a * rs], res.mom)
                 else:
                     advance_row(w, rb + a * rs, sget(xs, a), res.mom)
-            done = (res.converged != 0 and fixed == 0) or k >= w.it_cap[wid]
+            done = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= w.it_cap[wid]
             sync()  # every thread has read the world's scalars before they change
             if lane == 0:
                 store_world(w, wid, k, acc, res, done)

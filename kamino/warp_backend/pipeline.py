@@ -272,10 +272,10 @@ class Stepper:
         cfg, w = self.cfg, self.work
         W, nblk = self.wm.num_worlds, self.wm.blocks_per_row
         shift_f, shift_b = self.padmm_shifts
-        args = (nblk, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho, cfg.tolerance,
-                cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations))
+        args = (nblk, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho, cfg.tolerance, cfg.restart_tolerance)
+        modes = (self.adaptive, bool(cfg.acceleration), bool(cfg.fixed_iterations))
         if self.padmm == "warp":
-            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, self.adaptive)
+            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes)
 
             def iterate(chunk):
                 self._launch_lanes(lane_iterate, self.sp, chunk, *args)
@@ -284,7 +284,7 @@ class Stepper:
         else:
             linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else (
                 LINEAR_DENSE)
-            thread_iterate = padmm_iterate_kernel(self.np_dtype, linear, self.adaptive)
+            thread_iterate = padmm_iterate_kernel(self.np_dtype, linear, *modes)
 
             def iterate(chunk):
                 self._launch(thread_iterate, W, self.sp, chunk, *args)

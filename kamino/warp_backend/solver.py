@@ -1,19 +1,20 @@
-"""Delassus assembly and Proximal-ADMM in Warp (docs/formulation.md §7-§8; paper Alg. 1).
+"""Delassus assembly and Proximal-ADMM in Warp, one thread per world (docs/formulation.md §7-§8; paper Alg. 1).
 
 Per step: ``v_f = J u_f + v*`` (§5) of the rows' blocks (``M^-1 J^T`` is formed where it is read), then
 either the dense Delassus ``D = J M^-1 J^T + R`` is assembled (from the block-sparse rows, or from a
 dense per-world ``J``), scaled by the Jacobi preconditioner ``P`` (§7.2) and factorised once by a
 Cholesky (§8.1), or PADMM runs matrix-free with a Conjugate Residual solve of the scaled operator
-``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` warm-started from the previous ADMM iterate (§8.2).
+``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` warm-started from the previous ADMM iterate (§8.2, ``padmm_cr.py``).
 
 The PADMM iterations of a world run in one thread (all of a world's vectors stay in its own row
-segment, cached near the thread); ``padmm_iterate`` runs up to ``chunk`` iterations and resumes from
+segment, cached near the thread); ``padmm_iterate_kernel``'s kernel runs up to ``chunk`` iterations and resumes from
 the stored iterate, so the host — or ``wp.capture_while`` inside a CUDA graph — relaunches it until
 every world has converged or reached its cap (``remaining`` counts the worlds still iterating).
-Every step mirrors ``kamino/jax_ref/padmm.py`` (accelerated PADMM with restart, §7.4; residuals,
-§7.5).
+Every rule of an iteration is ``padmm_rules.py``'s, shared with the 32-thread schedule (``padmm_warp.py``) and
+mirroring ``kamino/jax_ref/padmm.py`` (accelerated PADMM with restart, §7.4; residuals, §7.5). Each kernel and
+``wp.func`` comes from a small builder cached per precision; the linear solve and the penalty rule of
+``padmm_iterate_kernel`` are compile-time.
 """
-
 import functools
 from types import SimpleNamespace
 
@@ -578,14 +579,17 @@ def project_rows_func(np_dtype, linear: int, adaptive: bool):
 
 
 @functools.cache
-def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool):
+def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool, fixed_iterations: bool):
     """Accelerated PADMM, one thread per world (§7.3-§7.5; the rules of ``padmm_rules.py``), with the linear solve
-    ``linear`` and, with ``adaptive``, the adaptive penalty (both compile-time)."""
+    ``linear`` (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``), the adaptive penalty (``adaptive``), the
+    momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
+    if linear not in (LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE):
+        raise ValueError(f"padmm_iterate_kernel: linear must be LINEAR_DENSE, LINEAR_CR or LINEAR_SPARSE, got {linear}")
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     linear_step = linear_step_func(np_dtype, linear)
     project_rows = project_rows_func(np_dtype, linear, adaptive)
-    outcome = rules.outcome_func(np_dtype, adaptive)
+    outcome = rules.outcome_func(np_dtype, adaptive, accelerate)
     mark_saturated = rules.mark_saturated_func(np_dtype)
     advance_row = rules.advance_row_func(np_dtype)
     store_world = rules.store_world_func(np_dtype)
@@ -594,14 +598,15 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool):
 
     @wp.kernel(module="unique", enable_backward=False)
     def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar,
-                      rho_box: scalar, tol: scalar, restart_tol: scalar, accelerate: int, fixed: int):
+                      rho_box: scalar, tol: scalar, restart_tol: scalar):
         """Up to ``chunk`` iterations of one world (``padmm.solve`` of the JAX reference, its penalty rule and
-        residuals included), resuming from the stored iterate; a world that converges (unless ``fixed``) or reaches
-        its iteration cap ``it_cap`` is marked done and leaves ``remaining``. The fixed rows carry the penalty
-        ``rho_free`` (``rho_box`` on a saturated effort-limited actuator), the limit and contact rows the world's
-        ``rho_u``, rebalanced under ``adaptive`` (then the tail of the factor is recomputed). A row that saturates
-        ends the launch with ``w.pending`` set: ``refactor`` (or ``refactor_dense``) redoes the factor before the
-        next launch (kamino.jax_ref.padmm.solve, "Saturation"); CR's operator takes ``rho_box`` at its next solve."""
+        residuals included), resuming from the stored iterate; a world that converges (unless
+        ``fixed_iterations``) or reaches its iteration cap ``it_cap`` is marked done and leaves ``remaining``. The
+        fixed rows carry the penalty ``rho_free`` (``rho_box`` on a saturated effort-limited actuator), the limit and
+        contact rows the world's ``rho_u``, rebalanced under ``adaptive`` (then the tail of the factor is
+        recomputed). A row that saturates ends the launch with ``w.pending`` set: ``refactor`` (or
+        ``refactor_dense``) redoes the factor before the next launch (kamino.jax_ref.padmm.solve, "Saturation");
+        CR's operator takes ``rho_box`` at its next solve."""
         rs = w.row_stride
         wid = wp.tid()
         rb = row_base(m, w, wid)
@@ -616,7 +621,7 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool):
             linear_step(m, w, sp, wid, rb, n, n_box, nblk, eta, rho_free, rho_box, rho_u, cr_budget)
             acc = project_rows(m, w, wid, rb, n, n_box, eta, rho_free, rho_box, rho_u, p_ref)
             k = w.iters[wid] + 1
-            res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol, accelerate)
+            res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
             if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a switch redoes the whole factor
                 rho_u = res.rho
                 w.rho_u[wid] = rho_u
@@ -635,7 +640,7 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool):
                     w.pending[wid] = 1
             for a in range(n):
                 advance_row(w, rb + a * rs, w.x[rb + a * rs], res.mom)
-            done = (res.converged != 0 and fixed == 0) or k >= w.it_cap[wid]
+            done = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= w.it_cap[wid]
             store_world(w, wid, k, acc, res, done)
             if done or w.pending[wid] != 0:
                 return
