@@ -346,7 +346,7 @@ def contact_rows_func(np_dtype):
             rt = r + t * rs
             y = cp[t]
             w.y[rt] = y
-            du = dual_update(x[t], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho, p_ref)
+            du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho, p_ref)
             w.z[rt] = du[0]
             out.r_p = wp.max(out.r_p, du[1])
             out.r_d = wp.max(out.r_d, du[2])
@@ -547,13 +547,12 @@ def tail_dot_func(np_dtype):
     scalar, M, Work, SP = kernel_types(np_dtype)
 
     @wp.func
-    def tail_dot(sp: SP, tr: int, jr: int, kt: int, j: int, s: scalar):
-        """``s - sum_{i < j} L_t[t, i] L_t[j, i]`` with tail rows ``t``, ``j`` at ``tr``, ``jr`` (``L_t`` from tail
-        column ``kt``), ``i`` ascending: entry ``(t, j)`` of ``L_t`` before its square root (``t = j``) or its
-        division by ``L_t[j, j]``."""
-        tc = sp.tail_stride
+    def tail_dot(tail: wp.array(dtype=scalar), tc: int, tr: int, jr: int, kt: int, j: int, s: scalar):
+        """``s - sum_{i < j} L_t[t, i] L_t[j, i]`` with tail rows ``t``, ``j`` at ``tr``, ``jr`` of ``tail`` (slots
+        ``tc`` apart, ``L_t`` from slot ``kt``), ``i`` ascending: entry ``(t, j)`` of ``L_t`` before its square root
+        (``t = j``) or its division by ``L_t[j, j]``."""
         for i in range(j):
-            s -= sp.tail[tr + (kt + i) * tc] * sp.tail[jr + (kt + i) * tc]
+            s -= tail[tr + (kt + i) * tc] * tail[jr + (kt + i) * tc]
         return s
 
     return tail_dot

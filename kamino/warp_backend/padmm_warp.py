@@ -184,26 +184,119 @@ def fan_out_func(np_dtype, E: int):
 
 
 @functools.cache
-def factor_columns_func(np_dtype, E: int):
-    """``L_f`` by columns with the world's threads ("fan-out"; the module docstring)."""
+def ltf_batch_func(np_dtype, E: int):
+    """A batch of the tail rows' ``L_tf`` updates (``sparse_llt.factor_world``'s sums)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     LVec = shared_vector(np_dtype, max(E, 1))
-    fget, fset = staged_get_func(np_dtype, E), staged_set_func(np_dtype, E)
-    fan_out = fan_out_func(np_dtype, E)
+    fget = staged_get_func(np_dtype, E)
+    FanVal = wp.types.vector(length=FAN_BATCH, dtype=scalar)
     zero = scalar(0.0)
 
     @wp.func
-    def factor_columns(sp: SP, wid: int, lane: int, vb: int, lv: LVec):
-        """For column ``q``: ``L_qq``, the column's entries ``L_pq = D~_pq / (s_q L_qq)`` (threads over the
-        entries), then its fan-out updates (threads over the precomputed triples). Column ``q``'s pointers are
-        loaded during column ``q - 1``, and its indices (two rounds of entries, FAN_BATCH rounds of update triples)
-        together at its start, unconditionally (indices clamped to the world's): a column then waits on about one
-        load latency instead of one per round (docs/warp_backend.md, "Where it goes, measured part by part")."""
+    def ltf_batch(sp: SP, vb: int, tr: int, tc: int, ub: int, u1: int, s: scalar, lv: LVec) -> scalar:
+        """``s - sum_u L_k(u) l_j(u)`` over the pattern's update pairs ``u = ub .. ub + FAN_BATCH - 1`` before ``u1``
+        (``l``: the tail row at ``tr``; ``sparse_llt.Pattern.pat_upd_*``): the FAN_BATCH pairs' indices, then their
+        values, each batch loaded together (indices clamped, the surplus multiplied by zero), so that the sum waits
+        on two load latencies per batch instead of two per entry."""
+        kv = FanIdx()
+        jv = FanIdx()
+        for r in range(FAN_BATCH):
+            kv[r] = sp.pat_upd_k[wp.min(ub + r, u1 - 1)]
+            jv[r] = sp.pat_upd_j[wp.min(ub + r, u1 - 1)]
+        tv = FanVal()
+        for r in range(FAN_BATCH):
+            tv[r] = sp.tail[tr + jv[r] * tc]
+        for r in range(FAN_BATCH):
+            lk = fget(sp, vb, kv[r], lv)
+            s -= wp.where(ub + r < u1, lk * tv[r], zero)
+        return s
+
+    return ltf_batch
+
+
+@functools.cache
+def factor_tail_func(np_dtype):
+    """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty")."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    bases = sparse_llt_kernels(np_dtype).bases
+    tail_k = sparse_llt_kernels(np_dtype).tail_k
+    sdiag_col = sparse_llt_kernels(np_dtype).sdiag_col
+    tail_dot = rules.tail_dot_func(np_dtype)
+
+    @wp.func
+    def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
+        """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
+        products over the columns before it, :func:`padmm_rules.tail_dot_func`), from ``S_t`` in the tail rows'
+        upper slots (``S_t[t, j]`` at row ``j``, tail column ``K + t``) and its diagonal (column
+        ``sparse_llt.sdiag_col``); the sums of ``sparse_llt.factor_tail``."""
+        base = bases(m, w, sp, wid)
+        nt = n - sp.n_fixed[wid]
+        kt = tail_k(sp, wid)
+        col = sp.tail_stride  # the distance between a tail row's slots
+        for j in range(nt):  # L_t[t, j] of the rows t >= j at tr (tail column kt + j), from row j at jr
+            jr = base[2] + j * base[3]
+            d = wp.sqrt(tail_dot(sp.tail, col, jr, jr, kt, j, sp.tail[jr + sdiag_col(sp, wid) * col] + shift))
+            for t in range(j + 1 + lane, nt, LANES):
+                tr = base[2] + t * base[3]
+                sp.tail[tr + (kt + j) * col] = tail_dot(sp.tail, col, tr, jr, kt, j, sp.tail[jr + (kt + t) * col]) / d
+            if lane == 0:
+                sp.tail[jr + (kt + j) * col] = d
+            sync()
+
+    return factor_tail
+
+
+@functools.cache
+def factor_kernel(np_dtype, E: int = 0):
+    """Cholesky ``D~ = L L^T`` with the world's 32 threads (§8.1); with ``E > 0`` ``L_f`` staged in shared memory."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    bases = sparse_llt_kernels(np_dtype).bases
+    schur_entry = sparse_llt_kernels(np_dtype).schur_entry
+    fixed_entry = sparse_llt_kernels(np_dtype).fixed_entry
+    tail_row = sparse_llt_kernels(np_dtype).tail_row
+    tail_pattern = sparse_llt_kernels(np_dtype).tail_pattern
+    EL = max(E, 1)  # staged length (1: not staged)
+    lset, lget = shared_set_func(np_dtype, EL), shared_get_func(np_dtype, EL)
+    fget, fset = staged_get_func(np_dtype, E), staged_set_func(np_dtype, E)
+    fan_out = fan_out_func(np_dtype, E)
+    ltf_batch = ltf_batch_func(np_dtype, E)
+    factor_tail = factor_tail_func(np_dtype)
+    zero = scalar(0.0)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def factor(m: M, w: Work, sp: SP, eta: scalar, pending_only: int, nblk: int, shift: scalar, shift_sat: scalar):
+        """Cholesky ``D~ = L L^T`` in place (§8.1) with the world's 32 threads: the fixed rows by columns (fan-out
+        updates), then the tail rows' ``L_tf``, their Schur complement and ``factor_tail`` with the world's
+        penalty ``eta + rho_u``. With ``pending_only`` only the worlds whose effort-limited rows saturated in the
+        last PADMM iteration (``w.pending``), which first assemble ``D~`` again with the shifts ``shift`` /
+        ``shift_sat`` (``sparse_llt.refactor``; kamino.jax_ref.padmm.solve, "Saturation")."""
+        wid, lane = wp.tid()
+        if pending_only != 0:
+            if w.pending[wid] == 0:
+                return
+            for k in range(lane, sp.nnz[wid], LANES):
+                fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
+            for a in range(sp.n_fixed[wid] + lane, w.n_rows[wid], LANES):
+                tail_row(m, w, sp, wid, a, nblk)
+            sync()
+        base = bases(m, w, sp, wid)
+        rb, vb, tb, ts = base[0], base[1], base[2], base[3]
+        tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         npos = sp.n_pos[wid]  # the fixed rows, then the hubs' unknowns (sign s_q = -1: sparse_llt.factor_fixed_rows)
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
-        cmax = e0 + sp.nnz[wid] - 1
+        nnz = sp.nnz[wid]
+        lv = wp.tile_zeros(shape=(EL,), dtype=scalar, storage="shared")
+        if wp.static(E > 0):
+            for k in range(lane, nnz, LANES):
+                lset(lv, k, sp.val[vb + k * sp.val_stride])
+            sync()
+        # Column q's pointers are loaded during column q - 1, and its indices (two rounds of entries, FAN_BATCH
+        # rounds of update triples) together at its start, unconditionally (indices clamped to the world's): a
+        # column then waits on about one load latency instead of one per round (docs/warp_backend.md, "Where it
+        # goes, measured part by part")
+        cmax = e0 + nnz - 1
         fmax = wp.max(sp.fan_ptr[p0 + npos] - 1, 0)
         kd_n = int(0)
         c0_n = int(0)
@@ -260,47 +353,13 @@ def factor_columns_func(np_dtype, E: int):
                 fan_out(sp, vb, batch(sp.fan_tgt, ub, fmax), batch(sp.fan_a, ub, fmax), batch(sp.fan_b, ub, fmax),
                         ub, f1, lv, neg)
             sync()
-
-    return factor_columns
-
-
-@functools.cache
-def tail_rows_func(np_dtype, E: int):
-    """``L_tf`` of the tail rows (``sparse_llt.factor_world``'s sums)."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
-    LVec = shared_vector(np_dtype, max(E, 1))
-    fget = staged_get_func(np_dtype, E)
-    tail_pattern = sparse_llt_kernels(np_dtype).tail_pattern
-    FanVal = wp.types.vector(length=FAN_BATCH, dtype=scalar)
-    zero = scalar(0.0)
-
-    @wp.func
-    def ltf_batch(sp: SP, vb: int, tr: int, tc: int, ub: int, u1: int, s: scalar, lv: LVec) -> scalar:
-        """``s - sum_u L_k(u) l_j(u)`` over the pattern's update pairs ``u = ub .. ub + FAN_BATCH - 1`` before ``u1``
-        (``l``: the tail row at ``tr``; ``sparse_llt.Pattern.pat_upd_*``): the FAN_BATCH pairs' indices, then their
-        values, each batch loaded together (indices clamped, the surplus multiplied by zero), so that the sum waits
-        on two load latencies per batch instead of two per entry."""
-        kv = FanIdx()
-        jv = FanIdx()
-        for r in range(FAN_BATCH):
-            kv[r] = sp.pat_upd_k[wp.min(ub + r, u1 - 1)]
-            jv[r] = sp.pat_upd_j[wp.min(ub + r, u1 - 1)]
-        tv = FanVal()
-        for r in range(FAN_BATCH):
-            tv[r] = sp.tail[tr + jv[r] * tc]
-        for r in range(FAN_BATCH):
-            lk = fget(sp, vb, kv[r], lv)
-            s -= wp.where(ub + r < u1, lk * tv[r], zero)
-        return s
-
-    @wp.func
-    def tail_rows(m: M, w: Work, sp: SP, wid: int, lane: int, vb: int, tb: int, ts: int, lv: LVec):
-        """Row ``t`` solves ``L_f l = D~_ft`` over its pattern (each thread its rows)."""
-        tc = sp.tail_stride
-        nf = sp.n_fixed[wid]
-        e0 = sp.ent_start[wid]
-        p0 = sp.ptr_start[wid]
-        for t in range(lane, w.n_rows[wid] - nf, LANES):
+        if wp.static(E > 0):
+            for k in range(lane, nnz, LANES):
+                sp.val[vb + k * sp.val_stride] = lget(lv, k)
+        sync()
+        n = w.n_rows[wid]
+        nt = n - nf
+        for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft over its pattern (each thread its rows)
             tr = tb + t * ts
             pt = tail_pattern(sp, wid, t)
             i0 = sp.pat_ptr[pt]
@@ -320,119 +379,21 @@ def tail_rows_func(np_dtype, E: int):
                     for ub in range(sp.pat_upd_ptr[i0 + i], u1, FAN_BATCH):
                         s = ltf_batch(sp, vb, tr, tc, ub, u1, s, lv)
                     sp.tail[tr + i * tc] = s / fget(sp, vb, sp.row_ptr[p0 + pos + 1] - 1, lv)
-
-    return tail_rows
-
-
-@functools.cache
-def schur_func(np_dtype):
-    """The tail rows' Schur complement with the world's threads (``sparse_llt.schur_entry``'s sums)."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
-    bases = sparse_llt_kernels(np_dtype).bases
-    schur_entry = sparse_llt_kernels(np_dtype).schur_entry
-
-    @wp.func
-    def schur(m: M, w: Work, sp: SP, wid: int, n: int, lane: int):
-        """``S_t = D~_t - L_tf L_tf^T``: the entries ``(t, j <= t)``, threads over all ``nt (nt + 1) / 2`` of them
-        (pair ``u`` is ``(t, j)`` with ``u = t (t + 1) / 2 + j``); each reads lower slots and writes an upper slot or
-        the diagonal column, so no pair reads what another writes."""
-        base = bases(m, w, sp, wid)
-        nf = sp.n_fixed[wid]
-        nt = n - nf
+        sync()
+        # S_t = D~_t - L_tf L_tf^T: the entries (t, j <= t), threads over all nt (nt + 1) / 2 of them (pair u is
+        # (t, j) with u = t (t + 1) / 2 + j); each reads lower slots and writes an upper slot or the diagonal column,
+        # so no pair reads what another writes
         t = int(0)
         j = lane
         while j > t:  # the lane's first pair
             j -= t + 1
             t += 1
         while t < nt:
-            schur_entry(w, sp, wid, base[0], base[2], base[3], nf, t, j)
+            schur_entry(w, sp, wid, rb, tb, ts, nf, t, j)
             j += LANES
             while j > t:
                 j -= t + 1
                 t += 1
-
-    return schur
-
-
-@functools.cache
-def factor_tail_func(np_dtype):
-    """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty")."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
-    bases = sparse_llt_kernels(np_dtype).bases
-    tail_k = sparse_llt_kernels(np_dtype).tail_k
-    sdiag_col = sparse_llt_kernels(np_dtype).sdiag_col
-    tail_dot = rules.tail_dot_func(np_dtype)
-
-    @wp.func
-    def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
-        """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
-        products over the columns before it, :func:`padmm_rules.tail_dot_func`), from ``S_t`` in the tail rows'
-        upper slots (``S_t[t, j]`` at row ``j``, tail column ``K + t``) and its diagonal (column
-        ``sparse_llt.sdiag_col``); the sums of ``sparse_llt.factor_tail``."""
-        base = bases(m, w, sp, wid)
-        nt = n - sp.n_fixed[wid]
-        kt = tail_k(sp, wid)
-        col = sp.tail_stride  # the distance between a tail row's slots
-        for j in range(nt):  # L_t[t, j] of the rows t >= j at tr (tail column kt + j), from row j at jr
-            jr = base[2] + j * base[3]
-            d = wp.sqrt(tail_dot(sp, jr, jr, kt, j, sp.tail[jr + sdiag_col(sp, wid) * col] + shift))
-            for t in range(j + 1 + lane, nt, LANES):
-                tr = base[2] + t * base[3]
-                sp.tail[tr + (kt + j) * col] = tail_dot(sp, tr, jr, kt, j, sp.tail[jr + (kt + t) * col]) / d
-            if lane == 0:
-                sp.tail[jr + (kt + j) * col] = d
-            sync()
-
-    return factor_tail
-
-
-@functools.cache
-def factor_kernel(np_dtype, E: int = 0):
-    """Cholesky ``D~ = L L^T`` with the world's 32 threads (§8.1); with ``E > 0`` ``L_f`` staged in shared memory."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
-    bases = sparse_llt_kernels(np_dtype).bases
-    fixed_entry = sparse_llt_kernels(np_dtype).fixed_entry
-    tail_row = sparse_llt_kernels(np_dtype).tail_row
-    EL = max(E, 1)  # staged length (1: not staged)
-    lset, lget = shared_set_func(np_dtype, EL), shared_get_func(np_dtype, EL)
-    factor_columns = factor_columns_func(np_dtype, E)
-    tail_rows = tail_rows_func(np_dtype, E)
-    schur = schur_func(np_dtype)
-    factor_tail = factor_tail_func(np_dtype)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def factor(m: M, w: Work, sp: SP, eta: scalar, pending_only: int, nblk: int, shift: scalar, shift_sat: scalar):
-        """The fixed rows by columns (fan-out updates), then the tail rows' ``L_tf``, their Schur complement and
-        ``factor_tail`` with the world's penalty ``eta + rho_u``. With ``pending_only`` only the worlds whose
-        effort-limited rows saturated in the last PADMM iteration (``w.pending``), which first assemble ``D~`` again
-        with the shifts ``shift`` / ``shift_sat`` (``sparse_llt.refactor``; kamino.jax_ref.padmm.solve,
-        "Saturation")."""
-        wid, lane = wp.tid()
-        if pending_only != 0:
-            if w.pending[wid] == 0:
-                return
-            for k in range(lane, sp.nnz[wid], LANES):
-                fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
-            for a in range(sp.n_fixed[wid] + lane, w.n_rows[wid], LANES):
-                tail_row(m, w, sp, wid, a, nblk)
-            sync()
-        base = bases(m, w, sp, wid)
-        vb = base[1]
-        nnz = sp.nnz[wid]
-        lv = wp.tile_zeros(shape=(EL,), dtype=scalar, storage="shared")
-        if wp.static(E > 0):
-            for k in range(lane, nnz, LANES):
-                lset(lv, k, sp.val[vb + k * sp.val_stride])
-            sync()
-        factor_columns(sp, wid, lane, vb, lv)
-        if wp.static(E > 0):
-            for k in range(lane, nnz, LANES):
-                sp.val[vb + k * sp.val_stride] = lget(lv, k)
-        sync()
-        tail_rows(m, w, sp, wid, lane, vb, base[2], base[3], lv)
-        sync()
-        n = w.n_rows[wid]
-        schur(m, w, sp, wid, n, lane)
         sync()
         factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid], lane)
         if pending_only != 0 and lane == 0:
