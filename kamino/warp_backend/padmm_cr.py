@@ -1,12 +1,11 @@
 """The Conjugate Residual solve of PADMM's linear system (docs/formulation.md §8.2), for both PADMM schedules.
 
-The operator ``A = P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: ``cr_w = M^-1 J^T P v`` per
-body, then ``J cr_w`` and the diagonal row by row (:func:`operator_row_func`). One thread per world
-(``solver.py``) sums a body's ``J^T P v`` by walking the rows in order; 32 threads per world (``padmm_warp.py``)
-split the bodies, each summing its body's row blocks from the lists ``cr_pattern`` builds once per step, in the same
-row order, so with no atomics and the same sums (:func:`apply_func`).
-:func:`cr_solve_func` is the one CR iteration of both, its vector updates split over the world's threads and its
-dot products reduced over them.
+The operator ``A = P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free (:func:`apply_func`):
+``cr_w = M^-1 J^T P v`` per body, then ``J cr_w`` and the diagonal row by row. One thread per world (``solver.py``)
+sums a body's ``J^T P v`` by walking the rows in order; 32 threads per world (``padmm_warp.py``) split the bodies,
+each summing its body's row blocks from the lists ``cr_pattern`` builds once per step, in the same row order, so
+with no atomics and the same sums. :func:`cr_solve_func` is the one CR iteration of both, its vector updates split
+over the world's threads and its dot products reduced over them.
 """
 
 import functools
@@ -17,31 +16,6 @@ from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.padmm_rules import LANES, kernel_types, lane_reduce_func, sync
 from kamino.warp_backend.sparse_llt import sparse_llt_kernels
 from kamino.warp_backend.types import types_of
-
-
-@functools.cache
-def operator_row_func(np_dtype):
-    """Row ``a`` of ``A v`` once ``cr_w = M^-1 J^T P v`` is known (§8.2)."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
-    row_saturated = index_funcs(np_dtype).row_saturated
-
-    @wp.func
-    def operator_row(w: Work, r: int, a: int, nf: int, nblk: int, shift_f: scalar, shift_b: scalar,
-                     shift_t: scalar, v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
-        """``out_r = P_r J_r cr_w + (P_r^2 R_r + shift) v_r``: ``shift = eta + rho`` is ``shift_f`` on the fixed
-        rows (``shift_b`` on the saturated ones) and ``shift_t`` on the limit and contact rows."""
-        s = scalar(0.0)
-        for k in range(nblk):
-            b = w.row_body[r * nblk + k]
-            if b >= 0:
-                s += wp.dot(w.row_J[r * nblk + k], w.cr_w[b])
-        Pa = w.P[r]
-        shift = shift_t
-        if a < nf:
-            shift = wp.where(row_saturated(w, r) != 0, shift_b, shift_f)
-        out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
-
-    return operator_row
 
 
 @wp.func
@@ -99,15 +73,16 @@ def apply_func(np_dtype, lanes: int):
     vec6 = types_of(np_dtype).vec6
     scalar, M, Work, SP = kernel_types(np_dtype)
     inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
-    operator_row = operator_row_func(np_dtype)
+    row_saturated = index_funcs(np_dtype).row_saturated
 
     @wp.func
     def apply(m: M, w: Work, wid: int, rb: int, n: int, nblk: int, lane: int, shift_f: scalar, shift_b: scalar,
               shift_t: scalar, v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
-        """``out = A v`` (:func:`operator_row_func`'s shifts). One thread sums ``cr_w = M^-1 J^T P v`` by walking the
-        world's rows in order, each row adding its blocks to its bodies; 32 threads split the bodies, each summing
-        its body's row blocks from ``cr_pattern``'s lists (the same sums), with a barrier before (every thread's rows
-        of ``v``) and after (every body of ``cr_w``). Then each thread its rows."""
+        """``out = A v``, the diagonal's ``eta + rho`` being ``shift_f`` on the fixed rows (``shift_b`` on the
+        saturated ones) and ``shift_t`` on the limit and contact rows. One thread sums ``cr_w = M^-1 J^T P v`` by
+        walking the world's rows in order, each row adding its blocks to its bodies; 32 threads split the bodies,
+        each summing its body's row blocks from ``cr_pattern``'s lists (the same sums), with a barrier before (every
+        thread's rows of ``v``) and after (every body of ``cr_w``). Then each thread takes its rows of ``J cr_w``."""
         rs = w.row_stride
         b0 = m.body_start[wid]
         if wp.static(lanes == 1):
@@ -137,8 +112,18 @@ def apply_func(np_dtype, lanes: int):
                 w.cr_w[b] = inv_mass_times(m, w, b, acc)
             sync()
         nf = m.row_fixed[wid]
-        for a in range(lane, n, lanes):
-            operator_row(w, rb + a * rs, a, nf, nblk, shift_f, shift_b, shift_t, v, out)
+        for a in range(lane, n, lanes):  # out_r = P_r J_r cr_w + (P_r^2 R_r + shift) v_r
+            r = rb + a * rs
+            s = scalar(0.0)
+            for k in range(nblk):
+                b = w.row_body[r * nblk + k]
+                if b >= 0:
+                    s += wp.dot(w.row_J[r * nblk + k], w.cr_w[b])
+            Pa = w.P[r]
+            shift = shift_t
+            if a < nf:
+                shift = wp.where(row_saturated(w, r) != 0, shift_b, shift_f)
+            out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
 
     return apply
 
