@@ -27,7 +27,8 @@ def ent_slot(rb: int, rs: int, nblk: int, j: int) -> int:
 
 @functools.cache
 def cr_pattern_kernel(np_dtype):
-    """The world's row blocks grouped by body, for :func:`apply_func` on 32 threads (§8.2)."""
+    """The world's row blocks grouped by body, for :func:`apply_func` on 32 threads (§8.2).
+    ``cr_pattern(m, w, nblk)``, one thread per world (``wp.launch``), once per step."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_base = index_funcs(np_dtype).row_base
 
@@ -69,7 +70,8 @@ def cr_pattern_kernel(np_dtype):
 
 @functools.cache
 def apply_func(np_dtype, lanes: int):
-    """``out = A v`` by a world's ``lanes`` threads (1 or ``LANES``; §8.2)."""
+    """``out = A v`` by a world's ``lanes`` threads (1 or ``LANES``; §8.2).
+    ``apply(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, v, out)``."""
     vec6 = types_of(np_dtype).vec6
     scalar, M, Work, SP = kernel_types(np_dtype)
     inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
@@ -130,7 +132,8 @@ def apply_func(np_dtype, lanes: int):
 
 @functools.cache
 def cr_solve_func(np_dtype, lanes: int):
-    """Conjugate Residual by a world's ``lanes`` threads (1 or ``LANES``; §8.2)."""
+    """Conjugate Residual by a world's ``lanes`` threads (1 or ``LANES``; §8.2).
+    ``cr_solve(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, budget)``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     scalar = types_of(np_dtype).scalar
     apply = apply_func(np_dtype, lanes)

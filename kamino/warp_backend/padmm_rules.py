@@ -66,7 +66,8 @@ def lane_reduce_func(np_dtype, lanes: int, op: str):
 
 @functools.cache
 def momentum_func(np_dtype, accelerate: bool):
-    """§7.4 step 5, the fast-ADMM momentum with restart (``accelerate``, compile-time; else none)."""
+    """§7.4 step 5, the fast-ADMM momentum with restart (``accelerate``, compile-time; else none).
+    ``momentum(a_p, c_p, c_sum, restart_tol)``, once per iteration of a world."""
     scalar = types_of(np_dtype).scalar
     vec4 = types_of(np_dtype).vec4
     one = scalar(1.0)
@@ -90,7 +91,8 @@ def momentum_func(np_dtype, accelerate: bool):
 
 @functools.cache
 def extrapolated_func(np_dtype):
-    """§7.4: a row's next ``y_hat`` (or ``z_hat``) under a momentum mode."""
+    """§7.4: a row's next ``y_hat`` (or ``z_hat``) under a momentum mode.
+    ``extrapolated(new, prev, beta, mode)`` (:func:`advance_row_func`)."""
     scalar = types_of(np_dtype).scalar
 
     @wp.func
@@ -107,7 +109,8 @@ def extrapolated_func(np_dtype):
 
 @functools.cache
 def balanced_penalty_func(np_dtype):
-    """The residual-balancing penalty of the limit and contact rows (``kamino.jax_ref.padmm.solve``, "Penalty")."""
+    """The residual-balancing penalty of the limit and contact rows (``kamino.jax_ref.padmm.solve``, "Penalty").
+    ``balanced_penalty(rho_u, r_p, r_d, k, k_rho)`` (:func:`outcome_func`)."""
     scalar = types_of(np_dtype).scalar
     one = scalar(1.0)
     tiny = scalar(float(np.finfo(np_dtype).tiny))
@@ -133,7 +136,8 @@ def balanced_penalty_func(np_dtype):
 
 @functools.cache
 def row_penalty_func(np_dtype):
-    """A row's penalty (``kamino.jax_ref.padmm.solve``, "Penalty" and "Saturation")."""
+    """A row's penalty (``kamino.jax_ref.padmm.solve``, "Penalty" and "Saturation").
+    ``row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_saturated = index_funcs(np_dtype).row_saturated
 
@@ -176,7 +180,8 @@ def residuals_struct(np_dtype):
 
 @functools.cache
 def residual_weight_func(np_dtype):
-    """A row's residual weight (``kamino.jax_ref.padmm.solve``, "Residuals")."""
+    """A row's residual weight (``kamino.jax_ref.padmm.solve``, "Residuals").
+    ``residual_weight(P, p_ref)`` (:func:`dual_update_func`, :func:`cr_residual_func`)."""
     scalar = types_of(np_dtype).scalar
     one = scalar(1.0)
     loosening = scalar(config.RESIDUAL_LOOSENING_MAX)
@@ -192,7 +197,8 @@ def residual_weight_func(np_dtype):
 
 @functools.cache
 def dual_update_func(np_dtype):
-    """§7.3 step 4 and a row's share of the residuals (§7.4, §7.5)."""
+    """§7.3 step 4 and a row's share of the residuals (§7.4, §7.5).
+    ``dual_update(x, y, x_p, y_hat, z_hat, P, eta, rho, p_ref)``."""
     scalar = types_of(np_dtype).scalar
     vec4 = types_of(np_dtype).vec4
     residual_weight = residual_weight_func(np_dtype)
@@ -215,7 +221,8 @@ def dual_update_func(np_dtype):
 
 @functools.cache
 def saturates_func(np_dtype):
-    """Whether an effort-limited row saturates (``kamino.jax_ref.padmm.solve``, "Saturation")."""
+    """Whether an effort-limited row saturates (``kamino.jax_ref.padmm.solve``, "Saturation").
+    ``saturates(sat, lo, hi, v, y)`` (:func:`box_row_func`, :func:`mark_saturated_func`)."""
     scalar = types_of(np_dtype).scalar
 
     @wp.func
@@ -229,7 +236,8 @@ def saturates_func(np_dtype):
 
 @functools.cache
 def box_complementarity_func(np_dtype):
-    """A box row's complementarity residual (§7.5)."""
+    """A box row's complementarity residual (§7.5).
+    ``box_complementarity(y, z, lo, hi)`` (:func:`box_row_func`)."""
     scalar = types_of(np_dtype).scalar
     inf = scalar(wp.inf)
 
@@ -250,7 +258,8 @@ def box_complementarity_func(np_dtype):
 
 @functools.cache
 def row_rhs_func(np_dtype):
-    """§7.3 steps 1-2: a row's right-hand side of the linear solve."""
+    """§7.3 steps 1-2: a row's right-hand side of the linear solve.
+    ``row_rhs(w, r, rho, eta)``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
 
     @wp.func
@@ -264,7 +273,8 @@ def row_rhs_func(np_dtype):
 
 @functools.cache
 def contact_correction_func(np_dtype):
-    """§7.3 step 1: the De Saxcé correction ``s = Gamma(z_hat)`` of a contact (docs/formulation.md §4.3)."""
+    """§7.3 step 1: the De Saxcé correction ``s = Gamma(z_hat)`` of a contact (docs/formulation.md §4.3).
+    ``contact_correction(w, r, rs)``."""
     Work = work_struct(np_dtype)
     de_saxce = cone_funcs(np_dtype).de_saxce
     row_mu = index_funcs(np_dtype).row_mu
@@ -324,7 +334,8 @@ def box_row_func(np_dtype, adaptive: bool):
 
 @functools.cache
 def contact_rows_func(np_dtype):
-    """§7.3 steps 3-4 on a contact's three rows: the cone projection, dual update and residual terms."""
+    """§7.3 steps 3-4 on a contact's three rows: the cone projection, dual update and residual terms.
+    ``contact_rows(w, r, rs, x, inv_rho, rho, eta, p_ref, acc)`` returns ``acc`` with the contact's terms."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     vec3 = types_of(np_dtype).vec3
     Residuals = residuals_struct(np_dtype)
@@ -361,7 +372,8 @@ def contact_rows_func(np_dtype):
 
 @functools.cache
 def cr_residual_func(np_dtype):
-    """The Conjugate Residual solve's share of the dual residual (§8.2)."""
+    """The Conjugate Residual solve's share of the dual residual (§8.2).
+    ``cr_residual(w, r, p_ref, acc)`` returns ``acc`` with row ``r``'s terms."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     Residuals = residuals_struct(np_dtype)
     residual_weight = residual_weight_func(np_dtype)
@@ -382,7 +394,8 @@ def cr_residual_func(np_dtype):
 
 @functools.cache
 def reduce_residuals_func(np_dtype, lanes: int):
-    """The world's residual terms from its threads' (block reductions; nothing for one thread per world)."""
+    """The world's residual terms from its threads' (block reductions; nothing for one thread per world).
+    ``reduce_residuals(acc)``; every thread of the world gets the result."""
     Residuals = residuals_struct(np_dtype)
     lane_max = lane_reduce_func(np_dtype, lanes, "max")
     lane_sum = lane_reduce_func(np_dtype, lanes, "sum")
@@ -489,7 +502,8 @@ def mark_saturated_func(np_dtype):
 
 @functools.cache
 def advance_row_func(np_dtype):
-    """§7.4 steps 5-6 on a row: the next ``(y_hat, z_hat)`` and the previous iterate."""
+    """§7.4 steps 5-6 on a row: the next ``(y_hat, z_hat)`` and the previous iterate.
+    ``advance_row(w, r, x, mom)``."""
     scalar = types_of(np_dtype).scalar
     vec4 = types_of(np_dtype).vec4
     Work = work_struct(np_dtype)
@@ -518,7 +532,8 @@ def advance_row_func(np_dtype):
 
 @functools.cache
 def store_world_func(np_dtype):
-    """The world's scalars after an iteration (one thread writes them)."""
+    """The world's scalars after an iteration (one thread writes them).
+    ``store_world(w, wid, k, acc, res, done)``."""
     Work = work_struct(np_dtype)
     Residuals = residuals_struct(np_dtype)
     Outcome = outcome_struct(np_dtype)

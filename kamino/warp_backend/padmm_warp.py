@@ -81,13 +81,15 @@ REGISTER_CAP_MIN_ROWS = 200
 
 @functools.cache
 def shared_vector(np_dtype, length: int):
-    """The type of a world's shared vector of ``length`` scalars."""
+    """The type of a world's shared vector of ``length`` scalars.
+    A ``wp.tile`` in shared memory, read and written entry by entry (:func:`shared_get_func`)."""
     return wp.tile(dtype=types_of(np_dtype).scalar, shape=(length,), storage="shared")
 
 
 @functools.cache
 def shared_set_func(np_dtype, length: int):
-    """Write one entry of a :func:`shared_vector`."""
+    """Write one entry of a :func:`shared_vector`.
+    ``sset(t, i, v)``: the entry only, with no barrier of the block."""
     Vec = shared_vector(np_dtype, length)
     scalar = types_of(np_dtype).scalar
 
@@ -101,7 +103,8 @@ def shared_set_func(np_dtype, length: int):
 
 @functools.cache
 def shared_get_func(np_dtype, length: int):
-    """Read one entry of a :func:`shared_vector`."""
+    """Read one entry of a :func:`shared_vector`.
+    ``sget(t, i)``: the entry only, with no barrier of the block."""
     Vec = shared_vector(np_dtype, length)
     scalar = types_of(np_dtype).scalar
 
@@ -135,7 +138,8 @@ def staged_get_func(np_dtype, E: int):
 
 @functools.cache
 def staged_set_func(np_dtype, E: int):
-    """Write an entry of the world's ``L_f`` (staged, or in device memory: :func:`staged_get_func`)."""
+    """Write an entry of the world's ``L_f`` (staged, or in device memory: :func:`staged_get_func`).
+    ``fset(sp, vb, k, v, lv)``, ``lv`` the staged copy (unused when ``E = 0``)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     LVec = shared_vector(np_dtype, max(E, 1))
     lset = shared_set_func(np_dtype, max(E, 1))
@@ -162,7 +166,8 @@ def batch(a: wp.array(dtype=wp.int32), u: int, umax: int) -> FanIdx:
 
 @functools.cache
 def fan_out_func(np_dtype, E: int):
-    """The fan-out updates of a fixed column (``sparse_llt.factor_fixed_rows``'s sums)."""
+    """The fan-out updates of a fixed column (``sparse_llt.factor_fixed_rows``'s sums).
+    ``fan_out(sp, vb, tv, av, bv, u, f1, lv, neg)``: a thread's FAN_BATCH rounds of update triples."""
     SP = pattern_struct(np_dtype)
     LVec = shared_vector(np_dtype, max(E, 1))
     fget, fset = staged_get_func(np_dtype, E), staged_set_func(np_dtype, E)
@@ -185,7 +190,8 @@ def fan_out_func(np_dtype, E: int):
 
 @functools.cache
 def ltf_batch_func(np_dtype, E: int):
-    """A batch of the tail rows' ``L_tf`` updates (``sparse_llt.factor_world``'s sums)."""
+    """A batch of the tail rows' ``L_tf`` updates (``sparse_llt.factor_world``'s sums).
+    ``ltf_batch(sp, vb, tr, tc, ub, u1, s, lv)``: FAN_BATCH update pairs of one entry of ``L_tf``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     LVec = shared_vector(np_dtype, max(E, 1))
     fget = staged_get_func(np_dtype, E)
@@ -216,7 +222,9 @@ def ltf_batch_func(np_dtype, E: int):
 
 @functools.cache
 def factor_tail_func(np_dtype):
-    """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty")."""
+    """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty").
+    ``factor_tail(m, w, sp, wid, n, shift, lane)``: by the world's threads (``factor_kernel`` and a new
+    penalty in :func:`iterate_kernel`)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     bases = sparse_llt_kernels(np_dtype).bases
     tail_k = sparse_llt_kernels(np_dtype).tail_k
@@ -406,7 +414,8 @@ def factor_kernel(np_dtype, E: int = 0):
 
 @functools.cache
 def solve_func(np_dtype, R: int):
-    """The solve with the sparse factor and its tail by the world's threads (§8.1)."""
+    """The solve with the sparse factor and its tail by the world's threads (§8.1).
+    ``solve(m, w, sp, wid, n, lane, xs, ys)``, the vectors in shared memory (:func:`shared_vector` of ``R``)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     Vec = shared_vector(np_dtype, R)
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
@@ -575,7 +584,8 @@ def solve_func(np_dtype, R: int):
 
 @functools.cache
 def solve_fixed_kernel(np_dtype, R: int):
-    """Post-stabilisation's solve with the fixed rows' factor, 32 threads per world."""
+    """Post-stabilisation's solve with the fixed rows' factor, 32 threads per world.
+    ``solve_fixed(m, w, sp, extra)``, launched tiled: one block of ``LANES`` threads per world."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
     bases = sparse_llt_kernels(np_dtype).bases
@@ -607,7 +617,9 @@ def solve_fixed_kernel(np_dtype, R: int):
 
 @functools.cache
 def lane_rhs_func(np_dtype):
-    """§7.3 steps 1-2 on one row of the 32-thread schedule."""
+    """§7.3 steps 1-2 on one row of the 32-thread schedule.
+    ``lane_rhs(w, r, a, nf, n_box, rho_free, rho_box, rho_u, eta)``: ``padmm_rules.row_rhs_func``, then the
+    contact correction on a normal row."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
     row_rhs = rules.row_rhs_func(np_dtype)

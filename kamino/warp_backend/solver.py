@@ -40,7 +40,8 @@ LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE = 0, 1, 2
 
 @functools.cache
 def world_row_func(np_dtype):
-    """Where an active row of a world is stored."""
+    """Where an active row of a world is stored.
+    ``world_row(m, w, wid, a)``: the row kernels launched over ``(worlds, max_rows)`` start with it."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     ridx = index_funcs(np_dtype).ridx
 
@@ -56,7 +57,8 @@ def world_row_func(np_dtype):
 
 @functools.cache
 def count_rows_kernel(np_dtype):
-    """The world's active rows (§7.1: the fixed and limit rows, then three per contact)."""
+    """The world's active rows (§7.1: the fixed and limit rows, then three per contact).
+    ``count_rows(m, w)``, one thread per world, after the limit rows are packed and the contacts counted."""
     scalar, M, Work, SP = kernel_types(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -73,7 +75,8 @@ def count_rows_kernel(np_dtype):
 
 @functools.cache
 def prebake_kernel(np_dtype):
-    """The free velocity ``v_f = J u_f + v*`` of the rows (§5), and the dense ``J`` on request."""
+    """The free velocity ``v_f = J u_f + v*`` of the rows (§5), and the dense ``J`` on request.
+    ``prebake(m, w, nblk, dense)``, one thread per row slot ``(worlds, max_rows)``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     free_velocity = row_kernels(np_dtype).free_velocity
     jidx = index_funcs(np_dtype).jidx
@@ -109,7 +112,8 @@ def prebake_kernel(np_dtype):
 
 @functools.cache
 def delassus_sparse_kernel(np_dtype):
-    """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the block-sparse rows (§8.1)."""
+    """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the block-sparse rows (§8.1).
+    ``delassus_sparse(m, w, nblk)``, one thread per row slot: row ``a`` fills ``D_ab = D_ba``, ``b >= a``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     didx = index_funcs(np_dtype).didx
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
@@ -131,7 +135,8 @@ def delassus_sparse_kernel(np_dtype):
 
 @functools.cache
 def delassus_dense_kernel(np_dtype):
-    """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the dense per-world ``J`` (§8.1)."""
+    """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the dense per-world ``J`` (§8.1).
+    ``delassus_dense(m, w)``, one thread per row slot: row ``a`` fills ``D_ab = D_ba``, ``b >= a``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
@@ -162,7 +167,8 @@ def delassus_dense_kernel(np_dtype):
 
 @functools.cache
 def precondition_kernel(np_dtype):
-    """The Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2)."""
+    """The Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2).
+    ``precondition(m, w, nblk, assembled, enabled)``, one thread per row slot."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     didx = index_funcs(np_dtype).didx
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
@@ -205,7 +211,8 @@ def precondition_kernel(np_dtype):
 
 @functools.cache
 def scale_kernel(np_dtype):
-    """The scaled problem of §7.2 and the effort-limited rows' starting saturation ("Saturation")."""
+    """The scaled problem of §7.2 and the effort-limited rows' starting saturation ("Saturation").
+    ``scale(m, w, shift, shift_sat, impulse_scale, assembled, always_sat)``, one thread per row slot."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
@@ -259,7 +266,8 @@ def scale_kernel(np_dtype):
 
 @functools.cache
 def factor_tail_dense_func(np_dtype):
-    """The dense factor's tail for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty")."""
+    """The dense factor's tail for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty").
+    ``factor_tail_dense(m, w, wid, n, shift)``, by the world's thread."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     didx = index_funcs(np_dtype).didx
     row_base = index_funcs(np_dtype).row_base
@@ -292,7 +300,8 @@ def factor_tail_dense_func(np_dtype):
 
 @functools.cache
 def factor_dense_func(np_dtype):
-    """The dense Cholesky factor of ``D~`` (§8.1)."""
+    """The dense Cholesky factor of ``D~`` (§8.1).
+    ``factor_dense(m, w, wid, n, eta)``, by the world's thread (``padmm_init``, ``refactor_dense``)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     didx = index_funcs(np_dtype).didx
     row_base = index_funcs(np_dtype).row_base
@@ -337,7 +346,8 @@ def factor_dense_func(np_dtype):
 
 @functools.cache
 def refactor_dense_kernel(np_dtype):
-    """The dense factor again after a saturation (``kamino.jax_ref.padmm.solve``, "Saturation")."""
+    """The dense factor again after a saturation (``kamino.jax_ref.padmm.solve``, "Saturation").
+    ``refactor_dense(m, w, nblk, shift, shift_sat, eta)``, one thread per world."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
@@ -370,7 +380,8 @@ def refactor_dense_kernel(np_dtype):
 
 @functools.cache
 def cho_solve_func(np_dtype):
-    """The solve with the dense factor (§8.1)."""
+    """The solve with the dense factor (§8.1).
+    ``cho_solve_inplace(m, w, wid, n)``: ``x`` in ``w.x`` in place, by the world's thread."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     S = GROUP  # storage distance between consecutive entries of a world's dense Delassus matrix (w.D)
@@ -408,7 +419,8 @@ def cho_solve_func(np_dtype):
 
 @functools.cache
 def project_into_func(np_dtype):
-    """The projection on the feasible set ``K`` (§7.3 step 3)."""
+    """The projection on the feasible set ``K`` (§7.3 step 3).
+    ``project_into(m, w, wid, n_box, n, src, shift, inv_rho, dst)``, by the world's thread."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     row_mu = index_funcs(np_dtype).row_mu
@@ -436,7 +448,9 @@ def project_into_func(np_dtype):
 
 @functools.cache
 def padmm_init_kernel(np_dtype):
-    """PADMM's warm start (§7.8), the world's penalty and residual scale, and the dense factor."""
+    """PADMM's warm start (§7.8), the world's penalty and residual scale, and the dense factor.
+    ``padmm_init(m, w, impulse_scale, use_velocity, factorize, max_iterations, eta, rho0, adaptive)``,
+    one thread per world."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     project_into = project_into_func(np_dtype)
@@ -485,7 +499,8 @@ def padmm_init_kernel(np_dtype):
 
 @functools.cache
 def restart_world_func(np_dtype):
-    """A world's PADMM state at a (re)start."""
+    """A world's PADMM state at a (re)start.
+    ``restart_world(w, wid, k, max_iterations)`` (``padmm_init``, ``padmm_resume``)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     big = scalar(float(np.finfo(np_dtype).max))
 
@@ -546,7 +561,9 @@ def linear_step_func(np_dtype, linear: int):
 
 @functools.cache
 def project_rows_func(np_dtype, linear: int, adaptive: bool):
-    """§7.3 steps 3-4 of one thread per world: every row's projection, dual update and residual terms."""
+    """§7.3 steps 3-4 of one thread per world: every row's projection, dual update and residual terms.
+    ``project_rows(m, w, wid, rb, n, n_box, eta, rho_free, rho_box, rho_u, p_ref)`` returns the world's
+    ``padmm_rules.residuals_struct``; ``linear`` and ``adaptive`` as :func:`padmm_iterate_kernel`'s."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     scalar = types_of(np_dtype).scalar
     vec3 = types_of(np_dtype).vec3
@@ -650,7 +667,8 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
 
 @functools.cache
 def padmm_resume_kernel(np_dtype):
-    """PADMM again from its last iterate, after the right-hand side changed (curvature refinement)."""
+    """PADMM again from its last iterate, after the right-hand side changed (curvature refinement).
+    ``padmm_resume(m, w, max_iterations)``, one thread per world."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     restart_world = restart_world_func(np_dtype)
@@ -672,7 +690,8 @@ def padmm_resume_kernel(np_dtype):
 
 @functools.cache
 def padmm_finish_kernel(np_dtype):
-    """PADMM's impulses and velocities, unscaled (§7.7)."""
+    """PADMM's impulses and velocities, unscaled (§7.7).
+    ``padmm_finish(m, w)``, one thread per row slot."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_mu = index_funcs(np_dtype).row_mu
     de_saxce = cone_funcs(np_dtype).de_saxce
