@@ -135,7 +135,6 @@ def cr_solve_func(np_dtype, lanes: int):
     """Conjugate Residual by a world's ``lanes`` threads (1 or ``LANES``; §8.2).
     ``cr_solve(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, budget)``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    scalar = types_of(np_dtype).scalar
     apply = apply_func(np_dtype, lanes)
     lane_sum = lane_reduce_func(np_dtype, lanes, "sum")
     zero = scalar(0.0)

@@ -423,9 +423,9 @@ def reduce_residuals_func(np_dtype, lanes: int):
 
 @functools.cache
 def outcome_struct(np_dtype):
-    """What the world does after an iteration: ``converged``, ``switch`` (an effort-limited row saturates:
+    """What the world does after an iteration: ``converged``, ``saturates`` (an effort-limited row saturates:
     ``rho_box`` on it from now on, "Saturation"), the limit and contact rows' next penalty ``rho`` and the momentum
-    ``mom = (a, c, beta, mode)`` (§7.4; ``mode`` ``RESTART_HERE`` after a new penalty or a switch)."""
+    ``mom = (a, c, beta, mode)`` (§7.4; ``mode`` ``RESTART_HERE`` after a new penalty or a saturation)."""
     scalar = types_of(np_dtype).scalar
     vec4 = types_of(np_dtype).vec4
 

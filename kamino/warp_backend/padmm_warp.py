@@ -645,7 +645,6 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
     factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), the adaptive penalty (``adaptive``),
     the momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    scalar = types_of(np_dtype).scalar
     vec3 = types_of(np_dtype).vec3
     Residuals = rules.residuals_struct(np_dtype)
     row_base = index_funcs(np_dtype).row_base
@@ -726,7 +725,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
             acc = reduce_residuals(acc)
             k = w.iters[wid] + 1
             res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
-            if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a switch redoes the whole factor
+            if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
                 rho_u = res.rho
                 sync()  # every thread has read k_rho (outcome) before it changes
                 if wp.static(not cr):

@@ -565,7 +565,6 @@ def project_rows_func(np_dtype, linear: int, adaptive: bool):
     ``project_rows(m, w, wid, rb, n, n_box, eta, rho_free, rho_box, rho_u, p_ref)`` returns the world's
     ``padmm_rules.residuals_struct``; ``linear`` and ``adaptive`` as :func:`padmm_iterate_kernel`'s."""
     scalar, M, Work, SP = kernel_types(np_dtype)
-    scalar = types_of(np_dtype).scalar
     vec3 = types_of(np_dtype).vec3
     Residuals = rules.residuals_struct(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
@@ -639,7 +638,7 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
             acc = project_rows(m, w, wid, rb, n, n_box, eta, rho_free, rho_box, rho_u, p_ref)
             k = w.iters[wid] + 1
             res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
-            if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a switch redoes the whole factor
+            if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
                 rho_u = res.rho
                 w.rho_u[wid] = rho_u
                 w.k_rho[wid] = k
