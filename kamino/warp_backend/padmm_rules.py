@@ -1,75 +1,214 @@
-"""The per-iteration rules of accelerated PADMM shared by the two PADMM schedules (one thread per world in
-``solver.py``, 32 threads per world in ``padmm_warp.py``): the dual update and a row's residuals (docs/formulation.md
-§7.3-§7.5), the fast-ADMM momentum with restart (§7.4), the penalty of the limit and contact rows, and a box row's
-complementarity residual (§7.5).
+"""One iteration of accelerated PADMM, as both PADMM schedules run it (one thread per world in ``solver.py``, 32
+threads per world in ``padmm_warp.py``): a row's right-hand side (docs/formulation.md §7.3 steps 1-2), its
+projection, dual update and residual terms (§7.3 steps 3-4, §7.5), the world's convergence test, the fast-ADMM
+momentum with restart (§7.4), the penalty of the limit and contact rows and the saturation of effort-limited rows
+(``kamino.jax_ref.padmm.solve``, "Penalty", "Saturation", "Null directions"), and the move to the next iterate.
+
+A schedule keeps only what is its own: which rows a thread visits (``for a in range(lane, n, lanes)``), where the
+linear solve leaves ``x``, the block reductions of the world's :func:`residuals_struct` and the barriers. Each
+``wp.func`` comes from a small builder cached per precision (and per compile-time mode where it has one).
 """
 
 import functools
-from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
-from kamino.config import (
-    PENALTY_INTERVAL,
-    PENALTY_MAX_FACTOR,
-    PENALTY_THRESHOLD,
-    RESIDUAL_LOOSENING_MAX,
-    RHO_MAX,
-    RHO_MIN,
-)
+from kamino import config
+from kamino.warp_backend.cone import cone_funcs
+from kamino.warp_backend.indexing import index_funcs
+from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.sparse_llt import pattern_struct
 from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import work_struct
 
-#: what :func:`padmm_funcs` ``momentum`` asks the kernel to do with ``(y_hat, z_hat)``
-NO_ACCELERATION, EXTRAPOLATE, RESTART = 0, 1, 2
+#: what :func:`momentum_func` asks the kernel to do with ``(y_hat, z_hat)``; ``RESTART_HERE``: a new penalty or a
+#: saturating row restarts the momentum at the current iterate (``y_hat = y``, ``z_hat = z``)
+NO_ACCELERATION, EXTRAPOLATE, RESTART, RESTART_HERE = 0, 1, 2, 3
+
+#: Threads per world of the 32-thread schedule (one GPU warp).
+LANES = 32
+
+
+@wp.func_native("WP_TILE_SYNC();")
+def sync():
+    """Barrier of the threads of a block (``__syncthreads`` on CUDA, the fiber barrier on the CPU)."""
+    ...
+
+
+def kernel_types(np_dtype) -> tuple:
+    """``(scalar, M, Work, SP)`` of a precision: the scalar type and the structs the PADMM kernels take (the model,
+    the workspace, the sparse factor's pattern)."""
+    return types_of(np_dtype).scalar, model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
 
 
 @functools.cache
-def padmm_funcs(np_dtype) -> SimpleNamespace:
-    T = types_of(np_dtype)
-    scalar = T.scalar
-    vec4 = wp.types.vector(length=4, dtype=scalar)
-    inf = scalar(wp.inf)
-    one = scalar(1.0)
-    zero = scalar(0.0)
-    tiny = scalar(float(np.finfo(np_dtype).tiny))
+def lane_reduce_func(np_dtype, lanes: int, op: str):
+    """The world's ``op`` (``"max"`` or ``"sum"``) of a value over its ``lanes`` threads: a block reduction that
+    every thread gets, or the value itself for one thread per world."""
+    if op not in ("max", "sum"):
+        raise ValueError(f"lane_reduce_func: op must be 'max' or 'sum', got {op!r}")
+    scalar = types_of(np_dtype).scalar
 
     @wp.func
-    def momentum(a_p: scalar, c_p: scalar, c_sum: scalar, restart_tol: scalar, accelerate: int):
-        """§7.4 step 5: ``(a, c, beta, mode)`` from the previous momentum ``a_p``, the previous combined
-        residual ``c_p`` and this iteration's ``c_sum``. ``mode`` (stored as a scalar): ``NO_ACCELERATION``
-        (``hat = new``), ``EXTRAPOLATE`` (``hat = new + beta (new - prev)``, the residual dropped by ``restart_tol``) or
-        ``RESTART`` (``hat = prev``, momentum reset, ``c = c_p / restart_tol``)."""
-        if accelerate == 0:
+    def lane_reduce(v: scalar):
+        """The world's maximum or sum of ``v``."""
+        if wp.static(lanes == 1):
+            return v
+        if wp.static(op == "max"):
+            return wp.tile_extract(wp.tile_max(wp.tile(v)), 0)
+        return wp.tile_extract(wp.tile_sum(wp.tile(v)), 0)
+
+    return lane_reduce
+
+
+# --- the momentum and the penalty (§7.4) ---------------------------------------------------------------------
+
+@functools.cache
+def momentum_func(np_dtype, accelerate: bool):
+    """§7.4 step 5, the fast-ADMM momentum with restart (``accelerate``, compile-time; else none).
+    ``momentum(a_p, c_p, c_sum, restart_tol)``, once per iteration of a world."""
+    scalar = types_of(np_dtype).scalar
+    vec4 = types_of(np_dtype).vec4
+    one = scalar(1.0)
+    zero = scalar(0.0)
+
+    @wp.func
+    def momentum(a_p: scalar, c_p: scalar, c_sum: scalar, restart_tol: scalar):
+        """``(a, c, beta, mode)`` from the previous momentum ``a_p``, the previous combined residual ``c_p`` and
+        this iteration's ``c_sum``. ``mode`` (stored as a scalar): ``NO_ACCELERATION`` (``hat = new``),
+        ``EXTRAPOLATE`` (``hat = new + beta (new - prev)``, the residual dropped by ``restart_tol``) or ``RESTART``
+        (``hat = prev``, momentum reset, ``c = c_p / restart_tol``)."""
+        if wp.static(not accelerate):
             return vec4(a_p, c_p, zero, scalar(NO_ACCELERATION))
         if c_sum < restart_tol * c_p:
             a_new = scalar(0.5) * (one + wp.sqrt(one + scalar(4.0) * a_p * a_p))
             return vec4(a_new, c_sum, (a_p - one) / a_new, scalar(EXTRAPOLATE))
         return vec4(one, c_p / restart_tol, zero, scalar(RESTART))
 
+    return momentum
+
+
+@functools.cache
+def extrapolated_func(np_dtype):
+    """§7.4: a row's next ``y_hat`` (or ``z_hat``) under a momentum mode.
+    ``extrapolated(new, prev, beta, mode)`` (:func:`advance_row_func`)."""
+    scalar = types_of(np_dtype).scalar
+
     @wp.func
     def extrapolated(new: scalar, prev: scalar, beta: scalar, mode: int):
-        """The next ``y_hat`` (or ``z_hat``) of a row after :func:`momentum`."""
+        """The next ``y_hat`` (or ``z_hat``) of a row after :func:`momentum_func`'s ``(beta, mode)``."""
         if mode == EXTRAPOLATE:
             return new + beta * (new - prev)
         if mode == RESTART:
             return prev
         return new
 
+    return extrapolated
+
+
+@functools.cache
+def balanced_penalty_func(np_dtype):
+    """The residual-balancing penalty of the limit and contact rows (``kamino.jax_ref.padmm.solve``, "Penalty").
+    ``balanced_penalty(rho_u, r_p, r_d, k, k_rho)`` (:func:`outcome_func`)."""
+    scalar = types_of(np_dtype).scalar
+    one = scalar(1.0)
+    tiny = scalar(float(np.finfo(np_dtype).tiny))
+    interval, threshold = config.PENALTY_INTERVAL, scalar(config.PENALTY_THRESHOLD)
+    max_factor, rho_min, rho_max = scalar(config.PENALTY_MAX_FACTOR), scalar(config.RHO_MIN), scalar(config.RHO_MAX)
+
+    @wp.func
+    def balanced_penalty(rho_u: scalar, r_p: scalar, r_d: scalar, k: int, k_rho: int):
+        """The limit and contact rows' penalty after iteration ``k`` (the last change at ``k_rho``): residual
+        balancing, ``rho_u sqrt(r_p / r_d)`` (the factor capped to ``[1 / PENALTY_MAX_FACTOR, PENALTY_MAX_FACTOR]``)
+        clipped to ``[RHO_MIN, RHO_MAX]``, when ``PENALTY_INTERVAL`` iterations have passed and the balance is off by
+        more than ``PENALTY_THRESHOLD``; else ``rho_u``."""
+        if k - k_rho < interval:
+            return rho_u
+        ratio = wp.sqrt((r_p + tiny) / (r_d + tiny))
+        if ratio > threshold or ratio * threshold < one:
+            gain = wp.clamp(ratio, one / max_factor, max_factor)
+            return wp.clamp(rho_u * gain, rho_min, rho_max)
+        return rho_u
+
+    return balanced_penalty
+
+
+@functools.cache
+def row_penalty_func(np_dtype):
+    """A row's penalty (``kamino.jax_ref.padmm.solve``, "Penalty" and "Saturation").
+    ``row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)``."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    row_saturated = index_funcs(np_dtype).row_saturated
+
+    @wp.func
+    def row_penalty(w: Work, r: int, a: int, nf: int, rho_free: scalar, rho_box: scalar, rho_u: scalar):
+        """Row ``a``'s penalty: ``rho_free`` on a fixed row, ``rho_box`` on a saturated effort-limited one (a flag),
+        the world's ``rho_u`` on limit and contact rows."""
+        if a >= nf:
+            return rho_u
+        if row_saturated(w, r) != 0:
+            return rho_box
+        return rho_free
+
+    return row_penalty
+
+
+# --- a row's share of an iteration (§7.3, §7.5) ----------------------------------------------------------------
+
+@functools.cache
+def residuals_struct(np_dtype):
+    """The world's residual terms of one iteration, as its rows fold them in (the schedule reduces them over its
+    threads): the maxima ``r_p``, ``r_d``, ``r_c`` (§7.5), the sum ``c_sum`` of §7.4's combined residual, the
+    null-direction test's ``r_tail``, ``de`` and ``dx`` (``kamino.jax_ref.padmm.solve``, "Null directions") and
+    ``hit`` (> 0: an effort-limited row's projection clipped it, "Saturation")."""
+    scalar = types_of(np_dtype).scalar
+
+    @wp.struct
+    class Residuals:
+        r_p: scalar
+        r_d: scalar
+        r_c: scalar
+        c_sum: scalar
+        r_tail: scalar
+        de: scalar
+        dx: scalar
+        hit: scalar
+
+    return Residuals
+
+
+@functools.cache
+def residual_weight_func(np_dtype):
+    """A row's residual weight (``kamino.jax_ref.padmm.solve``, "Residuals").
+    ``residual_weight(P, p_ref)`` (:func:`dual_update_func`, :func:`cr_residual_func`)."""
+    scalar = types_of(np_dtype).scalar
+    one = scalar(1.0)
+    loosening = scalar(config.RESIDUAL_LOOSENING_MAX)
+
     @wp.func
     def residual_weight(P: scalar, p_ref: scalar):
-        """A row's residual weight ``1 / min(K P, p_ref)``, ``K = RESIDUAL_LOOSENING_MAX``: its scaled error as a
-        velocity of the world's heaviest row, capped at ``K`` times its own velocity error
-        (``kamino.jax_ref.padmm.solve``, "Residuals")."""
-        return one / wp.min(scalar(RESIDUAL_LOOSENING_MAX) * P, p_ref)
+        """``1 / min(K P, p_ref)``, ``K = RESIDUAL_LOOSENING_MAX``: the row's scaled error as a velocity of the
+        world's heaviest row, capped at ``K`` times its own velocity error."""
+        return one / wp.min(loosening * P, p_ref)
+
+    return residual_weight
+
+
+@functools.cache
+def dual_update_func(np_dtype):
+    """§7.3 step 4 and a row's share of the residuals (§7.4, §7.5).
+    ``dual_update(x, y, x_p, y_hat, z_hat, P, eta, rho, p_ref)``."""
+    scalar = types_of(np_dtype).scalar
+    vec4 = types_of(np_dtype).vec4
+    residual_weight = residual_weight_func(np_dtype)
 
     @wp.func
     def dual_update(x: scalar, y: scalar, x_p: scalar, y_hat: scalar, z_hat: scalar, P: scalar, eta: scalar,
                     rho: scalar, p_ref: scalar):
-        """§7.3 step 4 and the row's share of the residuals: ``(z, w |x - y|, w |eta (x - x_p) + rho (y - y_hat)|,
-        rho |P dy|^2 + |dz / P|^2 / rho)`` with ``w`` the row's :func:`residual_weight`; the world takes the maxima
-        of the first two (``kamino.jax_ref.padmm.solve``, "Residuals"). The last is the row's share of §7.4's
-        combined residual."""
+        """``(z, w |x - y|, w |eta (x - x_p) + rho (y - y_hat)|, rho |P dy|^2 + |dz / P|^2 / rho)`` with ``w`` the
+        row's :func:`residual_weight_func`; the world takes the maxima of the first two
+        (``kamino.jax_ref.padmm.solve``, "Residuals"). The last is the row's share of §7.4's combined residual."""
         z = z_hat + rho * (y - x)
         dy = P * (y - y_hat)
         dz = (z - z_hat) / P
@@ -77,30 +216,34 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
         return vec4(z, wgt * wp.abs(x - y), wgt * wp.abs(eta * (x - x_p) + rho * (y - y_hat)),
                     rho * dy * dy + dz * dz / rho)
 
-    @wp.func
-    def balanced_penalty(rho_u: scalar, r_p: scalar, r_d: scalar, k: int, k_rho: int):
-        """The limit and contact rows' penalty after iteration ``k`` (the last change at ``k_rho``): residual
-        balancing, ``rho_u sqrt(r_p / r_d)`` (the factor capped to ``[1 / PENALTY_MAX_FACTOR, PENALTY_MAX_FACTOR]``)
-        clipped to ``[RHO_MIN, RHO_MAX]``, when ``PENALTY_INTERVAL`` iterations have passed and the balance is off by
-        more than ``PENALTY_THRESHOLD``; else ``rho_u`` (``kamino.jax_ref.padmm.solve``)."""
-        if k - k_rho < PENALTY_INTERVAL:
-            return rho_u
-        ratio = wp.sqrt((r_p + tiny) / (r_d + tiny))
-        if ratio > scalar(PENALTY_THRESHOLD) or ratio * scalar(PENALTY_THRESHOLD) < one:
-            gain = wp.clamp(ratio, one / scalar(PENALTY_MAX_FACTOR), scalar(PENALTY_MAX_FACTOR))
-            return wp.clamp(rho_u * gain, scalar(RHO_MIN), scalar(RHO_MAX))
-        return rho_u
+    return dual_update
+
+
+@functools.cache
+def saturates_func(np_dtype):
+    """Whether an effort-limited row saturates (``kamino.jax_ref.padmm.solve``, "Saturation").
+    ``saturates(sat, lo, hi, v, y)`` (:func:`box_row_func`, :func:`mark_saturated_func`)."""
+    scalar = types_of(np_dtype).scalar
 
     @wp.func
     def saturates(sat: int, lo: scalar, hi: scalar, v: scalar, y: scalar):
         """Whether a fixed row not yet saturated (``sat == 0``) saturates: it has a finite bound (an effort-limited
-        actuator) and its projection ``y = clamp(v, lo, hi)`` clipped ``v = x - z_hat / rho``
-        (``kamino.jax_ref.padmm.solve``, "Saturation")."""
+        actuator) and its projection ``y = clamp(v, lo, hi)`` clipped ``v = x - z_hat / rho``."""
         return sat == 0 and (wp.isfinite(lo) or wp.isfinite(hi)) and y != v
+
+    return saturates
+
+
+@functools.cache
+def box_complementarity_func(np_dtype):
+    """A box row's complementarity residual (§7.5).
+    ``box_complementarity(y, z, lo, hi)`` (:func:`box_row_func`)."""
+    scalar = types_of(np_dtype).scalar
+    inf = scalar(wp.inf)
 
     @wp.func
     def box_complementarity(y: scalar, z: scalar, lo: scalar, hi: scalar):
-        """``|z| * distance of y to its nearest finite bound`` (0 for an unbounded row), §7.5."""
+        """``|z| * distance of y to its nearest finite bound`` (0 for an unbounded row)."""
         if not (wp.isfinite(lo) or wp.isfinite(hi)):
             return scalar(0.0)
         gap = inf
@@ -110,7 +253,321 @@ def padmm_funcs(np_dtype) -> SimpleNamespace:
             gap = wp.min(gap, wp.abs(hi - y))
         return wp.abs(z) * gap
 
-    return SimpleNamespace(momentum=momentum, extrapolated=extrapolated, dual_update=dual_update,
-                           residual_weight=residual_weight,
-                           balanced_penalty=balanced_penalty, saturates=saturates,
-                           box_complementarity=box_complementarity)
+    return box_complementarity
+
+
+@functools.cache
+def row_rhs_func(np_dtype):
+    """§7.3 steps 1-2: a row's right-hand side of the linear solve.
+    ``row_rhs(w, r, rho, eta)``."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+
+    @wp.func
+    def row_rhs(w: Work, r: int, rho: scalar, eta: scalar):
+        """``-v~_f + eta x_p + rho y_hat + z_hat`` of row ``r`` (penalty ``rho``); a contact's normal row also
+        subtracts :func:`contact_correction_func`'s correction."""
+        return -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
+
+    return row_rhs
+
+
+@functools.cache
+def contact_correction_func(np_dtype):
+    """§7.3 step 1: the De Saxcé correction ``s = Gamma(z_hat)`` of a contact (docs/formulation.md §4.3).
+    ``contact_correction(w, r, rs)``."""
+    Work = work_struct(np_dtype)
+    de_saxce = cone_funcs(np_dtype).de_saxce
+    row_mu = index_funcs(np_dtype).row_mu
+
+    @wp.func
+    def contact_correction(w: Work, r: int, rs: int):
+        """The De Saxcé correction ``Gamma(z_hat)_n`` of the contact whose first row is ``r`` (rows ``rs`` apart)."""
+        return de_saxce(w.z_hat[r], w.z_hat[r + rs], row_mu(w, r))
+
+    return contact_correction
+
+
+@functools.cache
+def box_row_func(np_dtype, adaptive: bool):
+    """§7.3 steps 3-4 on a box row (fixed or limit): projection, dual update and residual terms; ``adaptive``
+    (compile-time): the penalty adapts, and the free fixed rows feed the null-direction test."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    Residuals = residuals_struct(np_dtype)
+    dual_update = dual_update_func(np_dtype)
+    saturates = saturates_func(np_dtype)
+    box_complementarity = box_complementarity_func(np_dtype)
+    row_saturated = index_funcs(np_dtype).row_saturated
+
+    @wp.func
+    def box_row(w: Work, r: int, a: int, nf: int, x: scalar, rho: scalar, eta: scalar, p_ref: scalar,
+                acc: Residuals) -> Residuals:
+        """Row ``a`` (storage ``r``, the linear solve's ``x``, penalty ``rho``): ``y = clamp(x - z_hat / rho)``,
+        ``z`` into ``w.y`` / ``w.z``, and its terms folded into ``acc``. A free fixed row (no finite bound) of an
+        adaptive penalty feeds the null-direction test (``e_p``, ``de``, ``dx``) instead of ``r_tail``; an
+        effort-limited fixed row whose projection clips it sets ``hit``."""
+        out = acc
+        z_hat = w.z_hat[r]
+        lo = w.lo_s[r]
+        hi = w.hi_s[r]
+        v = x - z_hat / rho
+        y = wp.clamp(v, lo, hi)
+        w.y[r] = y
+        if a < nf and saturates(row_saturated(w, r), lo, hi, v, y):
+            out.hit = scalar(1.0)
+        du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
+        w.z[r] = du[0]
+        out.r_p = wp.max(acc.r_p, du[1])
+        out.r_d = wp.max(acc.r_d, du[2])
+        out.c_sum = acc.c_sum + du[3]
+        out.r_c = wp.max(acc.r_c, box_complementarity(y, du[0], lo, hi))
+        if wp.static(adaptive) and a < nf and not (wp.isfinite(lo) or wp.isfinite(hi)):
+            e = eta * (x - w.x_p[r]) + rho * (y - w.y_hat[r])
+            out.de = wp.max(acc.de, wp.abs(e - w.e_p[r]))
+            out.dx = wp.max(acc.dx, wp.abs(x - w.x_p[r]))
+            w.e_p[r] = e
+        else:
+            out.r_tail = wp.max(acc.r_tail, du[2])
+        return out
+
+    return box_row
+
+
+@functools.cache
+def contact_rows_func(np_dtype):
+    """§7.3 steps 3-4 on a contact's three rows: the cone projection, dual update and residual terms.
+    ``contact_rows(w, r, rs, x, inv_rho, rho, eta, p_ref, acc)`` returns ``acc`` with the contact's terms."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    vec3 = types_of(np_dtype).vec3
+    Residuals = residuals_struct(np_dtype)
+    dual_update = dual_update_func(np_dtype)
+    cone_project = cone_funcs(np_dtype).cone_project
+    row_mu = index_funcs(np_dtype).row_mu
+
+    @wp.func
+    def contact_rows(w: Work, r: int, rs: int, x: vec3, inv_rho: scalar, rho: scalar, eta: scalar, p_ref: scalar,
+                     acc: Residuals) -> Residuals:
+        """The contact whose first row is ``r`` (rows ``rs`` apart, the linear solve's ``x``, penalty ``rho =
+        1 / inv_rho``): ``y = Pi_K(x - z_hat / rho)``, ``z`` into ``w.y`` / ``w.z``, its terms folded into ``acc``
+        (complementarity ``|y . z|``)."""
+        out = acc
+        cp = cone_project(x[0] - inv_rho * w.z_hat[r], x[1] - inv_rho * w.z_hat[r + rs],
+                          x[2] - inv_rho * w.z_hat[r + 2 * rs], row_mu(w, r))
+        yz = scalar(0.0)
+        for t in range(3):
+            rt = r + t * rs
+            y = cp[t]
+            w.y[rt] = y
+            du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho, p_ref)
+            w.z[rt] = du[0]
+            out.r_p = wp.max(out.r_p, du[1])
+            out.r_d = wp.max(out.r_d, du[2])
+            out.r_tail = wp.max(out.r_tail, du[2])
+            out.c_sum = out.c_sum + du[3]
+            yz += y * du[0]
+        out.r_c = wp.max(out.r_c, wp.abs(yz))
+        return out
+
+    return contact_rows
+
+
+@functools.cache
+def cr_residual_func(np_dtype):
+    """The Conjugate Residual solve's share of the dual residual (§8.2).
+    ``cr_residual(w, r, p_ref, acc)`` returns ``acc`` with row ``r``'s terms."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    Residuals = residuals_struct(np_dtype)
+    residual_weight = residual_weight_func(np_dtype)
+
+    @wp.func
+    def cr_residual(w: Work, r: int, p_ref: scalar, acc: Residuals) -> Residuals:
+        """Row ``r`` of the inner solve's residual ``b - A x`` (``w.cr_r``), a scaled velocity like the dual
+        residual's rows, folded into ``r_d`` and ``r_tail``: an inexact solve (a small ``cr_iterations`` budget)
+        must not let the world report convergence."""
+        out = acc
+        e_cr = residual_weight(w.P[r], p_ref) * wp.abs(w.cr_r[r])
+        out.r_d = wp.max(acc.r_d, e_cr)
+        out.r_tail = wp.max(acc.r_tail, e_cr)
+        return out
+
+    return cr_residual
+
+
+@functools.cache
+def reduce_residuals_func(np_dtype, lanes: int):
+    """The world's residual terms from its threads' (block reductions; nothing for one thread per world).
+    ``reduce_residuals(acc)``; every thread of the world gets the result."""
+    Residuals = residuals_struct(np_dtype)
+    lane_max = lane_reduce_func(np_dtype, lanes, "max")
+    lane_sum = lane_reduce_func(np_dtype, lanes, "sum")
+
+    @wp.func
+    def reduce_residuals(acc: Residuals) -> Residuals:
+        """The maxima and the sum of :func:`residuals_struct` over the world's threads."""
+        if wp.static(lanes == 1):
+            return acc
+        out = acc
+        out.r_p = lane_max(acc.r_p)
+        out.r_d = lane_max(acc.r_d)
+        out.r_c = lane_max(acc.r_c)
+        out.c_sum = lane_sum(acc.c_sum)
+        out.r_tail = lane_max(acc.r_tail)
+        out.de = lane_max(acc.de)
+        out.dx = lane_max(acc.dx)
+        out.hit = lane_max(acc.hit)
+        return out
+
+    return reduce_residuals
+
+
+# --- the world's decision after an iteration (§7.4, §7.5) ------------------------------------------------------
+
+@functools.cache
+def outcome_struct(np_dtype):
+    """What the world does after an iteration: ``converged``, ``saturates`` (an effort-limited row saturates:
+    ``rho_box`` on it from now on, "Saturation"), the limit and contact rows' next penalty ``rho`` and the momentum
+    ``mom = (a, c, beta, mode)`` (§7.4; ``mode`` ``RESTART_HERE`` after a new penalty or a saturation)."""
+    scalar = types_of(np_dtype).scalar
+    vec4 = types_of(np_dtype).vec4
+
+    @wp.struct
+    class Outcome:
+        converged: int
+        saturates: int
+        rho: scalar
+        mom: vec4
+
+    return Outcome
+
+
+@functools.cache
+def outcome_func(np_dtype, adaptive: bool, accelerate: bool):
+    """The convergence test (§7.5 and "Null directions"), the penalty rule and the momentum (§7.4) of a world after
+    an iteration; compile-time: ``adaptive``, the penalty adapts; ``accelerate``, the momentum extrapolates."""
+    scalar = types_of(np_dtype).scalar
+    vec4 = types_of(np_dtype).vec4
+    Work = work_struct(np_dtype)
+    Residuals = residuals_struct(np_dtype)
+    Outcome = outcome_struct(np_dtype)
+    momentum = momentum_func(np_dtype, accelerate)
+    balanced_penalty = balanced_penalty_func(np_dtype)
+    big = scalar(float(np.finfo(np_dtype).max))
+    null_ratio = scalar(config.NULL_DIRECTION_RATIO)
+    zero = scalar(0.0)
+
+    @wp.func
+    def outcome(w: Work, wid: int, acc: Residuals, k: int, n: int, nf: int, rho_u: scalar, tol: scalar,
+                eta: scalar, rho_free: scalar, restart_tol: scalar) -> Outcome:
+        """Iteration ``k`` of world ``wid`` (``n`` rows, ``nf`` fixed, the world's reduced ``acc``): converged when
+        every residual is below ``tol`` from ``k = 2`` on, or along a numerically null direction (the free rows'
+        change of ``e`` small against the change of ``x``; ``e_p`` of iteration 1 is stale); else (adaptive) a
+        saturating row or a rebalanced penalty restarts the momentum here. Reads the world's ``a_p``, ``c_p`` and
+        ``k_rho``, writes nothing."""
+        out = Outcome()
+        conv = k >= 2 and acc.r_p <= tol and acc.r_d <= tol and acc.r_c <= tol
+        if k >= 2 and acc.r_p <= tol and acc.r_tail <= tol and acc.r_c <= tol and acc.dx > zero:
+            if acc.de <= null_ratio * (eta + rho_free) * acc.dx:
+                conv = True
+        out.converged = int(conv)
+        out.rho = rho_u
+        if wp.static(adaptive):
+            out.saturates = int(acc.hit > zero and not conv)
+            if n > nf and not conv:
+                out.rho = balanced_penalty(rho_u, acc.r_p, acc.r_d, k, w.k_rho[wid])
+        if out.saturates != 0 or out.rho != rho_u:
+            out.mom = vec4(scalar(1.0), big, zero, scalar(RESTART_HERE))
+        else:
+            out.mom = momentum(w.a_p[wid], w.c_p[wid], acc.c_sum, restart_tol)
+        return out
+
+    return outcome
+
+
+@functools.cache
+def mark_saturated_func(np_dtype):
+    """An effort-limited row that saturated takes ``rho_box`` from now on (``kamino.jax_ref.padmm.solve``,
+    "Saturation")."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    row_saturated = index_funcs(np_dtype).row_saturated
+    set_saturated = index_funcs(np_dtype).set_saturated
+    saturates = saturates_func(np_dtype)
+
+    @wp.func
+    def mark_saturated(w: Work, r: int, rho_free: scalar):
+        """Flag fixed row ``r`` saturated if its last projection (penalty ``rho_free``) clipped it."""
+        if saturates(row_saturated(w, r), w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
+            set_saturated(w, r, 1)
+
+    return mark_saturated
+
+
+@functools.cache
+def advance_row_func(np_dtype):
+    """§7.4 steps 5-6 on a row: the next ``(y_hat, z_hat)`` and the previous iterate.
+    ``advance_row(w, r, x, mom)``."""
+    scalar = types_of(np_dtype).scalar
+    vec4 = types_of(np_dtype).vec4
+    Work = work_struct(np_dtype)
+    extrapolated = extrapolated_func(np_dtype)
+
+    @wp.func
+    def advance_row(w: Work, r: int, x: scalar, mom: vec4):
+        """Row ``r`` moves to the next iteration under the momentum ``mom`` (:func:`outcome_func`): ``y_hat``,
+        ``z_hat`` from ``y``, ``z`` (restarted here, or :func:`extrapolated_func`), and ``(x, y, z)`` kept as the
+        previous iterate."""
+        y = w.y[r]
+        z = w.z[r]
+        mode = int(mom[3])
+        if mode == RESTART_HERE:
+            w.y_hat[r] = y
+            w.z_hat[r] = z
+        else:
+            w.y_hat[r] = extrapolated(y, w.y_p[r], mom[2], mode)
+            w.z_hat[r] = extrapolated(z, w.z_p[r], mom[2], mode)
+        w.x_p[r] = x
+        w.y_p[r] = y
+        w.z_p[r] = z
+
+    return advance_row
+
+
+@functools.cache
+def store_world_func(np_dtype):
+    """The world's scalars after an iteration (one thread writes them).
+    ``store_world(w, wid, k, acc, res, done)``."""
+    Work = work_struct(np_dtype)
+    Residuals = residuals_struct(np_dtype)
+    Outcome = outcome_struct(np_dtype)
+
+    @wp.func
+    def store_world(w: Work, wid: int, k: int, acc: Residuals, res: Outcome, done: bool):
+        """Iteration ``k``'s momentum, count and residuals; with ``done`` the world leaves ``remaining``."""
+        w.a_p[wid] = res.mom[0]
+        w.c_p[wid] = res.mom[1]
+        w.iters[wid] = k
+        w.r_p[wid] = acc.r_p
+        w.r_d[wid] = acc.r_d
+        w.r_c[wid] = acc.r_c
+        if done:
+            w.converged[wid] = res.converged
+            w.done[wid] = 1
+            wp.atomic_sub(w.remaining, 0, 1)
+
+    return store_world
+
+
+@functools.cache
+def tail_dot_func(np_dtype):
+    """The dot products of the tail rows' dense Cholesky ``L_t = chol(S_t + shift I)`` (``sparse_llt.factor_tail``,
+    ``padmm_warp.factor_tail``; ``kamino.jax_ref.padmm.solve``, "Penalty")."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+
+    @wp.func
+    def tail_dot(tail: wp.array(dtype=scalar), tc: int, tr: int, jr: int, kt: int, j: int, s: scalar):
+        """``s - sum_{i < j} L_t[t, i] L_t[j, i]`` with tail rows ``t``, ``j`` at ``tr``, ``jr`` of ``tail`` (slots
+        ``tc`` apart, ``L_t`` from slot ``kt``), ``i`` ascending: entry ``(t, j)`` of ``L_t`` before its square root
+        (``t = j``) or its division by ``L_t[j, j]``."""
+        for i in range(j):
+            s -= tail[tr + (kt + i) * tc] * tail[jr + (kt + i) * tc]
+        return s
+
+    return tail_dot

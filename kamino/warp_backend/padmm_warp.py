@@ -1,32 +1,32 @@
 """Proximal-ADMM with one GPU warp (32 threads) per world on the sparse factor or with Conjugate Residual
 (docs/formulation.md §7-§8.2; paper Alg. 1): the schedule for robot-sized worlds (``Stepper(padmm="warp")``).
 
-One thread per world (``solver.padmm_iterate``) walks a world's factor and vectors alone: at 4096 worlds that is one
-warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of about 16,000 dependent loads. Here the
-32 threads of a block share one world and the chain is cut down to the rows:
+One thread per world (``solver.padmm_iterate_kernel``) walks a world's factor and vectors alone: at 4096 worlds that
+is one warp per multiprocessor, and every PADMM iteration of dr_legs is a chain of about 16,000 dependent loads. Here
+the 32 threads of a block share one world and the chain is cut down to the rows:
 
-- **Factorisation** (:func:`factor`, once per step). The fixed rows by columns ("fan-out"): for column ``q``,
+- **Factorisation** (:func:`factor_kernel`, once per step). The fixed rows by columns ("fan-out"): for column ``q``,
   ``L_qq = sqrt(D~_qq)``, the column's entries ``L_pq = D~_pq / L_qq`` (threads over the entries), then every update
   ``D~_pr -= L_pq L_rq`` that column ``q`` feeds (threads over the precomputed triples, ``Symbolic.fan_*``: their
   targets are distinct, so no atomics). The tail rows (active limits and contacts): ``L_tf`` by a forward
   substitution per tail row (threads over tail rows), the Schur complement ``S_t`` (threads over all its entry
-  pairs ``(t, j <= t)``) and its dense Cholesky by columns (:func:`factor_tail`). Same sums as
+  pairs ``(t, j <= t)``) and its dense Cholesky by columns (:func:`factor_tail_func`). Same sums as
   ``sparse_llt.factor``, in another order. ``L_f`` is stored once, in row order.
-- **Solve** (:func:`solve`, every iteration). Column sweeps: the forward substitution of the fixed rows walks the
+- **Solve** (:func:`solve_func`, every iteration). Column sweeps: the forward substitution of the fixed rows walks the
   columns of ``L_f`` (``x_q = b_q / L_qq``, then the column's entries update the rows below, threads over the
   entries; each entry's index in ``L_f``'s row order, ``cent``, is loaded two columns ahead, so that the value waits
   on no index load), the backward one walks its rows (``x_p``, then the entries of row ``p`` update the rows above);
   the tail's dense rows likewise, and the tail's share of the fixed rows is one parallel pass. One barrier per row;
   the right-hand side is updated in ``w.y`` (free during the solve) and the solution lands in ``w.x``.
   docs/warp_backend.md, "Where a PADMM iteration's time goes", has what each load ordering cost.
-- **Iterations** (:func:`padmm_iterate`). Every per-row rule (projection, dual update, residuals, the penalty of
-  the limit and contact rows, the null-direction test, momentum) is ``padmm_rules.py``'s, the threads splitting the
-  box rows and the contact triples; the world's maxima and sums are block reductions. Iteration counts equal the
-  thread kernel's (``tests/test_warp_lane_padmm.py``).
-- **Conjugate Residual** (``warp_kernels(cr=True)``: :func:`cr_solve`, §8.2, instead of the factor). The operator
-  ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for ``M^-1 J^T P
-  v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no atomics and
-  keeps ``solver.apply_operator``'s order), then the rows for ``J`` times it; CR's dot products are block sums.
+- **Iterations** (:func:`iterate_kernel`). Every rule of an iteration (right-hand side, projection, dual update,
+  residuals, the penalty of the limit and contact rows, the null-direction test, momentum) is ``padmm_rules.py``'s,
+  as in the one-thread schedule; here the threads split the box rows and the contact triples and the world's maxima
+  and sums are block reductions. Iteration counts equal the thread kernel's (``tests/test_warp_lane_padmm.py``).
+- **Conjugate Residual** (``iterate_kernel(cr=True)``: ``padmm_cr.cr_solve_func``, §8.2, instead of the factor).
+  The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
+  ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
+  atomics and keeps the one-thread order), then the rows for ``J`` times it; CR's dot products are block sums.
 
 Threads of a world meet at block barriers (``sync``); on the CPU the block runs as cooperative fibers
 (``warp.config.enable_cpu_blocks``), which is how CI checks this kernel against the thread kernel.
@@ -35,36 +35,21 @@ Threads of a world meet at block barriers (``sync``); on the CPU the block runs 
 import functools
 from types import SimpleNamespace
 
-import numpy as np
 import warp as wp
 
-from kamino.config import NULL_DIRECTION_RATIO
-from kamino.warp_backend.cone import cone_funcs
+from kamino.warp_backend import padmm_rules as rules
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.model_data import model_struct
-from kamino.warp_backend.padmm_rules import padmm_funcs
+from kamino.warp_backend.padmm_cr import cr_pattern_kernel, cr_solve_func
+from kamino.warp_backend.padmm_rules import LANES, kernel_types, sync
 from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
 from kamino.warp_backend.types import types_of
-from kamino.warp_backend.workspace import work_struct
 
-#: Threads per world (one GPU warp).
-LANES = 32
-#: ``padmm_iterate``: a new penalty restarts the momentum at the current iterate (solver.RESTART_HERE)
-RESTART_HERE = 3
-
-
-@wp.func_native("WP_TILE_SYNC();")
-def sync():
-    """Barrier of the threads of a block (``__syncthreads`` on CUDA, the fiber barrier on the CPU)."""
-    ...
-
-
-#: Rounds of fan-out update triples (32 per round) whose indices a thread of :func:`factor` loads together.
+#: Rounds of fan-out update triples (32 per round) whose indices a thread of :func:`factor_kernel` loads together.
 FAN_BATCH = 4
 FanIdx = wp.types.vector(length=FAN_BATCH, dtype=wp.int32)
 
-#: The largest ``L_f`` (entries) that :func:`factor` factorises in shared memory; a larger one is factorised in
-#: device memory (the animatronic's 43,000 entries would leave room for one world per multiprocessor).
+#: The largest ``L_f`` (entries) that :func:`factor_kernel` factorises in shared memory; a larger one is factorised
+#: in device memory (the animatronic's 43,000 entries would leave room for one world per multiprocessor).
 STAGE_MAX_ENTRIES = 12288
 
 
@@ -75,14 +60,14 @@ def shared_rows(max_rows: int) -> int:
 
 
 def shared_entries(max_nnz: int) -> int:
-    """The entries of ``L_f`` that :func:`factor` stages in shared memory for factors of up to ``max_nnz`` entries:
-    ``max_nnz`` rounded up (so that similar scenes share a compiled module), or 0 above
+    """The entries of ``L_f`` that :func:`factor_kernel` stages in shared memory for factors of up to ``max_nnz``
+    entries: ``max_nnz`` rounded up (so that similar scenes share a compiled module), or 0 above
     :data:`STAGE_MAX_ENTRIES`."""
     E = 256 * max(1, -(-max_nnz // 256))
     return E if E <= STAGE_MAX_ENTRIES else 0
 
 
-#: Registers per thread of :func:`warp_kernels`' ``padmm_iterate`` for worlds of at least
+#: Registers per thread of :func:`iterate_kernel`'s ``padmm_iterate`` for worlds of at least
 #: :data:`REGISTER_CAP_MIN_ROWS` rows (CUDA ``__maxnreg__``; ``None``: the compiler's choice). Left to the compiler it
 #: takes 122 on sm_90, so a multiprocessor holds 16 worlds (65,536 registers / (128 x 32)) of the 32 blocks it could;
 #: at 72 it holds 28, at the cost of some spilling. Measured on an H100 (benchmarks/README.md, the register cap): PPO's
@@ -92,83 +77,126 @@ ITERATE_MAX_REGISTERS: int | None = 72
 REGISTER_CAP_MIN_ROWS = 200
 
 
+# --- shared memory ---------------------------------------------------------------------------------------------
+
 @functools.cache
-def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamespace:
-    """``factor``, ``padmm_iterate`` and ``solve_fixed`` (post-stabilisation) for worlds of up to ``R`` rows; launch
-    each with ``wp.launch_tiled(dim=[num_worlds], block_dim=LANES)``. The solve keeps two vectors of ``R`` rows in
-    shared memory (2 R scalars per world). With ``E > 0`` the factorisation copies the world's ``D~_f`` (up to ``E``
-    entries) into shared memory, factorises it there and writes ``L_f`` back: its chain of dependent
-    read-modify-writes, one per update, then waits on shared memory instead of device memory.
+def shared_vector(np_dtype, length: int):
+    """The type of a world's shared vector of ``length`` scalars.
+    A ``wp.tile`` in shared memory, read and written entry by entry (:func:`shared_get_func`)."""
+    return wp.tile(dtype=types_of(np_dtype).scalar, shape=(length,), storage="shared")
 
-    With ``cr`` the iterations solve with Conjugate Residual instead of the factor (§8.2: :func:`cr_solve`, the
-    vectors in the ``Work`` rows, no shared vectors), after ``cr_pattern`` (one thread per world, ``wp.launch``) has
-    grouped the world's row blocks by body for the step; ``factor`` is not launched then."""
-    T = types_of(np_dtype)
-    scalar, vec6 = T.scalar, T.vec6
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
-    SP = pattern_struct(np_dtype)
-    cf = cone_funcs(np_dtype)
-    cone_project, de_saxce = cf.cone_project, cf.de_saxce
-    pf = padmm_funcs(np_dtype)
-    momentum, extrapolated, box_complementarity = pf.momentum, pf.extrapolated, pf.box_complementarity
-    balanced_penalty, dual_update, saturates = pf.balanced_penalty, pf.dual_update, pf.saturates
-    slk = sparse_llt_kernels(np_dtype)
-    bases, schur_entry, fixed_entry, tail_row = slk.bases, slk.schur_entry, slk.fixed_entry, slk.tail_row
-    tail_k, tail_pattern, sdiag_col = slk.tail_k, slk.tail_pattern, slk.sdiag_col
-    inv_mass_times, residual_weight = slk.inv_mass_times, pf.residual_weight
-    ix = index_funcs(np_dtype)
-    row_saturated, set_saturated, row_mu, row_base = ix.row_saturated, ix.set_saturated, ix.row_mu, ix.row_base
-    big = scalar(float(np.finfo(np_dtype).max))
-    null_ratio = scalar(NULL_DIRECTION_RATIO)
-    zero = scalar(0.0)
-    FanVal = wp.types.vector(length=FAN_BATCH, dtype=scalar)
 
-    @wp.func
-    def lane_max(v: scalar):
-        return wp.tile_extract(wp.tile_max(wp.tile(v)), 0)
-
-    @wp.func
-    def lane_sum(v: scalar):
-        return wp.tile_extract(wp.tile_sum(wp.tile(v)), 0)
-
-    # --- factorisation ------------------------------------------------------------------------------------
-    EL = max(E, 1)  # staged length (1: not staged)
-    LVec = wp.tile(dtype=scalar, shape=(EL,), storage="shared")
+@functools.cache
+def shared_set_func(np_dtype, length: int):
+    """Write one entry of a :func:`shared_vector`.
+    ``sset(t, i, v)``: the entry only, with no barrier of the block."""
+    Vec = shared_vector(np_dtype, length)
+    scalar = types_of(np_dtype).scalar
 
     @wp.func_native("t.data(i) = v;")
-    def lset(t: LVec, i: int, v: scalar):
+    def sset(t: Vec, i: int, v: scalar):
         """``t[i] = v`` by one thread, no barrier (``t[i] = v`` on a tile synchronises the block)."""
         ...
 
+    return sset
+
+
+@functools.cache
+def shared_get_func(np_dtype, length: int):
+    """Read one entry of a :func:`shared_vector`.
+    ``sget(t, i)``: the entry only, with no barrier of the block."""
+    Vec = shared_vector(np_dtype, length)
+    scalar = types_of(np_dtype).scalar
+
     @wp.func_native("return t.data(i);")
-    def lget(t: LVec, i: int) -> scalar:
+    def sget(t: Vec, i: int) -> scalar:
         """``t[i]`` of a shared vector."""
         ...
 
+    return sget
+
+
+# --- factorisation (§8.1) --------------------------------------------------------------------------------------
+
+@functools.cache
+def staged_get_func(np_dtype, E: int):
+    """Read an entry of the world's ``D~_f`` / ``L_f``, staged in shared memory (``E > 0`` entries) or in device
+    memory."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    LVec = shared_vector(np_dtype, max(E, 1))
+    lget = shared_get_func(np_dtype, max(E, 1))
+
     @wp.func
     def fget(sp: SP, vb: int, k: int, lv: LVec) -> scalar:
-        """Entry ``k`` (CSR order) of the world's ``D~_f`` / ``L_f``: staged in shared memory, or in device memory."""
+        """Entry ``k`` (CSR order) of ``D~_f`` / ``L_f``."""
         if wp.static(E > 0):
             return lget(lv, k)
         return sp.val[vb + k * sp.val_stride]
 
+    return fget
+
+
+@functools.cache
+def staged_set_func(np_dtype, E: int):
+    """Write an entry of the world's ``L_f`` (staged, or in device memory: :func:`staged_get_func`).
+    ``fset(sp, vb, k, v, lv)``, ``lv`` the staged copy (unused when ``E = 0``)."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    LVec = shared_vector(np_dtype, max(E, 1))
+    lset = shared_set_func(np_dtype, max(E, 1))
+
     @wp.func
     def fset(sp: SP, vb: int, k: int, v: scalar, lv: LVec):
-        """Entry ``k`` of ``L_f`` := ``v`` (staged or in device memory)."""
+        """Entry ``k`` (CSR order) of ``L_f`` := ``v``."""
         if wp.static(E > 0):
             lset(lv, k, v)
         else:
             sp.val[vb + k * sp.val_stride] = v
 
+    return fset
+
+
+@wp.func
+def batch(a: wp.array(dtype=wp.int32), u: int, umax: int) -> FanIdx:
+    """``a[u + r LANES]`` for the FAN_BATCH rounds ``r`` of a thread, loaded together (indices clamped to ``umax``)."""
+    v = FanIdx()
+    for r in range(FAN_BATCH):
+        v[r] = a[wp.min(u + r * LANES, umax)]
+    return v
+
+
+@functools.cache
+def fan_out_func(np_dtype, E: int):
+    """The fan-out updates of a fixed column (``sparse_llt.factor_fixed_rows``'s sums).
+    ``fan_out(sp, vb, tv, av, bv, u, f1, lv, neg)``: a thread's FAN_BATCH rounds of update triples."""
+    SP = pattern_struct(np_dtype)
+    LVec = shared_vector(np_dtype, max(E, 1))
+    fget, fset = staged_get_func(np_dtype, E), staged_set_func(np_dtype, E)
+
     @wp.func
-    def batch(a: wp.array(dtype=wp.int32), u: int, umax: int) -> FanIdx:
-        """``a[u + r LANES]`` for the FAN_BATCH rounds ``r`` of a thread, loaded together (indices clamped to
-        ``umax``)."""
-        v = FanIdx()
+    def fan_out(sp: SP, vb: int, tv: FanIdx, av: FanIdx, bv: FanIdx, u: int, f1: int, lv: LVec, neg: int):
+        """The updates ``D~_tgt -= s_q L_a L_b`` of the thread's FAN_BATCH rounds from ``u`` that lie before ``f1``
+        (``neg``: the column is a hub's unknown, ``s_q = -1``, ``sparse_llt.factor_fixed_rows``)."""
         for r in range(FAN_BATCH):
-            v[r] = a[wp.min(u + r * LANES, umax)]
-        return v
+            if u + r * LANES < f1:
+                if neg != 0:
+                    fset(sp, vb, tv[r], fget(sp, vb, tv[r], lv) + fget(sp, vb, av[r], lv) * fget(sp, vb, bv[r], lv),
+                         lv)
+                else:
+                    fset(sp, vb, tv[r], fget(sp, vb, tv[r], lv) - fget(sp, vb, av[r], lv) * fget(sp, vb, bv[r], lv),
+                         lv)
+
+    return fan_out
+
+
+@functools.cache
+def ltf_batch_func(np_dtype, E: int):
+    """A batch of the tail rows' ``L_tf`` updates (``sparse_llt.factor_world``'s sums).
+    ``ltf_batch(sp, vb, tr, tc, ub, u1, s, lv)``: FAN_BATCH update pairs of one entry of ``L_tf``."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    LVec = shared_vector(np_dtype, max(E, 1))
+    fget = staged_get_func(np_dtype, E)
+    FanVal = wp.types.vector(length=FAN_BATCH, dtype=scalar)
+    zero = scalar(0.0)
 
     @wp.func
     def ltf_batch(sp: SP, vb: int, tr: int, tc: int, ub: int, u1: int, s: scalar, lv: LVec) -> scalar:
@@ -189,51 +217,64 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamesp
             s -= wp.where(ub + r < u1, lk * tv[r], zero)
         return s
 
-    @wp.func
-    def fan_out(sp: SP, vb: int, tv: FanIdx, av: FanIdx, bv: FanIdx, u: int, f1: int, lv: LVec, neg: int):
-        """The updates ``D~_tgt -= s_q L_a L_b`` of the thread's FAN_BATCH rounds from ``u`` that lie before ``f1``
-        (``neg``: the column is a hub's unknown, ``s_q = -1``, ``sparse_llt.factor_fixed_rows``)."""
-        for r in range(FAN_BATCH):
-            if u + r * LANES < f1:
-                if neg != 0:
-                    fset(sp, vb, tv[r], fget(sp, vb, tv[r], lv) + fget(sp, vb, av[r], lv) * fget(sp, vb, bv[r], lv),
-                         lv)
-                else:
-                    fset(sp, vb, tv[r], fget(sp, vb, tv[r], lv) - fget(sp, vb, av[r], lv) * fget(sp, vb, bv[r], lv),
-                         lv)
+    return ltf_batch
+
+
+@functools.cache
+def factor_tail_func(np_dtype):
+    """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty").
+    ``factor_tail(m, w, sp, wid, n, shift, lane)``: by the world's threads (``factor_kernel`` and a new
+    penalty in :func:`iterate_kernel`)."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    bases = sparse_llt_kernels(np_dtype).bases
+    tail_k = sparse_llt_kernels(np_dtype).tail_k
+    sdiag_col = sparse_llt_kernels(np_dtype).sdiag_col
+    tail_dot = rules.tail_dot_func(np_dtype)
 
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
         """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
-        products over the columns before it), from ``S_t`` in the tail rows' upper slots (``S_t[t, j]`` at row
-        ``j``, tail column ``K + t``) and its diagonal (column ``sparse_llt.sdiag_col``); the sums of
-        ``sparse_llt.factor_tail``."""
+        products over the columns before it, :func:`padmm_rules.tail_dot_func`), from ``S_t`` in the tail rows'
+        upper slots (``S_t[t, j]`` at row ``j``, tail column ``K + t``) and its diagonal (column
+        ``sparse_llt.sdiag_col``); the sums of ``sparse_llt.factor_tail``."""
         base = bases(m, w, sp, wid)
-        tb, ts = base[2], base[3]
-        tc = sp.tail_stride
-        nf = sp.n_fixed[wid]
+        nt = n - sp.n_fixed[wid]
         kt = tail_k(sp, wid)
-        kd = sdiag_col(sp, wid)
-        for j in range(n - nf):
-            jr = tb + j * ts
-            d = sp.tail[jr + kd * tc] + shift
-            for i in range(j):
-                d -= sp.tail[jr + (kt + i) * tc] * sp.tail[jr + (kt + i) * tc]
-            d = wp.sqrt(d)
-            for t in range(j + 1 + lane, n - nf, LANES):
-                tr = tb + t * ts
-                s = sp.tail[jr + (kt + t) * tc]
-                for i in range(j):
-                    s -= sp.tail[tr + (kt + i) * tc] * sp.tail[jr + (kt + i) * tc]
-                sp.tail[tr + (kt + j) * tc] = s / d
+        col = sp.tail_stride  # the distance between a tail row's slots
+        for j in range(nt):  # L_t[t, j] of the rows t >= j at tr (tail column kt + j), from row j at jr
+            jr = base[2] + j * base[3]
+            d = wp.sqrt(tail_dot(sp.tail, col, jr, jr, kt, j, sp.tail[jr + sdiag_col(sp, wid) * col] + shift))
+            for t in range(j + 1 + lane, nt, LANES):
+                tr = base[2] + t * base[3]
+                sp.tail[tr + (kt + j) * col] = tail_dot(sp.tail, col, tr, jr, kt, j, sp.tail[jr + (kt + t) * col]) / d
             if lane == 0:
-                sp.tail[jr + (kt + j) * tc] = d
+                sp.tail[jr + (kt + j) * col] = d
             sync()
+
+    return factor_tail
+
+
+@functools.cache
+def factor_kernel(np_dtype, E: int = 0):
+    """Cholesky ``D~ = L L^T`` with the world's 32 threads (§8.1); with ``E > 0`` ``L_f`` staged in shared memory."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    bases = sparse_llt_kernels(np_dtype).bases
+    schur_entry = sparse_llt_kernels(np_dtype).schur_entry
+    fixed_entry = sparse_llt_kernels(np_dtype).fixed_entry
+    tail_row = sparse_llt_kernels(np_dtype).tail_row
+    tail_pattern = sparse_llt_kernels(np_dtype).tail_pattern
+    EL = max(E, 1)  # staged length (1: not staged)
+    lset, lget = shared_set_func(np_dtype, EL), shared_get_func(np_dtype, EL)
+    fget, fset = staged_get_func(np_dtype, E), staged_set_func(np_dtype, E)
+    fan_out = fan_out_func(np_dtype, E)
+    ltf_batch = ltf_batch_func(np_dtype, E)
+    factor_tail = factor_tail_func(np_dtype)
+    zero = scalar(0.0)
 
     @wp.kernel(module="unique", enable_backward=False)
     def factor(m: M, w: Work, sp: SP, eta: scalar, pending_only: int, nblk: int, shift: scalar, shift_sat: scalar):
         """Cholesky ``D~ = L L^T`` in place (§8.1) with the world's 32 threads: the fixed rows by columns (fan-out
-        updates), then the tail rows' ``L_tf``, their Schur complement and :func:`factor_tail` with the world's
+        updates), then the tail rows' ``L_tf``, their Schur complement and ``factor_tail`` with the world's
         penalty ``eta + rho_u``. With ``pending_only`` only the worlds whose effort-limited rows saturated in the
         last PADMM iteration (``w.pending``), which first assemble ``D~`` again with the shifts ``shift`` /
         ``shift_sat`` (``sparse_llt.refactor``; kamino.jax_ref.padmm.solve, "Saturation")."""
@@ -366,28 +407,32 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamesp
         if pending_only != 0 and lane == 0:
             w.pending[wid] = 0
 
-    # --- solve --------------------------------------------------------------------------------------------
-    Vec = wp.tile(dtype=scalar, shape=(R,), storage="shared")
+    return factor
 
-    @wp.func_native("t.data(i) = v;")
-    def sset(t: Vec, i: int, v: scalar):
-        """``t[i] = v`` by one thread, no barrier (``t[i] = v`` on a tile synchronises the block)."""
-        ...
 
-    @wp.func_native("return t.data(i);")
-    def sget(t: Vec, i: int) -> scalar:
-        """``t[i]`` of a shared vector."""
-        ...
+# --- solve (§8.1) ------------------------------------------------------------------------------------------------
+
+@functools.cache
+def solve_func(np_dtype, R: int):
+    """The solve with the sparse factor and its tail by the world's threads (§8.1).
+    ``solve(m, w, sp, wid, n, lane, xs, ys)``, the vectors in shared memory (:func:`shared_vector` of ``R``)."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    Vec = shared_vector(np_dtype, R)
+    sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
+    bases = sparse_llt_kernels(np_dtype).bases
+    tail_k = sparse_llt_kernels(np_dtype).tail_k
+    tail_pattern = sparse_llt_kernels(np_dtype).tail_pattern
+    zero = scalar(0.0)
 
     @wp.func
     def solve(m: M, w: Work, sp: SP, wid: int, n: int, lane: int, xs: Vec, ys: Vec):
-        """``x <- L^-T L^-1 x`` with the sparse factor and its tail (``L_tf`` on its patterns, ``L_t`` dense), by
-        column sweeps: one barrier per row (``sparse_llt.solve_inplace``, the same products in another order; with
-        hubs ``x <- L^-T S L^-1 x``, the hubs' unknowns in their virtual rows of ``xs`` / ``ys``).
-        ``xs`` holds the right-hand side on entry and the solution on exit, ``ys`` is scratch: both in shared memory,
-        indexed by row. The next column's (row's) factor entries are loaded before the barrier of the current one,
-        unconditionally (clamped indices), so that their latency overlaps the barrier instead of preceding it
-        (docs/warp_backend.md, "Where it goes, measured part by part")."""
+        """``x <- L^-T L^-1 x`` with ``L_tf`` on its patterns and ``L_t`` dense, by column sweeps: one barrier per
+        row (``sparse_llt.solve_inplace``, the same products in another order; with hubs ``x <- L^-T S L^-1 x``, the
+        hubs' unknowns in their virtual rows of ``xs`` / ``ys``). ``xs`` holds the right-hand side on entry and the
+        solution on exit, ``ys`` is scratch: both in shared memory, indexed by row. The next column's (row's) factor
+        entries are loaded before the barrier of the current one, unconditionally (clamped indices), so that their
+        latency overlaps the barrier instead of preceding it (docs/warp_backend.md, "Where it goes, measured part by
+        part")."""
         base = bases(m, w, sp, wid)
         vb, tb, ts = base[1], base[2], base[3]
         tc = sp.tail_stride
@@ -534,11 +579,22 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamesp
                 sset(ys, rq, sget(ys, rq) - sp.val[vb + k * vs] * xp)
             sync()
 
+    return solve
+
+
+@functools.cache
+def solve_fixed_kernel(np_dtype, R: int):
+    """Post-stabilisation's solve with the fixed rows' factor, 32 threads per world.
+    ``solve_fixed(m, w, sp, extra)``, launched tiled: one block of ``LANES`` threads per world."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
+    bases = sparse_llt_kernels(np_dtype).bases
+    solve = solve_func(np_dtype, R)
+
     @wp.kernel(module="unique", enable_backward=False)
     def solve_fixed(m: M, w: Work, sp: SP, extra: int):
-        """Post-stabilisation's solve with the fixed rows' factor, 32 threads per world (``post_stabilisation.solve``
-        on this schedule): ``lambda = P (P D_ff P + s I)^-1 x`` into ``x``; in the ``extra`` pass only where PADMM
-        did not converge or ``reproject`` is set."""
+        """``post_stabilisation.solve`` on this schedule: ``lambda = P (P D_ff P + s I)^-1 x`` into ``x``; in the
+        ``extra`` pass only where PADMM did not converge or ``reproject`` is set."""
         rs = w.row_stride
         wid, lane = wp.tid()
         if extra != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0:
@@ -554,161 +610,69 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamesp
         for a in range(lane, nf, LANES):
             w.x[rb + a * rs] = w.P[rb + a * rs] * sget(xs, a)
 
-    # --- Conjugate Residual (§8.2) ------------------------------------------------------------------------
-    @wp.func
-    def ent_slot(rb: int, rs: int, nblk: int, j: int) -> int:
-        """Where entry ``j`` of a world's body-grouped row blocks (``Work.cr_ent``) is stored: in the slots of the
-        world's row blocks (``w.row_body``'s layout), which hold as many."""
-        return (rb + (j // nblk) * rs) * nblk + j % nblk
+    return solve_fixed
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def cr_pattern(m: M, w: Work, nblk: int):
-        """The world's row blocks grouped by body, in row order within a body (a counting sort, one thread per
-        world, once per step after the rows are assembled): ``w.cr_ent`` lists the blocks' indices ``r nblk + k``
-        body after body, ``w.cr_end[b]`` where body ``b``'s list ends (it starts where the previous body's ends, or
-        at 0). :func:`cr_apply` sums a body's share of ``J^T`` from it in the order of ``solver.apply_operator``,
-        with no atomics."""
-        wid = wp.tid()
+
+# --- iterations (§7.3-§7.5) ----------------------------------------------------------------------------------------
+
+@functools.cache
+def lane_rhs_func(np_dtype):
+    """§7.3 steps 1-2 on one row of the 32-thread schedule.
+    ``lane_rhs(w, r, a, nf, n_box, rho_free, rho_box, rho_u, eta)``: ``padmm_rules.row_rhs_func``, then the
+    contact correction on a normal row."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    row_penalty = rules.row_penalty_func(np_dtype)
+    row_rhs = rules.row_rhs_func(np_dtype)
+    contact_correction = rules.contact_correction_func(np_dtype)
+
+    @wp.func
+    def lane_rhs(w: Work, r: int, a: int, nf: int, n_box: int, rho_free: scalar, rho_box: scalar, rho_u: scalar,
+                 eta: scalar):
+        """Row ``a``'s right-hand side, the De Saxcé correction included on a contact's normal row (the thread that
+        owns the row computes it, reading the contact's ``z_hat``)."""
         rs = w.row_stride
-        rb = row_base(m, w, wid)
-        b0 = m.body_start[wid]
-        nb = m.body_count[wid]
-        n = w.n_rows[wid]
-        for i in range(nb):
-            w.cr_end[b0 + i] = 0
-        for a in range(n):
-            r = rb + a * rs
-            for k in range(nblk):
-                b = w.row_body[r * nblk + k]
-                if b >= 0:
-                    w.cr_end[b] = w.cr_end[b] + 1
-        start = int(0)
-        for i in range(nb):  # counts -> starts
-            c = w.cr_end[b0 + i]
-            w.cr_end[b0 + i] = start
-            start += c
-        for a in range(n):  # starts -> ends
-            r = rb + a * rs
-            for k in range(nblk):
-                b = w.row_body[r * nblk + k]
-                if b >= 0:
-                    j = w.cr_end[b]
-                    w.cr_ent[ent_slot(rb, rs, nblk, j)] = r * nblk + k
-                    w.cr_end[b] = j + 1
+        rhs = row_rhs(w, r, row_penalty(w, r, a, nf, rho_free, rho_box, rho_u), eta)
+        if a >= n_box and (a - n_box) % 3 == 2:
+            rhs -= contact_correction(w, r - 2 * rs, rs)
+        return rhs
 
-    @wp.func
-    def cr_apply(m: M, w: Work, wid: int, rb: int, n: int, nblk: int, lane: int, shift_f: scalar, shift_b: scalar,
-                 shift_t: scalar, v: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
-        """``out = (P J M^-1 J^T P + diag(P^2 R + eta + rho)) v`` matrix-free with the world's threads (§8.2;
-        ``solver.apply_operator``, the same sums in the same order): the threads split the bodies for ``cr_w =
-        M^-1 J^T P v`` (each body's row blocks from ``cr_pattern``'s lists), then the rows for ``J cr_w`` and the
-        diagonal (``shift_f`` on the fixed rows, ``shift_b`` on the saturated ones, ``shift_t`` on the limit and
-        contact rows). A barrier before each phase: every thread's rows of ``v``, then every body of ``cr_w``."""
-        rs = w.row_stride
-        b0 = m.body_start[wid]
-        sync()
-        for i in range(lane, m.body_count[wid], LANES):
-            b = b0 + i
-            j0 = int(0)
-            if i > 0:
-                j0 = w.cr_end[b - 1]
-            acc = vec6()
-            for j in range(j0, w.cr_end[b]):
-                e = w.cr_ent[ent_slot(rb, rs, nblk, j)]
-                r = e // nblk
-                acc = acc + (w.P[r] * v[r]) * w.row_J[e]
-            w.cr_w[b] = inv_mass_times(m, w, b, acc)
-        sync()
-        nf = m.row_fixed[wid]
-        for a in range(lane, n, LANES):
-            r = rb + a * rs
-            s = zero
-            for k in range(nblk):
-                b = w.row_body[r * nblk + k]
-                if b >= 0:
-                    s += wp.dot(w.row_J[r * nblk + k], w.cr_w[b])
-            Pa = w.P[r]
-            shift = shift_t
-            if a < nf:
-                shift = wp.where(row_saturated(w, r) != 0, shift_b, shift_f)
-            out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
+    return lane_rhs
 
-    @wp.func
-    def cr_solve(m: M, w: Work, wid: int, rb: int, n: int, nblk: int, lane: int, shift_f: scalar, shift_b: scalar,
-                 shift_t: scalar, budget: int):
-        """Conjugate Residual on ``A x = b`` (``b`` in ``y``) from ``x = x_p`` with the world's threads (§8.2;
-        ``solver.cr_solve`` rule for rule: at most ``budget`` iterations, stopping early only when
-        ``|r|^2 <= 1e-30 |b|^2`` or the recurrence breaks down, ``cr_r`` the residual on exit). Each thread updates
-        its own rows of the vectors; the dot products are block sums, so every thread takes the same branch."""
-        rs = w.row_stride
-        for a in range(lane, n, LANES):
-            r = rb + a * rs
-            w.x[r] = w.x_p[r]
-        cr_apply(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, w.x, w.cr_Ar)
-        bb = zero
-        for a in range(lane, n, LANES):
-            r = rb + a * rs
-            w.cr_r[r] = w.y[r] - w.cr_Ar[r]
-            w.cr_p[r] = w.cr_r[r]
-            bb += w.y[r] * w.y[r]
-        bb = lane_sum(bb)
-        cr_apply(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, w.cr_r, w.cr_Ar)
-        zeta = zero
-        for a in range(lane, n, LANES):
-            r = rb + a * rs
-            w.cr_Ap[r] = w.cr_Ar[r]
-            zeta += w.cr_r[r] * w.cr_Ar[r]
-        zeta = lane_sum(zeta)
-        stop = scalar(1e-30) * bb
-        for it in range(budget):
-            rr = zero
-            pp = zero
-            for a in range(lane, n, LANES):
-                r = rb + a * rs
-                rr += w.cr_r[r] * w.cr_r[r]
-                pp += w.cr_Ap[r] * w.cr_Ap[r]
-            rr = lane_sum(rr)
-            pp = lane_sum(pp)
-            if rr <= stop or pp <= zero or zeta == zero:
-                break
-            alpha = zeta / pp
-            for a in range(lane, n, LANES):
-                r = rb + a * rs
-                w.x[r] = w.x[r] + alpha * w.cr_p[r]
-                w.cr_r[r] = w.cr_r[r] - alpha * w.cr_Ap[r]
-            cr_apply(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, w.cr_r, w.cr_Ar)
-            zeta_new = zero
-            for a in range(lane, n, LANES):
-                zeta_new += w.cr_r[rb + a * rs] * w.cr_Ar[rb + a * rs]
-            zeta_new = lane_sum(zeta_new)
-            beta = zeta_new / zeta
-            zeta = zeta_new
-            for a in range(lane, n, LANES):
-                r = rb + a * rs
-                w.cr_p[r] = w.cr_r[r] + beta * w.cr_p[r]
-                w.cr_Ap[r] = w.cr_Ar[r] + beta * w.cr_Ap[r]
 
-    # --- iterations ---------------------------------------------------------------------------------------
-    @wp.func
-    def row_penalty(w: Work, r: int, a: int, nf: int, rho_free: scalar, rho_box: scalar, rho_u: scalar):
-        """Row ``a``'s penalty (``solver.row_penalty``)."""
-        if a >= nf:
-            return rho_u
-        if row_saturated(w, r) != 0:
-            return rho_box
-        return rho_free
+@functools.cache
+def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool, fixed_iterations: bool):
+    """Accelerated PADMM with the world's 32 threads (§7.3-§7.5; the rules of ``padmm_rules.py``), with the sparse
+    factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), the adaptive penalty (``adaptive``),
+    the momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
+    scalar, M, Work, SP = kernel_types(np_dtype)
+    vec3 = types_of(np_dtype).vec3
+    Residuals = rules.residuals_struct(np_dtype)
+    row_base = index_funcs(np_dtype).row_base
+    sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
+    solve = solve_func(np_dtype, R)
+    cr_solve = cr_solve_func(np_dtype, LANES)
+    factor_tail = factor_tail_func(np_dtype)
+    lane_rhs = lane_rhs_func(np_dtype)
+    row_penalty = rules.row_penalty_func(np_dtype)
+    box_row = rules.box_row_func(np_dtype, adaptive)
+    contact_rows = rules.contact_rows_func(np_dtype)
+    cr_residual = rules.cr_residual_func(np_dtype)
+    reduce_residuals = rules.reduce_residuals_func(np_dtype, LANES)
+    outcome = rules.outcome_func(np_dtype, adaptive, accelerate)
+    mark_saturated = rules.mark_saturated_func(np_dtype)
+    advance_row = rules.advance_row_func(np_dtype)
+    store_world = rules.store_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False,
                cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else None)
     def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar,
-                      rho_box: scalar, tol: scalar, restart_tol: scalar, accelerate: int, fixed: int, adaptive: int):
-        """Up to ``chunk`` accelerated PADMM iterations of one world with its 32 threads (``solver.padmm_iterate``
-        with the sparse factor, or with Conjugate Residual under ``cr`` (at most ``cr_budget`` iterations per
-        solve), rule for rule: §7.3-§7.5, the penalty of the limit and contact rows, the null-direction test),
-        resuming from the stored iterate; a world that converges (unless ``fixed``) or reaches its cap is marked
-        done and leaves ``remaining``. Under ``cr`` the solution lands in ``w.x`` (the factor's solve: in
-        ``xs``), CR's exit residual joins the dual residual, a new penalty refactorises nothing and a row that
-        saturates takes ``rho_box`` in the next solve's operator without ending the launch."""
+                      rho_box: scalar, tol: scalar, restart_tol: scalar):
+        """Up to ``chunk`` iterations of one world (``solver.padmm_iterate_kernel`` rule for rule), resuming from the
+        stored iterate; a world that converges (unless ``fixed_iterations``) or reaches its cap is marked done and
+        leaves ``remaining``. The threads split the box rows and the contact triples; the world's residuals are block
+        reductions. Under ``cr`` (at most ``cr_budget`` iterations per solve) the solution lands in ``w.x`` (the
+        factor's solve: in ``xs``), a new penalty refactorises nothing and a row that saturates takes ``rho_box`` in
+        the next solve's operator without ending the launch."""
         rs = w.row_stride
         wid, lane = wp.tid()
         if w.done[wid] != 0:
@@ -724,15 +688,10 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamesp
             xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
             ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         for step in range(chunk):
-            # steps 1-2: De Saxcé correction, right-hand side (into xs; CR's into y), linear solve
-            for a in range(lane, n, LANES):
-                r = rb + a * rs
-                rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
-                rhs = -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
-                if a >= n_box and (a - n_box) % 3 == 2:
-                    rhs -= de_saxce(w.z_hat[r - 2 * rs], w.z_hat[r - rs], row_mu(w, r - 2 * rs))
+            for a in range(lane, n, LANES):  # steps 1-2: right-hand side (into xs; CR's into y), linear solve
+                rhs = lane_rhs(w, rb + a * rs, a, nf, n_box, rho_free, rho_box, rho_u, eta)
                 if wp.static(cr):
-                    w.y[r] = rhs
+                    w.y[rb + a * rs] = rhs
                 else:
                     sset(xs, a, rhs)
             if wp.static(cr):
@@ -740,171 +699,77 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamesp
             else:
                 sync()
                 solve(m, w, sp, wid, n, lane, xs, ys)
-            # steps 3-4: projection, dual update and the residuals: box rows, then contact triples
-            r_p = zero
-            r_d = zero
-            r_c = zero
-            c_sum = zero
-            r_tail = zero
-            de = zero
-            dx = zero
-            hit = zero  # effort-limited rows inside their box whose projection clips them ("Saturation")
+            acc = Residuals()  # steps 3-4: projection, dual update and the residuals: box rows, then contact triples
             for a in range(lane, n_box, LANES):
                 r = rb + a * rs
-                rho = row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)
-                x = zero
                 if wp.static(cr):
                     x = w.x[r]
                 else:
                     x = sget(xs, a)
                     w.x[r] = x
-                z_hat = w.z_hat[r]
-                lo = w.lo_s[r]
-                hi = w.hi_s[r]
-                v = x - z_hat / rho
-                y = wp.clamp(v, lo, hi)
-                w.y[r] = y
-                if a < nf and saturates(row_saturated(w, r), lo, hi, v, y):
-                    hit = scalar(1.0)
-                du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
-                w.z[r] = du[0]
-                r_p = wp.max(r_p, du[1])
-                r_d = wp.max(r_d, du[2])
-                c_sum += du[3]
-                r_c = wp.max(r_c, box_complementarity(y, du[0], lo, hi))
-                if adaptive != 0 and a < nf and not (wp.isfinite(lo) or wp.isfinite(hi)):
-                    e = eta * (x - w.x_p[r]) + rho * (y - w.y_hat[r])
-                    de = wp.max(de, wp.abs(e - w.e_p[r]))
-                    dx = wp.max(dx, wp.abs(x - w.x_p[r]))
-                    w.e_p[r] = e
-                else:
-                    r_tail = wp.max(r_tail, du[2])
+                acc = box_row(w, r, a, nf, x, row_penalty(w, r, a, nf, rho_free, rho_box, rho_u), eta, p_ref, acc)
             inv_rho = scalar(1.0) / rho_u
             for c in range(lane, nc, LANES):
                 a = n_box + 3 * c
                 r = rb + a * rs
-                x0 = zero
-                x1 = zero
-                x2 = zero
                 if wp.static(cr):
-                    x0 = w.x[r]
-                    x1 = w.x[r + rs]
-                    x2 = w.x[r + 2 * rs]
+                    x3 = vec3(w.x[r], w.x[r + rs], w.x[r + 2 * rs])
                 else:
-                    x0 = sget(xs, a)
-                    x1 = sget(xs, a + 1)
-                    x2 = sget(xs, a + 2)
-                cp = cone_project(x0 - inv_rho * w.z_hat[r], x1 - inv_rho * w.z_hat[r + rs],
-                                  x2 - inv_rho * w.z_hat[r + 2 * rs], row_mu(w, r))
-                if wp.static(not cr):
-                    w.x[r] = x0
-                    w.x[r + rs] = x1
-                    w.x[r + 2 * rs] = x2
-                yz = zero
-                for t in range(3):
-                    rt = r + t * rs
-                    y = cp[t]
-                    w.y[rt] = y
-                    du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho_u, p_ref)
-                    w.z[rt] = du[0]
-                    r_p = wp.max(r_p, du[1])
-                    r_d = wp.max(r_d, du[2])
-                    r_tail = wp.max(r_tail, du[2])
-                    c_sum += du[3]
-                    yz += y * du[0]
-                r_c = wp.max(r_c, wp.abs(yz))
+                    x3 = vec3(sget(xs, a), sget(xs, a + 1), sget(xs, a + 2))
+                    for t in range(3):
+                        w.x[r + t * rs] = x3[t]
+                acc = contact_rows(w, r, rs, x3, inv_rho, rho_u, eta, p_ref, acc)
             if wp.static(cr):
-                # the inner solve's residual b - A x, a scaled velocity like the dual residual's rows: an inexact
-                # solve must not let the world report convergence (solver.padmm_iterate)
                 for a in range(lane, n, LANES):
-                    r = rb + a * rs
-                    e_cr = residual_weight(w.P[r], p_ref) * wp.abs(w.cr_r[r])
-                    r_d = wp.max(r_d, e_cr)
-                    r_tail = wp.max(r_tail, e_cr)
-            r_p = lane_max(r_p)
-            r_d = lane_max(r_d)
-            r_c = lane_max(r_c)
-            c_sum = lane_sum(c_sum)
-            r_tail = lane_max(r_tail)
-            de = lane_max(de)
-            dx = lane_max(dx)
-            hit = lane_max(hit)
+                    acc = cr_residual(w, rb + a * rs, p_ref, acc)
+            acc = reduce_residuals(acc)
             k = w.iters[wid] + 1
-            converged = k >= 2 and r_p <= tol and r_d <= tol and r_c <= tol
-            if k >= 2 and r_p <= tol and r_tail <= tol and r_c <= tol and dx > zero:
-                if de <= null_ratio * (eta + rho_free) * dx:
-                    converged = True
-            # §7.4: fast ADMM with restart
-            mom = momentum(w.a_p[wid], w.c_p[wid], c_sum, restart_tol, accelerate)
-            beta = mom[2]
-            mode = int(mom[3])
-            a_new = mom[0]
-            c_new = mom[1]
-            # an effort-limited row that saturates: rho_box from now on, the momentum restarts, and the factor is
-            # redone before the next iteration (w.pending: factor with pending_only after this launch)
-            switch = adaptive != 0 and hit > zero and not converged
-            if adaptive != 0 and n > nf and not converged:
-                rho_n = balanced_penalty(rho_u, r_p, r_d, k, w.k_rho[wid])
-                if rho_n != rho_u:
-                    rho_u = rho_n
-                    mode = RESTART_HERE
-                    a_new = scalar(1.0)
-                    c_new = big
-                    sync()  # every thread has read k_rho (balanced_penalty) before it changes
-                    if wp.static(not cr):
-                        if not switch:
-                            factor_tail(m, w, sp, wid, n, eta + rho_u, lane)
-                    if lane == 0:
-                        w.rho_u[wid] = rho_n
-                        w.k_rho[wid] = k
-            if switch:
-                for a in range(lane, nf, LANES):  # this thread's own rows of the projection loop above
-                    r = rb + a * rs
-                    if saturates(row_saturated(w, r), w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
-                        set_saturated(w, r, 1)
-                mode = RESTART_HERE
-                a_new = scalar(1.0)
-                c_new = big
+            res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
+            if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
+                rho_u = res.rho
+                sync()  # every thread has read k_rho (outcome) before it changes
+                if wp.static(not cr):
+                    if res.saturates == 0:
+                        factor_tail(m, w, sp, wid, n, eta + rho_u, lane)
+                if lane == 0:
+                    w.rho_u[wid] = rho_u
+                    w.k_rho[wid] = k
+            if res.saturates != 0:  # this thread's own rows of the projection loop above
+                for a in range(lane, nf, LANES):
+                    mark_saturated(w, rb + a * rs, rho_free)
             for a in range(lane, n, LANES):
-                r = rb + a * rs
-                y = w.y[r]
-                z = w.z[r]
-                if mode == RESTART_HERE:
-                    w.y_hat[r] = y
-                    w.z_hat[r] = z
-                else:
-                    w.y_hat[r] = extrapolated(y, w.y_p[r], beta, mode)
-                    w.z_hat[r] = extrapolated(z, w.z_p[r], beta, mode)
                 if wp.static(cr):
-                    w.x_p[r] = w.x[r]
+                    advance_row(w, rb + a * rs, w.x[rb + a * rs], res.mom)
                 else:
-                    w.x_p[r] = sget(xs, a)
-                w.y_p[r] = y
-                w.z_p[r] = z
-            done = (converged and fixed == 0) or k >= w.it_cap[wid]
+                    advance_row(w, rb + a * rs, sget(xs, a), res.mom)
+            done = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= w.it_cap[wid]
             sync()  # every thread has read the world's scalars before they change
             if lane == 0:
-                w.a_p[wid] = a_new
-                w.c_p[wid] = c_new
-                w.iters[wid] = k
-                w.r_p[wid] = r_p
-                w.r_d[wid] = r_d
-                w.r_c[wid] = r_c
-                if switch:
+                store_world(w, wid, k, acc, res, done)
+                if res.saturates != 0:  # the factor is redone after this launch (CR: the next operator takes rho_box)
                     w.k_rho[wid] = k
-                    if wp.static(not cr):  # CR has no factor to redo: the next solve's operator takes rho_box
+                    if wp.static(not cr):
                         w.pending[wid] = 1
-                if done:
-                    w.converged[wid] = int(converged)
-                    w.done[wid] = 1
-                    wp.atomic_sub(w.remaining, 0, 1)
             sync()
             if wp.static(cr):
                 if done:
                     return
-            elif done or switch:
+            elif done or res.saturates != 0:
                 return
 
-    return SimpleNamespace(factor=factor, factor_tail=factor_tail, solve=solve,
-                           solve_fixed=solve_fixed, cr_pattern=cr_pattern,
-                           padmm_iterate=padmm_iterate, R=R, E=E, cr=cr)
+    return padmm_iterate
+
+
+def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamespace:
+    """``factor`` (not under ``cr``), ``solve_fixed`` (post-stabilisation) and ``cr_pattern`` (under ``cr``) for
+    worlds of up to ``R`` rows; launch each 32-thread kernel with ``wp.launch_tiled(dim=[num_worlds],
+    block_dim=LANES)``, ``cr_pattern`` with one thread per world (``wp.launch``). :func:`iterate_kernel` gives
+    ``padmm_iterate``. The solve keeps two vectors of ``R`` rows in shared memory (2 R scalars per world). With ``E >
+    0`` the factorisation copies the world's ``D~_f`` (up to ``E`` entries) into shared memory, factorises it there
+    and writes ``L_f`` back: its chain of dependent read-modify-writes, one per update, then waits on shared memory
+    instead of device memory. With ``cr`` the iterations solve with Conjugate Residual instead of the factor (§8.2,
+    ``padmm_cr.py``: the vectors in the ``Work`` rows, no shared vectors), after ``cr_pattern`` has grouped the
+    world's row blocks by body for the step."""
+    return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E),
+                           solve_fixed=solve_fixed_kernel(np_dtype, R),
+                           cr_pattern=cr_pattern_kernel(np_dtype) if cr else None, R=R, E=E, cr=cr)

@@ -21,10 +21,10 @@ from kamino.warp_backend import sparse_llt
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import LOOP_OPEN_BOUND, end_step_kernels
 from kamino.warp_backend.model_data import WarpModel, warp_model
-from kamino.warp_backend.padmm_warp import LANES, shared_entries, shared_rows, warp_kernels
+from kamino.warp_backend.padmm_warp import LANES, iterate_kernel, shared_entries, shared_rows, warp_kernels
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import step_row_kernels
-from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, solver_kernels
+from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, padmm_iterate_kernel, solver_kernels
 from kamino.warp_backend.workspace import allocate
 
 #: linear_solver="auto" takes the Conjugate Residual path above this many constraint rows per world on a GPU with
@@ -276,22 +276,22 @@ class Stepper:
         cfg, w = self.cfg, self.work
         W, nblk = self.wm.num_worlds, self.wm.blocks_per_row
         shift_f, shift_b = self.padmm_shifts
+        args = (nblk, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho, cfg.tolerance, cfg.restart_tolerance)
+        modes = (self.adaptive, bool(cfg.acceleration), bool(cfg.fixed_iterations))
         if self.padmm == "warp":
-            args = (nblk, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho, cfg.tolerance,
-                    cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations), int(self.adaptive))
+            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes)
 
             def iterate(chunk):
-                self._launch_lanes(self.wk.padmm_iterate, self.sp, chunk, *args)
+                self._launch_lanes(lane_iterate, self.sp, chunk, *args)
                 if self.max_switches:  # the factor of the worlds whose effort-limited rows saturated
                     self._launch_lanes(self.wk.factor, self.sp, cfg.eta, 1, nblk, shift_f, shift_b)
         else:
             linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else (
                 LINEAR_DENSE)
-            args = (nblk, linear, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho, cfg.tolerance,
-                    cfg.restart_tolerance, int(cfg.acceleration), int(cfg.fixed_iterations), int(self.adaptive))
+            thread_iterate = padmm_iterate_kernel(self.np_dtype, linear, *modes)
 
             def iterate(chunk):
-                self._launch(self.sk.padmm_iterate, W, self.sp, chunk, *args)
+                self._launch(thread_iterate, W, self.sp, chunk, *args)
                 if self.max_switches and self.sparse_factor:
                     self._launch(self.spk.refactor, W, self.sp, nblk, shift_f, shift_b, cfg.eta)
                 elif self.max_switches:
