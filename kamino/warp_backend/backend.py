@@ -11,6 +11,7 @@ the cost of this boundary.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 import threading
@@ -26,7 +27,7 @@ from kamino.model import Model, replicate
 from kamino.state import ContactState, Control, State, StepInfo
 from kamino.warp_backend.jit import batchable_step, is_traced
 from kamino.warp_backend.model_data import warp_model
-from kamino.warp_backend.pipeline import Stepper
+from kamino.warp_backend.pipeline import CUDA_STREAM_LOCK, Stepper
 from kamino.warp_backend.types import types_of
 
 #: an eager rollout of at least this many steps shows a progress bar (tqdm, on stderr, cleared at the end);
@@ -97,9 +98,10 @@ class Engine:
             return self.traced_step(_dtype_of(state))(state, control)
         with self._lock:
             st = self.stepper(_dtype_of(state))
-            load_state(st, state, control)
-            st.run(1)
-            return read_state(st)
+            with _driving(st):
+                load_state(st, state, control)
+                st.run(1)
+                return read_state(st)
 
     def rollout(self, state: State, controls: Control | None, num_steps: int) -> State:
         if is_traced(state, controls):
@@ -108,8 +110,7 @@ class Engine:
                 return s2, s2
 
             return jax.lax.scan(body, state, controls, length=num_steps)[1]
-        with self._lock:
-            st = self.stepper(_dtype_of(state))
+        with self._lock, _driving(self.stepper(_dtype_of(state))) as st:
             load_state(st, state, None)
             traj = _Trajectory(st, num_steps)
             for t in tqdm(range(num_steps), desc="kamino rollout (warp)", unit="step", leave=False, mininterval=0.5,
@@ -119,6 +120,17 @@ class Engine:
                 st.run(1)
                 traj.record(t)
             return traj.result()
+
+
+@contextlib.contextmanager
+def _driving(st: Stepper):
+    """``st``, with Warp's stream of its device held for this thread on a CUDA device
+    (:data:`~kamino.warp_backend.pipeline.CUDA_STREAM_LOCK`)."""
+    if not st.device.is_cuda:
+        yield st
+        return
+    with CUDA_STREAM_LOCK:
+        yield st
 
 
 def _jax_device() -> str:

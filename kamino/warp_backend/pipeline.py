@@ -11,6 +11,8 @@ iterations in one launch.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import warp as wp
 
@@ -35,6 +37,11 @@ from kamino.warp_backend.workspace import allocate
 AUTO_CR_ROWS = 300
 #: threads per block of the one-thread-per-world kernels
 PER_WORLD_BLOCK = 32
+
+#: held by whatever drives Warp's stream of a CUDA device from the host (an eager step from loading the state to
+#: reading the result, a graph capture): every stepper of a device launches on that one stream, and a capture on it
+#: would take in another thread's launches. Steps on one GPU's stream run one after the other anyway.
+CUDA_STREAM_LOCK = threading.RLock()
 
 
 def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread", cuda: bool = False) -> str:
@@ -319,7 +326,7 @@ class Stepper:
         on any stream, XLA's included: ``jit.py``)."""
         graph = self._graphs.get(num_steps)
         if graph is None:
-            with wp.ScopedCapture(device=self.device) as capture:
+            with CUDA_STREAM_LOCK, wp.ScopedCapture(device=self.device) as capture:
                 for _ in range(num_steps):
                     self.launch_step()
             graph = self._graphs[num_steps] = capture.graph
