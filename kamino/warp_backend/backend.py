@@ -61,12 +61,18 @@ class Engine:
         self._replicas: dict[int, Engine] = {}
         self._lock = threading.RLock()
 
+    def __del__(self) -> None:
+        """Free the device models and steppers while holding :data:`~kamino.warp_backend.pipeline.CUDA_STREAM_LOCK`
+        (:meth:`Stepper.__del__` says why)."""
+        with CUDA_STREAM_LOCK:
+            self.__dict__.clear()
+
     def stepper(self, np_dtype, device=None, *, for_jit: bool = False) -> Stepper:
         """The :class:`Stepper` in ``np_dtype`` on ``device`` (Warp's preferred one by default); ``for_jit``: the one
         called from inside JAX transformations, which launches without its own graph capture."""
         dev = wp.get_device(device)
         key = (np.dtype(np_dtype), str(dev), for_jit)
-        with self._lock:
+        with self._lock, CUDA_STREAM_LOCK:  # uploads go through Warp's stream (CUDA_STREAM_LOCK says why)
             if key not in self._steppers:
                 wm_key = key[:2]
                 if wm_key not in self._models:
@@ -119,7 +125,9 @@ class Engine:
                     load_control(st, jax.tree_util.tree_map(lambda x, t=t: x[t], controls))
                 st.run(1)
                 traj.record(t)
-            return traj.result()
+            result = traj.result()
+            del traj  # its Warp buffers go while this thread drives the stream (CUDA_STREAM_LOCK)
+            return result
 
 
 @contextlib.contextmanager
@@ -170,19 +178,26 @@ def _write(dst: wp.array, src, device, keep: list) -> None:
 
 
 def _read(src: wp.array, shape, dtype=None) -> jax.Array:
-    """A new JAX array holding ``src`` (``wp.to_jax`` of a device copy on the GPU).
+    """A new JAX array holding ``src`` (on the GPU a copy JAX makes from ``wp.to_jax`` and owns).
 
     Always a copy: the stepper reuses ``src`` on its next step, and a JAX array that aliased it would change under
-    the caller's feet. On the CPU ``jnp.asarray`` of a numpy view may alias it (jaxlib 0.9 does, for aligned
+    the caller's feet. On the GPU the copy's memory is JAX's, not Warp's: a JAX array holding Warp's memory frees it
+    through Warp when it goes, in whatever thread, and a free on Warp's stream while another thread captures a graph
+    on it breaks that capture. On the CPU ``jnp.asarray`` of a numpy view may alias it (jaxlib 0.9 does, for aligned
     buffers): a state returned by one step then took the values of a later step of another state
     (tests/test_world_health.py, the frozen world)."""
     if src.size == 0:
         return jnp.zeros(shape, dtype if dtype is not None else _np_dtype(src))
     if src.device.is_cuda:
-        out = wp.clone(src)
-        wp.synchronize_device(src.device)
-        return wp.to_jax(out).reshape(shape)
+        wp.synchronize_device(src.device)  # the step has written src
+        return _owned(wp.to_jax(src)).reshape(shape)
     return jnp.asarray(np.array(src.numpy().reshape(shape), copy=True))
+
+
+def _owned(view: jax.Array) -> jax.Array:
+    """A JAX-owned copy of ``view`` (a JAX array on Warp's memory), finished before the caller goes on: the next step
+    overwrites the memory it reads."""
+    return jnp.array(view, copy=True).block_until_ready()
 
 
 def load_state(st: Stepper, state: State, control: Control | None) -> None:
@@ -329,13 +344,14 @@ class _Trajectory:
         return buf.numpy().reshape((self.num_steps, *shape)) if self.cuda else buf
 
     def _jax(self, name: str) -> jax.Array:
-        """Field ``name`` as a JAX array ``[num_steps, ...]``: ``wp.to_jax`` of the Warp buffer on a CUDA
-        device (zero-copy), else ``jax.device_put`` (which, unlike ``jnp.asarray``, compiles nothing)."""
+        """Field ``name`` as a JAX array ``[num_steps, ...]``: a JAX-owned copy of the Warp buffer on a CUDA device
+        (:func:`_owned`: device to device), else ``jax.device_put`` (which, unlike ``jnp.asarray``, compiles
+        nothing)."""
         src, shape, _ = self.fields[name]
         buf = self.bufs.get(name)
         if self.cuda and buf is not None:
             scalar = getattr(src.dtype, "_wp_scalar_type_", src.dtype)
-            return wp.to_jax(buf.view(scalar).reshape((self.num_steps, *shape)))
+            return _owned(wp.to_jax(buf.view(scalar).reshape((self.num_steps, *shape))))
         return jax.device_put(self._host(name))
 
     def result(self) -> State:

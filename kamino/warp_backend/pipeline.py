@@ -38,9 +38,10 @@ AUTO_CR_ROWS = 300
 #: threads per block of the one-thread-per-world kernels
 PER_WORLD_BLOCK = 32
 
-#: held by whatever drives Warp's stream of a CUDA device from the host (an eager step from loading the state to
-#: reading the result, a graph capture): every stepper of a device launches on that one stream, and a capture on it
-#: would take in another thread's launches. Steps on one GPU's stream run one after the other anyway.
+#: held by whatever drives Warp's stream of a CUDA device from the host (building a stepper and its uploads, an eager
+#: step from loading the state to reading the result, a graph capture, freeing a stepper): every stepper of a device
+#: works on that one stream, and a capture on it would take in another thread's copies and launches, or fail on
+#: them. Steps on one GPU's stream run one after the other anyway.
 CUDA_STREAM_LOCK = threading.RLock()
 
 
@@ -308,6 +309,13 @@ class Stepper:
         else:  # each launch runs the worlds to their cap or to a switch
             for _ in range(self.max_switches + 1):
                 iterate(2 * cfg.max_iterations)
+
+    def __del__(self) -> None:
+        """On a CUDA device, free the buffers and graphs while holding :data:`CUDA_STREAM_LOCK`: a free on Warp's
+        stream while another thread captures a graph on it would break that capture."""
+        if getattr(self, "device", None) is not None and self.device.is_cuda:
+            with CUDA_STREAM_LOCK:
+                self.__dict__.clear()
 
     def run(self, num_steps: int) -> None:
         """Advance ``num_steps`` steps in place (replaying a captured graph on CUDA)."""
