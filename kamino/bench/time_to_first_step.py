@@ -4,7 +4,7 @@ nothing compiled in memory helps), with JAX's persistent compilation cache cold 
 same directory, a second process).
 
     kamino bench time_to_first_step [--models fourbar dr_legs humanoid10] [--entries step rollout jit_rollout]
-                                    [--worlds 1] [--steps 100] [--cpus 0] [--out results.json]
+                                    [--backend warp] [--worlds 1] [--steps 100] [--cpus 0] [--out results.json]
 
 Each (model, entry) gets its own empty temporary cache directory, passed to the child through ``KAMINO_JAX_CACHE``
 (kamino/_jax_cache.py); ``--phases`` adds ``off`` (``KAMINO_JAX_CACHE=0``: no persistent cache at all). A child times,
@@ -12,10 +12,11 @@ from just before ``import kamino``: the import, building the model (``humanoid10
 kamino/bench/scenes/humanoid10.xml through ``kamino.load_mjcf``), ``init_state``, and the first call until its result is
 ready (``block_until_ready``); then a second, identical call (the run time alone, compiled). JAX's own monitoring events
 split the first call into XLA's compilation (or the load from the persistent cache) and the rest: Python (tracing,
-lowering to MLIR, kamino's checks and padded layout) and the run. The defaults are a user's: float32, no XLA flags
-(``--xla-flags`` passes some, e.g. ``--xla_cpu_use_fusion_emitters=false`` as tests/conftest.py does), every CPU
-(``--cpus 0`` pins the children to one: on a shared machine XLA's threads otherwise stall each other,
-docs/first_step.md). Results: docs/first_step.md.
+lowering to MLIR, kamino's checks and padded layout) and the run. ``--backend`` picks the backend of the timed calls
+(``warp``, kamino's default, or ``jax``, the reference); the Warp backend's kernels come from Warp's own kernel cache,
+which this benchmark does not empty. The defaults are a user's: float32, no XLA flags (``--xla-flags`` passes some, e.g.
+``--xla_cpu_use_fusion_emitters=false`` as tests/conftest.py does), every CPU (``--cpus 0`` pins the children to one: on
+a shared machine XLA's threads otherwise stall each other, docs/first_step.md). Results: docs/first_step.md.
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ MODELS = ("fourbar", "dr_legs", "humanoid10")
 ENTRIES = ("step", "rollout", "jit_rollout")
 
 
-def _child(model_name: str, entry: str, worlds: int, steps: int, cpus: list[int] | None = None) -> dict:
+def _child(model_name: str, entry: str, worlds: int, steps: int, cpus: list[int] | None = None,
+           backend: str = "warp") -> dict:
     """Runs in the fresh process: the timings of one entry point, as a dict (printed as JSON by ``main``)."""
     if cpus:  # before jax starts: XLA sizes its CPU thread pool from the affinity mask
         os.sched_setaffinity(0, set(cpus))
@@ -78,12 +80,12 @@ def _child(model_name: str, entry: str, worlds: int, steps: int, cpus: list[int]
 
     if entry == "step":
         def call(s):
-            return kamino.step(model, s)
+            return kamino.step(model, s, backend=backend)
     elif entry == "rollout":
         def call(s):
-            return kamino.rollout(model, s, num_steps=steps)
+            return kamino.rollout(model, s, num_steps=steps, backend=backend)
     elif entry == "jit_rollout":
-        call = jax.jit(lambda s: kamino.rollout(model, s, num_steps=steps))
+        call = jax.jit(lambda s: kamino.rollout(model, s, num_steps=steps, backend=backend))
     else:
         raise ValueError(f"unknown entry {entry!r}; choose from {ENTRIES}")
 
@@ -130,18 +132,19 @@ def _child(model_name: str, entry: str, worlds: int, steps: int, cpus: list[int]
         "cpus": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "jax": jax.__version__,
         "backend": jax.default_backend(),
+        "kamino_backend": backend,
     }
 
 
 def _run_child(model: str, entry: str, worlds: int, steps: int, cache: str, xla_flags: str, timeout: float,
-               cpus: list[int] | None) -> dict:
+               cpus: list[int] | None, backend: str) -> dict:
     env = dict(os.environ)
     env["KAMINO_JAX_CACHE"] = cache
     env.pop("JAX_COMPILATION_CACHE_DIR", None)  # kamino's variable decides (kamino/_jax_cache.py)
     if xla_flags:
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {xla_flags}".strip()
     cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--child", model, entry, "--worlds", str(worlds),
-           "--steps", str(steps)] + (["--cpus", *map(str, cpus)] if cpus else [])
+           "--steps", str(steps), "--backend", backend] + (["--cpus", *map(str, cpus)] if cpus else [])
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout, check=False)
     wall = time.perf_counter() - t0
@@ -189,6 +192,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     ap.add_argument("--phases", nargs="+", default=["cold", "warm"], choices=("cold", "warm", "off"),
                     help="cold: empty cache directory; warm: the same directory again; off: KAMINO_JAX_CACHE=0")
     ap.add_argument("--worlds", type=int, default=1, help="kamino.replicate(model, WORLDS)")
+    ap.add_argument("--backend", choices=("warp", "jax"), default="warp",
+                    help="the backend= of the timed calls (default warp, kamino's default)")
     ap.add_argument("--steps", type=int, default=100, help="steps of the rollouts")
     ap.add_argument("--xla-flags", default="", help="added to XLA_FLAGS in the children")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per child process")
@@ -198,8 +203,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     args = ap.parse_args(argv)
 
     if args.child:
-        print("RESULT " + json.dumps(_child(args.child[0], args.child[1], args.worlds, args.steps, args.cpus)),
-              flush=True)
+        print("RESULT " + json.dumps(_child(args.child[0], args.child[1], args.worlds, args.steps, args.cpus,
+                                            args.backend)), flush=True)
         return 0
 
     machine = _machine()
@@ -211,7 +216,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
                 for phase in args.phases:
                     cache = "0" if phase == "off" else tmp
                     r = _run_child(model, entry, args.worlds, args.steps, cache, args.xla_flags, args.timeout,
-                                   args.cpus)
+                                   args.cpus, args.backend)
                     r["phase"] = phase
                     rows.append(r)
                     print(f"{model:>10} x{args.worlds} {entry:>11} {phase:>4}: {r['to_first_result_s']:7.1f} s to the "
