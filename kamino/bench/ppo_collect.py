@@ -35,7 +35,8 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--unroll", type=int, default=20, help="env steps per collected batch (brax's unroll_length)")
     p.add_argument("--action-scale", type=float, default=1.0, help="actions uniform in [-scale, scale]")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="a SolverConfig field, VALUE a Python literal (repeatable): --set tolerance=0.01")
+                   help="a SolverConfig setting (dotted for a nested one: --set penalty.rho=0.05), VALUE a Python "
+                        "literal (repeatable): --set tolerance=0.01")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="a keyword of the task's constructor, VALUE a Python literal (repeatable): --env kp=75")
     p.add_argument("--no-effort-limits", action="store_true",
@@ -63,7 +64,6 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
 def _unbounded_efforts() -> None:
     """Make ``kamino.models``' robot builders return their model with every actuator's effort limit infinite
     (``--no-effort-limits``: what the effort-limited actuator rows cost the solve)."""
-    import dataclasses
 
     import numpy as np
 
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if args.no_effort_limits:
         _unbounded_efforts()
     probe = make(args.task, backend=args.backend, **args.env_kwargs)
-    config = dataclasses.replace(probe.solver_config, **args.overrides) if args.overrides else None
+    config = probe.solver_config.replace(**args.overrides) if args.overrides else None
     raw = make(args.task, backend=args.backend, solver_config=config, **args.env_kwargs) if config else probe
     env = training.wrap(raw, episode_length=1000)
     n, scale = args.num_envs, args.action_scale
