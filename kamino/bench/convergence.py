@@ -13,8 +13,9 @@ stdout carries the JSON records only, one a line.
 Configuration: ``kamino.SolverConfig(dt=0.0025)`` and nothing else (every solver setting at its library
 default: the adaptive penalty, tolerance 1e-3, ...), float32, Warp's CUDA device (its CPU device when there
 is none: smoke runs, no throughput). The sweep changes ``tolerance`` only; ``serial_chain_dt1e-3`` changes
-``dt`` only. ``--solver FIELD=VALUE ...`` sets fields on top of the defaults, for experiments (a candidate
-default measured beside the current one); the JSON records them under ``solver_overrides``.
+``dt`` only. ``--solver FIELD=VALUE ...`` sets settings (nested ones by their paths: ``warp.linear_solver=cr``)
+on top of the defaults, for experiments (a candidate default measured beside the current one); the JSON records
+them under ``solver_overrides`` and the whole configuration, nested as it is, under ``solver_config``.
 
 Worlds are not copies of one another: a driven scene gives world ``w`` of ``W`` the drive phase
 ``2 pi w / W`` (a device-side pre-step hook, :func:`drive_hook`); an undriven scene starts world ``w`` with

@@ -10,7 +10,8 @@ random actions in ``[-scale, scale]`` in one jitted ``lax.scan``, three batches 
 It reports collection env steps/s, ms per simulator step, the PADMM iterations of each env step's last substep
 (mean, median, 90th and 99th percentiles, max; the GPU waits for the slowest world), the fraction of unconverged
 solves, and the worst loop closure over the environments at the end (``kamino.metrics``). ``--set KEY=VALUE``
-overrides a :class:`kamino.SolverConfig` field (the task's ``sim_dt`` is kept); ``--env KEY=VALUE`` passes a
+overrides a :class:`kamino.SolverConfig` setting, a nested one by its path (``--set penalty.rho=0.05``; the task's
+``sim_dt`` is kept); ``--env KEY=VALUE`` passes a
 keyword to the task (``kamino.envs.make``), e.g. the PD gains. ``--no-effort-limits`` (a diagnostic) builds the
 robot with unbounded actuator efforts. ``--profile STEPS`` (Warp) then times each kernel of STEPS more simulator
 steps of the environments' stepper from where the collection left it, and the same steps replayed as one CUDA
