@@ -1,7 +1,8 @@
 """kamino: simulation of robots and mechanisms with kinematic loops, in maximal coordinates.
 
 Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``GeomType``,
-``Actuation``, ``ActuationMode``, ``ModelError``, ``replicate``, ``concat``, ``SolverConfig``, ``Simulator``
+``Actuation``, ``ActuationMode``, ``ModelError``, ``replicate``, ``concat``, ``SolverConfig`` (with
+its nested ``Stabilisation``, ``Penalty`` and ``WarpSettings``), ``Simulator``
 (one model stepped with one configuration on one backend: it owns what stepping builds),
 ``State``, ``ContactState``, ``Control``, ``StepInfo``, ``init_state``, ``step``, ``rollout``,
 ``metrics``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``, ``load_mjcf``, ``save_mjcf``, the
@@ -21,7 +22,7 @@ from kamino import models
 from kamino._jax_cache import enable as _enable_jax_cache
 from kamino._jax_cache import quiet_cache_loads as _quiet_cache_loads
 from kamino.api import load_mjcf, rollout, save_mjcf, step
-from kamino.config import SolverConfig
+from kamino.config import Penalty, SolverConfig, Stabilisation, WarpSettings
 from kamino.kinematics import FKResult, forward_kinematics, init_state, set_joint_positions
 from kamino.model import (
     Actuation,
@@ -61,10 +62,13 @@ __all__ = [
     "Model",
     "ModelBuilder",
     "ModelError",
+    "Penalty",
     "Simulator",
     "SolverConfig",
+    "Stabilisation",
     "State",
     "StepInfo",
+    "WarpSettings",
     "body_contact_forces",
     "body_frame",
     "concat",

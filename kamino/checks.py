@@ -12,13 +12,13 @@ import warnings
 import jax
 import numpy as np
 
-from kamino.config import SolverConfig
+from kamino.config import SolverConfig, WarpSettings
 from kamino.model import Model
 from kamino.state import Control, State
 
-#: ``SolverConfig`` fields that only the Warp backend reads, with the value the JAX reference computes as
-#: (``None``: any value is the JAX reference's own). The JAX reference builds a dense Jacobian and solves with a
-#: dense Cholesky factorisation: ``jacobian="dense"`` and ``linear_solver="llt"`` are what it does anyway.
+#: the Warp backend's settings (``SolverConfig.warp``) with the values the JAX reference computes as (``None``: any
+#: value is the JAX reference's own). The JAX reference builds a dense Jacobian and solves with a dense Cholesky
+#: factorisation: ``jacobian="dense"`` and ``linear_solver="llt"`` are what it does anyway.
 WARP_ONLY_FIELDS = {"linear_solver": ("llt", "auto"), "cr_iterations": None}
 
 
@@ -36,7 +36,7 @@ def check_model(model, fn: str = "step") -> None:
 
 def check_config(config, backend: str, fn: str = "step") -> None:
     """``config`` must be a :class:`kamino.SolverConfig` or ``None``. With ``backend="jax"`` a Warp-only setting
-    away from what the JAX reference computes (``linear_solver="cr"``, a ``cr_iterations`` other than the
+    away from what the JAX reference computes (``warp.linear_solver="cr"``, a ``warp.cr_iterations`` other than the
     default) warns (``UserWarning``): the JAX reference always solves with a dense Cholesky factorisation, so the
     setting has no effect there. It warns rather than raises so that one config can drive both backends."""
     if config is None:
@@ -46,16 +46,16 @@ def check_config(config, backend: str, fn: str = "step") -> None:
         raise TypeError(f"{fn}: config must be a kamino.SolverConfig or None, got {_type_name(config)}{hint}")
     if backend != "jax":
         return
-    defaults = SolverConfig()
+    defaults = WarpSettings()
     for name, honoured in WARP_ONLY_FIELDS.items():
-        value = getattr(config, name)
+        value = getattr(config.warp, name)
         if honoured is None:
             ignored = value != getattr(defaults, name)
         else:
             ignored = value not in honoured
         if ignored:
-            warnings.warn(f"{fn}: SolverConfig.{name}={value!r} is a Warp backend setting; backend='jax' ignores it "
-                          "(the JAX reference uses a dense Jacobian and a dense Cholesky solve; pass "
+            warnings.warn(f"{fn}: SolverConfig.warp.{name}={value!r} is a Warp backend setting; backend='jax' "
+                          "ignores it (the JAX reference uses a dense Jacobian and a dense Cholesky solve; pass "
                           "backend='warp' to use it)", UserWarning, stacklevel=3)
 
 

@@ -69,20 +69,86 @@ BISECTION_STEPS = 32
 PARALLEL_SIN2 = 1e-2
 
 
+#: fixed settings, the same in both backends (docs/settings.md, "Constants"). Restart Nesterov's momentum when the
+#: combined residual fails to drop below this factor (docs/formulation.md §7.4)
+RESTART_TOLERANCE = 0.999
+#: angular velocity damping rate [1/s] (docs/formulation.md §6.2 step 4): none
+ANGULAR_DAMPING = 0.0
+#: fraction ``gamma`` of a contact penetration removed per step (docs/formulation.md §4.2, §5)
+CONTACT_BAUMGARTE = 0.2
+#: fraction ``beta`` of a joint-limit violation removed per step (docs/formulation.md §4.1, §5)
+LIMIT_BAUMGARTE = 0.2
+#: gaps and penetrations below this [m] get no bias (``delta`` of docs/formulation.md §4.2)
+CONTACT_DEADBAND = 1e-6
+#: approach speed [m/s] below which contacts are inelastic (docs/formulation.md §4.2)
+RESTITUTION_THRESHOLD = 0.1
+#: a new contact continues a previous one of the same geom pair when their points on geom b are closer than this
+#: [m] (warm start, docs/formulation.md §7.8)
+CONTACT_MATCH_DISTANCE = 2e-3
+#: a limit row is active when the DoF is within this distance [m or rad] of the limit, plus what its velocity covers
+#: in the step (docs/formulation.md §4.1). The free velocity of a body does not see what its joints transmit (gravity
+#: on a pendulum is a joint reaction), so a margin is needed for a DoF that rests on its limit not to fall through for
+#: a step
+LIMIT_MARGIN = 1e-2
+#: joint position errors below this [m or rad] get no bias (rounding noise on redundant loop rows would otherwise be
+#: an inconsistent right-hand side), by the state's dtype: :func:`joint_deadband` (docs/conventions.md,
+#: "Stabilisation")
+JOINT_DEADBAND_FLOAT32, JOINT_DEADBAND_FLOAT64 = 1e-6, 1e-11
+
+
+def joint_deadband(dtype) -> float:
+    """The joint dead band for states of ``dtype``: ``JOINT_DEADBAND_FLOAT32`` (1e-6) in float32,
+    ``JOINT_DEADBAND_FLOAT64`` (1e-11) otherwise (docs/conventions.md, "Stabilisation")."""
+    return JOINT_DEADBAND_FLOAT32 if np.dtype(dtype) == np.float32 else JOINT_DEADBAND_FLOAT64
+
+
 def _rounding_floor(dtype) -> float:
     """``sqrt(eps)`` of ``dtype``: the smallest diagonal shift that keeps a singular block's Cholesky pivots above
     rounding (1.5e-8 in float64, 3.5e-4 in float32)."""
     return float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
 
 
-@dataclasses.dataclass(frozen=True)
-class SolverConfig:
-    """Time stepping, stabilisation and Proximal-ADMM settings (docs/formulation.md §5-§8)."""
+def _rejecter(obj, path: str):
+    """A ``bad(field, why)`` that raises a ``ValueError`` naming ``path.field`` and its value."""
 
-    dt: float = 1.0 / 240.0
-    """time step [s]."""
-    integrator: Literal["euler", "midpoint"] = "euler"
-    """``"euler"`` (semi-implicit Euler, §6.2) or ``"midpoint"`` (Moreau-Jean, §6.3)."""
+    def bad(field: str, why: str) -> None:
+        raise ValueError(f"{path}.{field}: {why} (got {getattr(obj, field)!r})")
+
+    return bad
+
+
+@dataclasses.dataclass(frozen=True)
+class WarpSettings:
+    """Warp backend settings (``SolverConfig.warp``): the Jacobian's layout and the linear solver of PADMM. The JAX
+    reference always computes densely and solves by a dense Cholesky factorisation (it warns when given
+    ``linear_solver="cr"`` or a non-default ``cr_iterations``, ``kamino.checks.check_config``); the physics is the
+    same."""
+
+    jacobian: Literal["dense", "sparse"] = "sparse"
+    """``"sparse"`` block rows (default) or a ``"dense"`` per-world Jacobian."""
+    linear_solver: Literal["llt", "cr", "auto"] = "auto"
+    """``"llt"`` Cholesky (sparse factor with ``jacobian="sparse"``), ``"cr"`` matrix-free Conjugate Residual,
+    ``"auto"`` (default): the LLT, except CR above ``AUTO_CR_ROWS`` rows per world on a GPU with one thread per world
+    (``kamino.warp_backend.pipeline.resolve_linear_solver``)."""
+    cr_iterations: int = 30
+    """Conjugate Residual iterations per PADMM iteration: 9 left dr_legs' first steps and 9 % of the eight-legged
+    Jansen walker's steps unconverged (docs/warp_backend.md, "Linear solvers")."""
+
+    def __post_init__(self) -> None:
+        bad = _rejecter(self, "SolverConfig.warp")
+        if self.jacobian not in ("dense", "sparse"):
+            bad("jacobian", "must be 'dense' or 'sparse'")
+        if self.linear_solver not in ("llt", "cr", "auto"):
+            bad("linear_solver", "must be 'llt', 'cr' or 'auto'")
+        if int(self.cr_iterations) < 1:
+            bad("cr_iterations", "must be >= 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class Stabilisation:
+    """How the joints' position errors are removed (``SolverConfig.stabilisation``; docs/formulation.md §5,
+    docs/conventions.md "Stabilisation" and "Post-stabilisation")."""
+
     baumgarte: float = 0.01
     """fraction ``alpha`` of a joint's position error removed by the end of a step (§5)."""
     curvature_correction: bool = True
@@ -102,10 +168,65 @@ class SolverConfig:
     projection_shift: float | None = None
     """the diagonal shift of post-stabilisation's scaled system (``None``: ``sqrt(eps)`` of the state's dtype, or
     PADMM's own shifts of the always-active rows where those are smaller, as in float32, so that the Warp backend
-    solves with PADMM's factor; :meth:`projection_shifts`)."""
-    joint_deadband: float | None = None
-    """joint position errors below this [m or rad] get no bias (rounding noise on redundant loop rows would
-    otherwise be an inconsistent right-hand side); ``None`` picks 1e-6 in float32 and 1e-11 in float64."""
+    solves with PADMM's factor; :meth:`SolverConfig.projection_shifts`)."""
+
+    def __post_init__(self) -> None:
+        bad = _rejecter(self, "SolverConfig.stabilisation")
+        if not (0.0 <= self.baumgarte <= 1.0):
+            bad("baumgarte", "must lie in [0, 1]")
+        if int(self.post_stabilisation) != self.post_stabilisation or self.post_stabilisation < 0:
+            bad("post_stabilisation", "must be an integer >= 0 (the number of position projections per step)")
+        if self.projection_shift is not None and not self.projection_shift > 0:
+            bad("projection_shift", "must be > 0 or None")
+
+
+@dataclasses.dataclass(frozen=True)
+class Penalty:
+    """ADMM penalty and proximal parameters (``SolverConfig.penalty``; docs/formulation.md §7.3, §7.6,
+    docs/conventions.md "Penalty")."""
+
+    mode: Literal["fixed", "adaptive"] = "adaptive"
+    """``"adaptive"`` (default): the always-active rows carry ``rho_free``, the limit and contact rows a per-world
+    penalty balanced by the residuals (docs/conventions.md, "Penalty"); ``"fixed"``: every row carries ``rho``
+    (docs/formulation.md §7.6)."""
+    rho: float = 0.1
+    """the ADMM penalty (§7.3). With ``mode="adaptive"`` the starting penalty of the limit and contact rows, which
+    each world then balances (and carries to its next step in ``state.info.penalty``)."""
+    eta: float = 1e-5
+    """the proximal parameter (§7.3): a diagonal shift of every row."""
+    rho_free: float = 1e-4
+    """the penalty of the always-active rows (joint-dynamics, joint, coupling) under ``mode="adaptive"``: only a
+    proximal shift there, small for fast convergence, large enough to keep float32 factors of redundant loops well
+    conditioned."""
+
+    def __post_init__(self) -> None:
+        bad = _rejecter(self, "SolverConfig.penalty")
+        if self.mode not in ("adaptive", "fixed"):
+            bad("mode", "must be 'adaptive' or 'fixed'")
+        if not self.rho > 0:
+            bad("rho", "must be > 0")
+        if not self.eta >= 0:
+            bad("eta", "must be >= 0")
+        if not self.rho_free > 0:
+            bad("rho_free", "must be > 0")
+
+
+#: the nested settings' classes, by their ``SolverConfig`` field
+NESTED = {"stabilisation": Stabilisation, "penalty": Penalty, "warp": WarpSettings}
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """Time stepping, stabilisation and Proximal-ADMM settings (docs/formulation.md §5-§8). The stabilisation, the
+    penalty and the Warp backend's settings are nested: ``SolverConfig(stabilisation=Stabilisation(baumgarte=1.0),
+    penalty=Penalty(mode="fixed"), warp=WarpSettings(linear_solver="cr"))``; :meth:`replace` takes dotted names
+    (``cfg.replace(**{"warp.linear_solver": "cr"})``). Fixed settings are module constants (``CONTACT_BAUMGARTE``
+    and the others above)."""
+
+    dt: float = 1.0 / 240.0
+    """time step [s]."""
+    integrator: Literal["euler", "midpoint"] = "euler"
+    """``"euler"`` (semi-implicit Euler, §6.2) or ``"midpoint"`` (Moreau-Jean, §6.3)."""
     max_iterations: int = 200
     """PADMM iteration cap per step."""
     tolerance: float = 1e-3
@@ -126,74 +247,26 @@ class SolverConfig:
     row with a smaller bias (all three hinge limits of a parallelogram loop); the solution is unchanged and PADMM
     stops creeping along the null direction (``kamino.jax_ref.padmm.redundant_limits``). JAX reference, float64 only
     (float32 and the Warp backend raise)."""
-    rho: float = 0.1
-    """ADMM penalty and proximal parameters (§7.3). With ``penalty="adaptive"`` ``rho`` is the starting penalty of
-    the limit and contact rows, which each world then balances (and carries to its next step in
-    ``state.info.penalty``)."""
-    eta: float = 1e-5
-    """ADMM penalty and proximal parameters (§7.3). With ``penalty="adaptive"`` ``rho`` is the starting penalty of
-    the limit and contact rows, which each world then balances (and carries to its next step in
-    ``state.info.penalty``)."""
-    penalty: Literal["fixed", "adaptive"] = "adaptive"
-    """``"adaptive"`` (default): the always-active rows carry ``rho_free``, the limit and contact rows a per-world
-    penalty balanced by the residuals (docs/conventions.md, "Penalty"); ``"fixed"``: every row carries ``rho``
-    (docs/formulation.md §7.6)."""
-    rho_free: float = 1e-4
-    """the penalty of the always-active rows (joint-dynamics, joint, coupling) under ``penalty="adaptive"``: only a
-    proximal shift there, small for fast convergence, large enough to keep float32 factors of redundant loops well
-    conditioned."""
     warm_start: bool = True
     """start PADMM from the previous step's constraint forces (§7.8)."""
     warmstart_scale: float = 1.0
     """factor on the warm-start reactions (§7.8)."""
     acceleration: bool = True
     """Nesterov acceleration with restart (§7.4)."""
-    restart_tolerance: float = 0.999
-    """restart when the combined residual fails to drop below this factor (§7.4)."""
-    preconditioning: bool = True
-    """Jacobi preconditioning ``P = diag(D)^-1/2`` (§7.2)."""
-    angular_damping: float = 0.0
-    """optional angular velocity damping rate [1/s] (§6.2 step 4)."""
-    contact_baumgarte: float = 0.2
-    """fraction ``gamma`` of a contact penetration removed per step (§4.2, §5)."""
-    limit_baumgarte: float = 0.2
-    """fraction ``beta`` of a joint-limit violation removed per step (§4.1, §5)."""
-    contact_deadband: float = 1e-6
-    """gaps and penetrations below this [m] get no bias (``delta`` of §4.2)."""
-    restitution_threshold: float = 0.1
-    """approach speed [m/s] below which contacts are inelastic (§4.2)."""
-    contact_match_distance: float = 2e-3
-    """a new contact continues a previous one of the same geom pair when their points on geom b are closer than this
-    [m] (warm start, §7.8)."""
-    limit_margin: float = 1e-2
-    """a limit row is active when the DoF is within this distance [m or rad] of the limit, plus what its velocity
-    covers in the step (§4.1). The free velocity of a body does not see what its joints transmit (gravity on a
-    pendulum is a joint reaction), so a margin is needed for a DoF that rests on its limit not to fall through for a
-    step."""
     contact_margin: float = 1e-3
-    """likewise for contacts [m], added to the geoms' own margins (§4.2)."""
-    jacobian: Literal["dense", "sparse"] = "sparse"
-    """Warp backend: ``"sparse"`` block rows (default) or a ``"dense"`` per-world Jacobian. The JAX reference always
-    computes densely (and solves by a dense Cholesky factorisation: it warns when given ``linear_solver="cr"`` or a
-    non-default ``cr_iterations``, ``kamino.checks.check_config``); the physics is the same."""
-    linear_solver: Literal["llt", "cr", "auto"] = "auto"
-    """Warp backend: ``"llt"`` Cholesky (sparse factor with ``jacobian="sparse"``), ``"cr"`` matrix-free Conjugate
-    Residual, ``"auto"`` (default): the LLT, except CR above ``AUTO_CR_ROWS`` rows per world on a GPU with one thread
-    per world (``kamino.warp_backend.pipeline.resolve_linear_solver``)."""
-    cr_iterations: int = 30
-    """Conjugate Residual iterations per PADMM iteration (Warp backend): 9 left dr_legs' first steps and 9 % of the
-    eight-legged Jansen walker's steps unconverged (docs/warp_backend.md, "Linear solvers")."""
+    """contacts count as active within this distance [m], added to the geoms' own margins (§4.2; ``LIMIT_MARGIN``
+    is the joint limits' counterpart)."""
     max_unconverged_steps: int = 50
     """a world whose PADMM has not converged for more than this many consecutive steps is marked
     ``state.info.failed`` and frozen, like a world whose state went non-finite (docs/conventions.md, "World
     health")."""
-
-    def deadband_for(self, dtype) -> float:
-        """The joint dead band in effect for states of ``dtype``: ``joint_deadband``, or 1e-6 in
-        float32 and 1e-11 in float64 (docs/conventions.md, "Stabilisation")."""
-        if self.joint_deadband is not None:
-            return self.joint_deadband
-        return 1e-6 if np.dtype(dtype) == np.float32 else 1e-11
+    stabilisation: Stabilisation = Stabilisation()
+    """joint stabilisation: Baumgarte fraction, curvature correction and refinement, post-stabilisation
+    (:class:`Stabilisation`)."""
+    penalty: Penalty = Penalty()
+    """PADMM's penalty: mode, ``rho``, ``eta``, ``rho_free`` (:class:`Penalty`)."""
+    warp: WarpSettings = WarpSettings()
+    """the Warp backend's Jacobian layout and linear solver (:class:`WarpSettings`)."""
 
     def projection_shifts(self, dtype) -> tuple[float, float]:
         """The diagonal shifts of post-stabilisation's scaled system ``P D_ff P + diag(s)``: ``s`` on a row with
@@ -206,66 +279,65 @@ class SolverConfig:
         float64, 3.5e-4 in float32). Under the adaptive penalty PADMM has already factorised the same block with
         the shifts ``eta + rho_free`` and ``eta + rho`` (a saturated row); where the former is below
         ``sqrt(eps)`` (float32: 1.1e-4) the projection takes PADMM's shifts and the Warp backend its factor.
-        ``projection_shift`` sets both shifts."""
-        if self.projection_shift is not None:
-            return self.projection_shift, self.projection_shift
+        ``stabilisation.projection_shift`` sets both shifts."""
+        shift, pen = self.stabilisation.projection_shift, self.penalty
+        if shift is not None:
+            return shift, shift
         if self.shares_padmm_factor(dtype):
-            return self.eta + self.rho_free, self.eta + self.rho
+            return pen.eta + pen.rho_free, pen.eta + pen.rho
         floor = _rounding_floor(dtype)
         return floor, floor
 
     def shares_padmm_factor(self, dtype) -> bool:
         """Whether post-stabilisation's default system is PADMM's factor of the always-active rows
         (:meth:`projection_shifts`)."""
-        return (self.projection_shift is None and self.penalty == "adaptive"
-                and self.eta + self.rho_free <= _rounding_floor(dtype))
+        pen = self.penalty
+        return (self.stabilisation.projection_shift is None and pen.mode == "adaptive"
+                and pen.eta + pen.rho_free <= _rounding_floor(dtype))
+
+    def replace(self, **changes) -> SolverConfig:
+        """A copy with ``changes`` applied; a nested setting goes by its dotted name
+        (``cfg.replace(tolerance=1e-4, **{"warp.linear_solver": "cr", "penalty.rho": 0.05})``), a nested class
+        whole by its own name (``cfg.replace(penalty=Penalty(mode="fixed"))``). An unknown name raises a
+        ``TypeError`` that lists the valid ones (:func:`field_names`)."""
+        top: dict = {}
+        nested: dict[str, dict] = {}
+        for key, value in changes.items():
+            group, dot, name = key.partition(".")
+            if key not in field_names() and not (not dot and group in NESTED):
+                raise TypeError(f"SolverConfig has no setting {key!r}; the settings: {', '.join(field_names())}")
+            if dot:
+                nested.setdefault(group, {})[name] = value
+            else:
+                top[key] = value
+        for group, fields in nested.items():
+            top[group] = dataclasses.replace(top.get(group, getattr(self, group)), **fields)
+        return dataclasses.replace(self, **top)
 
     def __post_init__(self) -> None:
-        def bad(field: str, why: str) -> None:
-            raise ValueError(f"SolverConfig.{field}: {why} (got {getattr(self, field)!r})")
-
+        bad = _rejecter(self, "SolverConfig")
+        for name, cls in NESTED.items():
+            if not isinstance(getattr(self, name), cls):
+                bad(name, f"must be a kamino.{cls.__name__}")
         if not (math.isfinite(self.dt) and self.dt > 0):
             bad("dt", "must be a finite positive time step")
         if self.integrator not in ("euler", "midpoint"):
             bad("integrator", "must be 'euler' or 'midpoint'")
-        if not (0.0 <= self.baumgarte <= 1.0):
-            bad("baumgarte", "must lie in [0, 1]")
-        if self.projection_shift is not None and not self.projection_shift > 0:
-            bad("projection_shift", "must be > 0 or None")
-        if self.joint_deadband is not None and not self.joint_deadband >= 0:
-            bad("joint_deadband", "must be >= 0 or None")
         if int(self.max_iterations) < 1:
             bad("max_iterations", "must be >= 1")
         if not self.tolerance > 0:
             bad("tolerance", "must be > 0")
-        if not self.rho > 0:
-            bad("rho", "must be > 0")
-        if not self.rho_free > 0:
-            bad("rho_free", "must be > 0")
-        if self.penalty not in ("adaptive", "fixed"):
-            bad("penalty", "must be 'adaptive' or 'fixed'")
         if int(self.max_unconverged_steps) != self.max_unconverged_steps or self.max_unconverged_steps < 0:
             bad("max_unconverged_steps", "must be an integer >= 0")
-        if not self.eta >= 0:
-            bad("eta", "must be >= 0")
-        if not (0.0 < self.restart_tolerance <= 1.0):
-            bad("restart_tolerance", "must lie in (0, 1]")
         if not (0.0 <= self.warmstart_scale <= 1.0):
             bad("warmstart_scale", "must lie in [0, 1]")
-        if self.jacobian not in ("dense", "sparse"):
-            bad("jacobian", "must be 'dense' or 'sparse'")
-        if self.linear_solver not in ("llt", "cr", "auto"):
-            bad("linear_solver", "must be 'llt', 'cr' or 'auto'")
-        if int(self.post_stabilisation) != self.post_stabilisation or self.post_stabilisation < 0:
-            bad("post_stabilisation", "must be an integer >= 0 (the number of position projections per step)")
-        if int(self.cr_iterations) < 1:
-            bad("cr_iterations", "must be >= 1")
-        if not self.angular_damping >= 0:
-            bad("angular_damping", "must be >= 0")
-        for name in ("contact_baumgarte", "limit_baumgarte"):
-            if not (0.0 <= getattr(self, name) <= 1.0):
-                bad(name, "must lie in [0, 1]")
-        for name in ("contact_deadband", "restitution_threshold", "contact_match_distance", "limit_margin",
-                     "contact_margin"):
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
-                bad(name, "must be a finite number >= 0")
+        if not (math.isfinite(self.contact_margin) and self.contact_margin >= 0):
+            bad("contact_margin", "must be a finite number >= 0")
+
+
+def field_names() -> tuple[str, ...]:
+    """Every setting of :class:`SolverConfig` by its path: the top-level fields other than the nested classes, then
+    ``stabilisation.baumgarte`` and the other nested ones (what :meth:`SolverConfig.replace` and the command lines'
+    ``--solver F=V`` take)."""
+    top = tuple(f.name for f in dataclasses.fields(SolverConfig) if f.name not in NESTED)
+    return top + tuple(f"{group}.{f.name}" for group, cls in NESTED.items() for f in dataclasses.fields(cls))

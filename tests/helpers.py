@@ -49,7 +49,7 @@ class Variant:
     backend: str
     jacobian: str = "dense"
     linear_solver: str = "llt"
-    #: CR budget per PADMM iteration (``SolverConfig.cr_iterations``); ``None``: the config's (default 30)
+    #: CR budget per PADMM iteration (``SolverConfig.warp.cr_iterations``); ``None``: the config's (default 30)
     cr_iterations: int | None = None
 
     @property
@@ -61,11 +61,11 @@ class Variant:
         return self.is_warp and self.linear_solver == "cr"
 
     def config(self, cfg: kamino.SolverConfig | None = None, **changes) -> kamino.SolverConfig:
-        cfg = dataclasses.replace(cfg or kamino.SolverConfig(), **changes)
+        cfg = (cfg or kamino.SolverConfig()).replace(**changes)
         if self.is_warp:
-            cfg = dataclasses.replace(cfg, jacobian=self.jacobian, linear_solver=self.linear_solver)
+            cfg = cfg.replace(**{"warp.jacobian": self.jacobian, "warp.linear_solver": self.linear_solver})
         if self.is_cr and self.cr_iterations is not None:
-            cfg = dataclasses.replace(cfg, cr_iterations=self.cr_iterations)
+            cfg = cfg.replace(**{"warp.cr_iterations": self.cr_iterations})
         return cfg
 
     def step(self, model: kamino.Model, state: kamino.State, control: kamino.Control | None = None, *,

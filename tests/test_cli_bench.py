@@ -85,6 +85,7 @@ def test_kamino_bench_help_is_short_and_names_the_command(capsys):
     (["--scenes", "nosuch"], ["--scenes", "'nosuch'", "ladder8", "dr_legs"]),
     (["--worlds", "0"], ["--worlds", ">= 1"]),
     (["--solver", "nosuch=1"], ["--solver", "'nosuch=1'", "tolerance"]),
+    (["--solver", "linear_solver=cr"], ["--solver", "'linear_solver=cr'", "warp.linear_solver"]),
     (["--table", "missing.json"], ["--table", "missing.json"]),
 ])
 def test_kamino_bench_bad_values_name_the_option_and_the_choices(argv, names, capsys, tmp_path, monkeypatch):
@@ -117,3 +118,16 @@ def test_kamino_bench_plot_without_matplotlib_names_the_extra(tmp_path, capsys, 
     assert done.value.code == 2
     err = capsys.readouterr().err
     assert "--plot needs matplotlib" in err and "kamino[bench]" in err
+
+
+def test_bench_solver_settings_take_dotted_names():
+    """``--solver F=V`` sets a nested setting by its path (values as JSON, a bare string as it is), on top of a
+    benchmark configuration's own Warp settings."""
+    import kamino
+    from kamino.bench import throughput
+
+    overrides = throughput.solver_overrides(["warp.cr_iterations=20", "penalty.rho=0.05", "integrator=midpoint"])
+    assert overrides == {"warp.cr_iterations": 20, "penalty.rho": 0.05, "integrator": "midpoint"}
+    cfg = kamino.SolverConfig(dt=throughput.DT).replace(**overrides, **throughput.CONFIGS["sparse-cr"])
+    assert cfg.warp == kamino.WarpSettings(jacobian="sparse", linear_solver="cr", cr_iterations=20)
+    assert cfg.penalty == kamino.Penalty(rho=0.05) and cfg.integrator == "midpoint"

@@ -23,7 +23,7 @@ def test_convergence_benchmark_writes_every_field(convergence, tmp_path):
     results = json.loads(out.read_text())
     env = results["environment"]
     assert env["device"] == "cpu" and env["warp"] and env["jax"] and "--worlds 2" in env["command"]
-    assert env["solver_config"]["dt"] == 0.0025 and env["solver_config"]["penalty"] == "adaptive"
+    assert env["solver_config"]["dt"] == 0.0025 and env["solver_config"]["penalty"]["mode"] == "adaptive"
     recs = {r["scene"]: r for r in results["records"]}
     assert set(recs) == {"fourbar", "fourbar_tilt10"}
     assert recs["fourbar_tilt10"]["suite"] == "stress"

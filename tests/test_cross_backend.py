@@ -181,7 +181,7 @@ def _batch(builds) -> tuple[kamino.Model, kamino.State]:
 #: The starting penalty 0.01 (default 0.1): from 0.1, one random contact world's first three steps reach the
 #: iteration cap on CR (its float32 inner residual) before the adaptive penalty has moved (measured).
 #: test_light_slider_with_a_hinged_load_stays_bounded is what a fixed rho = 1 did to such a mechanism.
-F32_CFG = kamino.SolverConfig(dt=DT, tolerance=1e-5, rho=0.01)
+F32_CFG = kamino.SolverConfig(dt=DT, tolerance=1e-5, penalty=kamino.Penalty(rho=0.01))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -162,15 +162,17 @@ def test_warp_only_solver_settings_warn_on_the_jax_backend(fourbar):
     model, state = fourbar
     bad = kamino.Control(position_target=jnp.zeros((2, model.num_dofs)))  # stops the call after the config check
     for field, value in (("linear_solver", "cr"), ("cr_iterations", 20)):
-        cfg = kamino.SolverConfig(**{field: value})
-        with pytest.warns(UserWarning, match=rf"SolverConfig\.{field}={value!r} is a Warp backend setting; "
+        cfg = kamino.SolverConfig(warp=kamino.WarpSettings(**{field: value}))
+        with pytest.warns(UserWarning, match=rf"SolverConfig\.warp\.{field}={value!r} is a Warp backend setting; "
                                              r"backend='jax' ignores it"), pytest.raises(ValueError):
             kamino.step(model, state, bad, config=cfg, backend="jax")
     # what the JAX reference computes anyway (dense, Cholesky), the defaults, and any setting on Warp: no warning
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        for cfg, backend in ((kamino.SolverConfig(jacobian="dense", linear_solver="llt"), "jax"),
-                             (kamino.SolverConfig(), "jax"), (kamino.SolverConfig(linear_solver="cr"), "warp")):
+        dense_llt = kamino.SolverConfig(warp=kamino.WarpSettings(jacobian="dense", linear_solver="llt"))
+        for cfg, backend in ((dense_llt, "jax"),
+                             (kamino.SolverConfig(), "jax"),
+                             (kamino.SolverConfig(warp=kamino.WarpSettings(linear_solver="cr")), "warp")):
             with pytest.raises(ValueError):
                 kamino.step(model, state, bad, config=cfg, backend=backend)
 

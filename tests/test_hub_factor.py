@@ -121,8 +121,8 @@ def test_hub_factor_solves_the_delassus_system(dtype, monkeypatch):
         nblk = st.wm.blocks_per_row
         st._launch(st.spk.assemble_fixed, (1, st.sf.max_nnz), st.sp, nblk, shift_f, shift_b)
         st._launch(st.spk.assemble_tail, (1, st.wm.max_rows), st.sp, nblk)
-        st._launch(st.spk.factor, 1, st.sp, cfg.eta)
-        A, n, rs = _dense_A(st, shift_f, shift_b, cfg.eta)
+        st._launch(st.spk.factor, 1, st.sp, cfg.penalty.eta)
+        A, n, rs = _dense_A(st, shift_f, shift_b, cfg.penalty.eta)
         assert n > 204  # active limits or contacts: the tail is exercised
         rng = np.random.default_rng(0)
         err = 0.0

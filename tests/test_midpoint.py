@@ -27,11 +27,13 @@ DT = 1.0 / 240.0
 STEPS = 480  # 2 s: past the 349 steps the undamped rule survived
 TAU = 0.5  # N m on the crank: it spins up to 11.3 rad/s; its free spin-up dt tau / I_cm is 2.1 rad/s per step
 #: stiff velocity-level stabilisation (the former defaults; converged solves: rho 0.05, tolerance 1e-6 in float64)
-STIFF = kamino.SolverConfig(dt=DT, integrator="midpoint", baumgarte=1.0, post_stabilisation=0, rho=0.05,
-                            tolerance=1e-6)
+STIFF = kamino.SolverConfig(dt=DT, integrator="midpoint", tolerance=1e-6,
+                            stabilisation=kamino.Stabilisation(baumgarte=1.0, post_stabilisation=0),
+                            penalty=kamino.Penalty(rho=0.05))
 #: post-stabilisation with soft Baumgarte: the direction of the project's defaults
-POST = kamino.SolverConfig(dt=DT, integrator="midpoint", baumgarte=0.01, post_stabilisation=1, rho=0.05,
-                           tolerance=1e-6)
+POST = kamino.SolverConfig(dt=DT, integrator="midpoint", tolerance=1e-6,
+                           stabilisation=kamino.Stabilisation(baumgarte=0.01, post_stabilisation=1),
+                           penalty=kamino.Penalty(rho=0.05))
 CONFIGS = {"stiff": STIFF, "post": POST}
 
 

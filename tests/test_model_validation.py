@@ -4,6 +4,7 @@ backend/config argument checks and model immutability. No physics is run here.""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import jax
 import jax.numpy as jnp
@@ -475,7 +476,8 @@ def test_warp_backend_rejects_bad_input_like_the_reference():
     with pytest.raises(ValueError, match="float32 and float64"):
         kamino.step(m, half, backend="warp")
     with pytest.raises(ValueError, match="linear_solver='cr'"):
-        kamino.step(m, s, config=kamino.SolverConfig(jacobian="dense", linear_solver="cr"), backend="warp")
+        kamino.step(m, s, config=kamino.SolverConfig(warp=kamino.WarpSettings(jacobian="dense", linear_solver="cr")),
+                    backend="warp")
 
 
 def test_unknown_backend():
@@ -500,13 +502,30 @@ def test_solver_config_bad_integrator():
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("baumgarte", 1.5), ("max_iterations", 0), ("tolerance", 0.0), ("rho", -1.0), ("eta", -1e-3),
-     ("joint_deadband", -1.0), ("restart_tolerance", 0.0), ("warmstart_scale", 2.0), ("jacobian", "csr"),
-     ("linear_solver", "qr"), ("cr_iterations", 0), ("angular_damping", -0.1)],
+    [("stabilisation.baumgarte", 1.5), ("max_iterations", 0), ("tolerance", 0.0), ("penalty.rho", -1.0),
+     ("penalty.eta", -1e-3), ("penalty.rho_free", 0.0), ("penalty.mode", "balanced"), ("warmstart_scale", 2.0),
+     ("warp.jacobian", "csr"), ("warp.linear_solver", "qr"), ("warp.cr_iterations", 0),
+     ("stabilisation.projection_shift", 0.0), ("contact_margin", -1.0), ("max_unconverged_steps", -1)],
 )
 def test_solver_config_other_fields(field, value):
-    with pytest.raises(ValueError, match=rf"SolverConfig\.{field}"):
-        kamino.SolverConfig(**{field: value})
+    """A bad value is refused naming its path (a nested setting: ``SolverConfig.warp.linear_solver``)."""
+    with pytest.raises(ValueError, match=rf"SolverConfig\.{re.escape(field)}: .*\(got {re.escape(repr(value))}\)"):
+        kamino.SolverConfig().replace(**{field: value})
+
+
+def test_solver_config_nests_its_settings():
+    """14 top-level fields; the nested settings go by their dotted names, a wrong kind or name is refused."""
+    assert len(dataclasses.fields(kamino.SolverConfig)) <= 15
+    cfg = kamino.SolverConfig().replace(tolerance=1e-4, **{"warp.linear_solver": "cr", "penalty.rho": 0.05})
+    assert cfg.warp == kamino.WarpSettings(linear_solver="cr") and cfg.penalty == kamino.Penalty(rho=0.05)
+    assert cfg.tolerance == 1e-4 and cfg.stabilisation == kamino.Stabilisation()
+    assert cfg.replace(penalty=kamino.Penalty(mode="fixed")).penalty.mode == "fixed"
+    with pytest.raises(TypeError, match=r"SolverConfig has no setting 'linear_solver'.*warp\.linear_solver"):
+        cfg.replace(linear_solver="cr")
+    with pytest.raises(TypeError, match=r"no setting 'warp\.rho'"):
+        cfg.replace(**{"warp.rho": 1.0})
+    with pytest.raises(ValueError, match=r"SolverConfig\.warp: must be a kamino\.WarpSettings \(got 'cr'\)"):
+        kamino.SolverConfig(warp="cr")
 
 
 def test_solver_config_is_frozen_and_hashable():

@@ -1,4 +1,4 @@
-"""Post-stabilisation (``SolverConfig.post_stabilisation``): projecting the poses onto the joints after a step.
+"""Post-stabilisation (``Stabilisation.post_stabilisation``): projecting the poses onto the joints after a step.
 
 The reference is ``kamino/jax_ref/post_stabilisation.py``; the Warp backend factorises the same block on the
 fixed rows' sparse pattern (``kamino/warp_backend/post_stabilisation.py``). Float64 throughout: the bounds are
@@ -6,8 +6,6 @@ about the projection, not float32 rounding.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -22,8 +20,9 @@ from kamino.models.shapes import box_inertia
 
 DT = 0.0025
 #: a soft velocity-level stabilisation, as in the benchmark with SolverKamino's settings: the loop drifts
-SOFT = kamino.SolverConfig(dt=DT, baumgarte=0.01, curvature_correction=False, rho=0.1, tolerance=1e-9,
-                           max_iterations=300, post_stabilisation=0)
+SOFT = kamino.SolverConfig(dt=DT, tolerance=1e-9, max_iterations=300, penalty=kamino.Penalty(rho=0.1),
+                           stabilisation=kamino.Stabilisation(baumgarte=0.01, curvature_correction=False,
+                                                              post_stabilisation=0))
 STEPS = 300
 
 
@@ -49,8 +48,9 @@ def fourbar_runs():
     reference's, step for step, is test_warp_projects_as_the_reference; running these on Warp spares CI three
     compiles of the reference's rollout (31 s at 1946dfb)."""
     soft = _fourbar_run(SOFT, WARP_DENSE_LLT)
-    post = _fourbar_run(dataclasses.replace(SOFT, post_stabilisation=2), WARP_DENSE_LLT)
-    stiff = _fourbar_run(dataclasses.replace(SOFT, baumgarte=1.0, curvature_correction=True), WARP_DENSE_LLT)
+    post = _fourbar_run(SOFT.replace(**{"stabilisation.post_stabilisation": 2}), WARP_DENSE_LLT)
+    stiff = _fourbar_run(SOFT.replace(**{"stabilisation.baumgarte": 1.0,
+                                         "stabilisation.curvature_correction": True}), WARP_DENSE_LLT)
     return soft, post, stiff
 
 
@@ -102,8 +102,8 @@ def test_warp_projects_as_the_reference():
     workers)."""
     model = kamino.concat([kamino.models.fourbar(actuated=True), _coupled_hinges(), kamino.models.box_stack(2),
                            kamino.models.chain_of_loops(3)])
-    cfg = kamino.SolverConfig(dt=DT, baumgarte=0.01, rho=0.1, tolerance=1e-10, max_iterations=300,
-                              post_stabilisation=2)
+    cfg = kamino.SolverConfig(dt=DT, tolerance=1e-10, max_iterations=300, penalty=kamino.Penalty(rho=0.1),
+                              stabilisation=kamino.Stabilisation(baumgarte=0.01, post_stabilisation=2))
     state = kamino.init_state(model, actuated_positions=[-1.0, 0.3])
     steps = 40
     ref = JAX.rollout(model, state, num_steps=steps, config=cfg)
@@ -121,8 +121,8 @@ def test_warp_projects_as_the_reference():
 
 def test_bad_settings_are_refused():
     for bad in (-1, 1.5):
-        with pytest.raises(ValueError, match="post_stabilisation: must be an integer >= 0"):
-            kamino.SolverConfig(post_stabilisation=bad)
+        with pytest.raises(ValueError, match=r"SolverConfig\.stabilisation\.post_stabilisation: must be an integer"):
+            kamino.Stabilisation(post_stabilisation=bad)
 
 
 def _heavy_tip_pendulum() -> kamino.Model:
@@ -137,17 +137,17 @@ def _heavy_tip_pendulum() -> kamino.Model:
 
 
 def test_projection_shift_is_honoured_by_both_backends():
-    """``SolverConfig.projection_shift`` sets the projection's diagonal shift (default ``sqrt(eps)``): a shift of
+    """``Stabilisation.projection_shift`` sets the projection's diagonal shift (default ``sqrt(eps)``): a shift of
     1e-2 leaves ``s / (sigma + s)`` of the error along the heavy tip's slow directions (``sigma`` ~ 1e-5), so the
     joints stay open by far more than with the default. The Warp backend reproduces the reference with that shift
     to rounding (as test_warp_projects_as_the_reference). Measured: 1.3e-8 m with the default, 2.2e-6 m with 1e-2."""
     model = _heavy_tip_pendulum()
     state = kamino.init_state(model)
     state = state.replace(body_u=state.body_u.at[:, 3].set(2.0))  # a spin about x: the hinges' rows are loaded
-    cfg = dataclasses.replace(SOFT, post_stabilisation=1, tolerance=1e-10)
+    cfg = SOFT.replace(tolerance=1e-10, **{"stabilisation.post_stabilisation": 1})
     closure = {}
     for shift in (None, 1e-2):
-        c = dataclasses.replace(cfg, projection_shift=shift)
+        c = cfg.replace(**{"stabilisation.projection_shift": shift})
         traj = JAX.rollout(model, state, num_steps=20, config=c)
         closure[shift] = trajectory_metrics(model, state, traj)["constraint_violation"].max()
         if shift is not None:
@@ -167,7 +167,8 @@ def test_a_gap_left_open_gets_one_pass_more():
 
     model = _slider_with_a_hinged_load()
     state = kamino.init_state(model)
-    cfg = kamino.SolverConfig(rho_free=1e-3, post_stabilisation=1)
+    cfg = kamino.SolverConfig(penalty=kamino.Penalty(rho_free=1e-3),
+                              stabilisation=kamino.Stabilisation(post_stabilisation=1))
     ref = JAX.rollout(model, state, num_steps=100, config=cfg)
     warp = WARP_DENSE_LLT.rollout(model, state, num_steps=100, config=WARP_DENSE_LLT.config(cfg))
     for traj in (ref, warp):

@@ -27,8 +27,8 @@ from kamino.jax_ref import padmm
 FOURBAR_XML = scene_path("fourbar")
 DT = 0.0025  # the benchmark's step and drive (kamino.bench.throughput)
 # the benchmark's solver settings
-BENCH = dict(dt=DT, rho=0.1, eta=1e-5, tolerance=1e-5, max_iterations=200, curvature_refinement=False,
-             penalty="fixed", baumgarte=1.0, post_stabilisation=0)
+BENCH = dict(dt=DT, tolerance=1e-5, max_iterations=200, penalty=kamino.Penalty(mode="fixed", rho=0.1, eta=1e-5),
+             stabilisation=kamino.Stabilisation(baumgarte=1.0, post_stabilisation=0, curvature_refinement=False))
 
 
 def _driven_fourbar_states(num_steps: int):
@@ -61,7 +61,7 @@ def _spy_on_the_rule(record):
     orig = padmm.solve
 
     def solve(D, v_f, lo, hi, mu, row_mask, *args, **kw):
-        P = padmm.jacobi_preconditioner(D, row_mask, lo.shape[0], True)
+        P = padmm.jacobi_preconditioner(D, row_mask, lo.shape[0])
         fixed = padmm.redundant_limits(P[:, None] * D * P[None, :], jnp.where(row_mask, P * v_f, 0.0), lo, hi,
                                        row_mask)
         lim = row_mask[:lo.shape[0]] & (lo == 0) & jnp.isposinf(hi)

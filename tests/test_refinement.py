@@ -1,4 +1,4 @@
-"""Curvature refinement (``SolverConfig.curvature_refinement``): the bilateral rows' second-order term
+"""Curvature refinement (``Stabilisation.curvature_refinement``): the bilateral rows' second-order term
 re-evaluated along the solved velocity (docs/conventions.md, "Stabilisation")."""
 
 
@@ -34,11 +34,12 @@ def test_refinement_cuts_the_loop_closure_error_of_a_swinging_ladder(backend):
     ctrl = _drive(model, 150)
     # the stiff stabilisation the refinement was built for (joint Baumgarte 1, no post-stabilisation), solved to
     # 1e-6 as when it was measured
-    base = kamino.SolverConfig(dt=0.0025, rho=0.01, baumgarte=1.0, post_stabilisation=0, tolerance=1e-6,
-                               jacobian="sparse" if backend == "warp" else "dense")
+    base = kamino.SolverConfig(dt=0.0025, tolerance=1e-6, penalty=kamino.Penalty(rho=0.01),
+                               stabilisation=kamino.Stabilisation(baumgarte=1.0, post_stabilisation=0),
+                               warp=kamino.WarpSettings(jacobian="sparse" if backend == "warp" else "dense"))
     plain = kamino.rollout(model, state, ctrl, config=base, backend=backend)
     refined = kamino.rollout(model, state, ctrl,
-                             config=kamino.SolverConfig(**{**base.__dict__, "curvature_refinement": True}),
+                             config=base.replace(**{"stabilisation.curvature_refinement": True}),
                              backend=backend)
     e_plain, e_refined = _max_violation(model, plain), _max_violation(model, refined)
     # measured (float64): 1.2e-4 m without, 4.9e-7 m with; bounds with a margin of 10 both ways
@@ -50,8 +51,9 @@ def test_refinement_cuts_the_loop_closure_error_of_a_swinging_ladder(backend):
 def test_refinement_is_the_same_physics_in_both_backends():
     model = kamino.load_mjcf(LADDER)
     state = kamino.init_state(model)
-    cfg = kamino.SolverConfig(dt=0.0025, rho=0.01, baumgarte=1.0, post_stabilisation=0, tolerance=1e-6,
-                              curvature_refinement=True)
+    cfg = kamino.SolverConfig(dt=0.0025, tolerance=1e-6, penalty=kamino.Penalty(rho=0.01),
+                              stabilisation=kamino.Stabilisation(baumgarte=1.0, post_stabilisation=0,
+                                                                 curvature_refinement=True))
     ctrl = _drive(model, 40)
     a = kamino.rollout(model, state, ctrl, config=cfg, backend="jax")
     b = kamino.rollout(model, state, ctrl, config=cfg, backend="warp")

@@ -16,11 +16,15 @@ def test_solver_overrides_are_parsed_as_literals():
     assert args.solver_overrides == {"max_iterations": 100, "tolerance": 1e-3}
     with pytest.raises(SystemExit):  # argparse's error: not KEY=VALUE
         rl_train.parse_args(["fourbar_track", "--solver", "max_iterations"])
+    args = rl_train.parse_args(["fourbar_track", "--solver", "stabilisation.post_stabilisation=2"])
+    assert args.solver_overrides == {"stabilisation.post_stabilisation": 2}  # a nested setting, by its path
 
 
 def test_an_unknown_solver_field_raises_naming_it(tmp_path):
     with pytest.raises(TypeError, match="no_such_field"):
         rl_train.train("fourbar_track", solver={"no_such_field": 1}, out=tmp_path)
+    with pytest.raises(TypeError, match=r"'baumgarte'.*stabilisation\.baumgarte"):  # the path it goes by
+        rl_train.train("fourbar_track", solver={"baumgarte": 0.1}, out=tmp_path)
     with pytest.raises(SystemExit):
         rl_train.parse_args(["fourbar_track", "--solver", "no_such_field=1"])
 

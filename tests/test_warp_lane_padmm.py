@@ -52,7 +52,8 @@ def test_warp_schedule_solves_what_the_thread_kernel_solves(staged, monkeypatch)
 def _cr_comparison(budget: int):
     """The scenes of the LLT comparison above on CR with ``budget`` iterations per solve, on both schedules."""
     model = kamino.concat([kamino.models.fourbar(), kamino.models.box_stack(2), kamino.models.chain_of_loops(3)])
-    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8, linear_solver="cr", cr_iterations=budget)
+    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8,
+                              warp=kamino.WarpSettings(linear_solver="cr", cr_iterations=budget))
     q_t, it_t, rho_t, _ = _run(model, cfg, "thread", 60)
     q_w, it_w, rho_w, st = _run(model, cfg, "warp", 60)
     assert st.padmm == "warp" and st.linear_solver == "cr" and st.wk.cr and not st.sparse_factor
@@ -102,7 +103,7 @@ def test_warp_schedule_with_cr_on_rows_of_four_blocks():
                         actuation=kamino.Actuation("position", kp=10.0, kd=1.0))
     b.add_coupling(ja, jb, (0.0, 2.0), name="m")
     model = kamino.concat([b.finalize(), kamino.models.fourbar()])
-    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8, linear_solver="cr")
+    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8, warp=kamino.WarpSettings(linear_solver="cr"))
     q_t, it_t, _, _ = _run(model, cfg, "thread", 30)
     q_w, it_w, _, st = _run(model, cfg, "warp", 30)
     assert st.padmm == "warp" and st.wm.blocks_per_row == 4
@@ -133,7 +134,7 @@ def test_warp_schedule_with_cr_on_a_robot_in_float32():
     # float32 robot test's reasoning above: poses within 1e-5 m over 20 steps (measured 1.2e-7 m) and the same mean
     # iterations to 5 % (measured equal).
     model = kamino.replicate(kamino.models.dr_legs(), 2)
-    cfg = kamino.SolverConfig(dt=0.0025, linear_solver="cr")
+    cfg = kamino.SolverConfig(dt=0.0025, warp=kamino.WarpSettings(linear_solver="cr"))
     q_t, it_t, _, _ = _run(model, cfg, "thread", 20, np.float32)
     q_w, it_w, _, st = _run(model, cfg, "warp", 20, np.float32)
     assert st.padmm == "warp" and st.linear_solver == "cr"
@@ -146,9 +147,10 @@ def test_warp_schedule_rejects_what_it_cannot_solve():
     # the 32-thread schedule solves with the block-sparse Jacobian (the sparse LLT or CR), not the dense one
     model = kamino.models.fourbar()
     with pytest.raises(ValueError, match="block-sparse Jacobian"):
-        Stepper(model, kamino.SolverConfig(jacobian="dense"), np.float32, "cpu", padmm="warp")
+        Stepper(model, kamino.SolverConfig(warp=kamino.WarpSettings(jacobian="dense")), np.float32, "cpu", padmm="warp")
     with pytest.raises(ValueError, match="block-sparse Jacobian"):
-        Stepper(model, kamino.SolverConfig(jacobian="dense", linear_solver="cr"), np.float32, "cpu", padmm="warp")
+        Stepper(model, kamino.SolverConfig(warp=kamino.WarpSettings(jacobian="dense", linear_solver="cr")), np.float32,
+                "cpu", padmm="warp")
     with pytest.raises(ValueError, match="padmm must be"):
         Stepper(model, kamino.SolverConfig(), np.float32, "cpu", padmm="block")
 
@@ -167,8 +169,9 @@ def test_the_automatic_schedule_follows_the_measured_crossover():
     assert resolve_padmm(cfg, gpu, 65536, 117, None) == "thread"  # four-bar at 65536 worlds
     assert resolve_padmm(cfg, gpu, 16384, 576, None) == "warp"  # ladder32 at 16384 worlds
     assert resolve_padmm(cfg, cpu, 64, 240, None) == "thread"
-    assert resolve_padmm(kamino.SolverConfig(jacobian="dense"), gpu, 64, 240, None) == "thread"
-    cr = kamino.SolverConfig(linear_solver="cr")
+    dense = kamino.SolverConfig(warp=kamino.WarpSettings(jacobian="dense"))
+    assert resolve_padmm(dense, gpu, 64, 240, None) == "thread"
+    cr = kamino.SolverConfig(warp=kamino.WarpSettings(linear_solver="cr"))
     assert resolve_padmm(cr, gpu, 64, 240, None) == "warp"
     assert resolve_padmm(cr, gpu, 1, 365, None) == "warp"  # one eight-legged Jansen walker
     assert resolve_padmm(cr, gpu, 65536, 117, None) == "thread"

@@ -13,8 +13,9 @@ stdout carries the JSON records only, one a line.
 Configuration: ``kamino.SolverConfig(dt=0.0025)`` and nothing else (every solver setting at its library
 default: the adaptive penalty, tolerance 1e-3, ...), float32, Warp's CUDA device (its CPU device when there
 is none: smoke runs, no throughput). The sweep changes ``tolerance`` only; ``serial_chain_dt1e-3`` changes
-``dt`` only. ``--solver FIELD=VALUE ...`` sets fields on top of the defaults, for experiments (a candidate
-default measured beside the current one); the JSON records them under ``solver_overrides``.
+``dt`` only. ``--solver FIELD=VALUE ...`` sets settings (nested ones by their paths: ``warp.linear_solver=cr``)
+on top of the defaults, for experiments (a candidate default measured beside the current one); the JSON records
+them under ``solver_overrides`` and the whole configuration, nested as it is, under ``solver_config``.
 
 Worlds are not copies of one another: a driven scene gives world ``w`` of ``W`` the drive phase
 ``2 pi w / W`` (a device-side pre-step hook, :func:`drive_hook`); an undriven scene starts world ``w`` with
@@ -514,7 +515,8 @@ def environment(argv: list[str], device, overrides: dict | None = None) -> dict:
             "kamino": kamino.__version__, "python": platform.python_version(), "git": rev,
             "date": time.strftime("%Y-%m-%d %H:%M:%S"),
             "command": " ".join(["kamino bench convergence", *argv]),
-            "dtype": "float32", "solver_config": dataclasses.asdict(kamino.SolverConfig(dt=DT, **(overrides or {}))),
+            "dtype": "float32",
+            "solver_config": dataclasses.asdict(kamino.SolverConfig(dt=DT).replace(**(overrides or {}))),
             "solver_overrides": overrides or {}}
 
 
@@ -535,7 +537,8 @@ def _parser(prog: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--replays", type=int, default=10)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--solver", nargs="+", default=[], metavar="FIELD=VALUE",
-                   help="experiments only: SolverConfig fields set on top of the defaults (recorded in the JSON)")
+                   help="experiments only: SolverConfig settings (dotted: penalty.rho=0.05) set on top of the defaults "
+                        "(recorded in the JSON)")
     p.add_argument("--padmm", choices=("thread", "warp"), default=None,
                    help="PADMM schedule (Stepper(padmm=...)): one thread or 32 threads per world (default: the "
                         "Stepper's choice)")
@@ -592,7 +595,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         except Exception as e:  # keep going: report what failed
             emit({"scene": scene.name, "error": repr(e)[:500]})
             continue
-        default = kamino.SolverConfig(dt=scene.dt, **overrides)
+        default = kamino.SolverConfig(dt=scene.dt).replace(**overrides)
         runs = [(default, False)]
         if not (args.no_sweep or scene.stress):
             runs += [(dataclasses.replace(default, tolerance=t), True) for t in args.tolerances]

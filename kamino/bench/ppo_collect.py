@@ -10,7 +10,8 @@ random actions in ``[-scale, scale]`` in one jitted ``lax.scan``, three batches 
 It reports collection env steps/s, ms per simulator step, the PADMM iterations of each env step's last substep
 (mean, median, 90th and 99th percentiles, max; the GPU waits for the slowest world), the fraction of unconverged
 solves, and the worst loop closure over the environments at the end (``kamino.metrics``). ``--set KEY=VALUE``
-overrides a :class:`kamino.SolverConfig` field (the task's ``sim_dt`` is kept); ``--env KEY=VALUE`` passes a
+overrides a :class:`kamino.SolverConfig` setting, a nested one by its path (``--set penalty.rho=0.05``; the task's
+``sim_dt`` is kept); ``--env KEY=VALUE`` passes a
 keyword to the task (``kamino.envs.make``), e.g. the PD gains. ``--no-effort-limits`` (a diagnostic) builds the
 robot with unbounded actuator efforts. ``--profile STEPS`` (Warp) then times each kernel of STEPS more simulator
 steps of the environments' stepper from where the collection left it, and the same steps replayed as one CUDA
@@ -35,7 +36,8 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--unroll", type=int, default=20, help="env steps per collected batch (brax's unroll_length)")
     p.add_argument("--action-scale", type=float, default=1.0, help="actions uniform in [-scale, scale]")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="a SolverConfig field, VALUE a Python literal (repeatable): --set tolerance=0.01")
+                   help="a SolverConfig setting (dotted for a nested one: --set penalty.rho=0.05), VALUE a Python "
+                        "literal (repeatable): --set tolerance=0.01")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="a keyword of the task's constructor, VALUE a Python literal (repeatable): --env kp=75")
     p.add_argument("--no-effort-limits", action="store_true",
@@ -63,7 +65,6 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
 def _unbounded_efforts() -> None:
     """Make ``kamino.models``' robot builders return their model with every actuator's effort limit infinite
     (``--no-effort-limits``: what the effort-limited actuator rows cost the solve)."""
-    import dataclasses
 
     import numpy as np
 
@@ -95,7 +96,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if args.no_effort_limits:
         _unbounded_efforts()
     probe = make(args.task, backend=args.backend, **args.env_kwargs)
-    config = dataclasses.replace(probe.solver_config, **args.overrides) if args.overrides else None
+    config = probe.solver_config.replace(**args.overrides) if args.overrides else None
     raw = make(args.task, backend=args.backend, solver_config=config, **args.env_kwargs) if config else probe
     env = training.wrap(raw, episode_length=1000)
     n, scale = args.num_envs, args.action_scale

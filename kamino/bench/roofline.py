@@ -320,7 +320,7 @@ def scene_shape(name: str) -> SceneShape:
     if f.n_fixed + f.n_tail != capacity or rows.n_rows != capacity:
         raise RuntimeError(f"{name}: counted {f.n_fixed} fixed + {f.n_tail} tail rows ({rows.n_rows} by kind), the "
                            f"stepper allocates {capacity}")
-    posts = int(st.cfg.post_stabilisation) if st.post_shares_factor else 0
+    posts = int(st.cfg.stabilisation.post_stabilisation) if st.post_shares_factor else 0
     return SceneShape(factor=f, rows=rows, post_solves=posts)
 
 

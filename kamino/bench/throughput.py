@@ -37,7 +37,6 @@ records whose ``window_steps`` agree.
 """
 
 import argparse
-import dataclasses
 import importlib
 import json
 import math
@@ -53,6 +52,7 @@ from tqdm import tqdm
 
 import kamino
 from kamino.bench import MODULES, scene_path, timed_window
+from kamino.config import field_names
 from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType
 
 SCENES = ("fourbar", "ladder8", "ladder32", "dr_legs")
@@ -60,10 +60,10 @@ SCENES = ("fourbar", "ladder8", "ladder32", "dr_legs")
 ROBOTS = ("dr_legs", "bdx", "olaf", "animatronic")
 CONFIGS = {
     "default": {},  # kamino.SolverConfig(dt=DT) as it comes: sparse J, LLT (CR: pipeline.resolve_linear_solver)
-    "dense-llt": dict(jacobian="dense", linear_solver="llt"),
-    "sparse-llt": dict(jacobian="sparse", linear_solver="llt"),
-    "sparse-cr": dict(jacobian="sparse", linear_solver="cr"),
-    "sparse-llt-warp": dict(jacobian="sparse", linear_solver="llt"),
+    "dense-llt": {"warp.jacobian": "dense", "warp.linear_solver": "llt"},
+    "sparse-llt": {"warp.jacobian": "sparse", "warp.linear_solver": "llt"},
+    "sparse-cr": {"warp.jacobian": "sparse", "warp.linear_solver": "cr"},
+    "sparse-llt-warp": {"warp.jacobian": "sparse", "warp.linear_solver": "llt"},
 }
 #: PADMM schedule of a configuration (``Stepper(padmm=...)``): one thread per world unless ``"warp"`` (32 threads
 #: per world, padmm_warp.py)
@@ -171,7 +171,7 @@ def warp_stepper(name, config_name, num_worlds):
 
     base, drive = load_scene(name)
     model = kamino.replicate(base, num_worlds) if num_worlds > 1 else base
-    cfg = kamino.SolverConfig(dt=DT, **SOLVER, **CONFIGS[config_name])
+    cfg = kamino.SolverConfig(dt=DT).replace(**SOLVER, **CONFIGS[config_name])
     state, control, base_targets = _initial(model, name)
     st = Stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
     wb.load_state(st, state, control)
@@ -234,7 +234,7 @@ def bench_jax(name, num_worlds, args) -> dict:
 
     base, _ = load_scene(name)
     model = kamino.replicate(base, num_worlds) if num_worlds > 1 else base
-    cfg = kamino.SolverConfig(dt=DT, **SOLVER)
+    cfg = kamino.SolverConfig(dt=DT).replace(**SOLVER)
     state, _, _ = _initial(model, name)
     n = args.graph_steps
     dof = jnp.asarray(model.actuator_dof[model.world_actuator_start])
@@ -270,7 +270,7 @@ def closure_run(name, config_name, args) -> dict:
     from kamino.warp_backend.pipeline import Stepper
 
     model, drive = load_scene(name)
-    cfg = kamino.SolverConfig(dt=DT, **SOLVER, **CONFIGS[config_name])
+    cfg = kamino.SolverConfig(dt=DT).replace(**SOLVER, **CONFIGS[config_name])
     state, control, base_targets = _initial(model, name)
     st = Stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
     wb.load_state(st, state, control)
@@ -330,14 +330,15 @@ def environment() -> dict:
 
 
 def solver_overrides(items: list[str]) -> dict:
-    """``["baumgarte=0.01", "curvature_refinement=false"]`` -> SolverConfig fields, checked against the dataclass."""
-    fields = {f.name for f in dataclasses.fields(kamino.SolverConfig)}
+    """``["stabilisation.baumgarte=0.01", "warp.linear_solver=cr"]`` -> SolverConfig settings by their dotted
+    names (:meth:`kamino.SolverConfig.replace`), checked against :func:`kamino.config.field_names`."""
+    fields = set(field_names())
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or key not in fields:
             raise SystemExit(f"--solver {item!r}: expected FIELD=VALUE with FIELD one of kamino.SolverConfig's "
-                             f"fields: {', '.join(sorted(fields))}")
+                             f"settings: {', '.join(field_names())}")
         try:
             out[key] = json.loads(value)
         except json.JSONDecodeError:
@@ -377,7 +378,7 @@ def _parser(prog: str | None = None) -> argparse.ArgumentParser:
                    help="PADMM tolerance (default: SolverConfig's)")
     p.add_argument("--rho", type=float, default=None, help="PADMM starting penalty (default: SolverConfig's)")
     p.add_argument("--solver", nargs="+", default=[], metavar="F=V",
-                   help="further kamino.SolverConfig fields F, values V as JSON")
+                   help="further kamino.SolverConfig settings F (dotted: warp.linear_solver=cr), values V as JSON")
     p.add_argument("--no-peers", action="store_true", help="run kamino only")
     p.add_argument("--kamino-variants", nargs="*", default=["padmm_dense", "dvi"], metavar="VARIANT",
                    help="SolverKamino variants (default: padmm_dense dvi; none: MuJoCo Warp alone)")
@@ -437,7 +438,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if args.tolerance is not None:
         SOLVER["tolerance"] = args.tolerance
     if args.rho is not None:
-        SOLVER["rho"] = args.rho
+        SOLVER["penalty.rho"] = args.rho
     SOLVER.update(solver_overrides(args.solver))
     results = {"environment": environment(), "records": []}
 

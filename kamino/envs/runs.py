@@ -176,12 +176,12 @@ class OptionError(ValueError):
 
 
 def key_values(items: list[str], flag: str) -> dict[str, Any]:
-    """``KEY=VALUE`` options (``VALUE`` a Python literal) as a dict; a malformed one raises ``ValueError`` naming
-    ``flag``."""
+    """``KEY=VALUE`` options (``VALUE`` a Python literal; ``KEY`` a name, or a dotted one for a nested setting:
+    ``warp.linear_solver='cr'``) as a dict; a malformed one raises ``ValueError`` naming ``flag``."""
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
-        if not sep or not key.isidentifier():
+        if not sep or not all(part.isidentifier() for part in key.split(".")):
             raise OptionError(f"{flag} expects KEY=VALUE, got {item!r}")
         try:
             out[key] = ast.literal_eval(value)

@@ -16,7 +16,6 @@ tasks: :func:`kamino.envs.evaluate.walking_test` on each checkpoint), ``reward_c
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import platform
 import sys
 import time
@@ -95,7 +94,7 @@ def plot_curve(curve: list[dict], path: Path, title: str, train_curve: list[dict
 def _check_options(task: str, steps, num_envs, evals, train_returns, walk_test, walk_test_from, walk_test_every,
                    solver: dict) -> None:
     """Refuse bad options before anything is built, naming the option."""
-    import kamino
+    from kamino.config import field_names
     from kamino.envs.configs import PPO_CONFIGS
 
     if task not in PPO_CONFIGS:
@@ -107,10 +106,10 @@ def _check_options(task: str, steps, num_envs, evals, train_returns, walk_test, 
                         ("walk_test_every", walk_test_every)):
         if value < 0:
             raise OptionError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
-    fields = {f.name for f in dataclasses.fields(kamino.SolverConfig)}
-    unknown = sorted(set(solver) - fields)
+    unknown = sorted(set(solver) - set(field_names()))
     if unknown:
-        raise TypeError(f"--solver: SolverConfig has no field {', '.join(map(repr, unknown))}")
+        raise TypeError(f"--solver: SolverConfig has no setting {', '.join(map(repr, unknown))} (the settings, "
+                        f"nested ones by their dotted names: {', '.join(field_names())})")
 
 
 def _prepare_folder(out: Path, task: str, fresh: bool, overwrite: bool) -> None:
@@ -176,7 +175,7 @@ def train(task: str, *, out: Path | str | None = None, backend: str = "jax", ste
     runs.write_json(out / "run.json", {"task": task, "backend": backend})
     runs.write_json(out / "env.json", env_kwargs)
     if solver:
-        config = dataclasses.replace(environment.solver_config, **solver)
+        config = environment.solver_config.replace(**solver)
         environment = make(task, backend=backend, solver_config=config, **env_kwargs)
     used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
     if progress:
@@ -312,7 +311,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a ppo.train keyword, VALUE a Python literal (repeatable)")
     p.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
-                   help="a SolverConfig field, VALUE a Python literal (repeatable)")
+                   help="a SolverConfig setting, dotted for a nested one (penalty.rho=0.05), VALUE a Python "
+                        "literal (repeatable)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="an environment keyword, VALUE a Python literal (repeatable)")
     return p

@@ -14,7 +14,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from kamino.config import SolverConfig
+from kamino.config import CONTACT_BAUMGARTE, CONTACT_DEADBAND, RESTITUTION_THRESHOLD, SolverConfig
 from kamino.jax_ref.collision import collide
 from kamino.jax_ref.layout import PaddedModel
 from kamino.model import GeomType
@@ -99,8 +99,8 @@ def detect(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, body_u_free: j
     ``d <= m_a + m_b + cfg.contact_margin + h max(0, -v_n)`` (speculative contacts: fast bodies do
     not tunnel, resting ones do not sink). A speculative contact stops its bodies exactly at contact,
     which is an inelastic impact, so contacts with restitution are not speculative: they are active
-    when touching (``d <= m_a + m_b + cfg.contact_deadband``) or, when approaching (at the
-    start-of-step velocity ``body_u``) faster than ``cfg.restitution_threshold``, at the step
+    when touching (``d <= m_a + m_b + CONTACT_DEADBAND``) or, when approaching (at the
+    start-of-step velocity ``body_u``) faster than ``RESTITUTION_THRESHOLD``, at the step
     boundary nearest to the impact (``d < h |v_n| / 2``; otherwise the impact happens next step, at a
     penetration below ``h |v_n| / 2``), docs/conventions.md "Contacts". The narrow phase
     is called with a margin widened by a bound of the pair's approach speed (planes attached to
@@ -153,8 +153,8 @@ def detect(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, body_u_free: j
     v_free = _approach_velocity(body_q, body_u_free, body_a, body_b, pos, normal, dist)
     v_n = _approach_velocity(body_q, body_u, body_a, body_b, pos, normal, dist)
     speculative = dist <= static_margin + h * jnp.maximum(-v_free, 0.0)
-    impact = (restitution > 0) & (v_n < -cfg.restitution_threshold)
-    touching = dist <= pm.geom_margin[ga] + pm.geom_margin[gbb] + cfg.contact_deadband
+    impact = (restitution > 0) & (v_n < -RESTITUTION_THRESHOLD)
+    touching = dist <= pm.geom_margin[ga] + pm.geom_margin[gbb] + CONTACT_DEADBAND
     elastic = jnp.where(impact, dist < 0.5 * h * jnp.abs(v_n), touching)
     active = (pair >= 0) & jnp.where(restitution > 0, elastic, speculative)
 
@@ -228,16 +228,16 @@ def contact_bias(ct: Contacts, dist_start: jax.Array, v_n_minus: jax.Array, h, c
     Tangent rows get 0. The normal row asks the end-of-step gap ``d + h v_n+`` (``d`` dead-banded,
     read where the dynamics are built) to be at least ``(1 - gamma) min(d_start, 0)``: a gap may
     close, not more, and a penetration at the start of the step shrinks by ``gamma =
-    cfg.contact_baumgarte``. For Euler (``d = d_start``) this is §4.2's ``xi = d / h`` for a gap and
+    CONTACT_BAUMGARTE``. For Euler (``d = d_start``) this is §4.2's ``xi = d / h`` for a gap and
     ``gamma xi`` for a penetration. An impact (restitution ``e > 0`` and approach
-    faster than ``cfg.restitution_threshold``) instead asks ``v_n+ >= -e v_n-`` (Newton's law), or
+    faster than ``RESTITUTION_THRESHOLD``) instead asks ``v_n+ >= -e v_n-`` (Newton's law), or
     the penetration correction's speed if that is larger (``e < 1``); adding the two would inject
     energy into every bounce.
     """
-    d, d0 = deadband(ct.dist, cfg.contact_deadband), deadband(dist_start, cfg.contact_deadband)
-    gap_bias = (d - (1.0 - cfg.contact_baumgarte) * jnp.minimum(d0, 0.0)) / h
+    d, d0 = deadband(ct.dist, CONTACT_DEADBAND), deadband(dist_start, CONTACT_DEADBAND)
+    gap_bias = (d - (1.0 - CONTACT_BAUMGARTE) * jnp.minimum(d0, 0.0)) / h
     e = ct.restitution
-    impact = (e > 0) & (v_n_minus < -cfg.restitution_threshold)
+    impact = (e > 0) & (v_n_minus < -RESTITUTION_THRESHOLD)
     newton = jnp.minimum(e * v_n_minus, jnp.where(e < 1, jnp.minimum(gap_bias, 0.0), 0.0))
     vn = jnp.where(impact, newton, gap_bias)
     zeros = jnp.zeros_like(vn)

@@ -28,6 +28,7 @@ from kamino.config import (
     PENALTY_MAX_FACTOR,
     PENALTY_THRESHOLD,
     RESIDUAL_LOOSENING_MAX,
+    RESTART_TOLERANCE,
     RHO_MAX,
     RHO_MIN,
     SATURATION_MARGIN,
@@ -48,17 +49,15 @@ class PADMMResult:
     complementarity_residual: jax.Array
     converged: jax.Array
     penalty: jax.Array  # the bounded rows' penalty at the end of the solve (the next step starts from it)
-    saturated: jax.Array  # [n] the fixed rows with a finite bound that carried ``cfg.rho`` at the end of the solve
+    saturated: jax.Array  # [n] the fixed rows with a finite bound that carried ``penalty.rho`` at the end of the solve
 
 
-def jacobi_preconditioner(D: jax.Array, row_mask: jax.Array, n_box: int, enabled: bool) -> jax.Array:
+def jacobi_preconditioner(D: jax.Array, row_mask: jax.Array, n_box: int) -> jax.Array:
     """``P = diag(D)^-1/2`` on active rows, 1 on padded rows (docs/formulation.md §7.2, paper).
 
     A contact gets one scalar for its three rows, from the largest of their diagonal entries, so
     that the scaling keeps the isotropic Coulomb cone invariant (§7.2).
     """
-    if not enabled:
-        return jnp.ones(D.shape[0], D.dtype)
     eps = jnp.finfo(D.dtype).eps
     d = jnp.abs(jnp.diagonal(D))
     tri = d[n_box:].reshape(-1, 3)
@@ -197,15 +196,15 @@ class _Problem:
         n = self.n = D.shape[0]
         n_box = self.n_box = lo.shape[0]
         self.cfg, self.mu, self.row_mask, self.lo, self.hi = cfg, mu, row_mask, lo, hi
-        self.eta = jnp.asarray(cfg.eta, dtype)
-        P = self.P = jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
+        self.eta = jnp.asarray(cfg.penalty.eta, dtype)
+        P = self.P = jacobi_preconditioner(D, row_mask, n_box)
         self.Dt = P[:, None] * D * P[None, :]
         self.vt = jnp.where(row_mask, P * v_f, 0.0)
         P_ref = jnp.max(jnp.where(row_mask, P, 0.0), initial=0.0)
         P_ref = jnp.where(P_ref > 0, P_ref, 1.0)
         # residual weight of each row (solve's docstring, "Residuals")
         self.W = 1.0 / jnp.minimum(RESIDUAL_LOOSENING_MAX * jnp.where(row_mask & (P > 0), P, P_ref), P_ref)
-        adaptive = self.adaptive = cfg.penalty == "adaptive"
+        adaptive = self.adaptive = cfg.penalty.mode == "adaptive"
         fixed_row = self.fixed_row = jnp.arange(n) < n_fixed
         self.bound_rows = row_mask & ~fixed_row
         # fixed rows with a finite bound (effort-limited actuators): the proximal shift rho_free while the row is
@@ -213,9 +212,9 @@ class _Problem:
         # "Saturation")
         boxed = jnp.concatenate([jnp.isfinite(lo) | jnp.isfinite(hi), jnp.zeros(n - n_box, bool)])
         self.fixed_box = fixed_row & boxed & row_mask
-        self.rho0 = jnp.asarray(cfg.rho if rho0 is None else rho0, dtype)
-        self.rho_free = jnp.asarray(cfg.rho_free if adaptive else cfg.rho, dtype)
-        self.rho_sat = jnp.asarray(cfg.rho, dtype)
+        self.rho0 = jnp.asarray(cfg.penalty.rho if rho0 is None else rho0, dtype)
+        self.rho_free = jnp.asarray(cfg.penalty.rho_free if adaptive else cfg.penalty.rho, dtype)
+        self.rho_sat = jnp.asarray(cfg.penalty.rho, dtype)
         self.free_row = fixed_row & ~boxed  # the unbounded rows, whose penalty is always the proximal shift rho_free
         # block Cholesky [[L_f, 0], [L_tf, L_t]] of Dt + diag(eta + penalty): L_f and L_tf do not depend on the
         # limit and contact rows' penalty rho_u, so a new rho_u only redoes L_t = chol(S_t + (eta + rho_u) I) from
@@ -227,14 +226,14 @@ class _Problem:
         self.lo_s = jnp.where(finite_lo, jnp.where(finite_lo, lo, 0.0) / P[:n_box], lo)
         self.hi_s = jnp.where(finite_hi, jnp.where(finite_hi, hi, 0.0) / P[:n_box], hi)
         self.tol = jnp.asarray(cfg.tolerance, dtype)
-        self.restart_tol = jnp.asarray(cfg.restart_tolerance, dtype)
+        self.restart_tol = jnp.asarray(RESTART_TOLERANCE, dtype)
         self.box_bounded = (finite_lo | finite_hi) & row_mask[:n_box]
         self.active_contact = row_mask[n_box:].reshape(-1, 3)[:, 2]
 
     def penalty(self, rho_u, sat) -> jax.Array:
         """Every row's penalty: the fixed rows' ``rho_free`` (``rho`` when saturated), the others' ``rho_u``."""
         if not self.adaptive:
-            return jnp.full(self.n, self.cfg.rho, self.dtype)
+            return jnp.full(self.n, self.cfg.penalty.rho, self.dtype)
         return jnp.where(self.fixed_row, jnp.where(sat, self.rho_sat, self.rho_free), rho_u)
 
     def factor_fixed(self, sat) -> tuple:
@@ -251,7 +250,7 @@ class _Problem:
         nf, n = self.nf, self.n
         if nf == n:
             return L_f, L_tf, S_t, jnp.zeros((0, 0), self.dtype)
-        tail = self.penalty(rho_u, sat)[nf:] if self.adaptive else jnp.full(n - nf, self.cfg.rho, self.dtype)
+        tail = self.penalty(rho_u, sat)[nf:] if self.adaptive else jnp.full(n - nf, self.cfg.penalty.rho, self.dtype)
         return L_f, L_tf, S_t, jnp.linalg.cholesky(S_t + jnp.diag(self.eta + tail))
 
     def lin_solve(self, L, b) -> jax.Array:
@@ -408,21 +407,21 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     ``impulse0`` and ``velocity0`` (the latter including the De Saxcé term on contacts) warm-start
     ``x``/``y`` and ``z`` (§7.8). All iterates are scaled (``lambda = P x``, ``v = P^-1 z``).
 
-    **Penalty (departure from §7.6, docs/conventions.md "Penalty").** With ``cfg.penalty = "adaptive"`` the
-    fixed rows carry the small constant penalty ``cfg.rho_free`` (a saturated effort-limited actuator row the
-    constant ``cfg.rho``, "Saturation" below): on a row whose projection is the identity
+    **Penalty (departure from §7.6, docs/conventions.md "Penalty").** With ``cfg.penalty.mode = "adaptive"`` the
+    fixed rows carry the small constant penalty ``cfg.penalty.rho_free`` (a saturated effort-limited actuator row the
+    constant ``cfg.penalty.rho``, "Saturation" below): on a row whose projection is the identity
     the penalty is only a proximal shift, and PADMM on those rows is a proximal-point iteration that removes
     the fraction ``lambda / (lambda + eta + rho)`` of the error along an eigenvalue ``lambda`` of ``D~`` per
     iteration. The limit and contact rows carry ``rho_u``, which starts at ``rho0`` (the world's last
-    penalty, else ``cfg.rho``) and is balanced: every ``PENALTY_INTERVAL`` iterations, if the primal and dual
+    penalty, else ``cfg.penalty.rho``) and is balanced: every ``PENALTY_INTERVAL`` iterations, if the primal and dual
     residuals differ by more than ``PENALTY_THRESHOLD``, ``rho_u <- rho_u sqrt(r_p / r_d)`` (the factor
     capped at ``PENALTY_MAX_FACTOR`` either way, the penalty clipped to ``[RHO_MIN, RHO_MAX]``), the Cholesky
-    factor is recomputed and the momentum restarts. With ``cfg.penalty = "fixed"``
-    every row carries ``cfg.rho`` (§7.6 "fixed").
+    factor is recomputed and the momentum restarts. With ``cfg.penalty.mode = "fixed"``
+    every row carries ``cfg.penalty.rho`` (§7.6 "fixed").
 
     **Saturation (adaptive penalty).** An effort-limited actuator row (a fixed row with a finite bound) is a
     bilateral row while its impulse is inside the box, and converges fastest with the proximal shift
-    ``rho_free``; once its bound is active it needs ``cfg.rho``, with which the projection moves it onto the
+    ``rho_free``; once its bound is active it needs ``cfg.penalty.rho``, with which the projection moves it onto the
     bound in a few iterations. So such a row starts the solve saturated (``rho``) when its projected warm start
     lies on a bound (to ``SATURATION_MARGIN`` of it), else with ``rho_free``; at the first iteration whose
     projection clips it (``y != x - z_hat / rho``, the solve not converged) it saturates for the rest of the
@@ -458,7 +457,7 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     solution and counts as converged when the other rows' residuals, the primal and the complementarity residuals
     are below the tolerance (docs/conventions.md, "Null directions").
 
-    ``refine`` (the curvature refinement, ``cfg.curvature_refinement``) maps the impulses of the converged
+    ``refine`` (the curvature refinement, ``cfg.stabilisation.curvature_refinement``) maps the impulses of the converged
     solve to a new ``v_f``; PADMM then restarts from its last iterate (``x_p = x``, ``y_hat = y``,
     ``z_hat = z``, no momentum) on the new right-hand side for up to ``cfg.max_iterations`` more iterations.
 

@@ -16,7 +16,7 @@ correction as it resists motion). The system is solved in PADMM's Jacobi scaling
 PADMM's own ``eta + rho_free`` where smaller, as in float32, so that the Warp backend reuses PADMM's factor):
 redundant loop rows make ``D_ff`` singular, and a null direction of ``D_ff`` moves no body (``J^T v = 0``), so the
 shift only has to keep the pivots above rounding. It leaves ``s / (sigma + s)`` of the error along a direction of
-scaled curvature ``sigma``. A second pass (``SolverConfig.post_stabilisation = 2``) evaluates ``e`` again at the
+scaled curvature ``sigma``. A second pass (``Stabilisation.post_stabilisation = 2``) evaluates ``e`` again at the
 corrected pose but keeps the step's ``J`` and factor (a chord iteration, no second factorisation): each pass
 leaves about ``h |omega|`` of the error, the change of ``J`` over the step (a light slider carrying a swinging
 1 kg load, float64: 6.3e-4 m without projection, 2.7e-5 m after one pass, 5.4e-7 m after two). (Under the fixed
@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_factor, cho_solve
 
-from kamino.config import REPROJECTION_GAP, SolverConfig
+from kamino.config import REPROJECTION_GAP, SolverConfig, joint_deadband
 from kamino.jax_ref.contacts import deadband
 from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.dynamics import BodyDynamics, apply_inv_mass
@@ -91,17 +91,17 @@ def anchors_open(pm: PaddedModel, e: jax.Array) -> jax.Array:
 
 
 def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, converged: jax.Array) -> jax.Array:
-    """``cfg.post_stabilisation`` projection passes of the poses ``q`` [nb, 7], and one more where PADMM did not
-    converge (``converged`` False; module docstring, "An unconverged step") or where the passes left an anchor gap
-    above ``REPROJECTION_GAP`` (:func:`anchors_open`)."""
-    delta = cfg.deadband_for(q.dtype)
+    """``cfg.stabilisation.post_stabilisation`` projection passes of the poses ``q`` [nb, 7], and one more where
+    PADMM did not converge (``converged`` False; module docstring, "An unconverged step") or where the passes left
+    an anchor gap above ``REPROJECTION_GAP`` (:func:`anchors_open`)."""
+    delta = joint_deadband(q.dtype)
     nb = q.shape[0]
-    for k in range(cfg.post_stabilisation + 1):
+    for k in range(cfg.stabilisation.post_stabilisation + 1):
         e = fixed_row_residual(pm, q, delta)
         y = cho_solve((proj.factor, True), -proj.P * e)
         d = apply_inv_mass(proj.bodies, (proj.J.T @ (proj.P * y)).reshape(nb, 6))
         q_next = integrate_pose(q, d, 1.0)
-        if k < cfg.post_stabilisation:
+        if k < cfg.stabilisation.post_stabilisation:
             q = q_next
         else:
             q = jnp.where(converged & ~anchors_open(pm, e), q, q_next)

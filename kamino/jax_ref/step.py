@@ -14,7 +14,15 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from kamino.config import MIDPOINT_DAMPING, SolverConfig
+from kamino.config import (
+    ANGULAR_DAMPING,
+    CONTACT_MATCH_DISTANCE,
+    LIMIT_BAUMGARTE,
+    LIMIT_MARGIN,
+    MIDPOINT_DAMPING,
+    SolverConfig,
+    joint_deadband,
+)
 from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import padmm
 from kamino.jax_ref import post_stabilisation as post
@@ -81,11 +89,6 @@ class WorldStep:
     contact_overflow: jax.Array
 
 
-def joint_deadband(cfg: SolverConfig, dtype) -> float:
-    """Configured joint dead band, or the dtype default (docs/conventions.md, "Stabilisation")."""
-    return cfg.deadband_for(dtype)
-
-
 
 
 def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: jax.Array, e_start: jax.Array,
@@ -109,13 +112,13 @@ def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: ja
     drift of the exponential-map update, leaving ``O(h^2 |u+ - u_pred|)`` instead of ``O(h^2 |u|^2)``.
     Errors below the dead band get no bias (rounding noise on redundant loop rows).
     """
-    delta = joint_deadband(cfg, e_eval.dtype)
+    delta = joint_deadband(e_eval.dtype)
     c = jnp.zeros_like(e_eval)
-    if cfg.curvature_correction:
+    if cfg.stabilisation.curvature_correction:
         e_pred = constraint_residual(pm, joint_frames(pm, integrate_pose(q_eval, u_pred, h)))
         nb = u_pred.shape[0]
         c = e_pred - e_eval - h * (J @ u_pred.reshape(nb * 6))
-    target = (1.0 - cfg.baumgarte) * e_start
+    target = (1.0 - cfg.stabilisation.baumgarte) * e_start
     if cfg.integrator == "midpoint":
         target = target + MIDPOINT_DAMPING * (e_eval - e_start - c)
     bias = cts.deadband(e_eval - target, delta) + cts.deadband(c, delta)
@@ -127,12 +130,12 @@ def coupling_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval:
     """Stabilisation bias of the coupling rows: :func:`joint_bias`'s rule on ``q_a - p(q_b)``."""
     if not e_eval.shape[0]:
         return e_eval
-    delta = joint_deadband(cfg, e_eval.dtype)
+    delta = joint_deadband(e_eval.dtype)
     c = jnp.zeros_like(e_eval)
-    if cfg.curvature_correction:
+    if cfg.stabilisation.curvature_correction:
         e_pred = coupling_residual(pm, dof_positions(pm, joint_frames(pm, integrate_pose(q_eval, u_pred, h))))
         c = e_pred - e_eval - h * (J @ u_pred.reshape(-1))
-    target = (1.0 - cfg.baumgarte) * e_start
+    target = (1.0 - cfg.stabilisation.baumgarte) * e_start
     if cfg.integrator == "midpoint":
         target = target + MIDPOINT_DAMPING * (e_eval - e_start - c)
     bias = cts.deadband(e_eval - target, delta) + cts.deadband(c, delta)
@@ -211,9 +214,9 @@ def limit_rows(pm: PaddedModel, q_dof: jax.Array, q_dof_start: jax.Array, qd_fre
     s_lo, s_hi = distance(q_dof_start)
     r_start = jnp.where(side > 0, s_lo, s_hi)
     approach = jnp.maximum(-side * qd_free[d], 0.0)
-    active = pm.lim_mask & (r < cfg.limit_margin + h * approach)
+    active = pm.lim_mask & (r < LIMIT_MARGIN + h * approach)
     r_safe = jnp.where(active, r, 0.0)
-    target = (1.0 - cfg.limit_baumgarte) * jnp.minimum(jnp.where(active, r_start, 0.0), 0.0)
+    target = (1.0 - LIMIT_BAUMGARTE) * jnp.minimum(jnp.where(active, r_start, 0.0), 0.0)
     return side, active, jnp.where(active, (r_safe - target) / h, 0.0)
 
 
@@ -274,7 +277,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     # warm start (§7.8): previous reactions, contacts matched by geom pair and point on geom b
     frames = cts.contact_frames(ct.normal)
     point_b = cts.local_point_b(ct, q_eval)
-    j, found = cts.match_previous(ct, point_b, cache.contact_pair, cache.contact_point_b, cfg.contact_match_distance)
+    j, found = cts.match_previous(ct, point_b, cache.contact_pair, cache.contact_point_b, CONTACT_MATCH_DISTANCE)
     found = found & ct.mask
     f_prev = jnp.einsum("cji,cj->ci", frames, cache.contact_force[j])  # C_new^T f_world
     v_prev = jnp.einsum("cji,cj->ci", frames, cache.contact_velocity[j])
@@ -303,7 +306,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     v_f = J @ uf_vec + v_star  # §5
 
     refine = None
-    if cfg.curvature_refinement and cfg.curvature_correction and n_kin:
+    if cfg.stabilisation.curvature_refinement and cfg.stabilisation.curvature_correction and n_kin:
         def refine(impulse):
             # the bilateral rows' curvature term predicted along the solved velocity (docs/conventions.md)
             u_sol = u_f + apply_inv_mass(bd, (J.T @ impulse).reshape(nb, 6))
@@ -311,12 +314,12 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
             vc = coupling_bias(pm, q_eval, u_sol, e_cpl, e_cpl_start, J_cpl, h, cfg)
             return J @ uf_vec + jnp.concatenate([vs_dyn, vk, vc, vs_lim, vs_con])
 
-    rho0 = jnp.where(cache.penalty > 0, cache.penalty, cfg.rho).astype(dtype)
+    rho0 = jnp.where(cache.penalty > 0, cache.penalty, cfg.penalty.rho).astype(dtype)
     res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_dyn + n_kin)
     u_plus = u_f + apply_inv_mass(bd, (J.T @ res.impulse).reshape(nb, 6))  # u+ = u_f + M^-1 J^T lambda
     proj = None
-    if cfg.post_stabilisation and n_dyn + n_kin:
-        P = padmm.jacobi_preconditioner(D, row_mask, n_box, cfg.preconditioning)
+    if cfg.stabilisation.post_stabilisation and n_dyn + n_kin:
+        P = padmm.jacobi_preconditioner(D, row_mask, n_box)
         proj = post.projector(J, D, P, n_dyn + n_kin, res.saturated, bd, cfg)
     return u_plus, res, ct, side, proj
 
@@ -386,9 +389,10 @@ def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, cache: Wor
 
 
 def _angular_damping(u: jax.Array, cfg: SolverConfig) -> jax.Array:
-    if cfg.angular_damping == 0.0:
+    """``ANGULAR_DAMPING`` on the angular velocities (none at its default, 0)."""
+    if ANGULAR_DAMPING == 0.0:
         return u
-    return u.at[:, 3:].multiply(1.0 - cfg.angular_damping * cfg.dt)
+    return u.at[:, 3:].multiply(1.0 - ANGULAR_DAMPING * cfg.dt)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))

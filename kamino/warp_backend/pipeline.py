@@ -16,7 +16,19 @@ import threading
 import numpy as np
 import warp as wp
 
-from kamino.config import REPROJECTION_GAP, SolverConfig
+from kamino.config import (
+    ANGULAR_DAMPING,
+    CONTACT_BAUMGARTE,
+    CONTACT_DEADBAND,
+    CONTACT_MATCH_DISTANCE,
+    LIMIT_BAUMGARTE,
+    LIMIT_MARGIN,
+    REPROJECTION_GAP,
+    RESTART_TOLERANCE,
+    RESTITUTION_THRESHOLD,
+    SolverConfig,
+    joint_deadband,
+)
 from kamino.model import Model
 from kamino.tables import DYN_ACTUATOR, row_tables
 from kamino.warp_backend import sparse_llt
@@ -49,12 +61,12 @@ def resolve_linear_solver(cfg: SolverConfig, max_rows: int, padmm: str = "thread
     """``"llt"`` or ``"cr"`` for ``cfg`` on worlds of up to ``max_rows`` rows (CR needs the sparse J; under the
     32-thread schedule, ``padmm="warp"``, ``"auto"`` is the sparse factor at every size; ``"auto"`` takes CR only with
     one thread per world on a GPU (``cuda``) above ``AUTO_CR_ROWS`` rows)."""
-    choice = cfg.linear_solver
+    choice = cfg.warp.linear_solver
     if choice == "auto":
         large = cuda and padmm != "warp" and max_rows > AUTO_CR_ROWS
-        choice = "cr" if (cfg.jacobian == "sparse" and large) else "llt"
-    if choice == "cr" and cfg.jacobian == "dense":
-        raise ValueError("SolverConfig: linear_solver='cr' works on the block-sparse Jacobian; "
+        choice = "cr" if (cfg.warp.jacobian == "sparse" and large) else "llt"
+    if choice == "cr" and cfg.warp.jacobian == "dense":
+        raise ValueError("SolverConfig.warp: linear_solver='cr' works on the block-sparse Jacobian; "
                          "use jacobian='sparse' (or linear_solver='llt' with jacobian='dense')")
     return choice
 
@@ -79,7 +91,7 @@ def resolve_padmm(cfg: SolverConfig, device, num_worlds: int, max_rows: int, pad
             raise ValueError(f"padmm must be 'thread' or 'warp' (got {padmm!r})")
         return padmm
     size_wins = num_worlds <= WARP_SCHEDULE_MAX_WORLDS or max_rows >= WARP_SCHEDULE_MIN_ROWS
-    return "warp" if (device.is_cuda and cfg.jacobian == "sparse" and size_wins and max_rows > 0) else "thread"
+    return "warp" if (device.is_cuda and cfg.warp.jacobian == "sparse" and size_wins and max_rows > 0) else "thread"
 
 
 class Stepper:
@@ -102,21 +114,21 @@ class Stepper:
         self.ffi = None
         padmm = resolve_padmm(cfg, self.device, wm.num_worlds, wm.max_rows, padmm)
         self.linear_solver = resolve_linear_solver(cfg, wm.max_rows, padmm, self.device.is_cuda)
-        self.dense = cfg.jacobian == "dense"
+        self.dense = cfg.warp.jacobian == "dense"
         llt = self.linear_solver == "llt"
         if cfg.redundant_limits:
             raise ValueError("SolverConfig.redundant_limits is implemented in the JAX reference only (float64); "
                              "use backend='jax' or leave it off")
         if padmm == "warp" and self.dense:
             raise ValueError("padmm='warp' solves with the block-sparse Jacobian (the sparse LLT or CR): use "
-                             f"jacobian='sparse' (got jacobian={cfg.jacobian!r})")
+                             f"jacobian='sparse' (got jacobian={cfg.warp.jacobian!r})")
         self.padmm = padmm
         #: the fixed rows' penalty and whether the limit and contact rows' penalty adapts (kamino.jax_ref.padmm.solve)
-        self.adaptive = cfg.penalty == "adaptive"
-        self.rho_free = cfg.rho_free if self.adaptive else cfg.rho
+        self.adaptive = cfg.penalty.mode == "adaptive"
+        self.rho_free = cfg.penalty.rho_free if self.adaptive else cfg.penalty.rho
         #: the fixed rows' diagonal shifts in PADMM's factor: ``eta + rho_free``, and ``eta + rho`` on a saturated
         #: effort-limited row (``Work.sat``)
-        self.padmm_shifts = (cfg.eta + self.rho_free, cfg.eta + cfg.rho)
+        self.padmm_shifts = (cfg.penalty.eta + self.rho_free, cfg.penalty.eta + cfg.penalty.rho)
         #: the LLT solve with block-sparse rows and one thread per world factorises sparsely (sparse_llt.py)
         self.sparse_factor = llt and not self.dense
         with wp.ScopedDevice(self.device):
@@ -131,7 +143,7 @@ class Stepper:
             #: post-stabilisation solves with PADMM's sparse factor of the fixed rows when that factor carries the
             #: projection's shifts (SolverConfig.projection_shifts: float32 defaults); else with a factor of its own
             self.post_shares_factor = self.sparse_factor and cfg.shares_padmm_factor(self.np_dtype)
-            if cfg.post_stabilisation and not self.post_shares_factor:
+            if cfg.stabilisation.post_stabilisation and not self.post_shares_factor:
                 # the fixed rows' own pattern and factor (no tail rows)
                 self.post = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
                                              per_world=padmm == "warp", fan=False, hub_min_rows=wm.hub_min_rows,
@@ -141,14 +153,15 @@ class Stepper:
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt)
-        self.rk = step_row_kernels(self.np_dtype, cfg.curvature_correction, cfg.integrator == "midpoint")
+        self.rk = step_row_kernels(self.np_dtype, cfg.stabilisation.curvature_correction, cfg.integrator == "midpoint")
         self.sk = solver_kernels(self.np_dtype)
         # world health: only where post-stabilisation's extra pass projected, when its screen (a gap of
         # REPROJECTION_GAP + the dead band) is below the bound
-        screened = cfg.post_stabilisation > 0 and REPROJECTION_GAP + cfg.deadband_for(self.np_dtype) < LOOP_OPEN_BOUND
+        screened = (cfg.stabilisation.post_stabilisation > 0
+                    and REPROJECTION_GAP + joint_deadband(self.np_dtype) < LOOP_OPEN_BOUND)
         self.ik = end_step_kernels(self.np_dtype, self.dense, screened)
         self.ck = contact_kernels(self.np_dtype) if model.num_pairs else None
-        self.pk = post_stabilisation_kernels(self.np_dtype) if cfg.post_stabilisation else None
+        self.pk = post_stabilisation_kernels(self.np_dtype) if cfg.stabilisation.post_stabilisation else None
         #: PADMM's effort-limited rows switch to the larger penalty when they saturate, and the world's factor is
         #: redone (kamino.jax_ref.padmm.solve, "Saturation"): at most one switch per actuator row and step, so on
         #: the CPU (no capture_while) a step launches PADMM that many times plus one. The Conjugate Residual path
@@ -183,7 +196,7 @@ class Stepper:
         dt = cfg.dt
         midpoint = cfg.integrator == "midpoint"
         h = 0.5 * dt if midpoint else dt
-        delta = cfg.deadband_for(self.np_dtype)
+        delta = joint_deadband(self.np_dtype)
         for hook in self.pre_step:
             hook(self)
         if midpoint:
@@ -192,17 +205,17 @@ class Stepper:
         self._launch(rk.bodies, (W, wm.max_bodies), dt, h)
         self._launch(rk.dof_rates, (W, wm.max_dofs))
         self._launch(rk.dyn_rows, (W, wm.max_dyn), nblk, dt, h)
-        self._launch(rk.joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta)
-        self._launch(rk.coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta)
-        self._launch(rk.limits, (W, wm.max_lim), h, cfg.limit_margin, cfg.limit_baumgarte)
+        self._launch(rk.joint_rows, (W, wm.max_cts), nblk, h, cfg.stabilisation.baumgarte, delta)
+        self._launch(rk.coupling_rows, (W, wm.max_cpl), nblk, h, cfg.stabilisation.baumgarte, delta)
+        self._launch(rk.limits, (W, wm.max_lim), h, LIMIT_MARGIN, LIMIT_BAUMGARTE)
         self._launch(rk.pack_limits, W, nblk)
         if ck is not None:
             self._launch(ck.narrow_phase, (W, wm.max_pairs), h, cfg.contact_margin)
-            self._launch(ck.pack, W, h, cfg.contact_margin, cfg.contact_deadband, cfg.restitution_threshold)
+            self._launch(ck.pack, W, h, cfg.contact_margin, CONTACT_DEADBAND, RESTITUTION_THRESHOLD)
         self._launch(sk.count_rows, W)
         if ck is not None:
-            self._launch(ck.contact_rows, (W, wm.max_contacts), nblk, h, cfg.contact_baumgarte, cfg.contact_deadband,
-                         cfg.restitution_threshold, cfg.contact_match_distance)
+            self._launch(ck.contact_rows, (W, wm.max_contacts), nblk, h, CONTACT_BAUMGARTE, CONTACT_DEADBAND,
+                         RESTITUTION_THRESHOLD, CONTACT_MATCH_DISTANCE)
         # dynamics: v_f (and the dense J, M^-1 J^T), Delassus (dense path) and preconditioning (§7.2, §8)
         rows = (W, wm.max_rows)
         self._launch(sk.prebake, rows, nblk, int(self.dense))
@@ -212,7 +225,7 @@ class Stepper:
                 self._launch(sk.delassus_dense, rows)
             else:
                 self._launch(sk.delassus_sparse, rows, nblk)
-        self._launch(sk.precondition, rows, nblk, int(assembled), int(cfg.preconditioning))
+        self._launch(sk.precondition, rows, nblk, int(assembled))
         shift_f, shift_b = self.padmm_shifts
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
         self._launch(sk.scale, rows, shift_f, shift_b, scale_ws, int(assembled), int(self.linear_solver == "cr"))
@@ -222,27 +235,28 @@ class Stepper:
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
         self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled), cfg.max_iterations,
-                     cfg.eta, cfg.rho, int(self.adaptive))
+                     cfg.penalty.eta, cfg.penalty.rho, int(self.adaptive))
         if self.padmm == "warp" and self.sparse_factor:
-            self._launch_lanes(self.wk.factor, self.sp, cfg.eta, 0, nblk, shift_f, shift_b)
+            self._launch_lanes(self.wk.factor, self.sp, cfg.penalty.eta, 0, nblk, shift_f, shift_b)
         elif self.padmm == "warp":  # CR: the row blocks grouped by body for the operator
             self._launch(self.wk.cr_pattern, W, nblk)
         elif self.sparse_factor:
-            self._launch(self.spk.factor, W, self.sp, cfg.eta)
+            self._launch(self.spk.factor, W, self.sp, cfg.penalty.eta)
         self._padmm_loop()
         self._launch(sk.padmm_finish, rows)
-        if cfg.curvature_refinement and cfg.curvature_correction and (wm.max_cts or wm.max_cpl):
-            self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, cfg.angular_damping * dt)
+        stab = cfg.stabilisation
+        if stab.curvature_refinement and stab.curvature_correction and (wm.max_cts or wm.max_cpl):
+            self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, ANGULAR_DAMPING * dt)
             self._launch(rk.advance_poses, (W, wm.max_bodies), w.q_eval, w.u_new, h, w.q_pred)  # q_pred along u+
-            self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.baumgarte, delta)
-            self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.baumgarte, delta)
+            self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.stabilisation.baumgarte, delta)
+            self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.stabilisation.baumgarte, delta)
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W, cfg.max_iterations)
             self._padmm_loop()
             self._launch(sk.padmm_finish, rows)
         # integrate, split the forces, commit (§6)
-        self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, cfg.angular_damping * dt)
-        if cfg.post_stabilisation:  # position projections (post_stabilisation.py)
+        self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, ANGULAR_DAMPING * dt)
+        if cfg.stabilisation.post_stabilisation:  # position projections (post_stabilisation.py)
             if self.post_shares_factor:  # L_f of PADMM's factor: the same matrix, the tail is not read
                 post = self.sp
             else:
@@ -250,8 +264,9 @@ class Stepper:
                 shift_f, shift_b = cfg.projection_shifts(self.np_dtype)
                 self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift_f, shift_b)
                 self._launch(self.spk.factor_fixed, W, post)
-            for k in range(cfg.post_stabilisation + 1):  # the last pass: unconverged worlds, gaps left open
-                extra = int(k == cfg.post_stabilisation)
+            passes = cfg.stabilisation.post_stabilisation
+            for k in range(passes + 1):  # the last pass: unconverged worlds, gaps left open
+                extra = int(k == passes)
                 self._launch(self.pk.residual, rows, delta, extra)
                 if self.padmm == "warp":
                     self._launch_lanes(self.wk.solve_fixed, post, extra)
@@ -284,7 +299,8 @@ class Stepper:
         cfg, w = self.cfg, self.work
         W, nblk = self.wm.num_worlds, self.wm.blocks_per_row
         shift_f, shift_b = self.padmm_shifts
-        args = (nblk, int(cfg.cr_iterations), cfg.eta, self.rho_free, cfg.rho, cfg.tolerance, cfg.restart_tolerance)
+        args = (nblk, int(cfg.warp.cr_iterations), cfg.penalty.eta, self.rho_free, cfg.penalty.rho, cfg.tolerance,
+                RESTART_TOLERANCE)
         modes = (self.adaptive, bool(cfg.acceleration), bool(cfg.fixed_iterations))
         if self.padmm == "warp":
             lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes)
@@ -292,7 +308,7 @@ class Stepper:
             def iterate(chunk):
                 self._launch_lanes(lane_iterate, self.sp, chunk, *args)
                 if self.max_switches:  # the factor of the worlds whose effort-limited rows saturated
-                    self._launch_lanes(self.wk.factor, self.sp, cfg.eta, 1, nblk, shift_f, shift_b)
+                    self._launch_lanes(self.wk.factor, self.sp, cfg.penalty.eta, 1, nblk, shift_f, shift_b)
         else:
             linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else (
                 LINEAR_DENSE)
@@ -301,9 +317,9 @@ class Stepper:
             def iterate(chunk):
                 self._launch(thread_iterate, W, self.sp, chunk, *args)
                 if self.max_switches and self.sparse_factor:
-                    self._launch(self.spk.refactor, W, self.sp, nblk, shift_f, shift_b, cfg.eta)
+                    self._launch(self.spk.refactor, W, self.sp, nblk, shift_f, shift_b, cfg.penalty.eta)
                 elif self.max_switches:
-                    self._launch(self.sk.refactor_dense, W, nblk, shift_f, shift_b, cfg.eta)
+                    self._launch(self.sk.refactor_dense, W, nblk, shift_f, shift_b, cfg.penalty.eta)
         if self.device.is_capturing:
             wp.capture_while(w.remaining, lambda: iterate(self.padmm_chunk))
         else:  # each launch runs the worlds to their cap or to a switch

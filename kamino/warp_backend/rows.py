@@ -581,7 +581,8 @@ def refine_joint_rows_kernel(np_dtype, midpoint: bool):
     @wp.kernel(module="unique", enable_backward=False)
     def refine_joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
         """The joint rows' bias with the curvature term predicted along the solved velocity ``u_new``
-        (``SolverConfig.curvature_refinement``; ``joint_bias`` of the JAX reference with ``u_pred = u+``)."""
+        (``SolverConfig.stabilisation.curvature_refinement``; ``joint_bias`` of the JAX reference with
+        ``u_pred = u+``)."""
         wid, i = wp.tid()
         if i >= m.cts_count[wid]:
             return

@@ -168,7 +168,7 @@ def delassus_dense_kernel(np_dtype):
 @functools.cache
 def precondition_kernel(np_dtype):
     """The Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2).
-    ``precondition(m, w, nblk, assembled, enabled)``, one thread per row slot."""
+    ``precondition(m, w, nblk, assembled)``, one thread per row slot."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     didx = index_funcs(np_dtype).didx
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
@@ -183,15 +183,12 @@ def precondition_kernel(np_dtype):
         return delassus_entry(m, w, wid, a, a, nblk)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def precondition(m: M, w: Work, nblk: int, assembled: int, enabled: int):
+    def precondition(m: M, w: Work, nblk: int, assembled: int):
         """``P_a`` of each active row; one value per contact from the largest of its three diagonal entries (keeps
         the Coulomb cone invariant)."""
         wid, a = wp.tid()
         r = world_row(m, w, wid, a)
         if r < 0:
-            return
-        if enabled == 0:
-            w.P[r] = scalar(1.0)
             return
         n_box = w.n_box[wid]
         d = scalar(0.0)
