@@ -36,7 +36,7 @@ RESIDUAL_LOOSENING_MAX = 30.0
 #: change of the impulse, a Rayleigh quotient below 1e-2 of the shift (docs/conventions.md, "Null directions")
 NULL_DIRECTION_RATIO = 1e-2
 #: an effort-limited row starts a PADMM solve saturated (penalty ``rho``) when its warm start lies within this
-#: fraction of its bound (kamino.jax_ref.padmm.solve, "Saturation"): a row saturated in the previous step comes back
+#: fraction of its bound (kamino.jax_ref.solver.solve, "Saturation"): a row saturated in the previous step comes back
 #: as ``P (bound / P)``, a few roundings off the bound, on either side; an exact test split such rows between the
 #: backends (measured on dr_legs in float64, 1 row in 12 on some steps)
 SATURATION_MARGIN = 1e-4
@@ -235,7 +235,7 @@ class SolverConfig:
     weighted by the square root of its effective mass: a row's kinetic-energy error is at most that of a
     ``tolerance`` velocity error on the heaviest row, and no row's velocity error exceeds ``RESIDUAL_LOOSENING_MAX``
     times ``tolerance``), and the complementarity residual ``|lambda v|`` below it too
-    (``kamino.jax_ref.padmm.solve``; docs/conventions.md, "PADMM defaults"). 1e-3 m/s moves a body by at most 2.5 um
+    (``kamino.jax_ref.solver.solve``; docs/conventions.md, "PADMM defaults"). 1e-3 m/s moves a body by at most 2.5 um
     in a 2.5 ms step; post-stabilisation removes the joints' share of that drift. A robot at rest to below 1 mm/s
     asks for 1e-4; in float32 a tighter tolerance buys no loop closure (docs/settings.md: what each value buys and
     costs)."""
@@ -245,7 +245,7 @@ class SolverConfig:
     redundant_limits: bool = False
     """fix ``lambda = 0`` up front on limit rows that are equivalent, modulo the bilateral rows, to another limit
     row with a smaller bias (all three hinge limits of a parallelogram loop); the solution is unchanged and PADMM
-    stops creeping along the null direction (``kamino.jax_ref.padmm.redundant_limits``). JAX reference, float64 only
+    stops creeping along the null direction (``kamino.jax_ref.solver.redundant_limits``). JAX reference, float64 only
     (float32 and the Warp backend raise)."""
     warm_start: bool = True
     """start PADMM from the previous step's constraint forces (§7.8)."""
@@ -271,7 +271,7 @@ class SolverConfig:
     def projection_shifts(self, dtype) -> tuple[float, float]:
         """The diagonal shifts of post-stabilisation's scaled system ``P D_ff P + diag(s)``: ``s`` on a row with
         PADMM's small shift and on a row with its larger penalty (a saturated effort-limited actuator's
-        joint-dynamics row, ``kamino.jax_ref.padmm.solve``, "Saturation").
+        joint-dynamics row, ``kamino.jax_ref.solver.solve``, "Saturation").
 
         Redundant loop rows make ``D_ff`` singular; the shift keeps the Cholesky pivots above rounding, and leaves
         ``s / (sigma + s)`` of the error along a direction of scaled curvature ``sigma`` (docs/conventions.md,

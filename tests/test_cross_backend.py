@@ -117,7 +117,7 @@ def _settled_worlds(ref: Run, cfg: kamino.SolverConfig) -> np.ndarray:
     float32 rounding leaves the right-hand side slightly outside the range of J: docs/conventions.md,
     "Stabilisation"; or a residual that creeps to the tolerance near the cap) ends each step on an iterate that
     the order of floating-point operations decides, and its converged flag is decided by rounding too. A step that
-    stopped on a numerically null direction (``kamino.jax_ref.padmm.solve``, "Null directions": its dual residual
+    stopped on a numerically null direction (``kamino.jax_ref.solver.solve``, "Null directions": its dual residual
     stays above the tolerance) is such a step too.
     """
     plain = np.all(ref.residuals <= cfg.tolerance, axis=-1)  # not stopped on a null direction (below)

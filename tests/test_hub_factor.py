@@ -1,4 +1,4 @@
-"""The hubs-last factorisation of the sparse LLT (``sparse_pattern.HUB_MIN_ROWS``, docs/warp_backend.md "Open
+"""The hubs-last factorisation of the sparse LLT (``linear_solve_pattern.HUB_MIN_ROWS``, docs/warp_backend.md "Open
 problems"): bodies on many fixed rows keep their 6 velocity unknowns in the factorised system, ordered after every fixed
 row, and the factor is ``L S L^T`` with ``S = -1`` on those unknowns. dr_legs has no hub at the default threshold (48)
 and two (bodies 4 and 19) at 24, which the tests use."""
@@ -14,14 +14,14 @@ from hypothesis.extra import numpy as hnp
 
 import kamino
 from kamino.warp_backend import backend as wb
-from kamino.warp_backend import sparse_llt, sparse_pattern
+from kamino.warp_backend import linear_solve, linear_solve_pattern
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.pipeline import Stepper
 from kamino.warp_backend.workspace import saturated_rows, work_struct
 
 
 def _stepper(model, cfg, dtype, padmm, hub_min_rows, monkeypatch, steps):
-    monkeypatch.setattr(sparse_pattern, "HUB_MIN_ROWS", hub_min_rows)
+    monkeypatch.setattr(linear_solve_pattern, "HUB_MIN_ROWS", hub_min_rows)
     st = Stepper(model, cfg, dtype, "cpu", padmm=padmm)
     wb.load_state(st, kamino.init_state(model, dtype=dtype), None)
     st.run(steps)
@@ -32,19 +32,20 @@ def test_hub_entry_counts_match_the_counted_fill():
     # kamino bench memory_breakdown --hub-fill's greedy count with the hubs held back (docs/warp_backend.md: bdx 1645,
     # dr_legs 3271 with hubs of more than 24 rows); without hubs the order and pattern are today's, array for array
     for scene, hubs, nnz in [(kamino.models.bdx(), [0, 17], 1645), (kamino.models.dr_legs(), [4, 19], 3271)]:
-        rows = sparse_pattern.fixed_row_bodies(scene)[0]
-        assert list(sparse_pattern.hub_bodies(rows, 24)) == hubs
-        assert len(sparse_pattern.hub_bodies(rows, sparse_pattern.HUB_MIN_ROWS)) == 0
-        sym = sparse_pattern.symbolic(rows, sparse_pattern.hub_bodies(rows, 24), 1000)
+        rows = linear_solve_pattern.fixed_row_bodies(scene)[0]
+        assert list(linear_solve_pattern.hub_bodies(rows, 24)) == hubs
+        assert len(linear_solve_pattern.hub_bodies(rows, linear_solve_pattern.HUB_MIN_ROWS)) == 0
+        sym = linear_solve_pattern.symbolic(rows, linear_solve_pattern.hub_bodies(rows, 24), 1000)
         assert sym.nnz == nnz and sym.n_real == len(rows)
         assert list(sym.perm[len(rows):]) == list(range(1000, 1012))  # the hubs' virtual rows, in position order
-        a, b = sparse_pattern.symbolic(rows), sparse_pattern.symbolic(rows, np.zeros(0, np.int64))
+        a, b = linear_solve_pattern.symbolic(rows), linear_solve_pattern.symbolic(rows, np.zeros(0, np.int64))
         for f in ("perm", "row_ptr", "col", "colrow", "div", "upd_a", "upd_b", "cent", "crow", "fan_tgt", "fan_a"):
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
 
 
 def _hub_bodies_loop(bodies, min_rows):
-    """``sparse_pattern.hub_bodies`` as a plain loop (its former code): each row's bodies as a set, counted per body."""
+    """``linear_solve_pattern.hub_bodies`` as a plain loop (its former code): each row's bodies as a set, counted per
+    body."""
     if min_rows is None or len(bodies) == 0:
         return np.zeros(0, np.int64)
     count: dict[int, int] = {}
@@ -60,18 +61,18 @@ def _hub_bodies_loop(bodies, min_rows):
 def test_hub_bodies_counts_each_body_once_per_row(bodies, min_rows):
     # random body tables: -1 padding anywhere, a body repeated within a row, rows of the width 4 of fixed_row_bodies
     # and narrower ones, no rows at all
-    hubs = sparse_pattern.hub_bodies(bodies, min_rows)
+    hubs = linear_solve_pattern.hub_bodies(bodies, min_rows)
     assert hubs.dtype == np.int64
     np.testing.assert_array_equal(hubs, _hub_bodies_loop(bodies, min_rows))
 
 
 @functools.cache
 def _solve_kernel(np_dtype):
-    """``x <- A^-1 x`` on every world's rows with the sparse factor (``sparse_llt.solve_inplace``)."""
-    solve_inplace = sparse_llt.sparse_llt_kernels(np_dtype).solve_inplace
+    """``x <- A^-1 x`` on every world's rows with the sparse factor (``linear_solve.solve_inplace``)."""
+    solve_inplace = linear_solve.sparse_llt_kernels(np_dtype).solve_inplace
 
     @wp.kernel(module="unique", enable_backward=False)
-    def solve(m: model_struct(np_dtype), w: work_struct(np_dtype), sp: sparse_llt.pattern_struct(np_dtype)):
+    def solve(m: model_struct(np_dtype), w: work_struct(np_dtype), sp: linear_solve.pattern_struct(np_dtype)):
         wid = wp.tid()
         solve_inplace(m, w, sp, wid, w.n_rows[wid])
 
@@ -80,7 +81,7 @@ def _solve_kernel(np_dtype):
 
 def _dense_A(st, shift_f, shift_b, eta):
     """World 0's ``A = P (J M^-1 J^T + R) P + shifts`` on its active rows, in float64, from the stepper's rows (the
-    matrix that ``sparse_llt`` assembles and factorises, without hubs)."""
+    matrix that ``linear_solve`` assembles and factorises, without hubs)."""
     w, m = st.work, st.wm.arrays
     nblk, rs, n = st.wm.blocks_per_row, w.row_stride, int(w.n_rows.numpy()[0])
     J = w.row_J.numpy().astype(np.float64).reshape(-1, nblk, 6)[: n * rs : rs]
@@ -166,7 +167,7 @@ def test_worlds_without_hubs_are_unchanged(monkeypatch):
     # for array, and the factor's values after 10 float32 steps are bit for bit those of hub_min_rows=None
     model = kamino.models.dr_legs()
     cfg = kamino.SolverConfig(dt=0.0025)
-    a = _stepper(model, cfg, np.float32, "thread", sparse_pattern.HUB_MIN_ROWS, monkeypatch, 10)
+    a = _stepper(model, cfg, np.float32, "thread", linear_solve_pattern.HUB_MIN_ROWS, monkeypatch, 10)
     b = _stepper(model, cfg, np.float32, "thread", None, monkeypatch, 10)
     assert a.sf.hubs == 0 and a.wm.max_slots == a.wm.max_rows
     for f in ("perm", "row_ptr", "col", "div", "upd_a", "pat_pos", "pat_row", "n_fixed", "n_pos"):

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import kamino
-from kamino.jax_ref.joints import constraint_jacobian, joint_frames
+from kamino.jax_ref.jacobians import constraint_jacobian, joint_frames
 from kamino.jax_ref.layout import layout_of
 from tests.helpers import BACKENDS, JAX
 

@@ -1,4 +1,4 @@
-"""Equivalent joint limits (``SolverConfig.redundant_limits``, ``kamino.jax_ref.padmm.redundant_limits``).
+"""Equivalent joint limits (``SolverConfig.redundant_limits``, ``kamino.jax_ref.solver.redundant_limits``).
 
 A parallelogram loop driven into its +-45 deg hinge limits activates three limit rows whose Jacobian rows are
 equal modulo the loop's bilateral rows: the split of the limit impulse between them is undetermined and PADMM
@@ -22,7 +22,7 @@ import pytest
 import kamino
 from kamino import JointType
 from kamino.bench import scene_path
-from kamino.jax_ref import padmm
+from kamino.jax_ref import solver
 
 FOURBAR_XML = scene_path("fourbar")
 DT = 0.0025  # the benchmark's step and drive (kamino.bench.throughput)
@@ -57,12 +57,12 @@ def fourbar_in_limits():
 
 
 def _spy_on_the_rule(record):
-    """A ``padmm.solve`` that also reports (active limit rows, rows the rule fixes) to ``record`` at run time."""
-    orig = padmm.solve
+    """A ``solver.solve`` that also reports (active limit rows, rows the rule fixes) to ``record`` at run time."""
+    orig = solver.solve
 
     def solve(D, v_f, lo, hi, mu, row_mask, *args, **kw):
-        P = padmm.jacobi_preconditioner(D, row_mask, lo.shape[0])
-        fixed = padmm.redundant_limits(P[:, None] * D * P[None, :], jnp.where(row_mask, P * v_f, 0.0), lo, hi,
+        P = solver.jacobi_preconditioner(D, row_mask, lo.shape[0])
+        fixed = solver.redundant_limits(P[:, None] * D * P[None, :], jnp.where(row_mask, P * v_f, 0.0), lo, hi,
                                        row_mask)
         lim = row_mask[:lo.shape[0]] & (lo == 0) & jnp.isposinf(hi)
         jax.debug.callback(lambda a, b: record.append((int(np.sum(a)), int(np.sum(b)))), jnp.sum(lim), jnp.sum(fixed))
@@ -87,7 +87,7 @@ def test_parallelogram_limits_stop_creeping_and_keep_the_solution(fourbar_in_lim
     for i in (88, 106, 112):  # the loop presses its three hinge limits together on these steps
         s = states[i]
         with monkeypatch.context() as m:  # rule's configuration is traced here first: through the spy
-            m.setattr(padmm, "solve", _spy_on_the_rule(seen))
+            m.setattr(solver, "solve", _spy_on_the_rule(seen))
             b = rule(s, i)
         a, ref, b_ref = plain(s, i), exact(s, i), rule_exact(s, i)
         it_plain.append(int(a.info.iterations[0]))
@@ -157,7 +157,7 @@ def test_rule_on_constructed_rows():
     hi = np.full(n_b + 5, np.inf)
     mask = np.ones(n_b + 5, bool)
     P = 1.0 / np.sqrt(np.diag(D))
-    fixed = np.asarray(padmm.redundant_limits(jnp.asarray(P[:, None] * D * P[None, :]), jnp.asarray(P * v_f),
+    fixed = np.asarray(solver.redundant_limits(jnp.asarray(P[:, None] * D * P[None, :]), jnp.asarray(P * v_f),
                                               jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(mask)))
     # reduced biases of the class {0, 1, 4}: eps_t = n_t . v_f with n_t = e_t - c_t e_0 - (bilateral part)
     x = np.linalg.lstsq(J_b.T, np.stack([J_l[1] - 2.0 * J_l[0], J_l[4] - 0.7 * J_l[0]]).T, rcond=None)[0]

@@ -14,22 +14,23 @@ def roofline():
 
 
 def test_fourbar_counts_are_the_symbolic_factors(roofline):
-    """The counts are read back from the stepper's ``sparse_llt.Pattern``; they must be what ``sparse_pattern.symbolic``
+    """The counts are read back from the stepper's ``linear_solve.Pattern``; they must be what
+    ``linear_solve_pattern.symbolic``
     and ``tail_patterns`` give for the same world (the same hubs), with the tail at the capacity the stepper
     allocates: the four-bar's 3 limit rows on their own patterns, its 8 contact slots on the widest pair's."""
     from kamino.tables import row_tables
-    from kamino.warp_backend import sparse_pattern
+    from kamino.warp_backend import linear_solve_pattern
 
     shape = roofline.scene_shape("fourbar")
     model, _ = roofline.tb.load_scene("fourbar")
-    rows = sparse_pattern.fixed_row_bodies(model)[0]
-    sym = sparse_pattern.symbolic(rows, sparse_pattern.hub_bodies(rows, sparse_pattern.HUB_MIN_ROWS))
+    rows = linear_solve_pattern.fixed_row_bodies(model)[0]
+    sym = linear_solve_pattern.symbolic(rows, linear_solve_pattern.hub_bodies(rows, linear_solve_pattern.HUB_MIN_ROWS))
     f = shape.factor
     assert (f.n_fixed, f.nnz, f.n_upd) == (18, 146, 644)  # docs/warp_backend.md's table: nnz(L_f) = 146
     assert (f.n_fixed, f.n_pos, f.nnz, f.n_upd) == (sym.n_real, len(sym.perm), sym.nnz, len(sym.upd_a))
     assert roofline.fixed_factor_flops(f) == sym.nnz + 2 * len(sym.upd_a)
-    lim, pairs = sparse_pattern.tail_row_bodies(model, row_tables(model), 0)
-    pats = sparse_pattern.tail_patterns(rows, sym, lim, pairs)
+    lim, pairs = linear_solve_pattern.tail_row_bodies(model, row_tables(model), 0)
+    pats = linear_solve_pattern.tail_patterns(rows, sym, lim, pairs)
     n_lim, slots = len(lim), int(model.world_contact_capacity[0])
     assert f.n_tail == n_lim + 3 * slots == 27
     for got, want in zip(f.tail[:n_lim], pats[:n_lim], strict=True):
@@ -45,9 +46,9 @@ def test_dense_patterns_cost_the_textbook_counts(roofline, n):
     ``n (n + 1) / 2`` entries and ``(n^3 - n) / 6`` multiply-adds, its two sweeps ``2 n (n + 1)`` FLOP (a reciprocal
     and a product per diagonal); a dense tail of ``n`` rows solves in ``2 n^2`` (a division per diagonal) and
     factorises in ``n`` shifts, ``n`` roots, ``n (n - 1) / 2`` divisions and ``(n^3 - n) / 6`` multiply-adds."""
-    from kamino.warp_backend import sparse_pattern
+    from kamino.warp_backend import linear_solve_pattern
 
-    sym = sparse_pattern.symbolic(np.zeros((n, 2), np.int64) - np.array([0, 1]))  # bodies (0, -1) on every row
+    sym = linear_solve_pattern.symbolic(np.zeros((n, 2), np.int64) - np.array([0, 1]))  # bodies (0, -1) on every row
     f = roofline.FactorShape(n_fixed=n, n_pos=n, nnz=sym.nnz, n_upd=len(sym.fan_tgt))
     assert f.nnz == n * (n + 1) // 2 and f.n_upd == (n**3 - n) // 6
     assert roofline.solve_flops(f) == 2 * n * (n + 1)

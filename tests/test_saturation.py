@@ -1,4 +1,4 @@
-"""The saturation-switched penalty of effort-limited actuator rows (``kamino.jax_ref.padmm.solve``, "Saturation"): a
+"""The saturation-switched penalty of effort-limited actuator rows (``kamino.jax_ref.solver.solve``, "Saturation"): a
 row starts a solve with ``rho`` when its warm start lies on its bound, else with ``rho_free``, and switches to ``rho``
 at the first iteration whose projection clips it (the factor redone, the momentum restarted). Both backends and every
 Warp linear path must take the same decisions, so that the iteration counts agree exactly in float64."""

@@ -1,4 +1,5 @@
-"""Property: the sparse factor's symbolic analysis (``kamino.warp_backend.sparse_pattern.symbolic``: minimum-degree
+"""Property: the sparse factor's symbolic analysis (``kamino.warp_backend.linear_solve_pattern.symbolic``:
+minimum-degree
 order, fill pattern, update lists) factorises what a dense Cholesky factorises, on random systems of redundant planar
 loops.
 
@@ -20,7 +21,7 @@ import scipy.linalg
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from kamino.warp_backend.sparse_pattern import symbolic
+from kamino.warp_backend.linear_solve_pattern import symbolic
 
 SIGMA = 1e-5 + 1e-4  # SolverConfig's eta + rho_free
 

@@ -1,4 +1,4 @@
-"""The tail's ``L_tf`` patterns (kamino/warp_backend/sparse_llt.py, ``tail_patterns``): each limit or contact row
+"""The tail's ``L_tf`` patterns (kamino/warp_backend/linear_solve.py, ``tail_patterns``): each limit or contact row
 stores ``L_tf = D~_tf L_f^-T`` only on the fixed positions its bodies' rows reach up the elimination tree of ``L_f``.
 The storage is right only if no nonzero falls outside the pattern; it is tight if none of the pattern is
 structurally zero. Both are checked numerically on a Delassus-like matrix of the robot's structure with random
@@ -13,9 +13,9 @@ import warp as wp
 import kamino
 from kamino.bench import memory_breakdown as mb  # the counts it predicts with
 from kamino.tables import row_tables
-from kamino.warp_backend import sparse_llt, sparse_pattern
+from kamino.warp_backend import linear_solve, linear_solve_pattern
+from kamino.warp_backend.linear_solve_pattern import fixed_row_bodies, symbolic, tail_patterns, tail_row_bodies
 from kamino.warp_backend.model_data import warp_model
-from kamino.warp_backend.sparse_pattern import fixed_row_bodies, symbolic, tail_patterns, tail_row_bodies
 
 
 @pytest.mark.parametrize("name", ["dr_legs", "bdx"])
@@ -55,20 +55,21 @@ def test_tail_patterns_hold_every_nonzero_of_L_tf_and_no_more(name):
 def test_memory_breakdown_counts_match_the_built_factor():
     # kamino.bench.memory_breakdown's predictions are read against what is built: without hubs its minimum-degree
     # count is the built L_f's entry count (the same greedy order), and "as stored" is the built tail's K per row.
-    # A drift between the counter and sparse_llt would make its predictions for new layouts (--hub-fill) meaningless.
+    # A drift between the counter and linear_solve would make its predictions for new layouts (--hub-fill) meaningless.
     for scene in ("bdx", "fourbar"):
         no_hubs = mb.hub_fill(scene, thresholds=(None,))[0]
         fill = mb.tail_fill(scene)
         model, _ = mb.tb.load_scene(scene)
         maxdim = warp_model(model, np.float32, "cpu").arrays.row_maxdim.numpy()
-        built = sparse_llt.build(model, np.float32, "cpu", maxdim)
+        built = linear_solve.build(model, np.float32, "cpu", maxdim)
         assert no_hubs["factor_entries"] == built.nnz_total == fill["L_f"]
         assert fill["widest_pattern"] == int(built.arrays.grp_tail_k.numpy()[0])
         assert fill["tail_rows"] == built.max_tail
 
 
 def _world_pattern(S, model: kamino.Model, w: int) -> dict[str, np.ndarray]:
-    """World ``w``'s share of a built ``sparse_llt.Pattern`` ``S``, in world-local numbering: its factor pattern (entry
+    """World ``w``'s share of a built ``linear_solve.Pattern`` ``S``, in world-local numbering: its factor pattern
+    (entry
     indices relative to the world's type), hubs, and the ``L_tf`` pattern of each limited DoF and contact pair."""
     a = {name: getattr(S, name).numpy() for name in dir(S) if isinstance(getattr(S, name), wp.array)}
     n, nnz = int(a["n_pos"][w]), int(a["nnz"][w])
@@ -102,7 +103,7 @@ def _reference_pattern(robot: kamino.Model, n_rows: int, hub_min_rows: int | Non
     """What :func:`_world_pattern` must find for a one-world ``robot`` factorising ``n_rows`` rows, straight from
     ``symbolic`` and ``tail_patterns`` (the per-world path)."""
     rows = fixed_row_bodies(robot)[0]
-    sym = symbolic(rows, sparse_pattern.hub_bodies(rows, hub_min_rows), hub_row0)
+    sym = symbolic(rows, linear_solve_pattern.hub_bodies(rows, hub_min_rows), hub_row0)
     out = dict(n_fixed=[len(rows)], perm=sym.perm, row_ptr=sym.row_ptr, upd_ptr=np.stack(
         [sym.upd_ptr[:-1], sym.upd_ptr[1:]], axis=1).reshape(-1), hub_body=sym.hubs, col=sym.col,
         colrow=sym.colrow, row=sym.row, div=sym.div)
@@ -121,19 +122,20 @@ def _reference_pattern(robot: kamino.Model, n_rows: int, hub_min_rows: int | Non
 
 
 def test_heterogeneous_model_builds_each_robots_patterns(monkeypatch):
-    # Stepper construction analyses each distinct world structure once (sparse_pattern.fixed_row_types, world_types) and
+    # Stepper construction analyses each distinct world structure once (linear_solve_pattern.fixed_row_types,
+    # world_types) and
     # lays the worlds' arrays out with numpy over all worlds. In a model of several robot types (concat), every world
     # must get the factor pattern, hubs and L_tf patterns that its robot alone gets. Small chunks make
     # fixed_row_types compute the worlds' rows in several pieces; hubs of more than 24 rows (dr_legs, bdx: two each)
     # exercise the hub tables.
-    monkeypatch.setattr(sparse_pattern, "CHUNK_ROWS", 100)
+    monkeypatch.setattr(linear_solve_pattern, "CHUNK_ROWS", 100)
     robots = [kamino.models.dr_legs(), kamino.models.bdx(), kamino.models.fourbar(), kamino.models.olaf()]
     order = [0, 1, 0, 2, 3, 1, 0]
     model = kamino.concat([robots[k] for k in order])
     tab = row_tables(model)
-    ft = sparse_pattern.fixed_row_types(model)
+    ft = linear_solve_pattern.fixed_row_types(model)
     assert len(ft.rows) == len(robots)  # one analysis per robot type, not per world
-    for w, (rows, tails) in enumerate(zip(fixed_row_bodies(model), sparse_pattern.all_tail_row_bodies(model, tab),
+    for w, (rows, tails) in enumerate(zip(fixed_row_bodies(model), linear_solve_pattern.all_tail_row_bodies(model, tab),
                                           strict=True)):
         np.testing.assert_array_equal(ft.rows[ft.world_type[w]], rows)
         lim, pairs = tail_row_bodies(model, tab, w)
@@ -146,7 +148,7 @@ def test_heterogeneous_model_builds_each_robots_patterns(monkeypatch):
             alone = []
             for robot in robots:
                 wm = warp_model(robot, np.float32, "cpu").arrays
-                built = sparse_llt.build(robot, np.float32, "cpu", getattr(wm, maxdim_of).numpy(),
+                built = linear_solve.build(robot, np.float32, "cpu", getattr(wm, maxdim_of).numpy(),
                                          hub_min_rows=hub_min_rows, hub_row0=wm.row_maxdim.numpy())
                 alone.append(_world_pattern(built.arrays, robot, 0))
                 ref = _reference_pattern(robot, int(getattr(wm, maxdim_of).numpy()[0]), hub_min_rows,
@@ -155,7 +157,7 @@ def test_heterogeneous_model_builds_each_robots_patterns(monkeypatch):
                 for name, expected in ref.items():
                     np.testing.assert_array_equal(alone[-1][name], expected, err_msg=name)
             wm = warp_model(model, np.float32, "cpu").arrays
-            built = sparse_llt.build(model, np.float32, "cpu", getattr(wm, maxdim_of).numpy(),
+            built = linear_solve.build(model, np.float32, "cpu", getattr(wm, maxdim_of).numpy(),
                                      hub_min_rows=hub_min_rows, hub_row0=wm.row_maxdim.numpy())
             assert built.hubs == sum(len(alone[k]["hub_body"]) for k in order)
             if hub_min_rows is not None:
@@ -178,30 +180,30 @@ def test_setup_tables_are_cached_only_under_frozen_models():
 
     model = kamino.replicate(kamino.models.bdx(), 3)
     assert is_frozen(model)
-    tab, ft = row_tables(model), sparse_pattern.fixed_row_types(model)
-    assert row_tables(model) is tab and sparse_pattern.fixed_row_types(model) is ft
+    tab, ft = row_tables(model), linear_solve_pattern.fixed_row_types(model)
+    assert row_tables(model) is tab and linear_solve_pattern.fixed_row_types(model) is ft
     assert not tab.cts_joint.flags.writeable and not ft.world_type.flags.writeable
     assert list(ft.world_type) == [0, 0, 0] and len(ft.rows) == 1
     twin = copy.copy(model)
-    assert row_tables(twin) is not tab and sparse_pattern.fixed_row_types(twin) is not ft
+    assert row_tables(twin) is not tab and linear_solve_pattern.fixed_row_types(twin) is not ft
     loose = dataclasses.replace(model, **{f.name: np.array(getattr(model, f.name)) for f in dataclasses.fields(model)
                                           if isinstance(getattr(model, f.name), np.ndarray)})
     assert not is_frozen(loose)
     assert row_tables(loose) is not row_tables(loose)
-    assert sparse_pattern.fixed_row_types(loose) is not sparse_pattern.fixed_row_types(loose)
+    assert linear_solve_pattern.fixed_row_types(loose) is not linear_solve_pattern.fixed_row_types(loose)
     np.testing.assert_array_equal(row_tables(loose).cts_joint, tab.cts_joint)
 
 
 def test_build_uploads_only_the_tables_its_kernels_read():
-    # memory: the one-thread factor kernels read the row-order update pairs (upd_*), padmm_warp.factor the
+    # memory: the one-thread factor kernels read the row-order update pairs (upd_*), solver_lanes.factor the
     # column-order triples (fan_*), and only the 32-thread kernels the column index (cptr, cent, crow); each build
     # holds its schedule's, the other tables a single 0. Both lists count the same fill-in updates (a type's, shared
     # by its worlds), and the values they give are checked by the factor tests of each schedule.
     model = kamino.replicate(kamino.models.dr_legs(), 3)
     maxdim = warp_model(model, np.float32, "cpu").arrays.row_maxdim.numpy()
-    thread = sparse_llt.build(model, np.float32, "cpu", maxdim).arrays
-    warp = sparse_llt.build(model, np.float32, "cpu", maxdim, per_world=True).arrays
-    post = sparse_llt.build(model, np.float32, "cpu", maxdim, per_world=True, fan=False).arrays  # factor_fixed's
+    thread = linear_solve.build(model, np.float32, "cpu", maxdim).arrays
+    warp = linear_solve.build(model, np.float32, "cpu", maxdim, per_world=True).arrays
+    post = linear_solve.build(model, np.float32, "cpu", maxdim, per_world=True, fan=False).arrays  # factor_fixed's
     n_upd = thread.upd_a.shape[0]
     assert n_upd > 1000 and thread.nnz.numpy()[0] == warp.nnz.numpy()[0]
     assert warp.fan_a.shape[0] == warp.fan_tgt.shape[0] == n_upd + 1  # + the clamped loads' trailing 0

@@ -1,4 +1,4 @@
-"""The 32-threads-per-world schedule (``Stepper(padmm="warp")``, padmm_warp.py: the sparse factorisation or the
+"""The 32-threads-per-world schedule (``Stepper(padmm="warp")``, solver_lanes.py: the sparse factorisation or the
 Conjugate Residual solve, the PADMM iterations and post-stabilisation's solve) against the one-thread-per-world
 kernels, on Warp's CPU device (cooperative CPU blocks)."""
 
@@ -7,7 +7,7 @@ import pytest
 
 import kamino
 from kamino.warp_backend import backend as wb
-from kamino.warp_backend import padmm_warp
+from kamino.warp_backend import solver_lanes
 from kamino.warp_backend.pipeline import Stepper
 
 
@@ -26,9 +26,9 @@ def _run(model, cfg, padmm, steps, dtype=np.float64):
 @pytest.mark.parametrize("staged", [True, False], ids=["factor-in-shared-memory", "factor-in-device-memory"])
 def test_warp_schedule_solves_what_the_thread_kernel_solves(staged, monkeypatch):
     # Both places the factorisation works in: shared memory (robot-sized worlds) and device memory (worlds too
-    # large to stage, padmm_warp.STAGE_MAX_ENTRIES).
+    # large to stage, solver_lanes.STAGE_MAX_ENTRIES).
     if not staged:
-        monkeypatch.setattr(padmm_warp, "STAGE_MAX_ENTRIES", 0)
+        monkeypatch.setattr(solver_lanes, "STAGE_MAX_ENTRIES", 0)
     # A loop (four-bar, driven into its hinge limits), a contact world (two stacked boxes: cone projection on
     # contact triples, De Saxcé) and a coupling-free chain of loops in one heterogeneous model, at the defaults
     # (adaptive penalty: tail refactorisations inside the iterations; post-stabilisation: the 32-thread solve of

@@ -1,6 +1,6 @@
 """The adaptive penalty and world health, on both backends.
 
-- The penalty rule (kamino.jax_ref.padmm.solve, docs/conventions.md "Penalty") is the same in the JAX reference and
+- The penalty rule (kamino.jax_ref.solver.solve, docs/conventions.md "Penalty") is the same in the JAX reference and
   every Warp linear solve: in float64 both report the same iterations and the same penalty on every step of the
   driven benchmark four-bar, through the steps where the penalty changes.
 - At the defaults (``SolverConfig(dt=...)`` and nothing else), float32, the small scenes converge on at least 99 %

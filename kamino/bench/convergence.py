@@ -299,13 +299,13 @@ class ClosureProbe:
 
 class VelocityProbe:
     """The joint rows' velocities of one world with the JAX reference's kinematics
-    (``kamino.jax_ref.joints.joint_frames`` / ``constraint_jacobian`` on the padded single-world layout of
+    (``kamino.jax_ref.jacobians.joint_frames`` / ``constraint_jacobian`` on the padded single-world layout of
     ``kamino.jax_ref.layout.layout_of``), vmapped over a few sampled worlds, on JAX's CPU device in JAX's default
     float (float32: a rounding floor of ~1e-7 |u|). For a step ``q_t -> q_{t+1}`` with free velocity ``u_f``
     and solved velocity ``u+`` (Euler: the step's evaluation pose is ``q_t``):
 
     - ``solve``: ``|J(q_t) u+ + v*|``, the residual of the row equation ``J u+ + v* = 0`` that PADMM solved, with
-      the stabilisation bias ``v*`` of ``kamino.jax_ref.step.joint_bias`` (Baumgarte + curvature along ``u_f``):
+      the stabilisation bias ``v*`` of ``kamino.jax_ref.pipeline.joint_bias`` (Baumgarte + curvature along ``u_f``):
       what ``tolerance`` controls;
     - ``pre``: ``|J(q_t) u+|``, without the bias (the bias is O(dt |u|^2) by design: the curvature correction
       asks for that velocity so that the *position* error stays small);
@@ -329,8 +329,8 @@ class VelocityProbe:
     def _fn(self, cfg: kamino.SolverConfig):
         import jax
 
-        from kamino.jax_ref.joints import constraint_jacobian, constraint_residual, joint_frames
-        from kamino.jax_ref.step import joint_bias
+        from kamino.jax_ref.jacobians import constraint_jacobian, constraint_residual, joint_frames
+        from kamino.jax_ref.pipeline import joint_bias
 
         if cfg not in self._fns:
             pm, nb = self.pm, self.nb

@@ -8,7 +8,8 @@ world as the worlds grow, so measure at the batch size of interest. ``--out`` wr
 
 ``--tail-fill`` counts the tail's ``L_tf`` entries per world: dense (``n_tail x n_fixed``), as stored (every tail row
 sized for the widest pattern a slot can hold; a row's entries of ``L_tf = D~_tf L_f^-T`` can be nonzero only on the
-fixed rows its bodies' rows reach up the elimination tree of ``L_f``, ``sparse_pattern.tail_patterns``), and sized per
+fixed rows its bodies' rows reach up the elimination tree of ``L_f``, ``linear_solve_pattern.tail_patterns``), and
+sized per
 source (each limited DoF's row its own pattern), a layout the backend does not use. ``--hub-fill`` counts the
 fixed rows' factor entries if bodies carrying many rows kept their 6 velocity unknowns in the factorised system
 (:func:`hub_fill`), a lead for the animatronic.
@@ -69,10 +70,11 @@ def breakdown(scene: str, num_worlds: int, device: str, padmm: str | None = None
 
 def tail_fill(scene: str) -> dict:
     """The tail's ``L_tf`` entries for one world of ``scene``: dense (``n_tail x n_fixed``), as
-    stored (every row sized for the widest pattern ``K``, ``sparse_pattern.tail_patterns``), and sized per source (each
+    stored (every row sized for the widest pattern ``K``, ``linear_solve_pattern.tail_patterns``), and sized per
+    source (each
     limit row its own pattern, each contact slot the widest pair's); ``L_t`` (``n_tail^2``) is dense either way."""
     from kamino.tables import row_tables
-    from kamino.warp_backend.sparse_pattern import fixed_row_bodies, symbolic, tail_patterns, tail_row_bodies
+    from kamino.warp_backend.linear_solve_pattern import fixed_row_bodies, symbolic, tail_patterns, tail_row_bodies
 
     model, _ = tb.load_scene(scene)
     bodies = fixed_row_bodies(model)[0]
@@ -98,7 +100,8 @@ def tail_fill(scene: str) -> dict:
 
 
 def min_degree_order(adj: list[set[int]], weight: list[int], last: frozenset = frozenset()) -> tuple[list[int], int]:
-    """Greedy minimum degree on a symmetric matrix's graph ``adj`` (the order of ``sparse_pattern.symbolic``; a node of
+    """Greedy minimum degree on a symmetric matrix's graph ``adj`` (the order of ``linear_solve_pattern.symbolic``; a
+    node of
     weight ``w`` stands for ``w`` scalar unknowns), the nodes in ``last`` held back until the others are eliminated.
     Returns ``(order, scalar entries of the Cholesky / LDL^T factor)``."""
     adj = [set(a) for a in adj]
@@ -125,7 +128,7 @@ def min_degree_fill(adj: list[set[int]], weight: list[int]) -> int:
 def hub_graph(bodies: np.ndarray, threshold: int | None) -> tuple[list[set[int]], dict[int, int], dict[int, set[int]]]:
     """The graph of the fixed rows' system when every body with more than ``threshold`` rows (a hub; ``None``: no
     hubs) keeps its 6 velocity unknowns as a node of its own (``bodies``: the rows' moving bodies,
-    ``sparse_pattern.fixed_row_bodies``): rows on a hub couple to its node, rows on another body to each other.
+    ``linear_solve_pattern.fixed_row_bodies``): rows on a hub couple to its node, rows on another body to each other.
     Returns ``(adjacency over rows then hub nodes, hub body -> node, body -> its rows)``."""
     n = len(bodies)
     on_body: dict[int, set[int]] = {}
@@ -153,7 +156,7 @@ def hub_fill(scene: str, thresholds=(None, 48, 24, 12)) -> list[dict]:
     ``[[R + sum_other J_b M_b^-1 J_b^T, J_h], [J_h^T, -M_h]]``, ``J_h`` the rows' blocks on the hub, rows x 6, whose
     Schur complement on the rows is ``D``): the
     rows on a hub then couple to its 6 unknowns, not to each other. ``None``: no hubs (the factor as built)."""
-    from kamino.warp_backend.sparse_pattern import fixed_row_bodies
+    from kamino.warp_backend.linear_solve_pattern import fixed_row_bodies
 
     model, _ = tb.load_scene(scene)
     bodies = fixed_row_bodies(model)[0]

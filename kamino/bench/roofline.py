@@ -6,16 +6,17 @@ throughput records of :mod:`kamino.bench.throughput` and a cost per world-step c
 
 Reads the kamino records (``"config": "default"``, no ``"peer"`` key) of each file, builds each scene's model as the
 throughput benchmark does (:func:`kamino.bench.throughput.load_scene`) and its Warp stepper on the CPU under the
-32-thread schedule (``Stepper(padmm="warp")``: ``sparse_llt.build(per_world=True)`` with the hub threshold of the run),
-reads one world's factor pattern back from the device structures (``sparse_llt.Pattern``: ``nnz``, the fan-out triples
+32-thread schedule (``Stepper(padmm="warp")``: ``linear_solve.build(per_world=True)`` with the hub threshold of the
+run),
+reads one world's factor pattern back from the device structures (``linear_solve.Pattern``: ``nnz``, the fan-out triples
 ``fan_*``, the ``L_tf`` patterns ``pat_*`` and their forward-substitution pairs ``pat_upd_*``), and prints a markdown
 table. Identical worlds: one world's count is every world's.
 
 Cost model (docs/warp_backend.md, "Robot-sized worlds: 32 threads per world on the sparse factor"; the kernels of
-``kamino/warp_backend/padmm_warp.py``; docs/formulation.md §7.3-§7.5 and §8.1):
+``kamino/warp_backend/solver_lanes.py``; docs/formulation.md §7.3-§7.5 and §8.1):
 
-- FLOP per world-step = the factorisation (once per step, ``padmm_warp.factor``) + the mean PADMM iterations x one
-  iteration (``padmm_warp.padmm_iterate``). Factorisation: ``L_f`` by fan-out (a square root per column, a division
+- FLOP per world-step = the factorisation (once per step, ``solver_lanes.factor``) + the mean PADMM iterations x one
+  iteration (``solver_lanes.padmm_iterate``). Factorisation: ``L_f`` by fan-out (a square root per column, a division
   per entry below the diagonal, 2 FLOP per update triple), the tail's ``L_tf`` (a forward substitution per tail row
   over its pattern: 2 per pair, 1 division per entry), its Schur complement (2 per position shared by the two
   rows' patterns) and the dense Cholesky of the ``n_t`` tail rows (:func:`factor_flops`). One iteration: the solve
@@ -33,7 +34,7 @@ Cost model (docs/warp_backend.md, "Robot-sized worlds: 32 threads per world on t
   widest ``L_tf`` pattern (as ``kamino bench memory_breakdown --tail-fill`` sizes it). The active tail is usually
   smaller, so a scene with a tail (limits or contact slots) gets ``<=``: its figures are upper bounds.
 
-Not counted: the assembly of ``D~`` (``sparse_llt.assemble_fixed`` / ``assemble_tail``: the Delassus entries) and
+Not counted: the assembly of ``D~`` (``linear_solve.assemble_fixed`` / ``assemble_tail``: the Delassus entries) and
 the other kernels of the step (kinematics, rows, collision, integration: their traffic is in the one pass over the
 world's memory, their arithmetic is not), post-stabilisation's solve with ``L_f`` (``--details`` prints it), the
 refactorisations inside PADMM (the tail's on a new penalty, the whole factor on a saturation switch: data dependent,
@@ -42,7 +43,8 @@ Counts are of the arithmetic and the words in the source, not of compiled instru
 one FLOP, comparisons as none.
 
 A count of "factor multiply-adds" as ``n_upd + n_t nnz + n_t (n_t + 1) / 2 n_f + n_t^3 / 6`` is that of the factor
-without hubs and with a dense ``L_tf`` (``sparse_pattern.symbolic`` with ``hubs=None``; e.g. dr_legs with a 36-row tail:
+without hubs and with a dense ``L_tf`` (``linear_solve_pattern.symbolic`` with ``hubs=None``; e.g. dr_legs with a
+36-row tail:
 30,428 + 36 x 3,473 + 666 x 204 + 7,776 = 3.0e5), an upper bound of the counts here.
 """
 
@@ -63,9 +65,9 @@ WORD = 4
 #: H100 SXM: float32 FLOP/s without the tensor cores, and HBM3 bandwidth [B/s]
 PEAK_FLOPS = 67e12
 PEAK_BANDWIDTH = 3.35e12
-#: threads per world of the 32-thread schedule (padmm_warp.LANES; a tile reduction of 32 values is 31 FLOP)
+#: threads per world of the 32-thread schedule (solver_lanes.LANES; a tile reduction of 32 values is 31 FLOP)
 LANES = 32
-#: the tile reductions of one iteration (padmm_warp.padmm_iterate: r_p, r_d, r_c, c_sum, r_tail, de, dx, hit)
+#: the tile reductions of one iteration (solver_lanes.padmm_iterate: r_p, r_d, r_c, c_sum, r_tail, de, dx, hit)
 REDUCTIONS = 8
 
 
@@ -73,7 +75,7 @@ REDUCTIONS = 8
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class FactorShape:
-    """One world's factor (``sparse_pattern.Symbolic`` / ``Pattern``), with its tail at capacity."""
+    """One world's factor (``linear_solve_pattern.Symbolic`` / ``Pattern``), with its tail at capacity."""
 
     n_fixed: int  # fixed rows (joint-dynamics, joint, coupling)
     n_pos: int  # positions of L_f: the fixed rows, then 6 per hub
@@ -130,13 +132,13 @@ class Cost:
 # --- factorisation and solve --------------------------------------------------------------------------------
 
 def fixed_factor_flops(f: FactorShape) -> int:
-    """``L_f`` by fan-out (``padmm_warp.factor``): a square root per position, a division per entry below the
+    """``L_f`` by fan-out (``solver_lanes.factor``): a square root per position, a division per entry below the
     diagonal, and 2 per update triple: ``nnz + 2 n_upd``."""
     return f.nnz + 2 * f.n_upd
 
 
 def dense_cholesky_flops(n: int) -> int:
-    """The tail's ``L_t = chol(S_t + shift I)`` by columns (``padmm_warp.factor_tail``): column ``j`` adds the
+    """The tail's ``L_t = chol(S_t + shift I)`` by columns (``solver_lanes.factor_tail``): column ``j`` adds the
     shift, subtracts ``j`` products and takes a root (``2 j + 2``), and each of the ``n - 1 - j`` rows below it
     subtracts ``j`` products and divides (``2 j + 1``)."""
     return sum(2 * j + 2 + (n - 1 - j) * (2 * j + 1) for j in range(n))
@@ -145,7 +147,7 @@ def dense_cholesky_flops(n: int) -> int:
 def tail_factor_flops(f: FactorShape) -> int:
     """The tail rows' share of the factorisation: ``L_tf`` (per tail row, its pattern's forward-substitution pairs at
     2 FLOP and a division per entry), the Schur complement ``S_t = D~_t - L_tf L_tf^T`` (pair ``(t, j <= t)``: 2 per
-    position in both rows' patterns, ``sparse_llt.schur_entry``) and :func:`dense_cholesky_flops`."""
+    position in both rows' patterns, ``linear_solve.schur_entry``) and :func:`dense_cholesky_flops`."""
     ltf = sum(len(p) + 2 * u for p, u in zip(f.tail, f.tail_upd, strict=True))
     schur = sum(2 * len(np.intersect1d(f.tail[t], f.tail[j], assume_unique=True))
                 for t in range(f.n_tail) for j in range(t + 1))
@@ -158,7 +160,7 @@ def factor_flops(f: FactorShape) -> int:
 
 
 def solve_flops(f: FactorShape, tail: bool = True) -> int:
-    """FLOP of one solve ``x <- L^-T L^-1 x`` (``padmm_warp.solve``): each sweep over ``L_f`` a reciprocal and a
+    """FLOP of one solve ``x <- L^-T L^-1 x`` (``solver_lanes.solve``): each sweep over ``L_f`` a reciprocal and a
     product per position and 2 per entry below the diagonal (``4 nnz`` for both); the tail's fixed part twice
     (forward over ``L_tf``, backward its share of the fixed rows: ``4 sum |P_t|``); ``L_t`` forward and backward, a
     division per row and 2 per entry below the diagonal (``2 n_t^2``). ``tail=False``: the fixed rows only
@@ -267,7 +269,7 @@ def stepper_of(model):
 
 
 def factor_shape(sp, lim_dofs: np.ndarray, contact_slots: int, pairs: int) -> FactorShape:
-    """World 0's :class:`FactorShape` from a ``sparse_llt.Pattern`` (``sp``), its limited DoFs (global indices, in
+    """World 0's :class:`FactorShape` from a ``linear_solve.Pattern`` (``sp``), its limited DoFs (global indices, in
     the order the limit rows are packed), contact slots and contact pairs: each limit row has its DoF's ``L_tf``
     pattern, and every contact row the widest of the pairs' patterns (the most updates among equals)."""
     a = {name: getattr(sp, name).numpy() for name in ("n_fixed", "n_pos", "nnz", "ptr_start", "fan_ptr", "pat_ptr",
@@ -306,7 +308,7 @@ def row_shape(model, n_fixed: int) -> RowShape:
 
 def scene_shape(name: str) -> SceneShape:
     """:class:`SceneShape` of a benchmark scene (one world of ``throughput.load_scene(name)``), from the stepper's
-    ``sparse_llt.Pattern``. Checks that the tail it counts is the capacity the stepper allocated."""
+    ``linear_solve.Pattern``. Checks that the tail it counts is the capacity the stepper allocated."""
     from kamino.tables import prefix, row_tables
 
     model, _ = tb.load_scene(name)

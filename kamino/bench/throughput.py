@@ -66,7 +66,7 @@ CONFIGS = {
     "sparse-llt-warp": {"warp.jacobian": "sparse", "warp.linear_solver": "llt"},
 }
 #: PADMM schedule of a configuration (``Stepper(padmm=...)``): one thread per world unless ``"warp"`` (32 threads
-#: per world, padmm_warp.py)
+#: per world, solver_lanes.py)
 PADMM = {"sparse-llt-warp": "warp"}
 DT = 0.0025
 #: solver settings of every kamino configuration here on top of ``kamino.SolverConfig(dt=DT)``: none, the library
@@ -298,7 +298,7 @@ def joint_velocity_error(st) -> float:
     import jax
     import jax.numpy as jnp
 
-    from kamino.jax_ref.joints import constraint_jacobian, joint_frames
+    from kamino.jax_ref.jacobians import constraint_jacobian, joint_frames
     from kamino.jax_ref.layout import layout_of
 
     model = st.wm.model

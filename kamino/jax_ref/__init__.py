@@ -1,5 +1,6 @@
 """The JAX reference backend: a readable, vmapped, jit-compiled oracle (pure JAX).
 
-Stages (docs/architecture.md "Backend contract"): ``joints`` (kinematics), ``dynamics``,
-``padmm`` (solve), ``spatial.integrate_pose`` (integrate), orchestrated by ``step``.
+Stages (docs/architecture.md "Backend contract", the same module names as ``kamino/warp_backend``): ``jacobians``
+(kinematics), ``collision``, ``contacts``, ``dynamics``, ``solver`` (PADMM), ``post_stabilisation``, orchestrated by
+``pipeline``; ``backend`` holds the engine a ``kamino.Simulator`` uses.
 """

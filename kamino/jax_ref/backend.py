@@ -12,7 +12,7 @@ import numpy as np
 from kamino.config import SolverConfig
 from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.dynamics import body_dynamics, kinetic_energy, potential_energy
-from kamino.jax_ref.joints import (
+from kamino.jax_ref.jacobians import (
     constraint_residual,
     dof_jacobian,
     dof_positions,
@@ -20,8 +20,8 @@ from kamino.jax_ref.joints import (
     joint_frames,
 )
 from kamino.jax_ref.layout import Layout, PaddedModel, build_layout, layout_of, to_flat, to_padded
+from kamino.jax_ref.pipeline import WorldCache, WorldControl, step_batch
 from kamino.jax_ref.precision import full_precision
-from kamino.jax_ref.step import WorldCache, WorldControl, step_batch
 from kamino.model import RES_TRANS, Model
 from kamino.state import ContactState, Control, State, StepInfo
 

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from kamino.jax_ref.couplings import coupling_jacobian, coupling_residual
-from kamino.jax_ref.joints import (
+from kamino.jax_ref.jacobians import (
     constraint_jacobian,
     constraint_residual,
     dof_jacobian,

@@ -7,7 +7,7 @@ in step (the PADMM iterations, the factorisation), each load is one contiguous 1
 32 scattered ones. A group reserves ``GROUP * maxdim_g`` rows with ``maxdim_g`` the largest row capacity
 of its worlds, so storage is the per-world sum for identical worlds and stays close to it for mixed
 worlds ordered by size (docs/warp_backend.md, "Memory layout"). Under the 32-threads-per-world schedule
-(padmm_warp.py) the rows are stored world after world instead (``Work.row_stride = 1``: the world in lane ``l``
+(solver_lanes.py) the rows are stored world after world instead (``Work.row_stride = 1``: the world in lane ``l``
 starts at ``group_start + l * maxdim_g``), so that the 32 threads of one world read consecutive rows.
 
 Each ``wp.func`` comes from its own builder, cached per precision (``np_dtype``); :func:`index_funcs` names them all.
@@ -171,7 +171,7 @@ def row_saturated_func(np_dtype):
 
     @wp.func
     def row_saturated(w: Work, r: int):
-        """1 if row ``r`` is an effort-limited fixed row that carries ``rho`` (kamino.jax_ref.padmm.solve,
+        """1 if row ``r`` is an effort-limited fixed row that carries ``rho`` (kamino.jax_ref.solver.solve,
         "Saturation"), else 0."""
         return (w.row_info[r] >> _SAT_SHIFT) & 1
 

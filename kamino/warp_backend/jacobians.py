@@ -1,7 +1,7 @@
 """Joint Jacobians in Warp: joint frames, residuals and the Jacobian blocks of DoF and constraint rows
 (docs/formulation.md §2).
 
-The same formulas as ``kamino/jax_ref/joints.py`` and ``couplings.py``. A Jacobian row is stored
+The same formulas as ``kamino/jax_ref/jacobians.py`` and ``couplings.py``. A Jacobian row is stored
 block-sparse: up to ``nblk`` pairs (body, 1x6 block) per row — the follower ``F`` and the base ``B``
 of its joint (§2.5); a coupling row spans the DoF rows of two joints (four blocks). A block on the
 world (body ``-1``) is dropped.

@@ -18,8 +18,8 @@ import warp as wp
 
 from kamino.model import CONTACT_POINTS, GeomType, Model
 from kamino.tables import prefix, row_tables
-from kamino.warp_backend import sparse_pattern
-from kamino.warp_backend.sparse_pattern import hub_counts
+from kamino.warp_backend import linear_solve_pattern
+from kamino.warp_backend.linear_solve_pattern import hub_counts
 from kamino.warp_backend.types import types_of
 
 GROUP = 32  # worlds per interleaved storage group (kamino/warp_backend/indexing.py)
@@ -150,13 +150,13 @@ class WarpModel:
     max_pairs: int
     max_contacts: int
     max_rows: int  # max over worlds of maxdim_w
-    max_slots: int  # max over worlds of maxdim_w + its virtual rows (6 per hub body, sparse_pattern.hub_bodies)
+    max_slots: int  # max over worlds of maxdim_w + its virtual rows (6 per hub body, linear_solve_pattern.hub_bodies)
     total_rows: int
     total_mat: int
     total_jd: int
     total_cand: int
     blocks_per_row: int  # 2, or 4 when a coupling row spans two joints
-    #: the hub threshold the virtual rows were laid out for (sparse_pattern.HUB_MIN_ROWS)
+    #: the hub threshold the virtual rows were laid out for (linear_solve_pattern.HUB_MIN_ROWS)
     hub_min_rows: int | None = None
 
 
@@ -175,7 +175,7 @@ def _bounding_radius(model: Model) -> np.ndarray:
 def warp_model(model: Model, np_dtype, device) -> WarpModel:
     """The :class:`WarpModel` of ``model`` in ``np_dtype`` on ``device``, uploaded (each call uploads anew: the
     owner, a ``kamino.Simulator``'s engine, keeps one per precision and device)."""
-    return _upload(model, np.dtype(np_dtype), str(wp.get_device(device)), sparse_pattern.HUB_MIN_ROWS)
+    return _upload(model, np.dtype(np_dtype), str(wp.get_device(device)), linear_solve_pattern.HUB_MIN_ROWS)
 
 
 def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | None = None) -> WarpModel:
@@ -200,7 +200,7 @@ def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | N
     n_fixed = ndyn + ncts + ncpl
     maxdim = n_fixed + nlim + 3 * cap
     # 6 virtual rows per hub body after the row capacity: the hubs' unknowns during the sparse factor's solves
-    # (sparse_pattern.hub_bodies; never real rows)
+    # (linear_solve_pattern.hub_bodies; never real rows)
     slots = maxdim + 6 * hub_counts(model, hub_min_rows) if W else maxdim
     g_dim = group_sizes(slots)
     g_col = 6 * group_sizes(nb)

@@ -31,14 +31,14 @@ from kamino.config import (
 )
 from kamino.model import Model
 from kamino.tables import DYN_ACTUATOR, row_tables
-from kamino.warp_backend import sparse_llt
+from kamino.warp_backend import linear_solve
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import LOOP_OPEN_BOUND, end_step_kernels
 from kamino.warp_backend.model_data import WarpModel, warp_model
-from kamino.warp_backend.padmm_warp import LANES, iterate_kernel, shared_entries, shared_rows, warp_kernels
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import step_row_kernels
 from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, padmm_iterate_kernel, solver_kernels
+from kamino.warp_backend.solver_lanes import LANES, iterate_kernel, shared_entries, shared_rows, warp_kernels
 from kamino.warp_backend.workspace import allocate
 
 #: linear_solver="auto" takes the Conjugate Residual path above this many constraint rows per world on a GPU with
@@ -99,7 +99,7 @@ class Stepper:
 
     ``padmm``: ``"thread"`` runs PADMM with one thread per world (``solver.py``, LLT or CR); ``"warp"`` runs the
     sparse factorisation (or Conjugate Residual's operator), the PADMM iterations and post-stabilisation's solve
-    with 32 threads per world (``padmm_warp.py``; ``jacobian="sparse"``, ``linear_solver`` ``"llt"`` or ``"cr"``);
+    with 32 threads per world (``solver_lanes.py``; ``jacobian="sparse"``, ``linear_solver`` ``"llt"`` or ``"cr"``);
     ``None`` chooses by device, configuration and size (:func:`resolve_padmm`).
     """
 
@@ -123,32 +123,32 @@ class Stepper:
             raise ValueError("padmm='warp' solves with the block-sparse Jacobian (the sparse LLT or CR): use "
                              f"jacobian='sparse' (got jacobian={cfg.warp.jacobian!r})")
         self.padmm = padmm
-        #: the fixed rows' penalty and whether the limit and contact rows' penalty adapts (kamino.jax_ref.padmm.solve)
+        #: the fixed rows' penalty and whether the limit and contact rows' penalty adapts (kamino.jax_ref.solver.solve)
         self.adaptive = cfg.penalty.mode == "adaptive"
         self.rho_free = cfg.penalty.rho_free if self.adaptive else cfg.penalty.rho
         #: the fixed rows' diagonal shifts in PADMM's factor: ``eta + rho_free``, and ``eta + rho`` on a saturated
         #: effort-limited row (``Work.sat``)
         self.padmm_shifts = (cfg.penalty.eta + self.rho_free, cfg.penalty.eta + cfg.penalty.rho)
-        #: the LLT solve with block-sparse rows and one thread per world factorises sparsely (sparse_llt.py)
+        #: the LLT solve with block-sparse rows and one thread per world factorises sparsely (linear_solve.py)
         self.sparse_factor = llt and not self.dense
         with wp.ScopedDevice(self.device):
             # under the 32-thread schedule each world's rows are contiguous (its threads read consecutive rows)
             self.work = allocate(wm, cfg.integrator == "euler", self.dense, llt and not self.sparse_factor,
                                  rows_per_world=padmm == "warp", cr=not llt)
             if self.sparse_factor:
-                self.sf = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy(),
+                self.sf = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy(),
                                            per_world=padmm == "warp", hub_min_rows=wm.hub_min_rows)
-                self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
-            self.sp = self.sf.arrays if self.sparse_factor else sparse_llt.empty(self.np_dtype, self.device)
+                self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
+            self.sp = self.sf.arrays if self.sparse_factor else linear_solve.empty(self.np_dtype, self.device)
             #: post-stabilisation solves with PADMM's sparse factor of the fixed rows when that factor carries the
             #: projection's shifts (SolverConfig.projection_shifts: float32 defaults); else with a factor of its own
             self.post_shares_factor = self.sparse_factor and cfg.shares_padmm_factor(self.np_dtype)
             if cfg.stabilisation.post_stabilisation and not self.post_shares_factor:
                 # the fixed rows' own pattern and factor (no tail rows)
-                self.post = sparse_llt.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
+                self.post = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
                                              per_world=padmm == "warp", fan=False, hub_min_rows=wm.hub_min_rows,
                                              hub_row0=wm.arrays.row_maxdim.numpy())
-                self.spk = sparse_llt.sparse_llt_kernels(self.np_dtype)
+                self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
@@ -163,7 +163,7 @@ class Stepper:
         self.ck = contact_kernels(self.np_dtype) if model.num_pairs else None
         self.pk = post_stabilisation_kernels(self.np_dtype) if cfg.stabilisation.post_stabilisation else None
         #: PADMM's effort-limited rows switch to the larger penalty when they saturate, and the world's factor is
-        #: redone (kamino.jax_ref.padmm.solve, "Saturation"): at most one switch per actuator row and step, so on
+        #: redone (kamino.jax_ref.solver.solve, "Saturation"): at most one switch per actuator row and step, so on
         #: the CPU (no capture_while) a step launches PADMM that many times plus one. The Conjugate Residual path
         #: keeps the larger penalty on every effort-limited row instead (``solver.scale``'s ``always_sat``): with
         #: the proximal shift on those rows its inexact solves stalled PADMM on standing robots (olaf's loops
@@ -287,7 +287,7 @@ class Stepper:
         self._graphs.clear()
 
     def _launch_lanes(self, kernel, *args) -> None:
-        """Launch a 32-threads-per-world kernel (``padmm_warp.py``): one block of ``LANES`` threads per world."""
+        """Launch a 32-threads-per-world kernel (``solver_lanes.py``): one block of ``LANES`` threads per world."""
         wp.launch_tiled(kernel, dim=[self.wm.num_worlds], inputs=[self.wm.arrays, self.work, *args], block_dim=LANES,
                         device=self.device)
 

@@ -4,7 +4,7 @@ Once per step, after the pose update, the always-active rows' scaled block ``P D
 (``SolverConfig.projection_shifts``). Where PADMM's sparse factor already holds it (float32 at the defaults: the
 leading block ``L_f`` of PADMM's factor carries the shifts ``eta + rho_free`` / ``eta + rho``), the projection
 solves with that ``L_f``; otherwise the block is assembled on the fixed rows' static sparse pattern and
-factorised in a storage of its own (``sparse_llt.assemble_fixed`` / ``factor_fixed``,
+factorised in a storage of its own (``linear_solve.assemble_fixed`` / ``factor_fixed``,
 ``kamino/warp_backend/pipeline.py``). A world whose PADMM did not converge, or whose anchors the passes left open
 past ``REPROJECTION_GAP``, gets one pass more (the kernels' flag ``extra``; the reference's docstring):
 the extra pass's ``residual`` sets ``w.reproject`` where a gap is open, and its solve and displacement run where
@@ -27,8 +27,8 @@ from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.integrate import rows_on_body_func
 from kamino.warp_backend.jacobians import coupling_residual_func, cts_residual_func, dof_position_func
+from kamino.warp_backend.linear_solve import pattern_struct, solve_inplace_func
 from kamino.warp_backend.model_data import model_struct
-from kamino.warp_backend.sparse_llt import pattern_struct, solve_inplace_func
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct

@@ -4,14 +4,14 @@ Per step: ``v_f = J u_f + v*`` (§5) of the rows' blocks (``M^-1 J^T`` is formed
 either the dense Delassus ``D = J M^-1 J^T + R`` is assembled (from the block-sparse rows, or from a
 dense per-world ``J``), scaled by the Jacobi preconditioner ``P`` (§7.2) and factorised once by a
 Cholesky (§8.1), or PADMM runs matrix-free with a Conjugate Residual solve of the scaled operator
-``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` warm-started from the previous ADMM iterate (§8.2, ``padmm_cr.py``).
+``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` warm-started from the previous ADMM iterate (§8.2, ``linear_solve_cr.py``).
 
 The PADMM iterations of a world run in one thread (all of a world's vectors stay in its own row
 segment, cached near the thread); ``padmm_iterate_kernel``'s kernel runs up to ``chunk`` iterations and resumes from
 the stored iterate, so the host — or ``wp.capture_while`` inside a CUDA graph — relaunches it until
 every world has converged or reached its cap (``remaining`` counts the worlds still iterating).
-Every rule of an iteration is ``padmm_rules.py``'s, shared with the 32-thread schedule (``padmm_warp.py``) and
-mirroring ``kamino/jax_ref/padmm.py`` (accelerated PADMM with restart, §7.4; residuals, §7.5). Each kernel and
+Every rule of an iteration is ``solver_rules.py``'s, shared with the 32-thread schedule (``solver_lanes.py``) and
+mirroring ``kamino/jax_ref/solver.py`` (accelerated PADMM with restart, §7.4; residuals, §7.5). Each kernel and
 ``wp.func`` comes from a small builder cached per precision; the linear solve and the penalty rule of
 ``padmm_iterate_kernel`` are compile-time.
 """
@@ -22,14 +22,14 @@ import numpy as np
 import warp as wp
 
 from kamino.config import SATURATION_MARGIN
-from kamino.warp_backend import padmm_rules as rules
+from kamino.warp_backend import solver_rules as rules
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
+from kamino.warp_backend.linear_solve import sparse_llt_kernels
+from kamino.warp_backend.linear_solve_cr import cr_solve_func
 from kamino.warp_backend.model_data import GROUP
-from kamino.warp_backend.padmm_cr import cr_solve_func
-from kamino.warp_backend.padmm_rules import kernel_types
 from kamino.warp_backend.rows import row_kernels
-from kamino.warp_backend.sparse_llt import sparse_llt_kernels
+from kamino.warp_backend.solver_rules import kernel_types
 from kamino.warp_backend.types import types_of
 
 #: ``padmm_iterate_kernel``'s linear solve: the dense Cholesky factor, Conjugate Residual, the sparse factor
@@ -145,7 +145,7 @@ def delassus_dense_kernel(np_dtype):
     @wp.kernel(module="unique", enable_backward=False)
     def delassus_dense(m: M, w: Work):
         """Row ``a`` of ``D`` from the dense ``J`` (``6 n_bodies`` columns), each entry ``(J_a M^-1 J_b^T + J_b M^-1
-        J_a^T) / 2`` as the sparse rows' (``sparse_llt``'s ``delassus_term``: so that the rounding of ``M^-1 J^T``
+        J_a^T) / 2`` as the sparse rows' (``linear_solve``'s ``delassus_term``: so that the rounding of ``M^-1 J^T``
         vanishes on the null space of ``J^T``)."""
         wid, a = wp.tid()
         n = w.n_rows[wid]
@@ -223,7 +223,7 @@ def scale_kernel(np_dtype):
         """``v~_f = P v_f`` (in place: ``prebake`` wrote ``v_f`` into ``vt``), scaled bounds (in place: ``lo_s``/
         ``hi_s`` are ``lo``/``hi``, workspace.allocate), and whether an effort-limited fixed row starts saturated (the
         flag in ``w.row_info``, ``set_saturated``: its warm start ``impulse_scale f0 / P`` on a bound, to
-        ``SATURATION_MARGIN``; kamino.jax_ref.padmm.solve, "Saturation"; with ``always_sat``, every effort-limited
+        ``SATURATION_MARGIN``; kamino.jax_ref.solver.solve, "Saturation"; with ``always_sat``, every effort-limited
         row: the CR path, pipeline.Stepper); on the dense path ``D~ = P D P`` row by row with ``shift = eta +
         rho_free`` on the fixed rows' diagonal (``shift_sat`` on the saturated ones; ``padmm_init`` adds the world's
         penalty to the others)."""
@@ -263,7 +263,7 @@ def scale_kernel(np_dtype):
 
 @functools.cache
 def factor_tail_dense_func(np_dtype):
-    """The dense factor's tail for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty").
+    """The dense factor's tail for a penalty (``kamino.jax_ref.solver.solve``, "Penalty").
     ``factor_tail_dense(m, w, wid, n, shift)``, by the world's thread."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     didx = index_funcs(np_dtype).didx
@@ -343,7 +343,7 @@ def factor_dense_func(np_dtype):
 
 @functools.cache
 def refactor_dense_kernel(np_dtype):
-    """The dense factor again after a saturation (``kamino.jax_ref.padmm.solve``, "Saturation").
+    """The dense factor again after a saturation (``kamino.jax_ref.solver.solve``, "Saturation").
     ``refactor_dense(m, w, nblk, shift, shift_sat, eta)``, one thread per world."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     ridx = index_funcs(np_dtype).ridx
@@ -521,7 +521,7 @@ def restart_world_func(np_dtype):
 @functools.cache
 def linear_step_func(np_dtype, linear: int):
     """§7.3 steps 1-2 of one thread per world: the right-hand side and the linear solve ``linear``
-    (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``: ``sparse_llt.py``) of one iteration."""
+    (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``: ``linear_solve.py``) of one iteration."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
     row_rhs = rules.row_rhs_func(np_dtype)
@@ -560,7 +560,7 @@ def linear_step_func(np_dtype, linear: int):
 def project_rows_func(np_dtype, linear: int, adaptive: bool):
     """§7.3 steps 3-4 of one thread per world: every row's projection, dual update and residual terms.
     ``project_rows(m, w, wid, rb, n, n_box, eta, rho_free, rho_box, rho_u, p_ref)`` returns the world's
-    ``padmm_rules.residuals_struct``; ``linear`` and ``adaptive`` as :func:`padmm_iterate_kernel`'s."""
+    ``solver_rules.residuals_struct``; ``linear`` and ``adaptive`` as :func:`padmm_iterate_kernel`'s."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     vec3 = types_of(np_dtype).vec3
     Residuals = rules.residuals_struct(np_dtype)
@@ -593,7 +593,7 @@ def project_rows_func(np_dtype, linear: int, adaptive: bool):
 
 @functools.cache
 def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool, fixed_iterations: bool):
-    """Accelerated PADMM, one thread per world (§7.3-§7.5; the rules of ``padmm_rules.py``), with the linear solve
+    """Accelerated PADMM, one thread per world (§7.3-§7.5; the rules of ``solver_rules.py``), with the linear solve
     ``linear`` (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``), the adaptive penalty (``adaptive``), the
     momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
     if linear not in (LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE):
@@ -618,7 +618,7 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
         fixed rows carry the penalty ``rho_free`` (``rho_box`` on a saturated effort-limited actuator), the limit and
         contact rows the world's ``rho_u``, rebalanced under ``adaptive`` (then the tail of the factor is
         recomputed). A row that saturates ends the launch with ``w.pending`` set: ``refactor`` (or
-        ``refactor_dense``) redoes the factor before the next launch (kamino.jax_ref.padmm.solve, "Saturation");
+        ``refactor_dense``) redoes the factor before the next launch (kamino.jax_ref.solver.solve, "Saturation");
         CR's operator takes ``rho_box`` at its next solve."""
         rs = w.row_stride
         wid = wp.tid()

@@ -16,7 +16,7 @@ from kamino.warp_backend.types import types_of
 
 #: ``Work.row_info``: one int32 per row packs what the row assembly knows about a row besides its numbers: its
 #: source (the DoF, kinematic constraint, coupling or contact slot it comes from; a global index) in the low
-#: :data:`ROW_SRC_BITS` bits, then the saturation flag of an effort-limited fixed row (kamino.jax_ref.padmm
+#: :data:`ROW_SRC_BITS` bits, then the saturation flag of an effort-limited fixed row (kamino.jax_ref.solver
 #: "Saturation"), the sign of a limit row (set: the upper limit, ``side = -1``) and the row family (rows.ROW_*)
 #: in the top bits. The accessors are ``indexing.index_funcs``' ``row_kind``, ``row_source``, ``row_side``,
 #: ``row_saturated``, ``set_saturated``, ``row_mu`` and ``row_info``.
@@ -44,7 +44,7 @@ def work_struct(np_dtype):
     @wp.struct
     class Work:
         # storage distance between consecutive rows of a world: GROUP (rows interleaved over groups of 32 worlds,
-        # for the one-thread-per-world kernels) or 1 (each world's rows contiguous, for padmm_warp.py's threads)
+        # for the one-thread-per-world kernels) or 1 (each world's rows contiguous, for solver_lanes.py's threads)
         row_stride: int
         # state (persistent) and controls
         q: wp.array(dtype=transform)
@@ -145,7 +145,7 @@ def work_struct(np_dtype):
         k_rho: iarr  # per world: the iteration of the last penalty change
         p_ref: farr  # per world: the largest P of the active rows (the residuals' velocity scale)
         sdiag: farr  # [rows] the dense factor's diagonal of the tail rows' Schur complement (refactorisation on a
-        # new penalty); empty on the sparse factor's paths, which keep it in a column of the tail rows (sparse_llt)
+        # new penalty); empty on the sparse factor's paths, which keep it in a column of the tail rows (linear_solve)
         pending: iarr  # per world: a row saturated in the last iteration; the factor is redone before the next
         converged: iarr
         reproject: iarr  # per world: the passes left an anchor gap open (post-stabilisation's extra pass)
@@ -157,7 +157,7 @@ def work_struct(np_dtype):
         cr_Ap: farr
         cr_Ar: farr
         cr_w: v6  # [bodies] M^-1 J^T P x (the Conjugate Residual operator)
-        cr_ent: iarr  # [rows * nblk] the row blocks grouped by body (padmm_warp.cr_pattern; 32-thread schedule)
+        cr_ent: iarr  # [rows * nblk] the row blocks grouped by body (solver_lanes.cr_pattern; 32-thread schedule)
         cr_end: iarr  # [bodies] where each body's row blocks end in cr_ent
         # results
         q_new: wp.array(dtype=transform)

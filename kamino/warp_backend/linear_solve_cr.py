@@ -2,7 +2,7 @@
 
 The operator ``A = P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free (:func:`apply_func`):
 ``cr_w = M^-1 J^T P v`` per body, then ``J cr_w`` and the diagonal row by row. One thread per world (``solver.py``)
-sums a body's ``J^T P v`` by walking the rows in order; 32 threads per world (``padmm_warp.py``) split the bodies,
+sums a body's ``J^T P v`` by walking the rows in order; 32 threads per world (``solver_lanes.py``) split the bodies,
 each summing its body's row blocks from the lists ``cr_pattern`` builds once per step, in the same row order, so
 with no atomics and the same sums. :func:`cr_solve_func` is the one CR iteration of both, its vector updates split
 over the world's threads and its dot products reduced over them.
@@ -13,8 +13,8 @@ import functools
 import warp as wp
 
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.padmm_rules import LANES, kernel_types, lane_reduce_func, sync
-from kamino.warp_backend.sparse_llt import sparse_llt_kernels
+from kamino.warp_backend.linear_solve import sparse_llt_kernels
+from kamino.warp_backend.solver_rules import LANES, kernel_types, lane_reduce_func, sync
 from kamino.warp_backend.types import types_of
 
 
@@ -147,7 +147,7 @@ def cr_solve_func(np_dtype, lanes: int):
         |b|^2``, or exactly zero) or the recurrence breaks down (``|A p|^2 = 0`` or ``r^T A r = 0``): any looser
         stop would cap the accuracy of the linear solve at a level that, unscaled by ``1/P``, sits at PADMM's
         tolerance and stalls it. On exit ``cr_r`` holds the residual ``b - A x`` (the recurrence's, which follows
-        the true one to rounding), which PADMM folds into the dual residual (``padmm_rules.cr_residual_func``).
+        the true one to rounding), which PADMM folds into the dual residual (``solver_rules.cr_residual_func``).
         Each thread updates its own rows (``lane``, ``lane + lanes``, ...); the dot products are reduced over the
         threads, so every thread takes the same branch."""
         rs = w.row_stride

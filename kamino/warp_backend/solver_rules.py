@@ -1,8 +1,8 @@
 """One iteration of accelerated PADMM, as both PADMM schedules run it (one thread per world in ``solver.py``, 32
-threads per world in ``padmm_warp.py``): a row's right-hand side (docs/formulation.md §7.3 steps 1-2), its
+threads per world in ``solver_lanes.py``): a row's right-hand side (docs/formulation.md §7.3 steps 1-2), its
 projection, dual update and residual terms (§7.3 steps 3-4, §7.5), the world's convergence test, the fast-ADMM
 momentum with restart (§7.4), the penalty of the limit and contact rows and the saturation of effort-limited rows
-(``kamino.jax_ref.padmm.solve``, "Penalty", "Saturation", "Null directions"), and the move to the next iterate.
+(``kamino.jax_ref.solver.solve``, "Penalty", "Saturation", "Null directions"), and the move to the next iterate.
 
 A schedule keeps only what is its own: which rows a thread visits (``for a in range(lane, n, lanes)``), where the
 linear solve leaves ``x``, the block reductions of the world's :func:`residuals_struct` and the barriers. Each
@@ -17,8 +17,8 @@ import warp as wp
 from kamino import config
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
+from kamino.warp_backend.linear_solve import pattern_struct
 from kamino.warp_backend.model_data import model_struct
-from kamino.warp_backend.sparse_llt import pattern_struct
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
 
@@ -109,7 +109,7 @@ def extrapolated_func(np_dtype):
 
 @functools.cache
 def balanced_penalty_func(np_dtype):
-    """The residual-balancing penalty of the limit and contact rows (``kamino.jax_ref.padmm.solve``, "Penalty").
+    """The residual-balancing penalty of the limit and contact rows (``kamino.jax_ref.solver.solve``, "Penalty").
     ``balanced_penalty(rho_u, r_p, r_d, k, k_rho)`` (:func:`outcome_func`)."""
     scalar = types_of(np_dtype).scalar
     one = scalar(1.0)
@@ -136,7 +136,7 @@ def balanced_penalty_func(np_dtype):
 
 @functools.cache
 def row_penalty_func(np_dtype):
-    """A row's penalty (``kamino.jax_ref.padmm.solve``, "Penalty" and "Saturation").
+    """A row's penalty (``kamino.jax_ref.solver.solve``, "Penalty" and "Saturation").
     ``row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_saturated = index_funcs(np_dtype).row_saturated
@@ -160,7 +160,7 @@ def row_penalty_func(np_dtype):
 def residuals_struct(np_dtype):
     """The world's residual terms of one iteration, as its rows fold them in (the schedule reduces them over its
     threads): the maxima ``r_p``, ``r_d``, ``r_c`` (§7.5), the sum ``c_sum`` of §7.4's combined residual, the
-    null-direction test's ``r_tail``, ``de`` and ``dx`` (``kamino.jax_ref.padmm.solve``, "Null directions") and
+    null-direction test's ``r_tail``, ``de`` and ``dx`` (``kamino.jax_ref.solver.solve``, "Null directions") and
     ``hit`` (> 0: an effort-limited row's projection clipped it, "Saturation")."""
     scalar = types_of(np_dtype).scalar
 
@@ -180,7 +180,7 @@ def residuals_struct(np_dtype):
 
 @functools.cache
 def residual_weight_func(np_dtype):
-    """A row's residual weight (``kamino.jax_ref.padmm.solve``, "Residuals").
+    """A row's residual weight (``kamino.jax_ref.solver.solve``, "Residuals").
     ``residual_weight(P, p_ref)`` (:func:`dual_update_func`, :func:`cr_residual_func`)."""
     scalar = types_of(np_dtype).scalar
     one = scalar(1.0)
@@ -208,7 +208,7 @@ def dual_update_func(np_dtype):
                     rho: scalar, p_ref: scalar):
         """``(z, w |x - y|, w |eta (x - x_p) + rho (y - y_hat)|, rho |P dy|^2 + |dz / P|^2 / rho)`` with ``w`` the
         row's :func:`residual_weight_func`; the world takes the maxima of the first two
-        (``kamino.jax_ref.padmm.solve``, "Residuals"). The last is the row's share of §7.4's combined residual."""
+        (``kamino.jax_ref.solver.solve``, "Residuals"). The last is the row's share of §7.4's combined residual."""
         z = z_hat + rho * (y - x)
         dy = P * (y - y_hat)
         dz = (z - z_hat) / P
@@ -221,7 +221,7 @@ def dual_update_func(np_dtype):
 
 @functools.cache
 def saturates_func(np_dtype):
-    """Whether an effort-limited row saturates (``kamino.jax_ref.padmm.solve``, "Saturation").
+    """Whether an effort-limited row saturates (``kamino.jax_ref.solver.solve``, "Saturation").
     ``saturates(sat, lo, hi, v, y)`` (:func:`box_row_func`, :func:`mark_saturated_func`)."""
     scalar = types_of(np_dtype).scalar
 
@@ -484,7 +484,7 @@ def outcome_func(np_dtype, adaptive: bool, accelerate: bool):
 
 @functools.cache
 def mark_saturated_func(np_dtype):
-    """An effort-limited row that saturated takes ``rho_box`` from now on (``kamino.jax_ref.padmm.solve``,
+    """An effort-limited row that saturated takes ``rho_box`` from now on (``kamino.jax_ref.solver.solve``,
     "Saturation")."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_saturated = index_funcs(np_dtype).row_saturated
@@ -557,8 +557,8 @@ def store_world_func(np_dtype):
 
 @functools.cache
 def tail_dot_func(np_dtype):
-    """The dot products of the tail rows' dense Cholesky ``L_t = chol(S_t + shift I)`` (``sparse_llt.factor_tail``,
-    ``padmm_warp.factor_tail``; ``kamino.jax_ref.padmm.solve``, "Penalty")."""
+    """The dot products of the tail rows' dense Cholesky ``L_t = chol(S_t + shift I)`` (``linear_solve.factor_tail``,
+    ``solver_lanes.factor_tail``; ``kamino.jax_ref.solver.solve``, "Penalty")."""
     scalar, M, Work, SP = kernel_types(np_dtype)
 
     @wp.func

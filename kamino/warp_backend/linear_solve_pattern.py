@@ -1,4 +1,4 @@
-"""The host's symbolic analysis for the sparse Cholesky factor (``sparse_llt.py``; docs/formulation.md §8.1): which
+"""The host's symbolic analysis for the sparse Cholesky factor (``linear_solve.py``; docs/formulation.md §8.1): which
 bodies each always-active row of a world moves (:func:`fixed_row_bodies`), the worlds grouped by that structure
 (:func:`fixed_row_types`), the hubs whose unknowns stay in the factorised system (:func:`hub_bodies`), the factor's
 pattern in minimum-degree order with the update list of every entry (:func:`symbolic`), and the patterns a tail row
@@ -166,7 +166,7 @@ class Symbolic:
     upd_ptr: np.ndarray  # [nnz + 1] update pairs of each entry
     upd_a: np.ndarray  # [n_upd] entry L_pr
     upd_b: np.ndarray  # [n_upd] entry L_qr
-    # the same pattern by columns, for the 32-lane kernels (padmm_warp.py): column sweeps and the fan-out factor
+    # the same pattern by columns, for the 32-lane kernels (solver_lanes.py): column sweeps and the fan-out factor
     cptr: np.ndarray  # [n + 1] below-diagonal entries of column q: cent[cptr[q]:cptr[q + 1]] (rows ascending)
     cent: np.ndarray  # [nnz] entry index (world-type-local); the last n slots are padding
     crow: np.ndarray  # [nnz] the row (original numbering) of each cent entry: perm[row[cent]]

@@ -24,11 +24,11 @@ from kamino.config import (
     joint_deadband,
 )
 from kamino.jax_ref import contacts as cts
-from kamino.jax_ref import padmm
 from kamino.jax_ref import post_stabilisation as post
+from kamino.jax_ref import solver
 from kamino.jax_ref.couplings import coupling_jacobian, coupling_residual
 from kamino.jax_ref.dynamics import apply_inv_mass, body_dynamics, delassus, free_velocity, nonlinear_force
-from kamino.jax_ref.joints import (
+from kamino.jax_ref.jacobians import (
     constraint_jacobian,
     constraint_residual,
     dof_jacobian,
@@ -84,7 +84,7 @@ class WorldStep:
     body_q: jax.Array
     body_u: jax.Array
     cache: WorldCache
-    solve: padmm.PADMMResult
+    solve: solver.PADMMResult
     num_contacts: jax.Array
     contact_overflow: jax.Array
 
@@ -272,7 +272,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     if J.shape[0] == 0:
         z = jnp.asarray(0.0, dtype)
         empty = jnp.zeros(0, dtype)
-        return (u_f, padmm.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True), z, jnp.zeros(0, bool)),
+        return (u_f, solver.PADMMResult(empty, empty, jnp.int32(0), z, z, z, jnp.asarray(True), z, jnp.zeros(0, bool)),
                 ct, side, None)
     # warm start (§7.8): previous reactions, contacts matched by geom pair and point on geom b
     frames = cts.contact_frames(ct.normal)
@@ -281,9 +281,9 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     found = found & ct.mask
     f_prev = jnp.einsum("cji,cj->ci", frames, cache.contact_force[j])  # C_new^T f_world
     v_prev = jnp.einsum("cji,cj->ci", frames, cache.contact_velocity[j])
-    f_prev = jnp.where(found[:, None], padmm.cone_project(f_prev, ct.mu), 0.0)
+    f_prev = jnp.where(found[:, None], solver.cone_project(f_prev, ct.mu), 0.0)
     v_prev = jnp.where(found[:, None], v_prev, 0.0)
-    v_prev = v_prev + padmm.de_saxce(v_prev.reshape(-1), ct.mu, 0).reshape(-1, 3)
+    v_prev = v_prev + solver.de_saxce(v_prev.reshape(-1), ct.mu, 0).reshape(-1, 3)
     act_prev = jnp.where(pm.dyn_kind == DYN_ACTUATOR, cache.actuator[d], cache.passive[d])
     force0 = jnp.concatenate([act_prev, cache.kin, cache.coupling, jnp.maximum(side * cache.limit[pm.lim_dof], 0.0),
                               f_prev.reshape(-1)])
@@ -315,16 +315,16 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
             return J @ uf_vec + jnp.concatenate([vs_dyn, vk, vc, vs_lim, vs_con])
 
     rho0 = jnp.where(cache.penalty > 0, cache.penalty, cfg.penalty.rho).astype(dtype)
-    res = padmm.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_dyn + n_kin)
+    res = solver.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_dyn + n_kin)
     u_plus = u_f + apply_inv_mass(bd, (J.T @ res.impulse).reshape(nb, 6))  # u+ = u_f + M^-1 J^T lambda
     proj = None
     if cfg.stabilisation.post_stabilisation and n_dyn + n_kin:
-        P = padmm.jacobi_preconditioner(D, row_mask, n_box)
+        P = solver.jacobi_preconditioner(D, row_mask, n_box)
         proj = post.projector(J, D, P, n_dyn + n_kin, res.saturated, bd, cfg)
     return u_plus, res, ct, side, proj
 
 
-def _new_cache(pm: PaddedModel, q_eval, res: padmm.PADMMResult, ct: cts.Contacts, side, ctrl: WorldControl,
+def _new_cache(pm: PaddedModel, q_eval, res: solver.PADMMResult, ct: cts.Contacts, side, ctrl: WorldControl,
                cfg: SolverConfig) -> WorldCache:
     """Split the solve's impulses into the per-family forces ``lambda / dt`` the State carries."""
     dt = cfg.dt

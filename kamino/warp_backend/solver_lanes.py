@@ -11,7 +11,7 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   targets are distinct, so no atomics). The tail rows (active limits and contacts): ``L_tf`` by a forward
   substitution per tail row (threads over tail rows), the Schur complement ``S_t`` (threads over all its entry
   pairs ``(t, j <= t)``) and its dense Cholesky by columns (:func:`factor_tail_func`). Same sums as
-  ``sparse_llt.factor``, in another order. ``L_f`` is stored once, in row order.
+  ``linear_solve.factor``, in another order. ``L_f`` is stored once, in row order.
 - **Solve** (:func:`solve_func`, every iteration). Column sweeps: the forward substitution of the fixed rows walks the
   columns of ``L_f`` (``x_q = b_q / L_qq``, then the column's entries update the rows below, threads over the
   entries; each entry's index in ``L_f``'s row order, ``cent``, is loaded two columns ahead, so that the value waits
@@ -20,10 +20,10 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   the right-hand side is updated in ``w.y`` (free during the solve) and the solution lands in ``w.x``.
   docs/warp_backend.md, "Where a PADMM iteration's time goes", has what each load ordering cost.
 - **Iterations** (:func:`iterate_kernel`). Every rule of an iteration (right-hand side, projection, dual update,
-  residuals, the penalty of the limit and contact rows, the null-direction test, momentum) is ``padmm_rules.py``'s,
+  residuals, the penalty of the limit and contact rows, the null-direction test, momentum) is ``solver_rules.py``'s,
   as in the one-thread schedule; here the threads split the box rows and the contact triples and the world's maxima
   and sums are block reductions. Iteration counts equal the thread kernel's (``tests/test_warp_lane_padmm.py``).
-- **Conjugate Residual** (``iterate_kernel(cr=True)``: ``padmm_cr.cr_solve_func``, §8.2, instead of the factor).
+- **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
   atomics and keeps the one-thread order), then the rows for ``J`` times it; CR's dot products are block sums.
@@ -37,11 +37,11 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from kamino.warp_backend import padmm_rules as rules
+from kamino.warp_backend import solver_rules as rules
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.padmm_cr import cr_pattern_kernel, cr_solve_func
-from kamino.warp_backend.padmm_rules import LANES, kernel_types, sync
-from kamino.warp_backend.sparse_llt import pattern_struct, sparse_llt_kernels
+from kamino.warp_backend.linear_solve import pattern_struct, sparse_llt_kernels
+from kamino.warp_backend.linear_solve_cr import cr_pattern_kernel, cr_solve_func
+from kamino.warp_backend.solver_rules import LANES, kernel_types, sync
 from kamino.warp_backend.types import types_of
 
 #: Rounds of fan-out update triples (32 per round) whose indices a thread of :func:`factor_kernel` loads together.
@@ -166,7 +166,7 @@ def batch(a: wp.array(dtype=wp.int32), u: int, umax: int) -> FanIdx:
 
 @functools.cache
 def fan_out_func(np_dtype, E: int):
-    """The fan-out updates of a fixed column (``sparse_llt.factor_fixed_rows``'s sums).
+    """The fan-out updates of a fixed column (``linear_solve.factor_fixed_rows``'s sums).
     ``fan_out(sp, vb, tv, av, bv, u, f1, lv, neg)``: a thread's FAN_BATCH rounds of update triples."""
     SP = pattern_struct(np_dtype)
     LVec = shared_vector(np_dtype, max(E, 1))
@@ -175,7 +175,7 @@ def fan_out_func(np_dtype, E: int):
     @wp.func
     def fan_out(sp: SP, vb: int, tv: FanIdx, av: FanIdx, bv: FanIdx, u: int, f1: int, lv: LVec, neg: int):
         """The updates ``D~_tgt -= s_q L_a L_b`` of the thread's FAN_BATCH rounds from ``u`` that lie before ``f1``
-        (``neg``: the column is a hub's unknown, ``s_q = -1``, ``sparse_llt.factor_fixed_rows``)."""
+        (``neg``: the column is a hub's unknown, ``s_q = -1``, ``linear_solve.factor_fixed_rows``)."""
         for r in range(FAN_BATCH):
             if u + r * LANES < f1:
                 if neg != 0:
@@ -190,7 +190,7 @@ def fan_out_func(np_dtype, E: int):
 
 @functools.cache
 def ltf_batch_func(np_dtype, E: int):
-    """A batch of the tail rows' ``L_tf`` updates (``sparse_llt.factor_world``'s sums).
+    """A batch of the tail rows' ``L_tf`` updates (``linear_solve.factor_world``'s sums).
     ``ltf_batch(sp, vb, tr, tc, ub, u1, s, lv)``: FAN_BATCH update pairs of one entry of ``L_tf``."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     LVec = shared_vector(np_dtype, max(E, 1))
@@ -201,7 +201,7 @@ def ltf_batch_func(np_dtype, E: int):
     @wp.func
     def ltf_batch(sp: SP, vb: int, tr: int, tc: int, ub: int, u1: int, s: scalar, lv: LVec) -> scalar:
         """``s - sum_u L_k(u) l_j(u)`` over the pattern's update pairs ``u = ub .. ub + FAN_BATCH - 1`` before ``u1``
-        (``l``: the tail row at ``tr``; ``sparse_llt.Pattern.pat_upd_*``): the FAN_BATCH pairs' indices, then their
+        (``l``: the tail row at ``tr``; ``linear_solve.Pattern.pat_upd_*``): the FAN_BATCH pairs' indices, then their
         values, each batch loaded together (indices clamped, the surplus multiplied by zero), so that the sum waits
         on two load latencies per batch instead of two per entry."""
         kv = FanIdx()
@@ -222,7 +222,7 @@ def ltf_batch_func(np_dtype, E: int):
 
 @functools.cache
 def factor_tail_func(np_dtype):
-    """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.padmm.solve``, "Penalty").
+    """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.solver.solve``, "Penalty").
     ``factor_tail(m, w, sp, wid, n, shift, lane)``: by the world's threads (``factor_kernel`` and a new
     penalty in :func:`iterate_kernel`)."""
     scalar, M, Work, SP = kernel_types(np_dtype)
@@ -234,9 +234,9 @@ def factor_tail_func(np_dtype):
     @wp.func
     def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
         """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
-        products over the columns before it, :func:`padmm_rules.tail_dot_func`), from ``S_t`` in the tail rows'
+        products over the columns before it, :func:`solver_rules.tail_dot_func`), from ``S_t`` in the tail rows'
         upper slots (``S_t[t, j]`` at row ``j``, tail column ``K + t``) and its diagonal (column
-        ``sparse_llt.sdiag_col``); the sums of ``sparse_llt.factor_tail``."""
+        ``linear_solve.sdiag_col``); the sums of ``linear_solve.factor_tail``."""
         base = bases(m, w, sp, wid)
         nt = n - sp.n_fixed[wid]
         kt = tail_k(sp, wid)
@@ -277,7 +277,7 @@ def factor_kernel(np_dtype, E: int = 0):
         updates), then the tail rows' ``L_tf``, their Schur complement and ``factor_tail`` with the world's
         penalty ``eta + rho_u``. With ``pending_only`` only the worlds whose effort-limited rows saturated in the
         last PADMM iteration (``w.pending``), which first assemble ``D~`` again with the shifts ``shift`` /
-        ``shift_sat`` (``sparse_llt.refactor``; kamino.jax_ref.padmm.solve, "Saturation")."""
+        ``shift_sat`` (``linear_solve.refactor``; kamino.jax_ref.solver.solve, "Saturation")."""
         wid, lane = wp.tid()
         if pending_only != 0:
             if w.pending[wid] == 0:
@@ -291,7 +291,7 @@ def factor_kernel(np_dtype, E: int = 0):
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
-        npos = sp.n_pos[wid]  # the fixed rows, then the hubs' unknowns (sign s_q = -1: sparse_llt.factor_fixed_rows)
+        npos = sp.n_pos[wid]  # the fixed rows, then the hubs' unknowns (sign s_q = -1: linear_solve.factor_fixed_rows)
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
         nnz = sp.nnz[wid]
@@ -375,7 +375,7 @@ def factor_kernel(np_dtype, E: int = 0):
                 s = sp.tail[tr + i * tc]
                 u1 = sp.pat_upd_ptr[i0 + i + 1]
                 pos = sp.pat_pos[i0 + i]
-                if pos >= nf:  # a hub position: the signed sum and divisor of sparse_llt.factor_world
+                if pos >= nf:  # a hub position: the signed sum and divisor of linear_solve.factor_world
                     for u in range(sp.pat_upd_ptr[i0 + i], u1):
                         uk = sp.pat_upd_k[u]
                         if sp.col[e0 + uk] >= nf:
@@ -427,7 +427,7 @@ def solve_func(np_dtype, R: int):
     @wp.func
     def solve(m: M, w: Work, sp: SP, wid: int, n: int, lane: int, xs: Vec, ys: Vec):
         """``x <- L^-T L^-1 x`` with ``L_tf`` on its patterns and ``L_t`` dense, by column sweeps: one barrier per
-        row (``sparse_llt.solve_inplace``, the same products in another order; with hubs ``x <- L^-T S L^-1 x``, the
+        row (``linear_solve.solve_inplace``, the same products in another order; with hubs ``x <- L^-T S L^-1 x``, the
         hubs' unknowns in their virtual rows of ``xs`` / ``ys``). ``xs`` holds the right-hand side on entry and the
         solution on exit, ``ys`` is scratch: both in shared memory, indexed by row. The next column's (row's) factor
         entries are loaded before the barrier of the current one, unconditionally (clamped indices), so that their
@@ -441,7 +441,7 @@ def solve_func(np_dtype, R: int):
         p0 = sp.ptr_start[wid]
         q0 = sp.perm_start[wid]
         nt = n - nf
-        npos = sp.n_pos[wid]  # the fixed rows, then the hubs' unknowns (sparse_llt.solve_inplace: x <- L^-T S L^-1 x)
+        npos = sp.n_pos[wid]  # the fixed rows, then the hubs' unknowns (linear_solve.solve_inplace: x <- L^-T S L^-1 x)
         if npos > nf:  # the hubs' right-hand side: 0 in their virtual rows
             for p in range(nf + lane, npos, LANES):
                 sset(xs, sp.perm[q0 + p], zero)
@@ -618,7 +618,7 @@ def solve_fixed_kernel(np_dtype, R: int):
 @functools.cache
 def lane_rhs_func(np_dtype):
     """§7.3 steps 1-2 on one row of the 32-thread schedule.
-    ``lane_rhs(w, r, a, nf, n_box, rho_free, rho_box, rho_u, eta)``: ``padmm_rules.row_rhs_func``, then the
+    ``lane_rhs(w, r, a, nf, n_box, rho_free, rho_box, rho_u, eta)``: ``solver_rules.row_rhs_func``, then the
     contact correction on a normal row."""
     scalar, M, Work, SP = kernel_types(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
@@ -641,7 +641,7 @@ def lane_rhs_func(np_dtype):
 
 @functools.cache
 def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool, fixed_iterations: bool):
-    """Accelerated PADMM with the world's 32 threads (§7.3-§7.5; the rules of ``padmm_rules.py``), with the sparse
+    """Accelerated PADMM with the world's 32 threads (§7.3-§7.5; the rules of ``solver_rules.py``), with the sparse
     factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), the adaptive penalty (``adaptive``),
     the momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
     scalar, M, Work, SP = kernel_types(np_dtype)
@@ -768,7 +768,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamesp
     0`` the factorisation copies the world's ``D~_f`` (up to ``E`` entries) into shared memory, factorises it there
     and writes ``L_f`` back: its chain of dependent read-modify-writes, one per update, then waits on shared memory
     instead of device memory. With ``cr`` the iterations solve with Conjugate Residual instead of the factor (§8.2,
-    ``padmm_cr.py``: the vectors in the ``Work`` rows, no shared vectors), after ``cr_pattern`` has grouped the
+    ``linear_solve_cr.py``: the vectors in the ``Work`` rows, no shared vectors), after ``cr_pattern`` has grouped the
     world's row blocks by body for the step."""
     return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E),
                            solve_fixed=solve_fixed_kernel(np_dtype, R),

@@ -1,6 +1,6 @@
 """Joint kinematics in maximal coordinates for one world (docs/formulation.md §2).
 
-Every function here works on one world's padded arrays; ``kamino.jax_ref.step`` vmaps them.
+Every function here works on one world's padded arrays; ``kamino.jax_ref.pipeline`` vmaps them.
 A joint connects a base ``B`` (a body or the world) to a follower ``F``; its frame is attached
 to the base side and its local x axis is the (first) motion axis (§2.1).
 """

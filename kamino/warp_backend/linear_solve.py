@@ -33,9 +33,7 @@ import warp as wp
 from kamino.model import Model
 from kamino.tables import prefix, row_tables
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.model_data import GROUP, group_sizes, model_struct
-from kamino.warp_backend.rows import ROW_LIMIT
-from kamino.warp_backend.sparse_pattern import (
+from kamino.warp_backend.linear_solve_pattern import (
     HUB_MIN_ROWS,
     FixedRowTypes,
     Symbolic,
@@ -46,6 +44,8 @@ from kamino.warp_backend.sparse_pattern import (
     symbolic,
     tail_patterns,
 )
+from kamino.warp_backend.model_data import GROUP, group_sizes, model_struct
+from kamino.warp_backend.rows import ROW_LIMIT
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import work_struct
@@ -97,14 +97,14 @@ def pattern_struct(np_dtype):
         fan_b: iarr
         # per group of 32 worlds: the value storage, interleaved over the group's worlds (val_stride = GROUP: the
         # one-thread-per-world kernels read a row of 32 worlds at once) or world after world (val_stride = 1: the
-        # 32 threads of one world read consecutive entries, padmm_warp.py); grp_nnz: the group's entries per world
+        # 32 threads of one world read consecutive entries, solver_lanes.py); grp_nnz: the group's entries per world
         grp_val_start: iarr
         grp_nnz: iarr
         val_stride: int
         grp_tail_start: iarr
         # the tail rows: entry (t, c) of a world at tail + t stride + c tail_stride, interleaved over the group's
         # worlds like val (tail_stride = GROUP, stride = GROUP * dim) or world after world (tail_stride = 1,
-        # stride = dim: padmm_warp.py's threads read consecutive entries of a row); grp_tail_size: the group's
+        # stride = dim: solver_lanes.py's threads read consecutive entries of a row); grp_tail_size: the group's
         # entries per world
         tail_stride: int
         grp_tail_size: iarr
@@ -236,7 +236,7 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     world's row capacity, ``model_data``; default ``row_maxdim``).
 
     Only the tables the kernels read are uploaded; the others hold a single 0. The update lists: ``fan`` (default
-    ``per_world``), the column-order triples ``fan_*`` of ``padmm_warp.factor``; else the row-order pairs ``upd_*``
+    ``per_world``), the column-order triples ``fan_*`` of ``solver_lanes.factor``; else the row-order pairs ``upd_*``
     of the one-thread kernels (:func:`factor`, ``refactor``, ``factor_fixed``: post-stabilisation's own factor is
     built with ``fan=False`` under either schedule). The column index ``cptr``, ``cent``, ``crow`` is read by the
     32-thread kernels only (``per_world``). Both lists of a type are as long as its fill-in updates (the
@@ -285,7 +285,7 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
                               for f in ("cptr", "cent", "crow"))
     S.fan_ptr = i32(np.concatenate([s.fan_ptr + o for s, o in zip(syms, upd0_t, strict=True)]) if syms and fan
                     else unread)
-    # one trailing 0 each, so that padmm_warp.factor's clamped batch loads have an entry to read in any model
+    # one trailing 0 each, so that solver_lanes.factor's clamped batch loads have an entry to read in any model
     S.fan_tgt, S.fan_a, S.fan_b = (i32(np.append(cat(lambda s, f=f: getattr(s, f)), 0) if fan else unread)
                                    for f in ("fan_tgt", "fan_a", "fan_b"))
     S.grp_val_start = i32(prefix(GROUP * g_nnz))
@@ -302,7 +302,7 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     n_upd = np.array([len(t[1]) for t in tables], np.int64)
     S.pat_upd_ptr = i32(np.append(np.concatenate([t[0][:-1] + o for t, o in zip(tables, prefix(n_upd), strict=True)])
                                   if flat else np.zeros(0, np.int64), n_upd.sum()))
-    # one trailing 0 each, for padmm_warp.factor's clamped batch loads
+    # one trailing 0 each, for solver_lanes.factor's clamped batch loads
     S.pat_upd_k = i32(np.append(np.concatenate([t[1] for t in tables]) if flat else [], 0))
     S.pat_upd_j = i32(np.append(np.concatenate([t[2] for t in tables]) if flat else [], 0))
     S.pat_lut_stride = max(int(n_t.max()) if len(n_t) else 0, 1)
@@ -615,7 +615,7 @@ def fixed_entry_func(np_dtype):
     @wp.func
     def fixed_entry(m: M, w: Work, sp: SP, wid: int, k: int, nblk: int, shift: scalar, shift_sat: scalar):
         """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D0_ab P_b`` (``+ shift`` on the diagonal,
-        ``shift_sat`` on a saturated effort-limited row, ``row_saturated``: the penalty, kamino.jax_ref.padmm.solve,
+        ``shift_sat`` on a saturated effort-limited row, ``row_saturated``: the penalty, kamino.jax_ref.solver.solve,
         "Saturation"; ``D0``: :func:`delassus0`), or on a hub position's row :func:`hub_entry`."""
         e = sp.ent_start[wid] + k
         p = sp.row[e]
@@ -790,7 +790,7 @@ def factor_tail_func(np_dtype):
         """``L_t = chol(S_t + shift I)``: the tail rows' Cholesky from their Schur complement ``S_t = D~_t -
         L_tf L_tf^T``, kept by :func:`factor` in the tail rows' upper slots (``S_t[t, j]`` at row ``j``, tail
         column ``K + t``) and its diagonal in column :func:`sdiag_col`; a new penalty of the limit and contact rows
-        redoes only this (``kamino.jax_ref.padmm.solve``, "Penalty")."""
+        redoes only this (``kamino.jax_ref.solver.solve``, "Penalty")."""
         base = bases(m, w, sp, wid)
         tb, ts = base[2], base[3]
         tc = sp.tail_stride
@@ -931,7 +931,7 @@ def refactor_kernel(np_dtype):
     @wp.kernel(module="unique", enable_backward=False)
     def refactor(m: M, w: Work, sp: SP, nblk: int, shift: scalar, shift_sat: scalar, eta: scalar):
         """The whole factor again for the worlds whose effort-limited rows saturated in the last PADMM iteration
-        (``w.pending``; kamino.jax_ref.padmm.solve, "Saturation"): assembly with the new shifts, then
+        (``w.pending``; kamino.jax_ref.solver.solve, "Saturation"): assembly with the new shifts, then
         :func:`factor_world` (one thread per world)."""
         wid = wp.tid()
         if w.pending[wid] == 0:
@@ -1025,7 +1025,7 @@ def solve_inplace_func(np_dtype):
 
 def sparse_llt_kernels(np_dtype) -> SimpleNamespace:
     """The sparse factor's kernels and ``wp.func``s by name (the launches in ``pipeline.py``, the callers in
-    ``solver.py``, ``post_stabilisation.py`` and ``padmm_warp.py``), each from its builder."""
+    ``solver.py``, ``post_stabilisation.py`` and ``solver_lanes.py``), each from its builder."""
     return SimpleNamespace(assemble_fixed=assemble_fixed_kernel(np_dtype),
                            assemble_tail=assemble_tail_kernel(np_dtype), factor=factor_kernel(np_dtype),
                            factor_fixed=factor_fixed_kernel(np_dtype), refactor=refactor_kernel(np_dtype),
