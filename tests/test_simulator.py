@@ -32,6 +32,17 @@ def _final(traj: kamino.State) -> np.ndarray:
     return np.concatenate([np.asarray(traj.body_q[-1]).ravel(), np.asarray(traj.body_u[-1]).ravel()])
 
 
+def _in_threads(work, count: int) -> dict[int, np.ndarray]:
+    """``work(i)`` for ``i < count``, each in its own thread, all started before any is joined."""
+    results: dict[int, np.ndarray] = {}
+    threads = [threading.Thread(target=lambda i=i: results.__setitem__(i, work(i))) for i in range(count)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return results
+
+
 @pytest.mark.parametrize("backend", ["warp", "jax"])
 def test_threads_with_their_own_simulators_match_one_thread_bit_for_bit(fourbar, backend):
     # Each thread holds its own simulator of the same Model and rolls out its own start; every result must equal,
@@ -39,17 +50,8 @@ def test_threads_with_their_own_simulators_match_one_thread_bit_for_bit(fourbar,
     with jax.enable_x64(True):
         starts = [_start(fourbar, c) for c in (0.0, 0.2, -0.3, 0.4)]
         alone = [_final(kamino.Simulator(fourbar, backend=backend).rollout(s, num_steps=STEPS)) for s in starts]
-        results: dict[int, np.ndarray] = {}
-
-        def run(i: int) -> None:
-            sim = kamino.Simulator(fourbar, backend=backend)
-            results[i] = _final(sim.rollout(starts[i], num_steps=STEPS))
-
-        threads = [threading.Thread(target=run, args=(i,)) for i in range(len(starts))]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        results = _in_threads(lambda i: _final(kamino.Simulator(fourbar, backend=backend).rollout(
+            starts[i], num_steps=STEPS)), len(starts))
     for i, expected in enumerate(alone):
         np.testing.assert_array_equal(results[i], expected)
     assert not np.array_equal(alone[0], alone[1])  # the starts differ, so equal results would mean a mix-up
@@ -69,13 +71,7 @@ def test_a_shared_simulator_gives_every_thread_its_own_result(fourbar):
             return np.concatenate([np.asarray(state.body_q).ravel(), np.asarray(state.body_u).ravel()])
 
         alone = [walk(s) for s in starts]
-        results: dict[int, np.ndarray] = {}
-        threads = [threading.Thread(target=lambda i=i: results.__setitem__(i, walk(starts[i])))
-                   for i in range(len(starts))]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        results = _in_threads(lambda i: walk(starts[i]), len(starts))
     for i, expected in enumerate(alone):
         np.testing.assert_array_equal(results[i], expected)
 

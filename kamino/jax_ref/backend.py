@@ -173,11 +173,15 @@ class Engine:
         return _rollout_jit(lay.padded, lay.tables, state, controls, self.cfg, int(num_steps))
 
 
+def padded_motion(pm: PaddedModel, t: dict, body_q: jax.Array, body_u: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Flat poses and twists -> padded ``[W, nb, 7]`` / ``[W, nb, 6]`` (identity poses, zero twists on padding)."""
+    return padded_poses(pm, t, body_q), to_padded(body_u, t["bg"], pm.body_mask, 0.0)
+
+
 @jax.jit
 @full_precision
 def _metrics_jit(pm: PaddedModel, t: dict, body_q, body_u):
-    q = padded_poses(pm, t, body_q)
-    u = to_padded(body_u, t["bg"], pm.body_mask, 0.0)
+    q, u = padded_motion(pm, t, body_q, body_u)
 
     def one(pm_w, q_w, u_w):
         bd = body_dynamics(pm_w, q_w)
@@ -214,8 +218,7 @@ def joint_coordinates_padded(model: Model, body_q: jax.Array) -> jax.Array:
 @jax.jit
 @full_precision
 def _dof_state_jit(pm: PaddedModel, t: dict, body_q, body_u):
-    q = padded_poses(pm, t, body_q)
-    u = to_padded(body_u, t["bg"], pm.body_mask, 0.0)
+    q, u = padded_motion(pm, t, body_q, body_u)
 
     def one(p, x, v):
         jf = joint_frames(p, x)
