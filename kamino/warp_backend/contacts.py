@@ -19,11 +19,9 @@ from kamino.model import GeomType
 from kamino.warp_backend.collision import collide_pair_func
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.rows import ROW_CONTACT, row_kernels
 from kamino.warp_backend.spatial import spatial_funcs
-from kamino.warp_backend.types import types_of
-from kamino.warp_backend.workspace import work_struct
+from kamino.warp_backend.workspace import builder_types
 
 PLANE = int(GeomType.PLANE)
 
@@ -40,9 +38,7 @@ def contact_kernels(np_dtype) -> SimpleNamespace:
 @functools.cache
 def point_funcs(np_dtype) -> SimpleNamespace:
     """Geom poses and point velocities of the candidate points (§4.2: ``x_A``, ``x_B`` and their velocities)."""
-    T = types_of(np_dtype)
-    scalar, vec3, vec6, transform = T.scalar, T.vec3, T.vec6, T.transform
-    M = model_struct(np_dtype)
+    scalar, vec3, vec6, transform, M = builder_types(np_dtype).take("scalar", "vec3", "vec6", "transform", "M")
     sp = spatial_funcs(np_dtype)
     lin, ang = sp.lin, sp.ang
 
@@ -78,10 +74,7 @@ def point_funcs(np_dtype) -> SimpleNamespace:
 def narrow_phase_kernel(np_dtype) -> wp.Kernel:
     """``narrow_phase(m, w, h, contact_margin)``: the candidate points of every geom pair (§4.2, activation
     margin), one thread per pair, by :func:`kamino.warp_backend.collision.collide_pair_func`."""
-    T = types_of(np_dtype)
-    scalar, vec3 = T.scalar, T.vec3
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
+    scalar, vec3, M, Work = builder_types(np_dtype).take("scalar", "vec3", "M", "Work")
     sp = spatial_funcs(np_dtype)
     lin, ang = sp.lin, sp.ang
     collide_pair = collide_pair_func(np_dtype)
@@ -134,9 +127,7 @@ def narrow_phase_kernel(np_dtype) -> wp.Kernel:
 def pack_kernel(np_dtype) -> wp.Kernel:
     """``pack(m, w, h, contact_margin, deadband_c, restitution_threshold)``: activation (speculative, or
     restitution timing) and packing into the world's capacity, one thread per world (§4.2)."""
-    scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     approach_velocity = point_funcs(np_dtype).approach_velocity
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -192,9 +183,7 @@ def pack_kernel(np_dtype) -> wp.Kernel:
 @functools.cache
 def frame_funcs(np_dtype) -> SimpleNamespace:
     """The contact frame, the warm-start key point and the Jacobian blocks of a contact row (§4.2, §7.8)."""
-    T = types_of(np_dtype)
-    scalar, vec3, vec6 = T.scalar, T.vec3, T.vec6
-    Work = work_struct(np_dtype)
+    scalar, vec3, vec6, Work = builder_types(np_dtype).take("scalar", "vec3", "vec6", "Work")
     twist = spatial_funcs(np_dtype).twist
 
     @wp.func
@@ -247,10 +236,7 @@ def frame_funcs(np_dtype) -> SimpleNamespace:
 def contact_rows_kernel(np_dtype) -> wp.Kernel:
     """``contact_rows(m, w, nblk, h, gamma, deadband_c, restitution_threshold, match_distance)``: three rows
     per active contact with the gap or restitution bias (§4.2) and the warm start (§7.8)."""
-    T = types_of(np_dtype)
-    scalar, vec3 = T.scalar, T.vec3
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
+    scalar, vec3, M, Work = builder_types(np_dtype).take("scalar", "vec3", "M", "Work")
     deadband = spatial_funcs(np_dtype).deadband
     cf = cone_funcs(np_dtype)
     rk = row_kernels(np_dtype)
@@ -322,10 +308,7 @@ def contact_rows_kernel(np_dtype) -> wp.Kernel:
 def commit_contacts_kernel(np_dtype) -> wp.Kernel:
     """``commit_contacts(m, w, inv_dt)``: the step's contacts into the State, world-frame force on geom b's body
     and relative velocity (§4.2), kept for the next step's warm start (§7.8)."""
-    T = types_of(np_dtype)
-    scalar, vec3 = T.scalar, T.vec3
-    M = model_struct(np_dtype)
-    Work = work_struct(np_dtype)
+    scalar, vec3, M, Work = builder_types(np_dtype).take("scalar", "vec3", "M", "Work")
     ridx = index_funcs(np_dtype).ridx
     ff = frame_funcs(np_dtype)
     contact_frame, local_point_b = ff.contact_frame, ff.local_point_b

@@ -18,15 +18,14 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from kamino.warp_backend.model_data import GROUP, model_struct
-from kamino.warp_backend.types import types_of
+from kamino.warp_backend.model_data import GROUP
 from kamino.warp_backend.workspace import (
     ROW_KIND_SHIFT,
     ROW_NEG_BIT,
     ROW_SAT_BIT,
     ROW_SRC_BITS,
     ROW_SRC_MASK,
-    work_struct,
+    builder_types,
 )
 
 _SRC_MASK, _SAT_BIT, _NEG_BIT = wp.constant(ROW_SRC_MASK), wp.constant(ROW_SAT_BIT), wp.constant(ROW_NEG_BIT)
@@ -46,7 +45,7 @@ def index_funcs(np_dtype) -> SimpleNamespace:
 @functools.cache
 def row_base_func(np_dtype):
     """Where a world's rows start (the layouts of the module docstring)."""
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    M, Work = builder_types(np_dtype).take("M", "Work")
 
     @wp.func
     def row_base(m: M, w: Work, wid: int):
@@ -64,7 +63,7 @@ def row_base_func(np_dtype):
 @functools.cache
 def ridx_func(np_dtype):
     """The storage index of a world's row (the layouts of the module docstring)."""
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    M, Work = builder_types(np_dtype).take("M", "Work")
     row_base = row_base_func(np_dtype)
 
     @wp.func
@@ -79,7 +78,7 @@ def ridx_func(np_dtype):
 @functools.cache
 def didx_func(np_dtype):
     """The storage index of a world's Delassus entry."""
-    M = model_struct(np_dtype)
+    M = builder_types(np_dtype).M
 
     @wp.func
     def didx(m: M, wid: int, a: int, b: int):
@@ -93,7 +92,7 @@ def didx_func(np_dtype):
 @functools.cache
 def jidx_func(np_dtype):
     """The storage index of a world's dense-Jacobian entry."""
-    M = model_struct(np_dtype)
+    M = builder_types(np_dtype).M
 
     @wp.func
     def jidx(m: M, wid: int, a: int, c: int):
@@ -107,7 +106,7 @@ def jidx_func(np_dtype):
 @functools.cache
 def row_info_func(np_dtype):
     """A row's packed description ``Work.row_info`` (``workspace.ROW_SRC_BITS``)."""
-    scalar = types_of(np_dtype).scalar
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func
     def row_info(kind: int, src: int, side: scalar):
@@ -124,7 +123,7 @@ def row_info_func(np_dtype):
 @functools.cache
 def row_kind_func(np_dtype):
     """A row's family, from ``Work.row_info``."""
-    Work = work_struct(np_dtype)
+    Work = builder_types(np_dtype).Work
 
     @wp.func
     def row_kind(w: Work, r: int):
@@ -137,7 +136,7 @@ def row_kind_func(np_dtype):
 @functools.cache
 def row_source_func(np_dtype):
     """A row's source, from ``Work.row_info``."""
-    Work = work_struct(np_dtype)
+    Work = builder_types(np_dtype).Work
 
     @wp.func
     def row_source(w: Work, r: int):
@@ -151,8 +150,7 @@ def row_source_func(np_dtype):
 @functools.cache
 def row_side_func(np_dtype):
     """A limit row's sign, from ``Work.row_info``."""
-    scalar = types_of(np_dtype).scalar
-    Work = work_struct(np_dtype)
+    scalar, Work = builder_types(np_dtype).take("scalar", "Work")
 
     @wp.func
     def row_side(w: Work, r: int):
@@ -167,7 +165,7 @@ def row_side_func(np_dtype):
 @functools.cache
 def row_saturated_func(np_dtype):
     """A row's saturation flag, from ``Work.row_info``."""
-    Work = work_struct(np_dtype)
+    Work = builder_types(np_dtype).Work
 
     @wp.func
     def row_saturated(w: Work, r: int):
@@ -181,7 +179,7 @@ def row_saturated_func(np_dtype):
 @functools.cache
 def set_saturated_func(np_dtype):
     """A row's saturation flag set or cleared in ``Work.row_info``."""
-    Work = work_struct(np_dtype)
+    Work = builder_types(np_dtype).Work
 
     @wp.func
     def set_saturated(w: Work, r: int, sat: int):
@@ -197,7 +195,7 @@ def set_saturated_func(np_dtype):
 @functools.cache
 def row_mu_func(np_dtype):
     """A contact row's friction coefficient."""
-    Work = work_struct(np_dtype)
+    Work = builder_types(np_dtype).Work
 
     @wp.func
     def row_mu(w: Work, r: int):

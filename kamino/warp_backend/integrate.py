@@ -18,11 +18,9 @@ import warp as wp
 from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.jacobians import cts_residual_func
-from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.rows import ROW_ACTUATOR, ROW_COUPLING, ROW_JOINT, ROW_LIMIT, ROW_PASSIVE
 from kamino.warp_backend.spatial import spatial_funcs
-from kamino.warp_backend.types import types_of
-from kamino.warp_backend.workspace import work_struct
+from kamino.warp_backend.workspace import builder_types
 
 #: A world whose largest anchor gap (a translational joint row's residual) exceeds this [m] at the pose a step ends
 #: in (after post-stabilisation's projection), and exceeds the gap it had before the step, is flagged ``failed`` on
@@ -47,9 +45,7 @@ def end_step_kernels(np_dtype, dense: bool, screened: bool) -> SimpleNamespace:
 @functools.cache
 def rows_on_body_func(np_dtype):
     """``rows_on_body(m, w, wid, b, n, nblk, lam)``: ``(J^T lambda)_b`` from the block-sparse rows (§6.2)."""
-    T = types_of(np_dtype)
-    scalar, vec6 = T.scalar, T.vec6
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, vec6, M, Work = builder_types(np_dtype).take("scalar", "vec6", "M", "Work")
     ridx = index_funcs(np_dtype).ridx
 
     @wp.func
@@ -69,7 +65,7 @@ def rows_on_body_func(np_dtype):
 @functools.cache
 def live_item_func(np_dtype):
     """``live_item(w, wid, i, start, count)``: item ``i`` of a world's segment, or -1 (the commit kernels, §6.2)."""
-    Work = work_struct(np_dtype)
+    Work = builder_types(np_dtype).Work
 
     @wp.func
     def live_item(w: Work, wid: int, i: int, start: int, count: int):
@@ -85,9 +81,7 @@ def live_item_func(np_dtype):
 def integrate_kernel(np_dtype, dense: bool):
     """``u+`` and the pose update (docs/formulation.md §6.2, §6.3), from the dense Jacobian (``dense``) or the
     block-sparse rows."""
-    T = types_of(np_dtype)
-    scalar, vec6 = T.scalar, T.vec6
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, vec6, M, Work = builder_types(np_dtype).take("scalar", "vec6", "M", "Work")
     ix = index_funcs(np_dtype)
     ridx, jidx = ix.ridx, ix.jidx
     sp = spatial_funcs(np_dtype)
@@ -132,8 +126,7 @@ def integrate_kernel(np_dtype, dense: bool):
 @functools.cache
 def dof_forces_kernel(np_dtype):
     """The per-DoF forces' reset before the rows' share (§6.2)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     live_item = live_item_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -153,8 +146,7 @@ def dof_forces_kernel(np_dtype):
 @functools.cache
 def row_forces_kernel(np_dtype):
     """The State's forces ``lambda / dt`` by row family (docs/formulation.md §6.2)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     ix = index_funcs(np_dtype)
     ridx, row_kind, row_source, row_side = ix.ridx, ix.row_kind, ix.row_source, ix.row_side
 
@@ -185,7 +177,7 @@ def row_forces_kernel(np_dtype):
 @functools.cache
 def commit_bodies_kernel(np_dtype):
     """The new body state committed (§6.2)."""
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    M, Work = builder_types(np_dtype).take("M", "Work")
     live_item = live_item_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -204,8 +196,7 @@ def commit_bodies_kernel(np_dtype):
 @functools.cache
 def commit_time_kernel(np_dtype):
     """The worlds' time and health after a step (docs/conventions.md, "World health")."""
-    scalar = types_of(np_dtype).scalar
-    Work = work_struct(np_dtype)
+    scalar, Work = builder_types(np_dtype).take("scalar", "Work")
 
     @wp.kernel(module="unique", enable_backward=False)
     def commit_time(w: Work, dt: scalar, max_unconverged: int):
@@ -235,8 +226,7 @@ def commit_time_kernel(np_dtype):
 def closure_check_kernel(np_dtype, screened: bool):
     """The loop-closure health check (docs/conventions.md, "World health"; :data:`LOOP_OPEN_BOUND`) of every world
     or, ``screened``, of the worlds post-stabilisation's extra pass projected."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     cts_residual = cts_residual_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)

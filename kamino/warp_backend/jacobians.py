@@ -14,9 +14,8 @@ import functools
 import warp as wp
 
 from kamino.model import DOF_FREE, DOF_TRANS, DOF_UNIV, RES_HINGE, RES_LOG, RES_TRANS, RES_UNIV, JointType
-from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.spatial import spatial_funcs
-from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import builder_types
 
 _UNIVERSAL = int(JointType.UNIVERSAL)
 
@@ -26,7 +25,7 @@ _UNIVERSAL = int(JointType.UNIVERSAL)
 @functools.cache
 def body_pose_func(np_dtype):
     """``body_pose(body_q, b)``: the pose of body ``b``, the identity for the world (§2.1)."""
-    transform, scalar = types_of(np_dtype).transform, types_of(np_dtype).scalar
+    transform, scalar = builder_types(np_dtype).take("transform", "scalar")
 
     @wp.func
     def body_pose(body_q: wp.array(dtype=transform), b: int):
@@ -41,8 +40,7 @@ def body_pose_func(np_dtype):
 @functools.cache
 def joint_frame_func(np_dtype):
     """``joint_frame(m, body_q, j)``: the world quantities of joint ``j`` (§2.1-2.2)."""
-    transform = types_of(np_dtype).transform
-    M = model_struct(np_dtype)
+    transform, M = builder_types(np_dtype).take("transform", "M")
     body_pose = body_pose_func(np_dtype)
 
     @wp.func
@@ -70,8 +68,7 @@ def joint_frame_func(np_dtype):
 @functools.cache
 def universal_axes_func(np_dtype):
     """``universal_axes(Q)``: the intermediate frame of a universal joint (§2.4)."""
-    T = types_of(np_dtype)
-    scalar, vec3, quat = T.scalar, T.vec3, T.quat
+    scalar, vec3, quat = builder_types(np_dtype).take("scalar", "vec3", "quat")
 
     @wp.func
     def universal_axes(Q: quat):
@@ -90,8 +87,7 @@ def universal_axes_func(np_dtype):
 @functools.cache
 def residual_func(np_dtype):
     """``residual(kind, axis, Q, t)``: the position residual of one kinematic row (§2.3)."""
-    T = types_of(np_dtype)
-    scalar, vec3, quat = T.scalar, T.vec3, T.quat
+    scalar, vec3, quat = builder_types(np_dtype).take("scalar", "vec3", "quat")
     quat_log = spatial_funcs(np_dtype).quat_log
 
     @wp.func
@@ -117,8 +113,7 @@ def residual_func(np_dtype):
 @functools.cache
 def axis_blocks_func(np_dtype):
     """``axis_blocks(is_trans, a, p, r_F, r_B)``: the follower and base blocks of a row along a world axis (§2.5)."""
-    T = types_of(np_dtype)
-    scalar, vec3 = T.scalar, T.vec3
+    scalar, vec3 = builder_types(np_dtype).take("scalar", "vec3")
     twist = spatial_funcs(np_dtype).twist
 
     @wp.func
@@ -136,8 +131,7 @@ def axis_blocks_func(np_dtype):
 @functools.cache
 def row_axis_func(np_dtype):
     """``row_axis(is_trans, is_univ, axis, R_j, Q)``: the world axis of a DoF or kinematic row (§2.4-2.5)."""
-    T = types_of(np_dtype)
-    vec3, quat, mat33 = T.vec3, T.quat, T.mat33
+    vec3, quat, mat33 = builder_types(np_dtype).take("vec3", "quat", "mat33")
     universal_axes = universal_axes_func(np_dtype)
 
     @wp.func
@@ -163,8 +157,7 @@ def row_axis_func(np_dtype):
 @functools.cache
 def cts_row_func(np_dtype):
     """``cts_row(m, body_q, c)``: the residual and blocks of kinematic row ``c`` (§2.3-2.5)."""
-    transform = types_of(np_dtype).transform
-    M = model_struct(np_dtype)
+    transform, M = builder_types(np_dtype).take("transform", "M")
     joint_frame, residual = joint_frame_func(np_dtype), residual_func(np_dtype)
     row_axis, axis_blocks = row_axis_func(np_dtype), axis_blocks_func(np_dtype)
 
@@ -188,8 +181,7 @@ def cts_row_func(np_dtype):
 @functools.cache
 def cts_residual_func(np_dtype):
     """``cts_residual(m, body_q, c)``: the residual of kinematic row ``c`` (§2.3)."""
-    transform = types_of(np_dtype).transform
-    M = model_struct(np_dtype)
+    transform, M = builder_types(np_dtype).take("transform", "M")
     joint_frame, residual = joint_frame_func(np_dtype), residual_func(np_dtype)
 
     @wp.func
@@ -205,9 +197,7 @@ def cts_residual_func(np_dtype):
 @functools.cache
 def dof_position_func(np_dtype):
     """``dof_position(m, body_q, d)``: the position of DoF ``d`` (§2.4)."""
-    T = types_of(np_dtype)
-    scalar, vec3, transform = T.scalar, T.vec3, T.transform
-    M = model_struct(np_dtype)
+    scalar, vec3, transform, M = builder_types(np_dtype).take("scalar", "vec3", "transform", "M")
     joint_frame = joint_frame_func(np_dtype)
     quat_log = spatial_funcs(np_dtype).quat_log
 
@@ -236,9 +226,7 @@ def dof_position_func(np_dtype):
 @functools.cache
 def dof_blocks_func(np_dtype):
     """``dof_blocks(m, body_q, d)``: the (follower, base) blocks of DoF row ``d`` of ``J_dofs`` (§2.5)."""
-    T = types_of(np_dtype)
-    scalar, vec3, vec6, transform = T.scalar, T.vec3, T.vec6, T.transform
-    M = model_struct(np_dtype)
+    scalar, vec3, vec6, transform, M = builder_types(np_dtype).take("scalar", "vec3", "vec6", "transform", "M")
     joint_frame = joint_frame_func(np_dtype)
     row_axis, axis_blocks = row_axis_func(np_dtype), axis_blocks_func(np_dtype)
     twist = spatial_funcs(np_dtype).twist
@@ -273,8 +261,7 @@ def dof_blocks_func(np_dtype):
 @functools.cache
 def coupling_residual_func(np_dtype):
     """``coupling_residual(m, k, q_a, q_b)``: the residual ``q_a - p(q_b)`` of coupling ``k`` and ``p'(q_b)``."""
-    scalar = types_of(np_dtype).scalar
-    M = model_struct(np_dtype)
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
 
     @wp.func
     def poly(m: M, k: int, x: scalar):

@@ -44,96 +44,17 @@ from kamino.warp_backend.linear_solve_pattern import (
     symbolic,
     tail_patterns,
 )
-from kamino.warp_backend.model_data import GROUP, group_sizes, model_struct
+from kamino.warp_backend.model_data import GROUP, group_sizes
 from kamino.warp_backend.rows import ROW_LIMIT
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.types import types_of
-from kamino.warp_backend.workspace import work_struct
+from kamino.warp_backend.workspace import builder_types, pattern_struct
 
 # --- host: symbolic analysis ---------------------------------------------------------------------------
 #
 # Everything here that depends on a world's structure runs once per distinct structure, not once per world: worlds
 # made by ``kamino.replicate`` (or a few robot types put together by ``kamino.concat``) share a handful. The per-world
 # work is numpy over all worlds at once (the tables below), or one dictionary look-up per world.
-
-@functools.cache
-def pattern_struct(np_dtype):
-    """The Warp struct of the factor patterns (shared by worlds of one type) and the factor's values."""
-    scalar = types_of(np_dtype).scalar
-    iarr = wp.array(dtype=wp.int32)
-
-    @wp.struct
-    class Pattern:
-        # per world: where its type's pattern starts in the arrays below
-        perm_start: iarr  # into perm and row_ptr (row_ptr has one more per type: at perm_start + type index)
-        ptr_start: iarr
-        ent_start: iarr  # into col, row, div, upd_ptr
-        nnz: iarr
-        n_fixed: iarr  # the fixed rows (the first tail row's index)
-        # positions of L_f: the fixed rows, then 6 per hub (their unknowns; n_pos = n_fixed without hubs)
-        n_pos: iarr
-        # hubs (symbolic): body_hub[b] = hub index of global body b in its world, or -1; a world's hubs are the global
-        # bodies hub_body[hub_start[wid] ..], in position order
-        body_hub: iarr
-        hub_start: iarr
-        hub_body: iarr
-        perm: iarr
-        row_ptr: iarr  # world-type-local entry indices
-        col: iarr
-        colrow: iarr
-        row: iarr
-        div: iarr
-        upd_ptr: iarr  # [2 nnz]: (start, end) of each entry's update pairs in upd_a / upd_b
-        upd_a: iarr  # world-type-local entry indices
-        upd_b: iarr
-        # by columns (Symbolic.cptr ...): cptr like row_ptr, cent / crow like col, fan_ptr like row_ptr with global
-        # indices into fan_tgt / fan_a / fan_b (whose values are world-type-local entry indices)
-        cptr: iarr
-        cent: iarr
-        crow: iarr
-        fan_ptr: iarr
-        fan_tgt: iarr
-        fan_a: iarr
-        fan_b: iarr
-        # per group of 32 worlds: the value storage, interleaved over the group's worlds (val_stride = GROUP: the
-        # one-thread-per-world kernels read a row of 32 worlds at once) or world after world (val_stride = 1: the
-        # 32 threads of one world read consecutive entries, solver_lanes.py); grp_nnz: the group's entries per world
-        grp_val_start: iarr
-        grp_nnz: iarr
-        val_stride: int
-        grp_tail_start: iarr
-        # the tail rows: entry (t, c) of a world at tail + t stride + c tail_stride, interleaved over the group's
-        # worlds like val (tail_stride = GROUP, stride = GROUP * dim) or world after world (tail_stride = 1,
-        # stride = dim: solver_lanes.py's threads read consecutive entries of a row); grp_tail_size: the group's
-        # entries per world
-        tail_stride: int
-        grp_tail_size: iarr
-        grp_tail_k: iarr  # per group: K, the stored entries of a tail row's L_tf (its tail columns start there)
-        grp_tail_dim: iarr  # per group: K + the tail rows, the entries of a tail row
-        # the L_tf patterns of all world types (tail_patterns), by global pattern id: pattern P's entries are
-        # pat_ptr[P] .. pat_ptr[P + 1] - 1 of pat_pos (fixed positions, ascending) and pat_row (their rows, perm[pos])
-        pat_ptr: iarr
-        pat_pos: iarr
-        pat_row: iarr
-        # L_tf's forward substitution: entry i of a pattern subtracts L_pk l_j for the pairs u in
-        # pat_upd_ptr[i] .. pat_upd_ptr[i + 1] - 1: k = pat_upd_k[u] (entry of L_f, world-type-local) and j =
-        # pat_upd_j[u] (the compressed index of column col[k] in the pattern; columns outside it hold zeros)
-        pat_upd_ptr: iarr
-        pat_upd_k: iarr
-        pat_upd_j: iarr
-        # pattern P's lookup: pat_lut[P pat_lut_stride + p] = compressed index of fixed position p, or -1 (one stride,
-        # the most fixed rows of any world type, so the solve finds a row's lookup from its pattern id without a load)
-        pat_lut_stride: int
-        pat_lut: iarr
-        dof_pat: iarr  # [num_dofs] the pattern of a limit row on DoF d (global pattern id; -1: no limit)
-        con_pat: iarr  # [W] the pattern of the world's first contact pair (-1: none); pair k's is con_pat + k
-        tail_max: int  # tail rows per world in tail_pat
-        tail_pat: iarr  # [W tail_max] the pattern of each tail row, set by tail_row at assembly
-        val: wp.array(dtype=scalar)  # the fixed rows' factor
-        tail: wp.array(dtype=scalar)  # the tail rows (fixed positions, then tail columns)
-
-    return Pattern
-
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SparseFactor:
@@ -324,7 +245,7 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
 def empty(np_dtype, device) -> object:
     """A pattern struct with no worlds (the argument of kernels that take the dense or CR path)."""
     S = pattern_struct(np.dtype(np_dtype))()
-    scalar = types_of(np.dtype(np_dtype)).scalar
+    scalar = builder_types(np_dtype).scalar
     for name in ("perm_start", "ptr_start", "ent_start", "nnz", "n_fixed", "n_pos", "body_hub", "hub_start",
                  "hub_body", "perm", "row_ptr", "col", "colrow", "row",
                  "div", "upd_ptr", "upd_a", "upd_b", "cptr", "cent", "crow", "fan_ptr", "fan_tgt", "fan_a", "fan_b",
@@ -350,7 +271,7 @@ def empty(np_dtype, device) -> object:
 @functools.cache
 def vidx_func(np_dtype):
     """The storage index of a factor entry (docs/formulation.md §8.1; the layout of :func:`build`)."""
-    M, SP = model_struct(np_dtype), pattern_struct(np_dtype)
+    M, SP = builder_types(np_dtype).take("M", "SP")
 
     @wp.func
     def vidx(m: M, sp: SP, wid: int, k: int):
@@ -367,7 +288,7 @@ def vidx_func(np_dtype):
 @functools.cache
 def bases_func(np_dtype):
     """The hoisted storage starts of a world's rows, factor values and tail rows (§8.1)."""
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
     row_base = index_funcs(np_dtype).row_base
 
     @wp.func
@@ -391,7 +312,7 @@ def bases_func(np_dtype):
 @functools.cache
 def tail_k_func(np_dtype):
     """Where a tail row's tail columns start (§8.1)."""
-    SP = pattern_struct(np_dtype)
+    SP = builder_types(np_dtype).SP
 
     @wp.func
     def tail_k(sp: SP, wid: int):
@@ -404,7 +325,7 @@ def tail_k_func(np_dtype):
 @functools.cache
 def sdiag_col_func(np_dtype):
     """The column that keeps the diagonal of the tail's Schur complement (§8.1)."""
-    SP = pattern_struct(np_dtype)
+    SP = builder_types(np_dtype).SP
 
     @wp.func
     def sdiag_col(sp: SP, wid: int):
@@ -418,7 +339,7 @@ def sdiag_col_func(np_dtype):
 @functools.cache
 def tidx_func(np_dtype):
     """The storage index of a tail-row entry (§8.1)."""
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
     bases = bases_func(np_dtype)
 
     @wp.func
@@ -434,7 +355,7 @@ def tidx_func(np_dtype):
 @functools.cache
 def tail_pattern_func(np_dtype):
     """A tail row's ``L_tf`` pattern (§8.1)."""
-    SP = pattern_struct(np_dtype)
+    SP = builder_types(np_dtype).SP
 
     @wp.func
     def tail_pattern(sp: SP, wid: int, t: int):
@@ -447,8 +368,7 @@ def tail_pattern_func(np_dtype):
 @functools.cache
 def inv_mass_times_func(np_dtype):
     """``M_b^-1 J`` for a 1x6 block on one body (docs/formulation.md §1.3)."""
-    vec6 = types_of(np_dtype).vec6
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    vec6, M, Work = builder_types(np_dtype).take("vec6", "M", "Work")
     sf = spatial_funcs(np_dtype)
 
     @wp.func
@@ -465,8 +385,7 @@ def inv_mass_times_func(np_dtype):
 @functools.cache
 def delassus_term_func(np_dtype):
     """One body's share of a Delassus entry (docs/formulation.md §7.1)."""
-    scalar, vec6 = types_of(np_dtype).scalar, types_of(np_dtype).vec6
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, vec6, M, Work = builder_types(np_dtype).take("scalar", "vec6", "M", "Work")
     inv_mass_times = inv_mass_times_func(np_dtype)
 
     @wp.func
@@ -487,8 +406,7 @@ def delassus_term_func(np_dtype):
 @functools.cache
 def delassus_sum_func(np_dtype):
     """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (docs/formulation.md §7.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     ridx = index_funcs(np_dtype).ridx
     delassus_term = delassus_term_func(np_dtype)
 
@@ -522,7 +440,7 @@ def delassus_sum_func(np_dtype):
 @functools.cache
 def delassus_entry_func(np_dtype):
     """``(J M^-1 J^T + R)_ab`` over every body (docs/formulation.md §7.1)."""
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    M, Work = builder_types(np_dtype).take("M", "Work")
     delassus_sum = delassus_sum_func(np_dtype)
 
     @wp.func
@@ -537,7 +455,7 @@ def delassus_entry_func(np_dtype):
 @functools.cache
 def delassus0_func(np_dtype):
     """``D0_ab``: the Delassus entry without the world's hubs (§7.1; docs/warp_backend.md "Open problems")."""
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
     delassus_sum = delassus_sum_func(np_dtype)
 
     @wp.func
@@ -551,8 +469,7 @@ def delassus0_func(np_dtype):
 @functools.cache
 def row_on_body_func(np_dtype):
     """A row's blocks on one body, summed (§2.5)."""
-    vec6 = types_of(np_dtype).vec6
-    Work = work_struct(np_dtype)
+    vec6, Work = builder_types(np_dtype).take("vec6", "Work")
 
     @wp.func
     def row_on_body(w: Work, r: int, body: int, nblk: int):
@@ -569,8 +486,7 @@ def row_on_body_func(np_dtype):
 @functools.cache
 def hub_entry_func(np_dtype):
     """An entry of the hub block rows of the quasi-definite system (docs/warp_backend.md "Open problems")."""
-    scalar = types_of(np_dtype).scalar
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     ridx = index_funcs(np_dtype).ridx
     row_on_body = row_on_body_func(np_dtype)
 
@@ -605,8 +521,7 @@ def hub_entry_func(np_dtype):
 @functools.cache
 def fixed_entry_func(np_dtype):
     """An entry of the fixed rows' scaled Delassus pattern, ``D~_pq`` (docs/formulation.md §8.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     ix = index_funcs(np_dtype)
     ridx, row_saturated = ix.ridx, ix.row_saturated
     vidx, delassus0 = vidx_func(np_dtype), delassus0_func(np_dtype)
@@ -639,8 +554,7 @@ def fixed_entry_func(np_dtype):
 @functools.cache
 def assemble_fixed_kernel(np_dtype):
     """The fixed rows' pattern of ``D~`` of every world (docs/formulation.md §8.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     fixed_entry = fixed_entry_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -657,7 +571,7 @@ def assemble_fixed_kernel(np_dtype):
 @functools.cache
 def tail_row_func(np_dtype):
     """A tail row's entries of ``D~`` (docs/formulation.md §8.1)."""
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
     ix = index_funcs(np_dtype)
     ridx, row_kind, row_source = ix.ridx, ix.row_kind, ix.row_source
     tail_k, tidx = tail_k_func(np_dtype), tidx_func(np_dtype)
@@ -701,7 +615,7 @@ def tail_row_func(np_dtype):
 @functools.cache
 def assemble_tail_kernel(np_dtype):
     """The tail rows' entries of ``D~`` of every world (docs/formulation.md §8.1)."""
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
     tail_row = tail_row_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -718,7 +632,7 @@ def assemble_tail_kernel(np_dtype):
 @functools.cache
 def factor_fixed_rows_func(np_dtype):
     """``L_f`` in place by the precomputed update lists (docs/formulation.md §8.1)."""
-    SP = pattern_struct(np_dtype)
+    SP = builder_types(np_dtype).SP
 
     @wp.func
     def factor_fixed_rows(sp: SP, wid: int, vb: int):
@@ -765,7 +679,7 @@ def factor_fixed_rows_func(np_dtype):
 @functools.cache
 def factor_fixed_kernel(np_dtype):
     """The Cholesky factor of the fixed rows only (post-stabilisation; docs/formulation.md §8.1)."""
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
     bases, factor_fixed_rows = bases_func(np_dtype), factor_fixed_rows_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -780,8 +694,7 @@ def factor_fixed_kernel(np_dtype):
 @functools.cache
 def factor_tail_func(np_dtype):
     """``L_t``, the tail rows' dense Cholesky with the world's penalty (docs/formulation.md §8.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     bases, tail_k = bases_func(np_dtype), tail_k_func(np_dtype)
     sdiag_col = sdiag_col_func(np_dtype)
 
@@ -820,7 +733,7 @@ def factor_tail_func(np_dtype):
 @functools.cache
 def schur_entry_func(np_dtype):
     """An entry of the tail rows' Schur complement ``S_t`` (docs/formulation.md §8.1)."""
-    Work, SP = work_struct(np_dtype), pattern_struct(np_dtype)
+    Work, SP = builder_types(np_dtype).take("Work", "SP")
     tail_k, sdiag_col = tail_k_func(np_dtype), sdiag_col_func(np_dtype)
     tail_pattern = tail_pattern_func(np_dtype)
 
@@ -858,8 +771,7 @@ def schur_entry_func(np_dtype):
 @functools.cache
 def factor_world_func(np_dtype):
     """A world's whole Cholesky factor ``D~ = L L^T`` (docs/formulation.md §8.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     bases, tail_pattern = bases_func(np_dtype), tail_pattern_func(np_dtype)
     factor_fixed_rows, factor_tail = factor_fixed_rows_func(np_dtype), factor_tail_func(np_dtype)
     schur_entry = schur_entry_func(np_dtype)
@@ -908,8 +820,7 @@ def factor_world_func(np_dtype):
 @functools.cache
 def factor_kernel(np_dtype):
     """Every world's Cholesky factor (docs/formulation.md §8.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     factor_world = factor_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -923,8 +834,7 @@ def factor_kernel(np_dtype):
 @functools.cache
 def refactor_kernel(np_dtype):
     """The factor again of the worlds whose effort-limited rows saturated (docs/formulation.md §8.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     fixed_entry, tail_row = fixed_entry_func(np_dtype), tail_row_func(np_dtype)
     factor_world = factor_world_func(np_dtype)
 
@@ -949,8 +859,7 @@ def refactor_kernel(np_dtype):
 @functools.cache
 def solve_inplace_func(np_dtype):
     """``x <- L^-T L^-1 x`` with the sparse factor and its tail (docs/formulation.md §8.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     bases, tail_k = bases_func(np_dtype), tail_k_func(np_dtype)
     tail_pattern = tail_pattern_func(np_dtype)
 

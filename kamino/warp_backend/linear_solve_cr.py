@@ -14,8 +14,8 @@ import warp as wp
 
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.linear_solve import sparse_llt_kernels
-from kamino.warp_backend.solver_rules import LANES, kernel_types, lane_reduce_func, sync
-from kamino.warp_backend.types import types_of
+from kamino.warp_backend.solver_rules import LANES, lane_reduce_func, sync
+from kamino.warp_backend.workspace import builder_types
 
 
 @wp.func
@@ -29,7 +29,7 @@ def ent_slot(rb: int, rs: int, nblk: int, j: int) -> int:
 def cr_pattern_kernel(np_dtype):
     """The world's row blocks grouped by body, for :func:`apply_func` on 32 threads (§8.2).
     ``cr_pattern(m, w, nblk)``, one thread per world (``wp.launch``), once per step."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_base = index_funcs(np_dtype).row_base
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -72,8 +72,7 @@ def cr_pattern_kernel(np_dtype):
 def apply_func(np_dtype, lanes: int):
     """``out = A v`` by a world's ``lanes`` threads (1 or ``LANES``; §8.2).
     ``apply(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, v, out)``."""
-    vec6 = types_of(np_dtype).vec6
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    vec6, scalar, M, Work, SP = builder_types(np_dtype).take("vec6", "scalar", "M", "Work", "SP")
     inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
     row_saturated = index_funcs(np_dtype).row_saturated
 
@@ -134,7 +133,7 @@ def apply_func(np_dtype, lanes: int):
 def cr_solve_func(np_dtype, lanes: int):
     """Conjugate Residual by a world's ``lanes`` threads (1 or ``LANES``; §8.2).
     ``cr_solve(m, w, wid, rb, n, nblk, lane, shift_f, shift_b, shift_t, budget)``."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     apply = apply_func(np_dtype, lanes)
     lane_sum = lane_reduce_func(np_dtype, lanes, "sum")
     zero = scalar(0.0)

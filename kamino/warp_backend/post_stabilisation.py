@@ -27,11 +27,9 @@ from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.integrate import rows_on_body_func
 from kamino.warp_backend.jacobians import coupling_residual_func, cts_residual_func, dof_position_func
-from kamino.warp_backend.linear_solve import pattern_struct, solve_inplace_func
-from kamino.warp_backend.model_data import model_struct
+from kamino.warp_backend.linear_solve import solve_inplace_func
 from kamino.warp_backend.spatial import spatial_funcs
-from kamino.warp_backend.types import types_of
-from kamino.warp_backend.workspace import work_struct
+from kamino.warp_backend.workspace import builder_types
 
 
 def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
@@ -43,8 +41,7 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
 @functools.cache
 def residual_kernel(np_dtype):
     """The fixed rows' position residuals in PADMM's units, ``x = -P e(q_new)`` (docs/formulation.md §2.3, §8)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     ridx = index_funcs(np_dtype).ridx
     deadband = spatial_funcs(np_dtype).deadband
     cts_residual, dof_position = cts_residual_func(np_dtype), dof_position_func(np_dtype)
@@ -85,7 +82,7 @@ def residual_kernel(np_dtype):
 @functools.cache
 def solve_kernel(np_dtype):
     """The projection's solve with the fixed rows' sparse factor, one thread per world (docs/formulation.md §8.1)."""
-    M, Work, SP = model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
+    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
     ridx = index_funcs(np_dtype).ridx
     sparse_solve = solve_inplace_func(np_dtype)
 
@@ -108,8 +105,7 @@ def solve_kernel(np_dtype):
 @functools.cache
 def displace_kernel(np_dtype):
     """The projection's displacement ``q_new <- q_new ⊕ M^-1 J_f^T lambda`` (docs/formulation.md §6.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     sp = spatial_funcs(np_dtype)
     integrate_pose, inverse_mass_times = sp.integrate_pose, sp.inverse_mass_times
     rows_on_body = rows_on_body_func(np_dtype)

@@ -24,10 +24,8 @@ from kamino.warp_backend.jacobians import (
     dof_blocks_func,
     dof_position_func,
 )
-from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.spatial import spatial_funcs
-from kamino.warp_backend.types import types_of
-from kamino.warp_backend.workspace import work_struct
+from kamino.warp_backend.workspace import builder_types
 
 # row families (for splitting the solution into the State's force fields)
 ROW_ACTUATOR, ROW_PASSIVE, ROW_JOINT, ROW_COUPLING, ROW_LIMIT, ROW_CONTACT = 0, 1, 2, 3, 4, 5
@@ -60,8 +58,7 @@ def step_row_kernels(np_dtype, curvature: bool, midpoint: bool) -> SimpleNamespa
 @functools.cache
 def body_dot_func(np_dtype):
     """``body_dot(u, b, J)``: one block's share ``J u_b`` of a row's product with a twist array (0 on the world)."""
-    T = types_of(np_dtype)
-    scalar, vec6 = T.scalar, T.vec6
+    scalar, vec6 = builder_types(np_dtype).take("scalar", "vec6")
 
     @wp.func
     def body_dot(u: wp.array(dtype=vec6), b: int, J: vec6):
@@ -75,8 +72,7 @@ def body_dot_func(np_dtype):
 @functools.cache
 def set_blocks_func(np_dtype):
     """``set_blocks(w, r, nblk, bF, JF, bB, JB)``: row ``r``'s two blocks (§2.5)."""
-    vec6 = types_of(np_dtype).vec6
-    Work = work_struct(np_dtype)
+    vec6, Work = builder_types(np_dtype).take("vec6", "Work")
 
     @wp.func
     def set_blocks(w: Work, r: int, nblk: int, bF: int, JF: vec6, bB: int, JB: vec6):
@@ -96,9 +92,7 @@ def set_blocks_func(np_dtype):
 @functools.cache
 def row_dot_func(np_dtype):
     """``row_dot(w, r, nblk, u)``: ``J_r u`` over row ``r``'s blocks (§2.5)."""
-    T = types_of(np_dtype)
-    scalar, vec6 = T.scalar, T.vec6
-    Work = work_struct(np_dtype)
+    scalar, vec6, Work = builder_types(np_dtype).take("scalar", "vec6", "Work")
     body_dot = body_dot_func(np_dtype)
 
     @wp.func
@@ -115,8 +109,7 @@ def row_dot_func(np_dtype):
 @functools.cache
 def dof_row_func(np_dtype):
     """``dof_row(m, w, r, nblk, d, sign)``: row ``r``'s blocks are ``sign`` times DoF ``d``'s (§2.5, §3.2, §4.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     set_blocks = set_blocks_func(np_dtype)
 
     @wp.func
@@ -130,8 +123,7 @@ def dof_row_func(np_dtype):
 @functools.cache
 def set_row_func(np_dtype):
     """``set_row(w, r, vstar, reg, lo, hi, f0, info)``: the numbers of row ``r`` besides its blocks (§7.1)."""
-    scalar = types_of(np_dtype).scalar
-    Work = work_struct(np_dtype)
+    scalar, Work = builder_types(np_dtype).take("scalar", "Work")
 
     @wp.func
     def set_row(w: Work, r: int, vstar: scalar, reg: scalar, lo: scalar, hi: scalar, f0: scalar, info: int):
@@ -154,9 +146,7 @@ def set_row_func(np_dtype):
 def advance_poses_kernel(np_dtype):
     """A pose update of every body (docs/formulation.md §6.1): the midpoint pose (§6.3) and the predicted pose along
     the solved velocity (curvature refinement, §5)."""
-    T = types_of(np_dtype)
-    scalar, vec6, transform = T.scalar, T.vec6, T.transform
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, vec6, transform, M, Work = builder_types(np_dtype).take("scalar", "vec6", "transform", "M", "Work")
     integrate_pose = spatial_funcs(np_dtype).integrate_pose
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -176,8 +166,7 @@ def advance_poses_kernel(np_dtype):
 @functools.cache
 def dof_blocks_kernel(np_dtype):
     """``J_dofs`` and the explicit efforts (docs/formulation.md §2.5, §3.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     joint_dof_blocks, dof_position = dof_blocks_func(np_dtype), dof_position_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -206,8 +195,7 @@ def dof_blocks_kernel(np_dtype):
 def gyroscopic_correction_func(np_dtype):
     """``gyroscopic_correction(Ib, R, w0, we, dt)``: the implicit-midpoint gyroscopic term (docs/conventions.md,
     "Gyroscopic term (departure from formulation.md §1.4)")."""
-    T = types_of(np_dtype)
-    scalar, vec3, mat33 = T.scalar, T.vec3, T.mat33
+    scalar, vec3, mat33 = builder_types(np_dtype).take("scalar", "vec3", "mat33")
 
     @wp.func
     def gyroscopic_correction(Ib: mat33, R: mat33, w0: vec3, we: vec3, dt: scalar):
@@ -236,8 +224,7 @@ def gyroscopic_correction_func(np_dtype):
 @functools.cache
 def bodies_kernel(np_dtype):
     """World inertia, the free velocity and the predicted pose (docs/formulation.md §1.4, §5)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     sp = spatial_funcs(np_dtype)
     integrate_pose, lin, ang, twist, inverse_mass_times = (sp.integrate_pose, sp.lin, sp.ang, sp.twist,
                                                            sp.inverse_mass_times)
@@ -286,7 +273,7 @@ def bodies_kernel(np_dtype):
 @functools.cache
 def dof_rates_kernel(np_dtype):
     """DoF velocities and predicted DoF positions (docs/formulation.md §3.2, §4.1, §5)."""
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    M, Work = builder_types(np_dtype).take("M", "Work")
     body_dot, dof_position = body_dot_func(np_dtype), dof_position_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -311,12 +298,10 @@ def dof_rates_kernel(np_dtype):
 @functools.cache
 def dyn_rows_kernel(np_dtype):
     """The joint-dynamics rows (docs/formulation.md §3.2)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work, inf = builder_types(np_dtype).take("scalar", "M", "Work", "inf")
     ix = index_funcs(np_dtype)
     ridx, row_info = ix.ridx, ix.row_info
     dof_row, set_row = dof_row_func(np_dtype), set_row_func(np_dtype)
-    inf = scalar(wp.inf)
 
     @wp.kernel(module="unique", enable_backward=False)
     def dyn_rows(m: M, w: Work, nblk: int, dt: scalar, h: scalar):
@@ -364,7 +349,7 @@ def dyn_rows_kernel(np_dtype):
 def stabilisation_bias_func(np_dtype, midpoint: bool):
     """``stabilisation_bias(e, e_start, c, alpha, delta)``: ``h v*`` of a joint or coupling row (docs/formulation.md
     §5) for the midpoint rule (``midpoint``) or Euler."""
-    scalar = types_of(np_dtype).scalar
+    scalar = builder_types(np_dtype).scalar
     deadband = spatial_funcs(np_dtype).deadband
     gamma = scalar(MIDPOINT_DAMPING)
 
@@ -386,9 +371,7 @@ def stabilisation_bias_func(np_dtype, midpoint: bool):
 def curved_bias_func(np_dtype, midpoint: bool):
     """``curved_bias(w, r, nblk, e, e_start, e_pred, u, h, alpha, delta)``: row ``r``'s bias ``v*`` with the
     curvature term along the twists ``u`` (docs/formulation.md §5)."""
-    T = types_of(np_dtype)
-    scalar, vec6 = T.scalar, T.vec6
-    Work = work_struct(np_dtype)
+    scalar, vec6, Work = builder_types(np_dtype).take("scalar", "vec6", "Work")
     row_dot, stabilisation_bias = row_dot_func(np_dtype), stabilisation_bias_func(np_dtype, midpoint)
 
     @wp.func
@@ -405,8 +388,7 @@ def curved_bias_func(np_dtype, midpoint: bool):
 @functools.cache
 def joint_start_residual_func(np_dtype, midpoint: bool):
     """``joint_start_residual(m, w, c, e)``: the residual of kinematic row ``c`` the bias aims from (§5)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     cts_residual = cts_residual_func(np_dtype)
 
     @wp.func
@@ -423,8 +405,7 @@ def joint_start_residual_func(np_dtype, midpoint: bool):
 @functools.cache
 def coupling_start_residual_func(np_dtype, midpoint: bool):
     """``coupling_start_residual(m, w, k, e)``: the residual of coupling row ``k`` the bias aims from (§5)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     coupling_residual, dof_position = coupling_residual_func(np_dtype), dof_position_func(np_dtype)
 
     @wp.func
@@ -446,15 +427,13 @@ def coupling_start_residual_func(np_dtype, midpoint: bool):
 @functools.cache
 def joint_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
     """The kinematic joint rows (docs/formulation.md §2.5, §5), with or without the curvature term."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work, inf = builder_types(np_dtype).take("scalar", "M", "Work", "inf")
     ix = index_funcs(np_dtype)
     ridx, row_info = ix.ridx, ix.row_info
     cts_row, cts_residual = cts_row_func(np_dtype), cts_residual_func(np_dtype)
     set_blocks, set_row = set_blocks_func(np_dtype), set_row_func(np_dtype)
     stabilisation_bias, curved_bias = stabilisation_bias_func(np_dtype, midpoint), curved_bias_func(np_dtype, midpoint)
     joint_start_residual = joint_start_residual_func(np_dtype, midpoint)
-    inf = scalar(wp.inf)
 
     @wp.kernel(module="unique", enable_backward=False)
     def joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
@@ -483,15 +462,13 @@ def joint_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
 def coupling_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
     """The coupling rows (docs/conventions.md "Couplings"; docs/formulation.md §5), with or without the curvature
     term."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work, inf = builder_types(np_dtype).take("scalar", "M", "Work", "inf")
     ix = index_funcs(np_dtype)
     ridx, row_info = ix.ridx, ix.row_info
     coupling_residual = coupling_residual_func(np_dtype)
     dof_row, set_row = dof_row_func(np_dtype), set_row_func(np_dtype)
     stabilisation_bias, curved_bias = stabilisation_bias_func(np_dtype, midpoint), curved_bias_func(np_dtype, midpoint)
     coupling_start_residual = coupling_start_residual_func(np_dtype, midpoint)
-    inf = scalar(wp.inf)
 
     @wp.kernel(module="unique", enable_backward=False)
     def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
@@ -533,7 +510,7 @@ def coupling_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
 @functools.cache
 def free_velocity_func(np_dtype):
     """``free_velocity(w, r, nblk)``: ``v_f = J u_f + v*`` of row ``r`` (docs/formulation.md §7.1)."""
-    Work = work_struct(np_dtype)
+    Work = builder_types(np_dtype).Work
 
     @wp.func
     def free_velocity(w: Work, r: int, nblk: int):
@@ -552,8 +529,7 @@ def free_velocity_func(np_dtype):
 @functools.cache
 def set_bias_func(np_dtype):
     """``set_bias(w, r, nblk, vs)``: a new bias of row ``r`` and its scaled free velocity (docs/formulation.md §8)."""
-    scalar = types_of(np_dtype).scalar
-    Work = work_struct(np_dtype)
+    scalar, Work = builder_types(np_dtype).take("scalar", "Work")
     free_velocity = free_velocity_func(np_dtype)
 
     @wp.func
@@ -571,8 +547,7 @@ def set_bias_func(np_dtype):
 @functools.cache
 def refine_joint_rows_kernel(np_dtype, midpoint: bool):
     """The joint rows' bias along the solved velocity (docs/formulation.md §5)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     ridx = index_funcs(np_dtype).ridx
     cts_residual = cts_residual_func(np_dtype)
     set_bias, curved_bias = set_bias_func(np_dtype), curved_bias_func(np_dtype, midpoint)
@@ -599,8 +574,7 @@ def refine_joint_rows_kernel(np_dtype, midpoint: bool):
 @functools.cache
 def refine_coupling_rows_kernel(np_dtype, midpoint: bool):
     """The coupling rows' bias along the solved velocity (docs/formulation.md §5)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
     ridx = index_funcs(np_dtype).ridx
     coupling_residual, dof_position = coupling_residual_func(np_dtype), dof_position_func(np_dtype)
     set_bias, curved_bias = set_bias_func(np_dtype), curved_bias_func(np_dtype, midpoint)
@@ -634,8 +608,7 @@ def refine_coupling_rows_kernel(np_dtype, midpoint: bool):
 @functools.cache
 def limits_kernel(np_dtype):
     """Which limit rows are active, and their bias (docs/formulation.md §4.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
 
     @wp.kernel(module="unique", enable_backward=False)
     def limits(m: M, w: Work, h: scalar, margin: scalar, beta: scalar):
@@ -670,12 +643,10 @@ def limits_kernel(np_dtype):
 @functools.cache
 def pack_limits_kernel(np_dtype):
     """The active limit rows, compacted after the fixed rows (docs/formulation.md §4.1)."""
-    scalar = types_of(np_dtype).scalar
-    M, Work = model_struct(np_dtype), work_struct(np_dtype)
+    scalar, M, Work, inf = builder_types(np_dtype).take("scalar", "M", "Work", "inf")
     ix = index_funcs(np_dtype)
     ridx, row_info = ix.ridx, ix.row_info
     dof_row, set_row = dof_row_func(np_dtype), set_row_func(np_dtype)
-    inf = scalar(wp.inf)
 
     @wp.kernel(module="unique", enable_backward=False)
     def pack_limits(m: M, w: Work, nblk: int):

@@ -29,8 +29,7 @@ from kamino.warp_backend.linear_solve import sparse_llt_kernels
 from kamino.warp_backend.linear_solve_cr import cr_solve_func
 from kamino.warp_backend.model_data import GROUP
 from kamino.warp_backend.rows import row_kernels
-from kamino.warp_backend.solver_rules import kernel_types
-from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import builder_types
 
 #: ``padmm_iterate_kernel``'s linear solve: the dense Cholesky factor, Conjugate Residual, the sparse factor
 LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE = 0, 1, 2
@@ -42,7 +41,7 @@ LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE = 0, 1, 2
 def world_row_func(np_dtype):
     """Where an active row of a world is stored.
     ``world_row(m, w, wid, a)``: the row kernels launched over ``(worlds, max_rows)`` start with it."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     ridx = index_funcs(np_dtype).ridx
 
     @wp.func
@@ -59,7 +58,7 @@ def world_row_func(np_dtype):
 def count_rows_kernel(np_dtype):
     """The world's active rows (§7.1: the fixed and limit rows, then three per contact).
     ``count_rows(m, w)``, one thread per world, after the limit rows are packed and the contacts counted."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
 
     @wp.kernel(module="unique", enable_backward=False)
     def count_rows(m: M, w: Work):
@@ -77,7 +76,7 @@ def count_rows_kernel(np_dtype):
 def prebake_kernel(np_dtype):
     """The free velocity ``v_f = J u_f + v*`` of the rows (§5), and the dense ``J`` on request.
     ``prebake(m, w, nblk, dense)``, one thread per row slot ``(worlds, max_rows)``."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     free_velocity = row_kernels(np_dtype).free_velocity
     jidx = index_funcs(np_dtype).jidx
     inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
@@ -114,7 +113,7 @@ def prebake_kernel(np_dtype):
 def delassus_sparse_kernel(np_dtype):
     """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the block-sparse rows (§8.1).
     ``delassus_sparse(m, w, nblk)``, one thread per row slot: row ``a`` fills ``D_ab = D_ba``, ``b >= a``."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     didx = index_funcs(np_dtype).didx
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
 
@@ -137,7 +136,7 @@ def delassus_sparse_kernel(np_dtype):
 def delassus_dense_kernel(np_dtype):
     """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the dense per-world ``J`` (§8.1).
     ``delassus_dense(m, w)``, one thread per row slot: row ``a`` fills ``D_ab = D_ba``, ``b >= a``."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
     jidx = index_funcs(np_dtype).jidx
@@ -169,7 +168,7 @@ def delassus_dense_kernel(np_dtype):
 def precondition_kernel(np_dtype):
     """The Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2).
     ``precondition(m, w, nblk, assembled)``, one thread per row slot."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     didx = index_funcs(np_dtype).didx
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
     world_row = world_row_func(np_dtype)
@@ -210,7 +209,7 @@ def precondition_kernel(np_dtype):
 def scale_kernel(np_dtype):
     """The scaled problem of §7.2 and the effort-limited rows' starting saturation ("Saturation").
     ``scale(m, w, shift, shift_sat, impulse_scale, assembled, always_sat)``, one thread per row slot."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
     set_saturated = index_funcs(np_dtype).set_saturated
@@ -265,7 +264,7 @@ def scale_kernel(np_dtype):
 def factor_tail_dense_func(np_dtype):
     """The dense factor's tail for a penalty (``kamino.jax_ref.solver.solve``, "Penalty").
     ``factor_tail_dense(m, w, wid, n, shift)``, by the world's thread."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     didx = index_funcs(np_dtype).didx
     row_base = index_funcs(np_dtype).row_base
 
@@ -299,7 +298,7 @@ def factor_tail_dense_func(np_dtype):
 def factor_dense_func(np_dtype):
     """The dense Cholesky factor of ``D~`` (§8.1).
     ``factor_dense(m, w, wid, n, eta)``, by the world's thread (``padmm_init``, ``refactor_dense``)."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     didx = index_funcs(np_dtype).didx
     row_base = index_funcs(np_dtype).row_base
     factor_tail_dense = factor_tail_dense_func(np_dtype)
@@ -345,7 +344,7 @@ def factor_dense_func(np_dtype):
 def refactor_dense_kernel(np_dtype):
     """The dense factor again after a saturation (``kamino.jax_ref.solver.solve``, "Saturation").
     ``refactor_dense(m, w, nblk, shift, shift_sat, eta)``, one thread per world."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
     row_saturated = index_funcs(np_dtype).row_saturated
@@ -379,7 +378,7 @@ def refactor_dense_kernel(np_dtype):
 def cho_solve_func(np_dtype):
     """The solve with the dense factor (§8.1).
     ``cho_solve_inplace(m, w, wid, n)``: ``x`` in ``w.x`` in place, by the world's thread."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_base = index_funcs(np_dtype).row_base
     S = GROUP  # storage distance between consecutive entries of a world's dense Delassus matrix (w.D)
 
@@ -418,7 +417,7 @@ def cho_solve_func(np_dtype):
 def project_into_func(np_dtype):
     """The projection on the feasible set ``K`` (§7.3 step 3).
     ``project_into(m, w, wid, n_box, n, src, shift, inv_rho, dst)``, by the world's thread."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_base = index_funcs(np_dtype).row_base
     row_mu = index_funcs(np_dtype).row_mu
     cone_project = cone_funcs(np_dtype).cone_project
@@ -448,7 +447,7 @@ def padmm_init_kernel(np_dtype):
     """PADMM's warm start (§7.8), the world's penalty and residual scale, and the dense factor.
     ``padmm_init(m, w, impulse_scale, use_velocity, factorize, max_iterations, eta, rho0, adaptive)``,
     one thread per world."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_base = index_funcs(np_dtype).row_base
     project_into = project_into_func(np_dtype)
     factor_dense = factor_dense_func(np_dtype)
@@ -498,7 +497,7 @@ def padmm_init_kernel(np_dtype):
 def restart_world_func(np_dtype):
     """A world's PADMM state at a (re)start.
     ``restart_world(w, wid, k, max_iterations)`` (``padmm_init``, ``padmm_resume``)."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     big = scalar(float(np.finfo(np_dtype).max))
 
     @wp.func
@@ -522,7 +521,7 @@ def restart_world_func(np_dtype):
 def linear_step_func(np_dtype, linear: int):
     """§7.3 steps 1-2 of one thread per world: the right-hand side and the linear solve ``linear``
     (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``: ``linear_solve.py``) of one iteration."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_penalty = rules.row_penalty_func(np_dtype)
     row_rhs = rules.row_rhs_func(np_dtype)
     contact_correction = rules.contact_correction_func(np_dtype)
@@ -561,8 +560,7 @@ def project_rows_func(np_dtype, linear: int, adaptive: bool):
     """§7.3 steps 3-4 of one thread per world: every row's projection, dual update and residual terms.
     ``project_rows(m, w, wid, rb, n, n_box, eta, rho_free, rho_box, rho_u, p_ref)`` returns the world's
     ``solver_rules.residuals_struct``; ``linear`` and ``adaptive`` as :func:`padmm_iterate_kernel`'s."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
-    vec3 = types_of(np_dtype).vec3
+    scalar, M, Work, SP, vec3 = builder_types(np_dtype).take("scalar", "M", "Work", "SP", "vec3")
     Residuals = rules.residuals_struct(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
     box_row = rules.box_row_func(np_dtype, adaptive)
@@ -598,7 +596,7 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
     momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
     if linear not in (LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE):
         raise ValueError(f"padmm_iterate_kernel: linear must be LINEAR_DENSE, LINEAR_CR or LINEAR_SPARSE, got {linear}")
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_base = index_funcs(np_dtype).row_base
     linear_step = linear_step_func(np_dtype, linear)
     project_rows = project_rows_func(np_dtype, linear, adaptive)
@@ -665,7 +663,7 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
 def padmm_resume_kernel(np_dtype):
     """PADMM again from its last iterate, after the right-hand side changed (curvature refinement).
     ``padmm_resume(m, w, max_iterations)``, one thread per world."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_base = index_funcs(np_dtype).row_base
     restart_world = restart_world_func(np_dtype)
 
@@ -688,7 +686,7 @@ def padmm_resume_kernel(np_dtype):
 def padmm_finish_kernel(np_dtype):
     """PADMM's impulses and velocities, unscaled (§7.7).
     ``padmm_finish(m, w)``, one thread per row slot."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_mu = index_funcs(np_dtype).row_mu
     de_saxce = cone_funcs(np_dtype).de_saxce
     world_row = world_row_func(np_dtype)

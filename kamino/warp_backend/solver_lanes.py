@@ -39,10 +39,11 @@ import warp as wp
 
 from kamino.warp_backend import solver_rules as rules
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.linear_solve import pattern_struct, sparse_llt_kernels
+from kamino.warp_backend.linear_solve import sparse_llt_kernels
 from kamino.warp_backend.linear_solve_cr import cr_pattern_kernel, cr_solve_func
-from kamino.warp_backend.solver_rules import LANES, kernel_types, sync
+from kamino.warp_backend.solver_rules import LANES, sync
 from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import builder_types
 
 #: Rounds of fan-out update triples (32 per round) whose indices a thread of :func:`factor_kernel` loads together.
 FAN_BATCH = 4
@@ -91,7 +92,7 @@ def shared_set_func(np_dtype, length: int):
     """Write one entry of a :func:`shared_vector`.
     ``sset(t, i, v)``: the entry only, with no barrier of the block."""
     Vec = shared_vector(np_dtype, length)
-    scalar = types_of(np_dtype).scalar
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func_native("t.data(i) = v;")
     def sset(t: Vec, i: int, v: scalar):
@@ -106,7 +107,7 @@ def shared_get_func(np_dtype, length: int):
     """Read one entry of a :func:`shared_vector`.
     ``sget(t, i)``: the entry only, with no barrier of the block."""
     Vec = shared_vector(np_dtype, length)
-    scalar = types_of(np_dtype).scalar
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func_native("return t.data(i);")
     def sget(t: Vec, i: int) -> scalar:
@@ -122,7 +123,7 @@ def shared_get_func(np_dtype, length: int):
 def staged_get_func(np_dtype, E: int):
     """Read an entry of the world's ``D~_f`` / ``L_f``, staged in shared memory (``E > 0`` entries) or in device
     memory."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     LVec = shared_vector(np_dtype, max(E, 1))
     lget = shared_get_func(np_dtype, max(E, 1))
 
@@ -140,7 +141,7 @@ def staged_get_func(np_dtype, E: int):
 def staged_set_func(np_dtype, E: int):
     """Write an entry of the world's ``L_f`` (staged, or in device memory: :func:`staged_get_func`).
     ``fset(sp, vb, k, v, lv)``, ``lv`` the staged copy (unused when ``E = 0``)."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     LVec = shared_vector(np_dtype, max(E, 1))
     lset = shared_set_func(np_dtype, max(E, 1))
 
@@ -168,7 +169,7 @@ def batch(a: wp.array(dtype=wp.int32), u: int, umax: int) -> FanIdx:
 def fan_out_func(np_dtype, E: int):
     """The fan-out updates of a fixed column (``linear_solve.factor_fixed_rows``'s sums).
     ``fan_out(sp, vb, tv, av, bv, u, f1, lv, neg)``: a thread's FAN_BATCH rounds of update triples."""
-    SP = pattern_struct(np_dtype)
+    SP = builder_types(np_dtype).SP
     LVec = shared_vector(np_dtype, max(E, 1))
     fget, fset = staged_get_func(np_dtype, E), staged_set_func(np_dtype, E)
 
@@ -192,7 +193,7 @@ def fan_out_func(np_dtype, E: int):
 def ltf_batch_func(np_dtype, E: int):
     """A batch of the tail rows' ``L_tf`` updates (``linear_solve.factor_world``'s sums).
     ``ltf_batch(sp, vb, tr, tc, ub, u1, s, lv)``: FAN_BATCH update pairs of one entry of ``L_tf``."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     LVec = shared_vector(np_dtype, max(E, 1))
     fget = staged_get_func(np_dtype, E)
     FanVal = wp.types.vector(length=FAN_BATCH, dtype=scalar)
@@ -225,7 +226,7 @@ def factor_tail_func(np_dtype):
     """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.solver.solve``, "Penalty").
     ``factor_tail(m, w, sp, wid, n, shift, lane)``: by the world's threads (``factor_kernel`` and a new
     penalty in :func:`iterate_kernel`)."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     bases = sparse_llt_kernels(np_dtype).bases
     tail_k = sparse_llt_kernels(np_dtype).tail_k
     sdiag_col = sparse_llt_kernels(np_dtype).sdiag_col
@@ -257,7 +258,7 @@ def factor_tail_func(np_dtype):
 @functools.cache
 def factor_kernel(np_dtype, E: int = 0):
     """Cholesky ``D~ = L L^T`` with the world's 32 threads (§8.1); with ``E > 0`` ``L_f`` staged in shared memory."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     bases = sparse_llt_kernels(np_dtype).bases
     schur_entry = sparse_llt_kernels(np_dtype).schur_entry
     fixed_entry = sparse_llt_kernels(np_dtype).fixed_entry
@@ -416,7 +417,7 @@ def factor_kernel(np_dtype, E: int = 0):
 def solve_func(np_dtype, R: int):
     """The solve with the sparse factor and its tail by the world's threads (§8.1).
     ``solve(m, w, sp, wid, n, lane, xs, ys)``, the vectors in shared memory (:func:`shared_vector` of ``R``)."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     Vec = shared_vector(np_dtype, R)
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
     bases = sparse_llt_kernels(np_dtype).bases
@@ -586,7 +587,7 @@ def solve_func(np_dtype, R: int):
 def solve_fixed_kernel(np_dtype, R: int):
     """Post-stabilisation's solve with the fixed rows' factor, 32 threads per world.
     ``solve_fixed(m, w, sp, extra)``, launched tiled: one block of ``LANES`` threads per world."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
     bases = sparse_llt_kernels(np_dtype).bases
     solve = solve_func(np_dtype, R)
@@ -620,7 +621,7 @@ def lane_rhs_func(np_dtype):
     """§7.3 steps 1-2 on one row of the 32-thread schedule.
     ``lane_rhs(w, r, a, nf, n_box, rho_free, rho_box, rho_u, eta)``: ``solver_rules.row_rhs_func``, then the
     contact correction on a normal row."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_penalty = rules.row_penalty_func(np_dtype)
     row_rhs = rules.row_rhs_func(np_dtype)
     contact_correction = rules.contact_correction_func(np_dtype)
@@ -644,8 +645,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
     """Accelerated PADMM with the world's 32 threads (§7.3-§7.5; the rules of ``solver_rules.py``), with the sparse
     factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), the adaptive penalty (``adaptive``),
     the momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
-    vec3 = types_of(np_dtype).vec3
+    scalar, M, Work, SP, vec3 = builder_types(np_dtype).take("scalar", "M", "Work", "SP", "vec3")
     Residuals = rules.residuals_struct(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)

@@ -17,10 +17,8 @@ import warp as wp
 from kamino import config
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.linear_solve import pattern_struct
-from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.types import types_of
-from kamino.warp_backend.workspace import work_struct
+from kamino.warp_backend.workspace import builder_types
 
 #: what :func:`momentum_func` asks the kernel to do with ``(y_hat, z_hat)``; ``RESTART_HERE``: a new penalty or a
 #: saturating row restarts the momentum at the current iterate (``y_hat = y``, ``z_hat = z``)
@@ -34,12 +32,6 @@ LANES = 32
 def sync():
     """Barrier of the threads of a block (``__syncthreads`` on CUDA, the fiber barrier on the CPU)."""
     ...
-
-
-def kernel_types(np_dtype) -> tuple:
-    """``(scalar, M, Work, SP)`` of a precision: the scalar type and the structs the PADMM kernels take (the model,
-    the workspace, the sparse factor's pattern)."""
-    return types_of(np_dtype).scalar, model_struct(np_dtype), work_struct(np_dtype), pattern_struct(np_dtype)
 
 
 @functools.cache
@@ -68,8 +60,7 @@ def lane_reduce_func(np_dtype, lanes: int, op: str):
 def momentum_func(np_dtype, accelerate: bool):
     """§7.4 step 5, the fast-ADMM momentum with restart (``accelerate``, compile-time; else none).
     ``momentum(a_p, c_p, c_sum, restart_tol)``, once per iteration of a world."""
-    scalar = types_of(np_dtype).scalar
-    vec4 = types_of(np_dtype).vec4
+    scalar, vec4 = builder_types(np_dtype).take("scalar", "vec4")
     one = scalar(1.0)
     zero = scalar(0.0)
 
@@ -93,7 +84,7 @@ def momentum_func(np_dtype, accelerate: bool):
 def extrapolated_func(np_dtype):
     """§7.4: a row's next ``y_hat`` (or ``z_hat``) under a momentum mode.
     ``extrapolated(new, prev, beta, mode)`` (:func:`advance_row_func`)."""
-    scalar = types_of(np_dtype).scalar
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func
     def extrapolated(new: scalar, prev: scalar, beta: scalar, mode: int):
@@ -111,7 +102,7 @@ def extrapolated_func(np_dtype):
 def balanced_penalty_func(np_dtype):
     """The residual-balancing penalty of the limit and contact rows (``kamino.jax_ref.solver.solve``, "Penalty").
     ``balanced_penalty(rho_u, r_p, r_d, k, k_rho)`` (:func:`outcome_func`)."""
-    scalar = types_of(np_dtype).scalar
+    scalar = builder_types(np_dtype).scalar
     one = scalar(1.0)
     tiny = scalar(float(np.finfo(np_dtype).tiny))
     interval, threshold = config.PENALTY_INTERVAL, scalar(config.PENALTY_THRESHOLD)
@@ -138,7 +129,7 @@ def balanced_penalty_func(np_dtype):
 def row_penalty_func(np_dtype):
     """A row's penalty (``kamino.jax_ref.solver.solve``, "Penalty" and "Saturation").
     ``row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)``."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_saturated = index_funcs(np_dtype).row_saturated
 
     @wp.func
@@ -162,7 +153,7 @@ def residuals_struct(np_dtype):
     threads): the maxima ``r_p``, ``r_d``, ``r_c`` (§7.5), the sum ``c_sum`` of §7.4's combined residual, the
     null-direction test's ``r_tail``, ``de`` and ``dx`` (``kamino.jax_ref.solver.solve``, "Null directions") and
     ``hit`` (> 0: an effort-limited row's projection clipped it, "Saturation")."""
-    scalar = types_of(np_dtype).scalar
+    scalar = builder_types(np_dtype).scalar
 
     @wp.struct
     class Residuals:
@@ -182,7 +173,7 @@ def residuals_struct(np_dtype):
 def residual_weight_func(np_dtype):
     """A row's residual weight (``kamino.jax_ref.solver.solve``, "Residuals").
     ``residual_weight(P, p_ref)`` (:func:`dual_update_func`, :func:`cr_residual_func`)."""
-    scalar = types_of(np_dtype).scalar
+    scalar = builder_types(np_dtype).scalar
     one = scalar(1.0)
     loosening = scalar(config.RESIDUAL_LOOSENING_MAX)
 
@@ -199,8 +190,7 @@ def residual_weight_func(np_dtype):
 def dual_update_func(np_dtype):
     """§7.3 step 4 and a row's share of the residuals (§7.4, §7.5).
     ``dual_update(x, y, x_p, y_hat, z_hat, P, eta, rho, p_ref)``."""
-    scalar = types_of(np_dtype).scalar
-    vec4 = types_of(np_dtype).vec4
+    scalar, vec4 = builder_types(np_dtype).take("scalar", "vec4")
     residual_weight = residual_weight_func(np_dtype)
 
     @wp.func
@@ -223,7 +213,7 @@ def dual_update_func(np_dtype):
 def saturates_func(np_dtype):
     """Whether an effort-limited row saturates (``kamino.jax_ref.solver.solve``, "Saturation").
     ``saturates(sat, lo, hi, v, y)`` (:func:`box_row_func`, :func:`mark_saturated_func`)."""
-    scalar = types_of(np_dtype).scalar
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func
     def saturates(sat: int, lo: scalar, hi: scalar, v: scalar, y: scalar):
@@ -238,8 +228,7 @@ def saturates_func(np_dtype):
 def box_complementarity_func(np_dtype):
     """A box row's complementarity residual (§7.5).
     ``box_complementarity(y, z, lo, hi)`` (:func:`box_row_func`)."""
-    scalar = types_of(np_dtype).scalar
-    inf = scalar(wp.inf)
+    scalar, inf = builder_types(np_dtype).take("scalar", "inf")
 
     @wp.func
     def box_complementarity(y: scalar, z: scalar, lo: scalar, hi: scalar):
@@ -260,7 +249,7 @@ def box_complementarity_func(np_dtype):
 def row_rhs_func(np_dtype):
     """§7.3 steps 1-2: a row's right-hand side of the linear solve.
     ``row_rhs(w, r, rho, eta)``."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
 
     @wp.func
     def row_rhs(w: Work, r: int, rho: scalar, eta: scalar):
@@ -275,7 +264,7 @@ def row_rhs_func(np_dtype):
 def contact_correction_func(np_dtype):
     """§7.3 step 1: the De Saxcé correction ``s = Gamma(z_hat)`` of a contact (docs/formulation.md §4.3).
     ``contact_correction(w, r, rs)``."""
-    Work = work_struct(np_dtype)
+    Work = builder_types(np_dtype).Work
     de_saxce = cone_funcs(np_dtype).de_saxce
     row_mu = index_funcs(np_dtype).row_mu
 
@@ -291,7 +280,7 @@ def contact_correction_func(np_dtype):
 def box_row_func(np_dtype, adaptive: bool):
     """§7.3 steps 3-4 on a box row (fixed or limit): projection, dual update and residual terms; ``adaptive``
     (compile-time): the penalty adapts, and the free fixed rows feed the null-direction test."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     Residuals = residuals_struct(np_dtype)
     dual_update = dual_update_func(np_dtype)
     saturates = saturates_func(np_dtype)
@@ -336,8 +325,7 @@ def box_row_func(np_dtype, adaptive: bool):
 def contact_rows_func(np_dtype):
     """§7.3 steps 3-4 on a contact's three rows: the cone projection, dual update and residual terms.
     ``contact_rows(w, r, rs, x, inv_rho, rho, eta, p_ref, acc)`` returns ``acc`` with the contact's terms."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
-    vec3 = types_of(np_dtype).vec3
+    scalar, M, Work, SP, vec3 = builder_types(np_dtype).take("scalar", "M", "Work", "SP", "vec3")
     Residuals = residuals_struct(np_dtype)
     dual_update = dual_update_func(np_dtype)
     cone_project = cone_funcs(np_dtype).cone_project
@@ -374,7 +362,7 @@ def contact_rows_func(np_dtype):
 def cr_residual_func(np_dtype):
     """The Conjugate Residual solve's share of the dual residual (§8.2).
     ``cr_residual(w, r, p_ref, acc)`` returns ``acc`` with row ``r``'s terms."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     Residuals = residuals_struct(np_dtype)
     residual_weight = residual_weight_func(np_dtype)
 
@@ -426,8 +414,7 @@ def outcome_struct(np_dtype):
     """What the world does after an iteration: ``converged``, ``saturates`` (an effort-limited row saturates:
     ``rho_box`` on it from now on, "Saturation"), the limit and contact rows' next penalty ``rho`` and the momentum
     ``mom = (a, c, beta, mode)`` (§7.4; ``mode`` ``RESTART_HERE`` after a new penalty or a saturation)."""
-    scalar = types_of(np_dtype).scalar
-    vec4 = types_of(np_dtype).vec4
+    scalar, vec4 = builder_types(np_dtype).take("scalar", "vec4")
 
     @wp.struct
     class Outcome:
@@ -443,9 +430,7 @@ def outcome_struct(np_dtype):
 def outcome_func(np_dtype, adaptive: bool, accelerate: bool):
     """The convergence test (§7.5 and "Null directions"), the penalty rule and the momentum (§7.4) of a world after
     an iteration; compile-time: ``adaptive``, the penalty adapts; ``accelerate``, the momentum extrapolates."""
-    scalar = types_of(np_dtype).scalar
-    vec4 = types_of(np_dtype).vec4
-    Work = work_struct(np_dtype)
+    scalar, vec4, Work = builder_types(np_dtype).take("scalar", "vec4", "Work")
     Residuals = residuals_struct(np_dtype)
     Outcome = outcome_struct(np_dtype)
     momentum = momentum_func(np_dtype, accelerate)
@@ -486,7 +471,7 @@ def outcome_func(np_dtype, adaptive: bool, accelerate: bool):
 def mark_saturated_func(np_dtype):
     """An effort-limited row that saturated takes ``rho_box`` from now on (``kamino.jax_ref.solver.solve``,
     "Saturation")."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
     row_saturated = index_funcs(np_dtype).row_saturated
     set_saturated = index_funcs(np_dtype).set_saturated
     saturates = saturates_func(np_dtype)
@@ -504,9 +489,7 @@ def mark_saturated_func(np_dtype):
 def advance_row_func(np_dtype):
     """§7.4 steps 5-6 on a row: the next ``(y_hat, z_hat)`` and the previous iterate.
     ``advance_row(w, r, x, mom)``."""
-    scalar = types_of(np_dtype).scalar
-    vec4 = types_of(np_dtype).vec4
-    Work = work_struct(np_dtype)
+    scalar, vec4, Work = builder_types(np_dtype).take("scalar", "vec4", "Work")
     extrapolated = extrapolated_func(np_dtype)
 
     @wp.func
@@ -534,7 +517,7 @@ def advance_row_func(np_dtype):
 def store_world_func(np_dtype):
     """The world's scalars after an iteration (one thread writes them).
     ``store_world(w, wid, k, acc, res, done)``."""
-    Work = work_struct(np_dtype)
+    Work = builder_types(np_dtype).Work
     Residuals = residuals_struct(np_dtype)
     Outcome = outcome_struct(np_dtype)
 
@@ -559,7 +542,7 @@ def store_world_func(np_dtype):
 def tail_dot_func(np_dtype):
     """The dot products of the tail rows' dense Cholesky ``L_t = chol(S_t + shift I)`` (``linear_solve.factor_tail``,
     ``solver_lanes.factor_tail``; ``kamino.jax_ref.solver.solve``, "Penalty")."""
-    scalar, M, Work, SP = kernel_types(np_dtype)
+    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
 
     @wp.func
     def tail_dot(tail: wp.array(dtype=scalar), tc: int, tr: int, jr: int, kt: int, j: int, s: scalar):

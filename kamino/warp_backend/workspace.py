@@ -6,13 +6,14 @@ step writes its results into ``*_new`` buffers and a final commit copies them ov
 (keeping the previous state of a world whose result is not finite).
 """
 
+import dataclasses
 import functools
 
 import numpy as np
 import warp as wp
 
-from kamino.warp_backend.model_data import GROUP, WarpModel
-from kamino.warp_backend.types import types_of
+from kamino.warp_backend.model_data import GROUP, WarpModel, model_struct
+from kamino.warp_backend.types import Types, types_of
 
 #: ``Work.row_info``: one int32 per row packs what the row assembly knows about a row besides its numbers: its
 #: source (the DoF, kinematic constraint, coupling or contact slot it comes from; a global index) in the low
@@ -167,6 +168,116 @@ def work_struct(np_dtype):
         frozen: iarr  # per world: failed earlier, kept at its state until the caller resets it (persistent)
 
     return Work
+
+
+@functools.cache
+def pattern_struct(np_dtype):
+    """The Warp struct of the factor patterns (shared by worlds of one type) and the factor's values."""
+    scalar = types_of(np_dtype).scalar
+    iarr = wp.array(dtype=wp.int32)
+
+    @wp.struct
+    class Pattern:
+        # per world: where its type's pattern starts in the arrays below
+        perm_start: iarr  # into perm and row_ptr (row_ptr has one more per type: at perm_start + type index)
+        ptr_start: iarr
+        ent_start: iarr  # into col, row, div, upd_ptr
+        nnz: iarr
+        n_fixed: iarr  # the fixed rows (the first tail row's index)
+        # positions of L_f: the fixed rows, then 6 per hub (their unknowns; n_pos = n_fixed without hubs)
+        n_pos: iarr
+        # hubs (symbolic): body_hub[b] = hub index of global body b in its world, or -1; a world's hubs are the global
+        # bodies hub_body[hub_start[wid] ..], in position order
+        body_hub: iarr
+        hub_start: iarr
+        hub_body: iarr
+        perm: iarr
+        row_ptr: iarr  # world-type-local entry indices
+        col: iarr
+        colrow: iarr
+        row: iarr
+        div: iarr
+        upd_ptr: iarr  # [2 nnz]: (start, end) of each entry's update pairs in upd_a / upd_b
+        upd_a: iarr  # world-type-local entry indices
+        upd_b: iarr
+        # by columns (Symbolic.cptr ...): cptr like row_ptr, cent / crow like col, fan_ptr like row_ptr with global
+        # indices into fan_tgt / fan_a / fan_b (whose values are world-type-local entry indices)
+        cptr: iarr
+        cent: iarr
+        crow: iarr
+        fan_ptr: iarr
+        fan_tgt: iarr
+        fan_a: iarr
+        fan_b: iarr
+        # per group of 32 worlds: the value storage, interleaved over the group's worlds (val_stride = GROUP: the
+        # one-thread-per-world kernels read a row of 32 worlds at once) or world after world (val_stride = 1: the
+        # 32 threads of one world read consecutive entries, solver_lanes.py); grp_nnz: the group's entries per world
+        grp_val_start: iarr
+        grp_nnz: iarr
+        val_stride: int
+        grp_tail_start: iarr
+        # the tail rows: entry (t, c) of a world at tail + t stride + c tail_stride, interleaved over the group's
+        # worlds like val (tail_stride = GROUP, stride = GROUP * dim) or world after world (tail_stride = 1,
+        # stride = dim: solver_lanes.py's threads read consecutive entries of a row); grp_tail_size: the group's
+        # entries per world
+        tail_stride: int
+        grp_tail_size: iarr
+        grp_tail_k: iarr  # per group: K, the stored entries of a tail row's L_tf (its tail columns start there)
+        grp_tail_dim: iarr  # per group: K + the tail rows, the entries of a tail row
+        # the L_tf patterns of all world types (tail_patterns), by global pattern id: pattern P's entries are
+        # pat_ptr[P] .. pat_ptr[P + 1] - 1 of pat_pos (fixed positions, ascending) and pat_row (their rows, perm[pos])
+        pat_ptr: iarr
+        pat_pos: iarr
+        pat_row: iarr
+        # L_tf's forward substitution: entry i of a pattern subtracts L_pk l_j for the pairs u in
+        # pat_upd_ptr[i] .. pat_upd_ptr[i + 1] - 1: k = pat_upd_k[u] (entry of L_f, world-type-local) and j =
+        # pat_upd_j[u] (the compressed index of column col[k] in the pattern; columns outside it hold zeros)
+        pat_upd_ptr: iarr
+        pat_upd_k: iarr
+        pat_upd_j: iarr
+        # pattern P's lookup: pat_lut[P pat_lut_stride + p] = compressed index of fixed position p, or -1 (one stride,
+        # the most fixed rows of any world type, so the solve finds a row's lookup from its pattern id without a load)
+        pat_lut_stride: int
+        pat_lut: iarr
+        dof_pat: iarr  # [num_dofs] the pattern of a limit row on DoF d (global pattern id; -1: no limit)
+        con_pat: iarr  # [W] the pattern of the world's first contact pair (-1: none); pair k's is con_pat + k
+        tail_max: int  # tail rows per world in tail_pat
+        tail_pat: iarr  # [W tail_max] the pattern of each tail row, set by tail_row at assembly
+        val: wp.array(dtype=scalar)  # the fixed rows' factor
+        tail: wp.array(dtype=scalar)  # the tail rows (fixed positions, then tail columns)
+
+    return Pattern
+
+
+@dataclasses.dataclass(frozen=True)
+class BuilderTypes(Types):
+    """What a kernel builder of one precision closes over: the :class:`~kamino.warp_backend.types.Types`, the
+    structs the kernels take (the model ``M``, the workspace ``Work``, the sparse factor's pattern ``SP``) and the
+    precision's ``inf``."""
+
+    M: type
+    Work: type
+    SP: type
+    inf: object
+
+    def take(self, *names: str) -> tuple:
+        """The entries ``names``, in order, for a builder's one-line preamble
+        (``scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")``)."""
+        fields = [f.name for f in dataclasses.fields(self)]
+        unknown = [n for n in names if n not in fields]
+        if unknown:
+            raise ValueError(f"BuilderTypes.take: unknown entries {unknown}; the entries are {fields}")
+        return tuple(getattr(self, n) for n in names)
+
+
+@functools.cache
+def builder_types(np_dtype) -> BuilderTypes:
+    """The :class:`BuilderTypes` of ``float32`` or ``float64``, which every kernel builder reads its types, structs
+    and ``inf`` from (cached per precision, so the builders of a precision close over the same objects)."""
+    T = types_of(np_dtype)
+    fields = {f.name: getattr(T, f.name) for f in dataclasses.fields(T)}
+    return BuilderTypes(**fields, M=model_struct(np_dtype), Work=work_struct(np_dtype), SP=pattern_struct(np_dtype),
+                        inf=T.scalar(wp.inf))
 
 
 def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, rows_per_world: bool = False,
