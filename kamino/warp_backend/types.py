@@ -1,8 +1,9 @@
 """Warp value types for one floating-point precision (float32 or float64).
 
-Every kernel module of the Warp backend is a factory ``kernels(scalar)`` cached per precision; it
-closes over the :class:`Types` below, so one source serves both precisions and a process compiles
-only the precisions it uses. Poses are ``transform`` (``p``, then the quaternion ``(x, y, z, w)``:
+Every kernel and ``wp.func`` of the Warp backend comes from a small builder cached per precision; it
+closes over the :class:`Types` below (read, with the structs the kernels take, from
+``workspace.builder_types``), so one source serves both precisions and a process compiles only the
+precisions it uses. Poses are ``transform`` (``p``, then the quaternion ``(x, y, z, w)``:
 exactly the layout of ``State.body_q``), twists are ``vec6`` ``(v, w)`` as ``State.body_u``.
 """
 
