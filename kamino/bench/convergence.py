@@ -305,7 +305,7 @@ class VelocityProbe:
     and solved velocity ``u+`` (Euler: the step's evaluation pose is ``q_t``):
 
     - ``solve``: ``|J(q_t) u+ + v*|``, the residual of the row equation ``J u+ + v* = 0`` that PADMM solved, with
-      the stabilisation bias ``v*`` of ``kamino.jax_ref.pipeline.joint_bias`` (Baumgarte + curvature along ``u_f``):
+      the stabilisation bias ``v*`` of ``kamino.jax_ref.rows.joint_bias`` (Baumgarte + curvature along ``u_f``):
       what ``tolerance`` controls;
     - ``pre``: ``|J(q_t) u+|``, without the bias (the bias is O(dt |u|^2) by design: the curvature correction
       asks for that velocity so that the *position* error stays small);
@@ -330,7 +330,7 @@ class VelocityProbe:
         import jax
 
         from kamino.jax_ref.jacobians import constraint_jacobian, constraint_residual, joint_frames
-        from kamino.jax_ref.pipeline import joint_bias
+        from kamino.jax_ref.rows import joint_bias
 
         if cfg not in self._fns:
             pm, nb = self.pm, self.nb

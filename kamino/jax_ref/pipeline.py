@@ -2,8 +2,8 @@
 
 Pipeline (docs/architecture.md, backend contract): kinematics -> collision -> dynamics -> PADMM ->
 integrate. Rows of a world, in order (docs/formulation.md §7.1): joint-dynamics rows (actuators, then
-armature/damping/springs) | joint kinematic rows | coupling rows | limit rows | contact triples
-``(t1, t2, n)``.
+armature/damping/springs) | joint kinematic rows | coupling rows | limit rows (their bias and bounds:
+``rows``) | contact triples ``(t1, t2, n)`` (``contacts``).
 """
 
 from __future__ import annotations
@@ -14,15 +14,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from kamino.config import (
-    ANGULAR_DAMPING,
-    CONTACT_MATCH_DISTANCE,
-    LIMIT_BAUMGARTE,
-    LIMIT_MARGIN,
-    MIDPOINT_DAMPING,
-    SolverConfig,
-    joint_deadband,
-)
+from kamino.config import ANGULAR_DAMPING, CONTACT_MATCH_DISTANCE, SolverConfig
 from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import post_stabilisation as post
 from kamino.jax_ref import solver
@@ -37,7 +29,7 @@ from kamino.jax_ref.jacobians import (
 )
 from kamino.jax_ref.layout import DYN_ACTUATOR, PaddedModel
 from kamino.jax_ref.precision import full_precision
-from kamino.model import ActuationMode
+from kamino.jax_ref.rows import coupling_bias, dynamics_rows, explicit_effort, joint_bias, limit_rows
 from kamino.spatial import integrate_pose
 
 
@@ -87,137 +79,6 @@ class WorldStep:
     solve: solver.PADMMResult
     num_contacts: jax.Array
     contact_overflow: jax.Array
-
-
-
-
-def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: jax.Array, e_start: jax.Array,
-               J: jax.Array, h, cfg: SolverConfig) -> jax.Array:
-    """Stabilisation bias ``v*`` of the joint rows (docs/formulation.md §5; docs/conventions.md "Stabilisation").
-
-    The step ends with the update ``q+ = q_eval ⊕ h u+`` (Euler: ``q_eval = q-``, ``h = dt``;
-    midpoint: ``q_eval = q_m``, ``h = dt/2``). Expanding ``e(q+) = e_eval + h J u+ + c`` and asking
-    for ``e(q+) = (1 - alpha) e(q-) + gamma h w-`` gives the row equation ``J u+ + v* = 0`` with
-
-        v* = (e_eval - (1 - alpha) e_start - gamma h w- + c) / h,
-
-    i.e. the Baumgarte term ``alpha e / dt`` of §5 for Euler (``gamma = 0``: no first half-step), and an
-    end-of-step contraction for the midpoint rule. There ``h w- = e_eval - e_start - c`` estimates
-    ``h J(q-) u-``, what the first half-step moved the residual along the start pose's constraint
-    velocity (its curvature taken equal to the second half-step's ``c``); ``gamma =``
-    :data:`MIDPOINT_DAMPING` lets that much of it stand instead of reversing it, so the end pose's
-    constraint velocity is ``w+ = -(1 - gamma) w- - alpha e- / h`` and the alternating mode decays
-    (docs/conventions.md). With ``curvature_correction``, ``c = e(q_eval ⊕ h u_pred) - e_eval -
-    h J u_pred`` (a finite difference along the free velocity ``u_pred``) cancels the second-order
-    drift of the exponential-map update, leaving ``O(h^2 |u+ - u_pred|)`` instead of ``O(h^2 |u|^2)``.
-    Errors below the dead band get no bias (rounding noise on redundant loop rows).
-    """
-    delta = joint_deadband(e_eval.dtype)
-    c = jnp.zeros_like(e_eval)
-    if cfg.stabilisation.curvature_correction:
-        e_pred = constraint_residual(pm, joint_frames(pm, integrate_pose(q_eval, u_pred, h)))
-        nb = u_pred.shape[0]
-        c = e_pred - e_eval - h * (J @ u_pred.reshape(nb * 6))
-    target = (1.0 - cfg.stabilisation.baumgarte) * e_start
-    if cfg.integrator == "midpoint":
-        target = target + MIDPOINT_DAMPING * (e_eval - e_start - c)
-    bias = cts.deadband(e_eval - target, delta) + cts.deadband(c, delta)
-    return jnp.where(pm.row_mask, bias / h, 0.0)
-
-
-def coupling_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: jax.Array, e_start: jax.Array,
-                  J: jax.Array, h, cfg: SolverConfig) -> jax.Array:
-    """Stabilisation bias of the coupling rows: :func:`joint_bias`'s rule on ``q_a - p(q_b)``."""
-    if not e_eval.shape[0]:
-        return e_eval
-    delta = joint_deadband(e_eval.dtype)
-    c = jnp.zeros_like(e_eval)
-    if cfg.stabilisation.curvature_correction:
-        e_pred = coupling_residual(pm, dof_positions(pm, joint_frames(pm, integrate_pose(q_eval, u_pred, h))))
-        c = e_pred - e_eval - h * (J @ u_pred.reshape(-1))
-    target = (1.0 - cfg.stabilisation.baumgarte) * e_start
-    if cfg.integrator == "midpoint":
-        target = target + MIDPOINT_DAMPING * (e_eval - e_start - c)
-    bias = cts.deadband(e_eval - target, delta) + cts.deadband(c, delta)
-    return jnp.where(pm.cpl_mask, bias / h, 0.0)
-
-
-def explicit_effort(pm: PaddedModel, effort: jax.Array) -> jax.Array:
-    """Efforts applied as body wrenches ``J_dofs^T tau`` (docs/formulation.md §3.1): as given on PASSIVE
-    DoFs, clipped to the effort limit on EFFORT DoFs, none on POSITION/VELOCITY DoFs (there the
-    effort is the actuator row's feed-forward)."""
-    mode = pm.dof_act_mode
-    lim = pm.dof_effort_limit
-    tau = jnp.where(mode == ActuationMode.EFFORT, jnp.clip(effort, -lim, lim), effort)
-    explicit = (mode == ActuationMode.PASSIVE) | (mode == ActuationMode.EFFORT)
-    return jnp.where(pm.dof_mask & explicit, tau, 0.0)
-
-
-def dynamics_rows(pm: PaddedModel, q_dof: jax.Array, qd_minus: jax.Array, ctrl: WorldControl, h,
-                  cfg: SolverConfig):
-    """Regularisation ``R``, bias ``v*`` and impulse bounds of the joint-dynamics rows (docs/formulation.md §3.2).
-
-    Each row is the DoF row of ``J_dofs``; with ``m`` the row's implicit inertia the row equation
-    ``J u+ + lambda/m + v* = 0`` reads ``m qd+ = p0 - lambda``, i.e. backward-Euler dynamics:
-
-    - actuator row (POSITION/VELOCITY DoFs): ``m = dt (kd + h kp)``, ``p0 = dt (tau_ff + kp (q_ref -
-      q) + kd qd_ref)`` (kp only in POSITION mode), so that ``lambda = dt [tau_ff + kp (q_ref - q -
-      h qd+) + kd (qd_ref - qd+)]`` is the PD impulse at the end of the step; the effort limit bounds
-      it: ``|lambda| <= dt tau_max`` (a box row, enforced by PADMM);
-    - passive row (armature ``a``, damping ``b``, spring ``k`` at ``q_s``): ``m = a + dt b + dt h k``,
-      ``p0 = a qd- + dt k (q_s - q)``.
-
-    ``q`` is evaluated where the dynamics are built; ``h`` is the pose update after the solve.
-    """
-    dt = cfg.dt
-    d = pm.dyn_dof
-    is_act = pm.dyn_kind == DYN_ACTUATOR
-    pos_mode = pm.dof_act_mode[d] == ActuationMode.POSITION
-    kp, kd = jnp.where(pos_mode, pm.dof_kp[d], 0.0), pm.dof_kd[d]
-    q, qd = q_dof[d], qd_minus[d]
-    m_act = dt * (kd + h * kp)
-    p_act = dt * (ctrl.effort[d] + kp * (ctrl.position_target[d] - q) + kd * ctrl.velocity_target[d])
-    a, b, k = pm.dof_armature[d], pm.dof_damping[d], pm.dof_stiffness[d]
-    m_pas = a + dt * b + dt * h * k
-    p_pas = a * qd + dt * k * (pm.dof_springref[d] - q)
-    # m > 0 on every real row (positive gains; armature, damping or a spring); the floor only keeps
-    # padding finite — a larger floor would add false damping to a soft spring at small dt
-    m = jnp.maximum(jnp.where(is_act, m_act, m_pas), 1e-30)
-    p0 = jnp.where(is_act, p_act, p_pas)
-    bound = jnp.where(is_act, dt * pm.dof_effort_limit[d], jnp.inf)
-    mask = pm.dyn_mask
-    return (jnp.where(mask, 1.0 / m, 0.0), jnp.where(mask, -p0 / m, 0.0),
-            jnp.where(mask, -bound, -jnp.inf), jnp.where(mask, bound, jnp.inf))
-
-
-def limit_rows(pm: PaddedModel, q_dof: jax.Array, q_dof_start: jax.Array, qd_free: jax.Array, h,
-               cfg: SolverConfig):
-    """Side, activity and bias of the limit rows (docs/formulation.md §4.1, with speculative activation).
-
-    Each limited DoF watches its nearer limit: ``r = q - q_min`` (side ``+1``) or ``q_max - q``
-    (side ``-1``), read where the dynamics are built. The row ``side * J_dof`` is active when
-    ``r < margin + h max(0, -side qd_f)`` (the limit can be reached in this step). Its bias asks the
-    end-of-step distance ``r + h side qd+`` to be at least ``(1 - beta) min(r_start, 0)``: a gap may
-    close, not more; a violation at the start of the step shrinks by ``beta``. For Euler
-    (``r = r_start``) this is ``r / h`` for a gap and ``beta r / h`` for a violation (§5); for the
-    midpoint rule it does not mistake the midpoint's overshoot for a violation to keep.
-    """
-    d = pm.lim_dof
-
-    def distance(q):
-        r_lo, r_hi = q[d] - pm.dof_lower[d], pm.dof_upper[d] - q[d]
-        return r_lo, r_hi
-
-    r_lo, r_hi = distance(q_dof)
-    side = jnp.where(r_lo <= r_hi, 1.0, -1.0)
-    r = jnp.minimum(r_lo, r_hi)
-    s_lo, s_hi = distance(q_dof_start)
-    r_start = jnp.where(side > 0, s_lo, s_hi)
-    approach = jnp.maximum(-side * qd_free[d], 0.0)
-    active = pm.lim_mask & (r < LIMIT_MARGIN + h * approach)
-    r_safe = jnp.where(active, r, 0.0)
-    target = (1.0 - LIMIT_BAUMGARTE) * jnp.minimum(jnp.where(active, r_start, 0.0), 0.0)
-    return side, active, jnp.where(active, (r_safe - target) / h, 0.0)
 
 
 def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array, body_u: jax.Array,

@@ -9,8 +9,8 @@ with the feasible set ``K`` of docs/formulation.md §4.3, extended with bounded 
 - *contact rows* ``[n_box, n_box + 3 n_c)``: triples ``(t1, t2, n)`` in the Coulomb cone
   ``||lambda_t|| <= mu lambda_n``, with the De Saxcé correction ``Gamma(v) = (0, 0, mu ||v_t||)``.
 
-The linear system ``(P D P + (eta + rho) I) x = rhs`` is factorised once per step by a dense
-Cholesky and reused by every iteration (§8.1).
+The linear system ``(P D P + (eta + rho) I) x = rhs`` is factorised once per step by a dense block
+Cholesky (``linear_solve``, §8.1) and reused by every iteration.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import cho_solve, solve_triangular
+import numpy as np
+from jax.scipy.linalg import cho_solve
 
 from kamino.config import (
     NULL_DIRECTION_RATIO,
@@ -34,6 +35,7 @@ from kamino.config import (
     SATURATION_MARGIN,
     SolverConfig,
 )
+from kamino.jax_ref import linear_solve
 
 
 @jax.tree_util.register_dataclass
@@ -178,7 +180,7 @@ class Carry(NamedTuple):
     r_c: jax.Array  #: complementarity residual
     converged: jax.Array
     rho_u: jax.Array  #: the limit and contact rows' penalty ("Penalty")
-    L: tuple  #: the factor of the scaled system (``factor``)
+    L: tuple  #: the block factor of the scaled system (``linear_solve.factor_tail``)
     k_rho: jax.Array  #: the iteration of the last penalty change or saturation
     e_p: jax.Array  #: the previous iteration's dual residual vector ("Null directions")
     sat: jax.Array  #: the saturated effort-limited rows ("Saturation")
@@ -187,8 +189,8 @@ class Carry(NamedTuple):
 
 class _Problem:
     """One world's PADMM problem in scaled units (docs/formulation.md §7.2-§7.3) and the operations every iteration
-    of :func:`solve` uses: the rows' penalties, the block factor and its solve, the projection on ``K`` and the
-    complementarity residual. Built while tracing :func:`solve`: its arrays are traced values."""
+    of :func:`solve` uses: the rows' penalties, the shifts of the block factor (``linear_solve``), the projection on
+    ``K`` and the complementarity residual. Built while tracing :func:`solve`: its arrays are traced values."""
 
     def __init__(self, D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array,
                  row_mask: jax.Array, cfg: SolverConfig, rho0, n_fixed: int) -> None:
@@ -216,10 +218,10 @@ class _Problem:
         self.rho_free = jnp.asarray(cfg.penalty.rho_free if adaptive else cfg.penalty.rho, dtype)
         self.rho_sat = jnp.asarray(cfg.penalty.rho, dtype)
         self.free_row = fixed_row & ~boxed  # the unbounded rows, whose penalty is always the proximal shift rho_free
-        # block Cholesky [[L_f, 0], [L_tf, L_t]] of Dt + diag(eta + penalty): L_f and L_tf do not depend on the
-        # limit and contact rows' penalty rho_u, so a new rho_u only redoes L_t = chol(S_t + (eta + rho_u) I) from
-        # the tail's Schur complement S_t (the Warp backend's scheme, docs/conventions.md "Penalty"); a fixed row
-        # that saturates redoes all of it
+        # block Cholesky [[L_f, 0], [L_tf, L_t]] of Dt + diag(eta + penalty) (linear_solve): L_f and L_tf do not
+        # depend on the limit and contact rows' penalty rho_u, so a new rho_u only redoes L_t = chol(S_t + (eta +
+        # rho_u) I) from the tail's Schur complement S_t (the Warp backend's scheme, docs/conventions.md "Penalty");
+        # a fixed row that saturates redoes all of it
         self.nf = min(n_fixed, n) if adaptive else 0
         finite_lo, finite_hi = self.finite_lo, self.finite_hi = jnp.isfinite(lo), jnp.isfinite(hi)
         # bounds on scaled box rows (P > 0); infinite bounds stay infinite without touching P (no inf*0 in grads)
@@ -237,33 +239,16 @@ class _Problem:
         return jnp.where(self.fixed_row, jnp.where(sat, self.rho_sat, self.rho_free), rho_u)
 
     def factor_fixed(self, sat) -> tuple:
-        """``(L_f, L_tf, S_t)``: the fixed rows' factor, the coupling block and the tail's Schur complement."""
-        nf, n, dtype = self.nf, self.n, self.dtype
-        A = self.Dt + jnp.diag(self.eta + self.penalty(self.rho0, sat))
-        L_f = jnp.linalg.cholesky(A[:nf, :nf]) if nf else jnp.zeros((0, 0), dtype)
-        L_tf = solve_triangular(L_f, A[:nf, nf:], lower=True).T if nf else jnp.zeros((n - nf, 0), dtype)
-        return L_f, L_tf, self.Dt[nf:, nf:] - L_tf @ L_tf.T
+        """``linear_solve.factor_fixed`` with the fixed rows' shift ``eta + rho_free`` (``rho`` when saturated)."""
+        return linear_solve.factor_fixed(self.Dt, self.eta + self.penalty(self.rho0, sat), self.nf)
 
     def factor(self, fixed, rho_u, sat) -> tuple:
-        """The whole block factor ``(L_f, L_tf, S_t, L_t)`` from the fixed part ``fixed = (L_f, L_tf, S_t)``."""
-        L_f, L_tf, S_t = fixed
+        """``linear_solve.factor_tail`` with the tail rows' shift ``eta + rho_u`` (``eta + rho``: fixed penalty)."""
         nf, n = self.nf, self.n
-        if nf == n:
-            return L_f, L_tf, S_t, jnp.zeros((0, 0), self.dtype)
+        if nf == n:  # no tail rows (a host constant: nothing to trace)
+            return linear_solve.factor_tail(fixed, np.zeros(0, self.dtype))
         tail = self.penalty(rho_u, sat)[nf:] if self.adaptive else jnp.full(n - nf, self.cfg.penalty.rho, self.dtype)
-        return L_f, L_tf, S_t, jnp.linalg.cholesky(S_t + jnp.diag(self.eta + tail))
-
-    def lin_solve(self, L, b) -> jax.Array:
-        """``x = (Dt + diag(eta + rho))^-1 b`` with the block factor (§8.1)."""
-        L_f, L_tf, _, L_t = L
-        nf, n = self.nf, self.n
-        y_f = solve_triangular(L_f, b[:nf], lower=True) if nf else b[:0]
-        if nf == n:
-            return solve_triangular(L_f, y_f, lower=True, trans="T")
-        y_t = solve_triangular(L_t, b[nf:] - L_tf @ y_f, lower=True)
-        x_t = solve_triangular(L_t, y_t, lower=True, trans="T")
-        x_f = solve_triangular(L_f, y_f - L_tf.T @ x_t, lower=True, trans="T") if nf else b[:0]
-        return jnp.concatenate([x_f, x_t])
+        return linear_solve.factor_tail(fixed, self.eta + tail)
 
     def upper(self, vt) -> jax.Array:
         """The box rows' scaled upper bounds; the redundant limit rows get 0 (their lower bound): ``lambda = 0``."""
@@ -317,7 +302,7 @@ def _iterate(p: _Problem, carry: Carry, vt, hi_v, inline: bool = True) -> Carry:
     rho = p.penalty(rho_u, sat)
     # step 1-2: De Saxcé correction, linear solve with the cached factor
     s = de_saxce(z_hat, p.mu, p.n_box)
-    x = p.lin_solve(L, -vt - s + eta * x_p + rho * y_hat + z_hat)
+    x = linear_solve.solve(L, -vt - s + eta * x_p + rho * y_hat + z_hat)
     # steps 3-4: projection on K, dual update
     y = p.proj(x - z_hat / rho, hi_v)
     z = jnp.where(p.row_mask, z_hat + rho * (y - x), 0.0)

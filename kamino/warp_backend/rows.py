@@ -1,6 +1,6 @@
 """Body dynamics and the bilateral / limit constraint rows of a step, as Warp kernels.
 
-Formulas of ``kamino/jax_ref/pipeline.py`` and ``dynamics.py`` (docs/formulation.md §1.4, §3.2, §4.1, §5).
+Formulas of ``kamino/jax_ref/rows.py`` and ``dynamics.py`` (docs/formulation.md §1.4, §3.2, §4.1, §5).
 Kernels run on ``(num_worlds, max_count)`` grids; a world's rows are written into its segment:
 ``[joint-dynamics | kinematic | coupling | active limits (compacted) | contacts]``.
 
