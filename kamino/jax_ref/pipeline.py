@@ -29,7 +29,7 @@ from kamino.jax_ref.jacobians import (
 )
 from kamino.jax_ref.layout import DYN_ACTUATOR, PaddedModel
 from kamino.jax_ref.precision import full_precision
-from kamino.jax_ref.rows import coupling_bias, dynamics_rows, explicit_effort, joint_bias, limit_rows
+from kamino.jax_ref.rows import WorldControl, coupling_bias, dynamics_rows, explicit_effort, joint_bias, limit_rows
 from kamino.spatial import integrate_pose
 
 
@@ -55,17 +55,6 @@ class WorldCache:
     contact_velocity: jax.Array  # [C, 3]
     contact_point_b: jax.Array  # [C, 3]
     penalty: jax.Array  # [] the last solve's penalty on bounded rows (0: none yet; the next solve starts there)
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class WorldControl:
-    """One world's inputs (padded): DoF efforts, body wrenches, position and velocity targets."""
-
-    effort: jax.Array  # [nd]
-    wrench: jax.Array  # [nb, 6]
-    position_target: jax.Array  # [nd]
-    velocity_target: jax.Array  # [nd]
 
 
 @jax.tree_util.register_dataclass

@@ -8,7 +8,7 @@ rows | coupling rows | limit rows | contact triples (``contacts``).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -21,8 +21,17 @@ from kamino.jax_ref.layout import DYN_ACTUATOR, PaddedModel
 from kamino.model import ActuationMode
 from kamino.spatial import integrate_pose
 
-if TYPE_CHECKING:
-    from kamino.jax_ref.pipeline import WorldControl
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class WorldControl:
+    """One world's inputs (padded): DoF efforts, body wrenches, position and velocity targets."""
+
+    effort: jax.Array  # [nd]
+    wrench: jax.Array  # [nb, 6]
+    position_target: jax.Array  # [nd]
+    velocity_target: jax.Array  # [nd]
+
 
 def joint_bias(pm: PaddedModel, q_eval: jax.Array, u_pred: jax.Array, e_eval: jax.Array, e_start: jax.Array,
                J: jax.Array, h, cfg: SolverConfig) -> jax.Array:
