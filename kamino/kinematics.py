@@ -17,7 +17,7 @@ import numpy as np
 
 from kamino.jax_ref.backend import padded_poses
 from kamino.jax_ref.fk import FKSettings, FKTables, solve_batch
-from kamino.jax_ref.layout import _pad_index, layout_of, to_flat, to_padded
+from kamino.jax_ref.types import _pad_index, layout_of, to_flat, to_padded
 from kamino.model import JOINT_CONSTRAINT_ROWS, RES_LOG, RES_TRANS, ActuationMode, JointType, Model, derived
 from kamino.spatial import quat_conj, quat_exp, quat_mul, rotate
 from kamino.state import ContactState, State, StepInfo

@@ -124,7 +124,7 @@ class Simulator:
 
     def parameters(self, dtype):
         """``(padded model, layout tables)``: the JAX reference's arrays in ``dtype`` that every step reads (the
-        padded model, ``kamino.jax_ref.layout.PaddedModel``, holds the physical parameters). :meth:`step_with` steps
+        padded model, ``kamino.jax_ref.types.PaddedModel``, holds the physical parameters). :meth:`step_with` steps
         with a copy whose arrays a caller has replaced, traced per environment (``kamino.envs``' domain
         randomization)."""
         self._require_jax("parameters")

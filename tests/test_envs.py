@@ -605,7 +605,7 @@ def test_joystick_warm_start_lets_an_internal_loop_load_decay(legs_own_gains):
     position within 0.1 mm; measured 2e-5 m: its net wrench is the float32 rounding of 1e5 N)."""
     from kamino.envs.joystick import WARMSTART_SCALE
     from kamino.jax_ref.jacobians import constraint_jacobian, joint_frames
-    from kamino.jax_ref.layout import layout_of
+    from kamino.jax_ref.types import layout_of
     from kamino.state import drop_empty
 
     env = legs_own_gains

@@ -16,7 +16,7 @@ import pytest
 
 import kamino
 from kamino.jax_ref import dynamics
-from kamino.jax_ref.layout import layout_of
+from kamino.jax_ref.types import layout_of
 from kamino.spatial import quat_to_matrix
 from tests.helpers import BACKENDS, JAX, Variant
 

@@ -10,7 +10,7 @@ import pytest
 import kamino
 from kamino.hostmath import quat_from_axis_angle, quat_mul
 from kamino.jax_ref.jacobians import constraint_jacobian, constraint_residual, dof_jacobian, joint_frames
-from kamino.jax_ref.layout import layout_of
+from kamino.jax_ref.types import layout_of
 from kamino.spatial import integrate_pose
 
 JT = kamino.JointType

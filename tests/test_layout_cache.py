@@ -1,4 +1,4 @@
-"""The JAX reference's cached padded layout (``kamino/jax_ref/layout.py``, ``layout_of``) never holds tracers:
+"""The JAX reference's cached padded layout (``kamino/jax_ref/types.py``, ``layout_of``) never holds tracers:
 a first call of ``kamino.metrics`` / ``kamino.joint_positions`` under ``jax.jit`` must not poison later eager
 calls, nor an eager first call later jitted ones."""
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import kamino
-from kamino.jax_ref.layout import layout_of
+from kamino.jax_ref.types import layout_of
 
 
 def _fns():

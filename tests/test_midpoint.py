@@ -20,7 +20,7 @@ import pytest
 
 import kamino
 from kamino.jax_ref.jacobians import constraint_jacobian, joint_frames
-from kamino.jax_ref.layout import layout_of
+from kamino.jax_ref.types import layout_of
 from tests.helpers import BACKENDS, JAX
 
 DT = 1.0 / 240.0

@@ -14,7 +14,7 @@ import pytest
 import kamino
 from kamino.hostmath import quat_to_matrix
 from kamino.jax_ref.jacobians import constraint_jacobian, constraint_residual, dof_jacobian, dof_positions, joint_frames
-from kamino.jax_ref.layout import layout_of
+from kamino.jax_ref.types import layout_of
 from kamino.kinematics import actuated_joints
 from kamino.model import ActuationMode, GeomType, JointType, count_loops
 from kamino.models import robots

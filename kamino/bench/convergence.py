@@ -300,7 +300,7 @@ class ClosureProbe:
 class VelocityProbe:
     """The joint rows' velocities of one world with the JAX reference's kinematics
     (``kamino.jax_ref.jacobians.joint_frames`` / ``constraint_jacobian`` on the padded single-world layout of
-    ``kamino.jax_ref.layout.layout_of``), vmapped over a few sampled worlds, on JAX's CPU device in JAX's default
+    ``kamino.jax_ref.types.layout_of``), vmapped over a few sampled worlds, on JAX's CPU device in JAX's default
     float (float32: a rounding floor of ~1e-7 |u|). For a step ``q_t -> q_{t+1}`` with free velocity ``u_f``
     and solved velocity ``u+`` (Euler: the step's evaluation pose is ``q_t``):
 
@@ -315,7 +315,7 @@ class VelocityProbe:
     def __init__(self, base: kamino.Model):
         import jax
 
-        from kamino.jax_ref.layout import layout_of
+        from kamino.jax_ref.types import layout_of
 
         self.cpu = jax.devices("cpu")[0]
         with jax.default_device(self.cpu):

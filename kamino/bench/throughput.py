@@ -299,7 +299,7 @@ def joint_velocity_error(st) -> float:
     import jax.numpy as jnp
 
     from kamino.jax_ref.jacobians import constraint_jacobian, joint_frames
-    from kamino.jax_ref.layout import layout_of
+    from kamino.jax_ref.types import layout_of
 
     model = st.wm.model
     if model.num_worlds != 1 or not model.num_constraints:

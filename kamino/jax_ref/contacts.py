@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from kamino.config import CONTACT_BAUMGARTE, CONTACT_DEADBAND, RESTITUTION_THRESHOLD, SolverConfig
 from kamino.jax_ref.collision import collide
-from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.types import PaddedModel
 from kamino.model import GeomType
 from kamino.spatial import quat_mul, quat_to_matrix
 

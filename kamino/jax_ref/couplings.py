@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.types import PaddedModel
 
 
 def _poly(coef: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:

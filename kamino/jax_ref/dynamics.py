@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from kamino.config import GYRO_ITERATIONS
-from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.types import PaddedModel
 from kamino.spatial import quat_to_matrix
 
 

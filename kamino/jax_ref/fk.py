@@ -37,8 +37,8 @@ from kamino.jax_ref.jacobians import (
     joint_coordinates,
     joint_frames,
 )
-from kamino.jax_ref.layout import PaddedModel
 from kamino.jax_ref.precision import full_precision
+from kamino.jax_ref.types import PaddedModel
 from kamino.model import JointType
 from kamino.spatial import integrate_pose, quat_conj, quat_exp, quat_log, quat_mul, rotate
 

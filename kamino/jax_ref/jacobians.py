@@ -12,7 +12,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.types import PaddedModel
 from kamino.model import DOF_FREE, DOF_TRANS, DOF_UNIV, RES_HINGE, RES_LOG, RES_TRANS, RES_UNIV, JointType
 from kamino.spatial import quat_conj, quat_log, quat_mul, quat_to_matrix
 

@@ -27,9 +27,9 @@ from kamino.jax_ref.jacobians import (
     dof_positions,
     joint_frames,
 )
-from kamino.jax_ref.layout import DYN_ACTUATOR, PaddedModel
 from kamino.jax_ref.precision import full_precision
 from kamino.jax_ref.rows import WorldControl, coupling_bias, dynamics_rows, explicit_effort, joint_bias, limit_rows
+from kamino.jax_ref.types import DYN_ACTUATOR, PaddedModel
 from kamino.spatial import integrate_pose
 
 

@@ -44,7 +44,7 @@ from kamino.jax_ref.contacts import deadband
 from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.dynamics import BodyDynamics, apply_inv_mass
 from kamino.jax_ref.jacobians import constraint_residual, dof_positions, joint_frames
-from kamino.jax_ref.layout import PaddedModel
+from kamino.jax_ref.types import PaddedModel
 from kamino.model import RES_TRANS
 from kamino.spatial import integrate_pose
 

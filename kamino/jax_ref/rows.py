@@ -17,7 +17,7 @@ from kamino.config import LIMIT_BAUMGARTE, LIMIT_MARGIN, MIDPOINT_DAMPING, Solve
 from kamino.jax_ref import contacts as cts
 from kamino.jax_ref.couplings import coupling_residual
 from kamino.jax_ref.jacobians import constraint_residual, dof_positions, joint_frames
-from kamino.jax_ref.layout import DYN_ACTUATOR, PaddedModel
+from kamino.jax_ref.types import DYN_ACTUATOR, PaddedModel
 from kamino.model import ActuationMode
 from kamino.spatial import integrate_pose
 

@@ -260,8 +260,8 @@ def contact_rows_kernel(np_dtype) -> wp.Kernel:
         mu = w.ct_mu[s]
         for t in range(3):
             JB, JA = contact_blocks(w, s, vec3(C[0, t], C[1, t], C[2, t]))
-            rt = ridx(m, w, wid, a0 + t)
-            rk.set_blocks(w, rt, nblk, bb, JB, ba, JA)
+            rt = ridx(m, w.row_stride, wid, a0 + t)
+            rk.set_blocks(w.row_body, w.row_J, rt, nblk, bb, JB, ba, JA)
             w.reg[rt] = scalar(0.0)
             w.lo[rt] = scalar(0.0)
             w.hi[rt] = scalar(0.0)
@@ -270,7 +270,7 @@ def contact_rows_kernel(np_dtype) -> wp.Kernel:
         # bias of the normal row: gap closes at most, penetration shrinks by gamma; or Newton's restitution
         d = deadband(w.ct_dist[s], deadband_c)
         gap_bias = (d - (scalar(1.0) - gamma) * wp.min(d, scalar(0.0))) / h
-        vn_minus = rk.row_dot(w, ridx(m, w, wid, a0 + 2), nblk, w.u)
+        vn_minus = rk.row_dot(w.row_body, w.row_J, ridx(m, w.row_stride, wid, a0 + 2), nblk, w.u)
         e = w.ct_restitution[s]
         vn = gap_bias
         if e > scalar(0.0) and vn_minus < -restitution_threshold:
@@ -278,7 +278,7 @@ def contact_rows_kernel(np_dtype) -> wp.Kernel:
             if e < scalar(1.0):
                 corr = wp.min(gap_bias, scalar(0.0))
             vn = wp.min(e * vn_minus, corr)
-        w.vstar[ridx(m, w, wid, a0 + 2)] = vn
+        w.vstar[ridx(m, w.row_stride, wid, a0 + 2)] = vn
         # warm start: previous contact of the same pair nearest on geom b (first on ties), within the distance
         pb = local_point_b(w, s)
         best = int(-1)
@@ -298,8 +298,8 @@ def contact_rows_kernel(np_dtype) -> wp.Kernel:
             v = wp.transpose(C) * w.con_velocity[best]
         v[2] = v[2] + cf.de_saxce(v[0], v[1], mu)
         for t in range(3):
-            w.f0[ridx(m, w, wid, a0 + t)] = f[t]
-            w.v0[ridx(m, w, wid, a0 + t)] = v[t]
+            w.f0[ridx(m, w.row_stride, wid, a0 + t)] = f[t]
+            w.v0[ridx(m, w.row_stride, wid, a0 + t)] = v[t]
 
     return contact_rows
 
@@ -321,7 +321,7 @@ def commit_contacts_kernel(np_dtype) -> wp.Kernel:
             return
         s = m.con_start[wid] + i
         if i < w.n_con[wid]:
-            r = ridx(m, w, wid, w.n_box[wid] + 3 * i)
+            r = ridx(m, w.row_stride, wid, w.n_box[wid] + 3 * i)
             r1 = r + w.row_stride
             r2 = r + 2 * w.row_stride
             C = contact_frame(w.ct_normal[s])

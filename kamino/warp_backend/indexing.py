@@ -45,15 +45,15 @@ def index_funcs(np_dtype) -> SimpleNamespace:
 @functools.cache
 def row_base_func(np_dtype):
     """Where a world's rows start (the layouts of the module docstring)."""
-    M, Work = builder_types(np_dtype).take("M", "Work")
+    M = builder_types(np_dtype).M
 
     @wp.func
-    def row_base(m: M, w: Work, wid: int):
-        """``ridx(m, w, wid, a) = row_base(m, w, wid) + a * w.row_stride``: hoisted out of a world's row loops (a
-        kernel that also stores to arrays cannot have the compiler prove the start unchanged, so it would reload
-        it)."""
+    def row_base(m: M, row_stride: int, wid: int):
+        """``ridx(m, row_stride, wid, a) = row_base(m, row_stride, wid) + a * row_stride``: hoisted out of a world's
+        row loops (a kernel that also stores to arrays cannot have the compiler prove the start unchanged, so it would
+        reload it). ``row_stride``: ``Work.row_stride``."""
         g = wid // GROUP
-        if w.row_stride == 1:
+        if row_stride == 1:
             return m.grp_row_start[g] + (wid - g * GROUP) * m.grp_maxdim[g]
         return m.grp_row_start[g] + (wid - g * GROUP)
 
@@ -63,14 +63,14 @@ def row_base_func(np_dtype):
 @functools.cache
 def ridx_func(np_dtype):
     """The storage index of a world's row (the layouts of the module docstring)."""
-    M, Work = builder_types(np_dtype).take("M", "Work")
+    M = builder_types(np_dtype).M
     row_base = row_base_func(np_dtype)
 
     @wp.func
-    def ridx(m: M, w: Work, wid: int, a: int):
+    def ridx(m: M, row_stride: int, wid: int, a: int):
         """Storage index of row ``a`` of world ``wid`` (interleaved over the group, or the world's rows contiguous:
-        ``w.row_stride``)."""
-        return row_base(m, w, wid) + a * w.row_stride
+        ``row_stride``, ``Work.row_stride``)."""
+        return row_base(m, row_stride, wid) + a * row_stride
 
     return ridx
 
@@ -123,12 +123,10 @@ def row_info_func(np_dtype):
 @functools.cache
 def row_kind_func(np_dtype):
     """A row's family, from ``Work.row_info``."""
-    Work = builder_types(np_dtype).Work
-
     @wp.func
-    def row_kind(w: Work, r: int):
+    def row_kind(row_info: wp.array(dtype=wp.int32), r: int):
         """The family of row ``r`` (rows.ROW_*)."""
-        return w.row_info[r] >> _KIND_SHIFT
+        return row_info[r] >> _KIND_SHIFT
 
     return row_kind
 
@@ -136,13 +134,11 @@ def row_kind_func(np_dtype):
 @functools.cache
 def row_source_func(np_dtype):
     """A row's source, from ``Work.row_info``."""
-    Work = builder_types(np_dtype).Work
-
     @wp.func
-    def row_source(w: Work, r: int):
+    def row_source(row_info: wp.array(dtype=wp.int32), r: int):
         """The source of row ``r``: its DoF (joint-dynamics and limit rows), kinematic constraint, coupling or
         contact slot (global indices)."""
-        return w.row_info[r] & _SRC_MASK
+        return row_info[r] & _SRC_MASK
 
     return row_source
 
@@ -150,12 +146,12 @@ def row_source_func(np_dtype):
 @functools.cache
 def row_side_func(np_dtype):
     """A limit row's sign, from ``Work.row_info``."""
-    scalar, Work = builder_types(np_dtype).take("scalar", "Work")
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func
-    def row_side(w: Work, r: int):
+    def row_side(row_info: wp.array(dtype=wp.int32), r: int):
         """``+1`` or ``-1``: the sign of a limit row (``-1`` on the upper limit); ``+1`` on the other rows."""
-        if (w.row_info[r] & _NEG_BIT) != 0:
+        if (row_info[r] & _NEG_BIT) != 0:
             return scalar(-1.0)
         return scalar(1.0)
 
@@ -165,13 +161,11 @@ def row_side_func(np_dtype):
 @functools.cache
 def row_saturated_func(np_dtype):
     """A row's saturation flag, from ``Work.row_info``."""
-    Work = builder_types(np_dtype).Work
-
     @wp.func
-    def row_saturated(w: Work, r: int):
+    def row_saturated(row_info: wp.array(dtype=wp.int32), r: int):
         """1 if row ``r`` is an effort-limited fixed row that carries ``rho`` (kamino.jax_ref.solver.solve,
         "Saturation"), else 0."""
-        return (w.row_info[r] >> _SAT_SHIFT) & 1
+        return (row_info[r] >> _SAT_SHIFT) & 1
 
     return row_saturated
 
@@ -179,15 +173,13 @@ def row_saturated_func(np_dtype):
 @functools.cache
 def set_saturated_func(np_dtype):
     """A row's saturation flag set or cleared in ``Work.row_info``."""
-    Work = builder_types(np_dtype).Work
-
     @wp.func
-    def set_saturated(w: Work, r: int, sat: int):
+    def set_saturated(row_info: wp.array(dtype=wp.int32), r: int, sat: int):
         """Set (``sat != 0``) or clear row ``r``'s saturation flag (only row ``r``'s own thread writes it)."""
-        info = w.row_info[r] & _NOT_SAT
+        info = row_info[r] & _NOT_SAT
         if sat != 0:
             info = info | _SAT_BIT
-        w.row_info[r] = info
+        row_info[r] = info
 
     return set_saturated
 
@@ -195,11 +187,11 @@ def set_saturated_func(np_dtype):
 @functools.cache
 def row_mu_func(np_dtype):
     """A contact row's friction coefficient."""
-    Work = builder_types(np_dtype).Work
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func
-    def row_mu(w: Work, r: int):
+    def row_mu(ct_mu: wp.array(dtype=scalar), row_info: wp.array(dtype=wp.int32), r: int):
         """The friction coefficient of a contact row ``r`` (any of its three): its contact slot's."""
-        return w.ct_mu[w.row_info[r] & _SRC_MASK]
+        return ct_mu[row_info[r] & _SRC_MASK]
 
     return row_mu

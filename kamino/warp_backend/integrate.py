@@ -53,7 +53,7 @@ def rows_on_body_func(np_dtype):
         """``(J^T lambda)_b`` over the first ``n`` rows of world ``wid`` (block-sparse rows, summed in row order)."""
         acc = vec6()
         for a in range(n):
-            r = ridx(m, w, wid, a)
+            r = ridx(m, w.row_stride, wid, a)
             for k in range(nblk):
                 if w.row_body[r * nblk + k] == b:
                     acc += lam[r] * w.row_J[r * nblk + k]
@@ -101,7 +101,7 @@ def integrate_kernel(np_dtype, dense: bool):
         acc = vec6()
         if wp.static(dense):
             for a in range(n):
-                lam = w.impulse[ridx(m, w, wid, a)]
+                lam = w.impulse[ridx(m, w.row_stride, wid, a)]
                 for c in range(6):
                     acc[c] += lam * w.Jd[jidx(m, wid, a, 6 * i + c)]
         else:
@@ -156,10 +156,10 @@ def row_forces_kernel(np_dtype):
         wid, a = wp.tid()
         if a >= w.n_box[wid] or w.failed[wid] != 0:
             return
-        r = ridx(m, w, wid, a)
+        r = ridx(m, w.row_stride, wid, a)
         f = w.impulse[r] * inv_dt
-        src = row_source(w, r)
-        t = row_kind(w, r)
+        src = row_source(w.row_info, r)
+        t = row_kind(w.row_info, r)
         if t == ROW_ACTUATOR:
             w.act_force[src] += f
         elif t == ROW_PASSIVE:
@@ -169,7 +169,7 @@ def row_forces_kernel(np_dtype):
         elif t == ROW_COUPLING:
             w.cpl_force[src] = f
         elif t == ROW_LIMIT:
-            w.lim_force[src] = row_side(w, r) * f
+            w.lim_force[src] = row_side(w.row_info, r) * f
 
     return row_forces
 

@@ -302,9 +302,9 @@ def bases_func(np_dtype):
         if sp.val_stride == 1:
             vb = sp.grp_val_start[g] + lane * sp.grp_nnz[g]
         if sp.tail_stride == 1:
-            return wp.vec4i(row_base(m, w, wid), vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
+            return wp.vec4i(row_base(m, w.row_stride, wid), vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
                             sp.grp_tail_dim[g])
-        return wp.vec4i(row_base(m, w, wid), vb, sp.grp_tail_start[g] + lane, sp.grp_tail_dim[g] * GROUP)
+        return wp.vec4i(row_base(m, w.row_stride, wid), vb, sp.grp_tail_start[g] + lane, sp.grp_tail_dim[g] * GROUP)
 
     return bases
 
@@ -417,8 +417,8 @@ def delassus_sum_func(np_dtype):
         :func:`delassus_term`); with ``skip_hubs`` over the bodies that are not hubs (``body_hub[b] < 0``): ``D0 =
         sum_{b not a hub} J_b M_b^-1 J_b^T + R``, the hubs' share being in the factor through their unknowns
         (docs/warp_backend.md "Open problems"). The same sum, term for term, when no body is skipped."""
-        ra = ridx(m, w, wid, a)
-        rb = ridx(m, w, wid, b)
+        ra = ridx(m, w.row_stride, wid, a)
+        rb = ridx(m, w.row_stride, wid, b)
         s = scalar(0.0)
         for k in range(nblk):
             bk = w.row_body[ra * nblk + k]
@@ -504,7 +504,7 @@ def hub_entry_func(np_dtype):
         body = sp.hub_body[sp.hub_start[wid] + h]
         s = scalar(0.0)
         if q < nf:
-            rb = ridx(m, w, wid, sp.perm[sp.perm_start[wid] + q])
+            rb = ridx(m, w.row_stride, wid, sp.perm[sp.perm_start[wid] + q])
             s = w.P[rb] * row_on_body(w, rb, body, nblk)[c]
         elif (q - nf) // 6 == h:
             c2 = q - nf - 6 * h
@@ -540,9 +540,10 @@ def fixed_entry_func(np_dtype):
             return
         a = sp.perm[sp.perm_start[wid] + p]
         b = sp.perm[sp.perm_start[wid] + q]
-        s = w.P[ridx(m, w, wid, a)] * delassus0(m, w, sp, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
+        s = (w.P[ridx(m, w.row_stride, wid, a)] * delassus0(m, w, sp, wid, a, b, nblk)
+             * w.P[ridx(m, w.row_stride, wid, b)])
         if p == q:
-            if row_saturated(w, ridx(m, w, wid, a)) != 0:
+            if row_saturated(w.row_info, ridx(m, w.row_stride, wid, a)) != 0:
                 s += shift_sat
             else:
                 s += shift
@@ -584,11 +585,11 @@ def tail_row_func(np_dtype):
         row ``b <= a`` (no shift: :func:`factor` adds the world's penalty)."""
         nf = sp.n_fixed[wid]
         t = a - nf
-        ra = ridx(m, w, wid, a)
+        ra = ridx(m, w.row_stride, wid, a)
         Pa = w.P[ra]
         pat = int(0)
-        src = row_source(w, ra)
-        if row_kind(w, ra) == ROW_LIMIT:
+        src = row_source(w.row_info, ra)
+        if row_kind(w.row_info, ra) == ROW_LIMIT:
             pat = sp.dof_pat[src]
         else:  # a contact row: its pair's
             pat = sp.con_pat[wid] + w.ct_pair[src]
@@ -603,11 +604,11 @@ def tail_row_func(np_dtype):
             else:
                 b = sp.pat_row[i0 + i]
                 sp.tail[tidx(m, w, sp, wid, t, i)] = (Pa * delassus0(m, w, sp, wid, a, b, nblk)
-                                                      * w.P[ridx(m, w, wid, b)])
+                                                      * w.P[ridx(m, w.row_stride, wid, b)])
         kt = tail_k(sp, wid) - nf
         for b in range(nf, a + 1):
             sp.tail[tidx(m, w, sp, wid, t, kt + b)] = (Pa * delassus0(m, w, sp, wid, a, b, nblk)
-                                                       * w.P[ridx(m, w, wid, b)])
+                                                       * w.P[ridx(m, w.row_stride, wid, b)])
 
     return tail_row
 

@@ -39,7 +39,7 @@ def cr_pattern_kernel(np_dtype):
         ``b``'s list ends (it starts where the previous body's ends, or at 0)."""
         wid = wp.tid()
         rs = w.row_stride
-        rb = row_base(m, w, wid)
+        rb = row_base(m, w.row_stride, wid)
         b0 = m.body_start[wid]
         nb = m.body_count[wid]
         n = w.n_rows[wid]
@@ -123,7 +123,7 @@ def apply_func(np_dtype, lanes: int):
             Pa = w.P[r]
             shift = shift_t
             if a < nf:
-                shift = wp.where(row_saturated(w, r) != 0, shift_b, shift_f)
+                shift = wp.where(row_saturated(w.row_info, r) != 0, shift_b, shift_f)
             out[r] = Pa * s + (Pa * Pa * w.reg[r] + shift) * v[r]
 
     return apply

@@ -188,6 +188,14 @@ class Stepper:
             wp.launch(kernel, dim=dim, inputs=[self.wm.arrays, self.work, *args], device=self.device,
                       block_dim=block)
 
+    def _launch_io(self, kernel, dim, inputs: list, outputs: list) -> None:
+        """Launch a kernel whose signature is ``(m, *inputs, *outputs)``: the model's arrays, then what the kernel
+        reads, then what it writes (an array it reads and writes is an output). Blocks as :meth:`_launch`."""
+        if all(int(d) > 0 for d in (dim if isinstance(dim, tuple) else (dim,))):
+            block = PER_WORLD_BLOCK if not isinstance(dim, tuple) else 256
+            wp.launch(kernel, dim=dim, inputs=[self.wm.arrays, *inputs], outputs=outputs, device=self.device,
+                      block_dim=block)
+
     def launch_step(self) -> None:
         """Enqueue one step (capturable: no host synchronisation)."""
         cfg, wm, w = self.cfg, self.wm, self.work
@@ -290,6 +298,11 @@ class Stepper:
         """Launch a 32-threads-per-world kernel (``solver_lanes.py``): one block of ``LANES`` threads per world."""
         wp.launch_tiled(kernel, dim=[self.wm.num_worlds], inputs=[self.wm.arrays, self.work, *args], block_dim=LANES,
                         device=self.device)
+
+    def _launch_lanes_io(self, kernel, inputs: list, outputs: list) -> None:
+        """:meth:`_launch_lanes` for a kernel whose signature is ``(m, *inputs, *outputs)`` (:meth:`_launch_io`)."""
+        wp.launch_tiled(kernel, dim=[self.wm.num_worlds], inputs=[self.wm.arrays, *inputs], outputs=outputs,
+                        block_dim=LANES, device=self.device)
 
     def _padmm_loop(self) -> None:
         """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds

@@ -73,7 +73,7 @@ def residual_kernel(np_dtype):
                 qb = dof_position(m, w.q_new, db)
             ek, dp = coupling_residual(m, k, dof_position(m, w.q_new, m.cpl_dof_a[k]), qb)
             e = deadband(ek, delta)
-        r = ridx(m, w, wid, a)
+        r = ridx(m, w.row_stride, wid, a)
         w.x[r] = -w.P[r] * e
 
     return residual
@@ -96,7 +96,7 @@ def solve_kernel(np_dtype):
         nf = m.row_fixed[wid]
         sparse_solve(m, w, sp, wid, nf)
         for a in range(nf):  # lambda = P y
-            r = ridx(m, w, wid, a)
+            r = ridx(m, w.row_stride, wid, a)
             w.x[r] = w.P[r] * w.x[r]
 
     return solve

@@ -71,36 +71,38 @@ def body_dot_func(np_dtype):
 
 @functools.cache
 def set_blocks_func(np_dtype):
-    """``set_blocks(w, r, nblk, bF, JF, bB, JB)``: row ``r``'s two blocks (§2.5)."""
-    vec6, Work = builder_types(np_dtype).take("vec6", "Work")
+    """``set_blocks(row_body, row_J, r, nblk, bF, JF, bB, JB)``: row ``r``'s two blocks (§2.5)."""
+    vec6 = builder_types(np_dtype).vec6
 
     @wp.func
-    def set_blocks(w: Work, r: int, nblk: int, bF: int, JF: vec6, bB: int, JB: vec6):
+    def set_blocks(row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6), r: int, nblk: int, bF: int,
+                   JF: vec6, bB: int, JB: vec6):
         """Row ``r`` = blocks ``(bF, JF)``, ``(bB, JB)``; the other block slots empty."""
         for k in range(nblk):
-            w.row_body[r * nblk + k] = -1
-            w.row_J[r * nblk + k] = vec6()
-        w.row_body[r * nblk] = bF
-        w.row_J[r * nblk] = JF
-        w.row_body[r * nblk + 1] = bB
+            row_body[r * nblk + k] = -1
+            row_J[r * nblk + k] = vec6()
+        row_body[r * nblk] = bF
+        row_J[r * nblk] = JF
+        row_body[r * nblk + 1] = bB
         if bB >= 0:
-            w.row_J[r * nblk + 1] = JB
+            row_J[r * nblk + 1] = JB
 
     return set_blocks
 
 
 @functools.cache
 def row_dot_func(np_dtype):
-    """``row_dot(w, r, nblk, u)``: ``J_r u`` over row ``r``'s blocks (§2.5)."""
-    scalar, vec6, Work = builder_types(np_dtype).take("scalar", "vec6", "Work")
+    """``row_dot(row_body, row_J, r, nblk, u)``: ``J_r u`` over row ``r``'s blocks (§2.5)."""
+    scalar, vec6 = builder_types(np_dtype).take("scalar", "vec6")
     body_dot = body_dot_func(np_dtype)
 
     @wp.func
-    def row_dot(w: Work, r: int, nblk: int, u: wp.array(dtype=vec6)):
+    def row_dot(row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6), r: int, nblk: int,
+                u: wp.array(dtype=vec6)):
         """``J_r u`` over the row's blocks."""
         s = scalar(0.0)
         for k in range(nblk):
-            s += body_dot(u, w.row_body[r * nblk + k], w.row_J[r * nblk + k])
+            s += body_dot(u, row_body[r * nblk + k], row_J[r * nblk + k])
         return s
 
     return row_dot
@@ -115,7 +117,8 @@ def dof_row_func(np_dtype):
     @wp.func
     def dof_row(m: M, w: Work, r: int, nblk: int, d: int, sign: scalar):
         j = m.dof_joint[d]
-        set_blocks(w, r, nblk, m.joint_child[j], sign * w.dof_JF[d], m.joint_parent[j], sign * w.dof_JB[d])
+        set_blocks(w.row_body, w.row_J, r, nblk, m.joint_child[j], sign * w.dof_JF[d], m.joint_parent[j],
+                   sign * w.dof_JB[d])
 
     return dof_row
 
@@ -312,7 +315,7 @@ def dyn_rows_kernel(np_dtype):
             return
         k = m.dyn_start[wid] + i
         d = m.dyn_dof[k]
-        r = ridx(m, w, wid, i)
+        r = ridx(m, w.row_stride, wid, i)
         dof_row(m, w, r, nblk, d, scalar(1.0))
         q = w.q_dof[d]
         mi = scalar(0.0)
@@ -379,7 +382,7 @@ def curved_bias_func(np_dtype, midpoint: bool):
                     h: scalar, alpha: scalar, delta: scalar):
         """``v*`` of row ``r`` with the curvature term ``c = e_pred - e - h J_r u`` (the residual's second-order
         change along the step; ``e_pred`` at the pose predicted along ``u``)."""
-        cv = e_pred - e - h * row_dot(w, r, nblk, u)
+        cv = e_pred - e - h * row_dot(w.row_body, w.row_J, r, nblk, u)
         return stabilisation_bias(e, e_start, cv, alpha, delta) / h
 
     return curved_bias
@@ -443,10 +446,10 @@ def joint_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = ridx(m, w, wid, m.dyn_count[wid] + i)
+        r = ridx(m, w.row_stride, wid, m.dyn_count[wid] + i)
         j = m.cts_joint[c]
         e, JF, JB = cts_row(m, w.q_eval, c)
-        set_blocks(w, r, nblk, m.joint_child[j], JF, m.joint_parent[j], JB)
+        set_blocks(w.row_body, w.row_J, r, nblk, m.joint_child[j], JF, m.joint_parent[j], JB)
         e_start = joint_start_residual(m, w, c, e)
         vstar = scalar(0.0)
         if wp.static(curvature):
@@ -477,7 +480,7 @@ def coupling_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
         if i >= m.cpl_count[wid]:
             return
         k = m.cpl_start[wid] + i
-        r = ridx(m, w, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
+        r = ridx(m, w.row_stride, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
         da = m.cpl_dof_a[k]
         db = m.cpl_dof_b[k]
         qb = scalar(0.0)
@@ -509,18 +512,20 @@ def coupling_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
 
 @functools.cache
 def free_velocity_func(np_dtype):
-    """``free_velocity(w, r, nblk)``: ``v_f = J u_f + v*`` of row ``r`` (docs/formulation.md §7.1)."""
-    Work = builder_types(np_dtype).Work
+    """``free_velocity(vstar, row_body, row_J, u_f, r, nblk)``: ``v_f = J u_f + v*`` of row ``r``
+    (docs/formulation.md §7.1)."""
+    scalar, vec6 = builder_types(np_dtype).take("scalar", "vec6")
 
     @wp.func
-    def free_velocity(w: Work, r: int, nblk: int):
+    def free_velocity(vstar: wp.array(dtype=scalar), row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6),
+                      u_f: wp.array(dtype=vec6), r: int, nblk: int):
         """``v_f = J u_f + v*`` of row ``r`` (``solver.prebake``; recomputed, the same sums, by
         :func:`set_bias_func`)."""
-        vf = w.vstar[r]
+        vf = vstar[r]
         for k in range(nblk):
-            b = w.row_body[r * nblk + k]
+            b = row_body[r * nblk + k]
             if b >= 0:
-                vf += wp.dot(w.row_J[r * nblk + k], w.u_f[b])
+                vf += wp.dot(row_J[r * nblk + k], u_f[b])
         return vf
 
     return free_velocity
@@ -537,7 +542,7 @@ def set_bias_func(np_dtype):
         """Replace row ``r``'s bias and ``v~_f = P (v_f - v* + vs)``. ``v_f`` is not stored: it is recomputed from the
         row's blocks and ``u_f`` (unchanged since ``solver.prebake``) with the old bias, so that the sum equals the
         stored one's bit for bit."""
-        vf = free_velocity(w, r, nblk) - w.vstar[r] + vs
+        vf = free_velocity(w.vstar, w.row_body, w.row_J, w.u_f, r, nblk) - w.vstar[r] + vs
         w.vt[r] = w.P[r] * vf
         w.vstar[r] = vs
 
@@ -562,7 +567,7 @@ def refine_joint_rows_kernel(np_dtype, midpoint: bool):
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = ridx(m, w, wid, m.dyn_count[wid] + i)
+        r = ridx(m, w.row_stride, wid, m.dyn_count[wid] + i)
         e = cts_residual(m, w.q_eval, c)
         e_start = joint_start_residual(m, w, c, e)
         set_bias(w, r, nblk, curved_bias(w, r, nblk, e, e_start, cts_residual(m, w.q_pred, c), w.u_new, h, alpha,
@@ -587,7 +592,7 @@ def refine_coupling_rows_kernel(np_dtype, midpoint: bool):
         if i >= m.cpl_count[wid]:
             return
         k = m.cpl_start[wid] + i
-        r = ridx(m, w, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
+        r = ridx(m, w.row_stride, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
         da = m.cpl_dof_a[k]
         db = m.cpl_dof_b[k]
         qb = scalar(0.0)
@@ -659,7 +664,7 @@ def pack_limits_kernel(np_dtype):
             if w.lim_active[k] != 0:
                 d = m.lim_dof[k]
                 side = w.lim_side[k]
-                r = ridx(m, w, wid, a0 + n)
+                r = ridx(m, w.row_stride, wid, a0 + n)
                 dof_row(m, w, r, nblk, d, side)
                 set_row(w, r, w.lim_bias[k], scalar(0.0), scalar(0.0), inf, wp.max(side * w.lim_force[d], scalar(0.0)),
                         row_info(ROW_LIMIT, d, side))

@@ -49,7 +49,7 @@ def world_row_func(np_dtype):
         """Storage index of row ``a`` of world ``wid``, or -1 past the world's active rows (``w.n_rows``)."""
         if a >= w.n_rows[wid]:
             return -1
-        return ridx(m, w, wid, a)
+        return ridx(m, w.row_stride, wid, a)
 
     return world_row
 
@@ -90,7 +90,7 @@ def prebake_kernel(np_dtype):
         r = world_row(m, w, wid, i)
         if r < 0:
             return
-        w.vt[r] = free_velocity(w, r, nblk)
+        w.vt[r] = free_velocity(w.vstar, w.row_body, w.row_J, w.u_f, r, nblk)
         if dense != 0:
             nc = 6 * m.body_count[wid]
             for c in range(nc):
@@ -157,7 +157,7 @@ def delassus_dense_kernel(np_dtype):
                 s += scalar(0.5) * (w.Jd[jidx(m, wid, a, c)] * w.MJd[jidx(m, wid, b, c)]
                                     + w.Jd[jidx(m, wid, b, c)] * w.MJd[jidx(m, wid, a, c)])
             if b == a:
-                s += w.reg[ridx(m, w, wid, a)]
+                s += w.reg[ridx(m, w.row_stride, wid, a)]
             w.D[didx(m, wid, a, b)] = s
             w.D[didx(m, wid, b, a)] = s
 
@@ -247,11 +247,11 @@ def scale_kernel(np_dtype):
                 sat = 1
             if wp.isfinite(hi) and (always_sat != 0 or x0 >= hi - sat_margin * wp.abs(hi)):
                 sat = 1
-        set_saturated(w, r, sat)
+        set_saturated(w.row_info, r, sat)
         if assembled != 0:
             for b in range(w.n_rows[wid]):
                 k = didx(m, wid, a, b)
-                w.D[k] = Pa * w.D[k] * w.P[ridx(m, w, wid, b)]
+                w.D[k] = Pa * w.D[k] * w.P[ridx(m, w.row_stride, wid, b)]
             if a < m.row_fixed[wid]:
                 w.D[didx(m, wid, a, a)] += wp.where(sat != 0, shift_sat, shift)
 
@@ -275,7 +275,7 @@ def factor_tail_dense_func(np_dtype):
         redoes this part."""
         rs = w.row_stride
         nf = m.row_fixed[wid]
-        rb = row_base(m, w, wid)
+        rb = row_base(m, w.row_stride, wid)
         for t in range(n - nf):
             for j in range(t + 1):
                 s = scalar(0.0)
@@ -309,7 +309,7 @@ def factor_dense_func(np_dtype):
         tail block and ``sdiag``), then ``L_t`` for the world's penalty; ``L^T`` of the fixed columns is mirrored
         into the upper triangle so that the backward substitution reads rows."""
         rs = w.row_stride
-        rb = row_base(m, w, wid)
+        rb = row_base(m, w.row_stride, wid)
         nf = wp.min(m.row_fixed[wid], n)
         for j in range(nf):
             s = w.D[didx(m, wid, j, j)]
@@ -362,11 +362,11 @@ def refactor_dense_kernel(np_dtype):
         n = w.n_rows[wid]
         nf = m.row_fixed[wid]
         for a in range(n):
-            ra = ridx(m, w, wid, a)
+            ra = ridx(m, w.row_stride, wid, a)
             for b in range(a, n):
-                v = w.P[ra] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w, wid, b)]
+                v = w.P[ra] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w.row_stride, wid, b)]
                 if b == a and a < nf:
-                    v += wp.where(row_saturated(w, ra) != 0, shift_sat, shift)
+                    v += wp.where(row_saturated(w.row_info, ra) != 0, shift_sat, shift)
                 w.D[didx(m, wid, a, b)] = v
                 w.D[didx(m, wid, b, a)] = v
         factor_dense(m, w, wid, n, eta)
@@ -387,7 +387,7 @@ def cho_solve_func(np_dtype):
         """``x <- L^-T L^-1 x`` (forward, then backward substitution reading ``L^T`` from the upper triangle, and
         from the lower one in the tail block)."""
         rs = w.row_stride
-        rb = row_base(m, w, wid)
+        rb = row_base(m, w.row_stride, wid)
         g = wid // GROUP
         db = m.grp_mat_start[g] + (wid - g * GROUP)  # didx(m, wid, i, k) = db + (i * md + k) * S
         md = m.grp_maxdim[g]
@@ -427,14 +427,14 @@ def project_into_func(np_dtype):
                      shift: wp.array(dtype=scalar), inv_rho: scalar, dst: wp.array(dtype=scalar)):
         """``dst = Pi_K(src - inv_rho * shift)``: clip on box rows, cones on contacts."""
         rs = w.row_stride
-        rb = row_base(m, w, wid)
+        rb = row_base(m, w.row_stride, wid)
         for a in range(n_box):
             r = rb + a * rs
             dst[r] = wp.clamp(src[r] - inv_rho * shift[r], w.lo_s[r], w.hi_s[r])
         for c in range((n - n_box) // 3):
             r = rb + (n_box + 3 * c) * rs
             p = cone_project(src[r] - inv_rho * shift[r], src[r + rs] - inv_rho * shift[r + rs],
-                             src[r + 2 * rs] - inv_rho * shift[r + 2 * rs], row_mu(w, r))
+                             src[r + 2 * rs] - inv_rho * shift[r + 2 * rs], row_mu(w.ct_mu, w.row_info, r))
             dst[r] = p[0]
             dst[r + rs] = p[1]
             dst[r + 2 * rs] = p[2]
@@ -460,7 +460,7 @@ def padmm_init_kernel(np_dtype):
         ``factorize`` the dense factor (``factor_dense``)."""
         rs = w.row_stride
         wid = wp.tid()
-        rb = row_base(m, w, wid)
+        rb = row_base(m, w.row_stride, wid)
         n = w.n_rows[wid]
         p_ref = scalar(0.0)
         for a in range(n):
@@ -620,7 +620,7 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
         CR's operator takes ``rho_box`` at its next solve."""
         rs = w.row_stride
         wid = wp.tid()
-        rb = row_base(m, w, wid)
+        rb = row_base(m, w.row_stride, wid)
         if w.done[wid] != 0:
             return
         n = w.n_rows[wid]
@@ -673,7 +673,7 @@ def padmm_resume_kernel(np_dtype):
         more iterations."""
         rs = w.row_stride
         wid = wp.tid()
-        rb = row_base(m, w, wid)
+        rb = row_base(m, w.row_stride, wid)
         for a in range(w.n_rows[wid]):
             w.y_hat[rb + a * rs] = w.y_p[rb + a * rs]
             w.z_hat[rb + a * rs] = w.z_p[rb + a * rs]
@@ -704,7 +704,7 @@ def padmm_finish_kernel(np_dtype):
         lam = Pa * w.y_p[r]
         z = w.z_p[r]
         if a >= n_box and (a - n_box) % 3 == 2:
-            z -= de_saxce(w.z_p[r - 2 * rs], w.z_p[r - rs], row_mu(w, r))
+            z -= de_saxce(w.z_p[r - 2 * rs], w.z_p[r - rs], row_mu(w.ct_mu, w.row_info, r))
         w.impulse[r] = lam
         w.velocity[r] = z / Pa
         if not wp.isfinite(lam):

@@ -677,7 +677,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
         wid, lane = wp.tid()
         if w.done[wid] != 0:
             return
-        rb = row_base(m, w, wid)
+        rb = row_base(m, w.row_stride, wid)
         n = w.n_rows[wid]
         n_box = w.n_box[wid]
         nc = (n - n_box) // 3

@@ -138,7 +138,7 @@ def row_penalty_func(np_dtype):
         the world's ``rho_u`` on limit and contact rows."""
         if a >= nf:
             return rho_u
-        if row_saturated(w, r) != 0:
+        if row_saturated(w.row_info, r) != 0:
             return rho_box
         return rho_free
 
@@ -271,7 +271,7 @@ def contact_correction_func(np_dtype):
     @wp.func
     def contact_correction(w: Work, r: int, rs: int):
         """The De Saxcé correction ``Gamma(z_hat)_n`` of the contact whose first row is ``r`` (rows ``rs`` apart)."""
-        return de_saxce(w.z_hat[r], w.z_hat[r + rs], row_mu(w, r))
+        return de_saxce(w.z_hat[r], w.z_hat[r + rs], row_mu(w.ct_mu, w.row_info, r))
 
     return contact_correction
 
@@ -301,7 +301,7 @@ def box_row_func(np_dtype, adaptive: bool):
         v = x - z_hat / rho
         y = wp.clamp(v, lo, hi)
         w.y[r] = y
-        if a < nf and saturates(row_saturated(w, r), lo, hi, v, y):
+        if a < nf and saturates(row_saturated(w.row_info, r), lo, hi, v, y):
             out.hit = scalar(1.0)
         du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
         w.z[r] = du[0]
@@ -339,7 +339,7 @@ def contact_rows_func(np_dtype):
         (complementarity ``|y . z|``)."""
         out = acc
         cp = cone_project(x[0] - inv_rho * w.z_hat[r], x[1] - inv_rho * w.z_hat[r + rs],
-                          x[2] - inv_rho * w.z_hat[r + 2 * rs], row_mu(w, r))
+                          x[2] - inv_rho * w.z_hat[r + 2 * rs], row_mu(w.ct_mu, w.row_info, r))
         yz = scalar(0.0)
         for t in range(3):
             rt = r + t * rs
@@ -479,8 +479,8 @@ def mark_saturated_func(np_dtype):
     @wp.func
     def mark_saturated(w: Work, r: int, rho_free: scalar):
         """Flag fixed row ``r`` saturated if its last projection (penalty ``rho_free``) clipped it."""
-        if saturates(row_saturated(w, r), w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
-            set_saturated(w, r, 1)
+        if saturates(row_saturated(w.row_info, r), w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
+            set_saturated(w.row_info, r, 1)
 
     return mark_saturated
 

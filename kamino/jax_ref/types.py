@@ -1,4 +1,4 @@
-"""Padded per-world layout of a :class:`kamino.Model` for the JAX reference.
+"""The JAX reference's types: the padded per-world layout of a :class:`kamino.Model` (``PaddedModel``, ``Layout``).
 
 The model's storage is flat over worlds (sum-sized). The oracle pads every world to the
 maximum count and ``vmap``s over worlds; padded bodies/rows are masked out and never touch
