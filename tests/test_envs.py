@@ -52,7 +52,7 @@ def _signature(tree) -> dict:
 
 @pytest.fixture(scope="module")
 def fourbar():
-    return FourbarTrack()
+    return FourbarTrack(backend="jax")
 
 
 @pytest.fixture(scope="module")

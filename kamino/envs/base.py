@@ -54,7 +54,7 @@ from kamino.envs.system import EnvSystem
 from kamino.kinematics import base_bodies, forward_kinematics, init_state
 from kamino.model import ActuationMode, Model, replicate
 from kamino.readouts import dof_state
-from kamino.simulator import Simulator
+from kamino.simulator import DEFAULT_BACKEND, Simulator
 from kamino.state import Control, State, drop_empty, fill_empty
 
 
@@ -65,10 +65,10 @@ class KaminoEnv(Env):
         model: a one-world :class:`kamino.Model` whose actuators are all POSITION (PD) actuators.
         sim_dt: the simulator step [s].
         decimation: simulator steps per environment step (the policy period is ``sim_dt * decimation``).
-        backend: ``"jax"`` (the reference; everything, randomization included) or ``"warp"`` (kamino's Warp step
-            through its JAX FFI, which ``jax.vmap`` batches over environments:
-            ``kamino.warp_backend.jit.batchable_step``; no domain randomization: its stepper holds the model's
-            parameters).
+        backend: ``"warp"`` (the default, ``kamino.DEFAULT_BACKEND``: kamino's Warp step through its JAX FFI, which
+            ``jax.vmap`` batches over environments: ``kamino.warp_backend.jit.batchable_step``; no domain
+            randomization: its stepper holds the model's parameters) or ``"jax"`` (the reference; everything,
+            randomization and gradients included).
         solver_config: the :class:`kamino.SolverConfig` of each simulator step; its ``dt`` is replaced by
             ``sim_dt``.
         action_lower, action_upper: the PD-target range per actuator (scalars broadcast), intersected with the
@@ -95,7 +95,7 @@ class KaminoEnv(Env):
     #: task variables kept in ``info`` (e.g. a target), redrawn every ``resample_steps`` policy steps
     task_keys: ClassVar[tuple[str, ...]] = ()
 
-    def __init__(self, model: Model, *, sim_dt: float, decimation: int, backend: str = "jax",
+    def __init__(self, model: Model, *, sim_dt: float, decimation: int, backend: str = DEFAULT_BACKEND,
                  solver_config: SolverConfig | None = None, action_lower=None, action_upper=None,
                  obs_noise: float = 0.0, reset_noise: float = 0.1, resample_steps: int | None = None,
                  reset_bank: int | None = None, reset_seed: int = 0, obs_limit: float = 100.0, dtype=jnp.float32):

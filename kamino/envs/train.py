@@ -24,6 +24,7 @@ from pathlib import Path
 from kamino.envs import runs
 from kamino.envs.evaluate import summarize, walking_test
 from kamino.envs.runs import OptionError, key_values
+from kamino.simulator import DEFAULT_BACKEND
 
 
 def walk_test_due(step: int, tested: list[int], start: int, every: int) -> bool:
@@ -126,7 +127,7 @@ def _prepare_folder(out: Path, task: str, fresh: bool, overwrite: bool) -> None:
     runs.clear_partial(out / "checkpoints")
 
 
-def train(task: str, *, out: Path | str | None = None, backend: str = "jax", steps: int | None = None,
+def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BACKEND, steps: int | None = None,
           num_envs: int | None = None, evals: int | None = None, seed: int | None = None, fresh: bool = False,
           overwrite: bool = False, train_returns: int | None = None, walk_test: int = 0, walk_seed: int = 1,
           walk_test_from: int = 0, walk_test_every: int = 0, ppo: dict | None = None, solver: dict | None = None,
@@ -293,7 +294,8 @@ def parser() -> argparse.ArgumentParser:
                                 epilog="The run folder's files: kamino.envs.runs. Evaluate a run: kamino eval RUN.")
     p.add_argument("task", choices=sorted(PPO_CONFIGS), help="the environment")
     p.add_argument("steps_pos", nargs="?", type=int, metavar="STEPS", help="total environment steps (as --steps)")
-    p.add_argument("--backend", choices=("jax", "warp"), default="jax", help="kamino backend (default jax)")
+    p.add_argument("--backend", choices=("jax", "warp"), default=DEFAULT_BACKEND,
+                   help=f"kamino backend (default {DEFAULT_BACKEND})")
     p.add_argument("--steps", type=int, help="total environment steps over all runs (default: the task's config)")
     p.add_argument("--num-envs", type=int, help="parallel environments (default: the task's config)")
     p.add_argument("--evals", type=int, help="evaluations (and checkpoints) over the whole training")

@@ -19,10 +19,10 @@ from kamino.jax_ref.jacobians import (
     joint_coordinates,
     joint_frames,
 )
-from kamino.jax_ref.pipeline import WorldCache, step_batch
+from kamino.jax_ref.pipeline import step_batch
 from kamino.jax_ref.precision import full_precision
 from kamino.jax_ref.rows import WorldControl
-from kamino.jax_ref.types import Layout, PaddedModel, build_layout, layout_of, to_flat, to_padded
+from kamino.jax_ref.types import Layout, PaddedModel, WorldCache, build_layout, layout_of, to_flat, to_padded
 from kamino.model import RES_TRANS, Model
 from kamino.state import ContactState, Control, State, StepInfo
 

@@ -14,12 +14,13 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from kamino.config import ANGULAR_DAMPING, CONTACT_MATCH_DISTANCE, SolverConfig
+from kamino.config import CONTACT_MATCH_DISTANCE, SolverConfig
 from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import post_stabilisation as post
 from kamino.jax_ref import solver
 from kamino.jax_ref.couplings import coupling_jacobian, coupling_residual
 from kamino.jax_ref.dynamics import apply_inv_mass, body_dynamics, delassus, free_velocity, nonlinear_force
+from kamino.jax_ref.integrate import commit, constrained_velocity, integrate, reactions
 from kamino.jax_ref.jacobians import (
     constraint_jacobian,
     constraint_residual,
@@ -29,32 +30,8 @@ from kamino.jax_ref.jacobians import (
 )
 from kamino.jax_ref.precision import full_precision
 from kamino.jax_ref.rows import WorldControl, coupling_bias, dynamics_rows, explicit_effort, joint_bias, limit_rows
-from kamino.jax_ref.types import DYN_ACTUATOR, PaddedModel
+from kamino.jax_ref.types import DYN_ACTUATOR, PaddedModel, WorldCache
 from kamino.spatial import integrate_pose
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class WorldCache:
-    """What a world carries from one step to the next: the reactions (warm start) and contacts.
-
-    Forces are ``lambda / dt``: ``kin`` per kinematic row, ``actuator``/``passive``/``limit`` per DoF
-    (generalized forces), contacts in world frame on geom b's body.
-    """
-
-    kin: jax.Array  # [nr]
-    coupling: jax.Array  # [nk]
-    actuator: jax.Array  # [nd]
-    passive: jax.Array  # [nd]
-    limit: jax.Array  # [nd] signed generalized force
-    contact_pair: jax.Array  # [C]
-    contact_pos: jax.Array  # [C, 3]
-    contact_normal: jax.Array  # [C, 3]
-    contact_dist: jax.Array  # [C]
-    contact_force: jax.Array  # [C, 3]
-    contact_velocity: jax.Array  # [C, 3]
-    contact_point_b: jax.Array  # [C, 3]
-    penalty: jax.Array  # [] the last solve's penalty on bounded rows (0: none yet; the next solve starts there)
 
 
 @jax.tree_util.register_dataclass
@@ -166,56 +143,12 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
 
     rho0 = jnp.where(cache.penalty > 0, cache.penalty, cfg.penalty.rho).astype(dtype)
     res = solver.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_dyn + n_kin)
-    u_plus = u_f + apply_inv_mass(bd, (J.T @ res.impulse).reshape(nb, 6))  # u+ = u_f + M^-1 J^T lambda
+    u_plus = constrained_velocity(bd, u_f, J, res.impulse)
     proj = None
     if cfg.stabilisation.post_stabilisation and n_dyn + n_kin:
         P = solver.jacobi_preconditioner(D, row_mask, n_box)
         proj = post.projector(J, D, P, n_dyn + n_kin, res.saturated, bd, cfg)
     return u_plus, res, ct, side, proj
-
-
-def _new_cache(pm: PaddedModel, q_eval, res: solver.PADMMResult, ct: cts.Contacts, side, ctrl: WorldControl,
-               cfg: SolverConfig) -> WorldCache:
-    """Split the solve's impulses into the per-family forces ``lambda / dt`` the State carries."""
-    dt = cfg.dt
-    nd = pm.dof_mask.shape[0]
-    n_dyn, n_jnt, n_cpl, n_lim = (pm.dyn_mask.shape[0], pm.row_mask.shape[0], pm.cpl_mask.shape[0],
-                                  pm.lim_mask.shape[0])
-    n_kin = n_jnt + n_cpl
-    if res.impulse.shape[0] == 0:
-        f = jnp.zeros(0, q_eval.dtype)
-        v = jnp.zeros(0, q_eval.dtype)
-    else:
-        f, v = res.impulse / dt, res.velocity
-    f_dyn, f_lim = f[:n_dyn], f[n_dyn + n_kin:n_dyn + n_kin + n_lim]
-    f_kin, f_cpl = f[n_dyn:n_dyn + n_jnt], f[n_dyn + n_jnt:n_dyn + n_kin]
-    C = ct.pair.shape[0]
-    f_con = f[n_dyn + n_kin + n_lim:].reshape(C, 3)
-    v_con = v[n_dyn + n_kin + n_lim:].reshape(C, 3)
-    frames = cts.contact_frames(ct.normal)
-    d = pm.dyn_dof
-    is_act = (pm.dyn_kind == DYN_ACTUATOR) & pm.dyn_mask
-    is_pas = (pm.dyn_kind != DYN_ACTUATOR) & pm.dyn_mask
-    zeros = jnp.zeros(nd, q_eval.dtype)
-    actuator = explicit_effort(pm, ctrl.effort).at[d].add(jnp.where(is_act, f_dyn, 0.0))
-    passive = zeros.at[d].add(jnp.where(is_pas, f_dyn, 0.0))
-    limit = zeros.at[pm.lim_dof].add(jnp.where(pm.lim_mask, side * f_lim, 0.0))
-    cmask = ct.mask[:, None]
-    return WorldCache(
-        kin=f_kin,
-        coupling=f_cpl,
-        actuator=actuator,
-        passive=passive,
-        limit=limit,
-        contact_pair=ct.pair,
-        contact_pos=ct.pos,
-        contact_normal=ct.normal,
-        contact_dist=ct.dist,
-        contact_force=jnp.where(cmask, jnp.einsum("cij,cj->ci", frames, f_con), 0.0),
-        contact_velocity=jnp.where(cmask, jnp.einsum("cij,cj->ci", frames, v_con), 0.0),
-        contact_point_b=jnp.where(cmask, cts.local_point_b(ct, q_eval), 0.0),
-        penalty=res.penalty,
-    )
 
 
 def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, cache: WorldCache, ctrl: WorldControl,
@@ -227,22 +160,14 @@ def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, cache: Wor
     else:
         q_eval, h = integrate_pose(body_q, body_u, 0.5 * dt), 0.5 * dt
     u_plus, res, ct, side, proj = _constrained_velocity(pm, body_q, q_eval, body_u, cache, ctrl, h, cfg)
-    u_plus = _angular_damping(u_plus, cfg)
-    q_plus = integrate_pose(q_eval, u_plus, h)
+    u_plus, q_plus = integrate(q_eval, u_plus, h, cfg)
     if proj is not None:
         q_plus = post.project(pm, q_plus, proj, cfg, res.converged)
     mask = pm.body_mask[:, None]
     q_plus = jnp.where(mask, q_plus, body_q)
     u_plus = jnp.where(mask, u_plus, body_u)
-    return WorldStep(body_q=q_plus, body_u=u_plus, cache=_new_cache(pm, q_eval, res, ct, side, ctrl, cfg),
+    return WorldStep(body_q=q_plus, body_u=u_plus, cache=reactions(pm, q_eval, res, ct, side, ctrl, cfg),
                      solve=res, num_contacts=jnp.minimum(ct.count, pm.contact_capacity), contact_overflow=ct.overflow)
-
-
-def _angular_damping(u: jax.Array, cfg: SolverConfig) -> jax.Array:
-    """``ANGULAR_DAMPING`` on the angular velocities (none at its default, 0)."""
-    if ANGULAR_DAMPING == 0.0:
-        return u
-    return u.at[:, 3:].multiply(1.0 - ANGULAR_DAMPING * cfg.dt)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
@@ -255,17 +180,5 @@ def step_batch(pm: PaddedModel, body_q, body_u, cache: WorldCache, ctrl: WorldCo
     the last output flags the worlds whose new state was non-finite (docs/conventions.md, "World health").
     """
     out = jax.vmap(step_world, in_axes=(0, 0, 0, 0, 0, None))(pm, body_q, body_u, cache, ctrl, cfg)
-    finite = jnp.all(jnp.isfinite(out.body_q), axis=(1, 2)) & jnp.all(jnp.isfinite(out.body_u), axis=(1, 2))
-    for leaf in jax.tree_util.tree_leaves(out.cache):
-        if jnp.issubdtype(leaf.dtype, jnp.floating):
-            finite = finite & jnp.all(jnp.isfinite(leaf).reshape(leaf.shape[0], -1), axis=1)
-    nonfinite = ~finite & ~frozen
-    advance = finite & ~frozen
-
-    def keep(new, old):
-        return jnp.where(advance.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
-
-    q = keep(out.body_q, body_q)
-    u = keep(out.body_u, body_u)
-    new_cache = jax.tree_util.tree_map(keep, out.cache, cache)
+    q, u, new_cache, nonfinite = commit(out.body_q, out.body_u, out.cache, body_q, body_u, cache, frozen)
     return q, u, new_cache, out, nonfinite

@@ -17,7 +17,8 @@ import numpy as np
 from kamino.model import Model, derived
 from kamino.tables import DYN_ACTUATOR, DYN_PASSIVE, row_tables
 
-__all__ = ["DYN_ACTUATOR", "DYN_PASSIVE", "Layout", "PaddedModel", "layout_of", "to_flat", "to_padded"]
+__all__ = ["DYN_ACTUATOR", "DYN_PASSIVE", "Layout", "PaddedModel", "WorldCache", "layout_of", "to_flat",
+           "to_padded"]
 
 
 @jax.tree_util.register_dataclass
@@ -309,3 +310,27 @@ def to_flat(padded: jax.Array, scatter: np.ndarray) -> jax.Array:
     """Padded ``[W, width, ...]`` -> flat ``[N, ...]``."""
     W, width = padded.shape[:2]
     return padded.reshape((W * width, *padded.shape[2:]))[scatter]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class WorldCache:
+    """What a world carries from one step to the next: the reactions (warm start) and contacts.
+
+    Forces are ``lambda / dt``: ``kin`` per kinematic row, ``actuator``/``passive``/``limit`` per DoF
+    (generalized forces), contacts in world frame on geom b's body.
+    """
+
+    kin: jax.Array  # [nr]
+    coupling: jax.Array  # [nk]
+    actuator: jax.Array  # [nd]
+    passive: jax.Array  # [nd]
+    limit: jax.Array  # [nd] signed generalized force
+    contact_pair: jax.Array  # [C]
+    contact_pos: jax.Array  # [C, 3]
+    contact_normal: jax.Array  # [C, 3]
+    contact_dist: jax.Array  # [C]
+    contact_force: jax.Array  # [C, 3]
+    contact_velocity: jax.Array  # [C, 3]
+    contact_point_b: jax.Array  # [C, 3]
+    penalty: jax.Array  # [] the last solve's penalty on bounded rows (0: none yet; the next solve starts there)
