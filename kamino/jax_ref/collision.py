@@ -8,7 +8,8 @@ the witness points are ``pos -/+ normal * dist / 2`` on a / b, and ``valid`` mar
 exist and have ``dist <= margin`` (speculative contacts included). Every entry is finite, valid or
 not, and the order of the points is a fixed function of the input. Poses are ``(p, q)`` with the
 quaternion ``(x, y, z, w)``; sizes follow MuJoCo (``kamino.model.GeomType``). Everything follows the
-dtype of the inputs (float32 or float64).
+dtype of the inputs (float32 or float64). The candidate points feed the contacts of docs/formulation.md §4.2
+(:mod:`kamino.jax_ref.contacts`).
 
 Supported pairs, K and algorithm (exact = the distance of separated geoms is the Euclidean one):
 
