@@ -218,12 +218,21 @@ class Stepper:
         self._launch(rk.limits, (W, wm.max_lim), h, LIMIT_MARGIN, LIMIT_BAUMGARTE)
         self._launch(rk.pack_limits, W, nblk)
         if ck is not None:
-            self._launch(ck.narrow_phase, (W, wm.max_pairs), h, cfg.contact_margin)
-            self._launch(ck.pack, W, h, cfg.contact_margin, CONTACT_DEADBAND, RESTITUTION_THRESHOLD)
+            self._launch_io(ck.narrow_phase, (W, wm.max_pairs), inputs=[h, cfg.contact_margin, w.u_f, w.q_eval],
+                            outputs=[w.cand_pos, w.cand_normal, w.cand_dist, w.cand_valid])
+            self._launch_io(ck.pack, W, inputs=[h, cfg.contact_margin, CONTACT_DEADBAND, RESTITUTION_THRESHOLD,
+                                                w.q_eval, w.u, w.u_f, w.cand_pos, w.cand_normal, w.cand_dist,
+                                                w.cand_valid],
+                            outputs=[w.ct_pair, w.ct_body_a, w.ct_body_b, w.ct_pos, w.ct_normal, w.ct_dist, w.ct_mu,
+                                     w.ct_restitution, w.ct_found, w.n_con])
         self._launch(sk.count_rows, W)
         if ck is not None:
-            self._launch(ck.contact_rows, (W, wm.max_contacts), nblk, h, CONTACT_BAUMGARTE, CONTACT_DEADBAND,
-                         RESTITUTION_THRESHOLD, CONTACT_MATCH_DISTANCE)
+            self._launch_io(ck.contact_rows, (W, wm.max_contacts),
+                            inputs=[nblk, h, CONTACT_BAUMGARTE, CONTACT_DEADBAND, RESTITUTION_THRESHOLD,
+                                    CONTACT_MATCH_DISTANCE, w.row_stride, w.n_con, w.n_box, w.ct_pair, w.ct_body_a,
+                                    w.ct_body_b, w.ct_pos, w.ct_normal, w.ct_dist, w.ct_mu, w.ct_restitution,
+                                    w.q_eval, w.u, w.con_pair, w.con_force, w.con_velocity, w.con_point_b],
+                            outputs=[w.row_body, w.row_J, w.reg, w.lo, w.hi, w.row_info, w.vstar, w.f0, w.v0])
         # dynamics: v_f (and the dense J, M^-1 J^T), Delassus (dense path) and preconditioning (§7.2, §8)
         rows = (W, wm.max_rows)
         self._launch(sk.prebake, rows, nblk, int(self.dense))
@@ -286,7 +295,11 @@ class Stepper:
         self._launch(ik.dof_forces, (W, wm.max_dofs))
         self._launch(ik.row_forces, rows, 1.0 / dt)
         if ck is not None:
-            self._launch(ck.commit_contacts, (W, wm.max_contacts), 1.0 / dt)
+            self._launch_io(ck.commit_contacts, (W, wm.max_contacts),
+                            inputs=[1.0 / dt, w.row_stride, w.failed, w.n_con, w.n_box, w.ct_pair, w.ct_body_b,
+                                    w.ct_pos, w.ct_normal, w.ct_dist, w.q_eval, w.impulse, w.velocity],
+                            outputs=[w.con_pair, w.con_pos, w.con_normal, w.con_dist, w.con_force, w.con_velocity,
+                                     w.con_point_b])
         self._launch(ik.commit_bodies, (W, wm.max_bodies))
         wp.launch(ik.commit_time, dim=W, inputs=[w, dt, int(cfg.max_unconverged_steps)], device=self.device)
 
