@@ -208,15 +208,33 @@ class Stepper:
         for hook in self.pre_step:
             hook(self)
         if midpoint:
-            self._launch(rk.advance_poses, (W, wm.max_bodies), w.q, w.u, h, w.q_eval)  # the midpoint pose
-        self._launch(rk.dof_blocks, (W, wm.max_dofs))
-        self._launch(rk.bodies, (W, wm.max_bodies), dt, h)
-        self._launch(rk.dof_rates, (W, wm.max_dofs))
-        self._launch(rk.dyn_rows, (W, wm.max_dyn), nblk, dt, h)
-        self._launch(rk.joint_rows, (W, wm.max_cts), nblk, h, cfg.stabilisation.baumgarte, delta)
-        self._launch(rk.coupling_rows, (W, wm.max_cpl), nblk, h, cfg.stabilisation.baumgarte, delta)
-        self._launch(rk.limits, (W, wm.max_lim), h, LIMIT_MARGIN, LIMIT_BAUMGARTE)
-        self._launch(rk.pack_limits, W, nblk)
+            self._launch_io(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q, w.u],
+                            outputs=[w.q_eval])  # the midpoint pose
+        self._launch_io(rk.dof_blocks, (W, wm.max_dofs), inputs=[w.q_eval, w.effort],
+                        outputs=[w.dof_JF, w.dof_JB, w.q_dof, w.tau_explicit])
+        self._launch_io(rk.bodies, (W, wm.max_bodies),
+                        inputs=[dt, h, w.q_eval, w.wrench, w.tau_explicit, w.dof_JF, w.dof_JB, w.u],
+                        outputs=[w.inertia_w, w.inv_inertia_w, w.u_f, w.q_pred])
+        self._launch_io(rk.dof_rates, (W, wm.max_dofs), inputs=[w.u, w.u_f, w.dof_JF, w.dof_JB, w.q_pred],
+                        outputs=[w.qd_minus, w.qd_free, w.q_dof_pred])
+        self._launch_io(rk.dyn_rows, (W, wm.max_dyn),
+                        inputs=[nblk, dt, h, w.row_stride, w.dof_JF, w.dof_JB, w.q_dof, w.qd_minus, w.effort,
+                                w.position_target, w.velocity_target, w.act_force, w.pas_force],
+                        outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
+        self._launch_io(rk.joint_rows, (W, wm.max_cts),
+                        inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_eval, w.q, w.q_pred,
+                                w.u_f, w.kin_force],
+                        outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
+        self._launch_io(rk.coupling_rows, (W, wm.max_cpl),
+                        inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.dof_JF, w.dof_JB, w.q_dof,
+                                w.q_dof_pred, w.q, w.u_f, w.cpl_force],
+                        outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
+        self._launch_io(rk.limits, (W, wm.max_lim), inputs=[h, LIMIT_MARGIN, LIMIT_BAUMGARTE, w.q_dof, w.qd_free],
+                        outputs=[w.lim_side, w.lim_active, w.lim_bias])
+        self._launch_io(rk.pack_limits, W,
+                        inputs=[nblk, w.row_stride, w.lim_active, w.lim_side, w.lim_bias, w.lim_force, w.dof_JF,
+                                w.dof_JB],
+                        outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info, w.n_lim])
         if ck is not None:
             self._launch(ck.narrow_phase, (W, wm.max_pairs), h, cfg.contact_margin)
             self._launch(ck.pack, W, h, cfg.contact_margin, CONTACT_DEADBAND, RESTITUTION_THRESHOLD)
@@ -255,9 +273,16 @@ class Stepper:
         stab = cfg.stabilisation
         if stab.curvature_refinement and stab.curvature_correction and (wm.max_cts or wm.max_cpl):
             self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, ANGULAR_DAMPING * dt)
-            self._launch(rk.advance_poses, (W, wm.max_bodies), w.q_eval, w.u_new, h, w.q_pred)  # q_pred along u+
-            self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.stabilisation.baumgarte, delta)
-            self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.stabilisation.baumgarte, delta)
+            self._launch_io(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q_eval, w.u_new],
+                            outputs=[w.q_pred])  # q_pred along u+
+            self._launch_io(rk.refine_joint_rows, (W, wm.max_cts),
+                            inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_eval, w.q, w.q_pred,
+                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P],
+                            outputs=[w.vstar, w.vt])
+            self._launch_io(rk.refine_coupling_rows, (W, wm.max_cpl),
+                            inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_dof, w.q, w.q_pred,
+                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P],
+                            outputs=[w.vstar, w.vt])
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W, cfg.max_iterations)
             self._padmm_loop()
