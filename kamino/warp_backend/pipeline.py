@@ -272,7 +272,10 @@ class Stepper:
         self._launch(sk.padmm_finish, rows)
         stab = cfg.stabilisation
         if stab.curvature_refinement and stab.curvature_correction and (wm.max_cts or wm.max_cpl):
-            self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, ANGULAR_DAMPING * dt)
+            self._launch_io(ik.integrate, (W, wm.max_bodies),
+                            inputs=[nblk, h, ANGULAR_DAMPING * dt, w.row_stride, w.n_rows, w.impulse, w.Jd, w.row_body,
+                                    w.row_J, w.u_f, w.inv_inertia_w, w.q_eval],
+                            outputs=[w.u_new, w.q_new, w.failed])
             self._launch_io(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q_eval, w.u_new],
                             outputs=[w.q_pred])  # q_pred along u+
             self._launch_io(rk.refine_joint_rows, (W, wm.max_cts),
@@ -288,7 +291,10 @@ class Stepper:
             self._padmm_loop()
             self._launch(sk.padmm_finish, rows)
         # integrate, split the forces, commit (§6)
-        self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, ANGULAR_DAMPING * dt)
+        self._launch_io(ik.integrate, (W, wm.max_bodies),
+                        inputs=[nblk, h, ANGULAR_DAMPING * dt, w.row_stride, w.n_rows, w.impulse, w.Jd, w.row_body,
+                                w.row_J, w.u_f, w.inv_inertia_w, w.q_eval],
+                        outputs=[w.u_new, w.q_new, w.failed])
         if cfg.stabilisation.post_stabilisation:  # position projections (post_stabilisation.py)
             if self.post_shares_factor:  # L_f of PADMM's factor: the same matrix, the tail is not read
                 post = self.sp
@@ -300,20 +306,28 @@ class Stepper:
             passes = cfg.stabilisation.post_stabilisation
             for k in range(passes + 1):  # the last pass: unconverged worlds, gaps left open
                 extra = int(k == passes)
-                self._launch(self.pk.residual, rows, delta, extra)
+                self._launch_io(self.pk.residual, rows, inputs=[delta, extra, w.row_stride, w.q_new, w.P],
+                                outputs=[w.reproject, w.x])
                 if self.padmm == "warp":
                     self._launch_lanes(self.wk.solve_fixed, post, extra)
                 else:
                     self._launch(self.pk.solve, W, post, extra)
-                self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
+                self._launch_io(self.pk.displace, (W, wm.max_bodies),
+                                inputs=[nblk, extra, w.row_stride, w.converged, w.reproject, w.row_body, w.row_J, w.x,
+                                        w.inv_inertia_w],
+                                outputs=[w.failed, w.q_new])
         if wm.max_cts:  # world health: a world whose joints the step left open past the bound fails on this step
-            self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND)
-        self._launch(ik.dof_forces, (W, wm.max_dofs))
-        self._launch(ik.row_forces, rows, 1.0 / dt)
+            self._launch_io(ik.closure_check, (W, wm.max_cts),
+                            inputs=[LOOP_OPEN_BOUND, w.converged, w.reproject, w.q_new, w.q], outputs=[w.failed])
+        self._launch_io(ik.dof_forces, (W, wm.max_dofs), inputs=[w.failed, w.tau_explicit],
+                        outputs=[w.act_force, w.pas_force, w.lim_force])
+        self._launch_io(ik.row_forces, rows, inputs=[1.0 / dt, w.row_stride, w.n_box, w.failed, w.impulse, w.row_info],
+                        outputs=[w.act_force, w.pas_force, w.kin_force, w.cpl_force, w.lim_force])
         if ck is not None:
             self._launch(ck.commit_contacts, (W, wm.max_contacts), 1.0 / dt)
-        self._launch(ik.commit_bodies, (W, wm.max_bodies))
-        wp.launch(ik.commit_time, dim=W, inputs=[w, dt, int(cfg.max_unconverged_steps)], device=self.device)
+        self._launch_io(ik.commit_bodies, (W, wm.max_bodies), inputs=[w.failed, w.q_new, w.u_new], outputs=[w.q, w.u])
+        wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps), w.converged],
+                  outputs=[w.frozen, w.failed, w.time, w.unconverged], device=self.device)
 
     def invalidate_graphs(self) -> None:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
