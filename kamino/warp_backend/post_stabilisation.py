@@ -7,7 +7,7 @@ solves with that ``L_f``; otherwise the block is assembled on the fixed rows' st
 factorised in a storage of its own (``linear_solve.assemble_fixed`` / ``factor_fixed``,
 ``kamino/warp_backend/pipeline.py``). A world whose PADMM did not converge, or whose anchors the passes left open
 past ``REPROJECTION_GAP``, gets one pass more (the kernels' flag ``extra``; the reference's docstring):
-the extra pass's ``residual`` sets ``Work.reproject`` where a gap is open, and its solve and displacement run where
+the extra pass's ``residual`` sets ``w.reproject`` where a gap is open, and its solve and displacement run where
 PADMM did not converge or that flag is set. One pass is three launches: the
 residuals at ``q_new`` in PADMM's units (``x = -P e``), one thread per world solving with the sparse factor,
 and the displacement ``d = M^-1 J_f^T P y`` applied as ``q_new ⊕ d``. The factorisation and the solve read
