@@ -208,15 +208,33 @@ class Stepper:
         for hook in self.pre_step:
             hook(self)
         if midpoint:
-            self._launch(rk.advance_poses, (W, wm.max_bodies), w.q, w.u, h, w.q_eval)  # the midpoint pose
-        self._launch(rk.dof_blocks, (W, wm.max_dofs))
-        self._launch(rk.bodies, (W, wm.max_bodies), dt, h)
-        self._launch(rk.dof_rates, (W, wm.max_dofs))
-        self._launch(rk.dyn_rows, (W, wm.max_dyn), nblk, dt, h)
-        self._launch(rk.joint_rows, (W, wm.max_cts), nblk, h, cfg.stabilisation.baumgarte, delta)
-        self._launch(rk.coupling_rows, (W, wm.max_cpl), nblk, h, cfg.stabilisation.baumgarte, delta)
-        self._launch(rk.limits, (W, wm.max_lim), h, LIMIT_MARGIN, LIMIT_BAUMGARTE)
-        self._launch(rk.pack_limits, W, nblk)
+            self._launch_io(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q, w.u],
+                            outputs=[w.q_eval])  # the midpoint pose
+        self._launch_io(rk.dof_blocks, (W, wm.max_dofs), inputs=[w.q_eval, w.effort],
+                        outputs=[w.dof_JF, w.dof_JB, w.q_dof, w.tau_explicit])
+        self._launch_io(rk.bodies, (W, wm.max_bodies),
+                        inputs=[dt, h, w.q_eval, w.wrench, w.tau_explicit, w.dof_JF, w.dof_JB, w.u],
+                        outputs=[w.inertia_w, w.inv_inertia_w, w.u_f, w.q_pred])
+        self._launch_io(rk.dof_rates, (W, wm.max_dofs), inputs=[w.u, w.u_f, w.dof_JF, w.dof_JB, w.q_pred],
+                        outputs=[w.qd_minus, w.qd_free, w.q_dof_pred])
+        self._launch_io(rk.dyn_rows, (W, wm.max_dyn),
+                        inputs=[nblk, dt, h, w.row_stride, w.dof_JF, w.dof_JB, w.q_dof, w.qd_minus, w.effort,
+                                w.position_target, w.velocity_target, w.act_force, w.pas_force],
+                        outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
+        self._launch_io(rk.joint_rows, (W, wm.max_cts),
+                        inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_eval, w.q, w.q_pred,
+                                w.u_f, w.kin_force],
+                        outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
+        self._launch_io(rk.coupling_rows, (W, wm.max_cpl),
+                        inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.dof_JF, w.dof_JB, w.q_dof,
+                                w.q_dof_pred, w.q, w.u_f, w.cpl_force],
+                        outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
+        self._launch_io(rk.limits, (W, wm.max_lim), inputs=[h, LIMIT_MARGIN, LIMIT_BAUMGARTE, w.q_dof, w.qd_free],
+                        outputs=[w.lim_side, w.lim_active, w.lim_bias])
+        self._launch_io(rk.pack_limits, W,
+                        inputs=[nblk, w.row_stride, w.lim_active, w.lim_side, w.lim_bias, w.lim_force, w.dof_JF,
+                                w.dof_JB],
+                        outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info, w.n_lim])
         if ck is not None:
             self._launch_io(ck.narrow_phase, (W, wm.max_pairs), inputs=[h, cfg.contact_margin, w.u_f, w.q_eval],
                             outputs=[w.cand_pos, w.cand_normal, w.cand_dist, w.cand_valid])
@@ -263,16 +281,29 @@ class Stepper:
         self._launch(sk.padmm_finish, rows)
         stab = cfg.stabilisation
         if stab.curvature_refinement and stab.curvature_correction and (wm.max_cts or wm.max_cpl):
-            self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, ANGULAR_DAMPING * dt)
-            self._launch(rk.advance_poses, (W, wm.max_bodies), w.q_eval, w.u_new, h, w.q_pred)  # q_pred along u+
-            self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.stabilisation.baumgarte, delta)
-            self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.stabilisation.baumgarte, delta)
+            self._launch_io(ik.integrate, (W, wm.max_bodies),
+                            inputs=[nblk, h, ANGULAR_DAMPING * dt, w.row_stride, w.n_rows, w.impulse, w.Jd, w.row_body,
+                                    w.row_J, w.u_f, w.inv_inertia_w, w.q_eval],
+                            outputs=[w.u_new, w.q_new, w.failed])
+            self._launch_io(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q_eval, w.u_new],
+                            outputs=[w.q_pred])  # q_pred along u+
+            self._launch_io(rk.refine_joint_rows, (W, wm.max_cts),
+                            inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_eval, w.q, w.q_pred,
+                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P],
+                            outputs=[w.vstar, w.vt])
+            self._launch_io(rk.refine_coupling_rows, (W, wm.max_cpl),
+                            inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_dof, w.q, w.q_pred,
+                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P],
+                            outputs=[w.vstar, w.vt])
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W, cfg.max_iterations)
             self._padmm_loop()
             self._launch(sk.padmm_finish, rows)
         # integrate, split the forces, commit (§6)
-        self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, ANGULAR_DAMPING * dt)
+        self._launch_io(ik.integrate, (W, wm.max_bodies),
+                        inputs=[nblk, h, ANGULAR_DAMPING * dt, w.row_stride, w.n_rows, w.impulse, w.Jd, w.row_body,
+                                w.row_J, w.u_f, w.inv_inertia_w, w.q_eval],
+                        outputs=[w.u_new, w.q_new, w.failed])
         if cfg.stabilisation.post_stabilisation:  # position projections (post_stabilisation.py)
             if self.post_shares_factor:  # L_f of PADMM's factor: the same matrix, the tail is not read
                 post = self.sp
@@ -284,24 +315,32 @@ class Stepper:
             passes = cfg.stabilisation.post_stabilisation
             for k in range(passes + 1):  # the last pass: unconverged worlds, gaps left open
                 extra = int(k == passes)
-                self._launch(self.pk.residual, rows, delta, extra)
+                self._launch_io(self.pk.residual, rows, inputs=[delta, extra, w.row_stride, w.q_new, w.P],
+                                outputs=[w.reproject, w.x])
                 if self.padmm == "warp":
                     self._launch_lanes(self.wk.solve_fixed, post, extra)
                 else:
                     self._launch(self.pk.solve, W, post, extra)
-                self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
+                self._launch_io(self.pk.displace, (W, wm.max_bodies),
+                                inputs=[nblk, extra, w.row_stride, w.converged, w.reproject, w.row_body, w.row_J, w.x,
+                                        w.inv_inertia_w],
+                                outputs=[w.failed, w.q_new])
         if wm.max_cts:  # world health: a world whose joints the step left open past the bound fails on this step
-            self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND)
-        self._launch(ik.dof_forces, (W, wm.max_dofs))
-        self._launch(ik.row_forces, rows, 1.0 / dt)
+            self._launch_io(ik.closure_check, (W, wm.max_cts),
+                            inputs=[LOOP_OPEN_BOUND, w.converged, w.reproject, w.q_new, w.q], outputs=[w.failed])
+        self._launch_io(ik.dof_forces, (W, wm.max_dofs), inputs=[w.failed, w.tau_explicit],
+                        outputs=[w.act_force, w.pas_force, w.lim_force])
+        self._launch_io(ik.row_forces, rows, inputs=[1.0 / dt, w.row_stride, w.n_box, w.failed, w.impulse, w.row_info],
+                        outputs=[w.act_force, w.pas_force, w.kin_force, w.cpl_force, w.lim_force])
         if ck is not None:
             self._launch_io(ck.commit_contacts, (W, wm.max_contacts),
                             inputs=[1.0 / dt, w.row_stride, w.failed, w.n_con, w.n_box, w.ct_pair, w.ct_body_b,
                                     w.ct_pos, w.ct_normal, w.ct_dist, w.q_eval, w.impulse, w.velocity],
                             outputs=[w.con_pair, w.con_pos, w.con_normal, w.con_dist, w.con_force, w.con_velocity,
                                      w.con_point_b])
-        self._launch(ik.commit_bodies, (W, wm.max_bodies))
-        wp.launch(ik.commit_time, dim=W, inputs=[w, dt, int(cfg.max_unconverged_steps)], device=self.device)
+        self._launch_io(ik.commit_bodies, (W, wm.max_bodies), inputs=[w.failed, w.q_new, w.u_new], outputs=[w.q, w.u])
+        wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps), w.converged],
+                  outputs=[w.frozen, w.failed, w.time, w.unconverged], device=self.device)
 
     def invalidate_graphs(self) -> None:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""

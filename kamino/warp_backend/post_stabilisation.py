@@ -41,20 +41,32 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
 @functools.cache
 def residual_kernel(np_dtype):
     """The fixed rows' position residuals in PADMM's units, ``x = -P e(q_new)`` (docs/formulation.md §2.3, §8)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    scalar, transform, M = builder_types(np_dtype).take("scalar", "transform", "M")
     ridx = index_funcs(np_dtype).ridx
     deadband = spatial_funcs(np_dtype).deadband
     cts_residual, dof_position = cts_residual_func(np_dtype), dof_position_func(np_dtype)
     coupling_residual = coupling_residual_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def residual(m: M, w: Work, delta: scalar, extra: int):
+    def residual(
+        # model (read only)
+        m: M,
+        # in
+        delta: scalar,
+        extra: int,
+        row_stride: int,
+        q_new: wp.array(dtype=transform),
+        P: wp.array(dtype=scalar),
+        # out
+        reproject: wp.array(dtype=wp.int32),
+        x: wp.array(dtype=scalar),
+    ):
         """``x_a = -P_a e_a(q_new)`` on the always-active rows (``fixed_row_residual`` of the reference); in the
         ``extra`` pass it also sets ``reproject`` where an anchor gap exceeds ``REPROJECTION_GAP`` or is not finite
         (``anchors_open`` of the reference), which the first pass clears."""
         wid, a = wp.tid()
         if extra == 0 and a == 0:
-            w.reproject[wid] = 0
+            reproject[wid] = 0
         if a >= m.row_fixed[wid]:
             return
         nd = m.dyn_count[wid]
@@ -62,19 +74,19 @@ def residual_kernel(np_dtype):
         e = scalar(0.0)
         if a >= nd and a < nd + nc:
             c = m.cts_start[wid] + a - nd
-            e = deadband(cts_residual(m, w.q_new, c), delta)
+            e = deadband(cts_residual(m, q_new, c), delta)
             if extra != 0 and m.cts_kind[c] == RES_TRANS and not (wp.abs(e) <= scalar(REPROJECTION_GAP)):
-                w.reproject[wid] = 1
+                reproject[wid] = 1
         elif a >= nd + nc:
             k = m.cpl_start[wid] + a - nd - nc
             db = m.cpl_dof_b[k]
             qb = scalar(0.0)
             if db >= 0:
-                qb = dof_position(m, w.q_new, db)
-            ek, dp = coupling_residual(m, k, dof_position(m, w.q_new, m.cpl_dof_a[k]), qb)
+                qb = dof_position(m, q_new, db)
+            ek, dp = coupling_residual(m, k, dof_position(m, q_new, m.cpl_dof_a[k]), qb)
             e = deadband(ek, delta)
-        r = ridx(m, w.row_stride, wid, a)
-        w.x[r] = -w.P[r] * e
+        r = ridx(m, row_stride, wid, a)
+        x[r] = -P[r] * e
 
     return residual
 
@@ -105,27 +117,43 @@ def solve_kernel(np_dtype):
 @functools.cache
 def displace_kernel(np_dtype):
     """The projection's displacement ``q_new <- q_new ⊕ M^-1 J_f^T lambda`` (docs/formulation.md §6.1)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    scalar, vec6, mat33, transform, M = builder_types(np_dtype).take("scalar", "vec6", "mat33", "transform", "M")
     sp = spatial_funcs(np_dtype)
     integrate_pose, inverse_mass_times = sp.integrate_pose, sp.inverse_mass_times
     rows_on_body = rows_on_body_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def displace(m: M, w: Work, nblk: int, extra: int):
+    def displace(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        extra: int,
+        row_stride: int,
+        converged: wp.array(dtype=wp.int32),
+        reproject: wp.array(dtype=wp.int32),
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        x: wp.array(dtype=scalar),
+        inv_inertia_w: wp.array(dtype=mat33),
+        # out
+        failed: wp.array(dtype=wp.int32),
+        q_new: wp.array(dtype=transform),  # also read
+    ):
         """``q_new <- q_new ⊕ M^-1 J_f^T lambda`` (the body's share of every fixed row, summed in row order); in the
         ``extra`` pass only where PADMM did not converge or ``reproject`` is set."""
         wid, i = wp.tid()
-        if i >= m.body_count[wid] or (extra != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0):
+        if i >= m.body_count[wid] or (extra != 0 and converged[wid] != 0 and reproject[wid] == 0):
             return
         b = m.body_start[wid] + i
-        acc = rows_on_body(m, w, wid, b, m.row_fixed[wid], nblk, w.x)
-        d = inverse_mass_times(m.inv_mass[b], w.inv_inertia_w[b], acc)
-        x = integrate_pose(w.q_new[b], d, scalar(1.0))
+        acc = rows_on_body(m, row_stride, row_body, row_J, wid, b, m.row_fixed[wid], nblk, x)
+        d = inverse_mass_times(m.inv_mass[b], inv_inertia_w[b], acc)
+        xb = integrate_pose(q_new[b], d, scalar(1.0))
         ok = True
         for c in range(7):
-            ok = ok and wp.isfinite(x[c])
+            ok = ok and wp.isfinite(xb[c])
         if not ok:
-            w.failed[wid] = 1
-        w.q_new[b] = x
+            failed[wid] = 1
+        q_new[b] = xb
 
     return displace

@@ -110,35 +110,41 @@ def row_dot_func(np_dtype):
 
 @functools.cache
 def dof_row_func(np_dtype):
-    """``dof_row(m, w, r, nblk, d, sign)``: row ``r``'s blocks are ``sign`` times DoF ``d``'s (§2.5, §3.2, §4.1)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    """``dof_row(m, dof_JF, dof_JB, row_body, row_J, r, nblk, d, sign)``: row ``r``'s blocks are ``sign`` times DoF
+    ``d``'s (§2.5, §3.2, §4.1)."""
+    scalar, vec6, M = builder_types(np_dtype).take("scalar", "vec6", "M")
     set_blocks = set_blocks_func(np_dtype)
 
     @wp.func
-    def dof_row(m: M, w: Work, r: int, nblk: int, d: int, sign: scalar):
+    def dof_row(m: M, dof_JF: wp.array(dtype=vec6), dof_JB: wp.array(dtype=vec6), row_body: wp.array(dtype=wp.int32),
+                row_J: wp.array(dtype=vec6), r: int, nblk: int, d: int, sign: scalar):
         j = m.dof_joint[d]
-        set_blocks(w.row_body, w.row_J, r, nblk, m.joint_child[j], sign * w.dof_JF[d], m.joint_parent[j],
-                   sign * w.dof_JB[d])
+        set_blocks(row_body, row_J, r, nblk, m.joint_child[j], sign * dof_JF[d], m.joint_parent[j], sign * dof_JB[d])
 
     return dof_row
 
 
 @functools.cache
 def set_row_func(np_dtype):
-    """``set_row(w, r, vstar, reg, lo, hi, f0, info)``: the numbers of row ``r`` besides its blocks (§7.1)."""
-    scalar, Work = builder_types(np_dtype).take("scalar", "Work")
+    """``set_row(vstar, reg, lo, hi, f0, v0, row_info, r, vstar_r, reg_r, lo_r, hi_r, f0_r, info_r)``: the numbers of
+    row ``r`` besides its blocks (§7.1)."""
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func
-    def set_row(w: Work, r: int, vstar: scalar, reg: scalar, lo: scalar, hi: scalar, f0: scalar, info: int):
+    def set_row(vstar: wp.array(dtype=scalar), reg: wp.array(dtype=scalar), lo: wp.array(dtype=scalar),
+                hi: wp.array(dtype=scalar), f0: wp.array(dtype=scalar), v0: wp.array(dtype=scalar),
+                row_info: wp.array(dtype=wp.int32), r: int, vstar_r: scalar, reg_r: scalar, lo_r: scalar, hi_r: scalar,
+                f0_r: scalar, info_r: int):
         """Row ``r``'s bias ``v*``, regularisation ``R``, box ``[lo, hi]``, warm-start force ``f0`` and its packed
-        description ``row_info``; no restitution target (``v0 = 0``)."""
-        w.vstar[r] = vstar
-        w.reg[r] = reg
-        w.lo[r] = lo
-        w.hi[r] = hi
-        w.f0[r] = f0
-        w.v0[r] = scalar(0.0)
-        w.row_info[r] = info
+        description ``row_info`` (the arrays: ``Work``'s fields; the ``*_r``: row ``r``'s values); no restitution
+        target (``v0 = 0``)."""
+        vstar[r] = vstar_r
+        reg[r] = reg_r
+        lo[r] = lo_r
+        hi[r] = hi_r
+        f0[r] = f0_r
+        v0[r] = scalar(0.0)
+        row_info[r] = info_r
 
     return set_row
 
@@ -149,12 +155,20 @@ def set_row_func(np_dtype):
 def advance_poses_kernel(np_dtype):
     """A pose update of every body (docs/formulation.md §6.1): the midpoint pose (§6.3) and the predicted pose along
     the solved velocity (curvature refinement, §5)."""
-    scalar, vec6, transform, M, Work = builder_types(np_dtype).take("scalar", "vec6", "transform", "M", "Work")
+    scalar, vec6, transform, M = builder_types(np_dtype).take("scalar", "vec6", "transform", "M")
     integrate_pose = spatial_funcs(np_dtype).integrate_pose
 
     @wp.kernel(module="unique", enable_backward=False)
-    def advance_poses(m: M, w: Work, x: wp.array(dtype=transform), u: wp.array(dtype=vec6), h: scalar,
-                      out: wp.array(dtype=transform)):
+    def advance_poses(
+        # model (read only)
+        m: M,
+        # in
+        h: scalar,
+        x: wp.array(dtype=transform),
+        u: wp.array(dtype=vec6),
+        # out
+        out: wp.array(dtype=transform),
+    ):
         """``out = x ⊕ h u``: the midpoint pose ``q_m = q ⊕ h u`` (docs/formulation.md §6.3), or ``q_pred = q_eval
         ⊕ h u_new``, the predicted pose along the solved velocity (curvature refinement)."""
         wid, i = wp.tid()
@@ -169,27 +183,38 @@ def advance_poses_kernel(np_dtype):
 @functools.cache
 def dof_blocks_kernel(np_dtype):
     """``J_dofs`` and the explicit efforts (docs/formulation.md §2.5, §3.1)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    scalar, vec6, transform, M = builder_types(np_dtype).take("scalar", "vec6", "transform", "M")
     joint_dof_blocks, dof_position = dof_blocks_func(np_dtype), dof_position_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def dof_blocks(m: M, w: Work):
+    def dof_blocks(
+        # model (read only)
+        m: M,
+        # in
+        q_eval: wp.array(dtype=transform),
+        effort: wp.array(dtype=scalar),
+        # out
+        dof_JF: wp.array(dtype=vec6),
+        dof_JB: wp.array(dtype=vec6),
+        q_dof: wp.array(dtype=scalar),
+        tau_explicit: wp.array(dtype=scalar),
+    ):
         """``J_dofs`` blocks, DoF positions and the explicit efforts (docs/formulation.md §3.1) at ``q_eval``."""
         wid, i = wp.tid()
         if i >= m.dof_count[wid]:
             return
         d = m.dof_start[wid] + i
-        JF, JB = joint_dof_blocks(m, w.q_eval, d)
-        w.dof_JF[d] = JF
-        w.dof_JB[d] = JB
-        w.q_dof[d] = dof_position(m, w.q_eval, d)
+        JF, JB = joint_dof_blocks(m, q_eval, d)
+        dof_JF[d] = JF
+        dof_JB[d] = JB
+        q_dof[d] = dof_position(m, q_eval, d)
         mode = m.act_mode[d]
-        tau = w.effort[d]
+        tau = effort[d]
         if mode == _EFFORT:
             tau = wp.clamp(tau, -m.effort_limit[d], m.effort_limit[d])
         elif mode != _PASSIVE:
             tau = scalar(0.0)
-        w.tau_explicit[d] = tau
+        tau_explicit[d] = tau
 
     return dof_blocks
 
@@ -227,14 +252,31 @@ def gyroscopic_correction_func(np_dtype):
 @functools.cache
 def bodies_kernel(np_dtype):
     """World inertia, the free velocity and the predicted pose (docs/formulation.md §1.4, §5)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    scalar, vec6, mat33, transform, M = builder_types(np_dtype).take("scalar", "vec6", "mat33", "transform", "M")
     sp = spatial_funcs(np_dtype)
     integrate_pose, lin, ang, twist, inverse_mass_times = (sp.integrate_pose, sp.lin, sp.ang, sp.twist,
                                                            sp.inverse_mass_times)
     gyroscopic_correction = gyroscopic_correction_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def bodies(m: M, w: Work, dt: scalar, h: scalar):
+    def bodies(
+        # model (read only)
+        m: M,
+        # in
+        dt: scalar,
+        h: scalar,
+        q_eval: wp.array(dtype=transform),
+        wrench: wp.array(dtype=vec6),
+        tau_explicit: wp.array(dtype=scalar),
+        dof_JF: wp.array(dtype=vec6),
+        dof_JB: wp.array(dtype=vec6),
+        u: wp.array(dtype=vec6),
+        # out
+        inertia_w: wp.array(dtype=mat33),
+        inv_inertia_w: wp.array(dtype=mat33),
+        u_f: wp.array(dtype=vec6),
+        q_pred: wp.array(dtype=transform),
+    ):
         """World inertia, ``h = (m g, -w x I w) + w_ext + J_dofs^T tau`` (§1.4), free velocity
         ``u_f = u + dt M^-1 h`` with the implicit-midpoint gyroscopic term (:func:`gyroscopic_correction_func`,
         docs/conventions.md "Gyroscopic term") and the predicted pose ``q_eval ⊕ h u_f`` (curvature term, §5)."""
@@ -242,33 +284,33 @@ def bodies_kernel(np_dtype):
         if i >= m.body_count[wid]:
             return
         b = m.body_start[wid] + i
-        x = w.q_eval[b]
+        x = q_eval[b]
         R = wp.quat_to_matrix(wp.transform_get_rotation(x))
         I = R * m.inertia[b] * wp.transpose(R)
         I = scalar(0.5) * (I + wp.transpose(I))
         Ii = R * m.inv_inertia[b] * wp.transpose(R)
         Ii = scalar(0.5) * (Ii + wp.transpose(Ii))
-        w.inertia_w[b] = I
-        w.inv_inertia_w[b] = Ii
+        inertia_w[b] = I
+        inv_inertia_w[b] = Ii
         # explicit joint efforts on this body (deterministic: scan the world's DoFs)
-        ext = w.wrench[b]
+        ext = wrench[b]
         d0 = m.dof_start[wid]
         for k in range(m.dof_count[wid]):
             d = d0 + k
-            tau = w.tau_explicit[d]
+            tau = tau_explicit[d]
             if tau != scalar(0.0):
                 j = m.dof_joint[d]
                 if m.joint_child[j] == b:
-                    ext += tau * w.dof_JF[d]
+                    ext += tau * dof_JF[d]
                 if m.joint_parent[j] == b:
-                    ext += tau * w.dof_JB[d]
-        u = w.u[b]
-        om = ang(u)
+                    ext += tau * dof_JB[d]
+        ub = u[b]
+        om = ang(ub)
         hf = twist(m.mass[b] * m.gravity[wid], -wp.cross(om, I * om)) + ext
-        uf = u + dt * inverse_mass_times(m.inv_mass[b], Ii, hf)
+        uf = ub + dt * inverse_mass_times(m.inv_mass[b], Ii, hf)
         uf = twist(lin(uf), ang(uf) + gyroscopic_correction(m.inertia[b], R, om, ang(uf), dt))
-        w.u_f[b] = uf
-        w.q_pred[b] = integrate_pose(x, uf, h)
+        u_f[b] = uf
+        q_pred[b] = integrate_pose(x, uf, h)
 
     return bodies
 
@@ -276,11 +318,24 @@ def bodies_kernel(np_dtype):
 @functools.cache
 def dof_rates_kernel(np_dtype):
     """DoF velocities and predicted DoF positions (docs/formulation.md §3.2, §4.1, §5)."""
-    M, Work = builder_types(np_dtype).take("M", "Work")
+    scalar, vec6, transform, M = builder_types(np_dtype).take("scalar", "vec6", "transform", "M")
     body_dot, dof_position = body_dot_func(np_dtype), dof_position_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def dof_rates(m: M, w: Work):
+    def dof_rates(
+        # model (read only)
+        m: M,
+        # in
+        u: wp.array(dtype=vec6),
+        u_f: wp.array(dtype=vec6),
+        dof_JF: wp.array(dtype=vec6),
+        dof_JB: wp.array(dtype=vec6),
+        q_pred: wp.array(dtype=transform),
+        # out
+        qd_minus: wp.array(dtype=scalar),
+        qd_free: wp.array(dtype=scalar),
+        q_dof_pred: wp.array(dtype=scalar),
+    ):
         """DoF velocities before the step and of the free motion, DoF positions at the predicted pose."""
         wid, i = wp.tid()
         if i >= m.dof_count[wid]:
@@ -289,9 +344,9 @@ def dof_rates_kernel(np_dtype):
         j = m.dof_joint[d]
         bF = m.joint_child[j]
         bB = m.joint_parent[j]
-        w.qd_minus[d] = body_dot(w.u, bF, w.dof_JF[d]) + body_dot(w.u, bB, w.dof_JB[d])
-        w.qd_free[d] = body_dot(w.u_f, bF, w.dof_JF[d]) + body_dot(w.u_f, bB, w.dof_JB[d])
-        w.q_dof_pred[d] = dof_position(m, w.q_pred, d)
+        qd_minus[d] = body_dot(u, bF, dof_JF[d]) + body_dot(u, bB, dof_JB[d])
+        qd_free[d] = body_dot(u_f, bF, dof_JF[d]) + body_dot(u_f, bB, dof_JB[d])
+        q_dof_pred[d] = dof_position(m, q_pred, d)
 
     return dof_rates
 
@@ -301,13 +356,40 @@ def dof_rates_kernel(np_dtype):
 @functools.cache
 def dyn_rows_kernel(np_dtype):
     """The joint-dynamics rows (docs/formulation.md §3.2)."""
-    scalar, M, Work, inf = builder_types(np_dtype).take("scalar", "M", "Work", "inf")
+    scalar, vec6, M, inf = builder_types(np_dtype).take("scalar", "vec6", "M", "inf")
     ix = index_funcs(np_dtype)
-    ridx, row_info = ix.ridx, ix.row_info
+    ridx, pack_info = ix.ridx, ix.row_info
     dof_row, set_row = dof_row_func(np_dtype), set_row_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def dyn_rows(m: M, w: Work, nblk: int, dt: scalar, h: scalar):
+    def dyn_rows(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        dt: scalar,
+        h: scalar,
+        row_stride: int,
+        dof_JF: wp.array(dtype=vec6),
+        dof_JB: wp.array(dtype=vec6),
+        q_dof: wp.array(dtype=scalar),
+        qd_minus: wp.array(dtype=scalar),
+        effort: wp.array(dtype=scalar),
+        position_target: wp.array(dtype=scalar),
+        velocity_target: wp.array(dtype=scalar),
+        act_force: wp.array(dtype=scalar),
+        pas_force: wp.array(dtype=scalar),
+        # out
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        vstar: wp.array(dtype=scalar),
+        reg: wp.array(dtype=scalar),
+        lo: wp.array(dtype=scalar),
+        hi: wp.array(dtype=scalar),
+        f0: wp.array(dtype=scalar),
+        v0: wp.array(dtype=scalar),
+        row_info: wp.array(dtype=wp.int32),
+    ):
         """Joint-dynamics rows (docs/formulation.md §3.2; ``dynamics_rows`` of the JAX reference): implicit inertia
         ``m`` (``R = 1/m``), bias ``-p0/m`` and the effort bound of actuator rows."""
         wid, i = wp.tid()
@@ -315,33 +397,33 @@ def dyn_rows_kernel(np_dtype):
             return
         k = m.dyn_start[wid] + i
         d = m.dyn_dof[k]
-        r = ridx(m, w.row_stride, wid, i)
-        dof_row(m, w, r, nblk, d, scalar(1.0))
-        q = w.q_dof[d]
+        r = ridx(m, row_stride, wid, i)
+        dof_row(m, dof_JF, dof_JB, row_body, row_J, r, nblk, d, scalar(1.0))
+        q = q_dof[d]
         mi = scalar(0.0)
         p0 = scalar(0.0)
         bound = inf
         info = int(0)
-        f0 = scalar(0.0)
+        f = scalar(0.0)
         if m.dyn_kind[k] == DYN_ACTUATOR:
             kp = scalar(0.0)
             if m.act_mode[d] == _POSITION:
                 kp = m.kp[d]
             kd = m.kd[d]
             mi = dt * (kd + h * kp)
-            p0 = dt * (w.effort[d] + kp * (w.position_target[d] - q) + kd * w.velocity_target[d])
+            p0 = dt * (effort[d] + kp * (position_target[d] - q) + kd * velocity_target[d])
             bound = dt * m.effort_limit[d]
-            info = row_info(ROW_ACTUATOR, d, scalar(1.0))
-            f0 = w.act_force[d]
+            info = pack_info(ROW_ACTUATOR, d, scalar(1.0))
+            f = act_force[d]
         else:
             a = m.armature[d]
             ks = m.stiffness[d]
             mi = a + dt * m.damping[d] + dt * h * ks
-            p0 = a * w.qd_minus[d] + dt * ks * (m.springref[d] - q)
-            info = row_info(ROW_PASSIVE, d, scalar(1.0))
-            f0 = w.pas_force[d]
+            p0 = a * qd_minus[d] + dt * ks * (m.springref[d] - q)
+            info = pack_info(ROW_PASSIVE, d, scalar(1.0))
+            f = pas_force[d]
         mi = wp.max(mi, scalar(1e-30))
-        set_row(w, r, -p0 / mi, scalar(1.0) / mi, -bound, bound, f0, info)
+        set_row(vstar, reg, lo, hi, f0, v0, row_info, r, -p0 / mi, scalar(1.0) / mi, -bound, bound, f, info)
 
     return dyn_rows
 
@@ -372,17 +454,17 @@ def stabilisation_bias_func(np_dtype, midpoint: bool):
 
 @functools.cache
 def curved_bias_func(np_dtype, midpoint: bool):
-    """``curved_bias(w, r, nblk, e, e_start, e_pred, u, h, alpha, delta)``: row ``r``'s bias ``v*`` with the
-    curvature term along the twists ``u`` (docs/formulation.md §5)."""
-    scalar, vec6, Work = builder_types(np_dtype).take("scalar", "vec6", "Work")
+    """``curved_bias(row_body, row_J, r, nblk, e, e_start, e_pred, u, h, alpha, delta)``: row ``r``'s bias ``v*`` with
+    the curvature term along the twists ``u`` (docs/formulation.md §5)."""
+    scalar, vec6 = builder_types(np_dtype).take("scalar", "vec6")
     row_dot, stabilisation_bias = row_dot_func(np_dtype), stabilisation_bias_func(np_dtype, midpoint)
 
     @wp.func
-    def curved_bias(w: Work, r: int, nblk: int, e: scalar, e_start: scalar, e_pred: scalar, u: wp.array(dtype=vec6),
-                    h: scalar, alpha: scalar, delta: scalar):
+    def curved_bias(row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6), r: int, nblk: int, e: scalar,
+                    e_start: scalar, e_pred: scalar, u: wp.array(dtype=vec6), h: scalar, alpha: scalar, delta: scalar):
         """``v*`` of row ``r`` with the curvature term ``c = e_pred - e - h J_r u`` (the residual's second-order
         change along the step; ``e_pred`` at the pose predicted along ``u``)."""
-        cv = e_pred - e - h * row_dot(w.row_body, w.row_J, r, nblk, u)
+        cv = e_pred - e - h * row_dot(row_body, row_J, r, nblk, u)
         return stabilisation_bias(e, e_start, cv, alpha, delta) / h
 
     return curved_bias
@@ -390,16 +472,16 @@ def curved_bias_func(np_dtype, midpoint: bool):
 
 @functools.cache
 def joint_start_residual_func(np_dtype, midpoint: bool):
-    """``joint_start_residual(m, w, c, e)``: the residual of kinematic row ``c`` the bias aims from (§5)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    """``joint_start_residual(m, q, c, e)``: the residual of kinematic row ``c`` the bias aims from (§5)."""
+    scalar, transform, M = builder_types(np_dtype).take("scalar", "transform", "M")
     cts_residual = cts_residual_func(np_dtype)
 
     @wp.func
-    def joint_start_residual(m: M, w: Work, c: int, e: scalar):
+    def joint_start_residual(m: M, q: wp.array(dtype=transform), c: int, e: scalar):
         """``e_start``: the residual at the start pose ``q`` for the midpoint rule, else ``e`` (at ``q_eval = q``)."""
         e_start = e
         if wp.static(midpoint):
-            e_start = cts_residual(m, w.q, c)
+            e_start = cts_residual(m, q, c)
         return e_start
 
     return joint_start_residual
@@ -407,12 +489,12 @@ def joint_start_residual_func(np_dtype, midpoint: bool):
 
 @functools.cache
 def coupling_start_residual_func(np_dtype, midpoint: bool):
-    """``coupling_start_residual(m, w, k, e)``: the residual of coupling row ``k`` the bias aims from (§5)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    """``coupling_start_residual(m, q, k, e)``: the residual of coupling row ``k`` the bias aims from (§5)."""
+    scalar, transform, M = builder_types(np_dtype).take("scalar", "transform", "M")
     coupling_residual, dof_position = coupling_residual_func(np_dtype), dof_position_func(np_dtype)
 
     @wp.func
-    def coupling_start_residual(m: M, w: Work, k: int, e: scalar):
+    def coupling_start_residual(m: M, q: wp.array(dtype=transform), k: int, e: scalar):
         """``e_start``: the residual at the DoF positions of the start pose ``q`` for the midpoint rule (only it
         needs them), else ``e``."""
         e_start = e
@@ -420,8 +502,8 @@ def coupling_start_residual_func(np_dtype, midpoint: bool):
             db = m.cpl_dof_b[k]
             qb0 = scalar(0.0)
             if db >= 0:
-                qb0 = dof_position(m, w.q, db)
-            e_start, dp0 = coupling_residual(m, k, dof_position(m, w.q, m.cpl_dof_a[k]), qb0)
+                qb0 = dof_position(m, q, db)
+            e_start, dp0 = coupling_residual(m, k, dof_position(m, q, m.cpl_dof_a[k]), qb0)
         return e_start
 
     return coupling_start_residual
@@ -430,33 +512,58 @@ def coupling_start_residual_func(np_dtype, midpoint: bool):
 @functools.cache
 def joint_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
     """The kinematic joint rows (docs/formulation.md §2.5, §5), with or without the curvature term."""
-    scalar, M, Work, inf = builder_types(np_dtype).take("scalar", "M", "Work", "inf")
+    scalar, vec6, transform, M, inf = builder_types(np_dtype).take("scalar", "vec6", "transform", "M", "inf")
     ix = index_funcs(np_dtype)
-    ridx, row_info = ix.ridx, ix.row_info
+    ridx, pack_info = ix.ridx, ix.row_info
     cts_row, cts_residual = cts_row_func(np_dtype), cts_residual_func(np_dtype)
     set_blocks, set_row = set_blocks_func(np_dtype), set_row_func(np_dtype)
     stabilisation_bias, curved_bias = stabilisation_bias_func(np_dtype, midpoint), curved_bias_func(np_dtype, midpoint)
     joint_start_residual = joint_start_residual_func(np_dtype, midpoint)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
+    def joint_rows(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        h: scalar,
+        alpha: scalar,
+        delta: scalar,
+        row_stride: int,
+        q_eval: wp.array(dtype=transform),
+        q: wp.array(dtype=transform),
+        q_pred: wp.array(dtype=transform),
+        u_f: wp.array(dtype=vec6),
+        kin_force: wp.array(dtype=scalar),
+        # out
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        vstar: wp.array(dtype=scalar),
+        reg: wp.array(dtype=scalar),
+        lo: wp.array(dtype=scalar),
+        hi: wp.array(dtype=scalar),
+        f0: wp.array(dtype=scalar),
+        v0: wp.array(dtype=scalar),
+        row_info: wp.array(dtype=wp.int32),
+    ):
         """Kinematic joint rows: blocks and the stabilisation bias of ``joint_bias`` (docs/formulation.md §5;
         docs/conventions.md "Stabilisation")."""
         wid, i = wp.tid()
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = ridx(m, w.row_stride, wid, m.dyn_count[wid] + i)
+        r = ridx(m, row_stride, wid, m.dyn_count[wid] + i)
         j = m.cts_joint[c]
-        e, JF, JB = cts_row(m, w.q_eval, c)
-        set_blocks(w.row_body, w.row_J, r, nblk, m.joint_child[j], JF, m.joint_parent[j], JB)
-        e_start = joint_start_residual(m, w, c, e)
-        vstar = scalar(0.0)
+        e, JF, JB = cts_row(m, q_eval, c)
+        set_blocks(row_body, row_J, r, nblk, m.joint_child[j], JF, m.joint_parent[j], JB)
+        e_start = joint_start_residual(m, q, c, e)
+        vs = scalar(0.0)
         if wp.static(curvature):
-            vstar = curved_bias(w, r, nblk, e, e_start, cts_residual(m, w.q_pred, c), w.u_f, h, alpha, delta)
+            vs = curved_bias(row_body, row_J, r, nblk, e, e_start, cts_residual(m, q_pred, c), u_f, h, alpha, delta)
         else:
-            vstar = stabilisation_bias(e, e_start, scalar(0.0), alpha, delta) / h
-        set_row(w, r, vstar, scalar(0.0), -inf, inf, w.kin_force[c], row_info(ROW_JOINT, c, scalar(1.0)))
+            vs = stabilisation_bias(e, e_start, scalar(0.0), alpha, delta) / h
+        set_row(vstar, reg, lo, hi, f0, v0, row_info, r, vs, scalar(0.0), -inf, inf, kin_force[c],
+                pack_info(ROW_JOINT, c, scalar(1.0)))
 
     return joint_rows
 
@@ -465,45 +572,72 @@ def joint_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
 def coupling_rows_kernel(np_dtype, curvature: bool, midpoint: bool):
     """The coupling rows (docs/conventions.md "Couplings"; docs/formulation.md §5), with or without the curvature
     term."""
-    scalar, M, Work, inf = builder_types(np_dtype).take("scalar", "M", "Work", "inf")
+    scalar, vec6, transform, M, inf = builder_types(np_dtype).take("scalar", "vec6", "transform", "M", "inf")
     ix = index_funcs(np_dtype)
-    ridx, row_info = ix.ridx, ix.row_info
+    ridx, pack_info = ix.ridx, ix.row_info
     coupling_residual = coupling_residual_func(np_dtype)
     dof_row, set_row = dof_row_func(np_dtype), set_row_func(np_dtype)
     stabilisation_bias, curved_bias = stabilisation_bias_func(np_dtype, midpoint), curved_bias_func(np_dtype, midpoint)
     coupling_start_residual = coupling_start_residual_func(np_dtype, midpoint)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
+    def coupling_rows(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        h: scalar,
+        alpha: scalar,
+        delta: scalar,
+        row_stride: int,
+        dof_JF: wp.array(dtype=vec6),
+        dof_JB: wp.array(dtype=vec6),
+        q_dof: wp.array(dtype=scalar),
+        q_dof_pred: wp.array(dtype=scalar),
+        q: wp.array(dtype=transform),
+        u_f: wp.array(dtype=vec6),
+        cpl_force: wp.array(dtype=scalar),
+        # out
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        vstar: wp.array(dtype=scalar),
+        reg: wp.array(dtype=scalar),
+        lo: wp.array(dtype=scalar),
+        hi: wp.array(dtype=scalar),
+        f0: wp.array(dtype=scalar),
+        v0: wp.array(dtype=scalar),
+        row_info: wp.array(dtype=wp.int32),
+    ):
         """Coupling rows ``q_a - p(q_b)``: blocks ``J_a - p'(q_b) J_b`` (four) and the bias of ``coupling_bias``."""
         wid, i = wp.tid()
         if i >= m.cpl_count[wid]:
             return
         k = m.cpl_start[wid] + i
-        r = ridx(m, w.row_stride, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
+        r = ridx(m, row_stride, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
         da = m.cpl_dof_a[k]
         db = m.cpl_dof_b[k]
         qb = scalar(0.0)
         qb_pred = scalar(0.0)
         if db >= 0:
-            qb = w.q_dof[db]
-            qb_pred = w.q_dof_pred[db]
-        e, dp = coupling_residual(m, k, w.q_dof[da], qb)
-        dof_row(m, w, r, nblk, da, scalar(1.0))
+            qb = q_dof[db]
+            qb_pred = q_dof_pred[db]
+        e, dp = coupling_residual(m, k, q_dof[da], qb)
+        dof_row(m, dof_JF, dof_JB, row_body, row_J, r, nblk, da, scalar(1.0))
         if db >= 0:
             jb = m.dof_joint[db]
-            w.row_body[r * nblk + 2] = m.joint_child[jb]
-            w.row_J[r * nblk + 2] = -dp * w.dof_JF[db]
-            w.row_body[r * nblk + 3] = m.joint_parent[jb]
-            w.row_J[r * nblk + 3] = -dp * w.dof_JB[db]
-        e_start = coupling_start_residual(m, w, k, e)
-        vstar = scalar(0.0)
+            row_body[r * nblk + 2] = m.joint_child[jb]
+            row_J[r * nblk + 2] = -dp * dof_JF[db]
+            row_body[r * nblk + 3] = m.joint_parent[jb]
+            row_J[r * nblk + 3] = -dp * dof_JB[db]
+        e_start = coupling_start_residual(m, q, k, e)
+        vs = scalar(0.0)
         if wp.static(curvature):
-            e_pred, dp1 = coupling_residual(m, k, w.q_dof_pred[da], qb_pred)
-            vstar = curved_bias(w, r, nblk, e, e_start, e_pred, w.u_f, h, alpha, delta)
+            e_pred, dp1 = coupling_residual(m, k, q_dof_pred[da], qb_pred)
+            vs = curved_bias(row_body, row_J, r, nblk, e, e_start, e_pred, u_f, h, alpha, delta)
         else:
-            vstar = stabilisation_bias(e, e_start, scalar(0.0), alpha, delta) / h
-        set_row(w, r, vstar, scalar(0.0), -inf, inf, w.cpl_force[k], row_info(ROW_COUPLING, k, scalar(1.0)))
+            vs = stabilisation_bias(e, e_start, scalar(0.0), alpha, delta) / h
+        set_row(vstar, reg, lo, hi, f0, v0, row_info, r, vs, scalar(0.0), -inf, inf, cpl_force[k],
+                pack_info(ROW_COUPLING, k, scalar(1.0)))
 
     return coupling_rows
 
@@ -533,18 +667,21 @@ def free_velocity_func(np_dtype):
 
 @functools.cache
 def set_bias_func(np_dtype):
-    """``set_bias(w, r, nblk, vs)``: a new bias of row ``r`` and its scaled free velocity (docs/formulation.md §8)."""
-    scalar, Work = builder_types(np_dtype).take("scalar", "Work")
+    """``set_bias(row_body, row_J, u_f, P, vstar, vt, r, nblk, vs)``: a new bias of row ``r`` and its scaled free
+    velocity (docs/formulation.md §8)."""
+    scalar, vec6 = builder_types(np_dtype).take("scalar", "vec6")
     free_velocity = free_velocity_func(np_dtype)
 
     @wp.func
-    def set_bias(w: Work, r: int, nblk: int, vs: scalar):
+    def set_bias(row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6), u_f: wp.array(dtype=vec6),
+                 P: wp.array(dtype=scalar), vstar: wp.array(dtype=scalar), vt: wp.array(dtype=scalar), r: int,
+                 nblk: int, vs: scalar):
         """Replace row ``r``'s bias and ``v~_f = P (v_f - v* + vs)``. ``v_f`` is not stored: it is recomputed from the
         row's blocks and ``u_f`` (unchanged since ``solver.prebake``) with the old bias, so that the sum equals the
         stored one's bit for bit."""
-        vf = free_velocity(w.vstar, w.row_body, w.row_J, w.u_f, r, nblk) - w.vstar[r] + vs
-        w.vt[r] = w.P[r] * vf
-        w.vstar[r] = vs
+        vf = free_velocity(vstar, row_body, row_J, u_f, r, nblk) - vstar[r] + vs
+        vt[r] = P[r] * vf
+        vstar[r] = vs
 
     return set_bias
 
@@ -552,14 +689,34 @@ def set_bias_func(np_dtype):
 @functools.cache
 def refine_joint_rows_kernel(np_dtype, midpoint: bool):
     """The joint rows' bias along the solved velocity (docs/formulation.md §5)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    scalar, vec6, transform, M = builder_types(np_dtype).take("scalar", "vec6", "transform", "M")
     ridx = index_funcs(np_dtype).ridx
     cts_residual = cts_residual_func(np_dtype)
     set_bias, curved_bias = set_bias_func(np_dtype), curved_bias_func(np_dtype, midpoint)
     joint_start_residual = joint_start_residual_func(np_dtype, midpoint)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def refine_joint_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
+    def refine_joint_rows(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        h: scalar,
+        alpha: scalar,
+        delta: scalar,
+        row_stride: int,
+        q_eval: wp.array(dtype=transform),
+        q: wp.array(dtype=transform),
+        q_pred: wp.array(dtype=transform),
+        u_new: wp.array(dtype=vec6),
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        u_f: wp.array(dtype=vec6),
+        P: wp.array(dtype=scalar),
+        # out
+        vstar: wp.array(dtype=scalar),
+        vt: wp.array(dtype=scalar),
+    ):
         """The joint rows' bias with the curvature term predicted along the solved velocity ``u_new``
         (``SolverConfig.stabilisation.curvature_refinement``; ``joint_bias`` of the JAX reference with
         ``u_pred = u+``)."""
@@ -567,11 +724,11 @@ def refine_joint_rows_kernel(np_dtype, midpoint: bool):
         if i >= m.cts_count[wid]:
             return
         c = m.cts_start[wid] + i
-        r = ridx(m, w.row_stride, wid, m.dyn_count[wid] + i)
-        e = cts_residual(m, w.q_eval, c)
-        e_start = joint_start_residual(m, w, c, e)
-        set_bias(w, r, nblk, curved_bias(w, r, nblk, e, e_start, cts_residual(m, w.q_pred, c), w.u_new, h, alpha,
-                                         delta))
+        r = ridx(m, row_stride, wid, m.dyn_count[wid] + i)
+        e = cts_residual(m, q_eval, c)
+        e_start = joint_start_residual(m, q, c, e)
+        vs = curved_bias(row_body, row_J, r, nblk, e, e_start, cts_residual(m, q_pred, c), u_new, h, alpha, delta)
+        set_bias(row_body, row_J, u_f, P, vstar, vt, r, nblk, vs)
 
     return refine_joint_rows
 
@@ -579,31 +736,52 @@ def refine_joint_rows_kernel(np_dtype, midpoint: bool):
 @functools.cache
 def refine_coupling_rows_kernel(np_dtype, midpoint: bool):
     """The coupling rows' bias along the solved velocity (docs/formulation.md §5)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    scalar, vec6, transform, M = builder_types(np_dtype).take("scalar", "vec6", "transform", "M")
     ridx = index_funcs(np_dtype).ridx
     coupling_residual, dof_position = coupling_residual_func(np_dtype), dof_position_func(np_dtype)
     set_bias, curved_bias = set_bias_func(np_dtype), curved_bias_func(np_dtype, midpoint)
     coupling_start_residual = coupling_start_residual_func(np_dtype, midpoint)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def refine_coupling_rows(m: M, w: Work, nblk: int, h: scalar, alpha: scalar, delta: scalar):
+    def refine_coupling_rows(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        h: scalar,
+        alpha: scalar,
+        delta: scalar,
+        row_stride: int,
+        q_dof: wp.array(dtype=scalar),
+        q: wp.array(dtype=transform),
+        q_pred: wp.array(dtype=transform),
+        u_new: wp.array(dtype=vec6),
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        u_f: wp.array(dtype=vec6),
+        P: wp.array(dtype=scalar),
+        # out
+        vstar: wp.array(dtype=scalar),
+        vt: wp.array(dtype=scalar),
+    ):
         """The coupling rows' bias along the solved velocity (as :func:`refine_joint_rows_kernel`)."""
         wid, i = wp.tid()
         if i >= m.cpl_count[wid]:
             return
         k = m.cpl_start[wid] + i
-        r = ridx(m, w.row_stride, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
+        r = ridx(m, row_stride, wid, m.dyn_count[wid] + m.cts_count[wid] + i)
         da = m.cpl_dof_a[k]
         db = m.cpl_dof_b[k]
         qb = scalar(0.0)
         qb_pred = scalar(0.0)
         if db >= 0:
-            qb = w.q_dof[db]
-            qb_pred = dof_position(m, w.q_pred, db)
-        e, dp = coupling_residual(m, k, w.q_dof[da], qb)
-        e_start = coupling_start_residual(m, w, k, e)
-        e_pred, dp1 = coupling_residual(m, k, dof_position(m, w.q_pred, da), qb_pred)
-        set_bias(w, r, nblk, curved_bias(w, r, nblk, e, e_start, e_pred, w.u_new, h, alpha, delta))
+            qb = q_dof[db]
+            qb_pred = dof_position(m, q_pred, db)
+        e, dp = coupling_residual(m, k, q_dof[da], qb)
+        e_start = coupling_start_residual(m, q, k, e)
+        e_pred, dp1 = coupling_residual(m, k, dof_position(m, q_pred, da), qb_pred)
+        vs = curved_bias(row_body, row_J, r, nblk, e, e_start, e_pred, u_new, h, alpha, delta)
+        set_bias(row_body, row_J, u_f, P, vstar, vt, r, nblk, vs)
 
     return refine_coupling_rows
 
@@ -613,10 +791,23 @@ def refine_coupling_rows_kernel(np_dtype, midpoint: bool):
 @functools.cache
 def limits_kernel(np_dtype):
     """Which limit rows are active, and their bias (docs/formulation.md §4.1)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
 
     @wp.kernel(module="unique", enable_backward=False)
-    def limits(m: M, w: Work, h: scalar, margin: scalar, beta: scalar):
+    def limits(
+        # model (read only)
+        m: M,
+        # in
+        h: scalar,
+        margin: scalar,
+        beta: scalar,
+        q_dof: wp.array(dtype=scalar),
+        qd_free: wp.array(dtype=scalar),
+        # out
+        lim_side: wp.array(dtype=scalar),
+        lim_active: wp.array(dtype=wp.int32),
+        lim_bias: wp.array(dtype=scalar),
+    ):
         """Which limit rows are active and their bias (docs/formulation.md §4.1; ``limit_rows`` of the JAX
         reference): the nearer limit, active when it can be reached within the step."""
         wid, i = wp.tid()
@@ -624,7 +815,7 @@ def limits_kernel(np_dtype):
             return
         k = m.lim_start[wid] + i
         d = m.lim_dof[k]
-        q = w.q_dof[d]
+        q = q_dof[d]
         r_lo = q - m.lower[d]
         r_hi = m.upper[d] - q
         side = scalar(1.0)
@@ -632,15 +823,15 @@ def limits_kernel(np_dtype):
         if r_lo > r_hi:
             side = scalar(-1.0)
             r = r_hi
-        approach = wp.max(-side * w.qd_free[d], scalar(0.0))
+        approach = wp.max(-side * qd_free[d], scalar(0.0))
         active = r < margin + h * approach
-        w.lim_side[k] = side
+        lim_side[k] = side
         if active:
-            w.lim_active[k] = 1
-            w.lim_bias[k] = (r - (scalar(1.0) - beta) * wp.min(r, scalar(0.0))) / h
+            lim_active[k] = 1
+            lim_bias[k] = (r - (scalar(1.0) - beta) * wp.min(r, scalar(0.0))) / h
         else:
-            w.lim_active[k] = 0
-            w.lim_bias[k] = scalar(0.0)
+            lim_active[k] = 0
+            lim_bias[k] = scalar(0.0)
 
     return limits
 
@@ -648,27 +839,50 @@ def limits_kernel(np_dtype):
 @functools.cache
 def pack_limits_kernel(np_dtype):
     """The active limit rows, compacted after the fixed rows (docs/formulation.md §4.1)."""
-    scalar, M, Work, inf = builder_types(np_dtype).take("scalar", "M", "Work", "inf")
+    scalar, vec6, M, inf = builder_types(np_dtype).take("scalar", "vec6", "M", "inf")
     ix = index_funcs(np_dtype)
-    ridx, row_info = ix.ridx, ix.row_info
+    ridx, pack_info = ix.ridx, ix.row_info
     dof_row, set_row = dof_row_func(np_dtype), set_row_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def pack_limits(m: M, w: Work, nblk: int):
+    def pack_limits(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        row_stride: int,
+        lim_active: wp.array(dtype=wp.int32),
+        lim_side: wp.array(dtype=scalar),
+        lim_bias: wp.array(dtype=scalar),
+        lim_force: wp.array(dtype=scalar),
+        dof_JF: wp.array(dtype=vec6),
+        dof_JB: wp.array(dtype=vec6),
+        # out
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        vstar: wp.array(dtype=scalar),
+        reg: wp.array(dtype=scalar),
+        lo: wp.array(dtype=scalar),
+        hi: wp.array(dtype=scalar),
+        f0: wp.array(dtype=scalar),
+        v0: wp.array(dtype=scalar),
+        row_info: wp.array(dtype=wp.int32),
+        n_lim: wp.array(dtype=wp.int32),
+    ):
         """Append the active limit rows after the fixed rows, in DoF order (deterministic)."""
         wid = wp.tid()
         a0 = m.row_fixed[wid]
         n = int(0)
         for i in range(m.lim_count[wid]):
             k = m.lim_start[wid] + i
-            if w.lim_active[k] != 0:
+            if lim_active[k] != 0:
                 d = m.lim_dof[k]
-                side = w.lim_side[k]
-                r = ridx(m, w.row_stride, wid, a0 + n)
-                dof_row(m, w, r, nblk, d, side)
-                set_row(w, r, w.lim_bias[k], scalar(0.0), scalar(0.0), inf, wp.max(side * w.lim_force[d], scalar(0.0)),
-                        row_info(ROW_LIMIT, d, side))
+                side = lim_side[k]
+                r = ridx(m, row_stride, wid, a0 + n)
+                dof_row(m, dof_JF, dof_JB, row_body, row_J, r, nblk, d, side)
+                set_row(vstar, reg, lo, hi, f0, v0, row_info, r, lim_bias[k], scalar(0.0), scalar(0.0), inf,
+                        wp.max(side * lim_force[d], scalar(0.0)), pack_info(ROW_LIMIT, d, side))
                 n += 1
-        w.n_lim[wid] = n
+        n_lim[wid] = n
 
     return pack_limits
