@@ -167,11 +167,11 @@ def _warp_correction(Ib: np.ndarray, R: np.ndarray, w0: np.ndarray, we: np.ndarr
     """The Warp backend's ``gyroscopic_correction`` wp.func on the CPU, float64."""
     import warp as wp
 
-    from kamino.warp_backend.rows import row_kernels
+    from kamino.warp_backend.dynamics import gyroscopic_correction_func
     from kamino.warp_backend.types import types_of
 
     T = types_of(np.float64)
-    fn = row_kernels(np.float64).gyroscopic_correction
+    fn = gyroscopic_correction_func(np.float64)
 
     @wp.kernel(module="unique", enable_backward=False)
     def run(Ib: wp.array(dtype=T.mat33), R: wp.array(dtype=T.mat33), w0: wp.array(dtype=T.vec3),
