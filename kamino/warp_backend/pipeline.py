@@ -220,7 +220,7 @@ class Stepper:
         if ck is not None:
             self._launch(ck.narrow_phase, (W, wm.max_pairs), h, cfg.contact_margin)
             self._launch(ck.pack, W, h, cfg.contact_margin, CONTACT_DEADBAND, RESTITUTION_THRESHOLD)
-        self._launch(sk.count_rows, W)
+        self._launch_io(sk.count_rows, W, inputs=[w.n_lim, w.n_con, w.frozen], outputs=[w.n_box, w.n_rows, w.failed])
         if ck is not None:
             self._launch(ck.contact_rows, (W, wm.max_contacts), nblk, h, CONTACT_BAUMGARTE, CONTACT_DEADBAND,
                          RESTITUTION_THRESHOLD, CONTACT_MATCH_DISTANCE)
@@ -230,20 +230,29 @@ class Stepper:
         assembled = self.linear_solver == "llt" and not self.sparse_factor  # the dense Delassus matrix
         if assembled:
             if self.dense:
-                self._launch(sk.delassus_dense, rows)
+                self._launch_io(sk.delassus_dense, rows, inputs=[w.row_stride, w.n_rows, w.Jd, w.MJd, w.reg],
+                                outputs=[w.D])
             else:
                 self._launch(sk.delassus_sparse, rows, nblk)
         self._launch(sk.precondition, rows, nblk, int(assembled))
         shift_f, shift_b = self.padmm_shifts
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
-        self._launch(sk.scale, rows, shift_f, shift_b, scale_ws, int(assembled), int(self.linear_solver == "cr"))
+        self._launch_io(sk.scale, rows, inputs=[shift_f, shift_b, scale_ws, int(assembled),
+                                                int(self.linear_solver == "cr"), w.row_stride, w.n_rows, w.P, w.lo,
+                                                w.hi, w.f0],
+                        outputs=[w.vt, w.lo_s, w.hi_s, w.row_info, w.D])
         if self.sparse_factor:
             self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz), self.sp, nblk, shift_f, shift_b)
             self._launch(self.spk.assemble_tail, rows, self.sp, nblk)
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
-        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled), cfg.max_iterations,
-                     cfg.penalty.eta, cfg.penalty.rho, int(self.adaptive))
+        self._launch_io(sk.padmm_init, W,
+                        inputs=[scale_ws, int(cfg.warm_start), int(assembled), cfg.max_iterations, cfg.penalty.eta,
+                                cfg.penalty.rho, int(self.adaptive), w.row_stride, w.n_rows, w.n_box, w.frozen, w.f0,
+                                w.v0, w.P, w.lo_s, w.hi_s, w.ct_mu, w.row_info],
+                        outputs=[w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.p_ref, w.rho_u, w.pending, w.iters,
+                                 w.r_p, w.r_d, w.r_c, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
+                                 w.remaining, w.sdiag, w.D])
         if self.padmm == "warp" and self.sparse_factor:
             self._launch_lanes(self.wk.factor, self.sp, cfg.penalty.eta, 0, nblk, shift_f, shift_b)
         elif self.padmm == "warp":  # CR: the row blocks grouped by body for the operator
@@ -251,7 +260,8 @@ class Stepper:
         elif self.sparse_factor:
             self._launch(self.spk.factor, W, self.sp, cfg.penalty.eta)
         self._padmm_loop()
-        self._launch(sk.padmm_finish, rows)
+        self._launch_io(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p, w.ct_mu,
+                                                       w.row_info], outputs=[w.impulse, w.velocity, w.failed])
         stab = cfg.stabilisation
         if stab.curvature_refinement and stab.curvature_correction and (wm.max_cts or wm.max_cpl):
             self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, ANGULAR_DAMPING * dt)
@@ -259,9 +269,14 @@ class Stepper:
             self._launch(rk.refine_joint_rows, (W, wm.max_cts), nblk, h, cfg.stabilisation.baumgarte, delta)
             self._launch(rk.refine_coupling_rows, (W, wm.max_cpl), nblk, h, cfg.stabilisation.baumgarte, delta)
             w.remaining.fill_(W)
-            self._launch(sk.padmm_resume, W, cfg.max_iterations)
+            self._launch_io(sk.padmm_resume, W,
+                            inputs=[cfg.max_iterations, w.row_stride, w.n_rows, w.frozen, w.iters, w.y_p, w.z_p],
+                            outputs=[w.y_hat, w.z_hat, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
+                                     w.remaining])
             self._padmm_loop()
-            self._launch(sk.padmm_finish, rows)
+            self._launch_io(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p,
+                                                           w.ct_mu, w.row_info],
+                            outputs=[w.impulse, w.velocity, w.failed])
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies), nblk, h, ANGULAR_DAMPING * dt)
         if cfg.stabilisation.post_stabilisation:  # position projections (post_stabilisation.py)

@@ -619,22 +619,24 @@ def solve_fixed_kernel(np_dtype, R: int):
 @functools.cache
 def lane_rhs_func(np_dtype):
     """§7.3 steps 1-2 on one row of the 32-thread schedule.
-    ``lane_rhs(w, r, a, nf, n_box, rho_free, rho_box, rho_u, eta)``: ``solver_rules.row_rhs_func``, then the
-    contact correction on a normal row."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``lane_rhs(row_stride, row_info, ct_mu, vt, x_p, y_hat, z_hat, r, a, nf, n_box, rho_free, rho_box, rho_u, eta)``:
+    ``solver_rules.row_rhs_func``, then the contact correction on a normal row."""
+    scalar = builder_types(np_dtype).scalar
+    farr = wp.array(dtype=scalar)
     row_penalty = rules.row_penalty_func(np_dtype)
     row_rhs = rules.row_rhs_func(np_dtype)
     contact_correction = rules.contact_correction_func(np_dtype)
 
     @wp.func
-    def lane_rhs(w: Work, r: int, a: int, nf: int, n_box: int, rho_free: scalar, rho_box: scalar, rho_u: scalar,
+    def lane_rhs(row_stride: int, row_info: wp.array(dtype=wp.int32), ct_mu: farr, vt: farr, x_p: farr, y_hat: farr,
+                 z_hat: farr, r: int, a: int, nf: int, n_box: int, rho_free: scalar, rho_box: scalar, rho_u: scalar,
                  eta: scalar):
         """Row ``a``'s right-hand side, the De Saxcé correction included on a contact's normal row (the thread that
         owns the row computes it, reading the contact's ``z_hat``)."""
-        rs = w.row_stride
-        rhs = row_rhs(w, r, row_penalty(w, r, a, nf, rho_free, rho_box, rho_u), eta)
+        rs = row_stride
+        rhs = row_rhs(vt, x_p, y_hat, z_hat, r, row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u), eta)
         if a >= n_box and (a - n_box) % 3 == 2:
-            rhs -= contact_correction(w, r - 2 * rs, rs)
+            rhs -= contact_correction(ct_mu, row_info, z_hat, r - 2 * rs, rs)
         return rhs
 
     return lane_rhs
@@ -689,7 +691,8 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
             ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         for step in range(chunk):
             for a in range(lane, n, LANES):  # steps 1-2: right-hand side (into xs; CR's into y), linear solve
-                rhs = lane_rhs(w, rb + a * rs, a, nf, n_box, rho_free, rho_box, rho_u, eta)
+                rhs = lane_rhs(w.row_stride, w.row_info, w.ct_mu, w.vt, w.x_p, w.y_hat, w.z_hat, rb + a * rs, a, nf,
+                               n_box, rho_free, rho_box, rho_u, eta)
                 if wp.static(cr):
                     w.y[rb + a * rs] = rhs
                 else:
@@ -707,7 +710,8 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                 else:
                     x = sget(xs, a)
                     w.x[r] = x
-                acc = box_row(w, r, a, nf, x, row_penalty(w, r, a, nf, rho_free, rho_box, rho_u), eta, p_ref, acc)
+                acc = box_row(w.row_info, w.lo_s, w.hi_s, w.x_p, w.y_hat, w.z_hat, w.P, w.y, w.z, w.e_p, r, a, nf, x,
+                              row_penalty(w.row_info, r, a, nf, rho_free, rho_box, rho_u), eta, p_ref, acc)
             inv_rho = scalar(1.0) / rho_u
             for c in range(lane, nc, LANES):
                 a = n_box + 3 * c
@@ -718,13 +722,14 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                     x3 = vec3(sget(xs, a), sget(xs, a + 1), sget(xs, a + 2))
                     for t in range(3):
                         w.x[r + t * rs] = x3[t]
-                acc = contact_rows(w, r, rs, x3, inv_rho, rho_u, eta, p_ref, acc)
+                acc = contact_rows(w.ct_mu, w.row_info, w.z_hat, w.x, w.x_p, w.y_hat, w.P, w.y, w.z, r, rs, x3,
+                                   inv_rho, rho_u, eta, p_ref, acc)
             if wp.static(cr):
                 for a in range(lane, n, LANES):
-                    acc = cr_residual(w, rb + a * rs, p_ref, acc)
+                    acc = cr_residual(w.P, w.cr_r, rb + a * rs, p_ref, acc)
             acc = reduce_residuals(acc)
             k = w.iters[wid] + 1
-            res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
+            res = outcome(w.a_p, w.c_p, w.k_rho, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
             if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
                 rho_u = res.rho
                 sync()  # every thread has read k_rho (outcome) before it changes
@@ -736,16 +741,18 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                     w.k_rho[wid] = k
             if res.saturates != 0:  # this thread's own rows of the projection loop above
                 for a in range(lane, nf, LANES):
-                    mark_saturated(w, rb + a * rs, rho_free)
+                    mark_saturated(w.lo_s, w.hi_s, w.x, w.z_hat, w.y, w.row_info, rb + a * rs, rho_free)
             for a in range(lane, n, LANES):
                 if wp.static(cr):
-                    advance_row(w, rb + a * rs, w.x[rb + a * rs], res.mom)
+                    advance_row(w.y, w.z, w.x_p, w.y_p, w.z_p, w.y_hat, w.z_hat, rb + a * rs, w.x[rb + a * rs],
+                                res.mom)
                 else:
-                    advance_row(w, rb + a * rs, sget(xs, a), res.mom)
+                    advance_row(w.y, w.z, w.x_p, w.y_p, w.z_p, w.y_hat, w.z_hat, rb + a * rs, sget(xs, a), res.mom)
             done = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= w.it_cap[wid]
             sync()  # every thread has read the world's scalars before they change
             if lane == 0:
-                store_world(w, wid, k, acc, res, done)
+                store_world(w.a_p, w.c_p, w.iters, w.r_p, w.r_d, w.r_c, w.converged, w.done, w.remaining, wid, k,
+                            acc, res, done)
                 if res.saturates != 0:  # the factor is redone after this launch (CR: the next operator takes rho_box)
                     w.k_rho[wid] = k
                     if wp.static(not cr):
