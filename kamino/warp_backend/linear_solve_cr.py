@@ -97,7 +97,7 @@ def apply_func(np_dtype, lanes: int):
                     if b >= 0:
                         w.cr_w[b] = w.cr_w[b] + pv * w.row_J[r * nblk + k]
             for i in range(m.body_count[wid]):
-                w.cr_w[b0 + i] = inv_mass_times(m, w, b0 + i, w.cr_w[b0 + i])
+                w.cr_w[b0 + i] = inv_mass_times(m, w.inv_inertia_w, b0 + i, w.cr_w[b0 + i])
         else:
             sync()
             for i in range(lane, m.body_count[wid], LANES):
@@ -110,7 +110,7 @@ def apply_func(np_dtype, lanes: int):
                     e = w.cr_ent[ent_slot(rb, rs, nblk, j)]
                     r = e // nblk
                     acc = acc + (w.P[r] * v[r]) * w.row_J[e]
-                w.cr_w[b] = inv_mass_times(m, w, b, acc)
+                w.cr_w[b] = inv_mass_times(m, w.inv_inertia_w, b, acc)
             sync()
         nf = m.row_fixed[wid]
         for a in range(lane, n, lanes):  # out_r = P_r J_r cr_w + (P_r^2 R_r + shift) v_r
