@@ -251,7 +251,8 @@ class Stepper:
         if self.padmm == "warp" and self.sparse_factor:
             self._launch_lanes(self.wk.factor, self.sp, cfg.penalty.eta, 0, nblk, shift_f, shift_b)
         elif self.padmm == "warp":  # CR: the row blocks grouped by body for the operator
-            self._launch(self.wk.cr_pattern, W, nblk)
+            self._launch_io(self.wk.cr_pattern, W, inputs=[nblk, w.row_stride, w.n_rows, w.row_body],
+                            outputs=[w.cr_end, w.cr_ent])
         elif self.sparse_factor:
             self._launch_io(self.spk.factor, W, inputs=[cfg.penalty.eta, w.row_stride, w.n_rows, w.rho_u],
                             outputs=[self.sp])

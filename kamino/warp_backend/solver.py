@@ -548,7 +548,9 @@ def linear_step_func(np_dtype, linear: int):
             r = rb + (n_box + 3 * c) * rs
             rhs[r + 2 * rs] -= contact_correction(w, r, rs)
         if wp.static(linear == LINEAR_CR):
-            cr_solve(m, w, wid, rb, n, nblk, 0, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
+            cr_solve(m, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P, w.inv_inertia_w, w.cr_ent, w.cr_end,
+                     w.x_p, w.y, wid, rb, n, nblk, 0, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget, w.x,
+                     w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w)
         elif wp.static(linear == LINEAR_SPARSE):
             sparse_solve(m, sp, w.row_stride, wid, n, w.x)
         else:

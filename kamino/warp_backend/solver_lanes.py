@@ -697,7 +697,9 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                 else:
                     sset(xs, a, rhs)
             if wp.static(cr):
-                cr_solve(m, w, wid, rb, n, nblk, lane, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
+                cr_solve(m, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P, w.inv_inertia_w, w.cr_ent,
+                         w.cr_end, w.x_p, w.y, wid, rb, n, nblk, lane, eta + rho_free, eta + rho_box, eta + rho_u,
+                         cr_budget, w.x, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w)
             else:
                 sync()
                 solve(m, w, sp, wid, n, lane, xs, ys)
