@@ -242,8 +242,12 @@ class Stepper:
                                                 w.hi, w.f0],
                         outputs=[w.vt, w.lo_s, w.hi_s, w.row_info, w.D])
         if self.sparse_factor:
-            self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz), self.sp, nblk, shift_f, shift_b)
-            self._launch(self.spk.assemble_tail, rows, self.sp, nblk)
+            self._launch_io(self.spk.assemble_fixed, (W, self.sf.max_nnz),
+                            inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
+                                    w.inertia_w, w.inv_inertia_w], outputs=[self.sp])
+            self._launch_io(self.spk.assemble_tail, rows,
+                            inputs=[nblk, w.row_stride, w.n_rows, w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg,
+                                    w.P, w.inv_inertia_w], outputs=[self.sp])
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
         self._launch_io(sk.padmm_init, W,
@@ -256,9 +260,11 @@ class Stepper:
         if self.padmm == "warp" and self.sparse_factor:
             self._launch_lanes(self.wk.factor, self.sp, cfg.penalty.eta, 0, nblk, shift_f, shift_b)
         elif self.padmm == "warp":  # CR: the row blocks grouped by body for the operator
-            self._launch(self.wk.cr_pattern, W, nblk)
+            self._launch_io(self.wk.cr_pattern, W, inputs=[nblk, w.row_stride, w.n_rows, w.row_body],
+                            outputs=[w.cr_end, w.cr_ent])
         elif self.sparse_factor:
-            self._launch(self.spk.factor, W, self.sp, cfg.penalty.eta)
+            self._launch_io(self.spk.factor, W, inputs=[cfg.penalty.eta, w.row_stride, w.n_rows, w.rho_u],
+                            outputs=[self.sp])
         self._padmm_loop()
         self._launch_io(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p, w.ct_mu,
                                                        w.row_info], outputs=[w.impulse, w.velocity, w.failed])
@@ -285,8 +291,10 @@ class Stepper:
             else:
                 post = self.post.arrays
                 shift_f, shift_b = cfg.projection_shifts(self.np_dtype)
-                self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift_f, shift_b)
-                self._launch(self.spk.factor_fixed, W, post)
+                self._launch_io(self.spk.assemble_fixed, (W, self.post.max_nnz),
+                                inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg,
+                                        w.P, w.inertia_w, w.inv_inertia_w], outputs=[post])
+                self._launch_io(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[post])
             passes = cfg.stabilisation.post_stabilisation
             for k in range(passes + 1):  # the last pass: unconverged worlds, gaps left open
                 extra = int(k == passes)
@@ -294,7 +302,8 @@ class Stepper:
                 if self.padmm == "warp":
                     self._launch_lanes(self.wk.solve_fixed, post, extra)
                 else:
-                    self._launch(self.pk.solve, W, post, extra)
+                    self._launch_io(self.pk.solve, W, inputs=[extra, w.row_stride, post, w.converged, w.reproject, w.P],
+                                    outputs=[w.x])
                 self._launch(self.pk.displace, (W, wm.max_bodies), nblk, extra)
         if wm.max_cts:  # world health: a world whose joints the step left open past the bound fails on this step
             self._launch(ik.closure_check, (W, wm.max_cts), LOOP_OPEN_BOUND)
@@ -345,7 +354,10 @@ class Stepper:
             def iterate(chunk):
                 self._launch(thread_iterate, W, self.sp, chunk, *args)
                 if self.max_switches and self.sparse_factor:
-                    self._launch(self.spk.refactor, W, self.sp, nblk, shift_f, shift_b, cfg.penalty.eta)
+                    self._launch_io(self.spk.refactor, W,
+                                    inputs=[nblk, shift_f, shift_b, cfg.penalty.eta, w.row_stride, w.n_rows, w.row_body,
+                                            w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w, w.inv_inertia_w,
+                                            w.rho_u], outputs=[w.pending, self.sp])
                 elif self.max_switches:
                     self._launch(self.sk.refactor_dense, W, nblk, shift_f, shift_b, cfg.penalty.eta)
         if self.device.is_capturing:

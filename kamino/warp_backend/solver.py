@@ -111,7 +111,7 @@ def prebake_kernel(np_dtype):
                 b = w.row_body[r * nblk + k]
                 if b >= 0:
                     J = w.row_J[r * nblk + k]
-                    MJ = inv_mass_times(m, w, b, J)
+                    MJ = inv_mass_times(m, w.inv_inertia_w, b, J)
                     for c in range(6):
                         w.Jd[jidx(m, wid, i, 6 * (b - b0) + c)] += J[c]
                         w.MJd[jidx(m, wid, i, 6 * (b - b0) + c)] += MJ[c]
@@ -135,7 +135,7 @@ def delassus_sparse_kernel(np_dtype):
         if a >= n:
             return
         for b in range(a, n):
-            s = delassus_entry(m, w, wid, a, b, nblk)
+            s = delassus_entry(m, w.row_stride, w.row_body, w.row_J, w.reg, w.inv_inertia_w, wid, a, b, nblk)
             w.D[didx(m, wid, a, b)] = s
             w.D[didx(m, wid, b, a)] = s
 
@@ -199,7 +199,7 @@ def precondition_kernel(np_dtype):
         """``D_aa`` (from the assembled matrix, or from the row's blocks)."""
         if assembled != 0:
             return w.D[didx(m, wid, a, a)]
-        return delassus_entry(m, w, wid, a, a, nblk)
+        return delassus_entry(m, w.row_stride, w.row_body, w.row_J, w.reg, w.inv_inertia_w, wid, a, a, nblk)
 
     @wp.kernel(module="unique", enable_backward=False)
     def precondition(m: M, w: Work, nblk: int, assembled: int):
@@ -399,7 +399,9 @@ def refactor_dense_kernel(np_dtype):
         for a in range(n):
             ra = ridx(m, w.row_stride, wid, a)
             for b in range(a, n):
-                v = w.P[ra] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w.row_stride, wid, b)]
+                v = (w.P[ra]
+                     * delassus_entry(m, w.row_stride, w.row_body, w.row_J, w.reg, w.inv_inertia_w, wid, a, b, nblk)
+                     * w.P[ridx(m, w.row_stride, wid, b)])
                 if b == a and a < nf:
                     v += wp.where(row_saturated(w.row_info, ra) != 0, shift_sat, shift)
                 w.D[didx(m, wid, a, b)] = v
@@ -604,9 +606,11 @@ def linear_step_func(np_dtype, linear: int):
             r = rb + (n_box + 3 * c) * rs
             rhs[r + 2 * rs] -= contact_correction(w.ct_mu, w.row_info, w.z_hat, r, rs)
         if wp.static(linear == LINEAR_CR):
-            cr_solve(m, w, wid, rb, n, nblk, 0, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
+            cr_solve(m, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P, w.inv_inertia_w, w.cr_ent, w.cr_end,
+                     w.x_p, w.y, wid, rb, n, nblk, 0, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget, w.x,
+                     w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w)
         elif wp.static(linear == LINEAR_SPARSE):
-            sparse_solve(m, w, sp, wid, n)
+            sparse_solve(m, sp, w.row_stride, wid, n, w.x)
         else:
             cho_solve_inplace(m, w.row_stride, w.D, w.x, wid, n)
 
@@ -705,7 +709,7 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
                 w.k_rho[wid] = k
                 if wp.static(linear == LINEAR_SPARSE):
                     if res.saturates == 0:
-                        factor_tail_sparse(m, w, sp, wid, n, eta + rho_u)
+                        factor_tail_sparse(m, sp, w.row_stride, wid, n, eta + rho_u)
                 elif wp.static(linear == LINEAR_DENSE):
                     if res.saturates == 0:
                         factor_tail_dense(m, w.row_stride, w.sdiag, w.D, wid, n, eta + rho_u)

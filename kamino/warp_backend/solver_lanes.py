@@ -238,7 +238,7 @@ def factor_tail_func(np_dtype):
         products over the columns before it, :func:`solver_rules.tail_dot_func`), from ``S_t`` in the tail rows'
         upper slots (``S_t[t, j]`` at row ``j``, tail column ``K + t``) and its diagonal (column
         ``linear_solve.sdiag_col``); the sums of ``linear_solve.factor_tail``."""
-        base = bases(m, w, sp, wid)
+        base = bases(m, sp, w.row_stride, wid)
         nt = n - sp.n_fixed[wid]
         kt = tail_k(sp, wid)
         col = sp.tail_stride  # the distance between a tail row's slots
@@ -284,11 +284,13 @@ def factor_kernel(np_dtype, E: int = 0):
             if w.pending[wid] == 0:
                 return
             for k in range(lane, sp.nnz[wid], LANES):
-                fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
+                fixed_entry(m, sp, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P, w.inertia_w,
+                            w.inv_inertia_w, wid, k, nblk, shift, shift_sat)
             for a in range(sp.n_fixed[wid] + lane, w.n_rows[wid], LANES):
-                tail_row(m, w, sp, wid, a, nblk)
+                tail_row(m, sp, w.row_stride, w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inv_inertia_w,
+                         wid, a, nblk)
             sync()
-        base = bases(m, w, sp, wid)
+        base = bases(m, sp, w.row_stride, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -398,7 +400,7 @@ def factor_kernel(np_dtype, E: int = 0):
             j -= t + 1
             t += 1
         while t < nt:
-            schur_entry(w, sp, wid, rb, tb, ts, nf, t, j)
+            schur_entry(sp, wid, rb, tb, ts, nf, t, j)
             j += LANES
             while j > t:
                 j -= t + 1
@@ -434,7 +436,7 @@ def solve_func(np_dtype, R: int):
         entries are loaded before the barrier of the current one, unconditionally (clamped indices), so that their
         latency overlaps the barrier instead of preceding it (docs/warp_backend.md, "Where it goes, measured part by
         part")."""
-        base = bases(m, w, sp, wid)
+        base = bases(m, sp, w.row_stride, wid)
         vb, tb, ts = base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -600,7 +602,7 @@ def solve_fixed_kernel(np_dtype, R: int):
         wid, lane = wp.tid()
         if extra != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0:
             return
-        rb = bases(m, w, sp, wid)[0]
+        rb = bases(m, sp, w.row_stride, wid)[0]
         nf = sp.n_fixed[wid]
         xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
@@ -698,7 +700,9 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                 else:
                     sset(xs, a, rhs)
             if wp.static(cr):
-                cr_solve(m, w, wid, rb, n, nblk, lane, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
+                cr_solve(m, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P, w.inv_inertia_w, w.cr_ent,
+                         w.cr_end, w.x_p, w.y, wid, rb, n, nblk, lane, eta + rho_free, eta + rho_box, eta + rho_u,
+                         cr_budget, w.x, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w)
             else:
                 sync()
                 solve(m, w, sp, wid, n, lane, xs, ys)
