@@ -226,15 +226,19 @@ class Stepper:
                          RESTITUTION_THRESHOLD, CONTACT_MATCH_DISTANCE)
         # dynamics: v_f (and the dense J, M^-1 J^T), Delassus (dense path) and preconditioning (§7.2, §8)
         rows = (W, wm.max_rows)
-        self._launch(sk.prebake, rows, nblk, int(self.dense))
+        self._launch_io(sk.prebake, rows, inputs=[nblk, int(self.dense), w.row_stride, w.n_rows, w.vstar, w.row_body,
+                                                  w.row_J, w.u_f, w.inv_inertia_w], outputs=[w.vt, w.Jd, w.MJd])
         assembled = self.linear_solver == "llt" and not self.sparse_factor  # the dense Delassus matrix
         if assembled:
             if self.dense:
                 self._launch_io(sk.delassus_dense, rows, inputs=[w.row_stride, w.n_rows, w.Jd, w.MJd, w.reg],
                                 outputs=[w.D])
             else:
-                self._launch(sk.delassus_sparse, rows, nblk)
-        self._launch(sk.precondition, rows, nblk, int(assembled))
+                self._launch_io(sk.delassus_sparse, rows, inputs=[nblk, w.row_stride, w.n_rows, w.row_body, w.row_J,
+                                                                  w.reg, w.inv_inertia_w], outputs=[w.D])
+        self._launch_io(sk.precondition, rows, inputs=[nblk, int(assembled), w.row_stride, w.n_rows, w.n_box,
+                                                       w.row_body, w.row_J, w.reg, w.inv_inertia_w, w.D],
+                        outputs=[w.P])
         shift_f, shift_b = self.padmm_shifts
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
         self._launch_io(sk.scale, rows, inputs=[shift_f, shift_b, scale_ws, int(assembled),
@@ -258,7 +262,10 @@ class Stepper:
                                  w.r_p, w.r_d, w.r_c, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
                                  w.remaining, w.sdiag, w.D])
         if self.padmm == "warp" and self.sparse_factor:
-            self._launch_lanes(self.wk.factor, self.sp, cfg.penalty.eta, 0, nblk, shift_f, shift_b)
+            self._launch_lanes_io(self.wk.factor,
+                                  inputs=[cfg.penalty.eta, 0, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
+                                          w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
+                                          w.inv_inertia_w, w.rho_u], outputs=[w.pending, self.sp])
         elif self.padmm == "warp":  # CR: the row blocks grouped by body for the operator
             self._launch_io(self.wk.cr_pattern, W, inputs=[nblk, w.row_stride, w.n_rows, w.row_body],
                             outputs=[w.cr_end, w.cr_ent])
@@ -300,7 +307,8 @@ class Stepper:
                 extra = int(k == passes)
                 self._launch(self.pk.residual, rows, delta, extra)
                 if self.padmm == "warp":
-                    self._launch_lanes(self.wk.solve_fixed, post, extra)
+                    self._launch_lanes_io(self.wk.solve_fixed, inputs=[extra, w.row_stride, post, w.converged,
+                                                                       w.reproject, w.P], outputs=[w.x])
                 else:
                     self._launch_io(self.pk.solve, W, inputs=[extra, w.row_stride, post, w.converged, w.reproject, w.P],
                                     outputs=[w.x])
@@ -343,23 +351,43 @@ class Stepper:
             lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes)
 
             def iterate(chunk):
-                self._launch_lanes(lane_iterate, self.sp, chunk, *args)
+                self._launch_lanes_io(lane_iterate,
+                                      inputs=[chunk, *args, w.row_stride, w.n_rows, w.n_box, w.p_ref, w.it_cap,
+                                              w.row_body, w.row_J, w.reg, w.P, w.inv_inertia_w, w.cr_ent, w.cr_end,
+                                              w.ct_mu, w.vt, w.lo_s, w.hi_s],
+                                      outputs=[self.sp, w.row_info, w.x, w.y, w.z, w.x_p, w.y_p, w.z_p, w.y_hat,
+                                               w.z_hat, w.e_p, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w, w.rho_u,
+                                               w.k_rho, w.pending, w.a_p, w.c_p, w.iters, w.r_p, w.r_d, w.r_c,
+                                               w.converged, w.done, w.remaining])
                 if self.max_switches:  # the factor of the worlds whose effort-limited rows saturated
-                    self._launch_lanes(self.wk.factor, self.sp, cfg.penalty.eta, 1, nblk, shift_f, shift_b)
+                    self._launch_lanes_io(self.wk.factor,
+                                          inputs=[cfg.penalty.eta, 1, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
+                                                  w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
+                                                  w.inv_inertia_w, w.rho_u], outputs=[w.pending, self.sp])
         else:
             linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else (
                 LINEAR_DENSE)
             thread_iterate = padmm_iterate_kernel(self.np_dtype, linear, *modes)
 
             def iterate(chunk):
-                self._launch(thread_iterate, W, self.sp, chunk, *args)
+                self._launch_io(thread_iterate, W,
+                                inputs=[chunk, *args, w.row_stride, w.n_rows, w.n_box, w.p_ref, w.it_cap, w.row_body,
+                                        w.row_J, w.reg, w.P, w.inv_inertia_w, w.cr_ent, w.cr_end, w.ct_mu, w.vt,
+                                        w.lo_s, w.hi_s, w.sdiag],
+                                outputs=[self.sp, w.row_info, w.x, w.y, w.z, w.x_p, w.y_p, w.z_p, w.y_hat, w.z_hat,
+                                         w.e_p, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w, w.D, w.rho_u, w.k_rho,
+                                         w.pending, w.a_p, w.c_p, w.iters, w.r_p, w.r_d, w.r_c, w.converged, w.done,
+                                         w.remaining])
                 if self.max_switches and self.sparse_factor:
                     self._launch_io(self.spk.refactor, W,
                                     inputs=[nblk, shift_f, shift_b, cfg.penalty.eta, w.row_stride, w.n_rows, w.row_body,
                                             w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w, w.inv_inertia_w,
                                             w.rho_u], outputs=[w.pending, self.sp])
                 elif self.max_switches:
-                    self._launch(self.sk.refactor_dense, W, nblk, shift_f, shift_b, cfg.penalty.eta)
+                    self._launch_io(self.sk.refactor_dense, W,
+                                    inputs=[nblk, shift_f, shift_b, cfg.penalty.eta, w.row_stride, w.n_rows,
+                                            w.row_body, w.row_J, w.row_info, w.reg, w.inv_inertia_w, w.P, w.rho_u],
+                                    outputs=[w.pending, w.sdiag, w.D])
         if self.device.is_capturing:
             wp.capture_while(w.remaining, lambda: iterate(self.padmm_chunk))
         else:  # each launch runs the worlds to their cap or to a switch

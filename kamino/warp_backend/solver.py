@@ -85,36 +85,48 @@ def count_rows_kernel(np_dtype):
 @functools.cache
 def prebake_kernel(np_dtype):
     """The free velocity ``v_f = J u_f + v*`` of the rows (§5), and the dense ``J`` on request.
-    ``prebake(m, w, nblk, dense)``, one thread per row slot ``(worlds, max_rows)``."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``prebake(m, nblk, dense, row_stride, n_rows, vstar, row_body, row_J, u_f, inv_inertia_w, vt, Jd, MJd)``, one
+    thread per row slot ``(worlds, max_rows)``."""
+    scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     free_velocity = row_kernels(np_dtype).free_velocity
     jidx = index_funcs(np_dtype).jidx
     inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
     world_row = world_row_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def prebake(m: M, w: Work, nblk: int, dense: int):
+    def prebake(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int, dense: int,
+        row_stride: int,
+        n_rows: iarr, vstar: farr, row_body: iarr, row_J: wp.array(dtype=vec6), u_f: wp.array(dtype=vec6),
+        inv_inertia_w: wp.array(dtype=mat33),
+        # out
+        vt: farr, Jd: farr, MJd: farr,
+    ):
         """``v_f = J u_f + v*`` of each active row into ``vt`` (which ``scale`` scales in place); the dense ``J``
         and ``M^-1 J^T`` rows on request."""
         wid, i = wp.tid()
-        r = world_row(m, w.row_stride, w.n_rows, wid, i)
+        r = world_row(m, row_stride, n_rows, wid, i)
         if r < 0:
             return
-        w.vt[r] = free_velocity(w.vstar, w.row_body, w.row_J, w.u_f, r, nblk)
+        vt[r] = free_velocity(vstar, row_body, row_J, u_f, r, nblk)
         if dense != 0:
             nc = 6 * m.body_count[wid]
             for c in range(nc):
-                w.Jd[jidx(m, wid, i, c)] = scalar(0.0)
-                w.MJd[jidx(m, wid, i, c)] = scalar(0.0)
+                Jd[jidx(m, wid, i, c)] = scalar(0.0)
+                MJd[jidx(m, wid, i, c)] = scalar(0.0)
             b0 = m.body_start[wid]
             for k in range(nblk):
-                b = w.row_body[r * nblk + k]
+                b = row_body[r * nblk + k]
                 if b >= 0:
-                    J = w.row_J[r * nblk + k]
-                    MJ = inv_mass_times(m, w.inv_inertia_w, b, J)
+                    J = row_J[r * nblk + k]
+                    MJ = inv_mass_times(m, inv_inertia_w, b, J)
                     for c in range(6):
-                        w.Jd[jidx(m, wid, i, 6 * (b - b0) + c)] += J[c]
-                        w.MJd[jidx(m, wid, i, 6 * (b - b0) + c)] += MJ[c]
+                        Jd[jidx(m, wid, i, 6 * (b - b0) + c)] += J[c]
+                        MJd[jidx(m, wid, i, 6 * (b - b0) + c)] += MJ[c]
 
     return prebake
 
@@ -122,22 +134,33 @@ def prebake_kernel(np_dtype):
 @functools.cache
 def delassus_sparse_kernel(np_dtype):
     """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the block-sparse rows (§8.1).
-    ``delassus_sparse(m, w, nblk)``, one thread per row slot: row ``a`` fills ``D_ab = D_ba``, ``b >= a``."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``delassus_sparse(m, nblk, row_stride, n_rows, row_body, row_J, reg, inv_inertia_w, D)``, one thread per row
+    slot: row ``a`` fills ``D_ab = D_ba``, ``b >= a``."""
+    scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     didx = index_funcs(np_dtype).didx
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
 
     @wp.kernel(module="unique", enable_backward=False)
-    def delassus_sparse(m: M, w: Work, nblk: int):
+    def delassus_sparse(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        row_stride: int,
+        n_rows: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr, inv_inertia_w: wp.array(dtype=mat33),
+        # out
+        D: farr,
+    ):
         """Row ``a`` of ``D`` from the block-sparse rows (blocks meet on shared bodies)."""
         wid, a = wp.tid()
-        n = w.n_rows[wid]
+        n = n_rows[wid]
         if a >= n:
             return
         for b in range(a, n):
-            s = delassus_entry(m, w.row_stride, w.row_body, w.row_J, w.reg, w.inv_inertia_w, wid, a, b, nblk)
-            w.D[didx(m, wid, a, b)] = s
-            w.D[didx(m, wid, b, a)] = s
+            s = delassus_entry(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, b, nblk)
+            D[didx(m, wid, a, b)] = s
+            D[didx(m, wid, b, a)] = s
 
     return delassus_sparse
 
@@ -187,40 +210,54 @@ def delassus_dense_kernel(np_dtype):
 @functools.cache
 def precondition_kernel(np_dtype):
     """The Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2).
-    ``precondition(m, w, nblk, assembled)``, one thread per row slot."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``precondition(m, nblk, assembled, row_stride, n_rows, n_box, row_body, row_J, reg, inv_inertia_w, D, P)``, one
+    thread per row slot."""
+    scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     didx = index_funcs(np_dtype).didx
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
     world_row = world_row_func(np_dtype)
     eps = scalar(float(np.finfo(np_dtype).eps))
 
     @wp.func
-    def row_diag(m: M, w: Work, wid: int, a: int, nblk: int, assembled: int):
-        """``D_aa`` (from the assembled matrix, or from the row's blocks)."""
+    def row_diag(m: M, row_stride: int, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr,
+                 inv_inertia_w: wp.array(dtype=mat33), D: farr, wid: int, a: int, nblk: int, assembled: int):
+        """``D_aa`` (from the assembled matrix ``D``, or from the row's blocks)."""
         if assembled != 0:
-            return w.D[didx(m, wid, a, a)]
-        return delassus_entry(m, w.row_stride, w.row_body, w.row_J, w.reg, w.inv_inertia_w, wid, a, a, nblk)
+            return D[didx(m, wid, a, a)]
+        return delassus_entry(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, a, nblk)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def precondition(m: M, w: Work, nblk: int, assembled: int):
+    def precondition(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int, assembled: int,
+        row_stride: int,
+        n_rows: iarr, n_box: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr,
+        inv_inertia_w: wp.array(dtype=mat33), D: farr,
+        # out
+        P: farr,
+    ):
         """``P_a`` of each active row; one value per contact from the largest of its three diagonal entries (keeps
         the Coulomb cone invariant)."""
         wid, a = wp.tid()
-        r = world_row(m, w.row_stride, w.n_rows, wid, a)
+        r = world_row(m, row_stride, n_rows, wid, a)
         if r < 0:
             return
-        n_box = w.n_box[wid]
+        nb = n_box[wid]
         d = scalar(0.0)
-        if a < n_box:
-            d = wp.abs(row_diag(m, w, wid, a, nblk, assembled))
+        if a < nb:
+            d = wp.abs(row_diag(m, row_stride, row_body, row_J, reg, inv_inertia_w, D, wid, a, nblk, assembled))
         else:
-            c0 = n_box + 3 * ((a - n_box) // 3)
+            c0 = nb + 3 * ((a - nb) // 3)
             for t in range(3):
-                d = wp.max(d, wp.abs(row_diag(m, w, wid, c0 + t, nblk, assembled)))
+                d = wp.max(d, wp.abs(row_diag(m, row_stride, row_body, row_J, reg, inv_inertia_w, D, wid, c0 + t,
+                                              nblk, assembled)))
         if d > eps:
-            w.P[r] = scalar(1.0) / wp.sqrt(d + eps)
+            P[r] = scalar(1.0) / wp.sqrt(d + eps)
         else:
-            w.P[r] = scalar(1.0)
+            P[r] = scalar(1.0)
 
     return precondition
 
@@ -378,8 +415,10 @@ def factor_dense_func(np_dtype):
 @functools.cache
 def refactor_dense_kernel(np_dtype):
     """The dense factor again after a saturation (``kamino.jax_ref.solver.solve``, "Saturation").
-    ``refactor_dense(m, w, nblk, shift, shift_sat, eta)``, one thread per world."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``refactor_dense(m, nblk, shift, shift_sat, eta, row_stride, n_rows, row_body, row_J, row_info, reg,
+    inv_inertia_w, P, rho_u, pending, sdiag, D)``, one thread per world."""
+    scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
     row_saturated = index_funcs(np_dtype).row_saturated
@@ -387,26 +426,37 @@ def refactor_dense_kernel(np_dtype):
     factor_dense = factor_dense_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def refactor_dense(m: M, w: Work, nblk: int, shift: scalar, shift_sat: scalar, eta: scalar):
-        """For the worlds whose effort-limited rows saturated in the last PADMM iteration (``w.pending``): ``D~ =
+    def refactor_dense(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int, shift: scalar, shift_sat: scalar, eta: scalar,
+        row_stride: int,
+        n_rows: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), row_info: iarr, reg: farr,
+        inv_inertia_w: wp.array(dtype=mat33), P: farr, rho_u: farr,
+        # out
+        pending: iarr,  # also read
+        sdiag: farr, D: farr,
+    ):
+        """For the worlds whose effort-limited rows saturated in the last PADMM iteration (``pending``): ``D~ =
         P D P`` from the rows' blocks with the new shifts, then ``factor_dense`` (one thread per world)."""
         wid = wp.tid()
-        if w.pending[wid] == 0:
+        if pending[wid] == 0:
             return
-        w.pending[wid] = 0
-        n = w.n_rows[wid]
+        pending[wid] = 0
+        n = n_rows[wid]
         nf = m.row_fixed[wid]
         for a in range(n):
-            ra = ridx(m, w.row_stride, wid, a)
+            ra = ridx(m, row_stride, wid, a)
             for b in range(a, n):
-                v = (w.P[ra]
-                     * delassus_entry(m, w.row_stride, w.row_body, w.row_J, w.reg, w.inv_inertia_w, wid, a, b, nblk)
-                     * w.P[ridx(m, w.row_stride, wid, b)])
+                v = (P[ra]
+                     * delassus_entry(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, b, nblk)
+                     * P[ridx(m, row_stride, wid, b)])
                 if b == a and a < nf:
-                    v += wp.where(row_saturated(w.row_info, ra) != 0, shift_sat, shift)
-                w.D[didx(m, wid, a, b)] = v
-                w.D[didx(m, wid, b, a)] = v
-        factor_dense(m, w.row_stride, w.rho_u, w.sdiag, w.D, wid, n, eta)
+                    v += wp.where(row_saturated(row_info, ra) != 0, shift_sat, shift)
+                D[didx(m, wid, a, b)] = v
+                D[didx(m, wid, b, a)] = v
+        factor_dense(m, row_stride, rho_u, sdiag, D, wid, n, eta)
 
     return refactor_dense
 
@@ -579,8 +629,11 @@ def restart_world_func(np_dtype):
 @functools.cache
 def linear_step_func(np_dtype, linear: int):
     """§7.3 steps 1-2 of one thread per world: the right-hand side and the linear solve ``linear``
-    (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``: ``linear_solve.py``) of one iteration."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``: ``linear_solve.py``) of one iteration.
+    ``linear_step(m, sp, row_stride, <the Work arrays it reads>, x, y, cr_r, cr_p, cr_Ap, cr_Ar, cr_w, wid, rb, n,
+    n_box, nblk, eta, rho_free, rho_box, rho_u, cr_budget)``."""
+    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_penalty = rules.row_penalty_func(np_dtype)
     row_rhs = rules.row_rhs_func(np_dtype)
     contact_correction = rules.contact_correction_func(np_dtype)
@@ -589,30 +642,33 @@ def linear_step_func(np_dtype, linear: int):
     cho_solve_inplace = cho_solve_func(np_dtype)
 
     @wp.func
-    def linear_step(m: M, w: Work, sp: SP, wid: int, rb: int, n: int, n_box: int, nblk: int, eta: scalar,
-                    rho_free: scalar, rho_box: scalar, rho_u: scalar, cr_budget: int):
+    def linear_step(m: M, sp: SP, row_stride: int, row_body: iarr, row_J: wp.array(dtype=vec6), row_info: iarr,
+                    reg: farr, P: farr, inv_inertia_w: wp.array(dtype=mat33), cr_ent: iarr, cr_end: iarr, ct_mu: farr,
+                    vt: farr, x_p: farr, y_hat: farr, z_hat: farr, D: farr, x: farr, y: farr, cr_r: farr, cr_p: farr,
+                    cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6), wid: int, rb: int, n: int, n_box: int,
+                    nblk: int, eta: scalar, rho_free: scalar, rho_box: scalar, rho_u: scalar, cr_budget: int):
         """``x`` of the iteration: the right-hand side (the De Saxcé correction ``Gamma(z_hat)`` on the contacts'
-        normal rows) into ``x`` for the in-place factor solves, into ``y`` as CR's, then the solve."""
-        rs = w.row_stride
+        normal rows) into ``x`` for the in-place factor solves, into ``y`` as CR's, then the solve (CR's scratch
+        ``cr_*``)."""
+        rs = row_stride
         nf = m.row_fixed[wid]
-        rhs = w.x
+        rhs = x
         if wp.static(linear == LINEAR_CR):
-            rhs = w.y
+            rhs = y
         for a in range(n):
             r = rb + a * rs
-            rhs[r] = row_rhs(w.vt, w.x_p, w.y_hat, w.z_hat, r,
-                             row_penalty(w.row_info, r, a, nf, rho_free, rho_box, rho_u), eta)
+            rhs[r] = row_rhs(vt, x_p, y_hat, z_hat, r, row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u), eta)
         for c in range((n - n_box) // 3):
             r = rb + (n_box + 3 * c) * rs
-            rhs[r + 2 * rs] -= contact_correction(w.ct_mu, w.row_info, w.z_hat, r, rs)
+            rhs[r + 2 * rs] -= contact_correction(ct_mu, row_info, z_hat, r, rs)
         if wp.static(linear == LINEAR_CR):
-            cr_solve(m, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P, w.inv_inertia_w, w.cr_ent, w.cr_end,
-                     w.x_p, w.y, wid, rb, n, nblk, 0, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget, w.x,
-                     w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w)
+            cr_solve(m, row_stride, row_body, row_J, row_info, reg, P, inv_inertia_w, cr_ent, cr_end, x_p, y, wid, rb,
+                     n, nblk, 0, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget, x, cr_r, cr_p, cr_Ap, cr_Ar,
+                     cr_w)
         elif wp.static(linear == LINEAR_SPARSE):
-            sparse_solve(m, sp, w.row_stride, wid, n, w.x)
+            sparse_solve(m, sp, row_stride, wid, n, x)
         else:
-            cho_solve_inplace(m, w.row_stride, w.D, w.x, wid, n)
+            cho_solve_inplace(m, row_stride, D, x, wid, n)
 
     return linear_step
 
@@ -665,7 +721,8 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
     momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
     if linear not in (LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE):
         raise ValueError(f"padmm_iterate_kernel: linear must be LINEAR_DENSE, LINEAR_CR or LINEAR_SPARSE, got {linear}")
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_base = index_funcs(np_dtype).row_base
     linear_step = linear_step_func(np_dtype, linear)
     project_rows = project_rows_func(np_dtype, linear, adaptive)
@@ -677,55 +734,72 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
     factor_tail_dense = factor_tail_dense_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar,
-                      rho_box: scalar, tol: scalar, restart_tol: scalar):
+    def padmm_iterate(
+        # model (read only)
+        m: M,
+        # in
+        chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar, rho_box: scalar, tol: scalar,
+        restart_tol: scalar,
+        row_stride: int,
+        n_rows: iarr, n_box: iarr, p_ref: farr, it_cap: iarr, row_body: iarr, row_J: wp.array(dtype=vec6),
+        reg: farr, P: farr, inv_inertia_w: wp.array(dtype=mat33), cr_ent: iarr, cr_end: iarr, ct_mu: farr, vt: farr,
+        lo_s: farr, hi_s: farr, sdiag: farr,
+        # out
+        sp: SP,  # the factor's tail values sp.tail under LINEAR_SPARSE (a new penalty); its index tables are read
+        row_info: iarr,  # also read
+        x: farr, y: farr, z: farr, x_p: farr, y_p: farr, z_p: farr, y_hat: farr, z_hat: farr, e_p: farr,
+        cr_r: farr, cr_p: farr, cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6),
+        D: farr,
+        rho_u: farr, k_rho: iarr, pending: iarr, a_p: farr, c_p: farr, iters: iarr, r_p: farr, r_d: farr, r_c: farr,
+        converged: iarr, done: iarr, remaining: iarr,
+    ):
         """Up to ``chunk`` iterations of one world (``padmm.solve`` of the JAX reference, its penalty rule and
         residuals included), resuming from the stored iterate; a world that converges (unless
         ``fixed_iterations``) or reaches its iteration cap ``it_cap`` is marked done and leaves ``remaining``. The
         fixed rows carry the penalty ``rho_free`` (``rho_box`` on a saturated effort-limited actuator), the limit and
         contact rows the world's ``rho_u``, rebalanced under ``adaptive`` (then the tail of the factor is
-        recomputed). A row that saturates ends the launch with ``w.pending`` set: ``refactor`` (or
+        recomputed). A row that saturates ends the launch with ``pending`` set: ``refactor`` (or
         ``refactor_dense``) redoes the factor before the next launch (kamino.jax_ref.solver.solve, "Saturation");
         CR's operator takes ``rho_box`` at its next solve."""
-        rs = w.row_stride
+        rs = row_stride
         wid = wp.tid()
-        rb = row_base(m, w.row_stride, wid)
-        if w.done[wid] != 0:
+        rb = row_base(m, row_stride, wid)
+        if done[wid] != 0:
             return
-        n = w.n_rows[wid]
-        n_box = w.n_box[wid]
+        n = n_rows[wid]
+        nb = n_box[wid]
         nf = m.row_fixed[wid]
-        p_ref = w.p_ref[wid]
-        rho_u = w.rho_u[wid]
+        pref = p_ref[wid]
+        rho_w = rho_u[wid]
         for step in range(chunk):
-            linear_step(m, w, sp, wid, rb, n, n_box, nblk, eta, rho_free, rho_box, rho_u, cr_budget)
-            acc = project_rows(m, w.row_stride, w.row_info, w.lo_s, w.hi_s, w.ct_mu, w.x, w.x_p, w.y_hat, w.z_hat,
-                               w.P, w.cr_r, w.y, w.z, w.e_p, wid, rb, n, n_box, eta, rho_free, rho_box, rho_u, p_ref)
-            k = w.iters[wid] + 1
-            res = outcome(w.a_p, w.c_p, w.k_rho, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
-            if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
-                rho_u = res.rho
-                w.rho_u[wid] = rho_u
-                w.k_rho[wid] = k
+            linear_step(m, sp, row_stride, row_body, row_J, row_info, reg, P, inv_inertia_w, cr_ent, cr_end, ct_mu, vt,
+                        x_p, y_hat, z_hat, D, x, y, cr_r, cr_p, cr_Ap, cr_Ar, cr_w, wid, rb, n, nb, nblk, eta,
+                        rho_free, rho_box, rho_w, cr_budget)
+            acc = project_rows(m, row_stride, row_info, lo_s, hi_s, ct_mu, x, x_p, y_hat, z_hat, P, cr_r, y, z, e_p,
+                               wid, rb, n, nb, eta, rho_free, rho_box, rho_w, pref)
+            k = iters[wid] + 1
+            res = outcome(a_p, c_p, k_rho, wid, acc, k, n, nf, rho_w, tol, eta, rho_free, restart_tol)
+            if res.rho != rho_w:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
+                rho_w = res.rho
+                rho_u[wid] = rho_w
+                k_rho[wid] = k
                 if wp.static(linear == LINEAR_SPARSE):
                     if res.saturates == 0:
-                        factor_tail_sparse(m, sp, w.row_stride, wid, n, eta + rho_u)
+                        factor_tail_sparse(m, sp, row_stride, wid, n, eta + rho_w)
                 elif wp.static(linear == LINEAR_DENSE):
                     if res.saturates == 0:
-                        factor_tail_dense(m, w.row_stride, w.sdiag, w.D, wid, n, eta + rho_u)
+                        factor_tail_dense(m, row_stride, sdiag, D, wid, n, eta + rho_w)
             if res.saturates != 0:  # rho_box on the rows that saturate; the factor is redone after this launch
                 for a in range(nf):
-                    mark_saturated(w.lo_s, w.hi_s, w.x, w.z_hat, w.y, w.row_info, rb + a * rs, rho_free)
-                w.k_rho[wid] = k
+                    mark_saturated(lo_s, hi_s, x, z_hat, y, row_info, rb + a * rs, rho_free)
+                k_rho[wid] = k
                 if wp.static(linear != LINEAR_CR):
-                    w.pending[wid] = 1
+                    pending[wid] = 1
             for a in range(n):
-                advance_row(w.y, w.z, w.x_p, w.y_p, w.z_p, w.y_hat, w.z_hat, rb + a * rs, w.x[rb + a * rs],
-                            res.mom)
-            done = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= w.it_cap[wid]
-            store_world(w.a_p, w.c_p, w.iters, w.r_p, w.r_d, w.r_c, w.converged, w.done, w.remaining, wid, k, acc,
-                        res, done)
-            if done or w.pending[wid] != 0:
+                advance_row(y, z, x_p, y_p, z_p, y_hat, z_hat, rb + a * rs, x[rb + a * rs], res.mom)
+            finished = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= it_cap[wid]
+            store_world(a_p, c_p, iters, r_p, r_d, r_c, converged, done, remaining, wid, k, acc, res, finished)
+            if finished or pending[wid] != 0:
                 return
 
     return padmm_iterate
