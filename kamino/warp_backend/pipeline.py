@@ -154,7 +154,8 @@ class Stepper:
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt)
         self.rk = step_row_kernels(self.np_dtype, cfg.stabilisation.curvature_correction, cfg.integrator == "midpoint")
-        self.sk = solver_kernels(self.np_dtype)
+        self.sk = solver_kernels(self.np_dtype, self.dense, llt and not self.sparse_factor, not llt,
+                                 bool(cfg.warm_start), self.adaptive)
         # world health: only where post-stabilisation's extra pass projected, when its screen (a gap of
         # REPROJECTION_GAP + the dead band) is below the bound
         screened = (cfg.stabilisation.post_stabilisation > 0
@@ -226,8 +227,8 @@ class Stepper:
                          RESTITUTION_THRESHOLD, CONTACT_MATCH_DISTANCE)
         # dynamics: v_f (and the dense J, M^-1 J^T), Delassus (dense path) and preconditioning (§7.2, §8)
         rows = (W, wm.max_rows)
-        self._launch_io(sk.prebake, rows, inputs=[nblk, int(self.dense), w.row_stride, w.n_rows, w.vstar, w.row_body,
-                                                  w.row_J, w.u_f, w.inv_inertia_w], outputs=[w.vt, w.Jd, w.MJd])
+        self._launch_io(sk.prebake, rows, inputs=[nblk, w.row_stride, w.n_rows, w.vstar, w.row_body, w.row_J, w.u_f,
+                                                  w.inv_inertia_w], outputs=[w.vt, w.Jd, w.MJd])
         assembled = self.linear_solver == "llt" and not self.sparse_factor  # the dense Delassus matrix
         if assembled:
             if self.dense:
@@ -236,15 +237,12 @@ class Stepper:
             else:
                 self._launch_io(sk.delassus_sparse, rows, inputs=[nblk, w.row_stride, w.n_rows, w.row_body, w.row_J,
                                                                   w.reg, w.inv_inertia_w], outputs=[w.D])
-        self._launch_io(sk.precondition, rows, inputs=[nblk, int(assembled), w.row_stride, w.n_rows, w.n_box,
-                                                       w.row_body, w.row_J, w.reg, w.inv_inertia_w, w.D],
-                        outputs=[w.P])
+        self._launch_io(sk.precondition, rows, inputs=[nblk, w.row_stride, w.n_rows, w.n_box, w.row_body, w.row_J,
+                                                       w.reg, w.inv_inertia_w, w.D], outputs=[w.P])
         shift_f, shift_b = self.padmm_shifts
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
-        self._launch_io(sk.scale, rows, inputs=[shift_f, shift_b, scale_ws, int(assembled),
-                                                int(self.linear_solver == "cr"), w.row_stride, w.n_rows, w.P, w.lo,
-                                                w.hi, w.f0],
-                        outputs=[w.vt, w.lo_s, w.hi_s, w.row_info, w.D])
+        self._launch_io(sk.scale, rows, inputs=[shift_f, shift_b, scale_ws, w.row_stride, w.n_rows, w.P, w.lo, w.hi,
+                                                w.f0], outputs=[w.vt, w.lo_s, w.hi_s, w.row_info, w.D])
         if self.sparse_factor:
             self._launch_io(self.spk.assemble_fixed, (W, self.sf.max_nnz),
                             inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
@@ -255,9 +253,8 @@ class Stepper:
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
         self._launch_io(sk.padmm_init, W,
-                        inputs=[scale_ws, int(cfg.warm_start), int(assembled), cfg.max_iterations, cfg.penalty.eta,
-                                cfg.penalty.rho, int(self.adaptive), w.row_stride, w.n_rows, w.n_box, w.frozen, w.f0,
-                                w.v0, w.P, w.lo_s, w.hi_s, w.ct_mu, w.row_info],
+                        inputs=[scale_ws, cfg.max_iterations, cfg.penalty.eta, cfg.penalty.rho, w.row_stride,
+                                w.n_rows, w.n_box, w.frozen, w.f0, w.v0, w.P, w.lo_s, w.hi_s, w.ct_mu, w.row_info],
                         outputs=[w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.p_ref, w.rho_u, w.pending, w.iters,
                                  w.r_p, w.r_d, w.r_c, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
                                  w.remaining, w.sdiag, w.D])

@@ -83,10 +83,10 @@ def count_rows_kernel(np_dtype):
 
 
 @functools.cache
-def prebake_kernel(np_dtype):
-    """The free velocity ``v_f = J u_f + v*`` of the rows (§5), and the dense ``J`` on request.
-    ``prebake(m, nblk, dense, row_stride, n_rows, vstar, row_body, row_J, u_f, inv_inertia_w, vt, Jd, MJd)``, one
-    thread per row slot ``(worlds, max_rows)``."""
+def prebake_kernel(np_dtype, dense: bool):
+    """The free velocity ``v_f = J u_f + v*`` of the rows (§5), and with ``dense`` (compile-time) the dense ``J``.
+    ``prebake(m, nblk, row_stride, n_rows, vstar, row_body, row_J, u_f, inv_inertia_w, vt, Jd, MJd)``, one thread per
+    row slot ``(worlds, max_rows)``."""
     scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     free_velocity = row_kernels(np_dtype).free_velocity
@@ -99,7 +99,7 @@ def prebake_kernel(np_dtype):
         # model (read only)
         m: M,
         # in
-        nblk: int, dense: int,
+        nblk: int,
         row_stride: int,
         n_rows: iarr, vstar: farr, row_body: iarr, row_J: wp.array(dtype=vec6), u_f: wp.array(dtype=vec6),
         inv_inertia_w: wp.array(dtype=mat33),
@@ -107,13 +107,13 @@ def prebake_kernel(np_dtype):
         vt: farr, Jd: farr, MJd: farr,
     ):
         """``v_f = J u_f + v*`` of each active row into ``vt`` (which ``scale`` scales in place); the dense ``J``
-        and ``M^-1 J^T`` rows on request."""
+        and ``M^-1 J^T`` rows with ``dense``."""
         wid, i = wp.tid()
         r = world_row(m, row_stride, n_rows, wid, i)
         if r < 0:
             return
         vt[r] = free_velocity(vstar, row_body, row_J, u_f, r, nblk)
-        if dense != 0:
+        if wp.static(dense):
             nc = 6 * m.body_count[wid]
             for c in range(nc):
                 Jd[jidx(m, wid, i, c)] = scalar(0.0)
@@ -208,10 +208,11 @@ def delassus_dense_kernel(np_dtype):
 
 
 @functools.cache
-def precondition_kernel(np_dtype):
-    """The Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2).
-    ``precondition(m, nblk, assembled, row_stride, n_rows, n_box, row_body, row_J, reg, inv_inertia_w, D, P)``, one
-    thread per row slot."""
+def precondition_kernel(np_dtype, assembled: bool):
+    """The Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2), its diagonal from the assembled ``D`` with
+    ``assembled`` (compile-time), else from the rows' blocks.
+    ``precondition(m, nblk, row_stride, n_rows, n_box, row_body, row_J, reg, inv_inertia_w, D, P)``, one thread per
+    row slot."""
     scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     didx = index_funcs(np_dtype).didx
@@ -221,18 +222,19 @@ def precondition_kernel(np_dtype):
 
     @wp.func
     def row_diag(m: M, row_stride: int, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr,
-                 inv_inertia_w: wp.array(dtype=mat33), D: farr, wid: int, a: int, nblk: int, assembled: int):
+                 inv_inertia_w: wp.array(dtype=mat33), D: farr, wid: int, a: int, nblk: int):
         """``D_aa`` (from the assembled matrix ``D``, or from the row's blocks)."""
-        if assembled != 0:
+        if wp.static(assembled):
             return D[didx(m, wid, a, a)]
-        return delassus_entry(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, a, nblk)
+        else:
+            return delassus_entry(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, a, nblk)
 
     @wp.kernel(module="unique", enable_backward=False)
     def precondition(
         # model (read only)
         m: M,
         # in
-        nblk: int, assembled: int,
+        nblk: int,
         row_stride: int,
         n_rows: iarr, n_box: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr,
         inv_inertia_w: wp.array(dtype=mat33), D: farr,
@@ -248,12 +250,12 @@ def precondition_kernel(np_dtype):
         nb = n_box[wid]
         d = scalar(0.0)
         if a < nb:
-            d = wp.abs(row_diag(m, row_stride, row_body, row_J, reg, inv_inertia_w, D, wid, a, nblk, assembled))
+            d = wp.abs(row_diag(m, row_stride, row_body, row_J, reg, inv_inertia_w, D, wid, a, nblk))
         else:
             c0 = nb + 3 * ((a - nb) // 3)
             for t in range(3):
                 d = wp.max(d, wp.abs(row_diag(m, row_stride, row_body, row_J, reg, inv_inertia_w, D, wid, c0 + t,
-                                              nblk, assembled)))
+                                              nblk)))
         if d > eps:
             P[r] = scalar(1.0) / wp.sqrt(d + eps)
         else:
@@ -263,10 +265,11 @@ def precondition_kernel(np_dtype):
 
 
 @functools.cache
-def scale_kernel(np_dtype):
-    """The scaled problem of §7.2 and the effort-limited rows' starting saturation ("Saturation").
-    ``scale(m, shift, shift_sat, impulse_scale, assembled, always_sat, row_stride, n_rows, P, lo, hi, f0, vt, lo_s,
-    hi_s, row_info, D)``, one thread per row slot."""
+def scale_kernel(np_dtype, assembled: bool, always_sat: bool):
+    """The scaled problem of §7.2 and the effort-limited rows' starting saturation ("Saturation"); compile-time:
+    ``assembled``, the dense ``D`` is scaled too; ``always_sat``, every effort-limited row starts saturated.
+    ``scale(m, shift, shift_sat, impulse_scale, row_stride, n_rows, P, lo, hi, f0, vt, lo_s, hi_s, row_info, D)``,
+    one thread per row slot."""
     scalar, M = builder_types(np_dtype).take("scalar", "M")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     ridx = index_funcs(np_dtype).ridx
@@ -280,7 +283,7 @@ def scale_kernel(np_dtype):
         # model (read only)
         m: M,
         # in
-        shift: scalar, shift_sat: scalar, impulse_scale: scalar, assembled: int, always_sat: int,
+        shift: scalar, shift_sat: scalar, impulse_scale: scalar,
         row_stride: int,
         n_rows: iarr, P: farr, lo: farr, hi: farr, f0: farr,
         # out
@@ -312,12 +315,12 @@ def scale_kernel(np_dtype):
         sat = int(0)
         if a < m.row_fixed[wid]:
             x0 = impulse_scale * f0[r] / Pa
-            if wp.isfinite(lo_r) and (always_sat != 0 or x0 <= lo_r + sat_margin * wp.abs(lo_r)):
+            if wp.isfinite(lo_r) and (wp.static(always_sat) or x0 <= lo_r + sat_margin * wp.abs(lo_r)):
                 sat = 1
-            if wp.isfinite(hi_r) and (always_sat != 0 or x0 >= hi_r - sat_margin * wp.abs(hi_r)):
+            if wp.isfinite(hi_r) and (wp.static(always_sat) or x0 >= hi_r - sat_margin * wp.abs(hi_r)):
                 sat = 1
         set_saturated(row_info, r, sat)
-        if assembled != 0:
+        if wp.static(assembled):
             for b in range(n_rows[wid]):
                 k = didx(m, wid, a, b)
                 D[k] = Pa * D[k] * P[ridx(m, row_stride, wid, b)]
@@ -534,10 +537,12 @@ def project_into_func(np_dtype):
 
 
 @functools.cache
-def padmm_init_kernel(np_dtype):
-    """PADMM's warm start (§7.8), the world's penalty and residual scale, and the dense factor.
-    ``padmm_init(m, impulse_scale, use_velocity, factorize, max_iterations, eta, rho0, adaptive, row_stride, ...)``
-    (the Work arrays it reads, then those it writes), one thread per world."""
+def padmm_init_kernel(np_dtype, use_velocity: bool, factorize: bool, adaptive: bool):
+    """PADMM's warm start (§7.8), the world's penalty and residual scale, and the dense factor; compile-time:
+    ``use_velocity``, ``z0`` from the warm-start velocity (else 0); ``factorize``, the dense factor; ``adaptive``, a
+    world keeps its positive penalty from the previous step.
+    ``padmm_init(m, impulse_scale, max_iterations, eta, rho0, row_stride, ...)`` (the Work arrays it reads, then
+    those it writes), one thread per world."""
     scalar, M = builder_types(np_dtype).take("scalar", "M")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_base = index_funcs(np_dtype).row_base
@@ -550,8 +555,7 @@ def padmm_init_kernel(np_dtype):
         # model (read only)
         m: M,
         # in
-        impulse_scale: scalar, use_velocity: int, factorize: int, max_iterations: int, eta: scalar, rho0: scalar,
-        adaptive: int,
+        impulse_scale: scalar, max_iterations: int, eta: scalar, rho0: scalar,
         row_stride: int,
         n_rows: iarr, n_box: iarr, frozen: iarr, f0: farr, v0: farr, P: farr, lo_s: farr, hi_s: farr, ct_mu: farr,
         row_info: iarr,
@@ -572,14 +576,17 @@ def padmm_init_kernel(np_dtype):
             r = rb + a * rs
             x[r] = impulse_scale * f0[r] / P[r]
             z_p[r] = scalar(0.0)
-            if use_velocity != 0:
+            if wp.static(use_velocity):
                 z_p[r] = P[r] * v0[r]
             z_hat[r] = z_p[r]
             pref = wp.max(pref, P[r])
         if pref <= scalar(0.0):
             pref = scalar(1.0)
         p_ref[wid] = pref
-        if adaptive == 0 or not (rho_u[wid] > scalar(0.0)):
+        if wp.static(adaptive):
+            if not (rho_u[wid] > scalar(0.0)):
+                rho_u[wid] = rho0
+        else:
             rho_u[wid] = rho0
         pending[wid] = 0
         project_into(m, row_stride, lo_s, hi_s, ct_mu, row_info, wid, n_box[wid], n, x, x, scalar(0.0), x_p)
@@ -592,7 +599,7 @@ def padmm_init_kernel(np_dtype):
         r_d[wid] = scalar(0.0)
         r_c[wid] = scalar(0.0)
         restart_world(n_rows, frozen, a_p, c_p, it_cap, k_rho, converged, done, remaining, wid, 0, max_iterations)
-        if factorize != 0:
+        if wp.static(factorize):
             factor_dense(m, row_stride, rho_u, sdiag, D, wid, n, eta)
 
     return padmm_init
@@ -882,12 +889,18 @@ def padmm_finish_kernel(np_dtype):
     return padmm_finish
 
 
-def solver_kernels(np_dtype) -> SimpleNamespace:
-    """The one-thread-per-world kernels of a step that depend on the precision alone (``padmm_iterate_kernel``
-    takes the linear solve and the penalty rule too)."""
-    return SimpleNamespace(count_rows=count_rows_kernel(np_dtype), prebake=prebake_kernel(np_dtype),
+def solver_kernels(np_dtype, dense: bool, assembled: bool, always_sat: bool, use_velocity: bool,
+                   adaptive: bool) -> SimpleNamespace:
+    """The one-thread-per-world kernels of a step (``padmm_iterate_kernel`` takes the linear solve and the penalty
+    rule), with the stepper's compile-time modes: ``dense``, the dense per-world ``J`` (``prebake``); ``assembled``,
+    the dense Delassus matrix (``precondition``, ``scale``, ``padmm_init``'s factor); ``always_sat``, every
+    effort-limited row starts saturated (``scale``: the CR path); ``use_velocity``, the warm start's velocity
+    (``padmm_init``); ``adaptive``, the adaptive penalty (``padmm_init``)."""
+    return SimpleNamespace(count_rows=count_rows_kernel(np_dtype), prebake=prebake_kernel(np_dtype, dense),
                            delassus_sparse=delassus_sparse_kernel(np_dtype),
-                           delassus_dense=delassus_dense_kernel(np_dtype), precondition=precondition_kernel(np_dtype),
-                           scale=scale_kernel(np_dtype), padmm_init=padmm_init_kernel(np_dtype),
+                           delassus_dense=delassus_dense_kernel(np_dtype),
+                           precondition=precondition_kernel(np_dtype, assembled),
+                           scale=scale_kernel(np_dtype, assembled, always_sat),
+                           padmm_init=padmm_init_kernel(np_dtype, use_velocity, assembled, adaptive),
                            padmm_resume=padmm_resume_kernel(np_dtype), refactor_dense=refactor_dense_kernel(np_dtype),
                            padmm_finish=padmm_finish_kernel(np_dtype))
