@@ -17,7 +17,8 @@ from kamino.warp_backend import backend as wb
 from kamino.warp_backend import linear_solve, linear_solve_pattern
 from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.pipeline import Stepper
-from kamino.warp_backend.workspace import saturated_rows, work_struct
+from kamino.warp_backend.types import types_of
+from kamino.warp_backend.workspace import saturated_rows
 
 
 def _stepper(model, cfg, dtype, padmm, hub_min_rows, monkeypatch, steps):
@@ -72,9 +73,10 @@ def _solve_kernel(np_dtype):
     solve_inplace = linear_solve.sparse_llt_kernels(np_dtype).solve_inplace
 
     @wp.kernel(module="unique", enable_backward=False)
-    def solve(m: model_struct(np_dtype), w: work_struct(np_dtype), sp: linear_solve.pattern_struct(np_dtype)):
+    def solve(m: model_struct(np_dtype), row_stride: int, n_rows: wp.array(dtype=wp.int32),
+              sp: linear_solve.pattern_struct(np_dtype), x: wp.array(dtype=types_of(np_dtype).scalar)):
         wid = wp.tid()
-        solve_inplace(m, w, sp, wid, w.n_rows[wid])
+        solve_inplace(m, sp, row_stride, wid, n_rows[wid], x)
 
     return solve
 
@@ -120,9 +122,14 @@ def test_hub_factor_solves_the_delassus_system(dtype, monkeypatch):
         assert st.sf.hubs == (2 if hub_min_rows else 0)
         shift_f, shift_b = st.padmm_shifts
         nblk = st.wm.blocks_per_row
-        st._launch(st.spk.assemble_fixed, (1, st.sf.max_nnz), st.sp, nblk, shift_f, shift_b)
-        st._launch(st.spk.assemble_tail, (1, st.wm.max_rows), st.sp, nblk)
-        st._launch(st.spk.factor, 1, st.sp, cfg.penalty.eta)
+        w = st.work
+        st._launch(st.spk.assemble_fixed, (1, st.sf.max_nnz),
+                      inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
+                              w.inertia_w, w.inv_inertia_w], outputs=[st.sp])
+        st._launch(st.spk.assemble_tail, (1, st.wm.max_rows),
+                      inputs=[nblk, w.row_stride, w.n_rows, w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P,
+                              w.inv_inertia_w], outputs=[st.sp])
+        st._launch(st.spk.factor, 1, inputs=[cfg.penalty.eta, w.row_stride, w.n_rows, w.rho_u], outputs=[st.sp])
         A, n, rs = _dense_A(st, shift_f, shift_b, cfg.penalty.eta)
         assert n > 204  # active limits or contacts: the tail is exercised
         rng = np.random.default_rng(0)
@@ -133,7 +140,8 @@ def test_hub_factor_solves_the_delassus_system(dtype, monkeypatch):
             x[:] = np.nan if hub_min_rows else 0.0
             x[: n * rs : rs] = b
             st.work.x.assign(x)
-            wp.launch(_solve_kernel(np.dtype(dtype)), dim=1, inputs=[st.wm.arrays, st.work, st.sp], device="cpu")
+            wp.launch(_solve_kernel(np.dtype(dtype)), dim=1, inputs=[st.wm.arrays, w.row_stride, w.n_rows, st.sp, w.x],
+                      device="cpu")
             got = st.work.x.numpy().astype(np.float64)[: n * rs : rs]
             ref = np.linalg.solve(A, b)
             err = max(err, np.linalg.norm(got - ref) / np.linalg.norm(ref))

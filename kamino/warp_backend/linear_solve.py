@@ -288,23 +288,23 @@ def vidx_func(np_dtype):
 @functools.cache
 def bases_func(np_dtype):
     """The hoisted storage starts of a world's rows, factor values and tail rows (§8.1)."""
-    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
+    M, SP = builder_types(np_dtype).take("M", "SP")
     row_base = index_funcs(np_dtype).row_base
 
     @wp.func
-    def bases(m: M, w: Work, sp: SP, wid: int):
+    def bases(m: M, sp: SP, row_stride: int, wid: int):
         """Hoisted storage starts of world ``wid``: rows, factor values, tail rows, and the tail row stride
-        (``ridx = rows + a w.row_stride``, ``vidx = vals + k sp.val_stride``, ``tidx = tail + t stride + c
-        sp.tail_stride``)."""
+        (``ridx = rows + a row_stride``, ``vidx = vals + k sp.val_stride``, ``tidx = tail + t stride + c
+        sp.tail_stride``; ``row_stride``: ``Work.row_stride``)."""
         g = wid // GROUP
         lane = wid - g * GROUP
         vb = sp.grp_val_start[g] + lane
         if sp.val_stride == 1:
             vb = sp.grp_val_start[g] + lane * sp.grp_nnz[g]
         if sp.tail_stride == 1:
-            return wp.vec4i(row_base(m, w.row_stride, wid), vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
+            return wp.vec4i(row_base(m, row_stride, wid), vb, sp.grp_tail_start[g] + lane * sp.grp_tail_size[g],
                             sp.grp_tail_dim[g])
-        return wp.vec4i(row_base(m, w.row_stride, wid), vb, sp.grp_tail_start[g] + lane, sp.grp_tail_dim[g] * GROUP)
+        return wp.vec4i(row_base(m, row_stride, wid), vb, sp.grp_tail_start[g] + lane, sp.grp_tail_dim[g] * GROUP)
 
     return bases
 
@@ -339,14 +339,14 @@ def sdiag_col_func(np_dtype):
 @functools.cache
 def tidx_func(np_dtype):
     """The storage index of a tail-row entry (§8.1)."""
-    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
+    M, SP = builder_types(np_dtype).take("M", "SP")
     bases = bases_func(np_dtype)
 
     @wp.func
-    def tidx(m: M, w: Work, sp: SP, wid: int, t: int, c: int):
+    def tidx(m: M, sp: SP, row_stride: int, wid: int, t: int, c: int):
         """Storage index of entry ``c`` (``L_tf``'s compressed index below ``K``, then ``K`` + tail row index) of
         tail row ``t`` (the layout of :func:`bases`)."""
-        base = bases(m, w, sp, wid)
+        base = bases(m, sp, row_stride, wid)
         return base[2] + t * base[3] + c * sp.tail_stride
 
     return tidx
@@ -368,16 +368,16 @@ def tail_pattern_func(np_dtype):
 @functools.cache
 def inv_mass_times_func(np_dtype):
     """``M_b^-1 J`` for a 1x6 block on one body (docs/formulation.md §1.3)."""
-    vec6, M, Work = builder_types(np_dtype).take("vec6", "M", "Work")
+    vec6, mat33, M = builder_types(np_dtype).take("vec6", "mat33", "M")
     sf = spatial_funcs(np_dtype)
 
     @wp.func
-    def inv_mass_times(m: M, w: Work, b: int, J: vec6):
-        """``M_b^-1 J`` for a 1x6 block (or a wrench) on body ``b`` of world data ``m``, ``w``
-        (``spatial.inverse_mass_times``). The ``M^-1 J^T`` blocks are formed with it where they are read (the
-        Delassus entries here, the dense ``M^-1 J^T`` and the Conjugate Residual operator in ``solver.py``), not
-        stored."""
-        return sf.inverse_mass_times(m.inv_mass[b], w.inv_inertia_w[b], J)
+    def inv_mass_times(m: M, inv_inertia_w: wp.array(dtype=mat33), b: int, J: vec6):
+        """``M_b^-1 J`` for a 1x6 block (or a wrench) on body ``b``, from the model's inverse masses and the
+        world-frame inverse inertias ``inv_inertia_w`` (``Work.inv_inertia_w``; ``spatial.inverse_mass_times``). The
+        ``M^-1 J^T`` blocks are formed with it where they are read (the Delassus entries here, the dense ``M^-1 J^T``
+        and the Conjugate Residual operator in ``solver.py``), not stored."""
+        return sf.inverse_mass_times(m.inv_mass[b], inv_inertia_w[b], J)
 
     return inv_mass_times
 
@@ -385,11 +385,11 @@ def inv_mass_times_func(np_dtype):
 @functools.cache
 def delassus_term_func(np_dtype):
     """One body's share of a Delassus entry (docs/formulation.md §7.1)."""
-    scalar, vec6, M, Work = builder_types(np_dtype).take("scalar", "vec6", "M", "Work")
+    scalar, vec6, mat33, M = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M")
     inv_mass_times = inv_mass_times_func(np_dtype)
 
     @wp.func
-    def delassus_term(m: M, w: Work, body: int, Ja: vec6, Jb: vec6):
+    def delassus_term(m: M, inv_inertia_w: wp.array(dtype=mat33), body: int, Ja: vec6, Jb: vec6):
         """One body's share of a Delassus entry, ``(J_a M^-1 J_b^T + J_b M^-1 J_a^T) / 2`` (docs/formulation.md
         §7.1; the JAX reference symmetrises ``D`` the same way, ``jax_ref.dynamics.delassus``). The rounding of the
         formed ``M^-1 J^T`` then enters as ``(J E^T + E J^T) / 2``, which vanishes on the null space of ``J^T``: the
@@ -398,7 +398,8 @@ def delassus_term_func(np_dtype):
         had eigenvalues down to -2.4e-6, and PADMM's proximal shift does not hold such a direction
         (docs/warp_backend.md, "Redundant planar loops in float32")."""
         half = scalar(0.5)
-        return half * (wp.dot(Ja, inv_mass_times(m, w, body, Jb)) + wp.dot(Jb, inv_mass_times(m, w, body, Ja)))
+        return half * (wp.dot(Ja, inv_mass_times(m, inv_inertia_w, body, Jb))
+                       + wp.dot(Jb, inv_mass_times(m, inv_inertia_w, body, Ja)))
 
     return delassus_term
 
@@ -406,32 +407,33 @@ def delassus_term_func(np_dtype):
 @functools.cache
 def delassus_sum_func(np_dtype):
     """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (docs/formulation.md §7.1)."""
-    scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")
+    scalar, vec6, mat33, M = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M")
     ridx = index_funcs(np_dtype).ridx
     delassus_term = delassus_term_func(np_dtype)
 
     @wp.func
-    def delassus_sum(m: M, w: Work, wid: int, a: int, b: int, nblk: int, body_hub: wp.array(dtype=wp.int32),
-                     skip_hubs: int):
+    def delassus_sum(m: M, row_stride: int, row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6),
+                     reg: wp.array(dtype=scalar), inv_inertia_w: wp.array(dtype=mat33), wid: int, a: int, b: int,
+                     nblk: int, body_hub: wp.array(dtype=wp.int32), skip_hubs: int):
         """``(J M^-1 J^T + R)_ab`` from the block-sparse rows (blocks meet on shared bodies; each meeting adds
         :func:`delassus_term`); with ``skip_hubs`` over the bodies that are not hubs (``body_hub[b] < 0``): ``D0 =
         sum_{b not a hub} J_b M_b^-1 J_b^T + R``, the hubs' share being in the factor through their unknowns
         (docs/warp_backend.md "Open problems"). The same sum, term for term, when no body is skipped."""
-        ra = ridx(m, w.row_stride, wid, a)
-        rb = ridx(m, w.row_stride, wid, b)
+        ra = ridx(m, row_stride, wid, a)
+        rb = ridx(m, row_stride, wid, b)
         s = scalar(0.0)
         for k in range(nblk):
-            bk = w.row_body[ra * nblk + k]
+            bk = row_body[ra * nblk + k]
             if bk >= 0:
                 skip = False
                 if skip_hubs != 0:
                     skip = body_hub[bk] >= 0
                 if not skip:
                     for l in range(nblk):
-                        if w.row_body[rb * nblk + l] == bk:
-                            s += delassus_term(m, w, bk, w.row_J[ra * nblk + k], w.row_J[rb * nblk + l])
+                        if row_body[rb * nblk + l] == bk:
+                            s += delassus_term(m, inv_inertia_w, bk, row_J[ra * nblk + k], row_J[rb * nblk + l])
         if a == b:
-            s += w.reg[ra]
+            s += reg[ra]
         return s
 
     return delassus_sum
@@ -440,14 +442,16 @@ def delassus_sum_func(np_dtype):
 @functools.cache
 def delassus_entry_func(np_dtype):
     """``(J M^-1 J^T + R)_ab`` over every body (docs/formulation.md §7.1)."""
-    M, Work = builder_types(np_dtype).take("M", "Work")
+    scalar, vec6, mat33, M = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M")
     delassus_sum = delassus_sum_func(np_dtype)
 
     @wp.func
-    def delassus_entry(m: M, w: Work, wid: int, a: int, b: int, nblk: int):
+    def delassus_entry(m: M, row_stride: int, row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6),
+                       reg: wp.array(dtype=scalar), inv_inertia_w: wp.array(dtype=mat33), wid: int, a: int, b: int,
+                       nblk: int):
         """``(J M^-1 J^T + R)_ab`` over every body (:func:`delassus_sum`; ``row_body`` stands in for the unread hub
         table)."""
-        return delassus_sum(m, w, wid, a, b, nblk, w.row_body, 0)
+        return delassus_sum(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, b, nblk, row_body, 0)
 
     return delassus_entry
 
@@ -455,13 +459,16 @@ def delassus_entry_func(np_dtype):
 @functools.cache
 def delassus0_func(np_dtype):
     """``D0_ab``: the Delassus entry without the world's hubs (§7.1; docs/warp_backend.md "Open problems")."""
-    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
+    scalar, vec6, mat33, M, SP = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M", "SP")
     delassus_sum = delassus_sum_func(np_dtype)
 
     @wp.func
-    def delassus0(m: M, w: Work, sp: SP, wid: int, a: int, b: int, nblk: int):
+    def delassus0(m: M, sp: SP, row_stride: int, row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6),
+                  reg: wp.array(dtype=scalar), inv_inertia_w: wp.array(dtype=mat33), wid: int, a: int, b: int,
+                  nblk: int):
         """``D0_ab``: :func:`delassus_sum` without the world's hubs (every body in a world without hubs)."""
-        return delassus_sum(m, w, wid, a, b, nblk, sp.body_hub, int(sp.n_pos[wid] != sp.n_fixed[wid]))
+        return delassus_sum(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, b, nblk, sp.body_hub,
+                            int(sp.n_pos[wid] != sp.n_fixed[wid]))
 
     return delassus0
 
@@ -469,15 +476,15 @@ def delassus0_func(np_dtype):
 @functools.cache
 def row_on_body_func(np_dtype):
     """A row's blocks on one body, summed (§2.5)."""
-    vec6, Work = builder_types(np_dtype).take("vec6", "Work")
+    vec6 = builder_types(np_dtype).vec6
 
     @wp.func
-    def row_on_body(w: Work, r: int, body: int, nblk: int):
+    def row_on_body(row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6), r: int, body: int, nblk: int):
         """``J_a`` on body ``body``: the sum of row ``a``'s blocks there (``r``: the row's storage index)."""
         J = vec6()
         for l in range(nblk):
-            if w.row_body[r * nblk + l] == body:
-                J += w.row_J[r * nblk + l]
+            if row_body[r * nblk + l] == body:
+                J += row_J[r * nblk + l]
         return J
 
     return row_on_body
@@ -486,12 +493,13 @@ def row_on_body_func(np_dtype):
 @functools.cache
 def hub_entry_func(np_dtype):
     """An entry of the hub block rows of the quasi-definite system (docs/warp_backend.md "Open problems")."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, vec6, mat33, M, SP = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M", "SP")
     ridx = index_funcs(np_dtype).ridx
     row_on_body = row_on_body_func(np_dtype)
 
     @wp.func
-    def hub_entry(m: M, w: Work, sp: SP, wid: int, p: int, q: int, nblk: int):
+    def hub_entry(m: M, sp: SP, row_stride: int, row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6),
+                  P: wp.array(dtype=scalar), inertia_w: wp.array(dtype=mat33), wid: int, p: int, q: int, nblk: int):
         """Entry ``(p, q)``, ``q <= p``, of the hub block rows of the quasi-definite system (``p`` the hub position
         ``n_fixed + 6 h + c``: component ``c`` of hub ``h``): ``P_b (J_b on the hub)_c`` against fixed row ``b`` (at
         position ``q``), ``-M_h[c, c']`` against component ``c'`` of the same hub (``M_h = diag(m I, I_w)``, the
@@ -504,15 +512,15 @@ def hub_entry_func(np_dtype):
         body = sp.hub_body[sp.hub_start[wid] + h]
         s = scalar(0.0)
         if q < nf:
-            rb = ridx(m, w.row_stride, wid, sp.perm[sp.perm_start[wid] + q])
-            s = w.P[rb] * row_on_body(w, rb, body, nblk)[c]
+            rb = ridx(m, row_stride, wid, sp.perm[sp.perm_start[wid] + q])
+            s = P[rb] * row_on_body(row_body, row_J, rb, body, nblk)[c]
         elif (q - nf) // 6 == h:
             c2 = q - nf - 6 * h
             if c < 3 and c2 < 3:
                 if c == c2:
                     s = -m.mass[body]
             elif c >= 3 and c2 >= 3:
-                s = -w.inertia_w[body][c - 3, c2 - 3]
+                s = -inertia_w[body][c - 3, c2 - 3]
         return s
 
     return hub_entry
@@ -521,29 +529,34 @@ def hub_entry_func(np_dtype):
 @functools.cache
 def fixed_entry_func(np_dtype):
     """An entry of the fixed rows' scaled Delassus pattern, ``D~_pq`` (docs/formulation.md §8.1)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, vec6, mat33, M, SP = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M", "SP")
     ix = index_funcs(np_dtype)
     ridx, row_saturated = ix.ridx, ix.row_saturated
     vidx, delassus0 = vidx_func(np_dtype), delassus0_func(np_dtype)
     hub_entry = hub_entry_func(np_dtype)
 
     @wp.func
-    def fixed_entry(m: M, w: Work, sp: SP, wid: int, k: int, nblk: int, shift: scalar, shift_sat: scalar):
-        """Entry ``k`` of the fixed rows' pattern: ``D~_pq = P_a D0_ab P_b`` (``+ shift`` on the diagonal,
-        ``shift_sat`` on a saturated effort-limited row, ``row_saturated``: the penalty, kamino.jax_ref.solver.solve,
-        "Saturation"; ``D0``: :func:`delassus0`), or on a hub position's row :func:`hub_entry`."""
+    def fixed_entry(m: M, sp: SP, row_stride: int, row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6),
+                    row_info: wp.array(dtype=wp.int32), reg: wp.array(dtype=scalar), P: wp.array(dtype=scalar),
+                    inertia_w: wp.array(dtype=mat33), inv_inertia_w: wp.array(dtype=mat33), wid: int, k: int,
+                    nblk: int, shift: scalar, shift_sat: scalar):
+        """Entry ``k`` of the fixed rows' pattern into ``sp.val``: ``D~_pq = P_a D0_ab P_b`` (``+ shift`` on the
+        diagonal, ``shift_sat`` on a saturated effort-limited row, ``row_saturated``: the penalty,
+        kamino.jax_ref.solver.solve, "Saturation"; ``D0``: :func:`delassus0`), or on a hub position's row
+        :func:`hub_entry`."""
         e = sp.ent_start[wid] + k
         p = sp.row[e]
         q = sp.col[e]
         if p >= sp.n_fixed[wid]:
-            sp.val[vidx(m, sp, wid, k)] = hub_entry(m, w, sp, wid, p, q, nblk)
+            sp.val[vidx(m, sp, wid, k)] = hub_entry(m, sp, row_stride, row_body, row_J, P, inertia_w, wid, p, q, nblk)
             return
         a = sp.perm[sp.perm_start[wid] + p]
         b = sp.perm[sp.perm_start[wid] + q]
-        s = (w.P[ridx(m, w.row_stride, wid, a)] * delassus0(m, w, sp, wid, a, b, nblk)
-             * w.P[ridx(m, w.row_stride, wid, b)])
+        s = (P[ridx(m, row_stride, wid, a)]
+             * delassus0(m, sp, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, b, nblk)
+             * P[ridx(m, row_stride, wid, b)])
         if p == q:
-            if row_saturated(w.row_info, ridx(m, w.row_stride, wid, a)) != 0:
+            if row_saturated(row_info, ridx(m, row_stride, wid, a)) != 0:
                 s += shift_sat
             else:
                 s += shift
@@ -555,16 +568,32 @@ def fixed_entry_func(np_dtype):
 @functools.cache
 def assemble_fixed_kernel(np_dtype):
     """The fixed rows' pattern of ``D~`` of every world (docs/formulation.md §8.1)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, vec6, mat33, M, SP = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M", "SP")
     fixed_entry = fixed_entry_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def assemble_fixed(m: M, w: Work, sp: SP, nblk: int, shift: scalar, shift_sat: scalar):
-        """:func:`fixed_entry` ``k`` of every world."""
+    def assemble_fixed(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int, shift: scalar, shift_sat: scalar,
+        row_stride: int,
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        row_info: wp.array(dtype=wp.int32),
+        reg: wp.array(dtype=scalar),
+        P: wp.array(dtype=scalar),
+        inertia_w: wp.array(dtype=mat33),
+        inv_inertia_w: wp.array(dtype=mat33),
+        # out: the factor values sp.val (the pattern's index tables are read)
+        sp: SP,
+    ):
+        """:func:`fixed_entry` ``k`` of every world (docs/formulation.md §8.1)."""
         wid, k = wp.tid()
         if k >= sp.nnz[wid]:
             return
-        fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
+        fixed_entry(m, sp, row_stride, row_body, row_J, row_info, reg, P, inertia_w, inv_inertia_w, wid, k, nblk,
+                    shift, shift_sat)
 
     return assemble_fixed
 
@@ -572,43 +601,47 @@ def assemble_fixed_kernel(np_dtype):
 @functools.cache
 def tail_row_func(np_dtype):
     """A tail row's entries of ``D~`` (docs/formulation.md §8.1)."""
-    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
+    scalar, vec6, mat33, M, SP = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M", "SP")
     ix = index_funcs(np_dtype)
     ridx, row_kind, row_source = ix.ridx, ix.row_kind, ix.row_source
     tail_k, tidx = tail_k_func(np_dtype), tidx_func(np_dtype)
     delassus0, row_on_body = delassus0_func(np_dtype), row_on_body_func(np_dtype)
 
     @wp.func
-    def tail_row(m: M, w: Work, sp: SP, wid: int, a: int, nblk: int):
-        """Tail row ``a`` (an active limit or contact row): ``D~_ab`` for every fixed row ``b`` of its ``L_tf``
-        pattern (chosen by the row's source and recorded in ``sp.tail_pat``; the others are zero) and every tail
-        row ``b <= a`` (no shift: :func:`factor` adds the world's penalty)."""
+    def tail_row(m: M, sp: SP, row_stride: int, row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6),
+                 row_info: wp.array(dtype=wp.int32), ct_pair: wp.array(dtype=wp.int32), reg: wp.array(dtype=scalar),
+                 P: wp.array(dtype=scalar), inv_inertia_w: wp.array(dtype=mat33), wid: int, a: int, nblk: int):
+        """Tail row ``a`` (an active limit or contact row) into ``sp.tail``: ``D~_ab`` for every fixed row ``b`` of
+        its ``L_tf`` pattern (chosen by the row's source and recorded in ``sp.tail_pat``; the others are zero) and
+        every tail row ``b <= a`` (no shift: :func:`factor` adds the world's penalty)."""
         nf = sp.n_fixed[wid]
         t = a - nf
-        ra = ridx(m, w.row_stride, wid, a)
-        Pa = w.P[ra]
+        ra = ridx(m, row_stride, wid, a)
+        Pa = P[ra]
         pat = int(0)
-        src = row_source(w.row_info, ra)
-        if row_kind(w.row_info, ra) == ROW_LIMIT:
+        src = row_source(row_info, ra)
+        if row_kind(row_info, ra) == ROW_LIMIT:
             pat = sp.dof_pat[src]
         else:  # a contact row: its pair's
-            pat = sp.con_pat[wid] + w.ct_pair[src]
+            pat = sp.con_pat[wid] + ct_pair[src]
         sp.tail_pat[wid * sp.tail_max + t] = pat
         i0 = sp.pat_ptr[pat]
         for i in range(sp.pat_ptr[pat + 1] - i0):
             pos = sp.pat_pos[i0 + i]
             if pos >= nf:  # a hub's unknown (component c of hub h): P_a (J_a on the hub)_c
                 h = (pos - nf) // 6
-                sp.tail[tidx(m, w, sp, wid, t, i)] = Pa * row_on_body(
-                    w, ra, sp.hub_body[sp.hub_start[wid] + h], nblk)[pos - nf - 6 * h]
+                sp.tail[tidx(m, sp, row_stride, wid, t, i)] = Pa * row_on_body(
+                    row_body, row_J, ra, sp.hub_body[sp.hub_start[wid] + h], nblk)[pos - nf - 6 * h]
             else:
                 b = sp.pat_row[i0 + i]
-                sp.tail[tidx(m, w, sp, wid, t, i)] = (Pa * delassus0(m, w, sp, wid, a, b, nblk)
-                                                      * w.P[ridx(m, w.row_stride, wid, b)])
+                sp.tail[tidx(m, sp, row_stride, wid, t, i)] = (
+                    Pa * delassus0(m, sp, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, b, nblk)
+                    * P[ridx(m, row_stride, wid, b)])
         kt = tail_k(sp, wid) - nf
         for b in range(nf, a + 1):
-            sp.tail[tidx(m, w, sp, wid, t, kt + b)] = (Pa * delassus0(m, w, sp, wid, a, b, nblk)
-                                                       * w.P[ridx(m, w.row_stride, wid, b)])
+            sp.tail[tidx(m, sp, row_stride, wid, t, kt + b)] = (
+                Pa * delassus0(m, sp, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, b, nblk)
+                * P[ridx(m, row_stride, wid, b)])
 
     return tail_row
 
@@ -616,16 +649,32 @@ def tail_row_func(np_dtype):
 @functools.cache
 def assemble_tail_kernel(np_dtype):
     """The tail rows' entries of ``D~`` of every world (docs/formulation.md §8.1)."""
-    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
+    scalar, vec6, mat33, M, SP = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M", "SP")
     tail_row = tail_row_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def assemble_tail(m: M, w: Work, sp: SP, nblk: int):
-        """:func:`tail_row` ``a`` of every world."""
+    def assemble_tail(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        row_stride: int,
+        n_rows: wp.array(dtype=wp.int32),
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        row_info: wp.array(dtype=wp.int32),
+        ct_pair: wp.array(dtype=wp.int32),
+        reg: wp.array(dtype=scalar),
+        P: wp.array(dtype=scalar),
+        inv_inertia_w: wp.array(dtype=mat33),
+        # out: the tail rows' values sp.tail and patterns sp.tail_pat (the pattern's index tables are read)
+        sp: SP,
+    ):
+        """:func:`tail_row` ``a`` of every world (docs/formulation.md §8.1)."""
         wid, a = wp.tid()
-        if a < sp.n_fixed[wid] or a >= w.n_rows[wid]:
+        if a < sp.n_fixed[wid] or a >= n_rows[wid]:
             return
-        tail_row(m, w, sp, wid, a, nblk)
+        tail_row(m, sp, row_stride, row_body, row_J, row_info, ct_pair, reg, P, inv_inertia_w, wid, a, nblk)
 
     return assemble_tail
 
@@ -680,14 +729,21 @@ def factor_fixed_rows_func(np_dtype):
 @functools.cache
 def factor_fixed_kernel(np_dtype):
     """The Cholesky factor of the fixed rows only (post-stabilisation; docs/formulation.md §8.1)."""
-    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
+    M, SP = builder_types(np_dtype).take("M", "SP")
     bases, factor_fixed_rows = bases_func(np_dtype), factor_fixed_rows_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def factor_fixed(m: M, w: Work, sp: SP):
-        """Cholesky of the fixed rows only (``D~_ff = L_f L_f^T``; post-stabilisation)."""
+    def factor_fixed(
+        # model (read only)
+        m: M,
+        # in
+        row_stride: int,
+        # out: the factor values sp.val, in place (the pattern's index tables are read)
+        sp: SP,
+    ):
+        """Cholesky of the fixed rows only (``D~_ff = L_f L_f^T``; post-stabilisation; docs/formulation.md §8.1)."""
         wid = wp.tid()
-        factor_fixed_rows(sp, wid, bases(m, w, sp, wid)[1])
+        factor_fixed_rows(sp, wid, bases(m, sp, row_stride, wid)[1])
 
     return factor_fixed
 
@@ -695,17 +751,17 @@ def factor_fixed_kernel(np_dtype):
 @functools.cache
 def factor_tail_func(np_dtype):
     """``L_t``, the tail rows' dense Cholesky with the world's penalty (docs/formulation.md §8.1)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
     bases, tail_k = bases_func(np_dtype), tail_k_func(np_dtype)
     sdiag_col = sdiag_col_func(np_dtype)
 
     @wp.func
-    def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar):
+    def factor_tail(m: M, sp: SP, row_stride: int, wid: int, n: int, shift: scalar):
         """``L_t = chol(S_t + shift I)``: the tail rows' Cholesky from their Schur complement ``S_t = D~_t -
         L_tf L_tf^T``, kept by :func:`factor` in the tail rows' upper slots (``S_t[t, j]`` at row ``j``, tail
         column ``K + t``) and its diagonal in column :func:`sdiag_col`; a new penalty of the limit and contact rows
-        redoes only this (``kamino.jax_ref.solver.solve``, "Penalty")."""
-        base = bases(m, w, sp, wid)
+        redoes only this (``kamino.jax_ref.solver.solve``, "Penalty"). Writes ``sp.tail``."""
+        base = bases(m, sp, row_stride, wid)
         tb, ts = base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -734,12 +790,12 @@ def factor_tail_func(np_dtype):
 @functools.cache
 def schur_entry_func(np_dtype):
     """An entry of the tail rows' Schur complement ``S_t`` (docs/formulation.md §8.1)."""
-    Work, SP = builder_types(np_dtype).take("Work", "SP")
+    SP = builder_types(np_dtype).SP
     tail_k, sdiag_col = tail_k_func(np_dtype), sdiag_col_func(np_dtype)
     tail_pattern = tail_pattern_func(np_dtype)
 
     @wp.func
-    def schur_entry(w: Work, sp: SP, wid: int, rb: int, tb: int, ts: int, nf: int, t: int, j: int):
+    def schur_entry(sp: SP, wid: int, rb: int, tb: int, ts: int, nf: int, t: int, j: int):
         """``S_t[t, j] = D~_tj - L_t. L_j.`` (``j <= t``, tail rows, ``L_tf`` done) into row ``j``'s upper slot
         (tail column ``K + t``), or into column :func:`sdiag_col` for ``j == t``: it reads only lower slots, so
         entries are independent. The dot runs over row ``t``'s pattern, ascending, finding each position in row
@@ -772,22 +828,23 @@ def schur_entry_func(np_dtype):
 @functools.cache
 def factor_world_func(np_dtype):
     """A world's whole Cholesky factor ``D~ = L L^T`` (docs/formulation.md §8.1)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
     bases, tail_pattern = bases_func(np_dtype), tail_pattern_func(np_dtype)
     factor_fixed_rows, factor_tail = factor_fixed_rows_func(np_dtype), factor_tail_func(np_dtype)
     schur_entry = schur_entry_func(np_dtype)
 
     @wp.func
-    def factor_world(m: M, w: Work, sp: SP, wid: int, eta: scalar):
-        """Cholesky ``D~ = L L^T`` in place (§8.1): the fixed rows by the precomputed update lists, then the
-        tail rows (forward substitution against the fixed rows, their Schur complement, and its dense Cholesky
-        with the world's penalty ``eta + rho_u``, :func:`factor_tail`)."""
-        base = bases(m, w, sp, wid)
+    def factor_world(m: M, sp: SP, row_stride: int, n_rows: wp.array(dtype=wp.int32), rho_u: wp.array(dtype=scalar),
+                     wid: int, eta: scalar):
+        """Cholesky ``D~ = L L^T`` in place in ``sp.val`` and ``sp.tail`` (§8.1): the fixed rows by the precomputed
+        update lists, then the tail rows (forward substitution against the fixed rows, their Schur complement, and
+        its dense Cholesky with the world's penalty ``eta + rho_u``, :func:`factor_tail`)."""
+        base = bases(m, sp, row_stride, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
         factor_fixed_rows(sp, wid, vb)
-        n = w.n_rows[wid]
+        n = n_rows[wid]
         p0 = sp.ptr_start[wid]
         for t in range(n - nf):
             tr = tb + t * ts
@@ -812,8 +869,8 @@ def factor_world_func(np_dtype):
                         s -= sp.val[vb + sp.pat_upd_k[u] * sp.val_stride] * sp.tail[tr + sp.pat_upd_j[u] * tc]
                     sp.tail[tr + i * tc] = s / sp.val[vb + k1 * sp.val_stride]
             for j in range(t + 1):  # S_t row t
-                schur_entry(w, sp, wid, rb, tb, ts, nf, t, j)
-        factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid])
+                schur_entry(sp, wid, rb, tb, ts, nf, t, j)
+        factor_tail(m, sp, row_stride, wid, n, eta + rho_u[wid])
 
     return factor_world
 
@@ -821,13 +878,23 @@ def factor_world_func(np_dtype):
 @functools.cache
 def factor_kernel(np_dtype):
     """Every world's Cholesky factor (docs/formulation.md §8.1)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
     factor_world = factor_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def factor(m: M, w: Work, sp: SP, eta: scalar):
-        """:func:`factor_world` of every world."""
-        factor_world(m, w, sp, wp.tid(), eta)
+    def factor(
+        # model (read only)
+        m: M,
+        # in
+        eta: scalar,
+        row_stride: int,
+        n_rows: wp.array(dtype=wp.int32),
+        rho_u: wp.array(dtype=scalar),
+        # out: the factor values sp.val and sp.tail, in place (the pattern's index tables are read)
+        sp: SP,
+    ):
+        """:func:`factor_world` of every world (docs/formulation.md §8.1)."""
+        factor_world(m, sp, row_stride, n_rows, rho_u, wp.tid(), eta)
 
     return factor
 
@@ -835,24 +902,44 @@ def factor_kernel(np_dtype):
 @functools.cache
 def refactor_kernel(np_dtype):
     """The factor again of the worlds whose effort-limited rows saturated (docs/formulation.md §8.1)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, vec6, mat33, M, SP = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M", "SP")
     fixed_entry, tail_row = fixed_entry_func(np_dtype), tail_row_func(np_dtype)
     factor_world = factor_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def refactor(m: M, w: Work, sp: SP, nblk: int, shift: scalar, shift_sat: scalar, eta: scalar):
+    def refactor(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int, shift: scalar, shift_sat: scalar, eta: scalar,
+        row_stride: int,
+        n_rows: wp.array(dtype=wp.int32),
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        row_info: wp.array(dtype=wp.int32),
+        ct_pair: wp.array(dtype=wp.int32),
+        reg: wp.array(dtype=scalar),
+        P: wp.array(dtype=scalar),
+        inertia_w: wp.array(dtype=mat33),
+        inv_inertia_w: wp.array(dtype=mat33),
+        rho_u: wp.array(dtype=scalar),
+        # out
+        pending: wp.array(dtype=wp.int32),  # also read
+        sp: SP,  # the factor values sp.val, sp.tail and sp.tail_pat (the pattern's index tables are read)
+    ):
         """The whole factor again for the worlds whose effort-limited rows saturated in the last PADMM iteration
-        (``w.pending``; kamino.jax_ref.solver.solve, "Saturation"): assembly with the new shifts, then
-        :func:`factor_world` (one thread per world)."""
+        (``pending``; kamino.jax_ref.solver.solve, "Saturation"): assembly with the new shifts, then
+        :func:`factor_world` (one thread per world; docs/formulation.md §8.1)."""
         wid = wp.tid()
-        if w.pending[wid] == 0:
+        if pending[wid] == 0:
             return
-        w.pending[wid] = 0
+        pending[wid] = 0
         for k in range(sp.nnz[wid]):
-            fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
-        for a in range(sp.n_fixed[wid], w.n_rows[wid]):
-            tail_row(m, w, sp, wid, a, nblk)
-        factor_world(m, w, sp, wid, eta)
+            fixed_entry(m, sp, row_stride, row_body, row_J, row_info, reg, P, inertia_w, inv_inertia_w, wid, k, nblk,
+                        shift, shift_sat)
+        for a in range(sp.n_fixed[wid], n_rows[wid]):
+            tail_row(m, sp, row_stride, row_body, row_J, row_info, ct_pair, reg, P, inv_inertia_w, wid, a, nblk)
+        factor_world(m, sp, row_stride, n_rows, rho_u, wid, eta)
 
     return refactor
 
@@ -860,18 +947,19 @@ def refactor_kernel(np_dtype):
 @functools.cache
 def solve_inplace_func(np_dtype):
     """``x <- L^-T L^-1 x`` with the sparse factor and its tail (docs/formulation.md §8.1)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
     bases, tail_k = bases_func(np_dtype), tail_k_func(np_dtype)
     tail_pattern = tail_pattern_func(np_dtype)
 
     @wp.func
-    def solve_inplace(m: M, w: Work, sp: SP, wid: int, n: int):
-        """``x <- L^-T L^-1 x`` with the sparse factor and its tail (each sum as the dense tail's, without its zero
-        terms). With hubs ``A = L S L^T`` (:func:`factor_fixed_rows`) and ``x <- L^-T S L^-1 x``: the hub positions'
-        right-hand side is 0 (their virtual rows), ``y`` is negated there between the sweeps (after the tail's
-        forward sweep, which reads the unsigned ``y``), and their solution is left in the virtual rows, unused."""
-        rs = w.row_stride
-        base = bases(m, w, sp, wid)
+    def solve_inplace(m: M, sp: SP, row_stride: int, wid: int, n: int, x: wp.array(dtype=scalar)):
+        """``x <- L^-T L^-1 x`` (``x``: ``Work.x``) with the sparse factor and its tail (each sum as the dense
+        tail's, without its zero terms). With hubs ``A = L S L^T`` (:func:`factor_fixed_rows`) and ``x <- L^-T S L^-1
+        x``: the hub positions' right-hand side is 0 (their virtual rows), ``y`` is negated there between the sweeps
+        (after the tail's forward sweep, which reads the unsigned ``y``), and their solution is left in the virtual
+        rows, unused."""
+        rs = row_stride
+        base = bases(m, sp, row_stride, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -885,50 +973,50 @@ def solve_inplace_func(np_dtype):
             r = rb + sp.perm[q0 + p] * rs
             s = scalar(0.0)
             if p < nf:
-                s = w.x[r]
+                s = x[r]
             k1 = sp.row_ptr[p0 + p + 1] - 1
             for k in range(sp.row_ptr[p0 + p], k1):
-                s -= sp.val[vb + k * sp.val_stride] * w.x[rb + sp.colrow[e0 + k] * rs]
-            w.x[r] = s / sp.val[vb + k1 * sp.val_stride]
+                s -= sp.val[vb + k * sp.val_stride] * x[rb + sp.colrow[e0 + k] * rs]
+            x[r] = s / sp.val[vb + k1 * sp.val_stride]
         kt = tail_k(sp, wid)
         for t in range(nt):
             tr = tb + t * ts
-            s = w.x[rb + (nf + t) * rs]
+            s = x[rb + (nf + t) * rs]
             pt = tail_pattern(sp, wid, t)
             i0 = sp.pat_ptr[pt]
             for i in range(sp.pat_ptr[pt + 1] - i0):
-                s -= sp.tail[tr + i * tc] * w.x[rb + sp.pat_row[i0 + i] * rs]
+                s -= sp.tail[tr + i * tc] * x[rb + sp.pat_row[i0 + i] * rs]
             for i in range(t):
-                s -= sp.tail[tr + (kt + i) * tc] * w.x[rb + (nf + i) * rs]
-            w.x[rb + (nf + t) * rs] = s / sp.tail[tr + (kt + t) * tc]
+                s -= sp.tail[tr + (kt + i) * tc] * x[rb + (nf + i) * rs]
+            x[rb + (nf + t) * rs] = s / sp.tail[tr + (kt + t) * tc]
         for p in range(nf, npos):  # y <- S y: the hubs' sign
             r = rb + sp.perm[q0 + p] * rs
-            w.x[r] = -w.x[r]
+            x[r] = -x[r]
         # backward: tail rows, their share of the fixed rows, then the fixed rows (column sweeps of L_f)
         for tt in range(nt):
             t = nt - 1 - tt
-            s = w.x[rb + (nf + t) * rs]
+            s = x[rb + (nf + t) * rs]
             for i in range(t + 1, nt):
-                s -= sp.tail[tb + i * ts + (kt + t) * tc] * w.x[rb + (nf + i) * rs]
-            w.x[rb + (nf + t) * rs] = s / sp.tail[tb + t * ts + (kt + t) * tc]
+                s -= sp.tail[tb + i * ts + (kt + t) * tc] * x[rb + (nf + i) * rs]
+            x[rb + (nf + t) * rs] = s / sp.tail[tb + t * ts + (kt + t) * tc]
         if nt > 0:
             for p in range(npos):
                 r = rb + sp.perm[q0 + p] * rs
-                s = w.x[r]
+                s = x[r]
                 for t in range(nt):
                     c = sp.pat_lut[tail_pattern(sp, wid, t) * sp.pat_lut_stride + p]
                     if c >= 0:
-                        s -= sp.tail[tb + t * ts + c * tc] * w.x[rb + (nf + t) * rs]
-                w.x[r] = s
+                        s -= sp.tail[tb + t * ts + c * tc] * x[rb + (nf + t) * rs]
+                x[r] = s
         for pp in range(npos):
             p = npos - 1 - pp
             r = rb + sp.perm[q0 + p] * rs
             k1 = sp.row_ptr[p0 + p + 1] - 1
-            xp = w.x[r] / sp.val[vb + k1 * sp.val_stride]
-            w.x[r] = xp
+            xp = x[r] / sp.val[vb + k1 * sp.val_stride]
+            x[r] = xp
             for k in range(sp.row_ptr[p0 + p], k1):
                 rq = rb + sp.colrow[e0 + k] * rs
-                w.x[rq] = w.x[rq] - sp.val[vb + k * sp.val_stride] * xp
+                x[rq] = x[rq] - sp.val[vb + k * sp.val_stride] * xp
 
     return solve_inplace
 

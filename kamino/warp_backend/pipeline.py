@@ -154,7 +154,8 @@ class Stepper:
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt)
         self.rk = step_row_kernels(self.np_dtype, cfg.stabilisation.curvature_correction, cfg.integrator == "midpoint")
-        self.sk = solver_kernels(self.np_dtype)
+        self.sk = solver_kernels(self.np_dtype, self.dense, llt and not self.sparse_factor, not llt,
+                                 bool(cfg.warm_start), self.adaptive)
         # world health: only where post-stabilisation's extra pass projected, when its screen (a gap of
         # REPROJECTION_GAP + the dead band) is below the bound
         screened = (cfg.stabilisation.post_stabilisation > 0
@@ -180,17 +181,11 @@ class Stepper:
         self.pre_step: list = []
 
     # --- launches -------------------------------------------------------------------------------
-    def _launch(self, kernel, dim, *args):
-        """Launch on ``dim``; one-thread-per-world kernels use blocks of 32 threads, so that a few thousand
-        worlds spread over every multiprocessor (a world's thread does serial work)."""
-        if all(int(d) > 0 for d in (dim if isinstance(dim, tuple) else (dim,))):
-            block = PER_WORLD_BLOCK if not isinstance(dim, tuple) else 256
-            wp.launch(kernel, dim=dim, inputs=[self.wm.arrays, self.work, *args], device=self.device,
-                      block_dim=block)
-
-    def _launch_io(self, kernel, dim, inputs: list, outputs: list) -> None:
+    def _launch(self, kernel, dim, inputs: list, outputs: list) -> None:
         """Launch a kernel whose signature is ``(m, *inputs, *outputs)``: the model's arrays, then what the kernel
-        reads, then what it writes (an array it reads and writes is an output). Blocks as :meth:`_launch`."""
+        reads, then what it writes (an array it reads and writes is an output), on ``dim``. One-thread-per-world
+        kernels use blocks of 32 threads, so that a few thousand worlds spread over every multiprocessor (a world's
+        thread does serial work)."""
         if all(int(d) > 0 for d in (dim if isinstance(dim, tuple) else (dim,))):
             block = PER_WORLD_BLOCK if not isinstance(dim, tuple) else 256
             wp.launch(kernel, dim=dim, inputs=[self.wm.arrays, *inputs], outputs=outputs, device=self.device,
@@ -208,44 +203,44 @@ class Stepper:
         for hook in self.pre_step:
             hook(self)
         if midpoint:
-            self._launch_io(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q, w.u],
+            self._launch(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q, w.u],
                             outputs=[w.q_eval])  # the midpoint pose
-        self._launch_io(rk.dof_blocks, (W, wm.max_dofs), inputs=[w.q_eval, w.effort],
+        self._launch(rk.dof_blocks, (W, wm.max_dofs), inputs=[w.q_eval, w.effort],
                         outputs=[w.dof_JF, w.dof_JB, w.q_dof, w.tau_explicit])
-        self._launch_io(rk.bodies, (W, wm.max_bodies),
+        self._launch(rk.bodies, (W, wm.max_bodies),
                         inputs=[dt, h, w.q_eval, w.wrench, w.tau_explicit, w.dof_JF, w.dof_JB, w.u],
                         outputs=[w.inertia_w, w.inv_inertia_w, w.u_f, w.q_pred])
-        self._launch_io(rk.dof_rates, (W, wm.max_dofs), inputs=[w.u, w.u_f, w.dof_JF, w.dof_JB, w.q_pred],
+        self._launch(rk.dof_rates, (W, wm.max_dofs), inputs=[w.u, w.u_f, w.dof_JF, w.dof_JB, w.q_pred],
                         outputs=[w.qd_minus, w.qd_free, w.q_dof_pred])
-        self._launch_io(rk.dyn_rows, (W, wm.max_dyn),
+        self._launch(rk.dyn_rows, (W, wm.max_dyn),
                         inputs=[nblk, dt, h, w.row_stride, w.dof_JF, w.dof_JB, w.q_dof, w.qd_minus, w.effort,
                                 w.position_target, w.velocity_target, w.act_force, w.pas_force],
                         outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
-        self._launch_io(rk.joint_rows, (W, wm.max_cts),
+        self._launch(rk.joint_rows, (W, wm.max_cts),
                         inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_eval, w.q, w.q_pred,
                                 w.u_f, w.kin_force],
                         outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
-        self._launch_io(rk.coupling_rows, (W, wm.max_cpl),
+        self._launch(rk.coupling_rows, (W, wm.max_cpl),
                         inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.dof_JF, w.dof_JB, w.q_dof,
                                 w.q_dof_pred, w.q, w.u_f, w.cpl_force],
                         outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
-        self._launch_io(rk.limits, (W, wm.max_lim), inputs=[h, LIMIT_MARGIN, LIMIT_BAUMGARTE, w.q_dof, w.qd_free],
+        self._launch(rk.limits, (W, wm.max_lim), inputs=[h, LIMIT_MARGIN, LIMIT_BAUMGARTE, w.q_dof, w.qd_free],
                         outputs=[w.lim_side, w.lim_active, w.lim_bias])
-        self._launch_io(rk.pack_limits, W,
+        self._launch(rk.pack_limits, W,
                         inputs=[nblk, w.row_stride, w.lim_active, w.lim_side, w.lim_bias, w.lim_force, w.dof_JF,
                                 w.dof_JB],
                         outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info, w.n_lim])
         if ck is not None:
-            self._launch_io(ck.narrow_phase, (W, wm.max_pairs), inputs=[h, cfg.contact_margin, w.u_f, w.q_eval],
+            self._launch(ck.narrow_phase, (W, wm.max_pairs), inputs=[h, cfg.contact_margin, w.u_f, w.q_eval],
                             outputs=[w.cand_pos, w.cand_normal, w.cand_dist, w.cand_valid])
-            self._launch_io(ck.pack, W, inputs=[h, cfg.contact_margin, CONTACT_DEADBAND, RESTITUTION_THRESHOLD,
+            self._launch(ck.pack, W, inputs=[h, cfg.contact_margin, CONTACT_DEADBAND, RESTITUTION_THRESHOLD,
                                                 w.q_eval, w.u, w.u_f, w.cand_pos, w.cand_normal, w.cand_dist,
                                                 w.cand_valid],
                             outputs=[w.ct_pair, w.ct_body_a, w.ct_body_b, w.ct_pos, w.ct_normal, w.ct_dist, w.ct_mu,
                                      w.ct_restitution, w.ct_found, w.n_con])
-        self._launch(sk.count_rows, W)
+        self._launch(sk.count_rows, W, inputs=[w.n_lim, w.n_con, w.frozen], outputs=[w.n_box, w.n_rows, w.failed])
         if ck is not None:
-            self._launch_io(ck.contact_rows, (W, wm.max_contacts),
+            self._launch(ck.contact_rows, (W, wm.max_contacts),
                             inputs=[nblk, h, CONTACT_BAUMGARTE, CONTACT_DEADBAND, RESTITUTION_THRESHOLD,
                                     CONTACT_MATCH_DISTANCE, w.row_stride, w.n_con, w.n_box, w.ct_pair, w.ct_body_a,
                                     w.ct_body_b, w.ct_pos, w.ct_normal, w.ct_dist, w.ct_mu, w.ct_restitution,
@@ -253,54 +248,78 @@ class Stepper:
                             outputs=[w.row_body, w.row_J, w.reg, w.lo, w.hi, w.row_info, w.vstar, w.f0, w.v0])
         # dynamics: v_f (and the dense J, M^-1 J^T), Delassus (dense path) and preconditioning (§7.2, §8)
         rows = (W, wm.max_rows)
-        self._launch(sk.prebake, rows, nblk, int(self.dense))
+        self._launch(sk.prebake, rows, inputs=[nblk, w.row_stride, w.n_rows, w.vstar, w.row_body, w.row_J, w.u_f,
+                                                  w.inv_inertia_w], outputs=[w.vt, w.Jd, w.MJd])
         assembled = self.linear_solver == "llt" and not self.sparse_factor  # the dense Delassus matrix
         if assembled:
             if self.dense:
-                self._launch(sk.delassus_dense, rows)
+                self._launch(sk.delassus_dense, rows, inputs=[w.row_stride, w.n_rows, w.Jd, w.MJd, w.reg],
+                                outputs=[w.D])
             else:
-                self._launch(sk.delassus_sparse, rows, nblk)
-        self._launch(sk.precondition, rows, nblk, int(assembled))
+                self._launch(sk.delassus_sparse, rows, inputs=[nblk, w.row_stride, w.n_rows, w.row_body, w.row_J,
+                                                                  w.reg, w.inv_inertia_w], outputs=[w.D])
+        self._launch(sk.precondition, rows, inputs=[nblk, w.row_stride, w.n_rows, w.n_box, w.row_body, w.row_J,
+                                                       w.reg, w.inv_inertia_w, w.D], outputs=[w.P])
         shift_f, shift_b = self.padmm_shifts
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
-        self._launch(sk.scale, rows, shift_f, shift_b, scale_ws, int(assembled), int(self.linear_solver == "cr"))
+        self._launch(sk.scale, rows, inputs=[shift_f, shift_b, scale_ws, w.row_stride, w.n_rows, w.P, w.lo, w.hi,
+                                                w.f0], outputs=[w.vt, w.lo_s, w.hi_s, w.row_info, w.D])
         if self.sparse_factor:
-            self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz), self.sp, nblk, shift_f, shift_b)
-            self._launch(self.spk.assemble_tail, rows, self.sp, nblk)
+            self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz),
+                            inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
+                                    w.inertia_w, w.inv_inertia_w], outputs=[self.sp])
+            self._launch(self.spk.assemble_tail, rows,
+                            inputs=[nblk, w.row_stride, w.n_rows, w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg,
+                                    w.P, w.inv_inertia_w], outputs=[self.sp])
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
-        self._launch(sk.padmm_init, W, scale_ws, int(cfg.warm_start), int(assembled), cfg.max_iterations,
-                     cfg.penalty.eta, cfg.penalty.rho, int(self.adaptive))
+        self._launch(sk.padmm_init, W,
+                        inputs=[scale_ws, cfg.max_iterations, cfg.penalty.eta, cfg.penalty.rho, w.row_stride,
+                                w.n_rows, w.n_box, w.frozen, w.f0, w.v0, w.P, w.lo_s, w.hi_s, w.ct_mu, w.row_info],
+                        outputs=[w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.p_ref, w.rho_u, w.pending, w.iters,
+                                 w.r_p, w.r_d, w.r_c, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
+                                 w.remaining, w.sdiag, w.D])
         if self.padmm == "warp" and self.sparse_factor:
-            self._launch_lanes(self.wk.factor, self.sp, cfg.penalty.eta, 0, nblk, shift_f, shift_b)
+            self._launch_lanes(self.wk.factor,
+                                  inputs=[cfg.penalty.eta, 0, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
+                                          w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
+                                          w.inv_inertia_w, w.rho_u], outputs=[w.pending, self.sp])
         elif self.padmm == "warp":  # CR: the row blocks grouped by body for the operator
-            self._launch(self.wk.cr_pattern, W, nblk)
+            self._launch(self.wk.cr_pattern, W, inputs=[nblk, w.row_stride, w.n_rows, w.row_body],
+                            outputs=[w.cr_end, w.cr_ent])
         elif self.sparse_factor:
-            self._launch(self.spk.factor, W, self.sp, cfg.penalty.eta)
+            self._launch(self.spk.factor, W, inputs=[cfg.penalty.eta, w.row_stride, w.n_rows, w.rho_u],
+                            outputs=[self.sp])
         self._padmm_loop()
-        self._launch(sk.padmm_finish, rows)
+        self._launch(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p, w.ct_mu,
+                                                       w.row_info], outputs=[w.impulse, w.velocity, w.failed])
         stab = cfg.stabilisation
         if stab.curvature_refinement and stab.curvature_correction and (wm.max_cts or wm.max_cpl):
-            self._launch_io(ik.integrate, (W, wm.max_bodies),
+            self._launch(ik.integrate, (W, wm.max_bodies),
                             inputs=[nblk, h, ANGULAR_DAMPING * dt, w.row_stride, w.n_rows, w.impulse, w.Jd, w.row_body,
                                     w.row_J, w.u_f, w.inv_inertia_w, w.q_eval],
                             outputs=[w.u_new, w.q_new, w.failed])
-            self._launch_io(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q_eval, w.u_new],
+            self._launch(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q_eval, w.u_new],
                             outputs=[w.q_pred])  # q_pred along u+
-            self._launch_io(rk.refine_joint_rows, (W, wm.max_cts),
+            self._launch(rk.refine_joint_rows, (W, wm.max_cts),
                             inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_eval, w.q, w.q_pred,
                                     w.u_new, w.row_body, w.row_J, w.u_f, w.P],
                             outputs=[w.vstar, w.vt])
-            self._launch_io(rk.refine_coupling_rows, (W, wm.max_cpl),
+            self._launch(rk.refine_coupling_rows, (W, wm.max_cpl),
                             inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_dof, w.q, w.q_pred,
                                     w.u_new, w.row_body, w.row_J, w.u_f, w.P],
                             outputs=[w.vstar, w.vt])
             w.remaining.fill_(W)
-            self._launch(sk.padmm_resume, W, cfg.max_iterations)
+            self._launch(sk.padmm_resume, W,
+                            inputs=[cfg.max_iterations, w.row_stride, w.n_rows, w.frozen, w.iters, w.y_p, w.z_p],
+                            outputs=[w.y_hat, w.z_hat, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
+                                     w.remaining])
             self._padmm_loop()
-            self._launch(sk.padmm_finish, rows)
+            self._launch(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p,
+                                                           w.ct_mu, w.row_info],
+                            outputs=[w.impulse, w.velocity, w.failed])
         # integrate, split the forces, commit (§6)
-        self._launch_io(ik.integrate, (W, wm.max_bodies),
+        self._launch(ik.integrate, (W, wm.max_bodies),
                         inputs=[nblk, h, ANGULAR_DAMPING * dt, w.row_stride, w.n_rows, w.impulse, w.Jd, w.row_body,
                                 w.row_J, w.u_f, w.inv_inertia_w, w.q_eval],
                         outputs=[w.u_new, w.q_new, w.failed])
@@ -310,35 +329,39 @@ class Stepper:
             else:
                 post = self.post.arrays
                 shift_f, shift_b = cfg.projection_shifts(self.np_dtype)
-                self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz), post, nblk, shift_f, shift_b)
-                self._launch(self.spk.factor_fixed, W, post)
+                self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz),
+                                inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg,
+                                        w.P, w.inertia_w, w.inv_inertia_w], outputs=[post])
+                self._launch(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[post])
             passes = cfg.stabilisation.post_stabilisation
             for k in range(passes + 1):  # the last pass: unconverged worlds, gaps left open
                 extra = int(k == passes)
-                self._launch_io(self.pk.residual, rows, inputs=[delta, extra, w.row_stride, w.q_new, w.P],
+                self._launch(self.pk.residual, rows, inputs=[delta, extra, w.row_stride, w.q_new, w.P],
                                 outputs=[w.reproject, w.x])
                 if self.padmm == "warp":
-                    self._launch_lanes(self.wk.solve_fixed, post, extra)
+                    self._launch_lanes(self.wk.solve_fixed, inputs=[extra, w.row_stride, post, w.converged,
+                                                                       w.reproject, w.P], outputs=[w.x])
                 else:
-                    self._launch(self.pk.solve, W, post, extra)
-                self._launch_io(self.pk.displace, (W, wm.max_bodies),
+                    self._launch(self.pk.solve, W, inputs=[extra, w.row_stride, post, w.converged, w.reproject, w.P],
+                                    outputs=[w.x])
+                self._launch(self.pk.displace, (W, wm.max_bodies),
                                 inputs=[nblk, extra, w.row_stride, w.converged, w.reproject, w.row_body, w.row_J, w.x,
                                         w.inv_inertia_w],
                                 outputs=[w.failed, w.q_new])
         if wm.max_cts:  # world health: a world whose joints the step left open past the bound fails on this step
-            self._launch_io(ik.closure_check, (W, wm.max_cts),
+            self._launch(ik.closure_check, (W, wm.max_cts),
                             inputs=[LOOP_OPEN_BOUND, w.converged, w.reproject, w.q_new, w.q], outputs=[w.failed])
-        self._launch_io(ik.dof_forces, (W, wm.max_dofs), inputs=[w.failed, w.tau_explicit],
+        self._launch(ik.dof_forces, (W, wm.max_dofs), inputs=[w.failed, w.tau_explicit],
                         outputs=[w.act_force, w.pas_force, w.lim_force])
-        self._launch_io(ik.row_forces, rows, inputs=[1.0 / dt, w.row_stride, w.n_box, w.failed, w.impulse, w.row_info],
+        self._launch(ik.row_forces, rows, inputs=[1.0 / dt, w.row_stride, w.n_box, w.failed, w.impulse, w.row_info],
                         outputs=[w.act_force, w.pas_force, w.kin_force, w.cpl_force, w.lim_force])
         if ck is not None:
-            self._launch_io(ck.commit_contacts, (W, wm.max_contacts),
+            self._launch(ck.commit_contacts, (W, wm.max_contacts),
                             inputs=[1.0 / dt, w.row_stride, w.failed, w.n_con, w.n_box, w.ct_pair, w.ct_body_b,
                                     w.ct_pos, w.ct_normal, w.ct_dist, w.q_eval, w.impulse, w.velocity],
                             outputs=[w.con_pair, w.con_pos, w.con_normal, w.con_dist, w.con_force, w.con_velocity,
                                      w.con_point_b])
-        self._launch_io(ik.commit_bodies, (W, wm.max_bodies), inputs=[w.failed, w.q_new, w.u_new], outputs=[w.q, w.u])
+        self._launch(ik.commit_bodies, (W, wm.max_bodies), inputs=[w.failed, w.q_new, w.u_new], outputs=[w.q, w.u])
         wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps), w.converged],
                   outputs=[w.frozen, w.failed, w.time, w.unconverged], device=self.device)
 
@@ -346,13 +369,9 @@ class Stepper:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
         self._graphs.clear()
 
-    def _launch_lanes(self, kernel, *args) -> None:
-        """Launch a 32-threads-per-world kernel (``solver_lanes.py``): one block of ``LANES`` threads per world."""
-        wp.launch_tiled(kernel, dim=[self.wm.num_worlds], inputs=[self.wm.arrays, self.work, *args], block_dim=LANES,
-                        device=self.device)
-
-    def _launch_lanes_io(self, kernel, inputs: list, outputs: list) -> None:
-        """:meth:`_launch_lanes` for a kernel whose signature is ``(m, *inputs, *outputs)`` (:meth:`_launch_io`)."""
+    def _launch_lanes(self, kernel, inputs: list, outputs: list) -> None:
+        """Launch a 32-threads-per-world kernel (``solver_lanes.py``), one block of ``LANES`` threads per world, whose
+        signature is ``(m, *inputs, *outputs)`` (:meth:`_launch`)."""
         wp.launch_tiled(kernel, dim=[self.wm.num_worlds], inputs=[self.wm.arrays, *inputs], outputs=outputs,
                         block_dim=LANES, device=self.device)
 
@@ -371,20 +390,43 @@ class Stepper:
             lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes)
 
             def iterate(chunk):
-                self._launch_lanes(lane_iterate, self.sp, chunk, *args)
+                self._launch_lanes(lane_iterate,
+                                      inputs=[chunk, *args, w.row_stride, w.n_rows, w.n_box, w.p_ref, w.it_cap,
+                                              w.row_body, w.row_J, w.reg, w.P, w.inv_inertia_w, w.cr_ent, w.cr_end,
+                                              w.ct_mu, w.vt, w.lo_s, w.hi_s],
+                                      outputs=[self.sp, w.row_info, w.x, w.y, w.z, w.x_p, w.y_p, w.z_p, w.y_hat,
+                                               w.z_hat, w.e_p, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w, w.rho_u,
+                                               w.k_rho, w.pending, w.a_p, w.c_p, w.iters, w.r_p, w.r_d, w.r_c,
+                                               w.converged, w.done, w.remaining])
                 if self.max_switches:  # the factor of the worlds whose effort-limited rows saturated
-                    self._launch_lanes(self.wk.factor, self.sp, cfg.penalty.eta, 1, nblk, shift_f, shift_b)
+                    self._launch_lanes(self.wk.factor,
+                                          inputs=[cfg.penalty.eta, 1, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
+                                                  w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
+                                                  w.inv_inertia_w, w.rho_u], outputs=[w.pending, self.sp])
         else:
             linear = LINEAR_CR if self.linear_solver == "cr" else LINEAR_SPARSE if self.sparse_factor else (
                 LINEAR_DENSE)
             thread_iterate = padmm_iterate_kernel(self.np_dtype, linear, *modes)
 
             def iterate(chunk):
-                self._launch(thread_iterate, W, self.sp, chunk, *args)
+                self._launch(thread_iterate, W,
+                                inputs=[chunk, *args, w.row_stride, w.n_rows, w.n_box, w.p_ref, w.it_cap, w.row_body,
+                                        w.row_J, w.reg, w.P, w.inv_inertia_w, w.cr_ent, w.cr_end, w.ct_mu, w.vt,
+                                        w.lo_s, w.hi_s, w.sdiag],
+                                outputs=[self.sp, w.row_info, w.x, w.y, w.z, w.x_p, w.y_p, w.z_p, w.y_hat, w.z_hat,
+                                         w.e_p, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w, w.D, w.rho_u, w.k_rho,
+                                         w.pending, w.a_p, w.c_p, w.iters, w.r_p, w.r_d, w.r_c, w.converged, w.done,
+                                         w.remaining])
                 if self.max_switches and self.sparse_factor:
-                    self._launch(self.spk.refactor, W, self.sp, nblk, shift_f, shift_b, cfg.penalty.eta)
+                    self._launch(self.spk.refactor, W,
+                                    inputs=[nblk, shift_f, shift_b, cfg.penalty.eta, w.row_stride, w.n_rows, w.row_body,
+                                            w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w, w.inv_inertia_w,
+                                            w.rho_u], outputs=[w.pending, self.sp])
                 elif self.max_switches:
-                    self._launch(self.sk.refactor_dense, W, nblk, shift_f, shift_b, cfg.penalty.eta)
+                    self._launch(self.sk.refactor_dense, W,
+                                    inputs=[nblk, shift_f, shift_b, cfg.penalty.eta, w.row_stride, w.n_rows,
+                                            w.row_body, w.row_J, w.row_info, w.reg, w.inv_inertia_w, w.P, w.rho_u],
+                                    outputs=[w.pending, w.sdiag, w.D])
         if self.device.is_capturing:
             wp.capture_while(w.remaining, lambda: iterate(self.padmm_chunk))
         else:  # each launch runs the worlds to their cap or to a switch

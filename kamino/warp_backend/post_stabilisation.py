@@ -94,22 +94,34 @@ def residual_kernel(np_dtype):
 @functools.cache
 def solve_kernel(np_dtype):
     """The projection's solve with the fixed rows' sparse factor, one thread per world (docs/formulation.md §8.1)."""
-    M, Work, SP = builder_types(np_dtype).take("M", "Work", "SP")
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
     ridx = index_funcs(np_dtype).ridx
     sparse_solve = solve_inplace_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def solve(m: M, w: Work, sp: SP, extra: int):
+    def solve(
+        # model (read only)
+        m: M,
+        # in
+        extra: int,
+        row_stride: int,
+        sp: SP,  # the fixed rows' sparse factor (tables and values, read)
+        converged: wp.array(dtype=wp.int32),
+        reproject: wp.array(dtype=wp.int32),
+        P: wp.array(dtype=scalar),
+        # out
+        x: wp.array(dtype=scalar),  # also read
+    ):
         """``lambda = P (P D_ff P + s I)^-1 x`` with the fixed rows' sparse factor (into ``x``); in the ``extra`` pass
         only where PADMM did not converge or ``reproject`` is set."""
         wid = wp.tid()
-        if extra != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0:
+        if extra != 0 and converged[wid] != 0 and reproject[wid] == 0:
             return
         nf = m.row_fixed[wid]
-        sparse_solve(m, w, sp, wid, nf)
+        sparse_solve(m, sp, row_stride, wid, nf, x)
         for a in range(nf):  # lambda = P y
-            r = ridx(m, w.row_stride, wid, a)
-            w.x[r] = w.P[r] * w.x[r]
+            r = ridx(m, row_stride, wid, a)
+            x[r] = P[r] * x[r]
 
     return solve
 

@@ -40,16 +40,17 @@ LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE = 0, 1, 2
 @functools.cache
 def world_row_func(np_dtype):
     """Where an active row of a world is stored.
-    ``world_row(m, w, wid, a)``: the row kernels launched over ``(worlds, max_rows)`` start with it."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``world_row(m, row_stride, n_rows, wid, a)``: the row kernels launched over ``(worlds, max_rows)`` start with
+    it."""
+    M = builder_types(np_dtype).M
     ridx = index_funcs(np_dtype).ridx
 
     @wp.func
-    def world_row(m: M, w: Work, wid: int, a: int):
-        """Storage index of row ``a`` of world ``wid``, or -1 past the world's active rows (``w.n_rows``)."""
-        if a >= w.n_rows[wid]:
+    def world_row(m: M, row_stride: int, n_rows: wp.array(dtype=wp.int32), wid: int, a: int):
+        """Storage index of row ``a`` of world ``wid``, or -1 past the world's active rows (``n_rows``)."""
+        if a >= n_rows[wid]:
             return -1
-        return ridx(m, w.row_stride, wid, a)
+        return ridx(m, row_stride, wid, a)
 
     return world_row
 
@@ -57,54 +58,75 @@ def world_row_func(np_dtype):
 @functools.cache
 def count_rows_kernel(np_dtype):
     """The world's active rows (§7.1: the fixed and limit rows, then three per contact).
-    ``count_rows(m, w)``, one thread per world, after the limit rows are packed and the contacts counted."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``count_rows(m, n_lim, n_con, frozen, n_box, n_rows, failed)``, one thread per world, after the limit rows are
+    packed and the contacts counted."""
+    M = builder_types(np_dtype).M
+    iarr = wp.array(dtype=wp.int32)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def count_rows(m: M, w: Work):
+    def count_rows(
+        # model (read only)
+        m: M,
+        # in
+        n_lim: iarr, n_con: iarr, frozen: iarr,
+        # out
+        n_box: iarr, n_rows: iarr, failed: iarr,
+    ):
         """``n_box`` (fixed and limit rows), ``n_rows``; a frozen world starts failed."""
         wid = wp.tid()
-        n_box = m.row_fixed[wid] + w.n_lim[wid]
-        w.n_box[wid] = n_box
-        w.n_rows[wid] = n_box + 3 * w.n_con[wid]
-        w.failed[wid] = w.frozen[wid]
+        nb = m.row_fixed[wid] + n_lim[wid]
+        n_box[wid] = nb
+        n_rows[wid] = nb + 3 * n_con[wid]
+        failed[wid] = frozen[wid]
 
     return count_rows
 
 
 @functools.cache
-def prebake_kernel(np_dtype):
-    """The free velocity ``v_f = J u_f + v*`` of the rows (§5), and the dense ``J`` on request.
-    ``prebake(m, w, nblk, dense)``, one thread per row slot ``(worlds, max_rows)``."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+def prebake_kernel(np_dtype, dense: bool):
+    """The free velocity ``v_f = J u_f + v*`` of the rows (§5), and with ``dense`` (compile-time) the dense ``J``.
+    ``prebake(m, nblk, row_stride, n_rows, vstar, row_body, row_J, u_f, inv_inertia_w, vt, Jd, MJd)``, one thread per
+    row slot ``(worlds, max_rows)``."""
+    scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     free_velocity = row_kernels(np_dtype).free_velocity
     jidx = index_funcs(np_dtype).jidx
     inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
     world_row = world_row_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def prebake(m: M, w: Work, nblk: int, dense: int):
+    def prebake(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        row_stride: int,
+        n_rows: iarr, vstar: farr, row_body: iarr, row_J: wp.array(dtype=vec6), u_f: wp.array(dtype=vec6),
+        inv_inertia_w: wp.array(dtype=mat33),
+        # out
+        vt: farr, Jd: farr, MJd: farr,
+    ):
         """``v_f = J u_f + v*`` of each active row into ``vt`` (which ``scale`` scales in place); the dense ``J``
-        and ``M^-1 J^T`` rows on request."""
+        and ``M^-1 J^T`` rows with ``dense``."""
         wid, i = wp.tid()
-        r = world_row(m, w, wid, i)
+        r = world_row(m, row_stride, n_rows, wid, i)
         if r < 0:
             return
-        w.vt[r] = free_velocity(w.vstar, w.row_body, w.row_J, w.u_f, r, nblk)
-        if dense != 0:
+        vt[r] = free_velocity(vstar, row_body, row_J, u_f, r, nblk)
+        if wp.static(dense):
             nc = 6 * m.body_count[wid]
             for c in range(nc):
-                w.Jd[jidx(m, wid, i, c)] = scalar(0.0)
-                w.MJd[jidx(m, wid, i, c)] = scalar(0.0)
+                Jd[jidx(m, wid, i, c)] = scalar(0.0)
+                MJd[jidx(m, wid, i, c)] = scalar(0.0)
             b0 = m.body_start[wid]
             for k in range(nblk):
-                b = w.row_body[r * nblk + k]
+                b = row_body[r * nblk + k]
                 if b >= 0:
-                    J = w.row_J[r * nblk + k]
-                    MJ = inv_mass_times(m, w, b, J)
+                    J = row_J[r * nblk + k]
+                    MJ = inv_mass_times(m, inv_inertia_w, b, J)
                     for c in range(6):
-                        w.Jd[jidx(m, wid, i, 6 * (b - b0) + c)] += J[c]
-                        w.MJd[jidx(m, wid, i, 6 * (b - b0) + c)] += MJ[c]
+                        Jd[jidx(m, wid, i, 6 * (b - b0) + c)] += J[c]
+                        MJd[jidx(m, wid, i, 6 * (b - b0) + c)] += MJ[c]
 
     return prebake
 
@@ -112,22 +134,33 @@ def prebake_kernel(np_dtype):
 @functools.cache
 def delassus_sparse_kernel(np_dtype):
     """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the block-sparse rows (§8.1).
-    ``delassus_sparse(m, w, nblk)``, one thread per row slot: row ``a`` fills ``D_ab = D_ba``, ``b >= a``."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``delassus_sparse(m, nblk, row_stride, n_rows, row_body, row_J, reg, inv_inertia_w, D)``, one thread per row
+    slot: row ``a`` fills ``D_ab = D_ba``, ``b >= a``."""
+    scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     didx = index_funcs(np_dtype).didx
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
 
     @wp.kernel(module="unique", enable_backward=False)
-    def delassus_sparse(m: M, w: Work, nblk: int):
+    def delassus_sparse(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        row_stride: int,
+        n_rows: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr, inv_inertia_w: wp.array(dtype=mat33),
+        # out
+        D: farr,
+    ):
         """Row ``a`` of ``D`` from the block-sparse rows (blocks meet on shared bodies)."""
         wid, a = wp.tid()
-        n = w.n_rows[wid]
+        n = n_rows[wid]
         if a >= n:
             return
         for b in range(a, n):
-            s = delassus_entry(m, w, wid, a, b, nblk)
-            w.D[didx(m, wid, a, b)] = s
-            w.D[didx(m, wid, b, a)] = s
+            s = delassus_entry(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, b, nblk)
+            D[didx(m, wid, a, b)] = s
+            D[didx(m, wid, b, a)] = s
 
     return delassus_sparse
 
@@ -135,81 +168,110 @@ def delassus_sparse_kernel(np_dtype):
 @functools.cache
 def delassus_dense_kernel(np_dtype):
     """The dense Delassus matrix ``D = J M^-1 J^T + R`` from the dense per-world ``J`` (§8.1).
-    ``delassus_dense(m, w)``, one thread per row slot: row ``a`` fills ``D_ab = D_ba``, ``b >= a``."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``delassus_dense(m, row_stride, n_rows, Jd, MJd, reg, D)``, one thread per row slot: row ``a`` fills ``D_ab =
+    D_ba``, ``b >= a``."""
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
     jidx = index_funcs(np_dtype).jidx
 
     @wp.kernel(module="unique", enable_backward=False)
-    def delassus_dense(m: M, w: Work):
+    def delassus_dense(
+        # model (read only)
+        m: M,
+        # in
+        row_stride: int,
+        n_rows: iarr, Jd: farr, MJd: farr, reg: farr,
+        # out
+        D: farr,
+    ):
         """Row ``a`` of ``D`` from the dense ``J`` (``6 n_bodies`` columns), each entry ``(J_a M^-1 J_b^T + J_b M^-1
         J_a^T) / 2`` as the sparse rows' (``linear_solve``'s ``delassus_term``: so that the rounding of ``M^-1 J^T``
         vanishes on the null space of ``J^T``)."""
         wid, a = wp.tid()
-        n = w.n_rows[wid]
+        n = n_rows[wid]
         if a >= n:
             return
         nc = 6 * m.body_count[wid]
         for b in range(a, n):
             s = scalar(0.0)
             for c in range(nc):
-                s += scalar(0.5) * (w.Jd[jidx(m, wid, a, c)] * w.MJd[jidx(m, wid, b, c)]
-                                    + w.Jd[jidx(m, wid, b, c)] * w.MJd[jidx(m, wid, a, c)])
+                s += scalar(0.5) * (Jd[jidx(m, wid, a, c)] * MJd[jidx(m, wid, b, c)]
+                                    + Jd[jidx(m, wid, b, c)] * MJd[jidx(m, wid, a, c)])
             if b == a:
-                s += w.reg[ridx(m, w.row_stride, wid, a)]
-            w.D[didx(m, wid, a, b)] = s
-            w.D[didx(m, wid, b, a)] = s
+                s += reg[ridx(m, row_stride, wid, a)]
+            D[didx(m, wid, a, b)] = s
+            D[didx(m, wid, b, a)] = s
 
     return delassus_dense
 
 
 @functools.cache
-def precondition_kernel(np_dtype):
-    """The Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2).
-    ``precondition(m, w, nblk, assembled)``, one thread per row slot."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+def precondition_kernel(np_dtype, assembled: bool):
+    """The Jacobi preconditioner ``P = diag(D)^-1/2`` (§7.2), its diagonal from the assembled ``D`` with
+    ``assembled`` (compile-time), else from the rows' blocks.
+    ``precondition(m, nblk, row_stride, n_rows, n_box, row_body, row_J, reg, inv_inertia_w, D, P)``, one thread per
+    row slot."""
+    scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     didx = index_funcs(np_dtype).didx
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
     world_row = world_row_func(np_dtype)
     eps = scalar(float(np.finfo(np_dtype).eps))
 
     @wp.func
-    def row_diag(m: M, w: Work, wid: int, a: int, nblk: int, assembled: int):
-        """``D_aa`` (from the assembled matrix, or from the row's blocks)."""
-        if assembled != 0:
-            return w.D[didx(m, wid, a, a)]
-        return delassus_entry(m, w, wid, a, a, nblk)
+    def row_diag(m: M, row_stride: int, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr,
+                 inv_inertia_w: wp.array(dtype=mat33), D: farr, wid: int, a: int, nblk: int):
+        """``D_aa`` (from the assembled matrix ``D``, or from the row's blocks)."""
+        if wp.static(assembled):
+            return D[didx(m, wid, a, a)]
+        else:
+            return delassus_entry(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, a, nblk)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def precondition(m: M, w: Work, nblk: int, assembled: int):
+    def precondition(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int,
+        row_stride: int,
+        n_rows: iarr, n_box: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr,
+        inv_inertia_w: wp.array(dtype=mat33), D: farr,
+        # out
+        P: farr,
+    ):
         """``P_a`` of each active row; one value per contact from the largest of its three diagonal entries (keeps
         the Coulomb cone invariant)."""
         wid, a = wp.tid()
-        r = world_row(m, w, wid, a)
+        r = world_row(m, row_stride, n_rows, wid, a)
         if r < 0:
             return
-        n_box = w.n_box[wid]
+        nb = n_box[wid]
         d = scalar(0.0)
-        if a < n_box:
-            d = wp.abs(row_diag(m, w, wid, a, nblk, assembled))
+        if a < nb:
+            d = wp.abs(row_diag(m, row_stride, row_body, row_J, reg, inv_inertia_w, D, wid, a, nblk))
         else:
-            c0 = n_box + 3 * ((a - n_box) // 3)
+            c0 = nb + 3 * ((a - nb) // 3)
             for t in range(3):
-                d = wp.max(d, wp.abs(row_diag(m, w, wid, c0 + t, nblk, assembled)))
+                d = wp.max(d, wp.abs(row_diag(m, row_stride, row_body, row_J, reg, inv_inertia_w, D, wid, c0 + t,
+                                              nblk)))
         if d > eps:
-            w.P[r] = scalar(1.0) / wp.sqrt(d + eps)
+            P[r] = scalar(1.0) / wp.sqrt(d + eps)
         else:
-            w.P[r] = scalar(1.0)
+            P[r] = scalar(1.0)
 
     return precondition
 
 
 @functools.cache
-def scale_kernel(np_dtype):
-    """The scaled problem of §7.2 and the effort-limited rows' starting saturation ("Saturation").
-    ``scale(m, w, shift, shift_sat, impulse_scale, assembled, always_sat)``, one thread per row slot."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+def scale_kernel(np_dtype, assembled: bool, always_sat: bool):
+    """The scaled problem of §7.2 and the effort-limited rows' starting saturation ("Saturation"); compile-time:
+    ``assembled``, the dense ``D`` is scaled too; ``always_sat``, every effort-limited row starts saturated.
+    ``scale(m, shift, shift_sat, impulse_scale, row_stride, n_rows, P, lo, hi, f0, vt, lo_s, hi_s, row_info, D)``,
+    one thread per row slot."""
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
     set_saturated = index_funcs(np_dtype).set_saturated
@@ -217,43 +279,53 @@ def scale_kernel(np_dtype):
     sat_margin = scalar(SATURATION_MARGIN)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def scale(m: M, w: Work, shift: scalar, shift_sat: scalar, impulse_scale: scalar, assembled: int,
-              always_sat: int):
+    def scale(
+        # model (read only)
+        m: M,
+        # in
+        shift: scalar, shift_sat: scalar, impulse_scale: scalar,
+        row_stride: int,
+        n_rows: iarr, P: farr, lo: farr, hi: farr, f0: farr,
+        # out
+        vt: farr,  # also read
+        lo_s: farr, hi_s: farr, row_info: iarr,
+        D: farr,  # also read
+    ):
         """``v~_f = P v_f`` (in place: ``prebake`` wrote ``v_f`` into ``vt``), scaled bounds (in place: ``lo_s``/
         ``hi_s`` are ``lo``/``hi``, workspace.allocate), and whether an effort-limited fixed row starts saturated (the
-        flag in ``w.row_info``, ``set_saturated``: its warm start ``impulse_scale f0 / P`` on a bound, to
+        flag in ``row_info``, ``set_saturated``: its warm start ``impulse_scale f0 / P`` on a bound, to
         ``SATURATION_MARGIN``; kamino.jax_ref.solver.solve, "Saturation"; with ``always_sat``, every effort-limited
         row: the CR path, pipeline.Stepper); on the dense path ``D~ = P D P`` row by row with ``shift = eta +
         rho_free`` on the fixed rows' diagonal (``shift_sat`` on the saturated ones; ``padmm_init`` adds the world's
         penalty to the others)."""
         wid, a = wp.tid()
-        r = world_row(m, w, wid, a)
+        r = world_row(m, row_stride, n_rows, wid, a)
         if r < 0:
             return
-        Pa = w.P[r]
-        w.vt[r] = Pa * w.vt[r]  # v_f from prebake
-        lo = w.lo[r]
-        hi = w.hi[r]
-        if wp.isfinite(lo):
-            lo = lo / Pa
-        if wp.isfinite(hi):
-            hi = hi / Pa
-        w.lo_s[r] = lo
-        w.hi_s[r] = hi
+        Pa = P[r]
+        vt[r] = Pa * vt[r]  # v_f from prebake
+        lo_r = lo[r]
+        hi_r = hi[r]
+        if wp.isfinite(lo_r):
+            lo_r = lo_r / Pa
+        if wp.isfinite(hi_r):
+            hi_r = hi_r / Pa
+        lo_s[r] = lo_r
+        hi_s[r] = hi_r
         sat = int(0)
         if a < m.row_fixed[wid]:
-            x0 = impulse_scale * w.f0[r] / Pa
-            if wp.isfinite(lo) and (always_sat != 0 or x0 <= lo + sat_margin * wp.abs(lo)):
+            x0 = impulse_scale * f0[r] / Pa
+            if wp.isfinite(lo_r) and (wp.static(always_sat) or x0 <= lo_r + sat_margin * wp.abs(lo_r)):
                 sat = 1
-            if wp.isfinite(hi) and (always_sat != 0 or x0 >= hi - sat_margin * wp.abs(hi)):
+            if wp.isfinite(hi_r) and (wp.static(always_sat) or x0 >= hi_r - sat_margin * wp.abs(hi_r)):
                 sat = 1
-        set_saturated(w.row_info, r, sat)
-        if assembled != 0:
-            for b in range(w.n_rows[wid]):
+        set_saturated(row_info, r, sat)
+        if wp.static(assembled):
+            for b in range(n_rows[wid]):
                 k = didx(m, wid, a, b)
-                w.D[k] = Pa * w.D[k] * w.P[ridx(m, w.row_stride, wid, b)]
+                D[k] = Pa * D[k] * P[ridx(m, row_stride, wid, b)]
             if a < m.row_fixed[wid]:
-                w.D[didx(m, wid, a, a)] += wp.where(sat != 0, shift_sat, shift)
+                D[didx(m, wid, a, a)] += wp.where(sat != 0, shift_sat, shift)
 
     return scale
 
@@ -263,33 +335,34 @@ def scale_kernel(np_dtype):
 @functools.cache
 def factor_tail_dense_func(np_dtype):
     """The dense factor's tail for a penalty (``kamino.jax_ref.solver.solve``, "Penalty").
-    ``factor_tail_dense(m, w, wid, n, shift)``, by the world's thread."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``factor_tail_dense(m, row_stride, sdiag, D, wid, n, shift)``, by the world's thread."""
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
     didx = index_funcs(np_dtype).didx
     row_base = index_funcs(np_dtype).row_base
 
     @wp.func
-    def factor_tail_dense(m: M, w: Work, wid: int, n: int, shift: scalar):
-        """``L_t = chol(S_t + shift I)`` of the dense factor's tail (limit and contact rows): the Schur
+    def factor_tail_dense(m: M, row_stride: int, sdiag: wp.array(dtype=scalar), D: wp.array(dtype=scalar), wid: int,
+                          n: int, shift: scalar):
+        """``L_t = chol(S_t + shift I)`` of the dense factor's tail (limit and contact rows) in ``D``: the Schur
         complement ``S_t`` is kept in the tail block's upper triangle and ``sdiag``, so that a new penalty only
         redoes this part."""
-        rs = w.row_stride
+        rs = row_stride
         nf = m.row_fixed[wid]
-        rb = row_base(m, w.row_stride, wid)
+        rb = row_base(m, row_stride, wid)
         for t in range(n - nf):
             for j in range(t + 1):
                 s = scalar(0.0)
                 if j == t:
-                    s = w.sdiag[rb + (nf + t) * rs] + shift
+                    s = sdiag[rb + (nf + t) * rs] + shift
                 else:
-                    s = w.D[didx(m, wid, nf + j, nf + t)]
+                    s = D[didx(m, wid, nf + j, nf + t)]
                 for i in range(j):
-                    s -= w.D[didx(m, wid, nf + t, nf + i)] * w.D[didx(m, wid, nf + j, nf + i)]
+                    s -= D[didx(m, wid, nf + t, nf + i)] * D[didx(m, wid, nf + j, nf + i)]
                 if j == t:
                     s = wp.sqrt(s)
                 else:
-                    s = s / w.D[didx(m, wid, nf + j, nf + j)]
-                w.D[didx(m, wid, nf + t, nf + j)] = s
+                    s = s / D[didx(m, wid, nf + j, nf + j)]
+                D[didx(m, wid, nf + t, nf + j)] = s
 
     return factor_tail_dense
 
@@ -297,45 +370,47 @@ def factor_tail_dense_func(np_dtype):
 @functools.cache
 def factor_dense_func(np_dtype):
     """The dense Cholesky factor of ``D~`` (§8.1).
-    ``factor_dense(m, w, wid, n, eta)``, by the world's thread (``padmm_init``, ``refactor_dense``)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``factor_dense(m, row_stride, rho_u, sdiag, D, wid, n, eta)``, by the world's thread (``padmm_init``,
+    ``refactor_dense``)."""
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
     didx = index_funcs(np_dtype).didx
     row_base = index_funcs(np_dtype).row_base
     factor_tail_dense = factor_tail_dense_func(np_dtype)
 
     @wp.func
-    def factor_dense(m: M, w: Work, wid: int, n: int, eta: scalar):
-        """The factor in place: the fixed rows' columns, the tail's Schur complement ``S_t`` (upper triangle of the
-        tail block and ``sdiag``), then ``L_t`` for the world's penalty; ``L^T`` of the fixed columns is mirrored
-        into the upper triangle so that the backward substitution reads rows."""
-        rs = w.row_stride
-        rb = row_base(m, w.row_stride, wid)
+    def factor_dense(m: M, row_stride: int, rho_u: wp.array(dtype=scalar), sdiag: wp.array(dtype=scalar),
+                     D: wp.array(dtype=scalar), wid: int, n: int, eta: scalar):
+        """The factor in place in ``D``: the fixed rows' columns, the tail's Schur complement ``S_t`` (upper
+        triangle of the tail block and ``sdiag``), then ``L_t`` for the world's penalty ``rho_u``; ``L^T`` of the
+        fixed columns is mirrored into the upper triangle so that the backward substitution reads rows."""
+        rs = row_stride
+        rb = row_base(m, row_stride, wid)
         nf = wp.min(m.row_fixed[wid], n)
         for j in range(nf):
-            s = w.D[didx(m, wid, j, j)]
+            s = D[didx(m, wid, j, j)]
             for k in range(j):
-                l = w.D[didx(m, wid, j, k)]
+                l = D[didx(m, wid, j, k)]
                 s -= l * l
             ljj = wp.sqrt(s)
-            w.D[didx(m, wid, j, j)] = ljj
+            D[didx(m, wid, j, j)] = ljj
             for i in range(j + 1, n):
-                t = w.D[didx(m, wid, i, j)]
+                t = D[didx(m, wid, i, j)]
                 for k in range(j):
-                    t -= w.D[didx(m, wid, i, k)] * w.D[didx(m, wid, j, k)]
-                w.D[didx(m, wid, i, j)] = t / ljj
+                    t -= D[didx(m, wid, i, k)] * D[didx(m, wid, j, k)]
+                D[didx(m, wid, i, j)] = t / ljj
         for t in range(n - nf):
             for jj in range(t + 1):
-                s = w.D[didx(m, wid, nf + t, nf + jj)]
+                s = D[didx(m, wid, nf + t, nf + jj)]
                 for k in range(nf):
-                    s -= w.D[didx(m, wid, nf + t, k)] * w.D[didx(m, wid, nf + jj, k)]
+                    s -= D[didx(m, wid, nf + t, k)] * D[didx(m, wid, nf + jj, k)]
                 if jj == t:
-                    w.sdiag[rb + (nf + t) * rs] = s
+                    sdiag[rb + (nf + t) * rs] = s
                 else:
-                    w.D[didx(m, wid, nf + jj, nf + t)] = s
-        factor_tail_dense(m, w, wid, n, eta + w.rho_u[wid])
+                    D[didx(m, wid, nf + jj, nf + t)] = s
+        factor_tail_dense(m, row_stride, sdiag, D, wid, n, eta + rho_u[wid])
         for i in range(n):
             for k in range(wp.min(i, nf)):
-                w.D[didx(m, wid, k, i)] = w.D[didx(m, wid, i, k)]
+                D[didx(m, wid, k, i)] = D[didx(m, wid, i, k)]
 
     return factor_dense
 
@@ -343,8 +418,10 @@ def factor_dense_func(np_dtype):
 @functools.cache
 def refactor_dense_kernel(np_dtype):
     """The dense factor again after a saturation (``kamino.jax_ref.solver.solve``, "Saturation").
-    ``refactor_dense(m, w, nblk, shift, shift_sat, eta)``, one thread per world."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``refactor_dense(m, nblk, shift, shift_sat, eta, row_stride, n_rows, row_body, row_J, row_info, reg,
+    inv_inertia_w, P, rho_u, pending, sdiag, D)``, one thread per world."""
+    scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     ridx = index_funcs(np_dtype).ridx
     didx = index_funcs(np_dtype).didx
     row_saturated = index_funcs(np_dtype).row_saturated
@@ -352,24 +429,37 @@ def refactor_dense_kernel(np_dtype):
     factor_dense = factor_dense_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def refactor_dense(m: M, w: Work, nblk: int, shift: scalar, shift_sat: scalar, eta: scalar):
-        """For the worlds whose effort-limited rows saturated in the last PADMM iteration (``w.pending``): ``D~ =
+    def refactor_dense(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int, shift: scalar, shift_sat: scalar, eta: scalar,
+        row_stride: int,
+        n_rows: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), row_info: iarr, reg: farr,
+        inv_inertia_w: wp.array(dtype=mat33), P: farr, rho_u: farr,
+        # out
+        pending: iarr,  # also read
+        sdiag: farr, D: farr,
+    ):
+        """For the worlds whose effort-limited rows saturated in the last PADMM iteration (``pending``): ``D~ =
         P D P`` from the rows' blocks with the new shifts, then ``factor_dense`` (one thread per world)."""
         wid = wp.tid()
-        if w.pending[wid] == 0:
+        if pending[wid] == 0:
             return
-        w.pending[wid] = 0
-        n = w.n_rows[wid]
+        pending[wid] = 0
+        n = n_rows[wid]
         nf = m.row_fixed[wid]
         for a in range(n):
-            ra = ridx(m, w.row_stride, wid, a)
+            ra = ridx(m, row_stride, wid, a)
             for b in range(a, n):
-                v = w.P[ra] * delassus_entry(m, w, wid, a, b, nblk) * w.P[ridx(m, w.row_stride, wid, b)]
+                v = (P[ra]
+                     * delassus_entry(m, row_stride, row_body, row_J, reg, inv_inertia_w, wid, a, b, nblk)
+                     * P[ridx(m, row_stride, wid, b)])
                 if b == a and a < nf:
-                    v += wp.where(row_saturated(w.row_info, ra) != 0, shift_sat, shift)
-                w.D[didx(m, wid, a, b)] = v
-                w.D[didx(m, wid, b, a)] = v
-        factor_dense(m, w, wid, n, eta)
+                    v += wp.where(row_saturated(row_info, ra) != 0, shift_sat, shift)
+                D[didx(m, wid, a, b)] = v
+                D[didx(m, wid, b, a)] = v
+        factor_dense(m, row_stride, rho_u, sdiag, D, wid, n, eta)
 
     return refactor_dense
 
@@ -377,36 +467,37 @@ def refactor_dense_kernel(np_dtype):
 @functools.cache
 def cho_solve_func(np_dtype):
     """The solve with the dense factor (§8.1).
-    ``cho_solve_inplace(m, w, wid, n)``: ``x`` in ``w.x`` in place, by the world's thread."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``cho_solve_inplace(m, row_stride, D, x, wid, n)``: ``x`` in place, by the world's thread."""
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
     row_base = index_funcs(np_dtype).row_base
-    S = GROUP  # storage distance between consecutive entries of a world's dense Delassus matrix (w.D)
+    S = GROUP  # storage distance between consecutive entries of a world's dense Delassus matrix (D)
 
     @wp.func
-    def cho_solve_inplace(m: M, w: Work, wid: int, n: int):
-        """``x <- L^-T L^-1 x`` (forward, then backward substitution reading ``L^T`` from the upper triangle, and
-        from the lower one in the tail block)."""
-        rs = w.row_stride
-        rb = row_base(m, w.row_stride, wid)
+    def cho_solve_inplace(m: M, row_stride: int, D: wp.array(dtype=scalar), x: wp.array(dtype=scalar), wid: int,
+                          n: int):
+        """``x <- L^-T L^-1 x`` with the factor in ``D`` (forward, then backward substitution reading ``L^T`` from
+        the upper triangle, and from the lower one in the tail block)."""
+        rs = row_stride
+        rb = row_base(m, row_stride, wid)
         g = wid // GROUP
         db = m.grp_mat_start[g] + (wid - g * GROUP)  # didx(m, wid, i, k) = db + (i * md + k) * S
         md = m.grp_maxdim[g]
         for i in range(n):
-            s = w.x[rb + i * rs]
+            s = x[rb + i * rs]
             for k in range(i):
-                s -= w.D[db + (i * md + k) * S] * w.x[rb + k * rs]
-            w.x[rb + i * rs] = s / w.D[db + (i * md + i) * S]
+                s -= D[db + (i * md + k) * S] * x[rb + k * rs]
+            x[rb + i * rs] = s / D[db + (i * md + i) * S]
         nf = m.row_fixed[wid]
         for ii in range(n):
             i = n - 1 - ii
-            s = w.x[rb + i * rs]
+            s = x[rb + i * rs]
             if i >= nf:  # the tail block keeps its Schur complement in the upper triangle: read L by columns
                 for k in range(i + 1, n):
-                    s -= w.D[db + (k * md + i) * S] * w.x[rb + k * rs]
+                    s -= D[db + (k * md + i) * S] * x[rb + k * rs]
             else:
                 for k in range(i + 1, n):
-                    s -= w.D[db + (i * md + k) * S] * w.x[rb + k * rs]
-            w.x[rb + i * rs] = s / w.D[db + (i * md + i) * S]
+                    s -= D[db + (i * md + k) * S] * x[rb + k * rs]
+            x[rb + i * rs] = s / D[db + (i * md + i) * S]
 
     return cho_solve_inplace
 
@@ -416,25 +507,28 @@ def cho_solve_func(np_dtype):
 @functools.cache
 def project_into_func(np_dtype):
     """The projection on the feasible set ``K`` (§7.3 step 3).
-    ``project_into(m, w, wid, n_box, n, src, shift, inv_rho, dst)``, by the world's thread."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``project_into(m, row_stride, lo_s, hi_s, ct_mu, row_info, wid, n_box, n, src, shift, inv_rho, dst)``, by the
+    world's thread."""
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
     row_base = index_funcs(np_dtype).row_base
     row_mu = index_funcs(np_dtype).row_mu
     cone_project = cone_funcs(np_dtype).cone_project
 
     @wp.func
-    def project_into(m: M, w: Work, wid: int, n_box: int, n: int, src: wp.array(dtype=scalar),
-                     shift: wp.array(dtype=scalar), inv_rho: scalar, dst: wp.array(dtype=scalar)):
+    def project_into(m: M, row_stride: int, lo_s: wp.array(dtype=scalar), hi_s: wp.array(dtype=scalar),
+                     ct_mu: wp.array(dtype=scalar), row_info: wp.array(dtype=wp.int32), wid: int, n_box: int, n: int,
+                     src: wp.array(dtype=scalar), shift: wp.array(dtype=scalar), inv_rho: scalar,
+                     dst: wp.array(dtype=scalar)):
         """``dst = Pi_K(src - inv_rho * shift)``: clip on box rows, cones on contacts."""
-        rs = w.row_stride
-        rb = row_base(m, w.row_stride, wid)
+        rs = row_stride
+        rb = row_base(m, row_stride, wid)
         for a in range(n_box):
             r = rb + a * rs
-            dst[r] = wp.clamp(src[r] - inv_rho * shift[r], w.lo_s[r], w.hi_s[r])
+            dst[r] = wp.clamp(src[r] - inv_rho * shift[r], lo_s[r], hi_s[r])
         for c in range((n - n_box) // 3):
             r = rb + (n_box + 3 * c) * rs
             p = cone_project(src[r] - inv_rho * shift[r], src[r + rs] - inv_rho * shift[r + rs],
-                             src[r + 2 * rs] - inv_rho * shift[r + 2 * rs], row_mu(w.ct_mu, w.row_info, r))
+                             src[r + 2 * rs] - inv_rho * shift[r + 2 * rs], row_mu(ct_mu, row_info, r))
             dst[r] = p[0]
             dst[r + rs] = p[1]
             dst[r + 2 * rs] = p[2]
@@ -443,52 +537,70 @@ def project_into_func(np_dtype):
 
 
 @functools.cache
-def padmm_init_kernel(np_dtype):
-    """PADMM's warm start (§7.8), the world's penalty and residual scale, and the dense factor.
-    ``padmm_init(m, w, impulse_scale, use_velocity, factorize, max_iterations, eta, rho0, adaptive)``,
-    one thread per world."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+def padmm_init_kernel(np_dtype, use_velocity: bool, factorize: bool, adaptive: bool):
+    """PADMM's warm start (§7.8), the world's penalty and residual scale, and the dense factor; compile-time:
+    ``use_velocity``, ``z0`` from the warm-start velocity (else 0); ``factorize``, the dense factor; ``adaptive``, a
+    world keeps its positive penalty from the previous step.
+    ``padmm_init(m, impulse_scale, max_iterations, eta, rho0, row_stride, ...)`` (the Work arrays it reads, then
+    those it writes), one thread per world."""
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_base = index_funcs(np_dtype).row_base
     project_into = project_into_func(np_dtype)
     factor_dense = factor_dense_func(np_dtype)
     restart_world = restart_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_init(m: M, w: Work, impulse_scale: scalar, use_velocity: int, factorize: int, max_iterations: int,
-                   eta: scalar, rho0: scalar, adaptive: int):
+    def padmm_init(
+        # model (read only)
+        m: M,
+        # in
+        impulse_scale: scalar, max_iterations: int, eta: scalar, rho0: scalar,
+        row_stride: int,
+        n_rows: iarr, n_box: iarr, frozen: iarr, f0: farr, v0: farr, P: farr, lo_s: farr, hi_s: farr, ct_mu: farr,
+        row_info: iarr,
+        # out
+        x: farr, x_p: farr, y_p: farr, y_hat: farr, z_p: farr, z_hat: farr,
+        p_ref: farr, rho_u: farr, pending: iarr, iters: iarr, r_p: farr, r_d: farr, r_c: farr,
+        a_p: farr, c_p: farr, it_cap: iarr, k_rho: iarr, converged: iarr, done: iarr, remaining: iarr,
+        sdiag: farr, D: farr,
+    ):
         """``x0 = Pi_K(impulse0 / P)``, ``z0 = P v0``, the world's penalty and residual scale, and with
         ``factorize`` the dense factor (``factor_dense``)."""
-        rs = w.row_stride
+        rs = row_stride
         wid = wp.tid()
-        rb = row_base(m, w.row_stride, wid)
-        n = w.n_rows[wid]
-        p_ref = scalar(0.0)
+        rb = row_base(m, row_stride, wid)
+        n = n_rows[wid]
+        pref = scalar(0.0)
         for a in range(n):
             r = rb + a * rs
-            w.x[r] = impulse_scale * w.f0[r] / w.P[r]
-            w.z_p[r] = scalar(0.0)
-            if use_velocity != 0:
-                w.z_p[r] = w.P[r] * w.v0[r]
-            w.z_hat[r] = w.z_p[r]
-            p_ref = wp.max(p_ref, w.P[r])
-        if p_ref <= scalar(0.0):
-            p_ref = scalar(1.0)
-        w.p_ref[wid] = p_ref
-        if adaptive == 0 or not (w.rho_u[wid] > scalar(0.0)):
-            w.rho_u[wid] = rho0
-        w.pending[wid] = 0
-        project_into(m, w, wid, w.n_box[wid], n, w.x, w.x, scalar(0.0), w.x_p)
+            x[r] = impulse_scale * f0[r] / P[r]
+            z_p[r] = scalar(0.0)
+            if wp.static(use_velocity):
+                z_p[r] = P[r] * v0[r]
+            z_hat[r] = z_p[r]
+            pref = wp.max(pref, P[r])
+        if pref <= scalar(0.0):
+            pref = scalar(1.0)
+        p_ref[wid] = pref
+        if wp.static(adaptive):
+            if not (rho_u[wid] > scalar(0.0)):
+                rho_u[wid] = rho0
+        else:
+            rho_u[wid] = rho0
+        pending[wid] = 0
+        project_into(m, row_stride, lo_s, hi_s, ct_mu, row_info, wid, n_box[wid], n, x, x, scalar(0.0), x_p)
         for a in range(n):
             r = rb + a * rs
-            w.y_p[r] = w.x_p[r]
-            w.y_hat[r] = w.x_p[r]
-        w.iters[wid] = 0
-        w.r_p[wid] = scalar(0.0)
-        w.r_d[wid] = scalar(0.0)
-        w.r_c[wid] = scalar(0.0)
-        restart_world(w, wid, 0, max_iterations)
-        if factorize != 0:
-            factor_dense(m, w, wid, n, eta)
+            y_p[r] = x_p[r]
+            y_hat[r] = x_p[r]
+        iters[wid] = 0
+        r_p[wid] = scalar(0.0)
+        r_d[wid] = scalar(0.0)
+        r_c[wid] = scalar(0.0)
+        restart_world(n_rows, frozen, a_p, c_p, it_cap, k_rho, converged, done, remaining, wid, 0, max_iterations)
+        if wp.static(factorize):
+            factor_dense(m, row_stride, rho_u, sdiag, D, wid, n, eta)
 
     return padmm_init
 
@@ -496,23 +608,27 @@ def padmm_init_kernel(np_dtype):
 @functools.cache
 def restart_world_func(np_dtype):
     """A world's PADMM state at a (re)start.
-    ``restart_world(w, wid, k, max_iterations)`` (``padmm_init``, ``padmm_resume``)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``restart_world(n_rows, frozen, a_p, c_p, it_cap, k_rho, converged, done, remaining, wid, k, max_iterations)``
+    (``padmm_init``, ``padmm_resume``)."""
+    scalar = builder_types(np_dtype).scalar
+    iarr = wp.array(dtype=wp.int32)
     big = scalar(float(np.finfo(np_dtype).max))
 
     @wp.func
-    def restart_world(w: Work, wid: int, k: int, max_iterations: int):
+    def restart_world(n_rows: iarr, frozen: iarr, a_p: wp.array(dtype=scalar), c_p: wp.array(dtype=scalar),
+                      it_cap: iarr, k_rho: iarr, converged: iarr, done: iarr, remaining: iarr, wid: int, k: int,
+                      max_iterations: int):
         """No momentum, the penalty unchanged since iteration ``k``, at most ``max_iterations`` iterations more; a
         world with no rows is done and converged, a frozen one done and not (neither iterates)."""
-        n = w.n_rows[wid]
-        w.a_p[wid] = scalar(1.0)
-        w.c_p[wid] = big
-        w.it_cap[wid] = k + max_iterations
-        w.k_rho[wid] = k
-        w.converged[wid] = int(n == 0 and w.frozen[wid] == 0)
-        w.done[wid] = int(n == 0 or w.frozen[wid] != 0)
-        if w.done[wid] != 0:
-            wp.atomic_sub(w.remaining, 0, 1)
+        n = n_rows[wid]
+        a_p[wid] = scalar(1.0)
+        c_p[wid] = big
+        it_cap[wid] = k + max_iterations
+        k_rho[wid] = k
+        converged[wid] = int(n == 0 and frozen[wid] == 0)
+        done[wid] = int(n == 0 or frozen[wid] != 0)
+        if done[wid] != 0:
+            wp.atomic_sub(remaining, 0, 1)
 
     return restart_world
 
@@ -520,8 +636,11 @@ def restart_world_func(np_dtype):
 @functools.cache
 def linear_step_func(np_dtype, linear: int):
     """§7.3 steps 1-2 of one thread per world: the right-hand side and the linear solve ``linear``
-    (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``: ``linear_solve.py``) of one iteration."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``: ``linear_solve.py``) of one iteration.
+    ``linear_step(m, sp, row_stride, <the Work arrays it reads>, x, y, cr_r, cr_p, cr_Ap, cr_Ar, cr_w, wid, rb, n,
+    n_box, nblk, eta, rho_free, rho_box, rho_u, cr_budget)``."""
+    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_penalty = rules.row_penalty_func(np_dtype)
     row_rhs = rules.row_rhs_func(np_dtype)
     contact_correction = rules.contact_correction_func(np_dtype)
@@ -530,27 +649,33 @@ def linear_step_func(np_dtype, linear: int):
     cho_solve_inplace = cho_solve_func(np_dtype)
 
     @wp.func
-    def linear_step(m: M, w: Work, sp: SP, wid: int, rb: int, n: int, n_box: int, nblk: int, eta: scalar,
-                    rho_free: scalar, rho_box: scalar, rho_u: scalar, cr_budget: int):
+    def linear_step(m: M, sp: SP, row_stride: int, row_body: iarr, row_J: wp.array(dtype=vec6), row_info: iarr,
+                    reg: farr, P: farr, inv_inertia_w: wp.array(dtype=mat33), cr_ent: iarr, cr_end: iarr, ct_mu: farr,
+                    vt: farr, x_p: farr, y_hat: farr, z_hat: farr, D: farr, x: farr, y: farr, cr_r: farr, cr_p: farr,
+                    cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6), wid: int, rb: int, n: int, n_box: int,
+                    nblk: int, eta: scalar, rho_free: scalar, rho_box: scalar, rho_u: scalar, cr_budget: int):
         """``x`` of the iteration: the right-hand side (the De Saxcé correction ``Gamma(z_hat)`` on the contacts'
-        normal rows) into ``x`` for the in-place factor solves, into ``y`` as CR's, then the solve."""
-        rs = w.row_stride
+        normal rows) into ``x`` for the in-place factor solves, into ``y`` as CR's, then the solve (CR's scratch
+        ``cr_*``)."""
+        rs = row_stride
         nf = m.row_fixed[wid]
-        rhs = w.x
+        rhs = x
         if wp.static(linear == LINEAR_CR):
-            rhs = w.y
+            rhs = y
         for a in range(n):
             r = rb + a * rs
-            rhs[r] = row_rhs(w, r, row_penalty(w, r, a, nf, rho_free, rho_box, rho_u), eta)
+            rhs[r] = row_rhs(vt, x_p, y_hat, z_hat, r, row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u), eta)
         for c in range((n - n_box) // 3):
             r = rb + (n_box + 3 * c) * rs
-            rhs[r + 2 * rs] -= contact_correction(w, r, rs)
+            rhs[r + 2 * rs] -= contact_correction(ct_mu, row_info, z_hat, r, rs)
         if wp.static(linear == LINEAR_CR):
-            cr_solve(m, w, wid, rb, n, nblk, 0, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
+            cr_solve(m, row_stride, row_body, row_J, row_info, reg, P, inv_inertia_w, cr_ent, cr_end, x_p, y, wid, rb,
+                     n, nblk, 0, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget, x, cr_r, cr_p, cr_Ap, cr_Ar,
+                     cr_w)
         elif wp.static(linear == LINEAR_SPARSE):
-            sparse_solve(m, w, sp, wid, n)
+            sparse_solve(m, sp, row_stride, wid, n, x)
         else:
-            cho_solve_inplace(m, w, wid, n)
+            cho_solve_inplace(m, row_stride, D, x, wid, n)
 
     return linear_step
 
@@ -558,9 +683,11 @@ def linear_step_func(np_dtype, linear: int):
 @functools.cache
 def project_rows_func(np_dtype, linear: int, adaptive: bool):
     """§7.3 steps 3-4 of one thread per world: every row's projection, dual update and residual terms.
-    ``project_rows(m, w, wid, rb, n, n_box, eta, rho_free, rho_box, rho_u, p_ref)`` returns the world's
-    ``solver_rules.residuals_struct``; ``linear`` and ``adaptive`` as :func:`padmm_iterate_kernel`'s."""
-    scalar, M, Work, SP, vec3 = builder_types(np_dtype).take("scalar", "M", "Work", "SP", "vec3")
+    ``project_rows(m, row_stride, row_info, lo_s, hi_s, ct_mu, x, x_p, y_hat, z_hat, P, cr_r, y, z, e_p, wid, rb, n,
+    n_box, eta, rho_free, rho_box, rho_u, p_ref)`` returns the world's ``solver_rules.residuals_struct``; ``linear``
+    and ``adaptive`` as :func:`padmm_iterate_kernel`'s."""
+    scalar, M, vec3 = builder_types(np_dtype).take("scalar", "M", "vec3")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     Residuals = rules.residuals_struct(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
     box_row = rules.box_row_func(np_dtype, adaptive)
@@ -568,22 +695,27 @@ def project_rows_func(np_dtype, linear: int, adaptive: bool):
     cr_residual = rules.cr_residual_func(np_dtype)
 
     @wp.func
-    def project_rows(m: M, w: Work, wid: int, rb: int, n: int, n_box: int, eta: scalar, rho_free: scalar,
-                     rho_box: scalar, rho_u: scalar, p_ref: scalar) -> Residuals:
-        """The box rows, then the contact triples (``x`` in ``w.x``); under CR the inner solve's residual too."""
-        rs = w.row_stride
+    def project_rows(m: M, row_stride: int, row_info: iarr, lo_s: farr, hi_s: farr, ct_mu: farr, x: farr,
+                     x_p: farr, y_hat: farr, z_hat: farr, P: farr, cr_r: farr, y: farr, z: farr, e_p: farr, wid: int,
+                     rb: int, n: int, n_box: int, eta: scalar, rho_free: scalar, rho_box: scalar, rho_u: scalar,
+                     p_ref: scalar) -> Residuals:
+        """The box rows, then the contact triples (the linear solve's ``x``), into ``y``, ``z`` (and ``e_p``);
+        under CR the inner solve's residual ``cr_r`` too."""
+        rs = row_stride
         nf = m.row_fixed[wid]
         acc = Residuals()
         for a in range(n_box):
             r = rb + a * rs
-            acc = box_row(w, r, a, nf, w.x[r], row_penalty(w, r, a, nf, rho_free, rho_box, rho_u), eta, p_ref, acc)
+            acc = box_row(row_info, lo_s, hi_s, x_p, y_hat, z_hat, P, y, z, e_p, r, a, nf, x[r],
+                          row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u), eta, p_ref, acc)
         inv_rho = scalar(1.0) / rho_u
         for c in range((n - n_box) // 3):
             r = rb + (n_box + 3 * c) * rs
-            acc = contact_rows(w, r, rs, vec3(w.x[r], w.x[r + rs], w.x[r + 2 * rs]), inv_rho, rho_u, eta, p_ref, acc)
+            acc = contact_rows(ct_mu, row_info, z_hat, x, x_p, y_hat, P, y, z, r, rs,
+                               vec3(x[r], x[r + rs], x[r + 2 * rs]), inv_rho, rho_u, eta, p_ref, acc)
         if wp.static(linear == LINEAR_CR):
             for a in range(n):
-                acc = cr_residual(w, rb + a * rs, p_ref, acc)
+                acc = cr_residual(P, cr_r, rb + a * rs, p_ref, acc)
         return acc
 
     return project_rows
@@ -596,7 +728,8 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
     momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
     if linear not in (LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE):
         raise ValueError(f"padmm_iterate_kernel: linear must be LINEAR_DENSE, LINEAR_CR or LINEAR_SPARSE, got {linear}")
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_base = index_funcs(np_dtype).row_base
     linear_step = linear_step_func(np_dtype, linear)
     project_rows = project_rows_func(np_dtype, linear, adaptive)
@@ -608,52 +741,72 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
     factor_tail_dense = factor_tail_dense_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar,
-                      rho_box: scalar, tol: scalar, restart_tol: scalar):
+    def padmm_iterate(
+        # model (read only)
+        m: M,
+        # in
+        chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar, rho_box: scalar, tol: scalar,
+        restart_tol: scalar,
+        row_stride: int,
+        n_rows: iarr, n_box: iarr, p_ref: farr, it_cap: iarr, row_body: iarr, row_J: wp.array(dtype=vec6),
+        reg: farr, P: farr, inv_inertia_w: wp.array(dtype=mat33), cr_ent: iarr, cr_end: iarr, ct_mu: farr, vt: farr,
+        lo_s: farr, hi_s: farr, sdiag: farr,
+        # out
+        sp: SP,  # the factor's tail values sp.tail under LINEAR_SPARSE (a new penalty); its index tables are read
+        row_info: iarr,  # also read
+        x: farr, y: farr, z: farr, x_p: farr, y_p: farr, z_p: farr, y_hat: farr, z_hat: farr, e_p: farr,
+        cr_r: farr, cr_p: farr, cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6),
+        D: farr,
+        rho_u: farr, k_rho: iarr, pending: iarr, a_p: farr, c_p: farr, iters: iarr, r_p: farr, r_d: farr, r_c: farr,
+        converged: iarr, done: iarr, remaining: iarr,
+    ):
         """Up to ``chunk`` iterations of one world (``padmm.solve`` of the JAX reference, its penalty rule and
         residuals included), resuming from the stored iterate; a world that converges (unless
         ``fixed_iterations``) or reaches its iteration cap ``it_cap`` is marked done and leaves ``remaining``. The
         fixed rows carry the penalty ``rho_free`` (``rho_box`` on a saturated effort-limited actuator), the limit and
         contact rows the world's ``rho_u``, rebalanced under ``adaptive`` (then the tail of the factor is
-        recomputed). A row that saturates ends the launch with ``w.pending`` set: ``refactor`` (or
+        recomputed). A row that saturates ends the launch with ``pending`` set: ``refactor`` (or
         ``refactor_dense``) redoes the factor before the next launch (kamino.jax_ref.solver.solve, "Saturation");
         CR's operator takes ``rho_box`` at its next solve."""
-        rs = w.row_stride
+        rs = row_stride
         wid = wp.tid()
-        rb = row_base(m, w.row_stride, wid)
-        if w.done[wid] != 0:
+        rb = row_base(m, row_stride, wid)
+        if done[wid] != 0:
             return
-        n = w.n_rows[wid]
-        n_box = w.n_box[wid]
+        n = n_rows[wid]
+        nb = n_box[wid]
         nf = m.row_fixed[wid]
-        p_ref = w.p_ref[wid]
-        rho_u = w.rho_u[wid]
+        pref = p_ref[wid]
+        rho_w = rho_u[wid]
         for step in range(chunk):
-            linear_step(m, w, sp, wid, rb, n, n_box, nblk, eta, rho_free, rho_box, rho_u, cr_budget)
-            acc = project_rows(m, w, wid, rb, n, n_box, eta, rho_free, rho_box, rho_u, p_ref)
-            k = w.iters[wid] + 1
-            res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
-            if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
-                rho_u = res.rho
-                w.rho_u[wid] = rho_u
-                w.k_rho[wid] = k
+            linear_step(m, sp, row_stride, row_body, row_J, row_info, reg, P, inv_inertia_w, cr_ent, cr_end, ct_mu, vt,
+                        x_p, y_hat, z_hat, D, x, y, cr_r, cr_p, cr_Ap, cr_Ar, cr_w, wid, rb, n, nb, nblk, eta,
+                        rho_free, rho_box, rho_w, cr_budget)
+            acc = project_rows(m, row_stride, row_info, lo_s, hi_s, ct_mu, x, x_p, y_hat, z_hat, P, cr_r, y, z, e_p,
+                               wid, rb, n, nb, eta, rho_free, rho_box, rho_w, pref)
+            k = iters[wid] + 1
+            res = outcome(a_p, c_p, k_rho, wid, acc, k, n, nf, rho_w, tol, eta, rho_free, restart_tol)
+            if res.rho != rho_w:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
+                rho_w = res.rho
+                rho_u[wid] = rho_w
+                k_rho[wid] = k
                 if wp.static(linear == LINEAR_SPARSE):
                     if res.saturates == 0:
-                        factor_tail_sparse(m, w, sp, wid, n, eta + rho_u)
+                        factor_tail_sparse(m, sp, row_stride, wid, n, eta + rho_w)
                 elif wp.static(linear == LINEAR_DENSE):
                     if res.saturates == 0:
-                        factor_tail_dense(m, w, wid, n, eta + rho_u)
+                        factor_tail_dense(m, row_stride, sdiag, D, wid, n, eta + rho_w)
             if res.saturates != 0:  # rho_box on the rows that saturate; the factor is redone after this launch
                 for a in range(nf):
-                    mark_saturated(w, rb + a * rs, rho_free)
-                w.k_rho[wid] = k
+                    mark_saturated(lo_s, hi_s, x, z_hat, y, row_info, rb + a * rs, rho_free)
+                k_rho[wid] = k
                 if wp.static(linear != LINEAR_CR):
-                    w.pending[wid] = 1
+                    pending[wid] = 1
             for a in range(n):
-                advance_row(w, rb + a * rs, w.x[rb + a * rs], res.mom)
-            done = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= w.it_cap[wid]
-            store_world(w, wid, k, acc, res, done)
-            if done or w.pending[wid] != 0:
+                advance_row(y, z, x_p, y_p, z_p, y_hat, z_hat, rb + a * rs, x[rb + a * rs], res.mom)
+            finished = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= it_cap[wid]
+            store_world(a_p, c_p, iters, r_p, r_d, r_c, converged, done, remaining, wid, k, acc, res, finished)
+            if finished or pending[wid] != 0:
                 return
 
     return padmm_iterate
@@ -662,22 +815,35 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
 @functools.cache
 def padmm_resume_kernel(np_dtype):
     """PADMM again from its last iterate, after the right-hand side changed (curvature refinement).
-    ``padmm_resume(m, w, max_iterations)``, one thread per world."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``padmm_resume(m, max_iterations, row_stride, n_rows, frozen, iters, y_p, z_p, y_hat, z_hat, a_p, c_p, it_cap,
+    k_rho, converged, done, remaining)``, one thread per world."""
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_base = index_funcs(np_dtype).row_base
     restart_world = restart_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_resume(m: M, w: Work, max_iterations: int):
+    def padmm_resume(
+        # model (read only)
+        m: M,
+        # in
+        max_iterations: int,
+        row_stride: int,
+        n_rows: iarr, frozen: iarr, iters: iarr, y_p: farr, z_p: farr,
+        # out
+        y_hat: farr, z_hat: farr, a_p: farr, c_p: farr, it_cap: iarr, k_rho: iarr, converged: iarr, done: iarr,
+        remaining: iarr,
+    ):
         """Restart from the last iterate (``y_hat = y``, ``z_hat = z``, no momentum) for up to ``max_iterations``
         more iterations."""
-        rs = w.row_stride
+        rs = row_stride
         wid = wp.tid()
-        rb = row_base(m, w.row_stride, wid)
-        for a in range(w.n_rows[wid]):
-            w.y_hat[rb + a * rs] = w.y_p[rb + a * rs]
-            w.z_hat[rb + a * rs] = w.z_p[rb + a * rs]
-        restart_world(w, wid, w.iters[wid], max_iterations)
+        rb = row_base(m, row_stride, wid)
+        for a in range(n_rows[wid]):
+            y_hat[rb + a * rs] = y_p[rb + a * rs]
+            z_hat[rb + a * rs] = z_p[rb + a * rs]
+        restart_world(n_rows, frozen, a_p, c_p, it_cap, k_rho, converged, done, remaining, wid, iters[wid],
+                      max_iterations)
 
     return padmm_resume
 
@@ -685,40 +851,56 @@ def padmm_resume_kernel(np_dtype):
 @functools.cache
 def padmm_finish_kernel(np_dtype):
     """PADMM's impulses and velocities, unscaled (§7.7).
-    ``padmm_finish(m, w)``, one thread per row slot."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``padmm_finish(m, row_stride, n_rows, n_box, P, y_p, z_p, ct_mu, row_info, impulse, velocity, failed)``, one
+    thread per row slot."""
+    scalar, M = builder_types(np_dtype).take("scalar", "M")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_mu = index_funcs(np_dtype).row_mu
     de_saxce = cone_funcs(np_dtype).de_saxce
     world_row = world_row_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def padmm_finish(m: M, w: Work):
+    def padmm_finish(
+        # model (read only)
+        m: M,
+        # in
+        row_stride: int,
+        n_rows: iarr, n_box: iarr, P: farr, y_p: farr, z_p: farr, ct_mu: farr, row_info: iarr,
+        # out
+        impulse: farr, velocity: farr, failed: iarr,
+    ):
         """``lambda = P y``, ``v+ = (z - Gamma(z)) / P``; a non-finite impulse fails the world."""
-        rs = w.row_stride
+        rs = row_stride
         wid, a = wp.tid()
-        r = world_row(m, w, wid, a)
+        r = world_row(m, row_stride, n_rows, wid, a)
         if r < 0:
             return
-        n_box = w.n_box[wid]
-        Pa = w.P[r]
-        lam = Pa * w.y_p[r]
-        z = w.z_p[r]
-        if a >= n_box and (a - n_box) % 3 == 2:
-            z -= de_saxce(w.z_p[r - 2 * rs], w.z_p[r - rs], row_mu(w.ct_mu, w.row_info, r))
-        w.impulse[r] = lam
-        w.velocity[r] = z / Pa
+        nb = n_box[wid]
+        Pa = P[r]
+        lam = Pa * y_p[r]
+        z = z_p[r]
+        if a >= nb and (a - nb) % 3 == 2:
+            z -= de_saxce(z_p[r - 2 * rs], z_p[r - rs], row_mu(ct_mu, row_info, r))
+        impulse[r] = lam
+        velocity[r] = z / Pa
         if not wp.isfinite(lam):
-            w.failed[wid] = 1
+            failed[wid] = 1
 
     return padmm_finish
 
 
-def solver_kernels(np_dtype) -> SimpleNamespace:
-    """The one-thread-per-world kernels of a step that depend on the precision alone (``padmm_iterate_kernel``
-    takes the linear solve and the penalty rule too)."""
-    return SimpleNamespace(count_rows=count_rows_kernel(np_dtype), prebake=prebake_kernel(np_dtype),
+def solver_kernels(np_dtype, dense: bool, assembled: bool, always_sat: bool, use_velocity: bool,
+                   adaptive: bool) -> SimpleNamespace:
+    """The one-thread-per-world kernels of a step (``padmm_iterate_kernel`` takes the linear solve and the penalty
+    rule), with the stepper's compile-time modes: ``dense``, the dense per-world ``J`` (``prebake``); ``assembled``,
+    the dense Delassus matrix (``precondition``, ``scale``, ``padmm_init``'s factor); ``always_sat``, every
+    effort-limited row starts saturated (``scale``: the CR path); ``use_velocity``, the warm start's velocity
+    (``padmm_init``); ``adaptive``, the adaptive penalty (``padmm_init``)."""
+    return SimpleNamespace(count_rows=count_rows_kernel(np_dtype), prebake=prebake_kernel(np_dtype, dense),
                            delassus_sparse=delassus_sparse_kernel(np_dtype),
-                           delassus_dense=delassus_dense_kernel(np_dtype), precondition=precondition_kernel(np_dtype),
-                           scale=scale_kernel(np_dtype), padmm_init=padmm_init_kernel(np_dtype),
+                           delassus_dense=delassus_dense_kernel(np_dtype),
+                           precondition=precondition_kernel(np_dtype, assembled),
+                           scale=scale_kernel(np_dtype, assembled, always_sat),
+                           padmm_init=padmm_init_kernel(np_dtype, use_velocity, assembled, adaptive),
                            padmm_resume=padmm_resume_kernel(np_dtype), refactor_dense=refactor_dense_kernel(np_dtype),
                            padmm_finish=padmm_finish_kernel(np_dtype))

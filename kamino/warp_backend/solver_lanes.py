@@ -17,7 +17,7 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   entries; each entry's index in ``L_f``'s row order, ``cent``, is loaded two columns ahead, so that the value waits
   on no index load), the backward one walks its rows (``x_p``, then the entries of row ``p`` update the rows above);
   the tail's dense rows likewise, and the tail's share of the fixed rows is one parallel pass. One barrier per row;
-  the right-hand side is updated in ``w.y`` (free during the solve) and the solution lands in ``w.x``.
+  the right-hand side is updated in ``Work.y`` (free during the solve) and the solution lands in ``Work.x``.
   docs/warp_backend.md, "Where a PADMM iteration's time goes", has what each load ordering cost.
 - **Iterations** (:func:`iterate_kernel`). Every rule of an iteration (right-hand side, projection, dual update,
   residuals, the penalty of the limit and contact rows, the null-direction test, momentum) is ``solver_rules.py``'s,
@@ -123,7 +123,7 @@ def shared_get_func(np_dtype, length: int):
 def staged_get_func(np_dtype, E: int):
     """Read an entry of the world's ``D~_f`` / ``L_f``, staged in shared memory (``E > 0`` entries) or in device
     memory."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
     LVec = shared_vector(np_dtype, max(E, 1))
     lget = shared_get_func(np_dtype, max(E, 1))
 
@@ -141,7 +141,7 @@ def staged_get_func(np_dtype, E: int):
 def staged_set_func(np_dtype, E: int):
     """Write an entry of the world's ``L_f`` (staged, or in device memory: :func:`staged_get_func`).
     ``fset(sp, vb, k, v, lv)``, ``lv`` the staged copy (unused when ``E = 0``)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
     LVec = shared_vector(np_dtype, max(E, 1))
     lset = shared_set_func(np_dtype, max(E, 1))
 
@@ -193,7 +193,7 @@ def fan_out_func(np_dtype, E: int):
 def ltf_batch_func(np_dtype, E: int):
     """A batch of the tail rows' ``L_tf`` updates (``linear_solve.factor_world``'s sums).
     ``ltf_batch(sp, vb, tr, tc, ub, u1, s, lv)``: FAN_BATCH update pairs of one entry of ``L_tf``."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
     LVec = shared_vector(np_dtype, max(E, 1))
     fget = staged_get_func(np_dtype, E)
     FanVal = wp.types.vector(length=FAN_BATCH, dtype=scalar)
@@ -224,21 +224,21 @@ def ltf_batch_func(np_dtype, E: int):
 @functools.cache
 def factor_tail_func(np_dtype):
     """The tail rows' dense Cholesky for a penalty (``kamino.jax_ref.solver.solve``, "Penalty").
-    ``factor_tail(m, w, sp, wid, n, shift, lane)``: by the world's threads (``factor_kernel`` and a new
-    penalty in :func:`iterate_kernel`)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``factor_tail(m, sp, row_stride, wid, n, shift, lane)``: by the world's threads (``factor_kernel`` and a new
+    penalty in :func:`iterate_kernel`), into ``sp.tail``."""
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
     bases = sparse_llt_kernels(np_dtype).bases
     tail_k = sparse_llt_kernels(np_dtype).tail_k
     sdiag_col = sparse_llt_kernels(np_dtype).sdiag_col
     tail_dot = rules.tail_dot_func(np_dtype)
 
     @wp.func
-    def factor_tail(m: M, w: Work, sp: SP, wid: int, n: int, shift: scalar, lane: int):
+    def factor_tail(m: M, sp: SP, row_stride: int, wid: int, n: int, shift: scalar, lane: int):
         """``L_t = chol(S_t + shift I)`` by columns (left-looking: the entries of column ``j`` are independent dot
         products over the columns before it, :func:`solver_rules.tail_dot_func`), from ``S_t`` in the tail rows'
         upper slots (``S_t[t, j]`` at row ``j``, tail column ``K + t``) and its diagonal (column
         ``linear_solve.sdiag_col``); the sums of ``linear_solve.factor_tail``."""
-        base = bases(m, w, sp, wid)
+        base = bases(m, sp, row_stride, wid)
         nt = n - sp.n_fixed[wid]
         kt = tail_k(sp, wid)
         col = sp.tail_stride  # the distance between a tail row's slots
@@ -257,8 +257,12 @@ def factor_tail_func(np_dtype):
 
 @functools.cache
 def factor_kernel(np_dtype, E: int = 0):
-    """Cholesky ``D~ = L L^T`` with the world's 32 threads (§8.1); with ``E > 0`` ``L_f`` staged in shared memory."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    """Cholesky ``D~ = L L^T`` with the world's 32 threads (§8.1); with ``E > 0`` ``L_f`` staged in shared memory.
+    ``factor(m, eta, pending_only, nblk, shift, shift_sat, row_stride, n_rows, row_body, row_J, row_info, ct_pair,
+    reg, P, inertia_w, inv_inertia_w, rho_u, pending, sp)``, launched tiled: one block of ``LANES`` threads per
+    world."""
+    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     bases = sparse_llt_kernels(np_dtype).bases
     schur_entry = sparse_llt_kernels(np_dtype).schur_entry
     fixed_entry = sparse_llt_kernels(np_dtype).fixed_entry
@@ -273,22 +277,34 @@ def factor_kernel(np_dtype, E: int = 0):
     zero = scalar(0.0)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def factor(m: M, w: Work, sp: SP, eta: scalar, pending_only: int, nblk: int, shift: scalar, shift_sat: scalar):
+    def factor(
+        # model (read only)
+        m: M,
+        # in
+        eta: scalar, pending_only: int, nblk: int, shift: scalar, shift_sat: scalar,
+        row_stride: int,
+        n_rows: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), row_info: iarr, ct_pair: iarr, reg: farr, P: farr,
+        inertia_w: wp.array(dtype=mat33), inv_inertia_w: wp.array(dtype=mat33), rho_u: farr,
+        # out
+        pending: iarr,  # also read
+        sp: SP,  # the factor values sp.val, sp.tail and sp.tail_pat (the pattern's index tables are read)
+    ):
         """Cholesky ``D~ = L L^T`` in place (§8.1) with the world's 32 threads: the fixed rows by columns (fan-out
         updates), then the tail rows' ``L_tf``, their Schur complement and ``factor_tail`` with the world's
         penalty ``eta + rho_u``. With ``pending_only`` only the worlds whose effort-limited rows saturated in the
-        last PADMM iteration (``w.pending``), which first assemble ``D~`` again with the shifts ``shift`` /
+        last PADMM iteration (``pending``), which first assemble ``D~`` again with the shifts ``shift`` /
         ``shift_sat`` (``linear_solve.refactor``; kamino.jax_ref.solver.solve, "Saturation")."""
         wid, lane = wp.tid()
         if pending_only != 0:
-            if w.pending[wid] == 0:
+            if pending[wid] == 0:
                 return
             for k in range(lane, sp.nnz[wid], LANES):
-                fixed_entry(m, w, sp, wid, k, nblk, shift, shift_sat)
-            for a in range(sp.n_fixed[wid] + lane, w.n_rows[wid], LANES):
-                tail_row(m, w, sp, wid, a, nblk)
+                fixed_entry(m, sp, row_stride, row_body, row_J, row_info, reg, P, inertia_w, inv_inertia_w, wid, k,
+                            nblk, shift, shift_sat)
+            for a in range(sp.n_fixed[wid] + lane, n_rows[wid], LANES):
+                tail_row(m, sp, row_stride, row_body, row_J, row_info, ct_pair, reg, P, inv_inertia_w, wid, a, nblk)
             sync()
-        base = bases(m, w, sp, wid)
+        base = bases(m, sp, row_stride, wid)
         rb, vb, tb, ts = base[0], base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -366,7 +382,7 @@ def factor_kernel(np_dtype, E: int = 0):
             for k in range(lane, nnz, LANES):
                 sp.val[vb + k * sp.val_stride] = lget(lv, k)
         sync()
-        n = w.n_rows[wid]
+        n = n_rows[wid]
         nt = n - nf
         for t in range(lane, nt, LANES):  # L_tf: row t solves L_f l = D~_ft over its pattern (each thread its rows)
             tr = tb + t * ts
@@ -398,15 +414,15 @@ def factor_kernel(np_dtype, E: int = 0):
             j -= t + 1
             t += 1
         while t < nt:
-            schur_entry(w, sp, wid, rb, tb, ts, nf, t, j)
+            schur_entry(sp, wid, rb, tb, ts, nf, t, j)
             j += LANES
             while j > t:
                 j -= t + 1
                 t += 1
         sync()
-        factor_tail(m, w, sp, wid, n, eta + w.rho_u[wid], lane)
+        factor_tail(m, sp, row_stride, wid, n, eta + rho_u[wid], lane)
         if pending_only != 0 and lane == 0:
-            w.pending[wid] = 0
+            pending[wid] = 0
 
     return factor
 
@@ -416,8 +432,9 @@ def factor_kernel(np_dtype, E: int = 0):
 @functools.cache
 def solve_func(np_dtype, R: int):
     """The solve with the sparse factor and its tail by the world's threads (§8.1).
-    ``solve(m, w, sp, wid, n, lane, xs, ys)``, the vectors in shared memory (:func:`shared_vector` of ``R``)."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``solve(m, sp, row_stride, wid, n, lane, xs, ys)``, the vectors in shared memory (:func:`shared_vector` of
+    ``R``)."""
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
     Vec = shared_vector(np_dtype, R)
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
     bases = sparse_llt_kernels(np_dtype).bases
@@ -426,7 +443,7 @@ def solve_func(np_dtype, R: int):
     zero = scalar(0.0)
 
     @wp.func
-    def solve(m: M, w: Work, sp: SP, wid: int, n: int, lane: int, xs: Vec, ys: Vec):
+    def solve(m: M, sp: SP, row_stride: int, wid: int, n: int, lane: int, xs: Vec, ys: Vec):
         """``x <- L^-T L^-1 x`` with ``L_tf`` on its patterns and ``L_t`` dense, by column sweeps: one barrier per
         row (``linear_solve.solve_inplace``, the same products in another order; with hubs ``x <- L^-T S L^-1 x``, the
         hubs' unknowns in their virtual rows of ``xs`` / ``ys``). ``xs`` holds the right-hand side on entry and the
@@ -434,7 +451,7 @@ def solve_func(np_dtype, R: int):
         entries are loaded before the barrier of the current one, unconditionally (clamped indices), so that their
         latency overlaps the barrier instead of preceding it (docs/warp_backend.md, "Where it goes, measured part by
         part")."""
-        base = bases(m, w, sp, wid)
+        base = bases(m, sp, row_stride, wid)
         vb, tb, ts = base[1], base[2], base[3]
         tc = sp.tail_stride
         nf = sp.n_fixed[wid]
@@ -586,30 +603,42 @@ def solve_func(np_dtype, R: int):
 @functools.cache
 def solve_fixed_kernel(np_dtype, R: int):
     """Post-stabilisation's solve with the fixed rows' factor, 32 threads per world.
-    ``solve_fixed(m, w, sp, extra)``, launched tiled: one block of ``LANES`` threads per world."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``solve_fixed(m, extra, row_stride, sp, converged, reproject, P, x)``, launched tiled: one block of ``LANES``
+    threads per world."""
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
     bases = sparse_llt_kernels(np_dtype).bases
     solve = solve_func(np_dtype, R)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def solve_fixed(m: M, w: Work, sp: SP, extra: int):
+    def solve_fixed(
+        # model (read only)
+        m: M,
+        # in
+        extra: int,
+        row_stride: int,
+        sp: SP,  # the fixed rows' sparse factor (tables and values, read)
+        converged: iarr, reproject: iarr, P: farr,
+        # out
+        x: farr,  # also read
+    ):
         """``post_stabilisation.solve`` on this schedule: ``lambda = P (P D_ff P + s I)^-1 x`` into ``x``; in the
         ``extra`` pass only where PADMM did not converge or ``reproject`` is set."""
-        rs = w.row_stride
+        rs = row_stride
         wid, lane = wp.tid()
-        if extra != 0 and w.converged[wid] != 0 and w.reproject[wid] == 0:
+        if extra != 0 and converged[wid] != 0 and reproject[wid] == 0:
             return
-        rb = bases(m, w, sp, wid)[0]
+        rb = bases(m, sp, row_stride, wid)[0]
         nf = sp.n_fixed[wid]
         xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         for a in range(lane, nf, LANES):
-            sset(xs, a, w.x[rb + a * rs])
+            sset(xs, a, x[rb + a * rs])
         sync()
-        solve(m, w, sp, wid, nf, lane, xs, ys)
+        solve(m, sp, row_stride, wid, nf, lane, xs, ys)
         for a in range(lane, nf, LANES):
-            w.x[rb + a * rs] = w.P[rb + a * rs] * sget(xs, a)
+            x[rb + a * rs] = P[rb + a * rs] * sget(xs, a)
 
     return solve_fixed
 
@@ -619,22 +648,24 @@ def solve_fixed_kernel(np_dtype, R: int):
 @functools.cache
 def lane_rhs_func(np_dtype):
     """§7.3 steps 1-2 on one row of the 32-thread schedule.
-    ``lane_rhs(w, r, a, nf, n_box, rho_free, rho_box, rho_u, eta)``: ``solver_rules.row_rhs_func``, then the
-    contact correction on a normal row."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``lane_rhs(row_stride, row_info, ct_mu, vt, x_p, y_hat, z_hat, r, a, nf, n_box, rho_free, rho_box, rho_u, eta)``:
+    ``solver_rules.row_rhs_func``, then the contact correction on a normal row."""
+    scalar = builder_types(np_dtype).scalar
+    farr = wp.array(dtype=scalar)
     row_penalty = rules.row_penalty_func(np_dtype)
     row_rhs = rules.row_rhs_func(np_dtype)
     contact_correction = rules.contact_correction_func(np_dtype)
 
     @wp.func
-    def lane_rhs(w: Work, r: int, a: int, nf: int, n_box: int, rho_free: scalar, rho_box: scalar, rho_u: scalar,
+    def lane_rhs(row_stride: int, row_info: wp.array(dtype=wp.int32), ct_mu: farr, vt: farr, x_p: farr, y_hat: farr,
+                 z_hat: farr, r: int, a: int, nf: int, n_box: int, rho_free: scalar, rho_box: scalar, rho_u: scalar,
                  eta: scalar):
         """Row ``a``'s right-hand side, the De Saxcé correction included on a contact's normal row (the thread that
         owns the row computes it, reading the contact's ``z_hat``)."""
-        rs = w.row_stride
-        rhs = row_rhs(w, r, row_penalty(w, r, a, nf, rho_free, rho_box, rho_u), eta)
+        rs = row_stride
+        rhs = row_rhs(vt, x_p, y_hat, z_hat, r, row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u), eta)
         if a >= n_box and (a - n_box) % 3 == 2:
-            rhs -= contact_correction(w, r - 2 * rs, rs)
+            rhs -= contact_correction(ct_mu, row_info, z_hat, r - 2 * rs, rs)
         return rhs
 
     return lane_rhs
@@ -644,8 +675,11 @@ def lane_rhs_func(np_dtype):
 def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool, fixed_iterations: bool):
     """Accelerated PADMM with the world's 32 threads (§7.3-§7.5; the rules of ``solver_rules.py``), with the sparse
     factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), the adaptive penalty (``adaptive``),
-    the momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
-    scalar, M, Work, SP, vec3 = builder_types(np_dtype).take("scalar", "M", "Work", "SP", "vec3")
+    the momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time.
+    ``padmm_iterate``'s arguments are those of ``solver.padmm_iterate_kernel``'s kernel less ``sdiag`` and ``D``;
+    launched tiled: one block of ``LANES`` threads per world."""
+    scalar, M, SP, vec3, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec3", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     Residuals = rules.residuals_struct(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
@@ -665,96 +699,117 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
 
     @wp.kernel(module="unique", enable_backward=False,
                cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else None)
-    def padmm_iterate(m: M, w: Work, sp: SP, chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar,
-                      rho_box: scalar, tol: scalar, restart_tol: scalar):
+    def padmm_iterate(
+        # model (read only)
+        m: M,
+        # in
+        chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar, rho_box: scalar, tol: scalar,
+        restart_tol: scalar,
+        row_stride: int,
+        n_rows: iarr, n_box: iarr, p_ref: farr, it_cap: iarr, row_body: iarr, row_J: wp.array(dtype=vec6),
+        reg: farr, P: farr, inv_inertia_w: wp.array(dtype=mat33), cr_ent: iarr, cr_end: iarr, ct_mu: farr, vt: farr,
+        lo_s: farr, hi_s: farr,
+        # out
+        sp: SP,  # the factor's tail values sp.tail (a new penalty; not under cr); its index tables are read
+        row_info: iarr,  # also read
+        x: farr, y: farr, z: farr, x_p: farr, y_p: farr, z_p: farr, y_hat: farr, z_hat: farr, e_p: farr,
+        cr_r: farr, cr_p: farr, cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6),
+        rho_u: farr, k_rho: iarr, pending: iarr, a_p: farr, c_p: farr, iters: iarr, r_p: farr, r_d: farr, r_c: farr,
+        converged: iarr, done: iarr, remaining: iarr,
+    ):
         """Up to ``chunk`` iterations of one world (``solver.padmm_iterate_kernel`` rule for rule), resuming from the
         stored iterate; a world that converges (unless ``fixed_iterations``) or reaches its cap is marked done and
         leaves ``remaining``. The threads split the box rows and the contact triples; the world's residuals are block
-        reductions. Under ``cr`` (at most ``cr_budget`` iterations per solve) the solution lands in ``w.x`` (the
+        reductions. Under ``cr`` (at most ``cr_budget`` iterations per solve) the solution lands in ``x`` (the
         factor's solve: in ``xs``), a new penalty refactorises nothing and a row that saturates takes ``rho_box`` in
         the next solve's operator without ending the launch."""
-        rs = w.row_stride
+        rs = row_stride
         wid, lane = wp.tid()
-        if w.done[wid] != 0:
+        if done[wid] != 0:
             return
-        rb = row_base(m, w.row_stride, wid)
-        n = w.n_rows[wid]
-        n_box = w.n_box[wid]
-        nc = (n - n_box) // 3
+        rb = row_base(m, row_stride, wid)
+        n = n_rows[wid]
+        nb = n_box[wid]
+        nc = (n - nb) // 3
         nf = m.row_fixed[wid]
-        p_ref = w.p_ref[wid]
-        rho_u = w.rho_u[wid]
+        pref = p_ref[wid]
+        rho_w = rho_u[wid]
         if wp.static(not cr):
             xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
             ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         for step in range(chunk):
             for a in range(lane, n, LANES):  # steps 1-2: right-hand side (into xs; CR's into y), linear solve
-                rhs = lane_rhs(w, rb + a * rs, a, nf, n_box, rho_free, rho_box, rho_u, eta)
+                rhs = lane_rhs(row_stride, row_info, ct_mu, vt, x_p, y_hat, z_hat, rb + a * rs, a, nf, nb, rho_free,
+                               rho_box, rho_w, eta)
                 if wp.static(cr):
-                    w.y[rb + a * rs] = rhs
+                    y[rb + a * rs] = rhs
                 else:
                     sset(xs, a, rhs)
             if wp.static(cr):
-                cr_solve(m, w, wid, rb, n, nblk, lane, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget)
+                cr_solve(m, row_stride, row_body, row_J, row_info, reg, P, inv_inertia_w, cr_ent, cr_end, x_p, y, wid,
+                         rb, n, nblk, lane, eta + rho_free, eta + rho_box, eta + rho_w, cr_budget, x, cr_r, cr_p,
+                         cr_Ap, cr_Ar, cr_w)
             else:
                 sync()
-                solve(m, w, sp, wid, n, lane, xs, ys)
+                solve(m, sp, row_stride, wid, n, lane, xs, ys)
             acc = Residuals()  # steps 3-4: projection, dual update and the residuals: box rows, then contact triples
-            for a in range(lane, n_box, LANES):
+            for a in range(lane, nb, LANES):
                 r = rb + a * rs
                 if wp.static(cr):
-                    x = w.x[r]
+                    xa = x[r]
                 else:
-                    x = sget(xs, a)
-                    w.x[r] = x
-                acc = box_row(w, r, a, nf, x, row_penalty(w, r, a, nf, rho_free, rho_box, rho_u), eta, p_ref, acc)
-            inv_rho = scalar(1.0) / rho_u
+                    xa = sget(xs, a)
+                    x[r] = xa
+                acc = box_row(row_info, lo_s, hi_s, x_p, y_hat, z_hat, P, y, z, e_p, r, a, nf, xa,
+                              row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_w), eta, pref, acc)
+            inv_rho = scalar(1.0) / rho_w
             for c in range(lane, nc, LANES):
-                a = n_box + 3 * c
+                a = nb + 3 * c
                 r = rb + a * rs
                 if wp.static(cr):
-                    x3 = vec3(w.x[r], w.x[r + rs], w.x[r + 2 * rs])
+                    x3 = vec3(x[r], x[r + rs], x[r + 2 * rs])
                 else:
                     x3 = vec3(sget(xs, a), sget(xs, a + 1), sget(xs, a + 2))
                     for t in range(3):
-                        w.x[r + t * rs] = x3[t]
-                acc = contact_rows(w, r, rs, x3, inv_rho, rho_u, eta, p_ref, acc)
+                        x[r + t * rs] = x3[t]
+                acc = contact_rows(ct_mu, row_info, z_hat, x, x_p, y_hat, P, y, z, r, rs, x3, inv_rho, rho_w, eta, pref,
+                                   acc)
             if wp.static(cr):
                 for a in range(lane, n, LANES):
-                    acc = cr_residual(w, rb + a * rs, p_ref, acc)
+                    acc = cr_residual(P, cr_r, rb + a * rs, pref, acc)
             acc = reduce_residuals(acc)
-            k = w.iters[wid] + 1
-            res = outcome(w, wid, acc, k, n, nf, rho_u, tol, eta, rho_free, restart_tol)
-            if res.rho != rho_u:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
-                rho_u = res.rho
+            k = iters[wid] + 1
+            res = outcome(a_p, c_p, k_rho, wid, acc, k, n, nf, rho_w, tol, eta, rho_free, restart_tol)
+            if res.rho != rho_w:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
+                rho_w = res.rho
                 sync()  # every thread has read k_rho (outcome) before it changes
                 if wp.static(not cr):
                     if res.saturates == 0:
-                        factor_tail(m, w, sp, wid, n, eta + rho_u, lane)
+                        factor_tail(m, sp, row_stride, wid, n, eta + rho_w, lane)
                 if lane == 0:
-                    w.rho_u[wid] = rho_u
-                    w.k_rho[wid] = k
+                    rho_u[wid] = rho_w
+                    k_rho[wid] = k
             if res.saturates != 0:  # this thread's own rows of the projection loop above
                 for a in range(lane, nf, LANES):
-                    mark_saturated(w, rb + a * rs, rho_free)
+                    mark_saturated(lo_s, hi_s, x, z_hat, y, row_info, rb + a * rs, rho_free)
             for a in range(lane, n, LANES):
                 if wp.static(cr):
-                    advance_row(w, rb + a * rs, w.x[rb + a * rs], res.mom)
+                    advance_row(y, z, x_p, y_p, z_p, y_hat, z_hat, rb + a * rs, x[rb + a * rs], res.mom)
                 else:
-                    advance_row(w, rb + a * rs, sget(xs, a), res.mom)
-            done = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= w.it_cap[wid]
+                    advance_row(y, z, x_p, y_p, z_p, y_hat, z_hat, rb + a * rs, sget(xs, a), res.mom)
+            finished = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= it_cap[wid]
             sync()  # every thread has read the world's scalars before they change
             if lane == 0:
-                store_world(w, wid, k, acc, res, done)
+                store_world(a_p, c_p, iters, r_p, r_d, r_c, converged, done, remaining, wid, k, acc, res, finished)
                 if res.saturates != 0:  # the factor is redone after this launch (CR: the next operator takes rho_box)
-                    w.k_rho[wid] = k
+                    k_rho[wid] = k
                     if wp.static(not cr):
-                        w.pending[wid] = 1
+                        pending[wid] = 1
             sync()
             if wp.static(cr):
-                if done:
+                if finished:
                     return
-            elif done or res.saturates != 0:
+            elif finished or res.saturates != 0:
                 return
 
     return padmm_iterate

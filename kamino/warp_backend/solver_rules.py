@@ -128,17 +128,18 @@ def balanced_penalty_func(np_dtype):
 @functools.cache
 def row_penalty_func(np_dtype):
     """A row's penalty (``kamino.jax_ref.solver.solve``, "Penalty" and "Saturation").
-    ``row_penalty(w, r, a, nf, rho_free, rho_box, rho_u)``."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u)``."""
+    scalar = builder_types(np_dtype).scalar
     row_saturated = index_funcs(np_dtype).row_saturated
 
     @wp.func
-    def row_penalty(w: Work, r: int, a: int, nf: int, rho_free: scalar, rho_box: scalar, rho_u: scalar):
+    def row_penalty(row_info: wp.array(dtype=wp.int32), r: int, a: int, nf: int, rho_free: scalar, rho_box: scalar,
+                    rho_u: scalar):
         """Row ``a``'s penalty: ``rho_free`` on a fixed row, ``rho_box`` on a saturated effort-limited one (a flag),
         the world's ``rho_u`` on limit and contact rows."""
         if a >= nf:
             return rho_u
-        if row_saturated(w.row_info, r) != 0:
+        if row_saturated(row_info, r) != 0:
             return rho_box
         return rho_free
 
@@ -248,14 +249,15 @@ def box_complementarity_func(np_dtype):
 @functools.cache
 def row_rhs_func(np_dtype):
     """§7.3 steps 1-2: a row's right-hand side of the linear solve.
-    ``row_rhs(w, r, rho, eta)``."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``row_rhs(vt, x_p, y_hat, z_hat, r, rho, eta)``."""
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func
-    def row_rhs(w: Work, r: int, rho: scalar, eta: scalar):
+    def row_rhs(vt: wp.array(dtype=scalar), x_p: wp.array(dtype=scalar), y_hat: wp.array(dtype=scalar),
+                z_hat: wp.array(dtype=scalar), r: int, rho: scalar, eta: scalar):
         """``-v~_f + eta x_p + rho y_hat + z_hat`` of row ``r`` (penalty ``rho``); a contact's normal row also
         subtracts :func:`contact_correction_func`'s correction."""
-        return -w.vt[r] + eta * w.x_p[r] + rho * w.y_hat[r] + w.z_hat[r]
+        return -vt[r] + eta * x_p[r] + rho * y_hat[r] + z_hat[r]
 
     return row_rhs
 
@@ -263,15 +265,16 @@ def row_rhs_func(np_dtype):
 @functools.cache
 def contact_correction_func(np_dtype):
     """§7.3 step 1: the De Saxcé correction ``s = Gamma(z_hat)`` of a contact (docs/formulation.md §4.3).
-    ``contact_correction(w, r, rs)``."""
-    Work = builder_types(np_dtype).Work
+    ``contact_correction(ct_mu, row_info, z_hat, r, rs)``."""
+    scalar = builder_types(np_dtype).scalar
     de_saxce = cone_funcs(np_dtype).de_saxce
     row_mu = index_funcs(np_dtype).row_mu
 
     @wp.func
-    def contact_correction(w: Work, r: int, rs: int):
+    def contact_correction(ct_mu: wp.array(dtype=scalar), row_info: wp.array(dtype=wp.int32),
+                           z_hat: wp.array(dtype=scalar), r: int, rs: int):
         """The De Saxcé correction ``Gamma(z_hat)_n`` of the contact whose first row is ``r`` (rows ``rs`` apart)."""
-        return de_saxce(w.z_hat[r], w.z_hat[r + rs], row_mu(w.ct_mu, w.row_info, r))
+        return de_saxce(z_hat[r], z_hat[r + rs], row_mu(ct_mu, row_info, r))
 
     return contact_correction
 
@@ -279,8 +282,9 @@ def contact_correction_func(np_dtype):
 @functools.cache
 def box_row_func(np_dtype, adaptive: bool):
     """§7.3 steps 3-4 on a box row (fixed or limit): projection, dual update and residual terms; ``adaptive``
-    (compile-time): the penalty adapts, and the free fixed rows feed the null-direction test."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    (compile-time): the penalty adapts, and the free fixed rows feed the null-direction test.
+    ``box_row(row_info, lo_s, hi_s, x_p, y_hat, z_hat, P, y, z, e_p, r, a, nf, x, rho, eta, p_ref, acc)``."""
+    scalar = builder_types(np_dtype).scalar
     Residuals = residuals_struct(np_dtype)
     dual_update = dual_update_func(np_dtype)
     saturates = saturates_func(np_dtype)
@@ -288,32 +292,35 @@ def box_row_func(np_dtype, adaptive: bool):
     row_saturated = index_funcs(np_dtype).row_saturated
 
     @wp.func
-    def box_row(w: Work, r: int, a: int, nf: int, x: scalar, rho: scalar, eta: scalar, p_ref: scalar,
-                acc: Residuals) -> Residuals:
+    def box_row(row_info: wp.array(dtype=wp.int32), lo_s: wp.array(dtype=scalar), hi_s: wp.array(dtype=scalar),
+                x_p: wp.array(dtype=scalar), y_hat: wp.array(dtype=scalar), z_hat: wp.array(dtype=scalar),
+                P: wp.array(dtype=scalar), y: wp.array(dtype=scalar), z: wp.array(dtype=scalar),
+                e_p: wp.array(dtype=scalar), r: int, a: int, nf: int, x: scalar, rho: scalar, eta: scalar,
+                p_ref: scalar, acc: Residuals) -> Residuals:
         """Row ``a`` (storage ``r``, the linear solve's ``x``, penalty ``rho``): ``y = clamp(x - z_hat / rho)``,
-        ``z`` into ``w.y`` / ``w.z``, and its terms folded into ``acc``. A free fixed row (no finite bound) of an
+        ``z`` into ``y`` / ``z``, and its terms folded into ``acc``. A free fixed row (no finite bound) of an
         adaptive penalty feeds the null-direction test (``e_p``, ``de``, ``dx``) instead of ``r_tail``; an
         effort-limited fixed row whose projection clips it sets ``hit``."""
         out = acc
-        z_hat = w.z_hat[r]
-        lo = w.lo_s[r]
-        hi = w.hi_s[r]
-        v = x - z_hat / rho
-        y = wp.clamp(v, lo, hi)
-        w.y[r] = y
-        if a < nf and saturates(row_saturated(w.row_info, r), lo, hi, v, y):
+        zh = z_hat[r]
+        lo = lo_s[r]
+        hi = hi_s[r]
+        v = x - zh / rho
+        yr = wp.clamp(v, lo, hi)
+        y[r] = yr
+        if a < nf and saturates(row_saturated(row_info, r), lo, hi, v, yr):
             out.hit = scalar(1.0)
-        du = dual_update(x, y, w.x_p[r], w.y_hat[r], z_hat, w.P[r], eta, rho, p_ref)
-        w.z[r] = du[0]
+        du = dual_update(x, yr, x_p[r], y_hat[r], zh, P[r], eta, rho, p_ref)
+        z[r] = du[0]
         out.r_p = wp.max(acc.r_p, du[1])
         out.r_d = wp.max(acc.r_d, du[2])
         out.c_sum = acc.c_sum + du[3]
-        out.r_c = wp.max(acc.r_c, box_complementarity(y, du[0], lo, hi))
+        out.r_c = wp.max(acc.r_c, box_complementarity(yr, du[0], lo, hi))
         if wp.static(adaptive) and a < nf and not (wp.isfinite(lo) or wp.isfinite(hi)):
-            e = eta * (x - w.x_p[r]) + rho * (y - w.y_hat[r])
-            out.de = wp.max(acc.de, wp.abs(e - w.e_p[r]))
-            out.dx = wp.max(acc.dx, wp.abs(x - w.x_p[r]))
-            w.e_p[r] = e
+            e = eta * (x - x_p[r]) + rho * (yr - y_hat[r])
+            out.de = wp.max(acc.de, wp.abs(e - e_p[r]))
+            out.dx = wp.max(acc.dx, wp.abs(x - x_p[r]))
+            e_p[r] = e
         else:
             out.r_tail = wp.max(acc.r_tail, du[2])
         return out
@@ -324,34 +331,38 @@ def box_row_func(np_dtype, adaptive: bool):
 @functools.cache
 def contact_rows_func(np_dtype):
     """§7.3 steps 3-4 on a contact's three rows: the cone projection, dual update and residual terms.
-    ``contact_rows(w, r, rs, x, inv_rho, rho, eta, p_ref, acc)`` returns ``acc`` with the contact's terms."""
-    scalar, M, Work, SP, vec3 = builder_types(np_dtype).take("scalar", "M", "Work", "SP", "vec3")
+    ``contact_rows(ct_mu, row_info, z_hat, x, x_p, y_hat, P, y, z, r, rs, x3, inv_rho, rho, eta, p_ref, acc)``
+    returns ``acc`` with the contact's terms."""
+    scalar, vec3 = builder_types(np_dtype).take("scalar", "vec3")
     Residuals = residuals_struct(np_dtype)
     dual_update = dual_update_func(np_dtype)
     cone_project = cone_funcs(np_dtype).cone_project
     row_mu = index_funcs(np_dtype).row_mu
 
     @wp.func
-    def contact_rows(w: Work, r: int, rs: int, x: vec3, inv_rho: scalar, rho: scalar, eta: scalar, p_ref: scalar,
-                     acc: Residuals) -> Residuals:
-        """The contact whose first row is ``r`` (rows ``rs`` apart, the linear solve's ``x``, penalty ``rho =
-        1 / inv_rho``): ``y = Pi_K(x - z_hat / rho)``, ``z`` into ``w.y`` / ``w.z``, its terms folded into ``acc``
+    def contact_rows(ct_mu: wp.array(dtype=scalar), row_info: wp.array(dtype=wp.int32),
+                     z_hat: wp.array(dtype=scalar), x: wp.array(dtype=scalar), x_p: wp.array(dtype=scalar),
+                     y_hat: wp.array(dtype=scalar), P: wp.array(dtype=scalar), y: wp.array(dtype=scalar),
+                     z: wp.array(dtype=scalar), r: int, rs: int, x3: vec3, inv_rho: scalar, rho: scalar, eta: scalar,
+                     p_ref: scalar, acc: Residuals) -> Residuals:
+        """The contact whose first row is ``r`` (rows ``rs`` apart, the linear solve's ``x3``, penalty ``rho =
+        1 / inv_rho``): ``y = Pi_K(x3 - z_hat / rho)``, ``z`` into ``y`` / ``z``, its terms folded into ``acc``
         (complementarity ``|y . z|``)."""
         out = acc
-        cp = cone_project(x[0] - inv_rho * w.z_hat[r], x[1] - inv_rho * w.z_hat[r + rs],
-                          x[2] - inv_rho * w.z_hat[r + 2 * rs], row_mu(w.ct_mu, w.row_info, r))
+        cp = cone_project(x3[0] - inv_rho * z_hat[r], x3[1] - inv_rho * z_hat[r + rs],
+                          x3[2] - inv_rho * z_hat[r + 2 * rs], row_mu(ct_mu, row_info, r))
         yz = scalar(0.0)
         for t in range(3):
             rt = r + t * rs
-            y = cp[t]
-            w.y[rt] = y
-            du = dual_update(w.x[rt], y, w.x_p[rt], w.y_hat[rt], w.z_hat[rt], w.P[rt], eta, rho, p_ref)
-            w.z[rt] = du[0]
+            yt = cp[t]
+            y[rt] = yt
+            du = dual_update(x[rt], yt, x_p[rt], y_hat[rt], z_hat[rt], P[rt], eta, rho, p_ref)
+            z[rt] = du[0]
             out.r_p = wp.max(out.r_p, du[1])
             out.r_d = wp.max(out.r_d, du[2])
             out.r_tail = wp.max(out.r_tail, du[2])
             out.c_sum = out.c_sum + du[3]
-            yz += y * du[0]
+            yz += yt * du[0]
         out.r_c = wp.max(out.r_c, wp.abs(yz))
         return out
 
@@ -361,18 +372,19 @@ def contact_rows_func(np_dtype):
 @functools.cache
 def cr_residual_func(np_dtype):
     """The Conjugate Residual solve's share of the dual residual (§8.2).
-    ``cr_residual(w, r, p_ref, acc)`` returns ``acc`` with row ``r``'s terms."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    ``cr_residual(P, cr_r, r, p_ref, acc)`` returns ``acc`` with row ``r``'s terms."""
+    scalar = builder_types(np_dtype).scalar
     Residuals = residuals_struct(np_dtype)
     residual_weight = residual_weight_func(np_dtype)
 
     @wp.func
-    def cr_residual(w: Work, r: int, p_ref: scalar, acc: Residuals) -> Residuals:
-        """Row ``r`` of the inner solve's residual ``b - A x`` (``w.cr_r``), a scaled velocity like the dual
+    def cr_residual(P: wp.array(dtype=scalar), cr_r: wp.array(dtype=scalar), r: int, p_ref: scalar,
+                    acc: Residuals) -> Residuals:
+        """Row ``r`` of the inner solve's residual ``b - A x`` (``cr_r``), a scaled velocity like the dual
         residual's rows, folded into ``r_d`` and ``r_tail``: an inexact solve (a small ``cr_iterations`` budget)
         must not let the world report convergence."""
         out = acc
-        e_cr = residual_weight(w.P[r], p_ref) * wp.abs(w.cr_r[r])
+        e_cr = residual_weight(P[r], p_ref) * wp.abs(cr_r[r])
         out.r_d = wp.max(acc.r_d, e_cr)
         out.r_tail = wp.max(acc.r_tail, e_cr)
         return out
@@ -430,7 +442,7 @@ def outcome_struct(np_dtype):
 def outcome_func(np_dtype, adaptive: bool, accelerate: bool):
     """The convergence test (§7.5 and "Null directions"), the penalty rule and the momentum (§7.4) of a world after
     an iteration; compile-time: ``adaptive``, the penalty adapts; ``accelerate``, the momentum extrapolates."""
-    scalar, vec4, Work = builder_types(np_dtype).take("scalar", "vec4", "Work")
+    scalar, vec4 = builder_types(np_dtype).take("scalar", "vec4")
     Residuals = residuals_struct(np_dtype)
     Outcome = outcome_struct(np_dtype)
     momentum = momentum_func(np_dtype, accelerate)
@@ -440,8 +452,9 @@ def outcome_func(np_dtype, adaptive: bool, accelerate: bool):
     zero = scalar(0.0)
 
     @wp.func
-    def outcome(w: Work, wid: int, acc: Residuals, k: int, n: int, nf: int, rho_u: scalar, tol: scalar,
-                eta: scalar, rho_free: scalar, restart_tol: scalar) -> Outcome:
+    def outcome(a_p: wp.array(dtype=scalar), c_p: wp.array(dtype=scalar), k_rho: wp.array(dtype=wp.int32), wid: int,
+                acc: Residuals, k: int, n: int, nf: int, rho_u: scalar, tol: scalar, eta: scalar, rho_free: scalar,
+                restart_tol: scalar) -> Outcome:
         """Iteration ``k`` of world ``wid`` (``n`` rows, ``nf`` fixed, the world's reduced ``acc``): converged when
         every residual is below ``tol`` from ``k = 2`` on, or along a numerically null direction (the free rows'
         change of ``e`` small against the change of ``x``; ``e_p`` of iteration 1 is stale); else (adaptive) a
@@ -457,11 +470,11 @@ def outcome_func(np_dtype, adaptive: bool, accelerate: bool):
         if wp.static(adaptive):
             out.saturates = int(acc.hit > zero and not conv)
             if n > nf and not conv:
-                out.rho = balanced_penalty(rho_u, acc.r_p, acc.r_d, k, w.k_rho[wid])
+                out.rho = balanced_penalty(rho_u, acc.r_p, acc.r_d, k, k_rho[wid])
         if out.saturates != 0 or out.rho != rho_u:
             out.mom = vec4(scalar(1.0), big, zero, scalar(RESTART_HERE))
         else:
-            out.mom = momentum(w.a_p[wid], w.c_p[wid], acc.c_sum, restart_tol)
+            out.mom = momentum(a_p[wid], c_p[wid], acc.c_sum, restart_tol)
         return out
 
     return outcome
@@ -470,17 +483,20 @@ def outcome_func(np_dtype, adaptive: bool, accelerate: bool):
 @functools.cache
 def mark_saturated_func(np_dtype):
     """An effort-limited row that saturated takes ``rho_box`` from now on (``kamino.jax_ref.solver.solve``,
-    "Saturation")."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    "Saturation"). ``mark_saturated(lo_s, hi_s, x, z_hat, y, row_info, r, rho_free)``."""
+    scalar = builder_types(np_dtype).scalar
     row_saturated = index_funcs(np_dtype).row_saturated
     set_saturated = index_funcs(np_dtype).set_saturated
     saturates = saturates_func(np_dtype)
 
     @wp.func
-    def mark_saturated(w: Work, r: int, rho_free: scalar):
-        """Flag fixed row ``r`` saturated if its last projection (penalty ``rho_free``) clipped it."""
-        if saturates(row_saturated(w.row_info, r), w.lo_s[r], w.hi_s[r], w.x[r] - w.z_hat[r] / rho_free, w.y[r]):
-            set_saturated(w.row_info, r, 1)
+    def mark_saturated(lo_s: wp.array(dtype=scalar), hi_s: wp.array(dtype=scalar), x: wp.array(dtype=scalar),
+                       z_hat: wp.array(dtype=scalar), y: wp.array(dtype=scalar), row_info: wp.array(dtype=wp.int32),
+                       r: int, rho_free: scalar):
+        """Flag fixed row ``r`` saturated (in ``row_info``) if its last projection (penalty ``rho_free``) clipped
+        it."""
+        if saturates(row_saturated(row_info, r), lo_s[r], hi_s[r], x[r] - z_hat[r] / rho_free, y[r]):
+            set_saturated(row_info, r, 1)
 
     return mark_saturated
 
@@ -488,27 +504,29 @@ def mark_saturated_func(np_dtype):
 @functools.cache
 def advance_row_func(np_dtype):
     """§7.4 steps 5-6 on a row: the next ``(y_hat, z_hat)`` and the previous iterate.
-    ``advance_row(w, r, x, mom)``."""
-    scalar, vec4, Work = builder_types(np_dtype).take("scalar", "vec4", "Work")
+    ``advance_row(y, z, x_p, y_p, z_p, y_hat, z_hat, r, x, mom)``."""
+    scalar, vec4 = builder_types(np_dtype).take("scalar", "vec4")
     extrapolated = extrapolated_func(np_dtype)
 
     @wp.func
-    def advance_row(w: Work, r: int, x: scalar, mom: vec4):
+    def advance_row(y: wp.array(dtype=scalar), z: wp.array(dtype=scalar), x_p: wp.array(dtype=scalar),
+                    y_p: wp.array(dtype=scalar), z_p: wp.array(dtype=scalar), y_hat: wp.array(dtype=scalar),
+                    z_hat: wp.array(dtype=scalar), r: int, x: scalar, mom: vec4):
         """Row ``r`` moves to the next iteration under the momentum ``mom`` (:func:`outcome_func`): ``y_hat``,
         ``z_hat`` from ``y``, ``z`` (restarted here, or :func:`extrapolated_func`), and ``(x, y, z)`` kept as the
-        previous iterate."""
-        y = w.y[r]
-        z = w.z[r]
+        previous iterate (``x_p``, ``y_p``, ``z_p``)."""
+        yr = y[r]
+        zr = z[r]
         mode = int(mom[3])
         if mode == RESTART_HERE:
-            w.y_hat[r] = y
-            w.z_hat[r] = z
+            y_hat[r] = yr
+            z_hat[r] = zr
         else:
-            w.y_hat[r] = extrapolated(y, w.y_p[r], mom[2], mode)
-            w.z_hat[r] = extrapolated(z, w.z_p[r], mom[2], mode)
-        w.x_p[r] = x
-        w.y_p[r] = y
-        w.z_p[r] = z
+            y_hat[r] = extrapolated(yr, y_p[r], mom[2], mode)
+            z_hat[r] = extrapolated(zr, z_p[r], mom[2], mode)
+        x_p[r] = x
+        y_p[r] = yr
+        z_p[r] = zr
 
     return advance_row
 
@@ -516,24 +534,29 @@ def advance_row_func(np_dtype):
 @functools.cache
 def store_world_func(np_dtype):
     """The world's scalars after an iteration (one thread writes them).
-    ``store_world(w, wid, k, acc, res, done)``."""
-    Work = builder_types(np_dtype).Work
+    ``store_world(a_p, c_p, iters, r_p, r_d, r_c, converged, done, remaining, wid, k, acc, res, finished)``."""
+    scalar = builder_types(np_dtype).scalar
     Residuals = residuals_struct(np_dtype)
     Outcome = outcome_struct(np_dtype)
 
     @wp.func
-    def store_world(w: Work, wid: int, k: int, acc: Residuals, res: Outcome, done: bool):
-        """Iteration ``k``'s momentum, count and residuals; with ``done`` the world leaves ``remaining``."""
-        w.a_p[wid] = res.mom[0]
-        w.c_p[wid] = res.mom[1]
-        w.iters[wid] = k
-        w.r_p[wid] = acc.r_p
-        w.r_d[wid] = acc.r_d
-        w.r_c[wid] = acc.r_c
-        if done:
-            w.converged[wid] = res.converged
-            w.done[wid] = 1
-            wp.atomic_sub(w.remaining, 0, 1)
+    def store_world(a_p: wp.array(dtype=scalar), c_p: wp.array(dtype=scalar), iters: wp.array(dtype=wp.int32),
+                    r_p: wp.array(dtype=scalar), r_d: wp.array(dtype=scalar), r_c: wp.array(dtype=scalar),
+                    converged: wp.array(dtype=wp.int32), done: wp.array(dtype=wp.int32),
+                    remaining: wp.array(dtype=wp.int32), wid: int, k: int, acc: Residuals, res: Outcome,
+                    finished: bool):
+        """Iteration ``k``'s momentum, count and residuals; once ``finished`` the world is ``done`` and leaves
+        ``remaining``."""
+        a_p[wid] = res.mom[0]
+        c_p[wid] = res.mom[1]
+        iters[wid] = k
+        r_p[wid] = acc.r_p
+        r_d[wid] = acc.r_d
+        r_c[wid] = acc.r_c
+        if finished:
+            converged[wid] = res.converged
+            done[wid] = 1
+            wp.atomic_sub(remaining, 0, 1)
 
     return store_world
 
@@ -542,7 +565,7 @@ def store_world_func(np_dtype):
 def tail_dot_func(np_dtype):
     """The dot products of the tail rows' dense Cholesky ``L_t = chol(S_t + shift I)`` (``linear_solve.factor_tail``,
     ``solver_lanes.factor_tail``; ``kamino.jax_ref.solver.solve``, "Penalty")."""
-    scalar, M, Work, SP = builder_types(np_dtype).take("scalar", "M", "Work", "SP")
+    scalar = builder_types(np_dtype).scalar
 
     @wp.func
     def tail_dot(tail: wp.array(dtype=scalar), tc: int, tr: int, jr: int, kt: int, j: int, s: scalar):

@@ -1,5 +1,9 @@
 """Per-step device buffers of the Warp backend (one struct, allocated once per model and config).
 
+The kernels take these buffers one by one, by their field names (``m``, then what a kernel reads, then what it
+writes: docs/warp_backend.md, "Modules"); the struct stays on the host, where its typed fields check each buffer's
+dtype when :func:`allocate` assigns it.
+
 The state the step reads (``q``, ``u``, the previous step's reactions and contacts, the controls)
 is held in persistent buffers, so that a captured CUDA graph always sees the same addresses; the
 step writes its results into ``*_new`` buffers and a final commit copies them over the state
@@ -35,6 +39,7 @@ def saturated_rows(info: np.ndarray) -> np.ndarray:
 
 @functools.cache
 def work_struct(np_dtype):
+    """The ``Work`` struct of one precision: every per-step buffer, by name."""
     T = types_of(np_dtype)
     scalar, vec3, vec6, mat33, transform = T.scalar, T.vec3, T.vec6, T.mat33, T.transform
     iarr = wp.array(dtype=wp.int32)
@@ -252,17 +257,15 @@ def pattern_struct(np_dtype):
 @dataclasses.dataclass(frozen=True)
 class BuilderTypes(Types):
     """What a kernel builder of one precision closes over: the :class:`~kamino.warp_backend.types.Types`, the
-    structs the kernels take (the model ``M``, the workspace ``Work``, the sparse factor's pattern ``SP``) and the
-    precision's ``inf``."""
+    structs the kernels take (the model ``M``, the sparse factor's pattern ``SP``) and the precision's ``inf``."""
 
     M: type
-    Work: type
     SP: type
     inf: object
 
     def take(self, *names: str) -> tuple:
         """The entries ``names``, in order, for a builder's one-line preamble
-        (``scalar, M, Work = builder_types(np_dtype).take("scalar", "M", "Work")``)."""
+        (``scalar, M = builder_types(np_dtype).take("scalar", "M")``)."""
         fields = [f.name for f in dataclasses.fields(self)]
         unknown = [n for n in names if n not in fields]
         if unknown:
@@ -276,8 +279,7 @@ def builder_types(np_dtype) -> BuilderTypes:
     and ``inf`` from (cached per precision, so the builders of a precision close over the same objects)."""
     T = types_of(np_dtype)
     fields = {f.name: getattr(T, f.name) for f in dataclasses.fields(T)}
-    return BuilderTypes(**fields, M=model_struct(np_dtype), Work=work_struct(np_dtype), SP=pattern_struct(np_dtype),
-                        inf=T.scalar(wp.inf))
+    return BuilderTypes(**fields, M=model_struct(np_dtype), SP=pattern_struct(np_dtype), inf=T.scalar(wp.inf))
 
 
 def allocate(wm: WarpModel, euler: bool, dense: bool, delassus: bool = True, rows_per_world: bool = False,
