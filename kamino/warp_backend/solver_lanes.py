@@ -69,13 +69,17 @@ def shared_entries(max_nnz: int) -> int:
 
 
 #: Registers per thread of :func:`iterate_kernel`'s ``padmm_iterate`` for worlds of at least
-#: :data:`REGISTER_CAP_MIN_ROWS` rows (CUDA ``__maxnreg__``; ``None``: the compiler's choice). Left to the compiler it
-#: takes 122 on sm_90, so a multiprocessor holds 16 worlds (65,536 registers / (128 x 32)) of the 32 blocks it could;
-#: at 72 it holds 28, at the cost of some spilling. Measured on an H100 (benchmarks/README.md, the register cap): PPO's
-#: collection on dr_legs at 16384 worlds 137 -> 120 ms per step, the standing robots at 4096 worlds +1 %, the
-#: four-bar (117 rows) 12 % slower, hence the threshold.
+#: :data:`REGISTER_CAP_MIN_ROWS` rows (CUDA ``__maxnreg__``). At 128 registers a multiprocessor holds 16 worlds
+#: (65,536 registers / (128 x 32)) of the 32 blocks it could; at 72 it holds 28, at the cost of some spilling.
+#: Measured on an H100 (benchmarks/README.md, the register cap): PPO's collection on dr_legs at 16384 worlds 137 -> 120
+#: ms per step, the standing robots at 4096 worlds +1 %, the four-bar (117 rows) 12 % slower, hence the threshold.
 ITERATE_MAX_REGISTERS: int | None = 72
 REGISTER_CAP_MIN_ROWS = 200
+#: Registers per thread of ``padmm_iterate`` for smaller worlds. Left to the compiler the kernel takes 168 on sm_90
+#: (its buffers are separate arguments, whose addresses it keeps in registers), so a multiprocessor holds 12 worlds;
+#: at 128 it holds 16 (120 bytes of stack per thread). Measured on an H200, four-bar at 4096 worlds: 3.38e6
+#: world-steps/s uncapped, 3.47e6 at 128, 3.41e6 at 120.
+SMALL_WORLD_MAX_REGISTERS = 128
 
 
 # --- shared memory ---------------------------------------------------------------------------------------------
@@ -698,7 +702,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
     store_world = rules.store_world_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False,
-               cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else None)
+               cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else SMALL_WORLD_MAX_REGISTERS)
     def padmm_iterate(
         # model (read only)
         m: M,
