@@ -61,10 +61,10 @@ class Engine:
         self._replicas: dict[int, Engine] = {}
         self._lock = threading.RLock()
 
-    def __del__(self) -> None:
+    def __del__(self, _lock=CUDA_STREAM_LOCK) -> None:
         """Free the device models and steppers while holding :data:`~kamino.warp_backend.pipeline.CUDA_STREAM_LOCK`
-        (:meth:`Stepper.__del__` says why)."""
-        with CUDA_STREAM_LOCK:
+        (:meth:`Stepper.__del__` says why, and why the lock is bound at definition)."""
+        with _lock:
             self.__dict__.clear()
 
     def stepper(self, np_dtype, device=None, *, for_jit: bool = False) -> Stepper:

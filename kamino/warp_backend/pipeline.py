@@ -433,11 +433,12 @@ class Stepper:
             for _ in range(self.max_switches + 1):
                 iterate(2 * cfg.max_iterations)
 
-    def __del__(self) -> None:
+    def __del__(self, _lock=CUDA_STREAM_LOCK) -> None:
         """On a CUDA device, free the buffers and graphs while holding :data:`CUDA_STREAM_LOCK`: a free on Warp's
-        stream while another thread captures a graph on it would break that capture."""
+        stream while another thread captures a graph on it would break that capture. The lock is bound at definition:
+        at interpreter exit the module's globals may already be gone."""
         if getattr(self, "device", None) is not None and self.device.is_cuda:
-            with CUDA_STREAM_LOCK:
+            with _lock:
                 self.__dict__.clear()
 
     def run(self, num_steps: int) -> None:
