@@ -339,8 +339,7 @@ CR_STOP_POINT_MECHANISM = {"scale": 0.912, "bodies": [dict(zip(_BODY_KEYS, b, st
 
 @PROPERTY_SETTINGS
 @given(specs=st.lists(mechanisms(), min_size=3, max_size=6))
-@example(specs=[NEUTRAL_DOUBLE_HINGE])
-@example(specs=[CR_STOP_POINT_MECHANISM])
+@example(specs=[NEUTRAL_DOUBLE_HINGE, CR_STOP_POINT_MECHANISM])  # the two regression cases: one batch, one compile
 def test_random_mechanisms_agree_across_backends(specs):
     """Float32, ``F32_CFG`` (defaults, rho 0.01), 1 and 100 steps; each example is a batch of up to six random
     mechanisms, one world each.
