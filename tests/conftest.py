@@ -74,10 +74,14 @@ _one_core_per_worker()
 _user = os.environ.get("XLA_FLAGS", "")
 if "xla_cpu_use_fusion_emitters" not in _user and "KAMINO_TEST_XLA_PROBED" not in os.environ:
     os.environ["KAMINO_TEST_XLA_PROBED"] = "1"
-    if _xla_accepts(f"{_user} {_FLAG}".strip()):
-        _user = f"{_user} {_FLAG}".strip()
-    if "multi_thread_eigen" not in _user and _xla_accepts(f"{_user} {_THREADS}".strip()):
-        _user = f"{_user} {_THREADS}".strip()
+    _both = f"{_user} {_FLAG} {_THREADS}".strip()
+    if "multi_thread_eigen" not in _user and _xla_accepts(_both):  # one probe where XLA knows both flags
+        _user = _both
+    else:
+        if _xla_accepts(f"{_user} {_FLAG}".strip()):
+            _user = f"{_user} {_FLAG}".strip()
+        if "multi_thread_eigen" not in _user and _xla_accepts(f"{_user} {_THREADS}".strip()):
+            _user = f"{_user} {_THREADS}".strip()
     os.environ["XLA_FLAGS"] = _user
 
 import jax  # noqa: E402  (XLA_FLAGS must be set before the backend starts)
