@@ -74,10 +74,14 @@ _one_core_per_worker()
 _user = os.environ.get("XLA_FLAGS", "")
 if "xla_cpu_use_fusion_emitters" not in _user and "KAMINO_TEST_XLA_PROBED" not in os.environ:
     os.environ["KAMINO_TEST_XLA_PROBED"] = "1"
-    if _xla_accepts(f"{_user} {_FLAG}".strip()):
-        _user = f"{_user} {_FLAG}".strip()
-    if "multi_thread_eigen" not in _user and _xla_accepts(f"{_user} {_THREADS}".strip()):
-        _user = f"{_user} {_THREADS}".strip()
+    _both = f"{_user} {_FLAG} {_THREADS}".strip()
+    if "multi_thread_eigen" not in _user and _xla_accepts(_both):  # one probe where XLA knows both flags
+        _user = _both
+    else:
+        if _xla_accepts(f"{_user} {_FLAG}".strip()):
+            _user = f"{_user} {_FLAG}".strip()
+        if "multi_thread_eigen" not in _user and _xla_accepts(f"{_user} {_THREADS}".strip()):
+            _user = f"{_user} {_THREADS}".strip()
     os.environ["XLA_FLAGS"] = _user
 
 import jax  # noqa: E402  (XLA_FLAGS must be set before the backend starts)
@@ -95,7 +99,12 @@ jax.config.update("jax_compilation_cache_max_size", _JAX_CACHE_BYTES)
 # two-device run): kamino's own default (kamino/_jax_cache.py) would write to the user's cache directory
 os.environ["KAMINO_JAX_CACHE"] = str(_JAX_CACHE)
 os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"] = str(_JAX_CACHE_BYTES)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.3)
+#: compiles shorter than this [s] are not written to the cache
+_JAX_CACHE_MIN_COMPILE_SECS = 0.3
+jax.config.update("jax_persistent_cache_min_compile_time_secs", _JAX_CACHE_MIN_COMPILE_SECS)
+# the subprocesses too: kamino's own threshold (1 s) left a resumed training (test_rl_resume.py) compiling again
+# what the killed run before it had compiled, about 4 s of each warm process
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = str(_JAX_CACHE_MIN_COMPILE_SECS)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 

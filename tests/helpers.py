@@ -76,19 +76,15 @@ class Variant:
                 num_steps: int | None = None, config: kamino.SolverConfig | None = None) -> kamino.State:
         """``kamino.rollout`` on this variant's backend: the trajectory (leading time axis).
 
-        Warp variants run the rollout inside ``jax.jit``, where the Warp backend scans its step as a Warp FFI
-        call: the same kernels as the eager call, bitwise the same results
-        (test_cross_backend.py::test_jitted_warp_rollout_is_bitwise_the_eager_one). The eager rollout writes its
-        trajectory into buffers allocated once and compiles nothing for a new length
-        (test_cross_backend.py::test_eager_warp_rollout_length_compiles_nothing); on the CPU it runs a small
-        model at ~1.3 ms per step, the jitted one at ~2.3 ms (pendulum, 500 steps, float64). The eager path is
-        what the cross-backend tests step through.
+        Warp variants take the eager rollout: it writes its trajectory into buffers allocated once and compiles
+        nothing for a new length (test_cross_backend.py::test_eager_warp_rollout_length_compiles_nothing),
+        and runs a small model at ~1.3 ms per step where the rollout inside ``jax.jit`` takes ~2.3 ms (pendulum,
+        500 steps, float64) plus a compile for every model, length and closure (measured: the Warp tests of
+        test_contacts.py take 17 CPU-s eager against 34 jitted). The jitted rollout gives the same bits
+        (test_cross_backend.py::test_jitted_warp_rollout_is_bitwise_the_eager_one).
         """
-        cfg = self.config(config)
-        if not self.is_warp:
-            return kamino.rollout(model, state, controls, num_steps=num_steps, config=cfg, backend=self.backend)
-        run = jax.jit(lambda s, c: kamino.rollout(model, s, c, num_steps=num_steps, config=cfg, backend="warp"))
-        return run(state, controls)
+        return kamino.rollout(model, state, controls, num_steps=num_steps, config=self.config(config),
+                              backend=self.backend)
 
 
 JAX = Variant("jax", "jax")
