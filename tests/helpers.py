@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import jax
 import numpy as np
@@ -20,6 +21,16 @@ def trajectory_metrics(model: kamino.Model, state: kamino.State, traj: kamino.St
 def trajectory_joint_positions(model: kamino.Model, state: kamino.State, traj: kamino.State) -> np.ndarray:
     """``kamino.joint_positions`` on every state of a trajectory: ``[T, num_coords]``."""
     return np.asarray(jax.vmap(lambda q: kamino.joint_positions(model, state.replace(body_q=q)))(traj.body_q))
+
+
+def default_xla_env(env: dict | None = None) -> dict:
+    """``env`` (``os.environ`` by default) for a subprocess at XLA's default optimisation level: without the level-0
+    flag that tests/conftest.py gives the test processes, and marked so that a pytest subprocess keeps it off."""
+    env = dict(os.environ if env is None else env)
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if not f.startswith("--xla_backend_optimization_level")]
+    env["XLA_FLAGS"] = " ".join(flags)
+    env["KAMINO_TEST_XLA_DEFAULT"] = "1"
+    return env
 
 
 #: first lines of a subprocess script that needs every core back (before it imports jax): conftest pins each xdist

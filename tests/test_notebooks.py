@@ -49,8 +49,14 @@ def _ids(path: Path) -> str:
     return path.stem
 
 
+#: notebooks whose claims retrace a recorded training (its returns): run at XLA's default optimisation level
+#: (tests/conftest.py), as the recorded runs were
+DEFAULT_XLA = ("05_training",)
+
+
 def _executions() -> list:
-    return [pytest.param(path, id=path.stem, marks=[pytest.mark.slow] if path.stem in SLOW else [])
+    return [pytest.param(path, id=path.stem, marks=([pytest.mark.slow] if path.stem in SLOW else [])
+                         + ([pytest.mark.default_xla] if path.stem in DEFAULT_XLA else []))
             for path in NOTEBOOKS]
 
 

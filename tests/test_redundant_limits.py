@@ -126,6 +126,7 @@ def _double_pendulum():
 
 
 @pytest.mark.slow
+@pytest.mark.default_xla  # a bitwise comparison of two programs (tests/conftest.py)
 def test_independent_limits_are_left_alone():
     """A serial chain pressing two (independent) limits: the rule changes nothing, bitwise."""
     model = _double_pendulum()

@@ -138,6 +138,7 @@ ACTIONS = np.array([
      -0.8406311, -0.6782017, -0.3637212]], np.float32)
 
 
+@pytest.mark.default_xla  # against actions recorded at XLA's default optimisation level (tests/conftest.py)
 def test_the_shipped_policy_acts_as_its_checkpoint():
     """The shipped arrays (``params.npz``, read without pickle) give the checkpoint's actions: the network is the
     same float32 MLP, so they agree to float32 rounding (2e-7 relative; the actions are printed to 1e-7), and the

@@ -8,7 +8,6 @@ subprocess runs them all, on both backends, and the benchmark's smoke run.
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import textwrap
@@ -20,7 +19,7 @@ import pytest
 import kamino
 from kamino.model import same_model, take_worlds
 from kamino.sharding import group_model, shard_worlds
-from tests.helpers import ALL_CORES
+from tests.helpers import ALL_CORES, default_xla_env
 
 
 def test_take_worlds_inverts_concat():
@@ -124,7 +123,7 @@ def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path):
     differently: float32 rounding over 12 steps, bounded at 1e-5 (m, rad, N s, and s for the time). Then the Warp
     step under ``pmap`` and ``kamino bench multi_device``'s smoke run (its records, not its speed). Everything runs
     in one subprocess: one start-up of jax and Warp on the two devices."""
-    env = dict(os.environ)
+    env = default_xla_env()  # the sharded and the unsharded programs at XLA's default level (tests/conftest.py)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     env["JAX_PLATFORMS"] = "cpu"
     out_json = str(tmp_path / "multi_device.json")
