@@ -32,6 +32,7 @@ from kamino.config import (
 from kamino.model import Model
 from kamino.tables import DYN_ACTUATOR, row_tables
 from kamino.warp_backend import linear_solve
+from kamino.warp_backend import solver_rules as rules
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import LOOP_OPEN_BOUND, end_step_kernels
 from kamino.warp_backend.model_data import WarpModel, warp_model
@@ -383,21 +384,17 @@ class Stepper:
         cfg, w = self.cfg, self.work
         W, nblk = self.wm.num_worlds, self.wm.blocks_per_row
         shift_f, shift_b = self.padmm_shifts
-        args = (nblk, int(cfg.warp.cr_iterations), cfg.penalty.eta, self.rho_free, cfg.penalty.rho, cfg.tolerance,
-                RESTART_TOLERANCE)
+        problem = rules.fill_struct(rules.problem_struct(self.np_dtype), w, nblk=nblk,
+                                    cr_budget=int(cfg.warp.cr_iterations), eta=cfg.penalty.eta, rho_free=self.rho_free,
+                                    rho_box=cfg.penalty.rho, tol=cfg.tolerance, restart_tol=RESTART_TOLERANCE)
+        carry = rules.fill_struct(rules.carry_struct(self.np_dtype), w)
+        vectors = [w.row_info, w.x, w.y, w.z, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w]
         modes = (self.adaptive, bool(cfg.acceleration), bool(cfg.fixed_iterations))
         if self.padmm == "warp":
             lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes)
 
             def iterate(chunk):
-                self._launch_lanes(lane_iterate,
-                                      inputs=[chunk, *args, w.row_stride, w.n_rows, w.n_box, w.p_ref, w.it_cap,
-                                              w.row_body, w.row_J, w.reg, w.P, w.inv_inertia_w, w.cr_ent, w.cr_end,
-                                              w.ct_mu, w.vt, w.lo_s, w.hi_s],
-                                      outputs=[self.sp, w.row_info, w.x, w.y, w.z, w.x_p, w.y_p, w.z_p, w.y_hat,
-                                               w.z_hat, w.e_p, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w, w.rho_u,
-                                               w.k_rho, w.pending, w.a_p, w.c_p, w.iters, w.r_p, w.r_d, w.r_c,
-                                               w.converged, w.done, w.remaining])
+                self._launch_lanes(lane_iterate, inputs=[problem, chunk], outputs=[carry, self.sp, *vectors])
                 if self.max_switches:  # the factor of the worlds whose effort-limited rows saturated
                     self._launch_lanes(self.wk.factor,
                                           inputs=[cfg.penalty.eta, 1, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
@@ -409,14 +406,7 @@ class Stepper:
             thread_iterate = padmm_iterate_kernel(self.np_dtype, linear, *modes)
 
             def iterate(chunk):
-                self._launch(thread_iterate, W,
-                                inputs=[chunk, *args, w.row_stride, w.n_rows, w.n_box, w.p_ref, w.it_cap, w.row_body,
-                                        w.row_J, w.reg, w.P, w.inv_inertia_w, w.cr_ent, w.cr_end, w.ct_mu, w.vt,
-                                        w.lo_s, w.hi_s, w.sdiag],
-                                outputs=[self.sp, w.row_info, w.x, w.y, w.z, w.x_p, w.y_p, w.z_p, w.y_hat, w.z_hat,
-                                         w.e_p, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w, w.D, w.rho_u, w.k_rho,
-                                         w.pending, w.a_p, w.c_p, w.iters, w.r_p, w.r_d, w.r_c, w.converged, w.done,
-                                         w.remaining])
+                self._launch(thread_iterate, W, inputs=[problem, chunk], outputs=[carry, self.sp, w.D, *vectors])
                 if self.max_switches and self.sparse_factor:
                     self._launch(self.spk.refactor, W,
                                     inputs=[nblk, shift_f, shift_b, cfg.penalty.eta, w.row_stride, w.n_rows, w.row_body,

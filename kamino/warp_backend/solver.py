@@ -637,10 +637,12 @@ def restart_world_func(np_dtype):
 def linear_step_func(np_dtype, linear: int):
     """§7.3 steps 1-2 of one thread per world: the right-hand side and the linear solve ``linear``
     (``LINEAR_DENSE``, ``LINEAR_CR`` or ``LINEAR_SPARSE``: ``linear_solve.py``) of one iteration.
-    ``linear_step(m, sp, row_stride, <the Work arrays it reads>, x, y, cr_r, cr_p, cr_Ap, cr_Ar, cr_w, wid, rb, n,
-    n_box, nblk, eta, rho_free, rho_box, rho_u, cr_budget)``."""
-    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
-    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
+    ``linear_step(m, problem, carry, sp, row_info, D, x, y, cr_r, cr_p, cr_Ap, cr_Ar, cr_w, wid, rb, n, n_box,
+    rho_u)`` (``solver_rules.problem_struct``, ``solver_rules.carry_struct``)."""
+    M, SP, vec6 = builder_types(np_dtype).take("M", "SP", "vec6")
+    farr, iarr = wp.array(dtype=builder_types(np_dtype).scalar), wp.array(dtype=wp.int32)
+    Problem, Carry = rules.problem_struct(np_dtype), rules.carry_struct(np_dtype)
+    scalar = builder_types(np_dtype).scalar
     row_penalty = rules.row_penalty_func(np_dtype)
     row_rhs = rules.row_rhs_func(np_dtype)
     contact_correction = rules.contact_correction_func(np_dtype)
@@ -649,33 +651,33 @@ def linear_step_func(np_dtype, linear: int):
     cho_solve_inplace = cho_solve_func(np_dtype)
 
     @wp.func
-    def linear_step(m: M, sp: SP, row_stride: int, row_body: iarr, row_J: wp.array(dtype=vec6), row_info: iarr,
-                    reg: farr, P: farr, inv_inertia_w: wp.array(dtype=mat33), cr_ent: iarr, cr_end: iarr, ct_mu: farr,
-                    vt: farr, x_p: farr, y_hat: farr, z_hat: farr, D: farr, x: farr, y: farr, cr_r: farr, cr_p: farr,
-                    cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6), wid: int, rb: int, n: int, n_box: int,
-                    nblk: int, eta: scalar, rho_free: scalar, rho_box: scalar, rho_u: scalar, cr_budget: int):
+    def linear_step(m: M, problem: Problem, carry: Carry, sp: SP, row_info: iarr, D: farr, x: farr, y: farr,
+                    cr_r: farr, cr_p: farr, cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6), wid: int, rb: int,
+                    n: int, n_box: int, rho_u: scalar):
         """``x`` of the iteration: the right-hand side (the De Saxcé correction ``Gamma(z_hat)`` on the contacts'
         normal rows) into ``x`` for the in-place factor solves, into ``y`` as CR's, then the solve (CR's scratch
         ``cr_*``)."""
-        rs = row_stride
+        rs = problem.row_stride
+        eta, rho_free, rho_box = problem.eta, problem.rho_free, problem.rho_box
         nf = m.row_fixed[wid]
         rhs = x
         if wp.static(linear == LINEAR_CR):
             rhs = y
         for a in range(n):
             r = rb + a * rs
-            rhs[r] = row_rhs(vt, x_p, y_hat, z_hat, r, row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u), eta)
+            rhs[r] = row_rhs(problem.vt, carry.x_p, carry.y_hat, carry.z_hat, r,
+                             row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u), eta)
         for c in range((n - n_box) // 3):
             r = rb + (n_box + 3 * c) * rs
-            rhs[r + 2 * rs] -= contact_correction(ct_mu, row_info, z_hat, r, rs)
+            rhs[r + 2 * rs] -= contact_correction(problem.ct_mu, row_info, carry.z_hat, r, rs)
         if wp.static(linear == LINEAR_CR):
-            cr_solve(m, row_stride, row_body, row_J, row_info, reg, P, inv_inertia_w, cr_ent, cr_end, x_p, y, wid, rb,
-                     n, nblk, 0, eta + rho_free, eta + rho_box, eta + rho_u, cr_budget, x, cr_r, cr_p, cr_Ap, cr_Ar,
-                     cr_w)
+            cr_solve(m, rs, problem.row_body, problem.row_J, row_info, problem.reg, problem.P, problem.inv_inertia_w,
+                     problem.cr_ent, problem.cr_end, carry.x_p, y, wid, rb, n, problem.nblk, 0, eta + rho_free,
+                     eta + rho_box, eta + rho_u, problem.cr_budget, x, cr_r, cr_p, cr_Ap, cr_Ar, cr_w)
         elif wp.static(linear == LINEAR_SPARSE):
-            sparse_solve(m, sp, row_stride, wid, n, x)
+            sparse_solve(m, sp, rs, wid, n, x)
         else:
-            cho_solve_inplace(m, row_stride, D, x, wid, n)
+            cho_solve_inplace(m, rs, D, x, wid, n)
 
     return linear_step
 
@@ -683,11 +685,12 @@ def linear_step_func(np_dtype, linear: int):
 @functools.cache
 def project_rows_func(np_dtype, linear: int, adaptive: bool):
     """§7.3 steps 3-4 of one thread per world: every row's projection, dual update and residual terms.
-    ``project_rows(m, row_stride, row_info, lo_s, hi_s, ct_mu, x, x_p, y_hat, z_hat, P, cr_r, y, z, e_p, wid, rb, n,
-    n_box, eta, rho_free, rho_box, rho_u, p_ref)`` returns the world's ``solver_rules.residuals_struct``; ``linear``
-    and ``adaptive`` as :func:`padmm_iterate_kernel`'s."""
+    ``project_rows(m, problem, carry, row_info, x, cr_r, y, z, wid, rb, n, n_box, rho_u, p_ref)`` returns the
+    world's ``solver_rules.residuals_struct``, writing ``y``, ``z`` and ``carry.e_p``; ``linear`` and ``adaptive`` as
+    :func:`padmm_iterate_kernel`'s."""
     scalar, M, vec3 = builder_types(np_dtype).take("scalar", "M", "vec3")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
+    Problem, Carry = rules.problem_struct(np_dtype), rules.carry_struct(np_dtype)
     Residuals = rules.residuals_struct(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
     box_row = rules.box_row_func(np_dtype, adaptive)
@@ -695,27 +698,27 @@ def project_rows_func(np_dtype, linear: int, adaptive: bool):
     cr_residual = rules.cr_residual_func(np_dtype)
 
     @wp.func
-    def project_rows(m: M, row_stride: int, row_info: iarr, lo_s: farr, hi_s: farr, ct_mu: farr, x: farr,
-                     x_p: farr, y_hat: farr, z_hat: farr, P: farr, cr_r: farr, y: farr, z: farr, e_p: farr, wid: int,
-                     rb: int, n: int, n_box: int, eta: scalar, rho_free: scalar, rho_box: scalar, rho_u: scalar,
-                     p_ref: scalar) -> Residuals:
+    def project_rows(m: M, problem: Problem, carry: Carry, row_info: iarr, x: farr, cr_r: farr, y: farr, z: farr,
+                     wid: int, rb: int, n: int, n_box: int, rho_u: scalar, p_ref: scalar) -> Residuals:
         """The box rows, then the contact triples (the linear solve's ``x``), into ``y``, ``z`` (and ``e_p``);
         under CR the inner solve's residual ``cr_r`` too."""
-        rs = row_stride
+        rs = problem.row_stride
+        eta, rho_free, rho_box = problem.eta, problem.rho_free, problem.rho_box
         nf = m.row_fixed[wid]
         acc = Residuals()
         for a in range(n_box):
             r = rb + a * rs
-            acc = box_row(row_info, lo_s, hi_s, x_p, y_hat, z_hat, P, y, z, e_p, r, a, nf, x[r],
-                          row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u), eta, p_ref, acc)
+            acc = box_row(row_info, problem.lo_s, problem.hi_s, carry.x_p, carry.y_hat, carry.z_hat, problem.P, y, z,
+                          carry.e_p, r, a, nf, x[r], row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_u), eta,
+                          p_ref, acc)
         inv_rho = scalar(1.0) / rho_u
         for c in range((n - n_box) // 3):
             r = rb + (n_box + 3 * c) * rs
-            acc = contact_rows(ct_mu, row_info, z_hat, x, x_p, y_hat, P, y, z, r, rs,
+            acc = contact_rows(problem.ct_mu, row_info, carry.z_hat, x, carry.x_p, carry.y_hat, problem.P, y, z, r, rs,
                                vec3(x[r], x[r + rs], x[r + 2 * rs]), inv_rho, rho_u, eta, p_ref, acc)
         if wp.static(linear == LINEAR_CR):
             for a in range(n):
-                acc = cr_residual(P, cr_r, rb + a * rs, p_ref, acc)
+                acc = cr_residual(problem.P, cr_r, rb + a * rs, p_ref, acc)
         return acc
 
     return project_rows
@@ -728,8 +731,9 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
     momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time."""
     if linear not in (LINEAR_DENSE, LINEAR_CR, LINEAR_SPARSE):
         raise ValueError(f"padmm_iterate_kernel: linear must be LINEAR_DENSE, LINEAR_CR or LINEAR_SPARSE, got {linear}")
-    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
+    scalar, M, SP, vec6 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
+    Problem, Carry = rules.problem_struct(np_dtype), rules.carry_struct(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     linear_step = linear_step_func(np_dtype, linear)
     project_rows = project_rows_func(np_dtype, linear, adaptive)
@@ -742,23 +746,12 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
 
     @wp.kernel(module="unique", enable_backward=False)
     def padmm_iterate(
-        # model (read only)
-        m: M,
-        # in
-        chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar, rho_box: scalar, tol: scalar,
-        restart_tol: scalar,
-        row_stride: int,
-        n_rows: iarr, n_box: iarr, p_ref: farr, it_cap: iarr, row_body: iarr, row_J: wp.array(dtype=vec6),
-        reg: farr, P: farr, inv_inertia_w: wp.array(dtype=mat33), cr_ent: iarr, cr_end: iarr, ct_mu: farr, vt: farr,
-        lo_s: farr, hi_s: farr, sdiag: farr,
-        # out
-        sp: SP,  # the factor's tail values sp.tail under LINEAR_SPARSE (a new penalty); its index tables are read
-        row_info: iarr,  # also read
-        x: farr, y: farr, z: farr, x_p: farr, y_p: farr, z_p: farr, y_hat: farr, z_hat: farr, e_p: farr,
-        cr_r: farr, cr_p: farr, cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6),
-        D: farr,
-        rho_u: farr, k_rho: iarr, pending: iarr, a_p: farr, c_p: farr, iters: iarr, r_p: farr, r_d: farr, r_c: farr,
-        converged: iarr, done: iarr, remaining: iarr,
+        m: M, problem: Problem, chunk: int,  # in: the model, the world's problem, the iterations of this launch
+        carry: Carry,  # in and out: the iterate and the world's state
+        sp: SP,  # out: the factor's tail values sp.tail under LINEAR_SPARSE (a new penalty); its tables are read
+        D: farr,  # out: the dense factor's tail under LINEAR_DENSE (a new penalty)
+        row_info: iarr,  # out: a row's saturation flag (also read)
+        x: farr, y: farr, z: farr, cr_r: farr, cr_p: farr, cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6),  # out
     ):
         """Up to ``chunk`` iterations of one world (``padmm.solve`` of the JAX reference, its penalty rule and
         residuals included), resuming from the stored iterate; a world that converges (unless
@@ -768,45 +761,46 @@ def padmm_iterate_kernel(np_dtype, linear: int, adaptive: bool, accelerate: bool
         recomputed). A row that saturates ends the launch with ``pending`` set: ``refactor`` (or
         ``refactor_dense``) redoes the factor before the next launch (kamino.jax_ref.solver.solve, "Saturation");
         CR's operator takes ``rho_box`` at its next solve."""
-        rs = row_stride
+        rs = problem.row_stride
+        eta, rho_free = problem.eta, problem.rho_free
         wid = wp.tid()
-        rb = row_base(m, row_stride, wid)
-        if done[wid] != 0:
+        rb = row_base(m, rs, wid)
+        if carry.done[wid] != 0:
             return
-        n = n_rows[wid]
-        nb = n_box[wid]
+        n = problem.n_rows[wid]
+        nb = problem.n_box[wid]
         nf = m.row_fixed[wid]
-        pref = p_ref[wid]
-        rho_w = rho_u[wid]
+        pref = problem.p_ref[wid]
+        rho_w = carry.rho_u[wid]
         for step in range(chunk):
-            linear_step(m, sp, row_stride, row_body, row_J, row_info, reg, P, inv_inertia_w, cr_ent, cr_end, ct_mu, vt,
-                        x_p, y_hat, z_hat, D, x, y, cr_r, cr_p, cr_Ap, cr_Ar, cr_w, wid, rb, n, nb, nblk, eta,
-                        rho_free, rho_box, rho_w, cr_budget)
-            acc = project_rows(m, row_stride, row_info, lo_s, hi_s, ct_mu, x, x_p, y_hat, z_hat, P, cr_r, y, z, e_p,
-                               wid, rb, n, nb, eta, rho_free, rho_box, rho_w, pref)
-            k = iters[wid] + 1
-            res = outcome(a_p, c_p, k_rho, wid, acc, k, n, nf, rho_w, tol, eta, rho_free, restart_tol)
+            linear_step(m, problem, carry, sp, row_info, D, x, y, cr_r, cr_p, cr_Ap, cr_Ar, cr_w, wid, rb, n, nb, rho_w)
+            acc = project_rows(m, problem, carry, row_info, x, cr_r, y, z, wid, rb, n, nb, rho_w, pref)
+            k = carry.iters[wid] + 1
+            res = outcome(carry.a_p, carry.c_p, carry.k_rho, wid, acc, k, n, nf, rho_w, problem.tol, eta, rho_free,
+                          problem.restart_tol)
             if res.rho != rho_w:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
                 rho_w = res.rho
-                rho_u[wid] = rho_w
-                k_rho[wid] = k
+                carry.rho_u[wid] = rho_w
+                carry.k_rho[wid] = k
                 if wp.static(linear == LINEAR_SPARSE):
                     if res.saturates == 0:
-                        factor_tail_sparse(m, sp, row_stride, wid, n, eta + rho_w)
+                        factor_tail_sparse(m, sp, rs, wid, n, eta + rho_w)
                 elif wp.static(linear == LINEAR_DENSE):
                     if res.saturates == 0:
-                        factor_tail_dense(m, row_stride, sdiag, D, wid, n, eta + rho_w)
+                        factor_tail_dense(m, rs, problem.sdiag, D, wid, n, eta + rho_w)
             if res.saturates != 0:  # rho_box on the rows that saturate; the factor is redone after this launch
                 for a in range(nf):
-                    mark_saturated(lo_s, hi_s, x, z_hat, y, row_info, rb + a * rs, rho_free)
-                k_rho[wid] = k
+                    mark_saturated(problem.lo_s, problem.hi_s, x, carry.z_hat, y, row_info, rb + a * rs, rho_free)
+                carry.k_rho[wid] = k
                 if wp.static(linear != LINEAR_CR):
-                    pending[wid] = 1
+                    carry.pending[wid] = 1
             for a in range(n):
-                advance_row(y, z, x_p, y_p, z_p, y_hat, z_hat, rb + a * rs, x[rb + a * rs], res.mom)
-            finished = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= it_cap[wid]
-            store_world(a_p, c_p, iters, r_p, r_d, r_c, converged, done, remaining, wid, k, acc, res, finished)
-            if finished or pending[wid] != 0:
+                advance_row(y, z, carry.x_p, carry.y_p, carry.z_p, carry.y_hat, carry.z_hat, rb + a * rs,
+                            x[rb + a * rs], res.mom)
+            finished = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= problem.it_cap[wid]
+            store_world(carry.a_p, carry.c_p, carry.iters, carry.r_p, carry.r_d, carry.r_c, carry.converged,
+                        carry.done, carry.remaining, wid, k, acc, res, finished)
+            if finished or carry.pending[wid] != 0:
                 return
 
     return padmm_iterate

@@ -680,10 +680,11 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
     """Accelerated PADMM with the world's 32 threads (§7.3-§7.5; the rules of ``solver_rules.py``), with the sparse
     factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), the adaptive penalty (``adaptive``),
     the momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time.
-    ``padmm_iterate``'s arguments are those of ``solver.padmm_iterate_kernel``'s kernel less ``sdiag`` and ``D``;
-    launched tiled: one block of ``LANES`` threads per world."""
-    scalar, M, SP, vec3, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec3", "vec6", "mat33")
+    ``padmm_iterate``'s arguments are those of ``solver.padmm_iterate_kernel``'s kernel less ``D``; launched tiled:
+    one block of ``LANES`` threads per world."""
+    scalar, M, SP, vec3, vec6 = builder_types(np_dtype).take("scalar", "M", "SP", "vec3", "vec6")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
+    Problem, Carry = rules.problem_struct(np_dtype), rules.carry_struct(np_dtype)
     Residuals = rules.residuals_struct(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
@@ -704,22 +705,11 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
     @wp.kernel(module="unique", enable_backward=False,
                cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else SMALL_WORLD_MAX_REGISTERS)
     def padmm_iterate(
-        # model (read only)
-        m: M,
-        # in
-        chunk: int, nblk: int, cr_budget: int, eta: scalar, rho_free: scalar, rho_box: scalar, tol: scalar,
-        restart_tol: scalar,
-        row_stride: int,
-        n_rows: iarr, n_box: iarr, p_ref: farr, it_cap: iarr, row_body: iarr, row_J: wp.array(dtype=vec6),
-        reg: farr, P: farr, inv_inertia_w: wp.array(dtype=mat33), cr_ent: iarr, cr_end: iarr, ct_mu: farr, vt: farr,
-        lo_s: farr, hi_s: farr,
-        # out
-        sp: SP,  # the factor's tail values sp.tail (a new penalty; not under cr); its index tables are read
-        row_info: iarr,  # also read
-        x: farr, y: farr, z: farr, x_p: farr, y_p: farr, z_p: farr, y_hat: farr, z_hat: farr, e_p: farr,
-        cr_r: farr, cr_p: farr, cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6),
-        rho_u: farr, k_rho: iarr, pending: iarr, a_p: farr, c_p: farr, iters: iarr, r_p: farr, r_d: farr, r_c: farr,
-        converged: iarr, done: iarr, remaining: iarr,
+        m: M, problem: Problem, chunk: int,  # in: the model, the world's problem, the iterations of this launch
+        carry: Carry,  # in and out: the iterate and the world's state
+        sp: SP,  # out: the factor's tail values sp.tail (a new penalty; not under cr); its index tables are read
+        row_info: iarr,  # out: a row's saturation flag (also read)
+        x: farr, y: farr, z: farr, cr_r: farr, cr_p: farr, cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6),  # out
     ):
         """Up to ``chunk`` iterations of one world (``solver.padmm_iterate_kernel`` rule for rule), resuming from the
         stored iterate; a world that converges (unless ``fixed_iterations``) or reaches its cap is marked done and
@@ -727,35 +717,37 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
         reductions. Under ``cr`` (at most ``cr_budget`` iterations per solve) the solution lands in ``x`` (the
         factor's solve: in ``xs``), a new penalty refactorises nothing and a row that saturates takes ``rho_box`` in
         the next solve's operator without ending the launch."""
-        rs = row_stride
+        rs = problem.row_stride
+        eta, rho_free, rho_box = problem.eta, problem.rho_free, problem.rho_box
         wid, lane = wp.tid()
-        if done[wid] != 0:
+        if carry.done[wid] != 0:
             return
-        rb = row_base(m, row_stride, wid)
-        n = n_rows[wid]
-        nb = n_box[wid]
+        rb = row_base(m, rs, wid)
+        n = problem.n_rows[wid]
+        nb = problem.n_box[wid]
         nc = (n - nb) // 3
         nf = m.row_fixed[wid]
-        pref = p_ref[wid]
-        rho_w = rho_u[wid]
+        pref = problem.p_ref[wid]
+        rho_w = carry.rho_u[wid]
         if wp.static(not cr):
             xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
             ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
         for step in range(chunk):
             for a in range(lane, n, LANES):  # steps 1-2: right-hand side (into xs; CR's into y), linear solve
-                rhs = lane_rhs(row_stride, row_info, ct_mu, vt, x_p, y_hat, z_hat, rb + a * rs, a, nf, nb, rho_free,
-                               rho_box, rho_w, eta)
+                rhs = lane_rhs(rs, row_info, problem.ct_mu, problem.vt, carry.x_p, carry.y_hat, carry.z_hat,
+                               rb + a * rs, a, nf, nb, rho_free, rho_box, rho_w, eta)
                 if wp.static(cr):
                     y[rb + a * rs] = rhs
                 else:
                     sset(xs, a, rhs)
             if wp.static(cr):
-                cr_solve(m, row_stride, row_body, row_J, row_info, reg, P, inv_inertia_w, cr_ent, cr_end, x_p, y, wid,
-                         rb, n, nblk, lane, eta + rho_free, eta + rho_box, eta + rho_w, cr_budget, x, cr_r, cr_p,
-                         cr_Ap, cr_Ar, cr_w)
+                cr_solve(m, rs, problem.row_body, problem.row_J, row_info, problem.reg, problem.P,
+                         problem.inv_inertia_w, problem.cr_ent, problem.cr_end, carry.x_p, y, wid, rb, n, problem.nblk,
+                         lane, eta + rho_free, eta + rho_box, eta + rho_w, problem.cr_budget, x, cr_r, cr_p, cr_Ap,
+                         cr_Ar, cr_w)
             else:
                 sync()
-                solve(m, sp, row_stride, wid, n, lane, xs, ys)
+                solve(m, sp, rs, wid, n, lane, xs, ys)
             acc = Residuals()  # steps 3-4: projection, dual update and the residuals: box rows, then contact triples
             for a in range(lane, nb, LANES):
                 r = rb + a * rs
@@ -764,8 +756,9 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                 else:
                     xa = sget(xs, a)
                     x[r] = xa
-                acc = box_row(row_info, lo_s, hi_s, x_p, y_hat, z_hat, P, y, z, e_p, r, a, nf, xa,
-                              row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_w), eta, pref, acc)
+                acc = box_row(row_info, problem.lo_s, problem.hi_s, carry.x_p, carry.y_hat, carry.z_hat, problem.P,
+                              y, z, carry.e_p, r, a, nf, xa, row_penalty(row_info, r, a, nf, rho_free, rho_box, rho_w),
+                              eta, pref, acc)
             inv_rho = scalar(1.0) / rho_w
             for c in range(lane, nc, LANES):
                 a = nb + 3 * c
@@ -776,39 +769,43 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                     x3 = vec3(sget(xs, a), sget(xs, a + 1), sget(xs, a + 2))
                     for t in range(3):
                         x[r + t * rs] = x3[t]
-                acc = contact_rows(ct_mu, row_info, z_hat, x, x_p, y_hat, P, y, z, r, rs, x3, inv_rho, rho_w, eta, pref,
-                                   acc)
+                acc = contact_rows(problem.ct_mu, row_info, carry.z_hat, x, carry.x_p, carry.y_hat, problem.P, y, z, r,
+                                   rs, x3, inv_rho, rho_w, eta, pref, acc)
             if wp.static(cr):
                 for a in range(lane, n, LANES):
-                    acc = cr_residual(P, cr_r, rb + a * rs, pref, acc)
+                    acc = cr_residual(problem.P, cr_r, rb + a * rs, pref, acc)
             acc = reduce_residuals(acc)
-            k = iters[wid] + 1
-            res = outcome(a_p, c_p, k_rho, wid, acc, k, n, nf, rho_w, tol, eta, rho_free, restart_tol)
+            k = carry.iters[wid] + 1
+            res = outcome(carry.a_p, carry.c_p, carry.k_rho, wid, acc, k, n, nf, rho_w, problem.tol, eta, rho_free,
+                          problem.restart_tol)
             if res.rho != rho_w:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
                 rho_w = res.rho
                 sync()  # every thread has read k_rho (outcome) before it changes
                 if wp.static(not cr):
                     if res.saturates == 0:
-                        factor_tail(m, sp, row_stride, wid, n, eta + rho_w, lane)
+                        factor_tail(m, sp, rs, wid, n, eta + rho_w, lane)
                 if lane == 0:
-                    rho_u[wid] = rho_w
-                    k_rho[wid] = k
+                    carry.rho_u[wid] = rho_w
+                    carry.k_rho[wid] = k
             if res.saturates != 0:  # this thread's own rows of the projection loop above
                 for a in range(lane, nf, LANES):
-                    mark_saturated(lo_s, hi_s, x, z_hat, y, row_info, rb + a * rs, rho_free)
+                    mark_saturated(problem.lo_s, problem.hi_s, x, carry.z_hat, y, row_info, rb + a * rs, rho_free)
             for a in range(lane, n, LANES):
                 if wp.static(cr):
-                    advance_row(y, z, x_p, y_p, z_p, y_hat, z_hat, rb + a * rs, x[rb + a * rs], res.mom)
+                    advance_row(y, z, carry.x_p, carry.y_p, carry.z_p, carry.y_hat, carry.z_hat, rb + a * rs,
+                                x[rb + a * rs], res.mom)
                 else:
-                    advance_row(y, z, x_p, y_p, z_p, y_hat, z_hat, rb + a * rs, sget(xs, a), res.mom)
-            finished = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= it_cap[wid]
+                    advance_row(y, z, carry.x_p, carry.y_p, carry.z_p, carry.y_hat, carry.z_hat, rb + a * rs,
+                                sget(xs, a), res.mom)
+            finished = (res.converged != 0 and not wp.static(fixed_iterations)) or k >= problem.it_cap[wid]
             sync()  # every thread has read the world's scalars before they change
             if lane == 0:
-                store_world(a_p, c_p, iters, r_p, r_d, r_c, converged, done, remaining, wid, k, acc, res, finished)
+                store_world(carry.a_p, carry.c_p, carry.iters, carry.r_p, carry.r_d, carry.r_c, carry.converged,
+                            carry.done, carry.remaining, wid, k, acc, res, finished)
                 if res.saturates != 0:  # the factor is redone after this launch (CR: the next operator takes rho_box)
-                    k_rho[wid] = k
+                    carry.k_rho[wid] = k
                     if wp.static(not cr):
-                        pending[wid] = 1
+                        carry.pending[wid] = 1
             sync()
             if wp.static(cr):
                 if finished:

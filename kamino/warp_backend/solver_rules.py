@@ -54,6 +54,95 @@ def lane_reduce_func(np_dtype, lanes: int, op: str):
     return lane_reduce
 
 
+# --- what an iteration reads and what it carries to the next ------------------------------------------------------
+
+@functools.cache
+def problem_struct(np_dtype):
+    """``Problem``: what every PADMM iteration of both schedules reads and never writes, the Warp counterpart of
+    ``kamino.jax_ref.solver._Problem`` (scaled units, docs/formulation.md §7.2-§7.3). The launch's settings
+    (``SolverConfig``), the worlds' row counts, reference scale and iteration caps, the rows' Jacobian blocks and
+    scaling, their bounds and free velocity, the bodies' world-frame inverse inertia, and the pattern of the linear
+    solve: ``sdiag`` (the dense factor's diagonal shifts) and ``cr_ent``, ``cr_end`` (Conjugate Residual's row blocks
+    by body); a field a linear solve does not use is an empty array."""
+    T = builder_types(np_dtype)
+    farr, iarr = wp.array(dtype=T.scalar), wp.array(dtype=wp.int32)
+
+    @wp.struct
+    class Problem:
+        row_stride: int  # storage distance between a world's consecutive rows (Work.row_stride)
+        nblk: int  # blocks per row of the Jacobian
+        cr_budget: int  # Conjugate Residual iterations per linear solve (SolverConfig.warp.cr_iterations)
+        eta: T.scalar  # the proximal term (SolverConfig.penalty.eta)
+        rho_free: T.scalar  # the always-active rows' penalty
+        rho_box: T.scalar  # the penalty of a saturated effort-limited row
+        tol: T.scalar  # the residuals' tolerance (§7.5)
+        restart_tol: T.scalar  # the momentum's restart factor (§7.4)
+        n_rows: iarr  # per world
+        n_box: iarr
+        p_ref: farr
+        it_cap: iarr
+        row_body: iarr  # per row
+        row_J: wp.array(dtype=T.vec6)
+        reg: farr
+        P: farr
+        ct_mu: farr
+        vt: farr
+        lo_s: farr
+        hi_s: farr
+        sdiag: farr
+        inv_inertia_w: wp.array(dtype=T.mat33)  # per body
+        cr_ent: iarr  # Conjugate Residual's pattern
+        cr_end: iarr
+
+    return Problem
+
+
+@functools.cache
+def carry_struct(np_dtype):
+    """``Carry``: what a PADMM iteration hands to the next, across launches, the Warp counterpart of
+    ``kamino.jax_ref.solver.Carry`` (§7.3-§7.5): per row the previous iterate ``x_p``, ``y_p``, ``z_p``, the
+    extrapolated ``y_hat``, ``z_hat`` and the last dual residual vector ``e_p``; per world the iteration count
+    ``iters``, the momentum ``a_p``, ``c_p``, the residuals ``r_p``, ``r_d``, ``r_c``, the limit and contact rows'
+    penalty ``rho_u`` and the iteration of its last change ``k_rho``, ``converged``, ``done``, ``pending`` (a row
+    saturated: the factor is redone before the next launch); and ``remaining``, the count of worlds still iterating
+    (one entry)."""
+    T = builder_types(np_dtype)
+    farr, iarr = wp.array(dtype=T.scalar), wp.array(dtype=wp.int32)
+
+    @wp.struct
+    class Carry:
+        x_p: farr  # per row
+        y_p: farr
+        z_p: farr
+        y_hat: farr
+        z_hat: farr
+        e_p: farr
+        iters: iarr  # per world
+        a_p: farr
+        c_p: farr
+        r_p: farr
+        r_d: farr
+        r_c: farr
+        rho_u: farr
+        k_rho: iarr
+        converged: iarr
+        done: iarr
+        pending: iarr
+        remaining: iarr  # one entry
+
+    return Carry
+
+
+def fill_struct(struct_type, source, **values):
+    """An instance of the ``wp.struct`` ``struct_type`` (:func:`problem_struct`, :func:`carry_struct`) whose fields
+    are ``values``' entries, the others ``source``'s attributes of the same name (the ``Work`` arrays): the field
+    list lives in the struct alone."""
+    out = struct_type()
+    for name in struct_type.vars:
+        setattr(out, name, values[name] if name in values else getattr(source, name))
+    return out
+
+
 # --- the momentum and the penalty (§7.4) ---------------------------------------------------------------------
 
 @functools.cache
