@@ -75,10 +75,9 @@ def shared_entries(max_nnz: int) -> int:
 #: ms per step, the standing robots at 4096 worlds +1 %, the four-bar (117 rows) 12 % slower, hence the threshold.
 ITERATE_MAX_REGISTERS: int | None = 72
 REGISTER_CAP_MIN_ROWS = 200
-#: Registers per thread of ``padmm_iterate`` for smaller worlds. Left to the compiler the kernel takes 168 on sm_90
-#: (its buffers are separate arguments, whose addresses it keeps in registers), so a multiprocessor holds 12 worlds;
-#: at 128 it holds 16 (120 bytes of stack per thread). Measured on an H200, four-bar at 4096 worlds: 3.38e6
-#: world-steps/s uncapped, 3.47e6 at 128, 3.41e6 at 120.
+#: Registers per thread of ``padmm_iterate`` for smaller worlds. Left to the compiler the kernel takes 124 on sm_90;
+#: at 128 it spills nothing and runs the four-bar at 4096 worlds 0.4 % faster (H200: 3.52e6 world-steps/s against
+#: 3.51e6, three interleaved runs each).
 SMALL_WORLD_MAX_REGISTERS = 128
 
 
