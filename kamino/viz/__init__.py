@@ -1,8 +1,8 @@
 """Looking at a rollout: one world of a trajectory as an interactive HTML page or an animated GIF.
 
-- :func:`html` writes a self-contained page (three.js from a pinned CDN URL through an import map, as Brax's HTML
-  viewer does; the trajectory embedded as JSON): bodies from their geoms, loop-closing joints highlighted,
-  contacts, a time slider, play/pause and an orbit camera. Opens from disk in a browser.
+- :func:`html` writes a self-contained page that needs no network (three.js r170 carried inline, the trajectory
+  embedded as JSON): bodies from their geoms, loop-closing joints highlighted, contacts, a time slider,
+  play/pause and an orbit camera. Opens from disk in a browser, offline too.
 - :func:`gif` writes a GIF (or MP4) through MuJoCo's renderer on the ``kamino.save_mjcf`` export of the world where
   an OpenGL context exists, else a matplotlib line drawing.
 - :func:`world_model` is one world of a multi-world model as a single-world model (``kamino.concat``'s inverse).
