@@ -240,7 +240,10 @@ def test_page_draws_offline_and_its_slider_moves_the_bodies(browser, tmp_path):
     page = Page(browser)
     deadline = time.monotonic() + REPLY_TIMEOUT
     page.call("Page.navigate", url=path.as_uri())
-    browser.wait_for("Page.loadEventFired", deadline)
+    browser.wait_for("Page.loadEventFired", deadline)  # after the page's modules have loaded
+    # nothing came from the network: the page, and the libraries it carries (blob: modules)
+    urls = page.requested_urls()
+    assert urls and all(url.split(":", 1)[0] in {"file", "blob", "data"} for url in urls), urls
     # the viewer is up when it has shown its first frame (the clock names it); a failed page says why in #info
     while not page.evaluate('document.getElementById("clock").textContent'):
         failed = page.evaluate('document.getElementById("info").textContent')
@@ -248,9 +251,6 @@ def test_page_draws_offline_and_its_slider_moves_the_bodies(browser, tmp_path):
         assert time.monotonic() < deadline, f"the viewer did not start: {failed}; {page.problems()}"
         time.sleep(0.05)
     assert page.problems() == []
-    # nothing came from the network: the page, and the libraries it carries (blob: modules)
-    urls = page.requested_urls()
-    assert urls and all(url.split(":", 1)[0] in {"file", "blob", "data"} for url in urls), urls
     # the canvas alone, without the overlaid title text
     page.evaluate('document.getElementById("info").style.visibility = "hidden"')
     clip = page.evaluate('(({x, y, width, height}) => ({x, y, width, height}))('

@@ -1,7 +1,8 @@
 """``kamino.viz``: the HTML page embeds exactly the trajectory's world, the GIFs have the frames they claim.
 
-CI has no browser and no display, so the page is checked through its embedded JSON (body poses per frame, geoms,
-loop-closing joints, contacts) and its import map; the GIFs through Pillow (frame count, size). The MuJoCo renderer
+The page is checked here through its text: its embedded JSON (body poses per frame, geoms, loop-closing joints,
+contacts) and the libraries it carries inline (tests/test_viewer_browser.py opens it in a headless browser, where
+one is installed); the GIFs through Pillow (frame count, size). The MuJoCo renderer
 runs in a subprocess with ``MUJOCO_GL=egl`` (the variable is read when ``mujoco`` is imported) and the test is
 skipped where no OpenGL context can be made. One short four-bar rollout; the other trajectories are built by hand.
 """
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import html as html_lib
+import importlib.resources
 import json
 import os
 import re
@@ -127,24 +129,60 @@ def test_html_worlds_differ_in_a_batch(fourbar_run):
     assert not np.allclose(first, second)  # world 1 starts from another crank angle
 
 
-def test_html_loads_three_from_a_pinned_cdn_through_an_import_map(fourbar_run):
+def _inline_script(text: str, element_id: str) -> str:
+    """The text of the page's ``<script type="text/plain">`` element ``element_id`` (a library it carries)."""
+    match = re.search(rf'<script type="text/plain" id="{element_id}">(.*?)</script>', text, re.S)
+    assert match, f"no {element_id} element"
+    return match.group(1)
+
+
+def test_html_carries_three_inline_and_needs_no_network(fourbar_run):
     model, traj = fourbar_run
     text = viz.html(model, traj, title="four-bar <&> test")
-    match = re.search(r'<script type="importmap">(.*?)</script>', text, re.S)
-    assert match, "no import map"
-    imports = json.loads(match.group(1))["imports"]
-    assert re.fullmatch(r"https://cdn\.jsdelivr\.net/npm/three@\d+\.\d+\.\d+/build/three\.module\.js",
-                        imports["three"])
-    assert imports["three/addons/"] == imports["three"].replace("build/three.module.js", "examples/jsm/")
+    vendor = importlib.resources.files("kamino.viz").joinpath("vendor")
+    # the libraries, byte for byte as vendored: three.js r170's minified module build and its OrbitControls
+    three = _inline_script(text, "kamino-three")
+    assert three == vendor.joinpath("three.module.min.js").read_text(encoding="utf-8")
+    assert 'const t="170"' in three[:400] and "SPDX-License-Identifier: MIT" in three[:400]  # three.REVISION
+    controls = _inline_script(text, "kamino-orbit-controls")
+    assert controls == vendor.joinpath("OrbitControls.js").read_text(encoding="utf-8")
+    assert "export { OrbitControls };" in controls and "} from 'three';" in controls
+    # each becomes a module at a blob: URL, named by the import map the page builds before its module runs
+    classic = re.search(r"<script>(.*?)</script>", text, re.S).group(1)
+    assert 'map.type = "importmap"' in classic
+    for specifier, element in (("three", "kamino-three"),
+                               ("three/addons/controls/OrbitControls.js", "kamino-orbit-controls")):
+        assert f'"{specifier}": moduleUrl("{element}")' in classic
+    assert text.index("<script>") < text.index('<script type="module">')
     module = re.search(r'<script type="module">(.*?)</script>', text, re.S).group(1)
     assert 'from "three"' in module and 'from "three/addons/controls/OrbitControls.js"' in module
-    # self-contained: nothing else is fetched (no script src, stylesheet or fetch of a data file)
-    assert not re.search(r"<script[^>]*\ssrc=|<link[^>]*stylesheet|fetch\(", text)
+    # self-contained: no script src, stylesheet, fetch or dynamic import, and no URL outside the libraries' text
+    page = text.replace(three, "").replace(controls, "")
+    assert not re.search(r"<script[^>]*\ssrc=|<link|fetch\(|import\(|https?://", page)
+    # the size: the libraries, 0.72 MB, and the data; the rest is the viewer's 10 kB
+    assert len(three) + len(controls) < 750_000
+    data = re.search(r'<script type="application/json" id="kamino-data">(.*?)</script>', text, re.S).group(1)
+    assert len(page) - len(data) < 15_000
     assert f"<title>{html_lib.escape('four-bar <&> test')}</title>" in text
     assert _page_data(text)["title"] == "four-bar <&> test"
     for element in ("slider", "play", "speed"):
         assert f'id="{element}"' in text
     assert "__KAMINO_" not in text  # every placeholder filled
+
+
+def test_html_refuses_a_library_that_would_end_its_element(fourbar_run, monkeypatch):
+    from kamino.viz import _html
+
+    model, traj = fourbar_run
+    real = _html._package_text
+    monkeypatch.setattr(_html, "_package_text",
+                        lambda name: 'x = "</script>";' if name == _html.VENDOR["__KAMINO_THREE__"] else real(name))
+    _html._vendor_scripts.cache_clear()
+    try:
+        with pytest.raises(RuntimeError, match=r"three\.module\.min\.js contains '</script' or '<!--'"):
+            viz.html(model, traj)
+    finally:
+        _html._vendor_scripts.cache_clear()
 
 
 def test_html_geoms_contacts_of_a_heterogeneous_batch(mixed):
@@ -380,13 +418,16 @@ def test_loop_joints_are_the_export_cuts():
     assert viz.loop_joints(kamino.models.box_stack(2)) == []
 
 
-def test_viewer_template_is_package_data():
-    import importlib.resources
-
-    template = importlib.resources.files("kamino.viz").joinpath("viewer.html")
+def test_viewer_template_and_libraries_are_package_data():
+    package = importlib.resources.files("kamino.viz")
+    template = package.joinpath("viewer.html")
     assert template.is_file()
     text = template.read_text(encoding="utf-8")
-    assert "__KAMINO_DATA__" in text and "__KAMINO_TITLE__" in text
+    assert all(placeholder in text for placeholder in
+               ("__KAMINO_DATA__", "__KAMINO_TITLE__", "__KAMINO_THREE__", "__KAMINO_ORBIT_CONTROLS__"))
+    for name in ("vendor/three.module.min.js", "vendor/OrbitControls.js", "vendor/LICENSE"):
+        assert package.joinpath(name).is_file(), name
+    assert package.joinpath("vendor/LICENSE").read_text(encoding="utf-8").startswith("The MIT License")
 
 
 def test_html_plays_a_robot_with_loops():
