@@ -130,9 +130,9 @@ class DevTools:
             else:
                 return message["result"]
 
-    def wait_for(self, method: str, deadline: float) -> None:
-        """Read until an event ``method`` has arrived."""
-        while not any(e.get("method") == method for e in self.events):
+    def wait_for(self, method: str, session: str, deadline: float) -> None:
+        """Read until the page ``session`` has sent an event ``method``."""
+        while not any(e.get("method") == method and e.get("sessionId") == session for e in self.events):
             self.events.append(self._message(deadline))
 
     def log(self) -> str:
@@ -192,7 +192,7 @@ class Page:
     def problems(self) -> list[str]:
         """The page's uncaught exceptions and console errors so far."""
         out = []
-        for e in self.browser.events:
+        for e in (e for e in self.browser.events if e.get("sessionId") == self.session):
             if e.get("method") == "Runtime.exceptionThrown":
                 out.append(json.dumps(e["params"]["exceptionDetails"])[:500])
             elif e.get("method") == "Runtime.consoleAPICalled" and e["params"]["type"] == "error":
@@ -240,7 +240,7 @@ def test_page_draws_offline_and_its_slider_moves_the_bodies(browser, tmp_path):
     page = Page(browser)
     deadline = time.monotonic() + REPLY_TIMEOUT
     page.call("Page.navigate", url=path.as_uri())
-    browser.wait_for("Page.loadEventFired", deadline)  # after the page's modules have loaded
+    browser.wait_for("Page.loadEventFired", page.session, deadline)  # after the page's modules have loaded
     # nothing came from the network: the page, and the libraries it carries (blob: modules)
     urls = page.requested_urls()
     assert urls and all(url.split(":", 1)[0] in {"file", "blob", "data"} for url in urls), urls
