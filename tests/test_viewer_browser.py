@@ -43,6 +43,8 @@ WIDTH, HEIGHT = 480, 360
 BACKGROUND = np.array([0xF4, 0xF5, 0xF7])
 #: a pixel is drawn when a channel differs from another image by more than this (antialiased edges differ by less)
 PIXEL_TOLERANCE = 8
+#: the DevTools protocol's key for the attached page a message is to or from (flat mode)
+PAGE_KEY = "sessionId"
 #: seconds any one browser reply may take (the page parses 0.7 MB of JavaScript and renders on the CPU)
 REPLY_TIMEOUT = 60.0
 
@@ -113,12 +115,12 @@ class DevTools:
         message, self._buffer = self._buffer.split(b"\0", 1)
         return json.loads(message)
 
-    def call(self, method: str, session: str | None = None, **params: Any) -> dict[str, Any]:
-        """Send a command (to a page when ``session`` is given) and return its result."""
+    def call(self, method: str, page: str | None = None, **params: Any) -> dict[str, Any]:
+        """Send a command (to the attached page ``page`` when given, else to the browser) and return its result."""
         self._next_id += 1
         command: dict[str, Any] = {"id": self._next_id, "method": method, "params": params}
-        if session is not None:
-            command["sessionId"] = session
+        if page is not None:
+            command[PAGE_KEY] = page
         os.write(self._to_browser, json.dumps(command).encode() + b"\0")
         deadline = time.monotonic() + REPLY_TIMEOUT
         while True:
@@ -130,9 +132,9 @@ class DevTools:
             else:
                 return message["result"]
 
-    def wait_for(self, method: str, session: str, deadline: float) -> None:
-        """Read until the page ``session`` has sent an event ``method``."""
-        while not any(e.get("method") == method and e.get("sessionId") == session for e in self.events):
+    def wait_for(self, method: str, page: str, deadline: float) -> None:
+        """Read until the attached page ``page`` has sent an event ``method``."""
+        while not any(e.get("method") == method and e.get(PAGE_KEY) == page for e in self.events):
             self.events.append(self._message(deadline))
 
     def log(self) -> str:
@@ -156,7 +158,7 @@ class Page:
     def __init__(self, browser: DevTools) -> None:
         self.browser = browser
         target = browser.call("Target.createTarget", url="about:blank")["targetId"]
-        self.session = browser.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        self.id = browser.call("Target.attachToTarget", targetId=target, flatten=True)[PAGE_KEY]
         for domain in ("Page", "Runtime", "Network"):
             self.call(f"{domain}.enable")
         self.call("Network.emulateNetworkConditions", offline=True, latency=0, downloadThroughput=-1,
@@ -165,7 +167,7 @@ class Page:
                   mobile=False)
 
     def call(self, method: str, **params: Any) -> dict[str, Any]:
-        return self.browser.call(method, self.session, **params)
+        return self.browser.call(method, self.id, **params)
 
     def evaluate(self, expression: str) -> Any:
         """The value of a JavaScript expression in the page (a promise is awaited)."""
@@ -187,12 +189,12 @@ class Page:
 
     def requested_urls(self) -> list[str]:
         return [e["params"]["request"]["url"] for e in self.browser.events
-                if e.get("method") == "Network.requestWillBeSent" and e.get("sessionId") == self.session]
+                if e.get("method") == "Network.requestWillBeSent" and e.get(PAGE_KEY) == self.id]
 
     def problems(self) -> list[str]:
         """The page's uncaught exceptions and console errors so far."""
         out = []
-        for e in (e for e in self.browser.events if e.get("sessionId") == self.session):
+        for e in (e for e in self.browser.events if e.get(PAGE_KEY) == self.id):
             if e.get("method") == "Runtime.exceptionThrown":
                 out.append(json.dumps(e["params"]["exceptionDetails"])[:500])
             elif e.get("method") == "Runtime.consoleAPICalled" and e["params"]["type"] == "error":
@@ -240,7 +242,7 @@ def test_page_draws_offline_and_its_slider_moves_the_bodies(browser, tmp_path):
     page = Page(browser)
     deadline = time.monotonic() + REPLY_TIMEOUT
     page.call("Page.navigate", url=path.as_uri())
-    browser.wait_for("Page.loadEventFired", page.session, deadline)  # after the page's modules have loaded
+    browser.wait_for("Page.loadEventFired", page.id, deadline)  # after the page's modules have loaded
     # nothing came from the network: the page, and the libraries it carries (blob: modules)
     urls = page.requested_urls()
     assert urls and all(url.split(":", 1)[0] in {"file", "blob", "data"} for url in urls), urls
