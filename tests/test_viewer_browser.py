@@ -76,6 +76,7 @@ def _chromium_args(profile: Path) -> list[str]:
     return ["--headless", "--no-sandbox", "--remote-debugging-pipe", f"--user-data-dir={profile}",
             "--no-first-run", "--no-default-browser-check", "--disable-extensions", "--mute-audio",
             "--disable-background-networking", "--disable-component-update", "--disable-sync",
+            "--disable-dev-shm-usage",  # a container's small /dev/shm does not crash the renderer
             "--host-resolver-rules=MAP * ~NOTFOUND",  # no host name resolves
             "--use-angle=swiftshader", "--enable-unsafe-swiftshader",  # WebGL on SwiftShader
             f"--window-size={WIDTH},{HEIGHT}", "about:blank"]
