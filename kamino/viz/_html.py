@@ -126,8 +126,8 @@ def html(model: Model, traj: Any, path: str | os.PathLike | None = None, *, worl
     The page needs no network: it embeds its data as JSON (``<script type="application/json" id="kamino-data">``:
     every frame's body poses, exactly the trajectory's values; the layout is in docs/viz.md) and carries three.js
     r170 (its minified ES module build and the OrbitControls addon, MIT license, vendored in ``kamino/viz/vendor``)
-    inline, so it opens offline, on a cluster node, or from an e-mail attachment. The libraries add about 0.7 MB to
-    every page; the data adds about 150 bytes per body and frame (``fps`` thins the frames).
+    inline, so it opens offline and on a cluster node. The libraries add about 0.73 MB to every page; the data adds
+    about 150 bytes per body and frame (``fps`` thins the frames).
 
     Args:
         model: the model the trajectory was run on (any number of worlds).
