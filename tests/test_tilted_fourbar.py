@@ -62,7 +62,7 @@ def test_locked_tilted_fourbar_gains_no_energy(dtype):
     model = _tilted_fourbars(LOCKED_TILTS)
     cfg = kamino.SolverConfig()
     s0 = kamino.init_state(model, dtype)
-    tr = kamino.rollout(model, s0, num_steps=int(round(DURATION / cfg.dt)), config=cfg, backend="warp")
+    tr = kamino.rollout(model, s0, num_steps=round(DURATION / cfg.dt), config=cfg, backend="warp")
     ke0, pe0 = _energies(model, np.asarray(s0.body_q)[None], np.asarray(s0.body_u)[None])
     ke, pe = _energies(model, tr.body_q, tr.body_u)
     gain = (ke + pe - (ke0 + pe0)).max(axis=0)
