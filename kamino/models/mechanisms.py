@@ -75,7 +75,7 @@ def _circle_intersection(c0, r0, c1, r1, upper: bool = True) -> np.ndarray:
 def fourbar(ground: float = 0.3, crank: float = 0.18, coupler: float = 0.26, rocker: float = 0.24,
             crank_angle: float = -1.2, coupler_above: bool = True, linear_density: float = 2.0,
             radius: float = 0.01, height: float = 1.0, gravity: float = 9.81, actuated: bool = False,
-            kp: float = 50.0, kd: float = 2.0, effort_limit: float = float("inf")) -> Model:
+            kp: float = 50.0, kd: float = 2.0, effort_limit: float = float("inf"), tilt_deg: float = 0.0) -> Model:
     """Planar four-bar linkage in the xz plane (a Grashof crank-rocker: shortest link = crank).
 
     Bodies: ``ground`` (fixed to the world by a FIXED joint), ``crank``, ``coupler``, ``rocker``,
@@ -89,6 +89,10 @@ def fourbar(ground: float = 0.3, crank: float = 0.18, coupler: float = 0.26, roc
     With ``actuated=True`` the crank joint ``ground_crank`` is driven by an implicit PD position
     actuator (``kp`` [N m/rad], ``kd`` [N m s/rad], ``effort_limit`` [N m]); its target is
     ``kamino.Control.position_target`` (DoF 0 of the model).
+    ``tilt_deg`` [deg] tilts the coupler-rocker hinge axis out of the plane (world y rotated about world x): the
+    loop is then a spatial RRRR that is no Bennett linkage, rigid (mobility 0), and for a small tilt its constraint
+    Jacobian has a singular value of order ``sin(tilt)`` near the planar mechanism's motion (a nearly singular
+    rigid loop). Every anchor still coincides at the builder pose; only the axis is tilted.
     """
     b = ModelBuilder(gravity=(0.0, 0.0, -gravity))
     A = np.array([0.0, 0.0, height])
@@ -103,7 +107,8 @@ def fourbar(ground: float = 0.3, crank: float = 0.18, coupler: float = 0.26, roc
     drive = Actuation(mode="position", kp=kp, kd=kd, effort_limit=effort_limit) if actuated else None
     b.add_joint_at(JointType.REVOLUTE, g, cr, anchor=A, axis=Y, name="ground_crank", actuation=drive)
     b.add_joint_at(JointType.REVOLUTE, cr, co, anchor=B, axis=Y, name="crank_coupler")
-    b.add_joint_at(JointType.REVOLUTE, co, ro, anchor=C, axis=Y, name="coupler_rocker")
+    tilt = np.deg2rad(float(tilt_deg))
+    b.add_joint_at(JointType.REVOLUTE, co, ro, anchor=C, axis=(0.0, np.cos(tilt), np.sin(tilt)), name="coupler_rocker")
     b.add_joint_at(JointType.REVOLUTE, ro, g, anchor=Dp, axis=Y, name="rocker_ground")
     return b.finalize()
 
