@@ -58,8 +58,8 @@ LOOP_OPEN_BOUND = 1e-3
 #: one step (``|omega| dt``: half a turn, beyond which the rotation of a step aliases) or moving faster than
 #: ``max(HEALTH_SPEED, HEALTH_TURN * reach / dt)`` [m/s], where ``reach`` is the world's sum of joint lever arms
 #: (``kamino.tables.world_reach``: no point of an articulated world is farther than it from a joint anchor). No sane
-#: simulation reaches either (a four-bar at 2.5 ms: 1.3 km/s and 1257 rad/s, where the fastest scenes run at 10 m/s
-#: and 60 rad/s); a diverging solve passes both within a few steps while its state is still finite
+#: simulation reaches either (the four-bar at 2.5 ms: 1.2 km/s and 1257 rad/s, where a four-bar coasting fast turns
+#: at 60 rad/s); a diverging solve passes both within a few steps while its state is still finite
 HEALTH_TURN = math.pi
 HEALTH_SPEED = 1e3
 #: the backends' names (``backend=``): the JAX reference and the Warp backend
