@@ -29,7 +29,8 @@ from hypothesis import strategies as st
 import kamino
 from kamino.bench import scene_path, stress_models
 from kamino.bench.throughput import closure_distance
-from kamino.config import HEALTH_TURN
+from kamino.config import HEALTH_SPEED, HEALTH_TURN
+from kamino.tables import health_speed_bound, world_reach
 from tests.helpers import BACKENDS, JAX, WARP_DENSE_LLT, WARP_SPARSE_CR, WARP_SPARSE_LLT, variant_param
 
 DT = 0.0025
@@ -357,3 +358,44 @@ def test_backends_fail_a_family_of_blowups_on_the_same_step(seed):
     _assert_same_failing_steps(runs, steps)
     for r in runs.values():
         assert np.all(r["turn"] <= HEALTH_TURN / _BLOWUP_DT)
+
+
+def test_both_backends_read_the_same_speed_bounds():
+    """The speed checks on given end-of-step twists (docs/conventions.md, "World health"): the JAX reference's
+    ``too_fast`` and the Warp backend's ``speed_check`` flag the same worlds. The four-bar's reach (sum of joint lever
+    arms) is 0.98 m, so at dt = 2.5 ms its speed bound is ``pi 0.98 / dt`` = 1231.5 m/s and at dt = 1/240
+    ``HEALTH_SPEED`` (1000 m/s > ``pi 0.98 / dt`` = 739 m/s); its turn bound ``pi / dt``. World ``k`` of 6 gets one
+    body at 0.99 or 1.01 of a bound (linear, angular) or at 1e20 (a huge finite value), on its coupler."""
+    pytest.importorskip("warp")
+    import warp as wp
+
+    from kamino.jax_ref.integrate import too_fast
+    from kamino.jax_ref.types import layout_of
+    from kamino.warp_backend.pipeline import Stepper
+
+    base = kamino.models.fourbar()
+    np.testing.assert_allclose(world_reach(base), 0.98, rtol=1e-12)
+    for dt, speed in ((DT, np.pi * 0.98 / DT), (1 / 240, HEALTH_SPEED)):
+        model = kamino.replicate(base, 6)
+        np.testing.assert_allclose(health_speed_bound(model, dt), speed, rtol=1e-12)
+        turn = HEALTH_TURN / dt
+        u = np.full((6, base.num_bodies, 6), 0.1)
+        direction = np.array([0.6, 0.0, 0.8])
+        coupler = base.body_names.index("coupler")
+        u[0, coupler, :3] = 0.99 * speed * direction
+        u[1, coupler, :3] = 1.01 * speed * direction
+        u[2, coupler, 3:] = 0.99 * turn * direction
+        u[3, coupler, 3:] = 1.01 * turn * direction
+        u[4, coupler, 3:] = 1e20
+        u[5, coupler, :] = 0.0
+        expected = [False, True, False, True, True, False]
+        pm = layout_of(model, jnp.float64).padded
+        flagged = jax.vmap(too_fast, in_axes=(0, 0, None))(pm, jnp.asarray(u), dt)
+        assert np.asarray(flagged).tolist() == expected, dt
+        st = Stepper(model, kamino.SolverConfig(dt=dt), np.float64, "cpu")
+        w = st.work
+        w.u_new.assign(wp.array(u.reshape(-1, 6), dtype=w.u_new.dtype, device=st.device))
+        w.failed.zero_()
+        st._launch(st.ik.speed_check, (6, base.num_bodies), inputs=[turn, st.speed_bound, w.u_new],
+                   outputs=[w.failed])
+        assert (w.failed.numpy() != 0).tolist() == expected, dt
