@@ -47,6 +47,21 @@ SATURATION_MARGIN = 1e-4
 #: and the eight-legged Jansen walker's one-pass gap after a foot lands (1.6e-5 m on an H200) closes to below this
 #: with the second pass
 REPROJECTION_GAP = 1e-5
+#: world health (docs/conventions.md, "World health"; both backends read these): a world whose largest anchor gap (a
+#: translational joint row's residual) exceeds ``LOOP_OPEN_BOUND`` [m] at the pose a step ends in, and exceeds the gap
+#: it had before the step, fails on that step. A healthy world keeps its anchors within ~1e-5 m in float32
+#: (post-stabilisation); a world whose solve diverges opens them by millimetres a few steps before its state turns
+#: non-finite. Rotational rows are not checked: along a jammed loop's numerically null direction they drift by up to
+#: 1e-2 rad in float32 in a healthy world (tests/test_world_health.py, the tilted four-bar)
+LOOP_OPEN_BOUND = 1e-3
+#: world health: a world fails on the step that leaves one of its bodies turning by more than ``HEALTH_TURN`` [rad] in
+#: one step (``|omega| dt``: half a turn, beyond which the rotation of a step aliases) or moving faster than
+#: ``max(HEALTH_SPEED, HEALTH_TURN * reach / dt)`` [m/s], where ``reach`` is the world's sum of joint lever arms
+#: (``kamino.tables.world_reach``: no point of an articulated world is farther than it from a joint anchor). No sane
+#: simulation reaches either (the four-bar at 2.5 ms: 1.2 km/s and 1257 rad/s, where a four-bar coasting fast turns
+#: at 60 rad/s); a diverging solve passes both within a few steps while its state is still finite
+HEALTH_TURN = math.pi
+HEALTH_SPEED = 1e3
 #: the backends' names (``backend=``): the JAX reference and the Warp backend
 BACKENDS = ("jax", "warp")
 #: Moreau-Jean midpoint rule: fraction ``gamma`` of the start pose's constraint velocity (as a displacement

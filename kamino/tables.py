@@ -13,6 +13,7 @@ import dataclasses
 
 import numpy as np
 
+from kamino.config import HEALTH_SPEED, HEALTH_TURN
 from kamino.model import (
     JOINT_CONSTRAINT_ROWS,
     JOINT_DOF_ROWS,
@@ -115,3 +116,20 @@ def _row_tables(model: Model) -> RowTables:
         cpl_wrap=np.asarray(cpl_wrap, bool),
         pair_kinds=kinds, pair_order=pair_order, pair_kind=pair_kind,
     )
+
+
+def world_reach(model: Model) -> np.ndarray:
+    """``[W]`` each world's sum of joint lever arms [m]: over its joints, the distance from the base body's CoM to the
+    joint anchor (none for a joint on the world, whose anchor is a placement) plus the distance from the follower's
+    CoM to it. No point of the world's articulation is farther than this from a joint anchor. The world-health speed
+    bound scales with it (``kamino.config.HEALTH_SPEED``; the JAX reference computes the same sum from its padded
+    model, ``kamino.jax_ref.integrate.world_reach``)."""
+    arm = np.linalg.norm(model.joint_anchor_F, axis=-1) + np.where(
+        model.joint_parent >= 0, np.linalg.norm(model.joint_anchor_B, axis=-1), 0.0)
+    return np.bincount(model.joint_world, weights=arm, minlength=model.num_worlds)
+
+
+def health_speed_bound(model: Model, dt: float) -> np.ndarray:
+    """``[W]`` the linear speed [m/s] past which a body fails its world's health check in a step of ``dt``:
+    ``max(HEALTH_SPEED, HEALTH_TURN * reach / dt)`` (``kamino.config``, :func:`world_reach`)."""
+    return np.maximum(HEALTH_SPEED, HEALTH_TURN * world_reach(model) / dt)

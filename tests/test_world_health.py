@@ -9,19 +9,29 @@
   failed and frozen at its last finite state, the 7 others step exactly as without it. A world that stays
   unconverged for more than ``max_unconverged_steps`` steps is failed and frozen too, and both backends count the
   same.
+- Finite blow-ups (docs/conventions.md "World health": ``LOOP_OPEN_BOUND``, ``HEALTH_TURN``, ``HEALTH_SPEED``): a
+  four-bar with a 1e12 kg rocker fails while its speeds are still physical, and on a generated family of four-bars
+  with huge mass ratios and crank torques both backends fail each world on the same step, report that step
+  unconverged and keep the state from before it.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import kamino
 from kamino.bench import scene_path, stress_models
 from kamino.bench.throughput import closure_distance
-from tests.helpers import BACKENDS, JAX, WARP_DENSE_LLT, WARP_SPARSE_LLT, variant_param
+from kamino.config import HEALTH_SPEED, HEALTH_TURN
+from kamino.tables import health_speed_bound, world_reach
+from tests.helpers import BACKENDS, JAX, WARP_DENSE_LLT, WARP_SPARSE_CR, WARP_SPARSE_LLT, variant_param
 
 DT = 0.0025
 
@@ -84,8 +94,9 @@ def _eight_fourbars(poison: bool):
 @pytest.mark.parametrize("variant", BACKENDS)
 def test_a_poisoned_world_is_frozen_and_touches_no_other(variant):
     """A NaN effort in world 3 of 8: after the first step world 3 is failed, keeps its initial state (finite) and
-    its time; the 7 other worlds equal a run without the poison bitwise (worlds never read each other's data). The
-    flag is sticky: later steps with a finite control leave the world frozen, until a fresh state resets it."""
+    its time, and that first step reports it unconverged; the 7 other worlds equal a run without the poison bitwise
+    (worlds never read each other's data). The flag is sticky: later steps with a finite control leave the world
+    frozen, until a fresh state resets it."""
     model, bad = _eight_fourbars(True)
     _, good = _eight_fourbars(False)
     cfg = kamino.SolverConfig(dt=1 / 240)
@@ -94,6 +105,8 @@ def test_a_poisoned_world_is_frozen_and_touches_no_other(variant):
     for k in range(4):
         sb = variant.step(model, sb, bad if k == 0 else good, config=cfg)
         sg = variant.step(model, sg, good, config=cfg)
+        if k == 0:  # the failing step reports its solve unconverged
+            assert bool(sb.info.failed[3]) and not bool(sb.info.converged[3])
     failed = np.asarray(sb.info.failed)
     assert failed.tolist() == [False, False, False, True, False, False, False, False]
     bodies = np.arange(model.num_bodies)
@@ -230,3 +243,162 @@ def test_penalty_balancing_converges_on_three_equivalent_limits(variant):
                       config=kamino.SolverConfig(dt=DT))
     assert bool(s1.info.converged[0]) and int(s1.info.iterations[0]) < 200, int(s1.info.iterations[0])
     assert closure_distance(model, np.asarray(s1.body_q)) <= 5e-6
+
+
+# Finite blow-ups. Every run below steps 8 four-bars (``kamino.models.fourbar()``) at dt = 1/240 in float64 with a
+# ``dof_effort`` control, as test_a_poisoned_world_is_frozen_and_touches_no_other does: the JAX reference compiles
+# that step once for all of them.
+_BLOWUP_DT, _BLOWUP_WORLDS = 1 / 240, 8
+
+
+def _loaded_fourbars(log_mass_ratio, crank_torque) -> tuple[kamino.Model, kamino.Control]:
+    """8 four-bars, world ``k`` with its rocker's mass and inertia scaled by ``10**log_mass_ratio[k]`` and a constant
+    torque ``crank_torque[k]`` [N m] on its crank's hinge."""
+    base = kamino.models.fourbar()
+    model = kamino.replicate(base, _BLOWUP_WORLDS)
+    rocker = model.world_body_start + base.body_names.index("rocker")
+    mass, inertia = model.body_mass.copy(), model.body_inertia.copy()
+    scale = 10.0 ** np.asarray(log_mass_ratio, float)
+    mass[rocker] *= scale
+    inertia[rocker] *= scale[:, None, None]
+    model = dataclasses.replace(model, body_mass=mass, body_inertia=inertia)
+    effort = np.zeros(model.num_dofs)
+    effort[model.world_dof_start] = crank_torque  # the crank's hinge is each world's first DoF
+    return model, kamino.Control(dof_effort=jnp.asarray(effort))
+
+
+def _trajectory(variant, model, control, steps: int) -> kamino.State:
+    """``steps`` steps from the initial state with a constant ``control``: the Warp variants' eager rollout; the JAX
+    reference steps one at a time (its compiled step is the poisoned-world test's, where a rollout would compile a
+    program of its own)."""
+    cfg = kamino.SolverConfig(dt=_BLOWUP_DT)
+    s0 = kamino.init_state(model)
+    if variant.is_warp:
+        effort = jnp.broadcast_to(control.dof_effort, (steps, model.num_dofs))
+        return variant.rollout(model, s0, kamino.Control(dof_effort=effort), config=cfg)
+    states, s = [], s0
+    for _ in range(steps):
+        s = variant.step(model, s, control, config=cfg)
+        states.append(s)
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
+
+
+def _failing_steps(variant, model, control, steps: int) -> dict[str, np.ndarray]:
+    """Per world: the first failed step (``steps``: none), ``converged`` on it, whether its bodies kept the state of
+    the step before it (frozen), and the largest speed [m/s] and turn rate [rad/s] of its bodies over the run."""
+    tr = _trajectory(variant, model, control, steps)
+    failed, conv = np.asarray(tr.info.failed), np.asarray(tr.info.converged)
+    s0 = kamino.init_state(model)
+    q = np.concatenate([np.asarray(s0.body_q)[None], np.asarray(tr.body_q)])
+    u = np.concatenate([np.asarray(s0.body_u)[None], np.asarray(tr.body_u)])
+    W, world = model.num_worlds, np.asarray(model.body_world)
+    first = np.where(failed.any(axis=0), failed.argmax(axis=0), steps)
+    conv_at = np.array([conv[first[w], w] if first[w] < steps else False for w in range(W)])
+    kept = np.array([first[w] == steps or (np.array_equal(q[first[w] + 1][world == w], q[first[w]][world == w])
+                                           and np.array_equal(u[first[w] + 1][world == w], u[first[w]][world == w]))
+                     for w in range(W)])
+    speed = np.array([np.linalg.norm(u[:, world == w, :3], axis=-1).max() for w in range(W)])
+    turn = np.array([np.linalg.norm(u[:, world == w, 3:], axis=-1).max() for w in range(W)])
+    return {"first": first, "converged": conv_at, "speed": speed, "turn": turn, "kept": kept}
+
+
+_BLOWUP_VARIANTS = (JAX, WARP_SPARSE_LLT, WARP_DENSE_LLT, WARP_SPARSE_CR)
+
+
+def _assert_same_failing_steps(runs: dict[str, dict[str, np.ndarray]], steps: int) -> None:
+    """Every variant fails each world on the reference's step, up to one step (the acceptance bar; measured: the same
+    step on 64 of 64 generated worlds in float64, on both Warp factorisations), with ``converged = False`` there and the
+    state of the step before kept."""
+    ref = runs["jax"]["first"]
+    for name, r in runs.items():
+        assert np.all(np.abs(r["first"] - ref) <= 1), (name, r["first"], ref)
+        failing = r["first"] < steps
+        assert not np.any(r["converged"][failing]), (name, r["first"], r["converged"])
+        assert np.all(r["kept"]), name
+
+
+@pytest.mark.slow
+def test_a_heavy_rocker_fails_while_its_speeds_are_physical():
+    """A 1e12 kg rocker (2.8e12 times the crank's mass) in world 0, the other worlds as built. Every step the solve
+    leaves the loop open by 0.1-0.3 mm more (the rocker's rows are at the resolution of the float), and the step that
+    opens it past ``LOOP_OPEN_BOUND`` (1 mm) fails the world. Without that check the JAX reference ran on, converged
+    on every step, through 100 m/s at step 42 to 6e6 m/s at step 48 before its state turned non-finite (float32,
+    dt = 2.5 ms). Measured here: step 4 on every variant, at 0.28 m/s and 2.9 rad/s (float32 at dt = 2.5 ms: step 8 on
+    both backends, 0.34 m/s). Bounded: failed within 12 steps, below 10 m/s and 100 rad/s over the run (the
+    acceptance bar: before any speed passes 100 m/s), on the same step on every variant with ``converged = False``
+    there; the 7 other worlds never fail."""
+    steps = 12
+    base = kamino.models.fourbar()
+    log_ratio = np.zeros(_BLOWUP_WORLDS)
+    log_ratio[0] = np.log10(1e12 / base.body_mass[base.body_names.index("rocker")])
+    model, control = _loaded_fourbars(log_ratio, np.zeros(_BLOWUP_WORLDS))
+    runs = {v.id: _failing_steps(v, model, control, steps) for v in _BLOWUP_VARIANTS}
+    _assert_same_failing_steps(runs, steps)
+    for name, r in runs.items():
+        assert r["first"][0] < steps and np.all(r["first"][1:] == steps), (name, r["first"])
+        assert r["speed"][0] < 10.0 and r["turn"][0] < 100.0, (name, r["speed"][0], r["turn"][0])
+
+
+@pytest.mark.slow
+@settings(max_examples=2, deadline=None, derandomize=True)
+@given(st.integers(0, 2**32 - 1))
+def test_backends_fail_a_family_of_blowups_on_the_same_step(seed):
+    """8 four-bars per example (drawn from the example's seed), each with its rocker 1 to 1e13 times heavier and a
+    constant crank torque of 0.1 N m to 1e6 N m (log-uniform), 30 steps: some worlds hold, some open their loop step
+    by step (heavy rockers), some spin up past ``HEALTH_TURN / dt`` (754 rad/s) in their first steps (large torques).
+    Every variant fails each world on the JAX reference's step (up to one), unconverged there, frozen at the state
+    before it; a world that holds holds on every variant, and no state a variant keeps turns faster than the bound.
+    Two examples (16 worlds) keep the test's cost at 3-7 s (measured: every world on the same step on every variant,
+    failing at steps 0 to 19). The same family at 64 worlds and 80 steps in float64 failed every world on the same
+    step on every variant. In float32 (three draws of 64 worlds) 189 of 192 on the same step and 191 within one; the
+    other is 10 steps apart, a 5e5 mass ratio that puts the solve at float32's resolution, where the backends open
+    the loop at rates 30 % apart and cross the bound on different steps."""
+    steps = 30
+    rng = np.random.default_rng(seed)
+    log_ratio, log_torque = rng.uniform(0.0, 13.0, _BLOWUP_WORLDS), rng.uniform(-1.0, 6.0, _BLOWUP_WORLDS)
+    model, control = _loaded_fourbars(log_ratio, 10.0 ** log_torque)
+    runs = {v.id: _failing_steps(v, model, control, steps) for v in _BLOWUP_VARIANTS}
+    _assert_same_failing_steps(runs, steps)
+    for r in runs.values():
+        assert np.all(r["turn"] <= HEALTH_TURN / _BLOWUP_DT)
+
+
+def test_both_backends_read_the_same_speed_bounds():
+    """The speed checks on given end-of-step twists (docs/conventions.md, "World health"): the JAX reference's
+    ``too_fast`` and the Warp backend's ``speed_check`` flag the same worlds. The four-bar's reach (sum of joint lever
+    arms) is 0.98 m, so at dt = 2.5 ms its speed bound is ``pi 0.98 / dt`` = 1231.5 m/s and at dt = 1/240
+    ``HEALTH_SPEED`` (1000 m/s > ``pi 0.98 / dt`` = 739 m/s); its turn bound ``pi / dt``. World ``k`` of 6 gets one
+    body at 0.99 or 1.01 of a bound (linear, angular) or at 1e20 (a huge finite value), on its coupler."""
+    pytest.importorskip("warp")
+    import warp as wp
+
+    from kamino.jax_ref.integrate import too_fast
+    from kamino.jax_ref.types import layout_of
+    from kamino.warp_backend.pipeline import Stepper
+
+    base = kamino.models.fourbar()
+    np.testing.assert_allclose(world_reach(base), 0.98, rtol=1e-12)
+    for dt, speed in ((DT, np.pi * 0.98 / DT), (1 / 240, HEALTH_SPEED)):
+        model = kamino.replicate(base, 6)
+        np.testing.assert_allclose(health_speed_bound(model, dt), speed, rtol=1e-12)
+        turn = HEALTH_TURN / dt
+        u = np.full((6, base.num_bodies, 6), 0.1)
+        direction = np.array([0.6, 0.0, 0.8])
+        coupler = base.body_names.index("coupler")
+        u[0, coupler, :3] = 0.99 * speed * direction
+        u[1, coupler, :3] = 1.01 * speed * direction
+        u[2, coupler, 3:] = 0.99 * turn * direction
+        u[3, coupler, 3:] = 1.01 * turn * direction
+        u[4, coupler, 3:] = 1e20
+        u[5, coupler, :] = 0.0
+        expected = [False, True, False, True, True, False]
+        pm = layout_of(model, jnp.float64).padded
+        flagged = jax.vmap(too_fast, in_axes=(0, 0, None))(pm, jnp.asarray(u), dt)
+        assert np.asarray(flagged).tolist() == expected, dt
+        st = Stepper(model, kamino.SolverConfig(dt=dt), np.float64, "cpu")
+        w = st.work
+        w.u_new.assign(wp.array(u.reshape(-1, 6), dtype=w.u_new.dtype, device=st.device))
+        w.failed.zero_()
+        st._launch(st.ik.speed_check, (6, base.num_bodies), inputs=[turn, st.speed_bound, w.u_new],
+                   outputs=[w.failed])
+        assert (w.failed.numpy() != 0).tolist() == expected, dt

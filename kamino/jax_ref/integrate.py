@@ -7,12 +7,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from kamino.config import ANGULAR_DAMPING, SolverConfig
+from kamino.config import ANGULAR_DAMPING, HEALTH_SPEED, HEALTH_TURN, LOOP_OPEN_BOUND, SolverConfig
 from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import solver
 from kamino.jax_ref.dynamics import BodyDynamics, apply_inv_mass
+from kamino.jax_ref.jacobians import constraint_residual, joint_frames
 from kamino.jax_ref.rows import WorldControl, explicit_effort
 from kamino.jax_ref.types import DYN_ACTUATOR, PaddedModel, WorldCache
+from kamino.model import RES_TRANS
 from kamino.spatial import integrate_pose
 
 
@@ -81,20 +83,50 @@ def reactions(pm: PaddedModel, q_eval, res: solver.PADMMResult, ct: cts.Contacts
     )
 
 
+def world_reach(pm: PaddedModel) -> jax.Array:
+    """One world's sum of joint lever arms [m] (``kamino.tables.world_reach``, from the padded model: padded joints
+    have zero anchors)."""
+    arm_B = jnp.where(pm.joint_parent >= 0, jnp.linalg.norm(pm.anchor_B, axis=-1), 0.0)
+    return jnp.sum(arm_B + jnp.linalg.norm(pm.anchor_F, axis=-1))
+
+
+def too_fast(pm: PaddedModel, u_plus: jax.Array, dt: float) -> jax.Array:
+    """Whether one world's end-of-step twists ``u_plus`` ``[nb, 6]`` pass the health bounds (docs/conventions.md,
+    "World health"): a body turning faster than ``HEALTH_TURN / dt`` or moving faster than
+    ``max(HEALTH_SPEED, HEALTH_TURN * reach / dt)`` (:func:`world_reach`; the Warp backend's ``speed_check``)."""
+    speed_bound = jnp.maximum(HEALTH_SPEED, HEALTH_TURN * world_reach(pm) / dt)
+    v2 = jnp.sum(u_plus[:, :3] ** 2, axis=-1)
+    w2 = jnp.sum(u_plus[:, 3:] ** 2, axis=-1)
+    fast = ~(v2 <= speed_bound ** 2) | ~(w2 <= (HEALTH_TURN / dt) ** 2)
+    return jnp.any(fast & pm.body_mask)
+
+
+def loop_opened(pm: PaddedModel, q_prev: jax.Array, q_plus: jax.Array) -> jax.Array:
+    """Whether one world's step opened a joint past ``LOOP_OPEN_BOUND``: a translational joint row's residual above
+    the bound at the end pose ``q_plus`` and above what it was at the start pose ``q_prev`` (a world assembled open,
+    and closing, is not flagged; docs/conventions.md, "World health"; the Warp backend's ``closure_check``)."""
+    e_new = jnp.abs(constraint_residual(pm, joint_frames(pm, q_plus)))
+    e_old = jnp.abs(constraint_residual(pm, joint_frames(pm, q_prev)))
+    opened = ~(e_new <= LOOP_OPEN_BOUND) & ~(e_new <= e_old)
+    return jnp.any(opened & (pm.row_kind == RES_TRANS) & pm.row_mask)
+
+
 def commit(new_q: jax.Array, new_u: jax.Array, new_cache: WorldCache, body_q: jax.Array, body_u: jax.Array,
-           cache: WorldCache, frozen: jax.Array) -> tuple[jax.Array, jax.Array, WorldCache, jax.Array]:
-    """The batch's new state, world by world (leading axis: world): a world whose new state is non-finite, or that is
-    ``frozen`` (failed earlier), keeps its previous state. Returns ``(q, u, cache, nonfinite)``, ``nonfinite``
-    flagging the worlds whose new state was non-finite (docs/conventions.md, "World health"; the Warp backend's
-    ``commit_bodies``)."""
+           cache: WorldCache, frozen: jax.Array, unsound: jax.Array) -> tuple[jax.Array, jax.Array, WorldCache,
+                                                                                jax.Array]:
+    """The batch's new state, world by world (leading axis: world): a world whose new state is non-finite or
+    ``unsound`` (a health bound passed: :func:`too_fast`, :func:`loop_opened`), or that is ``frozen`` (failed
+    earlier), keeps its previous state. Returns ``(q, u, cache, blown)``, ``blown`` flagging the worlds that fail on
+    this step (docs/conventions.md, "World health"; the Warp backend's ``commit_bodies``)."""
     finite = jnp.all(jnp.isfinite(new_q), axis=(1, 2)) & jnp.all(jnp.isfinite(new_u), axis=(1, 2))
     for leaf in jax.tree_util.tree_leaves(new_cache):
         if jnp.issubdtype(leaf.dtype, jnp.floating):
             finite = finite & jnp.all(jnp.isfinite(leaf).reshape(leaf.shape[0], -1), axis=1)
-    nonfinite = ~finite & ~frozen
-    advance = finite & ~frozen
+    sound = finite & ~unsound
+    blown = ~sound & ~frozen
+    advance = sound & ~frozen
 
     def keep(new, old):
         return jnp.where(advance.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
 
-    return keep(new_q, body_q), keep(new_u, body_u), jax.tree_util.tree_map(keep, new_cache, cache), nonfinite
+    return keep(new_q, body_q), keep(new_u, body_u), jax.tree_util.tree_map(keep, new_cache, cache), blown

@@ -20,7 +20,7 @@ from kamino.jax_ref import post_stabilisation as post
 from kamino.jax_ref import solver
 from kamino.jax_ref.couplings import coupling_jacobian, coupling_residual
 from kamino.jax_ref.dynamics import apply_inv_mass, body_dynamics, delassus, free_velocity, nonlinear_force
-from kamino.jax_ref.integrate import commit, constrained_velocity, integrate, reactions
+from kamino.jax_ref.integrate import commit, constrained_velocity, integrate, loop_opened, reactions, too_fast
 from kamino.jax_ref.jacobians import (
     constraint_jacobian,
     constraint_residual,
@@ -45,6 +45,7 @@ class WorldStep:
     solve: solver.PADMMResult
     num_contacts: jax.Array
     contact_overflow: jax.Array
+    unsound: jax.Array  # the step passed a health bound (docs/conventions.md, "World health")
 
 
 def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array, body_u: jax.Array,
@@ -166,8 +167,10 @@ def step_world(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, cache: Wor
     mask = pm.body_mask[:, None]
     q_plus = jnp.where(mask, q_plus, body_q)
     u_plus = jnp.where(mask, u_plus, body_u)
+    unsound = too_fast(pm, u_plus, dt) | loop_opened(pm, body_q, q_plus)
     return WorldStep(body_q=q_plus, body_u=u_plus, cache=reactions(pm, q_eval, res, ct, side, ctrl, cfg),
-                     solve=res, num_contacts=jnp.minimum(ct.count, pm.contact_capacity), contact_overflow=ct.overflow)
+                     solve=res, num_contacts=jnp.minimum(ct.count, pm.contact_capacity), contact_overflow=ct.overflow,
+                     unsound=unsound)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
@@ -176,9 +179,11 @@ def step_batch(pm: PaddedModel, body_q, body_u, cache: WorldCache, ctrl: WorldCo
                frozen: jax.Array):
     """``step_world`` vmapped over worlds (all arrays padded, leading axis = world).
 
-    A world whose new state is non-finite, or that is ``frozen`` (failed earlier), keeps its previous state;
-    the last output flags the worlds whose new state was non-finite (docs/conventions.md, "World health").
+    A world whose new state is non-finite or passes a health bound, or that is ``frozen`` (failed earlier), keeps its
+    previous state; the last output flags the worlds that fail on this step, whose solve reports ``converged = False``
+    (docs/conventions.md, "World health").
     """
     out = jax.vmap(step_world, in_axes=(0, 0, 0, 0, 0, None))(pm, body_q, body_u, cache, ctrl, cfg)
-    q, u, new_cache, nonfinite = commit(out.body_q, out.body_u, out.cache, body_q, body_u, cache, frozen)
-    return q, u, new_cache, out, nonfinite
+    q, u, new_cache, blown = commit(out.body_q, out.body_u, out.cache, body_q, body_u, cache, frozen, out.unsound)
+    out = dataclasses.replace(out, solve=dataclasses.replace(out.solve, converged=out.solve.converged & ~blown))
+    return q, u, new_cache, out, blown

@@ -4,8 +4,9 @@ Formulation.md §6.2 (Euler: ``q+ = q ⊕ dt u+``) and §6.3 (midpoint: ``q+ = q
 forces are ``lambda / dt`` split by row family as ``_new_cache`` of the JAX reference. A world
 whose new pose, twist or impulses are not finite keeps its previous state and is flagged
 ``failed`` (docs/architecture.md: never a silent NaN, never contaminating other worlds). So is a world whose
-joints open past :data:`LOOP_OPEN_BOUND` in a step (:func:`closure_check_kernel`): its finite
-state is already meaningless.
+joints open past :data:`LOOP_OPEN_BOUND` in a step (:func:`closure_check_kernel`), or whose bodies pass the speed
+bounds ``HEALTH_TURN`` and ``HEALTH_SPEED`` (:func:`speed_check_kernel`; ``kamino.config``): its finite state is
+already meaningless. The JAX reference applies the same checks (``kamino.jax_ref.integrate``).
 
 Each kernel and each ``wp.func`` comes from its own builder, cached per precision (``np_dtype``).
 """
@@ -15,21 +16,13 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.config import LOOP_OPEN_BOUND as LOOP_OPEN_BOUND  # the health bound its closure check reads
 from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.jacobians import cts_residual_func
 from kamino.warp_backend.rows import ROW_ACTUATOR, ROW_COUPLING, ROW_JOINT, ROW_LIMIT, ROW_PASSIVE
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.workspace import builder_types
-
-#: A world whose largest anchor gap (a translational joint row's residual) exceeds this [m] at the pose a step ends
-#: in (after post-stabilisation's projection), and exceeds the gap it had before the step, is flagged ``failed`` on
-#: that step and frozen (:func:`closure_check_kernel`; docs/conventions.md, "World health").
-#: Rotational rows are not checked: along a jammed loop's numerically null direction they drift by up to 1e-2 rad in
-#: float32 in a healthy world (tests/test_world_health.py, the tilted four-bar). A healthy world keeps its anchors
-#: within ~1e-5 m in float32 (post-stabilisation); a world whose solve diverges opens them by millimetres a few steps
-#: before its state turns non-finite.
-LOOP_OPEN_BOUND = 1e-3
 
 
 def end_step_kernels(np_dtype, dense: bool, screened: bool) -> SimpleNamespace:
@@ -39,7 +32,8 @@ def end_step_kernels(np_dtype, dense: bool, screened: bool) -> SimpleNamespace:
     return SimpleNamespace(integrate=integrate_kernel(np_dtype, bool(dense)), dof_forces=dof_forces_kernel(np_dtype),
                            row_forces=row_forces_kernel(np_dtype), commit_bodies=commit_bodies_kernel(np_dtype),
                            commit_time=commit_time_kernel(np_dtype),
-                           closure_check=closure_check_kernel(np_dtype, bool(screened)))
+                           closure_check=closure_check_kernel(np_dtype, bool(screened)),
+                           speed_check=speed_check_kernel(np_dtype))
 
 
 @functools.cache
@@ -262,22 +256,25 @@ def commit_time_kernel(np_dtype):
         # in
         dt: scalar,
         max_unconverged: int,
-        converged: wp.array(dtype=wp.int32),
         # out
+        converged: wp.array(dtype=wp.int32),  # also read
         frozen: wp.array(dtype=wp.int32),
         failed: wp.array(dtype=wp.int32),
         time: wp.array(dtype=scalar),
         unconverged: wp.array(dtype=wp.int32),
     ):
         """Advance the time of the worlds that stepped, and their health (docs/conventions.md, "World health"):
-        a world that failed (non-finite result) or whose PADMM has not converged for more than
-        ``max_unconverged`` consecutive steps is frozen at its last finite state until the caller resets it."""
+        a world that failed on this step (a non-finite result, a health bound passed: ``converged`` is then
+        cleared) or whose PADMM has not converged for more than ``max_unconverged`` consecutive steps is frozen at
+        its last sound state until the caller resets it."""
         wid = wp.tid()
         if frozen[wid] != 0:
             failed[wid] = 1
+            converged[wid] = 0
             return
         if failed[wid] != 0:
             frozen[wid] = 1
+            converged[wid] = 0
             return
         time[wid] = time[wid] + dt
         if converged[wid] != 0:
@@ -331,3 +328,37 @@ def closure_check_kernel(np_dtype, screened: bool):
                 failed[wid] = 1
 
     return closure_check
+
+
+@functools.cache
+def speed_check_kernel(np_dtype):
+    """The speed health check (docs/conventions.md, "World health"; ``kamino.config.HEALTH_TURN``,
+    ``HEALTH_SPEED``)."""
+    scalar, vec6, M = builder_types(np_dtype).take("scalar", "vec6", "M")
+    sp = spatial_funcs(np_dtype)
+    lin, ang = sp.lin, sp.ang
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def speed_check(
+        # model (read only)
+        m: M,
+        # in
+        turn_rate: scalar,
+        speed_bound: wp.array(dtype=scalar),
+        u_new: wp.array(dtype=vec6),
+        # out
+        failed: wp.array(dtype=wp.int32),
+    ):
+        """Flag ``failed`` on a world whose body ``i`` ends the step turning faster than ``turn_rate``
+        (``HEALTH_TURN / dt``) or moving faster than the world's ``speed_bound``
+        (``kamino.tables.health_speed_bound``); a non-finite twist fails too."""
+        wid, i = wp.tid()
+        if i >= m.body_count[wid] or failed[wid] != 0:
+            return
+        u = u_new[m.body_start[wid] + i]
+        v, w = lin(u), ang(u)
+        vb = speed_bound[wid]
+        if not (wp.dot(v, v) <= vb * vb) or not (wp.dot(w, w) <= turn_rate * turn_rate):
+            failed[wid] = 1
+
+    return speed_check

@@ -21,8 +21,10 @@ from kamino.config import (
     CONTACT_BAUMGARTE,
     CONTACT_DEADBAND,
     CONTACT_MATCH_DISTANCE,
+    HEALTH_TURN,
     LIMIT_BAUMGARTE,
     LIMIT_MARGIN,
+    LOOP_OPEN_BOUND,
     REPROJECTION_GAP,
     RESTART_TOLERANCE,
     RESTITUTION_THRESHOLD,
@@ -30,11 +32,11 @@ from kamino.config import (
     joint_deadband,
 )
 from kamino.model import Model
-from kamino.tables import DYN_ACTUATOR, row_tables
+from kamino.tables import DYN_ACTUATOR, health_speed_bound, row_tables
 from kamino.warp_backend import linear_solve
 from kamino.warp_backend import solver_rules as rules
 from kamino.warp_backend.contacts import contact_kernels
-from kamino.warp_backend.integrate import LOOP_OPEN_BOUND, end_step_kernels
+from kamino.warp_backend.integrate import end_step_kernels
 from kamino.warp_backend.model_data import WarpModel, warp_model
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import step_row_kernels
@@ -162,6 +164,8 @@ class Stepper:
         screened = (cfg.stabilisation.post_stabilisation > 0
                     and REPROJECTION_GAP + joint_deadband(self.np_dtype) < LOOP_OPEN_BOUND)
         self.ik = end_step_kernels(self.np_dtype, self.dense, screened)
+        #: world health: each world's linear speed bound (kamino.tables.health_speed_bound)
+        self.speed_bound = wp.array(health_speed_bound(model, cfg.dt).astype(self.np_dtype), device=self.device)
         self.ck = contact_kernels(self.np_dtype) if model.num_pairs else None
         self.pk = post_stabilisation_kernels(self.np_dtype) if cfg.stabilisation.post_stabilisation else None
         #: PADMM's effort-limited rows switch to the larger penalty when they saturate, and the world's factor is
@@ -349,7 +353,11 @@ class Stepper:
                                 inputs=[nblk, extra, w.row_stride, w.converged, w.reproject, w.row_body, w.row_J, w.x,
                                         w.inv_inertia_w],
                                 outputs=[w.failed, w.q_new])
-        if wm.max_cts:  # world health: a world whose joints the step left open past the bound fails on this step
+        # world health: a world whose bodies pass the speed bounds, or whose joints the step left open past the
+        # bound, fails on this step
+        self._launch(ik.speed_check, (W, wm.max_bodies), inputs=[HEALTH_TURN / dt, self.speed_bound, w.u_new],
+                     outputs=[w.failed])
+        if wm.max_cts:
             self._launch(ik.closure_check, (W, wm.max_cts),
                             inputs=[LOOP_OPEN_BOUND, w.converged, w.reproject, w.q_new, w.q], outputs=[w.failed])
         self._launch(ik.dof_forces, (W, wm.max_dofs), inputs=[w.failed, w.tau_explicit],
@@ -363,8 +371,8 @@ class Stepper:
                             outputs=[w.con_pair, w.con_pos, w.con_normal, w.con_dist, w.con_force, w.con_velocity,
                                      w.con_point_b])
         self._launch(ik.commit_bodies, (W, wm.max_bodies), inputs=[w.failed, w.q_new, w.u_new], outputs=[w.q, w.u])
-        wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps), w.converged],
-                  outputs=[w.frozen, w.failed, w.time, w.unconverged], device=self.device)
+        wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps)],
+                  outputs=[w.converged, w.frozen, w.failed, w.time, w.unconverged], device=self.device)
 
     def invalidate_graphs(self) -> None:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
