@@ -192,6 +192,15 @@ _GEOM_SIZE_COUNT = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, 
                     GeomType.ELLIPSOID: 3}
 
 _QUAT_UNIT_TOL = 1e-6  # a quaternion whose norm is further than this from 1 is a ModelError
+#: The largest magnitude a finite model parameter may have (lengths, masses, inertias, gains, limits, ...): float32
+#: reaches 3.4e38, and a product of two parameters (a mass times a squared length, a gain times a limit) must stay
+#: below it for a float32 step to mean anything. Infinite limits stay allowed where a field documents them.
+MAX_PARAMETER = 1e30
+#: The smallest body mass [kg] and principal moment of inertia [kg m^2] a body may have (MuJoCo's ``mjMINVAL``): a
+#: positive value below it is a unit mistake, and its inverse overflows float32 in the solver.
+MIN_MASS = 1e-15
+#: The shortest joint axis accepted before normalising: a shorter one has no reliable direction.
+MIN_AXIS_LENGTH = 1e-10
 T = TypeVar("T")
 
 
@@ -521,6 +530,16 @@ def _finite(arr: np.ndarray, what: str) -> None:
         raise ModelError(f"{what}: contains NaN or inf ({np.asarray(arr).tolist()})")
 
 
+def _check_range(arr: Any, what: str) -> None:
+    """Raise a :class:`ModelError` naming ``what`` if a finite entry of ``arr`` exceeds :data:`MAX_PARAMETER` in
+    magnitude (infinite entries are left to the field's own rule)."""
+    a = np.asarray(arr, dtype=float)
+    big = np.isfinite(a) & (np.abs(a) > MAX_PARAMETER)
+    if np.any(big):
+        raise ModelError(f"{what}: {a[big].flat[0]:g} is beyond the float32 range kamino steps in "
+                         f"(|value| <= {MAX_PARAMETER:g}; got {a.tolist()})")
+
+
 def _check_quat(q: np.ndarray, what: str) -> None:
     n = float(np.linalg.norm(q))
     if n == 0.0:
@@ -824,6 +843,7 @@ class ModelBuilder:
         if coef.size == 0 or coef.size > 5:
             raise ModelError(f"coupling {name!r}: polycoef needs 1 to 5 coefficients, got {coef.size}")
         _finite(coef, f"coupling {name!r} polycoef")
+        _check_range(coef, f"coupling {name!r} polycoef")
         jb = -1 if joint_b is None else int(joint_b)
         self._couplings.append(_Coupling(name=name, joint_a=int(joint_a), joint_b=jb,
                                          coef=np.concatenate([coef, np.zeros(5 - coef.size)])))
@@ -882,6 +902,8 @@ class ModelBuilder:
                                  f"{taken[(a.joint, a.dof)]!r}")
             if not (np.isfinite(a.gear) and a.gear != 0.0):
                 raise ModelError(f"{what}: gear must be finite and non-zero, got {a.gear}")
+            _check_range(a.gear, f"{what} gear")
+            _check_range(a.ctrl_range, f"{what} ctrl_range")
             if mode in (ActuationMode.POSITION, ActuationMode.VELOCITY) and a.gear != 1.0:
                 raise ModelError(f"{what}: {mode.name.lower()} actuators take gear 1, got {a.gear}")
             lo, hi = a.ctrl_range
@@ -952,6 +974,9 @@ class ModelBuilder:
         what = f"geom {g.name!r} (index {i})"
         for field_name, arr in (("size", g.size), ("pos", g.pos), ("quat", g.quat)):
             _finite(arr, f"{what} {field_name}")
+            _check_range(arr, f"{what} {field_name}")
+        _check_range(g.friction, f"{what} friction")
+        _check_range(g.margin, f"{what} margin")
         if not (-1 <= g.body < nb):
             raise ModelError(f"{what}: body {g.body} does not exist ({nb} bodies; -1 is the world)")
         need = _GEOM_SIZE_COUNT[g.type]
@@ -1011,10 +1036,14 @@ class ModelBuilder:
         for field_name, arr in (("inertia", b.inertia), ("pos", b.pos), ("quat", b.quat),
                                 ("velocity", b.vel), ("angular_velocity", b.ang_vel)):
             _finite(np.asarray(arr), f"{what} {field_name}")
+            _check_range(arr, f"{what} {field_name}")
         if not np.isfinite(b.mass):  # b.mass is a float (add_body converts or raises ModelError)
             raise ModelError(f"{what}: mass is {b.mass}")
         if b.mass <= 0.0:
             raise ModelError(f"{what}: mass must be > 0, got {b.mass}")
+        if b.mass < MIN_MASS:
+            raise ModelError(f"{what}: mass {b.mass:g} is below {MIN_MASS:g} kg (MuJoCo's minimum; check the units)")
+        _check_range(b.mass, f"{what} mass")
         I = b.inertia
         if I.shape != (3, 3):
             raise ModelError(f"{what}: inertia must be 3x3 or 3 principal moments, got shape {I.shape}")
@@ -1024,6 +1053,9 @@ class ModelBuilder:
         eig = np.linalg.eigvalsh(0.5 * (I + I.T))
         if eig[0] <= 0.0:
             raise ModelError(f"{what}: inertia is not positive definite (eigenvalues {eig.tolist()})")
+        if eig[0] < MIN_MASS:
+            raise ModelError(f"{what}: smallest principal moment of inertia {eig[0]:g} is below {MIN_MASS:g} kg m^2 "
+                             f"(MuJoCo's minimum; principal moments {eig.tolist()})")
         # physical inertia: each principal moment <= sum of the other two (relative tolerance 1e-9)
         if eig[2] > (eig[0] + eig[1]) * (1.0 + 1e-9):
             raise ModelError(
@@ -1039,11 +1071,17 @@ class ModelBuilder:
             ("axis", jt.axis),
         ):
             _finite(arr, f"{what} {field_name}")
+            _check_range(arr, f"{what} {field_name}")
         if jt.axis2 is not None:
             _finite(jt.axis2, f"{what} axis2")
+            _check_range(jt.axis2, f"{what} axis2")
         lo, hi = jt.limits
         if np.any(np.isnan(lo)) or np.any(np.isnan(hi)):
             raise ModelError(f"{what}: limits contain NaN")
+        _check_range(lo, f"{what} lower limit")
+        _check_range(hi, f"{what} upper limit")
+        for key in ("armature", "damping", "stiffness", "springref", "kp", "kd", "effort_limit"):
+            _check_range(jt.dynamics[key], f"{what} {key}")
         if not (-1 <= jt.parent < nb):
             raise ModelError(f"{what}: parent body {jt.parent} does not exist ({nb} bodies; -1 is the world)")
         if not (0 <= jt.child < nb):
@@ -1053,11 +1091,11 @@ class ModelBuilder:
         _check_quat(jt.parent_frame[1], f"{what} parent_frame quaternion")
         _check_quat(jt.child_frame[1], f"{what} child_frame quaternion")
         uses_axis = jt.type in (JointType.REVOLUTE, JointType.PRISMATIC, JointType.CYLINDRICAL, JointType.UNIVERSAL)
-        if uses_axis and np.linalg.norm(jt.axis) < 1e-12:
-            raise ModelError(f"{what}: zero-length axis")
+        if uses_axis and np.linalg.norm(jt.axis) < MIN_AXIS_LENGTH:
+            raise ModelError(f"{what}: zero-length axis {jt.axis.tolist()} (length below {MIN_AXIS_LENGTH:g})")
         if jt.axis2 is not None:
-            if np.linalg.norm(jt.axis2) < 1e-12:
-                raise ModelError(f"{what}: zero-length axis2")
+            if np.linalg.norm(jt.axis2) < MIN_AXIS_LENGTH:
+                raise ModelError(f"{what}: zero-length axis2 {jt.axis2.tolist()} (length below {MIN_AXIS_LENGTH:g})")
             a1 = jt.axis / np.linalg.norm(jt.axis)
             a2 = jt.axis2 / np.linalg.norm(jt.axis2)
             if np.linalg.norm(np.cross(a1, a2)) < 1e-6:
@@ -1082,6 +1120,7 @@ class ModelBuilder:
         ``state.info.contact_overflow``.
         """
         _finite(self.gravity, "gravity")
+        _check_range(self.gravity, "gravity")
         if self.gravity.shape != (3,):
             raise ModelError(f"gravity: expected 3 numbers, got shape {self.gravity.shape}")
         nb = len(self._bodies)

@@ -187,7 +187,11 @@ def _compile(source: str | os.PathLike | bytes) -> tuple[Any, Any]:
     """``(MjSpec, MjModel)`` of a file path or an XML string; MuJoCo errors become ModelError."""
     mujoco = _mujoco()
     if isinstance(source, bytes):
-        source = source.decode()
+        try:
+            source = source.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ModelError(f"load_mjcf: the MJCF bytes are not UTF-8 text ({exc.reason} at byte {exc.start}: "
+                             f"{source[max(exc.start - 20, 0):exc.start + 5]!r})") from None
     is_xml = isinstance(source, str) and source.lstrip().startswith("<")
     try:
         if is_xml:
@@ -202,7 +206,28 @@ def _compile(source: str | os.PathLike | bytes) -> tuple[Any, Any]:
         raise
     except Exception as exc:  # mujoco raises ValueError (parse) or its own errors (compile)
         raise ModelError(f"MuJoCo could not load the MJCF model: {exc}") from exc
+    _check_compiled(mj)
     return spec, mj
+
+
+def _check_compiled(mj: Any) -> None:
+    """Raise a :class:`ModelError` for a compiled model kamino cannot simulate: names that are not UTF-8, no
+    moving body, no joint."""
+    names = bytes(np.asarray(mj.names, dtype=np.uint8)) if not isinstance(mj.names, bytes) else mj.names
+    try:
+        names.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        start = names.rfind(b"\0", 0, exc.start) + 1
+        end = names.find(b"\0", exc.start)
+        raise ModelError(f"load_mjcf: the name {names[start:end if end >= 0 else None]!r} is not UTF-8 text "
+                         f"({exc.reason}); MJCF names must be UTF-8") from None
+    if mj.nbody <= 1:
+        raise ModelError("load_mjcf: the MJCF model has no bodies (its <worldbody> holds no <body>); kamino "
+                         "simulates moving bodies")
+    if mj.njnt == 0:
+        nb = mj.nbody - 1
+        raise ModelError(f"load_mjcf: the MJCF model has no joints: its {nb} {'body is' if nb == 1 else 'bodies are'} "
+                         "welded to the world; give a moving body a <joint> or a <freejoint>")
 
 
 def _quat_wxyz_matrix(mujoco: Any, q: np.ndarray) -> np.ndarray:

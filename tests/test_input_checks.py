@@ -1,0 +1,81 @@
+"""Inputs a user can get wrong fail with an error that names what is wrong: the builder's range checks (MuJoCo's
+compiler's rules, with float32's range), MJCF files kamino cannot simulate, states of another model, state dtypes,
+unreachable kinematic targets and time steps too large for a model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import kamino
+from kamino import JointType, ModelBuilder, ModelError
+from kamino.model import MAX_PARAMETER
+
+
+def _pendulum(mass: float = 1.0, inertia=(0.02, 0.02, 0.01), axis=(0.0, 1.0, 0.0), length: float = 0.5,
+              kp: float = 0.0, name: str = "link") -> ModelBuilder:
+    """A one-link pendulum's builder, with the value under test put in."""
+    b = ModelBuilder()
+    link = b.add_body(mass=mass, inertia=inertia, pos=(0.0, 0.0, 1.0 - length), name=name)
+    actuation = kamino.Actuation(mode="position", kp=kp, kd=1.0) if kp else None
+    b.add_joint(JointType.REVOLUTE, -1, link, parent_frame=((0.0, 0.0, 1.0), (0, 0, 0, 1)),
+                child_frame=((0.0, 0.0, length), (0, 0, 0, 1)), axis=axis, name="hinge", actuation=actuation)
+    return b
+
+
+@pytest.mark.parametrize(("kwargs", "pattern"), [
+    ({"mass": 1e-20}, r"body 'link'.*mass 1e-20 is below 1e-15"),
+    ({"mass": 1e39}, r"body 'link'.*mass.*1e\+39.*float32"),
+    ({"mass": 2e30}, r"body 'link'.*mass.*2e\+30.*float32"),
+    ({"inertia": (1e-18, 1e-18, 1e-18)}, r"body 'link'.*principal moment of inertia 1e-18"),
+    ({"inertia": (1e31, 1e31, 1e31)}, r"body 'link'.*inertia.*float32"),
+    ({"inertia": (0.01, 0.01, 0.03)}, r"body 'link'.*triangle inequality"),
+    ({"axis": (1e-11, 0.0, 0.0)}, r"joint 'hinge'.*zero-length axis"),
+    ({"length": 1e35}, r"body 'link'.*pos.*-1e\+35"),
+    ({"kp": 1e33}, r"joint 'hinge'.*kp.*1e\+33"),
+])
+def test_builder_rejects_values_mujoco_rejects_or_float32_cannot_step(kwargs, pattern):
+    with pytest.raises(ModelError, match=pattern):
+        _pendulum(**kwargs).finalize()
+
+
+def test_builder_accepts_the_edges_of_the_ranges():
+    """The bounds themselves are accepted: the smallest mass, an axis of any length above the bound (normalised),
+    a parameter of exactly MAX_PARAMETER, infinite limits."""
+    model = _pendulum(mass=1e-15, inertia=(2e-15, 2e-15, 1e-15), axis=(0.0, 1e-9, 0.0)).finalize()
+    assert model.body_mass[0] == 1e-15
+    b = _pendulum()
+    b.add_body(mass=MAX_PARAMETER, inertia=(1.0, 1.0, 1.0), pos=(5.0, 0.0, 0.0), name="heavy")
+    b.add_joint(JointType.PRISMATIC, -1, 1, axis=(3.0, 0.0, 0.0), limits=(-np.inf, np.inf), name="slide")
+    model = b.finalize()
+    assert model.body_mass[1] == MAX_PARAMETER
+
+
+def test_builder_names_are_unique_per_kind():
+    b = _pendulum()
+    b.add_body(mass=1.0, inertia=(1.0, 1.0, 1.0), name="link")
+    with pytest.raises(ModelError, match="body name 'link' is used twice"):
+        b.finalize()
+
+
+MJCF_BODY = '<body name="{name}" pos="0 0 1"><joint name="j" axis="0 1 0"/><geom size="0.1" mass="1"/></body>'
+
+
+@pytest.mark.parametrize(("source", "pattern"), [
+    ("<mujoco/>", "has no bodies"),
+    ('<mujoco><worldbody><geom type="plane" size="1 1 1"/></worldbody></mujoco>', "has no bodies"),
+    ('<mujoco><worldbody><body><geom size="0.1"/></body></worldbody></mujoco>', "has no joints: its 1 body is welded"),
+    (("<mujoco><worldbody>" + MJCF_BODY.format(name="a\xff\xfeb") + "</worldbody></mujoco>").encode("latin-1"),
+     "not UTF-8"),
+])
+def test_load_mjcf_rejects_what_it_cannot_simulate(source, pattern):
+    with pytest.raises(ModelError, match=pattern):
+        kamino.load_mjcf(source)
+
+
+def test_load_mjcf_rejects_a_file_with_a_name_that_is_not_utf8(tmp_path):
+    path = tmp_path / "latin1.xml"
+    path.write_bytes(("<mujoco><worldbody>" + MJCF_BODY.format(name="b\xe9ton") + "</worldbody></mujoco>")
+                     .encode("latin-1"))
+    with pytest.raises(ModelError, match=r"the name b'b\\xe9ton' is not UTF-8"):
+        kamino.load_mjcf(path)
