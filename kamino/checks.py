@@ -13,7 +13,7 @@ import jax
 import numpy as np
 
 from kamino.config import SolverConfig, WarpSettings
-from kamino.model import Model
+from kamino.model import Model, fingerprint
 from kamino.state import Control, State
 
 #: the Warp backend's settings (``SolverConfig.warp``) with the values the JAX reference computes as (``None``: any
@@ -78,6 +78,7 @@ def check_state(model: Model, state: State, fn: str = "step") -> None:
         raise ValueError(f"{fn}: state{missing[0]} is None ({len(missing)} fields in all): the state went through "
                          "kamino.state.drop_empty (an environment's pipeline_state); restore it with "
                          "kamino.state.fill_empty(state, kamino.init_state(model)) or env.full_state(pipeline_state)")
+    check_state_model(model, state, fn)
     nb = model.num_bodies
     if state.body_q.shape != (nb, 7):
         raise ValueError(f"state.body_q has shape {state.body_q.shape}, expected ({nb}, 7) for this model")
@@ -97,6 +98,19 @@ def check_state(model: Model, state: State, fn: str = "step") -> None:
             f"state.constraint_force has shape {state.constraint_force.shape}, expected "
             f"({model.num_constraints},) for this model"
         )
+
+
+def check_state_model(model: Model, state: State, fn: str = "step") -> None:
+    """``state`` (one step's, or a trajectory) must belong to ``model``: its ``model_fingerprint``, set by
+    ``kamino.init_state``, is ``model``'s :func:`kamino.model.fingerprint` (a state whose fingerprint is ``None`` is
+    not checked). Static data, so the check runs at trace time under ``jax.jit`` / ``vmap``."""
+    key = state.model_fingerprint
+    if key is None or key == fingerprint(model):
+        return
+    raise ValueError(f"{fn}: the state belongs to another model (state.model_fingerprint {key!r}, this model's "
+                     f"{fingerprint(model)!r}): its bodies would jump to that model's poses. Create the state with "
+                     "kamino.init_state(model) for this model (the fingerprint covers the mechanism: names, joints, "
+                     "frames, geoms; masses, gains and limits may differ)")
 
 
 def check_control(model: Model, control: Control | None, *, time_axis: bool = False, name: str = "control") -> None:

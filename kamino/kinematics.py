@@ -18,9 +18,18 @@ import numpy as np
 from kamino.jax_ref.backend import padded_poses
 from kamino.jax_ref.fk import FKSettings, FKTables, solve_batch
 from kamino.jax_ref.types import _pad_index, layout_of, to_flat, to_padded
-from kamino.model import JOINT_CONSTRAINT_ROWS, RES_LOG, RES_TRANS, ActuationMode, JointType, Model, derived
+from kamino.model import (
+    JOINT_CONSTRAINT_ROWS,
+    RES_LOG,
+    RES_TRANS,
+    ActuationMode,
+    JointType,
+    Model,
+    derived,
+    fingerprint,
+)
 from kamino.spatial import quat_conj, quat_exp, quat_mul, rotate
-from kamino.state import ContactState, State, StepInfo
+from kamino.state import ContactState, State, StepInfo, bind
 
 
 @jax.tree_util.register_dataclass
@@ -262,7 +271,7 @@ def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_posit
                              f"(residual {np.asarray(fk.residual)[bad[:8]].tolist()}); the coordinates may be "
                              "unreachable")
         body_q, body_u = fk.body_q, jnp.zeros_like(body_u)
-    return State(
+    return bind(State(
         body_q=body_q,
         body_u=body_u,
         time=jnp.zeros(model.num_worlds, dtype),
@@ -273,7 +282,7 @@ def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_posit
         coupling_force=jnp.zeros(model.num_couplings, dtype),
         contacts=ContactState.empty(model.num_contacts, dtype),
         info=StepInfo.empty(model.num_worlds, dtype),
-    )
+    ), fingerprint(model))
 
 
 def set_joint_positions(model: Model, state: State, joint_positions=None, actuated_positions=None,

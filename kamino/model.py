@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import hashlib
 import itertools
 import numbers
 import threading
@@ -1441,6 +1442,35 @@ def same_model(a: Model, b: Model) -> bool:
         elif x != y:
             return False
     return True
+
+
+#: The fields :func:`fingerprint` reads: the mechanism (worlds, names, joint types and frames, geoms, pairs, couplings,
+#: actuated DoFs), not its physical parameters (masses, inertias, gains, limits, friction, gravity, initial pose).
+_FINGERPRINT_FIELDS = ("num_worlds", "body_names", "joint_names", "joint_type", "joint_parent", "joint_child",
+                       "joint_anchor_B", "joint_anchor_F", "joint_frame_B", "joint_frame_F", "joint_dof_count",
+                       "geom_type", "geom_body", "geom_pos", "geom_quat", "geom_size", "pair_geom_a", "pair_geom_b",
+                       "world_contact_capacity", "coupling_joint_a", "coupling_joint_b", "coupling_coef",
+                       "actuator_dof")
+
+
+def fingerprint(model: Model) -> str:
+    """A short hash of ``model``'s mechanism: what :func:`kamino.init_state` stores in ``State.model_fingerprint``
+    and ``kamino.step`` compares, so that a state of another mechanism with the same array shapes is an error. Two
+    models that differ only in physical parameters (masses, inertias, gains, limits, friction, damping, gravity,
+    initial pose: :data:`_FINGERPRINT_FIELDS` lists what counts) share it; equal models built twice share it."""
+
+    def build() -> str:
+        h = hashlib.blake2b(digest_size=8)
+        for name in _FINGERPRINT_FIELDS:
+            value = getattr(model, name)
+            if isinstance(value, np.ndarray):
+                h.update(f"{name}{value.shape}".encode())
+                h.update(np.ascontiguousarray(value, dtype=np.float64).tobytes())
+            else:
+                h.update(f"{name}={value!r}".encode())
+        return h.hexdigest()
+
+    return derived(model, "fingerprint", build)
 
 
 def replicate(model: Model, n: int) -> Model:

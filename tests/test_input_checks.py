@@ -4,6 +4,9 @@ unreachable kinematic targets and time steps too large for a model."""
 
 from __future__ import annotations
 
+import pickle
+
+import jax
 import numpy as np
 import pytest
 
@@ -79,3 +82,39 @@ def test_load_mjcf_rejects_a_file_with_a_name_that_is_not_utf8(tmp_path):
                      .encode("latin-1"))
     with pytest.raises(ModelError, match=r"the name b'b\\xe9ton' is not UTF-8"):
         kamino.load_mjcf(path)
+
+
+def test_a_state_of_another_mechanism_is_rejected_before_a_backend_runs():
+    """Two pendulums of different lengths have states of the same shapes; a state of one stepped with the other
+    would jump 0.2 m in one step. The fingerprint stops it in step, rollout, Simulator.step and metrics, under
+    jax.jit too (the fingerprint is static data: the check runs at trace time), on both backends."""
+    short, long = kamino.models.pendulum(), kamino.models.pendulum(length=1.2)
+    state = kamino.init_state(short)
+    assert state.model_fingerprint == kamino.init_state(kamino.models.pendulum(mass=3.0)).model_fingerprint
+    assert state.model_fingerprint != kamino.init_state(long).model_fingerprint
+    for backend in ("jax", "warp"):
+        with pytest.raises(ValueError, match="step: the state belongs to another model"):
+            kamino.step(long, state, backend=backend)
+        with pytest.raises(ValueError, match="rollout: the state belongs to another model"):
+            kamino.rollout(long, state, num_steps=2, backend=backend)
+        with pytest.raises(ValueError, match="the state belongs to another model"):
+            jax.jit(lambda s, b=backend: kamino.step(long, s, backend=b))(state)
+    with pytest.raises(ValueError, match="metrics: the state belongs to another model"):
+        kamino.metrics(long, state)
+
+
+def test_the_fingerprint_travels_with_the_state():
+    """replace, tree maps, pickling and a step keep it; an unbound state (built field by field) is not checked."""
+    model = kamino.models.pendulum()
+    state = kamino.init_state(model)
+    key = state.model_fingerprint
+    assert state.replace(body_u=state.body_u + 1.0).model_fingerprint == key
+    assert jax.tree.map(lambda x: x, state).model_fingerprint == key
+    assert pickle.loads(pickle.dumps(state)).model_fingerprint == key
+    assert kamino.state.drop_empty(state).model_fingerprint == key
+    stepped = kamino.step(model, state, backend="warp")
+    assert stepped.model_fingerprint == key
+    assert jax.tree.structure(stepped) == jax.tree.structure(state)
+    unbound = kamino.state.bind(state, None)
+    assert unbound.model_fingerprint is None
+    kamino.metrics(kamino.models.pendulum(length=1.2), unbound)  # not known, not checked
