@@ -22,6 +22,16 @@ from kamino.state import Control, State
 WARP_ONLY_FIELDS = {"linear_solver": ("llt", "auto"), "cr_iterations": None}
 
 
+#: The state dtypes: float32 (the Warp backend's and the environments' default) and float64 (the reference).
+STATE_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+
+#: The largest time step [s] that steps without a warning: 20 Hz, coarser than any control rate kamino's models are
+#: built for. The contact, joint-limit and PD rows are solved at the velocity level once per step, so a longer step
+#: lets a body move a whole link length between two solves (a pendulum of 0.5 m swings 0.5 rad in 0.05 s at 10 rad/s);
+#: MuJoCo's default is 2 ms and kamino's 1/240 s.
+MAX_QUIET_DT = 0.05
+
+
 def _type_name(x) -> str:
     t = type(x)
     return t.__name__ if t.__module__ == "builtins" else f"{t.__module__}.{t.__qualname__}"
@@ -59,6 +69,32 @@ def check_config(config, backend: str, fn: str = "step") -> None:
                           "backend='warp' to use it)", UserWarning, stacklevel=3)
 
 
+def check_state_dtype(dtype, fn: str = "init_state", name: str = "dtype") -> np.dtype:
+    """``dtype`` as a numpy dtype, if it is a state dtype (:data:`STATE_DTYPES`); else a ``TypeError`` naming
+    ``name``: integer poses truncate every quaternion to zero, and float16 (or bfloat16) cannot resolve a joint's
+    closure (its rounding step at 1 m is 1e-3 m)."""
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise TypeError(f"{fn}: {name} must be float32 or float64, got {dtype!r}") from None
+    if dt not in STATE_DTYPES:
+        raise TypeError(f"{fn}: {name} must be float32 or float64 (a state's dtype), got {dt.name}")
+    return dt
+
+
+def check_dt(model: Model, config: SolverConfig | None, fn: str = "step") -> None:
+    """Warn (``UserWarning``) when ``config.dt`` exceeds :data:`MAX_QUIET_DT`: a step that long lets the model's
+    bodies move far between two velocity-level solves, so contacts, limits and loops are missed or overshot.
+    ``model.suggested_dt`` (an MJCF file's ``<option timestep>``) is named when there is one."""
+    dt = (config or SolverConfig()).dt
+    if dt <= MAX_QUIET_DT:
+        return
+    hint = "" if getattr(model, "suggested_dt", None) is None else f"; the model suggests dt={model.suggested_dt:g}"
+    warnings.warn(f"{fn}: config.dt={dt:g} s is longer than {MAX_QUIET_DT:g} s: bodies move far between two "
+                  f"solves and contacts, joint limits and loop closures are missed or overshot (kamino's default is "
+                  f"{SolverConfig().dt:.4g} s{hint})", UserWarning, stacklevel=3)
+
+
 def check_control_type(control, name: str = "control", fn: str = "step") -> None:
     """``control`` must be a :class:`kamino.Control` or ``None`` (not a bare array)."""
     if control is None or isinstance(control, Control):
@@ -79,6 +115,9 @@ def check_state(model: Model, state: State, fn: str = "step") -> None:
                          "kamino.state.drop_empty (an environment's pipeline_state); restore it with "
                          "kamino.state.fill_empty(state, kamino.init_state(model)) or env.full_state(pipeline_state)")
     check_state_model(model, state, fn)
+    if np.dtype(state.body_q.dtype) not in STATE_DTYPES:
+        raise TypeError(f"{fn}: state.body_q has dtype {np.dtype(state.body_q.dtype).name}; a state is float32 or "
+                        "float64 (kamino.init_state(model, dtype=np.float32))")
     nb = model.num_bodies
     if state.body_q.shape != (nb, 7):
         raise ValueError(f"state.body_q has shape {state.body_q.shape}, expected ({nb}, 7) for this model")

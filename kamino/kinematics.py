@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from kamino.checks import check_state_dtype
 from kamino.jax_ref.backend import padded_poses
 from kamino.jax_ref.fk import FKSettings, FKTables, solve_batch
 from kamino.jax_ref.types import _pad_index, layout_of, to_flat, to_padded
@@ -40,11 +41,16 @@ class FKResult:
     body_q: jax.Array
     """``[total_bodies, 7]`` CoM poses (flat, like ``State.body_q``)."""
     converged: jax.Array
-    """``[num_worlds]`` bool: ``residual <= tolerance``."""
+    """``[num_worlds]`` bool: ``residual <= tolerance`` and every target within its joint limits
+    (:attr:`within_limits`): a target beyond a limit is unreachable, whatever the residual."""
     residual: jax.Array
     """``[num_worlds]`` max |constraint residual| (m or rad) at the returned poses."""
     iterations: jax.Array
     """``[num_worlds]`` Gauss-Newton iterations used."""
+    within_limits: jax.Array
+    """``[num_worlds]`` bool: every given target coordinate of a limited DoF (an actuated position, or a scalar
+    joint coordinate of ``joint_positions``) lies within ``[model.dof_lower, model.dof_upper]`` (to
+    ``tolerance``). ``False``: the target is unreachable and :attr:`converged` is ``False``."""
 
 
 _FIXED_ROWS = ((0, RES_TRANS), (1, RES_TRANS), (2, RES_TRANS), (3, RES_LOG), (4, RES_LOG), (5, RES_LOG))
@@ -234,8 +240,43 @@ def _forward_kinematics(model: Model, joint_positions, actuated_positions, base_
     q_pad = padded_poses(pm, t, q0)
     settings = FKSettings(tolerance=float(tolerance), max_iterations=int(max_iterations))
     q, converged, residual, iterations = solve_batch(pm, tab, q_pad, coords_p, base_target, settings)
-    return FKResult(body_q=to_flat(q, t["bs"]), converged=converged, residual=residual,
-                    iterations=iterations.astype(jnp.int32))
+    inside = _targets_within_limits(model, jp if mode == "all" else ap, mode, float(tolerance))
+    return FKResult(body_q=to_flat(q, t["bs"]), converged=converged & inside, residual=residual,
+                    iterations=iterations.astype(jnp.int32), within_limits=inside)
+
+
+def _target_dofs(model: Model, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(index into the target vector, DoF)`` of each target entry that is a limited DoF's position: every
+    actuator (``mode="actuated"``), or each coordinate of a joint whose coordinates are its DoF positions
+    (REVOLUTE, PRISMATIC, CYLINDRICAL, UNIVERSAL, CARTESIAN; ``mode="all"``)."""
+    if mode == "actuated":
+        entry, dof = np.arange(model.num_actuators), np.asarray(model.actuator_dof, np.int64)
+    else:
+        scalar = (model.joint_coord_count == model.joint_dof_count) & (model.joint_type != int(JointType.FIXED))
+        joints = np.nonzero(scalar)[0]
+        counts = model.joint_dof_count[joints]
+        offset = np.arange(int(counts.sum())) - np.repeat(_starts(counts), counts)
+        entry = np.repeat(model.joint_coord_start[joints], counts) + offset
+        dof = np.repeat(model.joint_dof_start[joints], counts) + offset
+    limited = np.isfinite(model.dof_lower[dof]) | np.isfinite(model.dof_upper[dof])
+    return entry[limited], dof[limited]
+
+
+def _starts(counts: np.ndarray) -> np.ndarray:
+    return np.cumsum(counts) - counts
+
+
+def _targets_within_limits(model: Model, targets: jax.Array, mode: str, tolerance: float) -> jax.Array:
+    """``[num_worlds]`` bool: each world's limited targets lie within their DoF limits
+    (:attr:`FKResult.within_limits`)."""
+    entry, dof = _target_dofs(model, mode)
+    inside = jnp.ones(model.num_worlds, bool)
+    if entry.size == 0:
+        return inside
+    x = targets[entry]
+    ok = (x >= model.dof_lower[dof] - tolerance) & (x <= model.dof_upper[dof] + tolerance)
+    dof_world = np.repeat(np.arange(model.num_worlds), model.world_dof_count)
+    return inside.at[dof_world[dof]].min(ok)
 
 
 def _move_rigidly(model: Model, q0: jax.Array, base: np.ndarray, target: jax.Array) -> jax.Array:
@@ -260,11 +301,15 @@ def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_posit
     ``ValueError`` naming the worlds that do not converge. ``dtype`` defaults to JAX's default float
     (float32, or float64 with ``jax_enable_x64``).
     """
-    dtype = jnp.zeros(0).dtype if dtype is None else jnp.dtype(dtype)
+    dtype = jnp.zeros(0).dtype if dtype is None else check_state_dtype(dtype, "init_state")
     body_q = jnp.asarray(model.body_q0, dtype)
     body_u = jnp.asarray(model.body_u0, dtype)
     if joint_positions is not None or actuated_positions is not None or base_pose is not None:
         fk = forward_kinematics(model, joint_positions, actuated_positions, base_pose, dtype=dtype, **fk_options)
+        beyond = np.nonzero(~np.asarray(fk.within_limits))[0]
+        if beyond.size:
+            raise ValueError(f"init_state: the target coordinates of worlds {beyond[:8].tolist()} lie beyond the "
+                             "joint limits (model.dof_lower, model.dof_upper): unreachable")
         bad = np.nonzero(~np.asarray(fk.converged))[0]
         if bad.size:
             raise ValueError(f"init_state: forward kinematics did not converge in worlds {bad[:8].tolist()} "

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import threading
 
-from kamino.checks import check_config, check_control, check_model, check_rollout_controls, check_state
+from kamino.checks import check_config, check_control, check_dt, check_model, check_rollout_controls, check_state
 from kamino.config import BACKENDS, SolverConfig
 from kamino.model import Model, derived
 from kamino.sharding import group_model, num_shards, sharded_program, world_sharding
@@ -67,6 +67,7 @@ class Simulator:
         check_backend(backend, "Simulator")
         check_model(model, "Simulator")
         check_config(config, backend, "Simulator")
+        check_dt(model, config, "Simulator")
         self._model, self._config, self._backend = model, config or SolverConfig(), backend
         self._engine = _engine(model, self._config, backend)
         self._sharded: dict = {}

@@ -5,6 +5,7 @@ unreachable kinematic targets and time steps too large for a model."""
 from __future__ import annotations
 
 import pickle
+import warnings
 
 import jax
 import numpy as np
@@ -118,3 +119,43 @@ def test_the_fingerprint_travels_with_the_state():
     unbound = kamino.state.bind(state, None)
     assert unbound.model_fingerprint is None
     kamino.metrics(kamino.models.pendulum(length=1.2), unbound)  # not known, not checked
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.float16, "bfloat16", "complex64"])
+def test_init_state_takes_float32_or_float64_only(dtype):
+    with pytest.raises(TypeError, match="init_state: dtype must be float32 or float64"):
+        kamino.init_state(kamino.models.pendulum(), dtype=dtype)
+
+
+def test_step_rejects_an_integer_state():
+    model = kamino.models.pendulum()
+    state = kamino.init_state(model)
+    bad = state.replace(body_q=state.body_q.astype(np.int32))
+    with pytest.raises(TypeError, match=r"step: state\.body_q has dtype int32"):
+        kamino.step(model, bad, backend="jax")
+
+
+def test_a_time_step_beyond_the_quiet_bound_warns_naming_dt():
+    model = kamino.models.pendulum()
+    with pytest.warns(UserWarning, match=r"config.dt=0.5 s is longer than 0.05 s"):
+        kamino.Simulator(model, kamino.SolverConfig(dt=0.5), backend="jax")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        kamino.Simulator(model, kamino.SolverConfig(dt=0.05), backend="jax")
+
+
+def test_forward_kinematics_reports_a_target_beyond_the_limits_as_unreachable():
+    """A hinge limited to [-1, 1] rad: the solver can put the link at 4 rad (the pendulum has no loop), but that
+    configuration is not one the joint can reach; one program answers both targets (two worlds)."""
+    b = ModelBuilder()
+    link = b.add_body(mass=1.0, inertia=(0.02, 0.02, 0.01), pos=(0.0, 0.0, 0.5))
+    b.add_joint(JointType.REVOLUTE, -1, link, parent_frame=((0.0, 0.0, 1.0), (0, 0, 0, 1)),
+                child_frame=((0.0, 0.0, 0.5), (0, 0, 0, 1)), axis=(0, 1, 0), limits=(-1.0, 1.0),
+                actuation=kamino.Actuation(mode="position", kp=10.0, kd=1.0), name="hinge")
+    model = kamino.replicate(b.finalize(), 2)
+    fk = kamino.forward_kinematics(model, actuated_positions=[0.5, 4.0])
+    assert fk.within_limits.tolist() == [True, False]
+    assert fk.converged.tolist() == [True, False]
+    assert float(fk.residual.max()) < 1e-6  # the poses themselves satisfy the joints
+    with pytest.raises(ValueError, match=r"worlds \[1\] lie beyond the joint limits"):
+        kamino.init_state(model, actuated_positions=[0.5, 4.0])
