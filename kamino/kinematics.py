@@ -291,19 +291,34 @@ def _move_rigidly(model: Model, q0: jax.Array, base: np.ndarray, target: jax.Arr
     return jnp.concatenate([pos, rot / jnp.linalg.norm(rot, axis=-1, keepdims=True)], axis=-1)
 
 
-def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_positions=None, base_pose=None,
-               **fk_options) -> State:
+def init_state(model: Model, dtype=None, *, keyframe: str | int | None = None, joint_positions=None,
+               actuated_positions=None, base_pose=None, **fk_options) -> State:
     """The model's initial state: zero twists (the builder's, if set), reactions and contacts.
 
     Without coordinates the bodies are at the builder's (reference) poses. With ``joint_positions``,
     ``actuated_positions`` and/or ``base_pose`` the poses come from :func:`kamino.forward_kinematics`
     (consistent with every joint and loop closure; ``fk_options`` are passed on), which raises a
-    ``ValueError`` naming the worlds that do not converge. ``dtype`` defaults to JAX's default float
-    (float32, or float64 with ``jax_enable_x64``).
+    ``ValueError`` naming the worlds that do not converge. ``keyframe`` (a name or an index of
+    ``model.keyframes``, e.g. an MJCF file's ``<key name="home">``) starts every world at that key's poses,
+    twists and time; an unknown key raises a ``ValueError`` listing the known ones. ``dtype`` defaults to JAX's
+    default float (float32, or float64 with ``jax_enable_x64``); a state is float32 or float64 (another dtype
+    raises a ``TypeError``).
     """
     dtype = jnp.zeros(0).dtype if dtype is None else check_state_dtype(dtype, "init_state")
     body_q = jnp.asarray(model.body_q0, dtype)
     body_u = jnp.asarray(model.body_u0, dtype)
+    time = jnp.zeros(model.num_worlds, dtype)
+    if keyframe is not None:
+        if joint_positions is not None or actuated_positions is not None or base_pose is not None:
+            raise ValueError("init_state: give keyframe or coordinates (joint_positions, actuated_positions, "
+                             "base_pose), not both")
+        key = model.keyframe(keyframe)
+        if key.body_q.shape[0] * model.num_worlds != model.num_bodies:
+            raise ValueError(f"init_state: keyframe {key.name!r} holds {key.body_q.shape[0]} bodies, but the model's "
+                             f"{model.num_worlds} worlds are not copies of that many")
+        body_q = jnp.asarray(np.tile(key.body_q, (model.num_worlds, 1)), dtype)
+        body_u = jnp.asarray(np.tile(key.body_u, (model.num_worlds, 1)), dtype)
+        time = jnp.full(model.num_worlds, key.time, dtype)
     if joint_positions is not None or actuated_positions is not None or base_pose is not None:
         fk = forward_kinematics(model, joint_positions, actuated_positions, base_pose, dtype=dtype, **fk_options)
         beyond = np.nonzero(~np.asarray(fk.within_limits))[0]
@@ -319,7 +334,7 @@ def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_posit
     return bind(State(
         body_q=body_q,
         body_u=body_u,
-        time=jnp.zeros(model.num_worlds, dtype),
+        time=time,
         constraint_force=jnp.zeros(model.num_constraints, dtype),
         actuator_force=jnp.zeros(model.num_dofs, dtype),
         passive_force=jnp.zeros(model.num_dofs, dtype),

@@ -206,6 +206,28 @@ T = TypeVar("T")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class Keyframe:
+    """A named initial state of one world (an MJCF ``<keyframe><key>``): ``kamino.init_state(model,
+    keyframe=name)`` starts every world there."""
+
+    name: str
+    """the key's name (MuJoCo's ``key<i>`` for an unnamed one)."""
+    time: float
+    """the key's simulated time [s]."""
+    body_q: np.ndarray
+    """``[bodies per world, 7]`` CoM poses (``State.body_q``'s layout)."""
+    body_u: np.ndarray
+    """``[bodies per world, 6]`` twists."""
+    ctrl: np.ndarray
+    """``[actuators per world]`` the key's control vector (``kamino.Control.from_ctrl(model, key.ctrl)``; tile it
+    for several worlds)."""
+
+
+#: the attribute of a Model that holds what an MJCF file suggests beside the mechanism (:func:`with_extras`)
+_EXTRAS = "_extras"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class Model:
     """An immutable multi-world model. Build one with :class:`ModelBuilder`, ``replicate`` or ``concat``.
 
@@ -467,6 +489,33 @@ class Model:
     def actuator_index(self, name: str, world: int = 0) -> int:
         """Global index of the actuator called ``name`` in ``world``."""
         return self._lookup("actuator", self.actuator_names, name, world)
+
+    @property
+    def suggested_dt(self) -> float | None:
+        """The time step [s] the model's source suggests: an MJCF file's ``<option timestep>`` (``None``: the file
+        sets none, or the model was built procedurally). kamino does not apply it by itself: pass
+        ``SolverConfig(dt=model.suggested_dt)``; a ``dt`` above 0.05 s warns and names it."""
+        return self.__dict__.get(_EXTRAS, {}).get("suggested_dt")
+
+    @property
+    def keyframes(self) -> tuple[Keyframe, ...]:
+        """The model's named initial states (an MJCF file's ``<keyframe>``; empty for a procedural model), for
+        ``kamino.init_state(model, keyframe="home")`` or ``keyframe=0``. ``replicate`` and ``concat`` of models with
+        the same keyframes keep them (each world starts at the key)."""
+        return self.__dict__.get(_EXTRAS, {}).get("keyframes", ())
+
+    def keyframe(self, which: str | int) -> Keyframe:
+        """The :class:`Keyframe` called ``which``, or at index ``which``; a ``ValueError`` lists the known ones."""
+        keys = self.keyframes
+        if isinstance(which, str):
+            for k in keys:
+                if k.name == which:
+                    return k
+        elif isinstance(which, (int, np.integer)) and not isinstance(which, bool) and -len(keys) <= which < len(keys):
+            return keys[which]
+        known = [k.name for k in keys]
+        raise ValueError(f"keyframe {which!r}: the model has no such keyframe (known: {known}; an MJCF file's "
+                         "<keyframe><key name=...> become the model's keyframes)")
 
     def summary(self) -> str:
         """One line per world kind: bodies, joints, DoFs, constraint rows, independent loops."""
@@ -1354,7 +1403,7 @@ def concat(models: Sequence[Model]) -> Model:
             out[name] = tuple(itertools.chain.from_iterable(getattr(m, name) for m in models))
             continue
         out[name] = _concat_shifted(name, [getattr(m, name) for m in models], shifts)
-    return _with_starts(out)
+    return _shared_extras(models, _with_starts(out))
 
 
 def _concat_shifted(name: str, parts: list[np.ndarray], shifts: dict[str, np.ndarray]) -> np.ndarray:
@@ -1429,7 +1478,7 @@ def take_worlds(model: Model, start: int, stop: int) -> Model:
             out[name] = _shift_index(name, v, {e: -r[0] for e, r in ranges.items()}).copy()
         else:
             out[name] = tuple(v)
-    return _with_starts(out)
+    return _shared_extras([model], _with_starts(out))
 
 
 def same_model(a: Model, b: Model) -> bool:
@@ -1471,6 +1520,34 @@ def fingerprint(model: Model) -> str:
         return h.hexdigest()
 
     return derived(model, "fingerprint", build)
+
+
+def with_extras(model: Model, suggested_dt: float | None = None, keyframes: Sequence[Keyframe] = ()) -> Model:
+    """``model`` (changed in place and returned) with its source's suggested time step and keyframes
+    (:attr:`Model.suggested_dt`, :attr:`Model.keyframes`); each keyframe must fit one world."""
+    nb, na = int(model.world_body_count[0]), int(model.world_actuator_count[0])
+    names = [k.name for k in keyframes]
+    for k in keyframes:
+        if k.body_q.shape != (nb, 7) or k.body_u.shape != (nb, 6) or k.ctrl.shape != (na,):
+            raise ModelError(f"keyframe {k.name!r}: shapes {k.body_q.shape}, {k.body_u.shape}, {k.ctrl.shape} do not "
+                             f"fit the model's world ({nb} bodies, {na} actuators)")
+        if names.count(k.name) > 1:
+            raise ModelError(f"keyframe name {k.name!r} is used twice")
+        for arr in (k.body_q, k.body_u, k.ctrl):
+            arr.setflags(write=False)
+    if suggested_dt is not None and not (np.isfinite(suggested_dt) and suggested_dt > 0):
+        raise ModelError(f"suggested_dt must be a positive time step, got {suggested_dt!r}")
+    object.__setattr__(model, _EXTRAS, {"suggested_dt": None if suggested_dt is None else float(suggested_dt),
+                                        "keyframes": tuple(keyframes)})
+    return model
+
+
+def _shared_extras(models: Sequence[Model], out: Model) -> Model:
+    """``out`` with the extras of ``models`` if they all hold the same ones (``replicate``), else without."""
+    first = models[0].__dict__.get(_EXTRAS)
+    if first is not None and all(m.__dict__.get(_EXTRAS) is first for m in models):
+        object.__setattr__(out, _EXTRAS, first)
+    return out
 
 
 def replicate(model: Model, n: int) -> Model:

@@ -159,3 +159,41 @@ def test_forward_kinematics_reports_a_target_beyond_the_limits_as_unreachable():
     assert float(fk.residual.max()) < 1e-6  # the poses themselves satisfy the joints
     with pytest.raises(ValueError, match=r"worlds \[1\] lie beyond the joint limits"):
         kamino.init_state(model, actuated_positions=[0.5, 4.0])
+
+
+KEYFRAME_MJCF = """<mujoco><option timestep="0.005"/><worldbody>
+<body name="link" pos="0 0 1"><joint name="hinge" axis="0 1 0"/>
+<geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02" mass="1"/></body>
+</worldbody><actuator><motor joint="hinge" name="m"/></actuator>
+<keyframe><key name="home" qpos="0.3" qvel="1.0" ctrl="0.5" time="2"/><key qpos="-0.2"/></keyframe></mujoco>"""
+
+
+def test_mjcf_keyframes_become_initial_states():
+    """A hinge at height 1 about y, its link's CoM 0.25 m below: at the key's angle 0.3 rad and rate 1 rad/s the
+    CoM sits at 0.25 (-sin 0.3, 0, -cos 0.3) from the hinge and moves at w x r."""
+    model = kamino.load_mjcf(KEYFRAME_MJCF)
+    assert model.suggested_dt == 0.005
+    assert [k.name for k in model.keyframes] == ["home", "key1"]
+    assert model.keyframe("home").ctrl.tolist() == [0.5]
+    state = kamino.init_state(model, keyframe="home", dtype=np.float64)
+    r = 0.25 * np.array([-np.sin(0.3), 0.0, -np.cos(0.3)])
+    np.testing.assert_allclose(np.asarray(state.body_q)[0, :3], np.array([0.0, 0.0, 1.0]) + r, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(state.body_q)[0, 3:], [0.0, np.sin(0.15), 0.0, np.cos(0.15)], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(state.body_u)[0], [*np.cross([0.0, 1.0, 0.0], r), 0.0, 1.0, 0.0],
+                               atol=1e-12)
+    assert float(state.time[0]) == 2.0
+    unnamed = kamino.init_state(kamino.replicate(model, 3), keyframe=1, dtype=np.float64)
+    np.testing.assert_allclose(np.asarray(unnamed.body_q)[:, 0], -0.25 * np.sin(-0.2), atol=1e-12)
+    assert kamino.replicate(model, 3).suggested_dt == 0.005
+    assert pickle.loads(pickle.dumps(model)).keyframe(0).name == "home"
+    with pytest.raises(ValueError, match=r"keyframe 'away': .*known: \['home', 'key1'\]"):
+        kamino.init_state(model, keyframe="away")
+    with pytest.raises(ValueError, match="keyframe 2"):
+        kamino.init_state(model, keyframe=2)
+
+
+def test_a_model_without_timestep_or_keyframes_suggests_nothing():
+    model = kamino.load_mjcf(KEYFRAME_MJCF.replace('<option timestep="0.005"/>', "").split("<keyframe>")[0]
+                             + "</mujoco>")
+    assert model.suggested_dt is None and model.keyframes == ()
+    assert kamino.models.pendulum().suggested_dt is None
