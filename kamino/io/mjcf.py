@@ -210,6 +210,9 @@ def _compile(source: str | os.PathLike | bytes) -> tuple[Any, Any]:
             spec = mujoco.MjSpec.from_string(source)
         else:
             path = Path(source)
+            if isinstance(source, str) and "<" in source and not _is_file(path):
+                raise ModelError(f"load_mjcf: the source is neither a file nor XML: an XML string must start with "
+                                 f"'<' (its first characters: {source[:40]!r})")
             if not path.is_file():
                 raise FileNotFoundError(f"load_mjcf: no MJCF file at {str(path)!r} (an XML string must start with '<')")
             spec = mujoco.MjSpec.from_file(str(path))
@@ -220,6 +223,14 @@ def _compile(source: str | os.PathLike | bytes) -> tuple[Any, Any]:
         raise ModelError(f"MuJoCo could not load the MJCF model: {exc}") from exc
     _check_compiled(mj)
     return spec, mj
+
+
+def _is_file(path: Path) -> bool:
+    """Whether ``path`` names an existing file (``False`` for a string no file system accepts as a path)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
 
 
 def _check_compiled(mj: Any) -> None:
