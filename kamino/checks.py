@@ -70,15 +70,16 @@ def check_config(config, backend: str, fn: str = "step") -> None:
 
 
 def check_state_dtype(dtype, fn: str = "init_state", name: str = "dtype") -> np.dtype:
-    """``dtype`` as a numpy dtype, if it is a state dtype (:data:`STATE_DTYPES`); else a ``TypeError`` naming
-    ``name``: integer poses truncate every quaternion to zero, and float16 (or bfloat16) cannot resolve a joint's
+    """``dtype`` as a numpy dtype, if it is a state dtype (:data:`STATE_DTYPES`); else a ``ValueError`` naming
+    ``name`` (a ``TypeError`` for what is no dtype at all): integer poses truncate every quaternion to zero, and float16 (or bfloat16) cannot resolve a joint's
     closure (its rounding step at 1 m is 1e-3 m)."""
     try:
         dt = np.dtype(dtype)
     except TypeError:
         raise TypeError(f"{fn}: {name} must be float32 or float64, got {dtype!r}") from None
     if dt not in STATE_DTYPES:
-        raise TypeError(f"{fn}: {name} must be float32 or float64 (a state's dtype), got {dt.name}")
+        raise ValueError(f"{fn}: {name} must be float32 or float64 (kamino steps float32 and float64 states), got "
+                         f"{dt.name}")
     return dt
 
 
@@ -116,8 +117,8 @@ def check_state(model: Model, state: State, fn: str = "step") -> None:
                          "kamino.state.fill_empty(state, kamino.init_state(model)) or env.full_state(pipeline_state)")
     check_state_model(model, state, fn)
     if np.dtype(state.body_q.dtype) not in STATE_DTYPES:
-        raise TypeError(f"{fn}: state.body_q has dtype {np.dtype(state.body_q.dtype).name}; a state is float32 or "
-                        "float64 (kamino.init_state(model, dtype=np.float32))")
+        raise ValueError(f"{fn}: state.body_q has dtype {np.dtype(state.body_q.dtype).name}; kamino steps float32 and "
+                         "float64 states (kamino.init_state(model, dtype=np.float32))")
     nb = model.num_bodies
     if state.body_q.shape != (nb, 7):
         raise ValueError(f"state.body_q has shape {state.body_q.shape}, expected ({nb}, 7) for this model")

@@ -302,7 +302,7 @@ def init_state(model: Model, dtype=None, *, keyframe: str | int | None = None, j
     ``model.keyframes``, e.g. an MJCF file's ``<key name="home">``) starts every world at that key's poses,
     twists and time; an unknown key raises a ``ValueError`` listing the known ones. ``dtype`` defaults to JAX's
     default float (float32, or float64 with ``jax_enable_x64``); a state is float32 or float64 (another dtype
-    raises a ``TypeError``).
+    raises a ``ValueError``).
     """
     dtype = jnp.zeros(0).dtype if dtype is None else check_state_dtype(dtype, "init_state")
     body_q = jnp.asarray(model.body_q0, dtype)
