@@ -71,8 +71,8 @@ def check_config(config, backend: str, fn: str = "step") -> None:
 
 def check_state_dtype(dtype, fn: str = "init_state", name: str = "dtype") -> np.dtype:
     """``dtype`` as a numpy dtype, if it is a state dtype (:data:`STATE_DTYPES`); else a ``ValueError`` naming
-    ``name`` (a ``TypeError`` for what is no dtype at all): integer poses truncate every quaternion to zero, and float16 (or bfloat16) cannot resolve a joint's
-    closure (its rounding step at 1 m is 1e-3 m)."""
+    ``name`` (a ``TypeError`` for what is no dtype at all): integer poses truncate every quaternion to zero, and
+    float16 (or bfloat16) cannot resolve a joint's closure (its rounding step at 1 m is 1e-3 m)."""
     try:
         dt = np.dtype(dtype)
     except TypeError:
