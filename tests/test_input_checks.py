@@ -144,21 +144,35 @@ def test_a_time_step_beyond_the_quiet_bound_warns_naming_dt():
         kamino.Simulator(model, kamino.SolverConfig(dt=0.05), backend="jax")
 
 
-def test_forward_kinematics_reports_a_target_beyond_the_limits_as_unreachable():
-    """A hinge limited to [-1, 1] rad: the solver can put the link at 4 rad (the pendulum has no loop), but that
-    configuration is not one the joint can reach; one program answers both targets (two worlds)."""
+def _limited_hinges() -> kamino.Model:
+    """Two worlds of a pendulum whose actuated hinge is limited to [-1, 1] rad."""
     b = ModelBuilder()
     link = b.add_body(mass=1.0, inertia=(0.02, 0.02, 0.01), pos=(0.0, 0.0, 0.5))
     b.add_joint(JointType.REVOLUTE, -1, link, parent_frame=((0.0, 0.0, 1.0), (0, 0, 0, 1)),
                 child_frame=((0.0, 0.0, 0.5), (0, 0, 0, 1)), axis=(0, 1, 0), limits=(-1.0, 1.0),
                 actuation=kamino.Actuation(mode="position", kp=10.0, kd=1.0), name="hinge")
-    model = kamino.replicate(b.finalize(), 2)
-    fk = kamino.forward_kinematics(model, actuated_positions=[0.5, 4.0])
+    return kamino.replicate(b.finalize(), 2)
+
+
+def test_forward_kinematics_reports_a_target_beyond_the_limits_as_unreachable():
+    """The solver can put the link at 4 rad (the pendulum has no loop, the residual is zero), but that configuration
+    is not one the joint can reach: converged is False there. One program answers both worlds."""
+    model = _limited_hinges()
+    fk = kamino.forward_kinematics(model, joint_positions=[0.5, 4.0])
     assert fk.within_limits.tolist() == [True, False]
     assert fk.converged.tolist() == [True, False]
     assert float(fk.residual.max()) < 1e-6  # the poses themselves satisfy the joints
     with pytest.raises(ValueError, match=r"worlds \[1\] lie beyond the joint limits"):
-        kamino.init_state(model, actuated_positions=[0.5, 4.0])
+        kamino.init_state(model, joint_positions=[0.5, 4.0])
+
+
+def test_actuated_targets_are_checked_against_their_dofs_limits():
+    """The actuated targets map to their DoFs' limits world by world (what forward_kinematics ANDs into converged
+    for actuated_positions), to the solver's tolerance."""
+    model = _limited_hinges()
+    inside = kamino.kinematics._targets_within_limits(model, jax.numpy.asarray([-1.0 - 1e-7, 1.0 + 1e-5]),
+                                                      "actuated", 1e-6)
+    assert inside.tolist() == [True, False]
 
 
 KEYFRAME_MJCF = """<mujoco><option timestep="0.005"/><worldbody>
