@@ -293,7 +293,8 @@ def _move_rigidly(model: Model, q0: jax.Array, base: np.ndarray, target: jax.Arr
 
 def init_state(model: Model, dtype=None, *, keyframe: str | int | None = None, joint_positions=None,
                actuated_positions=None, base_pose=None, **fk_options) -> State:
-    """The model's initial state: zero twists (the builder's, if set), reactions and contacts.
+    """The model's initial state: zero twists (the builder's, if set), reactions and contacts. It carries the model's
+    fingerprint (``State.model_fingerprint``), so stepping it with another mechanism raises.
 
     Without coordinates the bodies are at the builder's (reference) poses. With ``joint_positions``,
     ``actuated_positions`` and/or ``base_pose`` the poses come from :func:`kamino.forward_kinematics`
