@@ -200,6 +200,7 @@ def test_mjcf_keyframes_become_initial_states():
     np.testing.assert_allclose(np.asarray(unnamed.body_q)[:, 0], -0.25 * np.sin(-0.2), atol=1e-12)
     assert kamino.replicate(model, 3).suggested_dt == 0.005
     assert pickle.loads(pickle.dumps(model)).keyframe(0).name == "home"
+    assert kamino.load_mjcf(kamino.save_mjcf(model)).suggested_dt == 0.005
     with pytest.raises(ValueError, match=r"keyframe 'away': .*known: \['home', 'key1'\]"):
         kamino.init_state(model, keyframe="away")
     with pytest.raises(ValueError, match="keyframe 2"):
