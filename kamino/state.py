@@ -124,6 +124,7 @@ class State:
     """the last step's :class:`ContactState`."""
     info: StepInfo
     """the last solve's :class:`StepInfo`."""
+
     def replace(self, **changes) -> State:
         """A copy with the fields named in ``changes`` replaced (``state.replace(body_q=q)``); it keeps the
         :attr:`model_fingerprint`."""
