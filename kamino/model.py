@@ -1493,31 +1493,49 @@ def same_model(a: Model, b: Model) -> bool:
     return True
 
 
-#: The fields :func:`fingerprint` reads: the mechanism (worlds, names, joint types and frames, geoms, pairs, couplings,
-#: actuated DoFs), not its physical parameters (masses, inertias, gains, limits, friction, gravity, initial pose).
-_FINGERPRINT_FIELDS = ("num_worlds", "body_names", "joint_names", "joint_type", "joint_parent", "joint_child",
-                       "joint_anchor_B", "joint_anchor_F", "joint_frame_B", "joint_frame_F", "joint_dof_count",
-                       "geom_type", "geom_body", "geom_pos", "geom_quat", "geom_size", "pair_geom_a", "pair_geom_b",
-                       "world_contact_capacity", "coupling_joint_a", "coupling_joint_b", "coupling_coef",
-                       "actuator_dof")
+#: The fields :func:`fingerprint` reads: the mechanism of each world (names, joint types and frames, geoms, pairs,
+#: couplings, actuated DoFs), not its physical parameters (masses, inertias, gains, limits, friction, gravity,
+#: initial pose).
+_FINGERPRINT_FIELDS = ("body_names", "joint_names", "joint_type", "joint_parent", "joint_child", "joint_anchor_B",
+                       "joint_anchor_F", "joint_frame_B", "joint_frame_F", "joint_dof_count", "geom_type", "geom_body",
+                       "geom_pos", "geom_quat", "geom_size", "pair_geom_a", "pair_geom_b", "world_contact_capacity",
+                       "coupling_joint_a", "coupling_joint_b", "coupling_coef", "actuator_dof")
+
+
+def _world_digest(model: Model, w: int) -> bytes:
+    """A hash of world ``w``'s mechanism (:data:`_FINGERPRINT_FIELDS`, its indices made world-local)."""
+    starts = {e: int(getattr(model, f"world_{e}_start")[w]) for e in ("body", "joint", "dof", "geom", "pair",
+                                                                       "coupling", "actuator")}
+    starts["world"] = w
+    h = hashlib.blake2b(digest_size=8)
+    for name in _FINGERPRINT_FIELDS:
+        entity = next(e for prefix, e in _PREFIX_ENTITY if name.startswith(prefix))
+        lo = starts[entity]
+        hi = lo + (1 if entity == "world" else int(getattr(model, f"world_{entity}_count")[w]))
+        value = getattr(model, name)[lo:hi]
+        if isinstance(value, np.ndarray):
+            value = _shift_index(name, value, {e: -s for e, s in starts.items()})
+            h.update(f"{name}{value.shape}".encode())
+            h.update(np.ascontiguousarray(value, dtype=np.float64).tobytes())
+        else:
+            h.update(f"{name}={value!r}".encode())
+    return h.digest()
 
 
 def fingerprint(model: Model) -> str:
     """A short hash of ``model``'s mechanism: what :func:`kamino.init_state` stores in ``State.model_fingerprint``
     and ``kamino.step`` compares, so that a state of another mechanism with the same array shapes is an error. Two
     models that differ only in physical parameters (masses, inertias, gains, limits, friction, damping, gravity,
-    initial pose: :data:`_FINGERPRINT_FIELDS` lists what counts) share it; equal models built twice share it."""
+    initial pose: :data:`_FINGERPRINT_FIELDS` lists what counts) share it; equal models built twice share it. It
+    hashes the shortest sequence of worlds whose repetition is the model's: ``replicate(m, n)`` and a group model of
+    ``kamino.sharding`` (one block of identical groups of worlds) share ``m``'s (their states differ in shape, which
+    the shape checks name)."""
 
     def build() -> str:
-        h = hashlib.blake2b(digest_size=8)
-        for name in _FINGERPRINT_FIELDS:
-            value = getattr(model, name)
-            if isinstance(value, np.ndarray):
-                h.update(f"{name}{value.shape}".encode())
-                h.update(np.ascontiguousarray(value, dtype=np.float64).tobytes())
-            else:
-                h.update(f"{name}={value!r}".encode())
-        return h.hexdigest()
+        digests = [_world_digest(model, w) for w in range(model.num_worlds)]
+        n = len(digests)
+        period = next(p for p in range(1, n + 1) if n % p == 0 and digests == digests[:p] * (n // p))
+        return hashlib.blake2b(b"".join(digests[:period]), digest_size=8).hexdigest()
 
     return derived(model, "fingerprint", build)
 

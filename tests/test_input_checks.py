@@ -212,3 +212,14 @@ def test_a_model_without_timestep_or_keyframes_suggests_nothing():
                              + "</mujoco>")
     assert model.suggested_dt is None and model.keyframes == ()
     assert kamino.models.pendulum().suggested_dt is None
+
+
+def test_the_fingerprint_follows_each_worlds_mechanism():
+    """Copies of a model share its fingerprint (a sharded step's group model is such a block); the order of
+    different worlds and any world's geometry change it."""
+    fourbar, boxes = kamino.models.fourbar(), kamino.models.box_stack()
+    key = kamino.model.fingerprint
+    assert key(kamino.replicate(fourbar, 3)) == key(fourbar)
+    pair = kamino.concat([fourbar, boxes])
+    assert key(kamino.concat([pair, pair])) == key(pair) != key(kamino.concat([boxes, fourbar]))
+    assert key(kamino.concat([fourbar, kamino.models.fourbar(crank=0.2)])) != key(kamino.replicate(fourbar, 2))
