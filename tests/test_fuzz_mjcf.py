@@ -86,9 +86,14 @@ def load_and_step(source: str | bytes) -> str:
 
 
 @pytest.fixture(scope="module")
-def warm_warp():
-    """One step of an unmutated scene: Warp's kernels load here, outside the examples' time bound."""
-    assert load_and_step(SOURCES[0]) == "stepped"
+def warm_warp(tmp_path_factory):
+    """One step of an unmutated scene: Warp's kernels load here, outside the examples' time bound. The module runs
+    in a temporary folder: MuJoCo writes its warnings (a 'NaN' in the XML) to MUJOCO_LOG.TXT in the working
+    folder."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(tmp_path_factory.mktemp("fuzz"))
+        assert load_and_step(SOURCES[0]) == "stepped"
+        yield
 
 
 @settings(max_examples=80, deadline=None, derandomize=True,
