@@ -166,7 +166,9 @@ def forward_kinematics(model: Model, joint_positions=None, actuated_positions=No
     rigidly to ``base_pose``) is where the Gauss-Newton iteration starts.
 
     Solves ``max |C| <= tolerance`` by damped Gauss-Newton with an Armijo line search, at most
-    ``max_iterations`` plus one per sub-target of 10 deg / 5 cm (docs/formulation.md §9). Works under
+    ``max_iterations`` plus one per sub-target of 10 deg / 5 cm (docs/formulation.md §9). A target coordinate
+    beyond its DoF's limits is unreachable: ``within_limits`` and ``converged`` are ``False`` for its world, even
+    though the poses may satisfy every joint. Works under
     ``jax.jit`` for the coordinate arguments. ``dtype`` defaults to JAX's default float.
 
     Called outside a trace, the whole solve runs as one program compiled once per model and argument pattern
