@@ -39,7 +39,9 @@ def step(model: Model, state: State, control: Control | None = None, *, config: 
 
     ``control`` holds one step's inputs (arrays flat over all worlds, no time axis); ``config`` is a
     :class:`SolverConfig` (docs/settings.md: the defaults and the speed-against-accuracy knob). Arguments of the
-    wrong kind or shape raise a ``TypeError`` / ``ValueError`` naming the argument before a backend runs. A state
+    wrong kind or shape raise a ``TypeError`` / ``ValueError`` naming the argument before a backend runs, and so
+    does a state of another mechanism (``State.model_fingerprint``, set by ``kamino.init_state``) or of a dtype
+    other than float32 and float64. A ``config.dt`` above 0.05 s warns. A state
     whose worlds are sharded over devices (``kamino.sharding.shard_worlds``) is stepped on each device in place.
     """
     return simulator_of(model, config, backend, "step").step(state, control)

@@ -13,13 +13,23 @@ import jax
 import numpy as np
 
 from kamino.config import SolverConfig, WarpSettings
-from kamino.model import Model
+from kamino.model import Model, fingerprint
 from kamino.state import Control, State
 
 #: the Warp backend's settings (``SolverConfig.warp``) with the values the JAX reference computes as (``None``: any
 #: value is the JAX reference's own). The JAX reference builds a dense Jacobian and solves with a dense Cholesky
 #: factorisation: ``jacobian="dense"`` and ``linear_solver="llt"`` are what it does anyway.
 WARP_ONLY_FIELDS = {"linear_solver": ("llt", "auto"), "cr_iterations": None}
+
+
+#: The state dtypes: float32 (the Warp backend's and the environments' default) and float64 (the reference).
+STATE_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+
+#: The largest time step [s] that steps without a warning: 20 Hz, coarser than any control rate kamino's models are
+#: built for. The contact, joint-limit and PD rows are solved at the velocity level once per step, so a longer step
+#: lets a body move a whole link length between two solves (a pendulum of 0.5 m swings 0.5 rad in 0.05 s at 10 rad/s);
+#: MuJoCo's default is 2 ms and kamino's 1/240 s.
+MAX_QUIET_DT = 0.05
 
 
 def _type_name(x) -> str:
@@ -59,6 +69,33 @@ def check_config(config, backend: str, fn: str = "step") -> None:
                           "backend='warp' to use it)", UserWarning, stacklevel=3)
 
 
+def check_state_dtype(dtype, fn: str = "init_state", name: str = "dtype") -> np.dtype:
+    """``dtype`` as a numpy dtype, if it is a state dtype (:data:`STATE_DTYPES`); else a ``ValueError`` naming
+    ``name`` (a ``TypeError`` for what is no dtype at all): integer poses truncate every quaternion to zero, and
+    float16 (or bfloat16) cannot resolve a joint's closure (its rounding step at 1 m is 1e-3 m)."""
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise TypeError(f"{fn}: {name} must be float32 or float64, got {dtype!r}") from None
+    if dt not in STATE_DTYPES:
+        raise ValueError(f"{fn}: {name} must be float32 or float64 (kamino steps float32 and float64 states), got "
+                         f"{dt.name}")
+    return dt
+
+
+def check_dt(model: Model, config: SolverConfig | None, fn: str = "step") -> None:
+    """Warn (``UserWarning``) when ``config.dt`` exceeds :data:`MAX_QUIET_DT`: a step that long lets the model's
+    bodies move far between two velocity-level solves, so contacts, limits and loops are missed or overshot.
+    ``model.suggested_dt`` (an MJCF file's ``<option timestep>``) is named when there is one."""
+    dt = (config or SolverConfig()).dt
+    if dt <= MAX_QUIET_DT:
+        return
+    hint = "" if getattr(model, "suggested_dt", None) is None else f"; the model suggests dt={model.suggested_dt:g}"
+    warnings.warn(f"{fn}: config.dt={dt:g} s is longer than {MAX_QUIET_DT:g} s: bodies move far between two "
+                  f"solves and contacts, joint limits and loop closures are missed or overshot (kamino's default is "
+                  f"{SolverConfig().dt:.4g} s{hint})", UserWarning, stacklevel=3)
+
+
 def check_control_type(control, name: str = "control", fn: str = "step") -> None:
     """``control`` must be a :class:`kamino.Control` or ``None`` (not a bare array)."""
     if control is None or isinstance(control, Control):
@@ -78,6 +115,10 @@ def check_state(model: Model, state: State, fn: str = "step") -> None:
         raise ValueError(f"{fn}: state{missing[0]} is None ({len(missing)} fields in all): the state went through "
                          "kamino.state.drop_empty (an environment's pipeline_state); restore it with "
                          "kamino.state.fill_empty(state, kamino.init_state(model)) or env.full_state(pipeline_state)")
+    check_state_model(model, state, fn)
+    if np.dtype(state.body_q.dtype) not in STATE_DTYPES:
+        raise ValueError(f"{fn}: state.body_q has dtype {np.dtype(state.body_q.dtype).name}; kamino steps float32 and "
+                         "float64 states (kamino.init_state(model, dtype=np.float32))")
     nb = model.num_bodies
     if state.body_q.shape != (nb, 7):
         raise ValueError(f"state.body_q has shape {state.body_q.shape}, expected ({nb}, 7) for this model")
@@ -97,6 +138,19 @@ def check_state(model: Model, state: State, fn: str = "step") -> None:
             f"state.constraint_force has shape {state.constraint_force.shape}, expected "
             f"({model.num_constraints},) for this model"
         )
+
+
+def check_state_model(model: Model, state: State, fn: str = "step") -> None:
+    """``state`` (one step's, or a trajectory) must belong to ``model``: its ``model_fingerprint``, set by
+    ``kamino.init_state``, is ``model``'s :func:`kamino.model.fingerprint` (a state whose fingerprint is ``None`` is
+    not checked). Static data, so the check runs at trace time under ``jax.jit`` / ``vmap``."""
+    key = state.model_fingerprint
+    if key is None or key == fingerprint(model):
+        return
+    raise ValueError(f"{fn}: the state belongs to another model (state.model_fingerprint {key!r}, this model's "
+                     f"{fingerprint(model)!r}): its bodies would jump to that model's poses. Create the state with "
+                     "kamino.init_state(model) for this model (the fingerprint covers the mechanism: names, joints, "
+                     "frames, geoms; masses, gains and limits may differ)")
 
 
 def check_control(model: Model, control: Control | None, *, time_axis: bool = False, name: str = "control") -> None:

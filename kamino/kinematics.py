@@ -15,12 +15,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from kamino.checks import check_state_dtype
 from kamino.jax_ref.backend import padded_poses
 from kamino.jax_ref.fk import FKSettings, FKTables, solve_batch
 from kamino.jax_ref.types import _pad_index, layout_of, to_flat, to_padded
-from kamino.model import JOINT_CONSTRAINT_ROWS, RES_LOG, RES_TRANS, ActuationMode, JointType, Model, derived
+from kamino.model import (
+    JOINT_CONSTRAINT_ROWS,
+    RES_LOG,
+    RES_TRANS,
+    ActuationMode,
+    JointType,
+    Model,
+    derived,
+    fingerprint,
+)
 from kamino.spatial import quat_conj, quat_exp, quat_mul, rotate
-from kamino.state import ContactState, State, StepInfo
+from kamino.state import ContactState, State, StepInfo, bind
 
 
 @jax.tree_util.register_dataclass
@@ -31,11 +41,16 @@ class FKResult:
     body_q: jax.Array
     """``[total_bodies, 7]`` CoM poses (flat, like ``State.body_q``)."""
     converged: jax.Array
-    """``[num_worlds]`` bool: ``residual <= tolerance``."""
+    """``[num_worlds]`` bool: ``residual <= tolerance`` and every target within its joint limits
+    (:attr:`within_limits`): a target beyond a limit is unreachable, whatever the residual."""
     residual: jax.Array
     """``[num_worlds]`` max |constraint residual| (m or rad) at the returned poses."""
     iterations: jax.Array
     """``[num_worlds]`` Gauss-Newton iterations used."""
+    within_limits: jax.Array
+    """``[num_worlds]`` bool: every given target coordinate of a limited DoF (an actuated position, or a scalar
+    joint coordinate of ``joint_positions``) lies within ``[model.dof_lower, model.dof_upper]`` (to
+    ``tolerance``). ``False``: the target is unreachable and :attr:`converged` is ``False``."""
 
 
 _FIXED_ROWS = ((0, RES_TRANS), (1, RES_TRANS), (2, RES_TRANS), (3, RES_LOG), (4, RES_LOG), (5, RES_LOG))
@@ -151,7 +166,9 @@ def forward_kinematics(model: Model, joint_positions=None, actuated_positions=No
     rigidly to ``base_pose``) is where the Gauss-Newton iteration starts.
 
     Solves ``max |C| <= tolerance`` by damped Gauss-Newton with an Armijo line search, at most
-    ``max_iterations`` plus one per sub-target of 10 deg / 5 cm (docs/formulation.md §9). Works under
+    ``max_iterations`` plus one per sub-target of 10 deg / 5 cm (docs/formulation.md §9). A target coordinate
+    beyond its DoF's limits is unreachable: ``within_limits`` and ``converged`` are ``False`` for its world, even
+    though the poses may satisfy every joint. Works under
     ``jax.jit`` for the coordinate arguments. ``dtype`` defaults to JAX's default float.
 
     Called outside a trace, the whole solve runs as one program compiled once per model and argument pattern
@@ -225,8 +242,43 @@ def _forward_kinematics(model: Model, joint_positions, actuated_positions, base_
     q_pad = padded_poses(pm, t, q0)
     settings = FKSettings(tolerance=float(tolerance), max_iterations=int(max_iterations))
     q, converged, residual, iterations = solve_batch(pm, tab, q_pad, coords_p, base_target, settings)
-    return FKResult(body_q=to_flat(q, t["bs"]), converged=converged, residual=residual,
-                    iterations=iterations.astype(jnp.int32))
+    inside = _targets_within_limits(model, jp if mode == "all" else ap, mode, float(tolerance))
+    return FKResult(body_q=to_flat(q, t["bs"]), converged=converged & inside, residual=residual,
+                    iterations=iterations.astype(jnp.int32), within_limits=inside)
+
+
+def _target_dofs(model: Model, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(index into the target vector, DoF)`` of each target entry that is a limited DoF's position: every
+    actuator (``mode="actuated"``), or each coordinate of a joint whose coordinates are its DoF positions
+    (REVOLUTE, PRISMATIC, CYLINDRICAL, UNIVERSAL, CARTESIAN; ``mode="all"``)."""
+    if mode == "actuated":
+        entry, dof = np.arange(model.num_actuators), np.asarray(model.actuator_dof, np.int64)
+    else:
+        scalar = (model.joint_coord_count == model.joint_dof_count) & (model.joint_type != int(JointType.FIXED))
+        joints = np.nonzero(scalar)[0]
+        counts = model.joint_dof_count[joints]
+        offset = np.arange(int(counts.sum())) - np.repeat(_starts(counts), counts)
+        entry = np.repeat(model.joint_coord_start[joints], counts) + offset
+        dof = np.repeat(model.joint_dof_start[joints], counts) + offset
+    limited = np.isfinite(model.dof_lower[dof]) | np.isfinite(model.dof_upper[dof])
+    return entry[limited], dof[limited]
+
+
+def _starts(counts: np.ndarray) -> np.ndarray:
+    return np.cumsum(counts) - counts
+
+
+def _targets_within_limits(model: Model, targets: jax.Array, mode: str, tolerance: float) -> jax.Array:
+    """``[num_worlds]`` bool: each world's limited targets lie within their DoF limits
+    (:attr:`FKResult.within_limits`)."""
+    entry, dof = _target_dofs(model, mode)
+    inside = jnp.ones(model.num_worlds, bool)
+    if entry.size == 0:
+        return inside
+    x = targets[entry]
+    ok = (x >= model.dof_lower[dof] - tolerance) & (x <= model.dof_upper[dof] + tolerance)
+    dof_world = np.repeat(np.arange(model.num_worlds), model.world_dof_count)
+    return inside.at[dof_world[dof]].min(ok)
 
 
 def _move_rigidly(model: Model, q0: jax.Array, base: np.ndarray, target: jax.Array) -> jax.Array:
@@ -241,31 +293,51 @@ def _move_rigidly(model: Model, q0: jax.Array, base: np.ndarray, target: jax.Arr
     return jnp.concatenate([pos, rot / jnp.linalg.norm(rot, axis=-1, keepdims=True)], axis=-1)
 
 
-def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_positions=None, base_pose=None,
-               **fk_options) -> State:
-    """The model's initial state: zero twists (the builder's, if set), reactions and contacts.
+def init_state(model: Model, dtype=None, *, keyframe: str | int | None = None, joint_positions=None,
+               actuated_positions=None, base_pose=None, **fk_options) -> State:
+    """The model's initial state: zero twists (the builder's, if set), reactions and contacts. It carries the model's
+    fingerprint (``State.model_fingerprint``), so stepping it with another mechanism raises.
 
     Without coordinates the bodies are at the builder's (reference) poses. With ``joint_positions``,
     ``actuated_positions`` and/or ``base_pose`` the poses come from :func:`kamino.forward_kinematics`
     (consistent with every joint and loop closure; ``fk_options`` are passed on), which raises a
-    ``ValueError`` naming the worlds that do not converge. ``dtype`` defaults to JAX's default float
-    (float32, or float64 with ``jax_enable_x64``).
+    ``ValueError`` naming the worlds that do not converge. ``keyframe`` (a name or an index of
+    ``model.keyframes``, e.g. an MJCF file's ``<key name="home">``) starts every world at that key's poses,
+    twists and time; an unknown key raises a ``ValueError`` listing the known ones. ``dtype`` defaults to JAX's
+    default float (float32, or float64 with ``jax_enable_x64``); a state is float32 or float64 (another dtype
+    raises a ``ValueError``).
     """
-    dtype = jnp.zeros(0).dtype if dtype is None else jnp.dtype(dtype)
+    dtype = jnp.zeros(0).dtype if dtype is None else check_state_dtype(dtype, "init_state")
     body_q = jnp.asarray(model.body_q0, dtype)
     body_u = jnp.asarray(model.body_u0, dtype)
+    time = jnp.zeros(model.num_worlds, dtype)
+    if keyframe is not None:
+        if joint_positions is not None or actuated_positions is not None or base_pose is not None:
+            raise ValueError("init_state: give keyframe or coordinates (joint_positions, actuated_positions, "
+                             "base_pose), not both")
+        key = model.keyframe(keyframe)
+        if key.body_q.shape[0] * model.num_worlds != model.num_bodies:
+            raise ValueError(f"init_state: keyframe {key.name!r} holds {key.body_q.shape[0]} bodies, but the model's "
+                             f"{model.num_worlds} worlds are not copies of that many")
+        body_q = jnp.asarray(np.tile(key.body_q, (model.num_worlds, 1)), dtype)
+        body_u = jnp.asarray(np.tile(key.body_u, (model.num_worlds, 1)), dtype)
+        time = jnp.full(model.num_worlds, key.time, dtype)
     if joint_positions is not None or actuated_positions is not None or base_pose is not None:
         fk = forward_kinematics(model, joint_positions, actuated_positions, base_pose, dtype=dtype, **fk_options)
+        beyond = np.nonzero(~np.asarray(fk.within_limits))[0]
+        if beyond.size:
+            raise ValueError(f"init_state: the target coordinates of worlds {beyond[:8].tolist()} lie beyond the "
+                             "joint limits (model.dof_lower, model.dof_upper): unreachable")
         bad = np.nonzero(~np.asarray(fk.converged))[0]
         if bad.size:
             raise ValueError(f"init_state: forward kinematics did not converge in worlds {bad[:8].tolist()} "
                              f"(residual {np.asarray(fk.residual)[bad[:8]].tolist()}); the coordinates may be "
                              "unreachable")
         body_q, body_u = fk.body_q, jnp.zeros_like(body_u)
-    return State(
+    return bind(State(
         body_q=body_q,
         body_u=body_u,
-        time=jnp.zeros(model.num_worlds, dtype),
+        time=time,
         constraint_force=jnp.zeros(model.num_constraints, dtype),
         actuator_force=jnp.zeros(model.num_dofs, dtype),
         passive_force=jnp.zeros(model.num_dofs, dtype),
@@ -273,7 +345,7 @@ def init_state(model: Model, dtype=None, *, joint_positions=None, actuated_posit
         coupling_force=jnp.zeros(model.num_couplings, dtype),
         contacts=ContactState.empty(model.num_contacts, dtype),
         info=StepInfo.empty(model.num_worlds, dtype),
-    )
+    ), fingerprint(model))
 
 
 def set_joint_positions(model: Model, state: State, joint_positions=None, actuated_positions=None,

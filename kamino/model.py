@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import hashlib
 import itertools
 import numbers
 import threading
@@ -192,7 +193,38 @@ _GEOM_SIZE_COUNT = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, 
                     GeomType.ELLIPSOID: 3}
 
 _QUAT_UNIT_TOL = 1e-6  # a quaternion whose norm is further than this from 1 is a ModelError
+#: The largest magnitude a finite model parameter may have (lengths, masses, inertias, gains, limits, ...): float32
+#: reaches 3.4e38, and a product of two parameters (a mass times a squared length, a gain times a limit) must stay
+#: below it for a float32 step to mean anything. Infinite limits stay allowed where a field documents them.
+MAX_PARAMETER = 1e30
+#: The smallest body mass [kg] and principal moment of inertia [kg m^2] a body may have (MuJoCo's ``mjMINVAL``): a
+#: positive value below it is a unit mistake, and its inverse overflows float32 in the solver.
+MIN_MASS = 1e-15
+#: The shortest joint axis accepted before normalising: a shorter one has no reliable direction.
+MIN_AXIS_LENGTH = 1e-10
 T = TypeVar("T")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Keyframe:
+    """A named initial state of one world (an MJCF ``<keyframe><key>``): ``kamino.init_state(model,
+    keyframe=name)`` starts every world there."""
+
+    name: str
+    """the key's name (MuJoCo's ``key<i>`` for an unnamed one)."""
+    time: float
+    """the key's simulated time [s]."""
+    body_q: np.ndarray
+    """``[bodies per world, 7]`` CoM poses (``State.body_q``'s layout)."""
+    body_u: np.ndarray
+    """``[bodies per world, 6]`` twists."""
+    ctrl: np.ndarray
+    """``[actuators per world]`` the key's control vector (``kamino.Control.from_ctrl(model, key.ctrl)``; tile it
+    for several worlds)."""
+
+
+#: the attribute of a Model that holds what an MJCF file suggests beside the mechanism (:func:`with_extras`)
+_EXTRAS = "_extras"
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -458,6 +490,33 @@ class Model:
         """Global index of the actuator called ``name`` in ``world``."""
         return self._lookup("actuator", self.actuator_names, name, world)
 
+    @property
+    def suggested_dt(self) -> float | None:
+        """The time step [s] the model's source suggests: an MJCF file's ``<option timestep>`` (``None``: the file
+        sets none, or the model was built procedurally). kamino does not apply it by itself: pass
+        ``SolverConfig(dt=model.suggested_dt)``; a ``dt`` above 0.05 s warns and names it."""
+        return self.__dict__.get(_EXTRAS, {}).get("suggested_dt")
+
+    @property
+    def keyframes(self) -> tuple[Keyframe, ...]:
+        """The model's named initial states (an MJCF file's ``<keyframe>``; empty for a procedural model), for
+        ``kamino.init_state(model, keyframe="home")`` or ``keyframe=0``. ``replicate`` and ``concat`` of models with
+        the same keyframes keep them (each world starts at the key)."""
+        return self.__dict__.get(_EXTRAS, {}).get("keyframes", ())
+
+    def keyframe(self, which: str | int) -> Keyframe:
+        """The :class:`Keyframe` called ``which``, or at index ``which``; a ``ValueError`` lists the known ones."""
+        keys = self.keyframes
+        if isinstance(which, str):
+            for k in keys:
+                if k.name == which:
+                    return k
+        elif isinstance(which, (int, np.integer)) and not isinstance(which, bool) and -len(keys) <= which < len(keys):
+            return keys[which]
+        known = [k.name for k in keys]
+        raise ValueError(f"keyframe {which!r}: the model has no such keyframe (known: {known}; an MJCF file's "
+                         "<keyframe><key name=...> become the model's keyframes)")
+
     def summary(self) -> str:
         """One line per world kind: bodies, joints, DoFs, constraint rows, independent loops."""
         lines = []
@@ -519,6 +578,16 @@ def _vec(value: Any, n: int, what: str) -> np.ndarray:
 def _finite(arr: np.ndarray, what: str) -> None:
     if not np.all(np.isfinite(arr)):
         raise ModelError(f"{what}: contains NaN or inf ({np.asarray(arr).tolist()})")
+
+
+def _check_range(arr: Any, what: str) -> None:
+    """Raise a :class:`ModelError` naming ``what`` if a finite entry of ``arr`` exceeds :data:`MAX_PARAMETER` in
+    magnitude (infinite entries are left to the field's own rule)."""
+    a = np.asarray(arr, dtype=float)
+    big = np.isfinite(a) & (np.abs(a) > MAX_PARAMETER)
+    if np.any(big):
+        raise ModelError(f"{what}: {a[big].flat[0]:g} is beyond the float32 range kamino steps in "
+                         f"(|value| <= {MAX_PARAMETER:g}; got {a.tolist()})")
 
 
 def _check_quat(q: np.ndarray, what: str) -> None:
@@ -824,6 +893,7 @@ class ModelBuilder:
         if coef.size == 0 or coef.size > 5:
             raise ModelError(f"coupling {name!r}: polycoef needs 1 to 5 coefficients, got {coef.size}")
         _finite(coef, f"coupling {name!r} polycoef")
+        _check_range(coef, f"coupling {name!r} polycoef")
         jb = -1 if joint_b is None else int(joint_b)
         self._couplings.append(_Coupling(name=name, joint_a=int(joint_a), joint_b=jb,
                                          coef=np.concatenate([coef, np.zeros(5 - coef.size)])))
@@ -882,6 +952,8 @@ class ModelBuilder:
                                  f"{taken[(a.joint, a.dof)]!r}")
             if not (np.isfinite(a.gear) and a.gear != 0.0):
                 raise ModelError(f"{what}: gear must be finite and non-zero, got {a.gear}")
+            _check_range(a.gear, f"{what} gear")
+            _check_range(a.ctrl_range, f"{what} ctrl_range")
             if mode in (ActuationMode.POSITION, ActuationMode.VELOCITY) and a.gear != 1.0:
                 raise ModelError(f"{what}: {mode.name.lower()} actuators take gear 1, got {a.gear}")
             lo, hi = a.ctrl_range
@@ -952,6 +1024,9 @@ class ModelBuilder:
         what = f"geom {g.name!r} (index {i})"
         for field_name, arr in (("size", g.size), ("pos", g.pos), ("quat", g.quat)):
             _finite(arr, f"{what} {field_name}")
+            _check_range(arr, f"{what} {field_name}")
+        _check_range(g.friction, f"{what} friction")
+        _check_range(g.margin, f"{what} margin")
         if not (-1 <= g.body < nb):
             raise ModelError(f"{what}: body {g.body} does not exist ({nb} bodies; -1 is the world)")
         need = _GEOM_SIZE_COUNT[g.type]
@@ -1011,10 +1086,14 @@ class ModelBuilder:
         for field_name, arr in (("inertia", b.inertia), ("pos", b.pos), ("quat", b.quat),
                                 ("velocity", b.vel), ("angular_velocity", b.ang_vel)):
             _finite(np.asarray(arr), f"{what} {field_name}")
+            _check_range(arr, f"{what} {field_name}")
         if not np.isfinite(b.mass):  # b.mass is a float (add_body converts or raises ModelError)
             raise ModelError(f"{what}: mass is {b.mass}")
         if b.mass <= 0.0:
             raise ModelError(f"{what}: mass must be > 0, got {b.mass}")
+        if b.mass < MIN_MASS:
+            raise ModelError(f"{what}: mass {b.mass:g} is below {MIN_MASS:g} kg (MuJoCo's minimum; check the units)")
+        _check_range(b.mass, f"{what} mass")
         I = b.inertia
         if I.shape != (3, 3):
             raise ModelError(f"{what}: inertia must be 3x3 or 3 principal moments, got shape {I.shape}")
@@ -1024,6 +1103,9 @@ class ModelBuilder:
         eig = np.linalg.eigvalsh(0.5 * (I + I.T))
         if eig[0] <= 0.0:
             raise ModelError(f"{what}: inertia is not positive definite (eigenvalues {eig.tolist()})")
+        if eig[0] < MIN_MASS:
+            raise ModelError(f"{what}: smallest principal moment of inertia {eig[0]:g} is below {MIN_MASS:g} kg m^2 "
+                             f"(MuJoCo's minimum; principal moments {eig.tolist()})")
         # physical inertia: each principal moment <= sum of the other two (relative tolerance 1e-9)
         if eig[2] > (eig[0] + eig[1]) * (1.0 + 1e-9):
             raise ModelError(
@@ -1039,11 +1121,17 @@ class ModelBuilder:
             ("axis", jt.axis),
         ):
             _finite(arr, f"{what} {field_name}")
+            _check_range(arr, f"{what} {field_name}")
         if jt.axis2 is not None:
             _finite(jt.axis2, f"{what} axis2")
+            _check_range(jt.axis2, f"{what} axis2")
         lo, hi = jt.limits
         if np.any(np.isnan(lo)) or np.any(np.isnan(hi)):
             raise ModelError(f"{what}: limits contain NaN")
+        _check_range(lo, f"{what} lower limit")
+        _check_range(hi, f"{what} upper limit")
+        for key in ("armature", "damping", "stiffness", "springref", "kp", "kd", "effort_limit"):
+            _check_range(jt.dynamics[key], f"{what} {key}")
         if not (-1 <= jt.parent < nb):
             raise ModelError(f"{what}: parent body {jt.parent} does not exist ({nb} bodies; -1 is the world)")
         if not (0 <= jt.child < nb):
@@ -1053,11 +1141,11 @@ class ModelBuilder:
         _check_quat(jt.parent_frame[1], f"{what} parent_frame quaternion")
         _check_quat(jt.child_frame[1], f"{what} child_frame quaternion")
         uses_axis = jt.type in (JointType.REVOLUTE, JointType.PRISMATIC, JointType.CYLINDRICAL, JointType.UNIVERSAL)
-        if uses_axis and np.linalg.norm(jt.axis) < 1e-12:
-            raise ModelError(f"{what}: zero-length axis")
+        if uses_axis and np.linalg.norm(jt.axis) < MIN_AXIS_LENGTH:
+            raise ModelError(f"{what}: zero-length axis {jt.axis.tolist()} (length below {MIN_AXIS_LENGTH:g})")
         if jt.axis2 is not None:
-            if np.linalg.norm(jt.axis2) < 1e-12:
-                raise ModelError(f"{what}: zero-length axis2")
+            if np.linalg.norm(jt.axis2) < MIN_AXIS_LENGTH:
+                raise ModelError(f"{what}: zero-length axis2 {jt.axis2.tolist()} (length below {MIN_AXIS_LENGTH:g})")
             a1 = jt.axis / np.linalg.norm(jt.axis)
             a2 = jt.axis2 / np.linalg.norm(jt.axis2)
             if np.linalg.norm(np.cross(a1, a2)) < 1e-6:
@@ -1082,6 +1170,7 @@ class ModelBuilder:
         ``state.info.contact_overflow``.
         """
         _finite(self.gravity, "gravity")
+        _check_range(self.gravity, "gravity")
         if self.gravity.shape != (3,):
             raise ModelError(f"gravity: expected 3 numbers, got shape {self.gravity.shape}")
         nb = len(self._bodies)
@@ -1314,7 +1403,7 @@ def concat(models: Sequence[Model]) -> Model:
             out[name] = tuple(itertools.chain.from_iterable(getattr(m, name) for m in models))
             continue
         out[name] = _concat_shifted(name, [getattr(m, name) for m in models], shifts)
-    return _with_starts(out)
+    return _shared_extras(models, _with_starts(out))
 
 
 def _concat_shifted(name: str, parts: list[np.ndarray], shifts: dict[str, np.ndarray]) -> np.ndarray:
@@ -1389,7 +1478,7 @@ def take_worlds(model: Model, start: int, stop: int) -> Model:
             out[name] = _shift_index(name, v, {e: -r[0] for e, r in ranges.items()}).copy()
         else:
             out[name] = tuple(v)
-    return _with_starts(out)
+    return _shared_extras([model], _with_starts(out))
 
 
 def same_model(a: Model, b: Model) -> bool:
@@ -1402,6 +1491,107 @@ def same_model(a: Model, b: Model) -> bool:
         elif x != y:
             return False
     return True
+
+
+#: The fields :func:`fingerprint` reads: the mechanism of each world (names, joint types and frames, geoms, pairs,
+#: couplings, actuated DoFs), not its physical parameters (masses, inertias, gains, limits, friction, gravity,
+#: initial pose).
+_FINGERPRINT_FIELDS = ("body_names", "joint_names", "joint_type", "joint_parent", "joint_child", "joint_anchor_B",
+                       "joint_anchor_F", "joint_frame_B", "joint_frame_F", "joint_dof_count", "geom_type", "geom_body",
+                       "geom_pos", "geom_quat", "geom_size", "pair_geom_a", "pair_geom_b", "world_contact_capacity",
+                       "coupling_joint_a", "coupling_joint_b", "coupling_coef", "actuator_dof")
+
+
+def _world_digest(model: Model, w: int) -> bytes:
+    """A hash of world ``w``'s mechanism (:data:`_FINGERPRINT_FIELDS`, its indices made world-local)."""
+    starts = {e: int(getattr(model, f"world_{e}_start")[w]) for e in ("body", "joint", "dof", "geom", "pair",
+                                                                       "coupling", "actuator")}
+    starts["world"] = w
+    h = hashlib.blake2b(digest_size=8)
+    for name in _FINGERPRINT_FIELDS:
+        entity = next(e for prefix, e in _PREFIX_ENTITY if name.startswith(prefix))
+        lo = starts[entity]
+        hi = lo + (1 if entity == "world" else int(getattr(model, f"world_{entity}_count")[w]))
+        value = getattr(model, name)[lo:hi]
+        if isinstance(value, np.ndarray):
+            value = _shift_index(name, value, {e: -s for e, s in starts.items()})
+            h.update(f"{name}{value.shape}".encode())
+            h.update(np.ascontiguousarray(value, dtype=np.float64).tobytes())
+        else:
+            h.update(f"{name}={value!r}".encode())
+    return h.digest()
+
+
+def _worlds_alike(model: Model) -> bool:
+    """Whether every world's mechanism (:data:`_FINGERPRINT_FIELDS`, indices world-local) equals world 0's."""
+    W = model.num_worlds
+    entities = ("body", "joint", "dof", "geom", "pair", "coupling", "actuator")
+    if any(np.any(getattr(model, f"world_{e}_count") != getattr(model, f"world_{e}_count")[0]) for e in entities):
+        return False
+    for name in _FINGERPRINT_FIELDS:
+        entity = next(e for prefix, e in _PREFIX_ENTITY if name.startswith(prefix))
+        per = 1 if entity == "world" else int(getattr(model, f"world_{entity}_count")[0])
+        value = getattr(model, name)
+        if isinstance(value, tuple):
+            if value != value[:per] * W:
+                return False
+            continue
+        shift = _INDEX_FIELDS.get(name)
+        if shift is not None:
+            start = np.repeat(getattr(model, f"world_{shift}_start"), per)
+            value = np.where(value >= 0, value - start, value) if shift in ("body", "joint") else value - start
+        value = value.reshape(W, per, *value.shape[1:])
+        if not np.array_equal(value, np.broadcast_to(value[:1], value.shape)):
+            return False
+    return True
+
+
+def fingerprint(model: Model) -> str:
+    """A short hash of ``model``'s mechanism: what :func:`kamino.init_state` stores in ``State.model_fingerprint``
+    and ``kamino.step`` compares, so that a state of another mechanism with the same array shapes is an error. Two
+    models that differ only in physical parameters (masses, inertias, gains, limits, friction, damping, gravity,
+    initial pose: :data:`_FINGERPRINT_FIELDS` lists what counts) share it; equal models built twice share it. It
+    hashes the shortest sequence of worlds whose repetition is the model's: ``replicate(m, n)`` and a group model of
+    ``kamino.sharding`` (one block of identical groups of worlds) share ``m``'s (their states differ in shape, which
+    the shape checks name)."""
+
+    def build() -> str:
+        if _worlds_alike(model):  # replicate(m, n): one world's hash (what the search below finds), at numpy speed
+            return hashlib.blake2b(_world_digest(model, 0), digest_size=8).hexdigest()
+        digests = [_world_digest(model, w) for w in range(model.num_worlds)]
+        n = len(digests)
+        period = next(p for p in range(1, n + 1) if n % p == 0 and digests == digests[:p] * (n // p))
+        return hashlib.blake2b(b"".join(digests[:period]), digest_size=8).hexdigest()
+
+    return derived(model, "fingerprint", build)
+
+
+def with_extras(model: Model, suggested_dt: float | None = None, keyframes: Sequence[Keyframe] = ()) -> Model:
+    """``model`` (changed in place and returned) with its source's suggested time step and keyframes
+    (:attr:`Model.suggested_dt`, :attr:`Model.keyframes`); each keyframe must fit one world."""
+    nb, na = int(model.world_body_count[0]), int(model.world_actuator_count[0])
+    names = [k.name for k in keyframes]
+    for k in keyframes:
+        if k.body_q.shape != (nb, 7) or k.body_u.shape != (nb, 6) or k.ctrl.shape != (na,):
+            raise ModelError(f"keyframe {k.name!r}: shapes {k.body_q.shape}, {k.body_u.shape}, {k.ctrl.shape} do not "
+                             f"fit the model's world ({nb} bodies, {na} actuators)")
+        if names.count(k.name) > 1:
+            raise ModelError(f"keyframe name {k.name!r} is used twice")
+        for arr in (k.body_q, k.body_u, k.ctrl):
+            arr.setflags(write=False)
+    if suggested_dt is not None and not (np.isfinite(suggested_dt) and suggested_dt > 0):
+        raise ModelError(f"suggested_dt must be a positive time step, got {suggested_dt!r}")
+    object.__setattr__(model, _EXTRAS, {"suggested_dt": None if suggested_dt is None else float(suggested_dt),
+                                        "keyframes": tuple(keyframes)})
+    return model
+
+
+def _shared_extras(models: Sequence[Model], out: Model) -> Model:
+    """``out`` with the extras of ``models`` if they all hold the same ones (``replicate``), else without."""
+    first = models[0].__dict__.get(_EXTRAS)
+    if first is not None and all(m.__dict__.get(_EXTRAS) is first for m in models):
+        object.__setattr__(out, _EXTRAS, first)
+    return out
 
 
 def replicate(model: Model, n: int) -> Model:

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kamino.checks import check_model
+from kamino.checks import check_model, check_state_model
 from kamino.jax_ref import backend
 from kamino.model import Model
 from kamino.spatial import quat_to_matrix
@@ -31,6 +31,7 @@ def metrics(model: Model, state: State) -> dict[str, jax.Array]:
     if not isinstance(state, State):
         raise TypeError(f"metrics: state must be a kamino.State (or a rollout's trajectory), got "
                         f"{type(state).__name__}")
+    check_state_model(model, state, "metrics")
     if state.body_q.ndim == 3:  # a trajectory [num_steps, num_bodies, 7]
         return jax.vmap(lambda q, u: backend.metrics(model, state.replace(body_q=q, body_u=u)))(state.body_q,
                                                                                                state.body_u)

@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import threading
 
-from kamino.checks import check_config, check_control, check_model, check_rollout_controls, check_state
+from kamino.checks import check_config, check_control, check_dt, check_model, check_rollout_controls, check_state
 from kamino.config import BACKENDS, SolverConfig
 from kamino.model import Model, derived
 from kamino.sharding import group_model, num_shards, sharded_program, world_sharding
-from kamino.state import Control, State
+from kamino.state import Control, State, bind
 
 #: the backend a :class:`Simulator`, ``kamino.step`` and ``kamino.rollout`` use unless told otherwise: Warp, on the
 #: GPU and on the CPU (a 1-world Menagerie humanoid steps 17x faster than on the JAX reference on a CPU, and starts
@@ -67,6 +67,7 @@ class Simulator:
         check_backend(backend, "Simulator")
         check_model(model, "Simulator")
         check_config(config, backend, "Simulator")
+        check_dt(model, config, "Simulator")
         self._model, self._config, self._backend = model, config or SolverConfig(), backend
         self._engine = _engine(model, self._config, backend)
         self._sharded: dict = {}
@@ -105,10 +106,11 @@ class Simulator:
         over devices (``kamino.sharding.shard_worlds``) is stepped on each device in place."""
         check_state(self._model, state, "step")
         check_control(self._model, control)
+        key, state = state.model_fingerprint, bind(state, None)  # the engines see unbound states
         sharding = world_sharding(state)
         if sharding is not None:  # worlds spread over devices: each steps its own (kamino/sharding.py)
-            return self._sharded_program("step", sharding, None)(state, control)
-        return self._engine.step(state, control)
+            return bind(self._sharded_program("step", sharding, None)(state, control), key)
+        return bind(self._engine.step(state, control), key)
 
     def rollout(self, state: State, controls: Control | None = None, *, num_steps: int | None = None) -> State:
         """Run many steps. ``controls`` fields carry a leading time axis (or pass ``num_steps`` and no controls).
@@ -117,10 +119,11 @@ class Simulator:
         trajectory sharded the same way along its world axis."""
         check_state(self._model, state, "rollout")
         num_steps = check_rollout_controls(self._model, controls, num_steps)
+        key, state = state.model_fingerprint, bind(state, None)
         sharding = world_sharding(state)
         if sharding is not None:
-            return self._sharded_program("rollout", sharding, num_steps)(state, controls)
-        return self._engine.rollout(state, controls, num_steps)
+            return bind(self._sharded_program("rollout", sharding, num_steps)(state, controls), key)
+        return bind(self._engine.rollout(state, controls, num_steps), key)
 
     def parameters(self, dtype):
         """``(padded model, layout tables)``: the JAX reference's arrays in ``dtype`` that every step reads (the
@@ -134,7 +137,7 @@ class Simulator:
         """:meth:`step` with ``parameters`` (a :meth:`parameters` pytree, its arrays possibly traced) in place of the
         model's own. Unchecked: it runs inside an environment's traced step."""
         self._require_jax("step_with")
-        return self._engine.step(state, control, parameters)
+        return bind(self._engine.step(bind(state, None), control, parameters), state.model_fingerprint)
 
     def _require_jax(self, fn: str) -> None:
         if self._backend != "jax":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import jax
@@ -94,10 +95,12 @@ class ContactState:
                             force=v, velocity=v, point_b=v)
 
 
-@jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class State:
-    """Simulation state of all worlds (flat storage, world 0's entities first)."""
+    """Simulation state of all worlds (flat storage, world 0's entities first).
+
+    A state made by :func:`kamino.init_state` also carries its model's :attr:`model_fingerprint`, which every step
+    keeps."""
 
     body_q: jax.Array
     """``[total_bodies, 7]`` CoM poses ``(px, py, pz, qx, qy, qz, qw)`` in world."""
@@ -123,8 +126,57 @@ class State:
     """the last solve's :class:`StepInfo`."""
 
     def replace(self, **changes) -> State:
-        """A copy with the fields named in ``changes`` replaced (``state.replace(body_q=q)``)."""
-        return dataclasses.replace(self, **changes)
+        """A copy with the fields named in ``changes`` replaced (``state.replace(body_q=q)``); it keeps the
+        :attr:`model_fingerprint`."""
+        return bind(dataclasses.replace(self, **changes), self.model_fingerprint)
+
+    @property
+    def model_fingerprint(self) -> str | None:
+        """The :func:`kamino.model.fingerprint` of the model the state belongs to, set by :func:`kamino.init_state`
+        and kept by every step and by :meth:`replace` (``None``: not known, not checked). ``kamino.step`` /
+        ``rollout``, ``Simulator.step`` and :func:`kamino.metrics` raise a ``ValueError`` for a state of another
+        mechanism, even one with the same array shapes. It is static pytree data (no array, no leaf): free under
+        ``jax.jit`` and ``vmap``; a trajectory or a batch of states carries it unchanged, and pickling keeps it.
+        :func:`bind` sets it."""
+        return self.__dict__.get(_FINGERPRINT)
+
+
+#: the instance attribute of a :class:`State` that holds its model's fingerprint (not a dataclass field: code that
+#: builds a state field by field, such as a backend, gets an unbound state)
+_FINGERPRINT = "_model_fingerprint"
+_STATE_FIELDS = tuple(f.name for f in dataclasses.fields(State))
+
+
+def bind(state: State, model_fingerprint: str | None) -> State:
+    """``state`` carrying ``model_fingerprint`` (``None``: unbound, as the backends' engines see a state)."""
+    if state.model_fingerprint == model_fingerprint:
+        return state
+    out = copy.copy(state)
+    if model_fingerprint is None:
+        del out.__dict__[_FINGERPRINT]
+    else:
+        object.__setattr__(out, _FINGERPRINT, model_fingerprint)
+    return out
+
+
+def _flatten_with_keys(state: State):
+    return tuple((jax.tree_util.GetAttrKey(n), getattr(state, n)) for n in _STATE_FIELDS), state.model_fingerprint
+
+
+def _flatten(state: State):
+    return tuple(getattr(state, n) for n in _STATE_FIELDS), state.model_fingerprint
+
+
+def _unflatten(model_fingerprint: str | None, children) -> State:
+    out = object.__new__(State)
+    for name, value in zip(_STATE_FIELDS, children, strict=True):
+        object.__setattr__(out, name, value)
+    if model_fingerprint is not None:
+        object.__setattr__(out, _FINGERPRINT, model_fingerprint)
+    return out
+
+
+jax.tree_util.register_pytree_with_keys(State, _flatten_with_keys, _unflatten, _flatten)
 
 
 def drop_empty(tree):
@@ -148,6 +200,9 @@ def fill_empty(tree, like):
 
     def is_none(v) -> bool:
         return v is None
+
+    if isinstance(like, State) and isinstance(tree, State):
+        like = bind(like, tree.model_fingerprint)
 
     pairs = zip(jax.tree.leaves(like), jax.tree.leaves(tree, is_leaf=is_none), strict=True)
     lead = next((np.shape(x)[:np.ndim(x) - np.ndim(t)] for t, x in pairs if x is not None), ())

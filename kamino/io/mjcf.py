@@ -25,6 +25,7 @@ import dataclasses
 import os
 from pathlib import Path
 from typing import Any
+from xml.etree import ElementTree
 
 import numpy as np
 
@@ -39,7 +40,18 @@ from kamino.io._mjcf_features import (
     obj_name,
 )
 from kamino.kinematics import init_state
-from kamino.model import CONTACT_POINTS, Actuation, ActuationMode, GeomType, JointType, Model, ModelBuilder, ModelError
+from kamino.model import (
+    CONTACT_POINTS,
+    Actuation,
+    ActuationMode,
+    GeomType,
+    JointType,
+    Keyframe,
+    Model,
+    ModelBuilder,
+    ModelError,
+    with_extras,
+)
 from kamino.readouts import joint_positions
 
 #: Default mass (and inertia) of a light intermediate body relative to the body it leads to.
@@ -187,13 +199,20 @@ def _compile(source: str | os.PathLike | bytes) -> tuple[Any, Any]:
     """``(MjSpec, MjModel)`` of a file path or an XML string; MuJoCo errors become ModelError."""
     mujoco = _mujoco()
     if isinstance(source, bytes):
-        source = source.decode()
+        try:
+            source = source.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ModelError(f"load_mjcf: the MJCF bytes are not UTF-8 text ({exc.reason} at byte {exc.start}: "
+                             f"{source[max(exc.start - 20, 0):exc.start + 5]!r})") from None
     is_xml = isinstance(source, str) and source.lstrip().startswith("<")
     try:
         if is_xml:
             spec = mujoco.MjSpec.from_string(source)
         else:
             path = Path(source)
+            if isinstance(source, str) and "<" in source and not _is_file(path):
+                raise ModelError(f"load_mjcf: the source is neither a file nor XML: an XML string must start with "
+                                 f"'<' (its first characters: {source[:40]!r})")
             if not path.is_file():
                 raise FileNotFoundError(f"load_mjcf: no MJCF file at {str(path)!r} (an XML string must start with '<')")
             spec = mujoco.MjSpec.from_file(str(path))
@@ -202,7 +221,36 @@ def _compile(source: str | os.PathLike | bytes) -> tuple[Any, Any]:
         raise
     except Exception as exc:  # mujoco raises ValueError (parse) or its own errors (compile)
         raise ModelError(f"MuJoCo could not load the MJCF model: {exc}") from exc
+    _check_compiled(mj)
     return spec, mj
+
+
+def _is_file(path: Path) -> bool:
+    """Whether ``path`` names an existing file (``False`` for a string no file system accepts as a path)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
+
+
+def _check_compiled(mj: Any) -> None:
+    """Raise a :class:`ModelError` for a compiled model kamino cannot simulate: names that are not UTF-8, no
+    moving body, no joint."""
+    names = bytes(np.asarray(mj.names, dtype=np.uint8)) if not isinstance(mj.names, bytes) else mj.names
+    try:
+        names.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        start = names.rfind(b"\0", 0, exc.start) + 1
+        end = names.find(b"\0", exc.start)
+        raise ModelError(f"load_mjcf: the name {names[start:end if end >= 0 else None]!r} is not UTF-8 text "
+                         f"({exc.reason}); MJCF names must be UTF-8") from None
+    if mj.nbody <= 1:
+        raise ModelError("load_mjcf: the MJCF model has no bodies (its <worldbody> holds no <body>); kamino "
+                         "simulates moving bodies")
+    if mj.njnt == 0:
+        nb = mj.nbody - 1
+        raise ModelError(f"load_mjcf: the MJCF model has no joints: its {nb} {'body is' if nb == 1 else 'bodies are'} "
+                         "welded to the world; give a moving body a <joint> or a <freejoint>")
 
 
 def _quat_wxyz_matrix(mujoco: Any, q: np.ndarray) -> np.ndarray:
@@ -235,6 +283,7 @@ class _Converter:
         self.equality_on = not dis & int(D.mjDSBL_EQUALITY)
         gravity = np.zeros(3) if dis & int(D.mjDSBL_GRAVITY) else np.asarray(mj.opt.gravity, float)
         self.b = ModelBuilder(gravity=gravity)
+        self.suggested_dt: float | None = None  # the file's <option timestep>, if it sets one
         self.poses: list[tuple[np.ndarray, np.ndarray]] = []  # kamino body CoM (r, R) at qpos0
         self.body_map = [-1] * mj.nbody
         self.body_source: list[tuple[int, int]] = []
@@ -631,9 +680,43 @@ class _Converter:
             # more than the pairs can produce together (the default, which never overflows)
             contact_capacity = min(int(mj.nconmax), self.b.full_contact_capacity())
         model = self.b.finalize(contact_capacity=contact_capacity)
-        return MjcfImport(model=model, mj_model=mj, joints=tuple(self.joint_map[j] for j in range(mj.njnt)),
-                          body_map=tuple(self.body_map), body_source=tuple(self.body_source),
-                          actuators=tuple(order))
+        imp = MjcfImport(model=model, mj_model=mj, joints=tuple(self.joint_map[j] for j in range(mj.njnt)),
+                         body_map=tuple(self.body_map), body_source=tuple(self.body_source), actuators=tuple(order))
+        with_extras(model, suggested_dt=self.suggested_dt, keyframes=self.keyframes(imp))
+        return imp
+
+    def keyframes(self, imp: MjcfImport) -> list[Keyframe]:
+        """The file's ``<keyframe><key>`` elements as kamino keyframes (poses and twists at the key's qpos/qvel)."""
+        mj, out = self.mj, []
+        for k in range(mj.nkey):
+            qpos, qvel = np.asarray(mj.key_qpos[k], float), np.asarray(mj.key_qvel[k], float)
+            ctrl = np.asarray(mj.key_ctrl[k], float)[list(imp.actuators)] if mj.nu else np.zeros(0)
+            name = self.name("key", k)
+            for what, arr in (("qpos", qpos), ("qvel", qvel), ("ctrl", ctrl), ("time", mj.key_time[k])):
+                if not np.all(np.isfinite(arr)):
+                    raise ModelError(f"keyframe {name!r}: {what} contains NaN or inf")
+            body_q, body_u = imp.body_state(qpos, qvel)
+            out.append(Keyframe(name=name, time=float(mj.key_time[k]), body_q=body_q, body_u=body_u, ctrl=ctrl))
+        return out
+
+
+def _suggested_dt(source: str | os.PathLike | bytes) -> float | None:
+    """The ``timestep`` of the file's ``<option>`` element, if it sets one (``None``: MuJoCo's default applies)."""
+    try:
+        if isinstance(source, bytes):
+            source = source.decode("utf-8")
+        text = source if isinstance(source, str) and source.lstrip().startswith("<") else Path(source).read_text()
+        root = ElementTree.fromstring(text)
+    except (OSError, ValueError, ElementTree.ParseError):
+        return None
+    for option in root.iter("option"):
+        if "timestep" in option.attrib:
+            try:
+                dt = float(option.attrib["timestep"])
+            except ValueError:
+                return None
+            return dt if np.isfinite(dt) and dt > 0 else None
+    return None
 
 
 def import_mjcf(source: str | os.PathLike | bytes, *, contact_capacity: int | None = None,
@@ -654,7 +737,9 @@ def import_mjcf(source: str | os.PathLike | bytes, *, contact_capacity: int | No
         FileNotFoundError: ``source`` is neither XML nor an existing file.
     """
     spec, mj = _compile(source)
-    return _Converter(_mujoco(), spec, mj, light_mass_ratio).run(contact_capacity)
+    converter = _Converter(_mujoco(), spec, mj, light_mass_ratio)
+    converter.suggested_dt = _suggested_dt(source)
+    return converter.run(contact_capacity)
 
 
 def load_mjcf(source: str | os.PathLike | bytes, *, contact_capacity: int | None = None,

@@ -232,7 +232,7 @@ class _Exporter:
         if moving.size:
             names = ", ".join(repr(m.body_names[b]) for b in moving[:6])
             msg = (f"initial body velocities (body_u0) of bodies {names}{' ...' if moving.size > 6 else ''} (MJCF "
-                   "models start at rest; load_mjcf ignores keyframes)")
+                   "models start at rest; save_mjcf writes no keyframe)")
             (self.dropped if self.lossy else self.problems).append(msg)
 
     # -- spanning tree --------------------------------------------------------------------
@@ -662,7 +662,9 @@ class _Exporter:
         if self.dropped:
             root.append(ET.Comment(" dropped (lossy=True): " + "; ".join(self.dropped) + " "))
         ET.SubElement(root, "compiler", angle="radian", autolimits="true", inertiafromgeom="false")
-        ET.SubElement(root, "option", gravity=_fmt(m.gravity[0]), integrator="implicitfast")
+        option = ET.SubElement(root, "option", gravity=_fmt(m.gravity[0]), integrator="implicitfast")
+        if m.suggested_dt is not None:  # the source's time step (model.suggested_dt) goes back where it came from
+            option.set("timestep", _fmt(m.suggested_dt))
         capacity = int(m.world_contact_capacity[0]) if m.num_pairs else 0
         if capacity < _full_contact_capacity(m):  # a capacity chosen below the default: MuJoCo's contacts per world
             ET.SubElement(root, "size", nconmax=str(capacity))
