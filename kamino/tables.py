@@ -122,14 +122,16 @@ def world_reach(model: Model) -> np.ndarray:
     """``[W]`` each world's sum of joint lever arms [m]: over its joints, the distance from the base body's CoM to the
     joint anchor (none for a joint on the world, whose anchor is a placement) plus the distance from the follower's
     CoM to it. No point of the world's articulation is farther than this from a joint anchor. The world-health speed
-    bound scales with it (``kamino.config.HEALTH_SPEED``; the JAX reference computes the same sum from its padded
-    model, ``kamino.jax_ref.integrate.world_reach``)."""
+    bound scales with it (:func:`health_speed_bound`; both backends read this sum: the JAX reference as
+    ``PaddedModel.reach``)."""
     arm = np.linalg.norm(model.joint_anchor_F, axis=-1) + np.where(
         model.joint_parent >= 0, np.linalg.norm(model.joint_anchor_B, axis=-1), 0.0)
     return np.bincount(model.joint_world, weights=arm, minlength=model.num_worlds)
 
 
-def health_speed_bound(model: Model, dt: float) -> np.ndarray:
-    """``[W]`` the linear speed [m/s] past which a body fails its world's health check in a step of ``dt``:
-    ``max(HEALTH_SPEED, HEALTH_TURN * reach / dt)`` (``kamino.config``, :func:`world_reach`)."""
-    return np.maximum(HEALTH_SPEED, HEALTH_TURN * world_reach(model) / dt)
+def health_speed_bound(reach, dt: float):
+    """The linear speed [m/s] past which a body fails its world's health check in a step of ``dt``:
+    ``max(HEALTH_SPEED, HEALTH_TURN * reach / dt)`` (``kamino.config``), with ``reach`` from :func:`world_reach`.
+    Takes and returns NumPy or JAX arrays (the Warp backend's ``speed_check`` reads it from NumPy, the JAX
+    reference's ``too_fast`` from ``PaddedModel.reach``)."""
+    return (HEALTH_TURN / dt * reach).clip(min=HEALTH_SPEED)

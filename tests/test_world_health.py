@@ -380,7 +380,7 @@ def test_both_backends_read_the_same_speed_bounds():
     np.testing.assert_allclose(world_reach(base), 0.98, rtol=1e-12)
     for dt, speed in ((DT, np.pi * 0.98 / DT), (1 / 240, HEALTH_SPEED)):
         model = kamino.replicate(base, 6)
-        np.testing.assert_allclose(health_speed_bound(model, dt), speed, rtol=1e-12)
+        np.testing.assert_allclose(health_speed_bound(world_reach(model), dt), speed, rtol=1e-12)
         turn = HEALTH_TURN / dt
         u = np.full((6, base.num_bodies, 6), 0.1)
         direction = np.array([0.6, 0.0, 0.8])

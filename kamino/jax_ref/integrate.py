@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from kamino.config import ANGULAR_DAMPING, HEALTH_SPEED, HEALTH_TURN, LOOP_OPEN_BOUND, SolverConfig
+from kamino.config import ANGULAR_DAMPING, HEALTH_TURN, LOOP_OPEN_BOUND, SolverConfig
 from kamino.jax_ref import contacts as cts
 from kamino.jax_ref import solver
 from kamino.jax_ref.dynamics import BodyDynamics, apply_inv_mass
@@ -16,6 +16,7 @@ from kamino.jax_ref.rows import WorldControl, explicit_effort
 from kamino.jax_ref.types import DYN_ACTUATOR, PaddedModel, WorldCache
 from kamino.model import RES_TRANS
 from kamino.spatial import integrate_pose
+from kamino.tables import health_speed_bound
 
 
 def constrained_velocity(bd: BodyDynamics, u_f: jax.Array, J: jax.Array, impulse: jax.Array) -> jax.Array:
@@ -83,18 +84,12 @@ def reactions(pm: PaddedModel, q_eval, res: solver.PADMMResult, ct: cts.Contacts
     )
 
 
-def world_reach(pm: PaddedModel) -> jax.Array:
-    """One world's sum of joint lever arms [m] (``kamino.tables.world_reach``, from the padded model: padded joints
-    have zero anchors)."""
-    arm_B = jnp.where(pm.joint_parent >= 0, jnp.linalg.norm(pm.anchor_B, axis=-1), 0.0)
-    return jnp.sum(arm_B + jnp.linalg.norm(pm.anchor_F, axis=-1))
-
-
 def too_fast(pm: PaddedModel, u_plus: jax.Array, dt: float) -> jax.Array:
     """Whether one world's end-of-step twists ``u_plus`` ``[nb, 6]`` pass the health bounds (docs/conventions.md,
     "World health"): a body turning faster than ``HEALTH_TURN / dt`` or moving faster than
-    ``max(HEALTH_SPEED, HEALTH_TURN * reach / dt)`` (:func:`world_reach`; the Warp backend's ``speed_check``)."""
-    speed_bound = jnp.maximum(HEALTH_SPEED, HEALTH_TURN * world_reach(pm) / dt)
+    ``max(HEALTH_SPEED, HEALTH_TURN * reach / dt)`` (``kamino.tables.health_speed_bound``; the Warp backend's
+    ``speed_check``)."""
+    speed_bound = health_speed_bound(pm.reach, dt)
     v2 = jnp.sum(u_plus[:, :3] ** 2, axis=-1)
     w2 = jnp.sum(u_plus[:, 3:] ** 2, axis=-1)
     fast = ~(v2 <= speed_bound ** 2) | ~(w2 <= (HEALTH_TURN / dt) ** 2)

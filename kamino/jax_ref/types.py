@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from kamino.model import Model, derived
-from kamino.tables import DYN_ACTUATOR, DYN_PASSIVE, row_tables
+from kamino.tables import DYN_ACTUATOR, DYN_PASSIVE, row_tables, world_reach
 
 __all__ = ["DYN_ACTUATOR", "DYN_PASSIVE", "Layout", "PaddedModel", "WorldCache", "layout_of", "to_flat",
            "to_padded"]
@@ -41,6 +41,7 @@ class PaddedModel:
     mass: jax.Array  # [W, nb] (1 on padding)
     inertia: jax.Array  # [W, nb, 3, 3] body-frame inertia about the CoM (identity on padding)
     gravity: jax.Array  # [W, 3]
+    reach: jax.Array  # [W] sum of joint lever arms [m] (kamino.tables.world_reach; the health speed bound)
     joint_parent: jax.Array  # [W, nj]
     joint_child: jax.Array  # [W, nj]
     joint_type: jax.Array  # [W, nj]
@@ -235,6 +236,7 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
         mass=f(take(model.body_mass, bg, bmask, 1.0)),
         inertia=f(take(model.body_inertia, bg, bmask, eye)),
         gravity=f(model.gravity),
+        reach=f(world_reach(model)),
         joint_parent=i(take(parent_local, jg, jmask, -1)),
         joint_child=i(take(child_local, jg, jmask, 0)),
         joint_type=i(take(model.joint_type, jg, jmask, 0)),

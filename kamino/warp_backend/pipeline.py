@@ -32,7 +32,7 @@ from kamino.config import (
     joint_deadband,
 )
 from kamino.model import Model
-from kamino.tables import DYN_ACTUATOR, health_speed_bound, row_tables
+from kamino.tables import DYN_ACTUATOR, health_speed_bound, row_tables, world_reach
 from kamino.warp_backend import linear_solve
 from kamino.warp_backend import solver_rules as rules
 from kamino.warp_backend.contacts import contact_kernels
@@ -165,7 +165,8 @@ class Stepper:
                     and REPROJECTION_GAP + joint_deadband(self.np_dtype) < LOOP_OPEN_BOUND)
         self.ik = end_step_kernels(self.np_dtype, self.dense, screened)
         #: world health: each world's linear speed bound (kamino.tables.health_speed_bound)
-        self.speed_bound = wp.array(health_speed_bound(model, cfg.dt).astype(self.np_dtype), device=self.device)
+        speed_bound = health_speed_bound(world_reach(model), cfg.dt)
+        self.speed_bound = wp.array(speed_bound.astype(self.np_dtype), device=self.device)
         self.ck = contact_kernels(self.np_dtype) if model.num_pairs else None
         self.pk = post_stabilisation_kernels(self.np_dtype) if cfg.stabilisation.post_stabilisation else None
         #: PADMM's effort-limited rows switch to the larger penalty when they saturate, and the world's factor is
