@@ -116,9 +116,9 @@ def test_humanoid_started_2cm_into_the_floor_peaks_below_twice_mujoco(variant):
     """The 34 kg humanoid10 bench scene, its root lowered so that both shins start 2 cm into the floor, at the
     defaults in float32. The peak comes in the first steps (the bound's linear phase), so 0.2 s show it. The
     unbounded rule gives 15.2 J in the first step (0.96 m/s); MuJoCo's soft contacts peak at 2.24 J (0.37 m/s); the
-    bound gives
-    ``M V^2 / 2`` = 1.06 J at most for the rising body, plus what the limp limbs pick up (measured 1.03 J). The JAX
-    reference (the same 1.03 J on the CPU) compiles the humanoid's step for ~10 s here: it runs with the GPU tests."""
+    bound gives ``M V^2 / 2`` = 1.06 J at most for the rising body, plus what the limp limbs pick up (measured
+    1.03 J). The JAX reference (the same 1.03 J on the CPU) compiles the humanoid's step for ~10 s here: it runs
+    with the GPU tests."""
     path = str(scene_path("humanoid10"))
     lower = DEPTH + 0.005  # the shin tips stand 5 mm above the floor at the file's pose
     model = kamino.load_mjcf(path)
