@@ -230,7 +230,7 @@ def contact_bias(ct: Contacts, dist_start: jax.Array, v_n_minus: jax.Array, h, c
     close, not more, and a penetration at the start of the step shrinks by ``gamma =
     CONTACT_BAUMGARTE``, but at most at ``DEPENETRATION_SPEED``: the penetration term
     ``gamma min(d_start, 0) / h`` is bounded below by ``-DEPENETRATION_SPEED``, so that a deep
-    overlap does not launch the body (it keeps that speed once out). For Euler (``d = d_start``)
+    overlap does not launch the body (its kinetic energy stays below ``m V^2 / 2``). For Euler (``d = d_start``)
     this is §4.2's ``xi = d / h`` for a gap and ``max(gamma xi, -DEPENETRATION_SPEED)`` for a
     penetration. An impact (restitution ``e > 0`` and approach
     faster than ``RESTITUTION_THRESHOLD``) instead asks ``v_n+ >= -e v_n-`` (Newton's law), or
