@@ -13,13 +13,19 @@ import kamino
 from kamino.bench import scene_path
 from kamino.config import CONTACT_BAUMGARTE, CONTACT_DEADBAND, DEPENETRATION_SPEED
 from kamino.jax_ref import contacts as jax_contacts
-from tests.helpers import BACKENDS, JAX, WARP_DENSE_LLT
+from tests.helpers import JAX, WARP_BACKENDS, WARP_DENSE_LLT
 
 DT = 1.0 / 240.0
 DEPTH = 0.02  # the box starts 2 cm inside the floor
 #: the solver reaches the bias to its tolerance (default 1e-3); measured: the box rises at the bound within 4e-4 m/s
-#: (0.16 %) on every variant, float32 and float64. 1 % of the bound covers it
+#: (0.16 %) on every Warp variant, float32 and float64, at the default tolerance. 1 % of the bound covers it
 SPEED_MARGIN = 0.01
+
+
+def _jax_gpu() -> bool:
+    """Whether JAX runs on a GPU. The JAX reference's full steps run with the GPU tests: on the CPU each takes
+    5-7 s even with its compile cached, more than this file's CI budget. Its bias is checked on the CPU here."""
+    return any(d.platform == "gpu" for d in jax.devices())
 
 
 def _kinetic_energy(model: kamino.Model, traj: kamino.State) -> np.ndarray:
@@ -55,17 +61,19 @@ def test_the_penetration_term_is_bounded_and_shallow_ones_are_unchanged():
     assert np.all(vn[:, :2] == 0.0)  # tangent rows get no bias
 
 
-@pytest.mark.parametrize("variant", BACKENDS)
+@pytest.mark.parametrize("variant", [
+    *WARP_BACKENDS,
+    pytest.param(JAX, id="jax", marks=[pytest.mark.gpu,
+                                       pytest.mark.skipif(not _jax_gpu(), reason="needs JAX on the GPU")])])
 def test_box_started_2cm_deep_comes_out_at_the_depenetration_speed(variant):
     """A 1 kg box, 20 cm edge, started 2 cm deep: it rises at ``DEPENETRATION_SPEED`` until the penetration is
     within the bound's reach (``V dt / gamma`` = 5.2 mm, after 0.06 s), then the penetration shrinks by ``gamma`` a
-    step as before (below 1e-4 m 18 steps later, 0.13 s in all), and the box rests: it does not hop. The model,
-    config and length are test_contacts.py's resting box (the same compiled rollout on the JAX reference)."""
+    step as before (below 1e-4 m 18 steps later, 0.13 s in all), and the box settles: it does not hop. The model
+    and config are test_contacts.py's (tolerance 1e-6); 40 steps show the rise and the settling."""
     model = kamino.models.box_on_plane(mass=1.0, size=0.2)
     state = kamino.init_state(model)
     state = state.replace(body_q=state.body_q.at[:, 2].add(-DEPTH))
-    steps = int(5.0 / DT) if not variant.is_warp else int(0.5 / DT)  # Warp: 0.5 s (landed at 0.12 s), for CI time
-    traj = variant.rollout(model, state, num_steps=steps, config=kamino.SolverConfig(dt=DT))
+    traj = variant.rollout(model, state, num_steps=40, config=kamino.SolverConfig(dt=DT, tolerance=1e-6))
     z = np.asarray(traj.body_q)[:, 0, 2]
     u = np.asarray(traj.body_u)[:, 0]
     speed = np.linalg.norm(u[:, :3], axis=1)
@@ -80,12 +88,15 @@ def test_box_started_2cm_deep_comes_out_at_the_depenetration_speed(variant):
     reach = DEPENETRATION_SPEED * DT / CONTACT_BAUMGARTE
     linear = int((DEPTH - reach) / (DEPENETRATION_SPEED * DT))  # 14 steps
     assert np.all(np.abs(u[:linear, 2] - DEPENETRATION_SPEED) < SPEED_MARGIN * DEPENETRATION_SPEED)
-    # out of the floor (penetration below 1e-4 m) by 0.15 s, and no hop above the resting height
-    out = int(0.15 / DT)
-    assert np.all(z[out:] > 0.1 - 1e-4)
-    assert z.max() < 0.1 + 1e-4
-    # then resting on the floor, as test_contacts.py's resting box (penetration < 1e-4 m), every step converged
-    assert abs(z[-1] - 0.1) < 1e-4 and np.abs(u[-1]).max() < 1e-3
+    # then within reach: the contact asks v_n+ >= gamma p / dt of the penetration p (dead-banded) at the step's
+    # start, as without the bound, and the box slows down step after step (it coasts where its free velocity is the
+    # faster); the penetration is below 1e-4 m by 0.15 s, and the box does not hop above its resting height
+    p = 0.1 - z
+    within = np.flatnonzero(p < reach - 1e-4)[0]
+    assert np.all(u[within + 1:, 2] > CONTACT_BAUMGARTE * (p[within:-1] - CONTACT_DEADBAND) / DT - 1e-5)
+    assert np.all(np.diff(u[within:, 2]) < 1e-6)
+    assert np.all(p[int(0.15 / DT):] < 1e-4)
+    assert p.min() > -1e-4
     assert np.all(np.asarray(traj.info.converged))
 
 
@@ -102,10 +113,6 @@ def _mujoco_peak_kinetic_energy(path: str, lower: float, seconds: float) -> floa
         mujoco.mj_energyVel(m, d)
         peak = max(peak, float(d.energy[1]))
     return peak
-
-
-def _jax_gpu() -> bool:
-    return any(d.platform == "gpu" for d in jax.devices())
 
 
 @pytest.mark.parametrize("variant", [
