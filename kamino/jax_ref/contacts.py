@@ -14,7 +14,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from kamino.config import CONTACT_BAUMGARTE, CONTACT_DEADBAND, RESTITUTION_THRESHOLD, SolverConfig
+from kamino.config import CONTACT_BAUMGARTE, CONTACT_DEADBAND, DEPENETRATION_SPEED, RESTITUTION_THRESHOLD, SolverConfig
 from kamino.jax_ref.collision import collide
 from kamino.jax_ref.types import PaddedModel
 from kamino.model import GeomType
@@ -228,14 +228,20 @@ def contact_bias(ct: Contacts, dist_start: jax.Array, v_n_minus: jax.Array, h, c
     Tangent rows get 0. The normal row asks the end-of-step gap ``d + h v_n+`` (``d`` dead-banded,
     read where the dynamics are built) to be at least ``(1 - gamma) min(d_start, 0)``: a gap may
     close, not more, and a penetration at the start of the step shrinks by ``gamma =
-    CONTACT_BAUMGARTE``. For Euler (``d = d_start``) this is §4.2's ``xi = d / h`` for a gap and
-    ``gamma xi`` for a penetration. An impact (restitution ``e > 0`` and approach
+    CONTACT_BAUMGARTE``, but at most at ``DEPENETRATION_SPEED``: the penetration term
+    ``gamma min(d_start, 0) / h`` is bounded below by ``-DEPENETRATION_SPEED``, so that a deep
+    overlap does not launch the body (its kinetic energy stays below ``m V^2 / 2``). For Euler (``d = d_start``)
+    this is §4.2's ``xi = d / h`` for a gap and ``max(gamma xi, -DEPENETRATION_SPEED)`` for a
+    penetration. An impact (restitution ``e > 0`` and approach
     faster than ``RESTITUTION_THRESHOLD``) instead asks ``v_n+ >= -e v_n-`` (Newton's law), or
     the penetration correction's speed if that is larger (``e < 1``); adding the two would inject
     energy into every bounce.
     """
     d, d0 = deadband(ct.dist, CONTACT_DEADBAND), deadband(dist_start, CONTACT_DEADBAND)
     gap_bias = (d - (1.0 - CONTACT_BAUMGARTE) * jnp.minimum(d0, 0.0)) / h
+    # the bounded penetration term: the closing term ``(d - min(d_start, 0)) / h`` less the speed bound (the
+    # unbounded bias is kept bit for bit where the bound does not bind)
+    gap_bias = jnp.maximum(gap_bias, (d - jnp.minimum(d0, 0.0)) / h - DEPENETRATION_SPEED)
     e = ct.restitution
     impact = (e > 0) & (v_n_minus < -RESTITUTION_THRESHOLD)
     newton = jnp.minimum(e * v_n_minus, jnp.where(e < 1, jnp.minimum(gap_bias, 0.0), 0.0))

@@ -15,6 +15,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.config import DEPENETRATION_SPEED
 from kamino.model import GeomType
 from kamino.warp_backend.collision import collide_pair_func
 from kamino.warp_backend.cone import cone_funcs
@@ -282,6 +283,7 @@ def contact_rows_kernel(np_dtype) -> wp.Kernel:
     ridx, make_row_info = ix.ridx, ix.row_info
     ff = frame_funcs(np_dtype)
     contact_frame, local_point_b, contact_blocks = ff.contact_frame, ff.local_point_b, ff.contact_blocks
+    depenetration_speed = scalar(DEPENETRATION_SPEED)
 
     @wp.kernel(module="unique", enable_backward=False)
     def contact_rows(
@@ -337,9 +339,11 @@ def contact_rows_kernel(np_dtype) -> wp.Kernel:
             hi[rt] = scalar(0.0)
             row_info[rt] = make_row_info(ROW_CONTACT, s, scalar(1.0))  # row_mu reads the slot's friction
             vstar[rt] = scalar(0.0)
-        # bias of the normal row: gap closes at most, penetration shrinks by gamma; or Newton's restitution
+        # bias of the normal row: gap closes at most, penetration shrinks by gamma but at most at the depenetration
+        # speed; or Newton's restitution
         d = deadband(ct_dist[s], deadband_c)
         gap_bias = (d - (scalar(1.0) - gamma) * wp.min(d, scalar(0.0))) / h
+        gap_bias = wp.max(gap_bias, (d - wp.min(d, scalar(0.0))) / h - depenetration_speed)
         vn_minus = rk.row_dot(row_body, row_J, ridx(m, row_stride, wid, a0 + 2), nblk, u)
         e = ct_restitution[s]
         vn = gap_bias
