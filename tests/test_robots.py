@@ -263,7 +263,7 @@ def _check_hold(name: str, model, state, traj) -> None:
 def _standing_cases() -> list:
     """(name, variant) of every floating robot on every backend. (CR at 9 iterations per PADMM iteration, the
     former default budget, did not solve dr_legs' ~180-row system on its first steps: they reached the iteration
-    cap, reported unconverged, and opened the loops by 3.4e-5 m; at the default 30 every step converges.)"""
+    cap, reported unconverged, and opened the loops by 3.4e-5 m; at 30 every step converges.)"""
     return [pytest.param(name, v, id=f"{name}-{v.id}", marks=tier_marks(v)) for name in FLOATING for v in VARIANTS]
 
 

@@ -65,8 +65,8 @@ def _cr_comparison(budget: int):
 def test_warp_schedule_with_cr_solves_what_the_thread_kernel_solves():
     # Conjugate Residual with 32 threads per world against one thread per world, on the scenes of the LLT comparison
     # above (loops driven into their limits, contacts, float64 at a tight tolerance, the adaptive penalty changing
-    # inside the iterations, post-stabilisation with the fixed rows' own factor and the 32-thread solve), at CR's
-    # default budget (30 iterations for worlds of 24-66 rows). The operator's sums are the thread kernel's, in its
+    # inside the iterations, post-stabilisation with the fixed rows' own factor and the 32-thread solve), at a CR
+    # budget of 30 iterations (for worlds of 24-66 rows). The operator's sums are the thread kernel's, in its
     # order (cr_pattern's lists of row blocks by body); the dot products are block sums, in another
     # order. So the two agree to rounding amplified by the iterations (1e-10 m over 60 steps, as the LLT's), with the
     # same iterations and penalties on every step.
