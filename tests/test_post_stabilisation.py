@@ -161,10 +161,10 @@ def test_a_gap_left_open_gets_one_pass_more():
     """A world whose passes leave an anchor gap above ``REPROJECTION_GAP`` (1e-5 m) gets one pass more, as an
     unconverged one does, on both backends. The light slider with its hinged 1 kg load (test_cross_backend.py) at
     ``rho_free = 1e-3`` and a projection shift of 1.5e-8 (the default follows ``rho_free``, and a shift of 1e-3 holds
-    the projection back along the load's slow directions: 1.8e-4 m), float64, 100 steps: every step converges, the proximal shift leaves velocity errors that
-    open the joints by 4.6e-4 m without projection and by 2.7e-5 m after one pass (measured without the extra pass);
-    with it, by 9.9e-6 m (two passes everywhere: 5.4e-7 m). The Warp backend (the dense LLT) reproduces the
-    reference's poses to rounding, amplified over 100 steps: 1e-9 m."""
+    the projection back along the load's slow directions: 1.8e-4 m), float64, 100 steps: every step converges, the
+    proximal shift leaves velocity errors that open the joints by 4.6e-4 m without projection and by 2.7e-5 m after
+    one pass (measured without the extra pass); with it, by 9.9e-6 m (two passes everywhere: 5.4e-7 m). The Warp
+    backend (the dense LLT) reproduces the reference's poses to rounding, amplified over 100 steps: 1e-9 m."""
     from test_cross_backend import _slider_with_a_hinged_load
 
     model = _slider_with_a_hinged_load()
