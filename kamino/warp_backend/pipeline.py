@@ -154,11 +154,12 @@ class Stepper:
                                              hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             #: the warm-start filter's factor of the fixed rows (shift WARM_START_FILTER_SHIFT; docs/conventions.md,
-            #: "Warm start"), on the fixed rows' own pattern
+            #: "Warm start"), on the fixed rows' own pattern, interleaved over worlds for its one-thread-per-world
+            #: kernels under either schedule
             self.filt = None
             if cfg.warm_start and int(wm.arrays.row_fixed.numpy().max(initial=0)) > 0:
                 self.filt = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
-                                               per_world=padmm == "warp", fan=False, hub_min_rows=wm.hub_min_rows,
+                                               per_world=False, fan=False, hub_min_rows=wm.hub_min_rows,
                                                hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":
