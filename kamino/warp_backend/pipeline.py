@@ -145,7 +145,7 @@ class Stepper:
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             self.sp = self.sf.arrays if self.sparse_factor else linear_solve.empty(self.np_dtype, self.device)
             #: post-stabilisation solves with PADMM's sparse factor of the fixed rows when that factor carries the
-            #: projection's shifts (SolverConfig.projection_shifts: float32 defaults); else with a factor of its own
+            #: projection's shifts (SolverConfig.projection_shifts: the adaptive penalty); else with a factor of its own
             self.post_shares_factor = self.sparse_factor and cfg.shares_padmm_factor(self.np_dtype)
             if cfg.stabilisation.post_stabilisation and not self.post_shares_factor:
                 # the fixed rows' own pattern and factor (no tail rows)
