@@ -292,8 +292,8 @@ class SolverConfig:
         rho``, in every dtype (``dtype`` is accepted for symmetry with the other rules and does not change them). A
         shift ``s`` leaves ``s / (sigma + s)`` of the error along a direction of scaled curvature ``sigma``
         (docs/conventions.md, "Post-stabilisation"): the projection holds back where the velocity solve holds back.
-        A smaller shift (``sqrt(eps)`` in float64) moved the bodies of a nearly singular loop far along its nearly free
-        direction and added energy on every step (the four-bar with a hinge tilted by 0.1°: +2.0 J in 5 s).
+        A smaller shift (``sqrt(eps)`` in float64) moves the bodies of a nearly singular loop far along its nearly free
+        direction and adds energy (the four-bar with a hinge tilted by 0.1°, at rest under gravity: +2.0 J in 5 s).
         Under the adaptive penalty the Warp backend solves with PADMM's factor. ``stabilisation.projection_shift``
         sets both shifts."""
         shift, pen = self.stabilisation.projection_shift, self.penalty
