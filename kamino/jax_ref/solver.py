@@ -285,7 +285,7 @@ class _Problem:
         L = jnp.linalg.cholesky(self.Dt[:nf, :nf] + s * jnp.eye(nf, dtype=self.dtype))
         t = solve_triangular(L, solve_triangular(L, s * x0[:nf], lower=True), lower=True, trans="T")
         x = self.proj(jnp.concatenate([x0[:nf] - t, x0[nf:]]), hi_v)
-        return jnp.where(jnp.all(jnp.isfinite(x)), x, x0)
+        return jnp.where(jnp.all(jnp.isfinite(x[:nf])), x, x0)
 
     def start(self, impulse0, velocity0) -> tuple[Carry, jax.Array]:
         """The warm-started first carry (§7.8) and the box rows' upper bounds for ``vt``. Effort-limited rows whose

@@ -610,7 +610,8 @@ def warm_start_filter_kernel(np_dtype):
     """The warm start without its part along the nearly null directions of the always-active rows' block
     (``kamino.jax_ref.solver._Problem.filter_warm_start``, docs/conventions.md "Warm start"), one thread per world.
     ``warm_start_filter(m, shift, row_stride, sp, frozen, lo_s, hi_s, x, x_p, y_p, y_hat)``: ``sp`` holds the
-    factor of ``P D_ff P + shift I`` (``linear_solve.factor_fixed``), ``x`` is scratch."""
+    factor of ``P D_ff P + shift I`` (``linear_solve.factor_fixed``), ``x`` is scratch (left equal to ``x_p`` on the
+    fixed rows)."""
     scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     bases = sparse_llt_kernels(np_dtype).bases
