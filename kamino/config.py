@@ -40,6 +40,12 @@ NULL_DIRECTION_RATIO = 1e-2
 #: as ``P (bound / P)``, a few roundings off the bound, on either side; an exact test split such rows between the
 #: backends (measured on dr_legs in float64, 1 row in 12 on some steps)
 SATURATION_MARGIN = 1e-4
+#: the shift ``s`` of the warm-start filter (docs/conventions.md, "Warm start"): PADMM starts from
+#: ``x0 - (P D_ff P + s I)^-1 s x0`` on the always-active rows, which keeps ``sigma / (sigma + s)`` of the warm start
+#: along a direction of scaled curvature ``sigma``. The loop of a four-bar with a hinge tilted by 1° has ``sigma =
+#: 1.2e-7`` there (kept: 11 %; at 0.1°, 1.2e-9: 0.1 %), by 10° ``1.2e-5`` (kept: 92 %), by 45° ``3.8e-4``; exactly
+#: redundant rows have ``sigma = 0``. A factor with a shift much below this fails in float32 (1e-7 did on the four-bar)
+WARM_START_FILTER_SHIFT = 1e-6
 #: post-stabilisation gives a world one projection pass more when, after its ``post_stabilisation`` passes, an anchor
 #: gap (a translational joint row's residual) is still above this [m], as it does when PADMM did not converge
 #: (docs/conventions.md, "Post-stabilisation"). A pass leaves about ``h |omega|`` of the error it starts from, and
@@ -126,12 +132,6 @@ def joint_deadband(dtype) -> float:
     return JOINT_DEADBAND_FLOAT32 if np.dtype(dtype) == np.float32 else JOINT_DEADBAND_FLOAT64
 
 
-def _rounding_floor(dtype) -> float:
-    """``sqrt(eps)`` of ``dtype``: the smallest diagonal shift that keeps a singular block's Cholesky pivots above
-    rounding (1.5e-8 in float64, 3.5e-4 in float32)."""
-    return float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
-
-
 def _rejecter(obj, path: str):
     """A ``bad(field, why)`` that raises a ``ValueError`` naming ``path.field`` and its value."""
 
@@ -191,9 +191,9 @@ class Stabilisation:
     ``baumgarte`` can keep PADMM well conditioned while the loops stay closed (docs/conventions.md,
     "Post-stabilisation")."""
     projection_shift: float | None = None
-    """the diagonal shift of post-stabilisation's scaled system (``None``: ``sqrt(eps)`` of the state's dtype, or
-    PADMM's own shifts of the always-active rows where those are smaller, as in float32, so that the Warp backend
-    solves with PADMM's factor; :meth:`SolverConfig.projection_shifts`)."""
+    """the diagonal shift of post-stabilisation's scaled system (``None``: PADMM's own shifts of the always-active
+    rows, ``eta + rho_free``, so that the Warp backend solves with PADMM's factor;
+    :meth:`SolverConfig.projection_shifts`)."""
 
     def __post_init__(self) -> None:
         bad = _rejecter(self, "SolverConfig.stabilisation")
@@ -298,27 +298,23 @@ class SolverConfig:
         PADMM's small shift and on a row with its larger penalty (a saturated effort-limited actuator's
         joint-dynamics row, ``kamino.jax_ref.solver.solve``, "Saturation").
 
-        Redundant loop rows make ``D_ff`` singular; the shift keeps the Cholesky pivots above rounding, and leaves
-        ``s / (sigma + s)`` of the error along a direction of scaled curvature ``sigma`` (docs/conventions.md,
-        "Post-stabilisation"), so it is the smallest that rounding allows, ``sqrt(eps)`` of ``dtype`` (1.5e-8 in
-        float64, 3.5e-4 in float32). Under the adaptive penalty PADMM has already factorised the same block with
-        the shifts ``eta + rho_free`` and ``eta + rho`` (a saturated row); where the former is below
-        ``sqrt(eps)`` (float32: 1.1e-4) the projection takes PADMM's shifts and the Warp backend its factor.
-        ``stabilisation.projection_shift`` sets both shifts."""
+        The shifts are those PADMM's adaptive penalty gives the always-active rows, ``eta + rho_free`` and ``eta +
+        rho``, in every dtype (``dtype`` is accepted for symmetry with the other rules and does not change them). A
+        shift ``s`` leaves ``s / (sigma + s)`` of the error along a direction of scaled curvature ``sigma``
+        (docs/conventions.md, "Post-stabilisation"): the projection holds back where the velocity solve holds back.
+        A smaller shift (``sqrt(eps)`` in float64) moves the bodies of a nearly singular loop far along its nearly free
+        direction and adds energy (the four-bar with a hinge tilted by 0.1°, at rest under gravity: +2.0 J in 5 s).
+        Under the adaptive penalty the Warp backend solves with PADMM's factor. ``stabilisation.projection_shift``
+        sets both shifts."""
         shift, pen = self.stabilisation.projection_shift, self.penalty
         if shift is not None:
             return shift, shift
-        if self.shares_padmm_factor(dtype):
-            return pen.eta + pen.rho_free, pen.eta + pen.rho
-        floor = _rounding_floor(dtype)
-        return floor, floor
+        return pen.eta + pen.rho_free, pen.eta + pen.rho
 
     def shares_padmm_factor(self, dtype) -> bool:
         """Whether post-stabilisation's default system is PADMM's factor of the always-active rows
-        (:meth:`projection_shifts`)."""
-        pen = self.penalty
-        return (self.stabilisation.projection_shift is None and pen.mode == "adaptive"
-                and pen.eta + pen.rho_free <= _rounding_floor(dtype))
+        (:meth:`projection_shifts`): under the adaptive penalty, in every dtype."""
+        return self.stabilisation.projection_shift is None and self.penalty.mode == "adaptive"
 
     def replace(self, **changes) -> SolverConfig:
         """A copy with ``changes`` applied; a nested setting goes by its dotted name

@@ -12,11 +12,12 @@ coupling rows), one pass is the Gauss-Newton step of
 
 with the step's ``J``, ``M`` and joint-dynamics compliance ``R`` (the actuators' implicit inertia resists the
 correction as it resists motion). The system is solved in PADMM's Jacobi scaling ``P``: ``(P D_ff P + diag(s)) y
-= -P e``, ``lambda = P y``, with the small shifts ``s`` of ``cfg.projection_shifts(dtype)`` (``sqrt(eps)``, or
-PADMM's own ``eta + rho_free`` where smaller, as in float32, so that the Warp backend reuses PADMM's factor):
-redundant loop rows make ``D_ff`` singular, and a null direction of ``D_ff`` moves no body (``J^T v = 0``), so the
-shift only has to keep the pivots above rounding. It leaves ``s / (sigma + s)`` of the error along a direction of
-scaled curvature ``sigma``. A second pass (``Stabilisation.post_stabilisation = 2``) evaluates ``e`` again at the
+= -P e``, ``lambda = P y``, with the small shifts ``s`` of ``cfg.projection_shifts(dtype)`` (PADMM's own ``eta +
+rho_free`` in every dtype, so that the Warp backend reuses PADMM's factor): redundant loop rows make ``D_ff``
+singular, and a null direction of ``D_ff`` moves no body (``J^T v = 0``). The shift leaves ``s / (sigma + s)`` of
+the error along a direction of scaled curvature ``sigma``: the projection holds back where the velocity solve does,
+and does not drive a nearly singular loop along its nearly free motion (docs/conventions.md,
+"Post-stabilisation"). A second pass (``Stabilisation.post_stabilisation = 2``) evaluates ``e`` again at the
 corrected pose but keeps the step's ``J`` and factor (a chord iteration, no second factorisation): each pass
 leaves about ``h |omega|`` of the error, the change of ``J`` over the step (a light slider carrying a swinging
 1 kg load, float64: 6.3e-4 m without projection, 2.7e-5 m after one pass, 5.4e-7 m after two). (Under the fixed

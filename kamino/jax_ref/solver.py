@@ -21,7 +21,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import cho_solve
+from jax.scipy.linalg import cho_solve, solve_triangular
 
 from kamino.config import (
     NULL_DIRECTION_RATIO,
@@ -33,6 +33,7 @@ from kamino.config import (
     RHO_MAX,
     RHO_MIN,
     SATURATION_MARGIN,
+    WARM_START_FILTER_SHIFT,
     SolverConfig,
 )
 from kamino.jax_ref import linear_solve
@@ -223,6 +224,7 @@ class _Problem:
         # rho_u) I) from the tail's Schur complement S_t (the Warp backend's scheme, docs/conventions.md "Penalty");
         # a fixed row that saturates redoes all of it
         self.nf = min(n_fixed, n) if adaptive else 0
+        self.n_fixed = min(n_fixed, n)
         finite_lo, finite_hi = self.finite_lo, self.finite_hi = jnp.isfinite(lo), jnp.isfinite(hi)
         # bounds on scaled box rows (P > 0); infinite bounds stay infinite without touching P (no inf*0 in grads)
         self.lo_s = jnp.where(finite_lo, jnp.where(finite_lo, lo, 0.0) / P[:n_box], lo)
@@ -271,6 +273,20 @@ class _Problem:
         r_con = jnp.where(self.active_contact, jnp.abs(jnp.sum(yc * zc, axis=1)), 0.0)
         return jnp.maximum(jnp.max(r_box, initial=0.0), jnp.max(r_con, initial=0.0))
 
+    def filter_warm_start(self, x0, hi_v) -> jax.Array:
+        """The warm start without its part along the nearly null directions of the always-active rows' block
+        (docs/conventions.md, "Warm start"): ``x_f <- x_f - (Dt_ff + s I)^-1 s x_f`` on the first ``n_fixed`` rows,
+        ``s = WARM_START_FILTER_SHIFT``, then projected on ``K`` again. A world whose filter is not finite (a factor
+        that rounding broke) keeps its warm start."""
+        nf = self.n_fixed
+        if nf == 0:
+            return x0
+        s = jnp.asarray(WARM_START_FILTER_SHIFT, self.dtype)
+        L = jnp.linalg.cholesky(self.Dt[:nf, :nf] + s * jnp.eye(nf, dtype=self.dtype))
+        t = solve_triangular(L, solve_triangular(L, s * x0[:nf], lower=True), lower=True, trans="T")
+        x = self.proj(jnp.concatenate([x0[:nf] - t, x0[nf:]]), hi_v)
+        return jnp.where(jnp.all(jnp.isfinite(x[:nf])), x, x0)
+
     def start(self, impulse0, velocity0) -> tuple[Carry, jax.Array]:
         """The warm-started first carry (§7.8) and the box rows' upper bounds for ``vt``. Effort-limited rows whose
         warm start lies on a bound (to ``SATURATION_MARGIN`` of it) start saturated."""
@@ -286,6 +302,8 @@ class _Problem:
         hi_m = jnp.where(finite_hi, hi_s - SATURATION_MARGIN * jnp.abs(jnp.where(finite_hi, hi_s, 0.0)), hi_s)
         on_bound = (finite_lo & (x0[:n_box] <= lo_m)) | (finite_hi & (x0[:n_box] >= hi_m))
         sat0 = self.fixed_box & jnp.concatenate([on_bound, jnp.zeros(n - n_box, bool)])
+        if self.cfg.warm_start:
+            x0 = self.filter_warm_start(x0, hi_v)
         init = Carry(k=jnp.int32(0), x_p=x0, y_p=x0, z_p=z0, y_hat=x0, z_hat=z0, a_p=jnp.asarray(1.0, dtype),
                      c_p=big, r_p=big, r_d=big, r_c=big, converged=jnp.asarray(False), rho_u=self.rho0,
                      L=self.factor(self.factor_fixed(sat0), self.rho0, sat0), k_rho=jnp.int32(0),

@@ -28,6 +28,7 @@ from kamino.config import (
     REPROJECTION_GAP,
     RESTART_TOLERANCE,
     RESTITUTION_THRESHOLD,
+    WARM_START_FILTER_SHIFT,
     SolverConfig,
     joint_deadband,
 )
@@ -144,13 +145,22 @@ class Stepper:
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             self.sp = self.sf.arrays if self.sparse_factor else linear_solve.empty(self.np_dtype, self.device)
             #: post-stabilisation solves with PADMM's sparse factor of the fixed rows when that factor carries the
-            #: projection's shifts (SolverConfig.projection_shifts: float32 defaults); else with a factor of its own
+            #: projection's shifts (SolverConfig.projection_shifts: the adaptive penalty); else with a factor of its own
             self.post_shares_factor = self.sparse_factor and cfg.shares_padmm_factor(self.np_dtype)
             if cfg.stabilisation.post_stabilisation and not self.post_shares_factor:
                 # the fixed rows' own pattern and factor (no tail rows)
                 self.post = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
                                              per_world=padmm == "warp", fan=False, hub_min_rows=wm.hub_min_rows,
                                              hub_row0=wm.arrays.row_maxdim.numpy())
+                self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
+            #: the warm-start filter's factor of the fixed rows (shift WARM_START_FILTER_SHIFT; docs/conventions.md,
+            #: "Warm start"), on the fixed rows' own pattern, interleaved over worlds for its one-thread-per-world
+            #: kernels under either schedule
+            self.filt = None
+            if cfg.warm_start and int(wm.arrays.row_fixed.numpy().max(initial=0)) > 0:
+                self.filt = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
+                                               per_world=False, fan=False, hub_min_rows=wm.hub_min_rows,
+                                               hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
@@ -285,6 +295,14 @@ class Stepper:
                         outputs=[w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.p_ref, w.rho_u, w.pending, w.iters,
                                  w.r_p, w.r_d, w.r_c, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
                                  w.remaining, w.sdiag, w.D])
+        if self.filt is not None:  # the warm start without its nearly null directions (solver.warm_start_filter)
+            filt = self.filt.arrays
+            self._launch(self.spk.assemble_fixed, (W, self.filt.max_nnz),
+                         inputs=[nblk, WARM_START_FILTER_SHIFT, WARM_START_FILTER_SHIFT, w.row_stride, w.row_body,
+                                 w.row_J, w.row_info, w.reg, w.P, w.inertia_w, w.inv_inertia_w], outputs=[filt])
+            self._launch(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[filt])
+            self._launch(sk.warm_start_filter, W, inputs=[WARM_START_FILTER_SHIFT, w.row_stride, filt, w.frozen,
+                                                          w.lo_s, w.hi_s], outputs=[w.x, w.x_p, w.y_p, w.y_hat])
         if self.padmm == "warp" and self.sparse_factor:
             self._launch_lanes(self.wk.factor,
                                   inputs=[cfg.penalty.eta, 0, nblk, shift_f, shift_b, w.row_stride, w.n_rows,

@@ -1,7 +1,7 @@
 """Post-stabilisation on the device: the position projection of ``kamino/jax_ref/post_stabilisation.py``.
 
 Once per step, after the pose update, the always-active rows' scaled block ``P D_ff P + diag(s)`` is factorised
-(``SolverConfig.projection_shifts``). Where PADMM's sparse factor already holds it (float32 at the defaults: the
+(``SolverConfig.projection_shifts``). Where PADMM's sparse factor already holds it (the adaptive penalty: the
 leading block ``L_f`` of PADMM's factor carries the shifts ``eta + rho_free`` / ``eta + rho``), the projection
 solves with that ``L_f``; otherwise the block is assembled on the fixed rows' static sparse pattern and
 factorised in a storage of its own (``linear_solve.assemble_fixed`` / ``factor_fixed``,

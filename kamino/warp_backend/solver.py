@@ -606,6 +606,59 @@ def padmm_init_kernel(np_dtype, use_velocity: bool, factorize: bool, adaptive: b
 
 
 @functools.cache
+def warm_start_filter_kernel(np_dtype):
+    """The warm start without its part along the nearly null directions of the always-active rows' block
+    (``kamino.jax_ref.solver._Problem.filter_warm_start``, docs/conventions.md "Warm start"), one thread per world.
+    ``warm_start_filter(m, shift, row_stride, sp, frozen, lo_s, hi_s, x, x_p, y_p, y_hat)``: ``sp`` holds the
+    factor of ``P D_ff P + shift I`` (``linear_solve.factor_fixed``), ``x`` is scratch (left equal to ``x_p`` on the
+    fixed rows)."""
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
+    bases = sparse_llt_kernels(np_dtype).bases
+    sparse_solve = sparse_llt_kernels(np_dtype).solve_inplace
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def warm_start_filter(
+        # model (read only)
+        m: M,
+        # in
+        shift: scalar,
+        row_stride: int,
+        sp: SP,  # the factor of the fixed rows' block with the filter's shift (tables and values, read)
+        frozen: iarr, lo_s: farr, hi_s: farr,
+        # out
+        x: farr,  # scratch
+        x_p: farr, y_p: farr, y_hat: farr,  # the warm start (padmm_init), also read
+    ):
+        """``x_f <- clip(x_f - (P D_ff P + s I)^-1 s x_f)`` on the fixed rows (box rows) of the warm start ``x_p``,
+        copied to ``y_p`` and ``y_hat``; a world whose result is not finite keeps its warm start."""
+        wid = wp.tid()
+        if frozen[wid] != 0:
+            return
+        rs = row_stride
+        rb = bases(m, sp, row_stride, wid)[0]
+        nf = sp.n_fixed[wid]
+        for a in range(nf):
+            x[rb + a * rs] = shift * x_p[rb + a * rs]
+        sparse_solve(m, sp, row_stride, wid, nf, x)
+        ok = int(1)
+        for a in range(nf):
+            r = rb + a * rs
+            x[r] = wp.clamp(x_p[r] - x[r], lo_s[r], hi_s[r])
+            if not wp.isfinite(x[r]):
+                ok = 0
+        for a in range(nf):
+            r = rb + a * rs
+            if ok != 0:
+                x_p[r] = x[r]
+                y_p[r] = x[r]
+                y_hat[r] = x[r]
+            x[r] = x_p[r]
+
+    return warm_start_filter
+
+
+@functools.cache
 def restart_world_func(np_dtype):
     """A world's PADMM state at a (re)start.
     ``restart_world(n_rows, frozen, a_p, c_p, it_cap, k_rho, converged, done, remaining, wid, k, max_iterations)``
@@ -897,4 +950,5 @@ def solver_kernels(np_dtype, dense: bool, assembled: bool, always_sat: bool, use
                            scale=scale_kernel(np_dtype, assembled, always_sat),
                            padmm_init=padmm_init_kernel(np_dtype, use_velocity, assembled, adaptive),
                            padmm_resume=padmm_resume_kernel(np_dtype), refactor_dense=refactor_dense_kernel(np_dtype),
-                           padmm_finish=padmm_finish_kernel(np_dtype))
+                           padmm_finish=padmm_finish_kernel(np_dtype),
+                           warm_start_filter=warm_start_filter_kernel(np_dtype))
