@@ -304,7 +304,7 @@ def test_zoo_exports_what_it_should():
 #: The contact scenes have the same rows both ways (free bodies): they agree exactly.
 SIM_BATCHES = {
     "mechanisms": (["pendulum", "double_pendulum", "fourbar", "slider_crank", "chain_of_loops", "zoo"], 5, 1e-8,
-                   {"max_iterations": 1000}, "warp"),
+                   {"max_iterations": 1000, "stabilisation.projection_shift": 1.5e-8}, "warp"),
     "scenes": (["box_on_plane", "box_stack", "incline", "sphere_drop", "newtons_cradle"], 2, 1e-12,
                {"max_iterations": 1000}, "warp"),
     "robots": (["bdx", "dr_legs", "olaf"], 2, 1e-6, {"max_iterations": 1000, "tolerance": 1e-6}, "warp"),
@@ -315,7 +315,9 @@ SIM_BATCHES = {
 @pytest.mark.parametrize("batch", list(SIM_BATCHES))
 def test_round_trip_simulates_alike(batch):
     """From the same initial state under the same (random, constant) ctrl, each model and its round trip move their
-    bodies alike (float64, tolerance 1e-8; bounds, settings and backend: SIM_BATCHES)."""
+    bodies alike (float64, tolerance 1e-8; bounds, settings and backend: SIM_BATCHES). The mechanisms project with a
+    shift of sqrt(eps): the default follows PADMM's (1.1e-4), which leaves part of a position error along slow
+    directions for later steps, so the MJCF text's rounding of the parameters shows (chain_of_loops: 1.7e-8 m)."""
     names, steps, bound, settings, backend = SIM_BATCHES[batch]
     rng = np.random.default_rng(0)
     models, ctrls, maps = [], [], []
@@ -328,7 +330,7 @@ def test_round_trip_simulates_alike(batch):
         maps.append(np.array([m.body_index(n) for n in m2.body_names], dtype=np.int64))
     big = kamino.concat(models)
     controls = kamino.Control.from_ctrl(big, np.tile(np.concatenate(ctrls), (steps, 1)))
-    cfg = kamino.SolverConfig(**{"tolerance": 1e-8, **settings})
+    cfg = kamino.SolverConfig(tolerance=1e-8).replace(**settings)
     traj = kamino.rollout(big, kamino.init_state(big), controls, config=cfg, backend=backend)
     q = np.asarray(traj.body_q)
     for k, name in enumerate(names):
