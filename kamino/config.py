@@ -154,11 +154,10 @@ class WarpSettings:
     """``"llt"`` Cholesky (sparse factor with ``jacobian="sparse"``), ``"cr"`` matrix-free Conjugate Residual,
     ``"auto"`` (default): the LLT, except CR above ``AUTO_CR_ROWS`` rows per world on a GPU with one thread per world
     (``kamino.warp_backend.pipeline.resolve_linear_solver``)."""
-    cr_iterations: int = 30
+    cr_iterations: int = 100
     """Conjugate Residual iterations per PADMM iteration. PADMM waits for an inexact inner solve: on the same 90
     problems of the eight-legged Jansen walker (float32) 30 take 17.7 PADMM iterations a step, 100 take 7.5, the LLT
-    and the JAX reference 6.7; 9 left 5.6 % of them unconverged (docs/warp_backend.md, "Linear solvers", also for
-    why 100 is not the default yet)."""
+    and the JAX reference 6.7; 9 left 5.6 % of them unconverged (docs/warp_backend.md, "Linear solvers")."""
 
     def __post_init__(self) -> None:
         bad = _rejecter(self, "SolverConfig.warp")

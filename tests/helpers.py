@@ -60,7 +60,7 @@ class Variant:
     backend: str
     jacobian: str = "dense"
     linear_solver: str = "llt"
-    #: CR budget per PADMM iteration (``SolverConfig.warp.cr_iterations``); ``None``: the config's (default 30)
+    #: CR budget per PADMM iteration (``SolverConfig.warp.cr_iterations``); ``None``: the config's (default 100)
     cr_iterations: int | None = None
 
     @property

@@ -9,8 +9,8 @@
 - The backends on identical problems (in the eight-legged LLT and CR tests): the reference's states as one world
   each (``kamino.replicate``), stepped once by Warp's sparse LLT and CR against the reference's own step from them:
   the same convergence and, within 20 %, the same mean PADMM iterations (the issue's bars).
-- Eight legs in two crank phases with thin links (2 s): the JAX reference, CR at 30 iterations and the Warp LLT
-  walk it; Delassus entries taken from one side only (``J_a M^-1 J_b^T``) stall the LLT there
+- Eight legs in two crank phases with thin links (2 s): the JAX reference, CR (at its default 100 iterations) and the
+  Warp LLT walk it; Delassus entries taken from one side only (``J_a M^-1 J_b^T``) stall the LLT there
   (docs/warp_backend.md, "Redundant planar loops in float32").
 - Eight legs (24 loops): no step reports a healthy world whose loops are open past 1 mm (world health,
   ``kamino.warp_backend.integrate.LOOP_OPEN_BOUND``): a world either keeps its loops closed or is flagged failed on
@@ -31,7 +31,7 @@ import kamino
 from kamino.model import fingerprint
 from kamino.state import bind
 from kamino.warp_backend.integrate import LOOP_OPEN_BOUND
-from tests.helpers import JAX, WARP_SPARSE_LLT, Variant, variant_param
+from tests.helpers import JAX, WARP_SPARSE_CR, WARP_SPARSE_LLT, Variant, variant_param
 
 DT = 1.0 / 240.0
 
@@ -118,12 +118,7 @@ def _assert_converges_as_the_reference_on_its_states(variant: Variant, ref: dict
 #: 5.9e-6 m, 0.690 m; CR at 100 iterations 100 % at 3.3 iterations, closure 5.6e-6 m, 0.690 m
 _LLT_WALK = {}
 
-#: Conjugate Residual at 100 iterations per PADMM iteration, the budget at which it converges as the LLT does on the
-#: walker (docs/warp_backend.md, "Linear solvers"; the default is 30)
-CR100 = Variant("warp-sparse-cr100", "warp", "sparse", "cr", cr_iterations=100)
-
-
-@pytest.mark.parametrize("variant", [variant_param(WARP_SPARSE_LLT), variant_param(CR100),
+@pytest.mark.parametrize("variant", [variant_param(WARP_SPARSE_LLT), variant_param(WARP_SPARSE_CR),
                                      variant_param(JAX)])
 def test_four_legged_walker_walks_with_its_loops_closed(variant):
     """Four legs, 1.5 s: no failed world; the chassis walks 0.6-0.8 m forward (+x: a positive crank velocity);
@@ -199,18 +194,18 @@ def test_eight_legged_walker_cr_at_100_iterations(eight_legs):
     unconverged. On the reference's own states (90 problems, one step each) CR converges as the reference does (the
     issue's bars, :func:`_assert_converges_as_the_reference_on_its_states`; measured: 100 % at 7.48 iterations
     against 6.71; at 30 CR iterations 17.7, which fails the 20 % bar)."""
-    r = eight_legs(CR100)
+    r = eight_legs(WARP_SPARSE_CR)
     ref = eight_legs(JAX)
     assert not r["failed"].any()
     assert r["converged"].mean() >= 0.99, r["converged"].mean()
     assert r["closure"].max() <= 2e-5, r["closure"].max()
     assert abs(r["walked"] - ref["walked"]) <= 0.05 * abs(ref["walked"]), (r["walked"], ref["walked"])
-    _assert_converges_as_the_reference_on_its_states(CR100, ref)
+    _assert_converges_as_the_reference_on_its_states(WARP_SPARSE_CR, ref)
 
 
 @pytest.mark.parametrize("variant", [
     variant_param(JAX),
-    variant_param(CR100),
+    variant_param(WARP_SPARSE_CR),
     variant_param(WARP_SPARSE_LLT)])
 def test_eight_legged_walker_in_two_phases_walks(variant):
     """Eight legs in two crank phases (two mirrored pairs per phase) with thin links (``radius=0.01``: their spin
@@ -218,7 +213,7 @@ def test_eight_legged_walker_in_two_phases_walks(variant):
     the steps converged, anchors within 1e-4 m, at least 1 m walked. With Delassus entries taken from one side
     (``J_a M^-1 J_b^T``), the Warp LLT stalls here at 1.21 s and fails the world (docs/warp_backend.md, "Redundant
     planar loops in float32"). Measured: the JAX reference 100 % at 9.2 iterations, 1.87e-5 m, 1.019 m; the sparse
-    LLT 100 % at 9.8, 1.72e-5 m, 1.019 m. CR runs at 100 iterations: at 30, behind the warm-start filter
+    LLT 100 % at 9.8, 1.72e-5 m, 1.019 m. CR (100 iterations): at 30, behind the warm-start filter
     (docs/conventions.md, "Warm start"), 98.96 % of its steps converged."""
     r = _walk(variant, legs=8, seconds=2.0, phases=2, radius=0.01)
     assert not r["failed"].any()
@@ -261,11 +256,13 @@ def test_walker_on_the_gpu(legs, linear_solver):
 
 
 def _solver_variant(linear_solver: str) -> Variant:
-    """The Warp variant of a ``linear_solver`` setting: ``dense`` the dense LLT, ``cr`` :data:`CR100`, else the
-    sparse Jacobian with that solver."""
+    """The Warp variant of a ``linear_solver`` setting: ``dense`` the dense LLT, ``cr`` Conjugate Residual (at its
+    default 100 iterations), else the sparse Jacobian with that solver."""
     if linear_solver == "dense":
         return Variant("warp-dense-llt", "warp", "dense", "llt")
-    return CR100 if linear_solver == "cr" else Variant(f"warp-{linear_solver}", "warp", "sparse", linear_solver)
+    if linear_solver == "cr":
+        return WARP_SPARSE_CR
+    return Variant(f"warp-{linear_solver}", "warp", "sparse", linear_solver)
 
 
 #: the steps of the first 1.5 s, over which the backends' walks agree to 2 %

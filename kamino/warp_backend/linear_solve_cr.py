@@ -10,6 +10,7 @@ over the world's threads and its dot products reduced over them.
 
 import functools
 
+import numpy as np
 import warp as wp
 
 from kamino.warp_backend.indexing import index_funcs
@@ -155,6 +156,7 @@ def cr_solve_func(np_dtype, lanes: int):
     apply = apply_func(np_dtype, lanes)
     lane_sum = lane_reduce_func(np_dtype, lanes, "sum")
     zero = scalar(0.0)
+    rr_floor = scalar(float(np.finfo(np_dtype).tiny) / float(np.finfo(np_dtype).eps) ** 2)  # subnormal-free stop
 
     @wp.func
     def cr_solve(m: M, row_stride: int, row_body: wp.array(dtype=wp.int32), row_J: wp.array(dtype=vec6),
@@ -168,10 +170,12 @@ def cr_solve_func(np_dtype, lanes: int):
         ``budget`` iterations. It stops early only when the residual has vanished to rounding (``|r|^2 <= 1e-30
         |b|^2``, or exactly zero) or the recurrence breaks down (``|A p|^2 = 0`` or ``r^T A r = 0``): any looser
         stop would cap the accuracy of the linear solve at a level that, unscaled by ``1/P``, sits at PADMM's
-        tolerance and stalls it. On exit ``cr_r`` holds the residual ``b - A x`` (the recurrence's, which follows
-        the true one to rounding), which PADMM folds into the dual residual (``solver_rules.cr_residual_func``).
-        Each thread updates its own rows (``lane``, ``lane + lanes``, ...); the dot products are reduced over the
-        threads, so every thread takes the same branch."""
+        tolerance and stalls it. It also stops at ``|r|^2 <= tiny / eps^2`` of the dtype, which keeps the recurrence
+        out of subnormal numbers: XLA's CPU threads flush them to zero and a Python thread does not, and the
+        jitted step on the CPU reproduces the eager one bit for bit. On exit ``cr_r`` holds the residual ``b - A x``
+        (the recurrence's, which follows the true one to rounding), which PADMM folds into the dual residual
+        (``solver_rules.cr_residual_func``). Each thread updates its own rows (``lane``, ``lane + lanes``, ...); the
+        dot products are reduced over the threads, so every thread takes the same branch."""
         rs = row_stride
         for a in range(lane, n, lanes):
             x[rb + a * rs] = x_p[rb + a * rs]
@@ -192,7 +196,7 @@ def cr_solve_func(np_dtype, lanes: int):
             cr_Ap[r] = cr_Ar[r]
             zeta += cr_r[r] * cr_Ar[r]
         zeta = lane_sum(zeta)
-        stop = scalar(1e-30) * bb
+        stop = wp.max(scalar(1e-30) * bb, rr_floor)
         for it in range(budget):
             rr = zero
             pp = zero
