@@ -187,7 +187,7 @@ def test_warp_schedule_filters_the_warm_start_as_the_thread_kernel(monkeypatch):
     # start: two dr_legs in float64 after two steps (loops, limits, feet contacts), with hubs (bodies on more than 24
     # fixed rows: 2 per world, their 6 unknowns each ordered after the fixed rows). The two factorise in another
     # order; with the shift s = 1e-6 the solve amplifies rounding by up to 1/s, so the filtered warm starts agree to
-    # 1e-16 / s ~ 1e-10 (measured 1.6e-15). World 1's warm start holds a NaN: its filter is not finite, so it keeps
+    # 1e-16 / s ~ 1e-10 (measured 6.7e-16). World 1's warm start holds a NaN: its filter is not finite, so it keeps
     # its warm start, and world 0 is filtered all the same.
     monkeypatch.setattr(linear_solve_pattern, "HUB_MIN_ROWS", 24)
     model = kamino.replicate(kamino.models.dr_legs(), 2)
