@@ -4,6 +4,7 @@ kernels, on Warp's CPU device (cooperative CPU blocks)."""
 
 import numpy as np
 import pytest
+import warp as wp
 
 import kamino
 from kamino.warp_backend import backend as wb
@@ -11,8 +12,8 @@ from kamino.warp_backend import linear_solve, linear_solve_pattern, solver_lanes
 from kamino.warp_backend.pipeline import Stepper
 
 
-def _run(model, cfg, padmm, steps, dtype=np.float64):
-    st = Stepper(model, cfg, dtype, "cpu", padmm=padmm)
+def _run(model, cfg, padmm, steps, dtype=np.float64, device="cpu"):
+    st = Stepper(model, cfg, dtype, device, padmm=padmm)
     wb.load_state(st, kamino.init_state(model, dtype=dtype), None)
     iters, rho = [], []
     for _ in range(steps):
@@ -180,7 +181,9 @@ def test_the_automatic_schedule_follows_the_measured_crossover():
     assert resolve_padmm(cfg, cpu, 64, 240, "warp") == "warp"  # an explicit choice is kept
 
 
-def test_warp_schedule_filters_the_warm_start_as_the_thread_kernel(monkeypatch):
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[
+    pytest.mark.gpu, pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device for Warp")])])
+def test_warp_schedule_filters_the_warm_start_as_the_thread_kernel(device, monkeypatch):
     # The warm-start filter (docs/conventions.md "Warm start") with the world's 32 threads (the fixed rows' factor by
     # solver_lanes.factor_kernel, the solve-and-clip by warm_start_filter_kernel) against the one-thread path
     # (linear_solve.factor_fixed, solver.warm_start_filter_kernel), on the same assembled P D_ff P + s I and warm
@@ -188,10 +191,11 @@ def test_warp_schedule_filters_the_warm_start_as_the_thread_kernel(monkeypatch):
     # fixed rows: 2 per world, their 6 unknowns each ordered after the fixed rows). The two factorise in another
     # order; with the shift s = 1e-6 the solve amplifies rounding by up to 1/s, so the filtered warm starts agree to
     # 1e-16 / s ~ 1e-10 (measured 6.7e-16). World 1's warm start holds a NaN: its filter is not finite, so it keeps
-    # its warm start, and world 0 is filtered all the same.
+    # its warm start, and world 0 is filtered all the same. On the GPU (the gpu tier) the same check runs the CUDA
+    # kernels.
     monkeypatch.setattr(linear_solve_pattern, "HUB_MIN_ROWS", 24)
     model = kamino.replicate(kamino.models.dr_legs(), 2)
-    _, _, _, st = _run(model, kamino.SolverConfig(dt=0.0025), "warp", 2)
+    _, _, _, st = _run(model, kamino.SolverConfig(dt=0.0025), "warp", 2, device=device)
     assert st.filter_lanes and st.filt.hubs == 4 and st.filt.max_tail == 0
     thread = linear_solve.build(model, np.float64, st.device, st.wm.arrays.row_fixed.numpy(), per_world=False,
                                 hub_min_rows=st.wm.hub_min_rows, hub_row0=st.wm.arrays.row_maxdim.numpy())

@@ -102,8 +102,8 @@ class Stepper:
     """Device buffers and launches for stepping ``model`` with ``cfg``.
 
     ``padmm``: ``"thread"`` runs PADMM with one thread per world (``solver.py``, LLT or CR); ``"warp"`` runs the
-    sparse factorisation (or Conjugate Residual's operator), the PADMM iterations and post-stabilisation's solve
-    with 32 threads per world (``solver_lanes.py``; ``jacobian="sparse"``, ``linear_solver`` ``"llt"`` or ``"cr"``);
+    sparse factorisation (or Conjugate Residual's operator), the warm-start filter, the PADMM iterations and
+    post-stabilisation's solve with 32 threads per world (``solver_lanes.py``; ``jacobian="sparse"``, ``linear_solver`` ``"llt"`` or ``"cr"``);
     ``None`` chooses by device, configuration and size (:func:`resolve_padmm`).
     """
 

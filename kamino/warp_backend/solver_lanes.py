@@ -23,6 +23,9 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   residuals, the penalty of the limit and contact rows, the null-direction test, momentum) is ``solver_rules.py``'s,
   as in the one-thread schedule; here the threads split the box rows and the contact triples and the world's maxima
   and sums are block reductions. Iteration counts equal the thread kernel's (``tests/test_warp_lane_padmm.py``).
+- **Warm-start filter** (:func:`warm_start_filter_kernel`, once per step; docs/conventions.md "Warm start"): the
+  filter's own factor of the fixed rows by :func:`factor_kernel` (launched with the fixed rows' count as the rows to
+  factorise: no tail), then :func:`solve_func` on the shifted warm start and the clip, threads over rows.
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
