@@ -103,8 +103,9 @@ class Stepper:
 
     ``padmm``: ``"thread"`` runs PADMM with one thread per world (``solver.py``, LLT or CR); ``"warp"`` runs the
     sparse factorisation (or Conjugate Residual's operator), the warm-start filter, the PADMM iterations and
-    post-stabilisation's solve with 32 threads per world (``solver_lanes.py``; ``jacobian="sparse"``, ``linear_solver`` ``"llt"`` or ``"cr"``);
-    ``None`` chooses by device, configuration and size (:func:`resolve_padmm`).
+    post-stabilisation's solve with 32 threads per world (``solver_lanes.py``; ``jacobian="sparse"``,
+    ``linear_solver`` ``"llt"`` or ``"cr"``); ``None`` chooses by device, configuration and size
+    (:func:`resolve_padmm`).
     """
 
     def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None, padmm: str | None = None,
