@@ -4,15 +4,16 @@ kernels, on Warp's CPU device (cooperative CPU blocks)."""
 
 import numpy as np
 import pytest
+import warp as wp
 
 import kamino
 from kamino.warp_backend import backend as wb
-from kamino.warp_backend import solver_lanes
+from kamino.warp_backend import linear_solve, linear_solve_pattern, solver_lanes
 from kamino.warp_backend.pipeline import Stepper
 
 
-def _run(model, cfg, padmm, steps, dtype=np.float64):
-    st = Stepper(model, cfg, dtype, "cpu", padmm=padmm)
+def _run(model, cfg, padmm, steps, dtype=np.float64, device="cpu"):
+    st = Stepper(model, cfg, dtype, device, padmm=padmm)
     wb.load_state(st, kamino.init_state(model, dtype=dtype), None)
     iters, rho = [], []
     for _ in range(steps):
@@ -178,3 +179,44 @@ def test_the_automatic_schedule_follows_the_measured_crossover():
     assert resolve_padmm(cr, gpu, 65536, 365, None) == "warp"
     assert resolve_padmm(cr, cpu, 64, 240, None) == "thread"
     assert resolve_padmm(cfg, cpu, 64, 240, "warp") == "warp"  # an explicit choice is kept
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[
+    pytest.mark.gpu, pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device for Warp")])])
+def test_warp_schedule_filters_the_warm_start_as_the_thread_kernel(device, monkeypatch):
+    # The warm-start filter (docs/conventions.md "Warm start") with the world's 32 threads (the fixed rows' factor by
+    # solver_lanes.factor_kernel, the solve-and-clip by warm_start_filter_kernel) against the one-thread path
+    # (linear_solve.factor_fixed, solver.warm_start_filter_kernel), on the same assembled P D_ff P + s I and warm
+    # start: two dr_legs in float64 after two steps (loops, limits, feet contacts), with hubs (bodies on more than 24
+    # fixed rows: 2 per world, their 6 unknowns each ordered after the fixed rows). The two factorise in another
+    # order; with the shift s = 1e-6 the solve amplifies rounding by up to 1/s, so the filtered warm starts agree to
+    # 1e-16 / s ~ 1e-10 (measured 6.7e-16). World 1's warm start holds a NaN: its filter is not finite, so it keeps
+    # its warm start, and world 0 is filtered all the same. On the GPU (the gpu tier) the same check runs the CUDA
+    # kernels.
+    monkeypatch.setattr(linear_solve_pattern, "HUB_MIN_ROWS", 24)
+    model = kamino.replicate(kamino.models.dr_legs(), 2)
+    _, _, _, st = _run(model, kamino.SolverConfig(dt=0.0025), "warp", 2, device=device)
+    assert st.filter_lanes and st.filt.hubs == 4 and st.filt.max_tail == 0
+    thread = linear_solve.build(model, np.float64, st.device, st.wm.arrays.row_fixed.numpy(), per_world=False,
+                                hub_min_rows=st.wm.hub_min_rows, hub_row0=st.wm.arrays.row_maxdim.numpy())
+    w = st.work
+    nf = int(st.wm.arrays.row_fixed.numpy()[0])
+    start = int(st.wm.arrays.grp_maxdim.numpy()[0])  # world 1's first row (rows contiguous per world)
+    x0 = np.random.default_rng(0).standard_normal(w.x_p.shape[0])
+    x0[start + 7] = np.nan
+    out = {}
+    for lanes, filt in ((True, st.filt), (False, thread)):
+        for a in (w.x, w.x_p, w.y_p, w.y_hat):
+            a.assign(x0)
+        st._filter_warm_start(filt, lanes)
+        out[lanes] = [a.numpy().copy() for a in (w.x, w.x_p, w.y_p, w.y_hat)]
+    fixed = np.r_[0:nf, start:start + nf]
+    for x, x_p, *copies in out.values():  # y_p and y_hat equal to the filtered x_p, x too on the fixed rows
+        for got in copies:
+            np.testing.assert_array_equal(got, x_p)
+        np.testing.assert_array_equal(x[fixed], x_p[fixed])
+    lane, ref = out[True][1], out[False][1]
+    np.testing.assert_allclose(lane[:nf], ref[:nf], rtol=0, atol=1e-10)
+    assert np.abs(lane[:nf] - x0[:nf]).max() > 0.1  # the random warm start has parts along the null directions
+    np.testing.assert_array_equal(lane[nf:start], x0[nf:start])  # world 0's other rows: untouched
+    np.testing.assert_array_equal(lane[start:], x0[start:])  # world 1: not finite, kept

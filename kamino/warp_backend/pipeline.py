@@ -102,9 +102,10 @@ class Stepper:
     """Device buffers and launches for stepping ``model`` with ``cfg``.
 
     ``padmm``: ``"thread"`` runs PADMM with one thread per world (``solver.py``, LLT or CR); ``"warp"`` runs the
-    sparse factorisation (or Conjugate Residual's operator), the PADMM iterations and post-stabilisation's solve
-    with 32 threads per world (``solver_lanes.py``; ``jacobian="sparse"``, ``linear_solver`` ``"llt"`` or ``"cr"``);
-    ``None`` chooses by device, configuration and size (:func:`resolve_padmm`).
+    sparse factorisation (or Conjugate Residual's operator), the warm-start filter, the PADMM iterations and
+    post-stabilisation's solve with 32 threads per world (``solver_lanes.py``; ``jacobian="sparse"``,
+    ``linear_solver`` ``"llt"`` or ``"cr"``); ``None`` chooses by device, configuration and size
+    (:func:`resolve_padmm`).
     """
 
     def __init__(self, model: Model, cfg: SolverConfig, np_dtype, device=None, padmm: str | None = None,
@@ -154,18 +155,21 @@ class Stepper:
                                              hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             #: the warm-start filter's factor of the fixed rows (shift WARM_START_FILTER_SHIFT; docs/conventions.md,
-            #: "Warm start"), on the fixed rows' own pattern, interleaved over worlds for its one-thread-per-world
-            #: kernels under either schedule
+            #: "Warm start"), on the fixed rows' own pattern (no tail rows), in the layout of the schedule that
+            #: factorises and applies it: the world's 32 threads under padmm="warp" (``filter_lanes``), else one
+            #: thread per world
             self.filt = None
+            self.filter_lanes = padmm == "warp"
             if cfg.warm_start and int(wm.arrays.row_fixed.numpy().max(initial=0)) > 0:
                 self.filt = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
-                                               per_world=False, fan=False, hub_min_rows=wm.hub_min_rows,
+                                               per_world=self.filter_lanes, hub_min_rows=wm.hub_min_rows,
                                                hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
-                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt)
+                filter_E = shared_entries(self.filt.max_nnz) if self.filt is not None else None
+                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt, filter_E=filter_E)
         self.rk = step_row_kernels(self.np_dtype, cfg.stabilisation.curvature_correction, cfg.integrator == "midpoint")
         self.sk = solver_kernels(self.np_dtype, self.dense, llt and not self.sparse_factor, not llt,
                                  bool(cfg.warm_start), self.adaptive)
@@ -295,14 +299,8 @@ class Stepper:
                         outputs=[w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.p_ref, w.rho_u, w.pending, w.iters,
                                  w.r_p, w.r_d, w.r_c, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
                                  w.remaining, w.sdiag, w.D])
-        if self.filt is not None:  # the warm start without its nearly null directions (solver.warm_start_filter)
-            filt = self.filt.arrays
-            self._launch(self.spk.assemble_fixed, (W, self.filt.max_nnz),
-                         inputs=[nblk, WARM_START_FILTER_SHIFT, WARM_START_FILTER_SHIFT, w.row_stride, w.row_body,
-                                 w.row_J, w.row_info, w.reg, w.P, w.inertia_w, w.inv_inertia_w], outputs=[filt])
-            self._launch(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[filt])
-            self._launch(sk.warm_start_filter, W, inputs=[WARM_START_FILTER_SHIFT, w.row_stride, filt, w.frozen,
-                                                          w.lo_s, w.hi_s], outputs=[w.x, w.x_p, w.y_p, w.y_hat])
+        if self.filt is not None:  # the warm start without its nearly null directions
+            self._filter_warm_start(self.filt, self.filter_lanes)
         if self.padmm == "warp" and self.sparse_factor:
             self._launch_lanes(self.wk.factor,
                                   inputs=[cfg.penalty.eta, 0, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
@@ -392,6 +390,30 @@ class Stepper:
         self._launch(ik.commit_bodies, (W, wm.max_bodies), inputs=[w.failed, w.q_new, w.u_new], outputs=[w.q, w.u])
         wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps)],
                   outputs=[w.converged, w.frozen, w.failed, w.time, w.unconverged], device=self.device)
+
+    def _filter_warm_start(self, filt: linear_solve.SparseFactor, lanes: bool) -> None:
+        """The warm-start filter (docs/conventions.md, "Warm start"): ``P D_ff P + s I`` assembled into ``filt`` (one
+        thread per entry; ``s = WARM_START_FILTER_SHIFT`` on every fixed row), factorised, and the warm start's
+        fixed rows filtered with it. ``lanes``: with the world's 32 threads (``solver_lanes.factor_kernel`` on the
+        fixed rows only, ``solver_lanes.warm_start_filter_kernel``; ``filt`` built ``per_world``), else one thread
+        per world (``linear_solve.factor_fixed``, ``solver.warm_start_filter_kernel``)."""
+        w, W, s = self.work, self.wm.num_worlds, WARM_START_FILTER_SHIFT
+        sp = filt.arrays
+        self._launch(self.spk.assemble_fixed, (W, filt.max_nnz),
+                     inputs=[self.wm.blocks_per_row, s, s, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
+                             w.inertia_w, w.inv_inertia_w], outputs=[sp])
+        vectors = [w.x, w.x_p, w.y_p, w.y_hat]
+        if lanes:  # n_rows = the fixed rows' count: L_f alone (the factor has no tail rows)
+            self._launch_lanes(self.wk.filter_factor,
+                               inputs=[0.0, 0, self.wm.blocks_per_row, s, s, w.row_stride, self.wm.arrays.row_fixed,
+                                       w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
+                                       w.inv_inertia_w, w.rho_u], outputs=[w.pending, sp])
+            self._launch_lanes(self.wk.warm_start_filter,
+                               inputs=[s, w.row_stride, sp, w.frozen, w.lo_s, w.hi_s], outputs=vectors)
+        else:
+            self._launch(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[sp])
+            self._launch(self.sk.warm_start_filter, W, inputs=[s, w.row_stride, sp, w.frozen, w.lo_s, w.hi_s],
+                         outputs=vectors)
 
     def invalidate_graphs(self) -> None:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""

@@ -608,7 +608,8 @@ def padmm_init_kernel(np_dtype, use_velocity: bool, factorize: bool, adaptive: b
 @functools.cache
 def warm_start_filter_kernel(np_dtype):
     """The warm start without its part along the nearly null directions of the always-active rows' block
-    (``kamino.jax_ref.solver._Problem.filter_warm_start``, docs/conventions.md "Warm start"), one thread per world.
+    (``kamino.jax_ref.solver._Problem.filter_warm_start``, docs/conventions.md "Warm start"), one thread per world
+    (``padmm="thread"``; the 32-thread schedule's is ``solver_lanes.warm_start_filter_kernel``).
     ``warm_start_filter(m, shift, row_stride, sp, frozen, lo_s, hi_s, x, x_p, y_p, y_hat)``: ``sp`` holds the
     factor of ``P D_ff P + shift I`` (``linear_solve.factor_fixed``), ``x`` is scratch (left equal to ``x_p`` on the
     fixed rows)."""

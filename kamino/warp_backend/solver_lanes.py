@@ -23,6 +23,9 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   residuals, the penalty of the limit and contact rows, the null-direction test, momentum) is ``solver_rules.py``'s,
   as in the one-thread schedule; here the threads split the box rows and the contact triples and the world's maxima
   and sums are block reductions. Iteration counts equal the thread kernel's (``tests/test_warp_lane_padmm.py``).
+- **Warm-start filter** (:func:`warm_start_filter_kernel`, once per step; docs/conventions.md "Warm start"): the
+  filter's own factor of the fixed rows by :func:`factor_kernel` (launched with the fixed rows' count as the rows to
+  factorise: no tail), then :func:`solve_func` on the shifted warm start and the clip, threads over rows.
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
@@ -296,7 +299,9 @@ def factor_kernel(np_dtype, E: int = 0):
         updates), then the tail rows' ``L_tf``, their Schur complement and ``factor_tail`` with the world's
         penalty ``eta + rho_u``. With ``pending_only`` only the worlds whose effort-limited rows saturated in the
         last PADMM iteration (``pending``), which first assemble ``D~`` again with the shifts ``shift`` /
-        ``shift_sat`` (``linear_solve.refactor``; kamino.jax_ref.solver.solve, "Saturation")."""
+        ``shift_sat`` (``linear_solve.refactor``; kamino.jax_ref.solver.solve, "Saturation"). ``n_rows`` counts the
+        rows factorised: with the fixed rows' count ``m.row_fixed``, on a factor built without tail rows (the
+        warm-start filter's), it factorises ``L_f`` alone (the tail steps have no rows; ``rho_u`` plays no part)."""
         wid, lane = wp.tid()
         if pending_only != 0:
             if pending[wid] == 0:
@@ -646,6 +651,65 @@ def solve_fixed_kernel(np_dtype, R: int):
     return solve_fixed
 
 
+@functools.cache
+def warm_start_filter_kernel(np_dtype, R: int):
+    """The warm-start filter with the world's 32 threads (``solver.warm_start_filter_kernel`` on this schedule;
+    ``kamino.jax_ref.solver._Problem.filter_warm_start``, docs/conventions.md "Warm start").
+    ``warm_start_filter(m, shift, row_stride, sp, frozen, lo_s, hi_s, x, x_p, y_p, y_hat)``, launched tiled: one block
+    of ``LANES`` threads per world; ``sp`` holds the factor of ``P D_ff P + shift I`` (:func:`factor_kernel` on a
+    factor built without tail rows), the vectors in shared memory (:func:`shared_vector` of ``R``)."""
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
+    sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
+    bases = sparse_llt_kernels(np_dtype).bases
+    solve = solve_func(np_dtype, R)
+    lane_max = rules.lane_reduce_func(np_dtype, LANES, "max")
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def warm_start_filter(
+        # model (read only)
+        m: M,
+        # in
+        shift: scalar,
+        row_stride: int,
+        sp: SP,  # the factor of the fixed rows' block with the filter's shift (tables and values, read)
+        frozen: iarr, lo_s: farr, hi_s: farr,
+        # out
+        x: farr,  # equal to x_p on the fixed rows on entry and on exit
+        x_p: farr, y_p: farr, y_hat: farr,  # the warm start (padmm_init), also read
+    ):
+        """``x_f <- clip(x_f - (P D_ff P + s I)^-1 s x_f)`` on the fixed rows of the warm start ``x_p``, copied to
+        ``y_p``, ``y_hat`` and ``x``: the threads split the rows, the solve is :func:`solve_func`'s column sweeps; a
+        world whose result is not finite (a block reduction) keeps its warm start."""
+        rs = row_stride
+        wid, lane = wp.tid()
+        if frozen[wid] != 0:
+            return
+        rb = bases(m, sp, row_stride, wid)[0]
+        nf = sp.n_fixed[wid]
+        xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        for a in range(lane, nf, LANES):
+            sset(xs, a, shift * x_p[rb + a * rs])
+        sync()
+        solve(m, sp, row_stride, wid, nf, lane, xs, ys)
+        bad = scalar(0.0)
+        for a in range(lane, nf, LANES):
+            r = rb + a * rs
+            if not wp.isfinite(wp.clamp(x_p[r] - sget(xs, a), lo_s[r], hi_s[r])):
+                bad = scalar(1.0)
+        if lane_max(bad) == scalar(0.0):
+            for a in range(lane, nf, LANES):
+                r = rb + a * rs
+                v = wp.clamp(x_p[r] - sget(xs, a), lo_s[r], hi_s[r])
+                x_p[r] = v
+                y_p[r] = v
+                y_hat[r] = v
+                x[r] = v
+
+    return warm_start_filter
+
+
 # --- iterations (§7.3-§7.5) ----------------------------------------------------------------------------------------
 
 @functools.cache
@@ -815,7 +879,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
     return padmm_iterate
 
 
-def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamespace:
+def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int | None = None) -> SimpleNamespace:
     """``factor`` (not under ``cr``), ``solve_fixed`` (post-stabilisation) and ``cr_pattern`` (under ``cr``) for
     worlds of up to ``R`` rows; launch each 32-thread kernel with ``wp.launch_tiled(dim=[num_worlds],
     block_dim=LANES)``, ``cr_pattern`` with one thread per world (``wp.launch``). :func:`iterate_kernel` gives
@@ -824,7 +888,12 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False) -> SimpleNamesp
     and writes ``L_f`` back: its chain of dependent read-modify-writes, one per update, then waits on shared memory
     instead of device memory. With ``cr`` the iterations solve with Conjugate Residual instead of the factor (§8.2,
     ``linear_solve_cr.py``: the vectors in the ``Work`` rows, no shared vectors), after ``cr_pattern`` has grouped the
-    world's row blocks by body for the step."""
+    world's row blocks by body for the step. With ``filter_E`` (the warm-start filter's staged entries,
+    :func:`shared_entries`; ``None``: no filter) also ``filter_factor``, :func:`factor_kernel` for the filter's
+    factor of the fixed rows, and ``warm_start_filter`` (:func:`warm_start_filter_kernel`)."""
+    filtered = filter_E is not None
     return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E),
                            solve_fixed=solve_fixed_kernel(np_dtype, R),
-                           cr_pattern=cr_pattern_kernel(np_dtype) if cr else None, R=R, E=E, cr=cr)
+                           cr_pattern=cr_pattern_kernel(np_dtype) if cr else None, R=R, E=E, cr=cr,
+                           filter_factor=factor_kernel(np_dtype, filter_E) if filtered else None,
+                           warm_start_filter=warm_start_filter_kernel(np_dtype, R) if filtered else None)
