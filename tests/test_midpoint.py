@@ -141,7 +141,7 @@ IMPACT = kamino.SolverConfig(dt=DT, integrator="midpoint", tolerance=1e-6)
 LIMIT = 0.2  # [rad] upper limit of the pendulum below
 ROD = 0.5  # [m] the pendulum's rod, hinged at its end
 #: share of the first half-step's reach ``h |v|`` (``h = dt/2``) that an impact may end inside the limit or the ground:
-#: reading the rows at the half step kept 77 % of it on the pendulum and 27 % on the box
+#: reading the rows with the half step keeps 77 % of it on the pendulum and 27 % on the box
 OVERSHOOT = 0.01
 
 
@@ -156,8 +156,8 @@ def _pendulum_onto_its_limit() -> kamino.Model:
 
 def test_midpoint_rule_stops_a_pendulum_at_its_limit_without_overshoot_or_rebound():
     """The pendulum reaches its limit at ``sqrt(2 m g (ROD/2) sin(LIMIT) / I_hinge)`` = 3.4 rad/s: the first half-step
-    could overshoot by ``h |omega|`` = 7e-3 rad (reading the rows at the half step kept 5.4e-3 rad; asking the end pose
-    to undo it instead rebounded at 3.2 rad/s). The limit holds to ``OVERSHOOT`` of that reach (measured 1.3e-7 rad;
+    could overshoot by ``h |omega|`` = 7e-3 rad (reading the rows with the half step keeps 5.4e-3 rad; asking the end
+    pose to undo it instead rebounds at 3.2 rad/s). The limit holds to ``OVERSHOOT`` of that reach (measured 1.3e-7 rad;
     1.2e-5 rad at the default tolerance, Euler 1.5e-5 rad), the impact is inelastic: no outward speed above what the
     Baumgarte term asks of such a violation, ``LIMIT_BAUMGARTE x violation / dt`` (measured 5.9e-6 rad/s), and the
     limit at rest carries the gravity torque ``m g (ROD/2) cos(LIMIT)`` to 1e-4 on every step."""
@@ -180,7 +180,7 @@ def test_midpoint_rule_stops_a_pendulum_at_its_limit_without_overshoot_or_reboun
 
 def test_midpoint_rule_lands_a_dropped_box_without_sinking():
     """tests/test_free_joint_contact.py's 0.2 m box dropped 2 cm lands at ``sqrt(2 g DROP)`` = 0.63 m/s: the first
-    half-step could sink it by ``h |v|`` = 1.3e-3 m (reading the contacts at the half step kept 3.5e-4 m). It sinks
+    half-step could sink it by ``h |v|`` = 1.3e-3 m (reading the contacts with the half step keeps 3.5e-4 m). It sinks
     less than ``OVERSHOOT`` of that reach (measured: it stays 1e-6 m above, the contact dead band; 2.5e-6 m deep at the
     default tolerance, Euler 2.7e-6 m), does not bounce (upward speed below what the Baumgarte term asks of such a
     penetration; measured 4e-11 m/s) and rests on the plane."""
