@@ -1,4 +1,5 @@
-"""The Moreau-Jean midpoint rule (docs/formulation.md §6.3) on a four-bar whose crank a motor whips round.
+"""The Moreau-Jean midpoint rule (docs/formulation.md §6.3) on a four-bar whose crank a motor whips round, and on
+impacts against a joint limit and the ground (at the end of this file).
 
 docs/conventions.md, "Stabilisation": the end-of-step target of the joint rows reverses the start pose's
 constraint velocity ``w- = J(q-) u-`` every step unless it keeps the share ``gamma = MIDPOINT_DAMPING`` of it. With
