@@ -140,7 +140,7 @@ def _limited_pendulum(limits, omega0=0.0):
 
 
 @pytest.mark.parametrize("variant", BACKENDS)
-@pytest.mark.parametrize("integrator", ["euler"])  # midpoint: see docs/conventions.md "Joint limits"
+@pytest.mark.parametrize("integrator", ["euler"])  # midpoint: tests/test_midpoint.py
 def test_pendulum_held_by_a_limit_violates_it_by_less_than_1e4(integrator, variant):
     model = _limited_pendulum((-1.0, 0.2))
     T = int(5.0 / DT)

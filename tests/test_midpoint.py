@@ -1,4 +1,5 @@
-"""The Moreau-Jean midpoint rule (docs/formulation.md §6.3) on a four-bar whose crank a motor whips round.
+"""The Moreau-Jean midpoint rule (docs/formulation.md §6.3) on a four-bar whose crank a motor whips round, and on
+impacts against a joint limit and the ground (at the end of this file).
 
 docs/conventions.md, "Stabilisation": the end-of-step target of the joint rows reverses the start pose's
 constraint velocity ``w- = J(q-) u-`` every step unless it keeps the share ``gamma = MIDPOINT_DAMPING`` of it. With
@@ -128,3 +129,70 @@ def test_driven_fourbar_midpoint_is_stable(variant, name, jax_runs):
         ref = _jax_run(jax_runs, name)
         assert np.abs(np.asarray(traj.body_q) - np.asarray(ref.body_q)).max() < 1e-9
         assert np.abs(np.asarray(traj.body_u) - np.asarray(ref.body_u)).max() < 1e-9
+
+
+# ---------------------------------------------------------------------------------------------
+# Limits and contacts on impact (docs/conventions.md, "Joint limits"): the unilateral rows aim one step dt ahead, at
+# the pose where the next step reads them (the midpoint rule's next q_m is q_m ⊕ dt u+), so no first half-step
+# overshoots into a limit or the ground, and nothing has to be undone with an outward velocity
+# ---------------------------------------------------------------------------------------------
+
+#: converged solves (the rule, not PADMM's stop, is checked); the default tolerance 1e-3 adds up to dt x 1e-3 per step
+IMPACT = kamino.SolverConfig(dt=DT, integrator="midpoint", tolerance=1e-6)
+LIMIT = 0.2  # [rad] upper limit of the pendulum below
+ROD = 0.5  # [m] the pendulum's rod, hinged at its end
+#: share of the first half-step's reach ``h |v|`` (``h = dt/2``) that an impact may end inside the limit or the ground:
+#: reading the rows with the half step keeps 77 % of it on the pendulum and 27 % on the box
+OVERSHOOT = 0.01
+
+
+def _pendulum_onto_its_limit() -> kamino.Model:
+    """A 1 kg rod of length ``ROD`` hinged at its end about +y, released horizontal: gravity raises its angle onto the
+    upper limit ``LIMIT``."""
+    b = kamino.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    rod = b.add_body(mass=1.0, inertia=(0.001, 0.021, 0.021), pos=(0.5 * ROD, 0, 1))
+    b.add_joint_at(kamino.JointType.REVOLUTE, -1, rod, anchor=(0, 0, 1), axis=(0, 1, 0), limits=(-1.0, LIMIT))
+    return b.finalize()
+
+
+def test_midpoint_rule_stops_a_pendulum_at_its_limit_without_overshoot_or_rebound():
+    """The pendulum reaches its limit at ``sqrt(2 m g (ROD/2) sin(LIMIT) / I_hinge)`` = 3.4 rad/s: the first half-step
+    could overshoot by ``h |omega|`` = 7e-3 rad (reading the rows with the half step keeps 5.4e-3 rad; asking the end
+    pose to undo it instead rebounds at 3.2 rad/s). The limit holds to ``OVERSHOOT`` of that reach (measured 1.3e-7 rad;
+    1.2e-5 rad at the default tolerance, Euler 1.5e-5 rad), the impact is inelastic: no outward speed above what the
+    Baumgarte term asks of such a violation, ``LIMIT_BAUMGARTE x violation / dt`` (measured 5.9e-6 rad/s), and the
+    limit at rest carries the gravity torque ``m g (ROD/2) cos(LIMIT)`` to 1e-4 on every step."""
+    from kamino.config import LIMIT_BAUMGARTE
+
+    model = _pendulum_onto_its_limit()
+    traj = kamino.rollout(model, kamino.init_state(model), num_steps=int(1.0 / DT), config=IMPACT, backend="warp")
+    quat = np.asarray(traj.body_q)[:, 0, 3:]  # (x, y, z, w): a rotation about +y from the identity
+    theta = 2.0 * np.arctan2(quat[:, 1], quat[:, 3])
+    omega = np.asarray(traj.body_u)[:, 0, 4]  # the hinge rate (about +y)
+    impact = int(np.argmax(theta > LIMIT - 1e-3))
+    speed = float(np.sqrt(2.0 * 9.81 * 0.5 * ROD * np.sin(LIMIT) / (0.021 + 0.25 * ROD**2)))
+    assert 0 < impact < len(theta) // 2 and omega.max() > 0.9 * speed  # it does hit, at full speed
+    bound = OVERSHOOT * 0.5 * DT * speed
+    assert theta.max() - LIMIT < bound, theta.max() - LIMIT
+    assert -omega[impact:].min() < LIMIT_BAUMGARTE * bound / DT, omega[impact:].min()
+    force = np.asarray(traj.limit_force)[-int(0.5 / DT):, 0]  # the last half second, at rest
+    assert np.allclose(force, -9.81 * 0.5 * ROD * np.cos(LIMIT), rtol=1e-4), (force.min(), force.max())
+
+
+def test_midpoint_rule_lands_a_dropped_box_without_sinking():
+    """tests/test_free_joint_contact.py's 0.2 m box dropped 2 cm lands at ``sqrt(2 g DROP)`` = 0.63 m/s: the first
+    half-step could sink it by ``h |v|`` = 1.3e-3 m (reading the contacts with the half step keeps 3.5e-4 m). It sinks
+    less than ``OVERSHOOT`` of that reach (measured: it stays 1e-6 m above, the contact dead band; 2.5e-6 m deep at the
+    default tolerance, Euler 2.7e-6 m), does not bounce (upward speed below what the Baumgarte term asks of such a
+    penetration; measured 4e-11 m/s) and rests on the plane."""
+    from kamino.config import CONTACT_BAUMGARTE
+    from tests.test_free_joint_contact import DROP, HALF, _free_box_over_plane
+
+    model = _free_box_over_plane()
+    traj = kamino.rollout(model, kamino.init_state(model), num_steps=int(0.25 / DT), config=IMPACT, backend="warp")
+    z = np.asarray(traj.body_q)[:, 0, 2]
+    vz = np.asarray(traj.body_u)[:, 0, 2]
+    bound = OVERSHOOT * 0.5 * DT * float(np.sqrt(2.0 * 9.81 * DROP))
+    assert (HALF - z).max() < bound, (HALF - z).max()
+    assert vz.max() < CONTACT_BAUMGARTE * bound / DT, vz.max()
+    assert np.abs(z[-10:] - HALF).max() < bound  # resting on the plane

@@ -94,8 +94,10 @@ def detect(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, body_u_free: j
            cfg: SolverConfig) -> Contacts:
     """Active contacts of one world at pose ``body_q`` (docs/formulation.md §4.2).
 
-    A point is active when its gap is within the pair's margin plus what the approach speed of the
-    free velocity ``body_u_free`` closes in the pose update that follows (``h``):
+    ``h`` is the horizon of the unilateral rows: one whole step ``dt`` under both integrators, up to the
+    pose at which the next step reads the contacts (the midpoint rule's next ``q_m`` is ``q_m ⊕ dt u+``;
+    :func:`contact_bias`). A point is active when its gap is within the pair's margin plus what the
+    approach speed of the free velocity ``body_u_free`` closes over it:
     ``d <= m_a + m_b + cfg.contact_margin + h max(0, -v_n)`` (speculative contacts: fast bodies do
     not tunnel, resting ones do not sink). A speculative contact stops its bodies exactly at contact,
     which is an inelastic impact, so contacts with restitution are not speculative: they are active
@@ -225,14 +227,17 @@ def contact_jacobian(ct: Contacts, body_q: jax.Array, nb: int) -> jax.Array:
 def contact_bias(ct: Contacts, dist_start: jax.Array, v_n_minus: jax.Array, h, cfg: SolverConfig) -> jax.Array:
     """``v*`` of the contact rows ``[3C]`` (docs/formulation.md §4.2 "gap bias" and "restitution").
 
-    Tangent rows get 0. The normal row asks the end-of-step gap ``d + h v_n+`` (``d`` dead-banded,
-    read where the dynamics are built) to be at least ``(1 - gamma) min(d_start, 0)``: a gap may
-    close, not more, and a penetration at the start of the step shrinks by ``gamma =
-    CONTACT_BAUMGARTE``, but at most at ``DEPENETRATION_SPEED``: the penetration term
-    ``gamma min(d_start, 0) / h`` is bounded below by ``-DEPENETRATION_SPEED``, so that a deep
-    overlap does not launch the body (its kinetic energy stays below ``m V^2 / 2``). For Euler (``d = d_start``)
-    this is §4.2's ``xi = d / h`` for a gap and ``max(gamma xi, -DEPENETRATION_SPEED)`` for a
-    penetration. An impact (restitution ``e > 0`` and approach
+    Tangent rows get 0. ``h`` is one whole step ``dt`` under both integrators (:func:`detect`): the
+    normal row asks the gap ``d + h v_n+`` at the pose where the next step reads it (``d``
+    dead-banded, read where the dynamics are built, ``d_start`` the same reading in the pipeline) to
+    be at least ``(1 - gamma) min(d_start, 0)``: a gap may close, not more, and a penetration shrinks
+    by ``gamma = CONTACT_BAUMGARTE`` per step, but at most at ``DEPENETRATION_SPEED``: the penetration
+    term ``gamma min(d_start, 0) / h`` is bounded below by ``-DEPENETRATION_SPEED``, so that a deep
+    overlap does not launch the body (its kinetic energy stays below ``m V^2 / 2``). This is §4.2's
+    ``xi = d / h`` for a gap and ``max(gamma xi, -DEPENETRATION_SPEED)`` for a penetration. Under the
+    midpoint rule the end pose lies halfway between this reading and the next, so a body is stopped
+    at the next midpoint instead of overshooting in the first half-step (docs/conventions.md,
+    "Contacts"). An impact (restitution ``e > 0`` and approach
     faster than ``RESTITUTION_THRESHOLD``) instead asks ``v_n+ >= -e v_n-`` (Newton's law), or
     the penetration correction's speed if that is larger (``e < 1``); adding the two would inject
     energy into every bounce.

@@ -82,17 +82,16 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     e_cpl = coupling_residual(pm, q_dof)
     e_cpl_start = e_cpl if q_start is q_eval else coupling_residual(pm, dof_positions(pm, jf_start))
     # limit rows
-    # Unilateral rows measure the violation to keep where the dynamics are built, also for the
-    # midpoint rule: an impact in the first half-step overshoots by up to h |v|, and asking the
-    # end-of-step position to undo it would reverse the velocity (an elastic bounce). As in
-    # Moreau-Jean, the overshoot is a penetration that the Baumgarte term removes (docs/conventions.md).
-    side, lim_active, vs_lim = limit_rows(pm, q_dof, q_dof, qd_free, h, cfg)
+    # Unilateral rows look one step dt ahead, to the pose the next step reads them at, under both
+    # integrators (the midpoint rule's next q_m is q_m ⊕ dt u+): an impact stops there instead of
+    # overshooting in the first half-step (docs/conventions.md, "Joint limits").
+    side, lim_active, vs_lim = limit_rows(pm, q_dof, qd_free, dt, cfg)
     J_lim = jnp.where(lim_active[:, None], side[:, None] * J_dofs[pm.lim_dof], 0.0)
     # contact rows
-    ct = cts.detect(pm, q_eval, body_u, u_f, h, cfg)
+    ct = cts.detect(pm, q_eval, body_u, u_f, dt, cfg)
     J_con = cts.contact_jacobian(ct, q_eval, nb)
     vn_minus = (J_con @ u_vec).reshape(-1, 3)[:, 2]
-    vs_con = cts.contact_bias(ct, ct.dist, vn_minus, h, cfg)  # same reading as the limits above
+    vs_con = cts.contact_bias(ct, ct.dist, vn_minus, dt, cfg)  # the same horizon as the limits above
 
     J = jnp.concatenate([J_dyn, J_kin, J_cpl, J_lim, J_con], axis=0)
     n_dyn, n_kin, n_lim = J_dyn.shape[0], J_kin.shape[0] + J_cpl.shape[0], J_lim.shape[0]

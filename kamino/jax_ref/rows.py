@@ -132,31 +132,29 @@ def dynamics_rows(pm: PaddedModel, q_dof: jax.Array, qd_minus: jax.Array, ctrl: 
             jnp.where(mask, -bound, -jnp.inf), jnp.where(mask, bound, jnp.inf))
 
 
-def limit_rows(pm: PaddedModel, q_dof: jax.Array, q_dof_start: jax.Array, qd_free: jax.Array, h,
-               cfg: SolverConfig):
+def limit_rows(pm: PaddedModel, q_dof: jax.Array, qd_free: jax.Array, dt, cfg: SolverConfig):
     """Side, activity and bias of the limit rows (docs/formulation.md §4.1, with speculative activation).
 
     Each limited DoF watches its nearer limit: ``r = q - q_min`` (side ``+1``) or ``q_max - q``
-    (side ``-1``), read where the dynamics are built. The row ``side * J_dof`` is active when
-    ``r < margin + h max(0, -side qd_f)`` (the limit can be reached in this step). Its bias asks the
-    end-of-step distance ``r + h side qd+`` to be at least ``(1 - beta) min(r_start, 0)``: a gap may
-    close, not more; a violation at the start of the step shrinks by ``beta``. For Euler
-    (``r = r_start``) this is ``r / h`` for a gap and ``beta r / h`` for a violation (§5); for the
-    midpoint rule it does not mistake the midpoint's overshoot for a violation to keep.
+    (side ``-1``), read where the dynamics are built. The unilateral rows look one whole step ``dt``
+    ahead, to the pose at which the next step reads them, under both integrators: Euler's next
+    evaluation pose is ``q+ = q- ⊕ dt u+``, the midpoint rule's is ``q_m' = q+ ⊕ h u+ = q_m ⊕ dt u+``
+    (``h = dt/2``; the next step's ``u-`` is this step's ``u+``), so in both ``r' = r + dt side qd+``.
+    The row ``side * J_dof`` is active when ``r < margin + dt max(0, -side qd_f)`` (the limit can be
+    reached before the next reading), and its bias asks ``r' >= (1 - beta) min(r, 0)``: a gap may
+    close, not more; a violation shrinks by ``beta`` per step. That is ``r / dt`` for a gap and
+    ``beta r / dt`` for a violation (§5). Under the midpoint rule the end pose lies halfway,
+    ``r+ = r + h side qd+ = (r + r') / 2``, inside the limit whenever both readings are, so an impact
+    is stopped at the next midpoint instead of overshooting by up to ``h |qd|`` in the first
+    half-step; asking ``r+ >= 0`` after such an overshoot would reverse the velocity (an elastic
+    bounce). docs/conventions.md, "Joint limits".
     """
     d = pm.lim_dof
-
-    def distance(q):
-        r_lo, r_hi = q[d] - pm.dof_lower[d], pm.dof_upper[d] - q[d]
-        return r_lo, r_hi
-
-    r_lo, r_hi = distance(q_dof)
+    r_lo, r_hi = q_dof[d] - pm.dof_lower[d], pm.dof_upper[d] - q_dof[d]
     side = jnp.where(r_lo <= r_hi, 1.0, -1.0)
     r = jnp.minimum(r_lo, r_hi)
-    s_lo, s_hi = distance(q_dof_start)
-    r_start = jnp.where(side > 0, s_lo, s_hi)
     approach = jnp.maximum(-side * qd_free[d], 0.0)
-    active = pm.lim_mask & (r < LIMIT_MARGIN + h * approach)
+    active = pm.lim_mask & (r < LIMIT_MARGIN + dt * approach)
     r_safe = jnp.where(active, r, 0.0)
-    target = (1.0 - LIMIT_BAUMGARTE) * jnp.minimum(jnp.where(active, r_start, 0.0), 0.0)
-    return side, active, jnp.where(active, (r_safe - target) / h, 0.0)
+    bias = (r_safe - (1.0 - LIMIT_BAUMGARTE) * jnp.minimum(r_safe, 0.0)) / dt
+    return side, active, jnp.where(active, bias, 0.0)

@@ -86,7 +86,7 @@ def narrow_phase_kernel(np_dtype) -> wp.Kernel:
         # model (read only)
         m: M,
         # in
-        h: scalar, contact_margin: scalar,
+        dt: scalar, contact_margin: scalar,
         u_f: wp.array(dtype=vec6),
         q_eval: wp.array(dtype=transform),
         # out
@@ -96,7 +96,7 @@ def narrow_phase_kernel(np_dtype) -> wp.Kernel:
         cand_valid: wp.array(dtype=wp.int32),
     ):
         """Candidate points of each geom pair, with the margin widened by a bound of the pair's approach
-        speed over the pose update (``detect`` of the JAX reference); a pair whose bounding spheres are
+        speed over one step ``dt`` (``detect`` of the JAX reference); a pair whose bounding spheres are
         farther apart than that margin is skipped (no valid candidate, as in the reference)."""
         wid, i = wp.tid()
         if i >= m.pair_count[wid]:
@@ -117,7 +117,7 @@ def narrow_phase_kernel(np_dtype) -> wp.Kernel:
             vb = lin(u_f[bb])
             wb = wp.length(ang(u_f[bb]))
         speed = wp.length(vb - va) + wa * m.geom_radius[ga] + wb * m.geom_radius[gb]
-        margin = m.geom_margin[ga] + m.geom_margin[gb] + contact_margin + h * speed
+        margin = m.geom_margin[ga] + m.geom_margin[gb] + contact_margin + dt * speed
         if m.geom_type[ga] != PLANE:  # pairs are ordered: a plane is always geom a
             ca = vec3()
             cb = vec3()
@@ -148,7 +148,7 @@ def pack_kernel(np_dtype) -> wp.Kernel:
         # model (read only)
         m: M,
         # in
-        h: scalar, contact_margin: scalar, deadband_c: scalar, restitution_threshold: scalar,
+        dt: scalar, contact_margin: scalar, deadband_c: scalar, restitution_threshold: scalar,
         q_eval: wp.array(dtype=transform),
         u: wp.array(dtype=vec6),
         u_f: wp.array(dtype=vec6),
@@ -168,7 +168,8 @@ def pack_kernel(np_dtype) -> wp.Kernel:
         ct_found: wp.array(dtype=wp.int32),
         n_con: wp.array(dtype=wp.int32),
     ):
-        """Active points (speculative, or restitution timing) packed in detection order into the capacity."""
+        """Active points (speculative, or restitution timing, over one step ``dt``: ``detect`` of the JAX reference)
+        packed in detection order into the capacity."""
         wid = wp.tid()
         count = int(0)
         cap = m.con_capacity[wid]
@@ -192,12 +193,12 @@ def pack_kernel(np_dtype) -> wp.Kernel:
                 if rest > scalar(0.0):
                     v_n = approach_velocity(q_eval, u, ba, bb, pos, nrm, dist)
                     if v_n < -restitution_threshold:
-                        active = dist < scalar(0.5) * h * wp.abs(v_n)
+                        active = dist < scalar(0.5) * dt * wp.abs(v_n)
                     else:
                         active = dist <= mg + deadband_c
                 else:
                     v_free = approach_velocity(q_eval, u_f, ba, bb, pos, nrm, dist)
-                    active = dist <= mg + contact_margin + h * wp.max(-v_free, scalar(0.0))
+                    active = dist <= mg + contact_margin + dt * wp.max(-v_free, scalar(0.0))
                 if active:
                     if count < cap:
                         s = s0 + count
@@ -290,7 +291,7 @@ def contact_rows_kernel(np_dtype) -> wp.Kernel:
         # model (read only)
         m: M,
         # in
-        nblk: int, h: scalar, gamma: scalar, deadband_c: scalar, restitution_threshold: scalar,
+        nblk: int, dt: scalar, gamma: scalar, deadband_c: scalar, restitution_threshold: scalar,
         match_distance: scalar, row_stride: int,
         n_con: wp.array(dtype=wp.int32),
         n_box: wp.array(dtype=wp.int32),
@@ -339,11 +340,12 @@ def contact_rows_kernel(np_dtype) -> wp.Kernel:
             hi[rt] = scalar(0.0)
             row_info[rt] = make_row_info(ROW_CONTACT, s, scalar(1.0))  # row_mu reads the slot's friction
             vstar[rt] = scalar(0.0)
-        # bias of the normal row: gap closes at most, penetration shrinks by gamma but at most at the depenetration
-        # speed; or Newton's restitution
+        # bias of the normal row, aimed one step dt ahead (the pose the next step reads the contact at, under both
+        # integrators): gap closes at most, penetration shrinks by gamma but at most at the depenetration speed;
+        # or Newton's restitution
         d = deadband(ct_dist[s], deadband_c)
-        gap_bias = (d - (scalar(1.0) - gamma) * wp.min(d, scalar(0.0))) / h
-        gap_bias = wp.max(gap_bias, (d - wp.min(d, scalar(0.0))) / h - depenetration_speed)
+        gap_bias = (d - (scalar(1.0) - gamma) * wp.min(d, scalar(0.0))) / dt
+        gap_bias = wp.max(gap_bias, (d - wp.min(d, scalar(0.0))) / dt - depenetration_speed)
         vn_minus = rk.row_dot(row_body, row_J, ridx(m, row_stride, wid, a0 + 2), nblk, u)
         e = ct_restitution[s]
         vn = gap_bias

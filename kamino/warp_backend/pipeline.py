@@ -244,16 +244,16 @@ class Stepper:
                         inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.dof_JF, w.dof_JB, w.q_dof,
                                 w.q_dof_pred, w.q, w.u_f, w.cpl_force],
                         outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info])
-        self._launch(rk.limits, (W, wm.max_lim), inputs=[h, LIMIT_MARGIN, LIMIT_BAUMGARTE, w.q_dof, w.qd_free],
+        self._launch(rk.limits, (W, wm.max_lim), inputs=[dt, LIMIT_MARGIN, LIMIT_BAUMGARTE, w.q_dof, w.qd_free],
                         outputs=[w.lim_side, w.lim_active, w.lim_bias])
         self._launch(rk.pack_limits, W,
                         inputs=[nblk, w.row_stride, w.lim_active, w.lim_side, w.lim_bias, w.lim_force, w.dof_JF,
                                 w.dof_JB],
                         outputs=[w.row_body, w.row_J, w.vstar, w.reg, w.lo, w.hi, w.f0, w.v0, w.row_info, w.n_lim])
         if ck is not None:
-            self._launch(ck.narrow_phase, (W, wm.max_pairs), inputs=[h, cfg.contact_margin, w.u_f, w.q_eval],
+            self._launch(ck.narrow_phase, (W, wm.max_pairs), inputs=[dt, cfg.contact_margin, w.u_f, w.q_eval],
                             outputs=[w.cand_pos, w.cand_normal, w.cand_dist, w.cand_valid])
-            self._launch(ck.pack, W, inputs=[h, cfg.contact_margin, CONTACT_DEADBAND, RESTITUTION_THRESHOLD,
+            self._launch(ck.pack, W, inputs=[dt, cfg.contact_margin, CONTACT_DEADBAND, RESTITUTION_THRESHOLD,
                                                 w.q_eval, w.u, w.u_f, w.cand_pos, w.cand_normal, w.cand_dist,
                                                 w.cand_valid],
                             outputs=[w.ct_pair, w.ct_body_a, w.ct_body_b, w.ct_pos, w.ct_normal, w.ct_dist, w.ct_mu,
@@ -261,7 +261,7 @@ class Stepper:
         self._launch(sk.count_rows, W, inputs=[w.n_lim, w.n_con, w.frozen], outputs=[w.n_box, w.n_rows, w.failed])
         if ck is not None:
             self._launch(ck.contact_rows, (W, wm.max_contacts),
-                            inputs=[nblk, h, CONTACT_BAUMGARTE, CONTACT_DEADBAND, RESTITUTION_THRESHOLD,
+                            inputs=[nblk, dt, CONTACT_BAUMGARTE, CONTACT_DEADBAND, RESTITUTION_THRESHOLD,
                                     CONTACT_MATCH_DISTANCE, w.row_stride, w.n_con, w.n_box, w.ct_pair, w.ct_body_a,
                                     w.ct_body_b, w.ct_pos, w.ct_normal, w.ct_dist, w.ct_mu, w.ct_restitution,
                                     w.q_eval, w.u, w.con_pair, w.con_force, w.con_velocity, w.con_point_b],

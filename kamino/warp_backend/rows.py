@@ -703,7 +703,7 @@ def limits_kernel(np_dtype):
         # model (read only)
         m: M,
         # in
-        h: scalar,
+        dt: scalar,
         margin: scalar,
         beta: scalar,
         q_dof: wp.array(dtype=scalar),
@@ -714,7 +714,9 @@ def limits_kernel(np_dtype):
         lim_bias: wp.array(dtype=scalar),
     ):
         """Which limit rows are active and their bias (docs/formulation.md §4.1; ``limit_rows`` of the JAX
-        reference): the nearer limit, active when it can be reached within the step."""
+        reference): the nearer limit, active when it can be reached within the step. Both integrators look one
+        whole step ``dt`` ahead, to the pose at which the next step reads the row (the midpoint rule's next
+        ``q_m`` is ``q_m ⊕ dt u+``): ``r + dt side qd+ >= (1 - beta) min(r, 0)``."""
         wid, i = wp.tid()
         if i >= m.lim_count[wid]:
             return
@@ -729,11 +731,11 @@ def limits_kernel(np_dtype):
             side = scalar(-1.0)
             r = r_hi
         approach = wp.max(-side * qd_free[d], scalar(0.0))
-        active = r < margin + h * approach
+        active = r < margin + dt * approach
         lim_side[k] = side
         if active:
             lim_active[k] = 1
-            lim_bias[k] = (r - (scalar(1.0) - beta) * wp.min(r, scalar(0.0))) / h
+            lim_bias[k] = (r - (scalar(1.0) - beta) * wp.min(r, scalar(0.0))) / dt
         else:
             lim_active[k] = 0
             lim_bias[k] = scalar(0.0)
