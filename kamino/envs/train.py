@@ -218,7 +218,7 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         print(f"{task}: backend {backend}, {used} device(s) {jax.devices()[0].platform}, "
               f"{environment.observation_size} observations, {environment.action_size} actions, policy "
               f"{1 / environment.dt:.0f} Hz; {'resuming at step ' + str(done) if restore else 'starting'}, "
-              f"{end - done} steps to go{' (compiling first)' if left else ''}", flush=True)
+              f"{max(end - done, 0)} steps to go{' (compiling first)' if left else ''}", flush=True)
 
     bar = Progress(end, done, progress)
     start = time.perf_counter()
@@ -246,13 +246,19 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
             e = pending["train_curve"][-1]
             bar.update(e["step"], e["reward"], float("nan"), e["env_steps_per_s"], e["run_wall_s"])
             return
-        if restore is not None and step == 0:
-            return  # the restored policy: its row is in the restored checkpoint
         entry = {"step": done + step, "reward": metrics.get("eval/episode_reward", float("nan")),
                  "reward_std": metrics.get("eval/episode_reward_std", float("nan")),
                  "run_wall_s": time.perf_counter() - start}
         if "training/sps" in metrics:  # the epoch before this evaluation; the first one includes compilation
             entry["env_steps_per_s"] = metrics["training/sps"]
+        if restore is not None and step == 0:
+            # the restored policy: its row is in its checkpoint's record; a checkpoint written without one (by an
+            # older kamino) may lack its row in curve.json, and this evaluation gives it
+            if done not in {row["step"] for row in curve}:
+                curve.append(entry)
+                curve.sort(key=lambda row: row["step"])
+                runs.write_json(paths["curve"], curve)
+            return
         pending["curve"].append(entry)
         first = first or metrics
         last = metrics
@@ -310,7 +316,8 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         "task": task, "backend": backend, "command": command, "env": env_kwargs, "solver_overrides": solver,
         "network": cfg["network"],
         "ppo": {k: v for k, v in kwargs.items() if isinstance(v, (int, float, str, bool)) or v is None},
-        "total_steps": end, "eval_every": every, "steps_before_this_run": done, "steps_this_run": end - done,
+        "total_steps": end, "eval_every": every, "steps_before_this_run": done,
+        "steps_this_run": max(end - done, 0),
         "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),
         "first_eval": first, "last_eval": last, "curve": curve, "train_curve": train_curve,
         "checkpoint": str(runs.latest_checkpoint(ckpt_dir)[1]), "walk_tests": walks,
