@@ -2,6 +2,7 @@
 anything is built, ``--fresh`` refusing a used run folder, and the run folder's own records."""
 
 import json
+import os
 
 import pytest
 
@@ -215,3 +216,15 @@ def test_a_resumed_run_takes_its_rows_from_the_committed_checkpoints(tmp_path):
     _fake_checkpoint(legacy, 200, {"step": 200, "curve": rows(200)})
     runs.write_json(legacy / "curve.json", rows(0, 100, 200, 300))
     assert [r["step"] for r in runs.committed_record(legacy)["curve"]] == [0, 100, 200]
+
+
+def test_a_run_file_that_holds_its_rows_already_is_not_rewritten(tmp_path, monkeypatch):
+    """A resumed run rewrites ``curve.json`` only when it differs from what the committed checkpoints hold (rows
+    with a NaN return compare equal by their text)."""
+    path = tmp_path / "curve.json"
+    rows = [{"step": 240, "reward": float("nan")}]
+    assert runs.write_json_if_changed(path, rows)
+    renamed = []
+    monkeypatch.setattr(runs, "replace", lambda src, dst: renamed.append(dst) or os.replace(src, dst))
+    assert not runs.write_json_if_changed(path, [{"step": 240, "reward": float("nan")}]) and renamed == []
+    assert runs.write_json_if_changed(path, [*rows, {"step": 480, "reward": 1.0}]) and renamed == [path]

@@ -52,6 +52,16 @@ def write_json(path: Path, data: Any, **dump_kwargs) -> None:
     write_text(path, text)
 
 
+def write_json_if_changed(path: Path, data: Any) -> bool:
+    """:func:`write_json` unless ``path`` already holds exactly that JSON; whether it wrote."""
+    path = Path(path)
+    text = json.dumps(data, indent=1) + "\n"
+    if path.is_file() and path.read_text() == text:
+        return False
+    write_text(path, text)
+    return True
+
+
 def write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (a temporary file beside it, flushed to disk, then ``os.replace``)."""
     path = Path(path)
@@ -242,4 +252,5 @@ def key_values(items: list[str], flag: str) -> dict[str, Any]:
 __all__ = ["COMMIT_MARKER", "NETWORK_CONFIG", "RECORD", "RECORD_FILES", "RUN_FILES", "OptionError",
            "checkpoint_record", "clear_partial", "clear_run", "committed_checkpoints", "committed_record",
            "is_checkpoint", "is_used", "key_values", "latest_checkpoint", "read_json",
-           "run_env", "run_folder", "run_task", "save_checkpoint", "write_json", "write_text"]
+           "run_env", "run_folder", "run_task", "save_checkpoint", "write_json", "write_json_if_changed",
+           "write_text"]

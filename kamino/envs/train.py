@@ -207,9 +207,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     environment = make(task, backend=backend, **env_kwargs)
     runs.write_json(out / "run.json", {"task": task, "backend": backend, "eval_every": every})
     runs.write_json(out / "env.json", env_kwargs)
-    for key, path in paths.items():  # the run files as the checkpoints commit them
+    for key, path in paths.items():  # the run files as the committed checkpoints hold them
         if path.exists() or record[key]:
-            runs.write_json(path, record[key])
+            runs.write_json_if_changed(path, record[key])
     if solver:
         config = environment.solver_config.replace(**solver)
         environment = make(task, backend=backend, solver_config=config, **env_kwargs)
