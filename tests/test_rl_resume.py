@@ -96,10 +96,13 @@ def _killed(out: Path, tmp: Path, **env: str) -> tuple[int, float]:
     proc = subprocess.Popen([sys.executable, "-c", KILLED, *ARGS, "--out", str(out)],
                             env={**os.environ, "STARTED_MARKER": str(started), **env},
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    t0 = None
+    t0, t_start = None, time.monotonic()
     while proc.poll() is None:
         if t0 is None and started.exists():
             t0 = time.monotonic()
+        if time.monotonic() - t_start > 300:
+            proc.kill()
+            raise AssertionError(f"the run into {out} took over 300 s:\n{proc.communicate()[0]}")
         time.sleep(0.02)
     output = proc.stdout.read()
     assert proc.returncode in (0, -signal.SIGKILL), output
