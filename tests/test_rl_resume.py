@@ -91,21 +91,22 @@ for out in folders:
 def _killed(out: Path, tmp: Path, **env: str) -> tuple[int, float]:
     """Run ``KILLED`` into ``out`` with the kill settings ``env``: its exit status and its seconds from the end of
     its imports to its end."""
-    started = tmp / "started"
+    started, log = tmp / "started", tmp / "killed.log"
     started.unlink(missing_ok=True)
-    proc = subprocess.Popen([sys.executable, "-c", KILLED, *ARGS, "--out", str(out)],
-                            env={**os.environ, "STARTED_MARKER": str(started), **env},
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    t0, t_start = None, time.monotonic()
-    while proc.poll() is None:
-        if t0 is None and started.exists():
-            t0 = time.monotonic()
-        if time.monotonic() - t_start > 300:
-            proc.kill()
-            raise AssertionError(f"the run into {out} took over 300 s:\n{proc.communicate()[0]}")
-        time.sleep(0.02)
-    output = proc.stdout.read()
-    assert proc.returncode in (0, -signal.SIGKILL), output
+    with log.open("w") as sink:
+        proc = subprocess.Popen([sys.executable, "-c", KILLED, *ARGS, "--out", str(out)],
+                                env={**os.environ, "STARTED_MARKER": str(started), **env}, stdout=sink,
+                                stderr=subprocess.STDOUT)
+        t0, t_start = None, time.monotonic()
+        while proc.poll() is None:
+            if t0 is None and started.exists():
+                t0 = time.monotonic()
+            if time.monotonic() - t_start > 300:
+                proc.kill()
+                proc.wait()
+                raise AssertionError(f"the run into {out} took over 300 s:\n{log.read_text()}")
+            time.sleep(0.02)
+    assert proc.returncode in (0, -signal.SIGKILL), log.read_text()
     return proc.returncode, time.monotonic() - (t0 or time.monotonic())
 
 
