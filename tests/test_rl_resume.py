@@ -1,16 +1,28 @@
-"""``kamino train`` survives being killed: runs of ``fourbar_track`` killed with SIGKILL (inside a checkpoint write, and
-at a random moment) resume every time and complete, and every checkpoint left loads for evaluation.
+"""A training run killed at any moment and resumed ends with the record of a run never interrupted.
 
-Each training runs in a subprocess through ``kamino.envs.train.main``. A hook in the subprocess (a wrapper around
-``kamino.envs.runs.stage_checkpoint``) writes a marker file once a checkpoint has been written to the staging
-area but not yet renamed into place, then sleeps: the test kills there. The run folder also gets, by hand, what a
-kill in the middle of an older, non-atomic writer leaves: an empty ``checkpoints/<step>/`` with a higher step than
-any real one, a step folder with only its network config, and a temporary side file.
+``kamino train fourbar_track`` (Warp backend, the faster of the two on the CPU for a first training in a process; a
+tiny PPO config: three evaluations, each with its checkpoint, 240 environment steps apart) runs once without
+interruption, the reference. Another run of the same command is killed with SIGKILL five times, each time in a
+subprocess that resumes the run folder the kill before left and kills itself at a chosen point:
+
+1. inside its first checkpoint write (the checkpoint staged whole, before its rename into place);
+2. inside its ``env.json`` write;
+3. at a random moment;
+4. inside the ``curve.json`` write that follows its first checkpoint commit (the temporary file whole, before its
+   rename);
+5. at a random moment;
+
+and is then resumed to its end. After each kill, what the run folder holds is a prefix of the reference's record:
+committed checkpoints at evaluation steps, each with its own row, and whole run files. At the end the record equals
+the reference's: the same evaluation steps in ``curve.json``, none missing or doubled, the same checkpoints, each
+committed with its row and loadable by the function behind ``kamino eval``, and no temporary file left. The kills
+inside a write are deterministic: a wrapper around ``kamino.envs.runs.replace`` (the one rename that commits a
+checkpoint or a run file) sends SIGKILL at the N-th rename of the chosen kind. The reference and the final resumed
+run share one process, and every process reads its compiled programs from the persistent cache.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import random
 import signal
@@ -27,63 +39,80 @@ pytest.importorskip("brax")
 from kamino.envs import runs
 from kamino.envs.policy import load_checkpoint
 
-#: the training: a checkpoint every 240 env steps, three in all; a PPO iteration collects batch_size x
-#: num_minibatches x unroll_length = 80 env steps, three of them between checkpoints (no evaluation rollouts)
+#: three evaluations (``--evals 4``: brax's first one at step 0 is off with ``run_evals=False``), 240 env steps
+#: apart: a PPO iteration collects batch_size x num_minibatches x unroll_length = 80 env steps, three per evaluation
 STEPS, EVERY = 720, 240
 ARGS = ["fourbar_track", "--backend", "warp", "--steps", str(STEPS), "--num-envs", "8", "--evals", "4",
         "--set", "batch_size=8", "--set", "num_minibatches=2", "--set", "unroll_length=5",
         "--set", "num_eval_envs=4", "--set", "episode_length=20", "--set", "run_evals=False", "--env", "reset_bank=8"]
 
-#: runs ``kamino train`` with a hook: KILL_AT=N marks (KILL_MARKER) the N-th checkpoint of the process once it is
-#: written to the staging area, before its rename into place, and sleeps there until killed
-HOOKED = """
-import os, sys, time, pathlib
+#: ``kamino train`` that kills itself: KILL_AT=KIND:N at the N-th commit of a checkpoint, env.json or curve.json
+#: (KIND checkpoint, env or curve; curve.json writes counted from the process's first checkpoint commit on), before
+#: its rename; KILL_AFTER=SECONDS that long after its imports. It writes STARTED_MARKER once its imports are done.
+KILLED = """
+import os, signal, sys, threading, pathlib
 from kamino.envs import runs, train
-marker = pathlib.Path(os.environ["KILL_MARKER"])
-if os.environ.get("KILL_AT"):
-    written, calls = runs.stage_checkpoint, []
-    def stage(*args, **kwargs):
-        folder = written(*args, **kwargs)
-        calls.append(folder)
-        if len(calls) == int(os.environ["KILL_AT"]):
-            marker.write_text(str(folder))
-            time.sleep(600)
-        return folder
-    runs.stage_checkpoint = stage
-marker.with_suffix(".started").write_text("")
+kind, _, nth = os.environ.get("KILL_AT", "").partition(":")
+renames = {"checkpoint": 0, "curve": 0, "env": 0}
+rename = runs.replace
+def kind_of(dst):
+    dst = pathlib.Path(dst)
+    if dst.parent.name == "checkpoints":
+        return "checkpoint"
+    return {"curve.json": "curve", "env.json": "env"}.get(dst.name)
+def replace(src, dst):
+    k = kind_of(dst)
+    if k is not None and (k != "curve" or renames["checkpoint"]):
+        renames[k] += 1
+        if k == kind and renames[k] == int(nth):
+            os.kill(os.getpid(), signal.SIGKILL)
+    rename(src, dst)
+runs.replace = replace
+if os.environ.get("KILL_AFTER"):
+    threading.Timer(float(os.environ["KILL_AFTER"]), os.kill, (os.getpid(), signal.SIGKILL)).start()
+pathlib.Path(os.environ["STARTED_MARKER"]).write_text("")
 sys.exit(train.main(sys.argv[1:]))
 """
 
-
-def _start(out: Path, marker: Path, kill_at: str) -> subprocess.Popen:
-    env = {**os.environ, "KILL_MARKER": str(marker), "KILL_AT": kill_at}
-    return subprocess.Popen([sys.executable, "-c", HOOKED, *ARGS, "--out", str(out)], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-
-def _kill(proc: subprocess.Popen, *, may_have_finished: bool = False) -> str:
-    """SIGKILL ``proc``; with ``may_have_finished``, a run that completed between the caller's last look at it and
-    the signal passes as well (the random kill of step 2 can come after a short resumed run has ended)."""
-    proc.send_signal(signal.SIGKILL)
-    out, _ = proc.communicate(timeout=60)
-    assert proc.returncode == -signal.SIGKILL or (may_have_finished and proc.returncode == 0), out
-    return out
+#: the reference run, then the killed run resumed to its end, in one process (the reward plot, drawn after
+#: training, is left out: it is not part of the record and its first drawing costs seconds)
+RESUMED = """
+import sys
+from kamino.envs import train
+train.plot_curve = lambda *args, **kwargs: None
+args, folders = sys.argv[1:sys.argv.index("--")], sys.argv[sys.argv.index("--") + 1:]
+for out in folders:
+    status = train.main([*args, "--out", out])
+    if status:
+        sys.exit(status)
+"""
 
 
-def _wait_for(path: Path, proc: subprocess.Popen, timeout: float) -> None:
-    t0 = time.monotonic()
-    while not path.exists():
-        if proc.poll() is not None:
-            raise AssertionError(f"the run ended (status {proc.returncode}) before {path.name}:\n{proc.stdout.read()}")
-        if time.monotonic() - t0 > timeout:
-            _kill(proc)
-            raise AssertionError(f"no {path.name} within {timeout} s")
-        time.sleep(0.05)
+def _killed(out: Path, tmp: Path, **env: str) -> tuple[int, float]:
+    """Run ``KILLED`` into ``out`` with the kill settings ``env``: its exit status and its seconds from the end of
+    its imports to its end."""
+    started, log = tmp / "started", tmp / "killed.log"
+    started.unlink(missing_ok=True)
+    with log.open("w") as sink:
+        proc = subprocess.Popen([sys.executable, "-c", KILLED, *ARGS, "--out", str(out)],
+                                env={**os.environ, "STARTED_MARKER": str(started), **env}, stdout=sink,
+                                stderr=subprocess.STDOUT)
+        t0, t_start = None, time.monotonic()
+        while proc.poll() is None:
+            if t0 is None and started.exists():
+                t0 = time.monotonic()
+            if time.monotonic() - t_start > 300:
+                proc.kill()
+                proc.wait()
+                raise AssertionError(f"the run into {out} took over 300 s:\n{log.read_text()}")
+            time.sleep(0.02)
+    assert proc.returncode in (0, -signal.SIGKILL), log.read_text()
+    return proc.returncode, time.monotonic() - (t0 or time.monotonic())
 
 
 def _plant_debris(out: Path) -> None:
-    """What a kill inside a non-atomic writer leaves: an empty step folder, one with only its network config, and a
-    temporary side file; none may be taken for a checkpoint or a curve."""
+    """What a kill inside a writer without staging would leave: an empty step folder, one with only its network
+    config, and a temporary side file; none may be taken for a checkpoint or a row."""
     ckpt = out / "checkpoints"
     (ckpt / f"{10 * STEPS:012d}").mkdir(parents=True, exist_ok=True)
     half = ckpt / f"{9 * STEPS:012d}"
@@ -92,61 +121,82 @@ def _plant_debris(out: Path) -> None:
     (out / ".curve.json.x.tmp").write_text('[{"step": ')
 
 
-def test_training_killed_anywhere_resumes_to_completion(tmp_path):
-    out, marker = tmp_path / "run", tmp_path / "marker"
+def _committed(out: Path) -> list[int]:
+    """The steps of the committed checkpoints of ``out``, after checking that each is an evaluation step of the
+    reference's schedule and holds its own row, and that the run files are whole and hold no other rows."""
+    found = runs.committed_checkpoints(out / "checkpoints")
+    steps = [step for step, _ in found]
+    assert steps == SCHEDULE[:len(steps)], steps
+    for step, path in found:
+        record = runs.checkpoint_record(path)
+        assert [row["step"] for row in record["curve"]] == [step] and record["env"] == {"reset_bank": 8}
+    curve = [row["step"] for row in runs.read_json(out / "curve.json", [])]  # parses: whole
+    assert curve == SCHEDULE[:len(curve)] and len(curve) >= len(steps) - 1, (curve, steps)
+    for name in ("run.json", "env.json"):
+        runs.read_json(out / name)
+    return steps
+
+
+def _record(out: Path) -> dict:
+    """What a run folder's record is compared on."""
+    found = runs.committed_checkpoints(out / "checkpoints")
+    return {"curve": [row["step"] for row in runs.read_json(out / "curve.json", [])],
+            "checkpoints": [step for step, _ in found],
+            "rows": [[row["step"] for row in runs.checkpoint_record(path)["curve"]] for _, path in found],
+            "run": runs.read_json(out / "run.json"), "env": runs.read_json(out / "env.json"),
+            "leftovers": sorted(p.name for p in (*out.iterdir(), *(out / "checkpoints").iterdir())
+                                if p.name.startswith("."))}
+
+
+#: the evaluation (and checkpoint) steps of the uninterrupted run
+SCHEDULE = [EVERY, 2 * EVERY, 3 * EVERY]
+
+
+def test_a_run_killed_five_times_resumes_to_the_record_of_an_uninterrupted_run(tmp_path):
     rng = random.Random(int.from_bytes(os.urandom(4), "little"))
+    out = tmp_path / "run"
     t0 = time.monotonic()
 
-    # 1. killed inside the second checkpoint write: that checkpoint is staged, not committed; the first one is
-    started = marker.with_suffix(".started")
-    proc = _start(out, marker, "2")
-    _wait_for(started, proc, timeout=300)
-    t_started = time.monotonic()
-    _wait_for(marker, proc, timeout=300)
-    to_write = time.monotonic() - t_started  # from the run's start (imports done) to its second write
-    _kill(proc)
-    staged = Path(marker.read_text())
-    assert staged.exists() and runs.STAGING in staged.parts and staged.name == f"{2 * EVERY:012d}"
-    assert [s for s, _ in runs.committed_checkpoints(out / "checkpoints")] == [EVERY]
+    status, to_first_write = _killed(out, tmp_path, KILL_AT="checkpoint:1")
+    assert status == -signal.SIGKILL and _committed(out) == []
+    assert (out / "checkpoints" / runs.STAGING / f"{EVERY:012d}").is_dir()  # staged whole, not renamed
     _plant_debris(out)
 
-    # 2. resumed from the first checkpoint and killed at a random moment of its training, timed from its own start
-    #    (a resumed run reads its compiles from the cache: it takes less than the first run to the same point)
-    marker.unlink()
-    started.unlink()
-    delay = rng.uniform(0.05, 1.0) * to_write
-    print(f"random kill {delay:.1f} s after the resumed run's start (the first run's second write came "
-          f"{to_write:.1f} s after its start)")
-    proc = _start(out, marker, "")
-    _wait_for(started, proc, timeout=300)
-    t1 = time.monotonic()
-    while time.monotonic() - t1 < delay and proc.poll() is None:
-        time.sleep(0.05)
-    if proc.poll() is None:
-        _kill(proc, may_have_finished=True)
-    for path in ("run.json", "env.json", "curve.json"):  # whatever exists is whole
-        if (out / path).exists():
-            json.loads((out / path).read_text())
+    status, _ = _killed(out, tmp_path, KILL_AT="env:1")
+    assert status == -signal.SIGKILL and list(out.glob(".env.json.*.tmp"))  # the new file whole, not renamed
+    assert runs.read_json(out / "env.json") == {"reset_bank": 8}  # the old one, whole
 
-    # 3. resumed to completion
-    proc = subprocess.run([sys.executable, "-c", HOOKED, *ARGS, "--out", str(out)], capture_output=True, text=True,
-                          env={**os.environ, "KILL_MARKER": str(marker), "KILL_AT": ""}, timeout=600)
+    delays = [rng.uniform(0.0, 1.2) * to_first_write for _ in range(2)]
+    print(f"random kills {delays[0]:.1f} s and {delays[1]:.1f} s after the imports (the first checkpoint write came "
+          f"{to_first_write:.1f} s after them)")
+    _killed(out, tmp_path, KILL_AFTER=f"{delays[0]:.3f}")
+    before = _committed(out)
+
+    status, _ = _killed(out, tmp_path, KILL_AT="curve:1")
+    if len(before) < len(SCHEDULE):  # the run had a checkpoint left to write: it commits it, then dies at its row
+        assert status == -signal.SIGKILL and list(out.glob(".curve.json.*.tmp"))
+        assert _committed(out) == SCHEDULE[:len(before) + 1]
+
+    _killed(out, tmp_path, KILL_AFTER=f"{delays[1]:.3f}")
+    _committed(out)
+    t_kills = time.monotonic() - t0
+
+    reference = tmp_path / "reference"
+    proc = subprocess.run([sys.executable, "-c", RESUMED, *ARGS, "--", str(reference), str(out)], capture_output=True,
+                          text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "resuming at step" in proc.stdout, proc.stdout
-    print(f"three runs in {time.monotonic() - t0:.1f} s")
+    print(f"five killed runs in {t_kills:.1f} s, the reference and the resumed run in "
+          f"{time.monotonic() - t0 - t_kills:.1f} s")
 
-    found = runs.committed_checkpoints(out / "checkpoints")
-    steps = [s for s, _ in found]
-    assert steps[-1] >= STEPS and steps == sorted(set(steps)) and steps[0] == EVERY
-    assert not (out / "checkpoints" / runs.STAGING).exists()
-    curve = json.loads((out / "curve.json").read_text())
-    curve_steps = [c["step"] for c in curve]
-    assert curve_steps == sorted(set(curve_steps)) and curve_steps[-1] == steps[-1]
-    assert json.loads((out / "run.json").read_text())["task"] == "fourbar_track"
+    expected = _record(reference)
+    assert expected["curve"] == expected["checkpoints"] == SCHEDULE
+    assert expected["rows"] == [[step] for step in SCHEDULE]
+    assert expected["run"]["eval_every"] == EVERY and expected["leftovers"] == []
+    assert _record(out) == expected
     obs = np.linspace(-1.0, 1.0, 7, dtype=np.float32)[None]
-    for step, path in found:
+    for step, path in runs.committed_checkpoints(out / "checkpoints"):
         policy = load_checkpoint(path)
-        assert policy.task == "fourbar_track" and policy.step == step
+        assert policy.task == "fourbar_track" and policy.step == step and policy.env == {"reset_bank": 8}
         action = np.asarray(policy.act(obs))
         assert action.shape == (1, 1) and np.all(np.abs(action) <= 1.0)
-    assert load_checkpoint(out).step == steps[-1]  # the run folder evaluates its newest checkpoint
+    assert load_checkpoint(out).step == SCHEDULE[-1]  # the run folder evaluates its newest checkpoint

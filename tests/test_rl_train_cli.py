@@ -2,6 +2,7 @@
 anything is built, ``--fresh`` refusing a used run folder, and the run folder's own records."""
 
 import json
+import os
 
 import pytest
 
@@ -154,3 +155,76 @@ def test_the_kamino_command_reaches_the_library(command, capsys):
             cli.main(["eval", "no_such_policy"])
         assert exit_.value.code == 2
         assert "dr_legs_walk" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("total, num_evals, unit", [(720, 4, 80), (1000, 5, 96), (100, 5, 40), (300, 1, 64)])
+def test_the_evaluation_steps_stay_fixed_when_a_run_resumes(total, num_evals, unit):
+    """The evaluations of a run come every Brax epoch of its first settings. A run resumed at any evaluation step
+    asks Brax for the evaluations left and their steps, and Brax's epoch for those (``ceil(steps / ((evals - 1)
+    unit)) unit``) is the same spacing: the resumed run evaluates at the uninterrupted run's steps, not at steps
+    recomputed from what remains."""
+    every = rl_train.eval_spacing(total, num_evals, unit)
+    schedule = rl_train.eval_steps(total, num_evals, every)
+    assert every % unit == 0 and schedule[-1] >= total and len(schedule) == max(num_evals - 1, 1)
+    assert schedule == [every * k for k in range(1, len(schedule) + 1)]
+    for done in (0, *schedule[:-1]):
+        left = sum(step > done for step in schedule)
+        assert rl_train.eval_spacing(left * every, left + 1, unit) == every
+    assert rl_train.eval_steps(3 * schedule[-1], num_evals, every)[-1] >= 3 * schedule[-1]  # --steps raised later
+
+
+def test_a_resume_off_the_evaluation_schedule_is_refused(tmp_path):
+    """A resumed run keeps the spacing ``run.json`` records; a checkpoint off it, or PPO settings whose epoch does not
+    divide it, is an error naming the step and the way out."""
+    ckpt = tmp_path / "checkpoints" / f"{480:012d}"
+    runs.write_json(tmp_path / "run.json", {"task": "fourbar_track", "backend": "warp", "eval_every": 240})
+    assert rl_train._schedule(tmp_path, ckpt, 480, total=10_000, num_evals=3, unit=80) == 240
+    assert rl_train._schedule(tmp_path, None, 0, total=720, num_evals=4, unit=80) == 240  # a new run: Brax's epoch
+    with pytest.raises(rl_train.OptionError, match=r"step 400.*--fresh"):
+        rl_train._schedule(tmp_path, ckpt, 400, total=720, num_evals=4, unit=80)
+    with pytest.raises(rl_train.OptionError, match="epochs of 96 steps"):
+        rl_train._schedule(tmp_path, ckpt, 480, total=720, num_evals=4, unit=96)
+
+
+def _fake_checkpoint(folder, step: int, record: dict | None = None) -> None:
+    path = folder / "checkpoints" / f"{step:012d}"
+    path.mkdir(parents=True)
+    for name in (runs.COMMIT_MARKER, runs.NETWORK_CONFIG):
+        (path / name).write_text("{}")
+    if record is not None:
+        runs.write_json(path / runs.RECORD, record)
+
+
+def test_a_resumed_run_takes_its_rows_from_the_committed_checkpoints(tmp_path):
+    """Each checkpoint holds the rows since the one before (row 0 goes with the first); the rows a killed run wrote
+    after its last checkpoint, or twice, are not in the record. A checkpoint without ``record.json`` (an older run)
+    keeps the run files' rows up to its step."""
+    rows = lambda *steps: [{"step": s, "reward": float(s)} for s in steps]  # noqa: E731
+    _fake_checkpoint(tmp_path, 100, {"step": 100, "env": {"a": 1}, "curve": rows(0, 100), "train_curve": rows(50),
+                                     "walk_tests": []})
+    _fake_checkpoint(tmp_path, 200, {"step": 200, "env": {"a": 1}, "curve": rows(200), "train_curve": rows(150),
+                                     "walk_tests": rows(200)})
+    runs.write_json(tmp_path / "curve.json", rows(0, 0, 100, 200, 300))
+    record = runs.committed_record(tmp_path)
+    assert [r["step"] for r in record["curve"]] == [0, 100, 200]
+    assert [r["step"] for r in record["train_curve"]] == [50, 150]
+    assert [r["step"] for r in record["walk_tests"]] == [200]
+    assert runs.run_env(tmp_path / "checkpoints" / f"{200:012d}", "fourbar_track") == {"a": 1}  # the checkpoint's own
+
+    legacy = tmp_path / "legacy"
+    _fake_checkpoint(legacy, 100)
+    _fake_checkpoint(legacy, 200, {"step": 200, "curve": rows(200)})
+    runs.write_json(legacy / "curve.json", rows(0, 100, 200, 300))
+    assert [r["step"] for r in runs.committed_record(legacy)["curve"]] == [0, 100, 200]
+
+
+def test_a_run_file_that_holds_its_rows_already_is_not_rewritten(tmp_path, monkeypatch):
+    """A resumed run rewrites ``curve.json`` only when it differs from what the committed checkpoints hold (rows
+    with a NaN return compare equal by their text)."""
+    path = tmp_path / "curve.json"
+    rows = [{"step": 240, "reward": float("nan")}]
+    assert runs.write_json_if_changed(path, rows)
+    renamed = []
+    monkeypatch.setattr(runs, "replace", lambda src, dst: renamed.append(dst) or os.replace(src, dst))
+    assert not runs.write_json_if_changed(path, [{"step": 240, "reward": float("nan")}]) and renamed == []
+    assert runs.write_json_if_changed(path, [*rows, {"step": 480, "reward": 1.0}]) and renamed == [path]

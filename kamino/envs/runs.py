@@ -2,16 +2,22 @@
 
 A run folder ``RUN`` holds:
 
-- ``run.json``: the task and backend;
+- ``run.json``: the task, the backend and the evaluation spacing (``eval_every``, environment steps);
 - ``env.json``: the environment's keywords (the task's config with ``--env`` over it);
-- ``checkpoints/<step>/``: Brax's PPO checkpoint (orbax parameters and ``ppo_network_config.json``) after each
-  evaluation, ``<step>`` the environment steps over all runs, zero-padded to 12 digits;
+- ``checkpoints/<step>/``: Brax's PPO checkpoint (orbax parameters and ``ppo_network_config.json``) and
+  ``record.json`` (the environment's keywords, and the curve rows, training-return rows and walking tests of the
+  steps since the checkpoint before) after each evaluation, ``<step>`` the environment steps over all runs,
+  zero-padded to 12 digits;
 - ``curve.json``, ``train_curve.json``, ``walk_tests.json``, ``report.json``, ``reward_curve.png``.
 
 Every JSON file is written whole or not at all (:func:`write_json`: a temporary file in the same folder, then
 ``os.replace``). A checkpoint is written complete under ``checkpoints/.staging/`` and renamed into place
 (:func:`save_checkpoint`), so ``checkpoints/<step>/`` exists only once every file in it does; a folder that lacks
 orbax's ``commit_success.txt`` marker or the network config is not a checkpoint (:func:`committed_checkpoints`).
+An evaluation's row and its checkpoint are one committed unit: the row lives in the checkpoint's ``record.json``,
+and the run's ``curve.json``, ``train_curve.json`` and ``walk_tests.json`` are rebuilt from the committed
+checkpoints when a run resumes (:func:`committed_record`). Whenever a run is killed, the run it resumes to ends with
+the same evaluation steps, each row once, and the same checkpoints as a run never interrupted.
 """
 
 from __future__ import annotations
@@ -30,6 +36,10 @@ NETWORK_CONFIG = "ppo_network_config.json"
 COMMIT_MARKER = "commit_success.txt"
 #: where a checkpoint is assembled before its rename into ``checkpoints/``
 STAGING = ".staging"
+#: the file in a checkpoint with the environment's keywords and the rows the checkpoint commits
+RECORD = "record.json"
+#: the run files rebuilt from the checkpoints' records, each a list of rows with a ``step``
+RECORD_FILES = {"curve": "curve.json", "train_curve": "train_curve.json", "walk_tests": "walk_tests.json"}
 #: the files a run writes; ``--fresh --overwrite`` removes these and nothing else
 RUN_FILES = ("run.json", "env.json", "curve.json", "train_curve.json", "walk_tests.json", "report.json",
              "reward_curve.png")
@@ -40,6 +50,16 @@ def write_json(path: Path, data: Any, **dump_kwargs) -> None:
     never a part of either, whenever the writer is killed."""
     text = json.dumps(data, indent=1, **dump_kwargs) + "\n"
     write_text(path, text)
+
+
+def write_json_if_changed(path: Path, data: Any) -> bool:
+    """:func:`write_json` unless ``path`` already holds exactly that JSON; whether it wrote."""
+    path = Path(path)
+    text = json.dumps(data, indent=1) + "\n"
+    if path.is_file() and path.read_text() == text:
+        return False
+    write_text(path, text)
+    return True
 
 
 def write_text(path: Path, text: str) -> None:
@@ -98,14 +118,17 @@ def stage_checkpoint(staging: Path, step: int, params: Any, config: Any) -> Path
     return staging / f"{step:012d}"
 
 
-def save_checkpoint(folder: Path, step: int, params: Any, config: Any) -> Path:
+def save_checkpoint(folder: Path, step: int, params: Any, config: Any, record: dict | None = None) -> Path:
     """Save a checkpoint as ``folder/<step>/`` so that it appears complete or not at all: written under
-    ``folder/.staging/``, then renamed into place (a previous checkpoint of the same step is replaced)."""
+    ``folder/.staging/`` (Brax's parameters and network config, and ``record``, when given, as ``record.json``),
+    then renamed into place (a previous checkpoint of the same step is replaced)."""
     folder = Path(folder).resolve()
     staging = folder / STAGING
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     written = stage_checkpoint(staging, step, params, config)
+    if record is not None:
+        write_json(written / RECORD, record)
     if not is_checkpoint(written):
         raise RuntimeError(f"save_checkpoint: the checkpoint written to {written} lacks {COMMIT_MARKER} or "
                            f"{NETWORK_CONFIG}")
@@ -117,10 +140,43 @@ def save_checkpoint(folder: Path, step: int, params: Any, config: Any) -> Path:
     return target
 
 
+def checkpoint_record(path: Path) -> dict | None:
+    """The ``record.json`` of the checkpoint ``path``; ``None`` for a checkpoint written without one."""
+    return read_json(Path(path) / RECORD)
+
+
+def committed_record(out: Path) -> dict[str, list[dict]]:
+    """The rows (``curve``, ``train_curve``, ``walk_tests``) that the committed checkpoints of the run folder ``out``
+    hold, in step order, each once. A checkpoint without ``record.json`` (written before records existed) keeps the
+    rows of the run files up to its step."""
+    found = committed_checkpoints(Path(out) / "checkpoints")
+    rows: dict[str, list[dict]] = {key: [] for key in RECORD_FILES}
+    covered = -1  # the rows at or below this step come from the run files
+    for step, path in found:
+        record = checkpoint_record(path)
+        if record is None:
+            covered = step
+            continue
+        for key in RECORD_FILES:
+            rows[key].extend(record.get(key, []))
+    if covered >= 0:
+        for key, name in RECORD_FILES.items():
+            legacy = [r for r in read_json(Path(out) / name, []) if r["step"] <= covered]
+            rows[key] = legacy + [r for r in rows[key] if r["step"] > covered]
+    for key in rows:  # each step once: the last committed row of a step wins
+        by_step = {r["step"]: r for r in rows[key]}
+        rows[key] = sorted(by_step.values(), key=lambda r: r["step"])
+    return rows
+
+
 def clear_partial(folder: Path) -> None:
-    """Remove what a killed run left half-written in the checkpoint folder: the staging area, and step folders that
-    are not complete checkpoints."""
+    """Remove what a killed run left half-written in the checkpoint folder ``folder``: the staging area, step folders
+    that are not complete checkpoints, and the temporary files of the run files beside it."""
     folder = Path(folder)
+    for name in RUN_FILES:
+        stem = Path(name).stem
+        for tmp in (*folder.parent.glob(f".{name}.*.tmp"), *folder.parent.glob(f".{stem}.tmp*")):
+            tmp.unlink(missing_ok=True)
     if not folder.is_dir():
         return
     shutil.rmtree(folder / STAGING, ignore_errors=True)
@@ -154,10 +210,13 @@ def run_folder(path: Path) -> Path | None:
 
 
 def run_env(path: Path, task: str) -> dict:
-    """The environment keywords a run was trained with: ``env.json`` of the run folder of ``path``
-    (:func:`run_folder`), else the task's config."""
+    """The environment keywords a run was trained with: those in the ``record.json`` of the checkpoint ``path``,
+    else ``env.json`` of the run folder of ``path`` (:func:`run_folder`), else the task's config."""
     from kamino.envs.configs import task_config
 
+    record = checkpoint_record(path) if is_checkpoint(path) else None
+    if record is not None and "env" in record:
+        return record["env"]
     folder = run_folder(path)
     if folder is not None and (folder / "env.json").exists():
         return json.loads((folder / "env.json").read_text())
@@ -190,6 +249,8 @@ def key_values(items: list[str], flag: str) -> dict[str, Any]:
     return out
 
 
-__all__ = ["COMMIT_MARKER", "NETWORK_CONFIG", "RUN_FILES", "OptionError", "clear_partial", "clear_run",
-           "committed_checkpoints", "is_checkpoint", "is_used", "key_values", "latest_checkpoint", "read_json",
-           "run_env", "run_folder", "run_task", "save_checkpoint", "write_json", "write_text"]
+__all__ = ["COMMIT_MARKER", "NETWORK_CONFIG", "RECORD", "RECORD_FILES", "RUN_FILES", "OptionError",
+           "checkpoint_record", "clear_partial", "clear_run", "committed_checkpoints", "committed_record",
+           "is_checkpoint", "is_used", "key_values", "latest_checkpoint", "read_json",
+           "run_env", "run_folder", "run_task", "save_checkpoint", "write_json", "write_json_if_changed",
+           "write_text"]

@@ -3,9 +3,13 @@
 The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS``; ``--steps``, ``--num-envs``, ``--evals``,
 ``--seed`` and ``--set`` override them, ``--env`` the environment's keywords and ``--solver`` its ``SolverConfig``.
 The run folder (``--out``, default ``scratch/rl/TASK``; its layout: :mod:`kamino.envs.runs`) gets a checkpoint
-after every evaluation. Running the same command again resumes from the newest complete checkpoint and trains the
-steps that remain (Brax restores the parameters; the optimizer state starts afresh), with the environment of the
-run's ``env.json``. ``--fresh`` starts over, and refuses a folder that holds a run unless ``--overwrite`` is given.
+after every evaluation. The evaluations come at fixed steps: every ``eval_every`` environment steps (Brax's epoch
+for the run's first ``--steps`` and ``--evals``, recorded in ``run.json``), up to ``--steps``. Running the same
+command again resumes from the newest complete checkpoint and trains to the same steps (Brax restores the
+parameters; the optimizer state starts afresh), with the environment of the run's ``env.json``. Each evaluation's
+row is committed with its checkpoint, so a run killed at any moment and resumed ends with the record of a run never
+interrupted: the same evaluation steps, each row once, the same checkpoints. ``--fresh`` starts over, and refuses a
+folder that holds a run unless ``--overwrite`` is given.
 
 Besides the checkpoints the run writes ``curve.json`` (each evaluation: step, mean and spread of the episode
 return, wall time, env steps/s of the epoch before it), ``train_curve.json`` (``--train-returns N``: the training
@@ -16,6 +20,8 @@ tasks: :func:`kamino.envs.evaluate.walking_test` on each checkpoint), ``reward_c
 from __future__ import annotations
 
 import argparse
+import inspect
+import math
 import platform
 import sys
 import time
@@ -31,6 +37,28 @@ def walk_test_due(step: int, tested: list[int], start: int, every: int) -> bool:
     """Whether the checkpoint at ``step`` gets the walking test: from ``start`` steps on, and at least ``every``
     steps after the last tested checkpoint (``tested``, ascending; a resumed run continues the saved list)."""
     return step >= start and (not tested or step - tested[-1] >= every)
+
+
+def epoch_unit(ppo: dict, defaults: dict) -> int:
+    """Environment steps of the smallest epoch Brax's PPO runs with the keywords ``ppo`` (``defaults``: those of
+    ``ppo.train``): ``batch_size x unroll_length x num_minibatches x action_repeat``, times the resets per
+    evaluation when there are any."""
+    get = lambda name: int(ppo.get(name, defaults[name]))  # noqa: E731
+    resets = max(get("num_resets_per_eval"), 1)
+    return get("batch_size") * get("unroll_length") * get("num_minibatches") * get("action_repeat") * resets
+
+
+def eval_spacing(total: int, num_evals: int, unit: int) -> int:
+    """The environment steps between two evaluations of a run of ``total`` steps and ``num_evals`` evaluations, on
+    epochs of ``unit`` steps: Brax's epoch, ``ceil(total / (max(num_evals - 1, 1) unit)) unit``."""
+    return math.ceil(total / (max(num_evals - 1, 1) * unit)) * unit
+
+
+def eval_steps(total: int, num_evals: int, every: int) -> list[int]:
+    """The evaluation (and checkpoint) steps of a run: every ``every`` steps, ``max(num_evals - 1, 1)`` of them
+    and more when ``total`` lies beyond (a run resumed with more ``--steps`` than it started with)."""
+    count = max(max(num_evals - 1, 1), math.ceil(total / every))
+    return [every * k for k in range(1, count + 1)]
 
 
 class Progress:
@@ -163,18 +191,25 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     kwargs = ppo_kwargs(task, **{**ppo, **overrides})
     total, num_evals = int(kwargs["num_timesteps"]), int(kwargs["num_evals"])
     ckpt_dir = out / "checkpoints"
-    curve_path, train_path, walk_path = out / "curve.json", out / "train_curve.json", out / "walk_tests.json"
+    paths = {key: out / name for key, name in runs.RECORD_FILES.items()}
 
     done, restore = runs.latest_checkpoint(ckpt_dir)
-    # rows up to the restored checkpoint stay; without one, the rows of a run that committed nothing go
-    curve, train_curve, walks = ([r for r in runs.read_json(path, []) if restore is not None and r["step"] <= done]
-                                 for path in (curve_path, train_path, walk_path))
-    remaining = total - done
+    # the rows the committed checkpoints hold; rows a killed run wrote after its last checkpoint go
+    record = runs.committed_record(out) if restore is not None else {key: [] for key in paths}
+    curve, train_curve, walks = record["curve"], record["train_curve"], record["walk_tests"]
+    unit = epoch_unit(kwargs, _ppo_defaults(ppo_train.train))
+    every = _schedule(out, restore, done, total, num_evals, unit)
+    schedule = eval_steps(total, num_evals, every)
+    left = sum(step > done for step in schedule)
+    end = schedule[-1]
     # a resumed run keeps the environment it was trained with (env.json), a new one starts from the task's config
     env_kwargs = {**(runs.run_env(out, task) if restore else cfg["env"]), **env_overrides}
     environment = make(task, backend=backend, **env_kwargs)
-    runs.write_json(out / "run.json", {"task": task, "backend": backend})
+    runs.write_json(out / "run.json", {"task": task, "backend": backend, "eval_every": every})
     runs.write_json(out / "env.json", env_kwargs)
+    for key, path in paths.items():  # the run files as the committed checkpoints hold them
+        if path.exists() or record[key]:
+            runs.write_json_if_changed(path, record[key])
     if solver:
         config = environment.solver_config.replace(**solver)
         environment = make(task, backend=backend, solver_config=config, **env_kwargs)
@@ -183,67 +218,87 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         print(f"{task}: backend {backend}, {used} device(s) {jax.devices()[0].platform}, "
               f"{environment.observation_size} observations, {environment.action_size} actions, policy "
               f"{1 / environment.dt:.0f} Hz; {'resuming at step ' + str(done) if restore else 'starting'}, "
-              f"{max(remaining, 0)} steps to go{' (compiling first)' if remaining > 0 else ''}", flush=True)
+              f"{max(end - done, 0)} steps to go{' (compiling first)' if left else ''}", flush=True)
 
-    bar = Progress(total, done, progress)
+    bar = Progress(end, done, progress)
     start = time.perf_counter()
     last: dict = {}
     first: dict = {}
     net_config = ppo_checkpoint.network_config(environment.observation_size, environment.action_size,
                                                kwargs.get("normalize_observations", False), kwargs["network_factory"])
+    # what the next checkpoint commits: its parameters (Brax hands them over before evaluating them), and the rows
+    # since the checkpoint before
+    pending: dict = {"params": None, "make_policy": None, "curve": [], "train_curve": [], "walk_tests": []}
+    walk_run = None
+    walk_env = make(task, backend=backend, **{**env_kwargs, "resample_steps": None}) if walk_test else None
 
     def on_metrics(step: int, metrics: dict) -> None:
         nonlocal last, first
         metrics = {k: float(np.asarray(v)) for k, v in metrics.items()}
         if "episode/sum_reward" in metrics:  # brax's training-episode logger (train_returns), not an evaluation
-            train_curve.append({"step": done + step, "reward": metrics["episode/sum_reward"],
-                                "length": metrics.get("episode/length", float("nan")),
-                                "env_steps_per_s": metrics.get("episode/sps", float("nan")),
-                                "run_wall_s": time.perf_counter() - start,
-                                "episode": {k[len("episode/"):]: v for k, v in metrics.items()
-                                            if k.startswith("episode/")}})
-            runs.write_json(train_path, train_curve)
-            e = train_curve[-1]
+            pending["train_curve"].append({
+                "step": done + step, "reward": metrics["episode/sum_reward"],
+                "length": metrics.get("episode/length", float("nan")),
+                "env_steps_per_s": metrics.get("episode/sps", float("nan")),
+                "run_wall_s": time.perf_counter() - start,
+                "episode": {k[len("episode/"):]: v for k, v in metrics.items() if k.startswith("episode/")}})
+            runs.write_json(paths["train_curve"], train_curve + pending["train_curve"])
+            e = pending["train_curve"][-1]
             bar.update(e["step"], e["reward"], float("nan"), e["env_steps_per_s"], e["run_wall_s"])
             return
-        if restore is not None and step == 0:
-            return  # the restored policy, evaluated by the previous run already
         entry = {"step": done + step, "reward": metrics.get("eval/episode_reward", float("nan")),
                  "reward_std": metrics.get("eval/episode_reward_std", float("nan")),
                  "run_wall_s": time.perf_counter() - start}
         if "training/sps" in metrics:  # the epoch before this evaluation; the first one includes compilation
             entry["env_steps_per_s"] = metrics["training/sps"]
-        curve.append(entry)
-        runs.write_json(curve_path, curve)
+        if restore is not None and step == 0:
+            # the restored policy: its row is in its checkpoint's record; a checkpoint written without one (by an
+            # older kamino) may lack its row in curve.json, and this evaluation gives it
+            if done not in {row["step"] for row in curve}:
+                curve.append(entry)
+                curve.sort(key=lambda row: row["step"])
+                runs.write_json(paths["curve"], curve)
+            return
+        pending["curve"].append(entry)
         first = first or metrics
         last = metrics
+        if step > 0:
+            _commit(done + step)
         bar.update(done + step, entry["reward"], entry["reward_std"], metrics.get("training/sps", 0.0),
                    entry["run_wall_s"])
 
-    walk_run = None
-    walk_env = make(task, backend=backend, **{**env_kwargs, "resample_steps": None}) if walk_test else None
-
     def on_params(step: int, make_policy, params) -> None:
+        if step > 0:  # committed with its evaluation's row (on_metrics)
+            pending["params"], pending["make_policy"] = params, make_policy
+
+    def _commit(step: int) -> None:
+        """Run the walking test when due, then commit the checkpoint of ``step`` with its rows, then the run
+        files."""
         nonlocal walk_run
-        if step == 0:
-            return
-        runs.save_checkpoint(ckpt_dir, done + step, params, net_config)
-        if walk_test and walk_test_due(done + step, [w["step"] for w in walks], walk_test_from, walk_test_every):
+        params = pending["params"]
+        if walk_test and walk_test_due(step, [w["step"] for w in walks], walk_test_from, walk_test_every):
             t0 = time.perf_counter()
-            walk_run = walk_run or walking_test(walk_env, make_policy, episodes=walk_test, seconds=10.0,
+            walk_run = walk_run or walking_test(walk_env, pending["make_policy"], episodes=walk_test, seconds=10.0,
                                                 speed=(0.3, 0.5), seed=walk_seed)
             vx, lin, _, counted, fell = walk_run(params)
-            walks.append({"step": done + step, **summarize(vx, lin, counted, fell), "seed": walk_seed,
-                          "wall_s": time.perf_counter() - t0})
-            runs.write_json(walk_path, walks)
-            w = walks[-1]
+            pending["walk_tests"].append({"step": step, **summarize(vx, lin, counted, fell), "seed": walk_seed,
+                                          "wall_s": time.perf_counter() - t0})
+            w = pending["walk_tests"][-1]
             print(f"walking test at {w['step']}: error {w['tracking_error_mean']:.3f} m/s, falls "
                   f"{100 * w['fall_fraction']:.1f} %, forward {w['forward_speed_mean']:.3f} m/s ({w['wall_s']:.0f} s)",
                   flush=True)
+        rows = {key: pending[key] for key in paths}
+        runs.save_checkpoint(ckpt_dir, step, params, net_config, record={"step": step, "env": env_kwargs, **rows})
+        for key, target in (("curve", curve), ("train_curve", train_curve), ("walk_tests", walks)):
+            target.extend(pending[key])
+            pending[key] = []
+            if target:
+                runs.write_json(paths[key], target)
+        pending["params"] = pending["make_policy"] = None
 
-    if remaining > 0:
-        run_evals = max(2, round(num_evals * remaining / total))
-        kwargs.update(num_timesteps=remaining, num_evals=run_evals, progress_fn=on_metrics, policy_params_fn=on_params,
+    if left:
+        kwargs.update(num_timesteps=left * every, num_evals=left + 1 if restore is not None or num_evals > 1 else 1,
+                      progress_fn=on_metrics, policy_params_fn=on_params,
                       restore_checkpoint_path=None if restore is None else str(restore))
         if train_returns:
             kwargs.update(log_training_metrics=True, training_metrics_steps=train_returns)
@@ -261,7 +316,8 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         "task": task, "backend": backend, "command": command, "env": env_kwargs, "solver_overrides": solver,
         "network": cfg["network"],
         "ppo": {k: v for k, v in kwargs.items() if isinstance(v, (int, float, str, bool)) or v is None},
-        "total_steps": total, "steps_before_this_run": done, "steps_this_run": max(remaining, 0),
+        "total_steps": end, "eval_every": every, "steps_before_this_run": done,
+        "steps_this_run": max(end - done, 0),
         "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),
         "first_eval": first, "last_eval": last, "curve": curve, "train_curve": train_curve,
         "checkpoint": str(runs.latest_checkpoint(ckpt_dir)[1]), "walk_tests": walks,
@@ -274,6 +330,29 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         print(f"return {curve[0]['reward']:.2f} (step {curve[0]['step']}) -> {curve[-1]['reward']:.2f} "
               f"(step {curve[-1]['step']}); run folder {out}", flush=True)
     return report
+
+
+def _ppo_defaults(ppo_train_fn) -> dict:
+    """The keyword defaults of Brax's ``ppo.train``."""
+    return {name: p.default for name, p in inspect.signature(ppo_train_fn).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+
+
+def _schedule(out: Path, restore: Path | None, done: int, total: int, num_evals: int, unit: int) -> int:
+    """The steps between the evaluations of the run in ``out``: those recorded in its ``run.json`` when it resumes,
+    else Brax's epoch for ``total`` and ``num_evals``. Raises :class:`OptionError` when the restored step ``done``
+    is not an evaluation step of that schedule, or the epoch of ``unit`` steps does not divide it."""
+    recorded = runs.read_json(out / "run.json", {}).get("eval_every") if restore is not None else None
+    every = int(recorded) if recorded else eval_spacing(total, num_evals, unit)
+    if every % unit:
+        raise OptionError(f"{out} evaluates every {every} environment steps, which epochs of {unit} steps "
+                          "(batch_size x unroll_length x num_minibatches x action_repeat) do not divide; resume "
+                          "with the PPO settings the run started with, or start over with --fresh --overwrite")
+    if done % every:
+        raise OptionError(f"{out}'s newest checkpoint is at step {done}, not an evaluation step of its schedule "
+                          f"(every {every} environment steps); resume with the settings the run started with, or "
+                          "start over with --fresh --overwrite")
+    return every
 
 
 def _version(package: str) -> str:
