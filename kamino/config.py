@@ -180,10 +180,13 @@ class Stabilisation:
     curvature_correction: bool = True
     """add the second-order drift of the pose update to the joint bias, so that velocity-level constraints hold at
     position level to O(dt^3) per step (docs/conventions.md, "Stabilisation")."""
-    curvature_refinement: bool = False
+    curvature_refinement: bool = True
     """after PADMM converges, evaluate the curvature term once more along the solved velocity ``u+`` and continue
     PADMM from its iterate (docs/conventions.md, "Stabilisation"): the loop closure error of a step drops from
-    ``O(h^2 |u+ - u_f| |u|)`` to third order, at the price of the extra iterations (up to ``max_iterations`` more)."""
+    ``O(h^2 |u+ - u_f| |u|)`` to third order, and a loop driven by an explicit torque keeps its kinetic energy
+    (docs/settings.md, "Integrators"), at the price of the extra iterations (up to ``max_iterations`` more). Only a
+    world whose first solve converged and that has joint or coupling rows refines; any other keeps its first solve
+    exactly, so a world's result does not depend on the worlds batched with it."""
     post_stabilisation: int = 1
     """number of position projections after the pose update (0: none; a world whose PADMM did not converge, or whose
     anchors are still open past ``REPROJECTION_GAP`` after them, gets one more). Each one removes the joint and

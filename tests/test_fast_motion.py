@@ -10,8 +10,8 @@ Two scenes, float64 (tests/conftest.py), at the default ``dt``:
   not depend on MuJoCo's softness or step: at dt = 1/19200 s it moves by less than 1e-7 J, and kamino's midpoint
   rule at dt = 1/9600 s gives the same kinetic energy to 1e-4 of it (docs/settings.md, "Integrators"). The loop
   is driven by an explicit torque, and the curvature term predicted along the free velocity asks it for a velocity
-  that adds energy every step: the four-bar runs with ``curvature_refinement`` on (``REFINED``, otherwise the
-  defaults), which evaluates that term along the solved velocity;
+  that adds energy every step: the defaults evaluate that term again along the solved velocity
+  (``Stabilisation.curvature_refinement``), and the four-bar runs at the defaults;
 - a 20-link pendulum chain (``kamino.bench.stress_models.serial_chain``) released horizontal, 2 s: it falls and
   whips, its last links turning at up to 130 rad/s (0.55 rad per step). The worst anchor gap over the whole run is
   what is checked, not the final one. It runs with the midpoint rule and two position projections
@@ -45,8 +45,8 @@ TORQUE, FOURBAR_SECONDS = 1.0, 0.5
 REF_SUBSTEPS = 40
 #: the issue's bar: kinetic energy within 5 % of the reference
 KE_BOUND = 0.05
-#: the defaults with the curvature term evaluated along the solved velocity (``Stabilisation.curvature_refinement``)
-REFINED = kamino.SolverConfig().replace(**{"stabilisation.curvature_refinement": True})
+#: the defaults: semi-implicit Euler, one projection, the curvature term evaluated again along the solved velocity
+DEFAULTS = kamino.SolverConfig()
 #: the chain: links, horizon [s], and the bound on its worst anchor gap over the run [m]
 CHAIN_LINKS, CHAIN_SECONDS, GAP_BOUND = 20, 2.0, 1e-4
 #: the chain's stepping: the midpoint rule with two position projections
@@ -92,14 +92,14 @@ def _rk4_kinetic_energy() -> np.ndarray:
 
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_driven_fourbar_kinetic_energy_follows_rk4_at_the_default_dt(variant):
-    """With curvature refinement the kinetic energy stays within 5 % of the reference's peak over the run, and within
-    5 % of the reference at its end (measured, Warp, semi-implicit Euler with one projection: 1.4 % and -0.1 %; the
-    midpoint rule with two projections: 0.7 % and -0.3 %). Without it the curvature term, predicted along the free
-    velocity that the explicit torque spins up, makes the end 11.3 % high (the midpoint rule: 5.05 %)."""
+    """At the defaults (curvature refinement on) the kinetic energy stays within 5 % of the reference's peak over
+    the run, and within 5 % of the reference at its end (measured, Warp, float64: 1.4 % and -0.1 %; the midpoint rule
+    with two projections: 0.7 % and -0.3 %). Without refinement the curvature term, predicted along the free velocity
+    that the explicit torque spins up, makes the end 11.3 % high (the midpoint rule: 5.05 %)."""
     model, crank = _fourbar()
     steps = round(FOURBAR_SECONDS / DT)
     effort = jnp.zeros((steps, model.num_dofs)).at[:, crank].set(TORQUE)
-    traj = variant.rollout(model, kamino.init_state(model), kamino.Control(dof_effort=effort), config=REFINED)
+    traj = variant.rollout(model, kamino.init_state(model), kamino.Control(dof_effort=effort), config=DEFAULTS)
     assert not bool(np.any(traj.info.failed)) and bool(np.all(traj.info.converged))
     ke = np.asarray(kamino.metrics(model, traj)["kinetic_energy"])[:, 0]
     ref = _rk4_kinetic_energy()

@@ -327,11 +327,11 @@ class Stepper:
                             outputs=[w.q_pred])  # q_pred along u+
             self._launch(rk.refine_joint_rows, (W, wm.max_cts),
                             inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_eval, w.q, w.q_pred,
-                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P],
+                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P, w.converged],
                             outputs=[w.vstar, w.vt])
             self._launch(rk.refine_coupling_rows, (W, wm.max_cpl),
                             inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_dof, w.q, w.q_pred,
-                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P],
+                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P, w.converged],
                             outputs=[w.vstar, w.vt])
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W,
