@@ -53,6 +53,11 @@ WARM_START_FILTER_SHIFT = 1e-6
 #: and the eight-legged Jansen walker's one-pass gap after a foot lands (1.6e-5 m on an H200) closes to below this
 #: with the second pass
 REPROJECTION_GAP = 1e-5
+#: post-stabilisation: a world whose anchors the extra pass leaves open past ``REPROJECTION_GAP`` gets up to this many
+#: Gauss-Newton passes more, each with the joint rows' Jacobian evaluated again at the projected pose and the
+#: projection's factor redone, until its gaps are below ``REPROJECTION_GAP`` (docs/conventions.md,
+#: "Post-stabilisation"): the step's Jacobian lags a link that turns 0.5 rad in a step, and passes with it stall
+REPROJECTION_PASSES = 4
 #: world health (docs/conventions.md, "World health"; both backends read these): a world whose largest anchor gap (a
 #: translational joint row's residual) exceeds ``LOOP_OPEN_BOUND`` [m] at the pose a step ends in, and exceeds the gap
 #: it had before the step, fails on that step. A healthy world keeps its anchors within ~1e-5 m in float32

@@ -151,7 +151,7 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
     proj = None
     if cfg.stabilisation.post_stabilisation and n_dyn + n_kin:
         P = solver.jacobi_preconditioner(D, row_mask, n_box)
-        proj = post.projector(J, D, P, n_dyn + n_kin, res.saturated, bd, cfg)
+        proj = post.projector(J, D, P, n_dyn + n_kin, res.saturated, bd, cfg, R)
     return u_plus, res, ct, side, proj
 
 

@@ -26,6 +26,7 @@ from kamino.config import (
     LIMIT_MARGIN,
     LOOP_OPEN_BOUND,
     REPROJECTION_GAP,
+    REPROJECTION_PASSES,
     RESTART_TOLERANCE,
     RESTITUTION_THRESHOLD,
     WARM_START_FILTER_SHIFT,
@@ -151,6 +152,14 @@ class Stepper:
                 # the fixed rows' own pattern and factor (no tail rows)
                 self.post = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
                                              per_world=padmm == "warp", fan=False, hub_min_rows=wm.hub_min_rows,
+                                             hub_row0=wm.arrays.row_maxdim.numpy())
+                self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
+            #: post-stabilisation's Gauss-Newton passes (REPROJECTION_PASSES): the fixed rows' factor at the projected
+            #: pose, on their own pattern, for one-thread-per-world kernels under either schedule
+            self.gn = None
+            if cfg.stabilisation.post_stabilisation and REPROJECTION_PASSES and int(wm.max_cts) > 0:
+                self.gn = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
+                                             per_world=False, fan=False, hub_min_rows=wm.hub_min_rows,
                                              hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             #: the warm-start filter's factor of the fixed rows (shift WARM_START_FILTER_SHIFT; docs/conventions.md,
@@ -361,7 +370,7 @@ class Stepper:
             for k in range(passes + 1):  # the last pass: unconverged worlds, gaps left open
                 extra = int(k == passes)
                 self._launch(self.pk.residual, rows, inputs=[delta, extra, w.row_stride, w.q_new, w.P],
-                                outputs=[w.reproject, w.x])
+                                outputs=[w.reproject, w.x, w.remaining])
                 if self.padmm == "warp":
                     self._launch_lanes(self.wk.solve_fixed, inputs=[extra, w.row_stride, post, w.converged,
                                                                        w.reproject, w.P], outputs=[w.x])
@@ -372,6 +381,9 @@ class Stepper:
                                 inputs=[nblk, extra, w.row_stride, w.converged, w.reproject, w.row_body, w.row_J, w.x,
                                         w.inv_inertia_w],
                                 outputs=[w.failed, w.q_new])
+            if self.gn is not None:
+                for extra in range(2, 2 + REPROJECTION_PASSES):
+                    self._gauss_newton_pass(extra, delta)
         # world health: a world whose bodies pass the speed bounds, or whose joints the step left open past the
         # bound, fails on this step
         self._launch(ik.speed_check, (W, wm.max_bodies), inputs=[HEALTH_TURN / dt, self.speed_bound, w.u_new],
@@ -392,6 +404,34 @@ class Stepper:
         self._launch(ik.commit_bodies, (W, wm.max_bodies), inputs=[w.failed, w.q_new, w.u_new], outputs=[w.q, w.u])
         wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps)],
                   outputs=[w.converged, w.frozen, w.failed, w.time, w.unconverged], device=self.device)
+
+    def _gauss_newton_pass(self, extra: int, delta: float) -> None:
+        """Post-stabilisation's Gauss-Newton pass ``extra`` (2, 3, ...): in the worlds whose anchors are still open
+        past ``REPROJECTION_GAP`` (``w.reproject``, counted in ``w.remaining``, PADMM's counter, idle by now), the
+        joint rows' Jacobian at the projected pose, the projection's factor with it, one solve and displacement.
+        Nothing runs when no world is open (``wp.capture_if``; a conditional node in a captured graph)."""
+        cfg, wm, w = self.cfg, self.wm, self.work
+        W, nblk, rows = wm.num_worlds, wm.blocks_per_row, (wm.num_worlds, wm.max_rows)
+        w.remaining.zero_()
+        self._launch(self.pk.residual, rows, inputs=[delta, extra, w.row_stride, w.q_new, w.P],
+                     outputs=[w.reproject, w.x, w.remaining])
+
+        def project() -> None:
+            gn = self.gn.arrays
+            shift_f, shift_b = cfg.projection_shifts(self.np_dtype)
+            self._launch(self.pk.jacobian, (W, wm.max_cts), inputs=[nblk, extra, w.row_stride, w.reproject, w.q_new],
+                         outputs=[w.row_body, w.row_J])
+            self._launch(self.spk.assemble_fixed, (W, self.gn.max_nnz),
+                         inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
+                                 w.inertia_w, w.inv_inertia_w], outputs=[gn])
+            self._launch(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[gn])
+            self._launch(self.pk.solve, W, inputs=[extra, w.row_stride, gn, w.converged, w.reproject, w.P],
+                         outputs=[w.x])
+            self._launch(self.pk.displace, (W, wm.max_bodies),
+                         inputs=[nblk, extra, w.row_stride, w.converged, w.reproject, w.row_body, w.row_J, w.x,
+                                 w.inv_inertia_w], outputs=[w.failed, w.q_new])
+
+        wp.capture_if(w.remaining, on_true=project)
 
     def invalidate_graphs(self) -> None:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
