@@ -194,7 +194,9 @@ class Stabilisation:
     exactly, so a world's result does not depend on the worlds batched with it."""
     post_stabilisation: int = 1
     """number of position projections after the pose update (0: none; a world whose PADMM did not converge, or whose
-    anchors are still open past ``REPROJECTION_GAP`` after them, gets one more). Each one removes the joint and
+    anchors are still open past ``REPROJECTION_GAP`` after them, gets one more, and a world whose anchors that one
+    found open up to ``REPROJECTION_PASSES`` Gauss-Newton passes with the Jacobian at the projected pose). Each one
+    removes the joint and
     coupling rows' position errors by the smallest mass-weighted displacement of the bodies (a Gauss-Newton step with
     the step's Jacobian and a sparse Cholesky of the always-active rows' Delassus block), so that a soft
     ``baumgarte`` can keep PADMM well conditioned while the loops stay closed (docs/conventions.md,

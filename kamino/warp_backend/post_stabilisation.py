@@ -14,6 +14,12 @@ and the displacement ``d = M^-1 J_f^T P y`` applied as ``q_new ⊕ d``. The fact
 the block-sparse rows, which every configuration builds, so the projection works with either Jacobian and
 either linear solver.
 
+A world whose anchors the extra pass found open gets up to ``REPROJECTION_PASSES`` Gauss-Newton passes more
+(``extra`` 2, 3, ...; ``pipeline.Stepper._gauss_newton_pass``): the residual kernel marks the worlds still open
+(``reproject = extra``) and counts them, and, only where one is open (``wp.capture_if``), ``jacobian`` writes the
+joint rows' blocks at the projected pose, the fixed rows' block is assembled and factorised again in a storage of
+its own, and the solve and displacement run in the marked worlds.
+
 Each kernel comes from its own builder, cached per precision (``np_dtype``).
 """
 
