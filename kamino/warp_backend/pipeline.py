@@ -161,7 +161,6 @@ class Stepper:
                 self.gn = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
                                              per_world=False, fan=False, hub_min_rows=wm.hub_min_rows,
                                              hub_row0=wm.arrays.row_maxdim.numpy())
-                self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             #: the warm-start filter's factor of the fixed rows (shift WARM_START_FILTER_SHIFT; docs/conventions.md,
             #: "Warm start"), on the fixed rows' own pattern, interleaved over worlds for its one-thread-per-world
             #: kernels under either schedule
@@ -421,10 +420,10 @@ class Stepper:
             shift_f, shift_b = cfg.projection_shifts(self.np_dtype)
             self._launch(self.pk.jacobian, (W, wm.max_cts), inputs=[nblk, extra, w.row_stride, w.reproject, w.q_new],
                          outputs=[w.row_body, w.row_J])
-            self._launch(self.spk.assemble_fixed, (W, self.gn.max_nnz),
-                         inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
-                                 w.inertia_w, w.inv_inertia_w], outputs=[gn])
-            self._launch(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[gn])
+            self._launch(self.pk.assemble, (W, self.gn.max_nnz),
+                         inputs=[nblk, shift_f, shift_b, extra, w.row_stride, w.reproject, w.row_body, w.row_J,
+                                 w.row_info, w.reg, w.P, w.inertia_w, w.inv_inertia_w], outputs=[gn])
+            self._launch(self.pk.factor, W, inputs=[extra, w.row_stride, w.reproject], outputs=[gn])
             self._launch(self.pk.solve, W, inputs=[extra, w.row_stride, gn, w.converged, w.reproject, w.P],
                          outputs=[w.x])
             self._launch(self.pk.displace, (W, wm.max_bodies),

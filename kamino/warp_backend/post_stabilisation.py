@@ -18,7 +18,7 @@ A world whose anchors the extra pass found open gets up to ``REPROJECTION_PASSES
 (``extra`` 2, 3, ...; ``pipeline.Stepper._gauss_newton_pass``): the residual kernel marks the worlds still open
 (``reproject = extra``) and counts them, and, only where one is open (``wp.capture_if``), ``jacobian`` writes the
 joint rows' blocks at the projected pose, the fixed rows' block is assembled and factorised again in a storage of
-its own, and the solve and displacement run in the marked worlds.
+its own, and the solve and displacement run, all in the marked worlds only.
 
 Each kernel comes from its own builder, cached per precision (``np_dtype``).
 """
@@ -33,7 +33,12 @@ from kamino.model import RES_TRANS
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.integrate import rows_on_body_func
 from kamino.warp_backend.jacobians import coupling_residual_func, cts_residual_func, cts_row_func, dof_position_func
-from kamino.warp_backend.linear_solve import solve_inplace_func
+from kamino.warp_backend.linear_solve import (
+    bases_func,
+    factor_fixed_rows_func,
+    fixed_entry_func,
+    solve_inplace_func,
+)
 from kamino.warp_backend.rows import set_blocks_func
 from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.workspace import builder_types
@@ -43,7 +48,8 @@ def post_stabilisation_kernels(np_dtype) -> SimpleNamespace:
     """The three kernels of a projection pass and the joint rows' blocks at the projected pose of a Gauss-Newton
     pass (the launches in ``pipeline.py``)."""
     return SimpleNamespace(residual=residual_kernel(np_dtype), solve=solve_kernel(np_dtype),
-                           displace=displace_kernel(np_dtype), jacobian=jacobian_kernel(np_dtype))
+                           displace=displace_kernel(np_dtype), jacobian=jacobian_kernel(np_dtype),
+                           assemble=assemble_kernel(np_dtype), factor=factor_kernel(np_dtype))
 
 
 @wp.func
@@ -232,3 +238,65 @@ def jacobian_kernel(np_dtype):
                    m.joint_parent[j], JB)
 
     return jacobian
+
+
+@functools.cache
+def assemble_kernel(np_dtype):
+    """The fixed rows' block ``P D_ff P + s I`` on their sparse pattern, in the worlds of a Gauss-Newton pass
+    (``linear_solve.assemble_fixed`` of those worlds only)."""
+    scalar, vec6, mat33, M, SP = builder_types(np_dtype).take("scalar", "vec6", "mat33", "M", "SP")
+    fixed_entry = fixed_entry_func(np_dtype)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def assemble(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int, shift: scalar, shift_sat: scalar, extra: int,
+        row_stride: int,
+        reproject: wp.array(dtype=wp.int32),
+        row_body: wp.array(dtype=wp.int32),
+        row_J: wp.array(dtype=vec6),
+        row_info: wp.array(dtype=wp.int32),
+        reg: wp.array(dtype=scalar),
+        P: wp.array(dtype=scalar),
+        inertia_w: wp.array(dtype=mat33),
+        inv_inertia_w: wp.array(dtype=mat33),
+        # out: the factor values sp.val (the pattern's index tables are read)
+        sp: SP,
+    ):
+        """Entry ``k`` of the block of a world with ``reproject == extra``."""
+        wid, k = wp.tid()
+        if k >= sp.nnz[wid] or reproject[wid] != extra:
+            return
+        fixed_entry(m, sp, row_stride, row_body, row_J, row_info, reg, P, inertia_w, inv_inertia_w, wid, k, nblk,
+                    shift, shift_sat)
+
+    return assemble
+
+
+@functools.cache
+def factor_kernel(np_dtype):
+    """The fixed rows' Cholesky factor in the worlds of a Gauss-Newton pass (``linear_solve.factor_fixed`` of those
+    worlds only)."""
+    M, SP = builder_types(np_dtype).take("M", "SP")
+    bases, factor_fixed_rows = bases_func(np_dtype), factor_fixed_rows_func(np_dtype)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def factor(
+        # model (read only)
+        m: M,
+        # in
+        extra: int,
+        row_stride: int,
+        reproject: wp.array(dtype=wp.int32),
+        # out: the factor values sp.val, in place
+        sp: SP,
+    ):
+        """``L_f`` of a world with ``reproject == extra``."""
+        wid = wp.tid()
+        if reproject[wid] != extra:
+            return
+        factor_fixed_rows(sp, wid, bases(m, sp, row_stride, wid)[1])
+
+    return factor
