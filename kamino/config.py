@@ -53,6 +53,11 @@ WARM_START_FILTER_SHIFT = 1e-6
 #: and the eight-legged Jansen walker's one-pass gap after a foot lands (1.6e-5 m on an H200) closes to below this
 #: with the second pass
 REPROJECTION_GAP = 1e-5
+#: post-stabilisation: a world whose anchors the extra pass leaves open past ``REPROJECTION_GAP`` gets up to this many
+#: Gauss-Newton passes more, each with the joint rows' Jacobian evaluated again at the projected pose and the
+#: projection's factor redone, until its gaps are below ``REPROJECTION_GAP`` (docs/conventions.md,
+#: "Post-stabilisation"): the step's Jacobian lags a link that turns 0.5 rad in a step, and passes with it stall
+REPROJECTION_PASSES = 4
 #: world health (docs/conventions.md, "World health"; both backends read these): a world whose largest anchor gap (a
 #: translational joint row's residual) exceeds ``LOOP_OPEN_BOUND`` [m] at the pose a step ends in, and exceeds the gap
 #: it had before the step, fails on that step. A healthy world keeps its anchors within ~1e-5 m in float32
@@ -179,13 +184,18 @@ class Stabilisation:
     curvature_correction: bool = True
     """add the second-order drift of the pose update to the joint bias, so that velocity-level constraints hold at
     position level to O(dt^3) per step (docs/conventions.md, "Stabilisation")."""
-    curvature_refinement: bool = False
+    curvature_refinement: bool = True
     """after PADMM converges, evaluate the curvature term once more along the solved velocity ``u+`` and continue
     PADMM from its iterate (docs/conventions.md, "Stabilisation"): the loop closure error of a step drops from
-    ``O(h^2 |u+ - u_f| |u|)`` to third order, at the price of the extra iterations (up to ``max_iterations`` more)."""
+    ``O(h^2 |u+ - u_f| |u|)`` to third order, and a loop driven by an explicit torque keeps its kinetic energy
+    (docs/settings.md, "Integrators"), at the price of the extra iterations (up to ``max_iterations`` more). Only a
+    world whose first solve converged and that has joint or coupling rows refines; any other keeps its first solve
+    exactly, so a world's result does not depend on the worlds batched with it."""
     post_stabilisation: int = 1
     """number of position projections after the pose update (0: none; a world whose PADMM did not converge, or whose
-    anchors are still open past ``REPROJECTION_GAP`` after them, gets one more). Each one removes the joint and
+    anchors are still open past ``REPROJECTION_GAP`` after them, gets one more, and a world whose anchors that one
+    found open up to ``REPROJECTION_PASSES`` Gauss-Newton passes with the Jacobian at the projected pose). Each one
+    removes the joint and
     coupling rows' position errors by the smallest mass-weighted displacement of the bodies (a Gauss-Newton step with
     the step's Jacobian and a sparse Cholesky of the always-active rows' Delassus block), so that a soft
     ``baumgarte`` can keep PADMM well conditioned while the loops stay closed (docs/conventions.md,

@@ -53,7 +53,10 @@ def test_warp_schedule_solves_what_the_thread_kernel_solves(staged, monkeypatch)
 def _cr_comparison(budget: int):
     """The scenes of the LLT comparison above on CR with ``budget`` iterations per solve, on both schedules."""
     model = kamino.concat([kamino.models.fourbar(), kamino.models.box_stack(2), kamino.models.chain_of_loops(3)])
+    # one PADMM solve per step (no curvature refinement): its restart adds a second stopping test per step, whose
+    # iteration the schedules' rounding moves as often as the first's, beyond the 1 % that the counts are held to
     cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8,
+                              stabilisation=kamino.Stabilisation(curvature_refinement=False),
                               warp=kamino.WarpSettings(linear_solver="cr", cr_iterations=budget))
     q_t, it_t, rho_t, _ = _run(model, cfg, "thread", 60)
     q_w, it_w, rho_w, st = _run(model, cfg, "warp", 60)

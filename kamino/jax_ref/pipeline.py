@@ -142,12 +142,15 @@ def _constrained_velocity(pm: PaddedModel, q_start: jax.Array, q_eval: jax.Array
             return J @ uf_vec + jnp.concatenate([vs_dyn, vk, vc, vs_lim, vs_con])
 
     rho0 = jnp.where(cache.penalty > 0, cache.penalty, cfg.penalty.rho).astype(dtype)
-    res = solver.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_dyn + n_kin)
+    # only a world with joint or coupling rows refines (solver.solve): not the padding of a batch's other worlds
+    refine_rows = jnp.any(pm.row_mask) | jnp.any(pm.cpl_mask)
+    res = solver.solve(D, v_f, lo, hi, ct.mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_dyn + n_kin,
+                       refine_rows)
     u_plus = constrained_velocity(bd, u_f, J, res.impulse)
     proj = None
     if cfg.stabilisation.post_stabilisation and n_dyn + n_kin:
         P = solver.jacobi_preconditioner(D, row_mask, n_box)
-        proj = post.projector(J, D, P, n_dyn + n_kin, res.saturated, bd, cfg)
+        proj = post.projector(J, D, P, n_dyn + n_kin, res.saturated, bd, cfg, R)
     return u_plus, res, ct, side, proj
 
 

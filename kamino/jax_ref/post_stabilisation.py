@@ -30,6 +30,13 @@ error a pass starts from is at most about ``dt`` times it; a step that ran to ``
 step's ``J`` left the benchmark four-bar open by up to 1.4e-4 m after such steps. Such a world gets one pass more,
 and so does a world whose anchors a converged step's passes left open past ``kamino.config.REPROJECTION_GAP`` (a
 foot landing on the Jansen walker; docs/conventions.md, "Post-stabilisation").
+
+Gauss-Newton passes: a chord pass leaves about ``h |omega|`` of its error, and a link that turns 0.5 rad in a step
+(a whipping chain) leaves the step's ``J`` so far behind that more chord passes stop helping. A world whose anchors
+the extra pass left open past ``REPROJECTION_GAP`` gets up to ``kamino.config.REPROJECTION_PASSES`` passes more,
+each with the joint rows' ``J`` evaluated again at the projected pose (the joint-dynamics and coupling rows keep the
+step's) and the system factorised again with it, until its gaps are below ``REPROJECTION_GAP``; the other worlds
+are left as they are.
 """
 
 from __future__ import annotations
@@ -40,11 +47,11 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_factor, cho_solve
 
-from kamino.config import REPROJECTION_GAP, SolverConfig, joint_deadband
+from kamino.config import REPROJECTION_GAP, REPROJECTION_PASSES, SolverConfig, joint_deadband
 from kamino.jax_ref.contacts import deadband
 from kamino.jax_ref.couplings import coupling_residual
-from kamino.jax_ref.dynamics import BodyDynamics, apply_inv_mass
-from kamino.jax_ref.jacobians import constraint_residual, dof_positions, joint_frames
+from kamino.jax_ref.dynamics import BodyDynamics, apply_inv_mass, delassus
+from kamino.jax_ref.jacobians import constraint_jacobian, constraint_residual, dof_positions, joint_frames
 from kamino.jax_ref.types import PaddedModel
 from kamino.model import RES_TRANS
 from kamino.spatial import integrate_pose
@@ -54,24 +61,28 @@ from kamino.spatial import integrate_pose
 @dataclasses.dataclass(frozen=True)
 class Projector:
     """The always-active rows' data a projection needs: their Jacobian ``J_f`` (dynamics, joint, coupling
-    rows), PADMM's row scaling ``P_f`` and the Cholesky factor of ``P_f D_ff P_f + s I``."""
+    rows), PADMM's row scaling ``P_f``, the Cholesky factor of ``P_f D_ff P_f + s I``, and the rows' compliance
+    ``R_f`` and shifts ``s`` (for the Gauss-Newton passes)."""
 
     J: jax.Array  # [nf, 6 nb]
     P: jax.Array  # [nf]
     factor: jax.Array  # [nf, nf] lower Cholesky factor
     bodies: BodyDynamics
+    R: jax.Array  # [nf] the joint-dynamics rows' compliance (zero on the others)
+    shift: jax.Array  # [nf]
 
 
 def projector(J: jax.Array, D: jax.Array, P: jax.Array, n_fixed: int, bounded: jax.Array, bd: BodyDynamics,
-              cfg: SolverConfig) -> Projector:
+              cfg: SolverConfig, R: jax.Array) -> Projector:
     """The projection's system from the step's ``J``, Delassus ``D`` (with ``R``) and scaling ``P``; ``bounded``
     marks the always-active rows that carry PADMM's larger penalty (the saturated effort-limited rows,
-    ``PADMMResult.saturated``); they take the second of ``cfg.projection_shifts()``."""
+    ``PADMMResult.saturated``); they take the second of ``cfg.projection_shifts()``. ``R`` is the rows' compliance
+    (the diagonal ``D`` holds besides ``J M^-1 J^T``)."""
     Pf = P[:n_fixed]
     free_shift, bounded_shift = cfg.projection_shifts(D.dtype)
     shift = jnp.where(bounded[:n_fixed], bounded_shift, free_shift).astype(D.dtype)
     A = Pf[:, None] * D[:n_fixed, :n_fixed] * Pf[None, :] + jnp.diag(shift)
-    return Projector(J=J[:n_fixed], P=Pf, factor=cho_factor(A, lower=True)[0], bodies=bd)
+    return Projector(J=J[:n_fixed], P=Pf, factor=cho_factor(A, lower=True)[0], bodies=bd, R=R[:n_fixed], shift=shift)
 
 
 def fixed_row_residual(pm: PaddedModel, q: jax.Array, delta) -> jax.Array:
@@ -94,7 +105,9 @@ def anchors_open(pm: PaddedModel, e: jax.Array) -> jax.Array:
 def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, converged: jax.Array) -> jax.Array:
     """``cfg.stabilisation.post_stabilisation`` projection passes of the poses ``q`` [nb, 7], and one more where
     PADMM did not converge (``converged`` False; module docstring, "An unconverged step") or where the passes left
-    an anchor gap above ``REPROJECTION_GAP`` (:func:`anchors_open`)."""
+    an anchor gap above ``REPROJECTION_GAP`` (:func:`anchors_open`); then, where that extra pass found the anchors
+    open, up to ``REPROJECTION_PASSES`` Gauss-Newton passes while they stay open (:func:`gauss_newton_pass`; module
+    docstring). ``cfg.fixed_iterations`` runs every Gauss-Newton pass, selecting (differentiable)."""
     delta = joint_deadband(q.dtype)
     nb = q.shape[0]
     for k in range(cfg.stabilisation.post_stabilisation + 1):
@@ -105,5 +118,36 @@ def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, c
         if k < cfg.stabilisation.post_stabilisation:
             q = q_next
         else:
-            q = jnp.where(converged & ~anchors_open(pm, e), q, q_next)
-    return q
+            open_ = anchors_open(pm, e)
+            q = jnp.where(converged & ~open_, q, q_next)
+    if not REPROJECTION_PASSES or pm.row_mask.shape[0] == 0:
+        return q
+
+    def one(carry):
+        i, q, open_ = carry
+        e = fixed_row_residual(pm, q, delta)
+        open_ = open_ & anchors_open(pm, e)
+        q = jnp.where(open_, gauss_newton_pass(pm, q, e, proj), q)
+        return i + 1, q, open_
+
+    carry = (jnp.int32(0), q, open_)
+    if cfg.fixed_iterations:
+        for _ in range(REPROJECTION_PASSES):
+            carry = one(carry)
+    else:
+        carry = jax.lax.while_loop(lambda c: c[2] & (c[0] < REPROJECTION_PASSES), one, carry)
+    return carry[1]
+
+
+def gauss_newton_pass(pm: PaddedModel, q: jax.Array, e: jax.Array, proj: Projector) -> jax.Array:
+    """One projection of the poses ``q`` [nb, 7] with residuals ``e`` (:func:`fixed_row_residual`) and the joint
+    rows' Jacobian evaluated at ``q`` (the joint-dynamics and coupling rows keep the step's), the system
+    ``P_f (J_f M^-1 J_f^T + R_f) P_f + s I`` factorised again."""
+    nb = q.shape[0]
+    nd, nk = pm.dyn_mask.shape[0], pm.row_mask.shape[0]
+    J_kin = jnp.where(pm.row_mask[:, None], constraint_jacobian(pm, joint_frames(pm, q), nb), proj.J[nd:nd + nk])
+    J = proj.J.at[nd:nd + nk].set(J_kin)
+    A = proj.P[:, None] * (delassus(J, proj.bodies) + jnp.diag(proj.R)) * proj.P[None, :] + jnp.diag(proj.shift)
+    y = cho_solve((cho_factor(A, lower=True)[0], True), -proj.P * e)
+    d = apply_inv_mass(proj.bodies, (J.T @ (proj.P * y)).reshape(nb, 6))
+    return integrate_pose(q, d, 1.0)

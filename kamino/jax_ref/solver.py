@@ -401,7 +401,7 @@ def _run(p: _Problem, carry: Carry, vt, hi_v, cap) -> Carry:
 
 def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
           impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig, refine=None, rho0=None,
-          n_fixed: int = 0) -> PADMMResult:
+          n_fixed: int = 0, refine_rows=None) -> PADMMResult:
     """Accelerated PADMM with restart (docs/formulation.md §7.3-§7.5) from a warm start, with a penalty per row class.
 
     ``D`` already holds the regularisation ``R`` of the joint-dynamics rows. ``lo``/``hi`` bound the
@@ -462,7 +462,9 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
 
     ``refine`` (the curvature refinement, ``cfg.stabilisation.curvature_refinement``) maps the impulses of the converged
     solve to a new ``v_f``; PADMM then restarts from its last iterate (``x_p = x``, ``y_hat = y``,
-    ``z_hat = z``, no momentum) on the new right-hand side for up to ``cfg.max_iterations`` more iterations.
+    ``z_hat = z``, no momentum) on the new right-hand side for up to ``cfg.max_iterations`` more iterations. Only a
+    world whose first solve converged and that has joint or coupling rows (``refine_rows``, a boolean; ``None``:
+    it has) restarts; any other keeps its first solve exactly, whatever the worlds batched with it do.
 
     ``cfg.redundant_limits`` fixes ``lambda = 0`` (bounds ``[0, 0]``) on the limit rows that
     :func:`redundant_limits` finds equivalent to another limit row with a smaller bias (all three hinge
@@ -478,9 +480,11 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
         hi_v2 = p.upper(vt2)
         if cfg.redundant_limits:
             y = p.proj(y, hi_v2)  # the set of fixed rows may change with the right-hand side
+        go = out.converged if refine_rows is None else out.converged & refine_rows
         restart = out._replace(y_p=y, y_hat=y, z_hat=z, a_p=jnp.asarray(1.0, p.dtype), c_p=p.big,
-                               converged=jnp.asarray(False), k_rho=k)
-        out = _run(p, restart, vt2, hi_v2, k + cfg.max_iterations)
+                               converged=~go, k_rho=k)
+        refined = _run(p, restart, vt2, hi_v2, k + cfg.max_iterations)
+        out = jax.tree.map(lambda a, b: jnp.where(go, a, b), refined, out)
     k, y, z = out.k, out.y_p, out.z_p
     v = (z - de_saxce(z, mu, p.n_box)) / p.P  # §7.7: v+ = z - Gamma(z), unscaled
     return PADMMResult(

@@ -26,6 +26,7 @@ from kamino.config import (
     LIMIT_MARGIN,
     LOOP_OPEN_BOUND,
     REPROJECTION_GAP,
+    REPROJECTION_PASSES,
     RESTART_TOLERANCE,
     RESTITUTION_THRESHOLD,
     WARM_START_FILTER_SHIFT,
@@ -154,6 +155,13 @@ class Stepper:
                                              per_world=padmm == "warp", fan=False, hub_min_rows=wm.hub_min_rows,
                                              hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
+            #: post-stabilisation's Gauss-Newton passes (REPROJECTION_PASSES): the fixed rows' factor at the projected
+            #: pose, on their own pattern, for one-thread-per-world kernels under either schedule
+            self.gn = None
+            if cfg.stabilisation.post_stabilisation and REPROJECTION_PASSES and int(wm.max_cts) > 0:
+                self.gn = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
+                                             per_world=False, fan=False, hub_min_rows=wm.hub_min_rows,
+                                             hub_row0=wm.arrays.row_maxdim.numpy())
             #: the warm-start filter's factor of the fixed rows (shift WARM_START_FILTER_SHIFT; docs/conventions.md,
             #: "Warm start"), on the fixed rows' own pattern (no tail rows), in the layout of the schedule that
             #: factorises and applies it: the world's 32 threads under padmm="warp" (``filter_lanes``), else one
@@ -325,11 +333,11 @@ class Stepper:
                             outputs=[w.q_pred])  # q_pred along u+
             self._launch(rk.refine_joint_rows, (W, wm.max_cts),
                             inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_eval, w.q, w.q_pred,
-                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P],
+                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P, w.converged],
                             outputs=[w.vstar, w.vt])
             self._launch(rk.refine_coupling_rows, (W, wm.max_cpl),
                             inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_dof, w.q, w.q_pred,
-                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P],
+                                    w.u_new, w.row_body, w.row_J, w.u_f, w.P, w.converged],
                             outputs=[w.vstar, w.vt])
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W,
@@ -359,7 +367,7 @@ class Stepper:
             for k in range(passes + 1):  # the last pass: unconverged worlds, gaps left open
                 extra = int(k == passes)
                 self._launch(self.pk.residual, rows, inputs=[delta, extra, w.row_stride, w.q_new, w.P],
-                                outputs=[w.reproject, w.x])
+                                outputs=[w.reproject, w.x, w.remaining])
                 if self.padmm == "warp":
                     self._launch_lanes(self.wk.solve_fixed, inputs=[extra, w.row_stride, post, w.converged,
                                                                        w.reproject, w.P], outputs=[w.x])
@@ -370,6 +378,9 @@ class Stepper:
                                 inputs=[nblk, extra, w.row_stride, w.converged, w.reproject, w.row_body, w.row_J, w.x,
                                         w.inv_inertia_w],
                                 outputs=[w.failed, w.q_new])
+            if self.gn is not None:
+                for extra in range(2, 2 + REPROJECTION_PASSES):
+                    self._gauss_newton_pass(extra, delta)
         # world health: a world whose bodies pass the speed bounds, or whose joints the step left open past the
         # bound, fails on this step
         self._launch(ik.speed_check, (W, wm.max_bodies), inputs=[HEALTH_TURN / dt, self.speed_bound, w.u_new],
@@ -414,6 +425,34 @@ class Stepper:
             self._launch(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[sp])
             self._launch(self.sk.warm_start_filter, W, inputs=[s, w.row_stride, sp, w.frozen, w.lo_s, w.hi_s],
                          outputs=vectors)
+
+    def _gauss_newton_pass(self, extra: int, delta: float) -> None:
+        """Post-stabilisation's Gauss-Newton pass ``extra`` (2, 3, ...): in the worlds whose anchors are still open
+        past ``REPROJECTION_GAP`` (``w.reproject``, counted in ``w.remaining``, PADMM's counter, idle by now), the
+        joint rows' Jacobian at the projected pose, the projection's factor with it, one solve and displacement.
+        Nothing runs when no world is open (``wp.capture_if``; a conditional node in a captured graph)."""
+        cfg, wm, w = self.cfg, self.wm, self.work
+        W, nblk, rows = wm.num_worlds, wm.blocks_per_row, (wm.num_worlds, wm.max_rows)
+        w.remaining.zero_()
+        self._launch(self.pk.residual, rows, inputs=[delta, extra, w.row_stride, w.q_new, w.P],
+                     outputs=[w.reproject, w.x, w.remaining])
+
+        def project() -> None:
+            gn = self.gn.arrays
+            shift_f, shift_b = cfg.projection_shifts(self.np_dtype)
+            self._launch(self.pk.jacobian, (W, wm.max_cts), inputs=[nblk, extra, w.row_stride, w.reproject, w.q_new],
+                         outputs=[w.row_body, w.row_J])
+            self._launch(self.pk.assemble, (W, self.gn.max_nnz),
+                         inputs=[nblk, shift_f, shift_b, extra, w.row_stride, w.reproject, w.row_body, w.row_J,
+                                 w.row_info, w.reg, w.P, w.inertia_w, w.inv_inertia_w], outputs=[gn])
+            self._launch(self.pk.factor, W, inputs=[extra, w.row_stride, w.reproject], outputs=[gn])
+            self._launch(self.pk.solve, W, inputs=[extra, w.row_stride, gn, w.converged, w.reproject, w.P],
+                         outputs=[w.x])
+            self._launch(self.pk.displace, (W, wm.max_bodies),
+                         inputs=[nblk, extra, w.row_stride, w.converged, w.reproject, w.row_body, w.row_J, w.x,
+                                 w.inv_inertia_w], outputs=[w.failed, w.q_new])
+
+        wp.capture_if(w.remaining, on_true=project)
 
     def invalidate_graphs(self) -> None:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""

@@ -618,15 +618,16 @@ def refine_joint_rows_kernel(np_dtype, midpoint: bool):
         row_J: wp.array(dtype=vec6),
         u_f: wp.array(dtype=vec6),
         P: wp.array(dtype=scalar),
+        converged: wp.array(dtype=wp.int32),
         # out
         vstar: wp.array(dtype=scalar),
         vt: wp.array(dtype=scalar),
     ):
         """The joint rows' bias with the curvature term predicted along the solved velocity ``u_new``
         (``SolverConfig.stabilisation.curvature_refinement``; ``joint_bias`` of the JAX reference with
-        ``u_pred = u+``)."""
+        ``u_pred = u+``), in the worlds whose first solve ``converged`` (the others keep their rows)."""
         wid, i = wp.tid()
-        if i >= m.cts_count[wid]:
+        if i >= m.cts_count[wid] or converged[wid] == 0:
             return
         c = m.cts_start[wid] + i
         r = ridx(m, row_stride, wid, m.dyn_count[wid] + i)
@@ -665,13 +666,15 @@ def refine_coupling_rows_kernel(np_dtype, midpoint: bool):
         row_J: wp.array(dtype=vec6),
         u_f: wp.array(dtype=vec6),
         P: wp.array(dtype=scalar),
+        converged: wp.array(dtype=wp.int32),
         # out
         vstar: wp.array(dtype=scalar),
         vt: wp.array(dtype=scalar),
     ):
-        """The coupling rows' bias along the solved velocity (as :func:`refine_joint_rows_kernel`)."""
+        """The coupling rows' bias along the solved velocity (as :func:`refine_joint_rows_kernel`, in the worlds
+        whose first solve ``converged``)."""
         wid, i = wp.tid()
-        if i >= m.cpl_count[wid]:
+        if i >= m.cpl_count[wid] or converged[wid] == 0:
             return
         k = m.cpl_start[wid] + i
         r = ridx(m, row_stride, wid, m.dyn_count[wid] + m.cts_count[wid] + i)

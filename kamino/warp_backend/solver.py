@@ -883,9 +883,15 @@ def padmm_resume_kernel(np_dtype):
         remaining: iarr,
     ):
         """Restart from the last iterate (``y_hat = y``, ``z_hat = z``, no momentum) for up to ``max_iterations``
-        more iterations."""
+        more iterations, in the worlds whose first solve converged and that have joint or coupling rows (those
+        whose right-hand side the refinement changed). Every other world is done and keeps its first solve
+        untouched: a world's result does not depend on the worlds batched with it."""
         rs = row_stride
         wid = wp.tid()
+        if converged[wid] == 0 or m.cts_count[wid] + m.cpl_count[wid] == 0:
+            done[wid] = 1
+            wp.atomic_sub(remaining, 0, 1)
+            return
         rb = row_base(m, row_stride, wid)
         for a in range(n_rows[wid]):
             y_hat[rb + a * rs] = y_p[rb + a * rs]
