@@ -250,7 +250,7 @@ class SolverConfig:
 
     dt: float = 1.0 / 240.0
     """time step [s]."""
-    integrator: Literal["euler", "midpoint"] = "euler"
+    integrator: Literal["euler", "midpoint"] = "midpoint"
     """``"euler"`` (semi-implicit Euler, §6.2) or ``"midpoint"`` (Moreau-Jean, §6.3)."""
     max_iterations: int = 200
     """PADMM iteration cap per step."""
