@@ -74,10 +74,10 @@ def test_effort_limit_holds_even_when_the_target_is_unreachable(variant):
     assert np.isclose(tau[-1], limit, rtol=1e-6)  # saturated at the end, pressing on the joint limit
     theta = _angles(model, traj)
     assert theta.max() < 0.5 + 1e-4
-    # saturated from the start: (I + a) qdd = limit, which semi-implicit Euler integrates to
-    # theta_n = alpha dt^2 n (n + 1) / 2 (PADMM tolerance 1e-6 on the impulses)
+    # saturated from the start: (I + a) qdd = limit, a constant acceleration, which the midpoint rule integrates
+    # exactly: theta_n = alpha (n dt)^2 / 2 (PADMM tolerance 1e-6 on the impulses)
     n = np.arange(1, 11)
-    assert np.allclose(theta[:10], limit / 0.12 * DT**2 * n * (n + 1) / 2, rtol=1e-5)
+    assert np.allclose(theta[:10], limit / 0.12 * (n * DT) ** 2 / 2, rtol=1e-5)
 
 
 @pytest.mark.parametrize("variant", BACKENDS)
@@ -117,11 +117,14 @@ def test_passive_spring_is_an_implicit_spring(variant):
     traj = variant.rollout(model, kamino.init_state(model), num_steps=T,
                            config=kamino.SolverConfig(dt=DT, tolerance=1e-11))
     theta = _angles(model, traj)
-    # docs/formulation.md §3.2 passive row: I (w+ - w) = dt k (q_s - q - dt w+), then q+ = q + dt w+
+    # docs/formulation.md §3.2 passive row at the midpoint pose q_m = q + h w (§6.3, h = dt / 2):
+    # I (w+ - w) = dt k (q_s - q_m - h w+), then q+ = q_m + h w+
+    h = DT / 2
     q, w, expected = 0.0, 0.0, []
     for _ in range(T):
-        w = (I * w + DT * k * (q_s - q)) / (I + DT * DT * k)
-        q = q + DT * w
+        q_m = q + h * w
+        w = (I * w + DT * k * (q_s - q_m)) / (I + DT * h * k)
+        q = q_m + h * w
         expected.append(q)
     assert np.allclose(theta, expected, rtol=1e-7, atol=1e-10)
     # physics: it oscillates about springref with the natural period 2 pi sqrt(I / k) (within 1%)
