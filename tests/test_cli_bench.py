@@ -8,15 +8,18 @@ from kamino import cli
 
 
 def test_kamino_bench_writes_speed_next_to_error(tmp_path):
+    """One record per load, each with the statistics of its own timed batch (10 steps of 2 worlds)."""
     out = tmp_path / "bench.json"
     assert cli.main(["bench", "--scenes", "fourbar", "--worlds", "2", "--configs", "sparse-llt", "--no-peers",
-                     "--closure-steps", "20", "--graph-steps", "2", "--replays", "1", "--repeats", "1",
-                     "--out", str(out)]) == 0
-    (rec,) = json.loads(out.read_text())["records"]
-    assert rec["scene"] == "fourbar" and rec["num_worlds"] == 2 and rec["throughput"] > 0
-    # the MJCF four-bar's loop, 20 driven steps: closed to well below the 1e-5 m benchmark target
-    assert rec["closure_max_m"] < 1e-5
-    assert rec["converged_fraction"] == 1.0 and rec["iterations_max"] < 100
+                     "--graph-steps", "2", "--replays", "5", "--repeats", "1", "--out", str(out)]) == 0
+    recs = json.loads(out.read_text())["records"]
+    assert [r["load"] for r in recs] == ["gentle", "rl"]
+    for rec in recs:
+        assert rec["scene"] == "fourbar" and rec["num_worlds"] == 2 and rec["throughput"] > 0
+        assert rec["batch_world_steps"] == 20 and rec["sim_seconds_per_s"] == pytest.approx(rec["throughput"] * 0.0025)
+        # the MJCF four-bar's loop over the timed steps: closed to well below the 1e-5 m benchmark target
+        assert rec["closure_batch_max_m"] < 1e-5
+        assert rec["converged_share"] == 1.0 and rec["iterations_max"] < 100 and rec["failed_worlds"] == 0
 
 
 def test_kamino_bench_tables_saved_runs_beside_the_peers(tmp_path, capsys):
@@ -36,10 +39,10 @@ def test_kamino_bench_tables_saved_runs_beside_the_peers(tmp_path, capsys):
         files[-1].write_text(json.dumps({"records": recs}))
     assert cli.main(["bench", "--table", *map(str, files)]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[0] == ("| scene | worlds | kamino | MuJoCo Warp | SolverKamino dvi | speed / MuJoCo Warp "
+    assert lines[0] == ("| scene | load | worlds | kamino | MuJoCo Warp | SolverKamino dvi | speed / MuJoCo Warp "
                         "| memory / MuJoCo Warp |")
-    assert lines[2] == ("| ladder32 | 4096 | 3.00e+05 (1.5e-06 m, 100 %, 90.0 kB) | 2.00e+05 (4.5e-03 m, 60.0 kB) "
-                        "| not run: load: int32 overflow | 1.50x | 1.50x |")
+    assert lines[2] == ("| ladder32 | gentle | 4096 | 3.00e+05 (1.5e-06 m, 100.0 %, 90.0 kB) "
+                        "| 2.00e+05 (4.5e-03 m, 60.0 kB) | not run: load: int32 overflow | 1.50x | 1.50x |")
     assert len(lines) == 3
 
 

@@ -51,9 +51,9 @@ import numpy as np
 from tqdm import tqdm
 
 import kamino
-from kamino.bench import MODULES, scene_path, timed_window
+from kamino.bench import MODULES, loads, scene_path, timed_window
 from kamino.config import field_names
-from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType
+from kamino.model import ActuationMode
 
 SCENES = ("fourbar", "ladder8", "ladder32", "dr_legs")
 #: the procedural robots (kamino.models), standing under PD with the joint-space drive on their first actuator
@@ -94,8 +94,8 @@ def load_scene(name: str):
 
 
 def closure_distance(model, body_q: np.ndarray) -> float:
-    """Largest distance between the two anchors of any joint whose first three rows are translational
-    (revolute, spherical, universal, fixed joints: every loop-closing joint of the scenes)."""
+    """Largest distance between the two anchors of any joint of :func:`kamino.bench.loads.anchored_joints` (host
+    NumPy; :class:`kamino.bench.loads.BatchStats` folds the same distance on the device)."""
     q = np.asarray(body_q, np.float64)
 
     def rot(qs):
@@ -104,13 +104,9 @@ def closure_distance(model, body_q: np.ndarray) -> float:
                          np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
                          np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
 
-    sel = [j for j in range(model.num_joints)
-           if len(JOINT_CONSTRAINT_ROWS[JointType(int(model.joint_type[j]))]) >= 3
-           and JOINT_CONSTRAINT_ROWS[JointType(int(model.joint_type[j]))][2][0] == 2
-           and JOINT_CONSTRAINT_ROWS[JointType(int(model.joint_type[j]))][0][0] == 0]
-    if not sel:
+    sel = loads.anchored_joints(model)
+    if not sel.size:
         return 0.0
-    sel = np.array(sel)
     par, chi = model.joint_parent[sel], model.joint_child[sel]
     pF = q[chi, :3] + np.einsum("jab,jb->ja", rot(q[chi, 3:]), model.joint_anchor_F[sel])
     qB = np.where((par >= 0)[:, None], q[np.maximum(par, 0)], np.array([0, 0, 0, 0, 0, 0, 1.0]))
@@ -161,25 +157,33 @@ def _initial(model, name):
     return state, None, np.zeros(model.num_dofs)
 
 
-def warp_stepper(name, config_name, num_worlds):
-    """``(stepper, state, control)``: the Warp stepper of a scene at ``num_worlds`` worlds with its drive hook, and the
-    initial state and controls that :func:`time_warp` resets it to (loaded once here)."""
+def warp_stepper(name, config_name, num_worlds, load="gentle", seed=0):
+    """``(stepper, state, control)``: the Warp stepper of a scene at ``num_worlds`` worlds under ``load``
+    (:mod:`kamino.bench.loads`: the gentle drive's hook, or the ``rl`` load's random configurations and control
+    sequences drawn from ``seed``), and the initial state and controls that :func:`time_warp` resets it to (loaded
+    once here)."""
     import warp as wp
 
     from kamino.warp_backend import backend as wb
     from kamino.warp_backend.pipeline import Stepper
 
+    if load not in loads.LOADS:
+        raise ValueError(f"warp_stepper: load must be one of {loads.LOADS}, got {load!r}")
     base, drive = load_scene(name)
     model = kamino.replicate(base, num_worlds) if num_worlds > 1 else base
     cfg = kamino.SolverConfig(dt=DT).replace(**SOLVER, **CONFIGS[config_name])
     state, control, base_targets = _initial(model, name)
+    if load == "rl":
+        state = state.replace(body_q=loads.random_configurations(base, model, loads.RL_FRACTION, seed))
     st = Stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
     wb.load_state(st, state, control)
-    st.pre_step.append(_drive_hook(st, model, drive, base_targets))
+    hook = _drive_hook(st, model, drive, base_targets) if load == "gentle" else loads.rl_drive_hook(st, base,
+                                                                                                    seed=seed)
+    st.pre_step.append(hook)
     return st, state, control
 
 
-def time_warp(st, state, control, args, after_trial=None) -> dict:
+def time_warp(st, state, control, args, before_timing=None, after_trial=None) -> dict:
     """The timed window (:mod:`kamino.bench.timed_window`) of a Warp stepper: each trial resets the stepper, runs
     ``--warmup`` blocks of ``--graph-steps`` steps (one CUDA graph each, captured on the stepper's buffers during the
     first trial's warm-up; plain launches on the CPU) untimed, then times ``--replays`` blocks.
@@ -197,7 +201,7 @@ def time_warp(st, state, control, args, after_trial=None) -> dict:
     return timed_window.time_window(
         lambda: wb.load_state(st, state, control), lambda: st.run(args.graph_steps),
         lambda: wp.synchronize_device(st.device), graph_steps=args.graph_steps, warmup=args.warmup,
-        replays=args.replays, repeats=args.repeats, dt=DT, after_trial=after_trial)
+        replays=args.replays, repeats=args.repeats, dt=DT, before_timing=before_timing, after_trial=after_trial)
 
 
 def _window_fields(timing: dict) -> dict:
@@ -207,21 +211,26 @@ def _window_fields(timing: dict) -> dict:
     return {k: timing[k] for k in keys}
 
 
-def bench_warp(name, config_name, num_worlds, args) -> dict:
-    """Throughput of the Warp backend: :func:`time_warp`'s window; the memory is what the stepper allocates."""
+def bench_warp(name, config_name, num_worlds, args, load="gentle") -> dict:
+    """Throughput of the Warp backend under ``load``: :func:`time_warp`'s window, with the statistics of its timed
+    batch (:class:`kamino.bench.loads.BatchStats`, folded inside the timed graphs and zeroed at the start of every
+    trial's timed blocks: the record holds the last trial's); the memory is what the stepper allocates."""
     import warp as wp
 
     dev = wp.get_device()
     wp.synchronize_device(dev)
     mem0 = wp.get_mempool_used_mem_current(dev) if dev.is_cuda else 0
-    st, state, control = warp_stepper(name, config_name, num_worlds)
+    st, state, control = warp_stepper(name, config_name, num_worlds, load)
     wp.synchronize_device(dev)
     mem = (wp.get_mempool_used_mem_current(dev) - mem0) if dev.is_cuda else 0
-    timing = time_warp(st, state, control, args)
-    return {"kamino": "warp", "config": config_name, "scene": name, "num_worlds": num_worlds,
-            "throughput": num_worlds / timing["step_time_s"], **_window_fields(timing),
-            "memory_per_world_bytes": mem / num_worlds, "rows_max": st.wm.max_rows, "linear_solver": st.linear_solver,
-            "padmm": st.padmm, "solver": dict(SOLVER)}
+    stats = loads.BatchStats(st)
+    st.post_step.append(stats.hook)
+    timing = time_warp(st, state, control, args, before_timing=lambda _: stats.reset())
+    return {"kamino": "warp", "config": config_name, "scene": name, "load": load, "num_worlds": num_worlds,
+            "throughput": num_worlds / timing["step_time_s"],
+            "sim_seconds_per_s": num_worlds * DT / timing["step_time_s"], **_window_fields(timing),
+            **stats.summary(), "memory_per_world_bytes": mem / num_worlds, "rows_max": st.wm.max_rows,
+            "linear_solver": st.linear_solver, "padmm": st.padmm, "solver": dict(SOLVER)}
 
 
 def bench_jax(name, num_worlds, args) -> dict:
@@ -260,63 +269,6 @@ def bench_jax(name, num_worlds, args) -> dict:
     return {"kamino": "jax", "config": "jax", "scene": name, "num_worlds": num_worlds,
             "throughput": num_worlds / timing["step_time_s"], **_window_fields(timing),
             "iterations_last_step_max": int(np.max(np.asarray(sim["s"].info.iterations)))}
-
-
-def closure_run(name, config_name, args) -> dict:
-    """One world, ``--closure-steps`` steps: PADMM iterations/residuals and the loop closure."""
-    import warp as wp
-
-    from kamino.warp_backend import backend as wb
-    from kamino.warp_backend.pipeline import Stepper
-
-    model, drive = load_scene(name)
-    cfg = kamino.SolverConfig(dt=DT).replace(**SOLVER, **CONFIGS[config_name])
-    state, control, base_targets = _initial(model, name)
-    st = Stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
-    wb.load_state(st, state, control)
-    st.pre_step.append(_drive_hook(st, model, drive, base_targets))
-    closure, iters, r_p, r_d, conv, ju = 0.0, [], [], [], [], 0.0
-    for _ in progress(range(args.closure_steps), args=args, desc=f"{name} {config_name} closure", unit="step",
-                      leave=False):
-        st.run(1)
-        closure = max(closure, closure_distance(model, st.work.q.numpy().reshape(-1, 7)))
-        ju = max(ju, joint_velocity_error(st))
-        iters.append(int(st.work.iters.numpy()[0]))
-        r_p.append(float(st.work.r_p.numpy()[0]))
-        r_d.append(float(st.work.r_d.numpy()[0]))
-        conv.append(bool(st.work.converged.numpy()[0]))
-    return {"closure_max_m": closure, "iterations_mean": float(np.mean(iters)), "iterations_max": int(np.max(iters)),
-            "primal_residual_max": float(np.max(r_p)), "dual_residual_max": float(np.max(r_d)),
-            "converged_fraction": float(np.mean(conv)), "joint_velocity_error_max": ju}
-
-
-def joint_velocity_error(st) -> float:
-    """``max |J(q+) u+|`` over the joint rows of a single-world stepper after a step: the bilateral constraint
-    velocity at the new pose, in m/s (translational rows) or rad/s (rotational rows), the velocity drift the next
-    step starts from. The Jacobian is the JAX reference's (docs/formulation.md §2.5), at the committed poses and
-    twists. (``J(q-) u+`` is not an error: it equals the stabilisation bias, curvature term included.)"""
-    import jax
-    import jax.numpy as jnp
-
-    from kamino.jax_ref.jacobians import constraint_jacobian, joint_frames
-    from kamino.jax_ref.types import layout_of
-
-    model = st.wm.model
-    if model.num_worlds != 1 or not model.num_constraints:
-        return 0.0
-    fn = _JVEL.get(id(model))
-    if fn is None:
-        pm = jax.tree_util.tree_map(lambda x: x[0], layout_of(model, st.np_dtype).padded)
-
-        def fn(q, u):
-            J = constraint_jacobian(pm, joint_frames(pm, q), q.shape[0])
-            return jnp.max(jnp.abs(jnp.where(pm.row_mask, J @ u.reshape(-1), 0.0)))
-
-        fn = _JVEL[id(model)] = jax.jit(fn)
-    return float(fn(jnp.asarray(st.work.q.numpy().reshape(-1, 7)), jnp.asarray(st.work.u.numpy().reshape(-1, 6))))
-
-
-_JVEL: dict = {}
 
 
 def environment() -> dict:
@@ -366,14 +318,15 @@ def _parser(prog: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--worlds", nargs="+", type=int, default=[1, 64, 512, 4096, 16384], metavar="N",
                    help="world counts (default: 1 64 512 4096 16384)")
     p.add_argument("--configs", nargs="+", default=list(CONFIG_CHOICES), choices=CONFIG_CHOICES, metavar="CONFIG",
-                   help=f"of {', '.join(CONFIG_CHOICES)} (default: all)")
+                   help=f"of {', '.join(CONFIG_CHOICES)} (all)")
     p.add_argument("--graph-steps", type=int, default=10, metavar="N", help="steps per block, one CUDA graph (10)")
     p.add_argument("--warmup", type=int, default=timed_window.WARMUP_BLOCKS, metavar="N",
                    help=f"untimed blocks after each trial's reset ({timed_window.WARMUP_BLOCKS})")
-    p.add_argument("--replays", type=int, default=10, metavar="N", help="timed blocks per trial (10)")
+    p.add_argument("--replays", type=int, default=100, metavar="N", help="timed blocks per trial (100)")
+    p.add_argument("--loads", nargs="+", default=list(loads.LOADS), choices=loads.LOADS, metavar="LOAD",
+                   help=f"of {', '.join(loads.LOADS)} (all; kamino.bench.loads)")
     p.add_argument("--repeats", type=int, default=3, metavar="N", help="trials from a reset; the median counts (3)")
-    p.add_argument("--closure-steps", type=int, default=1000, metavar="N",
-                   help="steps of the one-world closure run (1000; 0: none)")
+    p.add_argument("--closure-steps", type=int, default=1000, metavar="N", help="the peers' one-world closure run")
     p.add_argument("--tolerance", type=float, default=None, metavar="TOL",
                    help="PADMM tolerance (default: SolverConfig's)")
     p.add_argument("--rho", type=float, default=None, help="PADMM starting penalty (default: SolverConfig's)")
@@ -450,8 +403,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
             args.out.write_text(json.dumps(results, indent=1))
 
     # one bar over kamino's (scene, config, worlds) runs; the peers' runs of a scene show in its description
-    bar = progress(args=args, total=len(args.scenes) * len(args.configs) * len(args.worlds), desc="throughput",
-                   unit="run")
+    runs = len(args.scenes) * len(args.configs) * len(args.worlds) * len(args.loads)
+    bar = progress(args=args, total=runs, desc="throughput", unit="run")
     with bar:
         for scene in args.scenes:
             for config in args.configs:
@@ -464,16 +417,15 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
                             emit({"kamino": "jax", "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
                         bar.update()
                     continue
-                bar.set_description(f"{scene} {config} closure")
-                err = closure_run(scene, config, args) if args.closure_steps else {}
-                for nw in args.worlds:
-                    bar.set_description(f"{scene} {config} {nw} worlds")
-                    try:
-                        emit({**bench_warp(scene, config, nw, args), **err})
-                    except Exception as e:
-                        emit({"kamino": "warp", "config": config, "scene": scene, "num_worlds": nw,
-                              "error": repr(e)[:300]})
-                    bar.update()
+                for load in args.loads:
+                    for nw in args.worlds:
+                        bar.set_description(f"{scene} {config} {load} {nw} worlds")
+                        try:
+                            emit(bench_warp(scene, config, nw, args, load))
+                        except Exception as e:
+                            emit({"kamino": "warp", "config": config, "scene": scene, "load": load, "num_worlds": nw,
+                                  "error": repr(e)[:300]})
+                        bar.update()
             if not args.no_peers:
                 bar.set_description(f"{scene} peers")
                 run_peers(scene, args, emit)
@@ -528,27 +480,35 @@ def run_peers(scene, args, emit) -> None:
 
 
 def _cell(rec: dict | None) -> str:
-    """One record as ``world-steps/s (closure, converged, memory per world)``; what a record lacks is left out."""
+    """One record as ``world-steps/s (closure, converged, iterations mean/max, memory per world)``; what a record
+    lacks is left out. kamino's closure, convergence and iterations are its timed batch's
+    (:class:`kamino.bench.loads.BatchStats`), a peer's closure its one-world run's."""
     if rec is None:
         return ""
     if rec.get("throughput") is None:
-        reason = str(rec.get("reason") or "no figure")
+        reason = str(rec.get("reason") or rec.get("error") or "no figure")
         return f"not run: {reason[:60]}" + ("..." if len(reason) > 60 else "")
     notes = []
-    if rec.get("closure_max_m") is not None:
-        notes.append(f"{rec['closure_max_m']:.1e} m")
-    if rec.get("converged_fraction") is not None:
-        notes.append(f"{100 * rec['converged_fraction']:.0f} %")
+    closure = rec.get("closure_batch_max_m", rec.get("closure_max_m"))
+    if closure is not None:
+        notes.append(f"{closure:.1e} m")
+    converged = rec.get("converged_share", rec.get("converged_fraction"))
+    if converged is not None:
+        notes.append(f"{100 * converged:.1f} %")
+    if rec.get("iterations_max") is not None and rec.get("iterations_mean") is not None:
+        notes.append(f"it {rec['iterations_mean']:.1f}/{rec['iterations_max']}")
+    if rec.get("failed_worlds"):
+        notes.append(f"{rec['failed_worlds']} failed")
     if rec.get("memory_per_world_bytes") is not None:
         notes.append(f"{rec['memory_per_world_bytes'] / 1e3:.1f} kB")
     return f"{rec['throughput']:.2e}" + (f" ({', '.join(notes)})" if notes else "")
 
 
 def record_key(r: dict) -> tuple:
-    """What a record measures: scene, world count, and the solver (kamino's backend and configuration, or the
-    peer and its variant)."""
+    """What a record measures: scene, world count, load (a peer's and an older record's: ``gentle``), and the
+    solver (kamino's backend and configuration, or the peer and its variant)."""
     who = (r["peer"], r.get("variant")) if "peer" in r else (r.get("kamino"), r.get("config"))
-    return (r.get("scene"), r.get("num_worlds"), *who)
+    return (r.get("scene"), r.get("num_worlds"), r.get("load", "gentle"), *who)
 
 
 def latest_records(records: Iterable[dict]) -> list[dict]:
@@ -562,11 +522,11 @@ def latest_records(records: Iterable[dict]) -> list[dict]:
 
 
 def table(records: list[dict]) -> str:
-    """A markdown table of throughput records (this module's JSON ``records``): one row per scene and world count,
-    kamino's ``default`` configuration beside MuJoCo Warp and each SolverKamino variant, each cell
-    ``world-steps/s (closure, converged, memory per world)``, and kamino's speed and memory over MuJoCo Warp's.
-    A later record of the same scene, size and solver replaces an earlier one."""
-    cells: dict[tuple[str, int], dict[str, dict]] = {}
+    """A markdown table of throughput records (this module's JSON ``records``): one row per scene, load and world
+    count, kamino's ``default`` configuration beside MuJoCo Warp and each SolverKamino variant, each cell
+    ``world-steps/s (closure, converged, iterations, memory per world)`` (:func:`_cell`), and kamino's speed and
+    memory over MuJoCo Warp's. A later record of the same scene, size, load and solver replaces an earlier one."""
+    cells: dict[tuple[str, str, int], dict[str, dict]] = {}
     columns: list[str] = []
     for r in records:
         if "peer" in r:
@@ -577,18 +537,18 @@ def table(records: list[dict]) -> str:
             continue
         if col not in columns:
             columns.append(col)
-        cells.setdefault((r["scene"], int(r["num_worlds"])), {})[col] = r
+        cells.setdefault((r["scene"], r.get("load", "gentle"), int(r["num_worlds"])), {})[col] = r
     columns.sort(key=lambda c: (c != "kamino", c != "MuJoCo Warp", c))
-    lines = ["| scene | worlds | " + " | ".join(columns) + " | speed / MuJoCo Warp | memory / MuJoCo Warp |",
-             "|---|---|" + "---|" * (len(columns) + 2)]
-    for (scene, worlds), row in sorted(cells.items()):
+    lines = ["| scene | load | worlds | " + " | ".join(columns) + " | speed / MuJoCo Warp | memory / MuJoCo Warp |",
+             "|---|---|---|" + "---|" * (len(columns) + 2)]
+    for (scene, load, worlds), row in sorted(cells.items()):
         k, mjw = row.get("kamino"), row.get("MuJoCo Warp")
         speed = memory = ""
         if k and mjw and k.get("throughput") and mjw.get("throughput"):
             speed = f"{k['throughput'] / mjw['throughput']:.2f}x"
         if k and mjw and k.get("memory_per_world_bytes") and mjw.get("memory_per_world_bytes"):
             memory = f"{k['memory_per_world_bytes'] / mjw['memory_per_world_bytes']:.2f}x"
-        lines.append(f"| {scene} | {worlds} | " + " | ".join(_cell(row.get(c)) for c in columns)
+        lines.append(f"| {scene} | {load} | {worlds} | " + " | ".join(_cell(row.get(c)) for c in columns)
                      + f" | {speed} | {memory} |")
     return "\n".join(lines)
 

@@ -49,6 +49,7 @@ def time_window(
     repeats: int,
     dt: float,
     warmup: int = WARMUP_BLOCKS,
+    before_timing: Callable[[int], None] | None = None,
     after_trial: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """Time ``repeats`` trials of the window (module docstring) and return the median.
@@ -62,6 +63,8 @@ def time_window(
         repeats: trials (at least 1); the median trial is reported.
         dt: time step [s], for ``window_s``.
         warmup: untimed blocks after each reset.
+        before_timing: called with the trial's index after its warm-up has run and synchronised, just before the
+            clock starts (untimed), e.g. to zero statistics that the timed blocks fold.
         after_trial: called with the trial's index after it has been timed and synchronised (untimed), e.g. to
             read the state a trial ends in.
 
@@ -76,6 +79,9 @@ def time_window(
         for _ in range(warmup):
             block()
         sync()
+        if before_timing is not None:
+            before_timing(trial)
+            sync()
         t0 = time.perf_counter()
         for _ in range(replays):
             block()

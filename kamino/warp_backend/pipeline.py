@@ -207,6 +207,9 @@ class Stepper:
         #: callables ``f(stepper)`` enqueued at the start of every step (captured with it), e.g. a
         #: kernel that sets the controls from the device-side time
         self.pre_step: list = []
+        #: callables ``f(stepper)`` enqueued at the end of every step (captured with it), e.g. a kernel that folds
+        #: the step's iterations into statistics
+        self.post_step: list = []
 
     # --- launches -------------------------------------------------------------------------------
     def _launch(self, kernel, dim, inputs: list, outputs: list) -> None:
@@ -401,6 +404,8 @@ class Stepper:
         self._launch(ik.commit_bodies, (W, wm.max_bodies), inputs=[w.failed, w.q_new, w.u_new], outputs=[w.q, w.u])
         wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps)],
                   outputs=[w.converged, w.frozen, w.failed, w.time, w.unconverged], device=self.device)
+        for hook in self.post_step:
+            hook(self)
 
     def _filter_warm_start(self, filt: linear_solve.SparseFactor, lanes: bool) -> None:
         """The warm-start filter (docs/conventions.md, "Warm start"): ``P D_ff P + s I`` assembled into ``filt`` (one
