@@ -1,14 +1,15 @@
 """Where a step's time goes: the Warp kernels of one step, timed one by one (CUDA events, Warp's timing API), for a
 scene at its defaults, after a warm-up run, on both PADMM schedules from the same state.
 
-    kamino bench profile_step --scene dr_legs --worlds 4096 --warmup 100 --steps 10 [--padmm thread warp]
+    kamino bench profile_step --scene dr_legs --worlds 4096 --warmup 100 --steps 10 [--padmm thread warp] [--load rl]
 
-The worlds are :mod:`kamino.bench.convergence`'s (distinct drive phases), run ``--warmup`` steps with the CUDA graph of
-the first schedule; that state is copied, and each schedule then steps ``--steps`` times from it without a graph (each
-kernel launched and timed alone; the PADMM loop is one launch that runs every world to convergence). Reported per
-kernel: milliseconds per step, launches per step; per schedule: the PADMM iterations of the worlds (mean, p99, max of
-the profiled steps), and the step time from a graph replay of the same steps (what the throughput figures time). JSON
-with ``--out``; a table on stdout.
+The worlds are :mod:`kamino.bench.convergence`'s (distinct drive phases; ``--load phases``) or the throughput
+benchmark's under one of its loads (``--load gentle`` or ``rl``, :mod:`kamino.bench.loads`), run ``--warmup`` steps
+with the CUDA graph of the first schedule; that state is copied, and each schedule then steps ``--steps`` times from
+it without a graph (each kernel launched and timed alone; the PADMM loop is one launch that runs every world to
+convergence). Reported per kernel: milliseconds per step, launches per step; per schedule: the PADMM iterations of the
+worlds (mean, p99, max of the profiled steps), and the step time from a graph replay of the same steps (what the
+throughput figures time). JSON with ``--out``; a table on stdout.
 """
 
 import argparse
@@ -22,6 +23,7 @@ from collections import defaultdict
 import numpy as np
 
 import kamino
+from kamino.bench import loads
 from kamino.bench.convergence import SCENES, drive_hook, perturb
 
 
@@ -99,6 +101,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0],
                                 epilog="What is measured: help(kamino.bench.profile_step).")
     p.add_argument("--scene", default="dr_legs", choices=sorted(SCENES))
+    p.add_argument("--load", default="phases", choices=["phases", *loads.LOADS],
+                   help="phases: kamino.bench.convergence's drives; gentle, rl: kamino.bench.loads (phases)")
     p.add_argument("--worlds", type=int, default=4096)
     p.add_argument("--warmup", type=int, default=100)
     p.add_argument("--steps", type=int, default=10)
@@ -108,14 +112,23 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     import warp as wp
 
     device = wp.get_device()
-    scene = SCENES[args.scene]
-    model = kamino.replicate(scene.build(), args.worlds)
-    steppers = [_stepper(model, scene, padmm, device) for padmm in args.padmm]
+    if args.load == "phases":
+        scene = SCENES[args.scene]
+        model = kamino.replicate(scene.build(), args.worlds)
+        steppers = [_stepper(model, scene, padmm, device) for padmm in args.padmm]
+    else:
+        from kamino.bench import throughput
+
+        if args.scene not in {*throughput.SCENES, *throughput.ROBOTS}:
+            p.error(f"--load {args.load}: --scene must be a throughput scene, one of "
+                    f"{sorted({*throughput.SCENES, *throughput.ROBOTS})}")
+        steppers = [throughput.warp_stepper(args.scene, "default", args.worlds, args.load, padmm=padmm)[0]
+                    for padmm in args.padmm]
     steppers[0].run(args.warmup)
     for st in steppers[1:]:
         _copy_state(st, steppers[0])
-    rec = {"scene": args.scene, "num_worlds": args.worlds, "warmup_steps": args.warmup, "device": str(device.name),
-           "rows_max": steppers[0].wm.max_rows, "schedules": {}}
+    rec = {"scene": args.scene, "load": args.load, "num_worlds": args.worlds, "warmup_steps": args.warmup,
+           "device": str(device.name), "rows_max": steppers[0].wm.max_rows, "schedules": {}}
     for padmm, st in zip(args.padmm, steppers, strict=True):
         rec["schedules"][padmm] = profile(st, args.steps)
     for padmm, r in rec["schedules"].items():

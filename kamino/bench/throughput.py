@@ -12,14 +12,17 @@ Progress bars (tqdm, on stderr) over the runs and over each closure run's steps;
 stdout carries the JSON records only, one a line.
 
 Method (docs/architecture.md "Performance method", the same for kamino and the peers):
-float32, dt = 0.0025 s, the drive ``2 N m sin(2 pi t)`` on the scene's first actuator set on the device
-every step (inside the graph); throughput = steps/s x worlds with a CUDA graph of ``--graph-steps`` steps
-replayed. Next to each figure: the PADMM iterations and residuals and the loop closure (largest anchor distance of
-any joint with translational rows) over a ``--closure-steps`` run of one world, and the device memory per world.
-The robots (``--scenes dr_legs bdx olaf animatronic``) stand in their reference pose under PD, with the position
-target ``0.2 sin(2 pi t)`` rad on the first actuator. The peers run fourbar, ladder8, ladder32 from
-kamino/bench/scenes and the robots from their ``kamino.save_mjcf`` export, with the same drive
-(:mod:`kamino.bench.peers`, :func:`run_peers`).
+float32, dt = 0.0025 s; throughput = steps/s x worlds with a CUDA graph of ``--graph-steps`` steps replayed, also
+given in simulated world-seconds per second (``sim_seconds_per_s``: throughput x dt, comparable across time steps).
+Each scene runs under each of ``--loads`` (:mod:`kamino.bench.loads`): ``gentle``, every world alike with one drive on
+its first actuator (a scene's motor ``2 N m sin(2 pi t)``; a robot standing in its reference pose under PD, its first
+target ``0.2 sin(2 pi t)`` rad), and ``rl``, each world from its own random loop-closed configuration under its own
+random controls at 50 Hz. Next to each of kamino's figures: the statistics of the timed batch itself
+(:class:`kamino.bench.loads.BatchStats`: PADMM iterations per world and step, mean, p99 and max; the converged share;
+the failed worlds; the loop closure, the largest anchor distance of any joint with translational rows over every world
+and step) and the device memory per world. The peers run fourbar, ladder8, ladder32 from kamino/bench/scenes and the
+robots from their ``kamino.save_mjcf`` export, with the gentle drive and a one-world closure run of
+``--closure-steps`` (:mod:`kamino.bench.peers`, :func:`run_peers`).
 
 The timed window (one rule for kamino Warp, kamino JAX, MuJoCo Warp and SolverKamino, :mod:`kamino.bench.timed_window`):
 each of ``--repeats`` trials resets the simulation to its initial state (state, time, controls, warm start: see
@@ -29,11 +32,11 @@ median trial. Every figure therefore covers steps ``[warmup * graph_steps, (warm
 same driven motion from the same start, written into each record as ``window_steps`` and ``window_s`` (simulated
 seconds). Why: a step costs in proportion to its PADMM iterations, which follow the motion; on the four-bar they run 21,
 20, 20, 27, 22, 38, 56, 160, 54, 36, 164 per block of 10 steps from reset, so trials that continued the simulation would
-give the same GPU and code 6.06e6 world-steps/s at 16384 worlds with ``--replays 2`` and 3.95e6 with ``--replays 3``
-(:mod:`kamino.bench.timed_window`). With the defaults (``--graph-steps 10 --warmup 2 --replays 10 --repeats 3``) the
-window is steps [20, 120), 0.05 to 0.30 s, which holds the four-bar's hard stretch (the 160 at steps 70-80 and the 164
-at 100-110). Figures of runs with other ``--graph-steps``, ``--warmup`` or ``--replays`` cover another window: compare
-records whose ``window_steps`` agree.
+time a different stretch of motion in every trial (:mod:`kamino.bench.timed_window`). With the defaults
+(``--graph-steps 10 --warmup 2 --replays 100 --repeats 3``) the window is steps [20, 1020), 0.05 to 2.55 s: long
+enough that a scene's hard stretches, and under the ``rl`` load its worlds' falls and contacts, are in it. Figures of
+runs with other ``--graph-steps``, ``--warmup`` or ``--replays`` cover another window: compare records whose
+``window_steps`` agree.
 """
 
 import argparse
@@ -157,11 +160,11 @@ def _initial(model, name):
     return state, None, np.zeros(model.num_dofs)
 
 
-def warp_stepper(name, config_name, num_worlds, load="gentle", seed=0):
+def warp_stepper(name, config_name, num_worlds, load="gentle", seed=0, padmm=None):
     """``(stepper, state, control)``: the Warp stepper of a scene at ``num_worlds`` worlds under ``load``
     (:mod:`kamino.bench.loads`: the gentle drive's hook, or the ``rl`` load's random configurations and control
     sequences drawn from ``seed``), and the initial state and controls that :func:`time_warp` resets it to (loaded
-    once here)."""
+    once here). ``padmm`` picks the PADMM schedule (``Stepper``'s; default: the configuration's, :data:`PADMM`)."""
     import warp as wp
 
     from kamino.warp_backend import backend as wb
@@ -175,7 +178,7 @@ def warp_stepper(name, config_name, num_worlds, load="gentle", seed=0):
     state, control, base_targets = _initial(model, name)
     if load == "rl":
         state = state.replace(body_q=loads.random_configurations(base, model, loads.RL_FRACTION, seed))
-    st = Stepper(model, cfg, np.float32, wp.get_device(), padmm=PADMM.get(config_name))
+    st = Stepper(model, cfg, np.float32, wp.get_device(), padmm=padmm or PADMM.get(config_name))
     wb.load_state(st, state, control)
     hook = _drive_hook(st, model, drive, base_targets) if load == "gentle" else loads.rl_drive_hook(st, base,
                                                                                                     seed=seed)
