@@ -2,11 +2,15 @@
 
     python -m kamino.bench.ppo_collect [TASK] [--backend warp] [--num-envs 4096] [--unroll 20] [--action-scale 1]
                                          [--set tolerance=0.01 ...] [--env kp=75 ...] [--out FILE]
+    python -m kamino.bench.ppo_collect --policy dr_legs_walk [--num-envs 4096] ...    # the walking load
 
 brax's PPO collects ``unroll_length`` env steps of every environment per batch, with actions drawn around its
 policy's mean; early in training that is close to uniform noise in ``[-1, 1]``. This runs the same loop without the
 learning: the task through brax's training wrappers (Vmap, Episode, AutoReset), ``--unroll`` steps of uniform
 random actions in ``[-scale, scale]`` in one jitted ``lax.scan``, three batches timed after one warm-up batch.
+``--policy NAME`` (a shipped policy, ``kamino.envs.shipped_policies()``, or a run folder or checkpoint) runs its task
+with its training keywords and takes the policy's deterministic actions instead, inside the same scan: with
+``dr_legs_walk``, dr_legs walking at the commands its task draws (the walking load).
 It reports collection env steps/s, ms per simulator step, the PADMM iterations of each env step's last substep
 (mean, median, 90th and 99th percentiles, max; the GPU waits for the slowest world), the fraction of unconverged
 solves, and the worst loop closure over the environments at the end (``kamino.metrics``). ``--set KEY=VALUE``
@@ -45,6 +49,9 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--profile", type=int, default=0, metavar="STEPS",
                    help="Warp backend: after the collection, time each kernel of STEPS more simulator steps of the "
                         "environments' stepper from where the collection left it, and their graph replay")
+    p.add_argument("--policy", default=None, metavar="NAME",
+                   help="actions from a trained policy (a shipped one, e.g. dr_legs_walk, or a run folder or "
+                        "checkpoint) on its own task instead of random ones")
     p.add_argument("--out", type=pathlib.Path, default=None, help="append the JSON record to this file")
     args = p.parse_args(argv)
     if args.profile and args.backend != "warp":
@@ -95,16 +102,31 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
 
     if args.no_effort_limits:
         _unbounded_efforts()
-    probe = make(args.task, backend=args.backend, **args.env_kwargs)
+    task, env_kwargs, act = args.task, args.env_kwargs, None
+    if args.policy is not None:
+        from kamino.envs.evaluate import resolve
+
+        policy = resolve(args.policy)
+        task, env_kwargs = policy.task, {**policy.env, **args.env_kwargs}
+        inference = policy.make_policy(policy.params, deterministic=True)
+
+        def act(obs, key):
+            return inference(obs, key)[0]
+    probe = make(task, backend=args.backend, **env_kwargs)
     config = probe.solver_config.replace(**args.overrides) if args.overrides else None
-    raw = make(args.task, backend=args.backend, solver_config=config, **args.env_kwargs) if config else probe
+    raw = make(task, backend=args.backend, solver_config=config, **env_kwargs) if config else probe
+    if act is not None and raw.observation_size != policy.observation_size:
+        raise SystemExit(f"ppo_collect: the policy {args.policy} takes {policy.observation_size} observations, "
+                         f"{task} built with {env_kwargs} gives {raw.observation_size}")
     env = training.wrap(raw, episode_length=1000)
     n, scale = args.num_envs, args.action_scale
 
     @jax.jit
     def collect(state, key):
         def body(s, k):
-            s = env.step(s, jax.random.uniform(k, (n, env.action_size), minval=-scale, maxval=scale))
+            a = (jax.random.uniform(k, (n, env.action_size), minval=-scale, maxval=scale) if act is None
+                 else act(s.obs, k))
+            s = env.step(s, a)
             info = s.pipeline_state.info
             return s, (info.iterations, info.converged, s.done)
 
@@ -128,8 +150,9 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     t = float(np.median(times))
     it = np.concatenate(iters).reshape(-1)
     record = {
-        "task": args.task, "backend": args.backend, "num_envs": n, "unroll": args.unroll,
-        "action_scale": scale, "solver_overrides": args.overrides, "env_kwargs": args.env_kwargs,
+        "task": task, "policy": args.policy, "backend": args.backend, "num_envs": n, "unroll": args.unroll,
+        "action_scale": None if act is not None else scale, "solver_overrides": args.overrides,
+        "env_kwargs": env_kwargs,
         "effort_limits": not args.no_effort_limits, "sim_dt": raw.sim_dt,
         "decimation": raw.decimation, "collect_env_steps_per_s": args.unroll * n / t,
         "ms_per_sim_step": t / args.unroll / raw.decimation * 1e3,
