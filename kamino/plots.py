@@ -176,12 +176,19 @@ def _records(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]) -> list[M
 
 
 def _series(r: Mapping[str, Any]) -> str:
-    """A throughput record's simulator: ``kamino <config>`` or ``<peer> <variant>``."""
+    """A throughput record's simulator and load: ``kamino <config>`` or ``<peer> <variant>``, followed by
+    ``, <load>`` for a load other than the gentle one (``kamino.bench.loads``)."""
+    load = "" if r.get("load", "gentle") == "gentle" else f", {r['load']}"
     if "config" in r and not isinstance(r["config"], Mapping):
-        return f"kamino {r['config']}"
+        return f"kamino {r['config']}{load}"
     if r.get("peer"):
-        return f"{r['peer']} {r.get('variant') or ''}".strip()
-    return f"kamino {r.get('kamino') or ''}".strip()
+        return f"{r['peer']} {r.get('variant') or ''}".strip() + load
+    return f"kamino {r.get('kamino') or ''}".strip() + load
+
+
+def _closure(r: Mapping[str, Any]) -> float | None:
+    """A throughput record's loop closure: its timed batch's (``closure_batch_max_m``), else a one-world run's."""
+    return r.get("closure_batch_max_m", r.get("closure_max_m"))
 
 
 def _is_convergence(r: Mapping[str, Any]) -> bool:
@@ -202,9 +209,9 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
     """Throughput (y, log) against max loop closure (x, log), one panel per scene, from a benchmark JSON.
 
     - ``kamino.bench.throughput`` records: one series per kamino configuration (``kamino <config>``) and per
-      peer (``<peer> <variant>``), one point per world count run, labelled with it. The closure is measured once
-      per scene and simulator (on one world count), so a record without ``closure_max_m`` takes its series'; a
-      series with no closure at all is left out.
+      peer (``<peer> <variant>``) under each load, one point per world count run, labelled with it. The closure is
+      the timed batch's (``closure_batch_max_m``) or, for a peer, one world's run on one world count, so a record
+      without a closure takes its series'; a series with no closure at all is left out.
     - ``kamino.bench.convergence`` records: one series per scene and world count over the tolerance sweep, one
       point per tolerance (labelled with it and the converged fraction; a default run at a tolerance the sweep
       also ran is drawn once), the y value its
@@ -225,14 +232,14 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
     recs = _distinct_runs(_records(results))
     closures: dict[tuple[str, str], float] = {}
     for r in recs:
-        if not _is_convergence(r) and r.get("closure_max_m") is not None:
-            closures.setdefault((r["scene"], _series(r)), r["closure_max_m"])
+        if not _is_convergence(r) and _closure(r) is not None:
+            closures.setdefault((r["scene"], _series(r)), _closure(r))
     conv: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
     for r in recs:
         if _is_convergence(r):
             conv.setdefault((r["scene"], f"kamino, {r['num_worlds']} worlds (tolerance sweep)"), []).append(r)
         elif r.get("throughput"):
-            closure = r.get("closure_max_m") or closures.get((r["scene"], _series(r)))
+            closure = _closure(r) or closures.get((r["scene"], _series(r)))
             if closure is not None:
                 panels.setdefault(r["scene"], {}).setdefault(_series(r), []).append(
                     (max(closure, 1e-12), r["throughput"], f"{r['num_worlds']} w", r["num_worlds"]))
