@@ -38,9 +38,23 @@ the peers, with the same method, so our numbers and theirs compare:
   ``forcerange`` copied into ``joint_effort_limit`` (``add_mjcf`` keeps it only for ``SolverMuJoCo``). The
   other actuators keep their targets (0: the reference pose). A scene whose Newton import lacks those PD
   gains fails with a ``reason`` rather than being driven by torques.
+* **loads** (MuJoCo Warp; :mod:`kamino.bench.loads`): ``gentle`` is the drive above; ``rl`` starts every world at
+  rest in kamino's random loop-closed configuration of the same world (``random_configurations`` of the kamino
+  model the MJCF describes, turned into MuJoCo's ``qpos`` by :func:`mujoco_qpos` and checked on the host by
+  :func:`mujoco_pose_errors`) and sets every actuator, matched to kamino's by name, to kamino's draw for the
+  world's control period of ``Data.time`` through the same ``@wp.func`` (:func:`kamino.bench.loads.rl_uniform`),
+  so MuJoCo Warp's world ``w`` does what kamino's world ``w`` does. SolverKamino runs the ``gentle`` load.
 * **time step**: both peers step with ``DT``; MuJoCo Warp's ``opt.timestep`` is set to it (a file without
-  ``<option timestep>``, e.g. an exported robot, would otherwise run at MuJoCo's 0.002 s; noted).
-* **closure**: ONE world, freshly built, stepped ``closure_steps`` times with the same drive; after every
+  ``<option timestep>``, e.g. an exported robot, would otherwise run at MuJoCo's 0.002 s; noted). MuJoCo Warp's
+  ``timestep``, ``iterations``, ``tolerance`` and the ``<connect>`` ``solref`` time constant ``timeconst`` can be
+  set per run (:func:`run_mujoco_warp`, the accuracy sweep); the record's ``settings`` name what it ran with.
+* **batch statistics** (MuJoCo Warp): after every step of the timed graphs a kernel folds, per world, the solver
+  iterations (``Data.solver_niter``), whether the solver stopped before ``opt.iterations``, non-finite
+  ``qpos``/``qvel`` and the largest ``<connect>`` anchor distance, into kamino's record keys
+  (``closure_batch_max_m``, ``iterations_mean``/``_p99``/``_max``, ``converged_share``, ``failed_worlds``,
+  ``batch_world_steps``; :class:`_MjwBatchStats`).
+* **closure**: besides the batch's (MuJoCo Warp), ONE world, freshly built, stepped ``closure_steps`` times with
+  the same drive (``gentle`` only); after every
   step a Warp kernel folds the largest distance between the two anchors of each loop-closing joint into
   a device scalar (``wp.atomic_max``). MuJoCo Warp: ``<connect>`` equalities, anchor ``eq_data[0:3]`` on
   body1 and ``eq_data[3:6]`` on body2 (MuJoCo's compiled connect semantics), through ``xpos``/``xmat``
@@ -62,7 +76,8 @@ drive`` (what is driven, in words), ``drive_amplitude, num_worlds, throughput`` 
 ``step_time_s, closure_max_m, joint_error_max_m, closure_steps, memory_per_world_bytes, memory_per_world_arrays_bytes,
 memory_method, device, timing`` (``graph_replay`` or ``python_loop``), ``graph_steps, warmup_blocks,
 replays_per_trial, repeats, trials_s, window_steps, window_s, dt, versions, notes, reason`` (plus ``source`` and
-``settings`` for SolverKamino). A peer that is not
+``settings`` for SolverKamino; ``load``, ``settings``, ``sim_seconds_per_s`` and the batch statistics for MuJoCo
+Warp, and under ``rl`` ``seed``, ``start_pose_error_m`` and ``start_closure_m``). A peer that is not
 importable, or that cannot load or run the scene, gives a dict whose measurements are ``None`` and whose
 ``reason`` says why (``traceback`` holds the details). The closure run does not depend on ``num_worlds``: when
 sweeping world counts, pass ``closure_steps=0`` after the first.
