@@ -1605,12 +1605,15 @@ def _format(r: dict[str, Any]) -> str:
     def num(x: float | None, fmt: str) -> str:
         return "-" if x is None else format(x, fmt)
 
-    closure = None if r["closure_max_m"] is None else 1e3 * r["closure_max_m"]
+    closure_m = r.get("closure_batch_max_m", r["closure_max_m"])  # the timed batch's where measured
+    closure = None if closure_m is None else 1e3 * closure_m
     joint_error = None if r["joint_error_max_m"] is None else 1e3 * r["joint_error_max_m"]
     mem = r["memory_per_world_bytes"]
     if mem is None:
         mem = r["memory_per_world_arrays_bytes"]
-    variant = r["variant"] if "settings" not in r else f"{r['variant']}/{r['settings']}"
+    variant = f"{r['variant']}/{r['settings']}" if r["peer"] == "newton_solver_kamino" else r["variant"]
+    if r.get("load"):
+        variant += f" [{r['load']}]"
     line = (
         f"{r['peer']:<21} {variant:<30} {r['scene']:<9} worlds={r['num_worlds']:<6} "
         f"throughput={num(r['throughput'], '.3g')} step={num(r['step_time_s'], '.3g')}s "
@@ -1642,6 +1645,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         "--amplitude", type=float, default=DRIVE_AMPLITUDE, help="drive amplitude: N m (<motor>), rad (<position>)"
     )
     parser.add_argument("--graph", action=argparse.BooleanOptionalAction, default=None, help="force graphs on/off")
+    parser.add_argument("--load", default="gentle", choices=("gentle", "rl"),
+                        help="MuJoCo Warp's load (kamino.bench.loads; rl from kamino.load_mjcf of the scene)")
     parser.add_argument("--json", default=None, help="write all results to this JSON file")
     parser.add_argument("--verbose", action="store_true", help="keep Warp's module-load messages")
     args = parser.parse_args(argv)
@@ -1669,7 +1674,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     results = []
     jobs: list[tuple[str, Callable[..., dict[str, Any]], dict[str, Any]]] = []
     if "mujoco_warp" in peers:
-        jobs.append(("mujoco_warp", run_mujoco_warp, {}))
+        jobs.append(("mujoco_warp", run_mujoco_warp, {"load": args.load}))
     if "solver_kamino" in peers:
         for v in [v.strip() for v in args.variants.split(",") if v.strip()]:
             jobs.append(
