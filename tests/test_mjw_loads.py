@@ -180,3 +180,26 @@ def test_run_peers_runs_mujoco_warp_per_load_and_setting(peers, monkeypatch):
     assert len(records) == 5 and all(r["scene"] == "fourbar" for r in records)
     with pytest.raises(ValueError, match="KEY one of timeconst, dt, iterations, tolerance"):
         throughput.mjw_sweep(["solref=0.02"])
+
+
+def test_accuracy_settings_set_the_model_and_name_what_runs(peers, tmp_path):
+    """``run_mujoco_warp``'s accuracy settings on the host model (ladder8, eight ``<connect>``): ``timeconst``
+    sets the ``<connect>`` rows' ``solref`` time constant, and MuJoCo's effective constant is
+    ``max(timeconst, 2 timestep)`` (refsafe); ``timestep``, ``iterations`` and ``tolerance`` set ``opt``; without
+    settings the file's values stay but the benchmark's time step."""
+    path = str(scene_path("ladder8"))
+    mjm = mujoco.MjModel.from_xml_path(path)
+    connect = np.asarray(mjm.eq_type) == int(mujoco.mjtEq.mjEQ_CONNECT)
+    assert connect.sum() == 8
+    file_tc, file_iterations = float(mjm.eq_solref[connect, 0][0]), int(mjm.opt.iterations)
+    used = peers._mjw_settings(mjm)
+    assert used == {"timestep": peers.DT, "iterations": file_iterations, "tolerance": float(mjm.opt.tolerance),
+                    "timeconst": file_tc, "timeconst_effective": max(file_tc, 2 * peers.DT)}
+    used = peers._mjw_settings(mjm, timeconst=0.001, timestep=0.002, iterations=7, tolerance=1e-6)
+    assert np.all(mjm.eq_solref[connect, 0] == 0.001) and mjm.opt.timestep == 0.002
+    assert mjm.opt.iterations == 7 and mjm.opt.tolerance == 1e-6
+    assert used["timeconst"] == 0.001 and used["timeconst_effective"] == 0.004  # 2 x 0.002 s
+    used = peers._mjw_settings(mujoco.MjModel.from_xml_path(path), timeconst=0.02, timestep=0.001)
+    assert used["timeconst_effective"] == 0.02
+    with pytest.raises(ValueError, match="timeconst must be > 0"):
+        peers._mjw_settings(mjm, timeconst=0.0)
