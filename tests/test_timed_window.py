@@ -147,7 +147,7 @@ def test_mujoco_warp_trials_cover_the_same_window(peers):
     scene = str(scene_path("fourbar"))
     dev = wp.get_device("cpu")
     with wp.ScopedDevice(dev):
-        _, m, d, _ = peers._mjw_build(scene, 2, dev)
+        _, m, d, _, _ = peers._mjw_build(scene, 2, dev)
         initial = peers._snapshot(d)
         step = peers._mjw_stepper(m, d, 2)
         step()

@@ -79,20 +79,44 @@ def random_configurations(base: Model, model: Model, fraction: float, seed: int,
     return body_q.reshape(-1, 7).astype(dtype)
 
 
-def rl_drive_hook(st, base: Model, fraction: float = RL_FRACTION, rate: float = RL_RATE, seed: int = 0):
-    """A pre-step hook (``Stepper.pre_step``) that sets every actuator of every world to its draw for the current
-    control period ``floor((t + dt / 2) rate)`` of the world's time ``t`` (the period holding the step's midpoint,
-    which rounding of ``t`` does not move): a PD target ``centre + fraction half u`` or a motor
-    torque ``MOTOR_AMPLITUDE gear u``, ``u`` uniform in ``[-1, 1)`` from Warp's counter-based generator seeded by
-    ``(seed, period, world, actuator)``. The draws depend on nothing else, so a reset replays them."""
-    from kamino.warp_backend.types import types_of
+@wp.func
+def rl_period(time: float, half_dt: float, rate: float) -> int:
+    """The control period ``floor((t + dt / 2) rate)`` of a step that starts at time ``t`` (the period holding the
+    step's midpoint, which rounding of ``t`` does not move)."""
+    return int(wp.floor((time + half_dt) * rate))
 
-    scalar = types_of(st.np_dtype).scalar
-    num_worlds, na = st.wm.num_worlds, base.num_actuators
+
+@wp.func
+def rl_uniform(seed: int, period: int, world: int, actuator: int, num_worlds: int, num_actuators: int) -> float:
+    """The ``rl`` load's draw ``u``, uniform in ``[-1, 1)``, of one actuator (kamino's actuator order) of one world in
+    one control period: Warp's counter-based generator seeded by ``seed`` at counter
+    ``(period num_worlds + world) num_actuators + actuator``. kamino's hook (:func:`rl_drive_hook`) and MuJoCo Warp's
+    (:mod:`kamino.bench.peers`) both draw through it, so the two see bit-identical draws."""
+    rng = wp.rand_init(seed, (period * num_worlds + world) * num_actuators + actuator)
+    return 2.0 * wp.randf(rng) - 1.0
+
+
+def rl_control_map(base: Model, fraction: float = RL_FRACTION) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(offset, scale, effort)`` per actuator of ``base`` (actuator order): the ``rl`` load sets actuator ``a`` to
+    ``offset[a] + scale[a] u`` with ``u`` of :func:`rl_uniform`: a PD target ``centre + fraction half u`` on the DoF,
+    or a motor's DoF effort ``MOTOR_AMPLITUDE gear u`` (``effort[a]``)."""
     lo, hi, effort = actuator_ranges(base)
     centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo) * fraction
     scale = np.where(effort, MOTOR_AMPLITUDE * base.actuator_gear, half)
     offset = np.where(effort, 0.0, centre)
+    return offset, scale, effort
+
+
+def rl_drive_hook(st, base: Model, fraction: float = RL_FRACTION, rate: float = RL_RATE, seed: int = 0):
+    """A pre-step hook (``Stepper.pre_step``) that sets every actuator of every world to its draw for the current
+    control period (:func:`rl_period` of the world's time ``t``): ``offset + scale u`` of :func:`rl_control_map`, a
+    PD target ``centre + fraction half u`` or a motor torque ``MOTOR_AMPLITUDE gear u``, ``u`` of :func:`rl_uniform`
+    seeded by ``(seed, period, world, actuator)``. The draws depend on nothing else, so a reset replays them."""
+    from kamino.warp_backend.types import types_of
+
+    scalar = types_of(st.np_dtype).scalar
+    num_worlds, na = st.wm.num_worlds, base.num_actuators
+    offset, scale, effort = rl_control_map(base, fraction)
     dofs = (base.actuator_dof[None, :] + base.num_dofs * np.arange(num_worlds)[:, None]).reshape(-1)
     dev = st.device
     dof_w = wp.array(dofs.astype(np.int32), dtype=wp.int32, device=dev)
@@ -106,9 +130,8 @@ def rl_drive_hook(st, base: Model, fraction: float = RL_FRACTION, rate: float = 
                  seed: int, num_worlds: int, effort_out: wp.array(dtype=scalar), target_out: wp.array(dtype=scalar)):
         w, a = wp.tid()
         na = offset.shape[0]
-        period = int(wp.floor((float(time[w]) + half_dt) * rate))
-        rng = wp.rand_init(seed, (period * num_worlds + w) * na + a)
-        v = offset[a] + scale[a] * scalar(2.0 * wp.randf(rng) - 1.0)
+        period = rl_period(float(time[w]), half_dt, rate)
+        v = offset[a] + scale[a] * scalar(rl_uniform(seed, period, w, a, num_worlds, na))
         d = dofs[w * na + a]
         if is_effort[a] != 0:
             effort_out[d] = v
@@ -179,20 +202,30 @@ class BatchStats:
 
     def summary(self) -> dict:
         """Iterations per world and step (mean, p99, max), the converged share of world-steps, the worlds that failed
-        on any step, and the largest closure [m] over every world and step, of the steps folded since :meth:`reset`."""
-        pw = {k: v.numpy() for k, v in self.per_world.items()}
-        hist = self.histogram.numpy().astype(np.int64)
-        total = int(pw["steps"].sum())
-        if total == 0:
-            raise ValueError("BatchStats.summary: no step was folded since the reset")
-        cdf = np.cumsum(hist)
-        return {"batch_steps": int(pw["steps"].max()), "batch_world_steps": total,
-                "iterations_mean": float(pw["sum"].sum() / total),
-                "iterations_p99": int(np.searchsorted(cdf, 0.99 * total)),
-                "iterations_max": int(pw["max"].max()),
-                "converged_share": float(pw["converged"].sum() / total),
-                "failed_worlds": int(np.count_nonzero(pw["failed"])),
-                "closure_batch_max_m": float(self.closure.numpy().max()) if self.num_joints else 0.0}
+        on any step, and the largest closure [m] over every world and step, of the steps folded since :meth:`reset`
+        (:func:`fold_summary`)."""
+        return fold_summary(self.per_world, self.histogram, self.closure if self.num_joints else None)
+
+
+def fold_summary(per_world: dict, histogram, closure=None) -> dict:
+    """The record's statistics of per-world folds on the device (:class:`BatchStats`, and MuJoCo Warp's in
+    :mod:`kamino.bench.peers`): ``per_world`` arrays ``sum`` and ``max`` (iterations), ``converged``, ``failed`` and
+    ``steps`` (world-steps counted), the iteration ``histogram`` of :data:`HISTOGRAM_BINS` bins, and the largest
+    closure per world (``None``: no anchored joint, closure 0). The p99 is the least bin holding 99 % of the
+    world-steps."""
+    pw = {k: v.numpy() for k, v in per_world.items()}
+    hist = histogram.numpy().astype(np.int64)
+    total = int(pw["steps"].sum())
+    if total == 0:
+        raise ValueError("fold_summary: no step was folded since the reset")
+    cdf = np.cumsum(hist)
+    return {"batch_steps": int(pw["steps"].max()), "batch_world_steps": total,
+            "iterations_mean": float(pw["sum"].sum() / total),
+            "iterations_p99": int(np.searchsorted(cdf, 0.99 * total)),
+            "iterations_max": int(pw["max"].max()),
+            "converged_share": float(pw["converged"].sum() / total),
+            "failed_worlds": int(np.count_nonzero(pw["failed"])),
+            "closure_batch_max_m": float(closure.numpy().max()) if closure is not None else 0.0}
 
 
 def _stats_kernels(np_dtype):
@@ -234,4 +267,4 @@ def _stats_kernels(np_dtype):
 
 
 __all__ = ["LOADS", "RL_FRACTION", "RL_RATE", "BatchStats", "actuator_ranges", "anchored_joints",
-           "random_configurations", "rl_drive_hook"]
+           "fold_summary", "random_configurations", "rl_control_map", "rl_drive_hook", "rl_period", "rl_uniform"]

@@ -38,9 +38,23 @@ the peers, with the same method, so our numbers and theirs compare:
   ``forcerange`` copied into ``joint_effort_limit`` (``add_mjcf`` keeps it only for ``SolverMuJoCo``). The
   other actuators keep their targets (0: the reference pose). A scene whose Newton import lacks those PD
   gains fails with a ``reason`` rather than being driven by torques.
+* **loads** (MuJoCo Warp; :mod:`kamino.bench.loads`): ``gentle`` is the drive above; ``rl`` starts every world at
+  rest in kamino's random loop-closed configuration of the same world (``random_configurations`` of the kamino
+  model the MJCF describes, turned into MuJoCo's ``qpos`` by :func:`mujoco_qpos` and checked on the host by
+  :func:`mujoco_pose_errors`) and sets every actuator, matched to kamino's by name, to kamino's draw for the
+  world's control period of ``Data.time`` through the same ``@wp.func`` (:func:`kamino.bench.loads.rl_uniform`),
+  so MuJoCo Warp's world ``w`` does what kamino's world ``w`` does. SolverKamino runs the ``gentle`` load.
 * **time step**: both peers step with ``DT``; MuJoCo Warp's ``opt.timestep`` is set to it (a file without
-  ``<option timestep>``, e.g. an exported robot, would otherwise run at MuJoCo's 0.002 s; noted).
-* **closure**: ONE world, freshly built, stepped ``closure_steps`` times with the same drive; after every
+  ``<option timestep>``, e.g. an exported robot, would otherwise run at MuJoCo's 0.002 s; noted). MuJoCo Warp's
+  ``timestep``, ``iterations``, ``tolerance`` and the ``<connect>`` ``solref`` time constant ``timeconst`` can be
+  set per run (:func:`run_mujoco_warp`, the accuracy sweep); the record's ``settings`` name what it ran with.
+* **batch statistics** (MuJoCo Warp): after every step of the timed graphs a kernel folds, per world, the solver
+  iterations (``Data.solver_niter``), whether the solver stopped before ``opt.iterations``, non-finite
+  ``qpos``/``qvel`` and the largest ``<connect>`` anchor distance, into kamino's record keys
+  (``closure_batch_max_m``, ``iterations_mean``/``_p99``/``_max``, ``converged_share``, ``failed_worlds``,
+  ``batch_world_steps``; :class:`_MjwBatchStats`).
+* **closure**: besides the batch's (MuJoCo Warp), ONE world, freshly built, stepped ``closure_steps`` times with
+  the same drive (``gentle`` only); after every
   step a Warp kernel folds the largest distance between the two anchors of each loop-closing joint into
   a device scalar (``wp.atomic_max``). MuJoCo Warp: ``<connect>`` equalities, anchor ``eq_data[0:3]`` on
   body1 and ``eq_data[3:6]`` on body2 (MuJoCo's compiled connect semantics), through ``xpos``/``xmat``
@@ -62,7 +76,8 @@ drive`` (what is driven, in words), ``drive_amplitude, num_worlds, throughput`` 
 ``step_time_s, closure_max_m, joint_error_max_m, closure_steps, memory_per_world_bytes, memory_per_world_arrays_bytes,
 memory_method, device, timing`` (``graph_replay`` or ``python_loop``), ``graph_steps, warmup_blocks,
 replays_per_trial, repeats, trials_s, window_steps, window_s, dt, versions, notes, reason`` (plus ``source`` and
-``settings`` for SolverKamino). A peer that is not
+``settings`` for SolverKamino; ``load``, ``settings``, ``sim_seconds_per_s`` and the batch statistics for MuJoCo
+Warp, and under ``rl`` ``seed``, ``start_pose_error_m`` and ``start_closure_m``). A peer that is not
 importable, or that cannot load or run the scene, gives a dict whose measurements are ``None`` and whose
 ``reason`` says why (``traceback`` holds the details). The closure run does not depend on ``num_worlds``: when
 sweeping world counts, pass ``closure_steps=0`` after the first.
@@ -185,7 +200,10 @@ def _add_note(result: dict[str, Any], note: str) -> None:
 
 @functools.cache
 def _kernels() -> SimpleNamespace:
-    """The small Warp kernels of the benchmark (drive, time counter, closure), defined once on demand."""
+    """The small Warp kernels of the benchmark (drives, time counter, closure, MuJoCo Warp's batch statistics),
+    defined once on demand. MuJoCo Warp's ``rl`` drive draws through the same ``@wp.func`` as kamino's
+    (:func:`kamino.bench.loads.rl_uniform`)."""
+    from kamino.bench.loads import rl_period, rl_uniform
 
     @wp.kernel
     def mjw_drive(
@@ -231,7 +249,54 @@ def _kernels() -> SimpleNamespace:
         b2 = body2[i]
         p1 = xpos[world, b1] + xmat[world, b1] @ anchor1[i]
         p2 = xpos[world, b2] + xmat[world, b2] @ anchor2[i]
-        wp.atomic_max(out, 0, wp.length(p1 - p2))
+        wp.atomic_max(out, world % out.shape[0], wp.length(p1 - p2))
+
+    @wp.kernel
+    def mjw_rl_drive(
+        time_: wp.array(dtype=wp.float32),
+        actuator: wp.array(dtype=wp.int32),
+        offset: wp.array(dtype=wp.float32),
+        scale: wp.array(dtype=wp.float32),
+        rate: float,
+        half_dt: float,
+        seed: int,
+        ctrl: wp.array2d(dtype=wp.float32),
+    ):
+        world, a = wp.tid()
+        period = rl_period(time_[world], half_dt, rate)
+        u = rl_uniform(seed, period, world, a, ctrl.shape[0], offset.shape[0])
+        ctrl[world, actuator[a]] = offset[a] + scale[a] * u
+
+    @wp.kernel
+    def mjw_fold(
+        niter: wp.array(dtype=wp.int32),
+        cap: int,
+        qpos: wp.array2d(dtype=wp.float32),
+        qvel: wp.array2d(dtype=wp.float32),
+        it_sum: wp.array(dtype=wp.int64),
+        it_max: wp.array(dtype=wp.int32),
+        conv: wp.array(dtype=wp.int32),
+        fail: wp.array(dtype=wp.int32),
+        steps: wp.array(dtype=wp.int32),
+        histogram: wp.array(dtype=wp.int32),
+    ):
+        world = wp.tid()
+        k = niter[world]
+        it_sum[world] = it_sum[world] + wp.int64(k)
+        it_max[world] = wp.max(it_max[world], k)
+        wp.atomic_add(histogram, wp.min(k, histogram.shape[0] - 1), 1)
+        bad = wp.int32(0)
+        for i in range(qpos.shape[1]):
+            if not wp.isfinite(qpos[world, i]):
+                bad = 1
+        for i in range(qvel.shape[1]):
+            if not wp.isfinite(qvel[world, i]):
+                bad = 1
+        if bad != 0:
+            fail[world] = fail[world] + 1
+        elif k < cap:
+            conv[world] = conv[world] + 1
+        steps[world] = steps[world] + 1
 
     @wp.kernel
     def newton_closure(
@@ -257,6 +322,8 @@ def _kernels() -> SimpleNamespace:
         counter_drive=counter_drive,
         tick=tick,
         mjw_closure=mjw_closure,
+        mjw_rl_drive=mjw_rl_drive,
+        mjw_fold=mjw_fold,
         newton_closure=newton_closure,
     )
 
@@ -360,6 +427,8 @@ def _time_steps(
     use_graph: bool,
     warmup: int = timed_window.WARMUP_BLOCKS,
     after_trial: Callable[[int], None] | None = None,
+    before_timing: Callable[[int], None] | None = None,
+    dt: float = DT,
 ) -> dict[str, Any]:
     """Time the benchmark's window of blocks of ``graph_steps`` calls of ``step`` (:mod:`kamino.bench.timed_window`).
 
@@ -367,7 +436,9 @@ def _time_steps(
     replayed; otherwise a block is a Python loop of ``graph_steps`` steps. Each of ``repeats`` trials calls ``reset``
     (the peer's initial state back into the arrays the graph was captured on), runs ``warmup`` blocks untimed and
     times ``replays`` blocks; the median trial is reported, with the window it covers. The device is synchronised
-    before every clock read; ``after_trial(i)`` (untimed) may read the state trial ``i`` ends in.
+    before every clock read; ``before_timing(i)`` (untimed, after the warm-up) may zero statistics that the timed
+    blocks fold, ``after_trial(i)`` (untimed) may read the state trial ``i`` ends in. ``dt`` [s] converts the window
+    to simulated seconds.
     """
     if use_graph:
         with wp.ScopedCapture(device=dev) as capture:
@@ -392,7 +463,8 @@ def _time_steps(
         warmup=warmup,
         replays=replays,
         repeats=repeats,
-        dt=DT,
+        dt=dt,
+        before_timing=before_timing,
         after_trial=after_trial,
     )
     return {"timing": "graph_replay" if use_graph else "python_loop", **timing}
@@ -443,31 +515,276 @@ def _drive_text(kind: str | None, joint: str | None, amplitude: float) -> str | 
 
 
 # --------------------------------------------------------------------------------------------------
+# kamino poses as MuJoCo qpos (the rl load's starts)
+# --------------------------------------------------------------------------------------------------
+
+
+def _quat_rotate(q: Any, v: Any) -> Any:
+    """``q v q*`` of ``(x, y, z, w)`` quaternions and vectors, broadcast over leading axes (host NumPy)."""
+    import numpy as np
+
+    u, w = q[..., :3], q[..., 3:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def _pose_mul(a: Any, b: Any) -> Any:
+    """The pose ``a b`` of ``[..., 7]`` poses ``(position, quaternion x y z w)`` (host NumPy): ``b`` expressed in
+    ``a``'s frame, carried to ``a``'s parent."""
+    import numpy as np
+
+    from kamino.hostmath import quat_mul
+
+    qa, qb = np.moveaxis(a[..., 3:], -1, 0), np.moveaxis(b[..., 3:], -1, 0)
+    return np.concatenate([a[..., :3] + _quat_rotate(a[..., 3:], b[..., :3]),
+                           np.moveaxis(quat_mul(qa, qb), 0, -1)], axis=-1)
+
+
+def _pose_inv(a: Any) -> Any:
+    """The inverse of ``[..., 7]`` poses (host NumPy)."""
+    import numpy as np
+
+    qi = a[..., 3:] * np.array([-1.0, -1.0, -1.0, 1.0])
+    return np.concatenate([-_quat_rotate(qi, a[..., :3]), qi], axis=-1)
+
+
+def mujoco_qpos(scene: str, source: Any, body_q: Any) -> Any:
+    """MuJoCo's ``qpos [num_worlds, nq]`` of the MJCF file ``scene`` for ``num_worlds`` configurations of the kamino
+    model ``source`` (one world; ``body_q [num_worlds * source.num_bodies, 7]`` CoM poses, as
+    :func:`kamino.bench.loads.random_configurations` gives them).
+
+    ``source`` is the model that ``scene`` describes: ``kamino.load_mjcf(scene)`` itself, or the model that
+    ``kamino.save_mjcf`` wrote to ``scene`` (a robot). Bodies are matched by name: :func:`kamino.io.import_mjcf` of
+    ``scene`` gives kamino bodies on MuJoCo's inertial frames, each rigidly attached to the ``source`` body of the
+    same name (a body that ``save_mjcf`` wrote has its frame on the source's CoM frame; MuJoCo puts the inertial frame
+    on the principal axes), so its pose is the source pose times the fixed offset between the two reference poses
+    ``body_q0``. :meth:`kamino.io.MjcfImport.qpos` then reads the joint coordinates of those poses: a hinge or slide
+    its coordinate plus the joint's ``qpos0`` (MuJoCo's ``ref``), a ball or free joint its quaternion in MuJoCo's
+    ``(w, x, y, z)`` order, a free joint the position of the body frame (not the CoM).
+
+    Raises:
+        ValueError: a body of the imported scene has no body of that name in ``source`` (for example a light body
+            that ``load_mjcf`` adds to chain joints), or ``body_q`` is not a whole number of worlds.
+    """
+    import numpy as np
+
+    from kamino.io import import_mjcf
+
+    imp = import_mjcf(scene)
+    names = {n: i for i, n in enumerate(source.body_names)}
+    missing = [n for n in imp.model.body_names if n not in names]
+    if missing:
+        raise ValueError(f"mujoco_qpos: bodies {missing[:6]} of {Path(scene).name} have no body of that name in the "
+                         "kamino model whose configurations are converted (pass the model the MJCF describes)")
+    body_q = np.asarray(body_q, np.float64)
+    if body_q.ndim != 2 or body_q.shape[1] != 7 or body_q.shape[0] % source.num_bodies:
+        raise ValueError(f"mujoco_qpos: body_q must be [num_worlds * {source.num_bodies}, 7], got {body_q.shape}")
+    body_q = body_q.reshape(-1, source.num_bodies, 7)
+    sel = np.array([names[n] for n in imp.model.body_names], np.int64)
+    ref_src = np.asarray(source.body_q0, np.float64)[sel]
+    ref_imp = np.asarray(imp.model.body_q0, np.float64)
+    offset = _pose_mul(_pose_inv(ref_src), ref_imp)  # the imported CoM frame in the source CoM frame
+    return imp.qpos(_pose_mul(body_q[:, sel], offset[None]).astype(np.float32))  # kamino float32 poses
+
+
+def mujoco_pose_errors(mjm: Any, qpos: Any, source: Any, body_q: Any) -> tuple[float, float]:
+    """``(pose error, closure [m])`` of MuJoCo's ``qpos [num_worlds, nq]`` against kamino's ``body_q``
+    (:func:`mujoco_qpos`), by ``mujoco.mj_kinematics`` of every world (host C MuJoCo): the pose error is the largest
+    of the distances [m] between the CoM of each MuJoCo body (``xipos``) and that of the ``source`` body of the same
+    name, and of the differences of their rotation matrices' entries (MuJoCo's inertial axes carried by the fixed
+    rotation between the two frames at ``qpos0`` / ``body_q0``); the closure is the largest distance between the two
+    anchors of any ``<connect>``. The check that the conversion puts MuJoCo in kamino's configurations."""
+    import mujoco
+    import numpy as np
+
+    qpos = np.asarray(qpos, np.float64).reshape(-1, mjm.nq)
+    body_q = np.asarray(body_q, np.float64).reshape(qpos.shape[0], source.num_bodies, 7)
+    names = {n: i for i, n in enumerate(source.body_names)}
+    pairs = [(b, names[n]) for b in range(1, mjm.nbody)
+             if (n := mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_BODY, b)) in names]
+    mj_b = np.array([p[0] for p in pairs], np.int64)
+    src_b = np.array([p[1] for p in pairs], np.int64)
+
+    def rotations(q):  # [n, 3, 3] rotation matrices of (x, y, z, w) quaternions
+        return np.swapaxes(_quat_rotate(q[:, None, :], np.eye(3)[None]), -1, -2)
+
+    d = mujoco.MjData(mjm)
+    mujoco.mj_kinematics(mjm, d)
+    ref = rotations(np.asarray(source.body_q0, float)[src_b, 3:])
+    offset = np.swapaxes(d.ximat[mj_b].reshape(-1, 3, 3), -1, -2) @ ref  # kamino's axes in MuJoCo's inertial frame
+    connects = [i for i in range(mjm.neq) if mjm.eq_type[i] == mujoco.mjtEq.mjEQ_CONNECT
+                and mjm.eq_objtype[i] == mujoco.mjtObj.mjOBJ_BODY]
+    pose_err = closure = 0.0
+    for w in range(qpos.shape[0]):
+        d.qpos[:] = qpos[w]
+        mujoco.mj_kinematics(mjm, d)
+        kam = body_q[w, src_b]
+        rot = np.abs(d.ximat[mj_b].reshape(-1, 3, 3) @ offset - rotations(kam[:, 3:])).max()
+        pose_err = max(pose_err, float(np.abs(d.xipos[mj_b] - kam[:, :3]).max()), float(rot))
+        for i in connects:
+            b1, b2 = int(mjm.eq_obj1id[i]), int(mjm.eq_obj2id[i])
+            p1 = d.xpos[b1] + d.xmat[b1].reshape(3, 3) @ mjm.eq_data[i, 0:3]
+            p2 = d.xpos[b2] + d.xmat[b2].reshape(3, 3) @ mjm.eq_data[i, 3:6]
+            closure = max(closure, float(np.linalg.norm(p1 - p2)))
+    return pose_err, closure
+
+
+# --------------------------------------------------------------------------------------------------
 # MuJoCo Warp
 # --------------------------------------------------------------------------------------------------
 
 
-def _mjw_build(scene: str, num_worlds: int, dev: Any) -> tuple[Any, Any, Any, float]:
+#: the settings that :func:`run_mujoco_warp` can override (its keywords, the accuracy sweep of ``kamino bench``)
+MJW_SETTINGS = ("timeconst", "timestep", "iterations", "tolerance")
+
+
+def _mjw_settings(mjm: Any, *, timeconst: float | None = None, timestep: float | None = None,
+                  iterations: int | None = None, tolerance: float | None = None) -> dict[str, Any]:
+    """Apply the accuracy settings to the host model ``mjm`` (before ``put_model``) and return those it runs with.
+
+    ``timestep`` [s] is ``opt.timestep`` (default ``DT``); ``iterations`` and ``tolerance`` are the constraint solver's
+    ``opt.iterations`` and ``opt.tolerance`` (default: the file's); ``timeconst`` [s] is the ``solref`` time constant
+    ``eq_solref[:, 0]`` of every ``<connect>`` equality (default: the file's, e.g. 0.004 s in kamino's exports and
+    MuJoCo's 0.02 s where a file sets none). MuJoCo keeps a time constant of at least ``2 timestep`` unless the
+    ``refsafe`` flag is disabled (its constraint stays stable only then), so the returned ``timeconst_effective`` is
+    ``max(timeconst, 2 timestep)``."""
+    import mujoco
+    import numpy as np
+
+    mjm.opt.timestep = DT if timestep is None else float(timestep)
+    if iterations is not None:
+        if int(iterations) < 1:
+            raise ValueError(f"iterations must be >= 1, got {iterations}")
+        mjm.opt.iterations = int(iterations)
+    if tolerance is not None:
+        mjm.opt.tolerance = float(tolerance)
+    connect = np.asarray(mjm.eq_type) == int(mujoco.mjtEq.mjEQ_CONNECT)
+    if timeconst is not None:
+        if not timeconst > 0:
+            raise ValueError(f"timeconst must be > 0 s, got {timeconst}")
+        mjm.eq_solref[connect, 0] = float(timeconst)
+    dt = float(mjm.opt.timestep)
+    tcs = sorted({float(v) for v in mjm.eq_solref[connect, 0]})
+    refsafe = not (int(mjm.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_REFSAFE))
+
+    def one(values: list[float]) -> Any:  # one value, or the distinct values, or None without <connect>
+        return values[0] if len(values) == 1 else (values or None)
+
+    return {"timestep": dt, "iterations": int(mjm.opt.iterations), "tolerance": float(mjm.opt.tolerance),
+            "timeconst": one(tcs), "timeconst_effective": one([max(t, 2 * dt) if refsafe else t for t in tcs])}
+
+
+def _mjw_build(scene: str, num_worlds: int, dev: Any, qpos: Any = None,
+               **settings: Any) -> tuple[Any, Any, Any, float, dict[str, Any]]:
     """Host model, device ``Model``, ``num_worlds``-world ``Data`` of an MJCF scene (scene's own options, but
-    ``opt.timestep = DT``) and the file's own time step.
+    ``opt.timestep = DT`` and the accuracy ``settings`` of :func:`_mjw_settings`), the file's own time step and the
+    settings the model runs with.
 
     ``mj_forward`` runs on the host data first, so that MuJoCo Warp's default ``njmax`` covers the
-    constraint rows present at the start (the ladders' 3 rows per ``<connect>``, a robot's contacts).
+    constraint rows present at the start (the ladders' 3 rows per ``<connect>``, a robot's contacts). With ``qpos``
+    (``[num_worlds, nq]``: every world's own start, at rest) the host data is the world with the most constraint rows
+    of up to 256 of them, and each world's ``qpos`` is then written into ``Data``.
     """
     import mujoco
     import mujoco_warp as mjw
+    import numpy as np
 
     mjm = mujoco.MjModel.from_xml_path(str(scene))
     file_dt = float(mjm.opt.timestep)
-    mjm.opt.timestep = DT
+    used = _mjw_settings(mjm, **settings)
     mjd = mujoco.MjData(mjm)
     mujoco.mj_forward(mjm, mjd)
+    if qpos is not None:
+        qpos = np.asarray(qpos, np.float64)
+        if qpos.shape != (num_worlds, mjm.nq):
+            raise ValueError(f"qpos must be [num_worlds, nq] = [{num_worlds}, {mjm.nq}], got {list(qpos.shape)}")
+        probe = mujoco.MjData(mjm)
+        for w in np.linspace(0, num_worlds - 1, min(num_worlds, 256)).astype(int):
+            probe.qpos[:] = qpos[w]
+            mujoco.mj_forward(mjm, probe)
+            if probe.nefc > mjd.nefc:
+                mjd.qpos[:] = qpos[w]
+                mujoco.mj_forward(mjm, mjd)
     with wp.ScopedDevice(dev):
         m = mjw.put_model(mjm)
         # the file's <size nconmax> (contacts per world), as kamino's load_mjcf reads it; else MuJoCo Warp's default
         sizes = {"nconmax": int(mjm.nconmax)} if int(mjm.nconmax) >= 0 else {}
         d = mjw.put_data(mjm, mjd, nworld=num_worlds, **sizes)
-    return mjm, m, d, file_dt
+        if qpos is not None:
+            d.qpos.assign(qpos.astype(np.float32))
+    return mjm, m, d, file_dt, used
+
+
+def _mjw_rl_drive(mjm: Any, source: Any, dev: Any, seed: int, dt: float) -> SimpleNamespace:
+    """The ``rl`` load's drive of MuJoCo Warp (:mod:`kamino.bench.loads`): per kamino actuator (kamino's order, the
+    order of its draws) the MuJoCo actuator of the same name and the map ``ctrl = offset + scale u`` of the draw
+    ``u``: a ``<position>`` actuator's target is kamino's PD target (both measured from the reference pose: MuJoCo's
+    ``ref`` is 0 under a position actuator in load_mjcf's and save_mjcf's files), a ``<motor>``'s ctrl kamino's DoF
+    effort over its gear (MuJoCo applies ``gear ctrl``). MuJoCo actuators without a kamino namesake keep ctrl 0."""
+    import mujoco
+    import numpy as np
+
+    from kamino.bench import loads
+
+    offset, scale, effort = loads.rl_control_map(source)
+    names = [mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, i) for i in range(mjm.nu)]
+    index, problems = [], []
+    for a, name in enumerate(source.actuator_names):
+        if name not in names:
+            problems.append(f"{name!r}: no MuJoCo actuator of that name")
+            index.append(-1)
+            continue
+        i = names.index(name)
+        index.append(i)
+        motor = int(mjm.actuator_biastype[i]) == int(mujoco.mjtBias.mjBIAS_NONE)
+        if motor != bool(effort[a]):
+            problems.append(f"{name!r}: kamino {'effort' if effort[a] else 'PD'} actuator, MuJoCo "
+                            f"{'motor' if motor else 'biased (position/velocity)'} actuator")
+    if problems:
+        raise ValueError(f"rl load: kamino's actuators do not map onto the MJCF's: {'; '.join(problems[:6])}")
+    scale = np.where(effort, scale / np.asarray(source.actuator_gear, float), scale)
+    return SimpleNamespace(
+        actuator=wp.array(np.array(index, np.int32), dtype=wp.int32, device=dev),
+        offset=wp.array(offset.astype(np.float32), dtype=wp.float32, device=dev),
+        scale=wp.array(scale.astype(np.float32), dtype=wp.float32, device=dev),
+        rate=float(loads.RL_RATE), half_dt=0.5 * float(dt), seed=int(seed))
+
+
+class _MjwBatchStats:
+    """MuJoCo Warp's statistics of the timed batch, as kamino's :class:`kamino.bench.loads.BatchStats`: after every
+    step (captured in the graph with it) a kernel folds per world the solver iterations ``Data.solver_niter`` (sum,
+    max, histogram), whether the solver stopped before ``opt.iterations`` (its tolerance met: the ``converged``
+    count), whether ``qpos``/``qvel`` hold a non-finite number (failed), and a second kernel the largest distance
+    between the two anchors of any ``<connect>`` per world. The anchors are read from ``xpos``/``xmat``, which a step
+    computes from the poses it starts from: the fold covers the poses at the start of the timed steps (kamino's: at
+    their ends, one step later)."""
+
+    def __init__(self, num_worlds: int, cap: int, connects: tuple | None, dev: Any):
+        self.num_worlds, self.cap, self.dev = num_worlds, int(cap), dev
+        from kamino.bench import loads
+
+        kinds = {"sum": wp.int64, "max": wp.int32, "converged": wp.int32, "failed": wp.int32, "steps": wp.int32}
+        self.per_world = {k: wp.zeros(num_worlds, dtype=t, device=dev) for k, t in kinds.items()}
+        self.histogram = wp.zeros(loads.HISTOGRAM_BINS, dtype=wp.int32, device=dev)
+        self.connects = connects[:4] if connects is not None else None
+        self.closure = wp.zeros(num_worlds, dtype=wp.float32, device=dev)
+
+    def fold(self, d: Any) -> None:
+        k, pw = _kernels(), self.per_world
+        wp.launch(k.mjw_fold, dim=self.num_worlds, device=self.dev, inputs=[d.solver_niter, self.cap, d.qpos, d.qvel],
+                  outputs=[pw["sum"], pw["max"], pw["converged"], pw["failed"], pw["steps"], self.histogram])
+        if self.connects is not None:
+            wp.launch(k.mjw_closure, dim=(self.num_worlds, self.connects[0].shape[0]), device=self.dev,
+                      inputs=[d.xpos, d.xmat, *self.connects, self.closure])
+
+    def reset(self) -> None:
+        for a in (*self.per_world.values(), self.histogram, self.closure):
+            a.zero_()
+
+    def summary(self) -> dict[str, Any]:
+        from kamino.bench import loads
+
+        return loads.fold_summary(self.per_world, self.histogram, self.closure if self.connects is not None else None)
 
 
 def _mjw_stepper(
@@ -478,8 +795,11 @@ def _mjw_stepper(
     drive: bool = True,
     closure: tuple | None = None,
     amplitude: float = DRIVE_AMPLITUDE,
+    rl: SimpleNamespace | None = None,
+    stats: _MjwBatchStats | None = None,
 ) -> Callable[[], None]:
-    """One benchmark step: ``ctrl[:, 0] = amplitude sin(omega d.time)``, ``mjw.step``, optional closure.
+    """One benchmark step: the drive (``ctrl[:, 0] = amplitude sin(omega d.time)``, or with ``rl`` every actuator's
+    draw of the ``rl`` load, :func:`_mjw_rl_drive`), ``mjw.step``, the optional closure and the batch statistics.
 
     ``ctrl`` is the actuator's own input: a torque for a ``<motor>``, a position target for a ``<position>``.
     """
@@ -489,11 +809,16 @@ def _mjw_stepper(
     omega = 2.0 * math.pi * DRIVE_FREQUENCY
 
     def step() -> None:
-        if drive:
+        if rl is not None:
+            wp.launch(k.mjw_rl_drive, dim=(num_worlds, rl.offset.shape[0]),
+                      inputs=[d.time, rl.actuator, rl.offset, rl.scale, rl.rate, rl.half_dt, rl.seed], outputs=[d.ctrl])
+        elif drive:
             wp.launch(k.mjw_drive, dim=num_worlds, inputs=[d.time, 0, amplitude, omega], outputs=[d.ctrl])
         mjw.step(m, d)
         if closure is not None:
             wp.launch(k.mjw_closure, dim=(num_worlds, closure[0].shape[0]), inputs=[d.xpos, d.xmat, *closure])
+        if stats is not None:
+            stats.fold(d)
 
     return step
 
@@ -541,6 +866,13 @@ def _mjw_overflow_note(d: Any) -> str | None:
     return ", ".join(notes) or None
 
 
+#: largest pose error [m] of MuJoCo's ``rl`` starts against kamino's (:func:`mujoco_pose_errors`) that a run accepts:
+#: a wrong joint map moves bodies by centimetres, float32 rounding and the FK tolerance by micrometres
+START_POSE_TOL = 1e-4
+#: worlds whose ``rl`` start :func:`run_mujoco_warp` checks on the host (evenly spaced, the first and last included)
+START_CHECK_WORLDS = 256
+
+
 def run_mujoco_warp(
     scene: str,
     num_worlds: int,
@@ -553,14 +885,35 @@ def run_mujoco_warp(
     closure_steps: int = 1000,
     use_graph: bool | None = None,
     amplitude: float = DRIVE_AMPLITUDE,
+    load: str = "gentle",
+    seed: int = 0,
+    kamino_model: Any = None,
+    timeconst: float | None = None,
+    timestep: float | None = None,
+    iterations: int | None = None,
+    tolerance: float | None = None,
 ) -> dict[str, Any]:
-    """Throughput, loop closure and memory of MuJoCo Warp on an MJCF scene.
+    """Throughput, loop closure, solver statistics and memory of MuJoCo Warp on an MJCF scene under a load of
+    :mod:`kamino.bench.loads`.
 
     The scene is loaded with ``mujoco.MjModel.from_xml_path`` and run with its own options (for these
     scenes: Newton solver, Euler, soft ``<connect>``; kamino's exported robots: Newton solver,
-    ``implicitfast``, ``<connect>`` with ``solref`` 0.004) but the time step ``DT``,
+    ``implicitfast``, ``<connect>`` with ``solref`` 0.004) but the time step ``DT`` and the accuracy settings below,
     ``mujoco_warp.put_model`` / ``put_data(nworld=num_worlds)``, ``mujoco_warp.step``. See the module
     docstring for the method.
+
+    Loads: ``gentle`` drives the first actuator with ``amplitude sin(2 pi t)`` from the file's pose (module
+    docstring). ``rl`` starts every world at rest in kamino's random loop-closed configuration of that world
+    (:func:`kamino.bench.loads.random_configurations` of ``kamino_model`` with ``seed``, converted by
+    :func:`mujoco_qpos` and checked on the host by :func:`mujoco_pose_errors` for up to ``START_CHECK_WORLDS`` worlds:
+    the record's ``start_pose_error_m`` and ``start_closure_m``) and drives every actuator with kamino's draws
+    (:func:`_mjw_rl_drive`: the same ``@wp.func``, seed, control periods of ``Data.time`` and actuators by name), so
+    world ``w`` of MuJoCo Warp does what world ``w`` of kamino's ``rl`` run does.
+
+    The statistics of the timed batch (:class:`_MjwBatchStats`, folded after every step inside the timed graphs and
+    zeroed before every trial's timed blocks: the record holds the last trial's) carry kamino's keys
+    ``closure_batch_max_m``, ``iterations_mean``/``_p99``/``_max``, ``converged_share``, ``failed_worlds``,
+    ``batch_steps`` and ``batch_world_steps``; ``sim_seconds_per_s`` is the simulated time per second of all worlds.
 
     Args:
         scene: MJCF path.
@@ -570,40 +923,89 @@ def run_mujoco_warp(
         warmup: untimed blocks after each trial's reset.
         replays: timed blocks per trial.
         repeats: timed trials, each from the initial ``Data`` (module docstring); the median is reported.
-        closure_steps: steps of the one-world closure run; 0 skips it.
+        closure_steps: steps of the one-world closure run of the ``gentle`` load (``closure_max_m``); 0 skips it.
+            The ``rl`` load has none: its closure is the batch's.
         use_graph: capture graphs; ``None`` means on CUDA only.
         amplitude: drive amplitude ``A`` of ``ctrl[:, 0] = A sin(2 pi t)``: N m for a ``<motor>``, rad for a
-            ``<position>`` actuator (the robots: 0.2).
+            ``<position>`` actuator (the robots: 0.2). Not used by ``rl``.
+        load: ``"gentle"`` or ``"rl"`` (:data:`kamino.bench.loads.LOADS`).
+        seed: the ``rl`` load's seed (starts and draws), as kamino's.
+        kamino_model: the one-world kamino model that ``scene`` describes, whose ``rl`` configurations and actuator
+            ranges are used (a robot: the model ``kamino.save_mjcf`` wrote); default ``kamino.load_mjcf(scene)``.
+        timeconst: the ``<connect>`` equalities' ``solref`` time constant [s] (``eq_solref[:, 0]``); MuJoCo keeps it
+            at least ``2 timestep`` (``settings["timeconst_effective"]``). Default: the file's.
+        timestep: ``opt.timestep`` [s]; default ``DT``. The window's ``window_s`` and ``sim_seconds_per_s`` use it.
+        iterations: the solver's ``opt.iterations``; default: the file's.
+        tolerance: the solver's ``opt.tolerance``; default: the file's.
 
     Returns:
-        The result dict (module docstring); ``reason`` is set when something could not run.
+        The result dict (module docstring) with ``load``, ``settings`` (what the run used, see :func:`_mjw_settings`)
+        and the batch statistics; ``reason`` is set when something could not run. A run with any setting given
+        names them in its ``variant`` too, so that records of a sweep stay apart.
     """
-    result = _new_result("mujoco_warp", "newton_solver_soft_connect", scene, num_worlds)
-    result["drive_amplitude"] = float(amplitude)
+    given = {k: v for k, v in zip(MJW_SETTINGS, (timeconst, timestep, iterations, tolerance), strict=True)
+             if v is not None}
+    variant = " ".join(["newton_solver_soft_connect", *(f"{k}={v:g}" for k, v in given.items())])
+    result = _new_result("mujoco_warp", variant, scene, num_worlds)
+    result["drive_amplitude"] = float(amplitude) if load == "gentle" else None
+    result["load"] = load
     try:
         import mujoco
         import mujoco_warp as mjw
     except Exception as exc:  # a missing or broken peer is a result, not an error
         return _fail(result, "import", exc)
     try:
+        import numpy as np
+
+        from kamino.bench import loads
+
+        if load not in loads.LOADS:
+            raise ValueError(f"load must be one of {loads.LOADS}, got {load!r}")
         dev = _resolve_device(device)
         result["device"] = _device_name(dev)
         graph = dev.is_cuda if use_graph is None else use_graph
+        qpos = source = None
+        if load == "rl":
+            import kamino
+
+            source = kamino.load_mjcf(scene) if kamino_model is None else kamino_model
+            body_q = loads.random_configurations(
+                source, kamino.replicate(source, num_worlds) if num_worlds > 1 else source, loads.RL_FRACTION, seed)
+            qpos = mujoco_qpos(scene, source, body_q)
+            result["seed"] = int(seed)
         with wp.ScopedDevice(dev):
             before, method = _memory_in_use(dev)
-            mjm, m, d, file_dt = _mjw_build(scene, num_worlds, dev)
+            mjm, m, d, file_dt, used = _mjw_build(scene, num_worlds, dev, qpos, **given)
             after, _ = _memory_in_use(dev)
+            result["settings"] = used
+            result["dt"] = dt = used["timestep"]
             result["memory_method"] = method
             if before is not None and after is not None:
                 result["memory_per_world_bytes"] = (after - before) / num_worlds
             result["memory_per_world_arrays_bytes"] = _owned_array_bytes(m, d) / num_worlds
-            if mjm.nu < 1:
+            rl = None
+            if load == "rl":
+                check = np.unique(np.linspace(0, num_worlds - 1, min(num_worlds, START_CHECK_WORLDS)).astype(int))
+                err, closure = mujoco_pose_errors(mjm, qpos[check], source,
+                                                  np.asarray(body_q).reshape(num_worlds, -1, 7)[check])
+                result["start_pose_error_m"], result["start_closure_m"] = err, closure
+                result["start_checked_worlds"] = int(check.size)
+                if err > START_POSE_TOL:
+                    raise ValueError(f"rl starts: MuJoCo's poses from the converted qpos differ from kamino's by "
+                                     f"{err:g} m (> {START_POSE_TOL:g}): mujoco_qpos does not fit this scene")
+                rl = _mjw_rl_drive(mjm, source, dev, seed, dt)
+                result["drive"] = (f"rl load: {mjm.nu} actuators, random draws at {loads.RL_RATE:g} Hz from seed {seed}"
+                                   " (kamino.bench.loads.rl_uniform), random loop-closed starts at rest")
+            elif mjm.nu < 1:
                 _add_note(result, "scene has no actuator: no drive")
             else:
                 joint, kind = _first_actuator(scene)
                 result["drive"] = _drive_text(kind, joint, amplitude)
-            if file_dt != DT:
-                _add_note(result, f"timestep {file_dt:g} s of the file replaced by {DT:g} s")
+            if file_dt != dt:
+                _add_note(result, f"timestep {file_dt:g} s of the file replaced by {dt:g} s")
+            if given.get("timeconst") is not None and used["timeconst_effective"] != used["timeconst"]:
+                _add_note(result, f"connect timeconst {used['timeconst']:g} s below 2 timestep: MuJoCo uses "
+                                  f"{used['timeconst_effective']:g} s (refsafe)")
             opt = mjm.opt
             _add_note(
                 result,
@@ -616,8 +1018,9 @@ def run_mujoco_warp(
 
     try:
         with wp.ScopedDevice(dev):
-            initial = _snapshot(d)  # the Data put_data made: every trial starts from it
-            step = _mjw_stepper(m, d, num_worlds, drive=mjm.nu > 0, amplitude=amplitude)
+            initial = _snapshot(d)  # the Data put_data made (with the rl starts): every trial starts from it
+            stats = _MjwBatchStats(num_worlds, int(mjm.opt.iterations), _mjw_connects(mjm, dev), dev)
+            step = _mjw_stepper(m, d, num_worlds, drive=mjm.nu > 0, amplitude=amplitude, rl=rl, stats=stats)
             step()  # compile and load the kernels outside any capture
             wp.synchronize_device(dev)
             timing = _time_steps(
@@ -629,21 +1032,25 @@ def run_mujoco_warp(
                 replays=replays,
                 repeats=repeats,
                 use_graph=graph,
+                before_timing=lambda _, stats=stats: stats.reset(),
+                dt=dt,
             )
             result.update(timing)
             result["throughput"] = num_worlds / timing["step_time_s"]
+            result["sim_seconds_per_s"] = num_worlds * dt / timing["step_time_s"]
+            result.update(stats.summary())
             overflow = _mjw_overflow_note(d)
             if overflow:
                 _add_note(result, f"capacity hit during throughput run: {overflow}")
-        del step, m, d, initial  # free the N-world data before the closure run
+        del step, m, d, initial, stats  # free the N-world data before the closure run
         gc.collect()
     except Exception as exc:
         return _fail(result, "throughput", exc)
 
-    if closure_steps > 0:
+    if closure_steps > 0 and load == "gentle":
         try:
             with wp.ScopedDevice(dev):
-                mjm1, m1, d1, _ = _mjw_build(scene, 1, dev)
+                mjm1, m1, d1, _, _ = _mjw_build(scene, 1, dev, **given)
                 connects = _mjw_connects(mjm1, dev)
                 if connects is None:
                     _add_note(result, "no <connect> equality: no loop closure (tree joints are exact in MuJoCo)")
@@ -1198,12 +1605,15 @@ def _format(r: dict[str, Any]) -> str:
     def num(x: float | None, fmt: str) -> str:
         return "-" if x is None else format(x, fmt)
 
-    closure = None if r["closure_max_m"] is None else 1e3 * r["closure_max_m"]
+    closure_m = r.get("closure_batch_max_m", r["closure_max_m"])  # the timed batch's where measured
+    closure = None if closure_m is None else 1e3 * closure_m
     joint_error = None if r["joint_error_max_m"] is None else 1e3 * r["joint_error_max_m"]
     mem = r["memory_per_world_bytes"]
     if mem is None:
         mem = r["memory_per_world_arrays_bytes"]
-    variant = r["variant"] if "settings" not in r else f"{r['variant']}/{r['settings']}"
+    variant = f"{r['variant']}/{r['settings']}" if r["peer"] == "newton_solver_kamino" else r["variant"]
+    if r.get("load"):
+        variant += f" [{r['load']}]"
     line = (
         f"{r['peer']:<21} {variant:<30} {r['scene']:<9} worlds={r['num_worlds']:<6} "
         f"throughput={num(r['throughput'], '.3g')} step={num(r['step_time_s'], '.3g')}s "
@@ -1235,6 +1645,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         "--amplitude", type=float, default=DRIVE_AMPLITUDE, help="drive amplitude: N m (<motor>), rad (<position>)"
     )
     parser.add_argument("--graph", action=argparse.BooleanOptionalAction, default=None, help="force graphs on/off")
+    parser.add_argument("--load", default="gentle", choices=("gentle", "rl"),
+                        help="MuJoCo Warp's load (kamino.bench.loads; rl from kamino.load_mjcf of the scene)")
     parser.add_argument("--json", default=None, help="write all results to this JSON file")
     parser.add_argument("--verbose", action="store_true", help="keep Warp's module-load messages")
     args = parser.parse_args(argv)
@@ -1262,7 +1674,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     results = []
     jobs: list[tuple[str, Callable[..., dict[str, Any]], dict[str, Any]]] = []
     if "mujoco_warp" in peers:
-        jobs.append(("mujoco_warp", run_mujoco_warp, {}))
+        jobs.append(("mujoco_warp", run_mujoco_warp, {"load": args.load}))
     if "solver_kamino" in peers:
         for v in [v.strip() for v in args.variants.split(",") if v.strip()]:
             jobs.append(

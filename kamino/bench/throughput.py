@@ -338,10 +338,12 @@ def _parser(prog: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--no-peers", action="store_true", help="run kamino only")
     p.add_argument("--kamino-variants", nargs="*", default=["padmm_dense", "dvi"], metavar="VARIANT",
                    help="SolverKamino variants (default: padmm_dense dvi; none: MuJoCo Warp alone)")
+    p.add_argument("--mjw-sweep", nargs="+", default=[], metavar="K=V,V",
+                   help=f"MuJoCo Warp per combination of K in {' '.join(MJW_SWEEP)}")
     p.add_argument("--out", type=pathlib.Path, default=None, metavar="JSON",
                    help="write the records here (default: stdout only)")
     p.add_argument("--plot", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
-                   help="PNG plots of saved runs, beside the first JSON or named after --out, and exit")
+                   help="PNG plots of saved runs, named after --out or the first JSON; exit")
     p.add_argument("--table", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
                    help="print a markdown table of saved runs and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bars (tqdm, on stderr)")
@@ -358,6 +360,10 @@ def _check_counts(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     for name in ("warmup", "closure_steps"):
         if getattr(args, name) < 0:
             p.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
+    try:
+        mjw_sweep(args.mjw_sweep)
+    except ValueError as e:
+        p.error(f"--mjw-sweep {e}")
 
 
 def _read_records(p: argparse.ArgumentParser, option: str, files: list[pathlib.Path]) -> list[dict]:
@@ -439,6 +445,33 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
 PEER_SCENES = ("fourbar", "ladder8", "ladder32")
 
 
+#: ``--mjw-sweep`` keys and the :func:`kamino.bench.peers.run_mujoco_warp` keywords they set
+MJW_SWEEP = {"timeconst": ("timeconst", float), "dt": ("timestep", float), "iterations": ("iterations", int),
+             "tolerance": ("tolerance", float)}
+
+
+def mjw_sweep(items: list[str]) -> list[dict]:
+    """``["timeconst=0.02,0.004", "dt=0.001"]`` -> the :func:`kamino.bench.peers.run_mujoco_warp` settings of every
+    combination (``[{"timeconst": 0.02, "timestep": 0.001}, {"timeconst": 0.004, "timestep": 0.001}]``); no items:
+    one run with the file's settings (``[{}]``). Raises ``ValueError`` naming a bad item."""
+    grid: dict[str, list] = {}
+    for item in items:
+        key, sep, values = item.partition("=")
+        if not sep or key not in MJW_SWEEP or not values:
+            raise ValueError(f"{item!r}: expected KEY=V[,V...] with KEY one of {', '.join(MJW_SWEEP)}")
+        name, kind = MJW_SWEEP[key]
+        try:
+            grid[name] = [kind(v) for v in values.split(",")]
+        except ValueError:
+            raise ValueError(f"{item!r}: the values of {key} must be {kind.__name__}s") from None
+        if any(v <= 0 for v in grid[name]):
+            raise ValueError(f"{item!r}: the values of {key} must be > 0")
+    settings = [{}]
+    for name, values in grid.items():
+        settings = [{**s, name: v} for s in settings for v in values]
+    return settings
+
+
 def run_peers(scene, args, emit) -> None:
     """MuJoCo Warp and Newton SolverKamino on the same MJCF and drive as kamino, when importable
     (:mod:`kamino.bench.peers`).
@@ -448,7 +481,11 @@ def run_peers(scene, args, emit) -> None:
     ``<position kp kv>``, loop-closing joints ``<connect>`` with ``solref`` 0.004) into a temporary directory, and
     the peers drive the position target of its first actuator with ``0.2 sin(2 pi t)`` rad, as kamino does
     (:func:`load_scene`), the other actuators holding the reference pose. Each record names the scene (``scene``)
-    and where its MJCF came from (``scene_source``)."""
+    and where its MJCF came from (``scene_source``).
+
+    MuJoCo Warp runs every load of ``--loads`` (the ``rl`` load from kamino's starts and draws of the kamino model
+    that the MJCF describes), once per setting of ``--mjw-sweep`` (:func:`mjw_sweep`); SolverKamino runs the
+    ``gentle`` load only."""
     if scene not in PEER_SCENES and scene not in ROBOTS:
         return
     try:
@@ -456,7 +493,8 @@ def run_peers(scene, args, emit) -> None:
     except ImportError as e:
         emit({"peer": "all", "scene": scene, "error": f"kamino.bench.peers not importable: {e}"})
         return
-    runs = [(peers.run_mujoco_warp, {})] + [(peers.run_solver_kamino, {"variant": v}) for v in args.kamino_variants]
+    run_loads = list(getattr(args, "loads", None) or ["gentle"])
+    sweep = mjw_sweep(list(getattr(args, "mjw_sweep", None) or []))
     with tempfile.TemporaryDirectory(prefix="kamino_peers_") as tmp:
         try:
             model, drive = load_scene(scene)
@@ -468,18 +506,24 @@ def run_peers(scene, args, emit) -> None:
                 path = str(scene_path(scene))
                 source = f"kamino/bench/scenes/{scene}.xml"
         except Exception as e:  # the export raises ValueError for what MJCF cannot represent
-            for fn, _ in runs:
-                emit({"peer": fn.__name__, "scene": scene, "error": f"MJCF for the peers: {e!r}"[:300]})
+            for name in ["run_mujoco_warp", *(["run_solver_kamino"] if args.kamino_variants else [])]:
+                emit({"peer": name, "scene": scene, "error": f"MJCF for the peers: {e!r}"[:300]})
             return
-        for nw in args.worlds:
-            for fn, kw in runs:
-                try:
-                    rec = fn(path, nw, graph_steps=args.graph_steps, warmup=args.warmup, replays=args.replays,
-                             repeats=args.repeats, closure_steps=args.closure_steps if nw == args.worlds[0] else 0,
-                             amplitude=drive["amplitude"], **kw)
-                    emit({**rec, "scene": scene, "scene_source": source})
-                except Exception as e:
-                    emit({"peer": fn.__name__, "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
+        for load in run_loads:
+            runs = [(peers.run_mujoco_warp, {"load": load, "kamino_model": model, **setting}) for setting in sweep]
+            if load == "gentle":
+                runs += [(peers.run_solver_kamino, {"variant": v}) for v in args.kamino_variants]
+            for nw in args.worlds:
+                for fn, kw in runs:
+                    try:
+                        rec = fn(path, nw, graph_steps=args.graph_steps, warmup=args.warmup, replays=args.replays,
+                                 repeats=args.repeats,
+                                 closure_steps=args.closure_steps if nw == args.worlds[0] else 0,
+                                 amplitude=drive["amplitude"], **kw)
+                        emit({**rec, "scene": scene, "scene_source": source})
+                    except Exception as e:
+                        emit({"peer": fn.__name__, "scene": scene, "load": load, "num_worlds": nw,
+                              "error": repr(e)[:300]})
 
 
 def _cell(rec: dict | None) -> str:
