@@ -47,5 +47,5 @@ def test_bad_arguments_are_named(ppo_collect):
 def test_an_unknown_policy_is_named(ppo_collect):
     """``--policy`` takes a shipped policy's name or an existing run: anything else fails before an environment is
     built, naming what it got and the shipped policies."""
-    with pytest.raises(FileNotFoundError, match="no_such_policy.*dr_legs_walk"):
+    with pytest.raises(FileNotFoundError, match=r"no_such_policy.*dr_legs_walk"):
         ppo_collect.main(["--policy", "no_such_policy"])
