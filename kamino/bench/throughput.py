@@ -21,8 +21,10 @@ random controls at 50 Hz. Next to each of kamino's figures: the statistics of th
 (:class:`kamino.bench.loads.BatchStats`: PADMM iterations per world and step, mean, p99 and max; the converged share;
 the failed worlds; the loop closure, the largest anchor distance of any joint with translational rows over every world
 and step) and the device memory per world. The peers run fourbar, ladder8, ladder32 from kamino/bench/scenes and the
-robots from their ``kamino.save_mjcf`` export, with the gentle drive and a one-world closure run of
-``--closure-steps`` (:mod:`kamino.bench.peers`, :func:`run_peers`).
+robots from their ``kamino.save_mjcf`` export (:mod:`kamino.bench.peers`, :func:`run_peers`): MuJoCo Warp under
+every load, with the same starts and draws, the statistics of its own timed batch, and once per setting of
+``--mjw-sweep`` (the ``<connect>`` time constant, time step, iterations, tolerance: its accuracy knobs); SolverKamino
+under the gentle load, its closure from a one-world run of ``--closure-steps``.
 
 The timed window (one rule for kamino Warp, kamino JAX, MuJoCo Warp and SolverKamino, :mod:`kamino.bench.timed_window`):
 each of ``--repeats`` trials resets the simulation to its initial state (state, time, controls, warm start: see
@@ -552,9 +554,10 @@ def _cell(rec: dict | None) -> str:
 
 
 def record_key(r: dict) -> tuple:
-    """What a record measures: scene, world count, load (a peer's and an older record's: ``gentle``), and the
-    solver (kamino's backend and configuration, or the peer and its variant)."""
-    who = (r["peer"], r.get("variant")) if "peer" in r else (r.get("kamino"), r.get("config"))
+    """What a record measures: scene, world count, load (an older record's: ``gentle``), and the solver (kamino's
+    backend, configuration and solver settings, or the peer and its variant, which names its settings)."""
+    who = ((r["peer"], r.get("variant")) if "peer" in r
+           else (r.get("kamino"), r.get("config"), json.dumps(r.get("solver") or {}, sort_keys=True)))
     return (r.get("scene"), r.get("num_worlds"), r.get("load", "gentle"), *who)
 
 
@@ -568,6 +571,20 @@ def latest_records(records: Iterable[dict]) -> list[dict]:
     return list(latest.values())
 
 
+def _column(r: dict) -> str | None:
+    """The table column of a record: ``kamino`` (its ``default`` configuration; other configurations have none) with
+    the solver settings it ran (``kamino tolerance=0.01``), ``MuJoCo Warp`` with the settings of a sweep, or
+    ``SolverKamino <variant>``."""
+    if "peer" in r:
+        if r["peer"] != "mujoco_warp":
+            return f"SolverKamino {r.get('variant')}"
+        settings = str(r.get("variant") or "").split()[1:]  # the variant after its solver's name: the sweep's settings
+        return " ".join(["MuJoCo Warp", *settings])
+    if r.get("config") != "default":
+        return None
+    return " ".join(["kamino", *(f"{k}={v}" for k, v in sorted((r.get("solver") or {}).items()))])
+
+
 def table(records: list[dict]) -> str:
     """A markdown table of throughput records (this module's JSON ``records``): one row per scene, load and world
     count, kamino's ``default`` configuration beside MuJoCo Warp and each SolverKamino variant, each cell
@@ -576,16 +593,13 @@ def table(records: list[dict]) -> str:
     cells: dict[tuple[str, str, int], dict[str, dict]] = {}
     columns: list[str] = []
     for r in records:
-        if "peer" in r:
-            col = "MuJoCo Warp" if r["peer"] == "mujoco_warp" else f"SolverKamino {r.get('variant')}"
-        elif r.get("config") == "default":
-            col = "kamino"
-        else:
+        col = _column(r)
+        if col is None:
             continue
         if col not in columns:
             columns.append(col)
         cells.setdefault((r["scene"], r.get("load", "gentle"), int(r["num_worlds"])), {})[col] = r
-    columns.sort(key=lambda c: (c != "kamino", c != "MuJoCo Warp", c))
+    columns.sort(key=lambda c: (not c.startswith("kamino"), not c.startswith("MuJoCo Warp"), c))
     lines = ["| scene | load | worlds | " + " | ".join(columns) + " | speed / MuJoCo Warp | memory / MuJoCo Warp |",
              "|---|---|---|" + "---|" * (len(columns) + 2)]
     for (scene, load, worlds), row in sorted(cells.items()):
