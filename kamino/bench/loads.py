@@ -29,7 +29,7 @@ import warp as wp
 import kamino
 from kamino.envs.geometry import place_on_ground, support_points
 from kamino.kinematics import base_bodies
-from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType, Model
+from kamino.model import JOINT_CONSTRAINT_ROWS, ActuationMode, JointType, Model, fingerprint
 
 LOADS = ("gentle", "rl")
 #: the rate [Hz] at which the ``rl`` load draws new controls (a policy's control rate)
@@ -64,8 +64,13 @@ def random_configurations(base: Model, model: Model, fraction: float, seed: int,
     """``[num_bodies, 7]`` poses of ``model`` (``base`` replicated) with every world in its own loop-closed
     configuration: actuated coordinates uniform within ``fraction`` of :func:`actuator_ranges` about the centre,
     solved by :func:`kamino.forward_kinematics`; a floating robot set down on the ground at its reference base pose
-    (:func:`kamino.envs.geometry.place_on_ground`). A world whose solve does not converge keeps the reference pose."""
+    (:func:`kamino.envs.geometry.place_on_ground`). A world whose solve does not converge keeps the reference pose.
+    The result is kept per mechanism (:func:`kamino.model.fingerprint` of ``base``), world count, fraction, seed and
+    dtype, so that kamino and the peers start from the same poses without solving them again."""
     num_worlds = model.num_worlds
+    key = (fingerprint(base), num_worlds, float(fraction), int(seed), np.dtype(dtype).str)
+    if key in _STARTS:
+        return _STARTS[key].copy()
     lo, hi = actuator_ranges(base)[:2]
     centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo) * fraction
     u = np.random.default_rng(seed).uniform(-1.0, 1.0, (num_worlds, base.num_actuators))
@@ -76,7 +81,12 @@ def random_configurations(base: Model, model: Model, fraction: float, seed: int,
         pts, bodies, radii = support_points(base)
         body_q = np.asarray(jax.vmap(lambda q: place_on_ground(q, jnp.asarray(pts, q.dtype), bodies,
                                                                jnp.asarray(radii, q.dtype), 0.0))(jnp.asarray(body_q)))
-    return body_q.reshape(-1, 7).astype(dtype)
+    _STARTS[key] = body_q.reshape(-1, 7).astype(dtype)
+    return _STARTS[key].copy()
+
+
+#: :func:`random_configurations`' results of this process, by mechanism, world count, fraction, seed and dtype
+_STARTS: dict[tuple, np.ndarray] = {}
 
 
 @wp.func
