@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from kamino.model import Model
     from kamino.state import State
 
-__all__ = ["iterations_histogram", "rollout_diagnostics", "save_figure", "speed_against_error",
+__all__ = ["iterations_histogram", "rollout_diagnostics", "save_figure", "speed_against_error", "speed_at_accuracy",
            "throughput_against_worlds"]
 
 _INSTALL = "pip install 'kamino[bench]'"
@@ -272,6 +272,71 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
             ys += y
         a.set(xscale="log", yscale="log", title=scene, xlabel="max loop closure [m]",
               ylabel="world-steps/s" + (" (run incl. host probes)" if run_rate.get(scene) else ""))
+        _short_log_ticks(a, xs, ys)
+        a.grid(True, which="both", alpha=0.3)
+        a.legend(fontsize=6)
+    if ax is None:
+        fig.tight_layout()
+    return fig
+
+
+#: the throughput benchmark's time step [s] (``kamino.bench.throughput.DT``), for records without ``sim_seconds_per_s``
+_BENCH_DT = 0.0025
+
+
+def _solver_setting(r: Mapping[str, Any]) -> tuple[str, str]:
+    """``(solver, setting)`` of a throughput record: kamino's default configuration with its solver settings
+    (``tolerance=0.01``; none: ``defaults``), MuJoCo Warp with its sweep's settings (none: ``file's settings``), or a
+    SolverKamino variant."""
+    if r.get("peer") == "mujoco_warp":
+        settings = " ".join(str(r.get("variant") or "").split()[1:])
+        return "MuJoCo Warp", settings or "file's settings"
+    if r.get("peer"):
+        return f"SolverKamino {r.get('variant')}", ""
+    solver = r.get("solver") or {}
+    return "kamino", " ".join(f"{k}={v}" for k, v in sorted(solver.items())) or "defaults"
+
+
+def speed_at_accuracy(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
+                      ax: Axes | Sequence[Axes] | None = None) -> Figure:
+    """Simulated world-seconds per second (y, log: world-steps/s x dt, comparable across time steps) against the loop
+    closure (x, log), one panel per scene, load and world count, one series per solver and one point per solver
+    setting, labelled with it: kamino's ``default`` configuration at each ``--tolerance`` or ``--solver`` setting,
+    MuJoCo Warp at each ``--mjw-sweep`` setting, each SolverKamino variant. Where one solver's curve lies above
+    another's at the same closure, it is the faster at that accuracy. ``kamino.bench.throughput`` records (those with
+    a throughput and a closure; other kamino configurations are left out).
+
+    Returns:
+        The figure; each series is one line of markers (no segments: settings are not ordered), its points from the
+        loosest closure to the tightest.
+    """
+    panels: dict[tuple[str, str, int], dict[str, list[tuple[float, float, str]]]] = {}
+    for r in _records(results):
+        closure = _closure(r)
+        if _is_convergence(r) or not r.get("throughput") or closure is None:
+            continue
+        if "peer" not in r and r.get("config") != "default":
+            continue
+        solver, setting = _solver_setting(r)
+        y = r.get("sim_seconds_per_s") or r["throughput"] * _BENCH_DT
+        key = (r["scene"], r.get("load", "gentle"), int(r["num_worlds"]))
+        panels.setdefault(key, {}).setdefault(solver, []).append((max(closure, 1e-12), y, setting))
+    if not panels:
+        raise ValueError("speed_at_accuracy: no record has both a throughput and a loop closure")
+    keys = sorted(panels)
+    fig, axes = _axes(ax, len(keys))
+    for a, key in zip(axes, keys, strict=True):
+        xs, ys = [], []
+        for solver, pts in sorted(panels[key].items()):
+            pts.sort(key=lambda p: -p[0])
+            x, y, labels = zip(*pts, strict=True)
+            a.plot(x, y, marker="o", linestyle="none", label=solver)
+            for xi, yi, text in zip(x, y, labels, strict=True):
+                a.annotate(text, (xi, yi), fontsize=6, textcoords="offset points", xytext=(4, 4))
+            xs += x
+            ys += y
+        a.set(xscale="log", yscale="log", title=f"{key[0]}, {key[1]} load, {key[2]} worlds",
+              xlabel="max loop closure [m]", ylabel="simulated world-seconds per second")
         _short_log_ticks(a, xs, ys)
         a.grid(True, which="both", alpha=0.3)
         a.legend(fontsize=6)

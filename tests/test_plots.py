@@ -144,3 +144,35 @@ def test_without_matplotlib_the_error_names_the_extra(monkeypatch):
     with pytest.raises(ImportError, match=r"pip install 'kamino\[bench\]'"):
         plots.throughput_against_worlds({"records": [{"scene": "x", "num_worlds": 1, "throughput": 1.0}]})
 
+
+
+def test_speed_at_accuracy_one_panel_per_scene_load_and_worlds():
+    """kamino at two tolerances and MuJoCo Warp at two sweep settings, under two loads: a panel per load, a series per
+    solver, a point per setting at (closure, simulated seconds per second); a record without ``sim_seconds_per_s``
+    gets world-steps/s x the benchmark's 2.5 ms; other kamino configurations are left out."""
+    import matplotlib.pyplot as plt
+
+    def kam(load, tol, thr, closure):
+        return {"kamino": "warp", "config": "default", "scene": "s", "load": load, "num_worlds": 8,
+                "throughput": thr, "closure_batch_max_m": closure, "solver": {"tolerance": tol} if tol else {}}
+
+    def mjw(load, settings, sim, closure):
+        return {"peer": "mujoco_warp", "variant": f"newton_solver_soft_connect {settings}".strip(), "scene": "s",
+                "load": load, "num_worlds": 8, "throughput": 1.0, "sim_seconds_per_s": sim,
+                "closure_batch_max_m": closure}
+
+    recs = [kam("gentle", None, 4e5, 2e-6), kam("gentle", 0.01, 5e5, 3e-6), kam("rl", None, 1e5, 2e-6),
+            mjw("gentle", "timeconst=0.02", 7e3, 4e-3), mjw("gentle", "timeconst=0.005", 6e3, 3e-4),
+            mjw("rl", "", 6e3, 4e-2), dict(kam("gentle", None, 1.0, 1e-6), config="sparse-cr")]
+    fig = plots.speed_at_accuracy({"records": recs})
+    try:
+        assert [ax.get_title() for ax in fig.axes] == ["s, gentle load, 8 worlds", "s, rl load, 8 worlds"]
+        gentle = {line.get_label(): line for line in fig.axes[0].get_lines()}
+        assert set(gentle) == {"kamino", "MuJoCo Warp"}
+        np.testing.assert_allclose(gentle["kamino"].get_xdata(), [3e-6, 2e-6])  # loosest closure first
+        np.testing.assert_allclose(gentle["kamino"].get_ydata(), [5e5 * 0.0025, 4e5 * 0.0025])
+        np.testing.assert_allclose(gentle["MuJoCo Warp"].get_ydata(), [7e3, 6e3])
+        labels = {t.get_text() for t in fig.axes[1].texts}
+        assert labels == {"defaults", "file's settings"}
+    finally:
+        plt.close(fig)

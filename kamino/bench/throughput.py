@@ -616,16 +616,18 @@ def table(records: list[dict]) -> str:
 
 def plot(results: dict, stem: pathlib.Path) -> None:
     """``<stem>_throughput.png``: throughput against worlds; ``<stem>_error.png``: throughput against max loop
-    closure (one point per world count, each configuration and peer a series); both one panel per scene
-    (:mod:`kamino.plots`)."""
+    closure (one point per world count, each configuration and peer a series), both one panel per scene;
+    ``<stem>_accuracy.png``: simulated seconds per second against closure, one point per solver setting, one panel per
+    scene, load and world count (:mod:`kamino.plots`)."""
     from kamino import plots
 
     plots.save_figure(plots.throughput_against_worlds(results), f"{stem}_throughput.png")
     try:
-        fig = plots.speed_against_error(results)
-    except ValueError:  # no record has a closure: no error plot
+        fig, accuracy = plots.speed_against_error(results), plots.speed_at_accuracy(results)
+    except ValueError:  # no record has a closure: no error plots
         return
     plots.save_figure(fig, f"{stem}_error.png")
+    plots.save_figure(accuracy, f"{stem}_accuracy.png")
 
 
 if __name__ == "__main__":
