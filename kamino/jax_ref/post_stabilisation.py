@@ -131,9 +131,8 @@ def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, c
         return i + 1, q, open_
 
     carry = (jnp.int32(0), q, open_)
-    if cfg.fixed_iterations:
-        for _ in range(REPROJECTION_PASSES):
-            carry = one(carry)
+    if cfg.fixed_iterations:  # every pass, one compiled body (a fori_loop with static bounds: differentiable)
+        carry = jax.lax.fori_loop(0, REPROJECTION_PASSES, lambda _, c: one(c), carry)
     else:
         carry = jax.lax.while_loop(lambda c: c[2] & (c[0] < REPROJECTION_PASSES), one, carry)
     return carry[1]

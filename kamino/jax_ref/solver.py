@@ -186,6 +186,10 @@ class Carry(NamedTuple):
     e_p: jax.Array  #: the previous iteration's dual residual vector ("Null directions")
     sat: jax.Array  #: the saturated effort-limited rows ("Saturation")
     pending: jax.Array  #: a row saturated: the factor is redone before the next iteration
+    vt: jax.Array  #: the scaled right-hand side ``P v_f`` (the refined one once the solve refines)
+    hi_v: jax.Array  #: the box rows' scaled upper bounds for ``vt`` (:meth:`_Problem.upper`)
+    cap: jax.Array  #: the iteration count at which the current solve stops unconverged
+    refined: jax.Array  #: the curvature refinement has restarted the solve (:func:`solve`, ``refine``)
 
 
 class _Problem:
@@ -287,8 +291,8 @@ class _Problem:
         x = self.proj(jnp.concatenate([x0[:nf] - t, x0[nf:]]), hi_v)
         return jnp.where(jnp.all(jnp.isfinite(x[:nf])), x, x0)
 
-    def start(self, impulse0, velocity0) -> tuple[Carry, jax.Array]:
-        """The warm-started first carry (§7.8) and the box rows' upper bounds for ``vt``. Effort-limited rows whose
+    def start(self, impulse0, velocity0) -> Carry:
+        """The warm-started first carry (§7.8), with the box rows' upper bounds for ``vt``. Effort-limited rows whose
         warm start lies on a bound (to ``SATURATION_MARGIN`` of it) start saturated."""
         dtype, n, n_box, P, row_mask = self.dtype, self.n, self.n_box, self.P, self.row_mask
         finite_lo, finite_hi, lo_s, hi_s = self.finite_lo, self.finite_hi, self.lo_s, self.hi_s
@@ -307,15 +311,16 @@ class _Problem:
         init = Carry(k=jnp.int32(0), x_p=x0, y_p=x0, z_p=z0, y_hat=x0, z_hat=z0, a_p=jnp.asarray(1.0, dtype),
                      c_p=big, r_p=big, r_d=big, r_c=big, converged=jnp.asarray(False), rho_u=self.rho0,
                      L=self.factor(self.factor_fixed(sat0), self.rho0, sat0), k_rho=jnp.int32(0),
-                     e_p=jnp.full(n, big, dtype), sat=sat0, pending=jnp.asarray(False))
-        return init, hi_v
+                     e_p=jnp.full(n, big, dtype), sat=sat0, pending=jnp.asarray(False), vt=self.vt, hi_v=hi_v,
+                     cap=jnp.int32(self.cfg.max_iterations), refined=jnp.asarray(False))
+        return init
 
 
-def _iterate(p: _Problem, carry: Carry, vt, hi_v, inline: bool = True) -> Carry:
+def _iterate(p: _Problem, carry: Carry, inline: bool = True) -> Carry:
     """One PADMM iteration (Alg. 1, §7.3-§7.5). A row that saturates refactorises here (``inline``) or marks the
     carry's ``pending`` for the caller to refactorise (the while loop: under ``vmap`` a ``lax.cond`` runs both
     branches, so an inline refactorisation would cost a factorisation per iteration)."""
-    k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _, rho_u, L, k_rho, e_p, sat, pending = carry
+    k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _, rho_u, L, k_rho, e_p, sat, pending, vt, hi_v, _, _ = carry
     cfg, eta, tol, W, P, big = p.cfg, p.eta, p.tol, p.W, p.P, p.big
     rho = p.penalty(rho_u, sat)
     # step 1-2: De Saxcé correction, linear solve with the cached factor
@@ -377,26 +382,70 @@ def _iterate(p: _Problem, carry: Carry, vt, hi_v, inline: bool = True) -> Carry:
         z_hat_n = jnp.where(change, z, z_hat_n)
         c_n = jnp.where(change, big, c_n)
         k_rho = jnp.where(change, k + 1, k_rho)
-    return Carry(k=k + 1, x_p=x, y_p=y, z_p=z, y_hat=y_hat_n, z_hat=z_hat_n, a_p=a, c_p=c_n, r_p=r_p, r_d=r_d,
-                 r_c=r_c, converged=converged, rho_u=rho_u, L=L, k_rho=k_rho, e_p=e, sat=sat, pending=pending)
+    return carry._replace(k=k + 1, x_p=x, y_p=y, z_p=z, y_hat=y_hat_n, z_hat=z_hat_n, a_p=a, c_p=c_n, r_p=r_p,
+                          r_d=r_d, r_c=r_c, converged=converged, rho_u=rho_u, L=L, k_rho=k_rho, e_p=e, sat=sat,
+                          pending=pending)
 
 
-def _run(p: _Problem, carry: Carry, vt, hi_v, cap) -> Carry:
-    """Iterations from ``carry`` until the solve converges or reaches ``cap`` iterations (``cfg.fixed_iterations``:
-    exactly ``cfg.max_iterations``, a differentiable ``fori_loop``)."""
+def _restart(p: _Problem, c: Carry, refine, go) -> Carry:
+    """The carry of the refined solve (:func:`solve`, ``refine``) where ``go``, else ``c`` as it is: the right-hand
+    side ``vt`` for the impulses ``P y`` of ``c``, its upper bounds, and PADMM restarted from ``c``'s iterate (``x_p``
+    kept, ``y_hat = y``, ``z_hat = z``, no momentum) for up to ``cfg.max_iterations`` more iterations."""
+    k, y, z, row_mask = c.k, c.y_p, c.z_p, p.row_mask
+    vt = jnp.where(row_mask, p.P * refine(jnp.where(row_mask, p.P * y, 0.0)), 0.0)
+    hi_v = p.upper(vt)
+    if p.cfg.redundant_limits:
+        y = p.proj(y, hi_v)  # the set of fixed rows may change with the right-hand side
+    restart = c._replace(y_p=y, y_hat=y, z_hat=z, a_p=jnp.asarray(1.0, p.dtype), c_p=p.big,
+                         converged=jnp.asarray(False), k_rho=k, vt=vt, hi_v=hi_v, cap=k + p.cfg.max_iterations,
+                         refined=jnp.asarray(True))
+    return jax.tree.map(lambda a, b: jnp.where(go, a, b), restart, c)
+
+
+def _run(p: _Problem, carry: Carry, refine=None, refine_rows=True) -> Carry:
+    """Iterations from ``carry`` until the solve converges or reaches ``carry.cap`` iterations; with ``refine``, a
+    world whose solve converged unrefined and that has ``refine_rows`` restarts refined (:func:`_restart`) and goes on
+    until the refined solve converges or reaches its own cap.
+
+    One ``while_loop`` holds both solves, the refinement in its outer body: that body runs once per factorisation
+    (a saturation, the convergence), and under ``vmap``, where a ``lax.cond`` is a select that runs both branches, the
+    per-iteration body stays free of the refinement. A world's iterates are those of the two solves run one after
+    the other; the worlds of a batch need not be in the same solve at the same time.
+
+    ``cfg.fixed_iterations``: exactly ``cfg.max_iterations`` iterations (a differentiable ``fori_loop``), then, with
+    ``refine``, ``cfg.max_iterations`` more from the restart, kept where the first solve converged and the world has
+    ``refine_rows``."""
     cfg = p.cfg
     if cfg.fixed_iterations:
-        return jax.lax.fori_loop(0, cfg.max_iterations, lambda _, c: _iterate(p, c, vt, hi_v), carry)
+        def fixed(c):
+            return jax.lax.fori_loop(0, cfg.max_iterations, lambda _, c: _iterate(p, c), c)
+
+        out = fixed(carry)
+        if refine is None:
+            return out
+        go = out.converged & refine_rows
+        refined = fixed(_restart(p, out, refine, go))
+        return jax.tree.map(lambda a, b: jnp.where(go, a, b), refined, out)
+
+    def refines(c: Carry) -> jax.Array:
+        return c.converged & ~c.refined & refine_rows
 
     def phase(c: Carry) -> Carry:
-        # the factor for the rows saturated so far (where a row saturated), then iterations until the solve
-        # converges, reaches the cap or another row saturates
+        # a converged world that refines restarts on the refined right-hand side; then the factor for the rows
+        # saturated so far (where a row saturated), then iterations until the solve converges, reaches the cap or
+        # another row saturates
+        if refine is not None:
+            c = _restart(p, c, refine, refines(c))
         L = jax.lax.cond(c.pending, lambda: p.factor(p.factor_fixed(c.sat), c.rho_u, c.sat), lambda: c.L)
         c = c._replace(L=L, pending=jnp.asarray(False))
-        return jax.lax.while_loop(lambda c: (~c.converged) & (c.k < cap) & ~c.pending,
-                                  lambda c: _iterate(p, c, vt, hi_v, inline=False), c)
+        return jax.lax.while_loop(lambda c: (~c.converged) & (c.k < c.cap) & ~c.pending,
+                                  lambda c: _iterate(p, c, inline=False), c)
 
-    return jax.lax.while_loop(lambda c: (~c.converged) & (c.k < cap), phase, carry)
+    def running(c: Carry) -> jax.Array:
+        going = (~c.converged) & (c.k < c.cap)
+        return going if refine is None else going | refines(c)
+
+    return jax.lax.while_loop(running, phase, carry)
 
 
 def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
@@ -472,19 +521,7 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     ``v+`` and each group's generalised impulse, and PADMM no longer creeps along the null direction.
     """
     p = _Problem(D, v_f, lo, hi, mu, row_mask, cfg, rho0, n_fixed)
-    init, hi_v = p.start(impulse0, velocity0)
-    out = _run(p, init, p.vt, hi_v, cfg.max_iterations)
-    if refine is not None:
-        k, y, z = out.k, out.y_p, out.z_p
-        vt2 = jnp.where(row_mask, p.P * refine(jnp.where(row_mask, p.P * y, 0.0)), 0.0)
-        hi_v2 = p.upper(vt2)
-        if cfg.redundant_limits:
-            y = p.proj(y, hi_v2)  # the set of fixed rows may change with the right-hand side
-        go = out.converged if refine_rows is None else out.converged & refine_rows
-        restart = out._replace(y_p=y, y_hat=y, z_hat=z, a_p=jnp.asarray(1.0, p.dtype), c_p=p.big,
-                               converged=~go, k_rho=k)
-        refined = _run(p, restart, vt2, hi_v2, k + cfg.max_iterations)
-        out = jax.tree.map(lambda a, b: jnp.where(go, a, b), refined, out)
+    out = _run(p, p.start(impulse0, velocity0), refine, True if refine_rows is None else refine_rows)
     k, y, z = out.k, out.y_p, out.z_p
     v = (z - de_saxce(z, mu, p.n_box)) / p.P  # §7.7: v+ = z - Gamma(z), unscaled
     return PADMMResult(
