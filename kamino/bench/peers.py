@@ -880,7 +880,7 @@ def run_mujoco_warp(
     device: str | None = None,
     graph_steps: int = 10,
     warmup: int = timed_window.WARMUP_BLOCKS,
-    replays: int = 10,
+    replays: int = 100,
     repeats: int = 3,
     closure_steps: int = 1000,
     use_graph: bool | None = None,
@@ -1454,7 +1454,7 @@ def run_solver_kamino(
     variant: str = "padmm_dense",
     graph_steps: int = 10,
     warmup: int = timed_window.WARMUP_BLOCKS,
-    replays: int = 10,
+    replays: int = 100,
     repeats: int = 3,
     closure_steps: int = 1000,
     use_graph: bool | None = None,
@@ -1638,7 +1638,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     parser.add_argument("--kamino-settings", default="newton_example", choices=KAMINO_SETTINGS)
     parser.add_argument("--graph-steps", type=int, default=10, help="steps per block (one graph)")
     parser.add_argument("--warmup", type=int, default=timed_window.WARMUP_BLOCKS, help="untimed blocks per trial")
-    parser.add_argument("--replays", type=int, default=10, help="timed blocks per trial")
+    parser.add_argument("--replays", type=int, default=100, help="timed blocks per trial (100)")
     parser.add_argument("--repeats", type=int, default=3, help="trials, each from a reset; the median is reported")
     parser.add_argument("--closure-steps", type=int, default=1000, help="closure run once per peer/variant")
     parser.add_argument(
