@@ -1,6 +1,6 @@
 """Tests run in float64 unless a test asks for float32 (the reference physics is checked in float64).
 
-CI time (a 2-core machine, 15-minute budget) goes mostly to XLA compiling the step on the CPU, not to running
+CI time (a 2-core machine) goes mostly to XLA compiling the step on the CPU, not to running
 it. These settings cut that without touching what is computed:
 
 - ``--xla_cpu_use_fusion_emitters=false``: XLA's older CPU fusion code generator. Measured on this project's
