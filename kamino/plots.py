@@ -204,6 +204,22 @@ def _distinct_runs(recs: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]
                                     and (r["scene"], r["num_worlds"], r.get("dt"), r["tolerance"]) in swept)]
 
 
+def _labelled_series(a: Axes, series: Mapping[str, Sequence[tuple[float, float, str]]], *,
+                     linestyle: str) -> tuple[list[float], list[float]]:
+    """Draw each series (name -> ``(x, y, label)`` points, in drawing order) as one line of markers with every point
+    annotated by its label; return every drawn x and y (for the ticks)."""
+    xs: list[float] = []
+    ys: list[float] = []
+    for name, pts in sorted(series.items()):
+        x, y, labels = zip(*pts, strict=True)
+        a.plot(x, y, marker="o", linestyle=linestyle, label=name)
+        for xi, yi, text in zip(x, y, labels, strict=True):
+            a.annotate(text, (xi, yi), fontsize=6, textcoords="offset points", xytext=(4, 4))
+        xs += x
+        ys += y
+    return xs, ys
+
+
 def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
                         ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """Throughput (y, log) against max loop closure (x, log), one panel per scene, from a benchmark JSON.
@@ -261,15 +277,8 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
     scenes = sorted(panels)
     fig, axes = _axes(ax, len(scenes))
     for a, scene in zip(axes, scenes, strict=True):
-        xs, ys = [], []
-        for name, pts in sorted(panels[scene].items()):
-            pts.sort(key=lambda p: p[3])
-            x, y, labels, _ = zip(*pts, strict=True)
-            a.plot(x, y, marker="o", label=name)
-            for xi, yi, text in zip(x, y, labels, strict=True):
-                a.annotate(text, (xi, yi), fontsize=6, textcoords="offset points", xytext=(4, 4))
-            xs += x
-            ys += y
+        series = {name: [p[:3] for p in sorted(pts, key=lambda p: p[3])] for name, pts in panels[scene].items()}
+        xs, ys = _labelled_series(a, series, linestyle="-")
         a.set(xscale="log", yscale="log", title=scene, xlabel="max loop closure [m]",
               ylabel="world-steps/s" + (" (run incl. host probes)" if run_rate.get(scene) else ""))
         _short_log_ticks(a, xs, ys)
@@ -326,15 +335,8 @@ def speed_at_accuracy(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], 
     keys = sorted(panels)
     fig, axes = _axes(ax, len(keys))
     for a, key in zip(axes, keys, strict=True):
-        xs, ys = [], []
-        for solver, pts in sorted(panels[key].items()):
-            pts.sort(key=lambda p: -p[0])
-            x, y, labels = zip(*pts, strict=True)
-            a.plot(x, y, marker="o", linestyle="none", label=solver)
-            for xi, yi, text in zip(x, y, labels, strict=True):
-                a.annotate(text, (xi, yi), fontsize=6, textcoords="offset points", xytext=(4, 4))
-            xs += x
-            ys += y
+        series = {solver: sorted(pts, key=lambda p: -p[0]) for solver, pts in panels[key].items()}
+        xs, ys = _labelled_series(a, series, linestyle="none")
         a.set(xscale="log", yscale="log", title=f"{key[0]}, {key[1]} load, {key[2]} worlds",
               xlabel="max loop closure [m]", ylabel="simulated world-seconds per second")
         _short_log_ticks(a, xs, ys)
