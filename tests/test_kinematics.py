@@ -112,3 +112,27 @@ def test_anchor_gap_reads_the_anchors_apart_and_not_a_tilt():
     tilted = kamino.metrics(model, state.replace(body_q=jnp.asarray(q)))
     assert float(tilted["anchor_gap"][0]) < 1e-15
     assert abs(float(tilted["constraint_violation"][0]) - tilt) < tilt**2
+
+
+def test_quaternion_products_round_as_the_written_out_formulas():
+    """``kamino.spatial.quat_mul`` and ``quat_to_matrix`` (one outer product and a gather) evaluate exactly the
+    operations of the formulas written out term by term (``kamino.hostmath``, NumPy, the same left-to-right sums):
+    bit for bit in float64, eagerly (no XLA fusion that could contract a product and a sum), on unit and non-unit
+    quaternions, signed zeros included, batched and broadcast. A wrong index, sign or order of a sum shows."""
+    from kamino import hostmath, spatial
+
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(64, 4))
+    a[:32] /= np.linalg.norm(a[:32], axis=1, keepdims=True)
+    a[:4] = [[0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0], [0.0, -0.0, 0.0, -1.0], [0.5, 0.5, 0.5, 0.5]]
+    b = rng.normal(size=(64, 4))
+    R = np.asarray(spatial.quat_to_matrix(jnp.asarray(a)))
+    np.testing.assert_array_equal(R, np.stack([hostmath.quat_to_matrix(q) for q in a]))
+    ab = np.asarray(spatial.quat_mul(jnp.asarray(a), jnp.asarray(b)))
+    np.testing.assert_array_equal(ab, np.stack([hostmath.quat_mul(p, q) for p, q in zip(a, b, strict=True)]))
+    # one quaternion against a batch, and an outer broadcast [64, 1] x [1, 5]
+    np.testing.assert_array_equal(np.asarray(spatial.quat_mul(jnp.asarray(a[5]), jnp.asarray(b))),
+                                  np.stack([hostmath.quat_mul(a[5], q) for q in b]))
+    outer = np.asarray(spatial.quat_mul(jnp.asarray(a[:, None]), jnp.asarray(b[None, :5])))
+    assert outer.shape == (64, 5, 4)
+    np.testing.assert_array_equal(outer[9, 3], hostmath.quat_mul(a[9], b[3]))
