@@ -603,7 +603,11 @@ def test_joystick_warm_start_lets_an_internal_loop_load_decay(legs_own_gains):
     substeps) at a zero action, be at most 0.99^50 = 0.61 of itself (the walking tasks' ``WARMSTART_SCALE`` alone);
     the warm-start filter (docs/conventions.md, "Warm start") removes it on the first substep: at most 1e-3 of it
     (measured 0.5 N of 1e5; before the filter such loads grew to 0.36-3.66 times themselves). The robot must move as
-    without the load: base position within 0.1 mm (measured 1.8e-5 m)."""
+    without the load: base position within 1 mm. In float32 ``J^T lambda`` of a 1e5 N self-equilibrated load is zero
+    only to rounding, about 1e5 N x 1.2e-7 x a few terms = 4e-2 N on a body of 0.05 kg for the 4 ms substep before
+    the filter takes the load out: 3e-3 m/s, 6e-4 m over the remaining 0.2 s; the runs end 2e-5 to 5e-4 m from the
+    unloaded robot depending on how XLA orders the quaternion products. A load that grows instead throws the robot
+    by metres."""
     from kamino.envs.joystick import WARMSTART_SCALE
     from kamino.jax_ref.jacobians import constraint_jacobian, joint_frames
     from kamino.jax_ref.types import layout_of
@@ -636,4 +640,4 @@ def test_joystick_warm_start_lets_an_internal_loop_load_decay(legs_own_gains):
     left = np.einsum("ri,ir->i", null, f[1:] - f[0])
     assert np.all(np.abs(left) <= WARMSTART_SCALE ** 50 * 1e5), left
     assert np.all(np.abs(left) <= 1e-3 * 1e5), left  # the filter's doing
-    np.testing.assert_allclose(base[1:], np.broadcast_to(base[0], base[1:].shape), atol=1e-4)
+    np.testing.assert_allclose(base[1:], np.broadcast_to(base[0], base[1:].shape), atol=1e-3)  # float32 rounding
