@@ -220,6 +220,13 @@ def _labelled_series(a: Axes, series: Mapping[str, Sequence[tuple[float, float, 
     return xs, ys
 
 
+def _finish_log_panel(a: Axes, xs: Sequence[float], ys: Sequence[float]) -> None:
+    """Short log ticks over the drawn data, a light grid and a small legend."""
+    _short_log_ticks(a, xs, ys)
+    a.grid(True, which="both", alpha=0.3)
+    a.legend(fontsize=6)
+
+
 def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
                         ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """Throughput (y, log) against max loop closure (x, log), one panel per scene, from a benchmark JSON.
@@ -281,9 +288,7 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
         xs, ys = _labelled_series(a, series, linestyle="-")
         a.set(xscale="log", yscale="log", title=scene, xlabel="max loop closure [m]",
               ylabel="world-steps/s" + (" (run incl. host probes)" if run_rate.get(scene) else ""))
-        _short_log_ticks(a, xs, ys)
-        a.grid(True, which="both", alpha=0.3)
-        a.legend(fontsize=6)
+        _finish_log_panel(a, xs, ys)
     if ax is None:
         fig.tight_layout()
     return fig
@@ -339,9 +344,7 @@ def speed_at_accuracy(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], 
         xs, ys = _labelled_series(a, series, linestyle="none")
         a.set(xscale="log", yscale="log", title=f"{key[0]}, {key[1]} load, {key[2]} worlds",
               xlabel="max loop closure [m]", ylabel="simulated world-seconds per second")
-        _short_log_ticks(a, xs, ys)
-        a.grid(True, which="both", alpha=0.3)
-        a.legend(fontsize=6)
+        _finish_log_panel(a, xs, ys)
     if ax is None:
         fig.tight_layout()
     return fig
