@@ -12,6 +12,10 @@ computed entry by entry through the update lists, as the device kernel ``factor_
   would show here);
 - in float32 its solve is as accurate as a dense float32 Cholesky solve of the same matrix (both against a float64
   solve), within a factor of 10, or within ``10 cond eps`` where the dense one is luckier.
+
+``L_f^-1`` on its pattern (``inverse_pattern``: a column's path up the elimination tree), computed in the device
+kernel's order (``solver_lanes.invert_func``): in float64 it is the dense inverse with nothing outside the pattern,
+and in float32 the solve by its products is as accurate as the dense float32 Cholesky solve, by the same measure.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import scipy.linalg
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from kamino.warp_backend.linear_solve_pattern import symbolic
+from kamino.warp_backend.linear_solve_pattern import inverse_pattern, symbolic
 
 SIGMA = 1e-5 + 1e-4  # SolverConfig's eta + rho_free
 
@@ -108,6 +112,49 @@ def test_sparse_factor_solves_what_the_dense_factor_solves(system):
     x = np.linalg.solve(A, b)
     xs = np.empty_like(x)
     xs[sym.perm] = _solve32(_factor(A, sym, np.float32), b[sym.perm])
+    xd = _solve32(np.linalg.cholesky(A.astype(np.float32)), b)
+    err = lambda y: np.linalg.norm(y - x) / np.linalg.norm(x)  # noqa: E731
+    ev = np.linalg.eigvalsh(A)
+    floor = 10.0 * (ev[-1] / ev[0]) * np.finfo(np.float32).eps
+    assert err(xs) <= max(10.0 * err(xd), floor), (err(xs), err(xd), floor)
+
+
+def _inverse(L: np.ndarray, sym, dtype) -> np.ndarray:
+    """``L^-1`` through ``inverse_pattern(sym)`` in ``dtype``, position by position as ``solver_lanes.invert_func``:
+    the columns of the subtree of ``q`` divide their entry ``q`` by ``L_qq``, then column ``q`` of ``L`` updates the
+    entries above it on their paths (slot ``+ cup``)."""
+    ip = inverse_pattern(sym)
+    n = len(L)
+    inv = np.zeros(ip.nnz, dtype)
+    inv[ip.icol_ptr[:-1]] = 1.0
+    one = dtype(1.0)
+    for q in range(n):
+        for k in range(ip.irow_ptr[q], ip.irow_ptr[q + 1]):
+            slot = ip.irow_slot[k]
+            inv[slot] = inv[slot] * (one / L[q, q])
+            for j in range(sym.cptr[q], sym.cptr[q + 1]):
+                e = sym.cent[j]
+                inv[slot + ip.cup[j]] -= L[sym.row[e], q] * inv[slot]
+    pos = np.empty(n, np.int64)
+    pos[sym.perm] = np.arange(n)
+    out = np.zeros((n, n), dtype)
+    out[pos[ip.ipath_row], np.repeat(np.arange(n), np.diff(ip.icol_ptr))] = inv
+    return out
+
+
+@settings(max_examples=25, deadline=None)
+@given(planar_loops())
+def test_the_inverse_factor_solves_what_the_dense_factor_solves(system):
+    A, bodies = system
+    sym = symbolic(bodies)
+    L64 = _factor(A, sym, np.float64)
+    exact = np.linalg.inv(L64)
+    np.testing.assert_allclose(_inverse(L64, sym, np.float64), exact, atol=1e-9 * np.abs(exact).max())
+    b = np.random.default_rng(len(A)).standard_normal(len(A))
+    x = np.linalg.solve(A, b)
+    Li = _inverse(_factor(A, sym, np.float32), sym, np.float32)
+    xs = np.empty_like(x)
+    xs[sym.perm] = Li.T @ (Li @ b[sym.perm].astype(np.float32))
     xd = _solve32(np.linalg.cholesky(A.astype(np.float32)), b)
     err = lambda y: np.linalg.norm(y - x) / np.linalg.norm(x)  # noqa: E731
     ev = np.linalg.eigvalsh(A)

@@ -24,12 +24,16 @@ def _run(model, cfg, padmm, steps, dtype=np.float64, device="cpu"):
     return q, np.array(iters), np.array(rho), st
 
 
-@pytest.mark.parametrize("staged", [True, False], ids=["factor-in-shared-memory", "factor-in-device-memory"])
-def test_warp_schedule_solves_what_the_thread_kernel_solves(staged, monkeypatch):
+@pytest.mark.parametrize("layout", ["shared", "device", "inverse"],
+                         ids=["factor-in-shared-memory", "factor-in-device-memory", "solve-with-the-inverse"])
+def test_warp_schedule_solves_what_the_thread_kernel_solves(layout, monkeypatch):
     # Both places the factorisation works in: shared memory (robot-sized worlds) and device memory (worlds too
-    # large to stage, solver_lanes.STAGE_MAX_ENTRIES).
+    # large to stage, solver_lanes.STAGE_MAX_ENTRIES); and the iterations' solve with L_f^-1 (inverse_pattern),
+    # forced on here (the chain of loops' inverse has 2.1 times its factor's entries, above INVERSE_MAX_FILL).
+    staged = layout != "device"
     if not staged:
         monkeypatch.setattr(solver_lanes, "STAGE_MAX_ENTRIES", 0)
+    monkeypatch.setattr(linear_solve, "INVERSE_MAX_FILL", 100.0 if layout == "inverse" else 0.0)
     # A loop (four-bar, driven into its hinge limits), a contact world (two stacked boxes: cone projection on
     # contact triples, De Saxcé) and a coupling-free chain of loops in one heterogeneous model, at the defaults
     # (adaptive penalty: tail refactorisations inside the iterations; post-stabilisation: the 32-thread solve of
@@ -42,6 +46,7 @@ def test_warp_schedule_solves_what_the_thread_kernel_solves(staged, monkeypatch)
     q_w, it_w, rho_w, st = _run(model, cfg, "warp", 60)
     assert st.sparse_factor and st.padmm == "warp"
     assert (st.wk.E > 0) == staged
+    assert st.wk.inverse == (layout == "inverse")
     np.testing.assert_allclose(q_w, q_t, rtol=0, atol=1e-10)
     np.testing.assert_array_equal(it_w, it_t)
     np.testing.assert_allclose(rho_w, rho_t, rtol=1e-9)

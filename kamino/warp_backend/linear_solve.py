@@ -40,6 +40,7 @@ from kamino.warp_backend.linear_solve_pattern import (
     all_tail_row_bodies,
     fixed_row_types,
     hub_bodies,
+    inverse_pattern,
     segments,
     symbolic,
     tail_patterns,
@@ -56,6 +57,15 @@ from kamino.warp_backend.workspace import builder_types, pattern_struct
 # made by ``kamino.replicate`` (or a few robot types put together by ``kamino.concat``) share a handful. The per-world
 # work is numpy over all worlds at once (the tables below), or one dictionary look-up per world.
 
+#: The 32-thread PADMM iterations solve with ``L_f^-1`` (``build(inverse=True)``) when every world type's inverse has
+#: at most this many times the entries of its ``L_f``: then its two products read about what the sweeps read, with
+#: two barriers instead of two per row. Measured on an H200 (4096 worlds, float32, defaults, benchmarks/README.md):
+#: the four-bar (inverse 1.17x its factor's entries) steps 13 % faster under the gentle load and 18 % under rl;
+#: dr_legs (2.8x; 141,000 updates to invert against the factor's 30,000) 39 % and 19 % slower, ladder8 (5.6x) and olaf
+#: (4.3x) slower too.
+INVERSE_MAX_FILL = 1.5
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class SparseFactor:
     """A model's factor patterns and value storage on one device."""
@@ -65,6 +75,7 @@ class SparseFactor:
     max_tail: int
     nnz_total: int  # factor entries summed over worlds (fixed rows)
     hubs: int = 0  # hubs summed over worlds
+    inv_total: int = 0  # entries of L_f^-1 summed over worlds (0: built without ``inverse``)
 
 
 def pattern_tables(sym: Symbolic, pattern: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -148,13 +159,15 @@ def _tail_pattern_ids(model: Model, tab, world_type: np.ndarray, pats: list[list
 
 
 def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: bool = False, fan: bool | None = None,
-          hub_min_rows: int | None = HUB_MIN_ROWS, hub_row0: np.ndarray | None = None) -> SparseFactor:
+          hub_min_rows: int | None = HUB_MIN_ROWS, hub_row0: np.ndarray | None = None,
+          inverse: bool = False) -> SparseFactor:
     """Symbolic analysis of every world type of ``model`` and the device storage of the factors (``per_world``: each
     world's values contiguous, for the 32-threads-per-world schedule; else interleaved over groups of worlds). A
     world type is the fixed rows' bodies and its tail rows' (:func:`tail_row_bodies`). ``row_maxdim``: the rows each
     world factorises (its tail rows are those after the fixed ones). ``hub_min_rows``: the hub threshold
     (:func:`hub_bodies`; ``None``: no hubs); a hub's unknowns use the world's virtual rows from ``hub_row0`` (the
-    world's row capacity, ``model_data``; default ``row_maxdim``).
+    world's row capacity, ``model_data``; default ``row_maxdim``). ``inverse`` (with ``per_world``): the pattern and
+    storage of ``L_f^-1`` too (``linear_solve_pattern.inverse_pattern``; the 32-thread iterations solve with it).
 
     Only the tables the kernels read are uploaded; the others hold a single 0. The update lists: ``fan`` (default
     ``per_world``), the column-order triples ``fan_*`` of ``solver_lanes.factor``; else the row-order pairs ``upd_*``
@@ -238,8 +251,20 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
     scalar = types_of(np.dtype(np_dtype)).scalar
     S.val = wp.zeros(int(GROUP * g_nnz.sum()), dtype=scalar, device=device)
     S.tail = wp.zeros(int(GROUP * (g_tail * g_dim).sum()), dtype=scalar, device=device)
+    invs = [inverse_pattern(s) for s in syms] if inverse and per_world else []
+    if invs and any(ip.nnz > INVERSE_MAX_FILL * s.nnz for ip, s in zip(invs, syms, strict=True)):
+        invs = []
+    ni_t = np.array([ip.nnz for ip in invs], np.int64)
+    ni = ni_t[world_type] if invs else np.zeros(0, np.int64)
+    icat = lambda f: np.concatenate([getattr(ip, f) for ip in invs])  # noqa: E731
+    S.inv_ent_start = i32(prefix(ni_t)[world_type] if invs else unread)
+    S.inv_start = i32(prefix(ni) if invs else unread)
+    S.icol_ptr, S.irow_ptr = (i32(icat(f) if invs else unread) for f in ("icol_ptr", "irow_ptr"))
+    S.ipath_row, S.irow_slot, S.irow_col, S.cup = (i32(icat(f) if invs else unread)
+                                                   for f in ("ipath_row", "irow_slot", "irow_col", "cup"))
+    S.inv = wp.zeros(max(int(ni.sum()), 1), dtype=scalar, device=device)
     return SparseFactor(arrays=S, max_nnz=mx(nnz), max_tail=mx(tail_rows), nnz_total=int(nnz.sum()),
-                        hubs=int(hub_n.sum()))
+                        hubs=int(hub_n.sum()), inv_total=int(ni.sum()))
 
 
 def empty(np_dtype, device) -> object:
@@ -252,7 +277,8 @@ def empty(np_dtype, device) -> object:
                  "grp_val_start", "grp_nnz", "grp_tail_start", "grp_tail_size", "grp_tail_k", "grp_tail_dim",
                  "pat_ptr", "pat_pos",
                  "pat_row", "pat_upd_ptr", "pat_upd_k", "pat_upd_j", "pat_lut", "dof_pat", "con_pat",
-                 "tail_pat"):
+                 "tail_pat", "inv_ent_start", "inv_start", "icol_ptr", "ipath_row", "irow_ptr", "irow_slot",
+                 "irow_col", "cup"):
         setattr(S, name, wp.zeros(0, dtype=wp.int32, device=device))
     S.val_stride = GROUP
     S.tail_stride = GROUP
@@ -260,6 +286,7 @@ def empty(np_dtype, device) -> object:
     S.pat_lut_stride = 1
     S.val = wp.zeros(0, dtype=scalar, device=device)
     S.tail = wp.zeros(0, dtype=scalar, device=device)
+    S.inv = wp.zeros(0, dtype=scalar, device=device)
     return S
 
 

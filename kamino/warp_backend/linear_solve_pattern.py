@@ -304,6 +304,52 @@ def elimination_parents(sym: Symbolic) -> np.ndarray:
     return parent
 
 
+@dataclasses.dataclass(frozen=True)
+class InversePattern:
+    """The pattern of ``L_f^-1`` (positions as in :class:`Symbolic`): column ``c`` is nonzero on the path from ``c``
+    up the elimination tree to its root, stored as slots ``icol_ptr[c] ..`` in that order (the slot of ancestor
+    ``r`` is ``icol_ptr[c] + depth(c) - depth(r)``); row ``r`` is nonzero on the subtree of ``r``."""
+
+    icol_ptr: np.ndarray  # [n + 1] the slots of column c: icol_ptr[c] .. icol_ptr[c + 1] - 1, c first, its root last
+    ipath_row: np.ndarray  # [nnz] the row (original numbering, Symbolic.perm) of each slot
+    irow_ptr: np.ndarray  # [n + 1] row r's entries: irow_slot / irow_col[irow_ptr[r] .. irow_ptr[r + 1] - 1]
+    irow_slot: np.ndarray  # [nnz] the slot of each entry of row r (its columns ascending)
+    irow_col: np.ndarray  # [nnz] the column (original numbering) of each entry of row r
+    cup: np.ndarray  # [len(Symbolic.cent)] per below-diagonal entry (r, q) of L_f in column order: depth(q) - depth(r)
+
+    @property
+    def nnz(self) -> int:
+        return len(self.ipath_row)
+
+
+def inverse_pattern(sym: Symbolic) -> InversePattern:
+    """The pattern of ``L_f^-1`` (:class:`InversePattern`): entry ``(r, c)`` is structurally nonzero exactly when
+    ``r`` is ``c`` or one of its ancestors in the elimination tree (:func:`elimination_parents`), since the
+    forward substitution ``L z = e_c`` reaches only those rows."""
+    n = len(sym.perm)
+    parent = elimination_parents(sym)
+    depth = np.zeros(n + 1, np.int64)  # depth[n]: above the roots
+    depth[n] = -1
+    for p in range(n - 1, -1, -1):  # parents come after their children
+        depth[p] = depth[parent[p]] + 1
+    depth = depth[:n]
+    icol_ptr = np.concatenate([[0], np.cumsum(depth + 1)])
+    path_pos = np.empty(int(icol_ptr[-1]), np.int64)
+    for c in range(n):
+        r, k = c, int(icol_ptr[c])
+        while r < n:
+            path_pos[k] = r
+            r, k = int(parent[r]), k + 1
+    col_of = np.repeat(np.arange(n), depth + 1)
+    by_row = np.lexsort((col_of, path_pos))  # slots by row, columns ascending
+    irow_ptr = np.searchsorted(path_pos[by_row], np.arange(n + 1))
+    below = sym.cent[:int(sym.cptr[-1])]
+    cup = np.zeros(len(sym.cent), np.int64)
+    cup[:len(below)] = depth[sym.col[below]] - depth[sym.row[below]]
+    return InversePattern(icol_ptr=icol_ptr, ipath_row=sym.perm[path_pos], irow_ptr=irow_ptr, irow_slot=by_row,
+                          irow_col=sym.perm[col_of[by_row]], cup=cup)
+
+
 def tail_row_bodies(model: Model, tab, w: int) -> tuple[np.ndarray, np.ndarray | None]:
     """The moving bodies (world-local, ``-1``: the world) of world ``w``'s tail rows: ``[n_lim, 2]`` for its limited
     DoFs in DoF order (the joint's parent and child; ``tab``: :func:`kamino.tables.row_tables`), and ``[n_pairs, 2]``

@@ -43,7 +43,13 @@ from kamino.warp_backend.model_data import WarpModel, warp_model
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import step_row_kernels
 from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, padmm_iterate_kernel, solver_kernels
-from kamino.warp_backend.solver_lanes import LANES, iterate_kernel, shared_entries, shared_rows, warp_kernels
+from kamino.warp_backend.solver_lanes import (
+    LANES,
+    iterate_kernel,
+    shared_entries,
+    shared_rows,
+    warp_kernels,
+)
 from kamino.warp_backend.workspace import allocate
 
 #: linear_solver="auto" takes the Conjugate Residual path above this many constraint rows per world on a GPU with
@@ -143,7 +149,8 @@ class Stepper:
                                  rows_per_world=padmm == "warp", cr=not llt)
             if self.sparse_factor:
                 self.sf = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_maxdim.numpy(),
-                                           per_world=padmm == "warp", hub_min_rows=wm.hub_min_rows)
+                                           per_world=padmm == "warp", hub_min_rows=wm.hub_min_rows,
+                                           inverse=padmm == "warp")
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             self.sp = self.sf.arrays if self.sparse_factor else linear_solve.empty(self.np_dtype, self.device)
             #: post-stabilisation solves with PADMM's sparse factor of the fixed rows when that factor carries the
@@ -177,7 +184,8 @@ class Stepper:
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 filter_E = shared_entries(self.filt.max_nnz) if self.filt is not None else None
-                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt, filter_E=filter_E)
+                self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt, filter_E=filter_E,
+                                       inverse=self.sparse_factor and self.sf.inv_total > 0)
         self.rk = step_row_kernels(self.np_dtype, cfg.stabilisation.curvature_correction, cfg.integrator == "midpoint")
         self.sk = solver_kernels(self.np_dtype, self.dense, llt and not self.sparse_factor, not llt,
                                  bool(cfg.warm_start), self.adaptive)
@@ -484,7 +492,7 @@ class Stepper:
         vectors = [w.row_info, w.x, w.y, w.z, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w]
         modes = (self.adaptive, bool(cfg.acceleration), bool(cfg.fixed_iterations))
         if self.padmm == "warp":
-            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes)
+            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes, self.wk.inverse)
 
             def iterate(chunk):
                 self._launch_lanes(lane_iterate, inputs=[problem, chunk], outputs=[carry, self.sp, *vectors])

@@ -262,7 +262,49 @@ def factor_tail_func(np_dtype):
 
 
 @functools.cache
-def factor_kernel(np_dtype, E: int = 0):
+def invert_func(np_dtype, E: int):
+    """``L_f^-1`` on its pattern (``linear_solve_pattern.InversePattern``) from the finished ``L_f``, by the world's
+    threads: the forward substitutions ``L_f z_c = e_c`` of every column ``c`` at once, position by position.
+    ``invert(sp, wid, vb, lv)``; ``lv``: ``L_f`` staged in shared memory (``E > 0``) or unused."""
+    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
+    LVec = shared_vector(np_dtype, max(E, 1))
+    fget = staged_get_func(np_dtype, E)
+    one = scalar(1.0)
+
+    @wp.func
+    def invert(sp: SP, wid: int, vb: int, lv: LVec, lane: int):
+        """At position ``q`` every column ``c`` of the subtree of ``q`` (threads over them) has its entry ``z_qc``
+        final: ``z_qc <- z_qc / L_qq``, then ``z_rc -= L_rq z_qc`` for the entries ``(r, q)`` of column ``q`` (all on
+        the path of ``c``: slot ``slot(q, c) + cup``). One barrier per position; a column's entries are one thread's,
+        so no two threads write one slot."""
+        ib = sp.inv_start[wid]
+        i0 = sp.inv_ent_start[wid]
+        p0 = sp.ptr_start[wid]
+        e0 = sp.ent_start[wid]
+        npos = sp.n_pos[wid]
+        for k in range(lane, sp.icol_ptr[p0 + npos], LANES):
+            sp.inv[ib + k] = scalar(0.0)
+        sync()
+        for c in range(lane, npos, LANES):  # z_c = e_c: its first slot is its own row
+            sp.inv[ib + sp.icol_ptr[p0 + c]] = one
+        sync()
+        for q in range(npos):
+            dinv = one / fget(sp, vb, sp.row_ptr[p0 + q + 1] - 1, lv)
+            c0 = sp.cptr[p0 + q]
+            c1 = sp.cptr[p0 + q + 1]
+            for k in range(sp.irow_ptr[p0 + q] + lane, sp.irow_ptr[p0 + q + 1], LANES):
+                slot = ib + sp.irow_slot[i0 + k]
+                z = sp.inv[slot] * dinv
+                sp.inv[slot] = z
+                for j in range(c0, c1):
+                    sp.inv[slot + sp.cup[e0 + j]] -= fget(sp, vb, sp.cent[e0 + j], lv) * z
+            sync()
+
+    return invert
+
+
+@functools.cache
+def factor_kernel(np_dtype, E: int = 0, invert: bool = False):
     """Cholesky ``D~ = L L^T`` with the world's 32 threads (§8.1); with ``E > 0`` ``L_f`` staged in shared memory.
     ``factor(m, eta, pending_only, nblk, shift, shift_sat, row_stride, n_rows, row_body, row_J, row_info, ct_pair,
     reg, P, inertia_w, inv_inertia_w, rho_u, pending, sp)``, launched tiled: one block of ``LANES`` threads per
@@ -280,6 +322,7 @@ def factor_kernel(np_dtype, E: int = 0):
     fan_out = fan_out_func(np_dtype, E)
     ltf_batch = ltf_batch_func(np_dtype, E)
     factor_tail = factor_tail_func(np_dtype)
+    invert_f = invert_func(np_dtype, E)
     zero = scalar(0.0)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -386,6 +429,8 @@ def factor_kernel(np_dtype, E: int = 0):
                 fan_out(sp, vb, batch(sp.fan_tgt, ub, fmax), batch(sp.fan_a, ub, fmax), batch(sp.fan_b, ub, fmax),
                         ub, f1, lv, neg)
             sync()
+        if wp.static(invert):
+            invert_f(sp, wid, vb, lv, lane)
         if wp.static(E > 0):
             for k in range(lane, nnz, LANES):
                 sp.val[vb + k * sp.val_stride] = lget(lv, k)
@@ -438,10 +483,11 @@ def factor_kernel(np_dtype, E: int = 0):
 # --- solve (§8.1) ------------------------------------------------------------------------------------------------
 
 @functools.cache
-def solve_func(np_dtype, R: int):
+def solve_func(np_dtype, R: int, inverse: bool = False):
     """The solve with the sparse factor and its tail by the world's threads (§8.1).
     ``solve(m, sp, row_stride, wid, n, lane, xs, ys)``, the vectors in shared memory (:func:`shared_vector` of
-    ``R``)."""
+    ``R``). With ``inverse`` the fixed rows' sweeps are products with ``L_f^-1`` (:func:`invert_func`): threads
+    over its rows forward, over its columns backward, one barrier each."""
     scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
     Vec = shared_vector(np_dtype, R)
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
@@ -472,57 +518,67 @@ def solve_func(np_dtype, R: int):
             for p in range(nf + lane, npos, LANES):
                 sset(xs, sp.perm[q0 + p], zero)
             sync()
-        # forward, fixed rows, by columns: y_q = x_q / L_qq (x_q final once the columns before q have updated it),
-        # then column q updates the rows below. This thread's entry of the next column is loaded during column q,
-        # without a branch: its index is clamped to the world's entries, so that nothing (a select, a branch) waits
-        # for the load before the barrier, and the load's latency overlaps the rest of the step
-        a_n = int(0)
-        d_n = zero
-        j0_n = int(0)
-        j1_n = int(0)
-        l_n = zero
-        r_n = int(0)
-        vs = sp.val_stride
-        kmax = sp.nnz[wid] - 1  # the world's last entry: where the clamped loads stop
-        j1_nn = int(0)  # the end of column q + 2's entries (its start is column q + 1's end): loaded two ahead
-        c_nn = int(0)  # the entry index (cent) of this thread's entry of column q + 1: loaded two ahead
-        kd_nn = int(0)  # the diagonal entry of column q + 1: loaded two ahead
-        if npos > 0:
-            a_n = sp.perm[q0]
-            d_n = scalar(1.0) / sp.val[vb + (sp.row_ptr[p0 + 1] - 1) * vs]
-            j0_n = sp.cptr[p0]
-            j1_n = sp.cptr[p0 + 1]
-            kn = wp.min(j0_n + lane, kmax)
-            l_n = sp.val[vb + sp.cent[e0 + kn] * vs]
-            r_n = sp.crow[e0 + kn]
-            j1_nn = sp.cptr[p0 + wp.min(2, npos)]
-            c_nn = sp.cent[e0 + wp.min(j1_n + lane, kmax)]
-            kd_nn = sp.row_ptr[p0 + wp.min(2, npos)] - 1
-        for q in range(npos):
-            a_q = a_n
-            yq = sget(xs, a_q) * d_n
-            j0 = j0_n
-            j1 = j1_n
-            l_q = l_n
-            r_q = r_n
-            qn = wp.min(q + 1, npos - 1)
-            a_n = sp.perm[q0 + qn]
-            d_n = scalar(1.0) / sp.val[vb + kd_nn * vs]
-            kd_nn = sp.row_ptr[p0 + wp.min(q + 3, npos)] - 1
-            j0_n = j1_n
-            j1_n = j1_nn
-            l_n = sp.val[vb + c_nn * vs]
-            r_n = sp.crow[e0 + wp.min(j0_n + lane, kmax)]
-            c_nn = sp.cent[e0 + wp.min(j1_n + lane, kmax)]
-            j1_nn = sp.cptr[p0 + wp.min(q + 3, npos)]
-            if lane == 0:
-                sset(ys, a_q, yq)
-            if j0 + lane < j1:
-                sset(xs, r_q, sget(xs, r_q) - l_q * yq)
-            for j in range(j0 + lane + LANES, j1, LANES):
-                rp = sp.crow[e0 + j]
-                sset(xs, rp, sget(xs, rp) - sp.val[vb + sp.cent[e0 + j] * vs] * yq)
+        if wp.static(inverse):  # forward, fixed rows: y = L_f^-1 x, row r over the subtree of r
+            ib = sp.inv_start[wid]
+            iv0 = sp.inv_ent_start[wid]
+            for p in range(lane, npos, LANES):
+                s = zero
+                for k in range(sp.irow_ptr[p0 + p], sp.irow_ptr[p0 + p + 1]):
+                    s += sp.inv[ib + sp.irow_slot[iv0 + k]] * sget(xs, sp.irow_col[iv0 + k])
+                sset(ys, sp.perm[q0 + p], s)
             sync()
+        if wp.static(not inverse):
+            # forward, fixed rows, by columns: y_q = x_q / L_qq (x_q final once the columns before q have updated it),
+            # then column q updates the rows below. This thread's entry of the next column is loaded during column q,
+            # without a branch: its index is clamped to the world's entries, so that nothing (a select, a branch) waits
+            # for the load before the barrier, and the load's latency overlaps the rest of the step
+            a_n = int(0)
+            d_n = zero
+            j0_n = int(0)
+            j1_n = int(0)
+            l_n = zero
+            r_n = int(0)
+            vs = sp.val_stride
+            kmax = sp.nnz[wid] - 1  # the world's last entry: where the clamped loads stop
+            j1_nn = int(0)  # the end of column q + 2's entries (its start is column q + 1's end): loaded two ahead
+            c_nn = int(0)  # the entry index (cent) of this thread's entry of column q + 1: loaded two ahead
+            kd_nn = int(0)  # the diagonal entry of column q + 1: loaded two ahead
+            if npos > 0:
+                a_n = sp.perm[q0]
+                d_n = scalar(1.0) / sp.val[vb + (sp.row_ptr[p0 + 1] - 1) * vs]
+                j0_n = sp.cptr[p0]
+                j1_n = sp.cptr[p0 + 1]
+                kn = wp.min(j0_n + lane, kmax)
+                l_n = sp.val[vb + sp.cent[e0 + kn] * vs]
+                r_n = sp.crow[e0 + kn]
+                j1_nn = sp.cptr[p0 + wp.min(2, npos)]
+                c_nn = sp.cent[e0 + wp.min(j1_n + lane, kmax)]
+                kd_nn = sp.row_ptr[p0 + wp.min(2, npos)] - 1
+            for q in range(npos):
+                a_q = a_n
+                yq = sget(xs, a_q) * d_n
+                j0 = j0_n
+                j1 = j1_n
+                l_q = l_n
+                r_q = r_n
+                qn = wp.min(q + 1, npos - 1)
+                a_n = sp.perm[q0 + qn]
+                d_n = scalar(1.0) / sp.val[vb + kd_nn * vs]
+                kd_nn = sp.row_ptr[p0 + wp.min(q + 3, npos)] - 1
+                j0_n = j1_n
+                j1_n = j1_nn
+                l_n = sp.val[vb + c_nn * vs]
+                r_n = sp.crow[e0 + wp.min(j0_n + lane, kmax)]
+                c_nn = sp.cent[e0 + wp.min(j1_n + lane, kmax)]
+                j1_nn = sp.cptr[p0 + wp.min(q + 3, npos)]
+                if lane == 0:
+                    sset(ys, a_q, yq)
+                if j0 + lane < j1:
+                    sset(xs, r_q, sget(xs, r_q) - l_q * yq)
+                for j in range(j0 + lane + LANES, j1, LANES):
+                    rp = sp.crow[e0 + j]
+                    sset(xs, rp, sget(xs, rp) - sp.val[vb + sp.cent[e0 + j] * vs] * yq)
+                sync()
         # forward, tail rows: the fixed columns in parallel, then the dense tail by columns
         kt = tail_k(sp, wid)
         for t in range(lane, nt, LANES):
@@ -568,42 +624,50 @@ def solve_func(np_dtype, R: int):
                         s -= sp.tail[tb + t * ts + c * tc] * sget(xs, nf + t)
                 sset(ys, a, s)
             sync()
-        # backward, fixed rows, by rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it (loaded
-        # ahead like the forward sweep)
-        j0_nn = int(0)  # the start of row p - 2's entries (its end is row p - 1's start): loaded two ahead
-        if npos > 0:
-            a_n = sp.perm[q0 + npos - 1]
-            j0_n = sp.row_ptr[p0 + npos - 1]
-            j1_n = sp.row_ptr[p0 + npos] - 1
-            d_n = scalar(1.0) / sp.val[vb + j1_n * vs]
-            kn = wp.min(j0_n + lane, kmax)
-            l_n = sp.val[vb + kn * vs]
-            r_n = sp.colrow[e0 + kn]
-            j0_nn = sp.row_ptr[p0 + wp.max(npos - 2, 0)]
-        for pp in range(npos):
-            p = npos - 1 - pp
-            a_p = a_n
-            xp = sget(ys, a_p) * d_n
-            j0 = j0_n
-            j1 = j1_n
-            l_p = l_n
-            r_p = r_n
-            a_n = sp.perm[q0 + wp.max(p - 1, 0)]
-            j1_n = j0_n - 1
-            j0_n = j0_nn
-            d_n = scalar(1.0) / sp.val[vb + wp.max(j1_n, 0) * vs]  # row p - 1's diagonal (unused at p = 0)
-            kn = wp.min(j0_n + lane, kmax)
-            l_n = sp.val[vb + kn * vs]
-            r_n = sp.colrow[e0 + kn]
-            j0_nn = sp.row_ptr[p0 + wp.max(p - 2, 0)]
-            if lane == 0:
-                sset(xs, a_p, xp)
-            if j0 + lane < j1:
-                sset(ys, r_p, sget(ys, r_p) - l_p * xp)
-            for k in range(j0 + lane + LANES, j1, LANES):
-                rq = sp.colrow[e0 + k]
-                sset(ys, rq, sget(ys, rq) - sp.val[vb + k * vs] * xp)
+        if wp.static(inverse):  # backward, fixed rows: x = L_f^-T y, column c over the path of c
+            for c in range(lane, npos, LANES):
+                s = zero
+                for k in range(sp.icol_ptr[p0 + c], sp.icol_ptr[p0 + c + 1]):
+                    s += sp.inv[ib + k] * sget(ys, sp.ipath_row[iv0 + k])
+                sset(xs, sp.perm[q0 + c], s)
             sync()
+        if wp.static(not inverse):
+            # backward, fixed rows, by rows: x_p = y_p / L_pp, then row p of L_f updates the rows before it (loaded
+            # ahead like the forward sweep)
+            j0_nn = int(0)  # the start of row p - 2's entries (its end is row p - 1's start): loaded two ahead
+            if npos > 0:
+                a_n = sp.perm[q0 + npos - 1]
+                j0_n = sp.row_ptr[p0 + npos - 1]
+                j1_n = sp.row_ptr[p0 + npos] - 1
+                d_n = scalar(1.0) / sp.val[vb + j1_n * vs]
+                kn = wp.min(j0_n + lane, kmax)
+                l_n = sp.val[vb + kn * vs]
+                r_n = sp.colrow[e0 + kn]
+                j0_nn = sp.row_ptr[p0 + wp.max(npos - 2, 0)]
+            for pp in range(npos):
+                p = npos - 1 - pp
+                a_p = a_n
+                xp = sget(ys, a_p) * d_n
+                j0 = j0_n
+                j1 = j1_n
+                l_p = l_n
+                r_p = r_n
+                a_n = sp.perm[q0 + wp.max(p - 1, 0)]
+                j1_n = j0_n - 1
+                j0_n = j0_nn
+                d_n = scalar(1.0) / sp.val[vb + wp.max(j1_n, 0) * vs]  # row p - 1's diagonal (unused at p = 0)
+                kn = wp.min(j0_n + lane, kmax)
+                l_n = sp.val[vb + kn * vs]
+                r_n = sp.colrow[e0 + kn]
+                j0_nn = sp.row_ptr[p0 + wp.max(p - 2, 0)]
+                if lane == 0:
+                    sset(xs, a_p, xp)
+                if j0 + lane < j1:
+                    sset(ys, r_p, sget(ys, r_p) - l_p * xp)
+                for k in range(j0 + lane + LANES, j1, LANES):
+                    rq = sp.colrow[e0 + k]
+                    sset(ys, rq, sget(ys, rq) - sp.val[vb + k * vs] * xp)
+                sync()
 
     return solve
 
@@ -739,10 +803,12 @@ def lane_rhs_func(np_dtype):
 
 
 @functools.cache
-def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool, fixed_iterations: bool):
+def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool, fixed_iterations: bool,
+                   inverse: bool = False):
     """Accelerated PADMM with the world's 32 threads (§7.3-§7.5; the rules of ``solver_rules.py``), with the sparse
     factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), the adaptive penalty (``adaptive``),
-    the momentum (``accelerate``) and every world running to its cap (``fixed_iterations``): all compile-time.
+    the momentum (``accelerate``), every world running to its cap (``fixed_iterations``) and the solve with
+    ``L_f^-1`` (``inverse``, :func:`solve_func`): all compile-time.
     ``padmm_iterate``'s arguments are those of ``solver.padmm_iterate_kernel``'s kernel less ``D``; launched tiled:
     one block of ``LANES`` threads per world."""
     scalar, M, SP, vec3, vec6 = builder_types(np_dtype).take("scalar", "M", "SP", "vec3", "vec6")
@@ -751,7 +817,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
     Residuals = rules.residuals_struct(np_dtype)
     row_base = index_funcs(np_dtype).row_base
     sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
-    solve = solve_func(np_dtype, R)
+    solve = solve_func(np_dtype, R, inverse)
     cr_solve = cr_solve_func(np_dtype, LANES)
     factor_tail = factor_tail_func(np_dtype)
     lane_rhs = lane_rhs_func(np_dtype)
@@ -879,7 +945,8 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
     return padmm_iterate
 
 
-def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int | None = None) -> SimpleNamespace:
+def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int | None = None,
+                 inverse: bool = False) -> SimpleNamespace:
     """``factor`` (not under ``cr``), ``solve_fixed`` (post-stabilisation) and ``cr_pattern`` (under ``cr``) for
     worlds of up to ``R`` rows; launch each 32-thread kernel with ``wp.launch_tiled(dim=[num_worlds],
     block_dim=LANES)``, ``cr_pattern`` with one thread per world (``wp.launch``). :func:`iterate_kernel` gives
@@ -892,7 +959,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
     :func:`shared_entries`; ``None``: no filter) also ``filter_factor``, :func:`factor_kernel` for the filter's
     factor of the fixed rows, and ``warm_start_filter`` (:func:`warm_start_filter_kernel`)."""
     filtered = filter_E is not None
-    return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E),
+    return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E, inverse), inverse=inverse,
                            solve_fixed=solve_fixed_kernel(np_dtype, R),
                            cr_pattern=cr_pattern_kernel(np_dtype) if cr else None, R=R, E=E, cr=cr,
                            filter_factor=factor_kernel(np_dtype, filter_E) if filtered else None,

@@ -250,6 +250,18 @@ def pattern_struct(np_dtype):
         tail_pat: iarr  # [W tail_max] the pattern of each tail row, set by tail_row at assembly
         val: wp.array(dtype=scalar)  # the fixed rows' factor
         tail: wp.array(dtype=scalar)  # the tail rows (fixed positions, then tail columns)
+        # L_f^-1 on its pattern (linear_solve_pattern.InversePattern; only when built with ``inverse``): icol_ptr and
+        # irow_ptr like row_ptr (per type, type-local slots), the slot tables from inv_ent_start[wid], cup like cent;
+        # a world's values are inv[inv_start[wid] + slot]
+        inv_ent_start: iarr
+        inv_start: iarr
+        icol_ptr: iarr
+        ipath_row: iarr
+        irow_ptr: iarr
+        irow_slot: iarr
+        irow_col: iarr
+        cup: iarr
+        inv: wp.array(dtype=scalar)
 
     return Pattern
 
