@@ -313,7 +313,7 @@ def solver_setting(r: Mapping[str, Any]) -> tuple[str, str]:
         settings = " ".join(str(r.get("variant") or "").split()[1:])
         return "MuJoCo Warp", settings or "file's settings"
     if r.get("peer"):
-        variant, *settings = str(r.get("variant") or "").split()
+        variant, *settings = str(r.get("variant") or "").split() or [""]
         return f"SolverKamino {variant}", " ".join(settings) or str(r.get("settings") or "")
     solver = r.get("solver") or {}
     return "kamino", " ".join(f"{k}={v}" for k, v in sorted(solver.items())) or "defaults"
