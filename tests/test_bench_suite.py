@@ -56,6 +56,7 @@ def test_kamino_sweep_runs_every_combination_on_top_of_the_solver_options(tmp_pa
     (["--sk-sweep", "rho_0=0.1"], ["--sk-sweep", "KEY one of tolerance, iterations"]),
     (["--sk-sweep", "iterations=2.5"], ["--sk-sweep", "must be ints"]),
     (["--mjw-sweep", "solref=0.02"], ["--mjw-sweep", "timeconst"]),
+    (["--mjw-sweep", "timeconst=0.02", "+", "dt"], ["--mjw-sweep", "'dt'", "'+' between groups"]),
 ])
 def test_a_bad_sweep_names_the_option_and_what_is_valid(argv, names, capsys):
     """A bad sweep item ends the command before anything runs with argparse's status 2 and one line naming the
@@ -66,6 +67,17 @@ def test_a_bad_sweep_names_the_option_and_what_is_valid(argv, names, capsys):
     err = capsys.readouterr().err
     assert done.value.code == 2 and "Traceback" not in err
     assert all(n in err for n in names), err
+
+
+def test_a_plus_starts_another_group_of_combinations():
+    """``+`` between sweep items: each group's combinations after the previous group's, a setting listed already left
+    out, and an empty group the run without settings."""
+    assert throughput.mjw_sweep(["timeconst=0.02,0.005", "dt=0.0025", "+", "iterations=10", "tolerance=1e-4", "+",
+                                 "timeconst=0.005", "dt=0.0025", "+"]) == [
+        {"timeconst": 0.02, "timestep": 0.0025}, {"timeconst": 0.005, "timestep": 0.0025},
+        {"iterations": 10, "tolerance": 1e-4}, {}]
+    assert throughput.kamino_sweep(["tolerance=1e-2", "+", "tolerance=1e-4", "max_iterations=50"]) == [
+        {"tolerance": 1e-2}, {"tolerance": 1e-4, "max_iterations": 50}]
 
 
 def _fake_peers(calls: list) -> SimpleNamespace:
@@ -190,7 +202,7 @@ def _run_suite(argv, monkeypatch):
 def test_the_accuracy_suite_expands_to_every_scene_load_world_count_and_sweep(tmp_path, monkeypatch, capsys):
     """``kamino bench --suite accuracy``: kamino's default configuration on the seven scenes, both loads, 4096 and
     16384 worlds, at three tolerances (7 x 2 x 2 x 3 = 84 runs, one trial of 30 blocks each); the peers on each scene
-    with MuJoCo Warp's six settings and SolverKamino's two variants at two tolerances; the records in
+    with MuJoCo Warp's eight settings and SolverKamino's two variants at two tolerances; the records in
     ``bench_accuracy.json``, both tables in ``bench_accuracy.md`` and the plots named after it."""
     monkeypatch.chdir(tmp_path)
     calls, peer_args, plots = _run_suite(["--suite", "accuracy"], monkeypatch)
@@ -202,7 +214,10 @@ def test_the_accuracy_suite_expands_to_every_scene_load_world_count_and_sweep(tm
     assert {(c["replays"], c["repeats"]) for c in calls} == {(30, 1)}
     assert [scene for scene, _ in peer_args] == scenes
     args = peer_args[0][1]
-    assert len(throughput.mjw_sweep(args.mjw_sweep)) == 6 and args.kamino_variants == ["padmm_dense", "dvi"]
+    mjw = throughput.mjw_sweep(args.mjw_sweep)  # every knob: time constant, time step, iterations, tolerance
+    assert len(mjw) == 8 and {k for setting in mjw for k in setting} == {"timeconst", "timestep", "iterations",
+                                                                        "tolerance"}
+    assert args.kamino_variants == ["padmm_dense", "dvi"]
     assert throughput.sk_sweep(args.sk_sweep) == [{"tolerance": 1e-4}, {"tolerance": 1e-6}]
     assert len(json.loads((tmp_path / "bench_accuracy.json").read_text())["records"]) == 84
     report = (tmp_path / "bench_accuracy.md").read_text()

@@ -30,8 +30,11 @@ under the gentle load, its closure from a one-world run of ``--closure-steps``.
 Speed against accuracy: ``--kamino-sweep F=V,V ...`` runs kamino once per combination of its solver settings
 (:func:`kamino_sweep`, ``tolerance=1e-2,1e-3,1e-4``), ``--mjw-sweep`` MuJoCo Warp once per combination of its
 accuracy knobs (:func:`mjw_sweep`) and ``--sk-sweep`` each SolverKamino variant once per combination of its
-tolerance and iteration cap (:func:`sk_sweep`); each record names its setting (kamino's ``solver``, a peer's
-``variant``), so the records of a sweep stay apart (:func:`record_key`) and the table gives each its column.
+tolerance and iteration cap (:func:`sk_sweep`); a ``+`` between items starts another group of combinations (the
+runs of each group after those of the one before it: ``timeconst=0.02,0.005 dt=0.0025,0.0005 + iterations=10`` is
+four runs and a fifth at the file's time constant and the benchmark's time step). Each record names its setting
+(kamino's ``solver``, a peer's ``variant``), so the records of a sweep stay apart (:func:`record_key`) and the table
+gives each its column.
 ``--table`` prints that table and the Pareto readout (:func:`pareto`): per scene, load, world count and solver, the
 most simulated world-seconds per second at a loop closure of at most 1e-3, 1e-4 and 1e-5 m, or the best closure
 reached. ``--suite NAME`` sets the options of a preset (:data:`SUITES`; ``accuracy``: every scene at 4096 and 16384
@@ -354,7 +357,7 @@ def _parser(prog: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--solver", nargs="+", default=[], metavar="F=V",
                    help="SolverConfig settings F (dotted: warp.linear_solver=cr), V as JSON")
     p.add_argument("--kamino-sweep", nargs="+", default=[], metavar="F=V,V",
-                   help="kamino per combination of its settings F (as --solver)")
+                   help="kamino per combination of its settings F (as --solver); + adds a group")
     p.add_argument("--no-peers", action="store_true", help="run kamino only")
     p.add_argument("--kamino-variants", nargs="*", default=["padmm_dense", "dvi"], metavar="VARIANT",
                    help="SolverKamino variants (default: padmm_dense dvi; none: MuJoCo Warp alone)")
@@ -512,37 +515,55 @@ SK_SWEEP = {"tolerance": ("tolerance", float), "iterations": ("iterations", int)
 
 #: ``kamino bench --suite NAME``: presets of the command's options (argparse ``dest`` names), each overridable on the
 #: command line. ``accuracy``: speed against accuracy on every scene at 4096 and 16384 worlds under both loads,
-#: kamino's default configuration over a tolerance sweep, MuJoCo Warp over its ``<connect>`` time constant and time
-#: step (MuJoCo holds the time constant at 2 dt at least, so 0.001 s acts at dt 0.5 ms and is 0.005 s at 2.5 ms), and
-#: SolverKamino's PADMM and DVI over their tolerance (1e-4: Newton's four-bar example; 1e-6: PADMM's default); one
-#: trial of 300 timed steps per point (``window_steps`` [20, 320)).
+#: kamino's default configuration over a tolerance sweep; MuJoCo Warp over its ``<connect>`` time constant and time
+#: step (MuJoCo holds the time constant at 2 dt at least, so 0.001 s acts at dt 0.5 ms and is 0.005 s at 2.5 ms), then
+#: its solver loosened at the file's stiffness (10 iterations, tolerance 1e-4) and pushed at the stiffest setting (300
+#: iterations, tolerance 1e-10); SolverKamino's PADMM and DVI over their tolerance (1e-4: Newton's four-bar example;
+#: 1e-6: PADMM's default); one trial of 300 timed steps per point (``window_steps`` [20, 320)).
 SUITES = {
     "accuracy": {
         "scenes": ["fourbar", "ladder8", "ladder32", "dr_legs", "bdx", "olaf", "animatronic"],
         "worlds": [4096, 16384], "loads": ["gentle", "rl"], "configs": ["default"],
         "kamino_sweep": ["tolerance=1e-2,1e-3,1e-4"],
-        "mjw_sweep": ["timeconst=0.02,0.005,0.001", "dt=0.0025,0.0005"],
+        "mjw_sweep": ["timeconst=0.02,0.005,0.001", "dt=0.0025,0.0005", "+", "iterations=10", "tolerance=1e-4",
+                      "+", "timeconst=0.001", "dt=0.0005", "iterations=300", "tolerance=1e-10"],
         "kamino_variants": ["padmm_dense", "dvi"], "sk_sweep": ["tolerance=1e-4,1e-6"],
         "replays": 30, "repeats": 1,
     },
 }
 
 
+#: the sweep item that starts another group of combinations (``--mjw-sweep timeconst=0.02,0.005 + iterations=10``)
+SWEEP_GROUP = "+"
+
+
 def _grid(items: list[str], keys: dict, parse) -> list[dict]:
     """Every combination of ``KEY=V[,V...]`` items (``parse(key, text)`` gives a value and raises ``ValueError``
-    for a bad one); no items: ``[{}]``."""
-    grid: dict[str, list] = {}
+    for a bad one), and where :data:`SWEEP_GROUP` items split them into groups, each group's combinations after the
+    previous group's, a setting already listed left out (an empty group is the run without settings, ``{}``);
+    no items: ``[{}]``."""
+    settings: list[dict] = []
+    groups: list[list[str]] = [[]]
     for item in items:
-        key, sep, values = item.partition("=")
-        if not sep or key not in keys or not values:
-            raise ValueError(f"{item!r}: expected KEY=V[,V...] with KEY one of {', '.join(keys)}")
-        try:
-            grid[key] = [parse(key, v) for v in values.split(",")]
-        except ValueError as e:
-            raise ValueError(f"{item!r}: {e}") from None
-    settings = [{}]
-    for key, values in grid.items():
-        settings = [{**s, key: v} for s in settings for v in values]
+        if item == SWEEP_GROUP:
+            groups.append([])
+        else:
+            groups[-1].append(item)
+    for group in groups:
+        grid: dict[str, list] = {}
+        for item in group:
+            key, sep, values = item.partition("=")
+            if not sep or key not in keys or not values:
+                raise ValueError(f"{item!r}: expected KEY=V[,V...] with KEY one of {', '.join(keys)}, or "
+                                 f"{SWEEP_GROUP!r} between groups")
+            try:
+                grid[key] = [parse(key, v) for v in values.split(",")]
+            except ValueError as e:
+                raise ValueError(f"{item!r}: {e}") from None
+        combos = [{}]
+        for key, values in grid.items():
+            combos = [{**c, key: v} for c in combos for v in values]
+        settings += [c for c in combos if c not in settings]
     return settings
 
 
