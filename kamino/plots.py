@@ -186,9 +186,14 @@ def _series(r: Mapping[str, Any]) -> str:
     return f"kamino {r.get('kamino') or ''}".strip() + load
 
 
-def _closure(r: Mapping[str, Any]) -> float | None:
-    """A throughput record's loop closure: its timed batch's (``closure_batch_max_m``), else a one-world run's."""
-    return r.get("closure_batch_max_m", r.get("closure_max_m"))
+def record_closure(r: Mapping[str, Any]) -> float | None:
+    """A throughput record's loop closure: its timed batch's (``closure_batch_max_m``), else a one-world run's
+    (``closure_max_m``; a SolverKamino run of a scene without loops has none, and its ``joint_error_max_m``, the
+    largest anchor distance of any joint, is the figure that kamino's closure measures there)."""
+    closure = r.get("closure_batch_max_m", r.get("closure_max_m"))
+    if closure is None and r.get("peer") and r.get("peer") != "mujoco_warp":
+        closure = r.get("joint_error_max_m")
+    return closure
 
 
 def _is_convergence(r: Mapping[str, Any]) -> bool:
@@ -255,14 +260,14 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
     recs = _distinct_runs(_records(results))
     closures: dict[tuple[str, str], float] = {}
     for r in recs:
-        if not _is_convergence(r) and _closure(r) is not None:
-            closures.setdefault((r["scene"], _series(r)), _closure(r))
+        if not _is_convergence(r) and record_closure(r) is not None:
+            closures.setdefault((r["scene"], _series(r)), record_closure(r))
     conv: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
     for r in recs:
         if _is_convergence(r):
             conv.setdefault((r["scene"], f"kamino, {r['num_worlds']} worlds (tolerance sweep)"), []).append(r)
         elif r.get("throughput"):
-            closure = _closure(r) or closures.get((r["scene"], _series(r)))
+            closure = record_closure(r) or closures.get((r["scene"], _series(r)))
             if closure is not None:
                 panels.setdefault(r["scene"], {}).setdefault(_series(r), []).append(
                     (max(closure, 1e-12), r["throughput"], f"{r['num_worlds']} w", r["num_worlds"]))
@@ -298,49 +303,72 @@ def speed_against_error(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
 _BENCH_DT = 0.0025
 
 
-def _solver_setting(r: Mapping[str, Any]) -> tuple[str, str]:
+def solver_setting(r: Mapping[str, Any]) -> tuple[str, str]:
     """``(solver, setting)`` of a throughput record: kamino's default configuration with its solver settings
     (``tolerance=0.01``; none: ``defaults``), MuJoCo Warp with its sweep's settings (none: ``file's settings``), or a
-    SolverKamino variant."""
+    SolverKamino variant with its sweep's settings (``SolverKamino padmm_dense``, ``tolerance=1e-06``; none: the
+    record's ``settings``). :func:`speed_at_accuracy` draws one series per solver, and
+    ``kamino.bench.throughput.pareto`` reads each solver's best setting."""
     if r.get("peer") == "mujoco_warp":
         settings = " ".join(str(r.get("variant") or "").split()[1:])
         return "MuJoCo Warp", settings or "file's settings"
     if r.get("peer"):
-        return f"SolverKamino {r.get('variant')}", ""
+        variant, *settings = str(r.get("variant") or "").split() or [""]
+        return f"SolverKamino {variant}", " ".join(settings) or str(r.get("settings") or "")
     solver = r.get("solver") or {}
     return "kamino", " ".join(f"{k}={v}" for k, v in sorted(solver.items())) or "defaults"
+
+
+def accuracy_points(results: Mapping[str, Any] | Sequence[Mapping[str, Any]]
+                    ) -> dict[tuple[str, str, int], dict[str, list[tuple[float, float, str, Mapping[str, Any]]]]]:
+    """``(scene, load, worlds) -> solver -> [(closure, simulated world-seconds per second, setting, record)]`` of
+    the ``kamino.bench.throughput`` records with a throughput and a closure (kamino's ``default`` configuration and
+    the peers; other kamino configurations and failed runs are left out), by :func:`solver_setting`. The speed is
+    ``sim_seconds_per_s`` (world-steps/s x dt), else world-steps/s x the record's ``dt`` or the benchmark's 2.5 ms;
+    the closure :func:`record_closure`'s, and a record without one (a peer's closure comes from one run of one world,
+    made with its first world count) takes that of the same scene, load, solver and setting at another world count.
+    Points keep the records' order."""
+    recs = [r for r in _records(results) if not _is_convergence(r) and r.get("throughput")
+            and ("peer" in r or r.get("config") == "default")]
+    known: dict[tuple, float] = {}
+    for r in recs:
+        if record_closure(r) is not None:
+            known.setdefault((r.get("scene"), r.get("load", "gentle"), *solver_setting(r)), record_closure(r))
+    points: dict[tuple[str, str, int], dict[str, list]] = {}
+    for r in recs:
+        solver, setting = solver_setting(r)
+        closure = record_closure(r)
+        if closure is None:
+            closure = known.get((r.get("scene"), r.get("load", "gentle"), solver, setting))
+        if closure is None or not math.isfinite(closure):
+            continue
+        speed = r.get("sim_seconds_per_s") or r["throughput"] * (r.get("dt") or _BENCH_DT)
+        key = (r["scene"], r.get("load", "gentle"), int(r["num_worlds"]))
+        points.setdefault(key, {}).setdefault(solver, []).append((float(closure), float(speed), setting, r))
+    return points
 
 
 def speed_at_accuracy(results: Mapping[str, Any] | Sequence[Mapping[str, Any]], *,
                       ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """Simulated world-seconds per second (y, log: world-steps/s x dt, comparable across time steps) against the loop
-    closure (x, log), one panel per scene, load and world count, one series per solver and one point per solver
-    setting, labelled with it: kamino's ``default`` configuration at each ``--tolerance`` or ``--solver`` setting,
-    MuJoCo Warp at each ``--mjw-sweep`` setting, each SolverKamino variant. Where one solver's curve lies above
-    another's at the same closure, it is the faster at that accuracy. ``kamino.bench.throughput`` records (those with
-    a throughput and a closure; other kamino configurations are left out).
+    closure (x, log), one panel per scene, load and world count (four a row), one series per solver and one point
+    per solver setting, labelled with it (:func:`accuracy_points`, :func:`solver_setting`): kamino's ``default``
+    configuration at each ``--kamino-sweep``, ``--tolerance`` or ``--solver`` setting, MuJoCo Warp at each
+    ``--mjw-sweep`` setting, each SolverKamino variant at each ``--sk-sweep`` setting. Where one solver's curve lies
+    above another's at the same closure, it is the faster at that accuracy.
 
     Returns:
         The figure; each series is one line of markers (no segments: settings are not ordered), its points from the
         loosest closure to the tightest.
     """
-    panels: dict[tuple[str, str, int], dict[str, list[tuple[float, float, str]]]] = {}
-    for r in _records(results):
-        closure = _closure(r)
-        if _is_convergence(r) or not r.get("throughput") or closure is None:
-            continue
-        if "peer" not in r and r.get("config") != "default":
-            continue
-        solver, setting = _solver_setting(r)
-        y = r.get("sim_seconds_per_s") or r["throughput"] * _BENCH_DT
-        key = (r["scene"], r.get("load", "gentle"), int(r["num_worlds"]))
-        panels.setdefault(key, {}).setdefault(solver, []).append((max(closure, 1e-12), y, setting))
+    panels = accuracy_points(results)
     if not panels:
         raise ValueError("speed_at_accuracy: no record has both a throughput and a loop closure")
     keys = sorted(panels)
-    fig, axes = _axes(ax, len(keys))
+    fig, axes = _axes(ax, len(keys), ncols=4)
     for a, key in zip(axes, keys, strict=True):
-        series = {solver: sorted(pts, key=lambda p: -p[0]) for solver, pts in panels[key].items()}
+        series = {solver: [(max(p[0], 1e-12), p[1], p[2]) for p in sorted(pts, key=lambda p: -p[0])]
+                  for solver, pts in panels[key].items()}
         xs, ys = _labelled_series(a, series, linestyle="none")
         a.set(xscale="log", yscale="log", title=f"{key[0]}, {key[1]} load, {key[2]} worlds",
               xlabel="max loop closure [m]", ylabel="simulated world-seconds per second")

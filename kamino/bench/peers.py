@@ -75,10 +75,10 @@ Results are plain JSON-serialisable dicts with the keys ``peer, variant, scene``
 drive`` (what is driven, in words), ``drive_amplitude, num_worlds, throughput`` (steps/s x worlds),
 ``step_time_s, closure_max_m, joint_error_max_m, closure_steps, memory_per_world_bytes, memory_per_world_arrays_bytes,
 memory_method, device, timing`` (``graph_replay`` or ``python_loop``), ``graph_steps, warmup_blocks,
-replays_per_trial, repeats, trials_s, window_steps, window_s, dt, versions, notes, reason`` (plus ``source`` and
-``settings`` for SolverKamino; ``load``, ``settings``, ``sim_seconds_per_s`` and the batch statistics for MuJoCo
-Warp, and under ``rl`` ``seed``, ``start_pose_error_m`` and ``start_closure_m``). A peer that is not
-importable, or that cannot load or run the scene, gives a dict whose measurements are ``None`` and whose
+replays_per_trial, repeats, trials_s, window_steps, window_s, dt, versions, notes, reason`` (plus ``source``,
+``settings`` and ``sim_seconds_per_s`` for SolverKamino; ``load``, ``settings``, ``sim_seconds_per_s`` and the batch
+statistics for MuJoCo Warp, and under ``rl`` ``seed``, ``start_pose_error_m`` and ``start_closure_m``). A peer that
+is not importable, or that cannot load or run the scene, gives a dict whose measurements are ``None`` and whose
 ``reason`` says why (``traceback`` holds the details). The closure run does not depend on ``num_worlds``: when
 sweeping world counts, pass ``closure_steps=0`` after the first.
 
@@ -1075,7 +1075,8 @@ def run_mujoco_warp(
 # --------------------------------------------------------------------------------------------------
 
 
-def _kamino_config(variant: str, contact_free: bool, settings: str = "newton_example") -> Any:
+def _kamino_config(variant: str, contact_free: bool, settings: str = "newton_example", *,
+                   tolerance: float | None = None, iterations: int | None = None) -> Any:
     """``SolverKamino.Config`` of a benchmark variant (defaults otherwise).
 
     ``settings="newton_example"`` gives the PADMM variants the solver settings of Newton's
@@ -1085,7 +1086,10 @@ def _kamino_config(variant: str, contact_free: bool, settings: str = "newton_exa
     anyway. The README's SolverKamino figures are consistent with these: on the four-bar PADMM takes 8.4
     iterations per step on average with them and 94 (a quarter of the steps at the 200 cap) with the
     defaults (CPU, 400 steps, one world). DVI and LOX keep their defaults (the example sets none).
-    ``settings="defaults"`` keeps every default.
+    ``settings="defaults"`` keeps every default. On top of either, ``tolerance`` sets PADMM's primal, dual and
+    complementarity tolerances (DVI: its ``tolerance``) and ``iterations`` PADMM's ``max_iterations`` (DVI: its
+    ``max_alternating_iterations``); a backend without these settings raises ``ValueError`` (the sweep of
+    ``kamino bench --sk-sweep``).
 
     Kamino's own collision detector is on (default config: unified pipeline), as in Newton's four-bar
     example. For a scene without any collidable pair (``contact_free``: the ladders) its per-world contact
@@ -1125,10 +1129,38 @@ def _kamino_config(variant: str, contact_free: bool, settings: str = "newton_exa
             cfg.padmm.contact_warmstart_method = "geom_pair_net_force"
     elif settings != "defaults":
         raise ValueError(f"unknown SolverKamino settings {settings!r}; one of {KAMINO_SETTINGS}")
+    _set_solver_settings(cfg, tolerance=tolerance, iterations=iterations)
     if contact_free:
         cfg.collision_detector.max_contacts_per_world = 0
     cfg.validate()
     return cfg
+
+
+#: the ``SolverKamino.Config`` sub-config and fields that ``tolerance`` and ``iterations`` set, per dynamics solver
+SOLVER_KAMINO_SWEEP = {
+    "padmm": ("padmm", {"tolerance": ("primal_tolerance", "dual_tolerance", "compl_tolerance"),
+                        "iterations": ("max_iterations",)}),
+    "dvi": ("dvi", {"tolerance": ("tolerance",), "iterations": ("max_alternating_iterations",)}),
+}
+
+
+def _set_solver_settings(cfg: Any, **values: float | int | None) -> None:
+    """Set the :data:`SOLVER_KAMINO_SWEEP` fields of ``cfg``'s dynamics solver from ``values`` (``None``: keep);
+    ``ValueError`` for a solver or a field that the installed Newton lacks, so that a swept run fails with a reason
+    rather than run with a setting silently ignored."""
+    given = {k: v for k, v in values.items() if v is not None}
+    if not given:
+        return
+    if cfg.dynamics_solver not in SOLVER_KAMINO_SWEEP:
+        raise ValueError(f"SolverKamino's {cfg.dynamics_solver!r} solver has no {', '.join(given)} setting here; "
+                         f"these are set for {', '.join(SOLVER_KAMINO_SWEEP)}")
+    name, fields = SOLVER_KAMINO_SWEEP[cfg.dynamics_solver]
+    sub = getattr(cfg, name, None)
+    for key, value in given.items():
+        for field in fields[key]:
+            if sub is None or not hasattr(sub, field):
+                raise ValueError(f"SolverKamino.Config.{name}.{field} not found in the installed Newton")
+            setattr(sub, field, value)
 
 
 def _newton_world_builder(scene: str, source: str) -> tuple[Any, str]:
@@ -1308,13 +1340,15 @@ def _newton_anchored_joints(model: Any) -> Any:
     return np.flatnonzero(keep).astype(np.int32)
 
 
-def _newton_sim(built: SimpleNamespace, variant: str, settings: str = "newton_example") -> SimpleNamespace:
-    """Solver, two states, control and the device-side drive arrays for a built Newton model."""
+def _newton_sim(built: SimpleNamespace, variant: str, settings: str = "newton_example",
+                **sweep: float | int | None) -> SimpleNamespace:
+    """Solver, two states, control and the device-side drive arrays for a built Newton model (``sweep``:
+    ``tolerance`` and ``iterations`` of :func:`_kamino_config`)."""
     from newton.solvers import SolverKamino
 
     model = built.model
     contact_free = int(model.shape_contact_pair_count) == 0
-    config = _kamino_config(variant, contact_free, settings)
+    config = _kamino_config(variant, contact_free, settings, **sweep)
     solver = SolverKamino(model, config=config)
     states = [model.state(), model.state()]
     control = model.control()
@@ -1461,6 +1495,8 @@ def run_solver_kamino(
     source: str = "mjcf",
     settings: str = "newton_example",
     amplitude: float = DRIVE_AMPLITUDE,
+    tolerance: float | None = None,
+    iterations: int | None = None,
 ) -> dict[str, Any]:
     """Throughput, loop closure and memory of Newton's ``SolverKamino`` on a benchmark scene.
 
@@ -1487,11 +1523,18 @@ def run_solver_kamino(
         settings: ``"newton_example"`` (PADMM tolerances 1e-4 etc., see ``_kamino_config``) or ``"defaults"``.
         amplitude: drive amplitude ``A``: a ``<motor>``'s torque ``A sin(2 pi t)`` [N m], a ``<position>``
             actuator's target ``offset + A sin(2 pi t)`` [rad] (the robots: 0.2).
+        tolerance: the solver's tolerance on top of ``settings`` (PADMM: primal, dual and complementarity; DVI:
+            its one), ``_kamino_config``; default: ``settings``'.
+        iterations: PADMM's ``max_iterations`` (DVI: ``max_alternating_iterations``); default: ``settings``'.
+            A ``tolerance`` or ``iterations`` given is named in the record's ``variant`` too
+            (``padmm_dense tolerance=1e-06``), so that the records of a sweep stay apart.
 
     Returns:
         The result dict (module docstring); ``reason`` is set when something could not run.
     """
-    result = _new_result("newton_solver_kamino", variant, scene, num_worlds)
+    sweep = {"tolerance": tolerance, "iterations": iterations}
+    label = " ".join([variant, *(f"{k}={v:g}" for k, v in sweep.items() if v is not None)])
+    result = _new_result("newton_solver_kamino", label, scene, num_worlds)
     result["source"] = source
     result["settings"] = settings
     result["drive_amplitude"] = float(amplitude)
@@ -1509,7 +1552,7 @@ def run_solver_kamino(
         with wp.ScopedDevice(dev):
             before, method = _memory_in_use(dev)
             built = _newton_build(scene, num_worlds, dev, source)
-            sim = _newton_sim(built, variant, settings)
+            sim = _newton_sim(built, variant, settings, **sweep)
             after, _ = _memory_in_use(dev)
             result["memory_method"] = method
             if before is not None and after is not None:
@@ -1562,6 +1605,7 @@ def run_solver_kamino(
             )
             result.update(timing)
             result["throughput"] = num_worlds / timing["step_time_s"]
+            result["sim_seconds_per_s"] = num_worlds * DT / timing["step_time_s"]
         del step, reset, built, sim  # free the N-world model before the closure run
         gc.collect()
     except Exception as exc:
@@ -1573,7 +1617,7 @@ def run_solver_kamino(
                 built1 = _newton_build(scene, 1, dev, source)
                 anchored = _newton_anchored_joints(built1.model)
                 if anchored.size:
-                    sim1 = _newton_sim(built1, variant, settings)
+                    sim1 = _newton_sim(built1, variant, settings, **sweep)
                     closures = tuple(
                         (wp.array(joints, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.float32, device=dev))
                         for joints in (anchored, built1.loops)

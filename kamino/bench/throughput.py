@@ -3,8 +3,9 @@ JAX backend) and, when importable, the peers MuJoCo Warp and Newton SolverKamino
 
     kamino bench [--scenes fourbar ladder8 ...] [--worlds 1 64 512 4096 16384]
                  [--configs dense-llt sparse-llt sparse-cr jax] [--no-peers] [--out FILE]
+    kamino bench --suite accuracy [--scenes ...] [--worlds ...] [--out STEM.json]   # a preset, any option overridden
     kamino bench --plot RUN.json [RUN2.json ...] [--out STEM.json]   # PNG plots of saved runs (the bench extra)
-    kamino bench --table RUN.json [RUN2.json ...]                    # one markdown table of saved runs
+    kamino bench --table RUN.json [RUN2.json ...]                    # the markdown tables of saved runs
 
 (``python -m kamino.bench.throughput`` is the same command.)
 
@@ -25,6 +26,22 @@ robots from their ``kamino.save_mjcf`` export (:mod:`kamino.bench.peers`, :func:
 every load, with the same starts and draws, the statistics of its own timed batch, and once per setting of
 ``--mjw-sweep`` (the ``<connect>`` time constant, time step, iterations, tolerance: its accuracy knobs); SolverKamino
 under the gentle load, its closure from a one-world run of ``--closure-steps``.
+
+Speed against accuracy: ``--kamino-sweep F=V,V ...`` runs kamino once per combination of its solver settings
+(:func:`kamino_sweep`, ``tolerance=1e-2,1e-3,1e-4``), ``--mjw-sweep`` MuJoCo Warp once per combination of its
+accuracy knobs (:func:`mjw_sweep`) and ``--sk-sweep`` each SolverKamino variant once per combination of its
+tolerance and iteration cap (:func:`sk_sweep`); a ``+`` between items starts another group of combinations (the
+runs of each group after those of the one before it: ``timeconst=0.02,0.005 dt=0.0025,0.0005 + iterations=10`` is
+four runs and a fifth at the file's time constant and the benchmark's time step). Each record names its setting
+(kamino's ``solver``, a peer's ``variant``), so the records of a sweep stay apart (:func:`record_key`) and the table
+gives each its column.
+``--table`` prints that table and the Pareto readout (:func:`pareto`): per scene, load, world count and solver, the
+most simulated world-seconds per second at a loop closure of at most 1e-3, 1e-4 and 1e-5 m, or the best closure
+reached. ``--suite NAME`` sets the options of a preset (:data:`SUITES`; ``accuracy``: every scene at 4096 and 16384
+worlds under both loads, with the three sweeps) as defaults that the command line overrides, writes the records to
+``--out`` (default ``bench_NAME.json``) and, at the end, ``STEM.md`` (both tables) and the plots ``STEM_*.png``
+(:func:`write_report`). A suite too long for one sitting runs in parts (``--scenes``, ``--worlds``; ``--no-peers``
+for kamino alone, ``--configs`` with no value for the peers alone), whose JSONs ``--table`` and ``--plot`` merge.
 
 The timed window (one rule for kamino Warp, kamino JAX, MuJoCo Warp and SolverKamino, :mod:`kamino.bench.timed_window`):
 each of ``--repeats`` trials resets the simulation to its initial state (state, time, controls, warm start: see
@@ -271,7 +288,7 @@ def bench_jax(name, num_worlds, args) -> dict:
 
     timing = timed_window.time_window(reset, advance, lambda: jax.block_until_ready(sim["s"]), graph_steps=n,
                                       warmup=args.warmup, replays=args.replays, repeats=args.repeats, dt=DT)
-    return {"kamino": "jax", "config": "jax", "scene": name, "num_worlds": num_worlds,
+    return {"kamino": "jax", "config": "jax", "scene": name, "num_worlds": num_worlds, "solver": dict(SOLVER),
             "throughput": num_worlds / timing["step_time_s"], **_window_fields(timing),
             "iterations_last_step_max": int(np.max(np.asarray(sim["s"].info.iterations)))}
 
@@ -282,7 +299,7 @@ def environment() -> dict:
 
     dev = wp.get_device()
     return {"gpu": dev.name if dev.is_cuda else platform.processor(), "warp": wp.__version__, "jax": jax.__version__,
-            "python": platform.python_version(), "date": time.strftime("%Y-%m-%d"), "solver": SOLVER, "dt": DT,
+            "python": platform.python_version(), "date": time.strftime("%Y-%m-%d"), "solver": dict(SOLVER), "dt": DT,
             "command": " ".join(sys.argv)}
 
 
@@ -316,13 +333,15 @@ def _parser(prog: str | None = None) -> argparse.ArgumentParser:
         prog=prog, description=SUMMARY,
         formatter_class=lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=36, width=110),
         usage=f"{prog or '%(prog)s'} [options]   |   {prog or '%(prog)s'} --plot/--table JSON...",
-        epilog=f"Other benchmarks: kamino bench NAME --help, NAME one of\n  {others}.\n"
-               "The method: help(kamino.bench.throughput).")
+        epilog=f"Other benchmarks (kamino bench NAME --help): {others}.\n"
+               "The method and the suites: help(kamino.bench.throughput).")
+    p.add_argument("--suite", choices=sorted(SUITES), default=None,
+                   help="a preset of the options below, each overridable; writes JSON, table, plots")
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=sorted({*SCENES, *ROBOTS}), metavar="SCENE",
-                   help=f"of {', '.join(sorted({*SCENES, *ROBOTS}))} (default: {' '.join(SCENES)})")
+                   help=f"of {' '.join(SCENES)} (default) and {' '.join(r for r in ROBOTS if r not in SCENES)}")
     p.add_argument("--worlds", nargs="+", type=int, default=[1, 64, 512, 4096, 16384], metavar="N",
                    help="world counts (default: 1 64 512 4096 16384)")
-    p.add_argument("--configs", nargs="+", default=list(CONFIG_CHOICES), choices=CONFIG_CHOICES, metavar="CONFIG",
+    p.add_argument("--configs", nargs="*", default=list(CONFIG_CHOICES), choices=CONFIG_CHOICES, metavar="CONFIG",
                    help=f"of {', '.join(CONFIG_CHOICES)} (all)")
     p.add_argument("--graph-steps", type=int, default=10, metavar="N", help="steps per block, one CUDA graph (10)")
     p.add_argument("--warmup", type=int, default=timed_window.WARMUP_BLOCKS, metavar="N",
@@ -336,18 +355,22 @@ def _parser(prog: str | None = None) -> argparse.ArgumentParser:
                    help="PADMM tolerance (default: SolverConfig's)")
     p.add_argument("--rho", type=float, default=None, help="PADMM starting penalty (default: SolverConfig's)")
     p.add_argument("--solver", nargs="+", default=[], metavar="F=V",
-                   help="further kamino.SolverConfig settings F (dotted: warp.linear_solver=cr), values V as JSON")
+                   help="SolverConfig settings F (dotted: warp.linear_solver=cr), V as JSON")
+    p.add_argument("--kamino-sweep", nargs="+", default=[], metavar="F=V,V",
+                   help="kamino per combination of its settings F (as --solver); + adds a group")
     p.add_argument("--no-peers", action="store_true", help="run kamino only")
     p.add_argument("--kamino-variants", nargs="*", default=["padmm_dense", "dvi"], metavar="VARIANT",
                    help="SolverKamino variants (default: padmm_dense dvi; none: MuJoCo Warp alone)")
     p.add_argument("--mjw-sweep", nargs="+", default=[], metavar="K=V,V",
                    help=f"MuJoCo Warp per combination of K in {' '.join(MJW_SWEEP)}")
+    p.add_argument("--sk-sweep", nargs="+", default=[], metavar="K=V,V",
+                   help=f"SolverKamino per combination of K in {' '.join(SK_SWEEP)}")
     p.add_argument("--out", type=pathlib.Path, default=None, metavar="JSON",
                    help="write the records here (default: stdout only)")
     p.add_argument("--plot", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
                    help="PNG plots of saved runs, named after --out or the first JSON; exit")
     p.add_argument("--table", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
-                   help="print a markdown table of saved runs and exit")
+                   help="print markdown tables of saved runs (all; speed at closure) and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bars (tqdm, on stderr)")
     return p
 
@@ -362,10 +385,11 @@ def _check_counts(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     for name in ("warmup", "closure_steps"):
         if getattr(args, name) < 0:
             p.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
-    try:
-        mjw_sweep(args.mjw_sweep)
-    except ValueError as e:
-        p.error(f"--mjw-sweep {e}")
+    for option, parse in (("--mjw-sweep", mjw_sweep), ("--sk-sweep", sk_sweep), ("--kamino-sweep", kamino_sweep)):
+        try:
+            parse(getattr(args, option[2:].replace("-", "_")))
+        except ValueError as e:
+            p.error(f"{option} {e}")
 
 
 def _read_records(p: argparse.ArgumentParser, option: str, files: list[pathlib.Path]) -> list[dict]:
@@ -384,6 +408,11 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """``kamino bench ARGS`` (``prog`` names the command in the help and errors); 0 when done."""
     p = _parser(prog)
     args = p.parse_args(argv)
+    if args.suite:  # the preset's values as defaults: what the command line gives still wins
+        p.set_defaults(**SUITES[args.suite])
+        args = p.parse_args(argv)
+        if not (args.plot or args.table):
+            args.out = args.out or pathlib.Path(f"bench_{args.suite}.json")
     _check_counts(p, args)
     if args.plot:
         try:
@@ -393,7 +422,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         plot({"records": _read_records(p, "--plot", args.plot)}, (args.out or args.plot[0]).with_suffix(""))
         return 0
     if args.table:
-        print(table(_read_records(p, "--table", args.table)))
+        records = _read_records(p, "--table", args.table)
+        print(table(records) + "\n\n" + pareto(records))
         return 0
     from kamino._warp import quiet_warp
 
@@ -404,6 +434,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if args.rho is not None:
         SOLVER["penalty.rho"] = args.rho
     SOLVER.update(solver_overrides(args.solver))
+    base, sweep = dict(SOLVER), kamino_sweep(args.kamino_sweep)
     results = {"environment": environment(), "records": []}
 
     def emit(rec):
@@ -414,33 +445,60 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
             args.out.write_text(json.dumps(results, indent=1))
 
     # one bar over kamino's (scene, config, worlds) runs; the peers' runs of a scene show in its description
-    runs = len(args.scenes) * len(args.configs) * len(args.worlds) * len(args.loads)
+    runs = sum(1 if c == "jax" else len(args.loads) for c in args.configs) * len(args.scenes) * len(args.worlds) \
+        * len(sweep)
     bar = progress(args=args, total=runs, desc="throughput", unit="run")
     with bar:
         for scene in args.scenes:
             for config in args.configs:
-                if config == "jax":
+                for load in ["gentle"] if config == "jax" else args.loads:
                     for nw in args.worlds:
-                        bar.set_description(f"{scene} jax {nw} worlds")
-                        try:
-                            emit(bench_jax(scene, nw, args))
-                        except Exception as e:  # keep going: report what failed
-                            emit({"kamino": "jax", "scene": scene, "num_worlds": nw, "error": repr(e)[:300]})
-                        bar.update()
-                    continue
-                for load in args.loads:
-                    for nw in args.worlds:
-                        bar.set_description(f"{scene} {config} {load} {nw} worlds")
-                        try:
-                            emit(bench_warp(scene, config, nw, args, load))
-                        except Exception as e:
-                            emit({"kamino": "warp", "config": config, "scene": scene, "load": load, "num_worlds": nw,
-                                  "error": repr(e)[:300]})
-                        bar.update()
+                        for setting in sweep:  # each point of --kamino-sweep on top of --tolerance/--rho/--solver
+                            SOLVER.clear()
+                            SOLVER.update({**base, **setting})
+                            named = " ".join(f"{k}={v}" for k, v in setting.items())
+                            bar.set_description(f"{scene} {config} {load} {nw} worlds {named}".strip())
+                            emit(_bench_or_error(scene, config, nw, args, load))
+                            bar.update()
+            SOLVER.clear()
+            SOLVER.update(base)
             if not args.no_peers:
                 bar.set_description(f"{scene} peers")
                 run_peers(scene, args, emit)
+    if args.suite:
+        write_report(results, args.out)
     return 0
+
+
+def _bench_or_error(scene, config, num_worlds, args, load) -> dict:
+    """The record of one kamino run (:func:`bench_jax` for ``jax``, else :func:`bench_warp` under ``load``), or
+    a record of its error: the run goes on with the next."""
+    try:
+        if config == "jax":
+            return bench_jax(scene, num_worlds, args)
+        return bench_warp(scene, config, num_worlds, args, load)
+    except Exception as e:  # keep going: report what failed
+        if config == "jax":
+            return {"kamino": "jax", "scene": scene, "num_worlds": num_worlds, "solver": dict(SOLVER),
+                    "error": repr(e)[:300]}
+        return {"kamino": "warp", "config": config, "scene": scene, "load": load, "num_worlds": num_worlds,
+                "solver": dict(SOLVER), "error": repr(e)[:300]}
+
+
+def write_report(results: dict, out: pathlib.Path) -> None:
+    """A suite's table and plots beside its JSON ``out``: ``<stem>.md``, the markdown table of every record
+    (:func:`table`) and the speed each solver reaches at each closure target (:func:`pareto`); the plots of
+    :func:`plot` (``<stem>_throughput.png``, ``_error.png``, ``_accuracy.png``) when matplotlib is installed."""
+    stem = out.with_suffix("")
+    records = latest_records(results["records"])
+    text = f"# {results['environment'].get('command', 'kamino bench')}\n\n{table(records)}\n\n{pareto(records)}\n"
+    stem.with_suffix(".md").write_text(text)
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        print("kamino bench: no plots (matplotlib is not installed: pip install 'kamino[bench]')", file=sys.stderr)
+        return
+    plot({"records": records}, stem)
 
 
 #: the MJCF scenes the peers run from kamino/bench/scenes (the robots of :data:`ROBOTS` run from kamino's export)
@@ -450,28 +508,114 @@ PEER_SCENES = ("fourbar", "ladder8", "ladder32")
 #: ``--mjw-sweep`` keys and the :func:`kamino.bench.peers.run_mujoco_warp` keywords they set
 MJW_SWEEP = {"timeconst": ("timeconst", float), "dt": ("timestep", float), "iterations": ("iterations", int),
              "tolerance": ("tolerance", float)}
+#: ``--sk-sweep`` keys and the :func:`kamino.bench.peers.run_solver_kamino` keywords they set (PADMM: the primal,
+#: dual and complementarity tolerances and ``max_iterations``; DVI: its ``tolerance`` and
+#: ``max_alternating_iterations``)
+SK_SWEEP = {"tolerance": ("tolerance", float), "iterations": ("iterations", int)}
+
+#: ``kamino bench --suite NAME``: presets of the command's options (argparse ``dest`` names), each overridable on the
+#: command line. ``accuracy``: speed against accuracy on every scene at 4096 and 16384 worlds under both loads,
+#: kamino's default configuration over a tolerance sweep; MuJoCo Warp over its ``<connect>`` time constant and time
+#: step (MuJoCo holds the time constant at 2 dt at least, so 0.001 s acts at dt 0.5 ms and is 0.005 s at 2.5 ms), then
+#: its solver loosened at the file's stiffness (10 iterations, tolerance 1e-4) and pushed at the stiffest setting (300
+#: iterations, tolerance 1e-10); SolverKamino's PADMM and DVI over their tolerance (1e-4: Newton's four-bar example;
+#: 1e-6: PADMM's default); one trial of 300 timed steps per point (``window_steps`` [20, 320)).
+SUITES = {
+    "accuracy": {
+        "scenes": ["fourbar", "ladder8", "ladder32", "dr_legs", "bdx", "olaf", "animatronic"],
+        "worlds": [4096, 16384], "loads": ["gentle", "rl"], "configs": ["default"],
+        "kamino_sweep": ["tolerance=1e-2,1e-3,1e-4"],
+        "mjw_sweep": ["timeconst=0.02,0.005,0.001", "dt=0.0025,0.0005", "+", "iterations=10", "tolerance=1e-4",
+                      "+", "timeconst=0.001", "dt=0.0005", "iterations=300", "tolerance=1e-10"],
+        "kamino_variants": ["padmm_dense", "dvi"], "sk_sweep": ["tolerance=1e-4,1e-6"],
+        "replays": 30, "repeats": 1,
+    },
+}
+
+
+#: the sweep item that starts another group of combinations (``--mjw-sweep timeconst=0.02,0.005 + iterations=10``)
+SWEEP_GROUP = "+"
+
+
+def _grid(items: list[str], keys: dict, parse) -> list[dict]:
+    """Every combination of ``KEY=V[,V...]`` items (``parse(key, text)`` gives a value and raises ``ValueError``
+    for a bad one), and where :data:`SWEEP_GROUP` items split them into groups, each group's combinations after the
+    previous group's, a setting already listed left out (an empty group is the run without settings, ``{}``);
+    no items: ``[{}]``."""
+    settings: list[dict] = []
+    groups: list[list[str]] = [[]]
+    for item in items:
+        if item == SWEEP_GROUP:
+            groups.append([])
+        else:
+            groups[-1].append(item)
+    for group in groups:
+        grid: dict[str, list] = {}
+        for item in group:
+            key, sep, values = item.partition("=")
+            if not sep or key not in keys or not values:
+                raise ValueError(f"{item!r}: expected KEY=V[,V...] with KEY one of {', '.join(keys)}, or "
+                                 f"{SWEEP_GROUP!r} between groups")
+            try:
+                grid[key] = [parse(key, v) for v in values.split(",")]
+            except ValueError as e:
+                raise ValueError(f"{item!r}: {e}") from None
+        combos = [{}]
+        for key, values in grid.items():
+            combos = [{**c, key: v} for c in combos for v in values]
+        settings += [c for c in combos if c not in settings]
+    return settings
+
+
+def _peer_sweep(items: list[str], keys: dict) -> list[dict]:
+    """A peer's sweep (:data:`MJW_SWEEP` or :data:`SK_SWEEP`): positive numbers, each key renamed to its runner's
+    keyword."""
+    def parse(key, text):
+        kind = keys[key][1]
+        try:
+            value = kind(text)
+        except ValueError:
+            raise ValueError(f"the values of {key} must be {kind.__name__}s") from None
+        if value <= 0:
+            raise ValueError(f"the values of {key} must be > 0")
+        return value
+
+    return [{keys[k][0]: v for k, v in s.items()} for s in _grid(items, keys, parse)]
 
 
 def mjw_sweep(items: list[str]) -> list[dict]:
     """``["timeconst=0.02,0.004", "dt=0.001"]`` -> the :func:`kamino.bench.peers.run_mujoco_warp` settings of every
     combination (``[{"timeconst": 0.02, "timestep": 0.001}, {"timeconst": 0.004, "timestep": 0.001}]``); no items:
     one run with the file's settings (``[{}]``). Raises ``ValueError`` naming a bad item."""
-    grid: dict[str, list] = {}
-    for item in items:
-        key, sep, values = item.partition("=")
-        if not sep or key not in MJW_SWEEP or not values:
-            raise ValueError(f"{item!r}: expected KEY=V[,V...] with KEY one of {', '.join(MJW_SWEEP)}")
-        name, kind = MJW_SWEEP[key]
+    return _peer_sweep(items, MJW_SWEEP)
+
+
+def sk_sweep(items: list[str]) -> list[dict]:
+    """``["tolerance=1e-4,1e-6"]`` -> the :func:`kamino.bench.peers.run_solver_kamino` settings of every combination
+    (``[{"tolerance": 1e-4}, {"tolerance": 1e-6}]``); no items: one run with the variant's settings (``[{}]``).
+    Raises ``ValueError`` naming a bad item."""
+    return _peer_sweep(items, SK_SWEEP)
+
+
+def kamino_sweep(items: list[str]) -> list[dict]:
+    """``["tolerance=1e-2,1e-3", "penalty.rho=0.05"]`` -> kamino's solver settings of every combination, by the
+    dotted names of :func:`kamino.config.field_names` but ``dt`` (the benchmark's time step is :data:`DT`) with
+    values as JSON (a bare string as it is), each checked by ``kamino.SolverConfig(dt=DT).replace``; no items:
+    ``[{}]``, the run's own settings. Raises ``ValueError`` naming a bad item."""
+    fields = [f for f in field_names() if f != "dt"]
+
+    def parse(key, text):
         try:
-            grid[name] = [kind(v) for v in values.split(",")]
-        except ValueError:
-            raise ValueError(f"{item!r}: the values of {key} must be {kind.__name__}s") from None
-        if any(v <= 0 for v in grid[name]):
-            raise ValueError(f"{item!r}: the values of {key} must be > 0")
-    settings = [{}]
-    for name, values in grid.items():
-        settings = [{**s, name: v} for s in settings for v in values]
-    return settings
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        try:
+            kamino.SolverConfig(dt=DT).replace(**{key: value})
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"kamino.SolverConfig rejects {key}={value!r} ({e})") from None
+        return value
+
+    return _grid(items, dict.fromkeys(fields), parse)
 
 
 def run_peers(scene, args, emit) -> None:
@@ -487,7 +631,7 @@ def run_peers(scene, args, emit) -> None:
 
     MuJoCo Warp runs every load of ``--loads`` (the ``rl`` load from kamino's starts and draws of the kamino model
     that the MJCF describes), once per setting of ``--mjw-sweep`` (:func:`mjw_sweep`); SolverKamino runs the
-    ``gentle`` load only."""
+    ``gentle`` load only, each variant once per setting of ``--sk-sweep`` (:func:`sk_sweep`)."""
     if scene not in PEER_SCENES and scene not in ROBOTS:
         return
     try:
@@ -497,6 +641,7 @@ def run_peers(scene, args, emit) -> None:
         return
     run_loads = list(getattr(args, "loads", None) or ["gentle"])
     sweep = mjw_sweep(list(getattr(args, "mjw_sweep", None) or []))
+    sk_settings = sk_sweep(list(getattr(args, "sk_sweep", None) or []))
     with tempfile.TemporaryDirectory(prefix="kamino_peers_") as tmp:
         try:
             model, drive = load_scene(scene)
@@ -514,7 +659,8 @@ def run_peers(scene, args, emit) -> None:
         for load in run_loads:
             runs = [(peers.run_mujoco_warp, {"load": load, "kamino_model": model, **setting}) for setting in sweep]
             if load == "gentle":
-                runs += [(peers.run_solver_kamino, {"variant": v}) for v in args.kamino_variants]
+                runs += [(peers.run_solver_kamino, {"variant": v, **setting}) for v in args.kamino_variants
+                         for setting in sk_settings]
             for nw in args.worlds:
                 for fn, kw in runs:
                     try:
@@ -611,6 +757,48 @@ def table(records: list[dict]) -> str:
             memory = f"{k['memory_per_world_bytes'] / mjw['memory_per_world_bytes']:.2f}x"
         lines.append(f"| {scene} | {load} | {worlds} | " + " | ".join(_cell(row.get(c)) for c in columns)
                      + f" | {speed} | {memory} |")
+    return "\n".join(lines)
+
+
+#: the loop closures [m] at which :func:`pareto` reads each solver's best speed
+CLOSURE_TARGETS = (1e-3, 1e-4, 1e-5)
+
+
+def _speed(x: float) -> str:
+    """Simulated world-seconds per second as the tables print them: ``7,040``, ``37.5``, ``0.952``."""
+    return f"{x:,.0f}" if x >= 100 else f"{x:.3g}"
+
+
+def pareto(records: list[dict], targets: tuple[float, ...] = CLOSURE_TARGETS) -> str:
+    """A markdown table of the speed each solver reaches at each accuracy: one row per scene, load, world count and
+    solver (:func:`kamino.plots.solver_setting`: kamino's ``default`` configuration, MuJoCo Warp, each SolverKamino
+    variant), one column per loop closure of ``targets`` [m]. A cell is the largest simulated world-seconds per
+    second (``sim_seconds_per_s``, world-steps/s x dt) of the solver's settings whose closure is at most the target
+    and that failed no world, with that setting and its closure (``7,020 s/s (timeconst=0.005, 2.5e-04 m)``); where
+    none qualifies, ``best reached: X s/s at Y m (setting)``, the setting of the smallest closure (the faster of a
+    tie), and its failed worlds if any. The points are :func:`kamino.plots.accuracy_points`' (a SolverKamino
+    record takes the closure of its one-world run, made at the first world count); a later record of the same thing
+    replaces an earlier one (:func:`latest_records`)."""
+    from kamino.plots import accuracy_points
+
+    lines = ["| scene | load | worlds | solver | " + " | ".join(f"closure <= {t:.0e} m" for t in targets) + " |",
+             "|---|---|---|---|" + "---|" * len(targets)]
+    order = {"kamino": 0, "MuJoCo Warp": 1}
+    for (scene, load, worlds), solvers in sorted(accuracy_points(latest_records(records)).items()):
+        for solver in sorted(solvers, key=lambda name: (order.get(name, 2), name)):
+            pts = solvers[solver]
+            cells = []
+            for target in targets:
+                ok = [p for p in pts if p[0] <= target and not p[3].get("failed_worlds")]
+                if ok:
+                    closure, speed, setting, _ = max(ok, key=lambda p: (p[1], -p[0]))
+                    cells.append(f"{_speed(speed)} s/s ({', '.join(filter(None, [setting, f'{closure:.1e} m']))})")
+                    continue
+                closure, speed, setting, rec = min(pts, key=lambda p: (p[0], -p[1]))
+                notes = ", ".join(filter(None, [setting, f"{rec['failed_worlds']} failed worlds"
+                                                if rec.get("failed_worlds") else ""]))
+                cells.append(f"best reached: {_speed(speed)} s/s at {closure:.1e} m" + (f" ({notes})" if notes else ""))
+            lines.append(f"| {scene} | {load} | {worlds} | {solver} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
