@@ -18,7 +18,7 @@ TINY = {"batch_size": 8, "num_minibatches": 2, "unroll_length": 5}
 
 class MatvecEnv(ppo_split.NullEnv):
     """The null environment plus ``matvecs`` chained 256 x 256 matrix-vector products in every step: an environment
-    whose step costs a known, fixed amount of arithmetic and nothing of it reaches the learner."""
+    whose step costs a fixed amount of arithmetic, on which the learner's cost does not depend."""
 
     def __init__(self, observation_size: int, action_size: int, matvecs: int):
         super().__init__(observation_size, action_size)
