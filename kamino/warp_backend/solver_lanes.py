@@ -17,7 +17,10 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   entries; each entry's index in ``L_f``'s row order, ``cent``, is loaded two columns ahead, so that the value waits
   on no index load), the backward one walks its rows (``x_p``, then the entries of row ``p`` update the rows above);
   the tail's dense rows likewise, and the tail's share of the fixed rows is one parallel pass. One barrier per row;
-  the right-hand side is updated in ``Work.y`` (free during the solve) and the solution lands in ``Work.x``.
+  the right-hand side is updated in ``Work.y`` (free during the solve) and the solution lands in ``Work.x``. Where
+  ``L_f^-1`` has at most ``linear_solve.INVERSE_MAX_FILL`` times ``L_f``'s entries, the factorisation ends with it
+  (:func:`invert_func`, on ``linear_solve_pattern.inverse_pattern``) and the fixed rows' sweeps are two products
+  with it, one barrier each.
   docs/warp_backend.md, "Where a PADMM iteration's time goes", has what each load ordering cost.
 - **Iterations** (:func:`iterate_kernel`). Every rule of an iteration (right-hand side, projection, dual update,
   residuals, the penalty of the limit and contact rows, the null-direction test, momentum) is ``solver_rules.py``'s,
