@@ -268,7 +268,7 @@ def factor_tail_func(np_dtype):
 def invert_func(np_dtype, E: int):
     """``L_f^-1`` on its pattern (``linear_solve_pattern.InversePattern``) from the finished ``L_f``, by the world's
     threads: the forward substitutions ``L_f z_c = e_c`` of every column ``c`` at once, position by position.
-    ``invert(sp, wid, vb, lv)``; ``lv``: ``L_f`` staged in shared memory (``E > 0``) or unused."""
+    ``invert(sp, wid, vb, lv, lane)``; ``lv``: ``L_f`` staged in shared memory (``E > 0``) or unused."""
     scalar, SP = builder_types(np_dtype).take("scalar", "SP")
     LVec = shared_vector(np_dtype, max(E, 1))
     fget = staged_get_func(np_dtype, E)
@@ -278,8 +278,8 @@ def invert_func(np_dtype, E: int):
     def invert(sp: SP, wid: int, vb: int, lv: LVec, lane: int):
         """At position ``q`` every column ``c`` of the subtree of ``q`` (threads over them) has its entry ``z_qc``
         final: ``z_qc <- z_qc / L_qq``, then ``z_rc -= L_rq z_qc`` for the entries ``(r, q)`` of column ``q`` (all on
-        the path of ``c``: slot ``slot(q, c) + cup``). One barrier per position; a column's entries are one thread's,
-        so no two threads write one slot."""
+        the path of ``c``: slot ``slot(q, c) + cup``). One barrier per position; within a position each column is one
+        thread's and the columns' slots are disjoint, so no two threads write one slot."""
         ib = sp.inv_start[wid]
         i0 = sp.inv_ent_start[wid]
         p0 = sp.ptr_start[wid]
