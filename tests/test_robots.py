@@ -19,7 +19,7 @@ from kamino.kinematics import actuated_joints
 from kamino.model import ActuationMode, GeomType, JointType, count_loops
 from kamino.models import robots
 from kamino.spatial import integrate_pose
-from tests.helpers import JAX, VARIANTS, tier_marks, trajectory_metrics, variant_param
+from tests.helpers import JAX, VARIANTS, WARP_DENSE_LLT, tier_marks, trajectory_metrics, variant_param
 
 #: Table 1 of the paper: bodies, actuated joints, passive joints (without the FREE base joint), FREE
 #: base joint from the world, independent loops.
@@ -263,8 +263,18 @@ def _check_hold(name: str, model, state, traj) -> None:
 def _standing_cases() -> list:
     """(name, variant) of every floating robot on every backend. (CR at 9 iterations per PADMM iteration, the
     former default budget, did not solve dr_legs' ~180-row system on its first steps: they reached the iteration
-    cap, reported unconverged, and opened the loops by 3.4e-5 m; at 30 every step converges.)"""
-    return [pytest.param(name, v, id=f"{name}-{v.id}", marks=tier_marks(v)) for name in FLOATING for v in VARIANTS]
+    cap, reported unconverged, and opened the loops by 3.4e-5 m; at 30 every step converges.)
+
+    olaf on the dense factor is skipped (``OLAF_DENSE``): on the CPU one thread per world factors olaf's system
+    of up to 299 rows, 21-24 s of one CI worker for the 3 s. The dense path stands dr_legs (up to 240 rows) and bdx, and
+    olaf stands on the sparse factor, on CR and on the reference."""
+    return [pytest.param(name, v, id=f"{name}-{v.id}",
+                         marks=[*tier_marks(v), *([OLAF_DENSE] if (name, v) == ("olaf", WARP_DENSE_LLT) else [])])
+            for name in FLOATING for v in VARIANTS]
+
+
+OLAF_DENSE = pytest.mark.skip(reason="olaf on the dense per-world factor: 21-24 s of Warp CPU steps; the dense path "
+                                     "stands dr_legs and bdx, olaf stands on the sparse paths and the reference")
 
 
 @pytest.mark.parametrize("name, variant", _standing_cases())
