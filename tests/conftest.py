@@ -15,7 +15,7 @@ it. These settings cut that without touching what is computed:
   tests that compare at rounding level with a program compiled at XLA's default level carry the ``default_xla``
   mark and run in a subprocess at the default level (:func:`pytest_pyfunc_call`), with those whose run time
   dominates: the shipped policy's actions against the recorded ones (test_rl_eval.py, to 2e-7), the bitwise check of
-  test_redundant_limits.py, and the JAX reference's 5 s animatronic hold. The subprocesses that compare two programs
+  test_redundant_limits.py, and the JAX reference's animatronic hold. The subprocesses that compare two programs
   of their own (test_sharding.py's sharded and unsharded runs) or retrace a recorded result (the notebooks' training)
   get the default level too (``helpers.default_xla_env``).
 - One persistent compilation cache under ``.pytest_cache/jax``, shared by the xdist workers and the subprocesses

@@ -2,15 +2,13 @@
 
 ``kamino train fourbar_track`` (Warp backend, the faster of the two on the CPU for a first training in a process; a
 tiny PPO config: three evaluations, each with its checkpoint, 240 environment steps apart) runs once without
-interruption, the reference. Another run of the same command is killed with SIGKILL five times, each time in a
+interruption, the reference. Another run of the same command is killed with SIGKILL three times, each time in a
 subprocess that resumes the run folder the kill before left and kills itself at a chosen point:
 
 1. inside its first checkpoint write (the checkpoint staged whole, before its rename into place);
-2. inside its ``env.json`` write;
-3. at a random moment;
-4. inside the ``curve.json`` write that follows its first checkpoint commit (the temporary file whole, before its
+2. at a random moment;
+3. inside the ``curve.json`` write that follows its first checkpoint commit (the temporary file whole, before its
    rename);
-5. at a random moment;
 
 and is then resumed to its end. After each kill, what the run folder holds is a prefix of the reference's record:
 committed checkpoints at evaluation steps, each with its own row, and whole run files. At the end the record equals
@@ -152,7 +150,7 @@ def _record(out: Path) -> dict:
 SCHEDULE = [EVERY, 2 * EVERY, 3 * EVERY]
 
 
-def test_a_run_killed_five_times_resumes_to_the_record_of_an_uninterrupted_run(tmp_path):
+def test_a_run_killed_three_times_resumes_to_the_record_of_an_uninterrupted_run(tmp_path):
     rng = random.Random(int.from_bytes(os.urandom(4), "little"))
     out = tmp_path / "run"
     t0 = time.monotonic()
@@ -162,30 +160,23 @@ def test_a_run_killed_five_times_resumes_to_the_record_of_an_uninterrupted_run(t
     assert (out / "checkpoints" / runs.STAGING / f"{EVERY:012d}").is_dir()  # staged whole, not renamed
     _plant_debris(out)
 
-    status, _ = _killed(out, tmp_path, KILL_AT="env:1")
-    assert status == -signal.SIGKILL and list(out.glob(".env.json.*.tmp"))  # the new file whole, not renamed
-    assert runs.read_json(out / "env.json") == {"reset_bank": 8}  # the old one, whole
-
-    delays = [rng.uniform(0.0, 1.2) * to_first_write for _ in range(2)]
-    print(f"random kills {delays[0]:.1f} s and {delays[1]:.1f} s after the imports (the first checkpoint write came "
-          f"{to_first_write:.1f} s after them)")
-    _killed(out, tmp_path, KILL_AFTER=f"{delays[0]:.3f}")
+    delay = rng.uniform(0.0, 1.2) * to_first_write
+    print(f"random kill {delay:.1f} s after the imports (the first checkpoint write came {to_first_write:.1f} s "
+          "after them)")
+    _killed(out, tmp_path, KILL_AFTER=f"{delay:.3f}")
     before = _committed(out)
 
     status, _ = _killed(out, tmp_path, KILL_AT="curve:1")
     if len(before) < len(SCHEDULE):  # the run had a checkpoint left to write: it commits it, then dies at its row
-        assert status == -signal.SIGKILL and list(out.glob(".curve.json.*.tmp"))
+        assert status == -signal.SIGKILL and list(out.glob(".curve.json.*.tmp"))  # the new file whole, not renamed
         assert _committed(out) == SCHEDULE[:len(before) + 1]
-
-    _killed(out, tmp_path, KILL_AFTER=f"{delays[1]:.3f}")
-    _committed(out)
     t_kills = time.monotonic() - t0
 
     reference = tmp_path / "reference"
     proc = subprocess.run([sys.executable, "-c", RESUMED, *ARGS, "--", str(reference), str(out)], capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    print(f"five killed runs in {t_kills:.1f} s, the reference and the resumed run in "
+    print(f"three killed runs in {t_kills:.1f} s, the reference and the resumed run in "
           f"{time.monotonic() - t0 - t_kills:.1f} s")
 
     expected = _record(reference)

@@ -19,7 +19,7 @@ from kamino.kinematics import actuated_joints
 from kamino.model import ActuationMode, GeomType, JointType, count_loops
 from kamino.models import robots
 from kamino.spatial import integrate_pose
-from tests.helpers import JAX, VARIANTS, tier_marks, trajectory_metrics, variant_param
+from tests.helpers import JAX, VARIANTS, WARP_DENSE_LLT, tier_marks, trajectory_metrics, variant_param
 
 #: Table 1 of the paper: bodies, actuated joints, passive joints (without the FREE base joint), FREE
 #: base joint from the world, independent loops.
@@ -225,10 +225,10 @@ def test_feet_touch_the_ground_and_the_com_is_over_them(name):
 WARP_STAND_STEPS = round(3.0 / DT)
 
 
-def _hold(name: str, variant, full: bool = False):
+def _hold(name: str, variant, full: bool = False, steps: int | None = None):
     model = _model(name)
     state = kamino.init_state(model, dtype=jnp.float32)
-    steps = WARP_STAND_STEPS if variant.is_warp and not full else STAND_STEPS
+    steps = steps or (WARP_STAND_STEPS if variant.is_warp and not full else STAND_STEPS)
     ctrl = kamino.Control(position_target=jnp.zeros((steps, model.num_dofs), jnp.float32))
     traj = variant.rollout(model, state, ctrl, config=STAND_CFG)
     assert traj.body_q.dtype == jnp.float32
@@ -263,8 +263,18 @@ def _check_hold(name: str, model, state, traj) -> None:
 def _standing_cases() -> list:
     """(name, variant) of every floating robot on every backend. (CR at 9 iterations per PADMM iteration, the
     former default budget, did not solve dr_legs' ~180-row system on its first steps: they reached the iteration
-    cap, reported unconverged, and opened the loops by 3.4e-5 m; at 30 every step converges.)"""
-    return [pytest.param(name, v, id=f"{name}-{v.id}", marks=tier_marks(v)) for name in FLOATING for v in VARIANTS]
+    cap, reported unconverged, and opened the loops by 3.4e-5 m; at 30 every step converges.)
+
+    olaf on the dense factor is skipped (``OLAF_DENSE``): on the CPU one thread per world factors olaf's system
+    of up to 299 rows, 21-24 s of one CI worker for the 3 s. The dense path stands dr_legs (up to 240 rows) and bdx, and
+    olaf stands on the sparse factor, on CR and on the reference."""
+    return [pytest.param(name, v, id=f"{name}-{v.id}",
+                         marks=[*tier_marks(v), *([OLAF_DENSE] if (name, v) == ("olaf", WARP_DENSE_LLT) else [])])
+            for name in FLOATING for v in VARIANTS]
+
+
+OLAF_DENSE = pytest.mark.skip(reason="olaf on the dense per-world factor: 21-24 s of Warp CPU steps; the dense path "
+                                     "stands dr_legs and bdx, olaf stands on the sparse paths and the reference")
 
 
 @pytest.mark.parametrize("name, variant", _standing_cases())
@@ -272,20 +282,31 @@ def test_floating_robot_stands_for_5_s_in_float32(name, variant):
     _check_hold(name, *_hold(name, variant))
 
 
+#: the JAX reference's animatronic hold [steps]: 2 s, against the Warp variants' 5 s. Its cost is the run (43 s for
+#: 5 s at XLA's default level on the 2-core machine), and 2 s hold what 5 s show: measured over the 5 s of this run,
+#: the bodies move most in the first 0.25 s (9.9 mm from their builder positions, the mechanism settling) and stay at
+#: 8.35-8.36 mm from 0.5 s on, every step converges, and the worst joint residual of each quarter second stays
+#: between 1.3e-6 and 2.2e-6 without a trend (1.5e-6 at most over the first 2 s): 2 s cover the settling and 1.5 s
+#: at rest. The full 5 s of the same model and checks run on the Warp sparse variants, on the CPU too.
+ANIMATRONIC_JAX_STEPS = round(2.0 / DT)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("variant", [variant_param(v, marks=(pytest.mark.default_xla,) if v is JAX else ())
-                                     for v in VARIANTS])  # the reference's 5 s run: at XLA's default level
-def test_animatronic_holds_its_pose_for_5_s_in_float32(variant):
-    """The float32 JAX reference holds the worst joint error under the 1e-5 bound over the 5 s, with the penalty cap
-    and the projection's shift of 1.1e-4 (docs/conventions.md, "Penalty" and "Post-stabilisation"); with a shift
-    of 3.5e-4 and no cap it grew to 1.1-1.5e-5. It is at float32's limit: the same run outside pytest
-    (JAX's x64 mode off, so some constants of the step round to float32 as well) peaks at 1.2e-5 with this
+                                     for v in VARIANTS])  # the reference's run: at XLA's default level
+def test_animatronic_holds_its_pose_in_float32(variant):
+    """Each backend holds the animatronic's builder pose under PD in float32, 5 s on Warp and 2 s on the JAX
+    reference (``ANIMATRONIC_JAX_STEPS``). The float32 JAX reference holds the worst joint error under the 1e-5
+    bound, with the penalty cap and the projection's shift of 1.1e-4 (docs/conventions.md, "Penalty" and
+    "Post-stabilisation"); with a shift of 3.5e-4 and no cap it grew to 1.1-1.5e-5 over 5 s. The same run outside
+    pytest (JAX's x64 mode off, so some constants of the step round to float32 as well) peaks at 1.2e-5 with this
     conftest's XLA flags and 2.4e-5 with XLA's defaults, ending at 6e-6 / 1.2e-5."""
     if variant.is_warp and variant.jacobian == "dense":
         # ~1000 constraint rows in one world: the dense per-world Cholesky (one CPU thread) costs 11 s per step
         # here, hours for the test; the sparse factor and CR run it
         pytest.skip("dense per-world Cholesky of ~1000 rows: 11 s per Warp CPU step; covered by the sparse paths")
-    # the full 5 s on Warp too: its first ~20 steps, the mechanism settling from the builder pose, are the hard ones
+    # the full 5 s on Warp: its first ~20 steps, the mechanism settling from the builder pose, are the hard ones
     # (CR at 9 iterations did not reach 1e-4 there); 20 of 500 steps stay under the 5 % that _check_hold allows,
     # 20 of 150 would not
-    _check_hold("animatronic", *_hold("animatronic", variant, full=True))
+    steps = None if variant.is_warp else ANIMATRONIC_JAX_STEPS
+    _check_hold("animatronic", *_hold("animatronic", variant, full=True, steps=steps))

@@ -68,10 +68,12 @@ _TWO_DEVICES = textwrap.dedent("""
         ref = kamino.rollout(model, state, num_steps=steps, config=cfg, backend=backend)
         sharded = shard_worlds(model, state)
         traj = kamino.rollout(model, sharded, num_steps=steps, config=cfg, backend=backend)
-        one = kamino.step(model, sharded, config=cfg, backend=backend)
-        for name, a, b, t in (("body_q", traj.body_q, ref.body_q, True), ("time", traj.time, ref.time, True),
-                              ("contact force", traj.contacts.force, ref.contacts.force, True),
-                              ("step body_q", one.body_q, ref.body_q[0], False)):
+        compared = [("body_q", traj.body_q, ref.body_q, True), ("time", traj.time, ref.time, True),
+                    ("contact force", traj.contacts.force, ref.contacts.force, True)]
+        if backend == "warp":  # the sharded step alone (the body of the sharded rollout: the docstring)
+            one = kamino.step(model, sharded, config=cfg, backend=backend)
+            compared.append(("step body_q", one.body_q, ref.body_q[0], False))
+        for name, a, b, t in compared:
             # world blocks: block g of every entity axis on device g, the time axis whole
             spec = a.sharding.spec
             assert isinstance(a.sharding, NamedSharding) and spec[1 if t else 0] == "worlds", (backend, name, spec)
@@ -112,10 +114,13 @@ _TWO_DEVICES = textwrap.dedent("""
 """)
 
 
-@pytest.mark.slow  # the JAX reference's sharded programs: about 50 s of compiling on the 2-core machine
+@pytest.mark.slow  # the JAX reference's two programs (sharded and not): about 40 s of compiling on the 2-core machine
 def test_sharded_worlds_on_two_devices_match_unsharded(tmp_path):
-    """Two forced host devices, a model of two identical groups (a four-bar and a two-box stack each): a rollout
-    and a step of the sharded state give, block by block on each device, the unsharded result, on both backends.
+    """Two forced host devices, a model of two identical groups (a four-bar and a two-box stack each): a rollout of
+    the sharded state gives, block by block on each device, the unsharded result, on both backends, and so does a
+    step on the Warp backend. A sharded rollout is a ``lax.scan`` whose body is the sharded step itself
+    (``kamino.sharding.sharded_program``, whatever the backend), so the JAX reference's rollout checks its sharded
+    step; the step alone on that backend would be a third compile of its program (about 20 s on the 2-core machine).
 
     Tolerances: the Warp backend computes each world in its own threads whatever the other worlds are
     (test_cross_backend.py::test_heterogeneous_worlds_match_standalone_on_warp: exact), so its blocks are
