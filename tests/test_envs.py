@@ -487,7 +487,7 @@ def _outer_loops(jaxpr) -> list[list[str]]:
 @pytest.mark.parametrize("backend", [pytest.param("jax", marks=pytest.mark.slow), "warp"])
 def test_substep_loop_holds_no_zero_size_array(backend):
     """XLA's GPU compiler (jax 0.11.2) crashes on a loop inside a per-device program (brax's pmap over several GPUs)
-    that carries or closes over a zero-size array (benchmarks/results/s21_h200/multi_gpu_crash_cause.txt). The
+    that carries or closes over a zero-size array (benchmarks/results/multi_gpu_zero_size_crash_h200.txt). The
     four-bar has no couplings and no contacts, so its padded model and its State hold such arrays; the environment's
     substep scan must hold none of them (kamino.state.drop_empty), on either backend."""
     with jax.enable_x64(False):
