@@ -162,3 +162,37 @@ def test_kamino_export_writes_and_checks_the_model(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         cli.main(["export", "no_such_policy", str(tmp_path / "x.onnx")])
     assert exit_.value.code == 2 and "dr_legs_walk" in capsys.readouterr().err
+
+
+def test_kamino_export_takes_a_training_checkpoint(tmp_path, capsys):
+    """A ``kamino train`` checkpoint (Brax's own format, its network config naming the activation) exports and
+    passes the check, as a shipped policy does (Brax stores linen.swish by its function name, silu)."""
+    import functools
+
+    from brax.training.acme import running_statistics, specs
+    from brax.training.agents.ppo import checkpoint as ppo_checkpoint
+    from brax.training.agents.ppo import networks as ppo_networks
+    from flax import linen
+
+    from kamino import cli
+
+    factory = functools.partial(ppo_networks.make_ppo_networks, policy_hidden_layer_sizes=(16, 16),
+                                value_hidden_layer_sizes=(8,), activation=linen.swish)
+    with jax.enable_x64(False):
+        net = factory(7, 3, preprocess_observations_fn=running_statistics.normalize)
+        key = jax.random.PRNGKey(2)
+        policy = net.policy_network.init(key)
+        normalizer = running_statistics.update(
+            running_statistics.init_state(specs.Array((7,), np.dtype("float32"))),
+            1.0 + 2.0 * jax.random.normal(jax.random.fold_in(key, 1), (64, 7)))
+        config = ppo_checkpoint.network_config(7, 3, True, factory)
+        ppo_checkpoint.save(tmp_path / "run" / "checkpoints", 500, (normalizer, policy,
+                                                                    net.value_network.init(key)), config)
+    out = tmp_path / "run.onnx"
+    assert cli.main(["export", str(tmp_path / "run"), str(out), "--task", "fourbar_track", "--check", "200"]) == 0
+    printed = capsys.readouterr().out
+    assert "fourbar_track policy" in printed and "within 1e-05" in printed
+    import onnx
+
+    meta = {p.key: p.value for p in onnx.load(out).metadata_props}
+    assert meta["step"] == "500" and meta["activation"] == "silu" and meta["observation_size"] == "7"

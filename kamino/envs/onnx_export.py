@@ -254,7 +254,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"kamino export: {policy.task} policy from {policy.source} -> {path} (observation {policy.observation_size}, "
           f"action {policy.action_size}, opset {OPSET})", flush=True)
     if args.check:
-        diff = check_onnx(policy, path, sample_observations(policy, args.check))
+        try:
+            diff = check_onnx(policy, path, sample_observations(policy, args.check))
+        except ImportError as e:
+            p.error(f"{e}; --check 0 writes the model without the check")
         ok = diff <= args.tolerance
         print(f"  onnxruntime vs JAX on {args.check} observations: max |action difference| {diff:.2e} "
               f"({'within' if ok else 'OVER'} {args.tolerance:g})", flush=True)
