@@ -1,6 +1,6 @@
 """The ``kamino`` command: ``demo`` simulates the four-bar and reports closure, energy and speed; ``train`` trains a
-registered environment with Brax's PPO; ``eval`` scores a trained policy; ``bench`` measures throughput against
-error. Each subcommand's options: ``kamino SUBCOMMAND --help``."""
+registered environment with Brax's PPO; ``eval`` scores a trained policy; ``export`` writes one as an ONNX
+model; ``bench`` measures throughput against error. Each subcommand's options: ``kamino SUBCOMMAND --help``."""
 
 from __future__ import annotations
 
@@ -75,6 +75,7 @@ def demo(seconds: float = 5.0, dt: float = 1.0 / 240.0, integrator: str = "midpo
 DELEGATED = {
     "train": ("kamino.envs.train", "train a registered environment with Brax's PPO (kamino train --help)"),
     "eval": ("kamino.envs.evaluate", "score a trained policy or a shipped one (kamino eval --help)"),
+    "export": ("kamino.envs.onnx_export", "write a trained policy as an ONNX model (kamino export --help)"),
     "bench": ("kamino.bench.cli", "throughput against error on the benchmark scenes (kamino bench --help)"),
 }
 
