@@ -81,21 +81,23 @@ def test_the_observation_read_off_mujoco_is_kamino_s(walker):
 
 
 def test_the_shipped_policy_walks_in_mujoco(tmp_path):
-    """``kamino eval dr_legs_walk --sim mujoco``: 2 episodes of 2 s at forward commands in 0.3-0.5 m/s in MuJoCo (the
-    export's settings at kamino's 4 ms step). Neither episode falls, the robot moves forward at more than 0.25 m/s
-    and the tracking error stays under 0.15 m/s; a robot that stood still would score the command itself (0.3-0.5
-    m/s). Over 64 episodes of 10 s the error measured 0.086 m/s (kamino's own 0.070 m/s, docs/envs.md, "Sim-to-sim
-    in MuJoCo"); short episodes weigh the start from rest more, which the bound allows for. The soft loop closures
-    open by millimetres under the walking loads (4-5 mm measured: MuJoCo raises the export's 4 ms ``<connect>`` time
-    constant to two 4 ms steps); the bound of 1 cm catches a loop that comes apart."""
+    """``kamino eval dr_legs_walk --sim mujoco``: 2 episodes of 2 s at forward commands in 0.3-0.5 m/s in MuJoCo with
+    the export's settings (2 ms, implicitfast, 4 ms ``<connect>`` time constant). Neither episode falls, the robot
+    moves forward at more than 0.25 m/s and the tracking error stays under 0.15 m/s; a robot that stood still would
+    score the command itself (0.3-0.5 m/s). Measured: 0.076 m/s at a forward speed of 0.307 m/s (mean command
+    0.303); over 64 episodes of 10 s 0.068 m/s, kamino's own 0.069 on the same episodes (docs/envs.md, "Sim-to-sim
+    in MuJoCo"). Short episodes weigh the start from rest more, which the bound allows for. The soft loop closures
+    open by at most 1.7 mm over those 64 episodes; at twice the time constant (the 4 ms step, where MuJoCo keeps a
+    time constant at two steps or more) they open by 5 mm and the error rises to 0.086 m/s, and at MuJoCo's default
+    20 ms every episode falls: the bound of 3 mm catches loop closures softer than the export's."""
     out = tmp_path / "mujoco.json"
     rc = rl_eval.main(["dr_legs_walk", "--sim", "mujoco", "--episodes", "2", "--seconds", "2", "--env",
                        "reset_bank=8", "--out", str(out)])
     assert rc == 0
     r = json.loads(out.read_text())
     assert r["sim"] == "mujoco" and r["episodes"] == 2 and r["policy_steps"] == 100
-    assert r["mujoco"]["timestep"] == 0.004 and r["mujoco"]["integrator"] == "implicitfast"
+    assert r["mujoco"]["timestep"] == 0.002 and r["mujoco"]["integrator"] == "implicitfast"
     assert r["fall_fraction"] == 0.0
     assert r["forward_speed_mean"] > 0.25
     assert r["tracking_error_mean"] < 0.15
-    assert r["loop_gap_max"] < 1e-2
+    assert r["loop_gap_max"] < 3e-3

@@ -47,7 +47,10 @@ INTEGRATORS = ("euler", "rk4", "implicit", "implicitfast")
 class MujocoOptions:
     """MuJoCo settings over the export's.
 
-    ``timestep``: MuJoCo's step [s] (``None``: the environment's ``sim_dt``); it must divide the policy period.
+    ``timestep``: MuJoCo's step [s]; it must divide the policy period (``None``: the export's, MuJoCo's default 2 ms,
+    half kamino's 4 ms: MuJoCo makes a constraint's time constant at least two steps, so at 4 ms the export's 4 ms
+    loop closures would become 8 ms ones, which open twice as far under load; docs/envs.md, "Sim-to-sim in
+    MuJoCo").
     ``integrator``: one of :data:`INTEGRATORS` (``None``: the export's, ``implicitfast``). ``equality_solref``: the
     ``(timeconst [s], dampratio)`` of every ``<connect>`` (``None``: the export's, 4 ms and 1). ``contact_solref``:
     the same for contacts (``None``: MuJoCo's default, 20 ms and 1)."""
@@ -65,7 +68,8 @@ def mujoco_model(env, options: MujocoOptions = MujocoOptions()):
     from kamino.io.mjcf_export import save_mjcf
 
     mj = mujoco.MjModel.from_xml_string(save_mjcf(env.model))
-    mj.opt.timestep = env.sim_dt if options.timestep is None else float(options.timestep)
+    if options.timestep is not None:
+        mj.opt.timestep = float(options.timestep)
     if options.integrator is not None:
         if options.integrator not in INTEGRATORS:
             raise ValueError(f"mujoco_model: integrator must be one of {INTEGRATORS}, got {options.integrator!r}")
@@ -322,7 +326,7 @@ def _integrator_index(mj) -> int:
 def add_mujoco_arguments(p: argparse.ArgumentParser) -> None:
     """The MuJoCo options of ``kamino eval --sim mujoco`` and ``python -m kamino.envs.sim2sim``."""
     g = p.add_argument_group("MuJoCo (--sim mujoco)")
-    g.add_argument("--mj-timestep", type=float, help="MuJoCo's time step [s] (default: the task's sim_dt, 4 ms); "
+    g.add_argument("--mj-timestep", type=float, help="MuJoCo's time step [s] (default: the export's, 0.002); "
                    "it must divide the policy period")
     g.add_argument("--mj-integrator", choices=INTEGRATORS, help="MuJoCo's integrator (default: the export's, "
                    "implicitfast)")
