@@ -17,8 +17,9 @@ kamino's environment (``kamino.envs.make(policy.task, **policy.env)``, built on 
   observation noise (``obs_noise`` times ``_obs_noise_scale``) and clips to ``obs_limit``; the action is clipped to
   ``[-1, 1]`` and mapped by ``env.action_to_target`` onto the PD targets (MuJoCo's ``ctrl``), held for the
   ``env.dt / timestep`` MuJoCo steps of one policy period (50 Hz); the gait phase advances by ``gait_frequency
-  env.dt`` per step. A fall is the environment's ``_fallen`` (base height, tilt), a non-finite state, or an
-  observation entry beyond ``obs_limit`` (kamino's ``failed``).
+  env.dt`` per step. The noise is drawn by NumPy (seeded by ``seed``): the same scale as kamino's, not the same
+  samples. A fall is the environment's ``_fallen`` (base height, tilt), an observation entry beyond ``obs_limit`` or
+  non-finite (kamino's ``failed``), or MuJoCo's reset of a diverged world (``mjWARN_BADQACC``).
 - **Resets and commands.** :func:`walking_test` draws them as :func:`kamino.envs.evaluate.walking_test` does (the
   same keys from ``seed``): the same loop-closed start configurations and headings and the same forward commands, so
   the two simulators' figures compare episode by episode; :func:`kamino.envs.evaluate.summarize` scores both.
@@ -240,10 +241,11 @@ def walking_test(env, policy: Policy, *, episodes: int, seconds: float, speed: t
         obs, fallen, v, w = (np.asarray(x) for x in observe(
             jnp.asarray(np.stack(bq), env.dtype), jnp.asarray(np.stack(bu), env.dtype),
             jnp.asarray(commands, env.dtype), jnp.asarray(last, env.dtype), jnp.full(episodes, phase, env.dtype)))
-        finite = np.all(np.isfinite(obs), 1)
         blown = ~np.all(np.abs(obs) <= env._obs_limit, 1)  # a non-finite entry too
+        # MuJoCo resets a world whose accelerations turn non-finite to its reference pose (mjWARN_BADQACC): a failure
+        diverged = np.array([d.warning[int(mujoco.mjtWarning.mjWARN_BADQACC)].number > 0 for d in datas])
         obs = np.where(np.isfinite(obs), obs, 0.0) + scale * rng.standard_normal(obs.shape).astype(np.float32)
-        return np.clip(obs, -env._obs_limit, env._obs_limit), fallen | blown | ~finite, v, w
+        return np.clip(obs, -env._obs_limit, env._obs_limit), fallen | blown | diverged, v, w
 
     obs, _, _, _ = read(0.0)
     phase = 0.0
