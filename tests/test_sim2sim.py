@@ -45,6 +45,28 @@ def test_a_kamino_reset_is_the_same_pose_in_mujoco(walker):
         assert eq.sum() == 3 * mj.neq and np.abs(d.efc_pos[:d.nefc][eq]).max() < 1e-5
 
 
+def test_the_mujoco_actuators_are_kamino_s(walker):
+    """The export's ``<position>`` actuators are kamino's implicit PD, parameter for parameter: MuJoCo's force
+    ``kp (ctrl - q) - kv qd`` (``gainprm[0] = kp``, ``biasprm[1:3] = (-kp, -kv)``), clamped to ``forcerange`` =
+    the effort limit, on a joint with kamino's armature and damping; and the controls are unclamped (``ctrlrange``
+    off), since the environment maps an action into the joint range itself. Exact: the export writes the float64
+    values."""
+    env, mj, _ = walker
+    m = env.model
+    dof = np.asarray(m.actuator_dof)
+    kp, kd = m.dof_kp[dof], m.dof_kd[dof]
+    np.testing.assert_array_equal(mj.actuator_gainprm[:, 0], kp)
+    np.testing.assert_array_equal(mj.actuator_biasprm[:, 1], -kp)
+    np.testing.assert_array_equal(mj.actuator_biasprm[:, 2], -kd)
+    assert mj.actuator_forcelimited.all()
+    np.testing.assert_array_equal(mj.actuator_forcerange, np.stack([-m.dof_effort_limit[dof],
+                                                                    m.dof_effort_limit[dof]], 1))
+    joints = mj.actuator_trnid[:, 0]
+    np.testing.assert_array_equal(mj.dof_armature[mj.jnt_dofadr[joints]], m.dof_armature[dof])
+    np.testing.assert_array_equal(mj.dof_damping[mj.jnt_dofadr[joints]], m.dof_damping[dof])
+    assert not mj.actuator_ctrllimited.any()
+
+
 def test_the_observation_read_off_mujoco_is_kamino_s(walker):
     """A moving MuJoCo state (a reset pose, then random ``qvel`` of 1 rad/s or m/s per DoF and a tilt of the base)
     read through the kamino state (:func:`sim2sim.kamino_body_state`, then the environment's own ``_observe``)
