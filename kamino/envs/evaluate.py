@@ -10,6 +10,9 @@ in its own frame), the fall fraction (episodes that end early), the forward spee
 (``--max-error``, ``--max-falls``). Where the error comes from is reported too: the error of the mean velocity
 (per episode ``|cmd_xy - mean v_xy|``) and the fluctuation (per episode the standard deviation of ``v_x`` and
 ``v_y``). Any other task gets the mean and spread of the episode return and the fraction of episodes that end early.
+
+``--sim mujoco`` runs the walking test in C MuJoCo on ``kamino.save_mjcf``'s export of the robot, with kamino's
+observations, actions, resets and commands (:mod:`kamino.envs.sim2sim`; the ``--mj-*`` options set MuJoCo's).
 """
 
 from __future__ import annotations
@@ -209,6 +212,7 @@ def format_report(r: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """``kamino eval ARGS``: returns the exit status."""
+    from kamino.envs import sim2sim
     from kamino.envs.policy import shipped_policies
 
     p = argparse.ArgumentParser(prog="kamino eval", description="Score a trained policy: the walking test for a "
@@ -217,6 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("policy", metavar="RUN_OR_POLICY", help="a shipped policy's name, a run folder or a checkpoint")
     p.add_argument("--task", help="the task (default: the run's, else dr_legs_joystick)")
     p.add_argument("--backend", choices=("jax", "warp"), default="warp", help="kamino backend (default warp)")
+    p.add_argument("--sim", choices=("kamino", "mujoco"), default="kamino",
+                   help="the simulator: kamino (default) or C MuJoCo on kamino.save_mjcf's export, with kamino's "
+                   "observations, actions and resets (joystick tasks; kamino.envs.sim2sim)")
     p.add_argument("--episodes", type=int, default=256, help="episodes (default 256)")
     p.add_argument("--seconds", type=float, default=10.0, help="episode length [s] (default 10)")
     p.add_argument("--speed", type=float, nargs=2, default=(0.3, 0.5), metavar=("LOW", "HIGH"),
@@ -228,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="an environment keyword over the policy's, VALUE a Python literal (repeatable)")
     p.add_argument("--out", type=Path, help="write the JSON report here")
+    sim2sim.add_mujoco_arguments(p)
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if args.episodes < 1 or args.seconds <= 0 or not args.speed[0] <= args.speed[1]:
         p.error("--episodes must be >= 1, --seconds > 0 and --speed LOW <= HIGH")
@@ -236,6 +244,21 @@ def main(argv: list[str] | None = None) -> int:
         policy = resolve(args.policy, args.task)
     except (runs.OptionError, FileNotFoundError, ValueError) as e:
         p.error(str(e))
+    if args.sim == "mujoco":
+        if args.stochastic:
+            p.error("--sim mujoco plays the deterministic policy (no --stochastic)")
+        try:
+            report = sim2sim.evaluate_mujoco(policy, episodes=args.episodes, seconds=args.seconds,
+                                             speed=tuple(args.speed), seed=args.seed,
+                                             options=sim2sim.options_from(args), obs_noise=args.obs_noise,
+                                             env=env_overrides, max_error=args.max_error, max_falls=args.max_falls)
+        except ValueError as e:
+            p.error(str(e))
+        print(f"C MuJoCo {report['mujoco']}", flush=True)
+        print(format_report(report), flush=True)
+        if args.out:
+            runs.write_json(args.out, report)
+        return 0
     report = evaluate(policy, backend=args.backend, episodes=args.episodes, seconds=args.seconds,
                       speed=tuple(args.speed), seed=args.seed, deterministic=not args.stochastic, env=env_overrides,
                       max_error=args.max_error, max_falls=args.max_falls)
