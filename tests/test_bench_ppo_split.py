@@ -16,6 +16,13 @@ from kamino.bench import ppo_split
 TINY = {"batch_size": 8, "num_minibatches": 2, "unroll_length": 5}
 
 
+def _cuda() -> bool:
+    """Whether Warp sees a CUDA device."""
+    import warp as wp
+
+    return wp.is_cuda_available()
+
+
 class MatvecEnv(ppo_split.NullEnv):
     """The null environment plus ``matvecs`` chained 256 x 256 matrix-vector products in every step: an environment
     whose step costs a fixed amount of arithmetic, on which the learner's cost does not depend."""
@@ -79,7 +86,10 @@ def test_split_predicts_the_epoch_of_an_environment_of_known_cost():
     assert costly["collect_share"] > null["collect_share"]
 
 
-@pytest.mark.slow  # about a minute on the 2-core CPU: the four-bar's Warp step compiles in PPO and in the collection
+# the gpu tier, where the command is run: about a minute on the 2-core CPU (the four-bar's Warp step compiles in PPO
+# and in the collection); the split itself is checked on the CPU above
+@pytest.mark.gpu
+@pytest.mark.skipif(not _cuda(), reason="the gpu tier: needs a CUDA device for Warp")
 def test_command_writes_the_record_of_both_environments(tmp_path):
     """``kamino bench ppo_split fourbar_track`` at tiny sizes appends one record with both environments' PPO env
     steps/s, the task's split, and the configuration and host it ran with; the four-bar's physics makes its PPO
