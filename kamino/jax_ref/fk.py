@@ -331,6 +331,7 @@ def ik_world(pm: PaddedModel, tab: FKTables, q_init, q_ref, tg: IKTargets, base_
     dtype = q_init.dtype
     lam = s.regularization
     mu_min = 10.0 * float(jnp.finfo(dtype).eps)
+    eps_S = max(FKSettings.damping, mu_min)  # the Schur complement's shift: redundant rows (a planar loop's)
     eye = jnp.eye(nb * 6, dtype=dtype)
     pm_c = _with_targets(pm, tab, jnp.zeros_like(pm.anchor_F), pm.frame_F)  # nothing targeted: the rows only
     has_lim = jnp.isfinite(pm.dof_lower) | jnp.isfinite(pm.dof_upper)
@@ -371,7 +372,7 @@ def ik_world(pm: PaddedModel, tab: FKTables, q_init, q_ref, tg: IKTargets, base_
             Jc = jnp.concatenate([J_C, J_l])
             AJ = jax.scipy.linalg.cho_solve(cho, Jc.T)
             S = Jc @ AJ
-            S = S + (mu * (1.0 + jnp.max(jnp.diag(S)))) * jnp.eye(S.shape[0], dtype=dtype)
+            S = S + (eps_S * (1.0 + jnp.max(jnp.diag(S)))) * jnp.eye(S.shape[0], dtype=dtype)
             S_cho = jax.scipy.linalg.cho_factor(S)
             nu = jax.scipy.linalg.cho_solve(S_cho, jnp.concatenate([C, r_l]) - Jc @ Ainv_g)
             return -(Ainv_g + AJ @ nu), AJ, S_cho
