@@ -88,7 +88,7 @@ def test_dr_legs_foot_positions_with_a_free_base():
 
 def _fourbar_coupler_point(model):
     """The coupler-rocker joint's point ``C`` in the coupler's CoM frame, and the rocker's pivot ``D`` (world)."""
-    co, ro = model.body_index("coupler"), model.body_index("rocker")
+    co = model.body_index("coupler")
     q_co = np.asarray(model.body_q0[co], float)
     # C: the end of the coupler shared with the rocker; from the builder's geometry (fourbar defaults)
     A = np.array([0.0, 0.0, 1.0])
@@ -96,7 +96,6 @@ def _fourbar_coupler_point(model):
     B = A + 0.18 * np.array([np.cos(-1.2), 0.0, np.sin(-1.2)])
     C = 2.0 * q_co[:3] - B  # the coupler's CoM is its midpoint
     assert np.isclose(np.linalg.norm(C - D), 0.24) and np.isclose(np.linalg.norm(C - B), 0.26)
-    del ro
     offset = quat_to_matrix(q_co[3:]).T @ (C - q_co[:3])
     return offset, A, D
 
@@ -128,7 +127,7 @@ def test_unreachable_target_is_reported_with_the_loop_closed():
     with the closure held and the residual of the closest point of the circle, ``0.5 - 0.24 = 0.26`` m."""
     model = kamino.models.fourbar()
     offset, _, D = _fourbar_coupler_point(model)
-    ik = kamino.inverse_kinematics(model, ["coupler"], (D + [0.0, 0.0, 0.5])[None], offsets=offset[None],
+    ik = kamino.inverse_kinematics(model, ["coupler"], (D + np.array([0.0, 0.0, 0.5]))[None], offsets=offset[None],
                                    dtype=jnp.float64)
     assert not bool(ik.converged[0])
     assert float(ik.closure_error[0]) <= 1e-6
