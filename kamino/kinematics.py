@@ -1,5 +1,6 @@
 """Loop-closing forward kinematics for resets: ``forward_kinematics``, ``set_joint_positions`` and ``init_state``
-(a model's initial state, at given coordinates) (docs/formulation.md §9).
+(a model's initial state, at given coordinates), and loop-aware ``inverse_kinematics`` to task-space targets
+(docs/formulation.md §9).
 
 Given joint coordinates — all of them, or only the actuated ones — find body poses that satisfy
 every joint, loop-closure and coupling constraint, for all worlds at once. The solver
@@ -427,10 +428,11 @@ def inverse_kinematics(model: Model, bodies, positions=None, orientations=None, 
 
     A floating base (the child of each world's FREE joint from the world) is free unless ``base_pose`` (``[7]`` or
     ``[num_worlds, 7]``) pins it. ``regularization`` weighs ``1/2 |q - q_ref|^2`` (per body, position and rotation
-    vector) toward ``reference_body_q`` (default: the initial guess): it picks one configuration when the targets
-    leave freedom (a free base, positions only) and biases a reachable target by about ``regularization |q - q_ref|``
-    relative to the target rows' scale. ``initial_body_q`` (default the model's reference poses ``body_q0``, moved
-    rigidly to ``base_pose``) starts the iteration.
+    vector) toward ``reference_body_q`` (default: the initial guess); a positive weight biases a reachable target by
+    about ``regularization |q - q_ref|`` relative to the target rows' scale. Without it (the default) directions the
+    targets leave free (a free base, positions only) stay near the iterate through the step's damping.
+    ``initial_body_q`` (default the model's reference poses ``body_q0``, moved rigidly to ``base_pose``) starts the
+    iteration.
 
     Solves ``min 1/2 |W (x(q) - x*)|^2 + lambda/2 |q - q_ref|^2`` subject to the joint, loop and coupling rows
     ``C(q) = 0`` of :func:`forward_kinematics` and ``lower <= q_dof <= upper``, by Gauss-Newton SQP with an active set

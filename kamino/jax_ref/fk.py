@@ -263,9 +263,10 @@ class IKTargets:
 class IKSettings:
     """Inverse-kinematics settings (static under ``jit``): stop when the closure, the joint limits and the targets
     hold to ``tolerance``, or when a step moves no body by more than ``step_tolerance`` (a stationary point: an
-    unreachable target), or after ``max_iterations``; ``regularization`` weighs ``|q - q_ref|^2 / 2``; ``damping``
-    as :class:`FKSettings`; a step rotates no body by more than ``max_angle_step`` [rad] nor moves it by more than
-    ``max_translation_step`` [m] (scaled down as a whole)."""
+    unreachable target), or after ``max_iterations``; ``regularization`` weighs ``|q - q_ref|^2 / 2``; ``damping`` is
+    the starting Levenberg-Marquardt ``mu`` (relative to ``1 + max diag A``; divided by 10 after a full step,
+    multiplied by 10 after a cut one); a step rotates no body by more than ``max_angle_step`` [rad] nor moves it by
+    more than ``max_translation_step`` [m] (scaled down as a whole)."""
 
     tolerance: float = 1e-6
     max_iterations: int = 100
@@ -323,8 +324,8 @@ def ik_world(pm: PaddedModel, tab: FKTables, q_init, q_ref, tg: IKTargets, base_
     ``T`` the weighted target rows, ``C`` the joint, loop-closure, coupling (and pinned-base) rows of forward
     kinematics with no joint targeted. Step: ``A = J_T^T J_T + (lambda + mu) I``, ``g = J_T^T T + lambda e_ref``,
     ``[A J_C^T; J_C -eps I] [delta; nu] = [-g; -C]`` through the Schur complement ``J_C A^-1 J_C^T + eps I``
-    (Cholesky twice). Joint limits are an active set of equality rows ``q_d = bound``: a limit is active when the
-    DoF lies beyond it or when the step without it would cross it. Armijo line search on
+    (two Cholesky factorisations). Joint limits are an active set of equality rows ``q_d = bound``: a limit is
+    active when the DoF lies beyond it (by more than ``tolerance / 2``). Armijo line search on
     ``f + rho/2 |C|^2`` (the limit violations counted in ``C``) with ``rho`` large enough for descent.
     Returns ``(q, closure, target_position_error, target_angle_error, within_limits, iterations)``."""
     nb = q_init.shape[0]
