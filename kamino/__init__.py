@@ -5,7 +5,8 @@ Public API (docs/conventions.md): ``ModelBuilder``, ``Model``, ``JointType``, ``
 its nested ``Stabilisation``, ``Penalty`` and ``WarpSettings``), ``Simulator``
 (one model stepped with one configuration on one backend: it owns what stepping builds),
 ``State``, ``ContactState``, ``Control``, ``StepInfo``, ``init_state``, ``step``, ``rollout``,
-``metrics``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``, ``load_mjcf``, ``save_mjcf``, the
+``metrics``, ``forward_kinematics``, ``set_joint_positions``, ``FKResult``, ``inverse_kinematics``, ``IKResult``,
+``load_mjcf``, ``save_mjcf``, the
 procedural ``models``, and the read-outs a task needs: ``joint_positions`` (every joint's coordinates),
 ``dof_state`` (every DoF's position and rate),
 ``joint_coordinates`` (one joint's, by name), ``body_frame`` (a body's velocity, gravity direction and height in
@@ -23,7 +24,14 @@ from kamino._jax_cache import enable as _enable_jax_cache
 from kamino._jax_cache import quiet_cache_loads as _quiet_cache_loads
 from kamino.api import load_mjcf, rollout, save_mjcf, step
 from kamino.config import Penalty, SolverConfig, Stabilisation, WarpSettings
-from kamino.kinematics import FKResult, forward_kinematics, init_state, set_joint_positions
+from kamino.kinematics import (
+    FKResult,
+    IKResult,
+    forward_kinematics,
+    init_state,
+    inverse_kinematics,
+    set_joint_positions,
+)
 from kamino.model import (
     Actuation,
     ActuationMode,
@@ -58,6 +66,7 @@ __all__ = [
     "Control",
     "FKResult",
     "GeomType",
+    "IKResult",
     "JointType",
     "Model",
     "ModelBuilder",
@@ -75,6 +84,7 @@ __all__ = [
     "dof_state",
     "forward_kinematics",
     "init_state",
+    "inverse_kinematics",
     "joint_coordinates",
     "joint_positions",
     "load_mjcf",

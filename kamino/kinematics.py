@@ -1,5 +1,6 @@
 """Loop-closing forward kinematics for resets: ``forward_kinematics``, ``set_joint_positions`` and ``init_state``
-(a model's initial state, at given coordinates) (docs/formulation.md §9).
+(a model's initial state, at given coordinates), and loop-aware ``inverse_kinematics`` to task-space targets
+(docs/formulation.md §9).
 
 Given joint coordinates — all of them, or only the actuated ones — find body poses that satisfy
 every joint, loop-closure and coupling constraint, for all worlds at once. The solver
@@ -17,7 +18,7 @@ import numpy as np
 
 from kamino.checks import check_state_dtype
 from kamino.jax_ref.backend import padded_poses
-from kamino.jax_ref.fk import FKSettings, FKTables, solve_batch
+from kamino.jax_ref.fk import FKSettings, FKTables, IKSettings, IKTargets, ik_batch, solve_batch
 from kamino.jax_ref.types import _pad_index, layout_of, to_flat, to_padded
 from kamino.model import (
     JOINT_CONSTRAINT_ROWS,
@@ -90,7 +91,8 @@ def _build_tables(model: Model, mode: str, use_base: bool) -> tuple[FKTables, np
     W = model.num_worlds
     nj = int(model.world_joint_count.max()) if model.num_joints else 0
     jg, jmask, _ = _pad_index(model.world_joint_start, model.world_joint_count, nj)
-    targeted = np.ones(model.num_joints, bool) if mode == "all" else actuated_joints(model)
+    targeted = {"all": lambda: np.ones(model.num_joints, bool), "actuated": lambda: actuated_joints(model),
+                "none": lambda: np.zeros(model.num_joints, bool)}[mode]()
     rows: list[list[tuple[int, int, int]]] = [[] for _ in range(W)]
     for j in range(model.num_joints):
         w = int(model.joint_world[j])
@@ -358,3 +360,156 @@ def set_joint_positions(model: Model, state: State, joint_positions=None, actuat
                             initial_body_q=state.body_q, dtype=state.body_q.dtype, **options)
     fresh = init_state(model, dtype=state.body_q.dtype)
     return fresh.replace(body_q=fk.body_q, time=state.time)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class IKResult:
+    """Result of :func:`inverse_kinematics`."""
+
+    body_q: jax.Array
+    """``[total_bodies, 7]`` CoM poses (flat, like ``State.body_q``)."""
+    converged: jax.Array
+    """``[num_worlds]`` bool: closure, joint limits and every target hold to ``tolerance``."""
+    target_error: jax.Array
+    """``[num_worlds]`` the largest target error: ``|p - p*|`` [m] of a position target or the rotation angle
+    ``|Log(q q*^-1)|`` [rad] of an orientation target (rows of weight zero are not targets)."""
+    position_error: jax.Array
+    """``[num_worlds]`` max ``|p - p*|`` [m] over the position targets."""
+    orientation_error: jax.Array
+    """``[num_worlds]`` max rotation angle [rad] over the orientation targets."""
+    closure_error: jax.Array
+    """``[num_worlds]`` max |residual| (m or rad) of every joint, loop-closure and coupling row (and of the pinned
+    base pose), as :attr:`FKResult.residual`."""
+    within_limits: jax.Array
+    """``[num_worlds]`` bool: every DoF lies within ``[model.dof_lower, model.dof_upper]`` to ``tolerance``."""
+    iterations: jax.Array
+    """``[num_worlds]`` Gauss-Newton iterations used."""
+
+
+def _per_world(x, shape: tuple[int, ...], num_worlds: int, name: str, dtype) -> jax.Array:
+    """``x`` (``shape`` or ``[num_worlds, *shape]``) broadcast to ``[num_worlds, *shape]``."""
+    x = jnp.asarray(x, dtype)
+    if x.shape == shape:
+        return jnp.broadcast_to(x, (num_worlds, *shape))
+    if x.shape != (num_worlds, *shape):
+        raise ValueError(f"inverse_kinematics: {name} has shape {x.shape}, expected {shape} or "
+                         f"({num_worlds}, {', '.join(map(str, shape))})")
+    return x
+
+
+def _body_locals(model: Model, bodies) -> np.ndarray:
+    """``[num_worlds, k]`` world-local index of each named (or world-local integer) body in every world."""
+    out = np.zeros((model.num_worlds, len(bodies)), np.int64)
+    for w in range(model.num_worlds):
+        start, count = int(model.world_body_start[w]), int(model.world_body_count[w])
+        for i, b in enumerate(bodies):
+            local = model.body_index(b, w) - start if isinstance(b, str) else int(b)
+            if not 0 <= local < count:
+                raise ValueError(f"inverse_kinematics: body {b!r} is not in world {w} ({count} bodies)")
+            out[w, i] = local
+    return out
+
+
+def inverse_kinematics(model: Model, bodies, positions=None, orientations=None, *, offsets=None,
+                       position_weights=None, orientation_weights=None, base_pose=None, reference_body_q=None,
+                       regularization: float = 0.0, initial_body_q=None, tolerance: float = 1e-6,
+                       max_iterations: int = 100, dtype=None) -> IKResult:
+    """Body poses that put points and orientations of bodies at task-space targets while every joint, loop closure,
+    coupling and joint limit holds, for all worlds at once (docs/formulation.md §9 "Inverse kinematics").
+
+    ``bodies``: ``k`` body names (or world-local body indices), the same in every world. ``positions``
+    (``[k, 3]`` or ``[num_worlds, k, 3]``, world frame) are targets for the points ``offsets`` (``[k, 3]`` or
+    ``[num_worlds, k, 3]``, in each body's CoM frame, the frame of ``State.body_q``; default the CoM, e.g. a foot's
+    contact point); ``orientations`` (``[k, 4]`` or ``[num_worlds, k, 4]``, ``x, y, z, w``) are targets for the
+    bodies' orientations (``body_q[:, 3:]``). Either may be ``None`` (no such targets). ``position_weights`` /
+    ``orientation_weights`` (``[k]`` or ``[num_worlds, k]``, default 1) weigh the target rows; a zero weight drops a
+    row, so a subset of bodies may have positions only, orientations only, or both.
+
+    A floating base (the child of each world's FREE joint from the world) is free unless ``base_pose`` (``[7]`` or
+    ``[num_worlds, 7]``) pins it. ``regularization`` weighs ``1/2 |q - q_ref|^2`` (per body, position and rotation
+    vector) toward ``reference_body_q`` (default: the initial guess); a positive weight biases a reachable target by
+    about ``regularization |q - q_ref|`` relative to the target rows' scale. Without it (the default) directions the
+    targets leave free (a free base, positions only) stay near the iterate through the step's damping.
+    ``initial_body_q`` (default the model's reference poses ``body_q0``, moved rigidly to ``base_pose``) starts the
+    iteration.
+
+    Solves ``min 1/2 |W (x(q) - x*)|^2 + lambda/2 |q - q_ref|^2`` subject to the joint, loop and coupling rows
+    ``C(q) = 0`` of :func:`forward_kinematics` and ``lower <= q_dof <= upper``, by Gauss-Newton SQP with an active set
+    of joint limits and an Armijo line search (:func:`kamino.jax_ref.fk.ik_world`); at most ``max_iterations``.
+    A target that cannot be reached leaves ``converged`` ``False`` with the closest configuration the iteration finds
+    (closure and limits still held) and its :attr:`IKResult.target_error`. Works under ``jax.jit`` and ``jax.vmap``
+    for the array arguments; ``dtype`` defaults to JAX's default float.
+    """
+    bodies = tuple(bodies)
+    args = (positions, orientations, offsets, position_weights, orientation_weights, base_pose, reference_body_q,
+            initial_body_q)
+    kw = dict(bodies=bodies, regularization=float(regularization), tolerance=float(tolerance),
+              max_iterations=int(max_iterations))
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
+        return _inverse_kinematics(model, *args, dtype=dtype, **kw)
+    for name, value in zip(("positions", "orientations", "offsets", "base_pose"), args[:3] + args[5:6], strict=True):
+        if value is not None and not np.all(np.isfinite(np.asarray(value, float))):
+            raise ValueError(f"inverse_kinematics: {name} contains NaN or inf")
+    dtype = jnp.zeros(0).dtype if dtype is None else jnp.dtype(dtype)
+    key = ("ik_program", tuple(x is None for x in args), tuple(kw.items()), str(dtype))
+    program = derived(model, key, lambda: jax.jit(lambda *a: _inverse_kinematics(model, *a, dtype=dtype, **kw)))
+    return program(*(None if x is None else jnp.asarray(x) for x in args))
+
+
+def _inverse_kinematics(model: Model, positions, orientations, offsets, position_weights, orientation_weights,
+                        base_pose, reference_body_q, initial_body_q, *, bodies, regularization, tolerance,
+                        max_iterations, dtype) -> IKResult:
+    """:func:`inverse_kinematics` as traced operations (its docstring)."""
+    dtype = jnp.zeros(0).dtype if dtype is None else jnp.dtype(dtype)
+    W, k = model.num_worlds, len(bodies)
+    if positions is None and orientations is None:
+        raise ValueError("inverse_kinematics: give positions and/or orientations")
+    base = base_bodies(model)
+    if base_pose is not None and np.any(base < 0):
+        worlds = np.nonzero(base < 0)[0][:8].tolist()
+        raise ValueError(f"inverse_kinematics: base_pose given but worlds {worlds} have no floating base "
+                         "(a FREE joint from the world)")
+    local = _body_locals(model, bodies)
+    ones = jnp.ones((W, k), dtype)
+    pw = ones if position_weights is None else _per_world(position_weights, (k,), W, "position_weights", dtype)
+    ow = ones if orientation_weights is None else _per_world(orientation_weights, (k,), W, "orientation_weights",
+                                                              dtype)
+    if positions is None:
+        pos, pw = jnp.zeros((W, k, 3), dtype), jnp.zeros_like(pw)
+    else:
+        pos = _per_world(positions, (k, 3), W, "positions", dtype)
+    if orientations is None:
+        rot, ow = jnp.tile(jnp.asarray([0, 0, 0, 1.0], dtype), (W, k, 1)), jnp.zeros_like(ow)
+    else:
+        rot = _per_world(orientations, (k, 4), W, "orientations", dtype)
+        rot = rot / jnp.linalg.norm(rot, axis=-1, keepdims=True)
+    off = jnp.zeros((W, k, 3), dtype) if offsets is None else _per_world(offsets, (k, 3), W, "offsets", dtype)
+    targets = IKTargets(body=jnp.asarray(local, jnp.int32), offset=off, position=pos, orientation=rot,
+                        position_weight=pw, orientation_weight=ow)
+
+    tab, _, _ = _tables(model, "none", base_pose is not None)
+    lay = layout_of(model, dtype)
+    pm, t = lay.padded, lay.tables
+    q0 = jnp.asarray(model.body_q0 if initial_body_q is None else initial_body_q, dtype)
+    if q0.shape != (model.num_bodies, 7):
+        raise ValueError(f"initial_body_q has shape {q0.shape}, expected ({model.num_bodies}, 7)")
+    if base_pose is None:
+        base_target = jnp.tile(jnp.asarray([0, 0, 0, 0, 0, 0, 1.0], dtype), (W, 1))
+    else:
+        base_target = jnp.broadcast_to(jnp.asarray(base_pose, dtype), (W, 7))
+        base_target = base_target.at[:, 3:].set(base_target[:, 3:] / jnp.linalg.norm(base_target[:, 3:], axis=-1,
+                                                                                       keepdims=True))
+        if initial_body_q is None:
+            q0 = _move_rigidly(model, q0, base, base_target)
+    q_ref = q0 if reference_body_q is None else jnp.asarray(reference_body_q, dtype)
+    if q_ref.shape != (model.num_bodies, 7):
+        raise ValueError(f"reference_body_q has shape {q_ref.shape}, expected ({model.num_bodies}, 7)")
+    settings = IKSettings(tolerance=tolerance, max_iterations=max_iterations, regularization=regularization)
+    q, closure, ep, er, inside, it = ik_batch(pm, tab, padded_poses(pm, t, q0), padded_poses(pm, t, q_ref), targets,
+                                              base_target, settings)
+    err = jnp.maximum(ep, er)
+    ok = (closure <= tolerance) & (err <= tolerance) & inside
+    return IKResult(body_q=to_flat(q, t["bs"]), converged=ok, target_error=err, position_error=ep,
+                    orientation_error=er, closure_error=closure, within_limits=inside,
+                    iterations=it.astype(jnp.int32))

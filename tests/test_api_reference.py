@@ -92,7 +92,7 @@ def test_every_member_of_kamino_s_classes_has_a_docstring(reference):
     classes = [member for member in top.members.values() if isinstance(member, pdoc.doc.Class)]
     assert {c.name for c in classes} >= {"Model", "State", "ContactState", "StepInfo", "Control", "SolverConfig",
                                          "ModelBuilder", "Actuation", "JointType", "GeomType", "ActuationMode",
-                                         "FKResult", "Stabilisation", "Penalty", "WarpSettings"}
+                                         "FKResult", "IKResult", "Stabilisation", "Penalty", "WarpSettings"}
     for cls in classes:
         for name, member in _kamino_members(cls).items():
             if not member.docstring.strip():
@@ -103,7 +103,7 @@ def test_every_member_of_kamino_s_classes_has_a_docstring(reference):
 
 @pytest.mark.parametrize("cls", [kamino.Model, kamino.State, kamino.ContactState, kamino.StepInfo, kamino.Control,
                                  kamino.SolverConfig, kamino.Stabilisation, kamino.Penalty, kamino.WarpSettings,
-                                 kamino.FKResult], ids=lambda c: c.__name__)
+                                 kamino.FKResult, kamino.IKResult], ids=lambda c: c.__name__)
 def test_every_field_is_documented(reference, cls):
     _, docs = reference
     members = docs["kamino"].members[cls.__name__].members

@@ -44,6 +44,9 @@ from kamino.spatial import integrate_pose, quat_conj, quat_exp, quat_log, quat_m
 
 _ALPHAS = tuple(0.5**k for k in range(10))
 _ARMIJO = 1e-4
+_RHO_MAX = 1e8
+_MU_MAX = 1e2
+_IK_ALPHAS = tuple(0.5**k for k in range(6))
 
 
 @jax.tree_util.register_dataclass
@@ -239,3 +242,212 @@ def solve_world(pm: PaddedModel, tab: FKTables, q_init, coords, base_target, s: 
 def solve_batch(pm: PaddedModel, tab: FKTables, q_init, coords, base_target, settings: FKSettings):
     """``solve_world`` vmapped over worlds (padded arrays, leading axis world)."""
     return jax.vmap(solve_world, in_axes=(0, 0, 0, 0, 0, None))(pm, tab, q_init, coords, base_target, settings)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class IKTargets:
+    """Task-space targets of one world (leading axis world when batched), ``k`` per world: the point ``offset``
+    (body CoM frame) of body ``body`` (world-local index) at ``position`` (world), the body's orientation at
+    ``orientation`` (``x, y, z, w``), with weights (``0``: that row is not a target)."""
+
+    body: jax.Array  # [k] int32
+    offset: jax.Array  # [k, 3]
+    position: jax.Array  # [k, 3]
+    orientation: jax.Array  # [k, 4]
+    position_weight: jax.Array  # [k]
+    orientation_weight: jax.Array  # [k]
+
+
+@dataclasses.dataclass(frozen=True)
+class IKSettings:
+    """Inverse-kinematics settings (static under ``jit``): stop when the closure, the joint limits and the targets
+    hold to ``tolerance``, or when a step moves no body by more than ``step_tolerance`` (a stationary point: an
+    unreachable target), or after ``max_iterations``; ``regularization`` weighs ``|q - q_ref|^2 / 2``; ``damping`` is
+    the starting Levenberg-Marquardt ``mu`` (relative to ``1 + max diag A``; divided by 10 after a full step,
+    multiplied by 10 after a cut one); a step rotates no body by more than ``max_angle_step`` [rad] nor moves it by
+    more than ``max_translation_step`` [m] (scaled down as a whole)."""
+
+    tolerance: float = 1e-6
+    max_iterations: int = 100
+    regularization: float = 0.0
+    damping: float = 1e-4
+    step_tolerance: float = 1e-12
+    max_angle_step: float = 0.5
+    max_translation_step: float = 0.1
+
+
+def _pose_error(q, q_star):
+    """``(r - r*, Log(q q*^-1))`` per pose ``[..., 6]``: the error whose derivative along the step of
+    ``integrate_pose`` is the identity at ``q = q*``."""
+    return jnp.concatenate([q[..., :3] - q_star[..., :3], quat_log(quat_mul(q[..., 3:], quat_conj(q_star[..., 3:])))],
+                           axis=-1)
+
+
+def ik_target_residual(q, tg: IKTargets):
+    """Weighted target rows ``[6k]`` — per target ``w_p (r_b + R_b o - p*)`` and ``w_R Log(q_b q*^-1)`` — and the
+    unweighted errors ``(|p - p*| [k], rotation angle [k])``."""
+    qb = q[tg.body]
+    arm = rotate(qb[:, 3:], tg.offset)
+    e_p = qb[:, :3] + arm - tg.position
+    e_r = quat_log(quat_mul(qb[:, 3:], quat_conj(tg.orientation)))
+    T = jnp.concatenate([tg.position_weight[:, None] * e_p, tg.orientation_weight[:, None] * e_r], -1)
+    return T.reshape(-1), jnp.linalg.norm(e_p, axis=-1), jnp.linalg.norm(e_r, axis=-1), arm
+
+
+def ik_target_jacobian(nb: int, tg: IKTargets, arm):
+    """``[6k, nb*6]``: ``d(r_b + R_b o) = v_b - [R_b o]x w_b`` and ``d Log(q_b q*^-1) = w_b`` (exact at the target)
+    for the twist ``(v_b, w_b)`` of ``integrate_pose``, times the rows' weights."""
+    k = arm.shape[0]
+    eye = jnp.eye(3, dtype=arm.dtype)
+    skew = jnp.cross(arm[:, :, None], eye[None, :, :], axis=1)  # [k, 3, 3]: skew(arm) @ e_j = arm x e_j
+    pos = jnp.concatenate([jnp.broadcast_to(eye, (k, 3, 3)), -skew], -1) * tg.position_weight[:, None, None]
+    rot = jnp.concatenate([jnp.zeros((k, 3, 3), arm.dtype), jnp.broadcast_to(eye, (k, 3, 3))], -1)
+    rot = rot * tg.orientation_weight[:, None, None]
+    blocks = jnp.concatenate([pos, rot], 1)  # [k, 6, 6]
+    J = jnp.zeros((k, 6, nb, 6), arm.dtype).at[jnp.arange(k), :, tg.body, :].set(blocks)
+    return J.reshape(k * 6, nb * 6)
+
+
+def _limit_rows(pm: PaddedModel, q_dof, J_dof, active_hi, active_lo):
+    """Rows ``q_d - bound`` (and their Jacobian) of the active joint limits; inactive rows are zero."""
+    r = jnp.where(active_hi, q_dof - pm.dof_upper, jnp.where(active_lo, q_dof - pm.dof_lower, 0.0))
+    on = active_hi | active_lo
+    return r, J_dof * on[:, None]
+
+
+def ik_world(pm: PaddedModel, tab: FKTables, q_init, q_ref, tg: IKTargets, base_target, s: IKSettings):
+    """Loop-aware inverse kinematics of one world (docs/formulation.md §9 "Inverse kinematics"): Gauss-Newton SQP on
+
+    ``min 1/2 |T(q)|^2 + lambda/2 |q - q_ref|^2``  subject to  ``C(q) = 0``, ``lower <= q_dof <= upper``,
+
+    ``T`` the weighted target rows, ``C`` the joint, loop-closure, coupling (and pinned-base) rows of forward
+    kinematics with no joint targeted. Step: ``A = J_T^T J_T + (lambda + mu) I``, ``g = J_T^T T + lambda e_ref``,
+    ``[A J_C^T; J_C -eps I] [delta; nu] = [-g; -C]`` through the Schur complement ``J_C A^-1 J_C^T + eps I``
+    (two Cholesky factorisations). Joint limits are an active set of equality rows ``q_d = bound``: a limit is
+    active when the DoF lies beyond it (by more than ``tolerance / 2``). Armijo line search on
+    ``f + rho/2 |C|^2`` (the limit violations counted in ``C``) with ``rho`` large enough for descent.
+    Returns ``(q, closure, target_position_error, target_angle_error, within_limits, iterations)``."""
+    nb = q_init.shape[0]
+    dtype = q_init.dtype
+    lam = s.regularization
+    mu_min = 10.0 * float(jnp.finfo(dtype).eps)
+    eps_S = max(FKSettings.damping, mu_min)  # the Schur complement's shift: redundant rows (a planar loop's)
+    eye = jnp.eye(nb * 6, dtype=dtype)
+    pm_c = _with_targets(pm, tab, jnp.zeros_like(pm.anchor_F), pm.frame_F)  # nothing targeted: the rows only
+    has_lim = jnp.isfinite(pm.dof_lower) | jnp.isfinite(pm.dof_upper)
+    lim_tol = 0.5 * s.tolerance
+
+    def evaluate(q):
+        C, _ = _residual_and_jacobian(pm, pm_c, tab, q, base_target, False)
+        jf = joint_frames(pm, q)
+        q_dof = dof_positions(pm, jf)
+        over = jnp.where(pm.dof_mask, jnp.maximum(q_dof - pm.dof_upper, 0.0) + jnp.maximum(pm.dof_lower - q_dof, 0.0),
+                         0.0)
+        T, ep, er, _ = ik_target_residual(q, tg)
+        e_ref = _pose_error(q, q_ref)
+        f = 0.5 * jnp.sum(T * T) + 0.5 * lam * jnp.sum(e_ref * e_ref)
+        viol = jnp.concatenate([C, over])
+        return f, 0.5 * jnp.sum(viol * viol), jnp.max(jnp.abs(C), initial=0.0), jnp.max(over, initial=0.0), ep, er
+
+    def body(carry):
+        q, it, _, _, _, mu = carry
+        C, J_C = _residual_and_jacobian(pm, pm_c, tab, q, base_target, True)
+        jf = joint_frames(pm, q)
+        q_dof = dof_positions(pm, jf)
+        J_dof = dof_jacobian(pm, jf, nb)
+        T, _, _, arm = ik_target_residual(q, tg)
+        J_T = ik_target_jacobian(nb, tg, arm)
+        e_ref = _pose_error(q, q_ref).reshape(-1)
+        # J_C^T J_C in the Hessian leaves delta unchanged (it shifts nu by C) and keeps A, and with it the Schur
+        # complement, well scaled where the targets leave directions free
+        A = J_T.T @ J_T + J_C.T @ J_C + lam * eye
+        A = A + (mu * (1.0 + jnp.max(jnp.diag(A)))) * eye
+        g = J_T.T @ T + lam * e_ref
+        cho = jax.scipy.linalg.cho_factor(A)
+        Ainv_g = jax.scipy.linalg.cho_solve(cho, g)
+        valid = pm.dof_mask & has_lim
+
+        def step(active_hi, active_lo):
+            r_l, J_l = _limit_rows(pm, q_dof, J_dof, active_hi & valid, active_lo & valid)
+            Jc = jnp.concatenate([J_C, J_l])
+            AJ = jax.scipy.linalg.cho_solve(cho, Jc.T)
+            S = Jc @ AJ
+            S = S + (eps_S * (1.0 + jnp.max(jnp.diag(S)))) * jnp.eye(S.shape[0], dtype=dtype)
+            S_cho = jax.scipy.linalg.cho_factor(S)
+            nu = jax.scipy.linalg.cho_solve(S_cho, jnp.concatenate([C, r_l]) - Jc @ Ainv_g)
+            return -(Ainv_g + AJ @ nu), AJ, S_cho
+
+        def step_scale(d):
+            d6 = d.reshape(nb, 6)
+            return jnp.maximum(jnp.max(jnp.linalg.norm(d6[:, 3:], axis=-1)) / s.max_angle_step,
+                               jnp.max(jnp.linalg.norm(d6[:, :3], axis=-1)) / s.max_translation_step)
+
+        hi1, lo1 = q_dof > pm.dof_upper + lim_tol, q_dof < pm.dof_lower - lim_tol
+        delta, AJ, S_cho = step(hi1, lo1)
+        scale = step_scale(delta)
+        delta = delta / jnp.maximum(scale, 1.0)
+        f0, v0, _, _, _, _ = evaluate(q)
+        # directional derivatives of f and of |C|^2 / 2 (limit violations included) along delta
+        slope_f = g @ delta
+        dq = J_dof @ delta
+        over_hi = jnp.where(pm.dof_mask, jnp.maximum(q_dof - pm.dof_upper, 0.0), 0.0)
+        over_lo = jnp.where(pm.dof_mask, jnp.maximum(pm.dof_lower - q_dof, 0.0), 0.0)
+        slope_c = C @ (J_C @ delta) + over_hi @ dq - over_lo @ dq
+        # the penalty makes delta a descent direction of the merit where the closure error allows (at most _RHO_MAX)
+        rho = jnp.clip(2.0 * slope_f / jnp.maximum(-slope_c, jnp.finfo(dtype).tiny), 1.0, _RHO_MAX)
+        slope = slope_f + rho * slope_c
+        alphas = jnp.asarray(_IK_ALPHAS, dtype)
+
+        def corrected(a):
+            # second-order correction (against the Maratos effect): the trial point moved back to the linearised
+            # constraints, ``delta_r = -A^-1 J_c^T S^-1 c(q + a delta)``, on the same factorisations
+            qa = integrate_pose(q, (a * delta).reshape(nb, 6), 1.0)
+            Ca, _ = _residual_and_jacobian(pm, pm_c, tab, qa, base_target, False)
+            qd = dof_positions(pm, joint_frames(pm, qa))
+            r_l, _ = _limit_rows(pm, qd, J_dof, hi1 & valid, lo1 & valid)
+            d_r = -AJ @ jax.scipy.linalg.cho_solve(S_cho, jnp.concatenate([Ca, r_l]))
+            return integrate_pose(qa, d_r.reshape(nb, 6), 1.0)
+
+        plain = jax.vmap(lambda a: integrate_pose(q, (a * delta).reshape(nb, 6), 1.0))(alphas)
+        # candidates in the order tried: each step length plain, then corrected
+        cand = jnp.stack([plain, jax.vmap(corrected)(alphas)], 1).reshape(2 * len(_IK_ALPHAS), nb, 7)
+        alphas = jnp.repeat(alphas, 2)
+        fs, vs, cl, ov, eps_, ers = jax.vmap(evaluate)(cand)
+        m0 = f0 + rho * v0
+        ms = fs + rho * vs
+        ok = jnp.isfinite(ms) & (ms <= m0 + _ARMIJO * alphas * jnp.minimum(slope, 0.0))
+        k = jnp.argmax(ok)
+        accepted = jnp.any(ok)
+        q_new = jnp.where(accepted, cand[k], q)
+        moved = alphas[k] * jnp.max(jnp.abs(delta), initial=0.0)
+        done = accepted & _finished(cl[k], ov[k], eps_[k], ers[k])
+        # Levenberg-Marquardt update of the damping: down after a full step, up after a cut one
+        mu_new = jnp.clip(jnp.where(accepted & (alphas[k] >= 1.0), mu / 10.0, mu * 10.0), mu_min, _MU_MAX)
+        return q_new, it + 1.0, ~accepted & (mu >= _MU_MAX), accepted & (moved <= s.step_tolerance), done, mu_new
+
+    def _finished(closure, over, ep, er):
+        return ((closure <= s.tolerance) & (over <= s.tolerance)
+                & (jnp.max(jnp.where(tg.position_weight > 0, ep, 0.0), initial=0.0) <= s.tolerance)
+                & (jnp.max(jnp.where(tg.orientation_weight > 0, er, 0.0), initial=0.0) <= s.tolerance))
+
+    def cond(carry):
+        _, it, failed, still, done, _ = carry
+        return (~failed) & (~still) & (it < s.max_iterations) & (~done)
+
+    _, _, cl0, ov0, ep0, er0 = evaluate(q_init)
+    init = (q_init, jnp.asarray(0.0, dtype), jnp.asarray(False), jnp.asarray(False), _finished(cl0, ov0, ep0, er0),
+            jnp.asarray(max(s.damping, mu_min), dtype))
+    q, it, _, _, _, _ = jax.lax.while_loop(cond, body, init)
+    _, _, closure, over, ep, er = evaluate(q)
+    ep = jnp.max(jnp.where(tg.position_weight > 0, ep, 0.0), initial=0.0)
+    er = jnp.max(jnp.where(tg.orientation_weight > 0, er, 0.0), initial=0.0)
+    return q, closure, ep, er, over <= s.tolerance, it
+
+
+@functools.partial(jax.jit, static_argnames=("settings",))
+@full_precision
+def ik_batch(pm: PaddedModel, tab: FKTables, q_init, q_ref, targets: IKTargets, base_target, settings: IKSettings):
+    """``ik_world`` vmapped over worlds (padded arrays, leading axis world)."""
+    return jax.vmap(ik_world, in_axes=(0, 0, 0, 0, 0, 0, None))(pm, tab, q_init, q_ref, targets, base_target,
+                                                                 settings)
