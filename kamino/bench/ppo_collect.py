@@ -165,13 +165,18 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     }
     if args.profile:
         record["profile"] = _profile(raw.simulator, n, args.profile)
+    emit_record(record, args.out)
+    return 0
+
+
+def emit_record(record: dict, out: pathlib.Path | None) -> None:
+    """Print ``record`` as one JSON line and, with ``out``, append the line to that file (JSON lines)."""
     line = json.dumps(record)
     print(line, flush=True)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        with args.out.open("a") as f:
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with out.open("a") as f:
             f.write(line + "\n")
-    return 0
 
 
 def _profile(sim, num_envs: int, steps: int) -> dict:

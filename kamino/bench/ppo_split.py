@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import pathlib
 import statistics
 import time
@@ -60,6 +59,8 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import Env
 from brax.envs.base import State as BraxState
+
+from kamino.bench.ppo_collect import emit_record
 
 #: untimed epochs before the timed ones, in PPO and in the collection alone
 WARMUP_EPOCHS = 2
@@ -319,12 +320,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         "collect_share": task["collect_share"], "learn_share": task["learn_share"],
         "predicted_epoch_s": predicted, "device": str(jax.devices()[0]), **host, "brax": _version("brax"),
     }
-    line = json.dumps(record)
-    print(line, flush=True)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        with args.out.open("a") as f:
-            f.write(line + "\n")
+    emit_record(record, args.out)
     return 0
 
 

@@ -145,6 +145,14 @@ def resolve(source: str | Path, task: str | None = None) -> Policy:
     return load_checkpoint(path, task)
 
 
+def check_walk(episodes: int, seconds: float, speed: tuple[float, float], caller: str) -> None:
+    """Raise ``ValueError`` naming ``caller`` unless ``episodes >= 1``, ``seconds > 0`` and ``speed`` is
+    ``(LOW, HIGH)`` with ``LOW <= HIGH``: the walking test's settings."""
+    if episodes < 1 or seconds <= 0 or not speed[0] <= speed[1]:
+        raise ValueError(f"{caller}: episodes must be >= 1 (got {episodes}), seconds > 0 (got {seconds}) and speed "
+                         f"LOW <= HIGH (got {tuple(speed)})")
+
+
 def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: int = 256, seconds: float = 10.0,
              speed: tuple[float, float] = (0.3, 0.5), seed: int = 0, deterministic: bool = True,
              env: dict | None = None, max_error: float = 0.1, max_falls: float = 0.05) -> dict[str, Any]:
@@ -154,9 +162,7 @@ def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: in
     the episode return. Returns the report."""
     from kamino.envs import make
 
-    if episodes < 1 or seconds <= 0 or not speed[0] <= speed[1]:
-        raise ValueError(f"evaluate: episodes must be >= 1 (got {episodes}), seconds > 0 (got {seconds}) and speed "
-                         f"LOW <= HIGH (got {tuple(speed)})")
+    check_walk(episodes, seconds, speed, "evaluate")
     if not isinstance(policy, Policy):
         policy = resolve(policy)
     env_overrides = dict(env or {})

@@ -285,11 +285,9 @@ def evaluate_mujoco(policy: Policy | str | Path, *, episodes: int = 64, seconds:
     or a run or checkpoint path) in MuJoCo (:func:`walking_test`); the report of
     :func:`kamino.envs.evaluate.evaluate`, with ``sim="mujoco"`` and the MuJoCo settings."""
     from kamino.envs import make
-    from kamino.envs.evaluate import resolve, summarize
+    from kamino.envs.evaluate import check_walk, resolve, summarize
 
-    if episodes < 1 or seconds <= 0 or not speed[0] <= speed[1]:
-        raise ValueError(f"evaluate_mujoco: episodes must be >= 1 (got {episodes}), seconds > 0 (got {seconds}) "
-                         f"and speed LOW <= HIGH (got {tuple(speed)})")
+    check_walk(episodes, seconds, speed, "evaluate_mujoco")
     if not isinstance(policy, Policy):
         policy = resolve(policy)
     overrides = dict(env or {})
