@@ -67,12 +67,13 @@ def test_mujoco_qpos_names_the_bodies_it_cannot_match(peers, tmp_path):
         peers.mujoco_qpos(str(scene_path("ladder8")), other, np.asarray(other.body_q0))
 
 
-@pytest.mark.parametrize("name", ["fourbar", "bdx"])
+@pytest.mark.parametrize("name", ["fourbar", "ladder8", "bdx"])
 def test_mujoco_warp_rl_drive_draws_what_kamino_draws(peers, name, tmp_path):
     """kamino's ``rl`` hook and MuJoCo Warp's ``rl`` kernel at the same world times (three worlds, a time in each
     of several control periods, the periods' first and last steps among them): the four-bar's motor gets the same
-    torque (gear 1: ctrl = effort), bdx's fourteen ``<position>`` actuators (matched by name) the same targets, bit
-    for bit; the draws differ between worlds and periods."""
+    torque (gear 1: ctrl = effort), as does ladder8's unnamed motor (``actuator0`` to kamino's importer), bdx's
+    fourteen ``<position>`` actuators (matched by name) the same targets, bit for bit; the draws differ between
+    worlds and periods."""
     from kamino.bench import throughput
 
     path, base = _scene(name, tmp_path)

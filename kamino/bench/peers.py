@@ -717,17 +717,20 @@ def _mjw_build(scene: str, num_worlds: int, dev: Any, qpos: Any = None,
 
 def _mjw_rl_drive(mjm: Any, source: Any, dev: Any, seed: int, dt: float) -> SimpleNamespace:
     """The ``rl`` load's drive of MuJoCo Warp (:mod:`kamino.bench.loads`): per kamino actuator (kamino's order, the
-    order of its draws) the MuJoCo actuator of the same name and the map ``ctrl = offset + scale u`` of the draw
-    ``u``: a ``<position>`` actuator's target is kamino's PD target (both measured from the reference pose: MuJoCo's
-    ``ref`` is 0 under a position actuator in load_mjcf's and save_mjcf's files), a ``<motor>``'s ctrl kamino's DoF
-    effort over its gear (MuJoCo applies ``gear ctrl``). MuJoCo actuators without a kamino namesake keep ctrl 0."""
+    order of its draws) the MuJoCo actuator of the same name (as ``load_mjcf`` names it) and the map
+    ``ctrl = offset + scale u`` of the draw ``u``: a ``<position>`` actuator's target is kamino's PD target (both
+    measured from the reference pose: MuJoCo's ``ref`` is 0 under a position actuator in load_mjcf's and save_mjcf's
+    files), a ``<motor>``'s ctrl kamino's DoF effort over its gear (MuJoCo applies ``gear ctrl``). MuJoCo actuators
+    without a kamino namesake keep ctrl 0."""
     import mujoco
     import numpy as np
 
     from kamino.bench import loads
+    from kamino.io._mjcf_features import obj_name
 
     offset, scale, effort = loads.rl_control_map(source)
-    names = [mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, i) for i in range(mjm.nu)]
+    # kamino's names of MuJoCo's actuators: an unnamed one is ``actuator<index>`` to load_mjcf
+    names = [obj_name(mujoco, mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, i, "actuator") for i in range(mjm.nu)]
     index, problems = [], []
     for a, name in enumerate(source.actuator_names):
         if name not in names:
