@@ -117,6 +117,16 @@ def tier_marks(v: Variant) -> list:
     return [pytest.mark.slow] if not v.is_warp else []
 
 
+def jax_on_gpu() -> bool:
+    """Whether JAX runs on a GPU: the JAX reference's longest runs are in the gpu tier (``pytest -m gpu``), where
+    they take seconds; on the 2-core CPU machine of CI they take tens of seconds each."""
+    return any(d.platform == "gpu" for d in jax.devices())
+
+
+#: the marks of a test (or a test's JAX variant) that runs in the gpu tier only: it needs JAX on the GPU
+JAX_GPU_TIER = (pytest.mark.gpu, pytest.mark.skipif(not jax_on_gpu(), reason="needs JAX on the GPU (gpu tier)"))
+
+
 def variant_param(v: Variant, *, id: str | None = None, marks: tuple = ()):
     """``pytest.param(v)`` with the variant's tier mark (:func:`tier_marks`): how a test that picks its own variants
     parametrizes over them."""

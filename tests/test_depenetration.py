@@ -4,7 +4,6 @@ speed, with the kinetic energy it implies, not launched by ``CONTACT_BAUMGARTE *
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,19 +12,13 @@ import kamino
 from kamino.bench import scene_path
 from kamino.config import CONTACT_BAUMGARTE, CONTACT_DEADBAND, DEPENETRATION_SPEED
 from kamino.jax_ref import contacts as jax_contacts
-from tests.helpers import JAX, WARP_BACKENDS, WARP_DENSE_LLT
+from tests.helpers import JAX, JAX_GPU_TIER, WARP_BACKENDS, WARP_DENSE_LLT
 
 DT = 1.0 / 240.0
 DEPTH = 0.02  # the box starts 2 cm inside the floor
 #: the solver reaches the bias to its tolerance (default 1e-3); measured: the box rises at the bound within 4e-4 m/s
 #: (0.16 %) on every Warp variant, float32 and float64, at the default tolerance. 1 % of the bound covers it
 SPEED_MARGIN = 0.01
-
-
-def _jax_gpu() -> bool:
-    """Whether JAX runs on a GPU. The JAX reference's full steps run with the GPU tests: on the CPU each takes
-    5-7 s even with its compile cached, more than this file's CI budget. Its bias is checked on the CPU here."""
-    return any(d.platform == "gpu" for d in jax.devices())
 
 
 def _kinetic_energy(model: kamino.Model, traj: kamino.State) -> np.ndarray:
@@ -61,10 +54,11 @@ def test_the_penetration_term_is_bounded_and_shallow_ones_are_unchanged():
     assert np.all(vn[:, :2] == 0.0)  # tangent rows get no bias
 
 
+# The JAX reference's full steps run in the gpu tier: on the CPU each takes 5-7 s even with its compile cached, more
+# than this file's CI budget. Its bias is checked on the CPU above.
 @pytest.mark.parametrize("variant", [
     *WARP_BACKENDS,
-    pytest.param(JAX, id="jax", marks=[pytest.mark.gpu,
-                                       pytest.mark.skipif(not _jax_gpu(), reason="needs JAX on the GPU")])])
+    pytest.param(JAX, id="jax", marks=JAX_GPU_TIER)])
 def test_box_started_2cm_deep_comes_out_at_the_depenetration_speed(variant):
     """A 1 kg box, 20 cm edge, started 2 cm deep: it rises at ``DEPENETRATION_SPEED`` until the penetration is
     within the bound's reach (``V dt / gamma`` = 5.2 mm, after 0.06 s), then the penetration shrinks by ``gamma`` a
@@ -119,8 +113,7 @@ def _mujoco_peak_kinetic_energy(path: str, lower: float, seconds: float) -> floa
 
 @pytest.mark.parametrize("variant", [
     pytest.param(WARP_DENSE_LLT, id="warp"),
-    pytest.param(JAX, id="jax", marks=[pytest.mark.gpu,
-                                       pytest.mark.skipif(not _jax_gpu(), reason="needs JAX on the GPU")])])
+    pytest.param(JAX, id="jax", marks=JAX_GPU_TIER)])
 def test_humanoid_started_2cm_into_the_floor_peaks_below_twice_mujoco(variant):
     """The 34 kg humanoid10 bench scene, its root lowered so that both shins start 2 cm into the floor, at the
     defaults in float32. The peak comes in the first steps (the bound's linear phase), so 0.2 s show it. The

@@ -38,7 +38,7 @@ import warp as wp
 
 import kamino
 from kamino.bench.stress_models import serial_chain
-from tests.helpers import JAX, WARP_SPARSE_LLT
+from tests.helpers import JAX, JAX_GPU_TIER, WARP_SPARSE_LLT
 
 jax.config.update("jax_enable_x64", True)
 
@@ -59,13 +59,8 @@ CHAIN_LINKS, CHAIN_SECONDS, GAP_BOUND = 20, 2.0, 1e-4
 EULER = kamino.SolverConfig(integrator="euler")
 
 
-def _jax_on_gpu() -> bool:
-    return any(d.platform == "gpu" for d in jax.devices())
-
-
 VARIANTS = [pytest.param(WARP_SPARSE_LLT, id=WARP_SPARSE_LLT.id),
-            pytest.param(JAX, id=JAX.id, marks=[pytest.mark.gpu, pytest.mark.skipif(
-                not _jax_on_gpu(), reason="the JAX reference's variant runs on the GPU (gpu tier)")])]
+            pytest.param(JAX, id=JAX.id, marks=JAX_GPU_TIER)]
 
 
 @functools.cache

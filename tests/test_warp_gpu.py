@@ -13,16 +13,13 @@ import kamino
 from kamino.bench import scene_path
 from kamino.warp_backend import backend as wb
 from kamino.warp_backend.workspace import saturated_rows
+from tests.helpers import jax_on_gpu
 
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device for Warp")]
 
 
-def _jax_gpu() -> bool:
-    return any(d.platform == "gpu" for d in jax.devices())
-
-
-@pytest.mark.skipif(not _jax_gpu(), reason="needs JAX on the GPU")
+@pytest.mark.skipif(not jax_on_gpu(), reason="needs JAX on the GPU")
 def test_from_jax_shares_the_device_pointer():
     state = kamino.init_state(kamino.models.fourbar(), jnp.float32)
     arr = wp.from_jax(state.body_q, dtype=wp.transformf)
@@ -50,7 +47,7 @@ def test_a_captured_step_replays_the_uncaptured_one():
     assert float(graphed.work.time.numpy()[0]) == pytest.approx(10 * 0.0025, rel=1e-5)
 
 
-@pytest.mark.skipif(not _jax_gpu(), reason="needs JAX on the GPU")
+@pytest.mark.skipif(not jax_on_gpu(), reason="needs JAX on the GPU")
 def test_gpu_backends_agree_and_results_stay_on_the_gpu():
     model = kamino.models.fourbar()
     state = kamino.init_state(model, jnp.float32)
@@ -62,7 +59,7 @@ def test_gpu_backends_agree_and_results_stay_on_the_gpu():
     assert float(jnp.max(jnp.abs(a.body_q - b.body_q))) < 1e-4
 
 
-@pytest.mark.skipif(not _jax_gpu(), reason="needs JAX on the GPU")
+@pytest.mark.skipif(not jax_on_gpu(), reason="needs JAX on the GPU")
 def test_jitted_warp_step_on_the_gpu_matches_the_eager_one():
     model = kamino.replicate(kamino.models.fourbar(), 32)
     state = kamino.init_state(model, jnp.float32)
@@ -75,7 +72,7 @@ def test_jitted_warp_step_on_the_gpu_matches_the_eager_one():
     np.testing.assert_allclose(np.asarray(a.body_q), np.asarray(b.body_q), atol=1e-6)
 
 
-@pytest.mark.skipif(not _jax_gpu(), reason="needs JAX on the GPU")
+@pytest.mark.skipif(not jax_on_gpu(), reason="needs JAX on the GPU")
 def test_the_traced_step_replays_its_graph_with_the_launches_results():
     """Inside ``jax.jit`` the FFI call replays the step's CUDA graph (its PADMM loop a ``capture_while`` of chunks,
     the factor of the worlds whose effort-limited rows saturated redone after each chunk); the launches without a
