@@ -238,3 +238,44 @@ def test_a_suite_runs_in_parts_with_its_options_overridden(tmp_path, monkeypatch
     capsys.readouterr()
     assert calls == [] and [scene for scene, _ in peer_args] == ["bdx"]
     assert peer_args[0][1].worlds == [4096, 16384]
+
+
+def test_gpus_run_every_part_on_its_own_gpu_and_merge_them(tmp_path, monkeypatch, capsys):
+    """``--gpus 0 1``: per scene and world count one part for kamino (``--no-peers``) and one for the peers
+    (``--configs`` with no value), the larger world count first, each part with ``--scenes``/``--worlds`` narrowed and
+    its own ``--out``, spread over the two GPUs; a part that fails leaves a record naming its log, keyed as its
+    records would be, and the other parts' records are merged into ``--out`` with the suite's report. The parts run
+    in this process here (``run_part`` stands in for the subprocess), with the timed runs stood in as above."""
+    calls, seen = [], []
+    monkeypatch.setattr(throughput, "bench_warp", _fake_bench_warp(calls))
+    monkeypatch.setattr(throughput, "run_peers", lambda scene, args, emit: emit(
+        {"peer": "mujoco_warp", "variant": "v", "scene": scene, "num_worlds": args.worlds[0], "load": "gentle",
+         "throughput": 2e5, "sim_seconds_per_s": 500.0, "closure_batch_max_m": 1e-3}))
+    monkeypatch.setattr(throughput, "write_report", lambda results, out: seen.append(("report", out)))
+
+    def run_part(cmd, gpu, out, log):
+        seen.append((gpu, cmd))
+        if "ladder8" in cmd and "--configs" in cmd:
+            return 3  # the peers' part of ladder8 fails
+        return throughput.main([*cmd, "--out", str(out)])
+
+    monkeypatch.setattr(throughput, "run_part", run_part)
+    out = tmp_path / "suite.json"
+    assert cli.main(["bench", "--suite", "accuracy", "--scenes", "fourbar", "ladder8", "--worlds", "2", "4",
+                     "--loads", "gentle", "--gpus", "0", "1", "--out", str(out), "--no-progress"]) == 0
+    capsys.readouterr()
+    runs = [cmd for gpu, cmd in seen if gpu != "report"]
+    assert {gpu for gpu, _ in seen} == {"0", "1", "report"}
+    assert len(runs) == 8  # 2 scenes x 2 world counts x (kamino, peers)
+    assert [c[c.index("--worlds") + 1] for c in runs] == ["4"] * 4 + ["2"] * 4
+    for c in runs:
+        assert "--part" in c and "--gpus" not in c and "--out" not in c
+        assert c.count("--scenes") == 1 and c.count("--worlds") == 1
+    records = json.loads(out.read_text())["records"]
+    kamino_runs = [r for r in records if r.get("kamino") and "error" not in r]
+    assert len(kamino_runs) == 2 * 2 * 3  # the suite's three tolerances per scene and world count
+    failed = [r for r in records if "error" in r]
+    assert [(r["peer"], r["scene"]) for r in failed] == [("all", "ladder8")] * 2
+    assert all("ladder8_" in r["error"] and r["error"].endswith(".log") for r in failed)
+    assert {r["scene"] for r in records if r.get("peer") == "mujoco_warp"} == {"fourbar"}
+    assert seen[-1] == ("report", out)  # the report of the merged run, none of the parts'

@@ -41,7 +41,9 @@ reached. ``--suite NAME`` sets the options of a preset (:data:`SUITES`; ``accura
 worlds under both loads, with the three sweeps) as defaults that the command line overrides, writes the records to
 ``--out`` (default ``bench_NAME.json``) and, at the end, ``STEM.md`` (both tables) and the plots ``STEM_*.png``
 (:func:`write_report`). A suite too long for one sitting runs in parts (``--scenes``, ``--worlds``; ``--no-peers``
-for kamino alone, ``--configs`` with no value for the peers alone), whose JSONs ``--table`` and ``--plot`` merge.
+for kamino alone, ``--configs`` with no value for the peers alone), whose JSONs ``--table`` and ``--plot`` merge;
+``--gpus 0 1 ...`` splits a run into such parts and runs them side by side, one process per GPU, then merges them
+(:func:`run_on_gpus`).
 
 The timed window (one rule for kamino Warp, kamino JAX, MuJoCo Warp and SolverKamino, :mod:`kamino.bench.timed_window`):
 each of ``--repeats`` trials resets the simulation to its initial state (state, time, controls, warm start: see
@@ -62,10 +64,13 @@ import argparse
 import importlib
 import json
 import math
+import os
 import pathlib
 import platform
+import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterable
 
@@ -323,8 +328,7 @@ def solver_overrides(items: list[str]) -> dict:
 #: the ``--configs`` choices: the Warp configurations of :data:`CONFIGS` and the JAX backend
 CONFIG_CHOICES = (*CONFIGS, "jax")
 #: the first line of ``kamino bench --help``
-SUMMARY = ("Throughput (world-steps/s) against error of kamino's Warp and JAX backends and, when importable,\n"
-           "MuJoCo Warp and Newton's SolverKamino, on the benchmark scenes and robots.")
+SUMMARY = "Throughput against error of kamino and, when importable, MuJoCo Warp and Newton's SolverKamino."
 
 
 def _parser(prog: str | None = None) -> argparse.ArgumentParser:
@@ -372,6 +376,9 @@ def _parser(prog: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--table", type=pathlib.Path, nargs="+", default=None, metavar="JSON",
                    help="print markdown tables of saved runs (all; speed at closure) and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bars (tqdm, on stderr)")
+    p.add_argument("--gpus", nargs="+", default=None, metavar="ID",
+                   help="run the parts side by side, one per GPU (CUDA ids), and merge them")
+    p.add_argument("--part", action="store_true", help=argparse.SUPPRESS)  # one of --gpus' parts: no report
     return p
 
 
@@ -425,6 +432,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         records = _read_records(p, "--table", args.table)
         print(table(records) + "\n\n" + pareto(records))
         return 0
+    if args.gpus:
+        return run_on_gpus(argv if argv is not None else sys.argv[1:], args)
     from kamino._warp import quiet_warp
 
     quiet_warp()  # Warp's banner and module-load lines off stdout (KAMINO_WARP_VERBOSE=1 keeps them)
@@ -465,8 +474,94 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
             if not args.no_peers:
                 bar.set_description(f"{scene} peers")
                 run_peers(scene, args, emit)
-    if args.suite:
+    if args.suite and not args.part:
         write_report(results, args.out)
+    return 0
+
+
+def parts(argv: list[str], args: argparse.Namespace) -> list[tuple[list[str], tuple[str, int, str]]]:
+    """The command line and ``(scene, worlds, "kamino" or "peers")`` of each part of a ``--gpus`` run: per scene and
+    world count, kamino's runs (``--no-peers``) and the peers' (``--configs`` with no value), each the whole command
+    with ``--scenes``, ``--worlds`` and ``--out`` narrowed to it; the largest world counts first, so the longest parts
+    start first."""
+    base, skip = [], 0
+    for a in argv:  # drop the options that the parts set themselves
+        if skip and not a.startswith("--"):
+            continue
+        skip = a in ("--gpus", "--scenes", "--worlds", "--out")
+        if not skip:
+            base.append(a)
+    whos = (["kamino"] if args.configs else []) + ([] if args.no_peers else ["peers"])
+    out = []
+    for nw in sorted(args.worlds, reverse=True):
+        for scene in args.scenes:
+            for who in whos:
+                narrow = ["--scenes", scene, "--worlds", str(nw), "--part", "--no-progress"]
+                out.append(([*base, *narrow, "--no-peers" if who == "kamino" else "--configs"],
+                            (scene, nw, who)))
+    return out
+
+
+def run_part(cmd: list[str], gpu: str, out: pathlib.Path, log: pathlib.Path) -> int:
+    """One part of a ``--gpus`` run: ``kamino bench CMD --out OUT`` in a process of its own that sees only CUDA device
+    ``gpu``, its stderr into ``log``; its exit status."""
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": gpu}
+    with open(log, "w") as err:
+        return subprocess.run([sys.executable, "-m", "kamino.bench.throughput", *cmd, "--out", str(out)], env=env,
+                              stdout=subprocess.DEVNULL, stderr=err, check=False).returncode
+
+
+def run_on_gpus(argv: list[str], args: argparse.Namespace) -> int:
+    """``--gpus ID ...``: the run's :func:`parts` side by side, each GPU taking the next part when its last one ends
+    (one process per part: each part's figures come from a GPU it has alone), then their records merged into
+    ``--out`` (default ``bench_gpus.json``), with the suite's report (:func:`write_report`) under ``--suite``. A part
+    that fails leaves a record naming it and its log; the other parts go on. Each part's JSON and stderr stay beside
+    ``--out`` in ``STEM_parts/``."""
+    out = args.out or pathlib.Path("bench_gpus.json")
+    folder = out.with_suffix("").with_name(out.with_suffix("").name + "_parts")
+    folder.mkdir(parents=True, exist_ok=True)
+    jobs = parts(argv, args)
+    queue = list(enumerate(jobs))
+    lock = threading.Lock()
+    bar = progress(args=args, total=len(jobs), desc=f"parts on GPUs {' '.join(args.gpus)}", unit="part")
+    failed = []
+
+    def worker(gpu: str) -> None:
+        while True:
+            with lock:
+                if not queue:
+                    return
+                _, (cmd, (scene, nw, who)) = queue.pop(0)
+            name = f"{scene}_{nw}_{who}"
+            rc = run_part(cmd, gpu, folder / f"{name}.json", folder / f"{name}.log")
+            with lock:
+                if rc != 0:  # keyed as the part's own records are (record_key), so that a re-run replaces it
+                    failed.append({**({"kamino": "warp", "config": "all"} if who == "kamino" else {"peer": "all"}),
+                                   "scene": scene, "num_worlds": nw, "gpu": gpu, "command": " ".join(cmd),
+                                   "error": f"exit status {rc}: see {folder / (name + '.log')}"})
+                bar.update()
+
+    with bar:
+        threads = [threading.Thread(target=worker, args=(g,)) for g in args.gpus]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    records, environments = [], []
+    for _, (scene, nw, who) in jobs:
+        f = folder / f"{scene}_{nw}_{who}.json"
+        if f.exists():
+            saved = json.loads(f.read_text())
+            records.extend(saved["records"])
+            environments.append(saved["environment"])
+    environment = {**(environments[0] if environments else {}), "command": " ".join(["kamino bench", *argv]),
+                   "parts": [e.get("command") for e in environments]}
+    results = {"environment": environment, "records": records + failed}
+    out.write_text(json.dumps(results, indent=1))
+    for rec in results["records"]:
+        print(json.dumps(rec))
+    if args.suite:
+        write_report(results, out)
     return 0
 
 
