@@ -184,28 +184,70 @@ def test_a_blown_up_observation_ends_the_episode_as_failed(wrapped):
         assert np.abs(np.asarray(s.obs)).max() < limit
 
 
-def test_randomization_fn_changes_the_dynamics(fourbar):
-    """brax's DomainRandomizationVmapWrapper with a randomization_fn: environments whose masses differ follow
-    different trajectories from the same reset and actions; equal parameters give identical ones."""
-    scales = jnp.asarray([1.0, 1.0, 3.0], jnp.float32)
+@pytest.fixture(scope="module")
+def fourbar_warp():
+    return FourbarTrack(backend="warp")
 
-    def randomization_fn(sys: EnvSystem):  # ppo.train binds rng=; brax's wrap takes the function of sys alone
-        batched = jax.vmap(lambda f: sys.replace(body_mass=sys.body_mass * f, body_inertia=sys.body_inertia * f))(
-            scales)
-        return batched, jax.tree.map(lambda _: 0, batched)
 
+#: per-environment factors of the randomization below: environments 0 and 1 nominal, 2 three times as heavy, 3 with
+#: every other parameter changed (gains, effort limit, gravity, actuator delay; the four-bar has no geoms, armature
+#: or passive damping: those factors leave zeros at zero)
+_MASS = (1.0, 1.0, 3.0, 1.0)
+_OTHER = (1.0, 1.0, 1.0, 1.3)
+
+
+def _every_field(sys: EnvSystem):
+    """A brax ``randomization_fn`` (of ``sys`` alone: brax's wrap binds nothing) changing every EnvSystem field."""
+    def one(m, o):
+        return sys.replace(
+            body_mass=sys.body_mass * m, body_inertia=sys.body_inertia * m, geom_friction=sys.geom_friction * o,
+            dof_kp=sys.dof_kp * o, dof_kd=sys.dof_kd / o, dof_armature=sys.dof_armature * o,
+            dof_damping=sys.dof_damping * o, dof_effort_limit=sys.dof_effort_limit / o, gravity=sys.gravity * o,
+            action_delay=(o - 1.0) * 0.05)
+
+    batched = jax.vmap(one)(jnp.asarray(_MASS, jnp.float32), jnp.asarray(_OTHER, jnp.float32))
+    return batched, jax.tree.map(lambda _: 0, batched)
+
+
+@pytest.fixture(scope="module")
+def randomized(fourbar, fourbar_warp):
+    """Four steps of the four-bar through brax's DomainRandomizationVmapWrapper (``_every_field``), from the same
+    reset and actions in every environment, on each backend: ``{backend: final brax State}``."""
+    out = {}
     with jax.enable_x64(False):
-        env = training.wrap(fourbar, episode_length=100, randomization_fn=randomization_fn)
-        key = jax.random.PRNGKey(3)
-        s = env.reset(jnp.stack([key] * 3))  # the same initial configuration and target in all three
-        step = jax.jit(env.step)
-        for _ in range(4):
-            s = step(s, jnp.full((3, 1), 0.9, jnp.float32))
-    q = np.asarray(s.pipeline_state.body_q)
+        for env in (fourbar, fourbar_warp):
+            w = training.wrap(env, episode_length=100, randomization_fn=_every_field)
+            key = jax.random.PRNGKey(3)
+            s = w.reset(jnp.stack([key] * len(_MASS)))  # the same initial configuration and target in all
+            step = jax.jit(w.step)
+            for _ in range(4):
+                s = step(s, jnp.full((len(_MASS), 1), 0.9, jnp.float32))
+            out[env.backend] = s
+    return out
+
+
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_randomization_fn_changes_the_dynamics(randomized, fourbar, backend):
+    """brax's DomainRandomizationVmapWrapper with a randomization_fn, on each backend: environments whose
+    parameters differ follow different trajectories from the same reset and actions; equal parameters give
+    identical ones."""
+    q = np.asarray(randomized[backend].pipeline_state.body_q)
     np.testing.assert_array_equal(q[0], q[1])
     # three times the mass: the effort-limited crank (3 N m) accelerates a third as fast towards the same target
     assert np.max(np.abs(q[2] - q[0])) > 1e-2
+    # stiffer, less damped PD with a lower effort limit, stronger gravity and a delay: another trajectory
+    assert np.max(np.abs(q[3] - q[0])) > 1e-3
     assert fourbar.sys.body_mass.shape == (fourbar.model.num_bodies,)
+
+
+def test_randomized_environments_agree_across_backends(randomized):
+    """The Warp FFI step reading each environment's parameters (one call for the batch, each environment a world
+    with its own masses, gains, limits and gravity) follows the JAX reference's randomized environments: 4 policy
+    steps of 10 substeps in float32 on both, agreeing to 1e-4 (float32 rounding of two implementations of the same
+    solve; 6e-6 measured), while the environments differ from one another by 1e-3 to 1e-2."""
+    np.testing.assert_allclose(np.asarray(randomized["warp"].pipeline_state.body_q),
+                               np.asarray(randomized["jax"].pipeline_state.body_q), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(randomized["warp"].obs), np.asarray(randomized["jax"].obs), atol=1e-4)
 
 
 def test_randomize_factory_draws_per_environment(fourbar):
@@ -404,11 +446,12 @@ def test_joystick_reward_is_the_sum_of_its_terms_clipped_at_zero(legs_own_gains)
         np.testing.assert_array_equal(np.asarray(s.reward), 0.0)
 
 
-def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar, wrapped):
+def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar_warp, wrapped):
     """backend="warp": kamino's Warp step through its JAX FFI, batched over environments by a custom_vmap rule (one
     Warp call for all of them), on Warp's CPU device; the same trajectory as the JAX reference to float32 rounding
-    (5e-6 measured over these steps), nested vmap included; domain randomization is refused."""
-    env = FourbarTrack(backend="warp")
+    (5e-6 measured over these steps), nested vmap included. A randomization_fn whose sys has per-environment
+    shapes where brax vmaps none is refused, naming the field."""
+    env = fourbar_warp
     with jax.enable_x64(False):
         w = training.wrap(env, episode_length=EPISODE)
         step = jax.jit(w.step)
@@ -420,9 +463,12 @@ def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar, wrapped):
         nested = jax.jit(jax.vmap(jax.vmap(env.step)))
         s0 = jax.vmap(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), 6).reshape(2, 3, 2))
         assert nested(s0, jnp.zeros((2, 3, 1), jnp.float32)).obs.shape == (2, 3, 7)
-        with pytest.raises(ValueError, match="backend='jax'"):
+        with pytest.raises(ValueError, match=r"env\.sys\.body_mass has shape"):
             fn = functools.partial(randomize(), rng=jax.random.split(jax.random.PRNGKey(0), 2))
-            training.wrap(env, episode_length=5, randomization_fn=fn).reset(jax.random.split(jax.random.PRNGKey(0), 2))
+            sys_v, in_axes = fn(env.sys)
+            unmapped = lambda sys: (sys_v, jax.tree.map(lambda _: None, in_axes))  # noqa: E731
+            training.wrap(env, episode_length=5, randomization_fn=unmapped).reset(
+                jax.random.split(jax.random.PRNGKey(0), 2))
 
 
 _TWO_DEVICES = textwrap.dedent("""
