@@ -261,6 +261,17 @@ def test_randomize_factory_draws_per_environment(fourbar):
     # the inertia follows the mass (a denser body of the same shape)
     inertia_ratio = np.asarray(sys_v.body_inertia)[:, :, 0, 0] / np.asarray(fourbar.sys.body_inertia)[:, 0, 0]
     np.testing.assert_allclose(inertia_ratio, ratio, rtol=1e-5)
+    # effort limits per DoF (the unlimited DoFs stay unlimited) and one factor on the gravity vector
+    sys_v, _ = randomize(effort_limit_scale=(0.5, 1.5), gravity_scale=(0.8, 1.2))(
+        fourbar.sys, jax.random.split(jax.random.PRNGKey(1), 8))
+    limit, nominal = np.asarray(sys_v.dof_effort_limit), np.asarray(fourbar.sys.dof_effort_limit)
+    finite = np.isfinite(nominal)
+    assert finite.any() and not finite.all() and np.all(np.isinf(limit[:, ~finite]))
+    ratio = limit[:, finite] / nominal[finite]
+    assert np.all((ratio >= 0.5) & (ratio <= 1.5)) and np.ptp(ratio) > 0.1
+    g = np.asarray(sys_v.gravity)
+    np.testing.assert_allclose(np.cross(g, np.asarray(fourbar.sys.gravity)), 0.0, atol=1e-5)  # along nominal gravity
+    assert np.all((np.linalg.norm(g, axis=1) >= 0.8 * 9.81 - 1e-4) & (np.linalg.norm(g, axis=1) <= 1.2 * 9.81 + 1e-4))
     with pytest.raises(ValueError, match="mass_scale"):
         randomize(mass_scale=(2.0, 1.0))
 
