@@ -546,14 +546,17 @@ def test_substep_loop_holds_no_zero_size_array(backend):
     """XLA's GPU compiler (jax 0.11.2) crashes on a loop inside a per-device program (brax's pmap over several GPUs)
     that carries or closes over a zero-size array (benchmarks/results/multi_gpu_zero_size_crash_h200.txt). The
     four-bar has no couplings and no contacts, so its padded model and its State hold such arrays; the environment's
-    substep scan must hold none of them (kamino.state.drop_empty), on either backend."""
+    substep scan must hold none of them (kamino.state.drop_empty), on either backend, randomized or not (on Warp a
+    randomized env.sys adds its parameters, the four-bar's empty geom_friction among them, to the loop)."""
     with jax.enable_x64(False):
         env = make("fourbar_track", backend=backend)
         s = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
         step = jax.make_jaxpr(env.step)(s, jnp.zeros(env.action_size, jnp.float32)).jaxpr
         reset = jax.make_jaxpr(env.reset)(jax.random.PRNGKey(0)).jaxpr
-    loops = _outer_loops(step) + _outer_loops(reset)
-    assert len(_outer_loops(step)) >= 1  # the substep scan is found
+        env.sys = env.sys.replace(body_mass=env.sys.body_mass * 1.1, geom_friction=env.sys.geom_friction * 1.1)
+        randomized = jax.make_jaxpr(env.step)(s, jnp.zeros(env.action_size, jnp.float32)).jaxpr
+    loops = _outer_loops(step) + _outer_loops(reset) + _outer_loops(randomized)
+    assert len(_outer_loops(step)) >= 1 and len(_outer_loops(randomized)) >= 1  # the substep scan is found
     assert all(empty == [] for empty in loops), loops
 
 
