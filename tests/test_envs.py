@@ -276,6 +276,20 @@ def test_randomize_factory_draws_per_environment(fourbar):
         randomize(mass_scale=(2.0, 1.0))
 
 
+def test_train_randomize_option():
+    """``kamino train --randomize``: each KEY=(LOW,HIGH) is a range of ``randomize``; alone, its defaults; an unknown
+    range exits naming ``--randomize`` and the ranges."""
+    from kamino.envs.train import parse_args
+
+    args = parse_args(["fourbar_track", "--randomize", "mass_scale=(0.5,1.5)",
+                       "--randomize", "gravity_scale=(0.9,1.1)"])
+    assert args.randomization == {"mass_scale": (0.5, 1.5), "gravity_scale": (0.9, 1.1)}
+    assert parse_args(["fourbar_track", "--randomize"]).randomization == {}
+    assert parse_args(["fourbar_track"]).randomization is None
+    with pytest.raises(SystemExit):
+        parse_args(["fourbar_track", "--randomize", "mass=(1,2)"])
+
+
 def test_resets_close_the_loops(fourbar):
     """Every reset configuration satisfies every joint and the loop closure to 1e-5 m (forward kinematics solves
     to 1e-6 m; float32): the bank (default) and FK inside the traced reset (``reset_bank=None``, built through
