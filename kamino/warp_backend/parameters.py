@@ -17,8 +17,6 @@ damping or stiffness is positive, an actuator row where the DoF is a PD actuator
 to a positive value where the nominal one is zero has no row to act on.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import functools
 from typing import NamedTuple
@@ -86,35 +84,48 @@ def private_parameters(wm: WarpModel) -> WarpModel:
 
 
 @functools.cache
-def _mass_kernel(np_dtype):
+def _load_kernel(np_dtype):
     T = types_of(np_dtype)
+    farr = wp.array(dtype=T.scalar)
 
     @wp.kernel
-    def load_masses(mass_in: wp.array(dtype=T.scalar), inertia_in: wp.array(dtype=T.mat33),
-                    mass: wp.array(dtype=T.scalar), inv_mass: wp.array(dtype=T.scalar),
-                    inertia: wp.array(dtype=T.mat33), inv_inertia: wp.array(dtype=T.mat33)):
-        """Body ``b``'s mass and inertia, and their inverses (the stepper's ``inv_mass``, ``inv_inertia``)."""
-        b = wp.tid()
-        m = mass_in[b]
-        mass[b] = m
-        inv_mass[b] = T.scalar(1.0) / m
-        inertia[b] = inertia_in[b]
-        inv_inertia[b] = wp.inverse(inertia_in[b])
+    def load(mass_in: farr, inertia_in: wp.array(dtype=T.mat33), friction_in: farr, kp_in: farr, kd_in: farr,
+             armature_in: farr, damping_in: farr, effort_in: farr, gravity_in: wp.array(dtype=T.vec3),
+             mass: farr, inv_mass: farr, inertia: wp.array(dtype=T.mat33), inv_inertia: wp.array(dtype=T.mat33),
+             friction: farr, kp: farr, kd: farr, armature: farr, damping: farr, effort: farr,
+             gravity: wp.array(dtype=T.vec3)):
+        """Entry ``i`` of every parameter array that has one (a body's mass and inertia with their inverses, a
+        geom's friction, a DoF's gains, armature, damping and effort limit, a world's gravity)."""
+        i = wp.tid()
+        if i < mass_in.shape[0]:
+            mass[i] = mass_in[i]
+            inv_mass[i] = T.scalar(1.0) / mass_in[i]
+            inertia[i] = inertia_in[i]
+            inv_inertia[i] = wp.inverse(inertia_in[i])
+        if i < friction_in.shape[0]:
+            friction[i] = friction_in[i]
+        if i < kp_in.shape[0]:
+            kp[i] = kp_in[i]
+            kd[i] = kd_in[i]
+            armature[i] = armature_in[i]
+            damping[i] = damping_in[i]
+            effort[i] = effort_in[i]
+        if i < gravity_in.shape[0]:
+            gravity[i] = gravity_in[i]
 
-    return load_masses
+    return load
 
 
 def load_parameters(arrays, np_dtype, device, given: dict) -> None:
-    """Write ``given`` (:class:`WorldParameters` field -> Warp array, the traced step's inputs) into the model
-    arrays ``arrays`` (a stepper's ``wm.arrays``, owned: :func:`private_parameters`), with the inverse masses and
-    inertias. Capturable: device copies and one launch."""
-    for field, name, _ in FIELDS:
-        if field in given and field not in ("body_mass", "body_inertia"):
-            wp.copy(getattr(arrays, name), given[field])
-    if "body_mass" in given:
-        wp.launch(_mass_kernel(np.dtype(np_dtype)), dim=given["body_mass"].shape[0],
-                  inputs=[given["body_mass"], given["body_inertia"]],
-                  outputs=[arrays.mass, arrays.inv_mass, arrays.inertia, arrays.inv_inertia], device=device)
+    """Write ``given`` (:class:`WorldParameters` field -> Warp array, the traced step's inputs; an empty field may
+    be left out) into the model arrays ``arrays`` (a stepper's ``wm.arrays``, owned: :func:`private_parameters`),
+    with the inverse masses and inertias. One launch (capturable), a thread per entry of the longest array."""
+    ins = [given.get(field, getattr(arrays, name)) for field, name, _ in FIELDS]
+    n = max(a.shape[0] for a in ins)
+    if n:
+        outs = [arrays.mass, arrays.inv_mass, arrays.inertia, arrays.inv_inertia, arrays.geom_friction, arrays.kp,
+                arrays.kd, arrays.armature, arrays.damping, arrays.effort_limit, arrays.gravity]
+        wp.launch(_load_kernel(np.dtype(np_dtype)), dim=n, inputs=ins, outputs=outs, device=device)
 
 
 __all__ = ["DERIVED", "FIELDS", "WorldParameters", "load_parameters", "private_parameters", "shapes"]
