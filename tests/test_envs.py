@@ -235,8 +235,9 @@ def test_randomization_fn_changes_the_dynamics(randomized, fourbar, backend):
     np.testing.assert_array_equal(q[0], q[1])
     # three times the mass: the effort-limited crank (3 N m) accelerates a third as fast towards the same target
     assert np.max(np.abs(q[2] - q[0])) > 1e-2
-    # stiffer, less damped PD with a lower effort limit, stronger gravity and a delay: another trajectory
-    assert np.max(np.abs(q[3] - q[0])) > 1e-3
+    # stiffer, less damped PD with a lower effort limit, stronger gravity and a delay: another trajectory (2e-3 m
+    # measured on both backends; float32 rounding is 1e-7)
+    assert np.max(np.abs(q[3] - q[0])) > 5e-4
     assert fourbar.sys.body_mass.shape == (fourbar.model.num_bodies,)
 
 
