@@ -504,11 +504,12 @@ _TWO_DEVICES = textwrap.dedent("""
     assert jax.local_device_count() == 2, jax.devices()
     own_put = getattr(jax, "device_put_replicated", None)  # before kamino.envs provides it where JAX lacks it
     from brax.training.agents.ppo import train as ppo
-    from kamino.envs import FourbarTrack, brax_compat
+    from kamino.envs import FourbarTrack, brax_compat, randomize
     from kamino.envs.configs import ppo_kwargs
 
     kw = ppo_kwargs("fourbar_track", num_timesteps=640, num_evals=1, num_envs=8, batch_size=8, num_minibatches=4,
-                    unroll_length=5, num_updates_per_batch=1, episode_length=20, num_eval_envs=4, run_evals=False)
+                    unroll_length=5, num_updates_per_batch=1, episode_length=20, num_eval_envs=4, run_evals=False,
+                    randomization_fn=randomize(effort_limit_scale=(0.8, 1.2), gravity_scale=(0.9, 1.1)))
     for backend in ("jax", "warp"):
         # the JAX run places brax's training state with the replacement for JAX releases without
         # jax.device_put_replicated (kamino/envs/brax_compat.py), under pmap; the Warp run with brax's own
@@ -525,8 +526,9 @@ _TWO_DEVICES = textwrap.dedent("""
 @pytest.mark.slow  # two PPO compiles on two devices (README.md, under the test command)
 def test_ppo_pmaps_over_two_host_devices():
     """brax's PPO pmaps over the local devices: two forced host devices (the XLA flag must be set before jax is
-    imported, hence a subprocess), 4 environments per device, on both backends in turn in one process (one start-up
-    of jax, brax and Warp for both; the Warp step runs on each device with that device's stepper:
+    imported, hence a subprocess), 4 environments per device with domain randomization (each device's environments
+    their own draws), on both backends in turn in one process (one start-up of jax, brax and Warp for both; the
+    Warp step runs on each device with that device's stepper:
     kamino/warp_backend/jit.py; that it equals the unsharded step is test_sharding.py's). The JAX run places
     brax's training state with ``brax_compat.device_put_replicated``, what JAX 0.11 (the lent GPUs) needs."""
     env = dict(os.environ)
