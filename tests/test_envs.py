@@ -184,28 +184,73 @@ def test_a_blown_up_observation_ends_the_episode_as_failed(wrapped):
         assert np.abs(np.asarray(s.obs)).max() < limit
 
 
-def test_randomization_fn_changes_the_dynamics(fourbar):
-    """brax's DomainRandomizationVmapWrapper with a randomization_fn: environments whose masses differ follow
-    different trajectories from the same reset and actions; equal parameters give identical ones."""
-    scales = jnp.asarray([1.0, 1.0, 3.0], jnp.float32)
+@pytest.fixture(scope="module")
+def fourbar_warp():
+    return FourbarTrack(backend="warp")
 
-    def randomization_fn(sys: EnvSystem):  # ppo.train binds rng=; brax's wrap takes the function of sys alone
-        batched = jax.vmap(lambda f: sys.replace(body_mass=sys.body_mass * f, body_inertia=sys.body_inertia * f))(
-            scales)
-        return batched, jax.tree.map(lambda _: 0, batched)
 
+#: per-environment factors of the randomization below: environments 0 and 1 nominal, 2 three times as heavy, 3 with
+#: every other parameter changed (gains, effort limit, gravity, actuator delay; the four-bar has no geoms, armature
+#: or passive damping: those factors leave zeros at zero)
+_MASS = (1.0, 1.0, 3.0, 1.0)
+_OTHER = (1.0, 1.0, 1.0, 1.3)
+
+
+def _every_field(sys: EnvSystem):
+    """A brax ``randomization_fn`` (of ``sys`` alone: brax's wrap binds nothing) changing every EnvSystem field."""
+    def one(m, o):
+        return sys.replace(
+            body_mass=sys.body_mass * m, body_inertia=sys.body_inertia * m, geom_friction=sys.geom_friction * o,
+            dof_kp=sys.dof_kp * o, dof_kd=sys.dof_kd / o, dof_armature=sys.dof_armature * o,
+            dof_damping=sys.dof_damping * o, dof_effort_limit=sys.dof_effort_limit / o, gravity=sys.gravity * o,
+            action_delay=(o - 1.0) * 0.05)
+
+    batched = jax.vmap(one)(jnp.asarray(_MASS, jnp.float32), jnp.asarray(_OTHER, jnp.float32))
+    return batched, jax.tree.map(lambda _: 0, batched)
+
+
+@pytest.fixture(scope="module")
+def randomized(fourbar, fourbar_warp):
+    """Four steps of the four-bar through brax's DomainRandomizationVmapWrapper (``_every_field``), from the same
+    reset and actions in every environment, on each backend: ``{backend: final brax State}``."""
+    out = {}
     with jax.enable_x64(False):
-        env = training.wrap(fourbar, episode_length=100, randomization_fn=randomization_fn)
-        key = jax.random.PRNGKey(3)
-        s = env.reset(jnp.stack([key] * 3))  # the same initial configuration and target in all three
-        step = jax.jit(env.step)
-        for _ in range(4):
-            s = step(s, jnp.full((3, 1), 0.9, jnp.float32))
-    q = np.asarray(s.pipeline_state.body_q)
+        for env in (fourbar, fourbar_warp):
+            w = training.wrap(env, episode_length=100, randomization_fn=_every_field)
+            key = jax.random.PRNGKey(3)
+            s = w.reset(jnp.stack([key] * len(_MASS)))  # the same initial configuration and target in all
+            step = jax.jit(w.step)
+            for _ in range(4):
+                s = step(s, jnp.full((len(_MASS), 1), 0.9, jnp.float32))
+            out[env.backend] = s
+    return out
+
+
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_randomization_fn_changes_the_dynamics(randomized, fourbar, backend):
+    """brax's DomainRandomizationVmapWrapper with a randomization_fn, on each backend: environments whose
+    parameters differ follow different trajectories from the same reset and actions; equal parameters give
+    identical ones."""
+    q = np.asarray(randomized[backend].pipeline_state.body_q)
     np.testing.assert_array_equal(q[0], q[1])
     # three times the mass: the effort-limited crank (3 N m) accelerates a third as fast towards the same target
     assert np.max(np.abs(q[2] - q[0])) > 1e-2
+    # stiffer, less damped PD with a lower effort limit, stronger gravity and a delay: another trajectory (2e-3 m
+    # measured on both backends; float32 rounding is 1e-7)
+    assert np.max(np.abs(q[3] - q[0])) > 5e-4
     assert fourbar.sys.body_mass.shape == (fourbar.model.num_bodies,)
+
+
+def test_randomized_environments_agree_across_backends(randomized):
+    """The Warp FFI step reading each environment's parameters (one call for the batch, each environment a world
+    with its own masses, gains, limits and gravity) follows the JAX reference's randomized environments: 4 policy
+    steps of 10 substeps in float32 on both. Poses agree to 1e-4 (2.8e-6 measured; the environments differ from
+    one another by 2e-3 to 0.23). The observations hold the joint rates, which carry each solver's stopping point
+    inside the environment's PADMM tolerance (1e-3): 5e-4 (1.1e-4 measured, on the heavy crank against its effort
+    limit, 11 iterations a step; 9e-6 on the others)."""
+    np.testing.assert_allclose(np.asarray(randomized["warp"].pipeline_state.body_q),
+                               np.asarray(randomized["jax"].pipeline_state.body_q), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(randomized["warp"].obs), np.asarray(randomized["jax"].obs), atol=5e-4)
 
 
 def test_randomize_factory_draws_per_environment(fourbar):
@@ -219,8 +264,33 @@ def test_randomize_factory_draws_per_environment(fourbar):
     # the inertia follows the mass (a denser body of the same shape)
     inertia_ratio = np.asarray(sys_v.body_inertia)[:, :, 0, 0] / np.asarray(fourbar.sys.body_inertia)[:, 0, 0]
     np.testing.assert_allclose(inertia_ratio, ratio, rtol=1e-5)
+    # effort limits per DoF (the unlimited DoFs stay unlimited) and one factor on the gravity vector
+    sys_v, _ = randomize(effort_limit_scale=(0.5, 1.5), gravity_scale=(0.8, 1.2))(
+        fourbar.sys, jax.random.split(jax.random.PRNGKey(1), 8))
+    limit, nominal = np.asarray(sys_v.dof_effort_limit), np.asarray(fourbar.sys.dof_effort_limit)
+    finite = np.isfinite(nominal)
+    assert finite.any() and not finite.all() and np.all(np.isinf(limit[:, ~finite]))
+    ratio = limit[:, finite] / nominal[finite]
+    assert np.all((ratio >= 0.5) & (ratio <= 1.5)) and np.ptp(ratio) > 0.1
+    g = np.asarray(sys_v.gravity)
+    np.testing.assert_allclose(np.cross(g, np.asarray(fourbar.sys.gravity)), 0.0, atol=1e-5)  # along nominal gravity
+    assert np.all((np.linalg.norm(g, axis=1) >= 0.8 * 9.81 - 1e-4) & (np.linalg.norm(g, axis=1) <= 1.2 * 9.81 + 1e-4))
     with pytest.raises(ValueError, match="mass_scale"):
         randomize(mass_scale=(2.0, 1.0))
+
+
+def test_train_randomize_option():
+    """``kamino train --randomize``: each KEY=(LOW,HIGH) is a range of ``randomize``; alone, its defaults; an unknown
+    range exits naming ``--randomize`` and the ranges."""
+    from kamino.envs.train import parse_args
+
+    args = parse_args(["fourbar_track", "--randomize", "mass_scale=(0.5,1.5)",
+                       "--randomize", "gravity_scale=(0.9,1.1)"])
+    assert args.randomization == {"mass_scale": (0.5, 1.5), "gravity_scale": (0.9, 1.1)}
+    assert parse_args(["fourbar_track", "--randomize"]).randomization == {}
+    assert parse_args(["fourbar_track"]).randomization is None
+    with pytest.raises(SystemExit):
+        parse_args(["fourbar_track", "--randomize", "mass=(1,2)"])
 
 
 def test_resets_close_the_loops(fourbar):
@@ -404,11 +474,12 @@ def test_joystick_reward_is_the_sum_of_its_terms_clipped_at_zero(legs_own_gains)
         np.testing.assert_array_equal(np.asarray(s.reward), 0.0)
 
 
-def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar, wrapped):
+def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar_warp, wrapped):
     """backend="warp": kamino's Warp step through its JAX FFI, batched over environments by a custom_vmap rule (one
     Warp call for all of them), on Warp's CPU device; the same trajectory as the JAX reference to float32 rounding
-    (5e-6 measured over these steps), nested vmap included; domain randomization is refused."""
-    env = FourbarTrack(backend="warp")
+    (5e-6 measured over these steps), nested vmap included. A randomization_fn whose sys has per-environment
+    shapes where brax vmaps none is refused, naming the field."""
+    env = fourbar_warp
     with jax.enable_x64(False):
         w = training.wrap(env, episode_length=EPISODE)
         step = jax.jit(w.step)
@@ -420,9 +491,12 @@ def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar, wrapped):
         nested = jax.jit(jax.vmap(jax.vmap(env.step)))
         s0 = jax.vmap(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), 6).reshape(2, 3, 2))
         assert nested(s0, jnp.zeros((2, 3, 1), jnp.float32)).obs.shape == (2, 3, 7)
-        with pytest.raises(ValueError, match="backend='jax'"):
+        with pytest.raises(ValueError, match=r"env\.sys\.body_mass has shape"):
             fn = functools.partial(randomize(), rng=jax.random.split(jax.random.PRNGKey(0), 2))
-            training.wrap(env, episode_length=5, randomization_fn=fn).reset(jax.random.split(jax.random.PRNGKey(0), 2))
+            sys_v, in_axes = fn(env.sys)
+            unmapped = lambda sys: (sys_v, jax.tree.map(lambda _: None, in_axes))  # noqa: E731
+            training.wrap(env, episode_length=5, randomization_fn=unmapped).reset(
+                jax.random.split(jax.random.PRNGKey(0), 2))
 
 
 _TWO_DEVICES = textwrap.dedent("""
@@ -430,11 +504,12 @@ _TWO_DEVICES = textwrap.dedent("""
     assert jax.local_device_count() == 2, jax.devices()
     own_put = getattr(jax, "device_put_replicated", None)  # before kamino.envs provides it where JAX lacks it
     from brax.training.agents.ppo import train as ppo
-    from kamino.envs import FourbarTrack, brax_compat
+    from kamino.envs import FourbarTrack, brax_compat, randomize
     from kamino.envs.configs import ppo_kwargs
 
     kw = ppo_kwargs("fourbar_track", num_timesteps=640, num_evals=1, num_envs=8, batch_size=8, num_minibatches=4,
-                    unroll_length=5, num_updates_per_batch=1, episode_length=20, num_eval_envs=4, run_evals=False)
+                    unroll_length=5, num_updates_per_batch=1, episode_length=20, num_eval_envs=4, run_evals=False,
+                    randomization_fn=randomize(effort_limit_scale=(0.8, 1.2), gravity_scale=(0.9, 1.1)))
     for backend in ("jax", "warp"):
         # the JAX run places brax's training state with the replacement for JAX releases without
         # jax.device_put_replicated (kamino/envs/brax_compat.py), under pmap; the Warp run with brax's own
@@ -451,8 +526,9 @@ _TWO_DEVICES = textwrap.dedent("""
 @pytest.mark.slow  # two PPO compiles on two devices (README.md, under the test command)
 def test_ppo_pmaps_over_two_host_devices():
     """brax's PPO pmaps over the local devices: two forced host devices (the XLA flag must be set before jax is
-    imported, hence a subprocess), 4 environments per device, on both backends in turn in one process (one start-up
-    of jax, brax and Warp for both; the Warp step runs on each device with that device's stepper:
+    imported, hence a subprocess), 4 environments per device with domain randomization (each device's environments
+    their own draws), on both backends in turn in one process (one start-up of jax, brax and Warp for both; the
+    Warp step runs on each device with that device's stepper:
     kamino/warp_backend/jit.py; that it equals the unsharded step is test_sharding.py's). The JAX run places
     brax's training state with ``brax_compat.device_put_replicated``, what JAX 0.11 (the lent GPUs) needs."""
     env = dict(os.environ)
@@ -489,14 +565,17 @@ def test_substep_loop_holds_no_zero_size_array(backend):
     """XLA's GPU compiler (jax 0.11.2) crashes on a loop inside a per-device program (brax's pmap over several GPUs)
     that carries or closes over a zero-size array (benchmarks/results/multi_gpu_zero_size_crash_h200.txt). The
     four-bar has no couplings and no contacts, so its padded model and its State hold such arrays; the environment's
-    substep scan must hold none of them (kamino.state.drop_empty), on either backend."""
+    substep scan must hold none of them (kamino.state.drop_empty), on either backend, randomized or not (on Warp a
+    randomized env.sys adds its parameters, the four-bar's empty geom_friction among them, to the loop)."""
     with jax.enable_x64(False):
         env = make("fourbar_track", backend=backend)
         s = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
         step = jax.make_jaxpr(env.step)(s, jnp.zeros(env.action_size, jnp.float32)).jaxpr
         reset = jax.make_jaxpr(env.reset)(jax.random.PRNGKey(0)).jaxpr
-    loops = _outer_loops(step) + _outer_loops(reset)
-    assert len(_outer_loops(step)) >= 1  # the substep scan is found
+        env.sys = env.sys.replace(body_mass=env.sys.body_mass * 1.1, geom_friction=env.sys.geom_friction * 1.1)
+        randomized = jax.make_jaxpr(env.step)(s, jnp.zeros(env.action_size, jnp.float32)).jaxpr
+    loops = _outer_loops(step) + _outer_loops(reset) + _outer_loops(randomized)
+    assert len(_outer_loops(step)) >= 1 and len(_outer_loops(randomized)) >= 1  # the substep scan is found
     assert all(empty == [] for empty in loops), loops
 
 

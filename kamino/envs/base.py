@@ -17,7 +17,9 @@ What every task shares:
   samples (no FK compiled into the jitted resets).
 - **Randomization.** ``env.sys`` (:class:`kamino.envs.system.EnvSystem`) holds masses, inertias, friction, PD gains,
   armature, damping, effort limits, gravity and an actuator delay; ``step`` reads them from ``self.sys``, so Brax's
-  ``DomainRandomizationVmapWrapper`` (``randomization_fn``) randomizes the dynamics per environment (JAX backend).
+  ``DomainRandomizationVmapWrapper`` (``randomization_fn``) randomizes the dynamics per environment, on both
+  backends (on ``"warp"`` the FFI step takes the environments' parameters as inputs when ``sys`` differs from the
+  nominal one, and steps the model's own, with no parameter copies, when it does not).
 - **Observation noise** ``obs_noise`` times a per-entry scale the task gives.
 - **done** = the task's fall test, or the world's health flag (``state.info.failed``: non-finite or persistently
   unconverged solve, docs/conventions.md "World health"), or an observation entry beyond ``obs_limit`` or non-finite
@@ -55,7 +57,7 @@ from kamino.kinematics import base_bodies, forward_kinematics, init_state
 from kamino.model import ActuationMode, Model, replicate
 from kamino.readouts import dof_state
 from kamino.simulator import DEFAULT_BACKEND, Simulator
-from kamino.state import Control, State, drop_empty, fill_empty
+from kamino.state import Control, State, bind, drop_empty, fill_empty
 
 
 class KaminoEnv(Env):
@@ -66,9 +68,9 @@ class KaminoEnv(Env):
         sim_dt: the simulator step [s].
         decimation: simulator steps per environment step (the policy period is ``sim_dt * decimation``).
         backend: ``"warp"`` (the default, ``kamino.DEFAULT_BACKEND``: kamino's Warp step through its JAX FFI, which
-            ``jax.vmap`` batches over environments: ``kamino.warp_backend.jit.batchable_step``; no domain
-            randomization: its stepper holds the model's parameters) or ``"jax"`` (the reference; everything,
-            randomization and gradients included).
+            ``jax.vmap`` batches over environments: ``kamino.warp_backend.jit.batchable_step``; domain
+            randomization passes each environment's parameters to that step) or ``"jax"`` (the reference; gradients
+            too).
         solver_config: the :class:`kamino.SolverConfig` of each simulator step; its ``dt`` is replaced by
             ``sim_dt``.
         action_lower, action_upper: the PD-target range per actuator (scalars broadcast), intersected with the
@@ -299,7 +301,10 @@ class KaminoEnv(Env):
             return Control(position_target=jnp.zeros(nd, self._dtype).at[self._act_dof].set(tgt))
 
         # the loop neither carries nor closes over a zero-size array (kamino.state.drop_empty says why)
-        params = (sys.apply(self._pm), self._tables) if self._backend == "jax" else None
+        if self._backend == "jax":
+            params = (sys.apply(self._pm), self._tables)
+        else:  # the Warp step reads the model's own parameters unless a randomization changed env.sys
+            params = None if sys is self._nominal_sys else sys.world_parameters()
         compact = drop_empty(params)
 
         def body(s, k):
@@ -312,18 +317,30 @@ class KaminoEnv(Env):
         return self.full_state(ps)
 
     def _physics_step(self, params, ps: State, control: Control) -> State:
-        """One simulator step: the Warp FFI step (``params`` is ``None``), or the JAX reference's step with
-        ``params``, the padded model carrying this environment's parameters (``sys.apply``) and the layout tables
-        (``Simulator.step_with``: the host Model cannot carry traced parameters)."""
+        """One simulator step. JAX reference: ``params`` is the padded model carrying this environment's parameters
+        (``sys.apply``) and the layout tables (``Simulator.step_with``: the host Model cannot carry traced
+        parameters). Warp: ``params`` is ``None`` (the model's own parameters) or this environment's
+        (``sys.world_parameters()``), inputs of the FFI step (``kamino.warp_backend.parameters``)."""
         if params is None:
             return self._sim.step(ps, control)
-        return self._sim.step_with(params, ps, control)
+        if self._backend == "jax":
+            return self._sim.step_with(params, ps, control)
+        return bind(self._sim.engine.step(bind(ps, None), control, params), ps.model_fingerprint)
 
     def _check_sys(self, where: str) -> None:
-        if self._backend == "warp" and self.sys is not self._nominal_sys:
-            raise ValueError(f"{type(self).__name__}.{where}: domain randomization (a randomization_fn changing "
-                             "env.sys) needs backend='jax'; the Warp backend's stepper is built from the host Model's "
-                             "parameters and cannot read per-environment traced ones")
+        """``env.sys`` must be an :class:`EnvSystem` with the nominal one's shapes (a randomization scales values,
+        it does not change the model's structure)."""
+        sys = self.sys
+        if sys is self._nominal_sys:
+            return
+        if not isinstance(sys, EnvSystem):
+            raise TypeError(f"{type(self).__name__}.{where}: env.sys must be a kamino.envs.EnvSystem, got "
+                            f"{type(sys).__name__}")
+        for f in dataclasses.fields(EnvSystem):
+            got, want = jnp.shape(getattr(sys, f.name)), jnp.shape(getattr(self._nominal_sys, f.name))
+            if got != want:
+                raise ValueError(f"{type(self).__name__}.{where}: env.sys.{f.name} has shape {got} (per environment), "
+                                 f"expected {want}")
 
     def _bounded(self, obs: jax.Array) -> jax.Array:
         """``obs`` clipped to ``[-obs_limit, obs_limit]`` (the constructor's ``obs_limit``)."""

@@ -5,10 +5,12 @@ Brax's domain randomization (``brax.envs.wrappers.training.DomainRandomizationVm
 ``step`` over it with ``env.sys`` swapped for each environment's slice. :class:`EnvSystem` is that ``sys``: the
 arrays of the one-world :class:`kamino.Model` that a randomization may change, under the Model's own names
 (``body_mass``, ``geom_friction``, ``dof_kp``, ...), world-local (for a one-world model they are the Model's arrays
-themselves). :meth:`EnvSystem.apply` writes them into the JAX reference's padded model
-(``kamino.Simulator.parameters``) before each simulator step, so every step of an environment reads its own
-parameters. Geometry (joint frames, geom sizes) is not randomizable: resets are solved by forward kinematics on the
-nominal geometry.
+themselves). Every simulator step of an environment reads its own parameters, on both backends: on ``"jax"``
+:meth:`EnvSystem.apply` writes them into the reference's padded model (``kamino.Simulator.parameters``); on
+``"warp"`` :meth:`EnvSystem.world_parameters` passes them to the Warp step's JAX FFI call, which writes them into its
+stepper's model arrays before the step's kernels run (:mod:`kamino.warp_backend.parameters`; under brax's ``vmap``
+each environment is one world of the batched call, with its own values). Geometry (joint frames, geom sizes) is
+not randomizable: resets are solved by forward kinematics on the nominal geometry.
 """
 
 from __future__ import annotations
@@ -84,6 +86,16 @@ class EnvSystem:
             pm, mass=c(self.body_mass), inertia=c(self.body_inertia), geom_friction=c(self.geom_friction),
             dof_kp=c(self.dof_kp), dof_kd=c(self.dof_kd), dof_armature=c(self.dof_armature),
             dof_damping=c(self.dof_damping), dof_effort_limit=c(self.dof_effort_limit), gravity=c(self.gravity))
+
+    def world_parameters(self):
+        """These parameters as the Warp step takes them (:class:`kamino.warp_backend.parameters.WorldParameters`
+        of the one world: ``gravity`` ``[1, 3]``)."""
+        from kamino.warp_backend.parameters import WorldParameters  # Warp is imported on first use
+
+        return WorldParameters(
+            body_mass=self.body_mass, body_inertia=self.body_inertia, geom_friction=self.geom_friction,
+            dof_kp=self.dof_kp, dof_kd=self.dof_kd, dof_armature=self.dof_armature, dof_damping=self.dof_damping,
+            dof_effort_limit=self.dof_effort_limit, gravity=jnp.reshape(self.gravity, (1, 3)))
 
 
 __all__ = ["EnvSystem"]

@@ -1,7 +1,8 @@
 """Train a registered environment with Brax's PPO: ``kamino train TASK`` or :func:`train`.
 
 The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS``; ``--steps``, ``--num-envs``, ``--evals``,
-``--seed`` and ``--set`` override them, ``--env`` the environment's keywords and ``--solver`` its ``SolverConfig``.
+``--seed`` and ``--set`` override them, ``--env`` the environment's keywords and ``--solver`` its ``SolverConfig``;
+``--randomize`` trains with domain randomization (``kamino.envs.randomize``'s ranges, on either backend).
 The run folder (``--out``, default ``scratch/rl/TASK``; its layout: :mod:`kamino.envs.runs`) gets a checkpoint
 after every evaluation. The evaluations come at fixed steps: every ``eval_every`` environment steps (Brax's epoch
 for the run's first ``--steps`` and ``--evals``, recorded in ``run.json``), up to ``--steps``. Running the same
@@ -141,6 +142,19 @@ def _check_options(task: str, steps, num_envs, evals, train_returns, walk_test, 
                         f"nested ones by their dotted names: {', '.join(field_names())})")
 
 
+def randomization_of(ranges: dict):
+    """The Brax ``randomization_fn`` of ``kamino train --randomize`` (``ranges``: keywords of
+    :func:`kamino.envs.randomize`); an unknown keyword or a bad range raises :class:`OptionError` naming
+    ``--randomize``."""
+    from kamino.envs.randomization import randomize
+
+    try:
+        return randomize(**ranges)
+    except (TypeError, ValueError) as e:
+        known = [n for n in inspect.signature(randomize).parameters]
+        raise OptionError(f"--randomize: {e} (the ranges: {', '.join(known)})") from None
+
+
 def _prepare_folder(out: Path, task: str, fresh: bool, overwrite: bool) -> None:
     """Create ``out``; refuse a run of another task, or ``fresh`` into a used folder without ``overwrite``."""
     if fresh and runs.is_used(out):
@@ -159,19 +173,24 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
           num_envs: int | None = None, evals: int | None = None, seed: int | None = None, fresh: bool = False,
           overwrite: bool = False, train_returns: int | None = None, walk_test: int = 0, walk_seed: int = 1,
           walk_test_from: int = 0, walk_test_every: int = 0, ppo: dict | None = None, solver: dict | None = None,
-          env: dict | None = None, progress: bool = True, command: str = "") -> dict:
+          env: dict | None = None, randomization: dict | None = None, progress: bool = True,
+          command: str = "") -> dict:
     """Train ``task`` with Brax's PPO into the run folder ``out`` (resuming it when it holds a run) and return the
     report (also written to ``out/report.json``).
 
     ``steps``, ``num_envs``, ``evals``, ``seed`` and ``ppo`` (any ``ppo.train`` keyword) override the task's PPO
     config; ``env`` overrides the environment's keywords (over the run's ``env.json`` when resuming) and ``solver``
-    fields of its ``SolverConfig``. ``fresh`` starts over (``overwrite`` allows it in a used folder).
+    fields of its ``SolverConfig``. ``randomization`` (keywords of :func:`kamino.envs.randomize`; ``{}`` its
+    defaults; ``None`` none) trains with Brax's domain randomization (``ppo.train(randomization_fn=...)``: every
+    environment of the training and evaluation batches with its own draw). ``fresh`` starts over (``overwrite``
+    allows it in a used folder).
     ``walk_test`` > 0 runs the walking test with that many episodes on each checkpoint (joystick tasks), from
     ``walk_test_from`` steps on and at least ``walk_test_every`` steps apart. A bad option raises before training:
     :class:`OptionError` (a ``ValueError``), or ``TypeError`` for a keyword the environment or ``SolverConfig``
     lacks."""
     ppo, solver, env_overrides = dict(ppo or {}), dict(solver or {}), dict(env or {})
     _check_options(task, steps, num_envs, evals, train_returns, walk_test, walk_test_from, walk_test_every, solver)
+    randomization_fn = None if randomization is None else randomization_of(randomization)
     import jax
     import numpy as np
     from brax.training.agents.ppo import checkpoint as ppo_checkpoint
@@ -302,6 +321,8 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
                       restore_checkpoint_path=None if restore is None else str(restore))
         if train_returns:
             kwargs.update(log_training_metrics=True, training_metrics_steps=train_returns)
+        if randomization_fn is not None:
+            kwargs.update(randomization_fn=randomization_fn)
         with jax.enable_x64(False):  # brax's wrappers build float32 info entries at step only
             ppo_train.train(environment=environment, **kwargs)
     bar.close()
@@ -314,6 +335,7 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
             pass  # matplotlib is optional: the curve stays in curve.json
     report = {
         "task": task, "backend": backend, "command": command, "env": env_kwargs, "solver_overrides": solver,
+        "randomization": randomization,
         "network": cfg["network"],
         "ppo": {k: v for k, v in kwargs.items() if isinstance(v, (int, float, str, bool)) or v is None},
         "total_steps": end, "eval_every": every, "steps_before_this_run": done,
@@ -396,6 +418,9 @@ def parser() -> argparse.ArgumentParser:
                         "literal (repeatable)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="an environment keyword, VALUE a Python literal (repeatable)")
+    p.add_argument("--randomize", action="append", default=None, nargs="?", const="", metavar="KEY=(LOW,HIGH)",
+                   help="train with domain randomization: a range of kamino.envs.randomize (mass_scale=(0.8,1.2), "
+                        "gravity_scale=None, ...; repeatable); alone, randomize's default ranges")
     return p
 
 
@@ -412,6 +437,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.ppo_overrides = key_values(args.set, "--set")
         args.solver_overrides = key_values(args.solver, "--solver")
         args.env_overrides = key_values(args.env, "--env")
+        args.randomization = (None if args.randomize is None
+                              else key_values([r for r in args.randomize if r], "--randomize"))
+        if args.randomization is not None:
+            randomization_of(args.randomization)
         _check_options(args.task, args.steps, args.num_envs, args.evals, args.train_returns, args.walk_test,
                        args.walk_test_from, args.walk_test_every, args.solver_overrides)
     except (ValueError, TypeError) as e:
@@ -429,7 +458,7 @@ def main(argv: list[str] | None = None) -> int:
               evals=args.evals, seed=args.seed, fresh=args.fresh, overwrite=args.overwrite,
               train_returns=args.train_returns, walk_test=args.walk_test, walk_seed=args.walk_seed,
               walk_test_from=args.walk_test_from, walk_test_every=args.walk_test_every, ppo=args.ppo_overrides,
-              solver=args.solver_overrides, env=args.env_overrides,
+              solver=args.solver_overrides, env=args.env_overrides, randomization=args.randomization,
               command=" ".join(["kamino", "train", *(sys.argv[1:] if argv is None else argv)]))
     except OptionError as e:
         print(f"kamino train: error: {e}", file=sys.stderr)

@@ -27,6 +27,7 @@ from kamino.model import Model, replicate
 from kamino.state import ContactState, Control, State, StepInfo
 from kamino.warp_backend.jit import batchable_step, is_traced
 from kamino.warp_backend.model_data import warp_model
+from kamino.warp_backend.parameters import WorldParameters, private_parameters
 from kamino.warp_backend.pipeline import CUDA_STREAM_LOCK, Stepper
 from kamino.warp_backend.types import types_of
 
@@ -67,17 +68,20 @@ class Engine:
         with _lock:
             self.__dict__.clear()
 
-    def stepper(self, np_dtype, device=None, *, for_jit: bool = False) -> Stepper:
+    def stepper(self, np_dtype, device=None, *, for_jit: bool = False, parameters: bool = False) -> Stepper:
         """The :class:`Stepper` in ``np_dtype`` on ``device`` (Warp's preferred one by default); ``for_jit``: the one
-        called from inside JAX transformations, which launches without its own graph capture."""
+        called from inside JAX transformations, which launches without its own graph capture; ``parameters``: the
+        one whose traced calls take per-world parameters (:mod:`kamino.warp_backend.parameters`): it owns its
+        parameter arrays, the rest of the device model is shared."""
         dev = wp.get_device(device)
-        key = (np.dtype(np_dtype), str(dev), for_jit)
+        key = (np.dtype(np_dtype), str(dev), for_jit, parameters)
         with self._lock, CUDA_STREAM_LOCK:  # uploads go through Warp's stream (CUDA_STREAM_LOCK says why)
             if key not in self._steppers:
                 wm_key = key[:2]
                 if wm_key not in self._models:
                     self._models[wm_key] = warp_model(self.model, *wm_key)
-                st = Stepper(self.model, self.cfg, np_dtype, dev, padmm=self.padmm, wm=self._models[wm_key])
+                wm = private_parameters(self._models[wm_key]) if parameters else self._models[wm_key]
+                st = Stepper(self.model, self.cfg, np_dtype, dev, padmm=self.padmm, wm=wm)
                 st.use_graph = st.use_graph and not for_jit
                 self._steppers[key] = st
             return self._steppers[key]
@@ -99,9 +103,12 @@ class Engine:
                 self._traced[dtype] = batchable_step(self, dtype, _jax_device())
             return self._traced[dtype]
 
-    def step(self, state: State, control: Control | None) -> State:
-        if is_traced(state, control):
-            return self.traced_step(_dtype_of(state))(state, control)
+    def step(self, state: State, control: Control | None, parameters: WorldParameters | None = None) -> State:
+        """One step; ``parameters`` (per-world masses, gains, friction, gravity..., possibly traced:
+        :class:`~kamino.warp_backend.parameters.WorldParameters`) in place of the model's own goes through the
+        traced step (the JAX FFI call) whether or not the arrays are traced."""
+        if parameters is not None or is_traced(state, control):
+            return self.traced_step(_dtype_of(state))(state, control, parameters)
         with self._lock:
             st = self.stepper(_dtype_of(state))
             with _driving(st):

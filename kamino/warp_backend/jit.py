@@ -20,6 +20,8 @@ import warp as wp
 
 from kamino.model import Model
 from kamino.state import ContactState, Control, State, StepInfo
+from kamino.warp_backend.parameters import FIELDS as PARAMETER_FIELDS
+from kamino.warp_backend.parameters import WorldParameters, load_parameters, shapes
 from kamino.warp_backend.pipeline import Stepper
 from kamino.warp_backend.types import types_of
 
@@ -52,35 +54,44 @@ def is_traced(*trees) -> bool:
 
 
 def _warp_dtype(T, kind):
-    return {"transform": T.transform, "vec6": T.vec6, "vec3": T.vec3, "scalar": T.scalar, "int": wp.int32}[kind]
+    return {"transform": T.transform, "vec6": T.vec6, "vec3": T.vec3, "scalar": T.scalar, "int": wp.int32,
+            "mat33": T.mat33}[kind]
 
 
-def _callable(st: Stepper, stepper_on: Callable):
+def _callable(st: Stepper, stepper_on: Callable, parameters: bool = False):
     """The ``wp.jax_callable`` of one stepper (built once, kept on the stepper), with the non-empty fields as
-    arguments. ``stepper_on(device)`` is the stepper of the same model, configuration and precision on the device
-    XLA runs the call on: under ``pmap`` or ``shard_map`` over several GPUs every device has its own (buffers,
-    kernels loaded there). Warp runs the callbacks one at a time (its FFI lock), so the forced host devices of a
-    CPU, which all map to Warp's one CPU device, share its stepper safely."""
+    arguments; with ``parameters``, the non-empty :class:`~kamino.warp_backend.parameters.WorldParameters` fields
+    follow the state's and control's, and the call writes them into the stepper's model arrays before the step
+    (:func:`~kamino.warp_backend.parameters.load_parameters`; such a stepper owns those arrays, and a stepper makes
+    one kind of call). ``stepper_on(device)`` is the stepper of the same model, configuration, precision and kind
+    on the device XLA runs the call on: under ``pmap`` or ``shard_map`` over several GPUs every device has its own
+    (buffers, kernels loaded there). Warp runs the callbacks one at a time (its FFI lock), so the forced host devices
+    of a CPU, which all map to Warp's one CPU device, share its stepper safely."""
     if st.ffi is not None:
         return st.ffi
     T = types_of(st.np_dtype)
     w = st.work
     ins = [f for f in _INPUTS if getattr(w, f[1]).size]
+    prm = [f for f in PARAMETER_FIELDS if getattr(st.wm.arrays, f[1]).size] if parameters else []
     outs = [("out_" + f[0].replace(".", "_"), f[1], f[2]) for f in _STATE_OUTPUTS + _INFO_OUTPUTS
             if getattr(w, f[1]).size]
-    names = [f[0].replace(".", "_") for f in ins] + [f[0] for f in outs]
-    types = {n: wp.array(dtype=_warp_dtype(T, f[2])) for n, f in zip(names, ins + outs, strict=True)}
+    names = [f[0].replace(".", "_") for f in ins] + ["param_" + f[0] for f in prm] + [f[0] for f in outs]
+    types = {n: wp.array(dtype=_warp_dtype(T, f[2])) for n, f in zip(names, ins + prm + outs, strict=True)}
+    n_in = len(ins) + len(prm)
 
     def body(arrays):
         s = st if arrays[0].device == st.device else stepper_on(arrays[0].device)
         for arr, (_, buf, _) in zip(arrays[:len(ins)], ins, strict=True):
             wp.copy(getattr(s.work, buf), arr)
+        if prm:
+            given = {f[0]: arr for arr, f in zip(arrays[len(ins):n_in], prm, strict=True)}
+            load_parameters(s.wm.arrays, s.np_dtype, s.device, given)
         graph = s.captured(1)
         if graph is not None:  # the step's graph, captured below; it replays on XLA's stream
             wp.capture_launch(graph)
         else:
             s.launch_step()
-        for arr, (_, buf, _) in zip(arrays[len(ins):], outs, strict=True):
+        for arr, (_, buf, _) in zip(arrays[n_in:], outs, strict=True):
             wp.copy(arr, getattr(s.work, buf))
 
     src = f"def kamino_warp_step({', '.join(names)}):\n    _body([{', '.join(names)}])\n"
@@ -99,29 +110,35 @@ def _callable(st: Stepper, stepper_on: Callable):
     else:
         st.launch_step()
     call = wp.jax_callable(fn, num_outputs=len(outs), graph_mode=wp.JaxCallableGraphMode.NONE, vmap_method=None)
-    st.ffi = (call, ins, outs)
+    st.ffi = (call, ins, prm, outs)
     return st.ffi
 
 
 def batchable_step(engine, np_dtype, device: str):
     """The traced step of ``engine`` (a :class:`~kamino.warp_backend.backend.Engine`: one model and configuration)
-    in ``np_dtype`` as a function ``(state, control) -> State`` that ``jax.vmap`` batches; its stepper lives on the
-    Warp device ``device`` (where JAX's traced arrays live).
+    in ``np_dtype`` as a function ``(state, control, parameters=None) -> State`` that ``jax.vmap`` batches; its
+    stepper lives on the Warp device ``device`` (where JAX's traced arrays live). ``parameters``
+    (:class:`~kamino.warp_backend.parameters.WorldParameters`, possibly traced) replaces the model's masses,
+    inertias, friction, gains, armature, damping, effort limits and gravity for this call; ``None`` steps the
+    model's own (no parameter copies). The two kinds of call use two steppers: the one reading its caller's
+    parameters owns its parameter arrays (:func:`~kamino.warp_backend.parameters.private_parameters`).
 
     The FFI call itself has no batching rule (``vmap_method=None``). The rule here (``jax.custom_batching``) uses
     the storage layout instead: arrays are world after world (docs/conventions.md, "Data layout"), so a batch of
     ``B`` states of the model is, flattened, the state of ``kamino.replicate(model, B)``. The rule reshapes every
-    ``[B, n, ...]`` array to ``[B * n, ...]``, makes one call for all ``B * N`` worlds with the replica's engine
-    (``engine.replica(B)``) and reshapes back; nested ``vmap`` recurses through the replica's own function. The step
-    has no derivatives: differentiating it raises a ``NotImplementedError`` that names ``backend="jax"``."""
+    ``[B, n, ...]`` array to ``[B * n, ...]`` (the parameters too: ``gravity`` is ``[num_worlds, 3]``, so a batch of
+    environments gives each replica world its own), makes one call for all ``B * N`` worlds with the replica's engine
+    (``engine.replica(B)``) and reshapes back; an unbatched array (a parameter the randomization leaves alone) is
+    broadcast first. Nested ``vmap`` recurses through the replica's own function. The step has no derivatives:
+    differentiating it raises a ``NotImplementedError`` that names ``backend="jax"``."""
     model = engine.model
 
-    def stepper_on(dev):
-        return engine.stepper(np_dtype, dev, for_jit=True)
+    def stepper_on(parameters: bool):
+        return lambda dev: engine.stepper(np_dtype, dev, for_jit=True, parameters=parameters)
 
     @jax.custom_jvp
-    def step(state: State, control: Control | None) -> State:
-        return batched(state, control)
+    def step(state: State, control: Control | None, parameters: WorldParameters | None = None) -> State:
+        return batched(state, control, parameters)
 
     @step.defjvp
     def no_gradient(primals, tangents):
@@ -129,19 +146,22 @@ def batchable_step(engine, np_dtype, device: str):
                                   "backend='jax' (kamino.Simulator(model, config, backend='jax'))")
 
     @jax.custom_batching.custom_vmap
-    def batched(state: State, control: Control | None) -> State:
-        return traced_step(stepper_on(device), stepper_on, model, state, control)
+    def batched(state: State, control: Control | None, parameters: WorldParameters | None) -> State:
+        on = stepper_on(parameters is not None)
+        return traced_step(on(device), on, model, state, control, parameters)
 
     @batched.def_vmap
-    def rule(axis_size: int, in_batched, state: State, control: Control | None):
+    def rule(axis_size: int, in_batched, state: State, control: Control | None,
+             parameters: WorldParameters | None):
         def lift(x, batched):
             return x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x)))
 
         state = jax.tree.map(lift, state, in_batched[0])
         control = jax.tree.map(lift, control, in_batched[1])
+        parameters = jax.tree.map(lift, parameters, in_batched[2])
         merge = lambda x: x.reshape((axis_size * x.shape[1], *x.shape[2:]))  # noqa: E731
         big = engine.replica(axis_size).traced_step(np_dtype)
-        out = big(jax.tree.map(merge, state), jax.tree.map(merge, control))
+        out = big(jax.tree.map(merge, state), jax.tree.map(merge, control), jax.tree.map(merge, parameters))
         split = lambda x: x.reshape((axis_size, x.shape[0] // axis_size, *x.shape[1:]))  # noqa: E731
         out = jax.tree.map(split, out)
         return out, jax.tree.map(lambda _: True, out)
@@ -149,9 +169,11 @@ def batchable_step(engine, np_dtype, device: str):
     return step
 
 
-def traced_step(st: Stepper, stepper_on: Callable, model: Model, state: State, control: Control | None) -> State:
-    """One step with traced inputs, through the Warp FFI (``stepper_on``: :func:`_callable`)."""
-    call, ins, outs = _callable(st, stepper_on)
+def traced_step(st: Stepper, stepper_on: Callable, model: Model, state: State, control: Control | None,
+                parameters: WorldParameters | None = None) -> State:
+    """One step with traced inputs, through the Warp FFI (``stepper_on``: :func:`_callable`); ``parameters``
+    (``None``: the model's own) must have the shapes of :func:`kamino.warp_backend.parameters.shapes`."""
+    call, ins, prm, outs = _callable(st, stepper_on, parameters is not None)
     dtype = jnp.dtype(st.np_dtype)
     args = []
     for path, buf, _ in ins:
@@ -166,6 +188,15 @@ def traced_step(st: Stepper, stepper_on: Callable, model: Model, state: State, c
             args.append(value.astype(jnp.int32) if value.dtype == jnp.bool_ else value)
         else:
             args.append(getattr(state, path))
+    if prm:
+        want = shapes(model.num_bodies, model.num_geoms, model.num_dofs, model.num_worlds)
+        for field, _, _ in prm:
+            value = getattr(parameters, field)
+            got = None if value is None else jnp.shape(value)
+            if got != want[field]:
+                raise ValueError(f"Warp step: parameters.{field} has shape {got}, expected "
+                                 f"{want[field]} (kamino.warp_backend.parameters.WorldParameters)")
+            args.append(jnp.asarray(value, dtype))
     dims = {name: getattr(st.work, buf).shape for name, buf, _ in outs}
     # the barrier keeps XLA's GPU compiler from fusing the call into a consumer it also feeds: a ``lax.scan`` that
     # both carries the step's state and stacks it (``rollout``) otherwise runs the call twice per iteration
