@@ -141,8 +141,9 @@ class Simulator:
 
     def _require_jax(self, fn: str) -> None:
         if self._backend != "jax":
-            raise ValueError(f"Simulator.{fn}: per-call model parameters need backend='jax'; the Warp backend's "
-                             "steppers are built from the host Model's parameters")
+            raise ValueError(f"Simulator.{fn}: a padded model's parameters per call need backend='jax'; the Warp "
+                             "backend takes per-world masses, gains, friction and gravity as WorldParameters "
+                             "(kamino.warp_backend.parameters), as the environments' randomization does")
 
     def _sharded_program(self, fn: str, sharding, num_steps: int | None):
         """The jitted sharded step or rollout for ``sharding`` (``(mesh, axis)``), built once: every device's block
