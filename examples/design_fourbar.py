@@ -10,23 +10,28 @@ plane). Each candidate design is one world of ``kamino.replicate(fourbar, N)``; 
 padded model (``Simulator.parameters``: joint anchors, link masses and inertias) and its initial poses (the loop
 assembled at the crank's start angle) as traced values, so ``jax.grad`` reaches them through every step.
 
-The crank is driven by the model's PD position actuator through one revolution (plus a tenth, so that the lag of the
-PD leaves no gap); the coupler point's simulated path ``P_i`` is compared with a target curve ``T_j`` by the symmetric
-chamfer distance
+The crank's motor turns it through 1.1 revolutions at a constant rate (the tenth more, so that the servo's lag leaves
+no gap in the path): the actuator is a velocity servo (``kp = 0``, ``kd`` = :data:`KD`) whose velocity target is the
+rate plus :data:`POSITION_GAIN` times the wrapped angle error, a PD on the crank angle that does not jump where the
+hinge angle passes pi (the actuator's own position error is not wrapped). The coupler point's simulated path ``P_i``
+(one point per step) is compared with the target curve (a closed polyline through ``T_j``) by the symmetric chamfer
+distance
 
-    J(p) = 1/2 [ mean_i min_j |P_i - T_j|^2 + mean_j min_i |P_i - T_j|^2 ]          [m^2]
+    J(p) = 1/2 [ mean_i d(P_i, T)^2 + mean_j d(T_j, P)^2 ]          [m^2]
 
-(zero when the path and the curve coincide as sets, whatever the timing along them), plus a penalty that keeps the
-crank able to turn a full revolution (Grashof's condition with a margin: :func:`rotatability`). The target is the
-coupler curve of Hoeken's straight-line linkage (ground 2, crank 1, coupler and rocker 2.5, the point on the coupler
-extended to 5 from the crank pin, here times 0.1 m): a curve a four-bar can trace exactly, so the best objective is
-known to be (near) zero; its lower part is a straight line to within about 0.1 % of the stride.
+with ``d(x, T)`` the distance of ``x`` from the polyline ``T`` (:func:`squared_distances`): zero when the path and
+the curve coincide as sets, whatever the timing along them; ``1000 sqrt(J)`` is an rms distance in mm. Added to it is
+a penalty that keeps the crank able to turn a full revolution (Grashof's condition with a margin:
+:func:`rotatability`, :func:`penalty`). The target is the coupler curve of Hoeken's straight-line linkage (ground 2,
+crank 1, coupler and rocker 2.5, the point on the coupler extended to 5 from the crank pin; here times 0.1 m), a
+D-shaped curve with a nearly straight side: a four-bar traces it exactly, so the best objective is known to be near
+zero (Hoeken's own design, simulated, scores 0.06 mm: the simulator's path against the closed-form curve).
 
 Adam (optax) descends the gradient of every candidate at once (the worlds are independent, so the gradient of the sum
 over worlds is each world's own gradient); a step that would leave the feasible set is not taken for that candidate.
 The script prints the objective of the best and the median candidate before and after, and the wall times.
 Gradients through the step need ``SolverConfig(fixed_iterations=True)`` today: :func:`design_config` builds it, and
-every function takes the configuration as its ``config`` argument.
+:class:`Problem` takes the configuration as its one ``config`` argument.
 """
 
 from __future__ import annotations
@@ -257,6 +262,7 @@ class Problem:
         params = design_parameters(self.sim.parameters(dtype), p)
         state = kamino.init_state(self.model, dtype=dtype).replace(body_q=initial_poses(p))
         crank = nb * np.arange(W) + self.model.body_names.index("crank")
+        drive = np.asarray(self.model.actuator_dof)  # the crank hinge's DoF in each world
         phi0 = -CRANK_ANGLE  # the crank's start rotation about +y (its x axis at CRANK_ANGLE from the ground line)
         offset = jnp.stack([p[:, 4] - p[:, 2] / 2, jnp.zeros(W, dtype), p[:, 5]], -1)  # P in the coupler's frame
         co = nb * np.arange(W) + self.coupler
@@ -268,7 +274,8 @@ class Problem:
             # 2 pi where it passes pi, so the actuator serves the velocity and the position loop is here
             q = state.body_q[crank]
             error = jnp.mod(target - (2 * jnp.arctan2(q[:, 4], q[:, 6]) - phi0) + jnp.pi, 2 * jnp.pi) - jnp.pi
-            control = kamino.Control(velocity_target=self.rate + POSITION_GAIN * error)
+            target_rate = jnp.zeros(self.model.num_dofs, dtype).at[drive].set(self.rate + POSITION_GAIN * error)
+            control = kamino.Control(velocity_target=target_rate)  # [num_dofs]: step_with does not check shapes
             state = self.sim.step_with(params, state, control)
             q_co = state.body_q[co]
             point = q_co[:, :3] + rotate(q_co[:, 3:], offset)
@@ -297,7 +304,8 @@ def optimise(problem: Problem, p0, steps: int, learning_rate: float = 3e-3, dtyp
 
     Returns a dict: ``p0``, ``before`` (``[W]`` objectives at ``p0``), ``p`` and ``after`` (each candidate's best
     design and its objective), ``history`` (per evaluation: objectives, chamfer parts, which candidates stepped) and
-    ``step_times`` [s] (per evaluation; the first one traces and compiles)."""
+    ``step_times`` [s] (per evaluation; the first one traces and compiles), and ``gradient`` (``[W, 6]`` the
+    objective's gradient at ``p0``)."""
     import optax
 
     dtype = dtype or jnp.zeros(0).dtype
@@ -319,22 +327,23 @@ def optimise(problem: Problem, p0, steps: int, learning_rate: float = 3e-3, dtyp
         step, new_state = opt.update(g, opt_state, p)
         trial = optax.apply_updates(p, step)
         keep = ok & (rotatability(trial) >= 0.0)
-        return jnp.where(keep[:, None], trial, p), new_state, best_p, best, value, chamfer, ok
+        return jnp.where(keep[:, None], trial, p), new_state, best_p, best, value, chamfer, ok, g
 
     p = jnp.asarray(p0, dtype)
     opt_state = opt.init(p)
     best_p, best = p, jnp.full(p.shape[0], jnp.inf, dtype)
-    history, times = [], []
+    history, times, gradient = [], [], None
     for k in range(steps + 1):  # the last evaluation scores the last design; its step is not taken
         t0 = time.perf_counter()
-        p_new, opt_state, best_p, best, value, chamfer, ok = update(p, opt_state, best_p, best)
+        p_new, opt_state, best_p, best, value, chamfer, ok, g = update(p, opt_state, best_p, best)
+        gradient = np.asarray(g) if gradient is None else gradient
         history.append((np.asarray(value), np.asarray(chamfer), np.asarray(ok)))  # blocks: the step is done
         times.append(time.perf_counter() - t0)
         if log is not None:
             log(k, history[-1])
         p = p_new
     return {"p0": np.asarray(p0), "before": history[0][0], "p": np.asarray(best_p), "after": np.asarray(best),
-            "history": history, "step_times": times}
+            "gradient": gradient, "history": history, "step_times": times}
 
 
 def rms_mm(objective) -> np.ndarray:

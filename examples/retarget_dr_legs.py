@@ -5,7 +5,8 @@
 
 1. **Targets.** A gait cycle in the pelvis frame (the pelvis pinned, as on a treadmill): each foot's sole point
    swings forward in an arc (``stride`` long, ``height`` high) for half the cycle and slides back along the ground
-   for the other half, the two feet half a cycle apart; the soles stay flat (their reference orientation).
+   for the other half (the stance), the two feet half a cycle apart; the soles stay flat (their reference
+   orientation).
 2. **Inverse kinematics, every frame at once.** The frames are the worlds of ``kamino.replicate(robot, frames)``: one
    call of ``kamino.inverse_kinematics`` (one compiled program) solves all of them with every loop of both legs
    closed (docs/formulation.md §9, "Inverse kinematics"): two feet's positions and orientations are 12 target rows
@@ -72,9 +73,10 @@ def sole_points(robot: kamino.Model, body_q, offsets) -> jax.Array:
 def gait(robot: kamino.Model, frames: int, stride: float = 0.12, height: float = 0.05):
     """The targets of one gait cycle of ``frames`` frames: sole positions ``[frames, 2, 3]`` and orientations
     ``[frames, 2, 4]`` (the reference's), and the sole offsets ``[2, 3]``. Phase ``s = k / frames``; the left foot
-    swings for ``s < 1/2`` (``x`` from ``-stride/2`` to ``+stride/2`` about its reference, eased by a cosine, ``z``
-    up by ``height (1 - cos 4 pi s) / 2``) and slides back at a constant speed for ``s >= 1/2``; the right foot half a
-    cycle later."""
+    swings for ``s < 1/2`` (``x`` from ``-stride/2`` to ``+stride/2`` about its reference, ``z`` up by
+    ``height (1 - cos 4 pi s) / 2``) and slides back along the ground for ``s >= 1/2``, both eased by
+    ``(1 - cos pi a) / 2`` (``a`` the progress through the phase: the foot stops at either end, so the commands have no
+    jump in rate for the servos to overshoot); the right foot half a cycle later."""
     offsets = sole_offsets(robot)
     q0 = np.asarray(robot.body_q0, float)
     feet = [robot.body_index(f) for f in FEET]
@@ -85,7 +87,8 @@ def gait(robot: kamino.Model, frames: int, stride: float = 0.12, height: float =
         u = (s + shift) % 1.0
         swing = u < 0.5
         a = np.where(swing, u / 0.5, (u - 0.5) / 0.5)  # progress through the swing or the stance, 0..1
-        dx = np.where(swing, stride * (0.5 - 0.5 * np.cos(np.pi * a)) - stride / 2, stride / 2 - stride * a)
+        ease = 0.5 - 0.5 * np.cos(np.pi * a)  # 0 -> 1 with zero rate at both ends
+        dx = np.where(swing, stride * (ease - 0.5), stride * (0.5 - ease))
         dz = np.where(swing, height * 0.5 * (1.0 - np.cos(2 * np.pi * a)), 0.0)
         pos[:, foot, 0] += dx
         pos[:, foot, 2] += dz
@@ -107,7 +110,7 @@ def replay_controls(robot: kamino.Model, commands: np.ndarray, frame_dt: float, 
     velocity target; and the times [s] at the end of each step."""
     frames = commands.shape[0]
     period = frames * frame_dt
-    steps = int(round(cycles * period / dt))
+    steps = round(cycles * period / dt)
     t = dt * np.arange(1, steps + 1)
     knots = frame_dt * np.arange(frames + 1)
     closed = np.concatenate([commands, commands[:1]])
@@ -147,7 +150,7 @@ def retarget(frames: int = 50, frame_dt: float = 0.02, stride: float = 0.12, hei
     config = kamino.SolverConfig(dt=dt) if config is None else config
     traj = kamino.rollout(robot, state, jax.tree.map(lambda x: x.astype(dtype), controls), config=config,
                           backend="jax")
-    per_frame = int(round(frame_dt / dt))
+    per_frame = round(frame_dt / dt)
     at_frames = slice(per_frame - 1, None, per_frame)  # the states at t = frame_dt, 2 frame_dt, ...
     replayed = np.asarray(sole_points(robot, traj.body_q[at_frames], offsets))
     closure = np.asarray(kamino.metrics(robot, traj)["constraint_violation"])[at_frames, 0]
