@@ -62,7 +62,7 @@ LINEAR_DENSITY, RADIUS = 2.0, 0.01
 KD, POSITION_GAIN = 5.0, 40.0
 #: the smallest link [m], the Grashof margin [m] (see :func:`rotatability`)
 MIN_LENGTH, MARGIN = 0.03, 0.02
-#: the penalty's weight [1/m^2 per m^2]: a margin violated by 1 cm costs 1e-4 m^2, (1 cm)^2 of path error
+#: the penalty's weight (dimensionless): a margin violated by 1 cm adds 1e-4 m^2 to J, as much as 1 cm rms of path error
 PENALTY = 1.0
 #: the ranges random candidates are drawn from [m]
 LOWER = np.array([0.12, 0.05, 0.12, 0.12, 0.0, -0.15])
@@ -134,7 +134,7 @@ def rotatability(p):
     xp = jnp if isinstance(p, jax.Array) else np
     g, c, l, r = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     margins = xp.stack([l + r - g - c - MARGIN, xp.abs(g - c) - xp.abs(l - r) - MARGIN,
-                        g - c - MARGIN,  # the crank is the shortest link: it turns, the rocker rocks
+                        g - c - MARGIN,  # with the two above, the crank is the shortest link: a crank-rocker
                         xp.min(p[..., :4], axis=-1) - MIN_LENGTH], -1)
     return xp.min(margins, axis=-1)
 
@@ -217,7 +217,7 @@ def initial_poses(p):
     return poses.reshape(-1, 7)
 
 
-def crank_schedule(num_steps: int, dt: float, turns: float = 1.1) -> np.ndarray:
+def crank_schedule(num_steps: int, turns: float = 1.1) -> np.ndarray:
     """``[num_steps]`` the crank's target angle [rad] after each step: ``turns`` revolutions at a constant rate
     (one revolution in ``num_steps / turns`` steps)."""
     return 2 * np.pi * turns * np.arange(1, num_steps + 1) / num_steps
@@ -249,13 +249,13 @@ class Problem:
     def __post_init__(self):
         self.model = template(self.num)
         self.sim = kamino.Simulator(self.model, self.config, backend="jax")
-        self.schedule = crank_schedule(self.num_steps, self.config.dt)
+        self.schedule = crank_schedule(self.num_steps)
         self.rate = float(self.schedule[0] / self.config.dt)
         self.coupler = self.model.body_names.index("coupler")
 
     def paths(self, p, dtype=None) -> tuple[jax.Array, jax.Array]:
-        """The coupler point's simulated path ``[W, num_steps, 3]`` of designs ``p`` ``[W, 6]`` and each world's
-        largest loop-closure error over the run ``[W]`` [m or rad]."""
+        """The coupler point's simulated path ``[W, num_steps, 3]`` of designs ``p`` ``[W, 6]`` (after each step) and
+        whether each world failed the simulator's health checks during the run ``[W]`` (``state.info.failed``)."""
         dtype = dtype or jnp.asarray(p).dtype
         p = jnp.asarray(p, dtype)
         W, nb = self.num, self.model.num_bodies // self.num
