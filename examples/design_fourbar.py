@@ -1,6 +1,6 @@
 """Four-bar coupler-curve synthesis by gradients through the simulator, many candidate designs at once.
 
-    python examples/design_fourbar.py --candidates 8 --steps 30              # a few seconds per step on a CPU
+    python examples/design_fourbar.py --candidates 8 --steps 30              # a minute to compile, ~1 s a step (CPU)
     python examples/design_fourbar.py --candidates 4096 --steps 200 --device gpu
 
 A design is six numbers ``p = (ground, crank, coupler, rocker, u, w)`` [m]: the four link lengths of
@@ -29,7 +29,9 @@ zero (Hoeken's own design, simulated, scores 0.06 mm: the simulator's path again
 
 Adam (optax) descends the gradient of every candidate at once (the worlds are independent, so the gradient of the sum
 over worlds is each world's own gradient); a step that would leave the feasible set is not taken for that candidate.
-The script prints the objective of the best and the median candidate before and after, and the wall times.
+The script prints the objective of the best and the median candidate before and after, and the wall times. Measured
+on the 2-core CPU machine (float32, 16 candidates, 150 steps at the default step size): best 54.7 -> 2.1 mm, median
+140.5 -> 15.6 mm, in 348 s (63 s of them tracing and compiling the first gradient).
 Gradients through the step need ``SolverConfig(fixed_iterations=True)`` today: :func:`design_config` builds it, and
 :class:`Problem` takes the configuration as its one ``config`` argument.
 """
@@ -355,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--candidates", type=int, default=8, help="designs optimised at once (worlds)")
     parser.add_argument("--steps", type=int, default=30, help="Adam steps")
-    parser.add_argument("--learning-rate", type=float, default=3e-3, help="Adam's step size [m]")
+    parser.add_argument("--learning-rate", type=float, default=5e-3, help="Adam's step size [m]")
     parser.add_argument("--sim-steps", type=int, default=110, help="simulator steps per rollout (1.1 crank turns)")
     parser.add_argument("--dt", type=float, default=0.01, help="time step [s]")
     parser.add_argument("--max-iterations", type=int, default=10, help="solver iterations per step (fixed)")
