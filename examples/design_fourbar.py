@@ -297,7 +297,7 @@ class Problem:
         return chamfer + penalty(jnp.asarray(p, path.dtype)), {"chamfer": chamfer, "failed": failed, "path": path}
 
 
-def optimise(problem: Problem, p0, steps: int, learning_rate: float = 3e-3, dtype=None, log=None) -> dict:
+def optimise(problem: Problem, p0, steps: int, learning_rate: float = 5e-3, dtype=None, log=None) -> dict:
     """Adam (optax) on every candidate at once, ``steps`` gradient steps from ``p0`` ``[W, 6]``, the step size
     decaying from ``learning_rate`` [m] to a tenth of it (a cosine). A candidate's step is not taken where its
     gradient or objective is not finite, its world failed the simulator's health check, or the new design would break
