@@ -8,6 +8,10 @@ the four-bar's 0.2-0.3 m links (a few times the residual)."""
 
 from __future__ import annotations
 
+import importlib.util
+import sys
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -159,3 +163,33 @@ def test_jit_and_vmap_match_the_batched_call():
     ref = np.asarray(batched.body_q).reshape(2, model.num_bodies, 7)
     np.testing.assert_allclose(np.asarray(jitted), ref[0], atol=1e-9)
     np.testing.assert_allclose(np.asarray(mapped), ref, atol=1e-9)
+
+
+def _retarget_example():
+    path = Path(__file__).resolve().parents[1] / "examples" / "retarget_dr_legs.py"
+    spec = importlib.util.spec_from_file_location("retarget_dr_legs_example", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_retargeted_gait_replays_in_the_simulator():
+    """examples/retarget_dr_legs.py at 8 frames of 0.1 s (a 0.8 s gait cycle: 12 cm stride, 5 cm swing height; the
+    replay in steps of 10 ms, 80 steps): every frame's IK converges (closure and target error <= 1e-6), and the
+    commands replayed by the PD servos (kp 300 N m/rad at the hips and knees, 150 at the ankles, the pelvis welded to
+    the world, gravity on) put the sole points within 15 mm of the targets at every frame time and 6 mm on average
+    (measured: 7.4 mm and 4.8 mm), with the loops closed to 1e-5 (measured 1e-8). The bound is the servos' lag and
+    sag: the lifted leg's weight (about 5 kg, 0.1 m from the hip axis) bends a 300 N m/rad hip by 0.016 rad, 8 mm at
+    the foot 0.5 m below; a wrong command (another actuator's, a sign, a frame late) misses by centimetres (the stride
+    is 12 cm)."""
+    ex = _retarget_example()
+    out = ex.retarget(frames=8, frame_dt=0.1, dt=0.01)
+    assert out["converged"].all(), out["ik_error"]
+    assert out["ik_closure"].max() <= 1e-6 and out["ik_error"].max() <= 1e-6
+    err = out["replay_error"]
+    assert err.max() <= 0.015 and err.mean() <= 0.006, err
+    assert out["replay_closure"].max() <= 1e-5, out["replay_closure"]
+    # the replay swings the feet: its highest sole point is within the bound of the 5 cm swing
+    rest = out["targets"][:, :, 2].min()
+    assert abs(out["replayed"][:, :, 2].max() - rest - 0.05) <= 0.015
