@@ -135,8 +135,11 @@ class Simulator:
 
     def step_with(self, parameters, state: State, control: Control | None = None) -> State:
         """:meth:`step` with ``parameters`` (a :meth:`parameters` pytree, its arrays possibly traced) in place of the
-        model's own. Unchecked: it runs inside an environment's traced step."""
+        model's own. The control's shapes are checked (at trace time: a ``[num_worlds]`` array where ``[num_dofs]``
+        belongs would otherwise be read with clamped indices); the rest is unchecked: it runs inside an environment's
+        traced step."""
         self._require_jax("step_with")
+        check_control(self._model, control)
         return bind(self._engine.step(bind(state, None), control, parameters), state.model_fingerprint)
 
     def _require_jax(self, fn: str) -> None:

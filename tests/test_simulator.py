@@ -134,8 +134,13 @@ def test_bad_arguments_are_named():
         kamino.Simulator("pendulum.xml")
     with pytest.raises(ValueError, match="unknown backend 'nope'"):
         kamino.Simulator(model, backend="nope")
-    with pytest.raises(ValueError, match="parameters need backend='jax'"):
+    with pytest.raises(ValueError, match=r"parameters per call need backend='jax'.*WorldParameters"):
         kamino.Simulator(model, backend="warp").parameters(jnp.float32)
+    reference = kamino.Simulator(model, backend="jax")
+    with pytest.raises(ValueError, match=r"control.position_target has shape \(4,\), expected \(1,\)"):
+        # a [num_worlds]-shaped target where [num_dofs] belongs: caught at trace time, before any step
+        reference.step_with(reference.parameters(jnp.float32), kamino.init_state(model),
+                            kamino.Control(position_target=jnp.zeros(4)))
     sim = kamino.Simulator(model)
     assert sim.model is model and sim.backend == "warp" and isinstance(sim.config, kamino.SolverConfig)
     with pytest.raises(ValueError, match="rollout"):
