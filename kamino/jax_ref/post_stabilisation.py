@@ -107,7 +107,9 @@ def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, c
     PADMM did not converge (``converged`` False; module docstring, "An unconverged step") or where the passes left
     an anchor gap above ``REPROJECTION_GAP`` (:func:`anchors_open`); then, where that extra pass found the anchors
     open, up to ``REPROJECTION_PASSES`` Gauss-Newton passes while they stay open (:func:`gauss_newton_pass`; module
-    docstring). ``cfg.fixed_iterations`` runs every Gauss-Newton pass, selecting (differentiable)."""
+    docstring). ``cfg.fixed_iterations`` runs every Gauss-Newton pass, selecting (differentiable); otherwise a
+    ``while_loop`` runs them, whose derivative is the selecting loop's (:func:`_passes_while`; docs/formulation.md
+    §7.10)."""
     delta = joint_deadband(q.dtype)
     nb = q.shape[0]
     for k in range(cfg.stabilisation.post_stabilisation + 1):

@@ -269,7 +269,7 @@ class _Problem:
 
     def natural_residual(self, y, vt, hi_v) -> jax.Array:
         """``F(y) = y - Proj_K(y - (w + Gamma(w)))``, ``w = Dt y + vt``: the natural map of the scaled problem
-        (docs/formulation.md §7.2, "Gradients"), zero exactly at its solutions (the projection's characterisation of
+        (docs/formulation.md §7.10), zero exactly at its solutions (the projection's characterisation of
         ``y in K``, ``w + Gamma(w) in K*``, ``y . (w + Gamma(w)) = 0``). The unit step is the Jacobi scaling
         ``alpha = P^2`` of the unscaled problem, one scalar per contact, so that the cone stays isotropic. Padded
         and inactive rows project to zero: there ``F = y``."""
@@ -525,6 +525,12 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     world whose first solve converged and that has joint or coupling rows (``refine_rows``, a boolean; ``None``:
     it has) restarts; any other keeps its first solve exactly, whatever the worlds batched with it do.
 
+    **Derivatives.** With ``cfg.fixed_iterations`` ``jax.grad`` differentiates the ``max_iterations`` iterations
+    as they run (unrolled). Otherwise the solve is differentiated at its solution by the implicit function theorem on
+    the natural map ``F(y) = y - Proj_K(y - (Dt y + vt + Gamma(Dt y + vt)))`` (docs/formulation.md §7.10;
+    :func:`_implicit`): the impulses' derivative is ``P dy + dP y`` with ``dy = -(dF/dy)^+ dF/dtheta``, the
+    velocities' that of ``D lambda + v_f``; the values are PADMM's, unchanged, and no iteration is stored.
+
     ``cfg.redundant_limits`` fixes ``lambda = 0`` (bounds ``[0, 0]``) on the limit rows that
     :func:`redundant_limits` finds equivalent to another limit row with a smaller bias (all three hinge
     limits of a parallelogram loop), evaluated again for the refined right-hand side: the solution keeps
@@ -569,7 +575,7 @@ def _tangent_solve(g, b: jax.Array) -> jax.Array:
 
 def _implicit(p: _Problem, init: Carry, refine, refine_rows) -> tuple[Carry, jax.Array]:
     """PADMM (:func:`_run`, ``while_loop``) with the derivative of its solution by the implicit function theorem
-    (docs/formulation.md, "Gradients"): returns the final carry (no derivative) and ``y``, equal to the carry's
+    (docs/formulation.md §7.10): returns the final carry (no derivative) and ``y``, equal to the carry's
     ``y_p``, whose derivative with respect to the problem's data ``(Dt, vt, lo, hi, mu)`` is
 
         dy = -(dF/dy)^+ dF/dtheta,    F(y; theta) = y - Proj_K(y - (Dt y + vt + Gamma(Dt y + vt)))
