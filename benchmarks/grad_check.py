@@ -8,10 +8,12 @@ loaded, the mechanisms moving), then a rollout of ``--seconds`` (default 1 s), a
 
 differentiated by ``jax.grad`` with respect to a few scalar inputs: the initial velocities, a control held over the
 rollout, and model parameters (a link mass, the friction coefficient, a joint damping) replaced in the padded model
-that ``Simulator.step_with`` takes. Each gradient is compared with central differences at two steps, ``h`` and
-``10 h`` (``h`` = ``--fd-step`` times the input's scale): the two differences agreeing shows the smooth regime (the
-truncation error grows as ``h^2``, the noise of the forward solves, about ``tolerance / h``, as ``1 / h``, and a
-non-smooth event inside ``[-10 h, 10 h]`` would show as a disagreement).
+that ``Simulator.step_with`` takes. Each gradient is compared with central differences at three steps, ``h``,
+``10 h`` and ``100 h`` (``h`` = ``--fd-step`` times the input's scale). The one in the smooth regime is the step
+``h*`` whose difference agrees best with that of the ten times larger step (the spread printed): below it the noise
+of the forward solves (an early exit moves a solution by up to about ``tolerance``, so the quotient by about
+``tolerance / h``) dominates, above it the truncation error (``h^2``) and the non-smooth events (a contact
+appearing, a dead band crossed) a larger interval ``[-h, h]`` takes in.
 
 Tolerance: the finite difference divides the change of an early-exit solve by ``h``, so the solve's own error must
 be far below ``h`` times the derivative: ``tolerance = 1e-10`` (``--tolerance``). The gradient itself does not
@@ -177,19 +179,24 @@ def check(name: str, scene: Scene, cfg: kamino.SolverConfig, seconds: float, fd_
           f"{int(np.max(np.asarray(info.iterations)))}, converged {bool(np.all(np.asarray(info.converged)))}; "
           f"gradient (incl. compile) {t_grad:.1f} s", flush=True)
     rows = []
+    tiny = np.finfo(np.float64).tiny
     for k, (label, (_, scale)) in enumerate(scene.inputs.items()):
+        steps = [fd_step * scale * 10.0 ** i for i in range(3)]
         fds = []
-        for h in (fd_step * scale, 10 * fd_step * scale):
+        for h in steps:
             e = np.zeros(len(theta0))
             e[k] = h
             fds.append((float(fwd(theta0 + e)) - float(fwd(theta0 - e))) / (2 * h))
-        tiny = np.finfo(np.float64).tiny
-        rel = abs(grad[k] - fds[0]) / max(abs(fds[0]), tiny)
-        rel10 = abs(grad[k] - fds[1]) / max(abs(fds[1]), tiny)
-        agree = abs(fds[0] - fds[1]) / max(abs(fds[0]), tiny)
-        rows.append((name, label, grad[k], fds[0], rel, rel10, agree))
-        print(f"  {label:30s} grad {grad[k]:+.8e}  fd(h) {fds[0]:+.8e}  rel {rel:.1e}  rel(10h) {rel10:.1e}  "
-              f"fd(h)/fd(10h) {agree:.1e}", flush=True)
+        # the smooth regime: the step whose difference its ten times larger neighbour's agrees with best (below it
+        # the solves' noise grows as 1 / h, above it the truncation error as h^2)
+        spread = [abs(fds[i] - fds[i + 1]) / max(abs(fds[i]), tiny) for i in range(len(fds) - 1)]
+        best = int(np.argmin(spread))
+        fd = fds[best]
+        rel = abs(grad[k] - fd) / abs(fd) if fd != 0.0 else float("nan")
+        rows.append((name, label, grad[k], fd, rel, steps[best], spread[best]))
+        all_fd = "  ".join(f"{f:+.8e}" for f in fds)
+        print(f"  {label:30s} grad {grad[k]:+.8e}  fd(h, 10h, 100h) {all_fd}  h* {steps[best]:.0e}  "
+              f"rel {rel:.1e}  fd spread {spread[best]:.1e}", flush=True)
     return rows
 
 
@@ -239,12 +246,15 @@ def main() -> None:
         scene = all_scenes[name]
         cfg = kamino.SolverConfig(dt=scene.dt, tolerance=args.tolerance)
         rows += check(name, scene, cfg, args.seconds, args.fd_step)
-    print(f"\n{'scene':8s} {'input':30s} {'rel. error':>10s} {'fd(h) vs fd(10h)':>16s}")
-    for name, label, _, _, rel, _, agree in rows:
-        print(f"{name:8s} {label:30s} {rel:10.1e} {agree:16.1e}")
-    worst = max(r[4] for r in rows)
-    print(f"worst relative error {worst:.1e} ({'within' if worst <= 1e-4 else 'ABOVE'} 1e-4)")
-
+    print(f"\n{'scene':8s} {'input':30s} {'gradient':>15s} {'central diff.':>15s} {'h*':>6s} {'rel. error':>10s} "
+          f"{'fd spread':>9s}")
+    for name, label, g, fd, rel, h, spread in rows:
+        err = f"{rel:10.1e}" if fd != 0.0 else f"{'fd = 0':>10s}"
+        print(f"{name:8s} {label:30s} {g:+15.8e} {fd:+15.8e} {h:6.0e} {err} {spread:9.1e}")
+    rels = [r[4] for r in rows if r[3] != 0.0]
+    worst = max(rels)
+    print(f"worst relative error {worst:.1e} ({'within' if worst <= 1e-4 else 'ABOVE'} 1e-4); inputs with a zero "
+          f"central difference (no effect): their gradients {[float(r[2]) for r in rows if r[3] == 0.0]}")
 
 if __name__ == "__main__":
     main()
