@@ -107,7 +107,9 @@ def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, c
     PADMM did not converge (``converged`` False; module docstring, "An unconverged step") or where the passes left
     an anchor gap above ``REPROJECTION_GAP`` (:func:`anchors_open`); then, where that extra pass found the anchors
     open, up to ``REPROJECTION_PASSES`` Gauss-Newton passes while they stay open (:func:`gauss_newton_pass`; module
-    docstring). ``cfg.fixed_iterations`` runs every Gauss-Newton pass, selecting (differentiable)."""
+    docstring). ``cfg.fixed_iterations`` runs every Gauss-Newton pass, selecting (differentiable); otherwise a
+    ``while_loop`` runs them, whose derivative is the selecting loop's (:func:`_passes_while`; docs/formulation.md
+    §7.10)."""
     delta = joint_deadband(q.dtype)
     nb = q.shape[0]
     for k in range(cfg.stabilisation.post_stabilisation + 1):
@@ -122,6 +124,17 @@ def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, c
             q = jnp.where(converged & ~open_, q, q_next)
     if not REPROJECTION_PASSES or pm.row_mask.shape[0] == 0:
         return q
+    if cfg.fixed_iterations:
+        return _passes(pm, q, open_, proj, True)
+    return _passes_while(pm, q, open_, proj)
+
+
+def _passes(pm: PaddedModel, q: jax.Array, open_: jax.Array, proj: Projector, every: bool) -> jax.Array:
+    """The Gauss-Newton passes of :func:`project` from the poses ``q`` while the anchors are ``open_``: every one of
+    the ``REPROJECTION_PASSES`` passes, selecting (``every``: a ``fori_loop`` with static bounds, differentiable in
+    both modes), or only until the anchors close (a ``while_loop``). Both give the same poses: a pass after the
+    anchors closed keeps them."""
+    delta = joint_deadband(q.dtype)
 
     def one(carry):
         i, q, open_ = carry
@@ -131,11 +144,23 @@ def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, c
         return i + 1, q, open_
 
     carry = (jnp.int32(0), q, open_)
-    if cfg.fixed_iterations:  # every pass, one compiled body (a fori_loop with static bounds: differentiable)
+    if every:
         carry = jax.lax.fori_loop(0, REPROJECTION_PASSES, lambda _, c: one(c), carry)
     else:
         carry = jax.lax.while_loop(lambda c: c[2] & (c[0] < REPROJECTION_PASSES), one, carry)
     return carry[1]
+
+
+@jax.custom_jvp
+def _passes_while(pm: PaddedModel, q: jax.Array, open_: jax.Array, proj: Projector) -> jax.Array:
+    """:func:`_passes` with the ``while_loop``; its derivative is that of the selecting ``fori_loop`` (the same
+    function: reverse mode cannot transpose a ``while_loop``), traced only when a derivative is taken."""
+    return _passes(pm, q, open_, proj, False)
+
+
+@_passes_while.defjvp
+def _passes_while_jvp(primals, tangents):
+    return jax.jvp(lambda *a: _passes(*a, True), primals, tangents)
 
 
 def gauss_newton_pass(pm: PaddedModel, q: jax.Array, e: jax.Array, proj: Projector) -> jax.Array:

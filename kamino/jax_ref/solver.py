@@ -190,6 +190,7 @@ class Carry(NamedTuple):
     hi_v: jax.Array  #: the box rows' scaled upper bounds for ``vt`` (:meth:`_Problem.upper`)
     cap: jax.Array  #: the iteration count at which the current solve stops unconverged
     refined: jax.Array  #: the curvature refinement has restarted the solve (:func:`solve`, ``refine``)
+    y_first: jax.Array  #: the first solve's ``y`` once the refinement restarted (the refined ``vt`` depends on it)
 
 
 class _Problem:
@@ -266,6 +267,15 @@ class _Problem:
         """The projection on ``K`` (§4.3) with upper bounds ``hi_v``; zero on padded rows."""
         return jnp.where(self.row_mask, project(x, self.lo_s, hi_v, self.mu, self.n_box), 0.0)
 
+    def natural_residual(self, y, vt, hi_v) -> jax.Array:
+        """``F(y) = y - Proj_K(y - (w + Gamma(w)))``, ``w = Dt y + vt``: the natural map of the scaled problem
+        (docs/formulation.md §7.10), zero exactly at its solutions (the projection's characterisation of
+        ``y in K``, ``w + Gamma(w) in K*``, ``y . (w + Gamma(w)) = 0``). The unit step is the Jacobi scaling
+        ``alpha = P^2`` of the unscaled problem, one scalar per contact, so that the cone stays isotropic. Padded
+        and inactive rows project to zero: there ``F = y``."""
+        w = self.Dt @ y + vt
+        return y - self.proj(y - (w + de_saxce(w, self.mu, self.n_box)), hi_v)
+
     def complementarity(self, y, z) -> jax.Array:
         """``r_c`` (§7.5): the box rows' distance-to-bound times velocity, the contacts' ``|y . z|``."""
         n_box, lo_s, hi_s, finite_lo, finite_hi = self.n_box, self.lo_s, self.hi_s, self.finite_lo, self.finite_hi
@@ -312,7 +322,7 @@ class _Problem:
                      c_p=big, r_p=big, r_d=big, r_c=big, converged=jnp.asarray(False), rho_u=self.rho0,
                      L=self.factor(self.factor_fixed(sat0), self.rho0, sat0), k_rho=jnp.int32(0),
                      e_p=jnp.full(n, big, dtype), sat=sat0, pending=jnp.asarray(False), vt=self.vt, hi_v=hi_v,
-                     cap=jnp.int32(self.cfg.max_iterations), refined=jnp.asarray(False))
+                     cap=jnp.int32(self.cfg.max_iterations), refined=jnp.asarray(False), y_first=x0)
         return init
 
 
@@ -320,7 +330,7 @@ def _iterate(p: _Problem, carry: Carry, inline: bool = True) -> Carry:
     """One PADMM iteration (Alg. 1, §7.3-§7.5). A row that saturates refactorises here (``inline``) or marks the
     carry's ``pending`` for the caller to refactorise (the while loop: under ``vmap`` a ``lax.cond`` runs both
     branches, so an inline refactorisation would cost a factorisation per iteration)."""
-    k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _, rho_u, L, k_rho, e_p, sat, pending, vt, hi_v, _, _ = carry
+    k, x_p, y_p, z_p, y_hat, z_hat, a_p, c_p, _, _, _, _, rho_u, L, k_rho, e_p, sat, pending, vt, hi_v, _, _, _ = carry
     cfg, eta, tol, W, P, big = p.cfg, p.eta, p.tol, p.W, p.P, p.big
     rho = p.penalty(rho_u, sat)
     # step 1-2: De Saxcé correction, linear solve with the cached factor
@@ -398,7 +408,7 @@ def _restart(p: _Problem, c: Carry, refine, go) -> Carry:
         y = p.proj(y, hi_v)  # the set of fixed rows may change with the right-hand side
     restart = c._replace(y_p=y, y_hat=y, z_hat=z, a_p=jnp.asarray(1.0, p.dtype), c_p=p.big,
                          converged=jnp.asarray(False), k_rho=k, vt=vt, hi_v=hi_v, cap=k + p.cfg.max_iterations,
-                         refined=jnp.asarray(True))
+                         refined=jnp.asarray(True), y_first=c.y_p)
     return jax.tree.map(lambda a, b: jnp.where(go, a, b), restart, c)
 
 
@@ -515,15 +525,31 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     world whose first solve converged and that has joint or coupling rows (``refine_rows``, a boolean; ``None``:
     it has) restarts; any other keeps its first solve exactly, whatever the worlds batched with it do.
 
+    **Derivatives.** With ``cfg.fixed_iterations`` ``jax.grad`` differentiates the ``max_iterations`` iterations
+    as they run (unrolled). Otherwise the solve is differentiated at its solution by the implicit function theorem on
+    the natural map ``F(y) = y - Proj_K(y - (Dt y + vt + Gamma(Dt y + vt)))`` (docs/formulation.md §7.10;
+    :func:`_implicit`): the impulses' derivative is ``P dy + dP y`` with ``dy = -(dF/dy)^+ dF/dtheta``, the
+    velocities' that of ``D lambda + v_f``; the values are PADMM's, unchanged, and no iteration is stored.
+
     ``cfg.redundant_limits`` fixes ``lambda = 0`` (bounds ``[0, 0]``) on the limit rows that
     :func:`redundant_limits` finds equivalent to another limit row with a smaller bias (all three hinge
     limits of a parallelogram loop), evaluated again for the refined right-hand side: the solution keeps
     ``v+`` and each group's generalised impulse, and PADMM no longer creeps along the null direction.
     """
     p = _Problem(D, v_f, lo, hi, mu, row_mask, cfg, rho0, n_fixed)
-    out = _run(p, p.start(impulse0, velocity0), refine, True if refine_rows is None else refine_rows)
-    k, y, z = out.k, out.y_p, out.z_p
-    v = (z - de_saxce(z, mu, p.n_box)) / p.P  # §7.7: v+ = z - Gamma(z), unscaled
+    init = p.start(impulse0, velocity0)
+    refine_rows = True if refine_rows is None else refine_rows
+    if cfg.fixed_iterations:
+        out = _run(p, init, refine, refine_rows)
+        y = out.y_p
+        v = (out.z_p - de_saxce(out.z_p, mu, p.n_box)) / p.P  # §7.7: v+ = z - Gamma(z), unscaled
+    else:
+        out, y = _implicit(p, init, refine, refine_rows)
+        v = jax.lax.stop_gradient((out.z_p - de_saxce(out.z_p, mu, p.n_box)) / p.P)
+        # the derivative of v+ = D lambda + v_f at the solution (the value is PADMM's, unchanged: w - w = 0)
+        w = D @ (p.P * y) + v_f
+        v = v + (w - jax.lax.stop_gradient(w))
+    k = out.k
     return PADMMResult(
         impulse=jnp.where(row_mask, p.P * y, 0.0),
         velocity=jnp.where(row_mask, v, 0.0),
@@ -535,3 +561,50 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
         penalty=out.rho_u,
         saturated=out.sat,
     )
+
+
+def _tangent_solve(g, b: jax.Array) -> jax.Array:
+    """``x`` with ``g(x) = b`` for the linearised natural map ``g`` (:func:`_implicit`), in the least-squares,
+    minimum-norm sense: ``x = A^+ b`` with ``A`` the dense Jacobian of ``g`` (a world's rows). ``A`` is singular
+    along the null directions of ``Dt`` on the active bilateral rows (redundant loop rows), which move no body
+    (``J^T n = 0``): the pseudo-inverse leaves ``x`` without a part along them. Linear in ``b`` (a matrix product),
+    so reverse mode transposes it."""
+    A = jax.jacfwd(g)(jnp.zeros_like(b))
+    return jnp.linalg.pinv(A) @ b
+
+
+def _implicit(p: _Problem, init: Carry, refine, refine_rows) -> tuple[Carry, jax.Array]:
+    """PADMM (:func:`_run`, ``while_loop``) with the derivative of its solution by the implicit function theorem
+    (docs/formulation.md §7.10): returns the final carry (no derivative) and ``y``, equal to the carry's
+    ``y_p``, whose derivative with respect to the problem's data ``(Dt, vt, lo, hi, mu)`` is
+
+        dy = -(dF/dy)^+ dF/dtheta,    F(y; theta) = y - Proj_K(y - (Dt y + vt + Gamma(Dt y + vt)))
+
+    (:meth:`_Problem.natural_residual`) at the solution (``jax.lax.custom_root``; the pseudo-inverse of
+    :func:`_tangent_solve`). No iteration is differentiated: the memory of a gradient does not grow with the
+    iteration count, and the warm start and the penalty schedule get no derivative (the solution does not depend on
+    them). With the curvature refinement, the refined solve's ``vt`` is ``P refine(P y_1)`` of the first solve's
+    solution ``y_1``, itself a root of ``F`` with the first ``vt``: the two roots chain. A solve that stopped at
+    ``max_iterations`` gets the derivative of the root the iterate approximates."""
+
+    carry0 = init._replace(L=())
+    # custom_root gives its auxiliary outputs integer tangents where JAX expects float0: the carry's integer and
+    # boolean fields leave it as floats of the solve's dtype (exact: counts and flags) and are converted back
+    kinds = jax.tree.map(lambda a: a.dtype, carry0)
+
+    def run(f, guess):
+        out = _run(p, init, refine, refine_rows)._replace(L=())
+        return jnp.where(out.refined, out.y_first, out.y_p), jax.tree.map(lambda a: a.astype(p.dtype), out)
+
+    y1, out = jax.lax.custom_root(lambda y: p.natural_residual(y, p.vt, init.hi_v), init.y_p, run, _tangent_solve,
+                                  has_aux=True)
+    out = jax.tree.map(lambda a, dtype: a.astype(dtype), out, kinds)
+    if refine is None:
+        return out, y1
+    row_mask, P = p.row_mask, p.P
+    vt2 = jnp.where(row_mask, P * refine(jnp.where(row_mask, P * y1, 0.0)), 0.0)  # as _restart
+    hi2 = jnp.where(out.hi_v == 0.0, 0.0, p.hi_s)  # the refined solve's fixed redundant limit rows (p.upper)
+    y_last = out.y_p
+    y2 = jax.lax.custom_root(lambda y: p.natural_residual(y, vt2, hi2), y_last, lambda f, guess: y_last,
+                             _tangent_solve)
+    return out, jnp.where(out.refined, y2, y1)

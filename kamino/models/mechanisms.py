@@ -1,7 +1,8 @@
-"""Procedural planar mechanisms: pendulums, four-bar, slider-crank and the chain of loops.
+"""Procedural mechanisms: pendulums, four-bar, slider-crank, the chain of loops, the Jansen walker and the Stewart
+platform.
 
-Every function returns a validated single-world :class:`kamino.Model`. All mechanisms move in
-the world xz plane (hinges about world y, gravity along -z) and start at rest.
+Every function returns a validated single-world :class:`kamino.Model`. All mechanisms but the Stewart platform move
+in the world xz plane (hinges about world y, gravity along -z); all start at rest.
 """
 
 from __future__ import annotations
@@ -75,7 +76,8 @@ def _circle_intersection(c0, r0, c1, r1, upper: bool = True) -> np.ndarray:
 def fourbar(ground: float = 0.3, crank: float = 0.18, coupler: float = 0.26, rocker: float = 0.24,
             crank_angle: float = -1.2, coupler_above: bool = True, linear_density: float = 2.0,
             radius: float = 0.01, height: float = 1.0, gravity: float = 9.81, actuated: bool = False,
-            kp: float = 50.0, kd: float = 2.0, effort_limit: float = float("inf"), tilt_deg: float = 0.0) -> Model:
+            kp: float = 50.0, kd: float = 2.0, effort_limit: float = float("inf"), tilt_deg: float = 0.0,
+            damping: float = 0.0) -> Model:
     """Planar four-bar linkage in the xz plane (a Grashof crank-rocker: shortest link = crank).
 
     Bodies: ``ground`` (fixed to the world by a FIXED joint), ``crank``, ``coupler``, ``rocker``,
@@ -105,11 +107,13 @@ def fourbar(ground: float = 0.3, crank: float = 0.18, coupler: float = 0.26, roc
     ro = add_link(b, Dp, C, linear_density * rocker, radius, "rocker")
     b.add_joint_at(JointType.FIXED, -1, g, anchor=0.5 * (A + Dp), name="fix")
     drive = Actuation(mode="position", kp=kp, kd=kd, effort_limit=effort_limit) if actuated else None
-    b.add_joint_at(JointType.REVOLUTE, g, cr, anchor=A, axis=Y, name="ground_crank", actuation=drive)
-    b.add_joint_at(JointType.REVOLUTE, cr, co, anchor=B, axis=Y, name="crank_coupler")
+    b.add_joint_at(JointType.REVOLUTE, g, cr, anchor=A, axis=Y, name="ground_crank", actuation=drive,
+                   damping=damping)
+    b.add_joint_at(JointType.REVOLUTE, cr, co, anchor=B, axis=Y, name="crank_coupler", damping=damping)
     tilt = np.deg2rad(float(tilt_deg))
-    b.add_joint_at(JointType.REVOLUTE, co, ro, anchor=C, axis=(0.0, np.cos(tilt), np.sin(tilt)), name="coupler_rocker")
-    b.add_joint_at(JointType.REVOLUTE, ro, g, anchor=Dp, axis=Y, name="rocker_ground")
+    b.add_joint_at(JointType.REVOLUTE, co, ro, anchor=C, axis=(0.0, np.cos(tilt), np.sin(tilt)), name="coupler_rocker",
+                   damping=damping)
+    b.add_joint_at(JointType.REVOLUTE, ro, g, anchor=Dp, axis=Y, name="rocker_ground", damping=damping)
     return b.finalize()
 
 
@@ -296,4 +300,57 @@ def jansen_walker(legs: int = 8, phases: int | None = None, scale: float = 0.01,
         b.add_geom(GeomType.SPHERE, lower, size=(foot_radius, 0.0, 0.0), pos=P["F"] - (P["C"] + P["E"] + P["F"]) / 3,
                    friction=friction, group=2, mask=1, name=f"leg{n}_foot")
     b.add_geom(GeomType.PLANE, -1, friction=friction, group=1, name="ground")
+    return b.finalize()
+
+
+def stewart_platform(base_radius: float = 0.25, platform_radius: float = 0.15, base_height: float = 0.2,
+                     platform_height: float = 0.65, base_spread_deg: float = 12.0, platform_spread_deg: float = 12.0,
+                     platform_mass: float = 4.0, leg_mass: float = 0.4, radius: float = 0.015, kp: float = 2000.0,
+                     kd: float = 100.0, damping: float = 0.1, gravity: float = 9.81) -> Model:
+    """A Stewart platform (6-UPS): a platform carried by six legs on a base fixed to the world.
+
+    Base anchors ``B_i`` on a circle of ``base_radius`` at ``base_height``, in pairs at ``120 k -+ base_spread_deg``
+    [deg]; platform anchors ``P_i`` on a circle of ``platform_radius`` at ``platform_height``, in pairs at ``120 k +
+    60 -+ (60 - platform_spread_deg)``, so that leg ``2k`` and leg ``2k - 1`` meet the platform side by side and
+    every leg leans. Leg ``i``: a lower link ``leg{i}_lower`` from ``B_i`` to 55 % of the way to ``P_i`` on a
+    UNIVERSAL joint ``leg{i}_base`` to the world (axes: horizontal and across the leg: the leg cannot spin about
+    itself), an upper link ``leg{i}_upper`` from 45 % of the way to ``P_i`` on a PRISMATIC joint ``leg{i}_slide``
+    along the leg (a POSITION actuator of gains ``kp`` [N/m], ``kd`` [N s/m]; its coordinate is the leg's
+    extension from the builder pose), and a SPHERICAL joint ``leg{i}_top`` to the ``platform`` (a flat box of
+    ``platform_mass``). Links are capsules of ``leg_mass`` kg and ``radius``; ``damping`` [N m s/rad] is a viscous
+    damping on both DoFs of each universal joint.
+
+    Bodies: 12 links and the platform (13); joints: 18 (6 legs of 3); 78 body coordinates, 72 constraint rows:
+    six DoFs, the legs' extensions, and five independent loops through the platform (none redundant). With the
+    actuators holding zero extension the platform sags under gravity by about its weight over ``6 kp``."""
+    b = ModelBuilder(gravity=(0.0, 0.0, -gravity))
+    ups = []
+    for i in range(6):
+        k, sign = divmod(i, 2)
+        sign = 2 * sign - 1
+        beta = np.deg2rad(120.0 * k + sign * base_spread_deg)
+        if sign < 0:  # leg 2k meets leg 2k - 1 around 120 k - 60
+            phi = np.deg2rad(120.0 * k - 60.0 + platform_spread_deg)
+        else:  # leg 2k + 1 meets leg 2k + 2 around 120 k + 60
+            phi = np.deg2rad(120.0 * k + 60.0 - platform_spread_deg)
+        B = np.array([base_radius * np.cos(beta), base_radius * np.sin(beta), base_height])
+        P = np.array([platform_radius * np.cos(phi), platform_radius * np.sin(phi), platform_height])
+        ups.append((B, P))
+    center = np.array([0.0, 0.0, platform_height])
+    side = 2.0 * platform_radius
+    platform = b.add_body(mass=platform_mass, inertia=box_inertia(platform_mass, (side, side, 0.03)), pos=center,
+                          name="platform")
+    drive = Actuation(mode="position", kp=kp, kd=kd)
+    for i, (B, P) in enumerate(ups):
+        d = (P - B) / np.linalg.norm(P - B)
+        lower = add_link(b, B, B + 0.55 * (P - B), 0.5 * leg_mass, radius, f"leg{i}_lower")
+        upper = add_link(b, B + 0.45 * (P - B), P, 0.5 * leg_mass, radius, f"leg{i}_upper")
+        a1 = np.cross((0.0, 0.0, 1.0), d)
+        a1 = a1 / np.linalg.norm(a1)
+        a2 = np.cross(d, a1)
+        b.add_joint_at(JointType.UNIVERSAL, -1, lower, anchor=B, axis=a1, axis2=a2, name=f"leg{i}_base",
+                       damping=damping)
+        b.add_joint_at(JointType.PRISMATIC, lower, upper, anchor=B + 0.5 * (P - B), axis=d, name=f"leg{i}_slide",
+                       actuation=drive)
+        b.add_joint_at(JointType.SPHERICAL, upper, platform, anchor=P, name=f"leg{i}_top")
     return b.finalize()
