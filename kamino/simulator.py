@@ -52,8 +52,9 @@ def check_backend(backend, fn: str) -> None:
 class Simulator:
     """Steps the worlds of ``model`` with ``config`` (default :class:`SolverConfig`) on ``backend``: ``"warp"``
     (the default), the production backend in ``kamino/warp_backend`` (docs/warp_backend.md), on the GPU when there is
-    one, else on the CPU; or ``"jax"``, the reference in ``kamino/jax_ref``, which is differentiable (reverse mode
-    with ``SolverConfig(fixed_iterations=True)``) and takes traced model parameters (:meth:`step_with`)::
+    one, else on the CPU; or ``"jax"``, the reference in ``kamino/jax_ref``, which is differentiable (``jax.grad`` and
+    ``jax.jvp`` at any configuration, by the implicit function theorem at each solve's solution: docs/formulation.md
+    §7.10) and takes traced model parameters (:meth:`step_with`)::
 
         sim = kamino.Simulator(kamino.models.fourbar(), backend="warp")
         state = sim.step(kamino.init_state(sim.model))
