@@ -164,16 +164,17 @@ _hypothesis_examples_independent_of_imports()
 
 
 #: test modules in descending order of their time on one worker (seconds in a full run on the 2-core machine:
-#: envs 244, notebooks 220, robots 177, contacts 123, rl_resume 120, actuation_limits 100, mjcf 95, physics 84,
-#: cross_backend 84, world_health 83, forward_kinematics 71, first_hour 64, redundant_limits 63; then the modules
-#: with one test of 25-61 s: sharding, jansen_walker, refinement, post_stabilisation, batching, rl_eval, fk_robots,
-#: grad, simulator, solver_settings): collected first, in this order, the rest after them in alphabetical order
+#: envs 244, notebooks 220, robots 177, contacts 123, rl_resume 120, actuation_limits 100, mjcf 95, grad and
+#: inverse_kinematics about 90 each, physics 84, cross_backend 84, world_health 83, forward_kinematics 71, first_hour
+#: 64, redundant_limits 63; then the modules with one test of 20-61 s: sharding, jansen_walker, refinement,
+#: post_stabilisation, batching, rl_eval, fk_robots, design, simulator, solver_settings): collected first, in this
+#: order, the rest after them in alphabetical order
 _LONG_FIRST = ("test_envs.py", "test_notebooks.py", "test_robots.py", "test_contacts.py", "test_rl_resume.py",
-               "test_actuation_limits.py", "test_mjcf.py", "test_physics.py", "test_cross_backend.py",
-               "test_world_health.py", "test_forward_kinematics.py", "test_first_hour.py", "test_redundant_limits.py",
-               "test_sharding.py", "test_jansen_walker.py", "test_refinement.py", "test_post_stabilisation.py",
-               "test_batching.py", "test_rl_eval.py", "test_fk_robots.py", "test_grad.py", "test_simulator.py",
-               "test_solver_settings.py")
+               "test_actuation_limits.py", "test_mjcf.py", "test_grad.py", "test_inverse_kinematics.py",
+               "test_physics.py", "test_cross_backend.py", "test_world_health.py", "test_forward_kinematics.py",
+               "test_first_hour.py", "test_redundant_limits.py", "test_sharding.py", "test_jansen_walker.py",
+               "test_refinement.py", "test_post_stabilisation.py", "test_batching.py", "test_rl_eval.py",
+               "test_fk_robots.py", "test_design.py", "test_simulator.py", "test_solver_settings.py")
 
 
 #: node ids of the tests outside the quick tier that carry no ``slow`` mark in their files (tests/slow_tests.txt)

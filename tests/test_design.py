@@ -1,7 +1,7 @@
 """Mechanism design by gradients through the rollout (examples/design_fourbar.py, notebooks/06_mechanism_design.ipynb):
-the traced design parameters are the builder's own, Hoeken's design traces its closed-form coupler curve in the
-simulator, the gradient with respect to a link length matches finite differences, and a few Adam steps on four
-candidates reduce the objective."""
+the traced design parameters are the builder's own, and Hoeken's design traces its closed-form coupler curve in the
+simulator. The gradient against finite differences and the gain of the optimisation are asserted in the notebook,
+which the full test run executes (tests/test_notebooks.py)."""
 
 from __future__ import annotations
 
@@ -80,24 +80,3 @@ def test_hoeken_design_traces_its_closed_form_curve(problem):
     assert np.all(rms[1:] >= 2.0), rms
     assert not np.any(np.asarray(parts["failed"]))
 
-
-def test_gradient_and_a_few_adam_steps(problem):
-    """From four random designs: the reverse-mode gradient of the objective with respect to the crank length matches
-    a central difference of the forward rollout to 1e-6 of its largest component (measured: 2e-10; the difference's
-    own error, O(h^2) with h = 1e-6 m plus rounding of order 1e-16 J / h, is far below), and ten Adam steps of 3 mm
-    lower every candidate's objective and the median by at least 20 % (measured: each objective falls to 0.40 to
-    0.61 of its start, the median to 0.55)."""
-    prob, forward = problem
-    p0 = d.random_designs(4, seed=0)
-    out = d.optimise(prob, p0, steps=10, learning_rate=3e-3, dtype=jnp.float64)
-    h = 1e-6
-    plus, minus = p0.copy(), p0.copy()
-    plus[:, 1] += h
-    minus[:, 1] -= h
-    fd = (np.asarray(forward(jnp.asarray(plus))[0]) - np.asarray(forward(jnp.asarray(minus))[0])) / (2 * h)
-    g = out["gradient"][:, 1]
-    assert np.all(np.abs(g - fd) <= 1e-6 * np.abs(fd).max()), (g, fd)
-    np.testing.assert_allclose(out["before"], np.asarray(forward(jnp.asarray(p0))[0]), rtol=1e-9)
-    assert np.all(out["after"] < out["before"]), (out["before"], out["after"])
-    assert np.median(out["after"]) <= 0.8 * np.median(out["before"]), (out["before"], out["after"])
-    assert np.all(d.rotatability(out["p"]) >= 0.0)

@@ -29,8 +29,9 @@ SLOW = {
                      "MuJoCo's <connect> is test_mjcf.py's",
     "02_robots_and_resets": "the robots' resets and rollouts are test_fk_robots.py's and test_robots.py's",
     "04_differentiable_design": "the gradients through the step are test_grad.py's",
-    "06_mechanism_design": "the traced design parameters, Hoeken's simulated path, the gradient against finite "
-                           "differences and a few Adam steps are test_design.py's",
+    "06_mechanism_design": "the traced design parameters and Hoeken's simulated path are test_design.py's; the "
+                           "gradient against finite differences and the optimisation's gain are the notebook's "
+                           "own asserts, in the full run",
     "05_training": "brax's PPO learning fourbar_track is checked by its run alone (the bar below); the quick tier "
                    "checks PPO's pieces: test_envs.py's environment API and test_rl_resume.py's training runs",
 }
