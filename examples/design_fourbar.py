@@ -1,7 +1,7 @@
 """Four-bar coupler-curve synthesis by gradients through the simulator, many candidate designs at once.
 
     python examples/design_fourbar.py --candidates 8 --steps 30              # a minute to compile, ~1 s a step (CPU)
-    python examples/design_fourbar.py --candidates 4096 --steps 200 --device gpu
+    python examples/design_fourbar.py --candidates 4096 --steps 200 --device gpu --remat
 
 A design is six numbers ``p = (ground, crank, coupler, rocker, u, w)`` [m]: the four link lengths of
 ``kamino.models.fourbar`` (ground pivots ``A`` fixed, ``D = A + ground e_x``) and the coupler point ``P = B + u e +
@@ -36,8 +36,9 @@ median 140.5 -> 10.0 mm, in 286 s (57 s of them tracing and compiling the first 
 median 15.6 mm.
 The gradient goes through a fixed number of solver iterations per step (:func:`design_config`, the unrolled gradient,
 cheap at ten iterations), and :class:`Problem` takes the configuration as its one ``config`` argument. The reverse pass
-recomputes each step from the state stored before it (``jax.checkpoint``): memory grows with the steps, not with the
-iterations (64 candidates: 63 MiB of temporaries against 2.0 GiB storing every iteration).
+stores every iteration of every step (64 candidates: 2.0 GiB of temporaries; 4096 do not fit an H200's 141 GB);
+``--remat`` (``Problem.remat``) recomputes each step from the state stored before it instead (``jax.checkpoint``):
+64 candidates take 63 MiB, for about a fifth more time.
 """
 
 from __future__ import annotations
@@ -251,6 +252,8 @@ class Problem:
     config: kamino.SolverConfig
     num_steps: int = 110
     target: np.ndarray = dataclasses.field(default_factory=target_curve)
+    #: recompute each step in the reverse pass (``jax.checkpoint``) instead of storing its solver iterations
+    remat: bool = False
 
     def __post_init__(self):
         self.model = template(self.num)
@@ -288,9 +291,8 @@ class Problem:
             return (state, params), (point, state.info.failed)
 
         schedule = jnp.asarray(self.schedule, dtype)
-        # the reverse pass recomputes each step from its stored carry (jax.checkpoint): memory grows with the steps
-        # times a state, not times every solver iteration of every step
-        (_, _), (points, failed) = jax.lax.scan(jax.checkpoint(one_step), (state, params), schedule)
+        step = jax.checkpoint(one_step) if self.remat else one_step
+        (_, _), (points, failed) = jax.lax.scan(step, (state, params), schedule)
         return jnp.swapaxes(points, 0, 1), jnp.any(failed, axis=0)
 
     def objective(self, p, dtype=None) -> tuple[jax.Array, dict]:
@@ -368,6 +370,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dt", type=float, default=0.01, help="time step [s]")
     parser.add_argument("--max-iterations", type=int, default=10, help="solver iterations per step (fixed)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--remat", action="store_true", help="recompute each step in the reverse pass (less memory)")
     parser.add_argument("--device", choices=("cpu", "gpu"), default=None, help="default: JAX's default device")
     parser.add_argument("--x64", action="store_true", help="float64 (default: JAX's default float, float32)")
     args = parser.parse_args(argv)
@@ -376,7 +379,8 @@ def main(argv: list[str] | None = None) -> int:
     device = jax.devices(args.device)[0] if args.device else jax.devices()[0]
     with jax.default_device(device):
         start = time.perf_counter()
-        problem = Problem(args.candidates, design_config(args.dt, args.max_iterations), num_steps=args.sim_steps)
+        problem = Problem(args.candidates, design_config(args.dt, args.max_iterations), num_steps=args.sim_steps,
+                          remat=args.remat)
         p0 = random_designs(args.candidates, args.seed)
 
         def log(k, entry):
