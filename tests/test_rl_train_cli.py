@@ -228,3 +228,16 @@ def test_a_run_file_that_holds_its_rows_already_is_not_rewritten(tmp_path, monke
     monkeypatch.setattr(runs, "replace", lambda src, dst: renamed.append(dst) or os.replace(src, dst))
     assert not runs.write_json_if_changed(path, [{"step": 240, "reward": float("nan")}]) and renamed == []
     assert runs.write_json_if_changed(path, [*rows, {"step": 480, "reward": 1.0}]) and renamed == [path]
+
+
+def test_the_distributed_options_go_together():
+    """``--coordinator``, ``--num-processes`` and ``--process-id`` need ``--distributed``, the last two go together,
+    and the index lies in [0, N)."""
+    ok = rl_train.parse_args(["fourbar_track", "--distributed", "--coordinator", "127.0.0.1:1234",
+                              "--num-processes", "2", "--process-id", "1"])
+    assert (ok.distributed, ok.coordinator, ok.num_processes, ok.process_id) == (True, "127.0.0.1:1234", 2, 1)
+    assert rl_train.parse_args(["fourbar_track", "--distributed"]).num_processes is None  # the cluster's settings
+    for bad in (["--num-processes", "2", "--process-id", "0"], ["--distributed", "--num-processes", "2"],
+                ["--distributed", "--num-processes", "2", "--process-id", "2"]):
+        with pytest.raises(SystemExit):
+            rl_train.parse_args(["fourbar_track", *bad])

@@ -111,11 +111,81 @@ def latest_checkpoint(folder: Path) -> tuple[int, Path | None]:
 
 
 def stage_checkpoint(staging: Path, step: int, params: Any, config: Any) -> Path:
-    """Write the checkpoint of ``step`` under ``staging`` with Brax's writer; returns its folder."""
+    """Write the checkpoint of ``step`` under ``staging``; returns its folder.
+
+    In one process this is Brax's writer (``brax.training.agents.ppo.checkpoint.save``). Across processes
+    (``jax.process_count() > 1``, :mod:`kamino.envs.distributed`) only process 0 holds the parameters at a checkpoint:
+    Brax's PPO hands them over there alone. Brax's writer saves through orbax's default checkpointer, whose ``save``
+    waits at a barrier for every process, and the other processes never reach it; process 0 then writes the same
+    files alone (:func:`write_checkpoint_alone`)."""
+    import jax
+
+    if jax.process_count() > 1:
+        return write_checkpoint_alone(staging, step, params, config)
     from brax.training.agents.ppo import checkpoint as ppo_checkpoint
 
     ppo_checkpoint.save(staging, step, params, config)
     return staging / f"{step:012d}"
+
+
+def write_checkpoint_alone(staging: Path, step: int, params: Any, config: Any) -> Path:
+    """The files of Brax's PPO checkpoint writer, ``staging/<step>/``, written by this process without waiting for
+    any other: the parameters through an orbax checkpointer whose multiprocessing options name this process as the
+    only active one (orbax skips its barriers for a single active process), as host arrays in the containers orbax
+    gives Brax's writer (a dataclass's fields as a dict, a tuple as a list), and the network config as Brax writes
+    it (:func:`network_config_text`). Brax's loader reads it as it reads its own checkpoints."""
+    import jax
+    import numpy as np
+    from flax import serialization
+    from orbax import checkpoint as ocp
+
+    path = Path(staging) / f"{step:012d}"
+    path.mkdir(parents=True, exist_ok=True)
+    alone = ocp.options.MultiprocessingOptions(primary_host=jax.process_index(),
+                                                active_processes={jax.process_index()})
+    checkpointer = ocp.Checkpointer(ocp.PyTreeCheckpointHandler(multiprocessing_options=alone),
+                                    multiprocessing_options=alone)
+    # host copies: a device array of the multi-process runtime is process-local and orbax refuses it; a dataclass
+    # (Brax's UInt64 step count) turns its fields back into device arrays, hence its state dict
+    tree = jax.tree.map(np.asarray, [serialization.to_state_dict(p) for p in params])
+    checkpointer.save(path, args=ocp.args.PyTreeSave(tree, save_args=jax.tree.map(lambda _: ocp.SaveArgs(), tree)),
+                      force=True)
+    (path / NETWORK_CONFIG).write_text(network_config_text(config))
+    return path
+
+
+def network_config_text(config: Any) -> str:
+    """``ppo_network_config.json`` of the network config ``config`` (``ppo.checkpoint.network_config``'s
+    ``ConfigDict``) as Brax's checkpoint writer makes it: the activation and kernel initialisers by their names in
+    Brax's registries (``brax.training.networks.ACTIVATION``, ``KERNEL_INITIALIZER``), arrays as Python numbers
+    and lists, then ``ConfigDict.to_json_best_effort``. A function outside the registries raises ``ValueError``
+    (Brax's loader could not rebuild it)."""
+    import numpy as np
+    from brax.training import networks
+    from ml_collections import config_dict
+
+    def plain(value):
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return type(value)(plain(v) for v in value)
+        if hasattr(value, "ndim") and hasattr(value, "tolist"):
+            return np.asarray(value).tolist()
+        return value
+
+    data = config.to_dict()
+    factory = data["network_factory_kwargs"]
+    for key, registry in (("activation", networks.ACTIVATION),
+                          *((k, networks.KERNEL_INITIALIZER) for k in ("policy_network_kernel_init_fn",
+                                                                       "value_network_kernel_init_fn",
+                                                                       "q_network_kernel_init_fn",
+                                                                       "mean_kernel_init_fn"))):
+        fn = factory.get(key)
+        if callable(fn):
+            if fn.__name__ not in registry:
+                raise ValueError(f"network_config_text: {key} {fn.__name__!r} is not in Brax's registry")
+            factory[key] = fn.__name__
+    return config_dict.ConfigDict(plain(data)).to_json_best_effort()
 
 
 def save_checkpoint(folder: Path, step: int, params: Any, config: Any, record: dict | None = None) -> Path:
@@ -251,6 +321,6 @@ def key_values(items: list[str], flag: str) -> dict[str, Any]:
 
 __all__ = ["COMMIT_MARKER", "NETWORK_CONFIG", "RECORD", "RECORD_FILES", "RUN_FILES", "OptionError",
            "checkpoint_record", "clear_partial", "clear_run", "committed_checkpoints", "committed_record",
-           "is_checkpoint", "is_used", "key_values", "latest_checkpoint", "read_json",
-           "run_env", "run_folder", "run_task", "save_checkpoint", "write_json", "write_json_if_changed",
-           "write_text"]
+           "is_checkpoint", "is_used", "key_values", "latest_checkpoint", "network_config_text", "read_json",
+           "run_env", "run_folder", "run_task", "save_checkpoint", "write_checkpoint_alone", "write_json",
+           "write_json_if_changed", "write_text"]

@@ -3,6 +3,7 @@
 The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS``; ``--steps``, ``--num-envs``, ``--evals``,
 ``--seed`` and ``--set`` override them, ``--env`` the environment's keywords and ``--solver`` its ``SolverConfig``;
 ``--randomize`` trains with domain randomization (``kamino.envs.randomize``'s ranges, on either backend).
+``--distributed`` trains across processes and hosts (:mod:`kamino.envs.distributed`; process 0 writes the run folder).
 The run folder (``--out``, default ``scratch/rl/TASK``; its layout: :mod:`kamino.envs.runs`) gets a checkpoint
 after every evaluation. The evaluations come at fixed steps: every ``eval_every`` environment steps (Brax's epoch
 for the run's first ``--steps`` and ``--evals``, recorded in ``run.json``), up to ``--steps``. Running the same
@@ -155,18 +156,21 @@ def randomization_of(ranges: dict):
         raise OptionError(f"--randomize: {e} (the ranges: {', '.join(known)})") from None
 
 
-def _prepare_folder(out: Path, task: str, fresh: bool, overwrite: bool) -> None:
-    """Create ``out``; refuse a run of another task, or ``fresh`` into a used folder without ``overwrite``."""
+def _prepare_folder(out: Path, task: str, fresh: bool, overwrite: bool, write: bool = True) -> None:
+    """Create ``out``; refuse a run of another task, or ``fresh`` into a used folder without ``overwrite``.
+    ``write=False`` makes the checks only (the processes of a distributed run other than process 0)."""
     if fresh and runs.is_used(out):
         if not overwrite:
             raise OptionError(f"{out} already holds a run; pass --overwrite to replace it (its checkpoints and "
                              "curves are deleted), or choose another --out")
-        runs.clear_run(out)
-    recorded = runs.read_json(out / "run.json", {}).get("task")
+        if write:
+            runs.clear_run(out)
+    recorded = None if fresh and overwrite else runs.read_json(out / "run.json", {}).get("task")
     if recorded is not None and recorded != task:
         raise OptionError(f"{out} holds a run of {recorded!r}, not {task!r}; choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    runs.clear_partial(out / "checkpoints")
+    if write:
+        out.mkdir(parents=True, exist_ok=True)
+        runs.clear_partial(out / "checkpoints")
 
 
 def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BACKEND, steps: int | None = None,
@@ -203,7 +207,15 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     if walk_test and not hasattr(TASKS[task], "with_command"):
         raise OptionError(f"--walk-test needs a joystick task; {task} has no velocity command")
     out = Path(out if out is not None else Path("scratch") / "rl" / task).resolve()
-    _prepare_folder(out, task, fresh, overwrite)
+    # across processes (kamino.envs.distributed) process 0 owns the run folder: Brax's PPO evaluates, reports and
+    # hands over the parameters there only; the others check the options alike, wait until process 0 has prepared
+    # the folder, then read it (a resumed run's checkpoint) and write nothing
+    lead = jax.process_index() == 0
+    _prepare_folder(out, task, fresh, overwrite, write=lead)
+    if jax.process_count() > 1:
+        from kamino.envs.distributed import same_everywhere, synchronize
+
+        synchronize("kamino train: run folder prepared")
     cfg = task_config(task)
     overrides = {k: v for k, v in (("num_timesteps", steps), ("num_envs", num_envs), ("num_evals", evals),
                                    ("seed", seed)) if v is not None}
@@ -213,6 +225,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     paths = {key: out / name for key, name in runs.RECORD_FILES.items()}
 
     done, restore = runs.latest_checkpoint(ckpt_dir)
+    if jax.process_count() > 1:  # every process resumes the same checkpoint, or none does
+        same_everywhere(done, f"the newest checkpoint in {ckpt_dir} (its step; the run folder must be one that "
+                              "every process reads, a shared file system)")
     # the rows the committed checkpoints hold; rows a killed run wrote after its last checkpoint go
     record = runs.committed_record(out) if restore is not None else {key: [] for key in paths}
     curve, train_curve, walks = record["curve"], record["train_curve"], record["walk_tests"]
@@ -224,15 +239,17 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     # a resumed run keeps the environment it was trained with (env.json), a new one starts from the task's config
     env_kwargs = {**(runs.run_env(out, task) if restore else cfg["env"]), **env_overrides}
     environment = make(task, backend=backend, **env_kwargs)
-    runs.write_json(out / "run.json", {"task": task, "backend": backend, "eval_every": every})
-    runs.write_json(out / "env.json", env_kwargs)
-    for key, path in paths.items():  # the run files as the committed checkpoints hold them
-        if path.exists() or record[key]:
-            runs.write_json_if_changed(path, record[key])
+    if lead:
+        runs.write_json(out / "run.json", {"task": task, "backend": backend, "eval_every": every})
+        runs.write_json(out / "env.json", env_kwargs)
+        for key, path in paths.items():  # the run files as the committed checkpoints hold them
+            if path.exists() or record[key]:
+                runs.write_json_if_changed(path, record[key])
     if solver:
         config = environment.solver_config.replace(**solver)
         environment = make(task, backend=backend, solver_config=config, **env_kwargs)
     used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
+    progress = progress and lead
     if progress:
         print(f"{task}: backend {backend}, {used} device(s) {jax.devices()[0].platform}, "
               f"{environment.observation_size} observations, {environment.action_size} actions, policy "
@@ -328,6 +345,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     bar.close()
     wall = time.perf_counter() - start
 
+    if not lead:
+        return {"task": task, "process": jax.process_index(), "processes": jax.process_count(),
+                "wall_s_this_run": wall}
     if curve or train_curve:
         try:
             plot_curve(curve, out / "reward_curve.png", f"{task} (PPO, kamino {backend} backend)", train_curve)
@@ -343,7 +363,8 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         "wall_s_this_run": wall, "env_steps_per_s": last.get("training/sps"),
         "first_eval": first, "last_eval": last, "curve": curve, "train_curve": train_curve,
         "checkpoint": str(runs.latest_checkpoint(ckpt_dir)[1]), "walk_tests": walks,
-        "device": str(jax.devices()[0]), "device_count": used, "platform": platform.platform(),
+        "device": str(jax.devices()[0]), "device_count": used, "processes": jax.process_count(),
+        "platform": platform.platform(),
         "versions": {"kamino": kamino.__version__, "jax": jax.__version__, "brax": _version("brax"),
                      "python": platform.python_version()},
     }
@@ -421,6 +442,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--randomize", action="append", default=None, nargs="?", const="", metavar="KEY=(LOW,HIGH)",
                    help="train with domain randomization: a range of kamino.envs.randomize (mass_scale=(0.8,1.2), "
                         "gravity_scale=None, ...; repeatable); alone, randomize's default ranges")
+    group = p.add_argument_group("training across processes", "one process per host, each on its local devices "
+                                 "(jax.distributed); the same command on every host (docs/envs.md)")
+    group.add_argument("--distributed", action="store_true",
+                       help="start JAX's multi-process runtime; alone, it reads the cluster's settings (SLURM, Open "
+                            "MPI, JAX_COORDINATOR_ADDRESS)")
+    group.add_argument("--coordinator", metavar="HOST:PORT", help="process 0's address")
+    group.add_argument("--num-processes", type=int, metavar="N", help="the processes in all")
+    group.add_argument("--process-id", type=int, metavar="I", help="this process's index, 0 to N - 1")
     return p
 
 
@@ -447,12 +476,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(str(e))
     if args.overwrite and not args.fresh:
         p.error("--overwrite only goes with --fresh")
+    given = [o for o, v in (("--coordinator", args.coordinator), ("--num-processes", args.num_processes),
+                            ("--process-id", args.process_id)) if v is not None]
+    if given and not args.distributed:
+        p.error(f"{', '.join(given)} only go with --distributed")
+    if (args.num_processes is None) != (args.process_id is None):
+        p.error("--num-processes and --process-id go together")
+    if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
+        p.error(f"--process-id must be in [0, {args.num_processes}), got {args.process_id}")
     return args
 
 
 def main(argv: list[str] | None = None) -> int:
     """``kamino train ARGS``: returns the exit status."""
     args = parse_args(sys.argv[1:] if argv is None else argv)
+    if args.distributed:  # before any JAX computation
+        from kamino.envs.distributed import initialize
+
+        initialize(args.coordinator, args.num_processes, args.process_id)
     try:
         train(args.task, out=args.out, backend=args.backend, steps=args.steps, num_envs=args.num_envs,
               evals=args.evals, seed=args.seed, fresh=args.fresh, overwrite=args.overwrite,
