@@ -502,7 +502,6 @@ def test_warp_backend_env_matches_jax_under_jit_and_vmap(fourbar_warp, wrapped):
 _TWO_DEVICES = textwrap.dedent("""
     import jax
     assert jax.local_device_count() == 2, jax.devices()
-    own_put = getattr(jax, "device_put_replicated", None)  # before kamino.envs provides it where JAX lacks it
     from brax.training.agents.ppo import train as ppo
     from kamino.envs import FourbarTrack, brax_compat, randomize
     from kamino.envs.configs import ppo_kwargs
@@ -510,27 +509,24 @@ _TWO_DEVICES = textwrap.dedent("""
     kw = ppo_kwargs("fourbar_track", num_timesteps=640, num_evals=1, num_envs=8, batch_size=8, num_minibatches=4,
                     unroll_length=5, num_updates_per_batch=1, episode_length=20, num_eval_envs=4, run_evals=False,
                     randomization_fn=randomize(effort_limit_scale=(0.8, 1.2), gravity_scale=(0.9, 1.1)))
-    for backend in ("jax", "warp"):
-        # the JAX run places brax's training state with the replacement for JAX releases without
-        # jax.device_put_replicated (kamino/envs/brax_compat.py), under pmap; the Warp run with brax's own
-        put = brax_compat.device_put_replicated if backend == "jax" else own_put
-        if put is not None:
-            jax.device_put_replicated = put
-        make_policy, params, metrics = ppo.train(environment=FourbarTrack(reset_bank=16, backend=backend), **kw)
-        leaves = jax.tree.leaves(params)
-        assert all(bool(jax.numpy.all(jax.numpy.isfinite(x))) for x in leaves), backend
-        print("OK", backend, jax.local_device_count(), flush=True)
+    # brax's training state placed with the replacement for JAX releases without jax.device_put_replicated
+    # (kamino/envs/brax_compat.py), under pmap
+    jax.device_put_replicated = brax_compat.device_put_replicated
+    make_policy, params, metrics = ppo.train(environment=FourbarTrack(reset_bank=16, backend="jax"), **kw)
+    leaves = jax.tree.leaves(params)
+    assert all(bool(jax.numpy.all(jax.numpy.isfinite(x))) for x in leaves)
+    print("OK", "jax", jax.local_device_count(), flush=True)
 """)
 
 
-@pytest.mark.slow  # two PPO compiles on two devices (README.md, under the test command)
+@pytest.mark.slow  # a PPO compile on two devices (README.md, under the test command)
 def test_ppo_pmaps_over_two_host_devices():
     """brax's PPO pmaps over the local devices: two forced host devices (the XLA flag must be set before jax is
     imported, hence a subprocess), 4 environments per device with domain randomization (each device's environments
-    their own draws), on both backends in turn in one process (one start-up of jax, brax and Warp for both; the
-    Warp step runs on each device with that device's stepper:
-    kamino/warp_backend/jit.py; that it equals the unsharded step is test_sharding.py's). The JAX run places
-    brax's training state with ``brax_compat.device_put_replicated``, what JAX 0.11 (the lent GPUs) needs."""
+    their own draws), on the JAX backend. The run places brax's training state with
+    ``brax_compat.device_put_replicated``, what JAX 0.11 (the lent GPUs) needs. The Warp backend's run over two
+    devices of a process (each device with its own stepper: kamino/warp_backend/jit.py; that it equals the unsharded
+    step is test_sharding.py's) is tests/test_rl_distributed.py's, with randomization, two such processes."""
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     env["JAX_PLATFORMS"] = "cpu"
@@ -539,7 +535,7 @@ def test_ppo_pmaps_over_two_host_devices():
     out = subprocess.run([sys.executable, "-c", script], env=env, cwd=root, capture_output=True, text=True,
                          timeout=600, check=False)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-4000:]
-    assert "OK jax 2" in out.stdout and "OK warp 2" in out.stdout, out.stdout[-2000:]
+    assert "OK jax 2" in out.stdout, out.stdout[-2000:]
 
 
 def _outer_loops(jaxpr) -> list[list[str]]:
