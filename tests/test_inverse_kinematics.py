@@ -19,10 +19,25 @@ import pytest
 
 import kamino
 from kamino.bench.ik_convergence import FEET, foot_targets
+from kamino.envs.geometry import sole_offsets, support_points
 from kamino.hostmath import quat_to_matrix
 from kamino.spatial import rotate
 
 jax.config.update("jax_enable_x64", True)
+
+
+def test_sole_offsets_put_the_sole_point_under_the_foot():
+    """``sole_offsets``: at the reference pose each dr_legs foot's sole point is as low as the foot's lowest support
+    point (1e-9 m: rounding) and inside the footprint of its support points (x and y within their range)."""
+    robot = kamino.models.dr_legs()
+    pts, owner, _ = support_points(robot)
+    for name, offset in zip(FEET, sole_offsets(robot, FEET), strict=True):
+        b = robot.body_index(name)
+        R = quat_to_matrix(np.asarray(robot.body_q0[b, 3:], float))
+        world = robot.body_q0[b, :3] + pts[owner == b] @ R.T
+        sole = robot.body_q0[b, :3] + R @ offset
+        assert abs(sole[2] - world[:, 2].min()) <= 1e-9
+        assert np.all(sole[:2] >= world[:, :2].min(0)) and np.all(sole[:2] <= world[:, :2].max(0))
 
 
 def _closure(model, body_q) -> np.ndarray:
