@@ -33,8 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import kamino
-from kamino.envs.geometry import support_points
-from kamino.hostmath import quat_to_matrix
+from kamino.envs.geometry import sole_offsets
 from kamino.spatial import rotate
 
 FEET = ("l_foot", "r_foot")
@@ -51,19 +50,6 @@ def fixed_pelvis() -> kamino.Model:
     return kamino.load_mjcf(xml.replace(free, ""))
 
 
-def sole_offsets(robot: kamino.Model) -> np.ndarray:
-    """``[2, 3]`` each foot's sole point, the centre of its lowest support points at the reference pose, in the
-    foot's CoM frame."""
-    pts, bodies, _ = support_points(robot)
-    out = []
-    for name in FEET:
-        b = robot.body_index(name)
-        p = pts[bodies == b]
-        z = (p @ quat_to_matrix(np.asarray(robot.body_q0[b, 3:], float)).T)[:, 2]
-        out.append(p[z <= z.min() + 1e-9].mean(0))
-    return np.asarray(out)
-
-
 def sole_points(robot: kamino.Model, body_q, offsets) -> jax.Array:
     """``[..., 2, 3]`` the sole points of both feet from poses ``body_q`` ``[..., num_bodies, 7]`` of one world."""
     q = body_q[..., [robot.body_index(f) for f in FEET], :]
@@ -72,12 +58,13 @@ def sole_points(robot: kamino.Model, body_q, offsets) -> jax.Array:
 
 def gait(robot: kamino.Model, frames: int, stride: float = 0.12, height: float = 0.05):
     """The targets of one gait cycle of ``frames`` frames: sole positions ``[frames, 2, 3]`` and orientations
-    ``[frames, 2, 4]`` (the reference's), and the sole offsets ``[2, 3]``. Phase ``s = k / frames``; the left foot
-    swings for ``s < 1/2`` (``x`` from ``-stride/2`` to ``+stride/2`` about its reference, ``z`` up by
-    ``height (1 - cos 4 pi s) / 2``) and slides back along the ground for ``s >= 1/2``, both eased by
-    ``(1 - cos pi a) / 2`` (``a`` the progress through the phase: the foot stops at either end, so the commands have no
-    jump in rate for the servos to overshoot); the right foot half a cycle later."""
-    offsets = sole_offsets(robot)
+    ``[frames, 2, 4]`` (the reference's), and the sole offsets ``[2, 3]`` (``kamino.envs.geometry.sole_offsets``: the
+    centre of each foot's lowest support points). Phase ``s = k / frames``; the left foot swings for ``s < 1/2``
+    (``x`` from ``-stride/2`` to ``+stride/2`` about its reference, ``z`` up by ``height (1 - cos 4 pi s) / 2``) and
+    slides back along the ground for ``s >= 1/2``, both eased by ``(1 - cos pi a) / 2`` (``a`` the progress through
+    the phase: the foot stops at either end, so the commands have no jump in rate for the servos to overshoot); the
+    right foot half a cycle later."""
+    offsets = sole_offsets(robot, FEET)
     q0 = np.asarray(robot.body_q0, float)
     feet = [robot.body_index(f) for f in FEET]
     rest = np.asarray(sole_points(robot, jnp.asarray(q0), offsets))  # [2, 3]

@@ -18,45 +18,26 @@ import numpy as np
 import pytest
 
 import kamino
-from kamino.bench import fk_convergence
-from kamino.envs.geometry import support_points
+from kamino.bench.ik_convergence import FEET, foot_targets
+from kamino.envs.geometry import sole_offsets, support_points
 from kamino.hostmath import quat_to_matrix
 from kamino.spatial import rotate
 
 jax.config.update("jax_enable_x64", True)
 
-FEET = ("l_foot", "r_foot")
 
-
-def _sole_offsets(robot: kamino.Model) -> np.ndarray:
-    """``[2, 3]`` each foot's contact point (the centre of its lowest support points at the reference pose) in the
-    foot's CoM frame."""
-    pts, bodies, _ = support_points(robot)
-    out = []
-    for name in FEET:
-        b = robot.body_index(name)
-        p = pts[bodies == b]
-        z = (p @ quat_to_matrix(np.asarray(robot.body_q0[b, 3:], float)).T)[:, 2]
-        out.append(p[z <= z.min() + 1e-9].mean(0))
-    return np.asarray(out)
-
-
-def _foot_targets(num: int, seed: int):
-    """dr_legs replicated ``num`` times, its feet's contact-point positions and orientations at random actuated
-    positions within the actuators' ranges (``fk_convergence.random_actuated``) solved by forward kinematics with the
-    pelvis held at its reference pose, the contact-point offsets and that base pose."""
+def test_sole_offsets_put_the_sole_point_under_the_foot():
+    """``sole_offsets``: at the reference pose each dr_legs foot's sole point is as low as the foot's lowest support
+    point (1e-9 m: rounding) and inside the footprint of its support points (x and y within their range)."""
     robot = kamino.models.dr_legs()
-    model = kamino.replicate(robot, num)
-    samples = fk_convergence.random_actuated(robot, num, seed=seed)
-    base = np.asarray(robot.body_q0[0])
-    fk = kamino.forward_kinematics(model, actuated_positions=jnp.asarray(samples.reshape(-1)), base_pose=base,
-                                   dtype=jnp.float64)
-    assert np.all(np.asarray(fk.converged))
-    body_q = np.asarray(fk.body_q).reshape(num, robot.num_bodies, 7)[:, [robot.body_index(f) for f in FEET]]
-    offsets = _sole_offsets(robot)
-    pos = body_q[..., :3] + np.asarray(rotate(jnp.asarray(body_q[..., 3:]),
-                                              jnp.asarray(np.broadcast_to(offsets, body_q[..., :3].shape))))
-    return model, pos, body_q[..., 3:], offsets, base
+    pts, owner, _ = support_points(robot)
+    for name, offset in zip(FEET, sole_offsets(robot, FEET), strict=True):
+        b = robot.body_index(name)
+        R = quat_to_matrix(np.asarray(robot.body_q0[b, 3:], float))
+        world = robot.body_q0[b, :3] + pts[owner == b] @ R.T
+        sole = robot.body_q0[b, :3] + R @ offset
+        assert abs(sole[2] - world[:, 2].min()) <= 1e-9
+        assert np.all(sole[:2] >= world[:, :2].min(0)) and np.all(sole[:2] <= world[:, :2].max(0))
 
 
 def _closure(model, body_q) -> np.ndarray:
@@ -66,8 +47,8 @@ def _closure(model, body_q) -> np.ndarray:
 
 def test_dr_legs_foot_poses_from_forward_kinematics_are_reached():
     """Both feet's contact points and orientations (12 rows for the 12 actuated DoFs, pelvis pinned) at 16 random
-    reachable targets: every world converges (the 1000-target run in the report: >= 99 %)."""
-    model, pos, rot, offsets, base = _foot_targets(16, seed=5)
+    reachable targets: every world converges (``kamino bench ik_convergence`` runs 1000: docs/formulation.md §9)."""
+    model, pos, rot, offsets, base, _ = foot_targets(16, seed=5)
     ik = kamino.inverse_kinematics(model, FEET, pos, rot, offsets=offsets, base_pose=base, dtype=jnp.float64)
     converged = np.asarray(ik.converged)
     assert converged.all(), np.asarray(ik.target_error)[~converged]
@@ -86,7 +67,7 @@ def test_dr_legs_foot_positions_with_a_free_base():
     damping). 7 of these 8 worlds converge; the eighth ends at a joint limit with its loops open (closure 1.3e-2
     after 100 iterations, the active set and the merit trading one against the other) and says so: the flags are
     what the simulator's own constraint metric measures."""
-    model, pos, _, offsets, _ = _foot_targets(8, seed=6)
+    model, pos, _, offsets, _, _ = foot_targets(8, seed=6)
     ik = kamino.inverse_kinematics(model, FEET, pos, offsets=offsets, dtype=jnp.float64)
     converged = np.asarray(ik.converged)
     assert converged.sum() >= 7, np.asarray(ik.target_error)

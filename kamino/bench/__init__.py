@@ -13,7 +13,7 @@ import pathlib
 __all__ = ["MODULES", "SCENES_DIR", "scene_names", "scene_path"]
 
 MODULES = ("throughput", "convergence", "peers", "roofline", "memory_breakdown", "multi_device", "fk_convergence",
-           "time_to_first_step", "profile_step", "ppo_collect", "ppo_split")
+           "ik_convergence", "time_to_first_step", "profile_step", "ppo_collect", "ppo_split")
 """The benchmark modules ``kamino bench NAME`` runs, each with a ``main(argv, prog) -> int`` (beside them,
 :mod:`~kamino.bench.timed_window` holds the timing rule and :mod:`~kamino.bench.stress_models` the float32 stress
 models that these share)."""

@@ -7,7 +7,8 @@ An environment steps one world at a time inside ``jax.vmap``, so these read one 
 and height in its own frame) and ``kamino.body_contact_forces`` (the net contact force on each body).
 
 - :func:`body_frame_vectors`: a base body's frame (gravity direction, linear and angular velocity, height, up);
-- :func:`support_points`, :func:`ground_height`, :func:`place_on_ground`: a floating robot set down on the ground.
+- :func:`support_points`, :func:`ground_height`, :func:`place_on_ground`: a floating robot set down on the ground;
+- :func:`sole_offsets`: a foot's sole point, what a foot target of ``kamino.inverse_kinematics`` places.
 """
 
 from __future__ import annotations
@@ -58,6 +59,23 @@ def support_points(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.concatenate(pts), np.asarray(bodies, np.int32), np.asarray(radii)
 
 
+def sole_offsets(model: Model, bodies) -> np.ndarray:
+    """``[k, 3]`` each named body's sole point in its CoM frame (the frame of ``State.body_q``): the centre of the
+    body's lowest :func:`support_points` at the reference pose ``model.body_q0`` (a flat foot's contact point, the
+    point an inverse-kinematics foot target places: ``kamino.inverse_kinematics(..., offsets=)``). A body without
+    support points raises a ``ValueError``."""
+    pts, owner, _ = support_points(model)
+    out = []
+    for name in bodies:
+        b = model.body_index(name)
+        p = pts[owner == b]
+        if not len(p):
+            raise ValueError(f"sole_offsets: body {name!r} has no box, sphere or capsule geom")
+        z = (p @ host_quat_to_matrix(np.asarray(model.body_q0[b, 3:], float)).T)[:, 2]
+        out.append(p[z <= z.min() + 1e-9].mean(0))
+    return np.asarray(out)
+
+
 def ground_height(model: Model) -> float:
     """Height [m] of the ground: the highest world-attached PLANE geom of ``model`` (its normal is +z; 0 without
     one)."""
@@ -78,4 +96,4 @@ def place_on_ground(body_q: jax.Array, points: jax.Array, bodies: np.ndarray, ra
     return body_q.at[:, 2].add(height - lowest)
 
 
-__all__ = ["body_frame_vectors", "ground_height", "place_on_ground", "support_points"]
+__all__ = ["body_frame_vectors", "ground_height", "place_on_ground", "sole_offsets", "support_points"]

@@ -264,9 +264,9 @@ class IKSettings:
     """Inverse-kinematics settings (static under ``jit``): stop when the closure, the joint limits and the targets
     hold to ``tolerance``, or when a step moves no body by more than ``step_tolerance`` (a stationary point: an
     unreachable target), or after ``max_iterations``; ``regularization`` weighs ``|q - q_ref|^2 / 2``; ``damping`` is
-    the starting Levenberg-Marquardt ``mu`` (relative to ``1 + max diag A``; divided by 10 after a full step,
-    multiplied by 10 after a cut one); a step rotates no body by more than ``max_angle_step`` [rad] nor moves it by
-    more than ``max_translation_step`` [m] (scaled down as a whole)."""
+    the starting Levenberg-Marquardt ``mu`` (relative to ``1 + max diag A``; divided by 10 after a full step, kept
+    after a half step, multiplied by 10 after a shorter one or a failed line search); a step rotates no body by more
+    than ``max_angle_step`` [rad] nor moves it by more than ``max_translation_step`` [m] (scaled down as a whole)."""
 
     tolerance: float = 1e-6
     max_iterations: int = 100
@@ -422,8 +422,12 @@ def ik_world(pm: PaddedModel, tab: FKTables, q_init, q_ref, tg: IKTargets, base_
         q_new = jnp.where(accepted, cand[k], q)
         moved = alphas[k] * jnp.max(jnp.abs(delta), initial=0.0)
         done = accepted & _finished(cl[k], ov[k], eps_[k], ers[k])
-        # Levenberg-Marquardt update of the damping: down after a full step, up after a cut one
-        mu_new = jnp.clip(jnp.where(accepted & (alphas[k] >= 1.0), mu / 10.0, mu * 10.0), mu_min, _MU_MAX)
+        # Levenberg-Marquardt update of the damping: down after a full step, kept after a half step, up after a step
+        # cut further or none. Raising it after every cut step ratchets it up while the iteration restores a closure
+        # that a long step opened (half steps, several in a row): from float32's floor (1.2e-6) eight such steps reach
+        # the cap, where steps are too short to converge and the world stops at a failed line search
+        mu_new = jnp.clip(jnp.where(accepted & (alphas[k] >= 1.0), mu / 10.0,
+                                    jnp.where(accepted & (alphas[k] >= 0.5), mu, mu * 10.0)), mu_min, _MU_MAX)
         return q_new, it + 1.0, ~accepted & (mu >= _MU_MAX), accepted & (moved <= s.step_tolerance), done, mu_new
 
     def _finished(closure, over, ep, er):

@@ -25,33 +25,14 @@ import jax
 import numpy as np
 import warp as wp
 
+from kamino.parameters import PARAMETER_NAMES
 from kamino.warp_backend.model_data import WarpModel, model_struct
 from kamino.warp_backend.types import types_of
 
-
-class WorldParameters(NamedTuple):
-    """Physical parameters of every world, flat over worlds as in :class:`kamino.Model`.
-
-    Attributes:
-        body_mass: ``[num_bodies]`` [kg].
-        body_inertia: ``[num_bodies, 3, 3]`` about the CoM, body frame [kg m^2].
-        geom_friction: ``[num_geoms]`` Coulomb friction (a pair uses the larger of its two geoms').
-        dof_kp, dof_kd: ``[num_dofs]`` PD stiffness and damping of the implicit PD actuators.
-        dof_armature, dof_damping: ``[num_dofs]`` reflected inertia and passive viscous damping.
-        dof_effort_limit: ``[num_dofs]`` actuator effort bound (``inf``: none).
-        gravity: ``[num_worlds, 3]`` [m/s^2].
-    """
-
-    body_mass: jax.Array
-    body_inertia: jax.Array
-    geom_friction: jax.Array
-    dof_kp: jax.Array
-    dof_kd: jax.Array
-    dof_armature: jax.Array
-    dof_damping: jax.Array
-    dof_effort_limit: jax.Array
-    gravity: jax.Array
-
+WorldParameters = NamedTuple("WorldParameters", [(name, jax.Array) for name in PARAMETER_NAMES])
+WorldParameters.__doc__ = """Physical parameters of every world, flat over worlds as in :class:`kamino.Model`: a named
+tuple of the fields of :class:`kamino.parameters.PhysicalParameters` (masses, inertias, friction, PD gains, armature,
+damping, effort limits; ``gravity`` ``[num_worlds, 3]``)."""
 
 #: (WorldParameters field, ModelArrays field, Warp kind) of every parameter, in the traced step's argument order
 FIELDS = (
