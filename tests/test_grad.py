@@ -106,25 +106,38 @@ def test_implicit_grad_of_a_box_sliding_down_an_incline():
     assert abs(float(tangent) - float(g[0])) <= 1e-9 * abs(float(g[0])), (tangent, g)
 
 
-def test_implicit_grad_through_a_closed_loop():
+def test_implicit_grad_through_a_closed_loop_on_both_backends():
     """The four-bar (a planar loop: its out-of-plane rows are redundant, the natural map's Jacobian singular along
     them), damped hinges, swinging from rest for 0.08 s at the default config (curvature refinement: two chained
     roots per step; post-stabilisation): the gradient of a fixed random projection of the final poses and twists
     with respect to a crank effort held throughout, the coupler's mass and the crank hinge's damping matches
-    central differences to 1e-4 relative (the solves' error, 1e-10, over the step 1e-5)."""
+    central differences to 1e-4 relative (the solves' error, 1e-10, over the step 1e-5).
+
+    The Warp backend's gradient of the same rollout (its parameters through ``Simulator.step_with`` as
+    ``WorldParameters``; the reference's tangent at the Warp solution, kamino/warp_backend/jit.py) is the
+    reference's to 1e-6 relative: at ``tolerance = 1e-10`` the two backends' solutions, so their trajectories, agree
+    to about 1e-9, and the derivative moves by about that times the loop's condition. Under ``jax.vmap`` over two
+    inputs (one batched Warp call per step) each row is that input's gradient: the first the unbatched Warp one, to
+    rounding (1e-9: the same Warp solutions start the same reference solves), the second the reference's at it."""
     model = kamino.models.fourbar(damping=0.05)
-    sim = kamino.Simulator(model, kamino.SolverConfig(dt=0.01, tolerance=1e-10), backend="jax")
+    cfg = kamino.SolverConfig(dt=0.01, tolerance=1e-10)
+    sim, warp = (kamino.Simulator(model, cfg, backend=b) for b in ("jax", "warp"))
     pm, tables = sim.parameters(jnp.float64)
+    world = warp.parameters(jnp.float64)  # the Warp backend's WorldParameters, flat over worlds
     s0 = kamino.init_state(model)
     coupler = model.body_names.index("coupler")
     rng = np.random.default_rng(0)
     wq, wu = jnp.asarray(rng.standard_normal(s0.body_q.shape)), jnp.asarray(rng.standard_normal(s0.body_u.shape))
 
-    def readout(theta):
+    def readout(theta, backend="jax"):
         control = kamino.Control(dof_effort=jnp.zeros(model.num_dofs).at[0].set(theta[0]))
-        p = dataclasses.replace(pm, mass=pm.mass.at[0, coupler].multiply(1.0 + theta[1]),
-                                dof_damping=pm.dof_damping.at[0, 0].add(theta[2]))
-        sT = _rollout_with(sim, s0, control, (p, tables), 8)
+        if backend == "jax":
+            p = (dataclasses.replace(pm, mass=pm.mass.at[0, coupler].multiply(1.0 + theta[1]),
+                                     dof_damping=pm.dof_damping.at[0, 0].add(theta[2])), tables)
+        else:
+            p = world._replace(body_mass=world.body_mass.at[coupler].multiply(1.0 + theta[1]),
+                               dof_damping=world.dof_damping.at[0].add(theta[2]))
+        sT = _rollout_with(sim if backend == "jax" else warp, s0, control, p, 8)
         return jnp.sum(wq * sT.body_q) + 0.1 * jnp.sum(wu * sT.body_u)
 
     theta0 = jnp.zeros(3)
@@ -133,6 +146,16 @@ def test_implicit_grad_through_a_closed_loop():
     fd = _central_differences(value_and_grad, theta0, 1e-5)
     assert np.all(np.abs(fd) > 1e-3), fd  # every input moves the readout
     assert np.allclose(g, fd, rtol=1e-4, atol=0.0), (g, fd)
+
+    warp_grad = jax.grad(lambda t: readout(t, "warp"))
+    g_warp = np.asarray(jax.jit(warp_grad)(theta0))
+    assert np.allclose(g_warp, g, rtol=1e-6, atol=0.0), (g_warp, g)
+    theta1 = jnp.array([0.5, 0.2, 0.02])
+    batch = np.asarray(jax.jit(jax.vmap(warp_grad))(jnp.stack([theta0, theta1])))
+    assert np.allclose(batch[0], g_warp, rtol=1e-9, atol=0.0), (batch, g_warp)
+    g1 = np.asarray(value_and_grad(theta1)[1])
+    assert np.all(np.abs(g1 - g) > 1e-3 * np.abs(g)), (g1, g)  # another point: another gradient
+    assert np.allclose(batch[1], g1, rtol=1e-6, atol=0.0), (batch, g1)
 
 
 def test_stewart_platform_forward_kinematics_closes_its_loops():
@@ -157,48 +180,3 @@ def test_stewart_platform_forward_kinematics_closes_its_loops():
     assert abs(rise - 0.02 / np.cos(np.arctan2(0.1558, 0.45))) < 5e-4, rise
     assert np.allclose(np.asarray(lift.body_q[platform, 3:]), np.asarray(model.body_q0[platform, 3:]), atol=1e-6)
 
-
-def test_warp_gradient_is_the_reference_s_at_the_warp_solution():
-    """The Warp backend's derivative (``kamino/warp_backend/jit.py``: the reference's implicit tangent at the Warp
-    solution, docs/formulation.md §7.10): the four-bar swinging under a crank effort for 0.05 s, float64, a fixed
-    random projection of its final poses and twists differentiated with respect to the initial speed, a crank effort
-    held throughout and the coupler's mass (``Simulator.step_with`` with the Warp backend's ``WorldParameters``)
-    matches the JAX reference's gradient of the same rollout to 1e-6 relative: at ``tolerance = 1e-10`` the two
-    backends' solutions, so their trajectories, agree to about 1e-9 (3e-9 measured), and the derivative moves by
-    about that over the loop's condition. Under ``jax.vmap`` over a batch of two inputs (one batched Warp call per
-    step) the gradients are those of the inputs one by one, to rounding (1e-9 relative: the reference's solves
-    start from the same Warp solutions), and ``jax.jvp`` of the vmapped rollout is the gradient's projection."""
-    model = kamino.models.fourbar(damping=0.05)
-    cfg = kamino.SolverConfig(dt=0.01, tolerance=1e-10)
-    warp, ref = (kamino.Simulator(model, cfg, backend=b) for b in ("warp", "jax"))
-    s0 = warp.rollout(kamino.init_state(model),
-                      kamino.Control(dof_effort=jnp.ones((3, model.num_dofs))))  # moving: the speed matters
-    s0 = jax.tree.map(lambda x: x[-1], s0)
-    coupler = model.body_names.index("coupler")
-    rng = np.random.default_rng(0)
-    wq, wu = jnp.asarray(rng.standard_normal(s0.body_q.shape)), jnp.asarray(rng.standard_normal(s0.body_u.shape))
-    wp_params, (pm, tables) = warp.parameters(jnp.float64), ref.parameters(jnp.float64)
-
-    def readout(sim, theta):
-        control = kamino.Control(dof_effort=jnp.ones(model.num_dofs).at[0].add(theta[1]))
-        if sim is warp:
-            p = wp_params._replace(body_mass=wp_params.body_mass.at[coupler].multiply(1.0 + theta[2]))
-        else:
-            p = (dataclasses.replace(pm, mass=pm.mass.at[0, coupler].multiply(1.0 + theta[2])), tables)
-        sT = _rollout_with(sim, s0.replace(body_u=s0.body_u * (1.0 + theta[0])), control, p, 5)
-        return jnp.sum(wq * sT.body_q) + 0.1 * jnp.sum(wu * sT.body_u)
-
-    theta0 = jnp.zeros(3)
-    grads = jax.jit(lambda t: (jax.grad(lambda t: readout(warp, t))(t), jax.grad(lambda t: readout(ref, t))(t)))
-    g_warp, g_ref = (np.asarray(g) for g in grads(theta0))
-    assert np.all(np.abs(g_ref) > 1e-2), g_ref  # every input moves the readout
-    assert np.allclose(g_warp, g_ref, rtol=1e-6, atol=0.0), (g_warp, g_ref)
-
-    thetas = jnp.stack([theta0, jnp.array([0.1, -0.5, 0.2])])
-    batch = jax.jit(jax.vmap(jax.grad(lambda t: readout(warp, t))))(thetas)
-    one = np.asarray(jax.jit(jax.grad(lambda t: readout(warp, t)))(thetas[1]))
-    assert np.allclose(np.asarray(batch), np.stack([g_warp, one]), rtol=1e-9, atol=0.0), (batch, g_warp, one)
-    direction = jnp.array([1.0, -1.0, 0.5])
-    _, tangent = jax.jit(lambda t: jax.jvp(jax.vmap(lambda t: readout(warp, t)), (t,),
-                                           (jnp.stack([direction, direction]),)))(thetas)
-    assert np.allclose(np.asarray(tangent), np.asarray(batch) @ np.asarray(direction), rtol=1e-9), tangent
