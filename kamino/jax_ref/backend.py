@@ -184,15 +184,16 @@ class Engine:
         return _rollout_jit(lay.padded, lay.tables, state, controls, self.cfg, int(num_steps))
 
 
-#: the fields of a :class:`State` that warm-start the next step's solve (§7.8) and nothing else: the reactions, the
-#: contacts (matched by geom pair and point on geom b) and the penalty the solve starts from
+#: the reactions of a :class:`State` that warm-start the next step's solve (§7.8), and nothing else; the contacts'
+#: impulses and velocities and ``info.penalty`` do too (:func:`warm_started`)
 WARM_START_FIELDS = ("constraint_force", "coupling_force", "actuator_force", "passive_force", "limit_force")
 
 
 def warm_started(state: State, solution: State) -> State:
-    """``state`` with the warm start (:data:`WARM_START_FIELDS`, the contacts and ``info.penalty``) of ``solution``,
-    a step's output from ``state``: the step from the result holds every solve's warm start at that step's own
-    solution (the contacts it detects at ``state``'s poses match ``solution``'s, §7.8), so PADMM starts there."""
+    """``state`` with the warm start (:data:`WARM_START_FIELDS`, the contacts and ``info.penalty``) taken from
+    ``solution``, a step's output from ``state``: stepping the result again starts every solve at that step's
+    solution (the contacts it detects at ``state``'s poses are ``solution``'s, matched by geom pair and point on
+    geom b, §7.8)."""
     info = dataclasses.replace(state.info, penalty=solution.info.penalty)
     fields = {f: getattr(solution, f) for f in WARM_START_FIELDS}
     return dataclasses.replace(state, contacts=solution.contacts, info=info, **fields)
