@@ -280,8 +280,8 @@ class SolverConfig:
     costs)."""
     fixed_iterations: bool = False
     """run exactly ``max_iterations`` PADMM iterations with no early exit (``lax.fori_loop``); under ``jax.grad`` the
-    derivative is then the unrolled iterations' instead of the implicit one at the solution (docs/formulation.md
-    §7.10), which needs no such mode."""
+    JAX reference's derivative is then the unrolled iterations' instead of the implicit one at the solution
+    (docs/formulation.md §7.10), which needs no such mode; the Warp backend's is the implicit one either way."""
     redundant_limits: bool = False
     """fix ``lambda = 0`` up front on limit rows that are equivalent, modulo the bilateral rows, to another limit
     row with a smaller bias (all three hinge limits of a parallelogram loop); the solution is unchanged and PADMM

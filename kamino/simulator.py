@@ -52,9 +52,10 @@ def check_backend(backend, fn: str) -> None:
 class Simulator:
     """Steps the worlds of ``model`` with ``config`` (default :class:`SolverConfig`) on ``backend``: ``"warp"``
     (the default), the production backend in ``kamino/warp_backend`` (docs/warp_backend.md), on the GPU when there is
-    one, else on the CPU; or ``"jax"``, the reference in ``kamino/jax_ref``, which is differentiable (``jax.grad`` and
+    one, else on the CPU; or ``"jax"``, the reference in ``kamino/jax_ref``. Both are differentiable (``jax.grad`` and
     ``jax.jvp`` at any configuration, by the implicit function theorem at each solve's solution: docs/formulation.md
-    §7.10) and takes traced model parameters (:meth:`step_with`)::
+    §7.10; the Warp step's derivative is the reference's at the Warp solution) and take traced model parameters
+    (:meth:`step_with`)::
 
         sim = kamino.Simulator(kamino.models.fourbar(), backend="warp")
         state = sim.step(kamino.init_state(sim.model))
@@ -103,7 +104,8 @@ class Simulator:
         """Advance every world by ``config.dt``; returns a new :class:`State` (inputs are not mutated).
 
         ``control`` holds one step's inputs (arrays flat over all worlds, no time axis). Works under ``jax.jit``,
-        ``lax.scan`` and ``vmap`` on both backends; gradients need ``backend="jax"``. A state whose worlds are sharded
+        ``lax.scan``, ``vmap``, ``jax.grad`` and ``jax.jvp`` on both backends (the Warp step's derivative is the JAX
+        reference's at the Warp solution: docs/formulation.md §7.10). A state whose worlds are sharded
         over devices (``kamino.sharding.shard_worlds``) is stepped on each device in place."""
         check_state(self._model, state, "step")
         check_control(self._model, control)
@@ -127,27 +129,30 @@ class Simulator:
         return bind(self._engine.rollout(state, controls, num_steps), key)
 
     def parameters(self, dtype):
-        """``(padded model, layout tables)``: the JAX reference's arrays in ``dtype`` that every step reads (the
-        padded model, ``kamino.jax_ref.types.PaddedModel``, holds the physical parameters). :meth:`step_with` steps
-        with a copy whose arrays a caller has replaced, traced per environment (``kamino.envs``' domain
-        randomization)."""
-        self._require_jax("parameters")
+        """The physical parameters that every step reads, in ``dtype``, for :meth:`step_with` to take with arrays a
+        caller has replaced (traced per environment: ``kamino.envs``' domain randomization; or differentiated). On
+        the JAX reference ``(padded model, layout tables)`` (the padded model, ``kamino.jax_ref.types.PaddedModel``,
+        holds the physical parameters); on the Warp backend a ``kamino.warp_backend.parameters.WorldParameters``
+        (masses, inertias, friction, gains, armature, damping, effort limits, flat over worlds, and gravity)."""
+        if self._backend == "warp":
+            from kamino.warp_backend.parameters import nominal
+
+            return nominal(self._model, dtype)
         return self._engine.parameters(dtype)
 
     def step_with(self, parameters, state: State, control: Control | None = None) -> State:
         """:meth:`step` with ``parameters`` (a :meth:`parameters` pytree, its arrays possibly traced) in place of the
-        model's own. The control's shapes are checked (at trace time: a ``[num_worlds]`` array where ``[num_dofs]``
-        belongs would otherwise be read with clamped indices); the rest is unchecked: it runs inside an environment's
-        traced step."""
-        self._require_jax("step_with")
+        model's own; ``jax.grad`` differentiates with respect to them on both backends. The control's shapes are
+        checked (at trace time: a ``[num_worlds]`` array where ``[num_dofs]`` belongs would otherwise be read with
+        clamped indices); the rest is unchecked: it runs inside an environment's traced step."""
         check_control(self._model, control)
-        return bind(self._engine.step(bind(state, None), control, parameters), state.model_fingerprint)
+        if self._backend == "warp":
+            from kamino.warp_backend.parameters import WorldParameters
 
-    def _require_jax(self, fn: str) -> None:
-        if self._backend != "jax":
-            raise ValueError(f"Simulator.{fn}: a padded model's parameters per call need backend='jax'; the Warp "
-                             "backend takes per-world masses, gains, friction and gravity as WorldParameters "
-                             "(kamino.warp_backend.parameters), as the environments' randomization does")
+            if not isinstance(parameters, WorldParameters):
+                raise TypeError(f"Simulator.step_with: the Warp backend takes a WorldParameters "
+                                f"(Simulator.parameters), got {type(parameters).__name__}")
+        return bind(self._engine.step(bind(state, None), control, parameters), state.model_fingerprint)
 
     def _sharded_program(self, fn: str, sharding, num_steps: int | None):
         """The jitted sharded step or rollout for ``sharding`` (``(mesh, axis)``), built once: every device's block

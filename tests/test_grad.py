@@ -106,25 +106,37 @@ def test_implicit_grad_of_a_box_sliding_down_an_incline():
     assert abs(float(tangent) - float(g[0])) <= 1e-9 * abs(float(g[0])), (tangent, g)
 
 
-def test_implicit_grad_through_a_closed_loop():
+def test_implicit_grad_through_a_closed_loop_on_both_backends():
     """The four-bar (a planar loop: its out-of-plane rows are redundant, the natural map's Jacobian singular along
     them), damped hinges, swinging from rest for 0.08 s at the default config (curvature refinement: two chained
     roots per step; post-stabilisation): the gradient of a fixed random projection of the final poses and twists
     with respect to a crank effort held throughout, the coupler's mass and the crank hinge's damping matches
-    central differences to 1e-4 relative (the solves' error, 1e-10, over the step 1e-5)."""
+    central differences to 1e-4 relative (the solves' error, 1e-10, over the step 1e-5).
+
+    The Warp backend's gradient of the same rollout (its parameters through ``Simulator.step_with`` as
+    ``WorldParameters``; the reference's tangent at the Warp solution, kamino/warp_backend/jit.py) is the
+    reference's to 1e-6 relative: at ``tolerance = 1e-10`` the two backends' solutions, so their trajectories, agree
+    to about 1e-9, and the derivative moves by about that times the loop's condition (tests/test_simulator.py
+    differentiates the Warp step under ``vmap``)."""
     model = kamino.models.fourbar(damping=0.05)
-    sim = kamino.Simulator(model, kamino.SolverConfig(dt=0.01, tolerance=1e-10), backend="jax")
+    cfg = kamino.SolverConfig(dt=0.01, tolerance=1e-10)
+    sim, warp = (kamino.Simulator(model, cfg, backend=b) for b in ("jax", "warp"))
     pm, tables = sim.parameters(jnp.float64)
+    world = warp.parameters(jnp.float64)  # the Warp backend's WorldParameters, flat over worlds
     s0 = kamino.init_state(model)
     coupler = model.body_names.index("coupler")
     rng = np.random.default_rng(0)
     wq, wu = jnp.asarray(rng.standard_normal(s0.body_q.shape)), jnp.asarray(rng.standard_normal(s0.body_u.shape))
 
-    def readout(theta):
+    def readout(theta, backend="jax"):
         control = kamino.Control(dof_effort=jnp.zeros(model.num_dofs).at[0].set(theta[0]))
-        p = dataclasses.replace(pm, mass=pm.mass.at[0, coupler].multiply(1.0 + theta[1]),
-                                dof_damping=pm.dof_damping.at[0, 0].add(theta[2]))
-        sT = _rollout_with(sim, s0, control, (p, tables), 8)
+        if backend == "jax":
+            p = (dataclasses.replace(pm, mass=pm.mass.at[0, coupler].multiply(1.0 + theta[1]),
+                                     dof_damping=pm.dof_damping.at[0, 0].add(theta[2])), tables)
+        else:
+            p = world._replace(body_mass=world.body_mass.at[coupler].multiply(1.0 + theta[1]),
+                               dof_damping=world.dof_damping.at[0].add(theta[2]))
+        sT = _rollout_with(sim if backend == "jax" else warp, s0, control, p, 8)
         return jnp.sum(wq * sT.body_q) + 0.1 * jnp.sum(wu * sT.body_u)
 
     theta0 = jnp.zeros(3)
@@ -133,6 +145,10 @@ def test_implicit_grad_through_a_closed_loop():
     fd = _central_differences(value_and_grad, theta0, 1e-5)
     assert np.all(np.abs(fd) > 1e-3), fd  # every input moves the readout
     assert np.allclose(g, fd, rtol=1e-4, atol=0.0), (g, fd)
+
+    warp_grad = jax.grad(lambda t: readout(t, "warp"))
+    g_warp = np.asarray(jax.jit(warp_grad)(theta0))
+    assert np.allclose(g_warp, g, rtol=1e-6, atol=0.0), (g_warp, g)
 
 
 def test_stewart_platform_forward_kinematics_closes_its_loops():
@@ -156,3 +172,4 @@ def test_stewart_platform_forward_kinematics_closes_its_loops():
     rise = float(lift.body_q[platform, 2] - model.body_q0[platform, 2])
     assert abs(rise - 0.02 / np.cos(np.arctan2(0.1558, 0.45))) < 5e-4, rise
     assert np.allclose(np.asarray(lift.body_q[platform, 3:]), np.asarray(model.body_q0[platform, 3:]), atol=1e-6)
+

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import threading
 
@@ -22,7 +23,16 @@ from kamino.jax_ref.jacobians import (
 from kamino.jax_ref.pipeline import step_batch
 from kamino.jax_ref.precision import full_precision
 from kamino.jax_ref.rows import WorldControl
-from kamino.jax_ref.types import Layout, PaddedModel, WorldCache, build_layout, layout_of, to_flat, to_padded
+from kamino.jax_ref.types import (
+    Layout,
+    PaddedModel,
+    WorldCache,
+    _pad_index,
+    build_layout,
+    layout_of,
+    to_flat,
+    to_padded,
+)
 from kamino.model import RES_TRANS, Model
 from kamino.state import ContactState, Control, State, StepInfo
 
@@ -172,6 +182,66 @@ class Engine:
     def rollout(self, state: State, controls: Control | None, num_steps: int) -> State:
         lay = self.layout(state.body_q.dtype)
         return _rollout_jit(lay.padded, lay.tables, state, controls, self.cfg, int(num_steps))
+
+
+#: the reactions of a :class:`State` that warm-start the next step's solve (§7.8), and nothing else; the contacts'
+#: impulses and velocities and ``info.penalty`` do too (:func:`warm_started`)
+WARM_START_FIELDS = ("constraint_force", "coupling_force", "actuator_force", "passive_force", "limit_force")
+
+
+def warm_started(state: State, solution: State) -> State:
+    """``state`` with the warm start (:data:`WARM_START_FIELDS`, the contacts and ``info.penalty``) taken from
+    ``solution``, a step's output from ``state``: stepping the result again starts every solve at that step's
+    solution (the contacts it detects at ``state``'s poses are ``solution``'s, matched by geom pair and point on
+    geom b, §7.8)."""
+    info = dataclasses.replace(state.info, penalty=solution.info.penalty)
+    fields = {f: getattr(solution, f) for f in WARM_START_FIELDS}
+    return dataclasses.replace(state, contacts=solution.contacts, info=info, **fields)
+
+
+def with_world_parameters(model: Model, pm: PaddedModel, parameters) -> PaddedModel:
+    """``pm`` (the padded ``model``) with the per-world parameters ``parameters`` written in: a
+    ``kamino.warp_backend.parameters.WorldParameters`` (masses, inertias, friction, PD gains, armature, damping,
+    effort limits, flat over worlds as in :class:`Model`, and gravity ``[num_worlds, 3]``), possibly traced. The
+    padding keeps ``pm``'s values."""
+    W = model.num_worlds
+    lay = layout_of(model, pm.mass.dtype)
+    gg, gmask, _ = _pad_index(model.world_geom_start, model.world_geom_count, pm.geom_friction.shape[1])
+    dtype = pm.mass.dtype
+
+    def put(current, flat, gather, mask):
+        value = to_padded(jnp.asarray(flat, dtype), gather, mask, 0.0)
+        m = np.asarray(mask).reshape(mask.shape + (1,) * (value.ndim - mask.ndim))
+        return jnp.where(m, value, current)
+
+    p = parameters
+    body = lambda cur, x: put(cur, x, lay.body_gather, np.asarray(pm.body_mask))  # noqa: E731
+    dof = lambda cur, x: put(cur, x, lay.dof_gather, np.asarray(pm.dof_mask))  # noqa: E731
+    return dataclasses.replace(
+        pm, mass=body(pm.mass, p.body_mass), inertia=body(pm.inertia, p.body_inertia),
+        geom_friction=put(pm.geom_friction, p.geom_friction, gg, gmask),
+        dof_kp=dof(pm.dof_kp, p.dof_kp), dof_kd=dof(pm.dof_kd, p.dof_kd),
+        dof_armature=dof(pm.dof_armature, p.dof_armature), dof_damping=dof(pm.dof_damping, p.dof_damping),
+        dof_effort_limit=dof(pm.dof_effort_limit, p.dof_effort_limit),
+        gravity=jnp.asarray(p.gravity, dtype).reshape(W, 3))
+
+
+def tangent_at(engine: Engine, solution: State, primals: tuple, tangents: tuple) -> State:
+    """The tangent of the step at ``primals = (state, control, parameters)`` along ``tangents``, by this reference
+    (:meth:`Engine.step`, its solves differentiated at their solutions: docs/formulation.md §7.10), with every solve
+    warm-started from ``solution`` (:func:`warm_started`): another backend's output of the same step, which the
+    reference's PADMM then starts from and, converging within ``engine.cfg.tolerance`` of it, differentiates there.
+    ``parameters`` is ``None`` or a ``WorldParameters`` (:func:`with_world_parameters`). The warm start's own
+    tangents are dropped (the solution does not depend on the warm start)."""
+    state, control, parameters = primals
+
+    def step(state, control, parameters):
+        pm, tables = engine.parameters(state.body_q.dtype)
+        if parameters is not None:
+            pm = with_world_parameters(engine.model, pm, parameters)
+        return step_padded(pm, tables, warm_started(state, solution), control, engine.cfg)
+
+    return jax.jvp(step, (state, control, parameters), tangents)[1]
 
 
 def padded_motion(pm: PaddedModel, t: dict, body_q: jax.Array, body_u: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -60,6 +60,7 @@ class Engine:
         self._steppers: dict = {}
         self._traced: dict = {}
         self._replicas: dict[int, Engine] = {}
+        self._reference = None
         self._lock = threading.RLock()
 
     def __del__(self, _lock=CUDA_STREAM_LOCK) -> None:
@@ -93,6 +94,17 @@ class Engine:
             if copies not in self._replicas:
                 self._replicas[copies] = Engine(replicate(self.model, copies), self.cfg, self.padmm)
             return self._replicas[copies]
+
+    def reference(self):
+        """The JAX reference's engine (``kamino.jax_ref.backend.Engine``) of this model and configuration, built once,
+        with ``fixed_iterations`` off: the traced step's derivative is its implicit one at this backend's solution
+        (:func:`~kamino.warp_backend.jit.batchable_step`)."""
+        with self._lock:
+            if self._reference is None:
+                from kamino.jax_ref.backend import Engine as Reference
+
+                self._reference = Reference(self.model, self.cfg.replace(fixed_iterations=False))
+            return self._reference
 
     def traced_step(self, np_dtype):
         """The step called with traced arrays (inside ``jax.jit``, ``lax.scan``, ``vmap``), built once per

@@ -129,8 +129,17 @@ def batchable_step(engine, np_dtype, device: str):
     ``[B, n, ...]`` array to ``[B * n, ...]`` (the parameters too: ``gravity`` is ``[num_worlds, 3]``, so a batch of
     environments gives each replica world its own), makes one call for all ``B * N`` worlds with the replica's engine
     (``engine.replica(B)``) and reshapes back; an unbatched array (a parameter the randomization leaves alone) is
-    broadcast first. Nested ``vmap`` recurses through the replica's own function. The step has no derivatives:
-    differentiating it raises a ``NotImplementedError`` that names ``backend="jax"``."""
+    broadcast first. Nested ``vmap`` recurses through the replica's own function.
+
+    Derivatives (``jax.jvp``, ``jax.grad``; docs/formulation.md §7.10, "The Warp backend's derivative"): the step is a
+    ``jax.custom_jvp`` whose value is the Warp step's and whose tangent is the JAX reference's implicit one at the
+    Warp solution: the reference's step (``engine.reference()``, the same model and configuration) linearised at the
+    same inputs, with its solves warm-started from this step's output (:func:`kamino.jax_ref.backend.tangent_at`), so
+    that its PADMM starts at the Warp solution and stops within ``tolerance`` of it, in a few iterations. Reverse mode
+    transposes that linear map (the reference's tangent solve is a matrix product). The ``custom_jvp`` wraps the
+    ``custom_vmap``: under ``vmap`` of ``jvp`` or ``jvp`` of ``vmap`` the value is one batched Warp call and the
+    tangent the reference's step vmapped over the batch. Integer and boolean inputs and outputs have ``float0``
+    tangents."""
     model = engine.model
 
     def stepper_on(parameters: bool):
@@ -141,9 +150,11 @@ def batchable_step(engine, np_dtype, device: str):
         return batched(state, control, parameters)
 
     @step.defjvp
-    def no_gradient(primals, tangents):
-        raise NotImplementedError("kamino's Warp backend has no derivatives: differentiate the step with "
-                                  "backend='jax' (kamino.Simulator(model, config, backend='jax'))")
+    def reference_tangent(primals, tangents):
+        from kamino.jax_ref.backend import tangent_at  # the JAX reference is imported on first use
+
+        out = batched(*primals)
+        return out, tangent_at(engine.reference(), out, primals, tangents)
 
     @jax.custom_batching.custom_vmap
     def batched(state: State, control: Control | None, parameters: WorldParameters | None) -> State:

@@ -52,6 +52,17 @@ def shapes(num_bodies: int, num_geoms: int, num_dofs: int, num_worlds: int) -> d
             "gravity": (num_worlds, 3)}
 
 
+def nominal(model, dtype) -> WorldParameters:
+    """The parameters of ``model`` itself (a :class:`kamino.Model`) in ``dtype``: what a traced step with
+    ``parameters=None`` reads."""
+    f = lambda a: jax.numpy.asarray(np.asarray(a, np.float64), dtype)  # noqa: E731
+    return WorldParameters(
+        body_mass=f(model.body_mass), body_inertia=f(model.body_inertia), geom_friction=f(model.geom_friction),
+        dof_kp=f(model.dof_kp), dof_kd=f(model.dof_kd), dof_armature=f(model.dof_armature),
+        dof_damping=f(model.dof_damping), dof_effort_limit=f(model.dof_effort_limit),
+        gravity=f(np.reshape(model.gravity, (model.num_worlds, 3))))
+
+
 def private_parameters(wm: WarpModel) -> WarpModel:
     """``wm`` with its own copies of the parameter arrays (:data:`FIELDS` and :data:`DERIVED`) and every other
     model array shared: a stepper that loads per-world parameters leaves the engine's other steppers nominal."""
@@ -109,4 +120,4 @@ def load_parameters(arrays, np_dtype, device, given: dict) -> None:
         wp.launch(_load_kernel(np.dtype(np_dtype)), dim=n, inputs=ins, outputs=outs, device=device)
 
 
-__all__ = ["DERIVED", "FIELDS", "WorldParameters", "load_parameters", "private_parameters", "shapes"]
+__all__ = ["DERIVED", "FIELDS", "WorldParameters", "load_parameters", "nominal", "private_parameters", "shapes"]
