@@ -33,7 +33,7 @@ The script prints the objective of the best and the median candidate before and 
 on the 2-core CPU machine (float32, 16 candidates, 150 steps at the default step size of 1 cm): best 54.7 -> 0.45 mm,
 median 140.5 -> 10.0 mm, in 286 s (57 s of them tracing and compiling the first gradient); the best design, ground
 0.1996, crank 0.1000, coupler 0.2424, rocker 0.2381, u 0.5001, w 0.0192 m, is next to Hoeken's. At 5 mm: best 2.1 mm,
-median 15.6 mm. On an NVIDIA H200 (2026-11-30, jax 0.11.2, float32, ``--candidates 4096 --steps 20 --remat``): best
+median 15.6 mm. On an NVIDIA H200 (jax 0.11.2, float32, ``--candidates 4096 --steps 20 --remat``): best
 12.8 -> 2.5 mm, median 191.7 -> 55.8 mm, in 96 s (the first evaluation, which compiles, 45 s; 2.4 s each after it,
 1.85e5 world-steps/s forward and reverse).
 The gradient goes through a fixed number of solver iterations per step (:func:`design_config`, the unrolled gradient,
