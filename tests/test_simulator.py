@@ -120,8 +120,7 @@ def test_the_warp_backend_differentiates_a_step(fourbar):
     matches central differences of the same batched step, step 0.1 N, to 1e-8 relative (8e-12 measured: one step is
     nearly linear in the push, and the solves' error, 1e-10 m/s, moves x by 4e-13 m against the 8e-7 m of the
     difference), and is nonzero: the push moves the loop. In the gpu tier: on the CPU of a CI worker the batched
-    Warp call after the derivative's program once stopped inside XLA's execution (not understood; the closed-loop
-    rollout of tests/test_grad.py differentiates the Warp backend on the CPU)."""
+    Warp call after the derivative's program once stopped inside XLA's execution (not understood)."""
     state = kamino.init_state(fourbar)
     warp = kamino.Simulator(fourbar, kamino.SolverConfig(tolerance=1e-10), backend="warp")
 
