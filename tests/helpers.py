@@ -6,6 +6,7 @@ import dataclasses
 import os
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -148,3 +149,20 @@ def backends(*, xfail_cr: str | None = None) -> list:
         marks = [pytest.mark.xfail(strict=True, reason=xfail_cr)] if (xfail_cr and v.is_cr) else []
         out.append(variant_param(v, marks=tuple(marks)))
     return out
+
+
+def spinning_chain(model: kamino.Model, state: kamino.State, rates: tuple[float, ...]) -> kamino.State:
+    """``state`` with the first ``len(rates)`` bodies, a ``serial_chain`` from the world's pivot, turning about
+    their hinges (world y) at ``rates`` [rad/s], the joints' velocity constraints met."""
+    q, u = np.asarray(state.body_q), np.array(state.body_u)
+    anchor, v_anchor = q[0, :3] - np.array([0.05, 0.0, 0.0]), np.zeros(3)  # the pivot, half a link before link 0
+    for k, rate in enumerate(rates):
+        w = np.array([0.0, rate, 0.0])
+        u[k, :3], u[k, 3:] = v_anchor + np.cross(w, q[k, :3] - anchor), w
+        v_anchor = v_anchor + np.cross(w, 2.0 * (q[k, :3] - anchor))
+        anchor = 2.0 * q[k, :3] - anchor
+    return state.replace(body_u=jnp.asarray(u, state.body_u.dtype))
+
+
+#: a 4-link chain whose links turn at up to 200 rad/s relative to each other (0.8 rad per step at the default dt)
+SPIN_RATES = (0.0, 100.0, -150.0, 200.0)

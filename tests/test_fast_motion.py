@@ -38,7 +38,7 @@ import warp as wp
 
 import kamino
 from kamino.bench.stress_models import serial_chain
-from tests.helpers import JAX, JAX_GPU_TIER, WARP_SPARSE_LLT
+from tests.helpers import JAX, JAX_GPU_TIER, SPIN_RATES, WARP_SPARSE_LLT, spinning_chain
 
 jax.config.update("jax_enable_x64", True)
 
@@ -128,21 +128,6 @@ def test_whipping_chain_stays_closed_at_the_default_dt(variant, config):
     assert gap.max() <= GAP_BOUND, (gap.max(), int(gap.argmax()))
 
 
-def _spinning_chain(model: kamino.Model, state: kamino.State, rates: tuple[float, ...]) -> kamino.State:
-    """``state`` with the first ``len(rates)`` bodies, a ``serial_chain`` from the world's pivot, turning about
-    their hinges (world y) at ``rates`` [rad/s], the joints' velocity constraints met."""
-    q, u = np.asarray(state.body_q), np.array(state.body_u)
-    anchor, v_anchor = q[0, :3] - np.array([0.05, 0.0, 0.0]), np.zeros(3)  # the pivot, half a link before link 0
-    for k, rate in enumerate(rates):
-        w = np.array([0.0, rate, 0.0])
-        u[k, :3], u[k, 3:] = v_anchor + np.cross(w, q[k, :3] - anchor), w
-        v_anchor = v_anchor + np.cross(w, 2.0 * (q[k, :3] - anchor))
-        anchor = 2.0 * q[k, :3] - anchor
-    return state.replace(body_u=jnp.asarray(u, state.body_u.dtype))
-
-
-#: a 4-link chain whose links turn at up to 200 rad/s relative to each other (0.8 rad per step at DT)
-SPIN_RATES = (0.0, 100.0, -150.0, 200.0)
 
 
 def test_gauss_newton_passes_close_a_fast_chain_in_its_own_world_only():
@@ -162,10 +147,10 @@ def test_gauss_newton_passes_close_a_fast_chain_in_its_own_world_only():
         assert not bool(np.any(traj.info.failed)) and bool(np.all(traj.info.converged))
         return traj
 
-    alone = run(chain, _spinning_chain(chain, kamino.init_state(chain), SPIN_RATES))
+    alone = run(chain, spinning_chain(chain, kamino.init_state(chain), SPIN_RATES))
     gap = np.asarray(kamino.metrics(chain, alone)["anchor_gap"])[:, 0]
     assert gap.max() <= REPROJECTION_GAP, gap
-    both = run(mixed, _spinning_chain(mixed, kamino.init_state(mixed), SPIN_RATES))
+    both = run(mixed, spinning_chain(mixed, kamino.init_state(mixed), SPIN_RATES))
     n = chain.num_bodies
     np.testing.assert_array_equal(np.asarray(both.body_q)[:, :n], np.asarray(alone.body_q))
     np.testing.assert_array_equal(np.asarray(both.body_q)[:, n:],

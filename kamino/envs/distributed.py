@@ -40,7 +40,8 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
         raise ValueError(f"kamino.envs.distributed.initialize: process_id must be in [0, {num_processes}), "
                          f"got {process_id}")
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    jax.config.update("jax_pmap_shmap_merge", False)
+    if "jax_pmap_shmap_merge" in jax.config.values:  # the JAX releases that still have it
+        jax.config.update("jax_pmap_shmap_merge", False)
     explicit = None not in (coordinator, num_processes, process_id)
     jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id,
                                cluster_detection_method="deactivate" if explicit else None)

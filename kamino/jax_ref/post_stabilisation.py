@@ -87,10 +87,11 @@ def projector(J: jax.Array, D: jax.Array, P: jax.Array, n_fixed: int, bounded: j
 
 def fixed_row_residual(pm: PaddedModel, q: jax.Array, delta) -> jax.Array:
     """``e(q)`` of the always-active rows in row order (zero on the joint-dynamics rows), with the joint
-    dead band ``delta`` (errors below it are rounding noise on redundant rows, as for the bias)."""
+    dead band ``delta`` (errors below it are rounding noise on redundant rows, as for the bias; ``None``: none)."""
+    band = (lambda x: x) if delta is None else (lambda x: deadband(x, delta))
     jf = joint_frames(pm, q)
-    e_kin = jnp.where(pm.row_mask, deadband(constraint_residual(pm, jf), delta), 0.0)
-    e_cpl = jnp.where(pm.cpl_mask, deadband(coupling_residual(pm, dof_positions(pm, jf)), delta), 0.0)
+    e_kin = jnp.where(pm.row_mask, band(constraint_residual(pm, jf)), 0.0)
+    e_cpl = jnp.where(pm.cpl_mask, band(coupling_residual(pm, dof_positions(pm, jf))), 0.0)
     return jnp.concatenate([jnp.zeros(pm.dyn_mask.shape[0], q.dtype), e_kin, e_cpl])
 
 
@@ -108,15 +109,12 @@ def project(pm: PaddedModel, q: jax.Array, proj: Projector, cfg: SolverConfig, c
     an anchor gap above ``REPROJECTION_GAP`` (:func:`anchors_open`); then, where that extra pass found the anchors
     open, up to ``REPROJECTION_PASSES`` Gauss-Newton passes while they stay open (:func:`gauss_newton_pass`; module
     docstring). ``cfg.fixed_iterations`` runs every Gauss-Newton pass, selecting (differentiable); otherwise a
-    ``while_loop`` runs them, whose derivative is the selecting loop's (:func:`_passes_while`; docs/formulation.md
-    §7.10)."""
+    ``while_loop`` runs them, differentiated as the projection onto the joints' manifold that they converge to
+    (:func:`_passes_while`; docs/formulation.md §7.10)."""
     delta = joint_deadband(q.dtype)
-    nb = q.shape[0]
     for k in range(cfg.stabilisation.post_stabilisation + 1):
         e = fixed_row_residual(pm, q, delta)
-        y = cho_solve((proj.factor, True), -proj.P * e)
-        d = apply_inv_mass(proj.bodies, (proj.J.T @ (proj.P * y)).reshape(nb, 6))
-        q_next = integrate_pose(q, d, 1.0)
+        q_next = chord_pass(q, e, proj)
         if k < cfg.stabilisation.post_stabilisation:
             q = q_next
         else:
@@ -151,27 +149,55 @@ def _passes(pm: PaddedModel, q: jax.Array, open_: jax.Array, proj: Projector, ev
     return carry[1]
 
 
+def chord_pass(q: jax.Array, e: jax.Array, proj: Projector) -> jax.Array:
+    """One projection of the poses ``q`` [nb, 7] with the residuals ``e`` and the step's system (the module
+    docstring): ``q ⊕ d``, ``d = -M^-1 J_f^T P_f (P_f D_ff P_f + s I)^-1 P_f e``."""
+    y = cho_solve((proj.factor, True), -proj.P * e)
+    d = apply_inv_mass(proj.bodies, (proj.J.T @ (proj.P * y)).reshape(q.shape[0], 6))
+    return integrate_pose(q, d, 1.0)
+
+
 @jax.custom_jvp
 def _passes_while(pm: PaddedModel, q: jax.Array, open_: jax.Array, proj: Projector) -> jax.Array:
-    """:func:`_passes` with the ``while_loop``; its derivative is that of the selecting ``fori_loop`` (the same
-    function: reverse mode cannot transpose a ``while_loop``), traced only when a derivative is taken."""
+    """:func:`_passes` with the ``while_loop``. Its derivative: the identity where no pass ran; where passes ran,
+    that of the projection onto the manifold ``e(q; pm) = 0`` that they converge to, at the projected poses ``q*``:
+    the tangent of one Gauss-Newton pass at ``q*`` with its system (:func:`refactorised` at ``q*``) held fixed and
+    no dead band (the projection's derivative does not depend on how small the gaps left are),
+
+        dq* = dq ⊕ (-M^-1 J_f^T P_f (P_f D_ff P_f + s I)^-1 P_f (J_f dq + de/dpm dpm)),    J_f = J_f(q*),
+
+    the ``M``-orthogonal projection of ``dq`` onto the joints' tangent space at ``q*``, moved with the joints'
+    geometry ``pm``. It differs from the derivative of the passes as they run by about the gap they start from times
+    the joints' curvature, and by the shifts ``s``; the masses move ``q*`` by as little. The passes as they run (the
+    selecting ``fori_loop`` of :func:`_passes`, every pass factorised again, each factor differentiated) cost more
+    than the rest of a step's derivative."""
     return _passes(pm, q, open_, proj, False)
 
 
 @_passes_while.defjvp
 def _passes_while_jvp(primals, tangents):
-    return jax.jvp(lambda *a: _passes(*a, True), primals, tangents)
+    pm, q, open_, proj = primals
+    dpm, dq = tangents[0], tangents[1]
+    q_out = _passes_while(pm, q, open_, proj)
+    system = jax.lax.stop_gradient(refactorised(pm, q_out, proj))
+    _, dq_projected = jax.jvp(lambda p, x: chord_pass(x, fixed_row_residual(p, x, None), system), (pm, q_out),
+                              (dpm, dq))
+    ran = jnp.any(q_out != q)
+    return q_out, jnp.where(ran, dq_projected, dq)
 
 
-def gauss_newton_pass(pm: PaddedModel, q: jax.Array, e: jax.Array, proj: Projector) -> jax.Array:
-    """One projection of the poses ``q`` [nb, 7] with residuals ``e`` (:func:`fixed_row_residual`) and the joint
-    rows' Jacobian evaluated at ``q`` (the joint-dynamics and coupling rows keep the step's), the system
-    ``P_f (J_f M^-1 J_f^T + R_f) P_f + s I`` factorised again."""
+def refactorised(pm: PaddedModel, q: jax.Array, proj: Projector) -> Projector:
+    """The projection's system with the joint rows' Jacobian evaluated at the poses ``q`` (the joint-dynamics and
+    coupling rows keep the step's) and ``P_f (J_f M^-1 J_f^T + R_f) P_f + s I`` factorised again."""
     nb = q.shape[0]
     nd, nk = pm.dyn_mask.shape[0], pm.row_mask.shape[0]
     J_kin = jnp.where(pm.row_mask[:, None], constraint_jacobian(pm, joint_frames(pm, q), nb), proj.J[nd:nd + nk])
     J = proj.J.at[nd:nd + nk].set(J_kin)
     A = proj.P[:, None] * (delassus(J, proj.bodies) + jnp.diag(proj.R)) * proj.P[None, :] + jnp.diag(proj.shift)
-    y = cho_solve((cho_factor(A, lower=True)[0], True), -proj.P * e)
-    d = apply_inv_mass(proj.bodies, (J.T @ (proj.P * y)).reshape(nb, 6))
-    return integrate_pose(q, d, 1.0)
+    return dataclasses.replace(proj, J=J, factor=cho_factor(A, lower=True)[0])
+
+
+def gauss_newton_pass(pm: PaddedModel, q: jax.Array, e: jax.Array, proj: Projector) -> jax.Array:
+    """One projection of the poses ``q`` [nb, 7] with residuals ``e`` (:func:`fixed_row_residual`) and the system
+    :func:`refactorised` at ``q``."""
+    return chord_pass(q, e, refactorised(pm, q, proj))

@@ -528,8 +528,9 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     **Derivatives.** With ``cfg.fixed_iterations`` ``jax.grad`` differentiates the ``max_iterations`` iterations
     as they run (unrolled). Otherwise the solve is differentiated at its solution by the implicit function theorem on
     the natural map ``F(y) = y - Proj_K(y - (Dt y + vt + Gamma(Dt y + vt)))`` (docs/formulation.md §7.10;
-    :func:`_implicit`): the impulses' derivative is ``P dy + dP y`` with ``dy = -(dF/dy)^+ dF/dtheta``, the
-    velocities' that of ``D lambda + v_f``; the values are PADMM's, unchanged, and no iteration is stored.
+    :func:`_implicit`): the impulses' derivative is ``P dy + dP y`` with ``dy = -(dF/dy)^+ dF/dtheta``
+    (:func:`_tangent_solve`), the velocities' that of ``D lambda + v_f``; the values are PADMM's, unchanged, and no
+    iteration is stored.
 
     ``cfg.redundant_limits`` fixes ``lambda = 0`` (bounds ``[0, 0]``) on the limit rows that
     :func:`redundant_limits` finds equivalent to another limit row with a smaller bias (all three hinge
@@ -563,14 +564,31 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     )
 
 
+def tangent_shift(dtype) -> float:
+    """The diagonal shift ``delta`` of :func:`_tangent_solve`, relative to the largest diagonal entry of the
+    linearised natural map: ``1e-2 sqrt(eps)`` of ``dtype`` (1.5e-10 in float64, 3.5e-6 in float32)."""
+    return 1e-2 * float(jnp.finfo(dtype).eps) ** 0.5
+
+
 def _tangent_solve(g, b: jax.Array) -> jax.Array:
-    """``x`` with ``g(x) = b`` for the linearised natural map ``g`` (:func:`_implicit`), in the least-squares,
-    minimum-norm sense: ``x = A^+ b`` with ``A`` the dense Jacobian of ``g`` (a world's rows). ``A`` is singular
-    along the null directions of ``Dt`` on the active bilateral rows (redundant loop rows), which move no body
-    (``J^T n = 0``): the pseudo-inverse leaves ``x`` without a part along them. Linear in ``b`` (a matrix product),
-    so reverse mode transposes it."""
+    """``x`` with ``g(x) = b`` for the linearised natural map ``g`` (:func:`_implicit`; docs/formulation.md §7.10):
+    with ``A`` the dense Jacobian of ``g`` (a world's rows) and ``A_d = A + delta I`` (``delta`` =
+    :func:`tangent_shift` times ``max |A_ii|``), one LU solve and one step of iterative refinement,
+
+        x0 = A_d^-1 b,    x = x0 + A_d^-1 (b - A x0).
+
+    ``A`` is singular along the null directions of ``Dt`` on the active rows (redundant loop rows, four coplanar
+    contacts), which move no body (``J^T P n = 0``). Along a direction of ``A`` with singular value ``sigma`` the
+    refined ``x`` has the relative error ``(delta / sigma)^2`` (dr_legs: ``sigma >= 1e-4`` off its null space, so
+    1e-12 in float64). Along a null direction ``x`` takes the part of ``b`` outside ``A``'s range (rounding) divided
+    by ``delta``: it moves no body, so the velocities' derivative ``D P dx`` does not see it, and the impulses along
+    a redundant row are not unique. Linear in ``b`` (matrix products and a factor of ``A``), so reverse mode
+    transposes it."""
     A = jax.jacfwd(g)(jnp.zeros_like(b))
-    return jnp.linalg.pinv(A) @ b
+    delta = tangent_shift(b.dtype) * jnp.max(jnp.abs(jnp.diagonal(A)))
+    lu = jax.scipy.linalg.lu_factor(A + delta * jnp.eye(b.shape[0], dtype=b.dtype))
+    x = jax.scipy.linalg.lu_solve(lu, b)
+    return x + jax.scipy.linalg.lu_solve(lu, b - A @ x)
 
 
 def _implicit(p: _Problem, init: Carry, refine, refine_rows) -> tuple[Carry, jax.Array]:
@@ -580,9 +598,9 @@ def _implicit(p: _Problem, init: Carry, refine, refine_rows) -> tuple[Carry, jax
 
         dy = -(dF/dy)^+ dF/dtheta,    F(y; theta) = y - Proj_K(y - (Dt y + vt + Gamma(Dt y + vt)))
 
-    (:meth:`_Problem.natural_residual`) at the solution (``jax.lax.custom_root``; the pseudo-inverse of
-    :func:`_tangent_solve`). No iteration is differentiated: the memory of a gradient does not grow with the
-    iteration count, and the warm start and the penalty schedule get no derivative (the solution does not depend on
+    (:meth:`_Problem.natural_residual`) at the solution (``jax.lax.custom_root``; ``(dF/dy)^+`` by the shifted LU
+    solve of :func:`_tangent_solve`). No iteration is differentiated: the memory of a gradient does not grow with
+    the iteration count, and the warm start and the penalty schedule get no derivative (the solution does not depend on
     them). With the curvature refinement, the refined solve's ``vt`` is ``P refine(P y_1)`` of the first solve's
     solution ``y_1``, itself a root of ``F`` with the first ``vt``: the two roots chain. A solve that stopped at
     ``max_iterations`` gets the derivative of the root the iterate approximates."""
