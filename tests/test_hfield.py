@@ -7,12 +7,13 @@ slope computed from normalised heights (about 1e-15 m per operation on metre-siz
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import kamino
-from kamino.jax_ref.collision import HField, _hfield_surface
+from kamino.jax_ref.collision import MAX_POINTS, HField, _hfield_surface
 from kamino.jax_ref.collision import collide as _collide
 from kamino.model import GeomType as G
 from kamino.model import JointType, ModelBuilder, ModelError, concat, same_model, take_worlds
@@ -115,6 +116,16 @@ def test_capsule_and_cylinder_on_a_ramp_are_their_plane_pairs():
             np.testing.assert_allclose(h["dist"], p["dist"], atol=ROUNDING)
             np.testing.assert_allclose(h["pos"], p["pos"], atol=ROUNDING)
             np.testing.assert_allclose(h["normal"], -p["normal"], atol=ROUNDING)
+
+
+def test_heightfield_pairs_keep_the_point_count_contract():
+    """Every HFIELD pair returns ``K = MAX_POINTS[pair]`` points (abstract evaluation: shapes and dtypes)."""
+    p = jnp.asarray([0, 0, 0, 0, 0, 0, 1.0])
+    for t in (G.SPHERE, G.CAPSULE, G.BOX, G.CYLINDER):
+        cp = jax.eval_shape(lambda pa, sa, pb, t=t: _collide(t, G.HFIELD, pa, sa, pb, sa, 0.1, hfield=FLAT),
+                            p, jnp.ones(3), p)
+        k = MAX_POINTS[(t, G.HFIELD)]
+        assert cp.pos.shape == cp.normal.shape == (k, 3) and cp.dist.shape == cp.valid.shape == (k,)
 
 
 def test_points_off_the_grid_have_no_contact():
