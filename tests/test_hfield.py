@@ -82,6 +82,10 @@ def test_sphere_on_a_ramp_gets_the_ramp_normal():
         np.testing.assert_allclose(h["normal"][0], -n, atol=ROUNDING)
         np.testing.assert_allclose(h["dist"][0], (z - surface) * n[2] - 0.1, atol=ROUNDING)
         assert h["valid"][0]
+    # the reference differentiates through the contact: d dist / d centre is the ramp's normal
+    grad = jax.grad(lambda c: _collide(G.SPHERE, G.HFIELD, jnp.r_[c, 0, 0, 0, 1.0], jnp.array([0.1, 0, 0]),
+                                       jnp.asarray(pose), jnp.zeros(3), 1.0, hfield=hf).dist[0])
+    np.testing.assert_allclose(grad(jnp.array([0.1, -0.6, 0.45])), n, atol=ROUNDING)
 
 
 def test_box_on_flat_heightfield_has_the_four_contacts_of_a_plane():
@@ -246,6 +250,20 @@ def test_mjcf_heightfield_round_trip_keeps_the_heights():
     np.testing.assert_allclose(mj3.hfield_data, built.hfield_data, atol=6e-8)
     np.testing.assert_array_equal(mj3.hfield_nrow, [3])
     np.testing.assert_array_equal(mj3.hfield_ncol, [4])
+
+
+def test_mjcf_heightfield_from_a_png_file(tmp_path):
+    """``<hfield file="....png">``: MuJoCo's compiler reads the image (its top row at +y) and kamino takes its
+    normalised heights: a 3 x 4 grey ramp 0, 20, ..., 220 gives (value / 220), rows reversed."""
+    image = pytest.importorskip("PIL.Image")
+    pixels = (np.arange(12).reshape(3, 4) * 20).astype(np.uint8)
+    image.fromarray(pixels).save(tmp_path / "terrain.png")
+    (tmp_path / "scene.xml").write_text(
+        """<mujoco><asset><hfield name="t" file="terrain.png" size="2 1 0.5 0.1"/></asset><worldbody>
+        <geom type="hfield" hfield="t"/><body pos="0 0 1"><freejoint/><geom type="sphere" size="0.1"/></body>
+        </worldbody></mujoco>""")
+    m = kamino.load_mjcf(str(tmp_path / "scene.xml"))
+    np.testing.assert_allclose(m.hfield_data.reshape(3, 4), pixels[::-1] / 220.0, atol=1e-7)  # float32 heights
 
 
 def test_heightfield_on_a_moving_mjcf_body_is_reported():
