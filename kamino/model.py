@@ -54,6 +54,9 @@ class GeomType(enum.IntEnum):
     segment along local z. BOX: half-extents ``size[0:3]``. CYLINDER: radius ``size[0]``,
     half-height ``size[1]`` along local z. ELLIPSOID: semi-axes ``size[0:3]`` along local x, y, z
     (collides with planes only: another enabled pair with an ellipsoid is a :class:`ModelError`).
+    HFIELD: a heightfield (MuJoCo's ``<hfield>``): a grid of heights over ``[-rx, rx] x [-ry, ry]`` in the
+    geom's frame, stored in ``Model.hfield_*`` (``Model.geom_dataid`` names the grid); static (world) only;
+    ``size`` is ``(rx, ry, max(z_top, z_base))``, the half-extents of a box about the geom's origin that holds it.
     """
 
     PLANE = 0
@@ -68,6 +71,9 @@ class GeomType(enum.IntEnum):
     """Cylinder of radius ``size[0]`` and half-height ``size[1]`` along local z."""
     ELLIPSOID = 5
     """Ellipsoid of semi-axes ``size[0:3]`` along local x, y, z (collides with planes only)."""
+    HFIELD = 6
+    """Heightfield ``Model.hfield_*[geom_dataid]`` (world geoms only; collides with spheres, capsules, boxes and
+    cylinders: kamino/jax_ref/collision.py)."""
 
 
 class ActuationMode(enum.IntEnum):
@@ -186,11 +192,15 @@ CONTACT_POINTS: dict[tuple[GeomType, GeomType], int] = {
     (GeomType.BOX, GeomType.BOX): 8,
     (GeomType.BOX, GeomType.CYLINDER): 4,
     (GeomType.CYLINDER, GeomType.CYLINDER): 4,
+    (GeomType.SPHERE, GeomType.HFIELD): 1,
+    (GeomType.CAPSULE, GeomType.HFIELD): 2,
+    (GeomType.BOX, GeomType.HFIELD): 4,
+    (GeomType.CYLINDER, GeomType.HFIELD): 4,
 }
 
 #: How many leading ``size`` entries each geom type uses (all must be positive).
 _GEOM_SIZE_COUNT = {GeomType.PLANE: 0, GeomType.SPHERE: 1, GeomType.CAPSULE: 2, GeomType.BOX: 3, GeomType.CYLINDER: 2,
-                    GeomType.ELLIPSOID: 3}
+                    GeomType.ELLIPSOID: 3, GeomType.HFIELD: 0}
 
 _QUAT_UNIT_TOL = 1e-6  # a quaternion whose norm is further than this from 1 is a ModelError
 #: The largest magnitude a finite model parameter may have (lengths, masses, inertias, gains, limits, ...): float32
@@ -367,6 +377,34 @@ class Model:
     """``[W]`` index of each world's first geom."""
     world_geom_count: np.ndarray
     """``[W]`` geoms per world."""
+    geom_dataid: np.ndarray
+    """``[G]`` global index of the heightfield (``hfield_*``) of an HFIELD geom; ``-1`` for the other types."""
+
+    # heightfields (MuJoCo's <hfield>): grids of heights referred to by HFIELD geoms
+    hfield_nrow: np.ndarray
+    """``[H]`` rows of each heightfield grid (along local y; ``H``: heightfields over all worlds)."""
+    hfield_ncol: np.ndarray
+    """``[H]`` columns of each grid (along local x)."""
+    hfield_size: np.ndarray
+    """``[H, 4]`` MuJoCo's ``(rx, ry, z_top, z_base)`` [m]: the grid spans ``[-rx, rx] x [-ry, ry]`` of the geom's
+    frame, heights are ``z_top`` times the normalised data, and the solid reaches ``z_base`` below ``z = 0``."""
+    hfield_adr: np.ndarray
+    """``[H]`` index of each grid's first height in ``hfield_data``."""
+    hfield_world: np.ndarray
+    """``[H]`` world of each heightfield."""
+    hfield_names: tuple[str, ...]
+    """``[H]`` heightfield names."""
+    hfield_data: np.ndarray
+    """``[HD]`` normalised heights in ``[0, 1]``, grid after grid, row-major: height ``k = r ncol + c`` sits at
+    ``x = -rx + 2 rx c / (ncol - 1)``, ``y = -ry + 2 ry r / (nrow - 1)`` (MuJoCo's ``hfield_data``)."""
+    world_hfield_start: np.ndarray
+    """``[W]`` index of each world's first heightfield."""
+    world_hfield_count: np.ndarray
+    """``[W]`` heightfields per world."""
+    world_hfield_data_start: np.ndarray
+    """``[W]`` index of each world's first height in ``hfield_data``."""
+    world_hfield_data_count: np.ndarray
+    """``[W]`` heights per world."""
 
     # candidate contact pairs (filtered at build time; geom a has the smaller type)
     pair_geom_a: np.ndarray
@@ -444,6 +482,11 @@ class Model:
     def num_geoms(self) -> int:
         """Collision geoms over all worlds (``G``)."""
         return int(self.geom_type.shape[0])
+
+    @property
+    def num_hfields(self) -> int:
+        """Heightfields over all worlds (``H``)."""
+        return int(self.hfield_nrow.shape[0])
 
     @property
     def num_pairs(self) -> int:
@@ -533,6 +576,16 @@ class Model:
         if self.num_worlds > 8:
             lines.append(f"... ({self.num_worlds} worlds)")
         return "\n".join(lines)
+
+
+def reject_hfields(model: Model, what: str) -> None:
+    """Raise a ``ValueError`` naming the first heightfield geom of ``model``, if it has one: ``what`` (the Warp
+    backend) has no heightfield collision; the JAX reference (``backend="jax"``) has."""
+    hits = np.nonzero(model.geom_type == GeomType.HFIELD)[0]
+    if hits.size:
+        g = int(hits[0])
+        raise ValueError(f"{what}: geom {model.geom_names[g]!r} is a heightfield (GeomType.HFIELD), which the Warp "
+                         "backend does not collide yet; step this model with backend='jax'")
 
 
 def count_loops(model: Model, world: int = 0) -> int:
@@ -690,6 +743,16 @@ class _Geom:
     margin: float
     group: int
     mask: int
+    dataid: int = -1
+
+
+@dataclasses.dataclass
+class _HField:
+    name: str
+    nrow: int
+    ncol: int
+    size: np.ndarray
+    data: np.ndarray  # normalised to [0, 1], row-major (row r at y = -ry + 2 ry r / (nrow - 1))
 
 
 @dataclasses.dataclass
@@ -730,6 +793,7 @@ class ModelBuilder:
         self._bodies: list[_Body] = []
         self._joints: list[_Joint] = []
         self._geoms: list[_Geom] = []
+        self._hfields: list[_HField] = []
         self._pair_overrides: dict[tuple[int, int], bool] = {}
         self._couplings: list[_Coupling] = []
         self._actuators: list[_Actuator] = []
@@ -986,6 +1050,7 @@ class ModelBuilder:
         group: int = 1,
         mask: int = 0xFFFFFFFF,
         name: str | None = None,
+        hfield: int | None = None,
     ) -> int:
         """Attach a collision geom to ``body`` (-1: the world); returns its index.
 
@@ -995,7 +1060,9 @@ class ModelBuilder:
         values (docs/conventions.md, "Contacts"). ``margin`` [m] widens contact activation. Two geoms
         may touch when ``group_a & mask_b`` and ``group_b & mask_a`` are both non-zero, they are on
         different bodies not both the world, and the bodies are not joined by a joint other than FREE
-        (:meth:`set_collision` overrides all of this for one pair).
+        (:meth:`set_collision` overrides all of this for one pair). A ``GeomType.HFIELD`` geom names its grid
+        with ``hfield`` (an index from :meth:`add_hfield`), sits on the world (``body=-1``) and takes its size
+        from the grid (``size`` is ignored).
         """
         idx = len(self._geoms)
         name = name if name is not None else f"geom_{idx}"
@@ -1010,8 +1077,47 @@ class ModelBuilder:
         self._geoms.append(
             _Geom(name=name, type=gtype, body=int(body), size=sz, pos=_vec(pos, 3, f"geom {name!r} pos"),
                   quat=_vec(quat, 4, f"geom {name!r} quat"), friction=float(friction),
-                  restitution=float(restitution), margin=float(margin), group=int(group), mask=int(mask))
+                  restitution=float(restitution), margin=float(margin), group=int(group), mask=int(mask),
+                  dataid=-1 if hfield is None else int(hfield))
         )
+        return idx
+
+    def add_hfield(self, nrow: int, ncol: int, size: Sequence[float], elevation: Any, name: str | None = None) -> int:
+        """Add a heightfield grid (MuJoCo's ``<hfield>``); returns its index for :meth:`add_geom`'s ``hfield``.
+
+        ``elevation`` holds ``nrow x ncol`` heights, row-major, row ``r`` at ``y = -ry + 2 ry r / (nrow - 1)`` and
+        column ``c`` at ``x = -rx + 2 rx c / (ncol - 1)`` of the geom's frame (MuJoCo's ``hfield_data`` order; an
+        MJCF ``elevation`` attribute lists the rows the other way round, from ``+ry`` down). As MuJoCo does, the
+        heights are normalised to ``[0, 1]`` (lowest 0, highest 1; all 0 when they are all equal) and scaled by
+        ``z_top``: ``size = (rx, ry, z_top, z_base)``, all positive, the solid reaching ``z_base`` below ``z = 0``.
+        """
+        idx = len(self._hfields)
+        name = name if name is not None else f"hfield_{idx}"
+        what = f"hfield {name!r}"
+        counts = {}
+        for key, value in (("nrow", nrow), ("ncol", ncol)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 2:
+                raise ModelError(f"{what}: {key} must be an integer >= 2 (a grid needs two rows and two columns), "
+                                 f"got {value!r}")
+            counts[key] = int(value)
+        sz = _vec(size, 4, f"{what} size (rx, ry, z_top, z_base)")
+        _finite(sz, f"{what} size")
+        _check_range(sz, f"{what} size")
+        if np.any(sz <= 0):
+            raise ModelError(f"{what}: size (rx, ry, z_top, z_base) must be 4 positive numbers, got {sz.tolist()}")
+        try:
+            data = np.asarray(elevation, dtype=float).reshape(-1)
+        except (TypeError, ValueError) as exc:
+            raise ModelError(f"{what}: elevation must be numbers, got {elevation!r}") from exc
+        n = counts["nrow"] * counts["ncol"]
+        if data.size != n:
+            raise ModelError(f"{what}: elevation has {data.size} values, expected nrow * ncol = {counts['nrow']} * "
+                             f"{counts['ncol']} = {n}")
+        _finite(data, f"{what} elevation")
+        _check_range(data, f"{what} elevation")
+        lo, hi = float(data.min()), float(data.max())
+        data = (data - lo) / (hi - lo) if hi > lo else np.zeros(n)
+        self._hfields.append(_HField(name=name, nrow=counts["nrow"], ncol=counts["ncol"], size=sz, data=data))
         return idx
 
     def set_collision(self, geom_a: int, geom_b: int, enabled: bool) -> None:
@@ -1029,6 +1135,15 @@ class ModelBuilder:
         _check_range(g.margin, f"{what} margin")
         if not (-1 <= g.body < nb):
             raise ModelError(f"{what}: body {g.body} does not exist ({nb} bodies; -1 is the world)")
+        if g.type == GeomType.HFIELD:
+            if g.body != -1:
+                raise ModelError(f"{what}: a heightfield is static: attach it to the world (body -1), not to body "
+                                 f"{g.body}")
+            if not (0 <= g.dataid < len(self._hfields)):
+                raise ModelError(f"{what}: hfield {g.dataid} does not exist ({len(self._hfields)} heightfields; "
+                                 "add one with add_hfield and pass its index as hfield=)")
+        elif g.dataid != -1:
+            raise ModelError(f"{what}: hfield={g.dataid} given for a {g.type.name} geom (only HFIELD geoms take one)")
         need = _GEOM_SIZE_COUNT[g.type]
         if np.any(g.size[:need] <= 0):
             raise ModelError(f"{what}: a {g.type.name} needs {need} positive size value(s), got {g.size.tolist()}")
@@ -1232,6 +1347,16 @@ class ModelBuilder:
             parts = [jt.dynamics[key] for jt in self._joints]
             return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
 
+        hfields = self._hfields
+        for g in self._geoms:
+            if g.type == GeomType.HFIELD:
+                hs = hfields[g.dataid].size
+                g.size = np.array([hs[0], hs[1], max(hs[2], hs[3])])
+        hnames = [h.name for h in hfields]
+        if len(set(hnames)) != len(hnames):
+            raise ModelError(f"hfield name {next(n for n in hnames if hnames.count(n) > 1)!r} is used twice")
+        h_count = np.array([h.nrow * h.ncol for h in hfields], dtype=np.int64)
+        nh = len(hfields)
         geoms = self._geoms
         ng = len(geoms)
         couplings = self._finalize_couplings()
@@ -1297,6 +1422,18 @@ class ModelBuilder:
             geom_names=tuple(gnames),
             world_geom_start=one.copy(),
             world_geom_count=np.array([ng], dtype=np.int64),
+            geom_dataid=np.array([g.dataid for g in geoms], dtype=np.int64),
+            hfield_nrow=np.array([h.nrow for h in hfields], dtype=np.int64),
+            hfield_ncol=np.array([h.ncol for h in hfields], dtype=np.int64),
+            hfield_size=np.array([h.size for h in hfields]).reshape(nh, 4),
+            hfield_adr=_prefix(h_count),
+            hfield_world=np.zeros(nh, dtype=np.int64),
+            hfield_names=tuple(hnames),
+            hfield_data=np.concatenate([h.data for h in hfields]) if hfields else np.zeros(0),
+            world_hfield_start=one.copy(),
+            world_hfield_count=np.array([nh], dtype=np.int64),
+            world_hfield_data_start=one.copy(),
+            world_hfield_data_count=np.array([h_count.sum()], dtype=np.int64),
             pair_geom_a=np.array([a for a, _ in pairs], dtype=np.int64),
             pair_geom_b=np.array([b for _, b in pairs], dtype=np.int64),
             pair_world=np.zeros(len(pairs), dtype=np.int64),
@@ -1393,7 +1530,8 @@ def concat(models: Sequence[Model]) -> Model:
     out: dict[str, Any] = {"num_worlds": sum(m.num_worlds for m in models)}
     shifts = {"body": _prefix([m.num_bodies for m in models]), "geom": _prefix([m.num_geoms for m in models]),
               "world": _prefix([m.num_worlds for m in models]), "joint": _prefix([m.num_joints for m in models]),
-              "dof": _prefix([m.num_dofs for m in models])}
+              "dof": _prefix([m.num_dofs for m in models]), "hfield": _prefix([m.num_hfields for m in models]),
+              "hfield_data": _prefix([m.hfield_data.shape[0] for m in models])}
     for f in dataclasses.fields(Model):
         name = f.name
         if name == "num_worlds" or (name.startswith("world_") and name.endswith("_start")):
@@ -1415,7 +1553,7 @@ def _concat_shifted(name: str, parts: list[np.ndarray], shifts: dict[str, np.nda
     if entity is None:
         return cat
     off = np.repeat(shifts[entity], [len(p) for p in parts]).reshape(-1, *([1] * (cat.ndim - 1)))
-    return np.where(cat >= 0, cat + off, cat) if entity in ("body", "joint") else cat + off
+    return np.where(cat >= 0, cat + off, cat) if entity in _KEEP_NEGATIVE else cat + off
 
 
 def _shift_index(name: str, v: np.ndarray, offsets: dict[str, int]) -> np.ndarray:
@@ -1425,7 +1563,7 @@ def _shift_index(name: str, v: np.ndarray, offsets: dict[str, int]) -> np.ndarra
     if shift is None:
         return v
     off = offsets[shift]
-    return np.where(v >= 0, v + off, v) if shift in ("body", "joint") else v + off
+    return np.where(v >= 0, v + off, v) if shift in _KEEP_NEGATIVE else v + off
 
 
 def _with_starts(out: dict[str, Any]) -> Model:
@@ -1442,12 +1580,20 @@ def _with_starts(out: dict[str, Any]) -> Model:
 _INDEX_FIELDS = {"joint_parent": "body", "joint_child": "body", "geom_body": "body", "body_world": "world",
                  "joint_world": "world", "geom_world": "world", "pair_world": "world", "pair_geom_a": "geom",
                  "pair_geom_b": "geom", "coupling_joint_a": "joint", "coupling_joint_b": "joint",
-                 "coupling_world": "world", "actuator_dof": "dof", "actuator_world": "world"}
+                 "coupling_world": "world", "actuator_dof": "dof", "actuator_world": "world",
+                 "geom_dataid": "hfield", "hfield_adr": "hfield_data", "hfield_world": "world"}
+#: Entities whose index fields keep -1 (the world, no joint, no heightfield) through the shifts.
+_KEEP_NEGATIVE = ("body", "joint", "hfield")
 
 
 #: The entity axis of each field prefix (the leading axis of the field's array); ``world`` fields are per world.
 _PREFIX_ENTITY = (("body_", "body"), ("joint_", "joint"), ("dof_", "dof"), ("geom_", "geom"), ("pair_", "pair"),
-                  ("coupling_", "coupling"), ("actuator_", "actuator"), ("world_", "world"), ("gravity", "world"))
+                  ("coupling_", "coupling"), ("actuator_", "actuator"), ("hfield_data", "hfield_data"),
+                  ("hfield_", "hfield"), ("world_", "world"), ("gravity", "world"))
+
+
+#: The per-world entities (``world_<entity>_start/count``) besides the worlds themselves.
+_ENTITIES = ("body", "joint", "dof", "geom", "pair", "coupling", "actuator", "hfield", "hfield_data")
 
 
 def take_worlds(model: Model, start: int, stop: int) -> Model:
@@ -1461,7 +1607,7 @@ def take_worlds(model: Model, start: int, stop: int) -> Model:
         raise ModelError(f"take_worlds(start={start}, stop={stop}): need 0 <= start < stop <= num_worlds "
                          f"({model.num_worlds})")
     ranges = {"world": (start, stop)}
-    for entity in ("body", "joint", "dof", "geom", "pair", "coupling", "actuator"):
+    for entity in _ENTITIES:
         first, count = getattr(model, f"world_{entity}_start"), getattr(model, f"world_{entity}_count")
         ranges[entity] = (int(first[start]), int(first[stop - 1] + count[stop - 1]))
     out: dict[str, Any] = {"num_worlds": stop - start}
@@ -1499,13 +1645,13 @@ def same_model(a: Model, b: Model) -> bool:
 _FINGERPRINT_FIELDS = ("body_names", "joint_names", "joint_type", "joint_parent", "joint_child", "joint_anchor_B",
                        "joint_anchor_F", "joint_frame_B", "joint_frame_F", "joint_dof_count", "geom_type", "geom_body",
                        "geom_pos", "geom_quat", "geom_size", "pair_geom_a", "pair_geom_b", "world_contact_capacity",
-                       "coupling_joint_a", "coupling_joint_b", "coupling_coef", "actuator_dof")
+                       "coupling_joint_a", "coupling_joint_b", "coupling_coef", "actuator_dof", "geom_dataid",
+                       "hfield_nrow", "hfield_ncol", "hfield_size", "hfield_adr", "hfield_data")
 
 
 def _world_digest(model: Model, w: int) -> bytes:
     """A hash of world ``w``'s mechanism (:data:`_FINGERPRINT_FIELDS`, its indices made world-local)."""
-    starts = {e: int(getattr(model, f"world_{e}_start")[w]) for e in ("body", "joint", "dof", "geom", "pair",
-                                                                       "coupling", "actuator")}
+    starts = {e: int(getattr(model, f"world_{e}_start")[w]) for e in _ENTITIES}
     starts["world"] = w
     h = hashlib.blake2b(digest_size=8)
     for name in _FINGERPRINT_FIELDS:
@@ -1525,7 +1671,7 @@ def _world_digest(model: Model, w: int) -> bytes:
 def _worlds_alike(model: Model) -> bool:
     """Whether every world's mechanism (:data:`_FINGERPRINT_FIELDS`, indices world-local) equals world 0's."""
     W = model.num_worlds
-    entities = ("body", "joint", "dof", "geom", "pair", "coupling", "actuator")
+    entities = _ENTITIES
     if any(np.any(getattr(model, f"world_{e}_count") != getattr(model, f"world_{e}_count")[0]) for e in entities):
         return False
     for name in _FINGERPRINT_FIELDS:
@@ -1539,7 +1685,7 @@ def _worlds_alike(model: Model) -> bool:
         shift = _INDEX_FIELDS.get(name)
         if shift is not None:
             start = np.repeat(getattr(model, f"world_{shift}_start"), per)
-            value = np.where(value >= 0, value - start, value) if shift in ("body", "joint") else value - start
+            value = np.where(value >= 0, value - start, value) if shift in _KEEP_NEGATIVE else value - start
         value = value.reshape(W, per, *value.shape[1:])
         if not np.array_equal(value, np.broadcast_to(value[:1], value.shape)):
             return False

@@ -23,7 +23,7 @@ from kamino.spatial import quat_mul, quat_to_matrix
 IDENT = (0.0, 0.0, 0.0, 1.0)
 S2 = np.sqrt(2.0)
 EXACT = 1e-9  # see module docstring
-ALL_PAIRS = sorted(MAX_POINTS)
+ALL_PAIRS = sorted(k for k in MAX_POINTS if G.HFIELD not in k)  # heightfield pairs: tests/test_hfield.py
 
 
 def quat(axis, angle) -> np.ndarray:
@@ -93,7 +93,9 @@ def test_pair_validation_and_shapes():
         collide(G.PLANE, G.PLANE, p, z, p, z, 0.0)
     with pytest.raises(ValueError, match=r"unordered geom pair \(BOX, SPHERE\)"):
         collide(G.BOX, G.SPHERE, p, z, p, z, 0.0)
-    assert len(MAX_POINTS) == 15 and all(a <= b for a, b in MAX_POINTS)
+    assert len(MAX_POINTS) == 19 and all(a <= b for a, b in MAX_POINTS)
+    with pytest.raises(ValueError, match=r"a \(SPHERE, HFIELD\) pair needs the heightfield's grid \(hfield=\)"):
+        collide(G.SPHERE, G.HFIELD, p, z, p, z, 0.0)
     assert max(MAX_POINTS.values()) == 8 and MAX_POINTS[(G.BOX, G.BOX)] == 8
     for ta, tb in ALL_PAIRS:
         size = jnp.array([0.3, 0.2, 0.1])

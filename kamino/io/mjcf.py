@@ -293,6 +293,7 @@ class _Converter:
         self.body_names: set[str] = set()
         self.joint_names: set[str] = set()
         self.geom_info: dict[int, tuple[int, GeomType, float]] = {}  # kamino geom -> (body, type, friction)
+        self.hfield_map: dict[int, int] = {}  # MuJoCo heightfield -> the builder's
         self.joint_map: dict[int, MjcfJoint] = {}
         self.actuated: dict[int, tuple[int, int]] = {}  # MuJoCo actuator -> (kamino joint, dof)
         self.jtype = {int(mujoco.mjtJoint.mjJNT_HINGE): _HINGE, int(mujoco.mjtJoint.mjJNT_SLIDE): _SLIDE,
@@ -589,7 +590,8 @@ class _Converter:
         G = mujoco.mjtGeom
         kinds = {int(G.mjGEOM_PLANE): GeomType.PLANE, int(G.mjGEOM_SPHERE): GeomType.SPHERE,
                  int(G.mjGEOM_CAPSULE): GeomType.CAPSULE, int(G.mjGEOM_BOX): GeomType.BOX,
-                 int(G.mjGEOM_CYLINDER): GeomType.CYLINDER, int(G.mjGEOM_ELLIPSOID): GeomType.ELLIPSOID}
+                 int(G.mjGEOM_CYLINDER): GeomType.CYLINDER, int(G.mjGEOM_ELLIPSOID): GeomType.ELLIPSOID,
+                 int(G.mjGEOM_HFIELD): GeomType.HFIELD}
         pairs = candidate_pairs(mujoco, mj)
         in_pair = {g for p in pairs for g in (p.geom1, p.geom2)}
         kgeom: dict[int, int] = {}
@@ -611,16 +613,39 @@ class _Converter:
             if hasattr(mj, "geom_surfacevel") and np.any(np.asarray(mj.geom_surfacevel[g]) != 0.0):
                 self.problems.append(f"geom {name!r}: surface velocity")
             kb = self.body_map[int(mj.geom_bodyid[g])]
+            hfield = None
+            if kinds[t] == GeomType.HFIELD:
+                if kb >= 0:
+                    self.problems.append(f"heightfield geom {name!r} on the moving body {self.b_name(kb)!r} (kamino's "
+                                         "heightfields are static: put the geom in the worldbody or a body without "
+                                         "joints)")
+                    continue
+                hfield = self.hfield(int(mj.geom_dataid[g]))
             p, q = self.local(kb, d.geom_xpos[g], d.geom_xmat[g].reshape(3, 3))
             size = np.asarray(mj.geom_size[g], float)
             mu = 0.0 if condim == 1 else float(mj.geom_friction[g, 0])
             # group/mask select no pair: every MuJoCo pair is enabled explicitly (set_collision) in pair()
             kgeom[g] = self.b.add_geom(kinds[t], kb, size=size[:1] if kinds[t] == GeomType.SPHERE else size, pos=p,
                                        quat=q, friction=mu, margin=float(mj.geom_margin[g]), group=1, mask=0,
-                                       name=name)
+                                       name=name, hfield=hfield)
             self.geom_info[kgeom[g]] = (kb, kinds[t], mu)
         for pair in pairs:
             self.pair(pair, kgeom)
+
+    def b_name(self, kb: int) -> str:
+        """The name of kamino body ``kb`` being built."""
+        return self.b._bodies[kb].name
+
+    def hfield(self, h: int) -> int:
+        """The builder's heightfield of MuJoCo's heightfield ``h`` (added on first use): MuJoCo's compiled
+        ``hfield_data`` (normalised, in kamino's row order, whether it came from ``elevation`` or a PNG ``file``)."""
+        if h not in self.hfield_map:
+            mj = self.mj
+            nrow, ncol, adr = int(mj.hfield_nrow[h]), int(mj.hfield_ncol[h]), int(mj.hfield_adr[h])
+            data = np.asarray(mj.hfield_data[adr:adr + nrow * ncol], float)
+            self.hfield_map[h] = self.b.add_hfield(nrow, ncol, np.asarray(mj.hfield_size[h], float), data,
+                                                   name=self.name("hfield", h))
+        return self.hfield_map[h]
 
     def pair(self, pair: PairInfo, kgeom: dict[int, int]) -> None:
         g1, g2 = pair.geom1, pair.geom2

@@ -44,8 +44,9 @@ _REF_TOL = 1e-12
 _CLOSURE_TOL = 1e-6
 
 _MJ_GEOM = {GeomType.PLANE: "plane", GeomType.SPHERE: "sphere", GeomType.CAPSULE: "capsule", GeomType.BOX: "box",
-            GeomType.CYLINDER: "cylinder", GeomType.ELLIPSOID: "ellipsoid"}
-_GEOM_SIZES = {GeomType.SPHERE: 1, GeomType.CAPSULE: 2, GeomType.BOX: 3, GeomType.CYLINDER: 2, GeomType.ELLIPSOID: 3}
+            GeomType.CYLINDER: "cylinder", GeomType.ELLIPSOID: "ellipsoid", GeomType.HFIELD: "hfield"}
+_GEOM_SIZES = {GeomType.SPHERE: 1, GeomType.CAPSULE: 2, GeomType.BOX: 3, GeomType.CYLINDER: 2, GeomType.ELLIPSOID: 3,
+               GeomType.HFIELD: 0}
 #: contype/conaffinity of geoms in a kamino contact pair, and of the others (they then pair with nothing)
 _COLLIDING, _NON_COLLIDING = (1, 1), (2, 0)
 
@@ -490,9 +491,25 @@ class _Exporter:
             el = ET.SubElement(parent_el, "geom", name=m.geom_names[g], type=_MJ_GEOM[gt], size=_fmt(size),
                                pos=_fmt(m.geom_pos[g]), quat=_fmt(_wxyz(m.geom_quat[g])),
                                friction=_fmt([mu, 0.005, 0.0001]), condim="3", contype=str(ct), conaffinity=str(ca))
+            if gt == GeomType.HFIELD:  # its size is the asset's
+                del el.attrib["size"]
+                el.set("hfield", m.hfield_names[int(m.geom_dataid[g])])
             if margin != 0.0:
                 el.set("margin", _fmt(margin))
                 el.set("gap", _fmt(margin))
+
+    def hfields_xml(self, root: ET.Element) -> None:
+        """``<asset><hfield>`` of each heightfield: its normalised heights as ``elevation``, whose rows MJCF lists
+        from ``+ry`` down (the reverse of ``Model.hfield_data``); MuJoCo normalises them again, which keeps them."""
+        m = self.m
+        if not m.num_hfields:
+            return
+        asset = ET.SubElement(root, "asset")
+        for h in range(m.num_hfields):
+            nrow, ncol, adr = int(m.hfield_nrow[h]), int(m.hfield_ncol[h]), int(m.hfield_adr[h])
+            grid = np.asarray(m.hfield_data[adr:adr + nrow * ncol], float).reshape(nrow, ncol)
+            ET.SubElement(asset, "hfield", name=m.hfield_names[h], nrow=str(nrow), ncol=str(ncol),
+                          size=_fmt(m.hfield_size[h]), elevation=_fmt(grid[::-1]))
 
     def contact_plan(self) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
         """``(excluded body pairs, explicit geom pairs)`` that make MuJoCo's pair set equal to kamino's.
@@ -674,6 +691,7 @@ class _Exporter:
             # by mm (docs/mjcf.md, "Export"). load_mjcf ignores solref.
             default = ET.SubElement(root, "default")
             ET.SubElement(default, "equality", solref=f"{EQUALITY_TIMECONST!r} 1")
+        self.hfields_xml(root)
         world = ET.SubElement(root, "worldbody")
         self.geoms_xml(world, -1)
         for b in self.children[self.nb]:

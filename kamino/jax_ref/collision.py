@@ -48,7 +48,26 @@ BOX-CYLINDER         4   APPROXIMATION: two families of points, each a true surf
                          line, the point of 64 rounds of alternating projections between the solids,
                          that cap point. (2) The 4 box corners nearest the cylinder.
 CYLINDER-CYLINDER    4   APPROXIMATION: family (1) of each cylinder against the other; the better kept
+SPHERE-HFIELD        1   APPROXIMATION (all HFIELD pairs): candidate points of the geom, each against
+CAPSULE-HFIELD       2   the grid triangle below it (see "Heightfields" below). Sphere: its centre;
+BOX-HFIELD           4   capsule: its two end centres; box: the 4 of its 8 corners nearest the
+CYLINDER-HFIELD      4   terrain; cylinder: PLANE-CYLINDER's four rim points for the terrain normal
+                         below its centre
 ===================  ==  ==========================================================================
+
+Heightfields (``GeomType.HFIELD``, always geom b: its type sorts last). The terrain is MuJoCo's surface: the
+grid of ``nrow x ncol`` heights over ``[-rx, rx] x [-ry, ry]`` of the heightfield's frame, each cell split into
+two triangles along the diagonal from its ``(-x, -y)`` corner to its ``(+x, +y)`` corner. A candidate point
+``x`` (with the radius ``r`` of the sphere or capsule around it, 0 for box corners and cylinder rim points)
+takes the triangle below its local ``(x, y)``, with height ``z(x, y)`` and upward unit normal ``n``; its
+distance is ``(x_z - z(x, y)) n_z - r``, the distance to that triangle's plane along ``n`` (exact for a
+sphere over the inside of a triangle), and the contact normal is ``-n`` (from the geom to the terrain). A
+point whose ``(x, y)`` lies outside the grid has no contact. What the model misses: contact away from the
+candidate points (a box edge or a capsule's middle across a ridge, a cylinder's side on a bump, a sphere
+touching a steep neighbouring triangle before the one below its centre), and the triangle's edges and
+extent (a point is measured against the plane of the triangle below it, which is inexact near a ridge or a
+valley, and the terrain has no walls at the grid's border nor a bottom at ``z_base``). On a flat or planar
+terrain (all heights equal, or a ramp) every HFIELD pair equals the PLANE pair of its geom.
 
 Penetration depth: exact (minimum translation) for the sphere pairs, the plane pairs and BOX-BOX
 (up to the 5 % face bias and the clipping); for CAPSULE-BOX / CAPSULE-CYLINDER it is that of the
@@ -74,6 +93,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -778,6 +798,99 @@ def _cylinder_cylinder(pose_a, size_a, pose_b, size_b, margin):
 
 
 # ---------------------------------------------------------------------------------------------
+# heightfield pairs (approximations: candidate points against the grid triangle below each)
+# ---------------------------------------------------------------------------------------------
+
+
+class HField(NamedTuple):
+    """One heightfield grid, as :func:`collide` reads it (``kamino.Model.hfield_*``; arrays may be traced)."""
+
+    data: jax.Array  # [N] normalised heights in [0, 1] (a world's hfield_data; the grid starts at adr)
+    adr: jax.Array  # [] index of the grid's first height in data
+    nrow: jax.Array  # [] rows (local y), >= 2
+    ncol: jax.Array  # [] columns (local x), >= 2
+    size: jax.Array  # [4] (rx, ry, z_top, z_base) [m]
+
+
+def _hfield_surface(hf: HField, x, y):
+    """Height ``z``, upward unit normal ``n`` of the grid triangle below the local point ``(x, y)``, and
+    whether ``(x, y)`` lies on the grid. Cell ``(r, c)`` spans columns ``c, c + 1`` and rows ``r, r + 1``;
+    with ``u, v`` in ``[0, 1]`` across it, ``u >= v`` is the triangle ``(r, c), (r, c + 1), (r + 1, c + 1)`` and
+    ``u < v`` the triangle ``(r, c), (r + 1, c), (r + 1, c + 1)`` (MuJoCo's split). Off the grid the nearest
+    cell is read (finite values) and the flag is False."""
+    dtype = x.dtype
+    rx, ry, zt = hf.size[0], hf.size[1], hf.size[2]
+    ncol, nrow = hf.ncol.astype(jnp.int32), hf.nrow.astype(jnp.int32)
+    dx = 2.0 * rx / (ncol - 1).astype(dtype)
+    dy = 2.0 * ry / (nrow - 1).astype(dtype)
+    fx, fy = (x + rx) / dx, (y + ry) / dy
+    c = jnp.clip(jnp.floor(fx), 0, ncol - 2).astype(jnp.int32)
+    r = jnp.clip(jnp.floor(fy), 0, nrow - 2).astype(jnp.int32)
+    u = jnp.clip(fx - c.astype(dtype), 0.0, 1.0)
+    v = jnp.clip(fy - r.astype(dtype), 0.0, 1.0)
+    k = hf.adr.astype(jnp.int32) + r * ncol + c
+    h00, h10 = hf.data[k] * zt, hf.data[k + 1] * zt
+    h01, h11 = hf.data[k + ncol] * zt, hf.data[k + ncol + 1] * zt
+    lower = u >= v
+    ex = jnp.where(lower, h10 - h00, h11 - h01)  # height change across the cell along x
+    ey = jnp.where(lower, h11 - h10, h01 - h00)  # ... along y
+    z = h00 + u * ex + v * ey
+    n, _ = _normalize(jnp.stack([-ex / dx, -ey / dy, jnp.ones_like(x)]), jnp.array([0.0, 0.0, 1.0], dtype))
+    inside = (jnp.abs(x) <= rx) & (jnp.abs(y) <= ry)
+    return z.astype(dtype), n.astype(dtype), inside
+
+
+def _hfield_vs_points(pose_h, hf: HField, pts, radius):
+    """Spheres of ``radius`` centred at world points ``pts [N, 3]`` against the grid triangle below each
+    (module docstring, "Heightfields"); the heightfield is geom b, so the normal is minus the terrain's."""
+    c, R = _frame(pose_h)
+    x = (pts - c) @ R
+    z, n, inside = jax.vmap(lambda p: _hfield_surface(hf, p[0], p[1]))(x)
+    dist = (x[:, 2] - z) * n[:, 2] - radius
+    pos = x - n * (radius + 0.5 * dist)[:, None]
+    return c + pos @ R.T, -(n @ R.T), dist, inside
+
+
+def _sphere_hfield(pose_a, size_a, pose_b, hf, margin):
+    """The sphere's centre against the triangle below it."""
+    return _hfield_vs_points(pose_b, hf, pose_a[None, :3], size_a[0])
+
+
+def _capsule_hfield(pose_a, size_a, pose_b, hf, margin):
+    """The capsule's two end spheres (segment end at local -z first)."""
+    c, R = _frame(pose_a)
+    ends = c + jnp.array([-1.0, 1.0], c.dtype)[:, None] * (size_a[1] * R[:, 2])
+    return _hfield_vs_points(pose_b, hf, ends, size_a[0])
+
+
+def _box_hfield(pose_a, size_a, pose_b, hf, margin):
+    """The 4 corners nearest the terrain (corners off the grid last; stable sort: ties keep the corner order)."""
+    pos, normal, dist, inside = _hfield_vs_points(pose_b, hf, _box_corners(pose_a, size_a),
+                                                  jnp.zeros((), size_a.dtype))
+    order = jnp.argsort(jnp.where(inside, dist, jnp.inf), stable=True)[:4]
+    return pos[order], normal[order], dist[order], inside[order]
+
+
+def _cylinder_hfield(pose_a, size_a, pose_b, hf, margin):
+    """PLANE-CYLINDER's four rim points for the terrain normal below the cylinder's centre (the heightfield's
+    +z when the centre is off the grid), each against the triangle below it."""
+    c, R = _frame(pose_b)
+    x = (pose_a[:3] - c) @ R
+    _, n, inside = _hfield_surface(hf, x[0], x[1])
+    n = jnp.where(inside, n, jnp.array([0.0, 0.0, 1.0], n.dtype))
+    pts, _ = _cylinder_support(pose_a, size_a, -(R @ n))
+    return _hfield_vs_points(pose_b, hf, pts, jnp.zeros((), size_a.dtype))
+
+
+_HFIELD_PAIRS = {
+    GeomType.SPHERE: _sphere_hfield,
+    GeomType.CAPSULE: _capsule_hfield,
+    GeomType.BOX: _box_hfield,
+    GeomType.CYLINDER: _cylinder_hfield,
+}
+
+
+# ---------------------------------------------------------------------------------------------
 # dispatch
 # ---------------------------------------------------------------------------------------------
 
@@ -798,6 +911,7 @@ _PAIRS = {
     (_G.BOX, _G.BOX): _box_box,
     (_G.BOX, _G.CYLINDER): _box_cylinder,
     (_G.CYLINDER, _G.CYLINDER): _cylinder_cylinder,
+    **{(t, _G.HFIELD): fn for t, fn in _HFIELD_PAIRS.items()},
 }
 
 #: candidate points per pair: the model's table (``kamino.model.CONTACT_POINTS``), which sizes the contact capacity
@@ -817,18 +931,27 @@ def _pair(type_a, type_b) -> tuple[GeomType, GeomType]:
     return pair
 
 
-def collide(type_a, type_b, pose_a, size_a, pose_b, size_b, margin) -> ContactPoints:
+def collide(type_a, type_b, pose_a, size_a, pose_b, size_b, margin, hfield: HField | None = None) -> ContactPoints:
     """Contact points between geom a and geom b (one pair; see the module docstring).
 
     ``type_a <= type_b`` are static geom types, ``pose_*`` ``[7]`` world poses (quaternion x, y, z, w),
-    ``size_*`` ``[3]``, ``margin`` a scalar >= 0 (may be traced). Returns ``K = MAX_POINTS[(type_a,
-    type_b)]`` points; raises ``ValueError`` for an unsupported or unordered pair.
+    ``size_*`` ``[3]``, ``margin`` a scalar >= 0 (may be traced). An HFIELD geom b also needs its grid,
+    ``hfield`` (:class:`HField`). Returns ``K = MAX_POINTS[(type_a, type_b)]`` points; raises ``ValueError``
+    for an unsupported or unordered pair, or an HFIELD pair without ``hfield``.
     """
-    fn = _PAIRS[_pair(type_a, type_b)]
+    pair = _pair(type_a, type_b)
+    fn = _PAIRS[pair]
     dtype = jnp.result_type(pose_a, size_a, pose_b, size_b)
     if not jnp.issubdtype(dtype, jnp.floating):
         dtype = jnp.result_type(float)
     pose_a, size_a, pose_b, size_b = (jnp.asarray(x, dtype) for x in (pose_a, size_a, pose_b, size_b))
     margin = jnp.asarray(margin, dtype)
-    pos, normal, dist, exists = fn(pose_a, size_a, pose_b, size_b, margin)
+    if pair[1] == GeomType.HFIELD:
+        if hfield is None:
+            raise ValueError(f"collide: a ({pair[0].name}, HFIELD) pair needs the heightfield's grid (hfield=)")
+        hf = HField(jnp.asarray(hfield.data, dtype), jnp.asarray(hfield.adr), jnp.asarray(hfield.nrow),
+                    jnp.asarray(hfield.ncol), jnp.asarray(hfield.size, dtype))
+        pos, normal, dist, exists = fn(pose_a, size_a, pose_b, hf, margin)
+    else:
+        pos, normal, dist, exists = fn(pose_a, size_a, pose_b, size_b, margin)
     return ContactPoints(pos=pos, normal=normal, dist=dist, valid=exists & (dist <= margin))

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from kamino.config import CONTACT_BAUMGARTE, CONTACT_DEADBAND, DEPENETRATION_SPEED, RESTITUTION_THRESHOLD, SolverConfig
-from kamino.jax_ref.collision import collide
+from kamino.jax_ref.collision import HField, collide
 from kamino.jax_ref.types import PaddedModel
 from kamino.model import GeomType
 from kamino.spatial import quat_mul, quat_to_matrix
@@ -62,11 +62,12 @@ def geom_poses(pm: PaddedModel, body_q: jax.Array) -> jax.Array:
 
 
 def _bounding_radius(pm: PaddedModel) -> jax.Array:
-    """Distance from a body's CoM that bounds each geom (planes: their offset only; see docstring of
-    ``detect``)."""
+    """Distance from a body's CoM that bounds each geom (planes: their offset only; a heightfield: the box of
+    half-extents ``size`` about its origin; see docstring of ``detect``)."""
     s = pm.geom_size
     r = jnp.select(
-        [pm.geom_type == GeomType.SPHERE, pm.geom_type == GeomType.CAPSULE, pm.geom_type == GeomType.BOX,
+        [pm.geom_type == GeomType.SPHERE, pm.geom_type == GeomType.CAPSULE,
+         (pm.geom_type == GeomType.BOX) | (pm.geom_type == GeomType.HFIELD),
          pm.geom_type == GeomType.CYLINDER, pm.geom_type == GeomType.ELLIPSOID],
         [s[:, 0], s[:, 0] + s[:, 1], jnp.linalg.norm(s, axis=-1), jnp.hypot(s[:, 0], s[:, 1]),
          jnp.max(s, axis=-1)],
@@ -126,8 +127,15 @@ def detect(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, body_u_free: j
         a, b = grp.geom_a, grp.geom_b
         speed = jnp.linalg.norm(g_lin[b] - g_lin[a], axis=-1) + g_ang[a] * rad[a] + g_ang[b] * rad[b]
         margin = pm.geom_margin[a] + pm.geom_margin[b] + cfg.contact_margin + h * speed
-        cp = jax.vmap(lambda pa, sa, pb, sb, m, ta=ta, tb=tb: collide(ta, tb, pa, sa, pb, sb, m))(
-            gpose[a], pm.geom_size[a], gpose[b], pm.geom_size[b], margin)
+        if tb == GeomType.HFIELD:  # the heightfield is geom b (its type sorts last); its grid from the world's
+            h = jnp.maximum(pm.geom_dataid[b], 0)
+            cp = jax.vmap(lambda pa, sa, pb, sb, m, adr, nr, nc, hs, ta=ta, tb=tb: collide(
+                ta, tb, pa, sa, pb, sb, m, hfield=HField(pm.hfield_data, adr, nr, nc, hs)))(
+                gpose[a], pm.geom_size[a], gpose[b], pm.geom_size[b], margin, pm.hfield_adr[h], pm.hfield_nrow[h],
+                pm.hfield_ncol[h], pm.hfield_size[h])
+        else:
+            cp = jax.vmap(lambda pa, sa, pb, sb, m, ta=ta, tb=tb: collide(ta, tb, pa, sa, pb, sb, m))(
+                gpose[a], pm.geom_size[a], gpose[b], pm.geom_size[b], margin)
         k = cp.dist.shape[1]
         ok = cp.valid & grp.mask[:, None]
         if ta != GeomType.PLANE:  # pairs are ordered (a plane is geom a): no point once bounding spheres are apart

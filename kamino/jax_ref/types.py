@@ -90,6 +90,13 @@ class PaddedModel:
     geom_friction: jax.Array
     geom_restitution: jax.Array
     geom_margin: jax.Array
+    # heightfields (world-local indices; kamino.Model.hfield_*)
+    geom_dataid: jax.Array  # [W, ng] local heightfield of an HFIELD geom (-1: none)
+    hfield_nrow: jax.Array  # [W, nh]
+    hfield_ncol: jax.Array  # [W, nh]
+    hfield_size: jax.Array  # [W, nh, 4] (rx, ry, z_top, z_base)
+    hfield_adr: jax.Array  # [W, nh] index of the grid's first height in hfield_data
+    hfield_data: jax.Array  # [W, nhd] the world's normalised heights (0 on padding)
     pair_groups: tuple[PairGroup, ...]
     contact_capacity: jax.Array  # [W]
     pair_kinds: tuple[tuple[int, int], ...] = dataclasses.field(metadata={"static": True}, default=())
@@ -223,6 +230,13 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
             pair=jnp.asarray(np.where(kmask, pair_local[sel][kg], -1), jnp.int32),
             mask=jnp.asarray(kmask),
         ))
+    nh = int(model.world_hfield_count.max()) if model.num_hfields else 0
+    hg, hmask, _ = _pad_index(model.world_hfield_start, model.world_hfield_count, nh)
+    nhd = int(model.world_hfield_data_count.max()) if model.num_hfields else 0
+    hdg, hdmask, _ = _pad_index(model.world_hfield_data_start, model.world_hfield_data_count, nhd)
+    dataid_local = np.where(model.geom_dataid >= 0, model.geom_dataid - model.world_hfield_start[model.geom_world],
+                            -1)
+    adr_local = model.hfield_adr - model.world_hfield_data_start[model.hfield_world]
     nc = int(model.world_contact_capacity.max()) if W else 0
     cg, cmask, csc = _pad_index(_prefix(model.world_contact_capacity), model.world_contact_capacity, nc)
 
@@ -281,6 +295,12 @@ def _build_layout(model: Model, dtype: np.dtype) -> Layout:
         geom_friction=f(geom_arr(model.geom_friction)),
         geom_restitution=f(geom_arr(model.geom_restitution)),
         geom_margin=f(geom_arr(model.geom_margin)),
+        geom_dataid=i(geom_arr(dataid_local, -1)),
+        hfield_nrow=i(take(model.hfield_nrow, hg, hmask, 2)),
+        hfield_ncol=i(take(model.hfield_ncol, hg, hmask, 2)),
+        hfield_size=f(take(model.hfield_size, hg, hmask, 1.0)),
+        hfield_adr=i(take(adr_local, hg, hmask, 0)),
+        hfield_data=f(take(model.hfield_data, hdg, hdmask, 0.0)),
         pair_groups=tuple(groups),
         contact_capacity=i(model.world_contact_capacity),
         pair_kinds=tuple(kinds),

@@ -60,7 +60,7 @@ def _round(radius: float, half: float, caps: bool) -> np.ndarray:
 def geom_outline(gtype: int, size: np.ndarray, plane_half: float = 1.0) -> np.ndarray:
     """Polylines of a geom in its own frame (MuJoCo size conventions), NaN rows between them."""
     g, s = GeomType(int(gtype)), np.asarray(size, float)
-    if g == GeomType.BOX:
+    if g in (GeomType.BOX, GeomType.HFIELD):  # a heightfield: the box of half-extents size that holds it
         return _box(s)
     if g in (GeomType.CAPSULE, GeomType.CYLINDER):
         return _round(s[0], s[1], caps=g == GeomType.CAPSULE)

@@ -173,7 +173,7 @@ def geom_radius(gtype: int, size: np.ndarray) -> float:
         return float(s[0] + s[1])
     if g == GeomType.CYLINDER:
         return float(math.hypot(s[0], s[1]))
-    if g == GeomType.BOX:
+    if g in (GeomType.BOX, GeomType.HFIELD):  # a heightfield's size: the half-extents of a box holding it
         return float(np.linalg.norm(s[:3]))
     return float(np.max(s[:3]))  # ELLIPSOID
 

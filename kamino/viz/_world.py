@@ -17,7 +17,7 @@ from kamino.model import _INDEX_FIELDS, Model
 
 #: Field-name prefix -> the entity whose ``world_<entity>_start/count`` segment the field is sliced by.
 _ENTITY_OF_PREFIX = {"body": "body", "joint": "joint", "dof": "dof", "geom": "geom", "pair": "pair",
-                     "coupling": "coupling", "actuator": "actuator"}
+                     "coupling": "coupling", "actuator": "actuator", "hfield": "hfield"}
 #: ``joint_<x>_start`` fields: offsets into the DoF, coordinate and row arrays, recomputed from their counts.
 _JOINT_OFFSETS = ("joint_dof_start", "joint_coord_start", "joint_cts_start")
 
@@ -42,7 +42,7 @@ def _shift_back(model: Model, name: str, value: np.ndarray, world: int) -> np.nd
     if target == "world":
         return np.zeros_like(value)
     offset = int(getattr(model, f"world_{target}_start")[world])
-    return np.where(value >= 0, value - offset, value) if target in ("body", "joint") else value - offset
+    return np.where(value >= 0, value - offset, value) if target in ("body", "joint", "hfield") else value - offset
 
 
 def _world_field(model: Model, name: str, world: int) -> Any:
@@ -54,7 +54,7 @@ def _world_field(model: Model, name: str, world: int) -> Any:
         return np.zeros(1, np.int64) if name.endswith("_start") else np.asarray(value[world:world + 1]).copy()
     if name == "gravity":
         return np.asarray(value[world:world + 1]).copy()
-    entity = _ENTITY_OF_PREFIX.get(name.split("_", 1)[0])
+    entity = "hfield_data" if name == "hfield_data" else _ENTITY_OF_PREFIX.get(name.split("_", 1)[0])
     if entity is None:
         raise AssertionError(f"kamino.viz: Model field {name!r} has no known entity (update kamino/viz/_world.py)")
     part = value[_segment(model, entity, world)]

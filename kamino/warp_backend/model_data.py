@@ -16,7 +16,7 @@ import functools
 import numpy as np
 import warp as wp
 
-from kamino.model import CONTACT_POINTS, GeomType, Model
+from kamino.model import CONTACT_POINTS, GeomType, Model, reject_hfields
 from kamino.tables import prefix, row_tables
 from kamino.warp_backend import linear_solve_pattern
 from kamino.warp_backend.linear_solve_pattern import hub_counts
@@ -179,6 +179,7 @@ def warp_model(model: Model, np_dtype, device) -> WarpModel:
 
 
 def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | None = None) -> WarpModel:
+    reject_hfields(model, "kamino.warp_backend")
     T = types_of(np_dtype)
     W = model.num_worlds
     tab = row_tables(model)
