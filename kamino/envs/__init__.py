@@ -19,13 +19,14 @@ from kamino.envs.fourbar_track import FourbarTrack
 from kamino.envs.joystick import BdxJoystick, DrLegsJoystick, Joystick
 from kamino.envs.policy import Policy, load_policy, shipped_policies
 from kamino.envs.randomization import randomize
+from kamino.envs.rough import DrLegsRough
 from kamino.envs.system import EnvSystem
 
 BACKENDS: tuple[str, ...]  # the imported tuple, declared here for its docstring in the API reference
 """The simulator backends an environment runs on (``backend=``: ``"jax"`` or ``"warp"``)."""
 
 TASKS: dict[str, type[KaminoEnv]] = {"fourbar_track": FourbarTrack, "dr_legs_joystick": DrLegsJoystick,
-                                     "bdx_joystick": BdxJoystick}
+                                     "bdx_joystick": BdxJoystick, "dr_legs_rough": DrLegsRough}
 """Task name -> environment class (each also registered with brax.envs)."""
 
 brax_compat.install()
@@ -40,5 +41,5 @@ def make(task: str, **kwargs) -> KaminoEnv:
     return TASKS[task](**kwargs)
 
 
-__all__ = ["BACKENDS", "TASKS", "BdxJoystick", "DrLegsJoystick", "EnvSystem", "FourbarTrack", "Joystick", "KaminoEnv",
-           "Policy", "load_policy", "make", "randomize", "shipped_policies"]
+__all__ = ["BACKENDS", "TASKS", "BdxJoystick", "DrLegsJoystick", "DrLegsRough", "EnvSystem", "FourbarTrack", "Joystick",
+           "KaminoEnv", "Policy", "load_policy", "make", "randomize", "shipped_policies"]

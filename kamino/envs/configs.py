@@ -46,6 +46,9 @@ PPO_CONFIGS: dict[str, dict] = {
 }
 #: the loop-free biped: the same task and PPO settings as dr_legs, with the environment's defaults (untested here)
 PPO_CONFIGS["bdx_joystick"] = {**PPO_CONFIGS["dr_legs_joystick"], "env": {}}
+#: dr_legs on rough terrain (kamino.envs.rough): dr_legs_joystick's recipe and environment keywords, so that its
+#: policies (the shipped dr_legs_walk) run on it and can be fine-tuned there; the terrain's defaults
+PPO_CONFIGS["dr_legs_rough"] = copy.deepcopy(PPO_CONFIGS["dr_legs_joystick"])
 
 
 def task_config(task: str) -> dict:

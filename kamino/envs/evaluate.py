@@ -37,7 +37,10 @@ def walking_test(env, make_policy, *, episodes: int, seconds: float, speed: tupl
     training), and returns numpy arrays ``(commands [E], lin_vel [E, T, 3], ang_vel [E, T, 3], counted [E, T],
     fell [E])``: the base body's velocities in its own frame after each policy step; ``counted`` is True for the
     steps that began with the robot up (the step that ends an episode is its last counted one); ``fell`` marks the
-    episodes that ended before ``seconds``."""
+    episodes that ended before ``seconds``. On a terrain task (an environment with ``with_tile``:
+    :class:`kamino.envs.rough.DrLegsRough`) episode ``i`` of ``E`` starts on tile ``floor(i num_tiles / E)``, so
+    the episodes spread evenly over the tiles of its difficulty rows (each tile ``E / num_tiles`` of them, up to
+    one; fewer episodes than tiles take every ``num_tiles / E``-th tile)."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -49,8 +52,9 @@ def walking_test(env, make_policy, *, episodes: int, seconds: float, speed: tupl
     vx = jax.random.uniform(key_cmd, (episodes,), jnp.float32, speed[0], speed[1])
     commands = jnp.stack([vx, jnp.zeros_like(vx), jnp.zeros_like(vx)], -1)
 
-    def start(rng, command):
-        return env.with_command(env.reset(rng), command)
+    def start(rng, command, index):
+        state = env.with_command(env.reset(rng), command)
+        return env.with_tile(state, index * env.num_tiles // episodes) if hasattr(env, "with_tile") else state
 
     def rollout(params, state, key):
         policy = make_policy(params, deterministic=deterministic)
@@ -67,7 +71,7 @@ def walking_test(env, make_policy, *, episodes: int, seconds: float, speed: tupl
         return (*out, ~alive_end)
 
     with jax.enable_x64(False):
-        states = jax.jit(jax.vmap(start))(jax.random.split(key_reset, episodes), commands)
+        states = jax.jit(jax.vmap(start))(jax.random.split(key_reset, episodes), commands, jnp.arange(episodes))
     play = jax.jit(jax.vmap(rollout, in_axes=(None, 0, 0)))
     keys = jax.random.split(key_policy, episodes)
 
@@ -130,13 +134,19 @@ def episode_returns(env, make_policy, params, *, episodes: int, seconds: float, 
 
 
 def resolve(source: str | Path, task: str | None = None) -> Policy:
-    """The policy named by ``source``: a shipped policy's name, or a run folder or checkpoint path."""
+    """The policy named by ``source``: a shipped policy's name, or a run folder or checkpoint path. ``task`` may
+    name a variant of a shipped policy's task (a subclass of its environment, with its observation and keywords:
+    ``dr_legs_rough`` for ``dr_legs_walk``), to score the policy there."""
+    import dataclasses
+
     from kamino.envs.policy import load_checkpoint, load_policy, shipped_policies
 
     if str(source) in shipped_policies() and not Path(source).exists():
         policy = load_policy(str(source))
         if task is not None and task != policy.task:
-            raise ValueError(f"the shipped policy {source} was trained on {policy.task}, not {task}")
+            if not issubclass(_task_class(task), _task_class(policy.task)):
+                raise ValueError(f"the shipped policy {source} was trained on {policy.task}, not {task}")
+            policy = dataclasses.replace(policy, task=task)
         return policy
     path = Path(source)
     if not path.exists():
@@ -155,10 +165,12 @@ def check_walk(episodes: int, seconds: float, speed: tuple[float, float], caller
 
 def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: int = 256, seconds: float = 10.0,
              speed: tuple[float, float] = (0.3, 0.5), seed: int = 0, deterministic: bool = True,
-             env: dict | None = None, max_error: float = 0.1, max_falls: float = 0.05) -> dict[str, Any]:
+             env: dict | None = None, max_error: float | None = None,
+             max_falls: float | None = None) -> dict[str, Any]:
     """Score ``policy`` (a :class:`~kamino.envs.policy.Policy`, a shipped policy's name, or a run or checkpoint
     path) in its task's environment, built with its training keywords and ``env`` over them. A joystick task gets
-    the walking test (the module doc), with ``passed`` against ``max_error`` [m/s] and ``max_falls``; another task
+    the walking test (the module doc), with ``passed`` against ``max_error`` [m/s] and ``max_falls`` (default: the
+    task's ``walking_bars``: 0.1 m/s and 5 % on flat ground, 0.15 m/s and 5 % on ``dr_legs_rough``); another task
     the episode return. Returns the report."""
     from kamino.envs import make
 
@@ -168,6 +180,10 @@ def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: in
     env_overrides = dict(env or {})
     kwargs = {**policy.env, **env_overrides}
     walking = hasattr(_task_class(policy.task), "with_command")
+    if walking:
+        bars = _task_class(policy.task).walking_bars
+        max_error = bars[0] if max_error is None else max_error
+        max_falls = bars[1] if max_falls is None else max_falls
     if walking:
         kwargs["resample_steps"] = None  # the command stays as the test sets it
     environment = make(policy.task, backend=backend, **kwargs)
@@ -234,8 +250,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=10.0, help="episode length [s] (default 10)")
     p.add_argument("--speed", type=float, nargs=2, default=(0.3, 0.5), metavar=("LOW", "HIGH"),
                    help="joystick tasks: forward command range [m/s] (default 0.3 0.5)")
-    p.add_argument("--max-error", type=float, default=0.1, help="the bar on the mean tracking error [m/s]")
-    p.add_argument("--max-falls", type=float, default=0.05, help="the bar on the fall fraction")
+    p.add_argument("--max-error", type=float, help="the bar on the mean tracking error [m/s] (default: the task's, "
+                   "0.1 on flat ground, 0.15 on dr_legs_rough)")
+    p.add_argument("--max-falls", type=float, help="the bar on the fall fraction (default: the task's, 0.05)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--stochastic", action="store_true", help="sample actions as in training (default: the mode)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
@@ -250,6 +267,9 @@ def main(argv: list[str] | None = None) -> int:
         policy = resolve(args.policy, args.task)
     except (runs.OptionError, FileNotFoundError, ValueError) as e:
         p.error(str(e))
+    bars = getattr(_task_class(policy.task), "walking_bars", (0.1, 0.05))
+    max_error = bars[0] if args.max_error is None else args.max_error
+    max_falls = bars[1] if args.max_falls is None else args.max_falls
     if args.sim == "mujoco":
         if args.stochastic:
             p.error("--sim mujoco plays the deterministic policy (no --stochastic)")
@@ -257,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
             report = sim2sim.evaluate_mujoco(policy, episodes=args.episodes, seconds=args.seconds,
                                              speed=tuple(args.speed), seed=args.seed,
                                              options=sim2sim.options_from(args), obs_noise=args.obs_noise,
-                                             env=env_overrides, max_error=args.max_error, max_falls=args.max_falls)
+                                             env=env_overrides, max_error=max_error, max_falls=max_falls)
         except ValueError as e:
             p.error(str(e))
         print(f"C MuJoCo {report['mujoco']}", flush=True)
@@ -267,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     report = evaluate(policy, backend=args.backend, episodes=args.episodes, seconds=args.seconds,
                       speed=tuple(args.speed), seed=args.seed, deterministic=not args.stochastic, env=env_overrides,
-                      max_error=args.max_error, max_falls=args.max_falls)
+                      max_error=max_error, max_falls=max_falls)
     print(format_report(report), flush=True)
     if args.out:
         runs.write_json(args.out, report)

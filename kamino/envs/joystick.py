@@ -80,7 +80,7 @@ class Joystick(KaminoEnv):
         air_time_target: the swing time [s] at which a landing foot's ``feet_air_time`` turns positive.
         contact_height: a foot is on the ground while its CoM is within this height [m] of where it stands at the
             nominal reset (a box foot tilted on an edge or heel rises a few mm).
-        min_height: the base CoM height [m] below which the robot has fallen.
+        min_height: the base CoM height [m] (above the ground below it) below which the robot has fallen.
         max_tilt: the base tilt [rad] past which it has fallen.
         reward_weights: overrides of :data:`REWARD_WEIGHTS`.
         only_positive_rewards: clip the reward of a policy step at 0 from below (the metrics keep every term). With
@@ -111,6 +111,8 @@ class Joystick(KaminoEnv):
 
     reward_terms = tuple(REWARD_WEIGHTS)
     task_keys = ("command",)
+    #: the walking test's bars (:func:`kamino.envs.evaluate.evaluate`): mean tracking error [m/s], fall fraction
+    walking_bars = (0.1, 0.05)
 
     def __init__(self, model: Model, *, min_height: float, command_lin_x: float = 0.5, command_lin_y: float = 0.3,
                  command_yaw: float = 0.8, tracking_sigma: float = 0.25, max_tilt: float = 1.0,
@@ -227,9 +229,16 @@ class Joystick(KaminoEnv):
 
     # ---------------------------------------------------------------- reward and termination
 
+    def _above_ground(self, z: jax.Array, xy: jax.Array) -> jax.Array:
+        """Heights ``z`` [m] of points at world ``xy`` ``[..., 2]`` measured from the ground below them: ``z`` itself
+        on the flat ground plane at z = 0 (returned as is, so no float of the flat task changes); a terrain task
+        subtracts the terrain's height (:class:`kamino.envs.rough.DrLegsRough`)."""
+        return z
+
     def _fallen(self, ps: State) -> jax.Array:
         base = body_frame_vectors(ps.body_q, ps.body_u, self._base)
-        return (base["height"] < self._min_height) | (base["up"] < self._min_up)
+        height = self._above_ground(base["height"], ps.body_q[self._base, :2])
+        return (height < self._min_height) | (base["up"] < self._min_up)
 
     def _episode_memory(self) -> dict[str, jax.Array]:
         n = len(self._feet)
@@ -247,7 +256,8 @@ class Joystick(KaminoEnv):
         cmd = info["command"]
         moving = (jnp.linalg.norm(cmd[:2]) > 0.1) | (jnp.abs(cmd[2]) > 0.1)
         target = jnp.where(moving, swing_heights(self._phase_after(info), len(self._feet), self._swing_height), 0.0)
-        lift = ps.body_q[self._feet, 2] - jnp.asarray(self._foot_stand_z, ps.body_q.dtype)
+        feet = ps.body_q[self._feet]
+        lift = self._above_ground(feet[:, 2], feet[:, :2]) - jnp.asarray(self._foot_stand_z, ps.body_q.dtype)
         return jnp.exp(-jnp.sum((lift - target) ** 2) / self._swing_sigma)
 
     def _feet_width(self, ps: State) -> jax.Array:
@@ -262,7 +272,8 @@ class Joystick(KaminoEnv):
         return jnp.exp(-((width - self._stance_width) ** 2) / self._stance_sigma)
 
     def _feet_down(self, ps: State) -> jax.Array:
-        return ps.body_q[self._feet, 2] < jnp.asarray(self._foot_down_z, ps.body_q.dtype)
+        feet = ps.body_q[self._feet]
+        return self._above_ground(feet[:, 2], feet[:, :2]) < jnp.asarray(self._foot_down_z, ps.body_q.dtype)
 
     def _air_time(self, ps: State, info: dict) -> tuple[jax.Array, jax.Array]:
         return feet_air_time(info["feet_air_time"], info["feet_down"], self._feet_down(ps), self.dt,
@@ -320,11 +331,15 @@ class DrLegsJoystick(Joystick):
             raise ValueError(f"{type(self).__name__}: give kp and kd together (or neither, for the model's own "
                              f"gains), got kp={kp!r}, kd={kd!r}")
         if kp is None:
-            model = dr_legs()
+            model = self._robot()
         else:
             _check_gains(type(self).__name__, kp, kd)
-            model = dr_legs(hip_gains=(kp, kd), knee_gains=(kp, kd), ankle_gains=(kp, kd))
+            model = self._robot(hip_gains=(kp, kd), knee_gains=(kp, kd), ankle_gains=(kp, kd))
         super().__init__(model, min_height=min_height, **kwargs)
+
+    def _robot(self, **gains) -> Model:
+        """The model: ``kamino.models.dr_legs(**gains)`` on its ground plane (a terrain task puts its own ground)."""
+        return dr_legs(**gains)
 
 
 class BdxJoystick(Joystick):

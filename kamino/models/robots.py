@@ -18,6 +18,7 @@ feet just touching it; their collision geoms collide with the ground only (no se
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 
@@ -194,7 +195,7 @@ def _free_base(p: _Parts, base: int) -> None:
 # DR Legs: biped with serial-parallel hybrid legs
 # ---------------------------------------------------------------------------------------
 
-def dr_legs(ground: bool = True, hip_gains: tuple[float, float] = (300.0, 8.0),
+def dr_legs(ground: bool | Callable[[ModelBuilder], object] = True, hip_gains: tuple[float, float] = (300.0, 8.0),
             knee_gains: tuple[float, float] = (300.0, 8.0), ankle_gains: tuple[float, float] = (150.0, 4.0),
             armature: float = 0.03, friction: float = 1.0, gravity: float = 9.81) -> Model:
     """A biped of the class of Disney Research's legged robots with parallel leg mechanisms ("DR Legs"):
@@ -212,7 +213,9 @@ def dr_legs(ground: bool = True, hip_gains: tuple[float, float] = (300.0, 8.0),
       the shank (actuated) pushes a rod with a cardan (2 revolutes) at the crank and a gimbal
       (3 revolutes) at the foot: a spatial loop of 8 revolutes through the cross (loop 3).
 
-    Box foot contact geoms rest on the ground plane (``ground=True``). Actuated ranges [rad]:
+    Box foot contact geoms rest on the ground plane (``ground=True``; ``False``: no ground; a callable adds its own
+    ground geoms to the builder instead, at z = 0 under the feet, e.g. a heightfield:
+    ``lambda b: kamino.envs.terrain.add_terrain(b, terrain)``). Actuated ranges [rad]:
     hip yaw ±0.5, hip roll ±0.4, hip pitch ±1.0, knee drive ±0.6, ankle pitch drive ±0.6, ankle
     roll drive ±0.5. Gains ``(kp [N m/rad], kd [N m s/rad])`` per group; effort limits 80 N m
     (hip, knee) and 40 N m (ankle); ``armature`` [kg m^2] on every actuated joint; ``friction`` of
@@ -276,7 +279,9 @@ def dr_legs(ground: bool = True, hip_gains: tuple[float, float] = (300.0, 8.0),
         g2 = p.box(f"{side}_roll_gimbal_inner", P, (0.03, 0.03, 0.03), 0.06)
         p.hinge(f"{side}_roll_gimbal_y", g1, g2, P, np.cross(d, X))
         p.hinge(f"{side}_roll_gimbal_x", g2, foot, P, X)
-    if ground:
+    if callable(ground):
+        ground(p.b)
+    elif ground:
         p.ground(friction)
     return p.finalize()
 
