@@ -155,35 +155,39 @@ def test_height_is_where_the_contact_model_puts_the_surface(small):
 
 #: a small terrain (2 rows: difficulty 0 and 1; flat and stairs_down) keeps the environment cheap to build
 SMALL = {"rows": 2, "types": ["flat", "stairs_down"], "border": 1.0}
+#: its tiles' ground heights (row-major): flat, stairs of 4 x 0.01 m, flat, stairs of 4 x 0.04 m
+SMALL_Z = [0.0, 0.04, 0.0, 0.16]
 
 
 @pytest.fixture(scope="module")
 def rough():
+    """The task on :data:`SMALL` with its curriculum, and 16 resets (one compilation for both tests)."""
     from kamino.envs import make
 
-    return make("dr_legs_rough", backend="jax", reset_bank=8, terrain=SMALL, levels=(1, 1))
+    env = make("dr_legs_rough", backend="jax", reset_bank=8, terrain=SMALL, curriculum=True)
+    return env, jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 16))
 
 
 def test_rough_resets_start_above_the_local_ground(rough):
-    """``levels=(1, 1)``: resets land on the hardest row, the flat tile (height 0) or the stairs tile whose
-    platform is 4 steps of 0.04 m = 0.16 m up. Every reset stands on its tile's origin: the base within 0.3 m
-    (the platform's half side) of its centre, its lowest foot corner on the platform to float32 rounding (1e-5 m),
-    the pelvis at its flat-ground height above the local ground (the heights the fall test reads), so no reset has
-    fallen; the observation is dr_legs_joystick's (48 entries, the same function)."""
+    """Resets land on the 4 tiles, whose platforms are up to 0.16 m high. Every reset stands on its tile's
+    origin: the base within 0.3 m (the platform's half side) of its centre, its lowest foot corner on the platform
+    to float32 rounding (1e-5 m), the pelvis at its flat-ground height above the local ground (the heights the fall
+    test reads), so no reset has fallen; ``with_tile`` moves a reset onto another tile. The observation is
+    dr_legs_joystick's (48 entries, the same function)."""
     from kamino.envs.joystick import Joystick
+    from kamino.spatial import rotate
 
+    rough, s = rough
     assert rough.observation_size == 48 and type(rough)._observe is Joystick._observe
     origins = rough.tile_origins
-    np.testing.assert_allclose(origins[:, 2], [0.0, 0.16], atol=ROUNDING)
-    s = jax.jit(jax.vmap(rough.reset))(jax.random.split(jax.random.PRNGKey(0), 16))
+    np.testing.assert_allclose(origins[:, 2], SMALL_Z, atol=ROUNDING)
     q = np.asarray(s.pipeline_state.body_q)
     base = q[:, rough._base, :3]
     tile = np.argmin(np.linalg.norm(base[:, None, :2] - origins[None, :, :2], axis=-1), axis=1)
-    assert set(tile) == {0, 1}  # both tiles drawn
+    assert set(tile) == {0, 1, 2, 3}  # every tile drawn
+    np.testing.assert_array_equal(np.asarray(s.info["tile"]), tile)  # the curriculum's record
     assert np.all(np.abs(base[:, :2] - origins[tile, :2]) < 0.3)
     pts, bodies, radii = rough._support
-    from kamino.spatial import rotate
-
     lowest = [np.min(np.asarray(w[bodies, 2] + rotate(jnp.asarray(w[bodies, 3:]), jnp.asarray(pts, w.dtype))[:, 2])
                      - radii) for w in q]
     np.testing.assert_allclose(lowest, origins[tile, 2], atol=1e-5)
@@ -197,17 +201,35 @@ def test_rough_resets_start_above_the_local_ground(rough):
                                origins[tile, 2], atol=1e-5)
 
 
-def test_rough_steps_run_and_stand_on_the_stairs(rough):
-    """A few policy steps under jit + vmap (JAX backend): at a zero action the robot stands on the raised
-    platform, as on flat ground (the pelvis settles by under 2 cm; a robot standing on nothing would fall 0.16 m
-    before the fall test sees it), and no episode ends."""
-    s = jax.jit(jax.vmap(rough.reset))(jax.random.split(jax.random.PRNGKey(1), 2))
-    s = jax.vmap(rough.with_tile)(s, jnp.ones(2, jnp.int32))
-    h0 = np.asarray(s.pipeline_state.body_q[:, rough._base, 2])
-    step = jax.jit(jax.vmap(rough.step))
+def test_curriculum_moves_one_row_by_the_episode_outcome(rough):
+    """Isaac Lab's rule on the 2 x 2 tiles: walked far -> one row harder, fell (and not far) -> one row easier,
+    else the same tile; the column (the terrain type) stays and the rows are clipped to ``levels``."""
+    env, _ = rough
+    tiles = jnp.array([0, 0, 1, 2, 3, 3, 2])
+    far = jnp.array([True, False, False, True, False, True, False])
+    fell = jnp.array([False, True, False, True, True, True, False])
+    np.testing.assert_array_equal(np.asarray(jax.vmap(env.next_tile)(tiles, far, fell)), [2, 0, 1, 2, 1, 3, 2])
+
+
+def test_rough_steps_run_stand_on_the_stairs_and_restart_on_the_next_tile(rough):
+    """A few policy steps under jit + vmap (JAX backend) from the high stairs tile (3). At a restart (``steps`` 0,
+    what brax's EpisodeWrapper writes after a reset) the curriculum moves an episode that fell to the row below
+    (tile 1, 0.12 m lower), and keeps one that walked far on the top row (tile 3). Then at a zero action both
+    robots stand on their platforms as on flat ground: the pelvis ends within 2 cm of its height above the local
+    ground at reset (a robot standing on nothing would fall 0.12-0.16 m), and no episode ends. The two feet are two
+    BOX-HFIELD pairs: a world with more than one HFIELD pair once failed to compile (the JAX reference's contact
+    detection reused the step's horizon ``h`` for the grid index)."""
+    env, s = rough
+    s = jax.vmap(env.with_tile)(jax.tree.map(lambda x: x[:2], s), jnp.full(2, 3, jnp.int32))
+    s = s.replace(info={**s.info, "steps": jnp.zeros(2), "fell": jnp.array([True, True]),
+                        "far": jnp.array([False, True])})
+    above0 = np.asarray(s.pipeline_state.body_q[:, env._base, 2]) - 0.16
+    step = jax.jit(jax.vmap(env.step))
     for _ in range(10):
         s = step(s, jnp.zeros((2, 12), jnp.float32))
         assert not np.any(np.asarray(s.done) > 0)
-    h = np.asarray(s.pipeline_state.body_q[:, rough._base, 2])
-    assert np.all(np.abs(h - h0) < 0.02), (h0, h)
-    assert np.all(h > 0.16 + rough._min_height)
+        s = s.replace(info={**s.info, "steps": s.info["steps"] + 1})
+    np.testing.assert_array_equal(np.asarray(s.info["tile"]), [1, 3])
+    base = np.asarray(s.pipeline_state.body_q[:, env._base, :3])
+    np.testing.assert_allclose(base[:, :2], env.tile_origins[[1, 3], :2], atol=0.1)
+    np.testing.assert_allclose(base[:, 2] - np.array([0.04, 0.16]), above0, atol=0.02)

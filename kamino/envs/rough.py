@@ -7,6 +7,11 @@
   rows ``levels`` (its feet on the platform, at the tile's ground height), with the flat task's uniform heading.
   Brax's ``AutoResetWrapper`` restarts an episode from its first reset, so in training every environment keeps
   its tile; a batch of environments covers the tiles uniformly.
+- **A curriculum** (``curriculum=True``; Isaac Lab's terrain-levels rule): an episode whose robot walked farther
+  than half a tile from its origin restarts one row harder, one that ended in a fall without walking that far one
+  row easier (within ``levels``; the column, the terrain type, stays). Brax's ``AutoResetWrapper`` restores the
+  first reset's state; the first step after it (``info["steps"] == 0``, as :class:`kamino.envs.base.KaminoEnv`
+  detects a restart) moves that state rigidly onto the new tile (``info["tile"]``).
 - **Heights** are measured from the terrain below (:meth:`DrLegsRough._above_ground`, the contact model's
   surface at the point's ``(x, y)``: :func:`kamino.envs.terrain.surface_height`): the fall test's ``min_height``
   (the base CoM above the ground below it), a foot's contact height and its lift for ``feet_phase``.
@@ -37,6 +42,8 @@ class DrLegsRough(DrLegsJoystick):
             dr_legs: 5 difficulty rows x 6 types of 3 m tiles, 0.04 m grid).
         levels: ``(LOW, HIGH)``, the difficulty rows (0 to ``rows - 1``, both included) whose tiles resets draw
             from (default: all rows).
+        curriculum: move an environment between rows at its restarts (the module doc); ``info`` then carries
+            ``tile`` (its index into :attr:`tile_origins`), ``far`` and ``fell`` (the running episode's outcome).
         **kwargs: :class:`kamino.envs.joystick.DrLegsJoystick` (``backend="jax"``: the Warp backend has no
             heightfield contact yet).
     """
@@ -44,7 +51,8 @@ class DrLegsRough(DrLegsJoystick):
     #: the rough walking test's bars: mean tracking error [m/s] and fall fraction (docs/envs.md, "Rough terrain")
     walking_bars = (0.15, 0.05)
 
-    def __init__(self, *, terrain: dict | None = None, levels: tuple[int, int] | None = None, **kwargs):
+    def __init__(self, *, terrain: dict | None = None, levels: tuple[int, int] | None = None,
+                 curriculum: bool = False, **kwargs):
         name = type(self).__name__
         if terrain is not None and not isinstance(terrain, dict):
             raise TypeError(f"{name}: terrain must be a dict of generate_terrain keywords, got "
@@ -59,6 +67,7 @@ class DrLegsRough(DrLegsJoystick):
             raise ValueError(f"{name}: levels must be (LOW, HIGH) with 0 <= LOW <= HIGH <= {rows - 1} (the terrain's "
                              f"difficulty rows), got {levels!r}")
         self._levels = (int(lo), int(hi))
+        self._curriculum = bool(curriculum)
         self._origins = self._terrain.origins[lo:hi + 1].reshape(-1, 3)
         self._tile_difficulty = self._terrain.difficulty[lo:hi + 1].reshape(-1)
         super().__init__(**kwargs)
@@ -99,17 +108,58 @@ class DrLegsRough(DrLegsJoystick):
         tile = jax.random.randint(k_tile, (), 0, self.num_tiles)
         return body_q.at[:, :3].add(jnp.asarray(self._origins, body_q.dtype)[tile])
 
+    def _tile_of(self, body_q: jax.Array) -> jax.Array:
+        """The index of the reset tile whose origin is nearest the base body's ``(x, y)``."""
+        origins = jnp.asarray(self._origins[:, :2], body_q.dtype)
+        return jnp.argmin(jnp.sum((origins - body_q[self._base, :2]) ** 2, axis=-1)).astype(jnp.int32)
+
+    def next_tile(self, tile: jax.Array, far: jax.Array, fell: jax.Array) -> jax.Array:
+        """The curriculum's tile after an episode on ``tile`` (an index into :attr:`tile_origins`): one row harder
+        if the robot walked ``far`` (beyond half a tile from the origin), one row easier if it ``fell`` and did not
+        walk far, the same column, clipped to the rows of ``levels``."""
+        cols = self._terrain.shape[1]
+        rows = self.num_tiles // cols
+        row = tile // cols + jnp.where(far, 1, jnp.where(fell, -1, 0))
+        return (jnp.clip(row, 0, rows - 1) * cols + tile % cols).astype(jnp.int32)
+
+    def reset(self, rng: jax.Array):
+        state = super().reset(rng)
+        if not self._curriculum:
+            return state
+        info = dict(state.info, tile=self._tile_of(state.pipeline_state.body_q), far=jnp.zeros((), bool),
+                    fell=jnp.zeros((), bool))
+        return state.replace(info=info)
+
+    def step(self, state, action: jax.Array):
+        if not self._curriculum:
+            return super().step(state, action)
+        info = dict(state.info)
+        if "steps" in info:  # brax's EpisodeWrapper: 0 right after an (auto-)reset restored the first reset's state
+            restarted = info["steps"] == 0
+            body_q = state.pipeline_state.body_q
+            tile = jnp.where(restarted, self.next_tile(info["tile"], info["far"], info["fell"]), info["tile"])
+            origins = jnp.asarray(self._origins, body_q.dtype)
+            shift = jnp.where(restarted, origins[tile] - origins[self._tile_of(body_q)], 0.0)
+            state = state.replace(pipeline_state=state.pipeline_state.replace(body_q=body_q.at[:, :3].add(shift)))
+            info.update(tile=tile, far=info["far"] & ~restarted, fell=info["fell"] & ~restarted)
+        state = super().step(state.replace(info=info), action)
+        body_q = state.pipeline_state.body_q
+        walked = jnp.linalg.norm(body_q[self._base, :2] - jnp.asarray(self._origins[:, :2], body_q.dtype)[info["tile"]])
+        far = info["far"] | (walked > 0.5 * self._terrain.tile_size)
+        return state.replace(info=dict(state.info, far=far, fell=info["fell"] | (state.done > 0)))
+
     def with_tile(self, state, tile):
         """``state`` (one environment, right after :meth:`reset`) moved rigidly onto tile ``tile`` (an index into
         :attr:`tile_origins`; may be traced): every body translated by the difference of the two tiles' origins,
         which keeps the robot's pose on the flat platform. For evaluations spread over the tiles
         (:func:`kamino.envs.evaluate.walking_test`)."""
-        origins = jnp.asarray(self._origins, state.pipeline_state.body_q.dtype)
         body_q = state.pipeline_state.body_q
-        base = body_q[self._base, :2]
-        here = jnp.argmin(jnp.sum((origins[:, :2] - base) ** 2, axis=-1))
-        body_q = body_q.at[:, :3].add(origins[tile] - origins[here])
-        return state.replace(pipeline_state=state.pipeline_state.replace(body_q=body_q))
+        origins = jnp.asarray(self._origins, body_q.dtype)
+        body_q = body_q.at[:, :3].add(origins[tile] - origins[self._tile_of(body_q)])
+        state = state.replace(pipeline_state=state.pipeline_state.replace(body_q=body_q))
+        if self._curriculum:
+            state = state.replace(info=dict(state.info, tile=jnp.asarray(tile, jnp.int32)))
+        return state
 
 
 __all__ = ["DrLegsRough"]
