@@ -233,3 +233,18 @@ def test_rough_steps_run_stand_on_the_stairs_and_restart_on_the_next_tile(rough)
     base = np.asarray(s.pipeline_state.body_q[:, env._base, :3])
     np.testing.assert_allclose(base[:, :2], env.tile_origins[[1, 3], :2], atol=0.1)
     np.testing.assert_allclose(base[:, 2] - np.array([0.04, 0.16]), above0, atol=0.02)
+
+
+def test_kamino_eval_scores_the_flat_policy_on_the_rough_task():
+    """``kamino eval dr_legs_walk --task dr_legs_rough`` resolves the shipped flat policy onto the rough task (a
+    subclass of its environment, with its observation), not onto an unrelated one; the rough test's bars are
+    0.15 m/s and 5 %, on the rows of difficulty 0.5 to 1 of the default terrain."""
+    from kamino.envs import DrLegsRough
+    from kamino.envs.evaluate import resolve
+
+    policy = resolve("dr_legs_walk", "dr_legs_rough")
+    assert policy.task == "dr_legs_rough" and policy.observation_size == 50
+    with pytest.raises(ValueError, match="trained on dr_legs_joystick"):
+        resolve("dr_legs_walk", "bdx_joystick")
+    assert DrLegsRough.walking_bars == (0.15, 0.05) and DrLegsRough.walking_levels == (2, 4)
+    np.testing.assert_array_equal(generate_terrain().difficulty[2:5, 0], [0.5, 0.75, 1.0])

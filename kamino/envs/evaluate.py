@@ -170,8 +170,9 @@ def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: in
     """Score ``policy`` (a :class:`~kamino.envs.policy.Policy`, a shipped policy's name, or a run or checkpoint
     path) in its task's environment, built with its training keywords and ``env`` over them. A joystick task gets
     the walking test (the module doc), with ``passed`` against ``max_error`` [m/s] and ``max_falls`` (default: the
-    task's ``walking_bars``: 0.1 m/s and 5 % on flat ground, 0.15 m/s and 5 % on ``dr_legs_rough``); another task
-    the episode return. Returns the report."""
+    task's ``walking_bars``: 0.1 m/s and 5 % on flat ground, 0.15 m/s and 5 % on ``dr_legs_rough``; a terrain task
+    plays the test on its ``walking_levels`` rows of its default terrain, unless ``env`` gives ``levels`` or a
+    ``terrain``); another task the episode return. Returns the report."""
     from kamino.envs import make
 
     check_walk(episodes, seconds, speed, "evaluate")
@@ -184,8 +185,10 @@ def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: in
         bars = _task_class(policy.task).walking_bars
         max_error = bars[0] if max_error is None else max_error
         max_falls = bars[1] if max_falls is None else max_falls
-    if walking:
         kwargs["resample_steps"] = None  # the command stays as the test sets it
+        levels = getattr(_task_class(policy.task), "walking_levels", None)
+        if levels is not None and "levels" not in env_overrides and not kwargs.get("terrain"):
+            kwargs["levels"] = levels  # a terrain task on its default terrain: the test's difficulty rows
     environment = make(policy.task, backend=backend, **kwargs)
     if environment.observation_size != policy.observation_size:
         raise ValueError(f"evaluate: the policy takes {policy.observation_size} observations, {policy.task} built "
@@ -203,6 +206,8 @@ def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: in
                                  seed=seed, deterministic=deterministic)
     report.update(seconds=seconds, seed=seed, deterministic=deterministic, wall_s=time.perf_counter() - t0,
                   task=policy.task, backend=backend, checkpoint=policy.source, step=policy.step, env=env_overrides)
+    if "levels" in kwargs:
+        report["levels"] = list(kwargs["levels"])
     return report
 
 

@@ -48,8 +48,10 @@ class DrLegsRough(DrLegsJoystick):
             heightfield contact yet).
     """
 
-    #: the rough walking test's bars: mean tracking error [m/s] and fall fraction (docs/envs.md, "Rough terrain")
+    #: the rough walking test's bars: mean tracking error [m/s] and fall fraction (docs/envs.md, "dr_legs_rough")
     walking_bars = (0.15, 0.05)
+    #: the rough walking test's difficulty rows (``levels``) of the default terrain: difficulty 0.5 to 1
+    walking_levels = (2, 4)
 
     def __init__(self, *, terrain: dict | None = None, levels: tuple[int, int] | None = None,
                  curriculum: bool = False, **kwargs):
@@ -123,6 +125,8 @@ class DrLegsRough(DrLegsJoystick):
         return (jnp.clip(row, 0, rows - 1) * cols + tile % cols).astype(jnp.int32)
 
     def reset(self, rng: jax.Array):
+        """The flat task's reset on a random tile (:meth:`_move_rigidly`); with the curriculum, ``info`` also holds
+        ``tile``, ``far`` and ``fell``."""
         state = super().reset(rng)
         if not self._curriculum:
             return state
@@ -131,6 +135,8 @@ class DrLegsRough(DrLegsJoystick):
         return state.replace(info=info)
 
     def step(self, state, action: jax.Array):
+        """The flat task's step; with the curriculum, a restarted episode (``info["steps"] == 0``) first moves onto
+        :meth:`next_tile` of the one that ended, and the step records whether the robot walked far or fell."""
         if not self._curriculum:
             return super().step(state, action)
         info = dict(state.info)
