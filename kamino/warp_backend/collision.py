@@ -21,12 +21,23 @@ type_b``) into the slots ``base .. base + K - 1``: ``pos`` (midpoint of the witn
 unordered pair writes nothing (the JAX backend raises a ``ValueError`` instead; on the host,
 :func:`max_points` raises it). ``collide_kernel(np_dtype)`` is a kernel calling it, one thread per pair.
 
+A pair whose geom b is a heightfield (``GeomType.HFIELD``) also needs its grid, so it has its own entry,
+``collide_hfield_func(np_dtype)``'s ``@wp.func``::
+
+    collide_hfield(type_a: int, pose_a: transform, size_a: vec3, pose_b: transform,
+                   hf_data: wp.array(dtype=scalar), hf_adr: int, hf_nrow: int, hf_ncol: int,
+                   hf_size: vec4, margin: scalar, base: int, out_pos, out_normal, out_dist, out_valid)
+
+with the grid's normalised heights starting at ``hf_data[hf_adr]``, ``hf_nrow x hf_ncol`` of them,
+and ``hf_size = (rx, ry, z_top, z_base)`` (``kamino.Model.hfield_*``); the outputs are those of
+``collide_pair``. ``collide_hfield_kernel(np_dtype)`` is a kernel calling it, one thread per pair.
+
 The routines come from small builders cached per precision, each named after what it builds: the
 per-pair routines (:func:`plane_pair_funcs`, :func:`sphere_capsule_pair_funcs`,
-:func:`sdf_pair_funcs`, :func:`box_box_func`, :func:`cylinder_pair_funcs`) and the helpers they share
-(:func:`basic_funcs`, :func:`box_feature_funcs`, :func:`sdf_funcs`, :func:`face_interval_funcs`,
-:func:`search_funcs`, :func:`segment_funcs`, the box-box steps and the cylinder families). The pair
-types stay runtime values: they vary from pair to pair within a world.
+:func:`sdf_pair_funcs`, :func:`box_box_func`, :func:`cylinder_pair_funcs`, :func:`hfield_funcs`)
+and the helpers they share (:func:`basic_funcs`, :func:`box_feature_funcs`, :func:`sdf_funcs`,
+:func:`face_interval_funcs`, :func:`search_funcs`, :func:`segment_funcs`, the box-box steps and the
+cylinder families). The pair types stay runtime values: they vary from pair to pair within a world.
 
 Poses are Warp transforms (position, then the quaternion ``(x, y, z, w)``: the same 7 numbers as
 the JAX pose), sizes ``vec3`` as in :class:`kamino.model.GeomType`.
