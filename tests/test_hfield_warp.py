@@ -121,7 +121,7 @@ def jax_points(ta, pa, sa) -> dict:
     return {k: np.asarray(getattr(cp, k)) for k in ("pos", "normal", "dist", "valid")}
 
 
-def test_warp_heightfield_pairs_are_the_reference_s():
+def test_warp_heightfield_pairs_equal_the_reference():
     """SPHERE, CAPSULE, BOX and CYLINDER against a bumpy heightfield, 40 poses each beside the triangles' edges (and
     two at the grid's border): the Warp narrow phase gives the reference's K points in the same order, with the
     same positions, normals and distances to ``ROUNDING`` and the same valid flags (no distance lies within
