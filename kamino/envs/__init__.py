@@ -17,6 +17,7 @@ from kamino.envs import brax_compat
 from kamino.envs.base import BACKENDS, KaminoEnv
 from kamino.envs.fourbar_track import FourbarTrack
 from kamino.envs.joystick import BdxJoystick, DrLegsJoystick, Joystick
+from kamino.envs.olaf_show import OlafShow
 from kamino.envs.policy import Policy, load_policy, shipped_policies
 from kamino.envs.randomization import randomize
 from kamino.envs.system import EnvSystem
@@ -25,7 +26,7 @@ BACKENDS: tuple[str, ...]  # the imported tuple, declared here for its docstring
 """The simulator backends an environment runs on (``backend=``: ``"jax"`` or ``"warp"``)."""
 
 TASKS: dict[str, type[KaminoEnv]] = {"fourbar_track": FourbarTrack, "dr_legs_joystick": DrLegsJoystick,
-                                     "bdx_joystick": BdxJoystick}
+                                     "bdx_joystick": BdxJoystick, "olaf_show": OlafShow}
 """Task name -> environment class (each also registered with brax.envs)."""
 
 brax_compat.install()
@@ -41,4 +42,4 @@ def make(task: str, **kwargs) -> KaminoEnv:
 
 
 __all__ = ["BACKENDS", "TASKS", "BdxJoystick", "DrLegsJoystick", "EnvSystem", "FourbarTrack", "Joystick", "KaminoEnv",
-           "Policy", "load_policy", "make", "randomize", "shipped_policies"]
+           "OlafShow", "Policy", "load_policy", "make", "randomize", "shipped_policies"]

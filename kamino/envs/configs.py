@@ -48,6 +48,8 @@ PPO_CONFIGS: dict[str, dict] = {
 PPO_CONFIGS["bdx_joystick"] = {**PPO_CONFIGS["dr_legs_joystick"],
                                "env": {k: v for k, v in PPO_CONFIGS["dr_legs_joystick"]["env"].items()
                                        if k != "stance_width"}}
+#: Olaf's show (kamino.envs.olaf_show): dr_legs' PPO settings and networks; the task's own rewards (standing, show)
+PPO_CONFIGS["olaf_show"] = {**PPO_CONFIGS["dr_legs_joystick"], "env": {}}
 
 
 def task_config(task: str) -> dict:
