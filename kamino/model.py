@@ -578,16 +578,6 @@ class Model:
         return "\n".join(lines)
 
 
-def reject_hfields(model: Model, what: str) -> None:
-    """Raise a ``ValueError`` naming the first heightfield geom of ``model``, if it has one: ``what`` (the Warp
-    backend) has no heightfield collision; the JAX reference (``backend="jax"``) has."""
-    hits = np.nonzero(model.geom_type == GeomType.HFIELD)[0]
-    if hits.size:
-        g = int(hits[0])
-        raise ValueError(f"{what}: geom {model.geom_names[g]!r} is a heightfield (GeomType.HFIELD), which the Warp "
-                         "backend does not collide yet; step this model with backend='jax'")
-
-
 def count_loops(model: Model, world: int = 0) -> int:
     """Independent loops of a world's joint graph (world as a node): joints - bodies - 1 + components."""
     s, c = int(model.world_body_start[world]), int(model.world_body_count[world])

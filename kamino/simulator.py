@@ -18,7 +18,7 @@ import threading
 
 from kamino.checks import check_config, check_control, check_dt, check_model, check_rollout_controls, check_state
 from kamino.config import BACKENDS, SolverConfig
-from kamino.model import Model, derived, reject_hfields
+from kamino.model import Model, derived
 from kamino.sharding import group_model, num_shards, sharded_program, world_sharding
 from kamino.state import Control, State, bind
 
@@ -35,7 +35,6 @@ def _engine(model: Model, config: SolverConfig, backend: str):
         from kamino.jax_ref.backend import Engine
 
         return Engine(model, config)
-    reject_hfields(model, "backend='warp'")
     from kamino._warp import quiet_warp
 
     quiet_warp()  # Warp's banner and module-load lines off, unless asked for (kamino/_warp.py)

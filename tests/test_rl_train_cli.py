@@ -4,12 +4,14 @@ anything is built, ``--fresh`` refusing a used run folder, and the run folder's 
 import json
 import os
 
+import numpy as np
 import pytest
 
 pytest.importorskip("brax")
 
 from kamino.envs import runs
 from kamino.envs import train as rl_train
+from kamino.envs.runs import OptionError
 
 
 def test_solver_overrides_are_parsed_as_literals():
@@ -241,3 +243,49 @@ def test_the_distributed_options_go_together():
                 ["--distributed", "--num-processes", "2", "--process-id", "2"]):
         with pytest.raises(SystemExit):
             rl_train.parse_args(["fourbar_track", *bad])
+
+
+def test_init_from_takes_a_policy_whose_network_fits_the_task():
+    """``--init-from``: the shipped dr_legs policy (50 observations, hidden layers 128 x 3, 12 actions) fits
+    dr_legs_joystick's network; one observation more, other hidden layers, or an unknown policy raise naming the
+    option (Brax would otherwise fail inside its jitted update with a shape error)."""
+    from brax.training.agents.ppo import checkpoint as ppo_checkpoint
+
+    from kamino.envs.configs import ppo_kwargs
+
+    def config(hidden):
+        factory = ppo_kwargs("dr_legs_joystick")["network_factory"]
+        factory.keywords["policy_hidden_layer_sizes"] = hidden
+        return ppo_checkpoint.network_config(50, 12, True, factory)
+
+    params = rl_train.initial_params("dr_legs_walk", "dr_legs_joystick")
+    rl_train.check_initial_params(params, 50, 12, config((128, 128, 128)), "dr_legs_walk")
+    for obs, act, hidden in ((51, 12, (128, 128, 128)), (50, 12, (64, 64)), (50, 14, (128, 128, 128))):
+        with pytest.raises(OptionError, match="--init-from"):
+            rl_train.check_initial_params(params, obs, act, config(hidden), "dr_legs_walk")
+    with pytest.raises(OptionError, match="--init-from"):
+        rl_train.initial_params("no_such_policy", "dr_legs_joystick")
+
+
+def test_init_from_reaches_brax_as_restored_policy_and_normaliser(tmp_path, monkeypatch):
+    """A new run with ``init_from`` hands Brax the policy's normaliser and network (``restore_params``) with a fresh
+    value network, and records the source in run.json."""
+    import functools
+
+    import brax.training.agents.ppo.train as ppo_train
+
+    seen = {}
+
+    @functools.wraps(ppo_train.train)
+    def capture(**kwargs):
+        seen.update(kwargs)
+
+    monkeypatch.setattr(ppo_train, "train", capture)
+    source = rl_train.initial_params("dr_legs_walk", "dr_legs_joystick")
+    rl_train.train("dr_legs_joystick", backend="jax", init_from="dr_legs_walk", out=tmp_path / "b", steps=1000,
+                   evals=1, env={"reset_bank": 2}, progress=False)
+    normalizer, policy, value = seen["restore_params"]
+    assert seen["restore_value_fn"] is False and value is None
+    np.testing.assert_array_equal(normalizer.mean, source[0].mean)
+    np.testing.assert_array_equal(policy["params"]["hidden_0"]["kernel"], source[1]["params"]["hidden_0"]["kernel"])
+    assert runs.read_json(tmp_path / "b" / "run.json", {})["init_from"] == "dr_legs_walk"

@@ -43,7 +43,7 @@ from kamino.warp_backend.collision import MAX_POINTS, collide_kernel, max_points
 from kamino.warp_backend.types import types_of
 
 DEVICE = "cpu"
-KINDS = sorted(k for k in JAX_MAX_POINTS if G.HFIELD not in k)  # the Warp backend has no heightfield pairs yet
+KINDS = sorted(k for k in JAX_MAX_POINTS if G.HFIELD not in k)  # the HFIELD pairs need a grid: test_hfield_warp.py
 DTYPES = (np.float64, np.float32)
 N_RANDOM = 200  # random pairs per kind (plus the resting and degenerate ones)
 ITERATIVE = {(G.CAPSULE, G.BOX), (G.CAPSULE, G.CYLINDER), (G.BOX, G.CYLINDER), (G.CYLINDER, G.CYLINDER)}

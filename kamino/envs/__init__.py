@@ -17,6 +17,7 @@ from kamino.envs import brax_compat
 from kamino.envs.base import BACKENDS, KaminoEnv
 from kamino.envs.fourbar_track import FourbarTrack
 from kamino.envs.joystick import BdxJoystick, DrLegsJoystick, Joystick
+from kamino.envs.olaf_show import OlafShow
 from kamino.envs.policy import Policy, load_policy, shipped_policies
 from kamino.envs.randomization import randomize
 from kamino.envs.rough import DrLegsRough
@@ -26,7 +27,7 @@ BACKENDS: tuple[str, ...]  # the imported tuple, declared here for its docstring
 """The simulator backends an environment runs on (``backend=``: ``"jax"`` or ``"warp"``)."""
 
 TASKS: dict[str, type[KaminoEnv]] = {"fourbar_track": FourbarTrack, "dr_legs_joystick": DrLegsJoystick,
-                                     "bdx_joystick": BdxJoystick, "dr_legs_rough": DrLegsRough}
+                                     "bdx_joystick": BdxJoystick, "olaf_show": OlafShow, "dr_legs_rough": DrLegsRough}
 """Task name -> environment class (each also registered with brax.envs)."""
 
 brax_compat.install()
@@ -42,4 +43,4 @@ def make(task: str, **kwargs) -> KaminoEnv:
 
 
 __all__ = ["BACKENDS", "TASKS", "BdxJoystick", "DrLegsJoystick", "DrLegsRough", "EnvSystem", "FourbarTrack", "Joystick",
-           "KaminoEnv", "Policy", "load_policy", "make", "randomize", "shipped_policies"]
+           "KaminoEnv", "OlafShow", "Policy", "load_policy", "make", "randomize", "shipped_policies"]

@@ -3,7 +3,7 @@
 ``kamino train TASK`` and notebook 05 read them through :func:`ppo_kwargs`. Each entry:
 ``env`` (keyword arguments of the task's class), ``network`` (hidden layer sizes of the policy and value MLPs) and
 ``ppo`` (``ppo.train`` keywords). ``fourbar_track`` is sized for a 2-core CPU (about a minute); ``dr_legs_joystick``
-and ``bdx_joystick`` for a GPU (``bdx_joystick``'s settings are dr_legs', not tuned for it).
+and ``bdx_joystick`` for a GPU (``bdx_joystick`` takes dr_legs' recipe with the robot's own stance width).
 """
 
 from __future__ import annotations
@@ -44,8 +44,12 @@ PPO_CONFIGS: dict[str, dict] = {
         },
     },
 }
-#: the loop-free biped: the same task and PPO settings as dr_legs, with the environment's defaults (untested here)
-PPO_CONFIGS["bdx_joystick"] = {**PPO_CONFIGS["dr_legs_joystick"], "env": {}}
+#: the loop-free biped: dr_legs' recipe and PPO settings; ``feet_width`` holds the stance of bdx's nominal pose
+PPO_CONFIGS["bdx_joystick"] = {**PPO_CONFIGS["dr_legs_joystick"],
+                               "env": {k: v for k, v in PPO_CONFIGS["dr_legs_joystick"]["env"].items()
+                                       if k != "stance_width"}}
+#: Olaf's show (kamino.envs.olaf_show): dr_legs' PPO settings and networks; the task's own rewards (standing, show)
+PPO_CONFIGS["olaf_show"] = {**PPO_CONFIGS["dr_legs_joystick"], "env": {}}
 #: dr_legs on rough terrain (kamino.envs.rough): dr_legs_joystick's recipe and environment keywords, so that its
 #: policies (the shipped dr_legs_walk) run on it and can be fine-tuned there; the terrain's defaults
 PPO_CONFIGS["dr_legs_rough"] = copy.deepcopy(PPO_CONFIGS["dr_legs_joystick"])

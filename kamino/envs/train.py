@@ -4,6 +4,9 @@ The PPO settings of each task are ``kamino.envs.configs.PPO_CONFIGS``; ``--steps
 ``--seed`` and ``--set`` override them, ``--env`` the environment's keywords and ``--solver`` its ``SolverConfig``;
 ``--randomize`` trains with domain randomization (``kamino.envs.randomize``'s ranges, on either backend).
 ``--distributed`` trains across processes and hosts (:mod:`kamino.envs.distributed`; process 0 writes the run folder).
+``--init-from POLICY`` starts a new run from a trained policy (a shipped policy's name, a run folder or a checkpoint)
+instead of random weights: fine-tuning, for example on rough terrain or under randomization. It restores the
+policy network and the observation normaliser; the value network starts afresh (a policy file holds none).
 The run folder (``--out``, default ``scratch/rl/TASK``; its layout: :mod:`kamino.envs.runs`) gets a checkpoint
 after every evaluation. The evaluations come at fixed steps: every ``eval_every`` environment steps (Brax's epoch
 for the run's first ``--steps`` and ``--evals``, recorded in ``run.json``), up to ``--steps``. Running the same
@@ -177,8 +180,8 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
           num_envs: int | None = None, evals: int | None = None, seed: int | None = None, fresh: bool = False,
           overwrite: bool = False, train_returns: int | None = None, walk_test: int = 0, walk_seed: int = 1,
           walk_test_from: int = 0, walk_test_every: int = 0, ppo: dict | None = None, solver: dict | None = None,
-          env: dict | None = None, randomization: dict | None = None, progress: bool = True,
-          command: str = "") -> dict:
+          env: dict | None = None, randomization: dict | None = None, init_from: str | Path | None = None,
+          progress: bool = True, command: str = "") -> dict:
     """Train ``task`` with Brax's PPO into the run folder ``out`` (resuming it when it holds a run) and return the
     report (also written to ``out/report.json``).
 
@@ -187,7 +190,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     fields of its ``SolverConfig``. ``randomization`` (keywords of :func:`kamino.envs.randomize`; ``{}`` its
     defaults; ``None`` none) trains with Brax's domain randomization (``ppo.train(randomization_fn=...)``: every
     environment of the training and evaluation batches with its own draw). ``fresh`` starts over (``overwrite``
-    allows it in a used folder).
+    allows it in a used folder). ``init_from`` (a shipped policy's name, a run folder or a checkpoint) starts a new
+    run from that policy's network and normaliser (:func:`initial_params`); a run that resumes from its own
+    checkpoint ignores it.
     ``walk_test`` > 0 runs the walking test with that many episodes on each checkpoint (joystick tasks), from
     ``walk_test_from`` steps on and at least ``walk_test_every`` steps apart. A bad option raises before training:
     :class:`OptionError` (a ``ValueError``), or ``TypeError`` for a keyword the environment or ``SolverConfig``
@@ -225,6 +230,7 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     paths = {key: out / name for key, name in runs.RECORD_FILES.items()}
 
     done, restore = runs.latest_checkpoint(ckpt_dir)
+    restore_params = None if init_from is None or restore is not None else initial_params(init_from, task)
     if jax.process_count() > 1:  # every process resumes the same checkpoint, or none does
         same_everywhere(done, f"the newest checkpoint in {ckpt_dir} (its step; the run folder must be one that "
                               "every process reads, a shared file system)")
@@ -240,7 +246,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     env_kwargs = {**(runs.run_env(out, task) if restore else cfg["env"]), **env_overrides}
     environment = make(task, backend=backend, **env_kwargs)
     if lead:
-        runs.write_json(out / "run.json", {"task": task, "backend": backend, "eval_every": every})
+        started_from = runs.read_json(out / "run.json", {}).get("init_from") if restore else init_from
+        runs.write_json(out / "run.json", {"task": task, "backend": backend, "eval_every": every,
+                                           "init_from": None if started_from is None else str(started_from)})
         runs.write_json(out / "env.json", env_kwargs)
         for key, path in paths.items():  # the run files as the committed checkpoints hold them
             if path.exists() or record[key]:
@@ -340,6 +348,10 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
             kwargs.update(log_training_metrics=True, training_metrics_steps=train_returns)
         if randomization_fn is not None:
             kwargs.update(randomization_fn=randomization_fn)
+        if restore_params is not None:
+            check_initial_params(restore_params, environment.observation_size, environment.action_size,
+                                 net_config, init_from)
+            kwargs.update(restore_params=(*restore_params, None), restore_value_fn=False)
         with jax.enable_x64(False):  # brax's wrappers build float32 info entries at step only
             ppo_train.train(environment=environment, **kwargs)
     bar.close()
@@ -355,7 +367,7 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
             pass  # matplotlib is optional: the curve stays in curve.json
     report = {
         "task": task, "backend": backend, "command": command, "env": env_kwargs, "solver_overrides": solver,
-        "randomization": randomization,
+        "randomization": randomization, "init_from": runs.read_json(out / "run.json", {}).get("init_from"),
         "network": cfg["network"],
         "ppo": {k: v for k, v in kwargs.items() if isinstance(v, (int, float, str, bool)) or v is None},
         "total_steps": end, "eval_every": every, "steps_before_this_run": done,
@@ -373,6 +385,37 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         print(f"return {curve[0]['reward']:.2f} (step {curve[0]['step']}) -> {curve[-1]['reward']:.2f} "
               f"(step {curve[-1]['step']}); run folder {out}", flush=True)
     return report
+
+
+def initial_params(source: str | Path, task: str) -> tuple:
+    """``(normaliser state, policy parameters)`` of the policy ``source`` (a shipped policy's name, a run folder or a
+    checkpoint: :func:`kamino.envs.evaluate.resolve`) to start a run of ``task`` from; raises
+    :class:`OptionError` naming ``--init-from`` when there is no such policy."""
+    from kamino.envs.evaluate import resolve
+
+    try:
+        return tuple(resolve(source).params)
+    except (FileNotFoundError, ValueError) as e:
+        raise OptionError(f"--init-from: {e} (to start {task} from)") from None
+
+
+def check_initial_params(params: tuple, observation_size: int, action_size: int, net_config: dict,
+                         source: str | Path) -> None:
+    """Raise :class:`OptionError` naming ``--init-from`` unless the policy parameters ``params`` (from
+    :func:`initial_params`) fit the network that ``net_config`` describes (Brax's ``network_config``): the same
+    observation and action sizes and the same hidden layers."""
+    import jax
+
+    normalizer, policy = params
+    layers = [leaf.shape for leaf in jax.tree_util.tree_leaves(policy) if getattr(leaf, "ndim", 0) == 2]
+    hidden = list(net_config["network_factory_kwargs"]["policy_hidden_layer_sizes"])
+    want = list(zip([observation_size, *hidden[:-1]], hidden, strict=True))
+    got_obs = int(normalizer.mean.shape[-1])
+    fits = any(sorted(layers) == sorted([*want, (hidden[-1], k * action_size)]) for k in (1, 2))
+    if got_obs != observation_size or not fits:
+        raise OptionError(f"--init-from: the policy {source} takes {got_obs} observations through layers "
+                          f"{[shape for shape in layers]}; this task's network takes {observation_size} observations "
+                          f"through hidden layers {hidden} to {action_size} actions")
 
 
 def _ppo_defaults(ppo_train_fn) -> dict:
@@ -439,6 +482,8 @@ def parser() -> argparse.ArgumentParser:
                         "literal (repeatable)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="an environment keyword, VALUE a Python literal (repeatable)")
+    p.add_argument("--init-from", metavar="POLICY", help="start a new run from this policy (a shipped policy's name, "
+                   "a run folder or a checkpoint): its network and normaliser; the value network starts afresh")
     p.add_argument("--randomize", action="append", default=None, nargs="?", const="", metavar="KEY=(LOW,HIGH)",
                    help="train with domain randomization: a range of kamino.envs.randomize (mass_scale=(0.8,1.2), "
                         "gravity_scale=None, ...; repeatable); alone, randomize's default ranges")
@@ -500,6 +545,7 @@ def main(argv: list[str] | None = None) -> int:
               train_returns=args.train_returns, walk_test=args.walk_test, walk_seed=args.walk_seed,
               walk_test_from=args.walk_test_from, walk_test_every=args.walk_test_every, ppo=args.ppo_overrides,
               solver=args.solver_overrides, env=args.env_overrides, randomization=args.randomization,
+              init_from=args.init_from,
               command=" ".join(["kamino", "train", *(sys.argv[1:] if argv is None else argv)]))
     except OptionError as e:
         print(f"kamino train: error: {e}", file=sys.stderr)

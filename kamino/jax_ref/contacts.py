@@ -128,11 +128,11 @@ def detect(pm: PaddedModel, body_q: jax.Array, body_u: jax.Array, body_u_free: j
         speed = jnp.linalg.norm(g_lin[b] - g_lin[a], axis=-1) + g_ang[a] * rad[a] + g_ang[b] * rad[b]
         margin = pm.geom_margin[a] + pm.geom_margin[b] + cfg.contact_margin + h * speed
         if tb == GeomType.HFIELD:  # the heightfield is geom b (its type sorts last); its grid from the world's
-            grid = jnp.maximum(pm.geom_dataid[b], 0)
+            hf = jnp.maximum(pm.geom_dataid[b], 0)
             cp = jax.vmap(lambda pa, sa, pb, sb, m, adr, nr, nc, hs, ta=ta, tb=tb: collide(
                 ta, tb, pa, sa, pb, sb, m, hfield=HField(pm.hfield_data, adr, nr, nc, hs)))(
-                gpose[a], pm.geom_size[a], gpose[b], pm.geom_size[b], margin, pm.hfield_adr[grid],
-                pm.hfield_nrow[grid], pm.hfield_ncol[grid], pm.hfield_size[grid])
+                gpose[a], pm.geom_size[a], gpose[b], pm.geom_size[b], margin, pm.hfield_adr[hf], pm.hfield_nrow[hf],
+                pm.hfield_ncol[hf], pm.hfield_size[hf])
         else:
             cp = jax.vmap(lambda pa, sa, pb, sb, m, ta=ta, tb=tb: collide(ta, tb, pa, sa, pb, sb, m))(
                 gpose[a], pm.geom_size[a], gpose[b], pm.geom_size[b], margin)

@@ -21,12 +21,23 @@ type_b``) into the slots ``base .. base + K - 1``: ``pos`` (midpoint of the witn
 unordered pair writes nothing (the JAX backend raises a ``ValueError`` instead; on the host,
 :func:`max_points` raises it). ``collide_kernel(np_dtype)`` is a kernel calling it, one thread per pair.
 
+A pair whose geom b is a heightfield (``GeomType.HFIELD``) also needs its grid, so it has its own entry,
+``collide_hfield_func(np_dtype)``'s ``@wp.func``::
+
+    collide_hfield(type_a: int, pose_a: transform, size_a: vec3, pose_b: transform,
+                   hf_data: wp.array(dtype=scalar), hf_adr: int, hf_nrow: int, hf_ncol: int,
+                   hf_size: vec4, margin: scalar, base: int, out_pos, out_normal, out_dist, out_valid)
+
+with the grid's normalised heights starting at ``hf_data[hf_adr]``, ``hf_nrow x hf_ncol`` of them,
+and ``hf_size = (rx, ry, z_top, z_base)`` (``kamino.Model.hfield_*``); the outputs are those of
+``collide_pair``. ``collide_hfield_kernel(np_dtype)`` is a kernel calling it, one thread per pair.
+
 The routines come from small builders cached per precision, each named after what it builds: the
 per-pair routines (:func:`plane_pair_funcs`, :func:`sphere_capsule_pair_funcs`,
-:func:`sdf_pair_funcs`, :func:`box_box_func`, :func:`cylinder_pair_funcs`) and the helpers they share
-(:func:`basic_funcs`, :func:`box_feature_funcs`, :func:`sdf_funcs`, :func:`face_interval_funcs`,
-:func:`search_funcs`, :func:`segment_funcs`, the box-box steps and the cylinder families). The pair
-types stay runtime values: they vary from pair to pair within a world.
+:func:`sdf_pair_funcs`, :func:`box_box_func`, :func:`cylinder_pair_funcs`, :func:`hfield_funcs`)
+and the helpers they share (:func:`basic_funcs`, :func:`box_feature_funcs`, :func:`sdf_funcs`,
+:func:`face_interval_funcs`, :func:`search_funcs`, :func:`segment_funcs`, the box-box steps and the
+cylinder families). The pair types stay runtime values: they vary from pair to pair within a world.
 
 Poses are Warp transforms (position, then the quaternion ``(x, y, z, w)``: the same 7 numbers as
 the JAX pose), sizes ``vec3`` as in :class:`kamino.model.GeomType`.
@@ -59,6 +70,7 @@ _EDGE_BIAS_ABS = 1e-5  # ... plus this fraction of the boxes' size
 
 PLANE, SPHERE, CAPSULE = int(GeomType.PLANE), int(GeomType.SPHERE), int(GeomType.CAPSULE)
 BOX, CYLINDER, ELLIPSOID = int(GeomType.BOX), int(GeomType.CYLINDER), int(GeomType.ELLIPSOID)
+HFIELD = int(GeomType.HFIELD)
 
 _func = functools.partial(wp.func, module="unique")  # one module per func: no key clash between precisions
 
@@ -1280,6 +1292,176 @@ def cylinder_pair_funcs(np_dtype) -> SimpleNamespace:
 
 
 @functools.cache
+def hfield_funcs(np_dtype) -> SimpleNamespace:
+    """The heightfield pairs (``_hfield_surface``, ``_hfield_vs_points`` and ``_sphere_hfield`` ..
+    ``_cylinder_hfield`` of :mod:`kamino.jax_ref.collision`; docs/conventions.md, "Heightfields"): candidate
+    points of geom a, each a sphere (radius 0 for box corners and cylinder rim points) against the grid
+    triangle below it; the heightfield is geom b. A grid is read as ``hf_data`` (normalised heights, the
+    grid's first at ``hf_adr``, row-major), ``hf_nrow`` rows along local y, ``hf_ncol`` columns along
+    local x and ``hf_size = (rx, ry, z_top, z_base)``."""
+    T = types_of(np_dtype)
+    scalar, vec3, vec4, transform = T.scalar, T.vec3, T.vec4, T.transform
+    vec8 = wp.types.vector(8, scalar)
+    K = _constants(np_dtype)
+    INF, ZERO, HALF, ONE, TWO = K.INF, K.ZERO, K.HALF, K.ONE, K.TWO
+    bf = basic_funcs(np_dtype)
+    col, normalize, clip01, put_point, rot = bf.col, bf.normalize, bf.clip01, bf.put_point, bf.rot
+    box_corner = box_feature_funcs(np_dtype).box_corner
+    cylinder_support = segment_funcs(np_dtype).cylinder_support
+
+    @_func
+    def hfield_surface(hf_data: wp.array(dtype=scalar), hf_adr: int, hf_nrow: int, hf_ncol: int, hf_size: vec4,
+                       x: scalar, y: scalar):
+        """Height ``z`` and upward unit normal ``n`` of the grid triangle below the local point ``(x, y)``, and
+        whether ``(x, y)`` lies on the grid (``_hfield_surface``). Cell ``(r, c)`` spans columns ``c, c + 1``
+        and rows ``r, r + 1``; with ``u, v`` in ``[0, 1]`` across it, ``u >= v`` is the triangle ``(r, c),
+        (r, c + 1), (r + 1, c + 1)`` and ``u < v`` the triangle ``(r, c), (r + 1, c), (r + 1, c + 1)``
+        (MuJoCo's split); ``z = h00 + u ex + v ey`` and ``n = (-ex / dx, -ey / dy, 1) / |.|`` with ``ex, ey``
+        the triangle's height changes across the cell. Off the grid the nearest cell is read (finite values)."""
+        rx = hf_size[0]
+        ry = hf_size[1]
+        zt = hf_size[2]
+        dx = TWO * rx / scalar(hf_ncol - 1)
+        dy = TWO * ry / scalar(hf_nrow - 1)
+        fx = (x + rx) / dx
+        fy = (y + ry) / dy
+        c = int(wp.min(wp.max(wp.floor(fx), ZERO), scalar(hf_ncol - 2)))
+        r = int(wp.min(wp.max(wp.floor(fy), ZERO), scalar(hf_nrow - 2)))
+        u = clip01(fx - scalar(c))
+        v = clip01(fy - scalar(r))
+        k = hf_adr + r * hf_ncol + c
+        h00 = hf_data[k] * zt
+        h10 = hf_data[k + 1] * zt
+        h01 = hf_data[k + hf_ncol] * zt
+        h11 = hf_data[k + hf_ncol + 1] * zt
+        ex = h11 - h01  # height change across the cell along x (upper triangle, u < v)
+        ey = h01 - h00  # ... along y
+        if u >= v:  # lower triangle
+            ex = h10 - h00
+            ey = h11 - h10
+        z = h00 + u * ex + v * ey
+        n, _len = normalize(vec3(-ex / dx, -ey / dy, ONE), vec3(ZERO, ZERO, ONE))
+        inside = wp.abs(x) <= rx and wp.abs(y) <= ry
+        return z, n, inside
+
+    @_func
+    def hfield_point(pose_h: transform, hf_data: wp.array(dtype=scalar), hf_adr: int, hf_nrow: int, hf_ncol: int,
+                     hf_size: vec4, pt: vec3, radius: scalar, slot: int, margin: scalar,
+                     out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                     out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """A sphere of ``radius`` centred at the world point ``pt`` against the triangle below it
+        (``_hfield_vs_points``): in the heightfield's frame ``x = R^T (pt - c)``, the distance ``(x_z - z) n_z - r``
+        along the triangle's normal ``n``, the contact normal ``-n`` (from geom a to the terrain), the point midway
+        between the witness points; a point off the grid does not exist."""
+        c = wp.transform_get_translation(pose_h)
+        R = rot(wp.transform_get_rotation(pose_h))
+        x = wp.transpose(R) * (pt - c)
+        z, n, inside = hfield_surface(hf_data, hf_adr, hf_nrow, hf_ncol, hf_size, x[0], x[1])
+        dist = (x[2] - z) * n[2] - radius
+        pos = x - n * (radius + HALF * dist)
+        put_point(slot, c + R * pos, -(R * n), dist, inside, margin, out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def sphere_hfield(pose_a: transform, size_a: vec3, pose_b: transform, hf_data: wp.array(dtype=scalar),
+                      hf_adr: int, hf_nrow: int, hf_ncol: int, hf_size: vec4, margin: scalar, base: int,
+                      out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                      out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 1: the sphere's centre against the triangle below it (``_sphere_hfield``)."""
+        hfield_point(pose_b, hf_data, hf_adr, hf_nrow, hf_ncol, hf_size, wp.transform_get_translation(pose_a),
+                     size_a[0], base, margin, out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def capsule_hfield(pose_a: transform, size_a: vec3, pose_b: transform, hf_data: wp.array(dtype=scalar),
+                       hf_adr: int, hf_nrow: int, hf_ncol: int, hf_size: vec4, margin: scalar, base: int,
+                       out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 2: the capsule's end spheres, local -z first (``_capsule_hfield``)."""
+        c = wp.transform_get_translation(pose_a)
+        ax = size_a[1] * col(rot(wp.transform_get_rotation(pose_a)), 2)
+        hfield_point(pose_b, hf_data, hf_adr, hf_nrow, hf_ncol, hf_size, c + -ONE * ax, size_a[0], base, margin,
+                     out_pos, out_normal, out_dist, out_valid)
+        hfield_point(pose_b, hf_data, hf_adr, hf_nrow, hf_ncol, hf_size, c + ONE * ax, size_a[0], base + 1, margin,
+                     out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def box_hfield(pose_a: transform, size_a: vec3, pose_b: transform, hf_data: wp.array(dtype=scalar),
+                   hf_adr: int, hf_nrow: int, hf_ncol: int, hf_size: vec4, margin: scalar, base: int,
+                   out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                   out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 4: the 4 corners nearest the terrain, corners off the grid last, ties in corner order
+        (``_box_hfield``)."""
+        ca = wp.transform_get_translation(pose_a)
+        Ra = rot(wp.transform_get_rotation(pose_a))
+        c = wp.transform_get_translation(pose_b)
+        R = rot(wp.transform_get_rotation(pose_b))
+        key = vec8()  # each corner's distance to the triangle below it, inf off the grid (the sort key)
+        for i in range(int(8)):
+            x = wp.transpose(R) * (box_corner(ca, Ra, size_a, i) - c)
+            z, n, inside = hfield_surface(hf_data, hf_adr, hf_nrow, hf_ncol, hf_size, x[0], x[1])
+            key[i] = INF
+            if inside:
+                key[i] = (x[2] - z) * n[2]
+        for i in range(int(8)):
+            rank = int(0)  # position of corner i in a stable sort by key
+            for j in range(int(8)):
+                if key[j] < key[i] or (key[j] == key[i] and j < i):
+                    rank += 1
+            if rank < 4:
+                hfield_point(pose_b, hf_data, hf_adr, hf_nrow, hf_ncol, hf_size, box_corner(ca, Ra, size_a, i), ZERO,
+                             base + rank, margin, out_pos, out_normal, out_dist, out_valid)
+
+    @_func
+    def cylinder_hfield(pose_a: transform, size_a: vec3, pose_b: transform, hf_data: wp.array(dtype=scalar),
+                        hf_adr: int, hf_nrow: int, hf_ncol: int, hf_size: vec4, margin: scalar, base: int,
+                        out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                        out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """K = 4: PLANE-CYLINDER's four rim points for the terrain normal below the cylinder's centre (the
+        heightfield's +z when the centre is off the grid), each against the triangle below it
+        (``_cylinder_hfield``)."""
+        ca = wp.transform_get_translation(pose_a)
+        c = wp.transform_get_translation(pose_b)
+        R = rot(wp.transform_get_rotation(pose_b))
+        x = wp.transpose(R) * (ca - c)
+        _z, n, inside = hfield_surface(hf_data, hf_adr, hf_nrow, hf_ncol, hf_size, x[0], x[1])
+        if not inside:
+            n = vec3(ZERO, ZERO, ONE)
+        rim, _cap = cylinder_support(ca, rot(wp.transform_get_rotation(pose_a)), size_a, -(R * n))
+        for i in range(4):
+            hfield_point(pose_b, hf_data, hf_adr, hf_nrow, hf_ncol, hf_size, rim[i], ZERO, base + i, margin,
+                         out_pos, out_normal, out_dist, out_valid)
+
+    return _namespace(hfield_surface, hfield_point, sphere_hfield, capsule_hfield, box_hfield, cylinder_hfield)
+
+
+@functools.cache
+def collide_hfield_func(np_dtype) -> wp.Function:
+    """``collide_hfield`` of one precision (see the module docstring; ``collide`` of :mod:`kamino.jax_ref.collision`
+    with ``hfield=``): the routine of geom a's type against the heightfield geom b, found at run time in a table
+    unrolled at compile time."""
+    T = types_of(np_dtype)
+    scalar, vec3, vec4, transform = T.scalar, T.vec3, T.vec4, T.transform
+    hf = hfield_funcs(np_dtype)
+    #: ``(type_a, routine)``: the routines of the pairs ``(type_a, HFIELD)``
+    pairs = ((SPHERE, hf.sphere_hfield), (CAPSULE, hf.capsule_hfield), (BOX, hf.box_hfield),
+             (CYLINDER, hf.cylinder_hfield))
+
+    @_func
+    def collide_hfield(type_a: int, pose_a: transform, size_a: vec3, pose_b: transform,
+                       hf_data: wp.array(dtype=scalar), hf_adr: int, hf_nrow: int, hf_ncol: int, hf_size: vec4,
+                       margin: scalar, base: int, out_pos: wp.array(dtype=vec3), out_normal: wp.array(dtype=vec3),
+                       out_dist: wp.array(dtype=scalar), out_valid: wp.array(dtype=wp.int32)):
+        """Write the ``K = MAX_POINTS[(type_a, HFIELD)]`` candidate points of geom a against the heightfield geom b
+        (its grid: ``hf_*``, :func:`hfield_funcs`) into slots ``base .. base + K - 1``; an unsupported ``type_a``
+        writes nothing."""
+        for i in range(wp.static(len(pairs))):
+            if type_a == wp.static(pairs[i][0]):
+                wp.static(pairs[i][1])(pose_a, size_a, pose_b, hf_data, hf_adr, hf_nrow, hf_ncol, hf_size, margin,
+                                       base, out_pos, out_normal, out_dist, out_valid)
+
+    return collide_hfield
+
+
+@functools.cache
 def collide_pair_func(np_dtype) -> wp.Function:
     """``collide_pair`` of one precision (see the module docstring; ``collide`` of
     :mod:`kamino.jax_ref.collision`): the routine of the pair's types, found at run time in a table unrolled
@@ -1343,3 +1525,33 @@ def collide_kernel(np_dtype) -> wp.Kernel:
                      out_pos, out_normal, out_dist, out_valid)
 
     return collide_pairs
+
+
+@functools.cache
+def collide_hfield_kernel(np_dtype) -> wp.Kernel:
+    """A kernel running ``collide_hfield`` one thread per pair, for one precision.
+
+    Inputs (``n`` pairs): ``type_a: wp.array(dtype=wp.int32)``, ``pose_a, pose_b: wp.array(dtype=transform)``,
+    ``size_a: wp.array(dtype=vec3)``, the grids ``hf_data: wp.array(dtype=scalar)`` (shared by all pairs) and,
+    per pair, ``hf_adr, hf_nrow, hf_ncol: wp.array(dtype=wp.int32)``, ``hf_size: wp.array(dtype=vec4)``, then
+    ``margin: wp.array(dtype=scalar)``, ``base: wp.array(dtype=wp.int32)`` and the outputs of
+    :func:`collide_kernel`. Launch with ``dim=n``.
+    """
+    T = types_of(np_dtype)
+    scalar, vec3, vec4, transform = T.scalar, T.vec3, T.vec4, T.transform
+    collide_hfield = collide_hfield_func(np_dtype)
+
+    @wp.kernel(module="unique", module_options=KERNEL_OPTIONS)
+    def collide_hfield_pairs(type_a: wp.array(dtype=wp.int32), pose_a: wp.array(dtype=transform),
+                             size_a: wp.array(dtype=vec3), pose_b: wp.array(dtype=transform),
+                             hf_data: wp.array(dtype=scalar), hf_adr: wp.array(dtype=wp.int32),
+                             hf_nrow: wp.array(dtype=wp.int32), hf_ncol: wp.array(dtype=wp.int32),
+                             hf_size: wp.array(dtype=vec4), margin: wp.array(dtype=scalar),
+                             base: wp.array(dtype=wp.int32), out_pos: wp.array(dtype=vec3),
+                             out_normal: wp.array(dtype=vec3), out_dist: wp.array(dtype=scalar),
+                             out_valid: wp.array(dtype=wp.int32)):
+        i = wp.tid()
+        collide_hfield(type_a[i], pose_a[i], size_a[i], pose_b[i], hf_data, hf_adr[i], hf_nrow[i], hf_ncol[i],
+                       hf_size[i], margin[i], base[i], out_pos, out_normal, out_dist, out_valid)
+
+    return collide_hfield_pairs

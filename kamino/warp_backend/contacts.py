@@ -17,7 +17,7 @@ import warp as wp
 
 from kamino.config import DEPENETRATION_SPEED
 from kamino.model import GeomType
-from kamino.warp_backend.collision import collide_pair_func
+from kamino.warp_backend.collision import collide_hfield_func, collide_pair_func
 from kamino.warp_backend.cone import cone_funcs
 from kamino.warp_backend.indexing import index_funcs
 from kamino.warp_backend.rows import ROW_CONTACT, row_kernels
@@ -25,6 +25,7 @@ from kamino.warp_backend.spatial import spatial_funcs
 from kamino.warp_backend.workspace import builder_types
 
 PLANE = int(GeomType.PLANE)
+HFIELD = int(GeomType.HFIELD)
 
 
 @functools.cache
@@ -74,11 +75,13 @@ def point_funcs(np_dtype) -> SimpleNamespace:
 @functools.cache
 def narrow_phase_kernel(np_dtype) -> wp.Kernel:
     """``narrow_phase``: the candidate points ``cand_*`` of every geom pair (§4.2, activation margin), one thread
-    per pair, by :func:`kamino.warp_backend.collision.collide_pair_func`."""
+    per pair, by :func:`kamino.warp_backend.collision.collide_pair_func` (a heightfield geom b: by
+    :func:`~kamino.warp_backend.collision.collide_hfield_func`, with its grid from the model)."""
     scalar, vec3, vec6, transform, M = builder_types(np_dtype).take("scalar", "vec3", "vec6", "transform", "M")
     sp = spatial_funcs(np_dtype)
     lin, ang = sp.lin, sp.ang
     collide_pair = collide_pair_func(np_dtype)
+    collide_hfield = collide_hfield_func(np_dtype)
     geom_pose = point_funcs(np_dtype).geom_pose
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -129,9 +132,15 @@ def narrow_phase_kernel(np_dtype) -> wp.Kernel:
                 for k in range(m.pair_points[p]):
                     cand_valid[m.pair_cand[p] + k] = 0
                 return
-        collide_pair(m.geom_type[ga], m.geom_type[gb], geom_pose(m, q_eval, ga), m.geom_size[ga],
-                     geom_pose(m, q_eval, gb), m.geom_size[gb], margin, m.pair_cand[p], cand_pos,
-                     cand_normal, cand_dist, cand_valid)
+        if m.geom_type[gb] == HFIELD:  # the heightfield is geom b (its type sorts last)
+            h = m.geom_dataid[gb]
+            collide_hfield(m.geom_type[ga], geom_pose(m, q_eval, ga), m.geom_size[ga], geom_pose(m, q_eval, gb),
+                           m.hfield_data, m.hfield_adr[h], m.hfield_nrow[h], m.hfield_ncol[h], m.hfield_size[h],
+                           margin, m.pair_cand[p], cand_pos, cand_normal, cand_dist, cand_valid)
+        else:
+            collide_pair(m.geom_type[ga], m.geom_type[gb], geom_pose(m, q_eval, ga), m.geom_size[ga],
+                         geom_pose(m, q_eval, gb), m.geom_size[gb], margin, m.pair_cand[p], cand_pos,
+                         cand_normal, cand_dist, cand_valid)
 
     return narrow_phase
 

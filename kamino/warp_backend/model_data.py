@@ -8,6 +8,11 @@ first ``n_fixed = n_dyn + n_joint + n_coupling`` rows are always active, the act
 contact rows follow, compacted, so a step only works on the rows it uses. Row data, the dense
 Delassus matrix and the dense Jacobian are interleaved over groups of 32 worlds
 (``kamino/warp_backend/indexing.py``).
+
+Heightfield heights are the exception to per-world storage: ``hfield_data`` holds each distinct grid once
+(:func:`hfield_grids`), and every world's heightfields (``hfield_nrow``, ``hfield_ncol``, ``hfield_size``, per
+heightfield) point into it through ``hfield_adr``, so the worlds of ``kamino.replicate`` share one copy of their
+terrain.
 """
 
 import dataclasses
@@ -16,7 +21,7 @@ import functools
 import numpy as np
 import warp as wp
 
-from kamino.model import CONTACT_POINTS, GeomType, Model, reject_hfields
+from kamino.model import CONTACT_POINTS, GeomType, Model, derived
 from kamino.tables import prefix, row_tables
 from kamino.warp_backend import linear_solve_pattern
 from kamino.warp_backend.linear_solve_pattern import hub_counts
@@ -37,7 +42,7 @@ def group_sizes(per_world: np.ndarray) -> np.ndarray:
 def model_struct(np_dtype):
     """The Warp struct type holding a model's arrays in one precision."""
     T = types_of(np_dtype)
-    scalar, vec3, quat, mat33 = T.scalar, T.vec3, T.quat, T.mat33
+    scalar, vec3, vec4, quat, mat33 = T.scalar, T.vec3, T.vec4, T.quat, T.mat33
     iarr = wp.array(dtype=wp.int32)
     farr = wp.array(dtype=scalar)
 
@@ -127,6 +132,13 @@ def model_struct(np_dtype):
         pair_key: iarr  # world-local pair index (the warm-start key)
         pair_cand: iarr  # first candidate slot
         pair_points: iarr
+        # heightfields (GeomType.HFIELD): per heightfield over all worlds, the heights once per distinct grid
+        geom_dataid: iarr  # the heightfield of an HFIELD geom, -1 for the other types
+        hfield_nrow: iarr
+        hfield_ncol: iarr
+        hfield_size: wp.array(dtype=vec4)  # (rx, ry, z_top, z_base)
+        hfield_adr: iarr  # the grid's first height in hfield_data
+        hfield_data: farr  # normalised heights, each distinct grid once (hfield_grids)
 
     return ModelArrays
 
@@ -164,12 +176,53 @@ def _bounding_radius(model: Model) -> np.ndarray:
     s = model.geom_size
     t = model.geom_type
     r = np.select(
-        [t == GeomType.SPHERE, t == GeomType.CAPSULE, t == GeomType.BOX, t == GeomType.CYLINDER,
-         t == GeomType.ELLIPSOID],
+        [t == GeomType.SPHERE, t == GeomType.CAPSULE, (t == GeomType.BOX) | (t == GeomType.HFIELD),
+         t == GeomType.CYLINDER, t == GeomType.ELLIPSOID],
         [s[:, 0], s[:, 0] + s[:, 1], np.linalg.norm(s, axis=-1), np.hypot(s[:, 0], s[:, 1]), np.max(s, axis=-1)],
         0.0,
     ) if model.num_geoms else np.zeros(0)
     return r + np.linalg.norm(model.geom_pos, axis=-1) if model.num_geoms else r
+
+
+@dataclasses.dataclass(frozen=True)
+class HFieldGrids:
+    """The distinct heightfield grids of a model: what the device stores of ``Model.hfield_data``."""
+
+    data: np.ndarray  # [D] the heights of each distinct grid once, grid after grid
+    adr: np.ndarray  # [H] each heightfield's first height in data
+    grid: np.ndarray  # [H] each heightfield's distinct grid (in order of first appearance)
+
+
+def hfield_grids(model: Model) -> HFieldGrids:
+    """The distinct grids of ``model``'s heightfields: two heightfields share a grid when their ``nrow``, ``ncol``
+    and normalised heights are equal (their ``size`` may differ: it stays per heightfield). ``kamino.replicate(m,
+    4096)`` of a model with one 800 x 800 terrain stores 640,000 heights, not 4096 copies of them. A frozen model's
+    are computed once and kept on the model (:func:`kamino.model.derived`)."""
+    return derived(model, "hfield_grids", lambda: _hfield_grids(model))
+
+
+def _hfield_grids(model: Model) -> HFieldGrids:
+    H = model.num_hfields
+    reps: list[np.ndarray] = []  # the distinct grids' heights (views of model.hfield_data)
+    by_key: dict[tuple, list[int]] = {}  # a cheap key (shape and a sample of heights) -> candidate distinct grids
+    grid = np.empty(H, np.int64)
+    for h in range(H):
+        nrow, ncol, adr = int(model.hfield_nrow[h]), int(model.hfield_ncol[h]), int(model.hfield_adr[h])
+        d = model.hfield_data[adr:adr + nrow * ncol]
+        key = (nrow, ncol, d[::max(1, d.size // 16)].tobytes())
+        same = by_key.setdefault(key, [])
+        t = next((t for t in same if np.array_equal(reps[t], d)), None)
+        if t is None:
+            t = len(reps)
+            reps.append(d)
+            same.append(t)
+        grid[h] = t
+    sizes = np.array([r.size for r in reps], np.int64)
+    data = np.concatenate(reps) if reps else np.zeros(0)
+    adr = prefix(sizes)[grid] if H else np.zeros(0, np.int64)
+    for a in (data, adr, grid):
+        a.flags.writeable = False  # shared by every caller of a cached entry
+    return HFieldGrids(data=data, adr=adr, grid=grid)
 
 
 def warp_model(model: Model, np_dtype, device) -> WarpModel:
@@ -179,7 +232,6 @@ def warp_model(model: Model, np_dtype, device) -> WarpModel:
 
 
 def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | None = None) -> WarpModel:
-    reject_hfields(model, "kamino.warp_backend")
     T = types_of(np_dtype)
     W = model.num_worlds
     tab = row_tables(model)
@@ -213,6 +265,10 @@ def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | N
     pair_world = model.pair_world[order]
     pair_count = np.bincount(pair_world, minlength=W)
     cand_count = np.bincount(pair_world, weights=pair_points, minlength=W).astype(np.int64)
+    grids = hfield_grids(model)
+    if grids.data.size > np.iinfo(np.int32).max:
+        raise ValueError(f"Warp backend: the model's distinct heightfield grids hold {grids.data.size:,} heights, more "
+                         "than an int32 index reaches; split the batch into fewer worlds or share the terrains")
     pair_local = np.arange(model.num_pairs) - model.world_pair_start[model.pair_world] if model.num_pairs else order
 
     for name, val in dict(
@@ -230,7 +286,8 @@ def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | N
         dyn_dof=tab.dyn_dof, dyn_kind=tab.dyn_kind, cpl_dof_a=tab.cpl_dof_a, cpl_dof_b=tab.cpl_dof_b,
         cpl_wrap=tab.cpl_wrap, lim_dof=tab.lim_dof, geom_type=model.geom_type, geom_body=model.geom_body,
         pair_geom_a=model.pair_geom_a[order], pair_geom_b=model.pair_geom_b[order], pair_key=pair_local[order],
-        pair_cand=prefix(pair_points), pair_points=pair_points,
+        pair_cand=prefix(pair_points), pair_points=pair_points, geom_dataid=model.geom_dataid,
+        hfield_nrow=model.hfield_nrow, hfield_ncol=model.hfield_ncol, hfield_adr=grids.adr,
     ).items():
         setattr(S, name, i32(val))
     inertia = model.body_inertia
@@ -239,9 +296,10 @@ def _upload(model: Model, np_dtype: np.dtype, device: str, hub_min_rows: int | N
         effort_limit=model.dof_effort_limit, armature=model.dof_armature, damping=model.dof_damping,
         stiffness=model.dof_stiffness, springref=model.dof_springref, lower=model.dof_lower, upper=model.dof_upper,
         geom_friction=model.geom_friction, geom_restitution=model.geom_restitution, geom_margin=model.geom_margin,
-        geom_radius=_bounding_radius(model),
+        geom_radius=_bounding_radius(model), hfield_data=grids.data,
     ).items():
         setattr(S, name, flt(val))
+    S.hfield_size = flt(model.hfield_size, T.vec4, (4,))
     S.gravity = flt(model.gravity, T.vec3, (3,))
     S.inertia = flt(inertia, T.mat33, (3, 3))
     S.inv_inertia = flt(np.linalg.inv(inertia) if len(inertia) else inertia, T.mat33, (3, 3))
