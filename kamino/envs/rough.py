@@ -44,8 +44,7 @@ class DrLegsRough(DrLegsJoystick):
             from (default: all rows).
         curriculum: move an environment between rows at its restarts (the module doc); ``info`` then carries
             ``tile`` (its index into :attr:`tile_origins`), ``far`` and ``fell`` (the running episode's outcome).
-        **kwargs: :class:`kamino.envs.joystick.DrLegsJoystick` (``backend="jax"``: the Warp backend has no
-            heightfield contact yet).
+        **kwargs: :class:`kamino.envs.joystick.DrLegsJoystick`.
     """
 
     #: the rough walking test's bars: mean tracking error [m/s] and fall fraction (docs/envs.md, "dr_legs_rough")
