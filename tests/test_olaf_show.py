@@ -15,7 +15,7 @@ from kamino.envs.olaf_show import SHOW_JOINTS, summarize_show
 
 @pytest.fixture(scope="module")
 def env():
-    return make("olaf_show", backend="jax", reset_bank=2)
+    return make("olaf_show", backend="warp", reset_bank=2)
 
 
 def test_show_ranges_follow_the_mechanisms(env):
@@ -71,3 +71,32 @@ def test_olaf_show_refuses_bad_settings():
         make("olaf_show", backend="jax", show_fraction=1.5)
     with pytest.raises(ValueError, match="show_sigma"):
         make("olaf_show", backend="jax", show_sigma=0.0)
+
+
+def test_the_show_test_scores_a_still_policy_and_train_accepts_it(env):
+    """The task's test (``task_test``, what ``kamino eval`` and ``kamino train --walk-test`` run) on a policy of zero
+    actions (a zero network: the PD targets stay at the actuators' centres): Olaf stands, so no episode falls, and
+    the show error is the targets' mean distance from the outputs' rest angles, uniform draws over ranges of about
+    0.8-1.1 rad, so well above 0.1 rad. ``kamino train --walk-test`` accepts the task."""
+    import jax
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import checkpoint as ppo_checkpoint
+
+    from kamino.envs import train as rl_train
+    from kamino.envs.configs import ppo_kwargs
+    from kamino.envs.evaluate import task_test
+    from kamino.envs.policy import Policy, make_networks
+
+    factory = ppo_kwargs("olaf_show")["network_factory"]
+    factory.keywords.update(policy_hidden_layer_sizes=(8,), value_hidden_layer_sizes=(8,))
+    config = ppo_checkpoint.network_config(env.observation_size, env.action_size, True, factory)
+    nets = make_networks(config)
+    params = nets.policy_network.init(jax.random.PRNGKey(0))
+    params = jax.tree.map(lambda x: x * 0.0, params)
+    normalizer = running_statistics.init_state(jax.ShapeDtypeStruct((env.observation_size,), jnp.float32))
+    policy = Policy(task="olaf_show", env={"reset_bank": 2}, config=config, params=(normalizer, params),
+                    source="a zero network")
+    summary = task_test(env, policy.make_policy, episodes=2, seconds=2.0, seed=0)(policy.params)
+    assert summary["fall_fraction"] == 0.0
+    assert summary["show_error_mean"] > 0.1
+    assert rl_train.parse_args(["olaf_show", "--walk-test", "4"]).walk_test == 4

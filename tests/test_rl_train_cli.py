@@ -47,10 +47,10 @@ def test_the_step_count_is_positional_or_an_option():
             rl_train.parse_args(bad)
 
 
-def test_the_walking_test_needs_a_joystick_task(tmp_path):
-    """``--walk-test`` runs the walking test (tests/test_rl_eval.py) on every checkpoint; a task without a velocity
-    command refuses it before training starts."""
-    with pytest.raises(rl_train.OptionError, match="needs a joystick task"):
+def test_the_walking_test_needs_a_task_with_a_test(tmp_path):
+    """``--walk-test`` runs the task's walking or show test (tests/test_rl_eval.py, tests/test_olaf_show.py) on every
+    checkpoint; a task with neither refuses it before training starts."""
+    with pytest.raises(rl_train.OptionError, match="needs a task with a walking or show test"):
         rl_train.train("fourbar_track", walk_test=4, out=tmp_path)
     assert rl_train.main(["fourbar_track", "--walk-test", "4", "--out", str(tmp_path)]) == 2
     with pytest.raises(SystemExit):

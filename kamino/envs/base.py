@@ -96,6 +96,9 @@ class KaminoEnv(Env):
     reward_terms: ClassVar[tuple[str, ...]] = ()
     #: task variables kept in ``info`` (e.g. a target), redrawn every ``resample_steps`` policy steps
     task_keys: ClassVar[tuple[str, ...]] = ()
+    #: the test ``kamino eval`` and ``kamino train --walk-test`` run (:func:`kamino.envs.evaluate.task_test`):
+    #: ``"walking"`` (joystick tasks), ``"show"`` (``olaf_show``) or ``"return"`` (the episode return)
+    evaluation: ClassVar[str] = "return"
 
     def __init__(self, model: Model, *, sim_dt: float, decimation: int, backend: str = DEFAULT_BACKEND,
                  solver_config: SolverConfig | None = None, action_lower=None, action_upper=None,

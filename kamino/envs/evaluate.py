@@ -3,13 +3,14 @@
 ``RUN_OR_POLICY`` is a shipped policy's name (``dr_legs_walk``), a ``kamino train`` run folder (its newest complete
 checkpoint) or one checkpoint. The environment is built with the keywords the policy was trained with.
 
-A joystick task gets the walking test: episodes of ``--seconds`` at forward commands uniform in ``--speed`` (no
-lateral or yaw command), the policy's deterministic action. Over the episodes it reports the velocity-tracking
-error (per episode, the mean over its policy steps up to a fall of ``|cmd_xy - v_xy|``, the base's planar velocity
-in its own frame), the fall fraction (episodes that end early), the forward speed, and whether the bars hold
-(``--max-error``, ``--max-falls``). Where the error comes from is reported too: the error of the mean velocity
-(per episode ``|cmd_xy - mean v_xy|``) and the fluctuation (per episode the standard deviation of ``v_x`` and
-``v_y``). Any other task gets the mean and spread of the episode return and the fraction of episodes that end early.
+A joystick task gets the walking test (``olaf_show`` its show test: :mod:`kamino.envs.olaf_show`): episodes of
+``--seconds`` at forward commands uniform in ``--speed`` (no lateral or yaw command), the policy's deterministic
+action. Over the episodes it reports the velocity-tracking error (per episode, the mean over its policy steps up to
+a fall of ``|cmd_xy - v_xy|``, the base's planar velocity in its own frame), the fall fraction (episodes that end
+early), the forward speed, and whether the bars hold (``--max-error``, ``--max-falls``). Where the error comes from
+is reported too: the error of the mean velocity (per episode ``|cmd_xy - mean v_xy|``) and the fluctuation (per
+episode the standard deviation of ``v_x`` and ``v_y``). Any other task gets the mean and spread of the episode
+return and the fraction of episodes that end early.
 
 ``--sim mujoco`` runs the walking test in C MuJoCo on ``kamino.save_mjcf``'s export of the robot, with kamino's
 observations, actions, resets and commands (:mod:`kamino.envs.sim2sim`; the ``--mj-*`` options set MuJoCo's).
@@ -76,7 +77,7 @@ def walking_test(env, make_policy, *, episodes: int, seconds: float, speed: tupl
     keys = jax.random.split(key_policy, episodes)
 
     def run(params):
-        with jax.enable_x64(False), announce_compile(f"and running {episodes} walking episodes"):
+        with jax.enable_x64(False):
             out = play(params, states, keys)
         return (np.asarray(vx), *(np.asarray(x) for x in out))
 
@@ -163,16 +164,47 @@ def check_walk(episodes: int, seconds: float, speed: tuple[float, float], caller
                          f"LOW <= HIGH (got {tuple(speed)})")
 
 
+def task_test(env, make_policy, *, episodes: int, seconds: float, speed: tuple[float, float] = (0.3, 0.5),
+              seed: int = 0, deterministic: bool = True):
+    """The test of ``env``'s task (its ``evaluation``), compiled once: returns ``run(params)`` giving the summary.
+    ``"walking"``: :func:`walking_test` at forward commands in ``speed``, then :func:`summarize`; ``"show"``:
+    :func:`kamino.envs.olaf_show.show_test`, then :func:`~kamino.envs.olaf_show.summarize_show`. Raises
+    ``ValueError`` for a task with neither."""
+    if env.evaluation == "walking":
+        play = walking_test(env, make_policy, episodes=episodes, seconds=seconds, speed=tuple(speed), seed=seed,
+                            deterministic=deterministic)
+
+        def run(params):
+            with announce_compile(f"and running {episodes} walking episodes"):
+                vx, lin, _, counted, fell = play(params)
+            return summarize(vx, lin, counted, fell)
+
+        return run
+    if env.evaluation == "show":
+        from kamino.envs.olaf_show import show_test, summarize_show
+
+        play = show_test(env, make_policy, episodes=episodes, seconds=seconds, seed=seed, deterministic=deterministic)
+
+        def run_show(params):
+            with announce_compile(f"and running {episodes} show episodes"):
+                return summarize_show(*play(params))
+
+        return run_show
+    raise ValueError(f"task_test: {type(env).__name__} has no walking or show test (its evaluation is "
+                     f"{env.evaluation!r})")
+
+
 def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: int = 256, seconds: float = 10.0,
              speed: tuple[float, float] = (0.3, 0.5), seed: int = 0, deterministic: bool = True,
              env: dict | None = None, max_error: float | None = None,
              max_falls: float | None = None) -> dict[str, Any]:
     """Score ``policy`` (a :class:`~kamino.envs.policy.Policy`, a shipped policy's name, or a run or checkpoint
-    path) in its task's environment, built with its training keywords and ``env`` over them. A joystick task gets
-    the walking test (the module doc), with ``passed`` against ``max_error`` [m/s] and ``max_falls`` (default: the
-    task's ``walking_bars``: 0.1 m/s and 5 % on flat ground, 0.15 m/s and 5 % on ``dr_legs_rough``; a terrain task
-    plays the test on its ``walking_levels`` rows of its default terrain, unless ``env`` gives ``levels`` or a
-    ``terrain``); another task the episode return. Returns the report."""
+    path) in its task's environment, built with its training keywords and ``env`` over them, by its task's test
+    (:func:`task_test`). A joystick task gets the walking test (the module doc), with ``passed`` against
+    ``max_error`` [m/s] and ``max_falls`` (default: the task's ``walking_bars``: 0.1 m/s and 5 % on flat ground,
+    0.15 m/s and 5 % on ``dr_legs_rough``; a terrain task plays the test on its ``walking_levels`` rows of its
+    default terrain, unless ``env`` gives ``levels`` or a ``terrain``); ``olaf_show`` the show test, ``max_error``
+    in rad (default its ``show_bars``: 0.05 rad, 5 %); another task the episode return. Returns the report."""
     from kamino.envs import make
 
     check_walk(episodes, seconds, speed, "evaluate")
@@ -180,13 +212,14 @@ def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: in
         policy = resolve(policy)
     env_overrides = dict(env or {})
     kwargs = {**policy.env, **env_overrides}
-    walking = hasattr(_task_class(policy.task), "with_command")
-    if walking:
-        bars = _task_class(policy.task).walking_bars
+    cls = _task_class(policy.task)
+    if cls.evaluation in ("walking", "show"):
+        bars = cls.walking_bars if cls.evaluation == "walking" else cls.show_bars
         max_error = bars[0] if max_error is None else max_error
         max_falls = bars[1] if max_falls is None else max_falls
+    if cls.evaluation == "walking":
         kwargs["resample_steps"] = None  # the command stays as the test sets it
-        levels = getattr(_task_class(policy.task), "walking_levels", None)
+        levels = getattr(cls, "walking_levels", None)
         if levels is not None and "levels" not in env_overrides and not kwargs.get("terrain"):
             kwargs["levels"] = levels  # a terrain task on its default terrain: the test's difficulty rows
     environment = make(policy.task, backend=backend, **kwargs)
@@ -194,13 +227,14 @@ def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: in
         raise ValueError(f"evaluate: the policy takes {policy.observation_size} observations, {policy.task} built "
                          f"with {kwargs} gives {environment.observation_size}")
     t0 = time.perf_counter()
-    if walking:
-        out = walking_test(environment, policy.make_policy, episodes=episodes, seconds=seconds, speed=tuple(speed),
+    if cls.evaluation in ("walking", "show"):
+        report = task_test(environment, policy.make_policy, episodes=episodes, seconds=seconds, speed=speed,
                            seed=seed, deterministic=deterministic)(policy.params)
-        vx, lin, _, counted, fell = out
-        report = summarize(vx, lin, counted, fell)
-        report.update(speed_range=list(speed), bars={"max_error": max_error, "max_falls": max_falls},
-                      passed=report["tracking_error_mean"] <= max_error and report["fall_fraction"] <= max_falls)
+        error = report["tracking_error_mean" if cls.evaluation == "walking" else "show_error_mean"]
+        report.update(bars={"max_error": max_error, "max_falls": max_falls},
+                      passed=error <= max_error and report["fall_fraction"] <= max_falls)
+        if cls.evaluation == "walking":
+            report["speed_range"] = list(speed)
     else:
         report = episode_returns(environment, policy.make_policy, policy.params, episodes=episodes, seconds=seconds,
                                  seed=seed, deterministic=deterministic)
@@ -233,6 +267,11 @@ def format_report(r: dict) -> str:
                 f"<= {100 * bars['max_falls']:g} %) |\n"
                 f"error of the mean velocity {r['mean_velocity_error']:.3f} m/s; fluctuation (std within episodes) "
                 f"v_x {r['fluctuation_std_x']:.3f}, v_y {r['fluctuation_std_y']:.3f} m/s")
+    if "show_error_mean" in r:
+        bars = r["bars"]
+        return (f"{r['task']}: {r['episodes']} episodes of {r['seconds']:g} s, show error {r['show_error_mean']:.3f} "
+                f"/ {r['show_error_p90']:.3f} rad (mean / p90), {100 * r['fall_fraction']:.1f} % falls; passes: "
+                f"{'yes' if r['passed'] else 'no'} (<= {bars['max_error']:g} rad, <= {100 * bars['max_falls']:g} %)")
     return (f"{r['task']}: {r['episodes']} episodes of {r['seconds']:g} s, return {r['return_mean']:.3f} "
             f"+- {r['return_std']:.3f}, {100 * r['ended_fraction']:.1f} % ended early")
 
@@ -243,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     from kamino.envs.policy import shipped_policies
 
     p = argparse.ArgumentParser(prog="kamino eval", description="Score a trained policy: the walking test for a "
-                                "joystick task, the episode return for any other.",
+                                "joystick task, the show test for olaf_show, the episode return for any other.",
                                 epilog=f"Shipped policies: {', '.join(shipped_policies())}.")
     p.add_argument("policy", metavar="RUN_OR_POLICY", help="a shipped policy's name, a run folder or a checkpoint")
     p.add_argument("--task", help="the task (default: the run's, else dr_legs_joystick)")
@@ -256,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--speed", type=float, nargs=2, default=(0.3, 0.5), metavar=("LOW", "HIGH"),
                    help="joystick tasks: forward command range [m/s] (default 0.3 0.5)")
     p.add_argument("--max-error", type=float, help="the bar on the mean tracking error [m/s] (default: the task's, "
-                   "0.1 on flat ground, 0.15 on dr_legs_rough)")
+                   "0.1 on flat ground, 0.15 on dr_legs_rough), or on the show error [rad] (olaf_show: 0.05)")
     p.add_argument("--max-falls", type=float, help="the bar on the fall fraction (default: the task's, 0.05)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--stochastic", action="store_true", help="sample actions as in training (default: the mode)")

@@ -111,6 +111,7 @@ class Joystick(KaminoEnv):
 
     reward_terms = tuple(REWARD_WEIGHTS)
     task_keys = ("command",)
+    evaluation = "walking"
     #: the walking test's bars (:func:`kamino.envs.evaluate.evaluate`): mean tracking error [m/s], fall fraction
     walking_bars = (0.1, 0.05)
 

@@ -91,6 +91,9 @@ class OlafShow(Joystick):
 
     reward_terms = (*Joystick.reward_terms, "show")
     task_keys = ("command", "show")
+    evaluation = "show"
+    #: the show test's bars (:func:`kamino.envs.evaluate.evaluate`): mean absolute output error [rad], fall fraction
+    show_bars = (0.05, 0.05)
 
     def __init__(self, *, show_weight: float = 2.0, show_sigma: float = 0.01, show_fraction: float = 0.9,
                  resample_steps: int = 100, min_height: float | None = None, command_lin_x: float = 0.0,

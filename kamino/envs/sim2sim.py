@@ -292,8 +292,9 @@ def evaluate_mujoco(policy: Policy | str | Path, *, episodes: int = 64, seconds:
         policy = resolve(policy)
     overrides = dict(env or {})
     environment = make(policy.task, backend="jax", **{**policy.env, **overrides, "resample_steps": None})
-    if not hasattr(environment, "with_command"):
-        raise ValueError(f"evaluate_mujoco: {policy.task} is not a joystick task; the MuJoCo walking test needs one")
+    if environment.evaluation != "walking":
+        raise ValueError(f"evaluate_mujoco: {policy.task} has no walking test (its test: {environment.evaluation!r}); "
+                         "the MuJoCo walking test needs a joystick task")
     if environment.observation_size != policy.observation_size:
         raise ValueError(f"evaluate_mujoco: the policy takes {policy.observation_size} observations, {policy.task} "
                          f"gives {environment.observation_size}")

@@ -16,10 +16,11 @@ row is committed with its checkpoint, so a run killed at any moment and resumed 
 interrupted: the same evaluation steps, each row once, the same checkpoints. ``--fresh`` starts over, and refuses a
 folder that holds a run unless ``--overwrite`` is given.
 
-Besides the checkpoints the run writes ``curve.json`` (each evaluation: step, mean and spread of the episode
-return, wall time, env steps/s of the epoch before it), ``train_curve.json`` (``--train-returns N``: the training
-episodes' return every ~N steps and each episode metric), ``walk_tests.json`` (``--walk-test EPISODES``, joystick
-tasks: :func:`kamino.envs.evaluate.walking_test` on each checkpoint), ``reward_curve.png`` and ``report.json``.
+Besides the checkpoints the run writes ``curve.json`` (each evaluation: step, mean and spread of the episode return,
+wall time, env steps/s of the epoch before it), ``train_curve.json`` (``--train-returns N``: the training episodes'
+return every ~N steps and each episode metric), ``walk_tests.json`` (``--walk-test EPISODES``, joystick tasks, and
+the show test of ``olaf_show``: :func:`kamino.envs.evaluate.task_test` on each checkpoint), ``reward_curve.png`` and
+``report.json``.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import time
 from pathlib import Path
 
 from kamino.envs import runs
-from kamino.envs.evaluate import summarize, walking_test
+from kamino.envs.evaluate import task_test
 from kamino.envs.runs import OptionError, key_values
 from kamino.simulator import DEFAULT_BACKEND
 
@@ -209,8 +210,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     from kamino.envs import TASKS, make
     from kamino.envs.configs import ppo_kwargs, task_config
 
-    if walk_test and not hasattr(TASKS[task], "with_command"):
-        raise OptionError(f"--walk-test needs a joystick task; {task} has no velocity command")
+    if walk_test and TASKS[task].evaluation not in ("walking", "show"):
+        raise OptionError(f"--walk-test needs a task with a walking or show test (kamino.envs.evaluate.task_test); "
+                          f"{task} has neither")
     out = Path(out if out is not None else Path("scratch") / "rl" / task).resolve()
     # across processes (kamino.envs.distributed) process 0 owns the run folder: Brax's PPO evaluates, reports and
     # hands over the parameters there only; the others check the options alike, wait until process 0 has prepared
@@ -274,7 +276,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     # since the checkpoint before
     pending: dict = {"params": None, "make_policy": None, "curve": [], "train_curve": [], "walk_tests": []}
     walk_run = None
-    walk_env = make(task, backend=backend, **{**env_kwargs, "resample_steps": None}) if walk_test else None
+    # the walking test holds its command for the episode; the show test redraws its targets as in training
+    held = {"resample_steps": None} if TASKS[task].evaluation == "walking" else {}
+    walk_env = make(task, backend=backend, **{**env_kwargs, **held}) if walk_test else None
 
     def on_metrics(step: int, metrics: dict) -> None:
         nonlocal last, first
@@ -322,15 +326,18 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         params = pending["params"]
         if walk_test and walk_test_due(step, [w["step"] for w in walks], walk_test_from, walk_test_every):
             t0 = time.perf_counter()
-            walk_run = walk_run or walking_test(walk_env, pending["make_policy"], episodes=walk_test, seconds=10.0,
-                                                speed=(0.3, 0.5), seed=walk_seed)
-            vx, lin, _, counted, fell = walk_run(params)
-            pending["walk_tests"].append({"step": step, **summarize(vx, lin, counted, fell), "seed": walk_seed,
+            walk_run = walk_run or task_test(walk_env, pending["make_policy"], episodes=walk_test, seconds=10.0,
+                                             speed=(0.3, 0.5), seed=walk_seed)
+            pending["walk_tests"].append({"step": step, **walk_run(params), "seed": walk_seed,
                                           "wall_s": time.perf_counter() - t0})
             w = pending["walk_tests"][-1]
-            print(f"walking test at {w['step']}: error {w['tracking_error_mean']:.3f} m/s, falls "
-                  f"{100 * w['fall_fraction']:.1f} %, forward {w['forward_speed_mean']:.3f} m/s ({w['wall_s']:.0f} s)",
-                  flush=True)
+            if "tracking_error_mean" in w:
+                print(f"walking test at {w['step']}: error {w['tracking_error_mean']:.3f} m/s, falls "
+                      f"{100 * w['fall_fraction']:.1f} %, forward {w['forward_speed_mean']:.3f} m/s "
+                      f"({w['wall_s']:.0f} s)", flush=True)
+            else:
+                print(f"show test at {w['step']}: error {w['show_error_mean']:.3f} rad, falls "
+                      f"{100 * w['fall_fraction']:.1f} % ({w['wall_s']:.0f} s)", flush=True)
         rows = {key: pending[key] for key in paths}
         runs.save_checkpoint(ckpt_dir, step, params, net_config, record={"step": step, "env": env_kwargs, **rows})
         for key, target in (("curve", curve), ("train_curve", train_curve), ("walk_tests", walks)):
