@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import warp as wp
 
 pytest.importorskip("brax")
 
@@ -73,11 +74,14 @@ def test_olaf_show_refuses_bad_settings():
         make("olaf_show", backend="jax", show_sigma=0.0)
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device for Warp")
 def test_the_show_test_scores_a_still_policy_and_train_accepts_it(env):
-    """The task's test (``task_test``, what ``kamino eval`` and ``kamino train --walk-test`` run) on a policy of zero
-    actions (a zero network: the PD targets stay at the actuators' centres): Olaf stands, so no episode falls, and
-    the show error is the targets' mean distance from the outputs' rest angles, uniform draws over ranges of about
-    0.8-1.1 rad, so well above 0.1 rad. ``kamino train --walk-test`` accepts the task."""
+    """In the gpu tier (its rollout compiles and steps Olaf for 8 s on CI's CPU). The task's test (``task_test``, what
+    ``kamino eval`` and ``kamino train --walk-test`` run) on a policy of zero actions (a zero network: the PD
+    targets stay at the actuators' centres): Olaf stands, so no episode falls, and the show error is the targets'
+    mean distance from the outputs' rest angles, uniform draws over ranges of about 0.8-1.1 rad, so well above
+    0.1 rad. ``kamino train --walk-test`` accepts the task."""
     import jax
     from brax.training.acme import running_statistics
     from brax.training.agents.ppo import checkpoint as ppo_checkpoint
