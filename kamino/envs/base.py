@@ -60,6 +60,14 @@ from kamino.simulator import DEFAULT_BACKEND, Simulator
 from kamino.state import Control, State, bind, drop_empty, fill_empty
 
 
+def actuator_target_range(model: Model) -> tuple[np.ndarray, np.ndarray]:
+    """``(lower, upper)`` PD targets of ``model``'s actuators (actuator order): their DoFs' limits within their
+    control ranges; an environment's actions ``-1`` and ``+1`` map to them."""
+    dof = np.asarray(model.actuator_dof)
+    return (np.maximum(model.dof_lower[dof], model.actuator_ctrl_range[:, 0]),
+            np.minimum(model.dof_upper[dof], model.actuator_ctrl_range[:, 1]))
+
+
 class KaminoEnv(Env):
     """A Brax ``Env`` simulating one world of ``model`` with kamino (subclass it for a task: docs/envs.md).
 
@@ -366,8 +374,7 @@ class KaminoEnv(Env):
         if bad:
             raise ValueError(f"{name}: actuators {bad} are not POSITION (PD) actuators; actions map to PD position "
                              "targets (kamino.Actuation('position', kp, kd))")
-        lo = np.maximum(m.dof_lower[self._act_dof], m.actuator_ctrl_range[:, 0])
-        hi = np.minimum(m.dof_upper[self._act_dof], m.actuator_ctrl_range[:, 1])
+        lo, hi = actuator_target_range(m)
         for arg, value, pick in (("action_lower", lower, np.maximum), ("action_upper", upper, np.minimum)):
             if value is None:
                 continue
@@ -486,4 +493,4 @@ class KaminoEnv(Env):
         return jnp.zeros((), bool)
 
 
-__all__ = ["BACKENDS", "KaminoEnv"]
+__all__ = ["BACKENDS", "KaminoEnv", "actuator_target_range"]

@@ -312,6 +312,13 @@ class Joystick(KaminoEnv):
         return self._fallen(ps)
 
 
+def standing_fraction(model: Model, fraction: float) -> float:
+    """``fraction`` of the height [m] of ``model``'s base body in its reference pose: a fall threshold."""
+    from kamino.kinematics import base_bodies
+
+    return fraction * float(model.body_q0[int(base_bodies(model)[0]), 2])
+
+
 def _check_gains(name: str, kp, kd) -> None:
     if not (isinstance(kp, (int, float)) and np.isfinite(kp) and kp > 0):
         raise ValueError(f"{name}: kp must be a positive number, got {kp!r}")
@@ -352,11 +359,9 @@ class BdxJoystick(Joystick):
     def __init__(self, *, kp: float = 400.0, kd: float = 8.0, min_height: float | None = None, **kwargs):
         _check_gains(type(self).__name__, kp, kd)
         model = bdx(leg_gains=(kp, kd))
-        if min_height is None:
-            from kamino.kinematics import base_bodies
-
-            min_height = 0.6 * float(model.body_q0[int(base_bodies(model)[0]), 2])
+        min_height = standing_fraction(model, 0.6) if min_height is None else min_height
         super().__init__(model, min_height=min_height, **kwargs)
 
 
-__all__ = ["REWARD_WEIGHTS", "BdxJoystick", "DrLegsJoystick", "Joystick", "feet_air_time", "swing_heights"]
+__all__ = ["REWARD_WEIGHTS", "BdxJoystick", "DrLegsJoystick", "Joystick", "feet_air_time", "standing_fraction",
+           "swing_heights"]

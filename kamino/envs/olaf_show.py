@@ -21,7 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kamino.envs.joystick import Joystick
+from kamino.envs.base import actuator_target_range
+from kamino.envs.joystick import Joystick, standing_fraction
 from kamino.kinematics import forward_kinematics, init_state
 from kamino.model import Model, replicate
 from kamino.models import olaf
@@ -51,7 +52,7 @@ def show_ranges(model: Model, fraction: float = 0.9) -> tuple[np.ndarray, np.nda
     four-bars is monotonic within the crank limits). Raises if forward kinematics does not converge."""
     names = list(model.actuator_names)
     act = [names.index(a) for _, a in SHOW_JOINTS]
-    lower, upper = _actuator_limits(model)
+    lower, upper = actuator_target_range(model)
     centre, half = 0.5 * (lower + upper), 0.5 * (upper - lower)
     q = np.tile(centre, (3, 1))
     for row, s in enumerate((-fraction, 0.0, fraction)):
@@ -64,14 +65,6 @@ def show_ranges(model: Model, fraction: float = 0.9) -> tuple[np.ndarray, np.nda
     dofs = joint_dofs(model, [j for j, _ in SHOW_JOINTS])
     angles = np.asarray(dof_state(many, state)[0]).reshape(3, model.num_dofs)[:, dofs]
     return angles.min(0), angles.max(0)
-
-
-def _actuator_limits(model: Model) -> tuple[np.ndarray, np.ndarray]:
-    """The actuators' target ranges ``(lower, upper)`` [rad], actuator order: their DoFs' limits within their control
-    ranges (the action range of :class:`kamino.envs.base.KaminoEnv`)."""
-    dof = np.asarray(model.actuator_dof)
-    return (np.maximum(model.dof_lower[dof], model.actuator_ctrl_range[:, 0]),
-            np.minimum(model.dof_upper[dof], model.actuator_ctrl_range[:, 1]))
 
 
 class OlafShow(Joystick):
@@ -105,10 +98,7 @@ class OlafShow(Joystick):
         if not (isinstance(show_fraction, (int, float)) and 0 < show_fraction <= 1):
             raise ValueError(f"{name}: show_fraction must be in (0, 1], got {show_fraction!r}")
         model = olaf()
-        if min_height is None:
-            from kamino.kinematics import base_bodies
-
-            min_height = 0.6 * float(model.body_q0[int(base_bodies(model)[0]), 2])
+        min_height = standing_fraction(model, 0.6) if min_height is None else min_height
         self._show_weight, self._show_sigma = float(show_weight), float(show_sigma)
         self._show_dofs = joint_dofs(model, [j for j, _ in SHOW_JOINTS])
         self._show_lo, self._show_hi = show_ranges(model, float(show_fraction))
