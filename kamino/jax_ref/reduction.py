@@ -15,7 +15,7 @@ a loop (a planar loop's out-of-plane rows), so ``D_FF^-1`` is applied through th
 
 the shift PADMM itself gives those rows, followed by ``SCHUR_REFINEMENT_STEPS`` steps of iterative refinement
 against the unshifted ``A``: ``x_0 = (A + eps I)^-1 b``, ``x_{k+1} = x_k + (A + eps I)^-1 (b - A x_k)``. Along an
-eigenvalue ``sigma`` of ``A`` the error of ``x_k`` is ``(eps / (sigma + eps))^(k+1)`` of the exact solve's; the
+eigenvalue ``sigma`` of ``A`` the relative error of ``x_k`` is ``(eps / (sigma + eps))^(k+1)``; the
 null eigenvalues of redundant loops (1e-12 on dr_legs) lie far below ``eps = 1.1e-4`` and every other one above it
 (``>= 2e-3`` on dr_legs), so the refined solve is exact on the range of ``A`` to float32 rounding and adds along
 its null space only the ``(k + 1) / eps`` multiple of the right-hand side's null part, which moves no body.
