@@ -68,7 +68,7 @@ def test_schur_solve_matches_the_full_solve(dtype):
     ``tolerance`` (1e-8 in float64; 1e-4 in float32, ~1e3 float32 rounding of the unit-diagonal scaled problem),
     and a velocity error ``tol`` on a row of effective mass ``1 / D_ii`` is an impulse error ``tol / D_ii`` that moves
     the bodies by ``M^-1 J^T`` of it: 100 ``tol`` leaves a margin for the conditioning of ``D`` (measured: float64
-    2e-9, float32 2e-5)."""
+    2.7e-9, float32 1.2e-5; the eliminated rows' residual 1.1e-10 against 2.2e-10, float32 1.5e-7 against 2.4e-6)."""
     tol = 1e-8 if dtype == np.float64 else 1e-4
     args, n_fixed, Minv, J = _loop_problem(dtype)
     cfg = kamino.SolverConfig(tolerance=tol, max_iterations=1000)
@@ -96,7 +96,8 @@ def test_schur_solve_refines_and_runs_fixed_iterations_like_the_full_solve():
     """The curvature refinement (a ``refine`` map of the impulses to a new ``v_f``; here a linear one, ``J`` times a
     velocity change that every impulse moves) restarts the reduced solve on the refined ``v'_T`` and recovers
     ``lambda_F`` from the refined ``v_f``; ``fixed_iterations`` runs the same path unrolled. Both agree with the
-    full solve as in :func:`test_schur_solve_matches_the_full_solve` (float64, tolerance 1e-8; measured 3e-9)."""
+    full solve as in :func:`test_schur_solve_matches_the_full_solve` (float64, tolerance 1e-8; bound 100 ``tol``,
+    measured 2.7e-8)."""
     args, n_fixed, Minv, J = _loop_problem()
     D, v_f = args[0], args[1]
     G = 0.02 * np.random.default_rng(5).standard_normal((J.shape[1], D.shape[0]))
@@ -167,7 +168,7 @@ def test_schur_rollout_of_dr_legs_keeps_its_loops_closed():
     u_red, closure_red, failed_red = _dr_legs_rollout("schur")
     assert failed_full == 0 and failed_red == 0
     assert closure_red <= 2.0 * closure_full, (closure_red, closure_full)
-    assert np.abs(u_red - u_full).max() <= 30 * 1e-3 * 10, np.abs(u_red - u_full).max()
+    assert np.abs(u_red - u_full).max() <= 30 * 1e-3, np.abs(u_red - u_full).max()  # measured 7.3e-3
 
 
 @pytest.mark.gpu
