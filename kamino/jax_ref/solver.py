@@ -595,8 +595,9 @@ def _solve_schur(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu:
         def refine_t(lam_t):
             return reduction.reduced_rhs(el, refine(reduction.recover(el, v_f, lam_t)))
 
-    # T scaled by the full D's diagonal, as the full solve scales those rows: diag(S)^-1/2 instead took 1.3x the
-    # iterations on dr_legs (and 4x on the loop problem of tests/test_schur_reduction.py)
+    # T scaled by the full D's diagonal, as the full solve scales those rows: diag(S)^-1/2 instead took 1.2x the mean
+    # iterations on dr_legs under random PD targets (the slowest world alike) and 3.7x on the loop problem of
+    # tests/test_schur_reduction.py
     P_t = jnp.where(t, jacobi_preconditioner(D, row_mask, lo.shape[0]), 1.0)
     p = _Problem(reduction.reduced_matrix(el), reduction.reduced_rhs(el, v_f), lo, hi, mu, t, cfg, rho0, n_fixed,
                  P_t)
