@@ -576,7 +576,7 @@ def _solve_schur(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu:
                  refine_rows) -> PADMMResult:
     """:func:`solve` with ``cfg.reduction = "schur"`` (docs/formulation.md §7.11; :mod:`kamino.jax_ref.reduction`):
     the unbounded always-active rows ``F`` are eliminated with the factor of ``P_F D_FF P_F + eps I``, ``eps = eta +
-    rho_free`` (``eta + rho`` under the fixed penalty: PADMM's own shift on those rows), PADMM (penalty rules,
+    rho_free`` (the adaptive penalty's shift on those rows, in either penalty mode), PADMM (penalty rules,
     saturation, warm start, redundant limits, curvature refinement as in :func:`solve`) runs on ``(S, v'_T)`` with the
     rows ``T`` active, scaled by the Jacobi preconditioner of the full ``D`` (§7.2: the scaling the full solve gives
     them), and ``lambda_F = -D_FF^-1 (v_F + D_FT lambda_T)`` is recovered.
@@ -586,8 +586,10 @@ def _solve_schur(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu:
     saturated rows are the reduced solve's. The curvature refinement maps the recovered full impulse to a new ``v_f``
     and PADMM restarts on its ``v'_T`` (``S`` is unchanged). The implicit derivative (§7.10) is that of the full
     problem's natural map at the recovered solution: the same as ``reduction = "none"``'s at the same point."""
-    pen = cfg.penalty
-    eps = pen.eta + (pen.rho_free if pen.mode == "adaptive" else pen.rho)
+    # the adaptive penalty's shift on F in either mode: the fixed penalty's eta + rho (0.1) lies above the smallest
+    # eigenvalues of a loop's scaled D_FF (0.1 on the loop problem of the tests, 2e-3 on dr_legs), where two refinement
+    # steps leave (eps / (sigma + eps))^3 of the solve's error (13 % at 0.1)
+    eps = cfg.penalty.eta + cfg.penalty.rho_free
     el = reduction.eliminate(D, reduction.unbounded_rows(lo, hi, row_mask, n_fixed), row_mask, eps)
     t = el.t
     refine_t = None
