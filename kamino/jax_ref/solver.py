@@ -693,9 +693,8 @@ def _implicit_roots(p: _Problem, init: Carry, guess, hi_v, run, refine) -> tuple
     """The roots of :func:`_implicit` for the problem ``p`` (upper bounds ``hi_v``, starting point ``guess``), found
     by ``run() -> (carry, y_first, y_last)``: a solve whose carry has the structure and dtypes of ``init`` and whose
     solutions ``y_first`` (the first solve's, before a curvature refinement) and ``y_last`` (the last one's) are in
-    ``p``'s scaled units. The
-    solve need not be PADMM on ``p`` itself: :func:`_solve_schur` runs it on the reduced problem and returns the
-    full layout (§7.11).
+    ``p``'s scaled units. The solve need not be PADMM on ``p`` itself: :func:`_solve_schur` runs it on the reduced
+    problem and returns the full layout (§7.11).
 
     ``jax.lax.custom_root`` with ``(dF/dy)^+`` by the shifted LU solve of :func:`_tangent_solve`. No iteration is
     differentiated: the memory of a gradient does not grow with the iteration count, and the warm start and the
