@@ -36,7 +36,7 @@ from kamino.config import (
     WARM_START_FILTER_SHIFT,
     SolverConfig,
 )
-from kamino.jax_ref import linear_solve
+from kamino.jax_ref import linear_solve, reduction
 
 
 @jax.tree_util.register_dataclass
@@ -199,13 +199,14 @@ class _Problem:
     ``K`` and the complementarity residual. Built while tracing :func:`solve`: its arrays are traced values."""
 
     def __init__(self, D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array,
-                 row_mask: jax.Array, cfg: SolverConfig, rho0, n_fixed: int) -> None:
+                 row_mask: jax.Array, cfg: SolverConfig, rho0, n_fixed: int, P=None) -> None:
         dtype = self.dtype = D.dtype
         n = self.n = D.shape[0]
         n_box = self.n_box = lo.shape[0]
         self.cfg, self.mu, self.row_mask, self.lo, self.hi = cfg, mu, row_mask, lo, hi
         self.eta = jnp.asarray(cfg.penalty.eta, dtype)
-        P = self.P = jacobi_preconditioner(D, row_mask, n_box)
+        # the scaling: D's Jacobi preconditioner unless given (the reduced problem's, _solve_schur)
+        P = self.P = jacobi_preconditioner(D, row_mask, n_box) if P is None else P
         self.Dt = P[:, None] * D * P[None, :]
         self.vt = jnp.where(row_mask, P * v_f, 0.0)
         P_ref = jnp.max(jnp.where(row_mask, P, 0.0), initial=0.0)
@@ -536,7 +537,13 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
     :func:`redundant_limits` finds equivalent to another limit row with a smaller bias (all three hinge
     limits of a parallelogram loop), evaluated again for the refined right-hand side: the solution keeps
     ``v+`` and each group's generalised impulse, and PADMM no longer creeps along the null direction.
+
+    ``cfg.reduction = "schur"`` eliminates the unbounded always-active rows first and runs all of the above on the
+    reduced problem (:func:`_solve_schur`, docs/formulation.md §7.11).
     """
+    if cfg.reduction == "schur":
+        return _solve_schur(D, v_f, lo, hi, mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_fixed,
+                            refine_rows)
     p = _Problem(D, v_f, lo, hi, mu, row_mask, cfg, rho0, n_fixed)
     init = p.start(impulse0, velocity0)
     refine_rows = True if refine_rows is None else refine_rows
@@ -555,6 +562,81 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
         impulse=jnp.where(row_mask, p.P * y, 0.0),
         velocity=jnp.where(row_mask, v, 0.0),
         iterations=k,
+        primal_residual=out.r_p,
+        dual_residual=out.r_d,
+        complementarity_residual=out.r_c,
+        converged=out.converged,
+        penalty=out.rho_u,
+        saturated=out.sat,
+    )
+
+
+def _solve_schur(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
+                 impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig, refine, rho0, n_fixed: int,
+                 refine_rows) -> PADMMResult:
+    """:func:`solve` with ``cfg.reduction = "schur"`` (docs/formulation.md §7.11; :mod:`kamino.jax_ref.reduction`):
+    the unbounded always-active rows ``F`` are eliminated with the factor of ``P_F D_FF P_F + eps I``, ``eps = eta +
+    rho_free`` (the adaptive penalty's shift on those rows, in either penalty mode), PADMM (penalty rules,
+    saturation, warm start, redundant limits, curvature refinement as in :func:`solve`) runs on ``(S, v'_T)`` with the
+    rows ``T`` active, scaled by the Jacobi preconditioner of the full ``D`` (§7.2: the scaling the full solve gives
+    them), and ``lambda_F = -D_FF^-1 (v_F + D_FT lambda_T)`` is recovered.
+
+    The result has the full row layout: the impulse on every row, the velocity ``D lambda + v_f`` on ``F`` (with the
+    refined ``v_f`` where the solve refined) and PADMM's on ``T``; iterations, residuals, convergence, penalty and
+    saturated rows are the reduced solve's. The curvature refinement maps the recovered full impulse to a new ``v_f``
+    and PADMM restarts on its ``v'_T`` (``S`` is unchanged). The implicit derivative (§7.10) is that of the full
+    problem's natural map at the recovered solution: the same as ``reduction = "none"``'s at the same point."""
+    # the adaptive penalty's shift on F in either mode: the fixed penalty's eta + rho (0.1) lies above the smallest
+    # eigenvalues of a loop's scaled D_FF (0.1 on the loop problem of the tests, 2e-3 on dr_legs), where two refinement
+    # steps leave (eps / (sigma + eps))^3 of the solve's error (13 % at 0.1)
+    eps = cfg.penalty.eta + cfg.penalty.rho_free
+    el = reduction.eliminate(D, reduction.unbounded_rows(lo, hi, row_mask, n_fixed), row_mask, eps)
+    t = el.t
+    refine_t = None
+    if refine is not None:
+        def refine_t(lam_t):
+            return reduction.reduced_rhs(el, refine(reduction.recover(el, v_f, lam_t)))
+
+    # T scaled by the full D's diagonal, as the full solve scales those rows: diag(S)^-1/2 instead took 1.2x the mean
+    # iterations on dr_legs under random PD targets (the slowest world alike) and 3.7x on the loop problem of
+    # tests/test_schur_reduction.py
+    P_t = jnp.where(t, jacobi_preconditioner(D, row_mask, lo.shape[0]), 1.0)
+    p = _Problem(reduction.reduced_matrix(el), reduction.reduced_rhs(el, v_f), lo, hi, mu, t, cfg, rho0, n_fixed,
+                 P_t)
+    init = p.start(jnp.where(t, impulse0, 0.0), jnp.where(t, velocity0, 0.0))
+    refine_rows = True if refine_rows is None else refine_rows
+
+    def full(out: Carry):
+        """The full impulses of the first and the last solve, and the last solve's ``v_f``."""
+        lam_first = reduction.recover(el, v_f, p.P * out.y_first)
+        v_last = v_f if refine is None else jnp.where(out.refined, refine(lam_first), v_f)
+        return lam_first, reduction.recover(el, v_last, p.P * out.y_p), v_last
+
+    if cfg.fixed_iterations:
+        out = _run(p, init, refine_t, refine_rows)
+        _, lam, v_last = full(out)
+    else:
+        pf = _Problem(D, v_f, lo, hi, mu, row_mask, cfg, rho0, n_fixed)  # the full problem's natural map
+
+        def run():
+            out = _run(p, init, refine_t, refine_rows)
+            lam_first, lam_last, _ = full(out)
+            return out, lam_first / pf.P, lam_last / pf.P
+
+        hi_v = jnp.where(init.hi_v == 0.0, 0.0, pf.hi_s)  # the redundant limit rows the reduced solve fixes
+        out, y = _implicit_roots(pf, init, jnp.where(row_mask, impulse0 / pf.P, 0.0), hi_v, run, refine)
+        lam = pf.P * y
+        v_last = jax.lax.stop_gradient(full(out)[2])
+    v_t = (out.z_p - de_saxce(out.z_p, mu, p.n_box)) / p.P  # §7.7 on T
+    v = jnp.where(el.f, D @ lam + v_last, v_t)
+    if not cfg.fixed_iterations:
+        # the derivative of v+ = D lambda + v_f at the solution, as in solve
+        w = D @ lam + v_f
+        v = jax.lax.stop_gradient(v) + (w - jax.lax.stop_gradient(w))
+    return PADMMResult(
+        impulse=jnp.where(row_mask, lam, 0.0),
+        velocity=jnp.where(row_mask, v, 0.0),
+        iterations=out.k,
         primal_residual=out.r_p,
         dual_residual=out.r_d,
         complementarity_residual=out.r_c,
@@ -598,31 +680,48 @@ def _implicit(p: _Problem, init: Carry, refine, refine_rows) -> tuple[Carry, jax
 
         dy = -(dF/dy)^+ dF/dtheta,    F(y; theta) = y - Proj_K(y - (Dt y + vt + Gamma(Dt y + vt)))
 
-    (:meth:`_Problem.natural_residual`) at the solution (``jax.lax.custom_root``; ``(dF/dy)^+`` by the shifted LU
-    solve of :func:`_tangent_solve`). No iteration is differentiated: the memory of a gradient does not grow with
-    the iteration count, and the warm start and the penalty schedule get no derivative (the solution does not depend on
-    them). With the curvature refinement, the refined solve's ``vt`` is ``P refine(P y_1)`` of the first solve's
-    solution ``y_1``, itself a root of ``F`` with the first ``vt``: the two roots chain. A solve that stopped at
-    ``max_iterations`` gets the derivative of the root the iterate approximates."""
+    (:meth:`_Problem.natural_residual`) at the solution (:func:`_implicit_roots`)."""
+
+    def run():
+        out = _run(p, init, refine, refine_rows)
+        return out, out.y_first, out.y_p
+
+    return _implicit_roots(p, init, init.y_p, init.hi_v, run, refine)
+
+
+def _implicit_roots(p: _Problem, init: Carry, guess, hi_v, run, refine) -> tuple[Carry, jax.Array]:
+    """The roots of :func:`_implicit` for the problem ``p`` (upper bounds ``hi_v``, starting point ``guess``), found
+    by ``run() -> (carry, y_first, y_last)``: a solve whose carry has the structure and dtypes of ``init`` and whose
+    solutions ``y_first`` (the first solve's, before a curvature refinement) and ``y_last`` (the last one's) are in
+    ``p``'s scaled units. The solve need not be PADMM on ``p`` itself: :func:`_solve_schur` runs it on the reduced
+    problem and returns the full layout (§7.11).
+
+    ``jax.lax.custom_root`` with ``(dF/dy)^+`` by the shifted LU solve of :func:`_tangent_solve`. No iteration is
+    differentiated: the memory of a gradient does not grow with the iteration count, and the warm start and the
+    penalty schedule get no derivative (the solution does not depend on them). With the curvature refinement, the
+    refined solve's ``vt`` is ``P refine(P y_1)`` of the first solve's solution ``y_1``, itself a root of ``F`` with
+    the first ``vt``: the two roots chain. A solve that stopped at ``max_iterations`` gets the derivative of the root
+    the iterate approximates."""
 
     carry0 = init._replace(L=())
     # custom_root gives its auxiliary outputs integer tangents where JAX expects float0: the carry's integer and
     # boolean fields leave it as floats of the solve's dtype (exact: counts and flags) and are converted back
     kinds = jax.tree.map(lambda a: a.dtype, carry0)
 
-    def run(f, guess):
-        out = _run(p, init, refine, refine_rows)._replace(L=())
-        return jnp.where(out.refined, out.y_first, out.y_p), jax.tree.map(lambda a: a.astype(p.dtype), out)
+    def solve_root(f, guess):
+        out, y_first, y_last = run()
+        out = out._replace(L=())
+        aux = (jax.tree.map(lambda a: a.astype(p.dtype), out), y_last)
+        return jnp.where(out.refined, y_first, y_last), aux
 
-    y1, out = jax.lax.custom_root(lambda y: p.natural_residual(y, p.vt, init.hi_v), init.y_p, run, _tangent_solve,
-                                  has_aux=True)
+    y1, (out, y_last) = jax.lax.custom_root(lambda y: p.natural_residual(y, p.vt, hi_v), guess, solve_root,
+                                            _tangent_solve, has_aux=True)
     out = jax.tree.map(lambda a, dtype: a.astype(dtype), out, kinds)
     if refine is None:
         return out, y1
     row_mask, P = p.row_mask, p.P
     vt2 = jnp.where(row_mask, P * refine(jnp.where(row_mask, P * y1, 0.0)), 0.0)  # as _restart
     hi2 = jnp.where(out.hi_v == 0.0, 0.0, p.hi_s)  # the refined solve's fixed redundant limit rows (p.upper)
-    y_last = out.y_p
     y2 = jax.lax.custom_root(lambda y: p.natural_residual(y, vt2, hi2), y_last, lambda f, guess: y_last,
                              _tangent_solve)
     return out, jnp.where(out.refined, y2, y1)

@@ -128,6 +128,9 @@ class Stepper:
         self.linear_solver = resolve_linear_solver(cfg, wm.max_rows, padmm, self.device.is_cuda)
         self.dense = cfg.warp.jacobian == "dense"
         llt = self.linear_solver == "llt"
+        if cfg.reduction != "none":
+            raise ValueError(f"SolverConfig.reduction={cfg.reduction!r} is implemented in the JAX reference only; "
+                             "use backend='jax' or reduction='none'")
         if cfg.redundant_limits:
             raise ValueError("SolverConfig.redundant_limits is implemented in the JAX reference only (float64); "
                              "use backend='jax' or leave it off")
