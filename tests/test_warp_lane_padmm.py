@@ -228,3 +228,41 @@ def test_warp_schedule_filters_the_warm_start_as_the_thread_kernel(device, monke
     assert np.abs(lane[:nf] - x0[:nf]).max() > 0.1  # the random warm start has parts along the null directions
     np.testing.assert_array_equal(lane[nf:start], x0[nf:start])  # world 0's other rows: untouched
     np.testing.assert_array_equal(lane[start:], x0[start:])  # world 1: not finite, kept
+
+
+def _forces(state):
+    """A step's impulses (forces: impulse / dt, on every row class) and the bodies' velocities."""
+    return {name: np.asarray(getattr(state, name), np.float64)
+            for name in ("constraint_force", "actuator_force", "limit_force", "coupling_force", "body_u")} | {
+        "contact_force": np.asarray(state.contacts.force, np.float64)}
+
+
+def test_warp_schedule_reduces_as_the_jax_reference():
+    # SolverConfig.reduction="schur" (docs/formulation.md §7.11) with 32 threads per world against the JAX reference's
+    # _solve_schur: a four-bar (a planar loop: three redundant rows in F, D_FF singular) whose crank a PD actuator
+    # drives against its effort limit (an effort-limited row in T that saturates: the reduced system's inverse is
+    # recomputed inside the iterations), beside two stacked boxes (contacts: T's cone rows), float64 at a tight
+    # tolerance, 8 steps of 1/240 s with the curvature refinement. Both eliminate with the factor of A + eps I and two
+    # refinement steps (the Warp side as x_{k+1} = C^-1 (b + eps x_k), the same vector), run PADMM's rules on
+    # (S, v'_T) and recover lambda_F; they round differently (sparse L_f and the explicit inverse of the reduced
+    # system against dense Cholesky solves), and the refinement amplifies rounding by up to 1 / eps = 1e4 along the
+    # loop's null space, so the forces (N, N m) and velocities agree to 1e-9 (measured 5e-11 on the loop's joint
+    # forces, 1.6e-12 elsewhere), with the same iterations on every step.
+    import jax.numpy as jnp
+
+    model = kamino.concat([kamino.models.fourbar(actuated=True, effort_limit=0.3), kamino.models.box_stack(2)])
+    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8, reduction="schur")
+    target = np.zeros(model.num_dofs)
+    target[0] = 1.5  # far from the crank's angle: the actuator saturates
+    control = kamino.Control(position_target=jnp.asarray(target))
+    s_w = s_j = kamino.init_state(model, dtype=np.float64)
+    for _ in range(8):
+        s_w = kamino.step(model, s_w, control, config=cfg, backend="warp")
+        s_j = kamino.step(model, s_j, control, config=cfg, backend="jax")
+        np.testing.assert_array_equal(np.asarray(s_w.info.iterations), np.asarray(s_j.info.iterations))
+        f_w, f_j = _forces(s_w), _forces(s_j)
+        for name in f_w:
+            np.testing.assert_allclose(f_w[name], f_j[name], rtol=0, atol=1e-9, err_msg=name)
+    assert np.all(np.asarray(s_w.info.converged))
+    assert abs(float(f_w["actuator_force"][0])) == pytest.approx(0.3)  # on its effort limit
+    assert np.abs(f_w["constraint_force"]).max() > 1.0 and np.abs(f_w["contact_force"]).max() > 1.0  # loads carried

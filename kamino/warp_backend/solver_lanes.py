@@ -29,6 +29,20 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
 - **Warm-start filter** (:func:`warm_start_filter_kernel`, once per step; docs/conventions.md "Warm start"): the
   filter's own factor of the fixed rows by :func:`factor_kernel` (launched with the fixed rows' count as the rows to
   factorise: no tail), then :func:`solve_func` on the shifted warm start and the clip, threads over rows.
+- **Schur reduction** (``SolverConfig.reduction = "schur"``, docs/formulation.md §7.11; ``iterate_kernel(schur=True)``,
+  :func:`schur_kernel`). ``L_f`` becomes the elimination's factor: the fixed rows assembled with the shift ``eps =
+  eta + rho_free`` (the reference's in either penalty mode), the effort-limited rows turned into identity rows of it
+  (:func:`schur_decouple_kernel`: they belong to ``T``), and :func:`factor_kernel` on the fixed rows alone, so that
+  ``L_f L_f^T = A + eps I`` on ``F`` (``A = P_F D_FF P_F``, the Jacobi scaling being the full ``D``'s on ``F``) with
+  its hub unknowns. Once per step :func:`schur_kernel` lists ``T`` (effort-limited rows, then limit and contact
+  rows), forms the scaled ``S~ = P_T S P_T`` one column per thread (the column ``P_F D_Fc P_c`` and the products
+  with ``D_TF`` through the bodies, ``J M^-1 J^T``, so ``D_FT`` is never stored; the solve ``A^-1`` of each column
+  by the thread alone over ``L_f``, :func:`ff_solve_func`, with the reference's two refinement steps) and ``P v'_T``
+  the same way, filters the effort-limited rows' warm start with ``S~``, and inverts ``S~ + diag(eta + rho)``
+  (:func:`schur_inverse_func`). An iteration's solve is then one product with that inverse (:func:`schur_apply_func`,
+  two barriers); a new penalty or a saturation recomputes it inside the launch. After PADMM (and after the curvature
+  refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered. Iteration counts equal the JAX reference's
+  (``tests/test_warp_lane_padmm.py``).
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
@@ -870,14 +884,15 @@ def schur_decouple_kernel(np_dtype):
 @functools.cache
 def lane_solve_func(np_dtype):
     """``x <- C^-1 x`` with the fixed rows' factor ``C = L_f L_f^T`` by one thread (§8.1).
-    ``lane_solve(sp, wid, vb, x, xb)``: ``x`` in position order from ``xb``."""
+    ``lane_solve(sp, wid, vb, x, xb)``: ``x`` in position order from ``xb``, ``LANES`` apart (the world's threads'
+    vectors interleaved: they walk the same pattern together, so their loads coalesce)."""
     scalar, SP = builder_types(np_dtype).take("scalar", "SP")
     farr = wp.array(dtype=scalar)
 
     @wp.func
     def lane_solve(sp: SP, wid: int, vb: int, x: farr, xb: int):
         """The forward and the backward substitution of ``linear_solve.solve_inplace`` on the fixed positions
-        alone, in position order (``x[xb + p]``), by the calling thread: with hubs the right-hand side of their
+        alone, in position order (``x[xb + p LANES]``), by the calling thread: with hubs the right-hand side of their
         unknowns is 0 and ``y`` is negated there between the sweeps. The threads of a world each solve their own
         vector: no barrier."""
         npos = sp.n_pos[wid]
@@ -885,20 +900,20 @@ def lane_solve_func(np_dtype):
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
         for p in range(npos):
-            s = x[xb + p]
+            s = x[xb + p * LANES]
             k1 = sp.row_ptr[p0 + p + 1] - 1
             for k in range(sp.row_ptr[p0 + p], k1):
-                s -= sp.val[vb + k * sp.val_stride] * x[xb + sp.col[e0 + k]]
-            x[xb + p] = s / sp.val[vb + k1 * sp.val_stride]
+                s -= sp.val[vb + k * sp.val_stride] * x[xb + sp.col[e0 + k] * LANES]
+            x[xb + p * LANES] = s / sp.val[vb + k1 * sp.val_stride]
         for p in range(nf, npos):
-            x[xb + p] = -x[xb + p]
+            x[xb + p * LANES] = -x[xb + p * LANES]
         for pp in range(npos):
             p = npos - 1 - pp
             k1 = sp.row_ptr[p0 + p + 1] - 1
-            xp = x[xb + p] / sp.val[vb + k1 * sp.val_stride]
-            x[xb + p] = xp
+            xp = x[xb + p * LANES] / sp.val[vb + k1 * sp.val_stride]
+            x[xb + p * LANES] = xp
             for k in range(sp.row_ptr[p0 + p], k1):
-                q = xb + sp.col[e0 + k]
+                q = xb + sp.col[e0 + k] * LANES
                 x[q] = x[q] - sp.val[vb + k * sp.val_stride] * xp
 
     return lane_solve
@@ -915,21 +930,22 @@ def ff_solve_func(np_dtype):
 
     @wp.func
     def ff_solve(sp: SP, wid: int, vb: int, sb: farr, sx: farr, xb: int, eps: scalar):
-        """``x = A^-1 b`` (``b``: ``sb``, zero off ``F``; ``x``: ``sx``, position order from ``xb``) with the factor
-        ``C = A + eps I`` and the refinement of ``kamino.jax_ref.reduction.ff_solve``, ``x_{k+1} = x_k + C^-1 (b -
-        A x_k)``, written as ``x_{k+1} = C^-1 (b + eps x_k)`` (the same vector: ``A = C - eps I``), which needs no
-        product with ``A``: ``x_0 = C^-1 b`` and ``SCHUR_REFINEMENT_STEPS`` more solves. The effort-limited rows'
-        identity block keeps them at zero; the hubs' unknowns take a zero right-hand side in every solve."""
+        """``x = A^-1 b`` (``b``: ``sb``, zero off ``F``; ``x``: ``sx``; position order from ``xb``, ``LANES``
+        apart) with the factor ``C = A + eps I`` and the refinement of ``kamino.jax_ref.reduction.ff_solve``,
+        ``x_{k+1} = x_k + C^-1 (b - A x_k)``, written as ``x_{k+1} = C^-1 (b + eps x_k)`` (the same vector: ``A = C -
+        eps I``), which needs no product with ``A``: ``x_0 = C^-1 b`` and ``SCHUR_REFINEMENT_STEPS`` more solves. The
+        effort-limited rows' identity block keeps them at zero; the hubs' unknowns take a zero right-hand side in
+        every solve."""
         npos = sp.n_pos[wid]
         nf = sp.n_fixed[wid]
         for p in range(npos):
-            sx[xb + p] = sb[xb + p]
+            sx[xb + p * LANES] = sb[xb + p * LANES]
         lane_solve(sp, wid, vb, sx, xb)
         for _ in range(SCHUR_REFINEMENT_STEPS):
             for p in range(nf):
-                sx[xb + p] = sb[xb + p] + eps * sx[xb + p]
+                sx[xb + p * LANES] = sb[xb + p * LANES] + eps * sx[xb + p * LANES]
             for p in range(nf, npos):
-                sx[xb + p] = zero
+                sx[xb + p * LANES] = zero
             lane_solve(sp, wid, vb, sx, xb)
 
     return ff_solve
@@ -947,11 +963,12 @@ def body_funcs(np_dtype):
     @wp.func
     def add_row(su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr, row_J: wp.array(dtype=vec6), r: int,
                 nblk: int, c: scalar):
-        """``u += J_r^T c``: row ``r``'s blocks times ``c`` onto its bodies (``su[ub + body - b0]``)."""
+        """``u += J_r^T c``: row ``r``'s blocks times ``c`` onto its bodies (``su[ub + (body - b0) LANES]``: the
+        world's threads' vectors interleaved)."""
         for k in range(nblk):
             bk = row_body[r * nblk + k]
             if bk >= 0:
-                su[ub + bk - b0] = su[ub + bk - b0] + c * row_J[r * nblk + k]
+                su[ub + (bk - b0) * LANES] = su[ub + (bk - b0) * LANES] + c * row_J[r * nblk + k]
 
     @wp.func
     def row_dot(su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr, row_J: wp.array(dtype=vec6), r: int,
@@ -961,7 +978,7 @@ def body_funcs(np_dtype):
         for k in range(nblk):
             bk = row_body[r * nblk + k]
             if bk >= 0:
-                s += wp.dot(row_J[r * nblk + k], su[ub + bk - b0])
+                s += wp.dot(row_J[r * nblk + k], su[ub + (bk - b0) * LANES])
         return s
 
     @wp.func
@@ -970,9 +987,9 @@ def body_funcs(np_dtype):
         """``u <- M^-1 u`` on the world's ``nb`` bodies (with ``zero_after``: ``u <- 0`` instead, to start a sum)."""
         for i in range(nb):
             if zero_after != 0:
-                su[ub + i] = vec6()
+                su[ub + i * LANES] = vec6()
             else:
-                su[ub + i] = inv_mass_times(m, inv_inertia_w, b0 + i, su[ub + i])
+                su[ub + i * LANES] = inv_mass_times(m, inv_inertia_w, b0 + i, su[ub + i * LANES])
 
     return SimpleNamespace(add_row=add_row, row_dot=row_dot, inv_mass=inv_mass)
 
@@ -1105,7 +1122,7 @@ def schur_kernel(np_dtype):
                         v = vt[r]
                     else:
                         v = -(vt[r] + P[r] * row_dot(sch.su, ub, b0, row_body, row_J, r, nblk))
-            sch.sb[xb + p] = v
+            sch.sb[xb + p * LANES] = v
 
     @wp.func
     def times_x(m: M, sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, P: farr,
@@ -1118,7 +1135,7 @@ def schur_kernel(np_dtype):
         for p in range(nf):
             r = rb + sp.perm[q0 + p] * rs
             if free_row(lo_s, hi_s, r):
-                add_row(sch.su, ub, b0, row_body, row_J, r, nblk, P[r] * sch.sx[xb + p])
+                add_row(sch.su, ub, b0, row_body, row_J, r, nblk, P[r] * sch.sx[xb + p * LANES])
         inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -1158,8 +1175,8 @@ def schur_kernel(np_dtype):
         g0 = wid * tm * tm
         b0 = m.body_start[wid]
         nb = m.body_count[wid]
-        xb = (wid * LANES + lane) * sch.np_max
-        ub = (wid * LANES + lane) * sch.nb_max
+        xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
+        ub = wid * LANES * sch.nb_max + lane
         if mode == SCHUR_ELIMINATE:
             if lane == 0:  # the rows of T, ascending: the effort-limited fixed rows, then the limit and contact rows
                 cnt = int(0)
@@ -1246,28 +1263,28 @@ def schur_kernel(np_dtype):
                 for i in range(ne):
                     v = s0 * x_p[rb + sch.rows[t0 + i] * rs]
                     for k in range(i):
-                        v -= sch.L[g0 + i * tm + k] * sch.sx[xb + k]
-                    sch.sx[xb + i] = v / sch.L[g0 + i * tm + i]
+                        v -= sch.L[g0 + i * tm + k] * sch.sx[xb + k * LANES]
+                    sch.sx[xb + i * LANES] = v / sch.L[g0 + i * tm + i]
                 for ii in range(ne):
                     i = ne - 1 - ii
-                    v = sch.sx[xb + i]
+                    v = sch.sx[xb + i * LANES]
                     for k in range(i + 1, ne):
-                        v -= sch.L[g0 + k * tm + i] * sch.sx[xb + k]
-                    sch.sx[xb + i] = v / sch.L[g0 + i * tm + i]
+                        v -= sch.L[g0 + k * tm + i] * sch.sx[xb + k * LANES]
+                    sch.sx[xb + i * LANES] = v / sch.L[g0 + i * tm + i]
                 ok = int(1)
                 for i in range(ne):
                     r = rb + sch.rows[t0 + i] * rs
-                    v = wp.clamp(x_p[r] - sch.sx[xb + i], lo_s[r], hi_s[r])
-                    sch.sx[xb + i] = v
+                    v = wp.clamp(x_p[r] - sch.sx[xb + i * LANES], lo_s[r], hi_s[r])
+                    sch.sx[xb + i * LANES] = v
                     if not wp.isfinite(v):
                         ok = 0
                 if ok != 0:
                     for i in range(ne):
                         r = rb + sch.rows[t0 + i] * rs
-                        x_p[r] = sch.sx[xb + i]
-                        y_p[r] = sch.sx[xb + i]
-                        y_hat[r] = sch.sx[xb + i]
-                        x[r] = sch.sx[xb + i]
+                        x_p[r] = sch.sx[xb + i * LANES]
+                        y_p[r] = sch.sx[xb + i * LANES]
+                        y_hat[r] = sch.sx[xb + i * LANES]
+                        x[r] = sch.sx[xb + i * LANES]
             sync()
             schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u[wid])
         elif mode == SCHUR_RHS:
@@ -1293,7 +1310,7 @@ def schur_kernel(np_dtype):
                 for p in range(nf):
                     r = rb + sp.perm[q0 + p] * rs
                     if free_row(lo_s, hi_s, r):
-                        lam = P[r] * sch.sx[xb + p]
+                        lam = P[r] * sch.sx[xb + p * LANES]
                         impulse[r] = lam
                         if not wp.isfinite(lam):
                             failed[wid] = 1
