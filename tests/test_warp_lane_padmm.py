@@ -2,6 +2,8 @@
 Conjugate Residual solve, the PADMM iterations and post-stabilisation's solve) against the one-thread-per-world
 kernels, on Warp's CPU device (cooperative CPU blocks)."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import warp as wp
@@ -10,6 +12,7 @@ import kamino
 from kamino.warp_backend import backend as wb
 from kamino.warp_backend import linear_solve, linear_solve_pattern, solver_lanes
 from kamino.warp_backend.pipeline import Stepper
+from kamino.warp_backend.workspace import saturated_rows
 
 
 def _run(model, cfg, padmm, steps, dtype=np.float64, device="cpu"):
@@ -230,39 +233,77 @@ def test_warp_schedule_filters_the_warm_start_as_the_thread_kernel(device, monke
     np.testing.assert_array_equal(lane[start:], x0[start:])  # world 1: not finite, kept
 
 
-def _forces(state):
-    """A step's impulses (forces: impulse / dt, on every row class) and the bodies' velocities."""
-    return {name: np.asarray(getattr(state, name), np.float64)
-            for name in ("constraint_force", "actuator_force", "limit_force", "coupling_force", "body_u")} | {
-        "contact_force": np.asarray(state.contacts.force, np.float64)}
+
+def _world_problem(st, f0, v0):
+    """World 0's dual problem after a step, as ``kamino.jax_ref.solver.solve`` takes it, from the stepper's rows
+    (float64): ``D = J M^-1 J^T + R``, ``v_f = v~_f / P``, the box rows' bounds, the contacts' friction, the warm start
+    (``padmm_init``'s ``impulse_scale f0`` and ``v0``, as PADMM read them: ``Work.f0`` and ``v0`` change after it),
+    and ``n_fixed``."""
+    from kamino.warp_backend.workspace import ROW_SRC_MASK
+
+    w, m, cfg = st.work, st.wm.arrays, st.cfg
+    nblk, n, nbox = st.wm.blocks_per_row, int(w.n_rows.numpy()[0]), int(w.n_box.numpy()[0])
+    J = w.row_J.numpy().astype(np.float64).reshape(-1, nblk, 6)[:n]
+    body = w.row_body.numpy().reshape(-1, nblk)[:n]
+    P, reg, vt, lo_s, hi_s = (a.numpy().astype(np.float64)[:n] for a in (w.P, w.reg, w.vt, w.lo_s, w.hi_s))
+    f0, v0 = np.asarray(f0, np.float64)[:n], np.asarray(v0, np.float64)[:n]
+    nb = st.wm.max_bodies
+    Minv = np.zeros((nb, 6, 6))
+    Minv[:, :3, :3] = m.inv_mass.numpy()[:nb, None, None] * np.eye(3)
+    Minv[:, 3:, 3:] = w.inv_inertia_w.numpy().reshape(-1, 3, 3)[:nb]
+    Jd = np.zeros((n, nb, 6))
+    for a in range(n):
+        for k in range(nblk):
+            if body[a, k] >= 0:
+                Jd[a, body[a, k]] += J[a, k]
+    D = np.einsum("abi,bij,cbj->ac", Jd, Minv, Jd) + np.diag(reg)
+    lo = np.where(np.isfinite(lo_s), lo_s * P, lo_s)[:nbox]
+    hi = np.where(np.isfinite(hi_s), hi_s * P, hi_s)[:nbox]
+    mu = w.ct_mu.numpy().astype(np.float64)[w.row_info.numpy()[nbox:n:3] & ROW_SRC_MASK]
+    scale_ws = cfg.warmstart_scale * cfg.dt if cfg.warm_start else 0.0
+    args = (D, vt / P, lo, hi, mu, np.ones(n, bool), scale_ws * f0, v0)
+    return args, int(m.row_fixed.numpy()[0])
 
 
 def test_warp_schedule_reduces_as_the_jax_reference():
     # SolverConfig.reduction="schur" (docs/formulation.md §7.11) with 32 threads per world against the JAX reference's
-    # _solve_schur: a four-bar (a planar loop: three redundant rows in F, D_FF singular) whose crank a PD actuator
-    # drives against its effort limit (an effort-limited row in T that saturates: the reduced system's inverse is
-    # recomputed inside the iterations), beside two stacked boxes (contacts: T's cone rows), float64 at a tight
-    # tolerance, 8 steps of 1/240 s with the curvature refinement. Both eliminate with the factor of A + eps I and two
-    # refinement steps (the Warp side as x_{k+1} = C^-1 (b + eps x_k), the same vector), run PADMM's rules on
-    # (S, v'_T) and recover lambda_F; they round differently (sparse L_f and the explicit inverse of the reduced
-    # system against dense Cholesky solves), and the refinement amplifies rounding by up to 1 / eps = 1e4 along the
-    # loop's null space, so the forces (N, N m) and velocities agree to 1e-9 (measured 5e-11 on the loop's joint
-    # forces, 1.6e-12 elsewhere), with the same iterations on every step.
-    import jax.numpy as jnp
+    # _solve_schur on the same dual problem: dr_legs under large PD targets (loops: redundant rows in F, D_FF
+    # singular; the effort-limited actuator rows in T, one of them saturated; the feet's contact triples), its second
+    # step of 2.5 ms in float64 at tolerance 1e-6, the rows, warm start and penalty read from the stepper (no curvature
+    # refinement or post-stabilisation: the step's PADMM alone). Both eliminate with the factor of A + eps I and two
+    # refinement steps (the Warp side as x_{k+1} = C^-1 (b + eps x_k), the same vector), filter the warm start, run
+    # PADMM's rules on (S, v'_T) and recover lambda_F; they round differently (sparse L_f, per-body products and the
+    # explicit inverse of the reduced system against dense Cholesky solves), and the refinement amplifies rounding by
+    # up to 1 / eps ~ 1e4 along the loops' null space, so impulses (N s, N m s) and velocities (m/s, rad/s) agree to
+    # 1e-9 (measured 6.7e-13 and 3.2e-13), with the same iterations (53).
+    from kamino.bench import loads
+    from kamino.jax_ref import solver
 
-    model = kamino.concat([kamino.models.fourbar(actuated=True, effort_limit=0.3), kamino.models.box_stack(2)])
-    cfg = kamino.SolverConfig(dt=1.0 / 240.0, tolerance=1e-8, reduction="schur")
+    model = kamino.models.dr_legs()
+    cfg = kamino.SolverConfig(dt=0.0025, tolerance=1e-6, reduction="schur", stabilisation=kamino.Stabilisation(
+        curvature_refinement=False, post_stabilisation=0))
+    st = Stepper(model, cfg, np.float64, "cpu", padmm="warp")
+    assert st.schur and st.padmm == "warp"
+    offset, scale, _ = loads.rl_control_map(model)
     target = np.zeros(model.num_dofs)
-    target[0] = 1.5  # far from the crank's angle: the actuator saturates
-    control = kamino.Control(position_target=jnp.asarray(target))
-    s_w = s_j = kamino.init_state(model, dtype=np.float64)
-    for _ in range(8):
-        s_w = kamino.step(model, s_w, control, config=cfg, backend="warp")
-        s_j = kamino.step(model, s_j, control, config=cfg, backend="jax")
-        np.testing.assert_array_equal(np.asarray(s_w.info.iterations), np.asarray(s_j.info.iterations))
-        f_w, f_j = _forces(s_w), _forces(s_j)
-        for name in f_w:
-            np.testing.assert_allclose(f_w[name], f_j[name], rtol=0, atol=1e-9, err_msg=name)
-    assert np.all(np.asarray(s_w.info.converged))
-    assert abs(float(f_w["actuator_force"][0])) == pytest.approx(0.3)  # on its effort limit
-    assert np.abs(f_w["constraint_force"]).max() > 1.0 and np.abs(f_w["contact_force"]).max() > 1.0  # loads carried
+    target[model.actuator_dof] = offset + scale * np.random.default_rng(1).uniform(-1, 1, model.num_actuators)
+    wb.load_state(st, kamino.init_state(model, dtype=np.float64), kamino.Control(position_target=jnp.asarray(target)))
+    st.run(1)
+    rho0 = float(st.work.rho_u.numpy()[0])
+    seen, loop = {}, st._padmm_loop
+
+    def padmm_loop():  # the warm start as PADMM reads it
+        seen.setdefault("f0", st.work.f0.numpy().copy())
+        seen.setdefault("v0", st.work.v0.numpy().copy())
+        loop()
+
+    st._padmm_loop = padmm_loop
+    st.run(1)
+    args, nf = _world_problem(st, seen["f0"], seen["v0"])
+    n = len(args[1])
+    ref = jax.jit(lambda *a: solver.solve(*a, cfg, None, rho0, nf))(*args)
+    w = st.work
+    assert n > nf and saturated_rows(w.row_info.numpy())[:nf].any()  # contacts in T; a saturated actuator row
+    assert int(w.iters.numpy()[0]) == int(ref.iterations) and bool(ref.converged)
+    np.testing.assert_allclose(w.impulse.numpy()[:n], np.asarray(ref.impulse), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(w.velocity.numpy()[:n], np.asarray(ref.velocity), rtol=0, atol=1e-9)
