@@ -169,7 +169,8 @@ def test_warp_schedule_rejects_what_it_cannot_solve():
 
 def test_the_automatic_schedule_follows_the_measured_crossover():
     # pipeline.resolve_padmm: the 32-thread schedule on CUDA where it measures faster (up to 16384 worlds, or worlds
-    # of 200 rows or more), with the sparse LLT or CR, one thread per world elsewhere and on every CPU run.
+    # of 200 rows or more), with the sparse LLT or CR, one thread per world elsewhere and on every CPU run; under
+    # reduction="schur" the 32-thread schedule everywhere (the only one that reduces).
     from types import SimpleNamespace
 
     from kamino.warp_backend.pipeline import resolve_padmm
@@ -190,6 +191,9 @@ def test_the_automatic_schedule_follows_the_measured_crossover():
     assert resolve_padmm(cr, gpu, 65536, 365, None) == "warp"
     assert resolve_padmm(cr, cpu, 64, 240, None) == "thread"
     assert resolve_padmm(cfg, cpu, 64, 240, "warp") == "warp"  # an explicit choice is kept
+    schur = kamino.SolverConfig(reduction="schur")  # the schedule that reduces, on every device
+    assert resolve_padmm(schur, cpu, 64, 240, None) == "warp"
+    assert resolve_padmm(schur, gpu, 65536, 117, None) == "warp"
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[
