@@ -1405,8 +1405,9 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
         leaves ``remaining``. The threads split the box rows and the contact triples; the world's residuals are block
         reductions. Under ``cr`` (at most ``cr_budget`` iterations per solve) the solution lands in ``x`` (the
         factor's solve: in ``xs``), a new penalty refactorises nothing and a row that saturates takes ``rho_box`` in
-        the next solve's operator without ending the launch. Under ``schur`` the rows of ``F`` stay at zero, and a new
-        penalty or a saturation recomputes ``G`` in place without ending the launch."""
+        the next solve's operator without ending the launch. Under ``schur`` the row passes visit the rows of ``T``
+        alone (``F``'s iterate is zero, as is its share of every residual), and a new penalty or a saturation
+        recomputes ``G`` in place without ending the launch."""
         rs = problem.row_stride
         eta, rho_free, rho_box = problem.eta, problem.rho_free, problem.rho_box
         wid, lane = wp.tid()
@@ -1422,8 +1423,19 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
         if wp.static(not cr):
             xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
             ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        # the rows that the row passes visit: every row, or under schur the rows of T alone (sch.rows; the first
+        # n_tb of them are box rows), F's staying at zero
+        n_t = n
+        n_tb = nb
+        t0 = wid * sch.tm
+        if wp.static(schur):
+            n_t = sch.nt[wid]
+            n_tb = sch.ne[wid] + nb - nf
         for step in range(chunk):
-            for a in range(lane, n, LANES):  # steps 1-2: right-hand side (into xs; CR's into y), linear solve
+            for i in range(lane, n_t, LANES):  # steps 1-2: right-hand side (into xs; CR's into y), linear solve
+                a = i
+                if wp.static(schur):
+                    a = sch.rows[t0 + i]
                 rhs = lane_rhs(rs, row_info, problem.ct_mu, problem.vt, carry.x_p, carry.y_hat, carry.z_hat,
                                rb + a * rs, a, nf, nb, rho_free, rho_box, rho_w, eta)
                 if wp.static(cr):
@@ -1442,7 +1454,10 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                 sync()
                 solve(m, sp, rs, wid, n, lane, xs, ys)
             acc = Residuals()  # steps 3-4: projection, dual update and the residuals: box rows, then contact triples
-            for a in range(lane, nb, LANES):
+            for i in range(lane, n_tb, LANES):
+                a = i
+                if wp.static(schur):
+                    a = sch.rows[t0 + i]
                 r = rb + a * rs
                 if wp.static(cr):
                     xa = x[r]
@@ -1475,9 +1490,10 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                 # the saturated rows' flags, then G for the new penalties (kamino.jax_ref.solver._run refactorises
                 # before the next iteration); the condition is the world's (block reductions), so every thread meets
                 # the barriers
-                if res.saturates != 0:
-                    for a in range(lane, nf, LANES):
-                        mark_saturated(problem.lo_s, problem.hi_s, x, carry.z_hat, y, row_info, rb + a * rs, rho_free)
+                if res.saturates != 0:  # the effort-limited rows: T's first
+                    for i in range(lane, sch.ne[wid], LANES):
+                        mark_saturated(problem.lo_s, problem.hi_s, x, carry.z_hat, y, row_info,
+                                       rb + sch.rows[t0 + i] * rs, rho_free)
                 if res.rho != rho_w or res.saturates != 0:
                     sync()  # every thread has read k_rho (outcome) and set its flags
                     if lane == 0 and res.rho != rho_w:
@@ -1498,7 +1514,10 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                 if res.saturates != 0:  # this thread's own rows of the projection loop above
                     for a in range(lane, nf, LANES):
                         mark_saturated(problem.lo_s, problem.hi_s, x, carry.z_hat, y, row_info, rb + a * rs, rho_free)
-            for a in range(lane, n, LANES):
+            for i in range(lane, n_t, LANES):
+                a = i
+                if wp.static(schur):
+                    a = sch.rows[t0 + i]
                 if wp.static(cr):
                     advance_row(y, z, carry.x_p, carry.y_p, carry.z_p, carry.y_hat, carry.z_hat, rb + a * rs,
                                 x[rb + a * rs], res.mom)
