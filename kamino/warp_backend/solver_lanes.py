@@ -1051,7 +1051,8 @@ def schur_inverse_func(np_dtype):
 @functools.cache
 def schur_apply_func(np_dtype, R: int):
     """A PADMM iteration's linear solve on the reduced problem (§7.11).
-    ``schur_apply(sch, wid, lane, xs, ys)``, the vectors in shared memory (:func:`shared_vector` of ``R``)."""
+    ``schur_apply(sch, wid, lane, xs, ys)``, the vectors in shared memory (:func:`shared_vector` of ``R``), after a
+    barrier."""
     scalar = builder_types(np_dtype).scalar
     Schur = schur_struct(np_dtype)
     Vec = shared_vector(np_dtype, R)
@@ -1059,9 +1060,9 @@ def schur_apply_func(np_dtype, R: int):
 
     @wp.func
     def schur_apply(sch: Schur, wid: int, lane: int, xs: Vec, ys: Vec):
-        """``x_T = G rhs_T`` (threads over the rows of ``T``; ``xs`` holds the right-hand side on entry and the
-        solution on exit). Off ``T`` the right-hand side is zero (the reduced problem keeps ``F`` at zero,
-        ``kamino.jax_ref.reduction``) and stays."""
+        """``x_T = G rhs_T`` (threads over the rows of ``T``): the right-hand side in ``ys`` by ``T``'s index (``ys[i]``
+        for row ``sch.rows[i]``), the solution into ``xs`` by row. Off ``T`` nothing is written: the reduced problem
+        keeps ``F`` at zero (``kamino.jax_ref.reduction``), and the iterations do not read it there."""
         nt = sch.nt[wid]
         tm = sch.tm
         g0 = wid * tm * tm
@@ -1069,11 +1070,8 @@ def schur_apply_func(np_dtype, R: int):
         for i in range(lane, nt, LANES):
             s = scalar(0.0)
             for j in range(nt):
-                s += sch.G[g0 + i * tm + j] * sget(xs, sch.rows[t0 + j])
-            sset(ys, i, s)
-        sync()
-        for i in range(lane, nt, LANES):
-            sset(xs, sch.rows[t0 + i], sget(ys, i))
+                s += sch.G[g0 + i * tm + j] * sget(ys, j)
+            sset(xs, sch.rows[t0 + i], s)
         sync()
 
     return schur_apply
@@ -1440,6 +1438,8 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                                rb + a * rs, a, nf, nb, rho_free, rho_box, rho_w, eta)
                 if wp.static(cr):
                     y[rb + a * rs] = rhs
+                elif wp.static(schur):
+                    sset(ys, i, rhs)  # by T's index (schur_apply)
                 else:
                     sset(xs, a, rhs)
             if wp.static(cr):
