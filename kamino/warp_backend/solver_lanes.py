@@ -39,10 +39,11 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   with ``D_TF`` through the bodies, ``J M^-1 J^T``, so ``D_FT`` is never stored; the solve ``A^-1`` of each column
   by the thread alone over ``L_f``, :func:`ff_solve_func`, with the reference's two refinement steps) and ``P v'_T``
   the same way, filters the effort-limited rows' warm start with ``S~``, and inverts ``S~ + diag(eta + rho)``
-  (:func:`schur_inverse_func`). An iteration's solve is then one product with that inverse (:func:`schur_apply_func`,
-  two barriers); a new penalty or a saturation recomputes it inside the launch. After PADMM (and after the curvature
-  refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered. Iteration counts equal the JAX reference's
-  (``tests/test_warp_lane_padmm.py``).
+  (:func:`schur_inverse_func`). An iteration's row passes then visit the rows of ``T`` alone, and its solve is one
+  product with that inverse (:func:`schur_apply_func`: a barrier after the right-hand side, one after the product,
+  instead of one per row of ``L_f``); a new penalty or a saturation recomputes the inverse inside the launch. After
+  PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered. Iteration
+  counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``).
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
