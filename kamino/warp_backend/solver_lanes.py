@@ -799,10 +799,10 @@ def warm_start_filter_kernel(np_dtype, R: int):
 def schur_struct(np_dtype):
     """``Schur``: a world's reduced problem (docs/formulation.md §7.11) on the 32-thread schedule. Per world the rows
     ``T`` that PADMM solves (``rows``, ascending: the effort-limited fixed rows, then the limit and contact rows),
-    the scaled ``S~ = P_T S P_T`` (``S``), the factor of ``S~ + diag(eta + rho)`` (``L``) and its inverse (``G``),
-    each ``tm x tm`` row after row; the reduced right-hand side ``P v'_T`` in the row layout (``vt``, zero on ``F``);
-    and the scratch of the elimination's solves, per thread (``sb``, ``sx``: ``np_max`` fixed positions; ``su``:
-    ``nb_max`` bodies)."""
+    the scaled ``S~ = P_T S P_T`` (``S``) and the factor of ``S~ + diag(eta + rho)`` (``L``), ``tm x tm`` row after
+    row, and its inverse (``G``) column after column; the reduced right-hand side ``P v'_T`` in the row layout
+    (``vt``, zero on ``F``); and the scratch of the elimination's solves, per thread (``sb``, ``sx``: ``np_max`` fixed
+    positions; ``su``: ``nb_max`` bodies)."""
     T = builder_types(np_dtype)
     farr, iarr = wp.array(dtype=T.scalar), wp.array(dtype=wp.int32)
 
@@ -1008,8 +1008,10 @@ def schur_inverse_func(np_dtype):
                       eta: scalar, rho_free: scalar, rho_box: scalar, rho_u: scalar):
         """The Cholesky factor ``L`` of ``S~ + diag(eta + rho_i)`` (each row's penalty, ``solver_rules.row_penalty``:
         a saturated effort-limited row's ``rho_box``) by columns (threads over the rows below the diagonal, one
-        barrier per column), then ``G``'s columns, ``L L^T g_c = e_c``, one thread per column (no barrier): every
-        PADMM iteration's solve is then one product with ``G`` (:func:`schur_apply_func`)."""
+        barrier per column), then ``G``'s columns, ``L L^T g_c = e_c``, one thread per column (no barrier), each
+        stored contiguously (``G_ic`` at ``c tm + i``: in the product with ``G`` the threads, one per row ``i``, read
+        consecutive entries): every PADMM iteration's solve is then one product with ``G``
+        (:func:`schur_apply_func`)."""
         nt = sch.nt[wid]
         tm = sch.tm
         g0 = wid * tm * tm
@@ -1035,15 +1037,15 @@ def schur_inverse_func(np_dtype):
                     v = scalar(1.0)
                 if i >= c:
                     for k in range(c, i):
-                        v -= sch.L[g0 + i * tm + k] * sch.G[g0 + k * tm + c]
+                        v -= sch.L[g0 + i * tm + k] * sch.G[g0 + c * tm + k]
                     v = v / sch.L[g0 + i * tm + i]
-                sch.G[g0 + i * tm + c] = v
+                sch.G[g0 + c * tm + i] = v
             for ii in range(nt):  # L^T g = z
                 i = nt - 1 - ii
-                v = sch.G[g0 + i * tm + c]
+                v = sch.G[g0 + c * tm + i]
                 for k in range(i + 1, nt):
-                    v -= sch.L[g0 + k * tm + i] * sch.G[g0 + k * tm + c]
-                sch.G[g0 + i * tm + c] = v / sch.L[g0 + i * tm + i]
+                    v -= sch.L[g0 + k * tm + i] * sch.G[g0 + c * tm + k]
+                sch.G[g0 + c * tm + i] = v / sch.L[g0 + i * tm + i]
         sync()
 
     return schur_inverse
@@ -1071,7 +1073,7 @@ def schur_apply_func(np_dtype, R: int):
         for i in range(lane, nt, LANES):
             s = scalar(0.0)
             for j in range(nt):
-                s += sch.G[g0 + i * tm + j] * sget(ys, j)
+                s += sch.G[g0 + j * tm + i] * sget(ys, j)
             sset(xs, sch.rows[t0 + i], s)
         sync()
 
