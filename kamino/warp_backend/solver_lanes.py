@@ -1080,6 +1080,67 @@ def schur_apply_func(np_dtype, R: int):
     return schur_apply
 
 
+@functools.cache
+def filter_effort_rows_func(np_dtype):
+    """The warm-start filter of the reduced problem (§7.11; docs/conventions.md "Warm start").
+    ``filter_effort_rows(sch, wid, rb, rs, xb, lo_s, hi_s, x, x_p, y_p, y_hat)``, by one thread."""
+    scalar = builder_types(np_dtype).scalar
+    farr = wp.array(dtype=scalar)
+    Schur = schur_struct(np_dtype)
+
+    @wp.func
+    def filter_effort_rows(sch: Schur, wid: int, rb: int, rs: int, xb: int, lo_s: farr, hi_s: farr, x: farr,
+                           x_p: farr, y_p: farr, y_hat: farr):
+        """``x_E <- clip(x_E - (S~_EE + s I)^-1 s x_E)`` on the effort-limited rows ``E`` (the first ``ne`` of
+        ``T``): ``kamino.jax_ref.solver._Problem.filter_warm_start`` on the reduced problem, whose fixed rows they
+        are (``F``'s warm start is zero), by a dense Cholesky of ``S~_EE + s I`` in ``sch.L`` and the thread's
+        scratch ``sch.sx``; the result goes to ``x_p``, ``y_p``, ``y_hat`` and ``x`` unless it is not finite (the
+        world keeps its warm start)."""
+        ne = sch.ne[wid]
+        tm = sch.tm
+        g0 = wid * tm * tm
+        t0 = wid * tm
+        s0 = sch.filter_shift
+        for j in range(ne):
+            d = sch.S[g0 + j * tm + j] + s0
+            for k in range(j):
+                d -= sch.L[g0 + j * tm + k] * sch.L[g0 + j * tm + k]
+            d = wp.sqrt(d)
+            sch.L[g0 + j * tm + j] = d
+            for i in range(j + 1, ne):
+                v = sch.S[g0 + i * tm + j]
+                for k in range(j):
+                    v -= sch.L[g0 + i * tm + k] * sch.L[g0 + j * tm + k]
+                sch.L[g0 + i * tm + j] = v / d
+        for i in range(ne):
+            v = s0 * x_p[rb + sch.rows[t0 + i] * rs]
+            for k in range(i):
+                v -= sch.L[g0 + i * tm + k] * sch.sx[xb + k * LANES]
+            sch.sx[xb + i * LANES] = v / sch.L[g0 + i * tm + i]
+        for ii in range(ne):
+            i = ne - 1 - ii
+            v = sch.sx[xb + i * LANES]
+            for k in range(i + 1, ne):
+                v -= sch.L[g0 + k * tm + i] * sch.sx[xb + k * LANES]
+            sch.sx[xb + i * LANES] = v / sch.L[g0 + i * tm + i]
+        ok = int(1)
+        for i in range(ne):
+            r = rb + sch.rows[t0 + i] * rs
+            v = wp.clamp(x_p[r] - sch.sx[xb + i * LANES], lo_s[r], hi_s[r])
+            sch.sx[xb + i * LANES] = v
+            if not wp.isfinite(v):
+                ok = 0
+        if ok != 0:
+            for i in range(ne):
+                r = rb + sch.rows[t0 + i] * rs
+                x_p[r] = sch.sx[xb + i * LANES]
+                y_p[r] = sch.sx[xb + i * LANES]
+                y_hat[r] = sch.sx[xb + i * LANES]
+                x[r] = sch.sx[xb + i * LANES]
+
+    return filter_effort_rows
+
+
 #: :func:`schur_kernel`'s modes: the elimination (once per step), the reduced right-hand side again (after the
 #: curvature refinement changed ``v_f``), the recovery of ``lambda_F``
 SCHUR_ELIMINATE, SCHUR_RHS, SCHUR_RECOVER = 0, 1, 2
@@ -1101,6 +1162,7 @@ def schur_kernel(np_dtype):
     bf = body_funcs(np_dtype)
     add_row, row_dot, inv_mass = bf.add_row, bf.row_dot, bf.inv_mass
     schur_inverse = schur_inverse_func(np_dtype)
+    filter_effort_rows = filter_effort_rows_func(np_dtype)
     lane_max = rules.lane_reduce_func(np_dtype, LANES, "max")
     zero = scalar(0.0)
 
@@ -1159,10 +1221,9 @@ def schur_kernel(np_dtype):
         over them, the warm start zero on ``F``, ``S~ = P_T D_TT P_T - P_T D_TF A^-1 D_FT P_T`` symmetrised and
         ``P v'_T = P v_T - P_T D_TF A^-1 P v_F`` (§7.11 (S), the columns of ``T`` and the right-hand side one per
         thread, :func:`ff_solve_func`), the warm-start filter of the effort-limited rows
-        (``kamino.jax_ref.solver._Problem.filter_warm_start`` on the reduced problem, whose fixed rows they are) and
-        ``G`` (:func:`schur_inverse_func`). :data:`SCHUR_RHS`: ``P v'_T`` again. :data:`SCHUR_RECOVER` (after
-        ``padmm_finish``): ``lambda_F = -P_F A^-1 (P v_F + P_F D_FT lambda_T)`` (§7.11 (R)) and ``v+ = D lambda +
-        v_f`` on ``F``; a non-finite impulse fails the world."""
+        (:func:`filter_effort_rows_func`) and ``G`` (:func:`schur_inverse_func`). :data:`SCHUR_RHS`: ``P v'_T``
+        again. :data:`SCHUR_RECOVER` (after ``padmm_finish``): ``lambda_F = -P_F A^-1 (P v_F + P_F D_FT lambda_T)``
+        (§7.11 (R)) and ``v+ = D lambda + v_f`` on ``F``; a non-finite impulse fails the world."""
         rs = row_stride
         wid, lane = wp.tid()
         n = n_rows[wid]
@@ -1246,46 +1307,8 @@ def schur_kernel(np_dtype):
                     sch.S[g0 + i * tm + j] = s
                     sch.S[g0 + j * tm + i] = s
             sync()
-            ne = sch.ne[wid]
-            if lane == 0 and sch.filter_shift > zero and ne > 0:
-                # x_E <- clip(x_E - (S~_EE + s I)^-1 s x_E): the dense Cholesky of the effort-limited block into L
-                s0 = sch.filter_shift
-                for j in range(ne):
-                    d = sch.S[g0 + j * tm + j] + s0
-                    for k in range(j):
-                        d -= sch.L[g0 + j * tm + k] * sch.L[g0 + j * tm + k]
-                    d = wp.sqrt(d)
-                    sch.L[g0 + j * tm + j] = d
-                    for i in range(j + 1, ne):
-                        v = sch.S[g0 + i * tm + j]
-                        for k in range(j):
-                            v -= sch.L[g0 + i * tm + k] * sch.L[g0 + j * tm + k]
-                        sch.L[g0 + i * tm + j] = v / d
-                for i in range(ne):
-                    v = s0 * x_p[rb + sch.rows[t0 + i] * rs]
-                    for k in range(i):
-                        v -= sch.L[g0 + i * tm + k] * sch.sx[xb + k * LANES]
-                    sch.sx[xb + i * LANES] = v / sch.L[g0 + i * tm + i]
-                for ii in range(ne):
-                    i = ne - 1 - ii
-                    v = sch.sx[xb + i * LANES]
-                    for k in range(i + 1, ne):
-                        v -= sch.L[g0 + k * tm + i] * sch.sx[xb + k * LANES]
-                    sch.sx[xb + i * LANES] = v / sch.L[g0 + i * tm + i]
-                ok = int(1)
-                for i in range(ne):
-                    r = rb + sch.rows[t0 + i] * rs
-                    v = wp.clamp(x_p[r] - sch.sx[xb + i * LANES], lo_s[r], hi_s[r])
-                    sch.sx[xb + i * LANES] = v
-                    if not wp.isfinite(v):
-                        ok = 0
-                if ok != 0:
-                    for i in range(ne):
-                        r = rb + sch.rows[t0 + i] * rs
-                        x_p[r] = sch.sx[xb + i * LANES]
-                        y_p[r] = sch.sx[xb + i * LANES]
-                        y_hat[r] = sch.sx[xb + i * LANES]
-                        x[r] = sch.sx[xb + i * LANES]
+            if lane == 0 and sch.filter_shift > zero:
+                filter_effort_rows(sch, wid, rb, rs, xb, lo_s, hi_s, x, x_p, y_p, y_hat)
             sync()
             schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u[wid])
         elif mode == SCHUR_RHS:
