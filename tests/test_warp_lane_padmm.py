@@ -2,6 +2,8 @@
 Conjugate Residual solve, the PADMM iterations and post-stabilisation's solve) against the one-thread-per-world
 kernels, on Warp's CPU device (cooperative CPU blocks)."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import warp as wp
@@ -10,6 +12,7 @@ import kamino
 from kamino.warp_backend import backend as wb
 from kamino.warp_backend import linear_solve, linear_solve_pattern, solver_lanes
 from kamino.warp_backend.pipeline import Stepper
+from kamino.warp_backend.workspace import saturated_rows
 
 
 def _run(model, cfg, padmm, steps, dtype=np.float64, device="cpu"):
@@ -166,7 +169,8 @@ def test_warp_schedule_rejects_what_it_cannot_solve():
 
 def test_the_automatic_schedule_follows_the_measured_crossover():
     # pipeline.resolve_padmm: the 32-thread schedule on CUDA where it measures faster (up to 16384 worlds, or worlds
-    # of 200 rows or more), with the sparse LLT or CR, one thread per world elsewhere and on every CPU run.
+    # of 200 rows or more), with the sparse LLT or CR, one thread per world elsewhere and on every CPU run; under
+    # reduction="schur" the 32-thread schedule everywhere (the only one that reduces).
     from types import SimpleNamespace
 
     from kamino.warp_backend.pipeline import resolve_padmm
@@ -187,6 +191,9 @@ def test_the_automatic_schedule_follows_the_measured_crossover():
     assert resolve_padmm(cr, gpu, 65536, 365, None) == "warp"
     assert resolve_padmm(cr, cpu, 64, 240, None) == "thread"
     assert resolve_padmm(cfg, cpu, 64, 240, "warp") == "warp"  # an explicit choice is kept
+    schur = kamino.SolverConfig(reduction="schur")  # the schedule that reduces, on every device
+    assert resolve_padmm(schur, cpu, 64, 240, None) == "warp"
+    assert resolve_padmm(schur, gpu, 65536, 117, None) == "warp"
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[
@@ -228,3 +235,79 @@ def test_warp_schedule_filters_the_warm_start_as_the_thread_kernel(device, monke
     assert np.abs(lane[:nf] - x0[:nf]).max() > 0.1  # the random warm start has parts along the null directions
     np.testing.assert_array_equal(lane[nf:start], x0[nf:start])  # world 0's other rows: untouched
     np.testing.assert_array_equal(lane[start:], x0[start:])  # world 1: not finite, kept
+
+
+
+def _world_problem(st, f0, v0):
+    """World 0's dual problem after a step, as ``kamino.jax_ref.solver.solve`` takes it, from the stepper's rows
+    (float64): ``D = J M^-1 J^T + R``, ``v_f = v~_f / P``, the box rows' bounds, the contacts' friction, the warm start
+    (``padmm_init``'s ``impulse_scale f0`` and ``v0``, as PADMM read them: ``Work.f0`` and ``v0`` change after it),
+    and ``n_fixed``."""
+    from kamino.warp_backend.workspace import ROW_SRC_MASK
+
+    w, m, cfg = st.work, st.wm.arrays, st.cfg
+    nblk, n, nbox = st.wm.blocks_per_row, int(w.n_rows.numpy()[0]), int(w.n_box.numpy()[0])
+    J = w.row_J.numpy().astype(np.float64).reshape(-1, nblk, 6)[:n]
+    body = w.row_body.numpy().reshape(-1, nblk)[:n]
+    P, reg, vt, lo_s, hi_s = (a.numpy().astype(np.float64)[:n] for a in (w.P, w.reg, w.vt, w.lo_s, w.hi_s))
+    f0, v0 = np.asarray(f0, np.float64)[:n], np.asarray(v0, np.float64)[:n]
+    nb = st.wm.max_bodies
+    Minv = np.zeros((nb, 6, 6))
+    Minv[:, :3, :3] = m.inv_mass.numpy()[:nb, None, None] * np.eye(3)
+    Minv[:, 3:, 3:] = w.inv_inertia_w.numpy().reshape(-1, 3, 3)[:nb]
+    Jd = np.zeros((n, nb, 6))
+    for a in range(n):
+        for k in range(nblk):
+            if body[a, k] >= 0:
+                Jd[a, body[a, k]] += J[a, k]
+    D = np.einsum("abi,bij,cbj->ac", Jd, Minv, Jd) + np.diag(reg)
+    lo = np.where(np.isfinite(lo_s), lo_s * P, lo_s)[:nbox]
+    hi = np.where(np.isfinite(hi_s), hi_s * P, hi_s)[:nbox]
+    mu = w.ct_mu.numpy().astype(np.float64)[w.row_info.numpy()[nbox:n:3] & ROW_SRC_MASK]
+    scale_ws = cfg.warmstart_scale * cfg.dt if cfg.warm_start else 0.0
+    args = (D, vt / P, lo, hi, mu, np.ones(n, bool), scale_ws * f0, v0)
+    return args, int(m.row_fixed.numpy()[0])
+
+
+def test_warp_schedule_reduces_as_the_jax_reference():
+    # SolverConfig.reduction="schur" (docs/formulation.md §7.11) with 32 threads per world against the JAX reference's
+    # _solve_schur on the same dual problem: dr_legs under large PD targets (loops: redundant rows in F, D_FF
+    # singular; the effort-limited actuator rows in T, one of them saturated; the feet's contact triples), its second
+    # step of 2.5 ms in float64 at tolerance 1e-6, the rows, warm start and penalty read from the stepper (no curvature
+    # refinement or post-stabilisation: the step's PADMM alone). Both eliminate with the factor of A + eps I and two
+    # refinement steps (the Warp side as x_{k+1} = C^-1 (b + eps x_k), the same vector), filter the warm start, run
+    # PADMM's rules on (S, v'_T) and recover lambda_F; they round differently (sparse L_f, per-body products and the
+    # explicit inverse of the reduced system against dense Cholesky solves), and the refinement amplifies rounding by
+    # up to 1 / eps ~ 1e4 along the loops' null space, so impulses (N s, N m s) and velocities (m/s, rad/s) agree to
+    # 1e-9 (measured 6.7e-13 and 3.2e-13), with the same iterations (53).
+    from kamino.bench import loads
+    from kamino.jax_ref import solver
+
+    model = kamino.models.dr_legs()
+    cfg = kamino.SolverConfig(dt=0.0025, tolerance=1e-6, reduction="schur", stabilisation=kamino.Stabilisation(
+        curvature_refinement=False, post_stabilisation=0))
+    st = Stepper(model, cfg, np.float64, "cpu", padmm="warp")
+    assert st.schur and st.padmm == "warp"
+    offset, scale, _ = loads.rl_control_map(model)
+    target = np.zeros(model.num_dofs)
+    target[model.actuator_dof] = offset + scale * np.random.default_rng(1).uniform(-1, 1, model.num_actuators)
+    wb.load_state(st, kamino.init_state(model, dtype=np.float64), kamino.Control(position_target=jnp.asarray(target)))
+    st.run(1)
+    rho0 = float(st.work.rho_u.numpy()[0])
+    seen, loop = {}, st._padmm_loop
+
+    def padmm_loop():  # the warm start as PADMM reads it
+        seen.setdefault("f0", st.work.f0.numpy().copy())
+        seen.setdefault("v0", st.work.v0.numpy().copy())
+        loop()
+
+    st._padmm_loop = padmm_loop
+    st.run(1)
+    args, nf = _world_problem(st, seen["f0"], seen["v0"])
+    n = len(args[1])
+    ref = jax.jit(lambda *a: solver.solve(*a, cfg, None, rho0, nf))(*args)
+    w = st.work
+    assert n > nf and saturated_rows(w.row_info.numpy())[:nf].any()  # contacts in T; a saturated actuator row
+    assert int(w.iters.numpy()[0]) == int(ref.iterations) and bool(ref.converged)
+    np.testing.assert_allclose(w.impulse.numpy()[:n], np.asarray(ref.impulse), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(w.velocity.numpy()[:n], np.asarray(ref.velocity), rtol=0, atol=1e-9)

@@ -45,7 +45,11 @@ from kamino.warp_backend.rows import step_row_kernels
 from kamino.warp_backend.solver import LINEAR_CR, LINEAR_DENSE, LINEAR_SPARSE, padmm_iterate_kernel, solver_kernels
 from kamino.warp_backend.solver_lanes import (
     LANES,
+    SCHUR_ELIMINATE,
+    SCHUR_RECOVER,
+    SCHUR_RHS,
     iterate_kernel,
+    schur_buffers,
     shared_entries,
     shared_rows,
     warp_kernels,
@@ -95,12 +99,15 @@ WARP_SCHEDULE_MIN_ROWS = 200
 def resolve_padmm(cfg: SolverConfig, device, num_worlds: int, max_rows: int, padmm: str | None) -> str:
     """The PADMM schedule: ``padmm`` if given, else ``"warp"`` on a CUDA device where the configuration uses the
     block-sparse Jacobian (``jacobian="sparse"``, with the sparse LLT or Conjugate Residual) and the worlds are few
-    (:data:`WARP_SCHEDULE_MAX_WORLDS`) or large (:data:`WARP_SCHEDULE_MIN_ROWS`); else ``"thread"`` (every CPU
-    run: the 32 threads of a world run as fibers there)."""
+    (:data:`WARP_SCHEDULE_MAX_WORLDS`) or large (:data:`WARP_SCHEDULE_MIN_ROWS`), and on any device under
+    ``reduction="schur"`` (the only schedule that reduces; on the CPU its 32 threads run as fibers); else
+    ``"thread"``."""
     if padmm is not None:
         if padmm not in ("thread", "warp"):
             raise ValueError(f"padmm must be 'thread' or 'warp' (got {padmm!r})")
         return padmm
+    if cfg.reduction == "schur" and cfg.warp.jacobian == "sparse":
+        return "warp"
     size_wins = num_worlds <= WARP_SCHEDULE_MAX_WORLDS or max_rows >= WARP_SCHEDULE_MIN_ROWS
     return "warp" if (device.is_cuda and cfg.warp.jacobian == "sparse" and size_wins and max_rows > 0) else "thread"
 
@@ -128,9 +135,13 @@ class Stepper:
         self.linear_solver = resolve_linear_solver(cfg, wm.max_rows, padmm, self.device.is_cuda)
         self.dense = cfg.warp.jacobian == "dense"
         llt = self.linear_solver == "llt"
-        if cfg.reduction != "none":
-            raise ValueError(f"SolverConfig.reduction={cfg.reduction!r} is implemented in the JAX reference only; "
-                             "use backend='jax' or reduction='none'")
+        #: SolverConfig.reduction = "schur" (docs/formulation.md §7.11): the 32-thread schedule, the sparse factor
+        self.schur = cfg.reduction == "schur"
+        if self.schur and (padmm != "warp" or not llt or self.dense):
+            raise ValueError("SolverConfig.reduction='schur' runs on the Warp backend's 32-thread schedule with the "
+                             "sparse factor (padmm='warp', jacobian='sparse', linear_solver='llt'); got "
+                             f"padmm={padmm!r}, jacobian={cfg.warp.jacobian!r}, linear_solver={self.linear_solver!r}: "
+                             "use those, backend='jax' or reduction='none'")
         if cfg.redundant_limits:
             raise ValueError("SolverConfig.redundant_limits is implemented in the JAX reference only (float64); "
                              "use backend='jax' or leave it off")
@@ -158,7 +169,9 @@ class Stepper:
             self.sp = self.sf.arrays if self.sparse_factor else linear_solve.empty(self.np_dtype, self.device)
             #: post-stabilisation solves with PADMM's sparse factor of the fixed rows when that factor carries the
             #: projection's shifts (SolverConfig.projection_shifts: the adaptive penalty); else with a factor of its own
-            self.post_shares_factor = self.sparse_factor and cfg.shares_padmm_factor(self.np_dtype)
+            #: (not under the reduction: its L_f is the factor of the eliminated rows alone)
+            self.post_shares_factor = (self.sparse_factor and cfg.shares_padmm_factor(self.np_dtype)
+                                       and not self.schur)
             if cfg.stabilisation.post_stabilisation and not self.post_shares_factor:
                 # the fixed rows' own pattern and factor (no tail rows)
                 self.post = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
@@ -178,7 +191,7 @@ class Stepper:
             #: thread per world
             self.filt = None
             self.filter_lanes = padmm == "warp"
-            if cfg.warm_start and int(wm.arrays.row_fixed.numpy().max(initial=0)) > 0:
+            if cfg.warm_start and not self.schur and int(wm.arrays.row_fixed.numpy().max(initial=0)) > 0:
                 self.filt = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
                                                per_world=self.filter_lanes, hub_min_rows=wm.hub_min_rows,
                                                hub_row0=wm.arrays.row_maxdim.numpy())
@@ -188,7 +201,11 @@ class Stepper:
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 filter_E = shared_entries(self.filt.max_nnz) if self.filt is not None else None
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt, filter_E=filter_E,
-                                       inverse=self.sparse_factor and self.sf.inv_total > 0)
+                                       inverse=self.sparse_factor and self.sf.inv_total > 0 and not self.schur,
+                                       schur=self.schur)
+            #: the reduced problem's buffers (solver_lanes.schur_struct; empty without the reduction)
+            self.sch = self._schur_buffers(model) if self.schur else schur_buffers(self.np_dtype, self.device, 0, 0,
+                                                                                   0, 0, 0)
         self.rk = step_row_kernels(self.np_dtype, cfg.stabilisation.curvature_correction, cfg.integrator == "midpoint")
         self.sk = solver_kernels(self.np_dtype, self.dense, llt and not self.sparse_factor, not llt,
                                  bool(cfg.warm_start), self.adaptive)
@@ -211,7 +228,8 @@ class Stepper:
         tab = row_tables(model)
         dyn_world = np.repeat(np.arange(wm.num_worlds), tab.world_dyn_count)
         act_rows = np.bincount(dyn_world[tab.dyn_kind == DYN_ACTUATOR], minlength=1)
-        self.max_switches = int(act_rows.max()) if self.adaptive and self.linear_solver == "llt" else 0
+        #: (under the reduction a saturation recomputes the reduced problem's inverse inside the launch)
+        self.max_switches = int(act_rows.max()) if self.adaptive and llt and not self.schur else 0
         self.use_graph = self.device.is_cuda
         self.padmm_chunk = cfg.max_iterations if not self.use_graph else min(cfg.max_iterations, 8)
         self._graphs: dict[int, object] = {}
@@ -221,6 +239,30 @@ class Stepper:
         #: callables ``f(stepper)`` enqueued at the end of every step (captured with it), e.g. a kernel that folds
         #: the step's iterations into statistics
         self.post_step: list = []
+
+    def _schur_buffers(self, model: Model):
+        """The reduced problem's buffers (``solver_lanes.schur_buffers``): room for every dynamics row of a world
+        (the effort-limited actuator rows among them) and its limit and contact rows in ``T``; the elimination's
+        shift ``eta + rho_free`` (``kamino.jax_ref.solver._solve_schur``: the adaptive penalty's, in either penalty
+        mode) and the warm-start filter's shift."""
+        cfg, wm = self.cfg, self.wm
+        tab = row_tables(model)
+        tail = wm.arrays.row_maxdim.numpy() - wm.arrays.row_fixed.numpy()
+        tm = int(np.max(np.asarray(tab.world_dyn_count) + tail, initial=0))
+        np_max = int(self.sf.arrays.n_pos.numpy().max(initial=0))
+        return schur_buffers(self.np_dtype, self.device, wm.num_worlds, wm.total_rows, max(tm, 1), max(np_max, 1),
+                             max(int(wm.max_bodies), 1), cfg.penalty.eta + cfg.penalty.rho_free,
+                             WARM_START_FILTER_SHIFT if cfg.warm_start else 0.0)
+
+    def _schur(self, mode: int) -> None:
+        """``solver_lanes.schur_kernel`` in ``mode`` (the elimination, the reduced right-hand side, the recovery)."""
+        cfg, w = self.cfg, self.work
+        self._launch_lanes(self.wk.schur,
+                           inputs=[mode, self.wm.blocks_per_row, cfg.penalty.eta, self.rho_free, cfg.penalty.rho,
+                                   w.row_stride, self.sp, w.n_rows, w.frozen, w.row_body, w.row_J, w.reg, w.P, w.vt,
+                                   w.inv_inertia_w, w.lo_s, w.hi_s, w.row_info, w.rho_u],
+                           outputs=[self.sch, w.p_ref, w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.impulse,
+                                    w.velocity, w.failed])
 
     # --- launches -------------------------------------------------------------------------------
     def _launch(self, kernel, dim, inputs: list, outputs: list) -> None:
@@ -306,7 +348,11 @@ class Stepper:
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
         self._launch(sk.scale, rows, inputs=[shift_f, shift_b, scale_ws, w.row_stride, w.n_rows, w.P, w.lo, w.hi,
                                                 w.f0], outputs=[w.vt, w.lo_s, w.hi_s, w.row_info, w.D])
-        if self.sparse_factor:
+        if self.schur:  # D~_f with the elimination's shift on F; the tail rows are T's (solver_lanes.schur_kernel)
+            self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz),
+                         inputs=[nblk, self.sch.eps, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg,
+                                 w.P, w.inertia_w, w.inv_inertia_w], outputs=[self.sp])
+        elif self.sparse_factor:
             self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz),
                             inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
                                     w.inertia_w, w.inv_inertia_w], outputs=[self.sp])
@@ -323,7 +369,15 @@ class Stepper:
                                  w.remaining, w.sdiag, w.D])
         if self.filt is not None:  # the warm start without its nearly null directions
             self._filter_warm_start(self.filt, self.filter_lanes)
-        if self.padmm == "warp" and self.sparse_factor:
+        if self.schur:  # L_f of A + eps I on F (the effort-limited rows decoupled), then the reduced problem
+            self._launch(self.wk.schur_decouple, (W, self.sf.max_nnz), inputs=[w.row_stride, w.lo_s, w.hi_s],
+                         outputs=[self.sp])
+            self._launch_lanes(self.wk.factor,
+                               inputs=[cfg.penalty.eta, 0, nblk, shift_f, shift_b, w.row_stride, wm.arrays.row_fixed,
+                                       w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
+                                       w.inv_inertia_w, w.rho_u], outputs=[w.pending, self.sp])
+            self._schur(SCHUR_ELIMINATE)
+        elif self.padmm == "warp" and self.sparse_factor:
             self._launch_lanes(self.wk.factor,
                                   inputs=[cfg.penalty.eta, 0, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
                                           w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
@@ -337,6 +391,8 @@ class Stepper:
         self._padmm_loop()
         self._launch(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p, w.ct_mu,
                                                        w.row_info], outputs=[w.impulse, w.velocity, w.failed])
+        if self.schur:
+            self._schur(SCHUR_RECOVER)
         stab = cfg.stabilisation
         if stab.curvature_refinement and stab.curvature_correction and (wm.max_cts or wm.max_cpl):
             self._launch(ik.integrate, (W, wm.max_bodies),
@@ -353,6 +409,8 @@ class Stepper:
                             inputs=[nblk, h, cfg.stabilisation.baumgarte, delta, w.row_stride, w.q_dof, w.q, w.q_pred,
                                     w.u_new, w.row_body, w.row_J, w.u_f, w.P, w.converged],
                             outputs=[w.vstar, w.vt])
+            if self.schur:  # v'_T of the refined v_f
+                self._schur(SCHUR_RHS)
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W,
                             inputs=[cfg.max_iterations, w.row_stride, w.n_rows, w.frozen, w.iters, w.y_p, w.z_p],
@@ -362,6 +420,8 @@ class Stepper:
             self._launch(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p,
                                                            w.ct_mu, w.row_info],
                             outputs=[w.impulse, w.velocity, w.failed])
+            if self.schur:
+                self._schur(SCHUR_RECOVER)
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies),
                         inputs=[nblk, h, ANGULAR_DAMPING * dt, w.row_stride, w.n_rows, w.impulse, w.Jd, w.row_body,
@@ -490,15 +550,16 @@ class Stepper:
         shift_f, shift_b = self.padmm_shifts
         problem = rules.fill_struct(rules.problem_struct(self.np_dtype), w, nblk=nblk,
                                     cr_budget=int(cfg.warp.cr_iterations), eta=cfg.penalty.eta, rho_free=self.rho_free,
-                                    rho_box=cfg.penalty.rho, tol=cfg.tolerance, restart_tol=RESTART_TOLERANCE)
+                                    rho_box=cfg.penalty.rho, tol=cfg.tolerance, restart_tol=RESTART_TOLERANCE,
+                                    **({"vt": self.sch.vt} if self.schur else {}))
         carry = rules.fill_struct(rules.carry_struct(self.np_dtype), w)
         vectors = [w.row_info, w.x, w.y, w.z, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w]
         modes = (self.adaptive, bool(cfg.acceleration), bool(cfg.fixed_iterations))
         if self.padmm == "warp":
-            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes, self.wk.inverse)
+            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes, self.wk.inverse, self.schur)
 
             def iterate(chunk):
-                self._launch_lanes(lane_iterate, inputs=[problem, chunk], outputs=[carry, self.sp, *vectors])
+                self._launch_lanes(lane_iterate, inputs=[problem, chunk], outputs=[carry, self.sp, *vectors, self.sch])
                 if self.max_switches:  # the factor of the worlds whose effort-limited rows saturated
                     self._launch_lanes(self.wk.factor,
                                           inputs=[cfg.penalty.eta, 1, nblk, shift_f, shift_b, w.row_stride, w.n_rows,

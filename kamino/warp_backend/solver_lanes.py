@@ -29,6 +29,21 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
 - **Warm-start filter** (:func:`warm_start_filter_kernel`, once per step; docs/conventions.md "Warm start"): the
   filter's own factor of the fixed rows by :func:`factor_kernel` (launched with the fixed rows' count as the rows to
   factorise: no tail), then :func:`solve_func` on the shifted warm start and the clip, threads over rows.
+- **Schur reduction** (``SolverConfig.reduction = "schur"``, docs/formulation.md §7.11; ``iterate_kernel(schur=True)``,
+  :func:`schur_kernel`). ``L_f`` becomes the elimination's factor: the fixed rows assembled with the shift ``eps =
+  eta + rho_free`` (the reference's in either penalty mode), the effort-limited rows turned into identity rows of it
+  (:func:`schur_decouple_kernel`: they belong to ``T``), and :func:`factor_kernel` on the fixed rows alone, so that
+  ``L_f L_f^T = A + eps I`` on ``F`` (``A = P_F D_FF P_F``, the Jacobi scaling being the full ``D``'s on ``F``) with
+  its hub unknowns. Once per step :func:`schur_kernel` lists ``T`` (effort-limited rows, then limit and contact
+  rows), forms the scaled ``S~ = P_T S P_T`` one column per thread (the column ``P_F D_Fc P_c`` and the products
+  with ``D_TF`` through the bodies, ``J M^-1 J^T``, so ``D_FT`` is never stored; the solve ``A^-1`` of each column
+  by the thread alone over ``L_f``, :func:`ff_solve_func`, with the reference's two refinement steps) and ``P v'_T``
+  the same way, filters the effort-limited rows' warm start with ``S~``, and inverts ``S~ + diag(eta + rho)``
+  (:func:`schur_inverse_func`). An iteration's row passes then visit the rows of ``T`` alone, and its solve is one
+  product with that inverse (:func:`schur_apply_func`: a barrier after the right-hand side, one after the product,
+  instead of one per row of ``L_f``); a new penalty or a saturation recomputes the inverse inside the launch. After
+  PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered. Iteration
+  counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``).
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
@@ -43,9 +58,10 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from kamino.config import SCHUR_REFINEMENT_STEPS
 from kamino.warp_backend import solver_rules as rules
 from kamino.warp_backend.indexing import index_funcs
-from kamino.warp_backend.linear_solve import sparse_llt_kernels
+from kamino.warp_backend.linear_solve import sparse_llt_kernels, vidx_func
 from kamino.warp_backend.linear_solve_cr import cr_pattern_kernel, cr_solve_func
 from kamino.warp_backend.solver_rules import LANES, sync
 from kamino.warp_backend.types import types_of
@@ -777,6 +793,565 @@ def warm_start_filter_kernel(np_dtype, R: int):
     return warm_start_filter
 
 
+# --- the Schur reduction (§7.11; SolverConfig.reduction = "schur") -------------------------------------------------
+
+@functools.cache
+def schur_struct(np_dtype):
+    """``Schur``: a world's reduced problem (docs/formulation.md §7.11) on the 32-thread schedule. Per world the rows
+    ``T`` that PADMM solves (``rows``, ascending: the effort-limited fixed rows, then the limit and contact rows),
+    the scaled ``S~ = P_T S P_T`` (``S``) and the factor of ``S~ + diag(eta + rho)`` (``L``), ``tm x tm`` row after
+    row, and its inverse (``G``) column after column; the reduced right-hand side ``P v'_T`` in the row layout
+    (``vt``, zero on ``F``); and the scratch of the elimination's solves, per thread (``sb``, ``sx``: ``np_max`` fixed
+    positions; ``su``: ``nb_max`` bodies)."""
+    T = builder_types(np_dtype)
+    farr, iarr = wp.array(dtype=T.scalar), wp.array(dtype=wp.int32)
+
+    @wp.struct
+    class Schur:
+        tm: int  # the reduced rows' capacity of a world
+        np_max: int  # fixed positions (fixed rows and hub unknowns) of the largest world
+        nb_max: int  # bodies of the largest world
+        eps: T.scalar  # the elimination's shift eta + rho_free
+        filter_shift: T.scalar  # the warm-start filter's shift (0: no filter)
+        rows: iarr  # [W tm]
+        nt: iarr  # [W] the rows of T
+        ne: iarr  # [W] its effort-limited fixed rows (the first ne)
+        S: farr  # [W tm tm]
+        L: farr
+        G: farr
+        vt: farr  # per row
+        sb: farr  # [W LANES np_max]
+        sx: farr
+        su: wp.array(dtype=T.vec6)  # [W LANES nb_max]
+
+    return Schur
+
+
+@functools.cache
+def free_row_func(np_dtype):
+    """Whether a fixed row belongs to ``F`` (§7.11).
+    ``free_row(lo_s, hi_s, r)``."""
+    scalar = builder_types(np_dtype).scalar
+    farr = wp.array(dtype=scalar)
+
+    @wp.func
+    def free_row(lo_s: farr, hi_s: farr, r: int) -> bool:
+        """A fixed row (``a < n_fixed``) is in ``F`` when both its bounds are infinite; an effort-limited one is not
+        (``kamino.jax_ref.reduction.unbounded_rows``)."""
+        return not (wp.isfinite(lo_s[r]) or wp.isfinite(hi_s[r]))
+
+    return free_row
+
+
+@functools.cache
+def schur_decouple_kernel(np_dtype):
+    """The effort-limited rows out of the fixed rows' factor (§7.11).
+    ``schur_decouple(m, row_stride, lo_s, hi_s, sp)``, on ``(worlds, max entries)``."""
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
+    farr = wp.array(dtype=scalar)
+    row_base = index_funcs(np_dtype).row_base
+    vidx = vidx_func(np_dtype)
+    free_row = free_row_func(np_dtype)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def schur_decouple(m: M, row_stride: int, lo_s: farr, hi_s: farr, sp: SP):
+        """Entry ``k`` of the assembled ``D~_f`` (``linear_solve.assemble_fixed`` with the shift ``eps``): on a row
+        or column of an effort-limited row (a row of ``T``) the identity's entry, so that :func:`factor_kernel`
+        factorises ``A + eps I`` on ``F`` (the Jacobi-scaled ``D_FF``, with its hub unknowns) and the identity on
+        the effort-limited rows, on ``L_f``'s pattern."""
+        wid, k = wp.tid()
+        if k >= sp.nnz[wid]:
+            return
+        nf = sp.n_fixed[wid]
+        e = sp.ent_start[wid] + k
+        p = sp.row[e]
+        q = sp.col[e]
+        rb = row_base(m, row_stride, wid)
+        q0 = sp.perm_start[wid]
+        bounded = False
+        if p < nf:
+            bounded = not free_row(lo_s, hi_s, rb + sp.perm[q0 + p] * row_stride)
+        if q < nf:
+            bounded = bounded or not free_row(lo_s, hi_s, rb + sp.perm[q0 + q] * row_stride)
+        if bounded:
+            v = scalar(0.0)
+            if p == q:
+                v = scalar(1.0)
+            sp.val[vidx(m, sp, wid, k)] = v
+
+    return schur_decouple
+
+
+@functools.cache
+def lane_solve_func(np_dtype):
+    """``x <- C^-1 x`` with the fixed rows' factor ``C = L_f L_f^T`` by one thread (§8.1).
+    ``lane_solve(sp, wid, vb, x, xb)``: ``x`` in position order from ``xb``, ``LANES`` apart (the world's threads'
+    vectors interleaved: they walk the same pattern together, so their loads coalesce)."""
+    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
+    farr = wp.array(dtype=scalar)
+
+    @wp.func
+    def lane_solve(sp: SP, wid: int, vb: int, x: farr, xb: int):
+        """The forward and the backward substitution of ``linear_solve.solve_inplace`` on the fixed positions
+        alone, in position order (``x[xb + p LANES]``), by the calling thread: with hubs the right-hand side of their
+        unknowns is 0 and ``y`` is negated there between the sweeps. The threads of a world each solve their own
+        vector: no barrier."""
+        npos = sp.n_pos[wid]
+        nf = sp.n_fixed[wid]
+        e0 = sp.ent_start[wid]
+        p0 = sp.ptr_start[wid]
+        for p in range(npos):
+            s = x[xb + p * LANES]
+            k1 = sp.row_ptr[p0 + p + 1] - 1
+            for k in range(sp.row_ptr[p0 + p], k1):
+                s -= sp.val[vb + k * sp.val_stride] * x[xb + sp.col[e0 + k] * LANES]
+            x[xb + p * LANES] = s / sp.val[vb + k1 * sp.val_stride]
+        for p in range(nf, npos):
+            x[xb + p * LANES] = -x[xb + p * LANES]
+        for pp in range(npos):
+            p = npos - 1 - pp
+            k1 = sp.row_ptr[p0 + p + 1] - 1
+            xp = x[xb + p * LANES] / sp.val[vb + k1 * sp.val_stride]
+            x[xb + p * LANES] = xp
+            for k in range(sp.row_ptr[p0 + p], k1):
+                q = xb + sp.col[e0 + k] * LANES
+                x[q] = x[q] - sp.val[vb + k * sp.val_stride] * xp
+
+    return lane_solve
+
+
+@functools.cache
+def ff_solve_func(np_dtype):
+    """``A^-1 b`` on ``F`` with ``SCHUR_REFINEMENT_STEPS`` refinement steps (§7.11).
+    ``ff_solve(sp, wid, vb, sb, sx, xb, eps)``."""
+    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
+    farr = wp.array(dtype=scalar)
+    lane_solve = lane_solve_func(np_dtype)
+    zero = scalar(0.0)
+
+    @wp.func
+    def ff_solve(sp: SP, wid: int, vb: int, sb: farr, sx: farr, xb: int, eps: scalar):
+        """``x = A^-1 b`` (``b``: ``sb``, zero off ``F``; ``x``: ``sx``; position order from ``xb``, ``LANES``
+        apart) with the factor ``C = A + eps I`` and the refinement of ``kamino.jax_ref.reduction.ff_solve``,
+        ``x_{k+1} = x_k + C^-1 (b - A x_k)``, written as ``x_{k+1} = C^-1 (b + eps x_k)`` (the same vector: ``A = C -
+        eps I``), which needs no product with ``A``: ``x_0 = C^-1 b`` and ``SCHUR_REFINEMENT_STEPS`` more solves. The
+        effort-limited rows' identity block keeps them at zero; the hubs' unknowns take a zero right-hand side in
+        every solve."""
+        npos = sp.n_pos[wid]
+        nf = sp.n_fixed[wid]
+        for p in range(npos):
+            sx[xb + p * LANES] = sb[xb + p * LANES]
+        lane_solve(sp, wid, vb, sx, xb)
+        for _ in range(SCHUR_REFINEMENT_STEPS):
+            for p in range(nf):
+                sx[xb + p * LANES] = sb[xb + p * LANES] + eps * sx[xb + p * LANES]
+            for p in range(nf, npos):
+                sx[xb + p * LANES] = zero
+            lane_solve(sp, wid, vb, sx, xb)
+
+    return ff_solve
+
+
+@functools.cache
+def body_funcs(np_dtype):
+    """A thread's body-space vector (``J^T`` of row values, ``M^-1`` of it, ``J`` of it) for the elimination's
+    products with ``D = J M^-1 J^T + R`` (§7.1) without assembling ``D_FT``. ``SimpleNamespace(add_row, row_dot,
+    inv_mass)``."""
+    scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
+    iarr = wp.array(dtype=wp.int32)
+    inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
+
+    @wp.func
+    def add_row(su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr, row_J: wp.array(dtype=vec6), r: int,
+                nblk: int, c: scalar):
+        """``u += J_r^T c``: row ``r``'s blocks times ``c`` onto its bodies (``su[ub + (body - b0) LANES]``: the
+        world's threads' vectors interleaved)."""
+        for k in range(nblk):
+            bk = row_body[r * nblk + k]
+            if bk >= 0:
+                su[ub + (bk - b0) * LANES] = su[ub + (bk - b0) * LANES] + c * row_J[r * nblk + k]
+
+    @wp.func
+    def row_dot(su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr, row_J: wp.array(dtype=vec6), r: int,
+                nblk: int) -> scalar:
+        """``J_r u``."""
+        s = scalar(0.0)
+        for k in range(nblk):
+            bk = row_body[r * nblk + k]
+            if bk >= 0:
+                s += wp.dot(row_J[r * nblk + k], su[ub + (bk - b0) * LANES])
+        return s
+
+    @wp.func
+    def inv_mass(m: M, inv_inertia_w: wp.array(dtype=mat33), su: wp.array(dtype=vec6), ub: int, b0: int, nb: int,
+                 zero_after: int):
+        """``u <- M^-1 u`` on the world's ``nb`` bodies (with ``zero_after``: ``u <- 0`` instead, to start a sum)."""
+        for i in range(nb):
+            if zero_after != 0:
+                su[ub + i * LANES] = vec6()
+            else:
+                su[ub + i * LANES] = inv_mass_times(m, inv_inertia_w, b0 + i, su[ub + i * LANES])
+
+    return SimpleNamespace(add_row=add_row, row_dot=row_dot, inv_mass=inv_mass)
+
+
+@functools.cache
+def schur_inverse_func(np_dtype):
+    """``G = (S~ + diag(eta + rho))^-1`` of a world's reduced problem by its threads (§7.11).
+    ``schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u)``."""
+    scalar = builder_types(np_dtype).scalar
+    Schur = schur_struct(np_dtype)
+    row_penalty = rules.row_penalty_func(np_dtype)
+
+    @wp.func
+    def schur_inverse(sch: Schur, wid: int, lane: int, row_info: wp.array(dtype=wp.int32), rb: int, rs: int, nf: int,
+                      eta: scalar, rho_free: scalar, rho_box: scalar, rho_u: scalar):
+        """The Cholesky factor ``L`` of ``S~ + diag(eta + rho_i)`` (each row's penalty, ``solver_rules.row_penalty``:
+        a saturated effort-limited row's ``rho_box``) by columns (threads over the rows below the diagonal, one
+        barrier per column), then ``G``'s columns, ``L L^T g_c = e_c``, one thread per column (no barrier), each
+        stored contiguously (``G_ic`` at ``c tm + i``: in the product with ``G`` the threads, one per row ``i``, read
+        consecutive entries): every PADMM iteration's solve is then one product with ``G``
+        (:func:`schur_apply_func`)."""
+        nt = sch.nt[wid]
+        tm = sch.tm
+        g0 = wid * tm * tm
+        t0 = wid * tm
+        for j in range(nt):
+            aj = sch.rows[t0 + j]
+            s = sch.S[g0 + j * tm + j] + eta + row_penalty(row_info, rb + aj * rs, aj, nf, rho_free, rho_box, rho_u)
+            for k in range(j):
+                s -= sch.L[g0 + j * tm + k] * sch.L[g0 + j * tm + k]
+            d = wp.sqrt(s)
+            for i in range(j + 1 + lane, nt, LANES):
+                v = sch.S[g0 + i * tm + j]
+                for k in range(j):
+                    v -= sch.L[g0 + i * tm + k] * sch.L[g0 + j * tm + k]
+                sch.L[g0 + i * tm + j] = v / d
+            if lane == 0:  # no thread reads L_jj before the next column
+                sch.L[g0 + j * tm + j] = d
+            sync()
+        for c in range(lane, nt, LANES):
+            for i in range(nt):  # L z = e_c, into column c of G
+                v = scalar(0.0)
+                if i == c:
+                    v = scalar(1.0)
+                if i >= c:
+                    for k in range(c, i):
+                        v -= sch.L[g0 + i * tm + k] * sch.G[g0 + c * tm + k]
+                    v = v / sch.L[g0 + i * tm + i]
+                sch.G[g0 + c * tm + i] = v
+            for ii in range(nt):  # L^T g = z
+                i = nt - 1 - ii
+                v = sch.G[g0 + c * tm + i]
+                for k in range(i + 1, nt):
+                    v -= sch.L[g0 + k * tm + i] * sch.G[g0 + c * tm + k]
+                sch.G[g0 + c * tm + i] = v / sch.L[g0 + i * tm + i]
+        sync()
+
+    return schur_inverse
+
+
+@functools.cache
+def schur_apply_func(np_dtype, R: int):
+    """A PADMM iteration's linear solve on the reduced problem (§7.11).
+    ``schur_apply(sch, wid, lane, xs, ys)``, the vectors in shared memory (:func:`shared_vector` of ``R``), after a
+    barrier."""
+    scalar = builder_types(np_dtype).scalar
+    Schur = schur_struct(np_dtype)
+    Vec = shared_vector(np_dtype, R)
+    sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
+
+    @wp.func
+    def schur_apply(sch: Schur, wid: int, lane: int, xs: Vec, ys: Vec):
+        """``x_T = G rhs_T`` (threads over the rows of ``T``): the right-hand side in ``ys`` by ``T``'s index (``ys[i]``
+        for row ``sch.rows[i]``), the solution into ``xs`` by row. Off ``T`` nothing is written: the reduced problem
+        keeps ``F`` at zero (``kamino.jax_ref.reduction``), and the iterations do not read it there."""
+        nt = sch.nt[wid]
+        tm = sch.tm
+        g0 = wid * tm * tm
+        t0 = wid * tm
+        for i in range(lane, nt, LANES):
+            s = scalar(0.0)
+            for j in range(nt):
+                s += sch.G[g0 + j * tm + i] * sget(ys, j)
+            sset(xs, sch.rows[t0 + i], s)
+        sync()
+
+    return schur_apply
+
+
+@functools.cache
+def filter_effort_rows_func(np_dtype):
+    """The warm-start filter of the reduced problem (§7.11; docs/conventions.md "Warm start").
+    ``filter_effort_rows(sch, wid, rb, rs, xb, lo_s, hi_s, x, x_p, y_p, y_hat)``, by one thread."""
+    scalar = builder_types(np_dtype).scalar
+    farr = wp.array(dtype=scalar)
+    Schur = schur_struct(np_dtype)
+
+    @wp.func
+    def filter_effort_rows(sch: Schur, wid: int, rb: int, rs: int, xb: int, lo_s: farr, hi_s: farr, x: farr,
+                           x_p: farr, y_p: farr, y_hat: farr):
+        """``x_E <- clip(x_E - (S~_EE + s I)^-1 s x_E)`` on the effort-limited rows ``E`` (the first ``ne`` of
+        ``T``): ``kamino.jax_ref.solver._Problem.filter_warm_start`` on the reduced problem, whose fixed rows they
+        are (``F``'s warm start is zero), by a dense Cholesky of ``S~_EE + s I`` in ``sch.L`` and the thread's
+        scratch ``sch.sx``; the result goes to ``x_p``, ``y_p``, ``y_hat`` and ``x`` unless it is not finite (the
+        world keeps its warm start)."""
+        ne = sch.ne[wid]
+        tm = sch.tm
+        g0 = wid * tm * tm
+        t0 = wid * tm
+        s0 = sch.filter_shift
+        for j in range(ne):
+            d = sch.S[g0 + j * tm + j] + s0
+            for k in range(j):
+                d -= sch.L[g0 + j * tm + k] * sch.L[g0 + j * tm + k]
+            d = wp.sqrt(d)
+            sch.L[g0 + j * tm + j] = d
+            for i in range(j + 1, ne):
+                v = sch.S[g0 + i * tm + j]
+                for k in range(j):
+                    v -= sch.L[g0 + i * tm + k] * sch.L[g0 + j * tm + k]
+                sch.L[g0 + i * tm + j] = v / d
+        for i in range(ne):
+            v = s0 * x_p[rb + sch.rows[t0 + i] * rs]
+            for k in range(i):
+                v -= sch.L[g0 + i * tm + k] * sch.sx[xb + k * LANES]
+            sch.sx[xb + i * LANES] = v / sch.L[g0 + i * tm + i]
+        for ii in range(ne):
+            i = ne - 1 - ii
+            v = sch.sx[xb + i * LANES]
+            for k in range(i + 1, ne):
+                v -= sch.L[g0 + k * tm + i] * sch.sx[xb + k * LANES]
+            sch.sx[xb + i * LANES] = v / sch.L[g0 + i * tm + i]
+        ok = int(1)
+        for i in range(ne):
+            r = rb + sch.rows[t0 + i] * rs
+            v = wp.clamp(x_p[r] - sch.sx[xb + i * LANES], lo_s[r], hi_s[r])
+            sch.sx[xb + i * LANES] = v
+            if not wp.isfinite(v):
+                ok = 0
+        if ok != 0:
+            for i in range(ne):
+                r = rb + sch.rows[t0 + i] * rs
+                x_p[r] = sch.sx[xb + i * LANES]
+                y_p[r] = sch.sx[xb + i * LANES]
+                y_hat[r] = sch.sx[xb + i * LANES]
+                x[r] = sch.sx[xb + i * LANES]
+
+    return filter_effort_rows
+
+
+#: :func:`schur_kernel`'s modes: the elimination (once per step), the reduced right-hand side again (after the
+#: curvature refinement changed ``v_f``), the recovery of ``lambda_F``
+SCHUR_ELIMINATE, SCHUR_RHS, SCHUR_RECOVER = 0, 1, 2
+
+
+@functools.cache
+def schur_kernel(np_dtype):
+    """The Schur reduction's per-step work with the world's 32 threads (§7.11).
+    ``schur(m, mode, nblk, eta, rho_free, rho_box, row_stride, sp, n_rows, frozen, row_body, row_J, reg, P, vt,
+    inv_inertia_w, lo_s, hi_s, row_info, rho_u, sch, p_ref, x, x_p, y_p, y_hat, z_p, z_hat, impulse, velocity,
+    failed)``, launched tiled: one block of ``LANES`` threads per world."""
+    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
+    Schur = schur_struct(np_dtype)
+    bases = sparse_llt_kernels(np_dtype).bases
+    delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
+    free_row = free_row_func(np_dtype)
+    ff_solve = ff_solve_func(np_dtype)
+    bf = body_funcs(np_dtype)
+    add_row, row_dot, inv_mass = bf.add_row, bf.row_dot, bf.inv_mass
+    schur_inverse = schur_inverse_func(np_dtype)
+    filter_effort_rows = filter_effort_rows_func(np_dtype)
+    lane_max = rules.lane_reduce_func(np_dtype, LANES, "max")
+    zero = scalar(0.0)
+
+    @wp.func
+    def rhs_f(sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, vt: farr, P: farr,
+              row_body: iarr, row_J: wp.array(dtype=vec6), nblk: int, b0: int, xb: int, ub: int, mode: int):
+        """The right-hand side on ``F`` (position order in ``sch.sb``): ``P_F D_Fc P_c`` (``mode`` 0, ``u =
+        M^-1 J_c^T P_c`` in ``sch.su``), ``P v_F`` (1) or ``-(P v_F + P_F D_FT lambda_T)`` (2, ``u = M^-1 J_T^T
+        lambda_T``); zero on the effort-limited rows and the hubs' unknowns."""
+        nf = sp.n_fixed[wid]
+        q0 = sp.perm_start[wid]
+        for p in range(sp.n_pos[wid]):
+            v = zero
+            if p < nf:
+                r = rb + sp.perm[q0 + p] * rs
+                if free_row(lo_s, hi_s, r):
+                    if mode == 0:
+                        v = P[r] * row_dot(sch.su, ub, b0, row_body, row_J, r, nblk)
+                    elif mode == 1:
+                        v = vt[r]
+                    else:
+                        v = -(vt[r] + P[r] * row_dot(sch.su, ub, b0, row_body, row_J, r, nblk))
+            sch.sb[xb + p * LANES] = v
+
+    @wp.func
+    def times_x(m: M, sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, P: farr,
+                row_body: iarr, row_J: wp.array(dtype=vec6), inv_inertia_w: wp.array(dtype=mat33), nblk: int, b0: int,
+                nb: int, xb: int, ub: int):
+        """``u = M^-1 J_F^T P_F x`` from the solve's ``x`` (``sch.sx``): ``P_T D_TF P_F x = P_T J_T u``."""
+        nf = sp.n_fixed[wid]
+        q0 = sp.perm_start[wid]
+        inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
+        for p in range(nf):
+            r = rb + sp.perm[q0 + p] * rs
+            if free_row(lo_s, hi_s, r):
+                add_row(sch.su, ub, b0, row_body, row_J, r, nblk, P[r] * sch.sx[xb + p * LANES])
+        inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def schur(
+        # model (read only)
+        m: M,
+        # in
+        mode: int, nblk: int, eta: scalar, rho_free: scalar, rho_box: scalar,
+        row_stride: int,
+        sp: SP,  # L_f of A + eps I (schur_decouple, factor_kernel on the fixed rows; read)
+        n_rows: iarr, frozen: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr, P: farr, vt: farr,
+        inv_inertia_w: wp.array(dtype=mat33), lo_s: farr, hi_s: farr, row_info: iarr, rho_u: farr,
+        # out
+        sch: Schur,
+        p_ref: farr,
+        x: farr, x_p: farr, y_p: farr, y_hat: farr, z_p: farr, z_hat: farr,  # the warm start (also read)
+        impulse: farr, velocity: farr, failed: iarr,  # padmm_finish's (also read)
+    ):
+        """``mode`` :data:`SCHUR_ELIMINATE` (after ``padmm_init``): the rows of ``T``, the residual scale ``P_ref``
+        over them, the warm start zero on ``F``, ``S~ = P_T D_TT P_T - P_T D_TF A^-1 D_FT P_T`` symmetrised and
+        ``P v'_T = P v_T - P_T D_TF A^-1 P v_F`` (§7.11 (S), the columns of ``T`` and the right-hand side one per
+        thread, :func:`ff_solve_func`), the warm-start filter of the effort-limited rows
+        (:func:`filter_effort_rows_func`) and ``G`` (:func:`schur_inverse_func`). :data:`SCHUR_RHS`: ``P v'_T``
+        again. :data:`SCHUR_RECOVER` (after ``padmm_finish``): ``lambda_F = -P_F A^-1 (P v_F + P_F D_FT lambda_T)``
+        (§7.11 (R)) and ``v+ = D lambda + v_f`` on ``F``; a non-finite impulse fails the world."""
+        rs = row_stride
+        wid, lane = wp.tid()
+        n = n_rows[wid]
+        if frozen[wid] != 0 or n == 0:
+            return
+        base = bases(m, sp, row_stride, wid)
+        rb, vb = base[0], base[1]
+        nf = sp.n_fixed[wid]
+        tm = sch.tm
+        t0 = wid * tm
+        g0 = wid * tm * tm
+        b0 = m.body_start[wid]
+        nb = m.body_count[wid]
+        xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
+        ub = wid * LANES * sch.nb_max + lane
+        if mode == SCHUR_ELIMINATE:
+            if lane == 0:  # the rows of T, ascending: the effort-limited fixed rows, then the limit and contact rows
+                cnt = int(0)
+                for a in range(nf):
+                    if not free_row(lo_s, hi_s, rb + a * rs):
+                        if cnt < tm:
+                            sch.rows[t0 + cnt] = a
+                        cnt += 1
+                sch.ne[wid] = wp.min(cnt, tm)
+                for a in range(nf, n):
+                    if cnt < tm:
+                        sch.rows[t0 + cnt] = a
+                    cnt += 1
+                if cnt > tm:  # more rows than the capacity (not expected: Stepper sizes it)
+                    failed[wid] = 1
+                sch.nt[wid] = wp.min(cnt, tm)
+            pref = zero
+            for a in range(lane, nf, LANES):
+                r = rb + a * rs
+                if free_row(lo_s, hi_s, r):  # the reduced problem's rows off T: zero
+                    x[r] = zero
+                    x_p[r] = zero
+                    y_p[r] = zero
+                    y_hat[r] = zero
+                    z_p[r] = zero
+                    z_hat[r] = zero
+                    sch.vt[r] = zero
+                else:
+                    pref = wp.max(pref, P[r])
+            for a in range(nf + lane, n, LANES):
+                pref = wp.max(pref, P[rb + a * rs])
+            pref = lane_max(pref)
+            if lane == 0:
+                if pref <= zero:
+                    pref = scalar(1.0)
+                p_ref[wid] = pref
+            sync()
+            nt = sch.nt[wid]
+            for c in range(lane, nt + 1, LANES):  # column c of S~ (c < nt), or the right-hand side (c = nt)
+                if c < nt:
+                    rc = rb + sch.rows[t0 + c] * rs
+                    inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
+                    add_row(sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
+                    inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
+                    rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 0)
+                else:
+                    rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 1)
+                ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
+                times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, xb, ub)
+                for i in range(nt):
+                    ai = sch.rows[t0 + i]
+                    ri = rb + ai * rs
+                    dx = P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
+                    if c < nt:
+                        ac = sch.rows[t0 + c]
+                        sch.S[g0 + i * tm + c] = (P[ri] * delassus_entry(m, rs, row_body, row_J, reg, inv_inertia_w,
+                                                                         wid, ai, ac, nblk) * P[rb + ac * rs] - dx)
+                    else:
+                        sch.vt[ri] = vt[ri] - dx
+            sync()
+            for u in range(lane, nt * nt, LANES):  # S~ <- (S~ + S~^T) / 2
+                i = u // nt
+                j = u - i * nt
+                if i < j:
+                    s = scalar(0.5) * (sch.S[g0 + i * tm + j] + sch.S[g0 + j * tm + i])
+                    sch.S[g0 + i * tm + j] = s
+                    sch.S[g0 + j * tm + i] = s
+            sync()
+            if lane == 0 and sch.filter_shift > zero:
+                filter_effort_rows(sch, wid, rb, rs, xb, lo_s, hi_s, x, x_p, y_p, y_hat)
+            sync()
+            schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u[wid])
+        elif mode == SCHUR_RHS:
+            if lane == 0:
+                nt = sch.nt[wid]
+                rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 1)
+                ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
+                times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, xb, ub)
+                for i in range(nt):
+                    ri = rb + sch.rows[t0 + i] * rs
+                    sch.vt[ri] = vt[ri] - P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
+        else:
+            if lane == 0:
+                nt = sch.nt[wid]
+                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
+                for i in range(nt):
+                    ri = rb + sch.rows[t0 + i] * rs
+                    add_row(sch.su, ub, b0, row_body, row_J, ri, nblk, impulse[ri])
+                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
+                rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 2)
+                ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
+                q0 = sp.perm_start[wid]
+                for p in range(nf):
+                    r = rb + sp.perm[q0 + p] * rs
+                    if free_row(lo_s, hi_s, r):
+                        lam = P[r] * sch.sx[xb + p * LANES]
+                        impulse[r] = lam
+                        if not wp.isfinite(lam):
+                            failed[wid] = 1
+                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)  # v+ = D lambda + v_f on F
+                for a in range(n):
+                    r = rb + a * rs
+                    add_row(sch.su, ub, b0, row_body, row_J, r, nblk, impulse[r])
+                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
+                for a in range(nf):
+                    r = rb + a * rs
+                    if free_row(lo_s, hi_s, r):
+                        velocity[r] = (row_dot(sch.su, ub, b0, row_body, row_J, r, nblk) + reg[r] * impulse[r]
+                                       + vt[r] / P[r])
+
+    return schur
+
+
 # --- iterations (§7.3-§7.5) ----------------------------------------------------------------------------------------
 
 @functools.cache
@@ -807,13 +1382,15 @@ def lane_rhs_func(np_dtype):
 
 @functools.cache
 def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool, fixed_iterations: bool,
-                   inverse: bool = False):
+                   inverse: bool = False, schur: bool = False):
     """Accelerated PADMM with the world's 32 threads (§7.3-§7.5; the rules of ``solver_rules.py``), with the sparse
     factor (shared vectors of ``R`` rows) or with Conjugate Residual (``cr``), the adaptive penalty (``adaptive``),
-    the momentum (``accelerate``), every world running to its cap (``fixed_iterations``) and the solve with
-    ``L_f^-1`` (``inverse``, :func:`solve_func`): all compile-time.
-    ``padmm_iterate``'s arguments are those of ``solver.padmm_iterate_kernel``'s kernel less ``D``; launched tiled:
-    one block of ``LANES`` threads per world."""
+    the momentum (``accelerate``), every world running to its cap (``fixed_iterations``), the solve with
+    ``L_f^-1`` (``inverse``, :func:`solve_func`) and on the reduced problem of §7.11 (``schur``: the product with
+    ``G``, :func:`schur_apply_func`): all compile-time.
+    ``padmm_iterate``'s arguments are those of ``solver.padmm_iterate_kernel``'s kernel less ``D``, and the reduced
+    problem (:func:`schur_struct`; unread unless ``schur``); launched tiled: one block of ``LANES`` threads per
+    world."""
     scalar, M, SP, vec3, vec6 = builder_types(np_dtype).take("scalar", "M", "SP", "vec3", "vec6")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     Problem, Carry = rules.problem_struct(np_dtype), rules.carry_struct(np_dtype)
@@ -833,6 +1410,9 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
     mark_saturated = rules.mark_saturated_func(np_dtype)
     advance_row = rules.advance_row_func(np_dtype)
     store_world = rules.store_world_func(np_dtype)
+    Schur = schur_struct(np_dtype)
+    schur_apply = schur_apply_func(np_dtype, R)
+    schur_inverse = schur_inverse_func(np_dtype)
 
     @wp.kernel(module="unique", enable_backward=False,
                cuda_max_registers=ITERATE_MAX_REGISTERS if R >= REGISTER_CAP_MIN_ROWS else SMALL_WORLD_MAX_REGISTERS)
@@ -842,13 +1422,16 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
         sp: SP,  # out: the factor's tail values sp.tail (a new penalty; not under cr); its index tables are read
         row_info: iarr,  # out: a row's saturation flag (also read)
         x: farr, y: farr, z: farr, cr_r: farr, cr_p: farr, cr_Ap: farr, cr_Ar: farr, cr_w: wp.array(dtype=vec6),  # out
+        sch: Schur,  # out: G (a new penalty or a saturation; schur only)
     ):
         """Up to ``chunk`` iterations of one world (``solver.padmm_iterate_kernel`` rule for rule), resuming from the
         stored iterate; a world that converges (unless ``fixed_iterations``) or reaches its cap is marked done and
         leaves ``remaining``. The threads split the box rows and the contact triples; the world's residuals are block
         reductions. Under ``cr`` (at most ``cr_budget`` iterations per solve) the solution lands in ``x`` (the
         factor's solve: in ``xs``), a new penalty refactorises nothing and a row that saturates takes ``rho_box`` in
-        the next solve's operator without ending the launch."""
+        the next solve's operator without ending the launch. Under ``schur`` the row passes visit the rows of ``T``
+        alone (``F``'s iterate is zero, as is its share of every residual), and a new penalty or a saturation
+        recomputes ``G`` in place without ending the launch."""
         rs = problem.row_stride
         eta, rho_free, rho_box = problem.eta, problem.rho_free, problem.rho_box
         wid, lane = wp.tid()
@@ -864,12 +1447,25 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
         if wp.static(not cr):
             xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
             ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        # the rows that the row passes visit: every row, or under schur the rows of T alone (sch.rows; the first
+        # n_tb of them are box rows), F's staying at zero
+        n_t = n
+        n_tb = nb
+        t0 = wid * sch.tm
+        if wp.static(schur):
+            n_t = sch.nt[wid]
+            n_tb = sch.ne[wid] + nb - nf
         for step in range(chunk):
-            for a in range(lane, n, LANES):  # steps 1-2: right-hand side (into xs; CR's into y), linear solve
+            for i in range(lane, n_t, LANES):  # steps 1-2: right-hand side (into xs; CR's into y), linear solve
+                a = i
+                if wp.static(schur):
+                    a = sch.rows[t0 + i]
                 rhs = lane_rhs(rs, row_info, problem.ct_mu, problem.vt, carry.x_p, carry.y_hat, carry.z_hat,
                                rb + a * rs, a, nf, nb, rho_free, rho_box, rho_w, eta)
                 if wp.static(cr):
                     y[rb + a * rs] = rhs
+                elif wp.static(schur):
+                    sset(ys, i, rhs)  # by T's index (schur_apply)
                 else:
                     sset(xs, a, rhs)
             if wp.static(cr):
@@ -877,11 +1473,17 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                          problem.inv_inertia_w, problem.cr_ent, problem.cr_end, carry.x_p, y, wid, rb, n, problem.nblk,
                          lane, eta + rho_free, eta + rho_box, eta + rho_w, problem.cr_budget, x, cr_r, cr_p, cr_Ap,
                          cr_Ar, cr_w)
+            elif wp.static(schur):
+                sync()
+                schur_apply(sch, wid, lane, xs, ys)
             else:
                 sync()
                 solve(m, sp, rs, wid, n, lane, xs, ys)
             acc = Residuals()  # steps 3-4: projection, dual update and the residuals: box rows, then contact triples
-            for a in range(lane, nb, LANES):
+            for i in range(lane, n_tb, LANES):
+                a = i
+                if wp.static(schur):
+                    a = sch.rows[t0 + i]
                 r = rb + a * rs
                 if wp.static(cr):
                     xa = x[r]
@@ -910,19 +1512,38 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
             k = carry.iters[wid] + 1
             res = outcome(carry.a_p, carry.c_p, carry.k_rho, wid, acc, k, n, nf, rho_w, problem.tol, eta, rho_free,
                           problem.restart_tol)
-            if res.rho != rho_w:  # a new penalty: the factor's tail again, unless a saturation redoes the whole factor
-                rho_w = res.rho
-                sync()  # every thread has read k_rho (outcome) before it changes
-                if wp.static(not cr):
-                    if res.saturates == 0:
-                        factor_tail(m, sp, rs, wid, n, eta + rho_w, lane)
-                if lane == 0:
-                    carry.rho_u[wid] = rho_w
-                    carry.k_rho[wid] = k
-            if res.saturates != 0:  # this thread's own rows of the projection loop above
-                for a in range(lane, nf, LANES):
-                    mark_saturated(problem.lo_s, problem.hi_s, x, carry.z_hat, y, row_info, rb + a * rs, rho_free)
-            for a in range(lane, n, LANES):
+            if wp.static(schur):
+                # the saturated rows' flags, then G for the new penalties (kamino.jax_ref.solver._run refactorises
+                # before the next iteration); the condition is the world's (block reductions), so every thread meets
+                # the barriers
+                if res.saturates != 0:  # the effort-limited rows: T's first
+                    for i in range(lane, sch.ne[wid], LANES):
+                        mark_saturated(problem.lo_s, problem.hi_s, x, carry.z_hat, y, row_info,
+                                       rb + sch.rows[t0 + i] * rs, rho_free)
+                if res.rho != rho_w or res.saturates != 0:
+                    sync()  # every thread has read k_rho (outcome) and set its flags
+                    if lane == 0 and res.rho != rho_w:
+                        carry.rho_u[wid] = res.rho
+                        carry.k_rho[wid] = k
+                    rho_w = res.rho
+                    schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_w)
+            else:
+                if res.rho != rho_w:  # a new penalty: the factor's tail again, unless a saturation redoes it all
+                    rho_w = res.rho
+                    sync()  # every thread has read k_rho (outcome) before it changes
+                    if wp.static(not cr):
+                        if res.saturates == 0:
+                            factor_tail(m, sp, rs, wid, n, eta + rho_w, lane)
+                    if lane == 0:
+                        carry.rho_u[wid] = rho_w
+                        carry.k_rho[wid] = k
+                if res.saturates != 0:  # this thread's own rows of the projection loop above
+                    for a in range(lane, nf, LANES):
+                        mark_saturated(problem.lo_s, problem.hi_s, x, carry.z_hat, y, row_info, rb + a * rs, rho_free)
+            for i in range(lane, n_t, LANES):
+                a = i
+                if wp.static(schur):
+                    a = sch.rows[t0 + i]
                 if wp.static(cr):
                     advance_row(y, z, carry.x_p, carry.y_p, carry.z_p, carry.y_hat, carry.z_hat, rb + a * rs,
                                 x[rb + a * rs], res.mom)
@@ -936,10 +1557,10 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
                             carry.done, carry.remaining, wid, k, acc, res, finished)
                 if res.saturates != 0:  # the factor is redone after this launch (CR: the next operator takes rho_box)
                     carry.k_rho[wid] = k
-                    if wp.static(not cr):
+                    if wp.static(not cr and not schur):
                         carry.pending[wid] = 1
             sync()
-            if wp.static(cr):
+            if wp.static(cr or schur):
                 if finished:
                     return
             elif finished or res.saturates != 0:
@@ -949,7 +1570,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
 
 
 def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int | None = None,
-                 inverse: bool = False) -> SimpleNamespace:
+                 inverse: bool = False, schur: bool = False) -> SimpleNamespace:
     """``factor`` (not under ``cr``), ``solve_fixed`` (post-stabilisation) and ``cr_pattern`` (under ``cr``) for
     worlds of up to ``R`` rows; launch each 32-thread kernel with ``wp.launch_tiled(dim=[num_worlds],
     block_dim=LANES)``, ``cr_pattern`` with one thread per world (``wp.launch``). :func:`iterate_kernel` gives
@@ -960,10 +1581,36 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
     ``linear_solve_cr.py``: the vectors in the ``Work`` rows, no shared vectors), after ``cr_pattern`` has grouped the
     world's row blocks by body for the step. With ``filter_E`` (the warm-start filter's staged entries,
     :func:`shared_entries`; ``None``: no filter) also ``filter_factor``, :func:`factor_kernel` for the filter's
-    factor of the fixed rows, and ``warm_start_filter`` (:func:`warm_start_filter_kernel`)."""
+    factor of the fixed rows, and ``warm_start_filter`` (:func:`warm_start_filter_kernel`). With ``schur`` (§7.11)
+    also ``schur_decouple`` (:func:`schur_decouple_kernel`, on ``(worlds, max entries)``) and ``schur``
+    (:func:`schur_kernel`)."""
     filtered = filter_E is not None
     return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E, inverse), inverse=inverse,
                            solve_fixed=solve_fixed_kernel(np_dtype, R),
                            cr_pattern=cr_pattern_kernel(np_dtype) if cr else None, R=R, E=E, cr=cr,
                            filter_factor=factor_kernel(np_dtype, filter_E) if filtered else None,
-                           warm_start_filter=warm_start_filter_kernel(np_dtype, R) if filtered else None)
+                           warm_start_filter=warm_start_filter_kernel(np_dtype, R) if filtered else None,
+                           schur_decouple=schur_decouple_kernel(np_dtype) if schur else None,
+                           schur=schur_kernel(np_dtype) if schur else None)
+
+
+def schur_buffers(np_dtype, device, num_worlds: int, total_rows: int, tm: int, np_max: int, nb_max: int,
+                  eps: float = 0.0, filter_shift: float = 0.0):
+    """A zero-initialised :func:`schur_struct` for ``num_worlds`` worlds of up to ``tm`` reduced rows, ``np_max``
+    fixed positions and ``nb_max`` bodies, over ``total_rows`` row slots (``Work``'s); all sizes 0: the empty one
+    that the iterations take when they do not reduce."""
+    T = builder_types(np_dtype)
+    out = schur_struct(np_dtype)()
+    out.tm, out.np_max, out.nb_max = tm, np_max, nb_max
+    out.eps, out.filter_shift = T.scalar(eps), T.scalar(filter_shift)
+    per_lane = num_worlds * LANES
+
+    def arr(n, dtype=T.scalar):
+        return wp.zeros(max(int(n), 0), dtype=dtype, device=device)
+
+    out.rows, out.nt, out.ne = arr(num_worlds * tm, wp.int32), arr(num_worlds, wp.int32), arr(num_worlds, wp.int32)
+    out.S, out.L, out.G = (arr(num_worlds * tm * tm) for _ in range(3))
+    out.vt = arr(total_rows)
+    out.sb, out.sx = arr(per_lane * np_max), arr(per_lane * np_max)
+    out.su = arr(per_lane * nb_max, T.vec6)
+    return out
