@@ -297,7 +297,8 @@ class SolverConfig:
     """``"schur"`` eliminates the unbounded always-active rows (bilateral joint, loop-closure and coupling rows,
     actuator rows without an effort limit) before PADMM and runs PADMM on the Schur complement of the rest (limit,
     contact and effort-limited actuator rows), then recovers the eliminated impulses (docs/formulation.md §7.11;
-    ``kamino.jax_ref.reduction``). ``"none"``: PADMM on every row. JAX reference only (the Warp backend raises)."""
+    ``kamino.jax_ref.reduction``). ``"none"``: PADMM on every row. The JAX reference, and the Warp backend's
+    32-thread schedule with the sparse factor (``padmm="warp"``, picked by itself then; docs/warp_backend.md)."""
     warm_start: bool = True
     """start PADMM from the previous step's constraint forces (§7.8)."""
     warmstart_scale: float = 1.0
