@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import warp as wp
 
 import kamino
 from kamino.hostmath import quat_to_matrix
@@ -24,6 +25,7 @@ from tests.helpers import (
     JAX_GPU_TIER,
     VARIANTS,
     WARP_DENSE_LLT,
+    WARP_SPARSE_CR,
     tier_marks,
     trajectory_metrics,
     variant_param,
@@ -299,9 +301,22 @@ def test_floating_robot_stands_for_5_s_in_float32(name, variant):
 ANIMATRONIC_JAX_STEPS = round(2.0 / DT)
 
 
+#: Conjugate Residual's animatronic hold in the gpu tier (29 s of CI's 2-core machine): CR is a setting
+#: (``warp.linear_solver="cr"``) the automatic choice takes only on the GPU, and CI checks its kernels against the
+#: one-thread ones (tests/test_warp_lane_padmm.py) and stands the floating robots with it (above)
+WARP_GPU_TIER = (pytest.mark.gpu, pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device for Warp"))
+
+
+def _animatronic_marks(v) -> tuple:
+    """The tier of the animatronic hold's variant ``v``: the reference's run at XLA's default level on the GPU, CR's
+    on the GPU (:data:`WARP_GPU_TIER`)."""
+    if v is JAX:
+        return (pytest.mark.default_xla, *JAX_GPU_TIER)
+    return WARP_GPU_TIER if v is WARP_SPARSE_CR else ()
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("variant", [  # the reference's run: at XLA's default level, on the GPU
-    variant_param(v, marks=(pytest.mark.default_xla, *JAX_GPU_TIER) if v is JAX else ()) for v in VARIANTS])
+@pytest.mark.parametrize("variant", [variant_param(v, marks=_animatronic_marks(v)) for v in VARIANTS])
 def test_animatronic_holds_its_pose_in_float32(variant):
     """Each backend holds the animatronic's builder pose under PD in float32, 5 s on Warp and 2 s on the JAX
     reference (``ANIMATRONIC_JAX_STEPS``). The float32 JAX reference holds the worst joint error under the 1e-5
