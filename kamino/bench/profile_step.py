@@ -2,6 +2,7 @@
 scene at its defaults, after a warm-up run, on both PADMM schedules from the same state.
 
     kamino bench profile_step --scene dr_legs --worlds 4096 --warmup 100 --steps 10 [--padmm thread warp] [--load rl]
+        [--solver reduction=schur]
 
 The worlds are :mod:`kamino.bench.convergence`'s (distinct drive phases; ``--load phases``) or the throughput
 benchmark's under one of its loads (``--load gentle`` or ``rl``, :mod:`kamino.bench.loads`), run ``--warmup`` steps
@@ -27,11 +28,11 @@ from kamino.bench import loads
 from kamino.bench.convergence import SCENES, drive_hook, perturb
 
 
-def _stepper(model, scene, padmm, device):
+def _stepper(model, scene, padmm, device, solver: dict):
     from kamino.warp_backend import backend as wb
     from kamino.warp_backend.pipeline import Stepper
 
-    cfg = kamino.SolverConfig(dt=scene.dt)
+    cfg = kamino.SolverConfig(dt=scene.dt).replace(**solver)
     st = Stepper(model, cfg, np.float32, device, padmm=padmm)
     st.pre_step.clear()
     st.invalidate_graphs()
@@ -107,28 +108,34 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     p.add_argument("--warmup", type=int, default=100)
     p.add_argument("--steps", type=int, default=10)
     p.add_argument("--padmm", nargs="+", default=["thread", "warp"], choices=["thread", "warp"])
+    p.add_argument("--solver", nargs="+", default=[], metavar="F=V",
+                   help="SolverConfig settings by their dotted names (kamino bench's --solver): reduction=schur")
     p.add_argument("--out", type=pathlib.Path)
     args = p.parse_args(argv)
     import warp as wp
+
+    from kamino.bench import throughput
+
+    solver = throughput.solver_overrides(args.solver)
 
     device = wp.get_device()
     if args.load == "phases":
         scene = SCENES[args.scene]
         model = kamino.replicate(scene.build(), args.worlds)
-        steppers = [_stepper(model, scene, padmm, device) for padmm in args.padmm]
+        steppers = [_stepper(model, scene, padmm, device, solver) for padmm in args.padmm]
     else:
-        from kamino.bench import throughput
-
         if args.scene not in {*throughput.SCENES, *throughput.ROBOTS}:
             p.error(f"--load {args.load}: --scene must be a throughput scene, one of "
                     f"{sorted({*throughput.SCENES, *throughput.ROBOTS})}")
+        throughput.SOLVER.clear()
+        throughput.SOLVER.update(solver)
         steppers = [throughput.warp_stepper(args.scene, "default", args.worlds, args.load, padmm=padmm)[0]
                     for padmm in args.padmm]
     steppers[0].run(args.warmup)
     for st in steppers[1:]:
         _copy_state(st, steppers[0])
     rec = {"scene": args.scene, "load": args.load, "num_worlds": args.worlds, "warmup_steps": args.warmup,
-           "device": str(device.name), "rows_max": steppers[0].wm.max_rows, "schedules": {}}
+           "device": str(device.name), "rows_max": steppers[0].wm.max_rows, "solver": solver, "schedules": {}}
     for padmm, st in zip(args.padmm, steppers, strict=True):
         rec["schedules"][padmm] = profile(st, args.steps)
     for padmm, r in rec["schedules"].items():
