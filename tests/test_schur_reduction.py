@@ -221,16 +221,17 @@ def test_schur_rollout_on_the_warp_lanes_keeps_the_loops_closed():
     on the CPU) on :func:`_dr_legs_rollout` from the standing pose (2 worlds x 24 steps, float32): the loops stay as
     closed as with the full solve (largest anchor distance within 2x, the bound of the JAX reference's test above;
     measured 1.85e-6 m against 1.88e-6 m, the JAX reference's 1.86e-6 m and 1.88e-6 m), no world fails, the first
-    step's body velocities agree with the full solve's to ``RESIDUAL_LOOSENING_MAX`` (30) times ``tolerance``
-    (1e-3), as above, and the reduced solve takes the full solve's iterations to 1.5x (measured 28.9 against 21.4 on
-    average; the JAX reference 28.8 against 21.9: the reduced problem's iterations are the reference's,
-    docs/formulation.md §7.11)."""
+    step's body velocities agree with the full solve's to twice ``RESIDUAL_LOOSENING_MAX`` (30) times ``tolerance``
+    (1e-3): each solve stops within its own 30 tolerances on a light row, so the two may differ by twice that
+    (measured 0.028 rad/s; the JAX reference's two solves 0.036), and the reduced solve takes the full solve's
+    iterations to 1.5x (measured 28.9 against 21.4 on average; the JAX reference 28.8 against 21.9: the reduced
+    problem's iterations are the reference's, docs/formulation.md §7.11)."""
     pytest.importorskip("warp")
     u_full, closure_full, failed_full, it_full = _dr_legs_rollout("none", 2, 24, backend="warp", random_start=False)
     u_red, closure_red, failed_red, it_red = _dr_legs_rollout("schur", 2, 24, backend="warp", random_start=False)
     assert failed_full == 0 and failed_red == 0
     assert closure_red <= 2.0 * closure_full, (closure_red, closure_full)
-    assert np.abs(u_red - u_full).max() <= 30 * 1e-3, np.abs(u_red - u_full).max()
+    assert np.abs(u_red - u_full).max() <= 2 * 30 * 1e-3, np.abs(u_red - u_full).max()
     assert it_red <= 1.5 * it_full, (it_red, it_full)
 
 
