@@ -166,3 +166,23 @@ def spinning_chain(model: kamino.Model, state: kamino.State, rates: tuple[float,
 
 #: a 4-link chain whose links turn at up to 200 rad/s relative to each other (0.8 rad per step at the default dt)
 SPIN_RATES = (0.0, 100.0, -150.0, 200.0)
+
+
+def stepper_delassus(st, n: int, rs: int = 1) -> np.ndarray:
+    """World 0's Delassus matrix ``D = J M^-1 J^T + R`` (docs/formulation.md §7.1) on the first ``n`` rows of a Warp
+    stepper (``kamino.warp_backend.pipeline.Stepper``; rows ``rs`` apart in its work arrays), in float64 from the
+    stepper's row Jacobian blocks, regularisation and world-frame inverse inertias: the matrix its factor assembles."""
+    w, m, nblk = st.work, st.wm.arrays, st.wm.blocks_per_row
+    J = w.row_J.numpy().astype(np.float64).reshape(-1, nblk, 6)[: n * rs : rs]
+    body = w.row_body.numpy().reshape(-1, nblk)[: n * rs : rs]
+    reg = w.reg.numpy().astype(np.float64)[: n * rs : rs]
+    nb = st.wm.max_bodies
+    Minv = np.zeros((nb, 6, 6))
+    Minv[:, :3, :3] = m.inv_mass.numpy()[:nb, None, None] * np.eye(3)
+    Minv[:, 3:, 3:] = w.inv_inertia_w.numpy().reshape(-1, 3, 3)[:nb]
+    Jd = np.zeros((n, nb, 6))
+    for a in range(n):
+        for k in range(nblk):
+            if body[a, k] >= 0:
+                Jd[a, body[a, k]] += J[a, k]
+    return np.einsum("abi,bij,cbj->ac", Jd, Minv, Jd) + np.diag(reg)

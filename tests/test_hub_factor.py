@@ -19,6 +19,7 @@ from kamino.warp_backend.model_data import model_struct
 from kamino.warp_backend.pipeline import Stepper
 from kamino.warp_backend.types import types_of
 from kamino.warp_backend.workspace import saturated_rows
+from tests.helpers import stepper_delassus
 
 
 def _stepper(model, cfg, dtype, padmm, hub_min_rows, monkeypatch, steps):
@@ -85,21 +86,10 @@ def _dense_A(st, shift_f, shift_b, eta):
     """World 0's ``A = P (J M^-1 J^T + R) P + shifts`` on its active rows, in float64, from the stepper's rows (the
     matrix that ``linear_solve`` assembles and factorises, without hubs)."""
     w, m = st.work, st.wm.arrays
-    nblk, rs, n = st.wm.blocks_per_row, w.row_stride, int(w.n_rows.numpy()[0])
-    J = w.row_J.numpy().astype(np.float64).reshape(-1, nblk, 6)[: n * rs : rs]
-    body = w.row_body.numpy().reshape(-1, nblk)[: n * rs : rs]
-    P, reg = (a.numpy().astype(np.float64)[: n * rs : rs] for a in (w.P, w.reg))
+    rs, n = w.row_stride, int(w.n_rows.numpy()[0])
+    P = w.P.numpy().astype(np.float64)[: n * rs : rs]
     sat = saturated_rows(w.row_info.numpy())[: n * rs : rs]
-    nb = st.wm.max_bodies
-    Minv = np.zeros((nb, 6, 6))
-    Minv[:, :3, :3] = m.inv_mass.numpy()[:nb, None, None] * np.eye(3)
-    Minv[:, 3:, 3:] = w.inv_inertia_w.numpy().reshape(-1, 3, 3)[:nb]
-    Jd = np.zeros((n, nb, 6))
-    for a in range(n):
-        for k in range(nblk):
-            if body[a, k] >= 0:
-                Jd[a, body[a, k]] += J[a, k]
-    D = np.einsum("abi,bij,cbj->ac", Jd, Minv, Jd) + np.diag(reg)
+    D = stepper_delassus(st, n, rs)
     nf = int(m.row_fixed.numpy()[0])
     shift = np.where(np.arange(n) < nf, np.where(sat != 0, shift_b, shift_f), eta + float(w.rho_u.numpy()[0]))
     return P[:, None] * D * P[None, :] + np.diag(shift), n, rs

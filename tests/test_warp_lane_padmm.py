@@ -13,6 +13,7 @@ from kamino.warp_backend import backend as wb
 from kamino.warp_backend import linear_solve, linear_solve_pattern, solver_lanes
 from kamino.warp_backend.pipeline import Stepper
 from kamino.warp_backend.workspace import saturated_rows
+from tests.helpers import stepper_delassus
 
 
 def _run(model, cfg, padmm, steps, dtype=np.float64, device="cpu"):
@@ -246,21 +247,10 @@ def _world_problem(st, f0, v0):
     from kamino.warp_backend.workspace import ROW_SRC_MASK
 
     w, m, cfg = st.work, st.wm.arrays, st.cfg
-    nblk, n, nbox = st.wm.blocks_per_row, int(w.n_rows.numpy()[0]), int(w.n_box.numpy()[0])
-    J = w.row_J.numpy().astype(np.float64).reshape(-1, nblk, 6)[:n]
-    body = w.row_body.numpy().reshape(-1, nblk)[:n]
-    P, reg, vt, lo_s, hi_s = (a.numpy().astype(np.float64)[:n] for a in (w.P, w.reg, w.vt, w.lo_s, w.hi_s))
+    n, nbox = int(w.n_rows.numpy()[0]), int(w.n_box.numpy()[0])
+    P, vt, lo_s, hi_s = (a.numpy().astype(np.float64)[:n] for a in (w.P, w.vt, w.lo_s, w.hi_s))
     f0, v0 = np.asarray(f0, np.float64)[:n], np.asarray(v0, np.float64)[:n]
-    nb = st.wm.max_bodies
-    Minv = np.zeros((nb, 6, 6))
-    Minv[:, :3, :3] = m.inv_mass.numpy()[:nb, None, None] * np.eye(3)
-    Minv[:, 3:, 3:] = w.inv_inertia_w.numpy().reshape(-1, 3, 3)[:nb]
-    Jd = np.zeros((n, nb, 6))
-    for a in range(n):
-        for k in range(nblk):
-            if body[a, k] >= 0:
-                Jd[a, body[a, k]] += J[a, k]
-    D = np.einsum("abi,bij,cbj->ac", Jd, Minv, Jd) + np.diag(reg)
+    D = stepper_delassus(st, n)
     lo = np.where(np.isfinite(lo_s), lo_s * P, lo_s)[:nbox]
     hi = np.where(np.isfinite(hi_s), hi_s * P, hi_s)[:nbox]
     mu = w.ct_mu.numpy().astype(np.float64)[w.row_info.numpy()[nbox:n:3] & ROW_SRC_MASK]
