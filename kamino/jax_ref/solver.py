@@ -557,18 +557,15 @@ def solve(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Ar
         # the derivative of v+ = D lambda + v_f at the solution (the value is PADMM's, unchanged: w - w = 0)
         w = D @ (p.P * y) + v_f
         v = v + (w - jax.lax.stop_gradient(w))
-    k = out.k
-    return PADMMResult(
-        impulse=jnp.where(row_mask, p.P * y, 0.0),
-        velocity=jnp.where(row_mask, v, 0.0),
-        iterations=k,
-        primal_residual=out.r_p,
-        dual_residual=out.r_d,
-        complementarity_residual=out.r_c,
-        converged=out.converged,
-        penalty=out.rho_u,
-        saturated=out.sat,
-    )
+    return _result(out, jnp.where(row_mask, p.P * y, 0.0), jnp.where(row_mask, v, 0.0))
+
+
+def _result(out: Carry, impulse: jax.Array, velocity: jax.Array) -> PADMMResult:
+    """The :class:`PADMMResult` of a solve whose last carry is ``out``, with its unscaled ``impulse`` and
+    ``velocity``."""
+    return PADMMResult(impulse=impulse, velocity=velocity, iterations=out.k, primal_residual=out.r_p,
+                       dual_residual=out.r_d, complementarity_residual=out.r_c, converged=out.converged,
+                       penalty=out.rho_u, saturated=out.sat)
 
 
 def _solve_schur(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
@@ -633,17 +630,7 @@ def _solve_schur(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu:
         # the derivative of v+ = D lambda + v_f at the solution, as in solve
         w = D @ lam + v_f
         v = jax.lax.stop_gradient(v) + (w - jax.lax.stop_gradient(w))
-    return PADMMResult(
-        impulse=jnp.where(row_mask, lam, 0.0),
-        velocity=jnp.where(row_mask, v, 0.0),
-        iterations=out.k,
-        primal_residual=out.r_p,
-        dual_residual=out.r_d,
-        complementarity_residual=out.r_c,
-        converged=out.converged,
-        penalty=out.rho_u,
-        saturated=out.sat,
-    )
+    return _result(out, jnp.where(row_mask, lam, 0.0), jnp.where(row_mask, v, 0.0))
 
 
 def tangent_shift(dtype) -> float:
