@@ -277,9 +277,10 @@ def _standing_cases() -> list:
 
     olaf on the dense factor is skipped (``OLAF_DENSE``): on the CPU one thread per world factors olaf's system
     of up to 299 rows, 21-24 s of one CI worker for the 3 s. The dense path stands dr_legs (up to 240 rows) and bdx, and
-    olaf stands on the sparse factor, on CR and on the reference."""
-    return [pytest.param(name, v, id=f"{name}-{v.id}",
-                         marks=[*tier_marks(v), *([OLAF_DENSE] if (name, v) == ("olaf", WARP_DENSE_LLT) else [])])
+    olaf stands on the sparse factor and on CR. olaf on the reference is in the gpu tier (18 s of a CI worker), as
+    the animatronic's hold below: the reference stands dr_legs and bdx in CI."""
+    extra = {("olaf", WARP_DENSE_LLT): [OLAF_DENSE], ("olaf", JAX): list(JAX_GPU_TIER)}
+    return [pytest.param(name, v, id=f"{name}-{v.id}", marks=[*tier_marks(v), *extra.get((name, v), [])])
             for name in FLOATING for v in VARIANTS]
 
 
