@@ -882,72 +882,166 @@ def schur_decouple_kernel(np_dtype):
     return schur_decouple
 
 
+#: Entries of a row of ``L_f`` whose indices, values and vector entries a thread of the elimination's sweeps
+#: (:func:`lane_solve_func`) loads together.
+SWEEP_BATCH = 8
+SweepIdx = wp.types.vector(length=SWEEP_BATCH, dtype=wp.int32)
+
+#: The most scalars of the elimination's per-thread vectors (``LANES`` times the fixed positions) that
+#: :func:`schur_kernel` keeps in shared memory; larger worlds keep them in device memory (``Schur.sx``).
+SCHUR_VECTORS_MAX = 8192
+
+
+def schur_vectors(np_max: int) -> int:
+    """The shared length of the elimination's per-thread vectors (:func:`thread_vector_funcs`) for worlds of up to
+    ``np_max`` fixed positions: ``LANES`` vectors of ``np_max`` rounded up to a multiple of ``LANES`` (so that similar
+    scenes share a compiled module), or 0 above :data:`SCHUR_VECTORS_MAX`."""
+    X = LANES * shared_rows(np_max)
+    return X if X <= SCHUR_VECTORS_MAX else 0
+
+
 @functools.cache
-def lane_solve_func(np_dtype):
-    """``x <- C^-1 x`` with the fixed rows' factor ``C = L_f L_f^T`` by one thread (§8.1).
-    ``lane_solve(sp, wid, vb, x, xb)``: ``x`` in position order from ``xb``, ``LANES`` apart (the world's threads'
-    vectors interleaved: they walk the same pattern together, so their loads coalesce)."""
-    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
+def thread_vector_funcs(np_dtype, X: int):
+    """A thread's vector of the elimination's solves (§7.11), in position order with the world's threads' vectors
+    interleaved (entry ``p`` at ``xi + p LANES``): in shared memory (``X > 0`` scalars, ``xi`` the thread's lane) or
+    in ``Schur.sx`` (``xi`` its interleaved start there). ``SimpleNamespace(vget, vset)``."""
+    scalar = builder_types(np_dtype).scalar
     farr = wp.array(dtype=scalar)
+    XL = max(X, 1)
+    XVec = shared_vector(np_dtype, XL)
+    sset, sget = shared_set_func(np_dtype, XL), shared_get_func(np_dtype, XL)
 
     @wp.func
-    def lane_solve(sp: SP, wid: int, vb: int, x: farr, xb: int):
+    def vget(sx: farr, xv: XVec, xi: int, p: int) -> scalar:
+        """Entry ``p`` of the thread's vector."""
+        if wp.static(X > 0):
+            return sget(xv, xi + p * LANES)
+        return sx[xi + p * LANES]
+
+    @wp.func
+    def vset(sx: farr, xv: XVec, xi: int, p: int, v: scalar):
+        """Entry ``p`` of the thread's vector := ``v``."""
+        if wp.static(X > 0):
+            sset(xv, xi + p * LANES, v)
+        else:
+            sx[xi + p * LANES] = v
+
+    return SimpleNamespace(vget=vget, vset=vset)
+
+
+@functools.cache
+def lane_solve_func(np_dtype, E: int, X: int):
+    """``x <- C^-1 x`` with the fixed rows' factor ``C = L_f L_f^T`` by one thread (§8.1).
+    ``lane_solve(sp, wid, vb, lv, sx, xv, xi)``: ``L_f`` staged in ``lv`` (``E > 0``, :func:`staged_get_func`) or in
+    device memory, the thread's vector in ``xv`` or ``sx`` (:func:`thread_vector_funcs` of ``X``)."""
+    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
+    farr = wp.array(dtype=scalar)
+    LVec = shared_vector(np_dtype, max(E, 1))
+    XVec = shared_vector(np_dtype, max(X, 1))
+    fget = staged_get_func(np_dtype, E)
+    tv = thread_vector_funcs(np_dtype, X)
+    vget, vset = tv.vget, tv.vset
+    SweepVal = wp.types.vector(length=SWEEP_BATCH, dtype=scalar)
+    zero = scalar(0.0)
+
+    @wp.func
+    def forward_batch(sp: SP, e0: int, vb: int, kb: int, k1: int, lv: LVec, sx: farr, xv: XVec, xi: int,
+                      s: scalar) -> scalar:
+        """``s - sum_k L_k x_col(k)`` over the ``SWEEP_BATCH`` entries ``k`` of a row from ``kb`` that lie before its
+        diagonal ``k1``, subtracted in the entries' order: the batch's column indices, then its values and vector
+        entries, each loaded together (indices clamped to the row, the surplus values zero), so that the batch waits
+        on two load latencies instead of two per entry."""
+        cv = SweepIdx()
+        for r in range(SWEEP_BATCH):
+            cv[r] = sp.col[e0 + wp.min(kb + r, k1 - 1)]
+        lvv = SweepVal()
+        xvv = SweepVal()
+        for r in range(SWEEP_BATCH):
+            lvv[r] = wp.where(kb + r < k1, fget(sp, vb, wp.min(kb + r, k1 - 1), lv), zero)
+            xvv[r] = vget(sx, xv, xi, cv[r])
+        for r in range(SWEEP_BATCH):
+            s -= lvv[r] * xvv[r]
+        return s
+
+    @wp.func
+    def backward_batch(sp: SP, e0: int, vb: int, kb: int, k1: int, lv: LVec, sx: farr, xv: XVec, xi: int,
+                       xp: scalar):
+        """``x_col(k) -= L_k x_p`` over the ``SWEEP_BATCH`` entries ``k`` of row ``p`` from ``kb`` that lie before its
+        diagonal ``k1``, loaded together as in ``forward_batch`` (a row's columns are distinct, so its entries' updates
+        are independent)."""
+        cv = SweepIdx()
+        for r in range(SWEEP_BATCH):
+            cv[r] = sp.col[e0 + wp.min(kb + r, k1 - 1)]
+        lvv = SweepVal()
+        xvv = SweepVal()
+        for r in range(SWEEP_BATCH):
+            lvv[r] = fget(sp, vb, wp.min(kb + r, k1 - 1), lv)
+            xvv[r] = vget(sx, xv, xi, cv[r])
+        for r in range(SWEEP_BATCH):
+            if kb + r < k1:
+                vset(sx, xv, xi, cv[r], xvv[r] - lvv[r] * xp)
+
+    @wp.func
+    def lane_solve(sp: SP, wid: int, vb: int, lv: LVec, sx: farr, xv: XVec, xi: int):
         """The forward and the backward substitution of ``linear_solve.solve_inplace`` on the fixed positions
-        alone, in position order (``x[xb + p LANES]``), by the calling thread: with hubs the right-hand side of their
-        unknowns is 0 and ``y`` is negated there between the sweeps. The threads of a world each solve their own
-        vector: no barrier."""
+        alone, by the calling thread, row by row in batches of ``SWEEP_BATCH`` entries: with hubs the right-hand side
+        of their unknowns is 0 and ``y`` is negated there between the sweeps. The threads of a world each solve their
+        own vector: no barrier; they walk the same pattern together, so their loads of ``L_f`` are one broadcast and
+        those of their vectors one coalesced access (or conflict-free in shared memory)."""
         npos = sp.n_pos[wid]
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
         for p in range(npos):
-            s = x[xb + p * LANES]
+            s = vget(sx, xv, xi, p)
             k1 = sp.row_ptr[p0 + p + 1] - 1
-            for k in range(sp.row_ptr[p0 + p], k1):
-                s -= sp.val[vb + k * sp.val_stride] * x[xb + sp.col[e0 + k] * LANES]
-            x[xb + p * LANES] = s / sp.val[vb + k1 * sp.val_stride]
+            for kb in range(sp.row_ptr[p0 + p], k1, SWEEP_BATCH):
+                s = forward_batch(sp, e0, vb, kb, k1, lv, sx, xv, xi, s)
+            vset(sx, xv, xi, p, s / fget(sp, vb, k1, lv))
         for p in range(nf, npos):
-            x[xb + p * LANES] = -x[xb + p * LANES]
+            vset(sx, xv, xi, p, -vget(sx, xv, xi, p))
         for pp in range(npos):
             p = npos - 1 - pp
             k1 = sp.row_ptr[p0 + p + 1] - 1
-            xp = x[xb + p * LANES] / sp.val[vb + k1 * sp.val_stride]
-            x[xb + p * LANES] = xp
-            for k in range(sp.row_ptr[p0 + p], k1):
-                q = xb + sp.col[e0 + k] * LANES
-                x[q] = x[q] - sp.val[vb + k * sp.val_stride] * xp
+            xp = vget(sx, xv, xi, p) / fget(sp, vb, k1, lv)
+            vset(sx, xv, xi, p, xp)
+            for kb in range(sp.row_ptr[p0 + p], k1, SWEEP_BATCH):
+                backward_batch(sp, e0, vb, kb, k1, lv, sx, xv, xi, xp)
 
     return lane_solve
 
 
 @functools.cache
-def ff_solve_func(np_dtype):
-    """``A^-1 b`` on ``F`` with ``SCHUR_REFINEMENT_STEPS`` refinement steps (§7.11).
-    ``ff_solve(sp, wid, vb, sb, sx, xb, eps)``."""
+def ff_solve_func(np_dtype, E: int, X: int):
+    """``A^-1 b`` on ``F`` with ``SCHUR_REFINEMENT_STEPS`` refinement steps by one thread (§7.11).
+    ``ff_solve(sp, wid, vb, lv, sb, xb, sx, xv, xi, eps)`` (:func:`lane_solve_func` of ``E``, ``X``)."""
     scalar, SP = builder_types(np_dtype).take("scalar", "SP")
     farr = wp.array(dtype=scalar)
-    lane_solve = lane_solve_func(np_dtype)
+    LVec = shared_vector(np_dtype, max(E, 1))
+    XVec = shared_vector(np_dtype, max(X, 1))
+    lane_solve = lane_solve_func(np_dtype, E, X)
+    tv = thread_vector_funcs(np_dtype, X)
+    vget, vset = tv.vget, tv.vset
     zero = scalar(0.0)
 
     @wp.func
-    def ff_solve(sp: SP, wid: int, vb: int, sb: farr, sx: farr, xb: int, eps: scalar):
-        """``x = A^-1 b`` (``b``: ``sb``, zero off ``F``; ``x``: ``sx``; position order from ``xb``, ``LANES``
-        apart) with the factor ``C = A + eps I`` and the refinement of ``kamino.jax_ref.reduction.ff_solve``,
-        ``x_{k+1} = x_k + C^-1 (b - A x_k)``, written as ``x_{k+1} = C^-1 (b + eps x_k)`` (the same vector: ``A = C -
-        eps I``), which needs no product with ``A``: ``x_0 = C^-1 b`` and ``SCHUR_REFINEMENT_STEPS`` more solves. The
-        effort-limited rows' identity block keeps them at zero; the hubs' unknowns take a zero right-hand side in
-        every solve."""
+    def ff_solve(sp: SP, wid: int, vb: int, lv: LVec, sb: farr, xb: int, sx: farr, xv: XVec, xi: int, eps: scalar):
+        """``x = A^-1 b`` (``b``: ``sb`` from ``xb``, zero off ``F``; ``x``: the thread's vector) with the factor ``C
+        = A + eps I`` and the refinement of ``kamino.jax_ref.reduction.ff_solve``, ``x_{k+1} = x_k + C^-1 (b - A
+        x_k)``, written as ``x_{k+1} = C^-1 (b + eps x_k)`` (the same vector: ``A = C - eps I``), which needs no
+        product with ``A``: ``x_0 = C^-1 b`` and ``SCHUR_REFINEMENT_STEPS`` more solves. The effort-limited rows'
+        identity block keeps them at zero; the hubs' unknowns take a zero right-hand side in every solve."""
         npos = sp.n_pos[wid]
         nf = sp.n_fixed[wid]
         for p in range(npos):
-            sx[xb + p * LANES] = sb[xb + p * LANES]
-        lane_solve(sp, wid, vb, sx, xb)
+            vset(sx, xv, xi, p, sb[xb + p * LANES])
+        lane_solve(sp, wid, vb, lv, sx, xv, xi)
         for _ in range(SCHUR_REFINEMENT_STEPS):
             for p in range(nf):
-                sx[xb + p * LANES] = sb[xb + p * LANES] + eps * sx[xb + p * LANES]
+                vset(sx, xv, xi, p, sb[xb + p * LANES] + eps * vget(sx, xv, xi, p))
             for p in range(nf, npos):
-                sx[xb + p * LANES] = zero
-            lane_solve(sp, wid, vb, sx, xb)
+                vset(sx, xv, xi, p, zero)
+            lane_solve(sp, wid, vb, lv, sx, xv, xi)
 
     return ff_solve
 
@@ -1141,24 +1235,32 @@ def filter_effort_rows_func(np_dtype):
     return filter_effort_rows
 
 
-#: :func:`schur_kernel`'s modes: the elimination (once per step), the reduced right-hand side again (after the
-#: curvature refinement changed ``v_f``), the recovery of ``lambda_F``
+#: The Schur reduction's per-step launches: the elimination (:func:`schur_kernel`, once per step), the reduced
+#: right-hand side again (after the curvature refinement changed ``v_f``) and the recovery of ``lambda_F`` (the modes
+#: of :func:`schur_solve_kernel`)
 SCHUR_ELIMINATE, SCHUR_RHS, SCHUR_RECOVER = 0, 1, 2
 
 
 @functools.cache
-def schur_kernel(np_dtype):
-    """The Schur reduction's per-step work with the world's 32 threads (§7.11).
-    ``schur(m, mode, nblk, eta, rho_free, rho_box, row_stride, sp, n_rows, frozen, row_body, row_J, reg, P, vt,
+def schur_kernel(np_dtype, E: int = 0, X: int = 0):
+    """The Schur reduction's elimination with the world's 32 threads (§7.11), once per step.
+    ``schur(m, nblk, eta, rho_free, rho_box, row_stride, sp, n_rows, frozen, row_body, row_J, reg, P, vt,
     inv_inertia_w, lo_s, hi_s, row_info, rho_u, sch, p_ref, x, x_p, y_p, y_hat, z_p, z_hat, impulse, velocity,
-    failed)``, launched tiled: one block of ``LANES`` threads per world."""
+    failed)``, launched tiled: one block of ``LANES`` threads per world. With ``E > 0`` the world's ``L_f`` (up to
+    ``E`` entries, :func:`shared_entries`) and with ``X > 0`` the threads' solution vectors (:func:`schur_vectors`)
+    are staged in shared memory, so that the sweeps of :func:`lane_solve_func` wait on shared memory instead of
+    device memory; else they stay in device memory (``sp.val``, ``Schur.sx``)."""
     scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     Schur = schur_struct(np_dtype)
     bases = sparse_llt_kernels(np_dtype).bases
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
     free_row = free_row_func(np_dtype)
-    ff_solve = ff_solve_func(np_dtype)
+    EL, XL = max(E, 1), max(X, 1)
+    XVec = shared_vector(np_dtype, XL)
+    lset = shared_set_func(np_dtype, EL)
+    ff_solve = ff_solve_func(np_dtype, E, X)
+    vget = thread_vector_funcs(np_dtype, X).vget
     bf = body_funcs(np_dtype)
     add_row, row_dot, inv_mass = bf.add_row, bf.row_dot, bf.inv_mass
     schur_inverse = schur_inverse_func(np_dtype)
@@ -1168,10 +1270,10 @@ def schur_kernel(np_dtype):
 
     @wp.func
     def rhs_f(sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, vt: farr, P: farr,
-              row_body: iarr, row_J: wp.array(dtype=vec6), nblk: int, b0: int, xb: int, ub: int, mode: int):
-        """The right-hand side on ``F`` (position order in ``sch.sb``): ``P_F D_Fc P_c`` (``mode`` 0, ``u =
-        M^-1 J_c^T P_c`` in ``sch.su``), ``P v_F`` (1) or ``-(P v_F + P_F D_FT lambda_T)`` (2, ``u = M^-1 J_T^T
-        lambda_T``); zero on the effort-limited rows and the hubs' unknowns."""
+              row_body: iarr, row_J: wp.array(dtype=vec6), nblk: int, b0: int, xb: int, ub: int, column: int):
+        """The thread's right-hand side on ``F`` (position order in ``sch.sb`` from ``xb``): ``P_F D_Fc P_c``
+        (``column``, ``u = M^-1 J_c^T P_c`` in ``sch.su``) or ``P v_F``; zero on the effort-limited rows and the hubs'
+        unknowns."""
         nf = sp.n_fixed[wid]
         q0 = sp.perm_start[wid]
         for p in range(sp.n_pos[wid]):
@@ -1179,26 +1281,24 @@ def schur_kernel(np_dtype):
             if p < nf:
                 r = rb + sp.perm[q0 + p] * rs
                 if free_row(lo_s, hi_s, r):
-                    if mode == 0:
+                    if column != 0:
                         v = P[r] * row_dot(sch.su, ub, b0, row_body, row_J, r, nblk)
-                    elif mode == 1:
-                        v = vt[r]
                     else:
-                        v = -(vt[r] + P[r] * row_dot(sch.su, ub, b0, row_body, row_J, r, nblk))
+                        v = vt[r]
             sch.sb[xb + p * LANES] = v
 
     @wp.func
     def times_x(m: M, sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, P: farr,
                 row_body: iarr, row_J: wp.array(dtype=vec6), inv_inertia_w: wp.array(dtype=mat33), nblk: int, b0: int,
-                nb: int, xb: int, ub: int):
-        """``u = M^-1 J_F^T P_F x`` from the solve's ``x`` (``sch.sx``): ``P_T D_TF P_F x = P_T J_T u``."""
+                nb: int, ub: int, xv: XVec, xi: int):
+        """``u = M^-1 J_F^T P_F x`` from the thread's solution ``x``: ``P_T D_TF P_F x = P_T J_T u``."""
         nf = sp.n_fixed[wid]
         q0 = sp.perm_start[wid]
         inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
         for p in range(nf):
             r = rb + sp.perm[q0 + p] * rs
             if free_row(lo_s, hi_s, r):
-                add_row(sch.su, ub, b0, row_body, row_J, r, nblk, P[r] * sch.sx[xb + p * LANES])
+                add_row(sch.su, ub, b0, row_body, row_J, r, nblk, P[r] * vget(sch.sx, xv, xi, p))
         inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -1206,7 +1306,7 @@ def schur_kernel(np_dtype):
         # model (read only)
         m: M,
         # in
-        mode: int, nblk: int, eta: scalar, rho_free: scalar, rho_box: scalar,
+        nblk: int, eta: scalar, rho_free: scalar, rho_box: scalar,
         row_stride: int,
         sp: SP,  # L_f of A + eps I (schur_decouple, factor_kernel on the fixed rows; read)
         n_rows: iarr, frozen: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr, P: farr, vt: farr,
@@ -1217,13 +1317,11 @@ def schur_kernel(np_dtype):
         x: farr, x_p: farr, y_p: farr, y_hat: farr, z_p: farr, z_hat: farr,  # the warm start (also read)
         impulse: farr, velocity: farr, failed: iarr,  # padmm_finish's (also read)
     ):
-        """``mode`` :data:`SCHUR_ELIMINATE` (after ``padmm_init``): the rows of ``T``, the residual scale ``P_ref``
-        over them, the warm start zero on ``F``, ``S~ = P_T D_TT P_T - P_T D_TF A^-1 D_FT P_T`` symmetrised and
-        ``P v'_T = P v_T - P_T D_TF A^-1 P v_F`` (§7.11 (S), the columns of ``T`` and the right-hand side one per
-        thread, :func:`ff_solve_func`), the warm-start filter of the effort-limited rows
-        (:func:`filter_effort_rows_func`) and ``G`` (:func:`schur_inverse_func`). :data:`SCHUR_RHS`: ``P v'_T``
-        again. :data:`SCHUR_RECOVER` (after ``padmm_finish``): ``lambda_F = -P_F A^-1 (P v_F + P_F D_FT lambda_T)``
-        (§7.11 (R)) and ``v+ = D lambda + v_f`` on ``F``; a non-finite impulse fails the world."""
+        """After ``padmm_init``: the rows of ``T``, the residual scale ``P_ref`` over them, the warm start zero on
+        ``F``, ``S~ = P_T D_TT P_T - P_T D_TF A^-1 D_FT P_T`` symmetrised and ``P v'_T = P v_T - P_T D_TF A^-1 P v_F``
+        (§7.11 (S), the columns of ``T`` and the right-hand side one per thread, :func:`ff_solve_func`), the
+        warm-start filter of the effort-limited rows (:func:`filter_effort_rows_func`) and ``G``
+        (:func:`schur_inverse_func`)."""
         rs = row_stride
         wid, lane = wp.tid()
         n = n_rows[wid]
@@ -1239,117 +1337,265 @@ def schur_kernel(np_dtype):
         nb = m.body_count[wid]
         xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
         ub = wid * LANES * sch.nb_max + lane
-        if mode == SCHUR_ELIMINATE:
-            if lane == 0:  # the rows of T, ascending: the effort-limited fixed rows, then the limit and contact rows
-                cnt = int(0)
-                for a in range(nf):
-                    if not free_row(lo_s, hi_s, rb + a * rs):
-                        if cnt < tm:
-                            sch.rows[t0 + cnt] = a
-                        cnt += 1
-                sch.ne[wid] = wp.min(cnt, tm)
-                for a in range(nf, n):
+        xi = xb  # the thread's solution vector: in Schur.sx, or in shared memory (thread_vector_funcs)
+        if wp.static(X > 0):
+            xi = lane
+        lv = wp.tile_zeros(shape=(EL,), dtype=scalar, storage="shared")
+        xv = wp.tile_zeros(shape=(XL,), dtype=scalar, storage="shared")
+        if wp.static(E > 0):
+            for k in range(lane, sp.nnz[wid], LANES):
+                lset(lv, k, sp.val[vb + k * sp.val_stride])
+        if lane == 0:  # the rows of T, ascending: the effort-limited fixed rows, then the limit and contact rows
+            cnt = int(0)
+            for a in range(nf):
+                if not free_row(lo_s, hi_s, rb + a * rs):
                     if cnt < tm:
                         sch.rows[t0 + cnt] = a
                     cnt += 1
-                if cnt > tm:  # more rows than the capacity (not expected: Stepper sizes it)
-                    failed[wid] = 1
-                sch.nt[wid] = wp.min(cnt, tm)
-            pref = zero
-            for a in range(lane, nf, LANES):
-                r = rb + a * rs
-                if free_row(lo_s, hi_s, r):  # the reduced problem's rows off T: zero
-                    x[r] = zero
-                    x_p[r] = zero
-                    y_p[r] = zero
-                    y_hat[r] = zero
-                    z_p[r] = zero
-                    z_hat[r] = zero
-                    sch.vt[r] = zero
-                else:
-                    pref = wp.max(pref, P[r])
-            for a in range(nf + lane, n, LANES):
-                pref = wp.max(pref, P[rb + a * rs])
-            pref = lane_max(pref)
-            if lane == 0:
-                if pref <= zero:
-                    pref = scalar(1.0)
-                p_ref[wid] = pref
-            sync()
-            nt = sch.nt[wid]
-            for c in range(lane, nt + 1, LANES):  # column c of S~ (c < nt), or the right-hand side (c = nt)
-                if c < nt:
-                    rc = rb + sch.rows[t0 + c] * rs
-                    inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
-                    add_row(sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
-                    inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
-                    rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 0)
-                else:
-                    rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 1)
-                ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
-                times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, xb, ub)
-                for i in range(nt):
-                    ai = sch.rows[t0 + i]
-                    ri = rb + ai * rs
-                    dx = P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
-                    if c < nt:
-                        ac = sch.rows[t0 + c]
-                        sch.S[g0 + i * tm + c] = (P[ri] * delassus_entry(m, rs, row_body, row_J, reg, inv_inertia_w,
-                                                                         wid, ai, ac, nblk) * P[rb + ac * rs] - dx)
-                    else:
-                        sch.vt[ri] = vt[ri] - dx
-            sync()
-            for u in range(lane, nt * nt, LANES):  # S~ <- (S~ + S~^T) / 2
-                i = u // nt
-                j = u - i * nt
-                if i < j:
-                    s = scalar(0.5) * (sch.S[g0 + i * tm + j] + sch.S[g0 + j * tm + i])
-                    sch.S[g0 + i * tm + j] = s
-                    sch.S[g0 + j * tm + i] = s
-            sync()
-            if lane == 0 and sch.filter_shift > zero:
-                filter_effort_rows(sch, wid, rb, rs, xb, lo_s, hi_s, x, x_p, y_p, y_hat)
-            sync()
-            schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u[wid])
-        elif mode == SCHUR_RHS:
-            if lane == 0:
-                nt = sch.nt[wid]
-                rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 1)
-                ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
-                times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, xb, ub)
-                for i in range(nt):
-                    ri = rb + sch.rows[t0 + i] * rs
-                    sch.vt[ri] = vt[ri] - P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
-        else:
-            if lane == 0:
-                nt = sch.nt[wid]
+            sch.ne[wid] = wp.min(cnt, tm)
+            for a in range(nf, n):
+                if cnt < tm:
+                    sch.rows[t0 + cnt] = a
+                cnt += 1
+            if cnt > tm:  # more rows than the capacity (not expected: Stepper sizes it)
+                failed[wid] = 1
+            sch.nt[wid] = wp.min(cnt, tm)
+        pref = zero
+        for a in range(lane, nf, LANES):
+            r = rb + a * rs
+            if free_row(lo_s, hi_s, r):  # the reduced problem's rows off T: zero
+                x[r] = zero
+                x_p[r] = zero
+                y_p[r] = zero
+                y_hat[r] = zero
+                z_p[r] = zero
+                z_hat[r] = zero
+                sch.vt[r] = zero
+            else:
+                pref = wp.max(pref, P[r])
+        for a in range(nf + lane, n, LANES):
+            pref = wp.max(pref, P[rb + a * rs])
+        pref = lane_max(pref)
+        if lane == 0:
+            if pref <= zero:
+                pref = scalar(1.0)
+            p_ref[wid] = pref
+        sync()
+        nt = sch.nt[wid]
+        for c in range(lane, nt + 1, LANES):  # column c of S~ (c < nt), or the right-hand side (c = nt)
+            if c < nt:
+                rc = rb + sch.rows[t0 + c] * rs
                 inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
-                for i in range(nt):
-                    ri = rb + sch.rows[t0 + i] * rs
-                    add_row(sch.su, ub, b0, row_body, row_J, ri, nblk, impulse[ri])
+                add_row(sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
                 inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
-                rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 2)
-                ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
-                q0 = sp.perm_start[wid]
-                for p in range(nf):
-                    r = rb + sp.perm[q0 + p] * rs
-                    if free_row(lo_s, hi_s, r):
-                        lam = P[r] * sch.sx[xb + p * LANES]
-                        impulse[r] = lam
-                        if not wp.isfinite(lam):
-                            failed[wid] = 1
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)  # v+ = D lambda + v_f on F
-                for a in range(n):
-                    r = rb + a * rs
-                    add_row(sch.su, ub, b0, row_body, row_J, r, nblk, impulse[r])
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
-                for a in range(nf):
-                    r = rb + a * rs
-                    if free_row(lo_s, hi_s, r):
-                        velocity[r] = (row_dot(sch.su, ub, b0, row_body, row_J, r, nblk) + reg[r] * impulse[r]
-                                       + vt[r] / P[r])
+            rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, int(c < nt))
+            ff_solve(sp, wid, vb, lv, sch.sb, xb, sch.sx, xv, xi, sch.eps)
+            times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, ub, xv,
+                    xi)
+            for i in range(nt):
+                ai = sch.rows[t0 + i]
+                ri = rb + ai * rs
+                dx = P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
+                if c < nt:
+                    ac = sch.rows[t0 + c]
+                    sch.S[g0 + i * tm + c] = (P[ri] * delassus_entry(m, rs, row_body, row_J, reg, inv_inertia_w,
+                                                                     wid, ai, ac, nblk) * P[rb + ac * rs] - dx)
+                else:
+                    sch.vt[ri] = vt[ri] - dx
+        sync()
+        for u in range(lane, nt * nt, LANES):  # S~ <- (S~ + S~^T) / 2
+            i = u // nt
+            j = u - i * nt
+            if i < j:
+                s = scalar(0.5) * (sch.S[g0 + i * tm + j] + sch.S[g0 + j * tm + i])
+                sch.S[g0 + i * tm + j] = s
+                sch.S[g0 + j * tm + i] = s
+        sync()
+        if lane == 0 and sch.filter_shift > zero:
+            filter_effort_rows(sch, wid, rb, rs, xb, lo_s, hi_s, x, x_p, y_p, y_hat)
+        sync()
+        schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u[wid])
 
     return schur
+
+
+@functools.cache
+def ff_solve_lanes_func(np_dtype, R: int):
+    """``A^-1 b`` on ``F`` with ``SCHUR_REFINEMENT_STEPS`` refinement steps by the world's threads together (§7.11).
+    ``ff_solve_lanes(m, sp, row_stride, wid, lane, eps, bs, xs, ys)``, the vectors in shared memory
+    (:func:`shared_vector` of ``R``), indexed by row."""
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
+    Vec = shared_vector(np_dtype, R)
+    sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
+    solve = solve_func(np_dtype, R)
+
+    @wp.func
+    def ff_solve_lanes(m: M, sp: SP, row_stride: int, wid: int, lane: int, eps: scalar, bs: Vec, xs: Vec, ys: Vec):
+        """``xs = A^-1 b`` on the fixed rows (``b``: ``bs``, zero off ``F``; ``ys``: scratch): :func:`ff_solve_func`'s
+        refinement ``x_{k+1} = C^-1 (b + eps x_k)``, each solve with ``C = L_f L_f^T`` by :func:`solve_func`'s column
+        sweeps on the fixed rows alone (one barrier per row of ``L_f``; the hubs' unknowns take a zero right-hand
+        side there), the vectors' updates between them threads over rows."""
+        nf = sp.n_fixed[wid]
+        for a in range(lane, nf, LANES):
+            sset(xs, a, sget(bs, a))
+        sync()
+        solve(m, sp, row_stride, wid, nf, lane, xs, ys)
+        for _ in range(SCHUR_REFINEMENT_STEPS):
+            for a in range(lane, nf, LANES):
+                sset(xs, a, sget(bs, a) + eps * sget(xs, a))
+            sync()
+            solve(m, sp, row_stride, wid, nf, lane, xs, ys)
+
+    return ff_solve_lanes
+
+
+@functools.cache
+def body_sum_func(np_dtype, R: int):
+    """``u = M^-1 J^T c`` on a world's bodies by its threads (§7.1), for the reduced right-hand side and the recovery
+    (§7.11). ``body_sum(m, inv_inertia_w, su, ub, b0, nb, row_body, row_J, rb, rs, n, nblk, cs, lane)``."""
+    M, vec6, mat33 = builder_types(np_dtype).take("M", "vec6", "mat33")
+    iarr = wp.array(dtype=wp.int32)
+    Vec = shared_vector(np_dtype, R)
+    sget = shared_get_func(np_dtype, R)
+    inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
+
+    @wp.func
+    def body_sum(m: M, inv_inertia_w: wp.array(dtype=mat33), su: wp.array(dtype=vec6), ub: int, b0: int, nb: int,
+                 row_body: iarr, row_J: wp.array(dtype=vec6), rb: int, rs: int, n: int, nblk: int, cs: Vec,
+                 lane: int):
+        """``u = M^-1 J^T c`` over the world's first ``n`` rows (``c_a``: ``cs[a]``, by row) into ``su[ub + i
+        LANES]`` (body ``i``), then a barrier: threads over the bodies, each summing its blocks ``J_a^T c_a`` in row
+        order (the order of :func:`body_funcs`' ``add_row`` over the rows), so that no two threads write one body."""
+        for i in range(lane, nb, LANES):
+            u = vec6()
+            for a in range(n):
+                r = rb + a * rs
+                for k in range(nblk):
+                    if row_body[r * nblk + k] == b0 + i:
+                        u = u + sget(cs, a) * row_J[r * nblk + k]
+            su[ub + i * LANES] = inv_mass_times(m, inv_inertia_w, b0 + i, u)
+        sync()
+
+    return body_sum
+
+
+@functools.cache
+def schur_solve_kernel(np_dtype, R: int):
+    """The reduced right-hand side and the recovery of the Schur reduction with the world's 32 threads together
+    (§7.11). ``schur_solve(m, mode, nblk, eta, rho_free, rho_box, row_stride, sp, n_rows, frozen, row_body, row_J,
+    reg, P, vt, inv_inertia_w, lo_s, hi_s, row_info, rho_u, sch, p_ref, x, x_p, y_p, y_hat, z_p, z_hat, impulse,
+    velocity, failed)`` (:func:`schur_kernel`'s arguments after ``mode``), launched tiled: one block of ``LANES``
+    threads per world; three vectors of ``R`` rows in shared memory."""
+    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
+    Schur = schur_struct(np_dtype)
+    Vec = shared_vector(np_dtype, R)
+    sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
+    bases = sparse_llt_kernels(np_dtype).bases
+    free_row = free_row_func(np_dtype)
+    ff_solve_lanes = ff_solve_lanes_func(np_dtype, R)
+    body_sum = body_sum_func(np_dtype, R)
+    row_dot = body_funcs(np_dtype).row_dot
+    zero = scalar(0.0)
+
+    @wp.func
+    def fixed_rhs(sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, vt: farr, P: farr, su: wp.array(
+            dtype=vec6), ub: int, b0: int, row_body: iarr, row_J: wp.array(dtype=vec6), nblk: int, lane: int,
+            recover: int, bs: Vec):
+        """The right-hand side on ``F`` into ``bs`` (by row, threads over the fixed rows): ``P v_F``, or with
+        ``recover`` ``-(P v_F + P_F D_FT lambda_T)`` from ``u = M^-1 J_T^T lambda_T`` in ``su``; zero on the
+        effort-limited rows."""
+        for a in range(lane, sp.n_fixed[wid], LANES):
+            r = rb + a * rs
+            v = zero
+            if free_row(lo_s, hi_s, r):
+                if recover != 0:
+                    v = -(vt[r] + P[r] * row_dot(su, ub, b0, row_body, row_J, r, nblk))
+                else:
+                    v = vt[r]
+            sset(bs, a, v)
+        sync()
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def schur_solve(
+        # model (read only)
+        m: M,
+        # in
+        mode: int, nblk: int, eta: scalar, rho_free: scalar, rho_box: scalar,
+        row_stride: int,
+        sp: SP,  # L_f of A + eps I (schur_decouple, factor_kernel on the fixed rows; read)
+        n_rows: iarr, frozen: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr, P: farr, vt: farr,
+        inv_inertia_w: wp.array(dtype=mat33), lo_s: farr, hi_s: farr, row_info: iarr, rho_u: farr,
+        # out
+        sch: Schur,
+        p_ref: farr,
+        x: farr, x_p: farr, y_p: farr, y_hat: farr, z_p: farr, z_hat: farr,
+        impulse: farr, velocity: farr, failed: iarr,  # padmm_finish's (also read)
+    ):
+        """``mode`` :data:`SCHUR_RHS`: ``P v'_T = P v_T - P_T D_TF A^-1 P v_F`` again (§7.11 (S); the curvature
+        refinement changed ``v_f``). :data:`SCHUR_RECOVER` (after ``padmm_finish``): ``lambda_F = -P_F A^-1 (P v_F +
+        P_F D_FT lambda_T)`` (§7.11 (R)) and ``v+ = D lambda + v_f`` on ``F``; a non-finite impulse fails the world.
+        The solve is :func:`ff_solve_lanes_func`'s, the products with ``J`` threads over rows, those with ``J^T``
+        threads over bodies (:func:`body_sum_func`, into the first thread's ``sch.su``)."""
+        rs = row_stride
+        wid, lane = wp.tid()
+        n = n_rows[wid]
+        if frozen[wid] != 0 or n == 0:
+            return
+        rb = bases(m, sp, row_stride, wid)[0]
+        nf = sp.n_fixed[wid]
+        t0 = wid * sch.tm
+        b0 = m.body_start[wid]
+        nb = m.body_count[wid]
+        ub = wid * LANES * sch.nb_max  # the body vector u: the first thread's slots of sch.su
+        bs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")  # b; then the rows' factors of J^T
+        xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        if mode == SCHUR_RHS:
+            fixed_rhs(sp, wid, rb, rs, lo_s, hi_s, vt, P, sch.su, ub, b0, row_body, row_J, nblk, lane, 0, bs)
+            ff_solve_lanes(m, sp, row_stride, wid, lane, sch.eps, bs, xs, ys)
+            for a in range(lane, nf, LANES):  # u = M^-1 J_F^T P_F x
+                r = rb + a * rs
+                c = zero
+                if free_row(lo_s, hi_s, r):
+                    c = P[r] * sget(xs, a)
+                sset(bs, a, c)
+            sync()
+            body_sum(m, inv_inertia_w, sch.su, ub, b0, nb, row_body, row_J, rb, rs, nf, nblk, bs, lane)
+            for i in range(lane, sch.nt[wid], LANES):
+                ri = rb + sch.rows[t0 + i] * rs
+                sch.vt[ri] = vt[ri] - P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
+        else:
+            for a in range(lane, n, LANES):  # u = M^-1 J_T^T lambda_T
+                r = rb + a * rs
+                c = impulse[r]
+                if a < nf:
+                    if free_row(lo_s, hi_s, r):
+                        c = zero
+                sset(bs, a, c)
+            sync()
+            body_sum(m, inv_inertia_w, sch.su, ub, b0, nb, row_body, row_J, rb, rs, n, nblk, bs, lane)
+            fixed_rhs(sp, wid, rb, rs, lo_s, hi_s, vt, P, sch.su, ub, b0, row_body, row_J, nblk, lane, 1, bs)
+            ff_solve_lanes(m, sp, row_stride, wid, lane, sch.eps, bs, xs, ys)
+            for a in range(lane, n, LANES):  # lambda_F, then u = M^-1 J^T lambda over every row
+                r = rb + a * rs
+                c = impulse[r]
+                if a < nf:
+                    if free_row(lo_s, hi_s, r):
+                        c = P[r] * sget(xs, a)
+                        impulse[r] = c
+                        if not wp.isfinite(c):
+                            failed[wid] = 1
+                sset(bs, a, c)
+            sync()
+            body_sum(m, inv_inertia_w, sch.su, ub, b0, nb, row_body, row_J, rb, rs, n, nblk, bs, lane)
+            for a in range(lane, nf, LANES):  # v+ = D lambda + v_f on F
+                r = rb + a * rs
+                if free_row(lo_s, hi_s, r):
+                    velocity[r] = (row_dot(sch.su, ub, b0, row_body, row_J, r, nblk) + reg[r] * impulse[r]
+                                   + vt[r] / P[r])
+
+    return schur_solve
 
 
 # --- iterations (§7.3-§7.5) ----------------------------------------------------------------------------------------
@@ -1570,7 +1816,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
 
 
 def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int | None = None,
-                 inverse: bool = False, schur: bool = False) -> SimpleNamespace:
+                 inverse: bool = False, schur: bool = False, schur_X: int = 0) -> SimpleNamespace:
     """``factor`` (not under ``cr``), ``solve_fixed`` (post-stabilisation) and ``cr_pattern`` (under ``cr``) for
     worlds of up to ``R`` rows; launch each 32-thread kernel with ``wp.launch_tiled(dim=[num_worlds],
     block_dim=LANES)``, ``cr_pattern`` with one thread per world (``wp.launch``). :func:`iterate_kernel` gives
@@ -1582,8 +1828,9 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
     world's row blocks by body for the step. With ``filter_E`` (the warm-start filter's staged entries,
     :func:`shared_entries`; ``None``: no filter) also ``filter_factor``, :func:`factor_kernel` for the filter's
     factor of the fixed rows, and ``warm_start_filter`` (:func:`warm_start_filter_kernel`). With ``schur`` (§7.11)
-    also ``schur_decouple`` (:func:`schur_decouple_kernel`, on ``(worlds, max entries)``) and ``schur``
-    (:func:`schur_kernel`)."""
+    also ``schur_decouple`` (:func:`schur_decouple_kernel`, on ``(worlds, max entries)``), ``schur`` (the
+    elimination, :func:`schur_kernel`: ``L_f`` staged as the factorisation stages it, ``E``, and the threads' vectors
+    in ``schur_X`` shared scalars, :func:`schur_vectors`) and ``schur_solve`` (:func:`schur_solve_kernel`)."""
     filtered = filter_E is not None
     return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E, inverse), inverse=inverse,
                            solve_fixed=solve_fixed_kernel(np_dtype, R),
@@ -1591,7 +1838,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
                            filter_factor=factor_kernel(np_dtype, filter_E) if filtered else None,
                            warm_start_filter=warm_start_filter_kernel(np_dtype, R) if filtered else None,
                            schur_decouple=schur_decouple_kernel(np_dtype) if schur else None,
-                           schur=schur_kernel(np_dtype) if schur else None)
+                           schur=schur_kernel(np_dtype, E, schur_X) if schur else None,
+                           schur_solve=schur_solve_kernel(np_dtype, R) if schur else None)
 
 
 def schur_buffers(np_dtype, device, num_worlds: int, total_rows: int, tm: int, np_max: int, nb_max: int,
