@@ -50,6 +50,7 @@ from kamino.warp_backend.solver_lanes import (
     SCHUR_RHS,
     iterate_kernel,
     schur_buffers,
+    schur_dense,
     schur_vectors,
     shared_entries,
     shared_rows,
@@ -197,16 +198,17 @@ class Stepper:
                                                per_world=self.filter_lanes, hub_min_rows=wm.hub_min_rows,
                                                hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
+            #: the reduced problem's buffers (solver_lanes.schur_struct; empty without the reduction)
+            self.sch = self._schur_buffers(model) if self.schur else schur_buffers(self.np_dtype, self.device, 0, 0,
+                                                                                   0, 0, 0)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 filter_E = shared_entries(self.filt.max_nnz) if self.filt is not None else None
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt, filter_E=filter_E,
                                        inverse=self.sparse_factor and self.sf.inv_total > 0 and not self.schur,
-                                       schur=self.schur, schur_X=schur_vectors(self._np_max()) if self.schur else 0)
-            #: the reduced problem's buffers (solver_lanes.schur_struct; empty without the reduction)
-            self.sch = self._schur_buffers(model) if self.schur else schur_buffers(self.np_dtype, self.device, 0, 0,
-                                                                                   0, 0, 0)
+                                       schur=self.schur, schur_X=schur_vectors(self._np_max()) if self.schur else 0,
+                                       schur_D=schur_dense(self.sch.tm) if self.schur else 0)
         self.rk = step_row_kernels(self.np_dtype, cfg.stabilisation.curvature_correction, cfg.integrator == "midpoint")
         self.sk = solver_kernels(self.np_dtype, self.dense, llt and not self.sparse_factor, not llt,
                                  bool(cfg.warm_start), self.adaptive)

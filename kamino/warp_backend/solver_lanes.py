@@ -1089,40 +1089,100 @@ def body_funcs(np_dtype):
     return SimpleNamespace(add_row=add_row, row_dot=row_dot, inv_mass=inv_mass)
 
 
+#: The most scalars of the reduced problem's factor and inverse that the elimination keeps in shared memory
+#: (:func:`schur_dense`); larger reduced problems keep them in device memory (``Schur.L``, ``Schur.G``).
+SCHUR_DENSE_MAX = 12288
+
+
+def schur_dense(tm: int) -> int:
+    """The shared scalars of :func:`schur_inverse_func` for reduced problems of up to ``tm`` rows: two squares of
+    stride ``tm`` rounded up to odd (the factor's rows and the inverse's columns then start on distinct banks, so that
+    threads reading down a column or along their own column do not conflict), rounded up to a multiple of 256, or 0
+    above :data:`SCHUR_DENSE_MAX`."""
+    ld = tm + 1 - tm % 2
+    D = 256 * max(1, -(-2 * ld * ld // 256))
+    return D if D <= SCHUR_DENSE_MAX else 0
+
+
 @functools.cache
-def schur_inverse_func(np_dtype):
+def schur_inverse_func(np_dtype, D: int = 0):
     """``G = (S~ + diag(eta + rho))^-1`` of a world's reduced problem by its threads (§7.11).
-    ``schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u)``."""
+    ``schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u)``; with ``D > 0``
+    (:func:`schur_dense`) the factor and the inverse are worked on in shared memory and ``G`` is written to
+    ``sch.G`` at the end, else both in device memory (``sch.L``, ``sch.G``)."""
     scalar = builder_types(np_dtype).scalar
     Schur = schur_struct(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
+    DL = max(D, 1)
+    DVec = shared_vector(np_dtype, DL)
+    dset, dget = shared_set_func(np_dtype, DL), shared_get_func(np_dtype, DL)
+
+    @wp.func
+    def lget(sch: Schur, ds: DVec, k: int) -> scalar:
+        """Entry ``k`` of the factor's storage."""
+        if wp.static(D > 0):
+            return dget(ds, k)
+        return sch.L[k]
+
+    @wp.func
+    def lset(sch: Schur, ds: DVec, k: int, v: scalar):
+        """Entry ``k`` of the factor's storage := ``v``."""
+        if wp.static(D > 0):
+            dset(ds, k, v)
+        else:
+            sch.L[k] = v
+
+    @wp.func
+    def gget(sch: Schur, ds: DVec, k: int) -> scalar:
+        """Entry ``k`` of the inverse's storage."""
+        if wp.static(D > 0):
+            return dget(ds, k)
+        return sch.G[k]
+
+    @wp.func
+    def gset(sch: Schur, ds: DVec, k: int, v: scalar):
+        """Entry ``k`` of the inverse's storage := ``v``."""
+        if wp.static(D > 0):
+            dset(ds, k, v)
+        else:
+            sch.G[k] = v
 
     @wp.func
     def schur_inverse(sch: Schur, wid: int, lane: int, row_info: wp.array(dtype=wp.int32), rb: int, rs: int, nf: int,
                       eta: scalar, rho_free: scalar, rho_box: scalar, rho_u: scalar):
         """The Cholesky factor ``L`` of ``S~ + diag(eta + rho_i)`` (each row's penalty, ``solver_rules.row_penalty``:
         a saturated effort-limited row's ``rho_box``) by columns (threads over the rows below the diagonal, one
-        barrier per column), then ``G``'s columns, ``L L^T g_c = e_c``, one thread per column (no barrier), each
-        stored contiguously (``G_ic`` at ``c tm + i``: in the product with ``G`` the threads, one per row ``i``, read
-        consecutive entries): every PADMM iteration's solve is then one product with ``G``
-        (:func:`schur_apply_func`)."""
+        barrier per column; ``S~`` is symmetric, so they read its column ``j`` as row ``j``: consecutive entries),
+        then ``G``'s columns, ``L L^T g_c = e_c``, one thread per column (no barrier), each stored contiguously
+        (``G_ic`` at ``c tm + i``: in the product with ``G`` the threads, one per row ``i``, read consecutive
+        entries): every PADMM iteration's solve is then one product with ``G`` (:func:`schur_apply_func`). ``L_ik``
+        at ``lb + i ld + k`` and ``G_ic`` at ``gb + c ld + i``: in shared memory ``ld`` is ``tm`` rounded up to odd,
+        and ``G`` goes to ``sch.G`` in the end, threads over consecutive entries."""
         nt = sch.nt[wid]
         tm = sch.tm
         g0 = wid * tm * tm
         t0 = wid * tm
+        ds = wp.tile_zeros(shape=(DL,), dtype=scalar, storage="shared")
+        ld = tm
+        lb = g0
+        gb = g0
+        if wp.static(D > 0):
+            ld = tm + 1 - tm % 2
+            lb = 0
+            gb = ld * ld
         for j in range(nt):
             aj = sch.rows[t0 + j]
             s = sch.S[g0 + j * tm + j] + eta + row_penalty(row_info, rb + aj * rs, aj, nf, rho_free, rho_box, rho_u)
             for k in range(j):
-                s -= sch.L[g0 + j * tm + k] * sch.L[g0 + j * tm + k]
+                s -= lget(sch, ds, lb + j * ld + k) * lget(sch, ds, lb + j * ld + k)
             d = wp.sqrt(s)
             for i in range(j + 1 + lane, nt, LANES):
-                v = sch.S[g0 + i * tm + j]
+                v = sch.S[g0 + j * tm + i]
                 for k in range(j):
-                    v -= sch.L[g0 + i * tm + k] * sch.L[g0 + j * tm + k]
-                sch.L[g0 + i * tm + j] = v / d
+                    v -= lget(sch, ds, lb + i * ld + k) * lget(sch, ds, lb + j * ld + k)
+                lset(sch, ds, lb + i * ld + j, v / d)
             if lane == 0:  # no thread reads L_jj before the next column
-                sch.L[g0 + j * tm + j] = d
+                lset(sch, ds, lb + j * ld + j, d)
             sync()
         for c in range(lane, nt, LANES):
             for i in range(nt):  # L z = e_c, into column c of G
@@ -1131,16 +1191,22 @@ def schur_inverse_func(np_dtype):
                     v = scalar(1.0)
                 if i >= c:
                     for k in range(c, i):
-                        v -= sch.L[g0 + i * tm + k] * sch.G[g0 + c * tm + k]
-                    v = v / sch.L[g0 + i * tm + i]
-                sch.G[g0 + c * tm + i] = v
+                        v -= lget(sch, ds, lb + i * ld + k) * gget(sch, ds, gb + c * ld + k)
+                    v = v / lget(sch, ds, lb + i * ld + i)
+                gset(sch, ds, gb + c * ld + i, v)
             for ii in range(nt):  # L^T g = z
                 i = nt - 1 - ii
-                v = sch.G[g0 + c * tm + i]
+                v = gget(sch, ds, gb + c * ld + i)
                 for k in range(i + 1, nt):
-                    v -= sch.L[g0 + k * tm + i] * sch.G[g0 + c * tm + k]
-                sch.G[g0 + c * tm + i] = v / sch.L[g0 + i * tm + i]
+                    v -= lget(sch, ds, lb + k * ld + i) * gget(sch, ds, gb + c * ld + k)
+                gset(sch, ds, gb + c * ld + i, v / lget(sch, ds, lb + i * ld + i))
         sync()
+        if wp.static(D > 0):
+            for u in range(lane, nt * nt, LANES):
+                c = u // nt
+                i = u - c * nt
+                sch.G[g0 + c * tm + i] = dget(ds, gb + c * ld + i)
+            sync()
 
     return schur_inverse
 
@@ -1242,14 +1308,16 @@ SCHUR_ELIMINATE, SCHUR_RHS, SCHUR_RECOVER = 0, 1, 2
 
 
 @functools.cache
-def schur_kernel(np_dtype, E: int = 0, X: int = 0):
+def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
     """The Schur reduction's elimination with the world's 32 threads (§7.11), once per step.
     ``schur(m, nblk, eta, rho_free, rho_box, row_stride, sp, n_rows, frozen, row_body, row_J, reg, P, vt,
     inv_inertia_w, lo_s, hi_s, row_info, rho_u, sch, p_ref, x, x_p, y_p, y_hat, z_p, z_hat, impulse, velocity,
     failed)``, launched tiled: one block of ``LANES`` threads per world. With ``E > 0`` the world's ``L_f`` (up to
     ``E`` entries, :func:`shared_entries`) and with ``X > 0`` the threads' solution vectors (:func:`schur_vectors`)
     are staged in shared memory, so that the sweeps of :func:`lane_solve_func` wait on shared memory instead of
-    device memory; else they stay in device memory (``sp.val``, ``Schur.sx``)."""
+    device memory; else they stay in device memory (``sp.val``, ``Schur.sx``). With ``D > 0`` (:func:`schur_dense`)
+    ``G`` is formed in shared memory too. The two stages' shared memory is the same (each function's tiles are
+    released when it returns): ``max(E + X, D)`` scalars."""
     scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     Schur = schur_struct(np_dtype)
@@ -1263,7 +1331,7 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0):
     vget = thread_vector_funcs(np_dtype, X).vget
     bf = body_funcs(np_dtype)
     add_row, row_dot, inv_mass = bf.add_row, bf.row_dot, bf.inv_mass
-    schur_inverse = schur_inverse_func(np_dtype)
+    schur_inverse = schur_inverse_func(np_dtype, D)
     filter_effort_rows = filter_effort_rows_func(np_dtype)
     lane_max = rules.lane_reduce_func(np_dtype, LANES, "max")
     zero = scalar(0.0)
@@ -1301,6 +1369,55 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0):
                 add_row(sch.su, ub, b0, row_body, row_J, r, nblk, P[r] * vget(sch.sx, xv, xi, p))
         inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
 
+    @wp.func
+    def columns(m: M, nblk: int, rs: int, sp: SP, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr, P: farr,
+                vt: farr, inv_inertia_w: wp.array(dtype=mat33), lo_s: farr, hi_s: farr, sch: Schur, wid: int,
+                lane: int):
+        """``S~`` (unsymmetrised) and ``P v'_T`` (§7.11 (S)): column ``c`` of ``S~`` (``c < nt``) or the right-hand
+        side (``c = nt``) by thread ``c mod LANES``, each a right-hand side on ``F`` (``rhs_f``), its solve
+        (:func:`ff_solve_func`) and the product with ``D_TF`` through the bodies (``times_x``); ``L_f`` and the
+        threads' vectors staged in shared memory (``E``, ``X``) for the solves, released on return."""
+        base = bases(m, sp, rs, wid)
+        rb, vb = base[0], base[1]
+        tm = sch.tm
+        t0 = wid * tm
+        g0 = wid * tm * tm
+        b0 = m.body_start[wid]
+        nb = m.body_count[wid]
+        xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
+        ub = wid * LANES * sch.nb_max + lane
+        xi = xb  # the thread's solution vector: in Schur.sx, or in shared memory (thread_vector_funcs)
+        if wp.static(X > 0):
+            xi = lane
+        lv = wp.tile_zeros(shape=(EL,), dtype=scalar, storage="shared")
+        xv = wp.tile_zeros(shape=(XL,), dtype=scalar, storage="shared")
+        if wp.static(E > 0):
+            for k in range(lane, sp.nnz[wid], LANES):
+                lset(lv, k, sp.val[vb + k * sp.val_stride])
+            sync()
+        nt = sch.nt[wid]
+        for c in range(lane, nt + 1, LANES):
+            if c < nt:
+                rc = rb + sch.rows[t0 + c] * rs
+                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
+                add_row(sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
+                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
+            rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, int(c < nt))
+            ff_solve(sp, wid, vb, lv, sch.sb, xb, sch.sx, xv, xi, sch.eps)
+            times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, ub, xv,
+                    xi)
+            for i in range(nt):
+                ai = sch.rows[t0 + i]
+                ri = rb + ai * rs
+                dx = P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
+                if c < nt:
+                    ac = sch.rows[t0 + c]
+                    sch.S[g0 + i * tm + c] = (P[ri] * delassus_entry(m, rs, row_body, row_J, reg, inv_inertia_w,
+                                                                     wid, ai, ac, nblk) * P[rb + ac * rs] - dx)
+                else:
+                    sch.vt[ri] = vt[ri] - dx
+        sync()
+
     @wp.kernel(module="unique", enable_backward=False)
     def schur(
         # model (read only)
@@ -1327,24 +1444,12 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0):
         n = n_rows[wid]
         if frozen[wid] != 0 or n == 0:
             return
-        base = bases(m, sp, row_stride, wid)
-        rb, vb = base[0], base[1]
+        rb = bases(m, sp, row_stride, wid)[0]
         nf = sp.n_fixed[wid]
         tm = sch.tm
         t0 = wid * tm
         g0 = wid * tm * tm
-        b0 = m.body_start[wid]
-        nb = m.body_count[wid]
         xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
-        ub = wid * LANES * sch.nb_max + lane
-        xi = xb  # the thread's solution vector: in Schur.sx, or in shared memory (thread_vector_funcs)
-        if wp.static(X > 0):
-            xi = lane
-        lv = wp.tile_zeros(shape=(EL,), dtype=scalar, storage="shared")
-        xv = wp.tile_zeros(shape=(XL,), dtype=scalar, storage="shared")
-        if wp.static(E > 0):
-            for k in range(lane, sp.nnz[wid], LANES):
-                lset(lv, k, sp.val[vb + k * sp.val_stride])
         if lane == 0:  # the rows of T, ascending: the effort-limited fixed rows, then the limit and contact rows
             cnt = int(0)
             for a in range(nf):
@@ -1381,28 +1486,8 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0):
                 pref = scalar(1.0)
             p_ref[wid] = pref
         sync()
+        columns(m, nblk, rs, sp, row_body, row_J, reg, P, vt, inv_inertia_w, lo_s, hi_s, sch, wid, lane)
         nt = sch.nt[wid]
-        for c in range(lane, nt + 1, LANES):  # column c of S~ (c < nt), or the right-hand side (c = nt)
-            if c < nt:
-                rc = rb + sch.rows[t0 + c] * rs
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
-                add_row(sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
-            rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, int(c < nt))
-            ff_solve(sp, wid, vb, lv, sch.sb, xb, sch.sx, xv, xi, sch.eps)
-            times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, ub, xv,
-                    xi)
-            for i in range(nt):
-                ai = sch.rows[t0 + i]
-                ri = rb + ai * rs
-                dx = P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
-                if c < nt:
-                    ac = sch.rows[t0 + c]
-                    sch.S[g0 + i * tm + c] = (P[ri] * delassus_entry(m, rs, row_body, row_J, reg, inv_inertia_w,
-                                                                     wid, ai, ac, nblk) * P[rb + ac * rs] - dx)
-                else:
-                    sch.vt[ri] = vt[ri] - dx
-        sync()
         for u in range(lane, nt * nt, LANES):  # S~ <- (S~ + S~^T) / 2
             i = u // nt
             j = u - i * nt
@@ -1816,7 +1901,8 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
 
 
 def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int | None = None,
-                 inverse: bool = False, schur: bool = False, schur_X: int = 0) -> SimpleNamespace:
+                 inverse: bool = False, schur: bool = False, schur_X: int = 0,
+                 schur_D: int = 0) -> SimpleNamespace:
     """``factor`` (not under ``cr``), ``solve_fixed`` (post-stabilisation) and ``cr_pattern`` (under ``cr``) for
     worlds of up to ``R`` rows; launch each 32-thread kernel with ``wp.launch_tiled(dim=[num_worlds],
     block_dim=LANES)``, ``cr_pattern`` with one thread per world (``wp.launch``). :func:`iterate_kernel` gives
@@ -1830,7 +1916,8 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
     factor of the fixed rows, and ``warm_start_filter`` (:func:`warm_start_filter_kernel`). With ``schur`` (§7.11)
     also ``schur_decouple`` (:func:`schur_decouple_kernel`, on ``(worlds, max entries)``), ``schur`` (the
     elimination, :func:`schur_kernel`: ``L_f`` staged as the factorisation stages it, ``E``, and the threads' vectors
-    in ``schur_X`` shared scalars, :func:`schur_vectors`) and ``schur_solve`` (:func:`schur_solve_kernel`)."""
+    in ``schur_X`` shared scalars, :func:`schur_vectors`; ``G`` formed in ``schur_D`` shared scalars,
+    :func:`schur_dense`) and ``schur_solve`` (:func:`schur_solve_kernel`)."""
     filtered = filter_E is not None
     return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E, inverse), inverse=inverse,
                            solve_fixed=solve_fixed_kernel(np_dtype, R),
@@ -1838,7 +1925,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
                            filter_factor=factor_kernel(np_dtype, filter_E) if filtered else None,
                            warm_start_filter=warm_start_filter_kernel(np_dtype, R) if filtered else None,
                            schur_decouple=schur_decouple_kernel(np_dtype) if schur else None,
-                           schur=schur_kernel(np_dtype, E, schur_X) if schur else None,
+                           schur=schur_kernel(np_dtype, E, schur_X, schur_D) if schur else None,
                            schur_solve=schur_solve_kernel(np_dtype, R) if schur else None)
 
 
