@@ -30,20 +30,22 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   filter's own factor of the fixed rows by :func:`factor_kernel` (launched with the fixed rows' count as the rows to
   factorise: no tail), then :func:`solve_func` on the shifted warm start and the clip, threads over rows.
 - **Schur reduction** (``SolverConfig.reduction = "schur"``, docs/formulation.md §7.11; ``iterate_kernel(schur=True)``,
-  :func:`schur_kernel`). ``L_f`` becomes the elimination's factor: the fixed rows assembled with the shift ``eps =
-  eta + rho_free`` (the reference's in either penalty mode), the effort-limited rows turned into identity rows of it
-  (:func:`schur_decouple_kernel`: they belong to ``T``), and :func:`factor_kernel` on the fixed rows alone, so that
-  ``L_f L_f^T = A + eps I`` on ``F`` (``A = P_F D_FF P_F``, the Jacobi scaling being the full ``D``'s on ``F``) with
-  its hub unknowns. Once per step :func:`schur_kernel` lists ``T`` (effort-limited rows, then limit and contact
-  rows), forms the scaled ``S~ = P_T S P_T`` one column per thread (the column ``P_F D_Fc P_c`` and the products
-  with ``D_TF`` through the bodies, ``J M^-1 J^T``, so ``D_FT`` is never stored; the solve ``A^-1`` of each column
-  by the thread alone over ``L_f``, :func:`ff_solve_func`, with the reference's two refinement steps) and ``P v'_T``
-  the same way, filters the effort-limited rows' warm start with ``S~``, and inverts ``S~ + diag(eta + rho)``
-  (:func:`schur_inverse_func`). An iteration's row passes then visit the rows of ``T`` alone, and its solve is one
-  product with that inverse (:func:`schur_apply_func`: a barrier after the right-hand side, one after the product,
-  instead of one per row of ``L_f``); a new penalty or a saturation recomputes the inverse inside the launch. After
-  PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered. Iteration
-  counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``).
+  :func:`schur_kernel`, :func:`schur_solve_kernel`). ``L_f`` becomes the elimination's factor: the fixed rows assembled
+  with the shift ``eps = eta + rho_free`` (the reference's in either penalty mode), the effort-limited rows turned into
+  identity rows of it (:func:`schur_decouple_kernel`: they belong to ``T``), and :func:`factor_kernel` on the fixed rows
+  alone, so that ``L_f L_f^T = A + eps I`` on ``F`` (``A = P_F D_FF P_F``, the Jacobi scaling being the full ``D``'s on
+  ``F``) with its hub unknowns. Once per step :func:`schur_kernel` lists ``T`` (effort-limited rows, then limit and
+  contact rows), forms the scaled ``S~ = P_T S P_T`` one column per thread (the column ``P_F D_Fc P_c`` and the products
+  with ``D_TF`` through the bodies, ``J M^-1 J^T``, so ``D_FT`` is never stored; the solve ``A^-1`` of each column by
+  the thread alone over ``L_f``, :func:`ff_solve_func`, with the reference's two refinement steps: ``L_f`` and the
+  threads' vectors in shared memory where they fit, each row's entries loaded in batches) and ``P v'_T`` the same way,
+  filters the effort-limited rows' warm start with ``S~``, and inverts ``S~ + diag(eta + rho)``
+  (:func:`schur_inverse_func`, in shared memory where it fits). An iteration's row passes then visit the rows of ``T``
+  alone, and its solve is one product with that inverse (:func:`schur_apply_func`: a barrier after the right-hand side,
+  one after the product, instead of one per row of ``L_f``); a new penalty or a saturation recomputes the inverse inside
+  the launch. After PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered
+  (:func:`schur_solve_kernel`: one vector's solve by the world's threads together, :func:`solve_func`'s sweeps).
+  Iteration counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``).
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
