@@ -1052,7 +1052,7 @@ def ff_solve_func(np_dtype, E: int, X: int):
 def body_funcs(np_dtype):
     """A thread's body-space vector (``J^T`` of row values, ``M^-1`` of it, ``J`` of it) for the elimination's
     products with ``D = J M^-1 J^T + R`` (§7.1) without assembling ``D_FT``. ``SimpleNamespace(add_row, row_dot,
-    inv_mass)``."""
+    inv_mass, row_u, row_dot_on)``."""
     scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
     iarr = wp.array(dtype=wp.int32)
     inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
@@ -1088,7 +1088,44 @@ def body_funcs(np_dtype):
             else:
                 su[ub + i * LANES] = inv_mass_times(m, inv_inertia_w, b0 + i, su[ub + i * LANES])
 
-    return SimpleNamespace(add_row=add_row, row_dot=row_dot, inv_mass=inv_mass)
+    @wp.func
+    def row_u(m: M, inv_inertia_w: wp.array(dtype=mat33), su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr,
+              row_J: wp.array(dtype=vec6), rc: int, nblk: int, c: scalar):
+        """``u = M^-1 J_rc^T c`` on row ``rc``'s own bodies (zero, then ``add_row``, then ``M^-1`` once per body):
+        its other bodies' entries of ``u`` are zero and not written, since :func:`row_dot_on` does not read them."""
+        for k in range(nblk):
+            bk = row_body[rc * nblk + k]
+            if bk >= 0:
+                su[ub + (bk - b0) * LANES] = vec6()
+        add_row(su, ub, b0, row_body, row_J, rc, nblk, c)
+        for k in range(nblk):
+            bk = row_body[rc * nblk + k]
+            first = int(bk >= 0)
+            for l in range(k):
+                if row_body[rc * nblk + l] == bk:
+                    first = 0
+            if first != 0:
+                su[ub + (bk - b0) * LANES] = inv_mass_times(m, inv_inertia_w, bk, su[ub + (bk - b0) * LANES])
+
+    @wp.func
+    def row_dot_on(su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr, row_J: wp.array(dtype=vec6), r: int,
+                   rc: int, nblk: int) -> scalar:
+        """``J_r u`` for ``u`` of :func:`row_u` (nonzero on row ``rc``'s bodies alone): ``row_dot`` without the
+        blocks of ``r`` on other bodies, whose terms are zeros (the same sum), so that a row sharing no body with
+        ``rc`` reads no entry of ``u``."""
+        s = scalar(0.0)
+        for k in range(nblk):
+            bk = row_body[r * nblk + k]
+            shared = int(0)
+            if bk >= 0:
+                for l in range(nblk):
+                    if row_body[rc * nblk + l] == bk:
+                        shared = 1
+            if shared != 0:
+                s += wp.dot(row_J[r * nblk + k], su[ub + (bk - b0) * LANES])
+        return s
+
+    return SimpleNamespace(add_row=add_row, row_dot=row_dot, inv_mass=inv_mass, row_u=row_u, row_dot_on=row_dot_on)
 
 
 #: The most scalars of the reduced problem's factor and inverse that the elimination keeps in shared memory
@@ -1332,7 +1369,7 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
     ff_solve = ff_solve_func(np_dtype, E, X)
     vget = thread_vector_funcs(np_dtype, X).vget
     bf = body_funcs(np_dtype)
-    add_row, row_dot, inv_mass = bf.add_row, bf.row_dot, bf.inv_mass
+    add_row, row_dot, inv_mass, row_u, row_dot_on = bf.add_row, bf.row_dot, bf.inv_mass, bf.row_u, bf.row_dot_on
     schur_inverse = schur_inverse_func(np_dtype, D)
     filter_effort_rows = filter_effort_rows_func(np_dtype)
     lane_max = rules.lane_reduce_func(np_dtype, LANES, "max")
@@ -1340,10 +1377,10 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
 
     @wp.func
     def rhs_f(sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, vt: farr, P: farr,
-              row_body: iarr, row_J: wp.array(dtype=vec6), nblk: int, b0: int, xb: int, ub: int, column: int):
+              row_body: iarr, row_J: wp.array(dtype=vec6), nblk: int, b0: int, xb: int, ub: int, column: int, rc: int):
         """The thread's right-hand side on ``F`` (position order in ``sch.sb`` from ``xb``): ``P_F D_Fc P_c``
-        (``column``, ``u = M^-1 J_c^T P_c`` in ``sch.su``) or ``P v_F``; zero on the effort-limited rows and the hubs'
-        unknowns."""
+        (``column``: of row ``rc``, ``u = M^-1 J_c^T P_c`` in ``sch.su``, :func:`body_funcs`' ``row_u``) or ``P
+        v_F``; zero on the effort-limited rows and the hubs' unknowns."""
         nf = sp.n_fixed[wid]
         q0 = sp.perm_start[wid]
         for p in range(sp.n_pos[wid]):
@@ -1352,7 +1389,7 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
                 r = rb + sp.perm[q0 + p] * rs
                 if free_row(lo_s, hi_s, r):
                     if column != 0:
-                        v = P[r] * row_dot(sch.su, ub, b0, row_body, row_J, r, nblk)
+                        v = P[r] * row_dot_on(sch.su, ub, b0, row_body, row_J, r, rc, nblk)
                     else:
                         v = vt[r]
             sch.sb[xb + p * LANES] = v
@@ -1399,12 +1436,11 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
             sync()
         nt = sch.nt[wid]
         for c in range(lane, nt + 1, LANES):
+            rc = rb
             if c < nt:
                 rc = rb + sch.rows[t0 + c] * rs
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
-                add_row(sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
-            rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, int(c < nt))
+                row_u(m, inv_inertia_w, sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
+            rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, int(c < nt), rc)
             ff_solve(sp, wid, vb, lv, sch.sb, xb, sch.sx, xv, xi, sch.eps)
             times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, ub, xv,
                     xi)
