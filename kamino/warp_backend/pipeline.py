@@ -39,6 +39,7 @@ from kamino.warp_backend import linear_solve
 from kamino.warp_backend import solver_rules as rules
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import end_step_kernels
+from kamino.warp_backend.linear_solve_pattern import fixed_row_types
 from kamino.warp_backend.model_data import WarpModel, warp_model
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import step_row_kernels
@@ -51,6 +52,7 @@ from kamino.warp_backend.solver_lanes import (
     iterate_kernel,
     schur_buffers,
     schur_dense,
+    schur_list_cap,
     schur_vectors,
     shared_entries,
     shared_rows,
@@ -252,9 +254,10 @@ class Stepper:
         tab = row_tables(model)
         tail = wm.arrays.row_maxdim.numpy() - wm.arrays.row_fixed.numpy()
         tm = int(np.max(np.asarray(tab.world_dyn_count) + tail, initial=0))
+        cap = schur_list_cap(fixed_row_types(model).rows, wm.blocks_per_row, self._np_max())
         return schur_buffers(self.np_dtype, self.device, wm.num_worlds, wm.total_rows, max(tm, 1), self._np_max(),
                              max(int(wm.max_bodies), 1), cfg.penalty.eta + cfg.penalty.rho_free,
-                             WARM_START_FILTER_SHIFT if cfg.warm_start else 0.0)
+                             WARM_START_FILTER_SHIFT if cfg.warm_start else 0.0, cap)
 
     def _np_max(self) -> int:
         """The fixed positions (fixed rows and hub unknowns) of the largest world (at least 1)."""

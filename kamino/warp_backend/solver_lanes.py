@@ -35,15 +35,16 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   identity rows of it (:func:`schur_decouple_kernel`: they belong to ``T``), and :func:`factor_kernel` on the fixed rows
   alone, so that ``L_f L_f^T = A + eps I`` on ``F`` (``A = P_F D_FF P_F``, the Jacobi scaling being the full ``D``'s on
   ``F``) with its hub unknowns. Once per step :func:`schur_kernel` lists ``T`` (effort-limited rows, then limit and
-  contact rows), forms the scaled ``S~ = P_T S P_T`` one column per thread (the column ``P_F D_Fc P_c`` and the products
-  with ``D_TF`` through the bodies, ``J M^-1 J^T``, so ``D_FT`` is never stored; the solve ``A^-1`` of each column by
-  the thread alone over ``L_f``, :func:`ff_solve_func`, with the reference's two refinement steps: ``L_f`` and the
-  threads' vectors in shared memory where they fit, each row's entries loaded in batches) and ``P v'_T`` the same way,
-  filters the effort-limited rows' warm start with ``S~``, and inverts ``S~ + diag(eta + rho)``
-  (:func:`schur_inverse_func`, in shared memory where it fits). An iteration's row passes then visit the rows of ``T``
-  alone, and its solve is one product with that inverse (:func:`schur_apply_func`: a barrier after the right-hand side,
-  one after the product, instead of one per row of ``L_f``); a new penalty or a saturation recomputes the inverse inside
-  the launch. After PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered
+  contact rows), forms the scaled ``S~ = P_T S P_T = P_T D_TT P_T - B^T A^-1 B`` one column per thread (``B = P_F D_FT
+  P_T``: its column ``b_c`` listed on the rows of ``F`` that share a body with row ``c``, through the bodies, ``J M^-1
+  J^T``, so ``D_FT`` is never formed; the solve ``A^-1 b_c`` by the thread alone over ``L_f``, :func:`ff_solve_func`,
+  with the reference's two refinement steps: ``L_f`` and the threads' vectors in shared memory where they fit, each
+  row's entries loaded in batches; then its products with the lists) and ``P v'_T`` the same way, filters the
+  effort-limited rows' warm start with ``S~``, and inverts ``S~ + diag(eta + rho)`` (:func:`schur_inverse_func`, in
+  shared memory where it fits). An iteration's row passes then visit the rows of ``T`` alone, and its solve is one
+  product with that inverse (:func:`schur_apply_func`: a barrier after the right-hand side, one after the product,
+  instead of one per row of ``L_f``); a new penalty or a saturation recomputes the inverse inside the launch. After
+  PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered
   (:func:`schur_solve_kernel`: one vector's solve by the world's threads together, :func:`solve_func`'s sweeps).
   Iteration counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``).
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
@@ -58,6 +59,7 @@ Threads of a world meet at block barriers (``sync``); on the CPU the block runs 
 import functools
 from types import SimpleNamespace
 
+import numpy as np
 import warp as wp
 
 from kamino.config import SCHUR_REFINEMENT_STEPS
@@ -803,8 +805,10 @@ def schur_struct(np_dtype):
     ``T`` that PADMM solves (``rows``, ascending: the effort-limited fixed rows, then the limit and contact rows),
     the scaled ``S~ = P_T S P_T`` (``S``) and the factor of ``S~ + diag(eta + rho)`` (``L``), ``tm x tm`` row after
     row, and its inverse (``G``) column after column; the reduced right-hand side ``P v'_T`` in the row layout
-    (``vt``, zero on ``F``); and the scratch of the elimination's solves, per thread (``sb``, ``sx``: ``np_max`` fixed
-    positions; ``su``: ``nb_max`` bodies)."""
+    (``vt``, zero on ``F``); the elimination's right-hand sides ``b_c = P_F D_Fc P_c`` of the rows ``c`` of ``T`` as
+    lists of their entries on the rows of ``F`` that share a body with row ``c`` (``bp`` positions, ``bv`` values,
+    ``bn`` lengths; up to ``cap`` each); and the scratch of the elimination's solves, per thread (``sb``, ``sx``:
+    ``np_max`` fixed positions; ``su``: ``nb_max`` bodies)."""
     T = builder_types(np_dtype)
     farr, iarr = wp.array(dtype=T.scalar), wp.array(dtype=wp.int32)
 
@@ -813,6 +817,7 @@ def schur_struct(np_dtype):
         tm: int  # the reduced rows' capacity of a world
         np_max: int  # fixed positions (fixed rows and hub unknowns) of the largest world
         nb_max: int  # bodies of the largest world
+        cap: int  # entries of a right-hand side's list
         eps: T.scalar  # the elimination's shift eta + rho_free
         filter_shift: T.scalar  # the warm-start filter's shift (0: no filter)
         rows: iarr  # [W tm]
@@ -822,6 +827,9 @@ def schur_struct(np_dtype):
         L: farr
         G: farr
         vt: farr  # per row
+        bp: iarr  # [W tm cap]
+        bv: farr
+        bn: iarr  # [W tm]
         sb: farr  # [W LANES np_max]
         sx: farr
         su: wp.array(dtype=T.vec6)  # [W LANES nb_max]
@@ -892,6 +900,19 @@ SweepIdx = wp.types.vector(length=SWEEP_BATCH, dtype=wp.int32)
 #: The most scalars of the elimination's per-thread vectors (``LANES`` times the fixed positions) that
 #: :func:`schur_kernel` keeps in shared memory; larger worlds keep them in device memory (``Schur.sx``).
 SCHUR_VECTORS_MAX = 8192
+
+
+def schur_list_cap(row_bodies, blocks_per_row: int, np_max: int) -> int:
+    """The entries of a right-hand side's list (``Schur.bp``, :func:`schur_kernel`): a row of ``T`` has up to
+    ``blocks_per_row`` bodies, each on at most as many fixed rows as the busiest body of a world type (``row_bodies``:
+    ``linear_solve_pattern.FixedRowTypes.rows``, each fixed row's moving bodies), and no more than ``np_max``."""
+    busiest = 0
+    for rows in row_bodies:
+        if len(rows):  # a body counts once per row
+            b = np.asarray(rows, np.int64).reshape(len(rows), -1)
+            counts = np.bincount(np.concatenate([np.unique(r[r >= 0]) for r in b]))
+            busiest = max(busiest, int(counts.max(initial=0)))
+    return max(1, min(np_max, blocks_per_row * busiest))
 
 
 def schur_vectors(np_max: int) -> int:
@@ -1052,7 +1073,7 @@ def ff_solve_func(np_dtype, E: int, X: int):
 def body_funcs(np_dtype):
     """A thread's body-space vector (``J^T`` of row values, ``M^-1`` of it, ``J`` of it) for the elimination's
     products with ``D = J M^-1 J^T + R`` (§7.1) without assembling ``D_FT``. ``SimpleNamespace(add_row, row_dot,
-    inv_mass, row_u, row_dot_on)``."""
+    row_u, row_dot_on, shares_body)``."""
     scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
     iarr = wp.array(dtype=wp.int32)
     inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
@@ -1079,16 +1100,6 @@ def body_funcs(np_dtype):
         return s
 
     @wp.func
-    def inv_mass(m: M, inv_inertia_w: wp.array(dtype=mat33), su: wp.array(dtype=vec6), ub: int, b0: int, nb: int,
-                 zero_after: int):
-        """``u <- M^-1 u`` on the world's ``nb`` bodies (with ``zero_after``: ``u <- 0`` instead, to start a sum)."""
-        for i in range(nb):
-            if zero_after != 0:
-                su[ub + i * LANES] = vec6()
-            else:
-                su[ub + i * LANES] = inv_mass_times(m, inv_inertia_w, b0 + i, su[ub + i * LANES])
-
-    @wp.func
     def row_u(m: M, inv_inertia_w: wp.array(dtype=mat33), su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr,
               row_J: wp.array(dtype=vec6), rc: int, nblk: int, c: scalar):
         """``u = M^-1 J_rc^T c`` on row ``rc``'s own bodies (zero, then ``add_row``, then ``M^-1`` once per body):
@@ -1108,6 +1119,18 @@ def body_funcs(np_dtype):
                 su[ub + (bk - b0) * LANES] = inv_mass_times(m, inv_inertia_w, bk, su[ub + (bk - b0) * LANES])
 
     @wp.func
+    def shares_body(row_body: iarr, r: int, rc: int, nblk: int) -> int:
+        """Whether row ``r`` has a body of row ``rc`` (1) or not (0)."""
+        hit = int(0)
+        for k in range(nblk):
+            bk = row_body[r * nblk + k]
+            if bk >= 0:
+                for l in range(nblk):
+                    if row_body[rc * nblk + l] == bk:
+                        hit = 1
+        return hit
+
+    @wp.func
     def row_dot_on(su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr, row_J: wp.array(dtype=vec6), r: int,
                    rc: int, nblk: int) -> scalar:
         """``J_r u`` for ``u`` of :func:`row_u` (nonzero on row ``rc``'s bodies alone): ``row_dot`` without the
@@ -1125,7 +1148,8 @@ def body_funcs(np_dtype):
                 s += wp.dot(row_J[r * nblk + k], su[ub + (bk - b0) * LANES])
         return s
 
-    return SimpleNamespace(add_row=add_row, row_dot=row_dot, inv_mass=inv_mass, row_u=row_u, row_dot_on=row_dot_on)
+    return SimpleNamespace(add_row=add_row, row_dot=row_dot, row_u=row_u, row_dot_on=row_dot_on,
+                           shares_body=shares_body)
 
 
 #: The most scalars of the reduced problem's factor and inverse that the elimination keeps in shared memory
@@ -1356,7 +1380,8 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
     are staged in shared memory, so that the sweeps of :func:`lane_solve_func` wait on shared memory instead of
     device memory; else they stay in device memory (``sp.val``, ``Schur.sx``). With ``D > 0`` (:func:`schur_dense`)
     ``G`` is formed in shared memory too. The two stages' shared memory is the same (each function's tiles are
-    released when it returns): ``max(E + X, D)`` scalars."""
+    released when it returns): ``max(E + X, D)`` scalars. The columns of ``B = P_F D_FT P_T`` are kept as lists of
+    their entries (``Schur.bp``, ``bv``, ``bn``; :func:`schur_list_cap`)."""
     scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     Schur = schur_struct(np_dtype)
@@ -1369,18 +1394,17 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
     ff_solve = ff_solve_func(np_dtype, E, X)
     vget = thread_vector_funcs(np_dtype, X).vget
     bf = body_funcs(np_dtype)
-    add_row, row_dot, inv_mass, row_u, row_dot_on = bf.add_row, bf.row_dot, bf.inv_mass, bf.row_u, bf.row_dot_on
+    row_u, row_dot_on, shares_body = bf.row_u, bf.row_dot_on, bf.shares_body
+    SweepVal = wp.types.vector(length=SWEEP_BATCH, dtype=scalar)
     schur_inverse = schur_inverse_func(np_dtype, D)
     filter_effort_rows = filter_effort_rows_func(np_dtype)
     lane_max = rules.lane_reduce_func(np_dtype, LANES, "max")
     zero = scalar(0.0)
 
     @wp.func
-    def rhs_f(sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, vt: farr, P: farr,
-              row_body: iarr, row_J: wp.array(dtype=vec6), nblk: int, b0: int, xb: int, ub: int, column: int, rc: int):
-        """The thread's right-hand side on ``F`` (position order in ``sch.sb`` from ``xb``): ``P_F D_Fc P_c``
-        (``column``: of row ``rc``, ``u = M^-1 J_c^T P_c`` in ``sch.su``, :func:`body_funcs`' ``row_u``) or ``P
-        v_F``; zero on the effort-limited rows and the hubs' unknowns."""
+    def rhs_v(sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, vt: farr, xb: int):
+        """The thread's right-hand side ``P v_F`` on ``F`` (position order in ``sch.sb`` from ``xb``); zero on the
+        effort-limited rows and the hubs' unknowns."""
         nf = sp.n_fixed[wid]
         q0 = sp.perm_start[wid]
         for p in range(sp.n_pos[wid]):
@@ -1388,41 +1412,72 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
             if p < nf:
                 r = rb + sp.perm[q0 + p] * rs
                 if free_row(lo_s, hi_s, r):
-                    if column != 0:
-                        v = P[r] * row_dot_on(sch.su, ub, b0, row_body, row_J, r, rc, nblk)
-                    else:
-                        v = vt[r]
+                    v = vt[r]
             sch.sb[xb + p * LANES] = v
 
     @wp.func
-    def times_x(m: M, sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, P: farr,
-                row_body: iarr, row_J: wp.array(dtype=vec6), inv_inertia_w: wp.array(dtype=mat33), nblk: int, b0: int,
-                nb: int, ub: int, xv: XVec, xi: int):
-        """``u = M^-1 J_F^T P_F x`` from the thread's solution ``x``: ``P_T D_TF P_F x = P_T J_T u``."""
+    def rhs_list(m: M, sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, P: farr,
+                 row_body: iarr, row_J: wp.array(dtype=vec6), inv_inertia_w: wp.array(dtype=mat33), nblk: int,
+                 b0: int, ub: int, c: int, failed: iarr):
+        """Column ``c``'s right-hand side ``b_c = P_F D_Fc P_c`` (row ``c`` of ``T``) as its list: ``u = M^-1 J_c^T
+        P_c`` on row ``c``'s bodies (``row_u``), then the entries ``P_p J_p u`` of the rows of ``F`` that share a body
+        with row ``c`` (``row_dot_on``), in position order; its other entries are zero. A list longer than
+        ``sch.cap`` (not expected: :func:`schur_list_cap` bounds it) fails the world."""
         nf = sp.n_fixed[wid]
         q0 = sp.perm_start[wid]
-        inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
+        rc = rb + sch.rows[wid * sch.tm + c] * rs
+        row_u(m, inv_inertia_w, sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
+        lb = (wid * sch.tm + c) * sch.cap
+        cnt = int(0)
         for p in range(nf):
             r = rb + sp.perm[q0 + p] * rs
-            if free_row(lo_s, hi_s, r):
-                add_row(sch.su, ub, b0, row_body, row_J, r, nblk, P[r] * vget(sch.sx, xv, xi, p))
-        inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
+            if shares_body(row_body, r, rc, nblk) != 0:
+                if free_row(lo_s, hi_s, r):
+                    if cnt < sch.cap:
+                        sch.bp[lb + cnt] = p
+                        sch.bv[lb + cnt] = P[r] * row_dot_on(sch.su, ub, b0, row_body, row_J, r, rc, nblk)
+                    cnt += 1
+        if cnt > sch.cap:
+            failed[wid] = 1
+        sch.bn[wid * sch.tm + c] = wp.min(cnt, sch.cap)
+
+    @wp.func
+    def list_dot(sch: Schur, lb: int, n: int, xv: XVec, xi: int) -> scalar:
+        """``b_i . x`` over the ``n`` entries of a right-hand side's list from ``lb`` and the thread's solution ``x``:
+        ``SWEEP_BATCH`` entries' positions and values, then their entries of ``x``, loaded together (clamped, the
+        surplus values zero), summed in the list's order."""
+        s = zero
+        for jb in range(0, n, SWEEP_BATCH):
+            pv = SweepIdx()
+            bv = SweepVal()
+            for r in range(SWEEP_BATCH):
+                j = lb + wp.min(jb + r, n - 1)
+                pv[r] = sch.bp[j]
+                bv[r] = wp.where(jb + r < n, sch.bv[j], zero)
+            xw = SweepVal()
+            for r in range(SWEEP_BATCH):
+                xw[r] = vget(sch.sx, xv, xi, pv[r])
+            for r in range(SWEEP_BATCH):
+                s += bv[r] * xw[r]
+        return s
 
     @wp.func
     def columns(m: M, nblk: int, rs: int, sp: SP, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr, P: farr,
                 vt: farr, inv_inertia_w: wp.array(dtype=mat33), lo_s: farr, hi_s: farr, sch: Schur, wid: int,
-                lane: int):
-        """``S~`` (unsymmetrised) and ``P v'_T`` (§7.11 (S)): column ``c`` of ``S~`` (``c < nt``) or the right-hand
-        side (``c = nt``) by thread ``c mod LANES``, each a right-hand side on ``F`` (``rhs_f``), its solve
-        (:func:`ff_solve_func`) and the product with ``D_TF`` through the bodies (``times_x``); ``L_f`` and the
-        threads' vectors staged in shared memory (``E``, ``X``) for the solves, released on return."""
+                lane: int, failed: iarr):
+        """``S~`` (unsymmetrised) and ``P v'_T`` (§7.11 (S), ``S~ = P_T D_TT P_T - B^T A^-1 B`` with ``B = P_F D_FT
+        P_T``): first the columns ``b_c`` of ``B`` as lists (``rhs_list``, thread ``c mod LANES``), then column ``c``
+        of ``S~`` (``c < nt``) or the right-hand side (``c = nt``, ``b = P v_F``) by thread ``c mod LANES``: its
+        solve ``x = A^-1 b`` (:func:`ff_solve_func`) and the products ``b_i . x`` with the lists of every row ``i``
+        of ``T`` (``list_dot``: ``P_i D_iF P_F x``, ``D_TF`` never formed). ``L_f`` and the threads' vectors are
+        staged in shared memory (``E``, ``X``) for the solves and the products, released on return."""
         base = bases(m, sp, rs, wid)
         rb, vb = base[0], base[1]
         tm = sch.tm
         t0 = wid * tm
         g0 = wid * tm * tm
         b0 = m.body_start[wid]
-        nb = m.body_count[wid]
+        npos = sp.n_pos[wid]
         xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
         ub = wid * LANES * sch.nb_max + lane
         xi = xb  # the thread's solution vector: in Schur.sx, or in shared memory (thread_vector_funcs)
@@ -1433,21 +1488,24 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
         if wp.static(E > 0):
             for k in range(lane, sp.nnz[wid], LANES):
                 lset(lv, k, sp.val[vb + k * sp.val_stride])
-            sync()
         nt = sch.nt[wid]
+        for c in range(lane, nt, LANES):
+            rhs_list(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, ub, c, failed)
+        sync()
         for c in range(lane, nt + 1, LANES):
-            rc = rb
-            if c < nt:
-                rc = rb + sch.rows[t0 + c] * rs
-                row_u(m, inv_inertia_w, sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
-            rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, int(c < nt), rc)
+            if c < nt:  # b_c from its list
+                for p in range(npos):
+                    sch.sb[xb + p * LANES] = zero
+                lb = (t0 + c) * sch.cap
+                for j in range(sch.bn[t0 + c]):
+                    sch.sb[xb + sch.bp[lb + j] * LANES] = sch.bv[lb + j]
+            else:
+                rhs_v(sch, sp, wid, rb, rs, lo_s, hi_s, vt, xb)
             ff_solve(sp, wid, vb, lv, sch.sb, xb, sch.sx, xv, xi, sch.eps)
-            times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, ub, xv,
-                    xi)
             for i in range(nt):
                 ai = sch.rows[t0 + i]
                 ri = rb + ai * rs
-                dx = P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
+                dx = list_dot(sch, (t0 + i) * sch.cap, sch.bn[t0 + i], xv, xi)
                 if c < nt:
                     ac = sch.rows[t0 + c]
                     sch.S[g0 + i * tm + c] = (P[ri] * delassus_entry(m, rs, row_body, row_J, reg, inv_inertia_w,
@@ -1524,7 +1582,7 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
                 pref = scalar(1.0)
             p_ref[wid] = pref
         sync()
-        columns(m, nblk, rs, sp, row_body, row_J, reg, P, vt, inv_inertia_w, lo_s, hi_s, sch, wid, lane)
+        columns(m, nblk, rs, sp, row_body, row_J, reg, P, vt, inv_inertia_w, lo_s, hi_s, sch, wid, lane, failed)
         nt = sch.nt[wid]
         for u in range(lane, nt * nt, LANES):  # S~ <- (S~ + S~^T) / 2
             i = u // nt
@@ -1968,13 +2026,14 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
 
 
 def schur_buffers(np_dtype, device, num_worlds: int, total_rows: int, tm: int, np_max: int, nb_max: int,
-                  eps: float = 0.0, filter_shift: float = 0.0):
+                  eps: float = 0.0, filter_shift: float = 0.0, cap: int = 0):
     """A zero-initialised :func:`schur_struct` for ``num_worlds`` worlds of up to ``tm`` reduced rows, ``np_max``
-    fixed positions and ``nb_max`` bodies, over ``total_rows`` row slots (``Work``'s); all sizes 0: the empty one
-    that the iterations take when they do not reduce."""
+    fixed positions and ``nb_max`` bodies, over ``total_rows`` row slots (``Work``'s), the right-hand sides' lists
+    of up to ``cap`` entries (:func:`schur_list_cap`); all sizes 0: the empty one that the iterations take when they
+    do not reduce."""
     T = builder_types(np_dtype)
     out = schur_struct(np_dtype)()
-    out.tm, out.np_max, out.nb_max = tm, np_max, nb_max
+    out.tm, out.np_max, out.nb_max, out.cap = tm, np_max, nb_max, cap
     out.eps, out.filter_shift = T.scalar(eps), T.scalar(filter_shift)
     per_lane = num_worlds * LANES
 
@@ -1984,6 +2043,8 @@ def schur_buffers(np_dtype, device, num_worlds: int, total_rows: int, tm: int, n
     out.rows, out.nt, out.ne = arr(num_worlds * tm, wp.int32), arr(num_worlds, wp.int32), arr(num_worlds, wp.int32)
     out.S, out.L, out.G = (arr(num_worlds * tm * tm) for _ in range(3))
     out.vt = arr(total_rows)
+    out.bp, out.bv, out.bn = arr(num_worlds * tm * cap, wp.int32), arr(num_worlds * tm * cap), arr(num_worlds * tm,
+                                                                                                 wp.int32)
     out.sb, out.sx = arr(per_lane * np_max), arr(per_lane * np_max)
     out.su = arr(per_lane * nb_max, T.vec6)
     return out
