@@ -1015,20 +1015,32 @@ def lane_solve_func(np_dtype, E: int, X: int):
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
+        # row p's entries are row_ptr[p] .. row_ptr[p + 1] - 1 (the diagonal last): each row's bound is the next's
+        # other bound, and the one after is loaded a row ahead
+        lo = sp.row_ptr[p0]
+        hi = sp.row_ptr[p0 + wp.min(1, npos)]
         for p in range(npos):
+            k0 = lo
+            k1 = hi - 1
+            lo = hi
+            hi = sp.row_ptr[p0 + wp.min(p + 2, npos)]
             s = vget(sx, xv, xi, p)
-            k1 = sp.row_ptr[p0 + p + 1] - 1
-            for kb in range(sp.row_ptr[p0 + p], k1, SWEEP_BATCH):
+            for kb in range(k0, k1, SWEEP_BATCH):
                 s = forward_batch(sp, e0, vb, kb, k1, lv, sx, xv, xi, s)
             vset(sx, xv, xi, p, s / fget(sp, vb, k1, lv))
         for p in range(nf, npos):
             vset(sx, xv, xi, p, -vget(sx, xv, xi, p))
+        hi = sp.row_ptr[p0 + npos]
+        lo = sp.row_ptr[p0 + wp.max(npos - 1, 0)]
         for pp in range(npos):
             p = npos - 1 - pp
-            k1 = sp.row_ptr[p0 + p + 1] - 1
+            k0 = lo
+            k1 = hi - 1
+            hi = lo
+            lo = sp.row_ptr[p0 + wp.max(p - 1, 0)]
             xp = vget(sx, xv, xi, p) / fget(sp, vb, k1, lv)
             vset(sx, xv, xi, p, xp)
-            for kb in range(sp.row_ptr[p0 + p], k1, SWEEP_BATCH):
+            for kb in range(k0, k1, SWEEP_BATCH):
                 backward_batch(sp, e0, vb, kb, k1, lv, sx, xv, xi, xp)
 
     return lane_solve
