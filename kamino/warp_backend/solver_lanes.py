@@ -1237,7 +1237,7 @@ def schur_inverse_func(np_dtype, D: int = 0):
         tm = sch.tm
         g0 = wid * tm * tm
         t0 = wid * tm
-        ds = wp.tile_zeros(shape=(DL,), dtype=scalar, storage="shared")
+        ds = wp.tile_zeros(shape=(DL,), dtype=scalar, storage="shared")  # one unread scalar when D = 0
         ld = tm
         lb = g0
         gb = g0
