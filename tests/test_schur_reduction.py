@@ -220,11 +220,11 @@ def test_schur_rollout_on_the_warp_lanes_keeps_the_loops_closed():
     """The Warp backend's 32-thread schedule under ``reduction="schur"`` (solver_lanes.py; the threads run as fibers
     on the CPU) on :func:`_dr_legs_rollout` from the standing pose (2 worlds x 24 steps, float32): the loops stay as
     closed as with the full solve (largest anchor distance within 2x, the bound of the JAX reference's test above;
-    measured 1.85e-6 m against 1.88e-6 m, the JAX reference's 1.86e-6 m and 1.88e-6 m), no world fails, the first
+    measured 1.88e-6 m against 1.88e-6 m, the JAX reference's 1.86e-6 m and 1.88e-6 m), no world fails, the first
     step's body velocities agree with the full solve's to twice ``RESIDUAL_LOOSENING_MAX`` (30) times ``tolerance``
     (1e-3): each solve stops within its own 30 tolerances on a light row, so the two may differ by twice that
-    (measured 0.028 rad/s; the JAX reference's two solves 0.036), and the reduced solve takes the full solve's
-    iterations to 1.5x (measured 28.9 against 21.4 on average; the JAX reference 28.8 against 21.9: the reduced
+    (measured 0.031 rad/s; the JAX reference's two solves 0.036), and the reduced solve takes the full solve's
+    iterations to 1.5x (measured 28.7 against 21.4 on average; the JAX reference 28.8 against 21.9: the reduced
     problem's iterations are the reference's, docs/formulation.md §7.11)."""
     pytest.importorskip("warp")
     u_full, closure_full, failed_full, it_full = _dr_legs_rollout("none", 2, 24, backend="warp", random_start=False)
@@ -240,7 +240,7 @@ def test_schur_rollout_on_the_warp_lanes_keeps_the_loops_closed():
 def test_schur_rollout_of_dr_legs_on_the_warp_lanes_keeps_its_loops_closed():
     """The Warp backend's 32-thread schedule under ``reduction="schur"`` on :func:`_dr_legs_rollout` (4 worlds x 32
     steps, float32): its loops stay as closed as with the full solve (largest anchor distance within 2x, as the JAX
-    reference's test above; measured on the CPU 1.86e-6 m against 1.83e-6 m, the JAX reference's reduced solve 1.84e-6
+    reference's test above; measured on the CPU 1.84e-6 m against 1.83e-6 m, the JAX reference's reduced solve 1.84e-6
     m) and no world fails; the first step's body velocities agree with the full solve's to the solves' stopping error,
     ``RESIDUAL_LOOSENING_MAX`` (30) times ``tolerance`` (1e-3) on a light row (measured 6.8e-3 on the CPU, as on the
     JAX reference). In the gpu tier: the random configurations' inverse kinematics take ~4 s on CI's CPU."""

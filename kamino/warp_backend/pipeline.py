@@ -39,6 +39,7 @@ from kamino.warp_backend import linear_solve
 from kamino.warp_backend import solver_rules as rules
 from kamino.warp_backend.contacts import contact_kernels
 from kamino.warp_backend.integrate import end_step_kernels
+from kamino.warp_backend.linear_solve_pattern import fixed_row_types
 from kamino.warp_backend.model_data import WarpModel, warp_model
 from kamino.warp_backend.post_stabilisation import post_stabilisation_kernels
 from kamino.warp_backend.rows import step_row_kernels
@@ -50,6 +51,9 @@ from kamino.warp_backend.solver_lanes import (
     SCHUR_RHS,
     iterate_kernel,
     schur_buffers,
+    schur_dense,
+    schur_list_cap,
+    schur_vectors,
     shared_entries,
     shared_rows,
     warp_kernels,
@@ -196,16 +200,17 @@ class Stepper:
                                                per_world=self.filter_lanes, hub_min_rows=wm.hub_min_rows,
                                                hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
+            #: the reduced problem's buffers (solver_lanes.schur_struct; empty without the reduction)
+            self.sch = self._schur_buffers(model) if self.schur else schur_buffers(self.np_dtype, self.device, 0, 0,
+                                                                                   0, 0, 0)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 filter_E = shared_entries(self.filt.max_nnz) if self.filt is not None else None
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt, filter_E=filter_E,
                                        inverse=self.sparse_factor and self.sf.inv_total > 0 and not self.schur,
-                                       schur=self.schur)
-            #: the reduced problem's buffers (solver_lanes.schur_struct; empty without the reduction)
-            self.sch = self._schur_buffers(model) if self.schur else schur_buffers(self.np_dtype, self.device, 0, 0,
-                                                                                   0, 0, 0)
+                                       schur=self.schur, schur_X=schur_vectors(self._np_max()) if self.schur else 0,
+                                       schur_D=schur_dense(self.sch.tm) if self.schur else 0)
         self.rk = step_row_kernels(self.np_dtype, cfg.stabilisation.curvature_correction, cfg.integrator == "midpoint")
         self.sk = solver_kernels(self.np_dtype, self.dense, llt and not self.sparse_factor, not llt,
                                  bool(cfg.warm_start), self.adaptive)
@@ -249,18 +254,24 @@ class Stepper:
         tab = row_tables(model)
         tail = wm.arrays.row_maxdim.numpy() - wm.arrays.row_fixed.numpy()
         tm = int(np.max(np.asarray(tab.world_dyn_count) + tail, initial=0))
-        np_max = int(self.sf.arrays.n_pos.numpy().max(initial=0))
-        return schur_buffers(self.np_dtype, self.device, wm.num_worlds, wm.total_rows, max(tm, 1), max(np_max, 1),
+        cap = schur_list_cap(fixed_row_types(model).rows, wm.blocks_per_row, self._np_max())
+        return schur_buffers(self.np_dtype, self.device, wm.num_worlds, wm.total_rows, max(tm, 1), self._np_max(),
                              max(int(wm.max_bodies), 1), cfg.penalty.eta + cfg.penalty.rho_free,
-                             WARM_START_FILTER_SHIFT if cfg.warm_start else 0.0)
+                             WARM_START_FILTER_SHIFT if cfg.warm_start else 0.0, cap)
+
+    def _np_max(self) -> int:
+        """The fixed positions (fixed rows and hub unknowns) of the largest world (at least 1)."""
+        return max(int(self.sf.arrays.n_pos.numpy().max(initial=0)), 1)
 
     def _schur(self, mode: int) -> None:
-        """``solver_lanes.schur_kernel`` in ``mode`` (the elimination, the reduced right-hand side, the recovery)."""
+        """The reduction's launch ``mode``: the elimination (``solver_lanes.schur_kernel``), the reduced right-hand
+        side or the recovery (``solver_lanes.schur_solve_kernel``)."""
         cfg, w = self.cfg, self.work
-        self._launch_lanes(self.wk.schur,
-                           inputs=[mode, self.wm.blocks_per_row, cfg.penalty.eta, self.rho_free, cfg.penalty.rho,
-                                   w.row_stride, self.sp, w.n_rows, w.frozen, w.row_body, w.row_J, w.reg, w.P, w.vt,
-                                   w.inv_inertia_w, w.lo_s, w.hi_s, w.row_info, w.rho_u],
+        inputs = [self.wm.blocks_per_row, cfg.penalty.eta, self.rho_free, cfg.penalty.rho, w.row_stride, self.sp,
+                  w.n_rows, w.frozen, w.row_body, w.row_J, w.reg, w.P, w.vt, w.inv_inertia_w, w.lo_s, w.hi_s,
+                  w.row_info, w.rho_u]
+        kernel = self.wk.schur if mode == SCHUR_ELIMINATE else self.wk.schur_solve
+        self._launch_lanes(kernel, inputs=inputs if mode == SCHUR_ELIMINATE else [mode, *inputs],
                            outputs=[self.sch, w.p_ref, w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.impulse,
                                     w.velocity, w.failed])
 

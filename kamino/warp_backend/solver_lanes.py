@@ -30,20 +30,23 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   filter's own factor of the fixed rows by :func:`factor_kernel` (launched with the fixed rows' count as the rows to
   factorise: no tail), then :func:`solve_func` on the shifted warm start and the clip, threads over rows.
 - **Schur reduction** (``SolverConfig.reduction = "schur"``, docs/formulation.md §7.11; ``iterate_kernel(schur=True)``,
-  :func:`schur_kernel`). ``L_f`` becomes the elimination's factor: the fixed rows assembled with the shift ``eps =
-  eta + rho_free`` (the reference's in either penalty mode), the effort-limited rows turned into identity rows of it
-  (:func:`schur_decouple_kernel`: they belong to ``T``), and :func:`factor_kernel` on the fixed rows alone, so that
-  ``L_f L_f^T = A + eps I`` on ``F`` (``A = P_F D_FF P_F``, the Jacobi scaling being the full ``D``'s on ``F``) with
-  its hub unknowns. Once per step :func:`schur_kernel` lists ``T`` (effort-limited rows, then limit and contact
-  rows), forms the scaled ``S~ = P_T S P_T`` one column per thread (the column ``P_F D_Fc P_c`` and the products
-  with ``D_TF`` through the bodies, ``J M^-1 J^T``, so ``D_FT`` is never stored; the solve ``A^-1`` of each column
-  by the thread alone over ``L_f``, :func:`ff_solve_func`, with the reference's two refinement steps) and ``P v'_T``
-  the same way, filters the effort-limited rows' warm start with ``S~``, and inverts ``S~ + diag(eta + rho)``
-  (:func:`schur_inverse_func`). An iteration's row passes then visit the rows of ``T`` alone, and its solve is one
+  :func:`schur_kernel`, :func:`schur_solve_kernel`). ``L_f`` becomes the elimination's factor: the fixed rows assembled
+  with the shift ``eps = eta + rho_free`` (the reference's in either penalty mode), the effort-limited rows turned into
+  identity rows of it (:func:`schur_decouple_kernel`: they belong to ``T``), and :func:`factor_kernel` on the fixed rows
+  alone, so that ``L_f L_f^T = A + eps I`` on ``F`` (``A = P_F D_FF P_F``, the Jacobi scaling being the full ``D``'s on
+  ``F``) with its hub unknowns. Once per step :func:`schur_kernel` lists ``T`` (effort-limited rows, then limit and
+  contact rows), forms the scaled ``S~ = P_T S P_T = P_T D_TT P_T - B^T A^-1 B`` one column per thread (``B = P_F D_FT
+  P_T``: its column ``b_c`` listed on the rows of ``F`` that share a body with row ``c``, through the bodies, ``J M^-1
+  J^T``, so ``D_FT`` is never formed; the solve ``A^-1 b_c`` by the thread alone over ``L_f``, :func:`ff_solve_func`,
+  with the reference's two refinement steps: ``L_f`` and the threads' vectors in shared memory where they fit, each
+  row's entries loaded in batches; then its products with the lists) and ``P v'_T`` the same way, filters the
+  effort-limited rows' warm start with ``S~``, and inverts ``S~ + diag(eta + rho)`` (:func:`schur_inverse_func`, in
+  shared memory where it fits). An iteration's row passes then visit the rows of ``T`` alone, and its solve is one
   product with that inverse (:func:`schur_apply_func`: a barrier after the right-hand side, one after the product,
   instead of one per row of ``L_f``); a new penalty or a saturation recomputes the inverse inside the launch. After
-  PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered. Iteration
-  counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``).
+  PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered
+  (:func:`schur_solve_kernel`: one vector's solve by the world's threads together, :func:`solve_func`'s sweeps).
+  Iteration counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``).
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
@@ -56,6 +59,7 @@ Threads of a world meet at block barriers (``sync``); on the CPU the block runs 
 import functools
 from types import SimpleNamespace
 
+import numpy as np
 import warp as wp
 
 from kamino.config import SCHUR_REFINEMENT_STEPS
@@ -801,8 +805,10 @@ def schur_struct(np_dtype):
     ``T`` that PADMM solves (``rows``, ascending: the effort-limited fixed rows, then the limit and contact rows),
     the scaled ``S~ = P_T S P_T`` (``S``) and the factor of ``S~ + diag(eta + rho)`` (``L``), ``tm x tm`` row after
     row, and its inverse (``G``) column after column; the reduced right-hand side ``P v'_T`` in the row layout
-    (``vt``, zero on ``F``); and the scratch of the elimination's solves, per thread (``sb``, ``sx``: ``np_max`` fixed
-    positions; ``su``: ``nb_max`` bodies)."""
+    (``vt``, zero on ``F``); the elimination's right-hand sides ``b_c = P_F D_Fc P_c`` of the rows ``c`` of ``T`` as
+    lists of their entries on the rows of ``F`` that share a body with row ``c`` (``bp`` positions, ``bv`` values,
+    ``bn`` lengths; up to ``cap`` each); and the scratch of the elimination's solves, per thread (``sb``, ``sx``:
+    ``np_max`` fixed positions; ``su``: ``nb_max`` bodies)."""
     T = builder_types(np_dtype)
     farr, iarr = wp.array(dtype=T.scalar), wp.array(dtype=wp.int32)
 
@@ -811,6 +817,7 @@ def schur_struct(np_dtype):
         tm: int  # the reduced rows' capacity of a world
         np_max: int  # fixed positions (fixed rows and hub unknowns) of the largest world
         nb_max: int  # bodies of the largest world
+        cap: int  # entries of a right-hand side's list
         eps: T.scalar  # the elimination's shift eta + rho_free
         filter_shift: T.scalar  # the warm-start filter's shift (0: no filter)
         rows: iarr  # [W tm]
@@ -820,6 +827,9 @@ def schur_struct(np_dtype):
         L: farr
         G: farr
         vt: farr  # per row
+        bp: iarr  # [W tm cap]
+        bv: farr
+        bn: iarr  # [W tm]
         sb: farr  # [W LANES np_max]
         sx: farr
         su: wp.array(dtype=T.vec6)  # [W LANES nb_max]
@@ -882,72 +892,191 @@ def schur_decouple_kernel(np_dtype):
     return schur_decouple
 
 
+#: Entries of a row of ``L_f`` whose indices, values and vector entries a thread of the elimination's sweeps
+#: (:func:`lane_solve_func`) loads together.
+SWEEP_BATCH = 8
+SweepIdx = wp.types.vector(length=SWEEP_BATCH, dtype=wp.int32)
+
+#: The most scalars of the elimination's per-thread vectors (``LANES`` times the fixed positions) that
+#: :func:`schur_kernel` keeps in shared memory; larger worlds keep them in device memory (``Schur.sx``).
+SCHUR_VECTORS_MAX = 8192
+
+
+def schur_list_cap(row_bodies, blocks_per_row: int, np_max: int) -> int:
+    """The entries of a right-hand side's list (``Schur.bp``, :func:`schur_kernel`): a row of ``T`` has up to
+    ``blocks_per_row`` bodies, each on at most as many fixed rows as the busiest body of a world type (``row_bodies``:
+    ``linear_solve_pattern.FixedRowTypes.rows``, each fixed row's moving bodies), and no more than ``np_max``."""
+    busiest = 0
+    for rows in row_bodies:
+        if len(rows):  # a body counts once per row
+            b = np.asarray(rows, np.int64).reshape(len(rows), -1)
+            counts = np.bincount(np.concatenate([np.unique(r[r >= 0]) for r in b]))
+            busiest = max(busiest, int(counts.max(initial=0)))
+    return max(1, min(np_max, blocks_per_row * busiest))
+
+
+def schur_vectors(np_max: int) -> int:
+    """The shared length of the elimination's per-thread vectors (:func:`thread_vector_funcs`) for worlds of up to
+    ``np_max`` fixed positions: ``LANES`` vectors of ``np_max`` rounded up to a multiple of ``LANES`` (so that similar
+    scenes share a compiled module), or 0 above :data:`SCHUR_VECTORS_MAX`."""
+    X = LANES * shared_rows(np_max)
+    return X if X <= SCHUR_VECTORS_MAX else 0
+
+
 @functools.cache
-def lane_solve_func(np_dtype):
-    """``x <- C^-1 x`` with the fixed rows' factor ``C = L_f L_f^T`` by one thread (§8.1).
-    ``lane_solve(sp, wid, vb, x, xb)``: ``x`` in position order from ``xb``, ``LANES`` apart (the world's threads'
-    vectors interleaved: they walk the same pattern together, so their loads coalesce)."""
-    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
+def thread_vector_funcs(np_dtype, X: int):
+    """A thread's vector of the elimination's solves (§7.11), in position order with the world's threads' vectors
+    interleaved (entry ``p`` at ``xi + p LANES``): in shared memory (``X > 0`` scalars, ``xi`` the thread's lane) or
+    in ``Schur.sx`` (``xi`` its interleaved start there). ``SimpleNamespace(vget, vset)``."""
+    scalar = builder_types(np_dtype).scalar
     farr = wp.array(dtype=scalar)
+    XL = max(X, 1)
+    XVec = shared_vector(np_dtype, XL)
+    sset, sget = shared_set_func(np_dtype, XL), shared_get_func(np_dtype, XL)
 
     @wp.func
-    def lane_solve(sp: SP, wid: int, vb: int, x: farr, xb: int):
+    def vget(sx: farr, xv: XVec, xi: int, p: int) -> scalar:
+        """Entry ``p`` of the thread's vector."""
+        if wp.static(X > 0):
+            return sget(xv, xi + p * LANES)
+        return sx[xi + p * LANES]
+
+    @wp.func
+    def vset(sx: farr, xv: XVec, xi: int, p: int, v: scalar):
+        """Entry ``p`` of the thread's vector := ``v``."""
+        if wp.static(X > 0):
+            sset(xv, xi + p * LANES, v)
+        else:
+            sx[xi + p * LANES] = v
+
+    return SimpleNamespace(vget=vget, vset=vset)
+
+
+@functools.cache
+def lane_solve_func(np_dtype, E: int, X: int):
+    """``x <- C^-1 x`` with the fixed rows' factor ``C = L_f L_f^T`` by one thread (§8.1).
+    ``lane_solve(sp, wid, vb, lv, sx, xv, xi)``: ``L_f`` staged in ``lv`` (``E > 0``, :func:`staged_get_func`) or in
+    device memory, the thread's vector in ``xv`` or ``sx`` (:func:`thread_vector_funcs` of ``X``)."""
+    scalar, SP = builder_types(np_dtype).take("scalar", "SP")
+    farr = wp.array(dtype=scalar)
+    LVec = shared_vector(np_dtype, max(E, 1))
+    XVec = shared_vector(np_dtype, max(X, 1))
+    fget = staged_get_func(np_dtype, E)
+    tv = thread_vector_funcs(np_dtype, X)
+    vget, vset = tv.vget, tv.vset
+    SweepVal = wp.types.vector(length=SWEEP_BATCH, dtype=scalar)
+    zero = scalar(0.0)
+
+    @wp.func
+    def forward_batch(sp: SP, e0: int, vb: int, kb: int, k1: int, lv: LVec, sx: farr, xv: XVec, xi: int,
+                      s: scalar) -> scalar:
+        """``s - sum_k L_k x_col(k)`` over the ``SWEEP_BATCH`` entries ``k`` of a row from ``kb`` that lie before its
+        diagonal ``k1``, subtracted in the entries' order: the batch's column indices, then its values and vector
+        entries, each loaded together (indices clamped to the row, the surplus values zero), so that the batch waits
+        on two load latencies instead of two per entry."""
+        cv = SweepIdx()
+        for r in range(SWEEP_BATCH):
+            cv[r] = sp.col[e0 + wp.min(kb + r, k1 - 1)]
+        lvv = SweepVal()
+        xvv = SweepVal()
+        for r in range(SWEEP_BATCH):
+            lvv[r] = wp.where(kb + r < k1, fget(sp, vb, wp.min(kb + r, k1 - 1), lv), zero)
+            xvv[r] = vget(sx, xv, xi, cv[r])
+        for r in range(SWEEP_BATCH):
+            s -= lvv[r] * xvv[r]
+        return s
+
+    @wp.func
+    def backward_batch(sp: SP, e0: int, vb: int, kb: int, k1: int, lv: LVec, sx: farr, xv: XVec, xi: int,
+                       xp: scalar):
+        """``x_col(k) -= L_k x_p`` over the ``SWEEP_BATCH`` entries ``k`` of row ``p`` from ``kb`` that lie before its
+        diagonal ``k1``, loaded together as in ``forward_batch`` (a row's columns are distinct, so its entries' updates
+        are independent)."""
+        cv = SweepIdx()
+        for r in range(SWEEP_BATCH):
+            cv[r] = sp.col[e0 + wp.min(kb + r, k1 - 1)]
+        lvv = SweepVal()
+        xvv = SweepVal()
+        for r in range(SWEEP_BATCH):
+            lvv[r] = fget(sp, vb, wp.min(kb + r, k1 - 1), lv)
+            xvv[r] = vget(sx, xv, xi, cv[r])
+        for r in range(SWEEP_BATCH):
+            if kb + r < k1:
+                vset(sx, xv, xi, cv[r], xvv[r] - lvv[r] * xp)
+
+    @wp.func
+    def lane_solve(sp: SP, wid: int, vb: int, lv: LVec, sx: farr, xv: XVec, xi: int):
         """The forward and the backward substitution of ``linear_solve.solve_inplace`` on the fixed positions
-        alone, in position order (``x[xb + p LANES]``), by the calling thread: with hubs the right-hand side of their
-        unknowns is 0 and ``y`` is negated there between the sweeps. The threads of a world each solve their own
-        vector: no barrier."""
+        alone, by the calling thread, row by row in batches of ``SWEEP_BATCH`` entries: with hubs the right-hand side
+        of their unknowns is 0 and ``y`` is negated there between the sweeps. The threads of a world each solve their
+        own vector: no barrier; they walk the same pattern together, so their loads of ``L_f`` are one broadcast and
+        those of their vectors one coalesced access (or conflict-free in shared memory)."""
         npos = sp.n_pos[wid]
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
         p0 = sp.ptr_start[wid]
+        # row p's entries are row_ptr[p] .. row_ptr[p + 1] - 1 (the diagonal last): each row's bound is the next's
+        # other bound, and the one after is loaded a row ahead
+        lo = sp.row_ptr[p0]
+        hi = sp.row_ptr[p0 + wp.min(1, npos)]
         for p in range(npos):
-            s = x[xb + p * LANES]
-            k1 = sp.row_ptr[p0 + p + 1] - 1
-            for k in range(sp.row_ptr[p0 + p], k1):
-                s -= sp.val[vb + k * sp.val_stride] * x[xb + sp.col[e0 + k] * LANES]
-            x[xb + p * LANES] = s / sp.val[vb + k1 * sp.val_stride]
+            k0 = lo
+            k1 = hi - 1
+            lo = hi
+            hi = sp.row_ptr[p0 + wp.min(p + 2, npos)]
+            s = vget(sx, xv, xi, p)
+            for kb in range(k0, k1, SWEEP_BATCH):
+                s = forward_batch(sp, e0, vb, kb, k1, lv, sx, xv, xi, s)
+            vset(sx, xv, xi, p, s / fget(sp, vb, k1, lv))
         for p in range(nf, npos):
-            x[xb + p * LANES] = -x[xb + p * LANES]
+            vset(sx, xv, xi, p, -vget(sx, xv, xi, p))
+        hi = sp.row_ptr[p0 + npos]
+        lo = sp.row_ptr[p0 + wp.max(npos - 1, 0)]
         for pp in range(npos):
             p = npos - 1 - pp
-            k1 = sp.row_ptr[p0 + p + 1] - 1
-            xp = x[xb + p * LANES] / sp.val[vb + k1 * sp.val_stride]
-            x[xb + p * LANES] = xp
-            for k in range(sp.row_ptr[p0 + p], k1):
-                q = xb + sp.col[e0 + k] * LANES
-                x[q] = x[q] - sp.val[vb + k * sp.val_stride] * xp
+            k0 = lo
+            k1 = hi - 1
+            hi = lo
+            lo = sp.row_ptr[p0 + wp.max(p - 1, 0)]
+            xp = vget(sx, xv, xi, p) / fget(sp, vb, k1, lv)
+            vset(sx, xv, xi, p, xp)
+            for kb in range(k0, k1, SWEEP_BATCH):
+                backward_batch(sp, e0, vb, kb, k1, lv, sx, xv, xi, xp)
 
     return lane_solve
 
 
 @functools.cache
-def ff_solve_func(np_dtype):
-    """``A^-1 b`` on ``F`` with ``SCHUR_REFINEMENT_STEPS`` refinement steps (§7.11).
-    ``ff_solve(sp, wid, vb, sb, sx, xb, eps)``."""
+def ff_solve_func(np_dtype, E: int, X: int):
+    """``A^-1 b`` on ``F`` with ``SCHUR_REFINEMENT_STEPS`` refinement steps by one thread (§7.11).
+    ``ff_solve(sp, wid, vb, lv, sb, xb, sx, xv, xi, eps)`` (:func:`lane_solve_func` of ``E``, ``X``)."""
     scalar, SP = builder_types(np_dtype).take("scalar", "SP")
     farr = wp.array(dtype=scalar)
-    lane_solve = lane_solve_func(np_dtype)
+    LVec = shared_vector(np_dtype, max(E, 1))
+    XVec = shared_vector(np_dtype, max(X, 1))
+    lane_solve = lane_solve_func(np_dtype, E, X)
+    tv = thread_vector_funcs(np_dtype, X)
+    vget, vset = tv.vget, tv.vset
     zero = scalar(0.0)
 
     @wp.func
-    def ff_solve(sp: SP, wid: int, vb: int, sb: farr, sx: farr, xb: int, eps: scalar):
-        """``x = A^-1 b`` (``b``: ``sb``, zero off ``F``; ``x``: ``sx``; position order from ``xb``, ``LANES``
-        apart) with the factor ``C = A + eps I`` and the refinement of ``kamino.jax_ref.reduction.ff_solve``,
-        ``x_{k+1} = x_k + C^-1 (b - A x_k)``, written as ``x_{k+1} = C^-1 (b + eps x_k)`` (the same vector: ``A = C -
-        eps I``), which needs no product with ``A``: ``x_0 = C^-1 b`` and ``SCHUR_REFINEMENT_STEPS`` more solves. The
-        effort-limited rows' identity block keeps them at zero; the hubs' unknowns take a zero right-hand side in
-        every solve."""
+    def ff_solve(sp: SP, wid: int, vb: int, lv: LVec, sb: farr, xb: int, sx: farr, xv: XVec, xi: int, eps: scalar):
+        """``x = A^-1 b`` (``b``: ``sb`` from ``xb``, zero off ``F``; ``x``: the thread's vector) with the factor ``C
+        = A + eps I`` and the refinement of ``kamino.jax_ref.reduction.ff_solve``, ``x_{k+1} = x_k + C^-1 (b - A
+        x_k)``, written as ``x_{k+1} = C^-1 (b + eps x_k)`` (the same vector: ``A = C - eps I``), which needs no
+        product with ``A``: ``x_0 = C^-1 b`` and ``SCHUR_REFINEMENT_STEPS`` more solves. The effort-limited rows'
+        identity block keeps them at zero; the hubs' unknowns take a zero right-hand side in every solve."""
         npos = sp.n_pos[wid]
         nf = sp.n_fixed[wid]
         for p in range(npos):
-            sx[xb + p * LANES] = sb[xb + p * LANES]
-        lane_solve(sp, wid, vb, sx, xb)
+            vset(sx, xv, xi, p, sb[xb + p * LANES])
+        lane_solve(sp, wid, vb, lv, sx, xv, xi)
         for _ in range(SCHUR_REFINEMENT_STEPS):
             for p in range(nf):
-                sx[xb + p * LANES] = sb[xb + p * LANES] + eps * sx[xb + p * LANES]
+                vset(sx, xv, xi, p, sb[xb + p * LANES] + eps * vget(sx, xv, xi, p))
             for p in range(nf, npos):
-                sx[xb + p * LANES] = zero
-            lane_solve(sp, wid, vb, sx, xb)
+                vset(sx, xv, xi, p, zero)
+            lane_solve(sp, wid, vb, lv, sx, xv, xi)
 
     return ff_solve
 
@@ -956,7 +1085,7 @@ def ff_solve_func(np_dtype):
 def body_funcs(np_dtype):
     """A thread's body-space vector (``J^T`` of row values, ``M^-1`` of it, ``J`` of it) for the elimination's
     products with ``D = J M^-1 J^T + R`` (§7.1) without assembling ``D_FT``. ``SimpleNamespace(add_row, row_dot,
-    inv_mass)``."""
+    row_u, row_dot_on, shares_body)``."""
     scalar, M, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "vec6", "mat33")
     iarr = wp.array(dtype=wp.int32)
     inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
@@ -983,52 +1112,152 @@ def body_funcs(np_dtype):
         return s
 
     @wp.func
-    def inv_mass(m: M, inv_inertia_w: wp.array(dtype=mat33), su: wp.array(dtype=vec6), ub: int, b0: int, nb: int,
-                 zero_after: int):
-        """``u <- M^-1 u`` on the world's ``nb`` bodies (with ``zero_after``: ``u <- 0`` instead, to start a sum)."""
-        for i in range(nb):
-            if zero_after != 0:
-                su[ub + i * LANES] = vec6()
-            else:
-                su[ub + i * LANES] = inv_mass_times(m, inv_inertia_w, b0 + i, su[ub + i * LANES])
+    def row_u(m: M, inv_inertia_w: wp.array(dtype=mat33), su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr,
+              row_J: wp.array(dtype=vec6), rc: int, nblk: int, c: scalar):
+        """``u = M^-1 J_rc^T c`` on row ``rc``'s own bodies (zero, then ``add_row``, then ``M^-1`` once per body):
+        its other bodies' entries of ``u`` are zero and not written, since :func:`row_dot_on` does not read them."""
+        for k in range(nblk):
+            bk = row_body[rc * nblk + k]
+            if bk >= 0:
+                su[ub + (bk - b0) * LANES] = vec6()
+        add_row(su, ub, b0, row_body, row_J, rc, nblk, c)
+        for k in range(nblk):
+            bk = row_body[rc * nblk + k]
+            first = int(bk >= 0)
+            for l in range(k):
+                if row_body[rc * nblk + l] == bk:
+                    first = 0
+            if first != 0:
+                su[ub + (bk - b0) * LANES] = inv_mass_times(m, inv_inertia_w, bk, su[ub + (bk - b0) * LANES])
 
-    return SimpleNamespace(add_row=add_row, row_dot=row_dot, inv_mass=inv_mass)
+    @wp.func
+    def shares_body(row_body: iarr, r: int, rc: int, nblk: int) -> int:
+        """Whether row ``r`` has a body of row ``rc`` (1) or not (0)."""
+        hit = int(0)
+        for k in range(nblk):
+            bk = row_body[r * nblk + k]
+            if bk >= 0:
+                for l in range(nblk):
+                    if row_body[rc * nblk + l] == bk:
+                        hit = 1
+        return hit
+
+    @wp.func
+    def row_dot_on(su: wp.array(dtype=vec6), ub: int, b0: int, row_body: iarr, row_J: wp.array(dtype=vec6), r: int,
+                   rc: int, nblk: int) -> scalar:
+        """``J_r u`` for ``u`` of :func:`row_u` (nonzero on row ``rc``'s bodies alone): ``row_dot`` without the
+        blocks of ``r`` on other bodies, whose terms are zeros (the same sum), so that a row sharing no body with
+        ``rc`` reads no entry of ``u``."""
+        s = scalar(0.0)
+        for k in range(nblk):
+            bk = row_body[r * nblk + k]
+            shared = int(0)
+            if bk >= 0:
+                for l in range(nblk):
+                    if row_body[rc * nblk + l] == bk:
+                        shared = 1
+            if shared != 0:
+                s += wp.dot(row_J[r * nblk + k], su[ub + (bk - b0) * LANES])
+        return s
+
+    return SimpleNamespace(add_row=add_row, row_dot=row_dot, row_u=row_u, row_dot_on=row_dot_on,
+                           shares_body=shares_body)
+
+
+#: The most scalars of the reduced problem's factor and inverse that the elimination keeps in shared memory
+#: (:func:`schur_dense`); larger reduced problems keep them in device memory (``Schur.L``, ``Schur.G``).
+SCHUR_DENSE_MAX = 12288
+
+
+def schur_dense(tm: int) -> int:
+    """The shared scalars of :func:`schur_inverse_func` for reduced problems of up to ``tm`` rows: two squares of
+    stride ``tm`` rounded up to odd (the factor's rows and the inverse's columns then start on distinct banks, so that
+    threads reading down a column or along their own column do not conflict), rounded up to a multiple of 256, or 0
+    above :data:`SCHUR_DENSE_MAX`."""
+    ld = tm + 1 - tm % 2
+    D = 256 * max(1, -(-2 * ld * ld // 256))
+    return D if D <= SCHUR_DENSE_MAX else 0
 
 
 @functools.cache
-def schur_inverse_func(np_dtype):
+def schur_inverse_func(np_dtype, D: int = 0):
     """``G = (S~ + diag(eta + rho))^-1`` of a world's reduced problem by its threads (§7.11).
-    ``schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u)``."""
+    ``schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u)``; with ``D > 0``
+    (:func:`schur_dense`) the factor and the inverse are worked on in shared memory and ``G`` is written to
+    ``sch.G`` at the end, else both in device memory (``sch.L``, ``sch.G``)."""
     scalar = builder_types(np_dtype).scalar
     Schur = schur_struct(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
+    DL = max(D, 1)
+    DVec = shared_vector(np_dtype, DL)
+    dset, dget = shared_set_func(np_dtype, DL), shared_get_func(np_dtype, DL)
+
+    @wp.func
+    def lget(sch: Schur, ds: DVec, k: int) -> scalar:
+        """Entry ``k`` of the factor's storage."""
+        if wp.static(D > 0):
+            return dget(ds, k)
+        return sch.L[k]
+
+    @wp.func
+    def lset(sch: Schur, ds: DVec, k: int, v: scalar):
+        """Entry ``k`` of the factor's storage := ``v``."""
+        if wp.static(D > 0):
+            dset(ds, k, v)
+        else:
+            sch.L[k] = v
+
+    @wp.func
+    def gget(sch: Schur, ds: DVec, k: int) -> scalar:
+        """Entry ``k`` of the inverse's storage."""
+        if wp.static(D > 0):
+            return dget(ds, k)
+        return sch.G[k]
+
+    @wp.func
+    def gset(sch: Schur, ds: DVec, k: int, v: scalar):
+        """Entry ``k`` of the inverse's storage := ``v``."""
+        if wp.static(D > 0):
+            dset(ds, k, v)
+        else:
+            sch.G[k] = v
 
     @wp.func
     def schur_inverse(sch: Schur, wid: int, lane: int, row_info: wp.array(dtype=wp.int32), rb: int, rs: int, nf: int,
                       eta: scalar, rho_free: scalar, rho_box: scalar, rho_u: scalar):
         """The Cholesky factor ``L`` of ``S~ + diag(eta + rho_i)`` (each row's penalty, ``solver_rules.row_penalty``:
         a saturated effort-limited row's ``rho_box``) by columns (threads over the rows below the diagonal, one
-        barrier per column), then ``G``'s columns, ``L L^T g_c = e_c``, one thread per column (no barrier), each
-        stored contiguously (``G_ic`` at ``c tm + i``: in the product with ``G`` the threads, one per row ``i``, read
-        consecutive entries): every PADMM iteration's solve is then one product with ``G``
-        (:func:`schur_apply_func`)."""
+        barrier per column; ``S~`` is symmetric, so they read its column ``j`` as row ``j``: consecutive entries),
+        then ``G``'s columns, ``L L^T g_c = e_c``, one thread per column (no barrier), each stored contiguously
+        (``G_ic`` at ``c tm + i``: in the product with ``G`` the threads, one per row ``i``, read consecutive
+        entries): every PADMM iteration's solve is then one product with ``G`` (:func:`schur_apply_func`). ``L_ik``
+        at ``lb + i ld + k`` and ``G_ic`` at ``gb + c ld + i``: in shared memory ``ld`` is ``tm`` rounded up to odd,
+        and ``G`` goes to ``sch.G`` in the end, threads over consecutive entries."""
         nt = sch.nt[wid]
         tm = sch.tm
         g0 = wid * tm * tm
         t0 = wid * tm
+        ds = wp.tile_zeros(shape=(DL,), dtype=scalar, storage="shared")  # one unread scalar when D = 0
+        ld = tm
+        lb = g0
+        gb = g0
+        if wp.static(D > 0):
+            ld = tm + 1 - tm % 2
+            lb = 0
+            gb = ld * ld
         for j in range(nt):
             aj = sch.rows[t0 + j]
             s = sch.S[g0 + j * tm + j] + eta + row_penalty(row_info, rb + aj * rs, aj, nf, rho_free, rho_box, rho_u)
             for k in range(j):
-                s -= sch.L[g0 + j * tm + k] * sch.L[g0 + j * tm + k]
+                s -= lget(sch, ds, lb + j * ld + k) * lget(sch, ds, lb + j * ld + k)
             d = wp.sqrt(s)
             for i in range(j + 1 + lane, nt, LANES):
-                v = sch.S[g0 + i * tm + j]
+                v = sch.S[g0 + j * tm + i]
                 for k in range(j):
-                    v -= sch.L[g0 + i * tm + k] * sch.L[g0 + j * tm + k]
-                sch.L[g0 + i * tm + j] = v / d
+                    v -= lget(sch, ds, lb + i * ld + k) * lget(sch, ds, lb + j * ld + k)
+                lset(sch, ds, lb + i * ld + j, v / d)
             if lane == 0:  # no thread reads L_jj before the next column
-                sch.L[g0 + j * tm + j] = d
+                lset(sch, ds, lb + j * ld + j, d)
             sync()
         for c in range(lane, nt, LANES):
             for i in range(nt):  # L z = e_c, into column c of G
@@ -1037,16 +1266,22 @@ def schur_inverse_func(np_dtype):
                     v = scalar(1.0)
                 if i >= c:
                     for k in range(c, i):
-                        v -= sch.L[g0 + i * tm + k] * sch.G[g0 + c * tm + k]
-                    v = v / sch.L[g0 + i * tm + i]
-                sch.G[g0 + c * tm + i] = v
+                        v -= lget(sch, ds, lb + i * ld + k) * gget(sch, ds, gb + c * ld + k)
+                    v = v / lget(sch, ds, lb + i * ld + i)
+                gset(sch, ds, gb + c * ld + i, v)
             for ii in range(nt):  # L^T g = z
                 i = nt - 1 - ii
-                v = sch.G[g0 + c * tm + i]
+                v = gget(sch, ds, gb + c * ld + i)
                 for k in range(i + 1, nt):
-                    v -= sch.L[g0 + k * tm + i] * sch.G[g0 + c * tm + k]
-                sch.G[g0 + c * tm + i] = v / sch.L[g0 + i * tm + i]
+                    v -= lget(sch, ds, lb + k * ld + i) * gget(sch, ds, gb + c * ld + k)
+                gset(sch, ds, gb + c * ld + i, v / lget(sch, ds, lb + i * ld + i))
         sync()
+        if wp.static(D > 0):
+            for u in range(lane, nt * nt, LANES):
+                c = u // nt
+                i = u - c * nt
+                sch.G[g0 + c * tm + i] = dget(ds, gb + c * ld + i)
+            sync()
 
     return schur_inverse
 
@@ -1141,37 +1376,47 @@ def filter_effort_rows_func(np_dtype):
     return filter_effort_rows
 
 
-#: :func:`schur_kernel`'s modes: the elimination (once per step), the reduced right-hand side again (after the
-#: curvature refinement changed ``v_f``), the recovery of ``lambda_F``
+#: The Schur reduction's per-step launches: the elimination (:func:`schur_kernel`, once per step), the reduced
+#: right-hand side again (after the curvature refinement changed ``v_f``) and the recovery of ``lambda_F`` (the modes
+#: of :func:`schur_solve_kernel`)
 SCHUR_ELIMINATE, SCHUR_RHS, SCHUR_RECOVER = 0, 1, 2
 
 
 @functools.cache
-def schur_kernel(np_dtype):
-    """The Schur reduction's per-step work with the world's 32 threads (§7.11).
-    ``schur(m, mode, nblk, eta, rho_free, rho_box, row_stride, sp, n_rows, frozen, row_body, row_J, reg, P, vt,
+def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
+    """The Schur reduction's elimination with the world's 32 threads (§7.11), once per step.
+    ``schur(m, nblk, eta, rho_free, rho_box, row_stride, sp, n_rows, frozen, row_body, row_J, reg, P, vt,
     inv_inertia_w, lo_s, hi_s, row_info, rho_u, sch, p_ref, x, x_p, y_p, y_hat, z_p, z_hat, impulse, velocity,
-    failed)``, launched tiled: one block of ``LANES`` threads per world."""
+    failed)``, launched tiled: one block of ``LANES`` threads per world. With ``E > 0`` the world's ``L_f`` (up to
+    ``E`` entries, :func:`shared_entries`) and with ``X > 0`` the threads' solution vectors (:func:`schur_vectors`)
+    are staged in shared memory, so that the sweeps of :func:`lane_solve_func` wait on shared memory instead of
+    device memory; else they stay in device memory (``sp.val``, ``Schur.sx``). With ``D > 0`` (:func:`schur_dense`)
+    ``G`` is formed in shared memory too. The two stages' shared memory is the same (each function's tiles are
+    released when it returns): ``max(E + X, D)`` scalars. The columns of ``B = P_F D_FT P_T`` are kept as lists of
+    their entries (``Schur.bp``, ``bv``, ``bn``; :func:`schur_list_cap`)."""
     scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     Schur = schur_struct(np_dtype)
     bases = sparse_llt_kernels(np_dtype).bases
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
     free_row = free_row_func(np_dtype)
-    ff_solve = ff_solve_func(np_dtype)
+    EL, XL = max(E, 1), max(X, 1)
+    XVec = shared_vector(np_dtype, XL)
+    lset = shared_set_func(np_dtype, EL)
+    ff_solve = ff_solve_func(np_dtype, E, X)
+    vget = thread_vector_funcs(np_dtype, X).vget
     bf = body_funcs(np_dtype)
-    add_row, row_dot, inv_mass = bf.add_row, bf.row_dot, bf.inv_mass
-    schur_inverse = schur_inverse_func(np_dtype)
+    row_u, row_dot_on, shares_body = bf.row_u, bf.row_dot_on, bf.shares_body
+    SweepVal = wp.types.vector(length=SWEEP_BATCH, dtype=scalar)
+    schur_inverse = schur_inverse_func(np_dtype, D)
     filter_effort_rows = filter_effort_rows_func(np_dtype)
     lane_max = rules.lane_reduce_func(np_dtype, LANES, "max")
     zero = scalar(0.0)
 
     @wp.func
-    def rhs_f(sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, vt: farr, P: farr,
-              row_body: iarr, row_J: wp.array(dtype=vec6), nblk: int, b0: int, xb: int, ub: int, mode: int):
-        """The right-hand side on ``F`` (position order in ``sch.sb``): ``P_F D_Fc P_c`` (``mode`` 0, ``u =
-        M^-1 J_c^T P_c`` in ``sch.su``), ``P v_F`` (1) or ``-(P v_F + P_F D_FT lambda_T)`` (2, ``u = M^-1 J_T^T
-        lambda_T``); zero on the effort-limited rows and the hubs' unknowns."""
+    def rhs_v(sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, vt: farr, xb: int):
+        """The thread's right-hand side ``P v_F`` on ``F`` (position order in ``sch.sb`` from ``xb``); zero on the
+        effort-limited rows and the hubs' unknowns."""
         nf = sp.n_fixed[wid]
         q0 = sp.perm_start[wid]
         for p in range(sp.n_pos[wid]):
@@ -1179,30 +1424,293 @@ def schur_kernel(np_dtype):
             if p < nf:
                 r = rb + sp.perm[q0 + p] * rs
                 if free_row(lo_s, hi_s, r):
-                    if mode == 0:
-                        v = P[r] * row_dot(sch.su, ub, b0, row_body, row_J, r, nblk)
-                    elif mode == 1:
-                        v = vt[r]
-                    else:
-                        v = -(vt[r] + P[r] * row_dot(sch.su, ub, b0, row_body, row_J, r, nblk))
+                    v = vt[r]
             sch.sb[xb + p * LANES] = v
 
     @wp.func
-    def times_x(m: M, sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, P: farr,
-                row_body: iarr, row_J: wp.array(dtype=vec6), inv_inertia_w: wp.array(dtype=mat33), nblk: int, b0: int,
-                nb: int, xb: int, ub: int):
-        """``u = M^-1 J_F^T P_F x`` from the solve's ``x`` (``sch.sx``): ``P_T D_TF P_F x = P_T J_T u``."""
+    def rhs_list(m: M, sch: Schur, sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, P: farr,
+                 row_body: iarr, row_J: wp.array(dtype=vec6), inv_inertia_w: wp.array(dtype=mat33), nblk: int,
+                 b0: int, ub: int, c: int, failed: iarr):
+        """Column ``c``'s right-hand side ``b_c = P_F D_Fc P_c`` (row ``c`` of ``T``) as its list: ``u = M^-1 J_c^T
+        P_c`` on row ``c``'s bodies (``row_u``), then the entries ``P_p J_p u`` of the rows of ``F`` that share a body
+        with row ``c`` (``row_dot_on``), in position order; its other entries are zero. A list longer than
+        ``sch.cap`` (not expected: :func:`schur_list_cap` bounds it) fails the world."""
         nf = sp.n_fixed[wid]
         q0 = sp.perm_start[wid]
-        inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
+        rc = rb + sch.rows[wid * sch.tm + c] * rs
+        row_u(m, inv_inertia_w, sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
+        lb = (wid * sch.tm + c) * sch.cap
+        cnt = int(0)
         for p in range(nf):
             r = rb + sp.perm[q0 + p] * rs
-            if free_row(lo_s, hi_s, r):
-                add_row(sch.su, ub, b0, row_body, row_J, r, nblk, P[r] * sch.sx[xb + p * LANES])
-        inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
+            if shares_body(row_body, r, rc, nblk) != 0:
+                if free_row(lo_s, hi_s, r):
+                    if cnt < sch.cap:
+                        sch.bp[lb + cnt] = p
+                        sch.bv[lb + cnt] = P[r] * row_dot_on(sch.su, ub, b0, row_body, row_J, r, rc, nblk)
+                    cnt += 1
+        if cnt > sch.cap:
+            failed[wid] = 1
+        sch.bn[wid * sch.tm + c] = wp.min(cnt, sch.cap)
+
+    @wp.func
+    def list_dot(sch: Schur, lb: int, n: int, xv: XVec, xi: int) -> scalar:
+        """``b_i . x`` over the ``n`` entries of a right-hand side's list from ``lb`` and the thread's solution ``x``:
+        ``SWEEP_BATCH`` entries' positions and values, then their entries of ``x``, loaded together (clamped, the
+        surplus values zero), summed in the list's order."""
+        s = zero
+        for jb in range(0, n, SWEEP_BATCH):
+            pv = SweepIdx()
+            bv = SweepVal()
+            for r in range(SWEEP_BATCH):
+                j = lb + wp.min(jb + r, n - 1)
+                pv[r] = sch.bp[j]
+                bv[r] = wp.where(jb + r < n, sch.bv[j], zero)
+            xw = SweepVal()
+            for r in range(SWEEP_BATCH):
+                xw[r] = vget(sch.sx, xv, xi, pv[r])
+            for r in range(SWEEP_BATCH):
+                s += bv[r] * xw[r]
+        return s
+
+    @wp.func
+    def columns(m: M, nblk: int, rs: int, sp: SP, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr, P: farr,
+                vt: farr, inv_inertia_w: wp.array(dtype=mat33), lo_s: farr, hi_s: farr, sch: Schur, wid: int,
+                lane: int, failed: iarr):
+        """``S~`` (unsymmetrised) and ``P v'_T`` (§7.11 (S), ``S~ = P_T D_TT P_T - B^T A^-1 B`` with ``B = P_F D_FT
+        P_T``): first the columns ``b_c`` of ``B`` as lists (``rhs_list``, thread ``c mod LANES``), then column ``c``
+        of ``S~`` (``c < nt``) or the right-hand side (``c = nt``, ``b = P v_F``) by thread ``c mod LANES``: its
+        solve ``x = A^-1 b`` (:func:`ff_solve_func`) and the products ``b_i . x`` with the lists of every row ``i``
+        of ``T`` (``list_dot``: ``P_i D_iF P_F x``, ``D_TF`` never formed). ``L_f`` and the threads' vectors are
+        staged in shared memory (``E``, ``X``) for the solves and the products, released on return."""
+        base = bases(m, sp, rs, wid)
+        rb, vb = base[0], base[1]
+        tm = sch.tm
+        t0 = wid * tm
+        g0 = wid * tm * tm
+        b0 = m.body_start[wid]
+        npos = sp.n_pos[wid]
+        xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
+        ub = wid * LANES * sch.nb_max + lane
+        xi = xb  # the thread's solution vector: in Schur.sx, or in shared memory (thread_vector_funcs)
+        if wp.static(X > 0):
+            xi = lane
+        lv = wp.tile_zeros(shape=(EL,), dtype=scalar, storage="shared")
+        xv = wp.tile_zeros(shape=(XL,), dtype=scalar, storage="shared")
+        if wp.static(E > 0):
+            for k in range(lane, sp.nnz[wid], LANES):
+                lset(lv, k, sp.val[vb + k * sp.val_stride])
+        nt = sch.nt[wid]
+        for c in range(lane, nt, LANES):
+            rhs_list(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, ub, c, failed)
+        sync()
+        for c in range(lane, nt + 1, LANES):
+            if c < nt:  # b_c from its list
+                for p in range(npos):
+                    sch.sb[xb + p * LANES] = zero
+                lb = (t0 + c) * sch.cap
+                for j in range(sch.bn[t0 + c]):
+                    sch.sb[xb + sch.bp[lb + j] * LANES] = sch.bv[lb + j]
+            else:
+                rhs_v(sch, sp, wid, rb, rs, lo_s, hi_s, vt, xb)
+            ff_solve(sp, wid, vb, lv, sch.sb, xb, sch.sx, xv, xi, sch.eps)
+            for i in range(nt):
+                ai = sch.rows[t0 + i]
+                ri = rb + ai * rs
+                dx = list_dot(sch, (t0 + i) * sch.cap, sch.bn[t0 + i], xv, xi)
+                if c < nt:
+                    ac = sch.rows[t0 + c]
+                    sch.S[g0 + i * tm + c] = (P[ri] * delassus_entry(m, rs, row_body, row_J, reg, inv_inertia_w,
+                                                                     wid, ai, ac, nblk) * P[rb + ac * rs] - dx)
+                else:
+                    sch.vt[ri] = vt[ri] - dx
+        sync()
 
     @wp.kernel(module="unique", enable_backward=False)
     def schur(
+        # model (read only)
+        m: M,
+        # in
+        nblk: int, eta: scalar, rho_free: scalar, rho_box: scalar,
+        row_stride: int,
+        sp: SP,  # L_f of A + eps I (schur_decouple, factor_kernel on the fixed rows; read)
+        n_rows: iarr, frozen: iarr, row_body: iarr, row_J: wp.array(dtype=vec6), reg: farr, P: farr, vt: farr,
+        inv_inertia_w: wp.array(dtype=mat33), lo_s: farr, hi_s: farr, row_info: iarr, rho_u: farr,
+        # out
+        sch: Schur,
+        p_ref: farr,
+        x: farr, x_p: farr, y_p: farr, y_hat: farr, z_p: farr, z_hat: farr,  # the warm start (also read)
+        impulse: farr, velocity: farr, failed: iarr,  # padmm_finish's (also read)
+    ):
+        """After ``padmm_init``: the rows of ``T``, the residual scale ``P_ref`` over them, the warm start zero on
+        ``F``, ``S~ = P_T D_TT P_T - P_T D_TF A^-1 D_FT P_T`` symmetrised and ``P v'_T = P v_T - P_T D_TF A^-1 P v_F``
+        (§7.11 (S), the columns of ``T`` and the right-hand side one per thread, :func:`ff_solve_func`), the
+        warm-start filter of the effort-limited rows (:func:`filter_effort_rows_func`) and ``G``
+        (:func:`schur_inverse_func`)."""
+        rs = row_stride
+        wid, lane = wp.tid()
+        n = n_rows[wid]
+        if frozen[wid] != 0 or n == 0:
+            return
+        rb = bases(m, sp, row_stride, wid)[0]
+        nf = sp.n_fixed[wid]
+        tm = sch.tm
+        t0 = wid * tm
+        g0 = wid * tm * tm
+        xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
+        if lane == 0:  # the rows of T, ascending: the effort-limited fixed rows, then the limit and contact rows
+            cnt = int(0)
+            for a in range(nf):
+                if not free_row(lo_s, hi_s, rb + a * rs):
+                    if cnt < tm:
+                        sch.rows[t0 + cnt] = a
+                    cnt += 1
+            sch.ne[wid] = wp.min(cnt, tm)
+            for a in range(nf, n):
+                if cnt < tm:
+                    sch.rows[t0 + cnt] = a
+                cnt += 1
+            if cnt > tm:  # more rows than the capacity (not expected: Stepper sizes it)
+                failed[wid] = 1
+            sch.nt[wid] = wp.min(cnt, tm)
+        pref = zero
+        for a in range(lane, nf, LANES):
+            r = rb + a * rs
+            if free_row(lo_s, hi_s, r):  # the reduced problem's rows off T: zero
+                x[r] = zero
+                x_p[r] = zero
+                y_p[r] = zero
+                y_hat[r] = zero
+                z_p[r] = zero
+                z_hat[r] = zero
+                sch.vt[r] = zero
+            else:
+                pref = wp.max(pref, P[r])
+        for a in range(nf + lane, n, LANES):
+            pref = wp.max(pref, P[rb + a * rs])
+        pref = lane_max(pref)
+        if lane == 0:
+            if pref <= zero:
+                pref = scalar(1.0)
+            p_ref[wid] = pref
+        sync()
+        columns(m, nblk, rs, sp, row_body, row_J, reg, P, vt, inv_inertia_w, lo_s, hi_s, sch, wid, lane, failed)
+        nt = sch.nt[wid]
+        for u in range(lane, nt * nt, LANES):  # S~ <- (S~ + S~^T) / 2
+            i = u // nt
+            j = u - i * nt
+            if i < j:
+                s = scalar(0.5) * (sch.S[g0 + i * tm + j] + sch.S[g0 + j * tm + i])
+                sch.S[g0 + i * tm + j] = s
+                sch.S[g0 + j * tm + i] = s
+        sync()
+        if lane == 0 and sch.filter_shift > zero:
+            filter_effort_rows(sch, wid, rb, rs, xb, lo_s, hi_s, x, x_p, y_p, y_hat)
+        sync()
+        schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u[wid])
+
+    return schur
+
+
+@functools.cache
+def ff_solve_lanes_func(np_dtype, R: int):
+    """``A^-1 b`` on ``F`` with ``SCHUR_REFINEMENT_STEPS`` refinement steps by the world's threads together (§7.11).
+    ``ff_solve_lanes(m, sp, row_stride, wid, lane, eps, bs, xs, ys)``, the vectors in shared memory
+    (:func:`shared_vector` of ``R``), indexed by row."""
+    scalar, M, SP = builder_types(np_dtype).take("scalar", "M", "SP")
+    Vec = shared_vector(np_dtype, R)
+    sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
+    solve = solve_func(np_dtype, R)
+
+    @wp.func
+    def ff_solve_lanes(m: M, sp: SP, row_stride: int, wid: int, lane: int, eps: scalar, bs: Vec, xs: Vec, ys: Vec):
+        """``xs = A^-1 b`` on the fixed rows (``b``: ``bs``, zero off ``F``; ``ys``: scratch): :func:`ff_solve_func`'s
+        refinement ``x_{k+1} = C^-1 (b + eps x_k)``, each solve with ``C = L_f L_f^T`` by :func:`solve_func`'s column
+        sweeps on the fixed rows alone (one barrier per row of ``L_f``; the hubs' unknowns take a zero right-hand
+        side there), the vectors' updates between them threads over rows."""
+        nf = sp.n_fixed[wid]
+        for a in range(lane, nf, LANES):
+            sset(xs, a, sget(bs, a))
+        sync()
+        solve(m, sp, row_stride, wid, nf, lane, xs, ys)
+        for _ in range(SCHUR_REFINEMENT_STEPS):
+            for a in range(lane, nf, LANES):
+                sset(xs, a, sget(bs, a) + eps * sget(xs, a))
+            sync()
+            solve(m, sp, row_stride, wid, nf, lane, xs, ys)
+
+    return ff_solve_lanes
+
+
+@functools.cache
+def body_sum_func(np_dtype, R: int):
+    """``u = M^-1 J^T c`` on a world's bodies by its threads (§7.1), for the reduced right-hand side and the recovery
+    (§7.11). ``body_sum(m, inv_inertia_w, su, ub, b0, nb, row_body, row_J, rb, rs, n, nblk, cs, lane)``."""
+    M, vec6, mat33 = builder_types(np_dtype).take("M", "vec6", "mat33")
+    iarr = wp.array(dtype=wp.int32)
+    Vec = shared_vector(np_dtype, R)
+    sget = shared_get_func(np_dtype, R)
+    inv_mass_times = sparse_llt_kernels(np_dtype).inv_mass_times
+
+    @wp.func
+    def body_sum(m: M, inv_inertia_w: wp.array(dtype=mat33), su: wp.array(dtype=vec6), ub: int, b0: int, nb: int,
+                 row_body: iarr, row_J: wp.array(dtype=vec6), rb: int, rs: int, n: int, nblk: int, cs: Vec,
+                 lane: int):
+        """``u = M^-1 J^T c`` over the world's first ``n`` rows (``c_a``: ``cs[a]``, by row) into ``su[ub + i
+        LANES]`` (body ``i``), then a barrier: threads over the bodies, each summing its blocks ``J_a^T c_a`` in row
+        order (the order of :func:`body_funcs`' ``add_row`` over the rows), so that no two threads write one body."""
+        for i in range(lane, nb, LANES):
+            u = vec6()
+            for a in range(n):
+                r = rb + a * rs
+                for k in range(nblk):
+                    if row_body[r * nblk + k] == b0 + i:
+                        u = u + sget(cs, a) * row_J[r * nblk + k]
+            su[ub + i * LANES] = inv_mass_times(m, inv_inertia_w, b0 + i, u)
+        sync()
+
+    return body_sum
+
+
+@functools.cache
+def schur_solve_kernel(np_dtype, R: int):
+    """The reduced right-hand side and the recovery of the Schur reduction with the world's 32 threads together
+    (§7.11). ``schur_solve(m, mode, nblk, eta, rho_free, rho_box, row_stride, sp, n_rows, frozen, row_body, row_J,
+    reg, P, vt, inv_inertia_w, lo_s, hi_s, row_info, rho_u, sch, p_ref, x, x_p, y_p, y_hat, z_p, z_hat, impulse,
+    velocity, failed)`` (:func:`schur_kernel`'s arguments after ``mode``), launched tiled: one block of ``LANES``
+    threads per world; three vectors of ``R`` rows in shared memory."""
+    scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
+    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
+    Schur = schur_struct(np_dtype)
+    Vec = shared_vector(np_dtype, R)
+    sset, sget = shared_set_func(np_dtype, R), shared_get_func(np_dtype, R)
+    bases = sparse_llt_kernels(np_dtype).bases
+    free_row = free_row_func(np_dtype)
+    ff_solve_lanes = ff_solve_lanes_func(np_dtype, R)
+    body_sum = body_sum_func(np_dtype, R)
+    row_dot = body_funcs(np_dtype).row_dot
+    zero = scalar(0.0)
+
+    @wp.func
+    def fixed_rhs(sp: SP, wid: int, rb: int, rs: int, lo_s: farr, hi_s: farr, vt: farr, P: farr, su: wp.array(
+            dtype=vec6), ub: int, b0: int, row_body: iarr, row_J: wp.array(dtype=vec6), nblk: int, lane: int,
+            recover: int, bs: Vec):
+        """The right-hand side on ``F`` into ``bs`` (by row, threads over the fixed rows): ``P v_F``, or with
+        ``recover`` ``-(P v_F + P_F D_FT lambda_T)`` from ``u = M^-1 J_T^T lambda_T`` in ``su``; zero on the
+        effort-limited rows."""
+        for a in range(lane, sp.n_fixed[wid], LANES):
+            r = rb + a * rs
+            v = zero
+            if free_row(lo_s, hi_s, r):
+                if recover != 0:
+                    v = -(vt[r] + P[r] * row_dot(su, ub, b0, row_body, row_J, r, nblk))
+                else:
+                    v = vt[r]
+            sset(bs, a, v)
+        sync()
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def schur_solve(
         # model (read only)
         m: M,
         # in
@@ -1214,142 +1722,73 @@ def schur_kernel(np_dtype):
         # out
         sch: Schur,
         p_ref: farr,
-        x: farr, x_p: farr, y_p: farr, y_hat: farr, z_p: farr, z_hat: farr,  # the warm start (also read)
+        x: farr, x_p: farr, y_p: farr, y_hat: farr, z_p: farr, z_hat: farr,
         impulse: farr, velocity: farr, failed: iarr,  # padmm_finish's (also read)
     ):
-        """``mode`` :data:`SCHUR_ELIMINATE` (after ``padmm_init``): the rows of ``T``, the residual scale ``P_ref``
-        over them, the warm start zero on ``F``, ``S~ = P_T D_TT P_T - P_T D_TF A^-1 D_FT P_T`` symmetrised and
-        ``P v'_T = P v_T - P_T D_TF A^-1 P v_F`` (§7.11 (S), the columns of ``T`` and the right-hand side one per
-        thread, :func:`ff_solve_func`), the warm-start filter of the effort-limited rows
-        (:func:`filter_effort_rows_func`) and ``G`` (:func:`schur_inverse_func`). :data:`SCHUR_RHS`: ``P v'_T``
-        again. :data:`SCHUR_RECOVER` (after ``padmm_finish``): ``lambda_F = -P_F A^-1 (P v_F + P_F D_FT lambda_T)``
-        (§7.11 (R)) and ``v+ = D lambda + v_f`` on ``F``; a non-finite impulse fails the world."""
+        """``mode`` :data:`SCHUR_RHS`: ``P v'_T = P v_T - P_T D_TF A^-1 P v_F`` again (§7.11 (S); the curvature
+        refinement changed ``v_f``). :data:`SCHUR_RECOVER` (after ``padmm_finish``): ``lambda_F = -P_F A^-1 (P v_F +
+        P_F D_FT lambda_T)`` (§7.11 (R)) and ``v+ = D lambda + v_f`` on ``F``; a non-finite impulse fails the world.
+        The solve is :func:`ff_solve_lanes_func`'s, the products with ``J`` threads over rows, those with ``J^T``
+        threads over bodies (:func:`body_sum_func`, into the first thread's ``sch.su``)."""
         rs = row_stride
         wid, lane = wp.tid()
         n = n_rows[wid]
         if frozen[wid] != 0 or n == 0:
             return
-        base = bases(m, sp, row_stride, wid)
-        rb, vb = base[0], base[1]
+        rb = bases(m, sp, row_stride, wid)[0]
         nf = sp.n_fixed[wid]
-        tm = sch.tm
-        t0 = wid * tm
-        g0 = wid * tm * tm
+        t0 = wid * sch.tm
         b0 = m.body_start[wid]
         nb = m.body_count[wid]
-        xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
-        ub = wid * LANES * sch.nb_max + lane
-        if mode == SCHUR_ELIMINATE:
-            if lane == 0:  # the rows of T, ascending: the effort-limited fixed rows, then the limit and contact rows
-                cnt = int(0)
-                for a in range(nf):
-                    if not free_row(lo_s, hi_s, rb + a * rs):
-                        if cnt < tm:
-                            sch.rows[t0 + cnt] = a
-                        cnt += 1
-                sch.ne[wid] = wp.min(cnt, tm)
-                for a in range(nf, n):
-                    if cnt < tm:
-                        sch.rows[t0 + cnt] = a
-                    cnt += 1
-                if cnt > tm:  # more rows than the capacity (not expected: Stepper sizes it)
-                    failed[wid] = 1
-                sch.nt[wid] = wp.min(cnt, tm)
-            pref = zero
-            for a in range(lane, nf, LANES):
+        ub = wid * LANES * sch.nb_max  # the body vector u: the first thread's slots of sch.su
+        bs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")  # b; then the rows' factors of J^T
+        xs = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        ys = wp.tile_zeros(shape=(R,), dtype=scalar, storage="shared")
+        if mode == SCHUR_RHS:
+            fixed_rhs(sp, wid, rb, rs, lo_s, hi_s, vt, P, sch.su, ub, b0, row_body, row_J, nblk, lane, 0, bs)
+            ff_solve_lanes(m, sp, row_stride, wid, lane, sch.eps, bs, xs, ys)
+            for a in range(lane, nf, LANES):  # u = M^-1 J_F^T P_F x
                 r = rb + a * rs
-                if free_row(lo_s, hi_s, r):  # the reduced problem's rows off T: zero
-                    x[r] = zero
-                    x_p[r] = zero
-                    y_p[r] = zero
-                    y_hat[r] = zero
-                    z_p[r] = zero
-                    z_hat[r] = zero
-                    sch.vt[r] = zero
-                else:
-                    pref = wp.max(pref, P[r])
-            for a in range(nf + lane, n, LANES):
-                pref = wp.max(pref, P[rb + a * rs])
-            pref = lane_max(pref)
-            if lane == 0:
-                if pref <= zero:
-                    pref = scalar(1.0)
-                p_ref[wid] = pref
+                c = zero
+                if free_row(lo_s, hi_s, r):
+                    c = P[r] * sget(xs, a)
+                sset(bs, a, c)
             sync()
-            nt = sch.nt[wid]
-            for c in range(lane, nt + 1, LANES):  # column c of S~ (c < nt), or the right-hand side (c = nt)
-                if c < nt:
-                    rc = rb + sch.rows[t0 + c] * rs
-                    inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
-                    add_row(sch.su, ub, b0, row_body, row_J, rc, nblk, P[rc])
-                    inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
-                    rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 0)
-                else:
-                    rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 1)
-                ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
-                times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, xb, ub)
-                for i in range(nt):
-                    ai = sch.rows[t0 + i]
-                    ri = rb + ai * rs
-                    dx = P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
-                    if c < nt:
-                        ac = sch.rows[t0 + c]
-                        sch.S[g0 + i * tm + c] = (P[ri] * delassus_entry(m, rs, row_body, row_J, reg, inv_inertia_w,
-                                                                         wid, ai, ac, nblk) * P[rb + ac * rs] - dx)
-                    else:
-                        sch.vt[ri] = vt[ri] - dx
-            sync()
-            for u in range(lane, nt * nt, LANES):  # S~ <- (S~ + S~^T) / 2
-                i = u // nt
-                j = u - i * nt
-                if i < j:
-                    s = scalar(0.5) * (sch.S[g0 + i * tm + j] + sch.S[g0 + j * tm + i])
-                    sch.S[g0 + i * tm + j] = s
-                    sch.S[g0 + j * tm + i] = s
-            sync()
-            if lane == 0 and sch.filter_shift > zero:
-                filter_effort_rows(sch, wid, rb, rs, xb, lo_s, hi_s, x, x_p, y_p, y_hat)
-            sync()
-            schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u[wid])
-        elif mode == SCHUR_RHS:
-            if lane == 0:
-                nt = sch.nt[wid]
-                rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 1)
-                ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
-                times_x(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, nb, xb, ub)
-                for i in range(nt):
-                    ri = rb + sch.rows[t0 + i] * rs
-                    sch.vt[ri] = vt[ri] - P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
+            body_sum(m, inv_inertia_w, sch.su, ub, b0, nb, row_body, row_J, rb, rs, nf, nblk, bs, lane)
+            for i in range(lane, sch.nt[wid], LANES):
+                ri = rb + sch.rows[t0 + i] * rs
+                sch.vt[ri] = vt[ri] - P[ri] * row_dot(sch.su, ub, b0, row_body, row_J, ri, nblk)
         else:
-            if lane == 0:
-                nt = sch.nt[wid]
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)
-                for i in range(nt):
-                    ri = rb + sch.rows[t0 + i] * rs
-                    add_row(sch.su, ub, b0, row_body, row_J, ri, nblk, impulse[ri])
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
-                rhs_f(sch, sp, wid, rb, rs, lo_s, hi_s, vt, P, row_body, row_J, nblk, b0, xb, ub, 2)
-                ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
-                q0 = sp.perm_start[wid]
-                for p in range(nf):
-                    r = rb + sp.perm[q0 + p] * rs
+            for a in range(lane, n, LANES):  # u = M^-1 J_T^T lambda_T
+                r = rb + a * rs
+                c = impulse[r]
+                if a < nf:
                     if free_row(lo_s, hi_s, r):
-                        lam = P[r] * sch.sx[xb + p * LANES]
-                        impulse[r] = lam
-                        if not wp.isfinite(lam):
+                        c = zero
+                sset(bs, a, c)
+            sync()
+            body_sum(m, inv_inertia_w, sch.su, ub, b0, nb, row_body, row_J, rb, rs, n, nblk, bs, lane)
+            fixed_rhs(sp, wid, rb, rs, lo_s, hi_s, vt, P, sch.su, ub, b0, row_body, row_J, nblk, lane, 1, bs)
+            ff_solve_lanes(m, sp, row_stride, wid, lane, sch.eps, bs, xs, ys)
+            for a in range(lane, n, LANES):  # lambda_F, then u = M^-1 J^T lambda over every row
+                r = rb + a * rs
+                c = impulse[r]
+                if a < nf:
+                    if free_row(lo_s, hi_s, r):
+                        c = P[r] * sget(xs, a)
+                        impulse[r] = c
+                        if not wp.isfinite(c):
                             failed[wid] = 1
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 1)  # v+ = D lambda + v_f on F
-                for a in range(n):
-                    r = rb + a * rs
-                    add_row(sch.su, ub, b0, row_body, row_J, r, nblk, impulse[r])
-                inv_mass(m, inv_inertia_w, sch.su, ub, b0, nb, 0)
-                for a in range(nf):
-                    r = rb + a * rs
-                    if free_row(lo_s, hi_s, r):
-                        velocity[r] = (row_dot(sch.su, ub, b0, row_body, row_J, r, nblk) + reg[r] * impulse[r]
-                                       + vt[r] / P[r])
+                sset(bs, a, c)
+            sync()
+            body_sum(m, inv_inertia_w, sch.su, ub, b0, nb, row_body, row_J, rb, rs, n, nblk, bs, lane)
+            for a in range(lane, nf, LANES):  # v+ = D lambda + v_f on F
+                r = rb + a * rs
+                if free_row(lo_s, hi_s, r):
+                    velocity[r] = (row_dot(sch.su, ub, b0, row_body, row_J, r, nblk) + reg[r] * impulse[r]
+                                   + vt[r] / P[r])
 
-    return schur
+    return schur_solve
 
 
 # --- iterations (§7.3-§7.5) ----------------------------------------------------------------------------------------
@@ -1570,7 +2009,8 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
 
 
 def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int | None = None,
-                 inverse: bool = False, schur: bool = False) -> SimpleNamespace:
+                 inverse: bool = False, schur: bool = False, schur_X: int = 0,
+                 schur_D: int = 0) -> SimpleNamespace:
     """``factor`` (not under ``cr``), ``solve_fixed`` (post-stabilisation) and ``cr_pattern`` (under ``cr``) for
     worlds of up to ``R`` rows; launch each 32-thread kernel with ``wp.launch_tiled(dim=[num_worlds],
     block_dim=LANES)``, ``cr_pattern`` with one thread per world (``wp.launch``). :func:`iterate_kernel` gives
@@ -1582,8 +2022,10 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
     world's row blocks by body for the step. With ``filter_E`` (the warm-start filter's staged entries,
     :func:`shared_entries`; ``None``: no filter) also ``filter_factor``, :func:`factor_kernel` for the filter's
     factor of the fixed rows, and ``warm_start_filter`` (:func:`warm_start_filter_kernel`). With ``schur`` (§7.11)
-    also ``schur_decouple`` (:func:`schur_decouple_kernel`, on ``(worlds, max entries)``) and ``schur``
-    (:func:`schur_kernel`)."""
+    also ``schur_decouple`` (:func:`schur_decouple_kernel`, on ``(worlds, max entries)``), ``schur`` (the
+    elimination, :func:`schur_kernel`: ``L_f`` staged as the factorisation stages it, ``E``, and the threads' vectors
+    in ``schur_X`` shared scalars, :func:`schur_vectors`; ``G`` formed in ``schur_D`` shared scalars,
+    :func:`schur_dense`) and ``schur_solve`` (:func:`schur_solve_kernel`)."""
     filtered = filter_E is not None
     return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E, inverse), inverse=inverse,
                            solve_fixed=solve_fixed_kernel(np_dtype, R),
@@ -1591,17 +2033,19 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
                            filter_factor=factor_kernel(np_dtype, filter_E) if filtered else None,
                            warm_start_filter=warm_start_filter_kernel(np_dtype, R) if filtered else None,
                            schur_decouple=schur_decouple_kernel(np_dtype) if schur else None,
-                           schur=schur_kernel(np_dtype) if schur else None)
+                           schur=schur_kernel(np_dtype, E, schur_X, schur_D) if schur else None,
+                           schur_solve=schur_solve_kernel(np_dtype, R) if schur else None)
 
 
 def schur_buffers(np_dtype, device, num_worlds: int, total_rows: int, tm: int, np_max: int, nb_max: int,
-                  eps: float = 0.0, filter_shift: float = 0.0):
+                  eps: float = 0.0, filter_shift: float = 0.0, cap: int = 0):
     """A zero-initialised :func:`schur_struct` for ``num_worlds`` worlds of up to ``tm`` reduced rows, ``np_max``
-    fixed positions and ``nb_max`` bodies, over ``total_rows`` row slots (``Work``'s); all sizes 0: the empty one
-    that the iterations take when they do not reduce."""
+    fixed positions and ``nb_max`` bodies, over ``total_rows`` row slots (``Work``'s), the right-hand sides' lists
+    of up to ``cap`` entries (:func:`schur_list_cap`); all sizes 0: the empty one that the iterations take when they
+    do not reduce."""
     T = builder_types(np_dtype)
     out = schur_struct(np_dtype)()
-    out.tm, out.np_max, out.nb_max = tm, np_max, nb_max
+    out.tm, out.np_max, out.nb_max, out.cap = tm, np_max, nb_max, cap
     out.eps, out.filter_shift = T.scalar(eps), T.scalar(filter_shift)
     per_lane = num_worlds * LANES
 
@@ -1611,6 +2055,8 @@ def schur_buffers(np_dtype, device, num_worlds: int, total_rows: int, tm: int, n
     out.rows, out.nt, out.ne = arr(num_worlds * tm, wp.int32), arr(num_worlds, wp.int32), arr(num_worlds, wp.int32)
     out.S, out.L, out.G = (arr(num_worlds * tm * tm) for _ in range(3))
     out.vt = arr(total_rows)
+    out.bp, out.bv, out.bn = arr(num_worlds * tm * cap, wp.int32), arr(num_worlds * tm * cap), arr(num_worlds * tm,
+                                                                                                 wp.int32)
     out.sb, out.sx = arr(per_lane * np_max), arr(per_lane * np_max)
     out.su = arr(per_lane * nb_max, T.vec6)
     return out
