@@ -6,8 +6,11 @@ docs/settings.md. Design notes behind each: docs/conventions.md.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import json
 import math
+import re
 from typing import Literal
 
 import numpy as np
@@ -391,3 +394,38 @@ def field_names() -> tuple[str, ...]:
     ``--solver F=V`` take)."""
     top = tuple(f.name for f in dataclasses.fields(SolverConfig) if f.name not in NESTED)
     return top + tuple(f"{group}.{f.name}" for group, cls in NESTED.items() for f in dataclasses.fields(cls))
+
+
+def setting_value(text: str):
+    """One ``--solver F=V`` value: a Python literal (``1e-2``, ``'schur'``, ``True``), else a JSON one (``false``),
+    else a bare word taken as the string it spells (``schur``, ``midpoint``); anything else raises ``ValueError``.
+    Every command line that takes ``--solver`` reads its values here."""
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        pass
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        pass
+    if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_.-]*", text):
+        return text
+    raise ValueError(f"{text!r} is neither a Python literal nor a bare word")
+
+
+def solver_settings(items: list[str], flag: str = "--solver") -> dict:
+    """``["tolerance=1e-2", "warp.linear_solver=cr"]`` -> SolverConfig settings by their dotted names
+    (:meth:`SolverConfig.replace`), the values read by :func:`setting_value`; an unknown name or a malformed item
+    raises ``ValueError`` naming ``flag`` and the item."""
+    fields = field_names()
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in fields:
+            raise ValueError(f"{flag} {item!r}: expected F=V with F one of SolverConfig's settings: "
+                             f"{', '.join(fields)}")
+        try:
+            out[key] = setting_value(value)
+        except ValueError as e:
+            raise ValueError(f"{flag} {key}: {e}") from None
+    return out

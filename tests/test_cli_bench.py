@@ -129,13 +129,22 @@ def test_kamino_bench_plot_without_matplotlib_names_the_extra(tmp_path, capsys, 
 
 
 def test_bench_solver_settings_take_dotted_names():
-    """``--solver F=V`` sets a nested setting by its path (values as JSON, a bare string as it is), on top of a
-    benchmark configuration's own Warp settings."""
+    """``--solver F=V`` sets a nested setting by its path, on top of a benchmark configuration's own Warp settings.
+    Every command line reads the value alike (``kamino.config.setting_value``): a Python literal, a JSON one, or a
+    bare word as the string it spells; anything else is refused, naming the setting."""
     import kamino
     from kamino.bench import throughput
+    from kamino.config import solver_settings
 
     overrides = throughput.solver_overrides(["warp.cr_iterations=20", "penalty.rho=0.05", "integrator=midpoint"])
     assert overrides == {"warp.cr_iterations": 20, "penalty.rho": 0.05, "integrator": "midpoint"}
+    assert solver_settings(["reduction=schur"]) == solver_settings(["reduction='schur'"]) == {"reduction": "schur"}
+    refine = "stabilisation.curvature_refinement"
+    assert solver_settings([f"{refine}=false"]) == {refine: False}
+    with pytest.raises(ValueError, match="--solver tolerance"):
+        solver_settings(["tolerance=1e-3)"])
+    with pytest.raises(ValueError, match=r"--set 'tolerence=0\.01'"):
+        solver_settings(["tolerence=0.01"], "--set")
     cfg = kamino.SolverConfig(dt=throughput.DT).replace(**overrides, **throughput.CONFIGS["sparse-cr"])
     assert cfg.warp == kamino.WarpSettings(jacobian="sparse", linear_solver="cr", cr_iterations=20)
     assert cfg.penalty == kamino.Penalty(rho=0.05) and cfg.integrator == "midpoint"

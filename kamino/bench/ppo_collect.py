@@ -41,7 +41,7 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--action-scale", type=float, default=1.0, help="actions uniform in [-scale, scale]")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a SolverConfig setting (dotted for a nested one: --set penalty.rho=0.05), VALUE a Python "
-                        "literal (repeatable): --set tolerance=0.01")
+                        "literal or a bare word (repeatable): --set tolerance=0.01")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="a keyword of the task's constructor, VALUE a Python literal (repeatable): --env kp=75")
     p.add_argument("--no-effort-limits", action="store_true",
@@ -60,11 +60,12 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
         p.error("--num-envs and --unroll must be positive")
     if not 0.0 <= args.action_scale <= 1.0:
         p.error(f"--action-scale must be in [0, 1] (actions are clipped to [-1, 1]), got {args.action_scale}")
-    from kamino.envs.runs import OptionError, key_values
+    from kamino.config import solver_settings
+    from kamino.envs.runs import key_values
 
     try:
-        args.overrides, args.env_kwargs = key_values(args.set, "--set"), key_values(args.env, "--env")
-    except OptionError as e:
+        args.overrides, args.env_kwargs = solver_settings(args.set, "--set"), key_values(args.env, "--env")
+    except ValueError as e:
         p.error(str(e))
     return args
 

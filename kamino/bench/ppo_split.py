@@ -122,7 +122,7 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a ppo.train keyword, VALUE a Python literal (repeatable), as kamino train --set")
     p.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
-                   help="a SolverConfig setting, dotted for a nested one, VALUE a Python literal (repeatable)")
+                   help="a SolverConfig setting, dotted for a nested one, VALUE as kamino train --solver (repeatable)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="an environment keyword, VALUE a Python literal (repeatable)")
     p.add_argument("--out", type=pathlib.Path, default=None, help="append the JSON record to this file")
@@ -131,19 +131,15 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
         p.error("--steps-per-epoch and --epochs must be >= 1")
     if args.num_envs is not None and args.num_envs < 1:
         p.error(f"--num-envs must be >= 1, got {args.num_envs}")
-    from kamino.envs.runs import OptionError, key_values
+    from kamino.config import solver_settings
+    from kamino.envs.runs import key_values
 
     try:
         args.ppo_overrides = key_values(args.set, "--set")
-        args.solver_overrides = key_values(args.solver, "--solver")
+        args.solver_overrides = solver_settings(args.solver)
         args.env_overrides = key_values(args.env, "--env")
-    except OptionError as e:
+    except ValueError as e:
         p.error(str(e))
-    from kamino.config import field_names
-
-    unknown = sorted(set(args.solver_overrides) - set(field_names()))
-    if unknown:
-        p.error(f"--solver: SolverConfig has no setting {', '.join(map(repr, unknown))}")
     for name in ("num_timesteps", "num_evals", "run_evals", "progress_fn"):
         if name in args.ppo_overrides:
             p.error(f"--set {name}: the benchmark sets it (--steps-per-epoch and --epochs size the run)")

@@ -79,7 +79,7 @@ from tqdm import tqdm
 
 import kamino
 from kamino.bench import MODULES, loads, scene_path, timed_window
-from kamino.config import field_names
+from kamino.config import field_names, setting_value, solver_settings
 from kamino.model import ActuationMode
 
 SCENES = ("fourbar", "ladder8", "ladder32", "dr_legs")
@@ -309,20 +309,12 @@ def environment() -> dict:
 
 
 def solver_overrides(items: list[str]) -> dict:
-    """``["stabilisation.baumgarte=0.01", "warp.linear_solver=cr"]`` -> SolverConfig settings by their dotted
-    names (:meth:`kamino.SolverConfig.replace`), checked against :func:`kamino.config.field_names`."""
-    fields = set(field_names())
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or key not in fields:
-            raise SystemExit(f"--solver {item!r}: expected FIELD=VALUE with FIELD one of kamino.SolverConfig's "
-                             f"settings: {', '.join(field_names())}")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value  # a string value, e.g. integrator=midpoint
-    return out
+    """``--solver F=V ...`` as SolverConfig settings (:func:`kamino.config.solver_settings`); a bad item exits
+    naming it."""
+    try:
+        return solver_settings(items)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
 
 
 #: the ``--configs`` choices: the Warp configurations of :data:`CONFIGS` and the JAX backend
@@ -695,15 +687,12 @@ def sk_sweep(items: list[str]) -> list[dict]:
 def kamino_sweep(items: list[str]) -> list[dict]:
     """``["tolerance=1e-2,1e-3", "penalty.rho=0.05"]`` -> kamino's solver settings of every combination, by the
     dotted names of :func:`kamino.config.field_names` but ``dt`` (the benchmark's time step is :data:`DT`) with
-    values as JSON (a bare string as it is), each checked by ``kamino.SolverConfig(dt=DT).replace``; no items:
-    ``[{}]``, the run's own settings. Raises ``ValueError`` naming a bad item."""
+    values read by :func:`kamino.config.setting_value`, each checked by ``kamino.SolverConfig(dt=DT).replace``; no
+    items: ``[{}]``, the run's own settings. Raises ``ValueError`` naming a bad item."""
     fields = [f for f in field_names() if f != "dt"]
 
     def parse(key, text):
-        try:
-            value = json.loads(text)
-        except json.JSONDecodeError:
-            value = text
+        value = setting_value(text)
         try:
             kamino.SolverConfig(dt=DT).replace(**{key: value})
         except (ValueError, TypeError) as e:

@@ -33,6 +33,7 @@ import sys
 import time
 from pathlib import Path
 
+from kamino.config import solver_settings
 from kamino.envs import runs
 from kamino.envs.evaluate import task_test
 from kamino.envs.runs import OptionError, key_values
@@ -486,7 +487,7 @@ def parser() -> argparse.ArgumentParser:
                    help="a ppo.train keyword, VALUE a Python literal (repeatable)")
     p.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
                    help="a SolverConfig setting, dotted for a nested one (penalty.rho=0.05), VALUE a Python "
-                        "literal (repeatable)")
+                        "literal or a bare word (reduction=schur; repeatable)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                    help="an environment keyword, VALUE a Python literal (repeatable)")
     p.add_argument("--init-from", metavar="POLICY", help="start a new run from this policy (a shipped policy's name, "
@@ -516,7 +517,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.steps = args.steps_pos
     try:
         args.ppo_overrides = key_values(args.set, "--set")
-        args.solver_overrides = key_values(args.solver, "--solver")
+        args.solver_overrides = solver_settings(args.solver)
         args.env_overrides = key_values(args.env, "--env")
         args.randomization = (None if args.randomize is None
                               else key_values([r for r in args.randomize if r], "--randomize"))
