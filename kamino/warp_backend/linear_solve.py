@@ -171,9 +171,9 @@ def build(model: Model, np_dtype, device, row_maxdim: np.ndarray, *, per_world: 
 
     Only the tables the kernels read are uploaded; the others hold a single 0. The update lists: ``fan`` (default
     ``per_world``), the column-order triples ``fan_*`` of ``solver_lanes.factor``; else the row-order pairs ``upd_*``
-    of the one-thread kernels (:func:`factor`, ``refactor``, ``factor_fixed``: post-stabilisation's own factor is
-    built with ``fan=False`` under either schedule). The column index ``cptr``, ``cent``, ``crow`` is read by the
-    32-thread kernels only (``per_world``). Both lists of a type are as long as its fill-in updates (the
+    of the one-thread kernels (:func:`factor`, ``refactor``, ``factor_fixed``; post-stabilisation's Gauss-Newton
+    factor is built with ``fan=False`` under either schedule). The column index ``cptr``, ``cent``, ``crow`` is read
+    by the 32-thread kernels only (``per_world``). Both lists of a type are as long as its fill-in updates (the
     animatronic's: 132,568 entries, 0.5 MB each)."""
     W = model.num_worlds
     tab = row_tables(model)

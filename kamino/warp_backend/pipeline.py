@@ -49,6 +49,7 @@ from kamino.warp_backend.solver_lanes import (
     SCHUR_ELIMINATE,
     SCHUR_RECOVER,
     SCHUR_RHS,
+    factor_kernel,
     iterate_kernel,
     schur_buffers,
     schur_dense,
@@ -176,10 +177,15 @@ class Stepper:
             #: (not under the reduction: its L_f is the factor of the eliminated rows alone)
             self.post_shares_factor = (self.sparse_factor and cfg.shares_padmm_factor(self.np_dtype)
                                        and not self.schur)
+            #: post-stabilisation's own factor (``None`` where it shares PADMM's or does not run) and, under
+            #: padmm="warp", the compiled ``solver_lanes.factor_kernel`` that factorises it
+            self.post, self.post_factor = None, None
             if cfg.stabilisation.post_stabilisation and not self.post_shares_factor:
-                # the fixed rows' own pattern and factor (no tail rows)
+                # the fixed rows' own pattern and factor (no tail rows), in the layout and with the update lists of
+                # the schedule that factorises it: the world's 32 threads under padmm="warp" (the fan-out triples of
+                # solver_lanes.factor_kernel), else one thread per world (linear_solve.factor_fixed's pairs)
                 self.post = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
-                                             per_world=padmm == "warp", fan=False, hub_min_rows=wm.hub_min_rows,
+                                             per_world=padmm == "warp", hub_min_rows=wm.hub_min_rows,
                                              hub_row0=wm.arrays.row_maxdim.numpy())
                 self.spk = linear_solve.sparse_llt_kernels(self.np_dtype)
             #: post-stabilisation's Gauss-Newton passes (REPROJECTION_PASSES): the fixed rows' factor at the projected
@@ -211,6 +217,16 @@ class Stepper:
                                        inverse=self.sparse_factor and self.sf.inv_total > 0 and not self.schur,
                                        schur=self.schur, schur_X=schur_vectors(self._np_max()) if self.schur else 0,
                                        schur_D=schur_dense(self.sch.tm) if self.schur else 0)
+                # post-stabilisation's own factor: factor_kernel staged for its pattern, PADMM's or the warm-start
+                # filter's compiled kernel where the staging size (and no inversion) is theirs
+                if self.post is not None:
+                    post_E = shared_entries(self.post.max_nnz)
+                    if self.wk.factor is not None and not self.wk.inverse and post_E == self.wk.E:
+                        self.post_factor = self.wk.factor
+                    elif self.wk.filter_factor is not None and post_E == filter_E:
+                        self.post_factor = self.wk.filter_factor
+                    else:
+                        self.post_factor = factor_kernel(self.np_dtype, post_E)
         self.rk = step_row_kernels(self.np_dtype, cfg.stabilisation.curvature_correction, cfg.integrator == "midpoint")
         self.sk = solver_kernels(self.np_dtype, self.dense, llt and not self.sparse_factor, not llt,
                                  bool(cfg.warm_start), self.adaptive)
@@ -447,7 +463,13 @@ class Stepper:
                 self._launch(self.spk.assemble_fixed, (W, self.post.max_nnz),
                                 inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg,
                                         w.P, w.inertia_w, w.inv_inertia_w], outputs=[post])
-                self._launch(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[post])
+                if self.padmm == "warp":  # n_rows = the fixed rows' count: L_f alone (the factor has no tail rows)
+                    self._launch_lanes(self.post_factor,
+                                       inputs=[0.0, 0, nblk, shift_f, shift_b, w.row_stride, wm.arrays.row_fixed,
+                                               w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
+                                               w.inv_inertia_w, w.rho_u], outputs=[w.pending, post])
+                else:
+                    self._launch(self.spk.factor_fixed, W, inputs=[w.row_stride], outputs=[post])
             passes = cfg.stabilisation.post_stabilisation
             for k in range(passes + 1):  # the last pass: unconverged worlds, gaps left open
                 extra = int(k == passes)
