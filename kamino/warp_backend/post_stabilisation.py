@@ -5,8 +5,9 @@ Once per step, after the pose update, the always-active rows' scaled block ``P D
 leading block ``L_f`` of PADMM's factor carries the shifts ``eta + rho_free`` / ``eta + rho``), the projection
 solves with that ``L_f``; otherwise the block is assembled on the fixed rows' static sparse pattern and
 factorised in a storage of its own (``linear_solve.assemble_fixed``, then ``solver_lanes.factor_kernel`` on the
-32-thread schedule or ``linear_solve.factor_fixed`` on the one-thread one; ``kamino/warp_backend/pipeline.py``). A world whose PADMM did not converge, or whose anchors the passes left open
-past ``REPROJECTION_GAP``, gets one pass more (the kernels' flag ``extra``; the reference's docstring):
+32-thread schedule or ``linear_solve.factor_fixed`` on the one-thread one; ``kamino/warp_backend/pipeline.py``).
+A world whose PADMM did not converge, or whose anchors the passes left open past ``REPROJECTION_GAP``, gets one
+pass more (the kernels' flag ``extra``; the reference's docstring):
 the extra pass's ``residual`` sets ``w.reproject`` where a gap is open, and its solve and displacement run where
 PADMM did not converge or that flag is set. One pass is three launches: the
 residuals at ``q_new`` in PADMM's units (``x = -P e``), one thread per world solving with the sparse factor,
