@@ -33,7 +33,7 @@ from brax.envs.wrappers import training
 import kamino
 from kamino.envs import DrLegsJoystick, EnvSystem, FourbarTrack, make, randomize
 from kamino.spatial import quat_to_matrix
-from tests.helpers import ALL_CORES
+from tests.helpers import ALL_CORES, jax_on_gpu
 
 N = 4  # environments per batch: small (CI has two cores), more than one (vmap)
 EPISODE = 6  # brax EpisodeWrapper length in the auto-reset test
@@ -519,7 +519,8 @@ _TWO_DEVICES = textwrap.dedent("""
 """)
 
 
-@pytest.mark.slow  # a PPO compile on two devices (README.md, under the test command)
+@pytest.mark.gpu  # 39 s of CI: a PPO compile on two devices; CI trains on two devices in test_rl_distributed.py
+@pytest.mark.skipif(not jax_on_gpu(), reason="the gpu tier (JAX on the GPU)")
 def test_ppo_pmaps_over_two_host_devices():
     """brax's PPO pmaps over the local devices: two forced host devices (the XLA flag must be set before jax is
     imported, hence a subprocess), 4 environments per device with domain randomization (each device's environments

@@ -31,7 +31,7 @@ import kamino
 from kamino.model import fingerprint
 from kamino.state import bind
 from kamino.warp_backend.integrate import LOOP_OPEN_BOUND
-from tests.helpers import JAX, WARP_SPARSE_CR, WARP_SPARSE_LLT, Variant, variant_param
+from tests.helpers import JAX, JAX_GPU_TIER, WARP_SPARSE_CR, WARP_SPARSE_LLT, Variant, variant_param
 
 DT = 1.0 / 240.0
 
@@ -208,7 +208,7 @@ def test_eight_legged_walker_cr_at_100_iterations(eight_legs):
 @pytest.mark.parametrize("variant", [
     # the reference in the gpu tier (19 s of CI): the Warp variants are what this case guards, and the reference walks
     # the eight-legged walker in CI above
-    variant_param(JAX, marks=(pytest.mark.gpu,)),
+    variant_param(JAX, marks=JAX_GPU_TIER),
     variant_param(WARP_SPARSE_CR),
     variant_param(WARP_SPARSE_LLT)])
 def test_eight_legged_walker_in_two_phases_walks(variant):

@@ -1186,6 +1186,7 @@ def schur_inverse_func(np_dtype, D: int = 0):
     (:func:`schur_dense`) the factor and the inverse are worked on in shared memory and ``G`` is written to
     ``sch.G`` at the end, else both in device memory (``sch.L``, ``sch.G``)."""
     scalar = builder_types(np_dtype).scalar
+    farr = wp.array(dtype=scalar)
     Schur = schur_struct(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
     DL = max(D, 1)
@@ -1193,34 +1194,20 @@ def schur_inverse_func(np_dtype, D: int = 0):
     dset, dget = shared_set_func(np_dtype, DL), shared_get_func(np_dtype, DL)
 
     @wp.func
-    def lget(sch: Schur, ds: DVec, k: int) -> scalar:
-        """Entry ``k`` of the factor's storage."""
+    def get(a: farr, ds: DVec, k: int) -> scalar:
+        """Entry ``k`` of the factor's or the inverse's storage: the shared tile (``D > 0``) or ``a``
+        (``sch.L``, ``sch.G``)."""
         if wp.static(D > 0):
             return dget(ds, k)
-        return sch.L[k]
+        return a[k]
 
     @wp.func
-    def lset(sch: Schur, ds: DVec, k: int, v: scalar):
-        """Entry ``k`` of the factor's storage := ``v``."""
+    def put(a: farr, ds: DVec, k: int, v: scalar):
+        """Entry ``k`` of the factor's or the inverse's storage := ``v`` (:func:`get`'s)."""
         if wp.static(D > 0):
             dset(ds, k, v)
         else:
-            sch.L[k] = v
-
-    @wp.func
-    def gget(sch: Schur, ds: DVec, k: int) -> scalar:
-        """Entry ``k`` of the inverse's storage."""
-        if wp.static(D > 0):
-            return dget(ds, k)
-        return sch.G[k]
-
-    @wp.func
-    def gset(sch: Schur, ds: DVec, k: int, v: scalar):
-        """Entry ``k`` of the inverse's storage := ``v``."""
-        if wp.static(D > 0):
-            dset(ds, k, v)
-        else:
-            sch.G[k] = v
+            a[k] = v
 
     @wp.func
     def schur_inverse(sch: Schur, wid: int, lane: int, row_info: wp.array(dtype=wp.int32), rb: int, rs: int, nf: int,
@@ -1249,15 +1236,15 @@ def schur_inverse_func(np_dtype, D: int = 0):
             aj = sch.rows[t0 + j]
             s = sch.S[g0 + j * tm + j] + eta + row_penalty(row_info, rb + aj * rs, aj, nf, rho_free, rho_box, rho_u)
             for k in range(j):
-                s -= lget(sch, ds, lb + j * ld + k) * lget(sch, ds, lb + j * ld + k)
+                s -= get(sch.L, ds, lb + j * ld + k) * get(sch.L, ds, lb + j * ld + k)
             d = wp.sqrt(s)
             for i in range(j + 1 + lane, nt, LANES):
                 v = sch.S[g0 + j * tm + i]
                 for k in range(j):
-                    v -= lget(sch, ds, lb + i * ld + k) * lget(sch, ds, lb + j * ld + k)
-                lset(sch, ds, lb + i * ld + j, v / d)
+                    v -= get(sch.L, ds, lb + i * ld + k) * get(sch.L, ds, lb + j * ld + k)
+                put(sch.L, ds, lb + i * ld + j, v / d)
             if lane == 0:  # no thread reads L_jj before the next column
-                lset(sch, ds, lb + j * ld + j, d)
+                put(sch.L, ds, lb + j * ld + j, d)
             sync()
         for c in range(lane, nt, LANES):
             for i in range(nt):  # L z = e_c, into column c of G
@@ -1266,15 +1253,15 @@ def schur_inverse_func(np_dtype, D: int = 0):
                     v = scalar(1.0)
                 if i >= c:
                     for k in range(c, i):
-                        v -= lget(sch, ds, lb + i * ld + k) * gget(sch, ds, gb + c * ld + k)
-                    v = v / lget(sch, ds, lb + i * ld + i)
-                gset(sch, ds, gb + c * ld + i, v)
+                        v -= get(sch.L, ds, lb + i * ld + k) * get(sch.G, ds, gb + c * ld + k)
+                    v = v / get(sch.L, ds, lb + i * ld + i)
+                put(sch.G, ds, gb + c * ld + i, v)
             for ii in range(nt):  # L^T g = z
                 i = nt - 1 - ii
-                v = gget(sch, ds, gb + c * ld + i)
+                v = get(sch.G, ds, gb + c * ld + i)
                 for k in range(i + 1, nt):
-                    v -= lget(sch, ds, lb + k * ld + i) * gget(sch, ds, gb + c * ld + k)
-                gset(sch, ds, gb + c * ld + i, v / lget(sch, ds, lb + i * ld + i))
+                    v -= get(sch.L, ds, lb + k * ld + i) * get(sch.G, ds, gb + c * ld + k)
+                put(sch.G, ds, gb + c * ld + i, v / get(sch.L, ds, lb + i * ld + i))
         sync()
         if wp.static(D > 0):
             for u in range(lane, nt * nt, LANES):
