@@ -301,27 +301,3 @@ def test_warp_schedule_reduces_as_the_jax_reference():
     assert int(w.iters.numpy()[0]) == int(ref.iterations) and bool(ref.converged)
     np.testing.assert_allclose(w.impulse.numpy()[:n], np.asarray(ref.impulse), rtol=0, atol=1e-9)
     np.testing.assert_allclose(w.velocity.numpy()[:n], np.asarray(ref.velocity), rtol=0, atol=1e-9)
-
-
-def test_warp_schur_elimination_in_device_memory_is_the_staged_one(monkeypatch):
-    # The elimination (solver_lanes.schur_kernel) keeps L_f, the threads' solution vectors and the reduced problem's
-    # factor and inverse in shared memory where they fit (dr_legs) and in device memory above that (the animatronic's
-    # 1086 positions, box_stack's 120 rows of T): the same sums in the same order either way, so one dr_legs step in
-    # float64 (36 rows of T, 12 of them effort-limited; 204 positions) gives the same S~, G and P v'_T bit for bit.
-    # The configuration of the JAX reference's test above: one more compiled kernel, the unstaged elimination.
-    cfg = kamino.SolverConfig(dt=0.0025, tolerance=1e-6, reduction="schur", stabilisation=kamino.Stabilisation(
-        curvature_refinement=False, post_stabilisation=0))
-    out = []
-    for staged in (True, False):
-        if not staged:
-            for name in ("STAGE_MAX_ENTRIES", "SCHUR_VECTORS_MAX", "SCHUR_DENSE_MAX"):
-                monkeypatch.setattr(solver_lanes, name, 0)
-        model = kamino.models.dr_legs()
-        st = Stepper(model, cfg, np.float64, "cpu", padmm="warp")
-        assert (st.wk.E > 0) == staged
-        wb.load_state(st, kamino.init_state(model, dtype=np.float64), None)
-        st.run(1)
-        assert int(st.sch.nt.numpy()[0]) > int(st.sch.ne.numpy()[0]) > 0  # effort-limited and contact rows in T
-        out.append([a.numpy() for a in (st.sch.S, st.sch.G, st.sch.vt)])
-    for shared, device in zip(*out, strict=True):
-        np.testing.assert_array_equal(device, shared)

@@ -52,9 +52,7 @@ from kamino.warp_backend.solver_lanes import (
     factor_kernel,
     iterate_kernel,
     schur_buffers,
-    schur_dense,
     schur_list_cap,
-    schur_vectors,
     shared_entries,
     shared_rows,
     warp_kernels,
@@ -215,8 +213,7 @@ class Stepper:
                 filter_E = shared_entries(self.filt.max_nnz) if self.filt is not None else None
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt, filter_E=filter_E,
                                        inverse=self.sparse_factor and self.sf.inv_total > 0 and not self.schur,
-                                       schur=self.schur, schur_X=schur_vectors(self._np_max()) if self.schur else 0,
-                                       schur_D=schur_dense(self.sch.tm) if self.schur else 0)
+                                       schur=self.schur)
                 # post-stabilisation's own factor: factor_kernel staged for its pattern, PADMM's or the warm-start
                 # filter's compiled kernel where the staging size (and no inversion) is theirs
                 if self.post is not None:

@@ -897,11 +897,6 @@ def schur_decouple_kernel(np_dtype):
 SWEEP_BATCH = 8
 SweepIdx = wp.types.vector(length=SWEEP_BATCH, dtype=wp.int32)
 
-#: The most scalars of the elimination's per-thread vectors (``LANES`` times the fixed positions) that
-#: :func:`schur_kernel` keeps in shared memory; larger worlds keep them in device memory (``Schur.sx``).
-SCHUR_VECTORS_MAX = 8192
-
-
 def schur_list_cap(row_bodies, blocks_per_row: int, np_max: int) -> int:
     """The entries of a right-hand side's list (``Schur.bp``, :func:`schur_kernel`): a row of ``T`` has up to
     ``blocks_per_row`` bodies, each on at most as many fixed rows as the busiest body of a world type (``row_bodies``:
@@ -915,61 +910,20 @@ def schur_list_cap(row_bodies, blocks_per_row: int, np_max: int) -> int:
     return max(1, min(np_max, blocks_per_row * busiest))
 
 
-def schur_vectors(np_max: int) -> int:
-    """The shared length of the elimination's per-thread vectors (:func:`thread_vector_funcs`) for worlds of up to
-    ``np_max`` fixed positions: ``LANES`` vectors of ``np_max`` rounded up to a multiple of ``LANES`` (so that similar
-    scenes share a compiled module), or 0 above :data:`SCHUR_VECTORS_MAX`."""
-    X = LANES * shared_rows(np_max)
-    return X if X <= SCHUR_VECTORS_MAX else 0
-
-
 @functools.cache
-def thread_vector_funcs(np_dtype, X: int):
-    """A thread's vector of the elimination's solves (§7.11), in position order with the world's threads' vectors
-    interleaved (entry ``p`` at ``xi + p LANES``): in shared memory (``X > 0`` scalars, ``xi`` the thread's lane) or
-    in ``Schur.sx`` (``xi`` its interleaved start there). ``SimpleNamespace(vget, vset)``."""
-    scalar = builder_types(np_dtype).scalar
-    farr = wp.array(dtype=scalar)
-    XL = max(X, 1)
-    XVec = shared_vector(np_dtype, XL)
-    sset, sget = shared_set_func(np_dtype, XL), shared_get_func(np_dtype, XL)
-
-    @wp.func
-    def vget(sx: farr, xv: XVec, xi: int, p: int) -> scalar:
-        """Entry ``p`` of the thread's vector."""
-        if wp.static(X > 0):
-            return sget(xv, xi + p * LANES)
-        return sx[xi + p * LANES]
-
-    @wp.func
-    def vset(sx: farr, xv: XVec, xi: int, p: int, v: scalar):
-        """Entry ``p`` of the thread's vector := ``v``."""
-        if wp.static(X > 0):
-            sset(xv, xi + p * LANES, v)
-        else:
-            sx[xi + p * LANES] = v
-
-    return SimpleNamespace(vget=vget, vset=vset)
-
-
-@functools.cache
-def lane_solve_func(np_dtype, E: int, X: int):
+def lane_solve_func(np_dtype):
     """``x <- C^-1 x`` with the fixed rows' factor ``C = L_f L_f^T`` by one thread (§8.1).
-    ``lane_solve(sp, wid, vb, lv, sx, xv, xi)``: ``L_f`` staged in ``lv`` (``E > 0``, :func:`staged_get_func`) or in
-    device memory, the thread's vector in ``xv`` or ``sx`` (:func:`thread_vector_funcs` of ``X``)."""
+    ``lane_solve(sp, wid, vb, sx, xi)``: ``L_f`` in device memory (``sp.val``), the thread's vector in ``sx``, entry
+    ``p`` at ``xi + p LANES`` (the world's threads' vectors interleaved). Both stay in device memory: staged in
+    shared memory, they cut the multiprocessor's resident worlds and the elimination took 1.6x as long (dr_legs,
+    benchmarks/README.md)."""
     scalar, SP = builder_types(np_dtype).take("scalar", "SP")
     farr = wp.array(dtype=scalar)
-    LVec = shared_vector(np_dtype, max(E, 1))
-    XVec = shared_vector(np_dtype, max(X, 1))
-    fget = staged_get_func(np_dtype, E)
-    tv = thread_vector_funcs(np_dtype, X)
-    vget, vset = tv.vget, tv.vset
     SweepVal = wp.types.vector(length=SWEEP_BATCH, dtype=scalar)
     zero = scalar(0.0)
 
     @wp.func
-    def forward_batch(sp: SP, e0: int, vb: int, kb: int, k1: int, lv: LVec, sx: farr, xv: XVec, xi: int,
-                      s: scalar) -> scalar:
+    def forward_batch(sp: SP, e0: int, vb: int, kb: int, k1: int, sx: farr, xi: int, s: scalar) -> scalar:
         """``s - sum_k L_k x_col(k)`` over the ``SWEEP_BATCH`` entries ``k`` of a row from ``kb`` that lie before its
         diagonal ``k1``, subtracted in the entries' order: the batch's column indices, then its values and vector
         entries, each loaded together (indices clamped to the row, the surplus values zero), so that the batch waits
@@ -980,15 +934,14 @@ def lane_solve_func(np_dtype, E: int, X: int):
         lvv = SweepVal()
         xvv = SweepVal()
         for r in range(SWEEP_BATCH):
-            lvv[r] = wp.where(kb + r < k1, fget(sp, vb, wp.min(kb + r, k1 - 1), lv), zero)
-            xvv[r] = vget(sx, xv, xi, cv[r])
+            lvv[r] = wp.where(kb + r < k1, sp.val[vb + wp.min(kb + r, k1 - 1) * sp.val_stride], zero)
+            xvv[r] = sx[xi + cv[r] * LANES]
         for r in range(SWEEP_BATCH):
             s -= lvv[r] * xvv[r]
         return s
 
     @wp.func
-    def backward_batch(sp: SP, e0: int, vb: int, kb: int, k1: int, lv: LVec, sx: farr, xv: XVec, xi: int,
-                       xp: scalar):
+    def backward_batch(sp: SP, e0: int, vb: int, kb: int, k1: int, sx: farr, xi: int, xp: scalar):
         """``x_col(k) -= L_k x_p`` over the ``SWEEP_BATCH`` entries ``k`` of row ``p`` from ``kb`` that lie before its
         diagonal ``k1``, loaded together as in ``forward_batch`` (a row's columns are distinct, so its entries' updates
         are independent)."""
@@ -998,19 +951,19 @@ def lane_solve_func(np_dtype, E: int, X: int):
         lvv = SweepVal()
         xvv = SweepVal()
         for r in range(SWEEP_BATCH):
-            lvv[r] = fget(sp, vb, wp.min(kb + r, k1 - 1), lv)
-            xvv[r] = vget(sx, xv, xi, cv[r])
+            lvv[r] = sp.val[vb + wp.min(kb + r, k1 - 1) * sp.val_stride]
+            xvv[r] = sx[xi + cv[r] * LANES]
         for r in range(SWEEP_BATCH):
             if kb + r < k1:
-                vset(sx, xv, xi, cv[r], xvv[r] - lvv[r] * xp)
+                sx[xi + cv[r] * LANES] = xvv[r] - lvv[r] * xp
 
     @wp.func
-    def lane_solve(sp: SP, wid: int, vb: int, lv: LVec, sx: farr, xv: XVec, xi: int):
+    def lane_solve(sp: SP, wid: int, vb: int, sx: farr, xi: int):
         """The forward and the backward substitution of ``linear_solve.solve_inplace`` on the fixed positions
         alone, by the calling thread, row by row in batches of ``SWEEP_BATCH`` entries: with hubs the right-hand side
         of their unknowns is 0 and ``y`` is negated there between the sweeps. The threads of a world each solve their
         own vector: no barrier; they walk the same pattern together, so their loads of ``L_f`` are one broadcast and
-        those of their vectors one coalesced access (or conflict-free in shared memory)."""
+        those of their vectors one coalesced access."""
         npos = sp.n_pos[wid]
         nf = sp.n_fixed[wid]
         e0 = sp.ent_start[wid]
@@ -1024,12 +977,12 @@ def lane_solve_func(np_dtype, E: int, X: int):
             k1 = hi - 1
             lo = hi
             hi = sp.row_ptr[p0 + wp.min(p + 2, npos)]
-            s = vget(sx, xv, xi, p)
+            s = sx[xi + p * LANES]
             for kb in range(k0, k1, SWEEP_BATCH):
-                s = forward_batch(sp, e0, vb, kb, k1, lv, sx, xv, xi, s)
-            vset(sx, xv, xi, p, s / fget(sp, vb, k1, lv))
+                s = forward_batch(sp, e0, vb, kb, k1, sx, xi, s)
+            sx[xi + p * LANES] = s / sp.val[vb + k1 * sp.val_stride]
         for p in range(nf, npos):
-            vset(sx, xv, xi, p, -vget(sx, xv, xi, p))
+            sx[xi + p * LANES] = -sx[xi + p * LANES]
         hi = sp.row_ptr[p0 + npos]
         lo = sp.row_ptr[p0 + wp.max(npos - 1, 0)]
         for pp in range(npos):
@@ -1038,45 +991,41 @@ def lane_solve_func(np_dtype, E: int, X: int):
             k1 = hi - 1
             hi = lo
             lo = sp.row_ptr[p0 + wp.max(p - 1, 0)]
-            xp = vget(sx, xv, xi, p) / fget(sp, vb, k1, lv)
-            vset(sx, xv, xi, p, xp)
+            xp = sx[xi + p * LANES] / sp.val[vb + k1 * sp.val_stride]
+            sx[xi + p * LANES] = xp
             for kb in range(k0, k1, SWEEP_BATCH):
-                backward_batch(sp, e0, vb, kb, k1, lv, sx, xv, xi, xp)
+                backward_batch(sp, e0, vb, kb, k1, sx, xi, xp)
 
     return lane_solve
 
 
 @functools.cache
-def ff_solve_func(np_dtype, E: int, X: int):
+def ff_solve_func(np_dtype):
     """``A^-1 b`` on ``F`` with ``SCHUR_REFINEMENT_STEPS`` refinement steps by one thread (§7.11).
-    ``ff_solve(sp, wid, vb, lv, sb, xb, sx, xv, xi, eps)`` (:func:`lane_solve_func` of ``E``, ``X``)."""
+    ``ff_solve(sp, wid, vb, sb, sx, xi, eps)`` (:func:`lane_solve_func`)."""
     scalar, SP = builder_types(np_dtype).take("scalar", "SP")
     farr = wp.array(dtype=scalar)
-    LVec = shared_vector(np_dtype, max(E, 1))
-    XVec = shared_vector(np_dtype, max(X, 1))
-    lane_solve = lane_solve_func(np_dtype, E, X)
-    tv = thread_vector_funcs(np_dtype, X)
-    vget, vset = tv.vget, tv.vset
+    lane_solve = lane_solve_func(np_dtype)
     zero = scalar(0.0)
 
     @wp.func
-    def ff_solve(sp: SP, wid: int, vb: int, lv: LVec, sb: farr, xb: int, sx: farr, xv: XVec, xi: int, eps: scalar):
-        """``x = A^-1 b`` (``b``: ``sb`` from ``xb``, zero off ``F``; ``x``: the thread's vector) with the factor ``C
-        = A + eps I`` and the refinement of ``kamino.jax_ref.reduction.ff_solve``, ``x_{k+1} = x_k + C^-1 (b - A
-        x_k)``, written as ``x_{k+1} = C^-1 (b + eps x_k)`` (the same vector: ``A = C - eps I``), which needs no
+    def ff_solve(sp: SP, wid: int, vb: int, sb: farr, sx: farr, xi: int, eps: scalar):
+        """``x = A^-1 b`` (``b``: ``sb`` from ``xi``, zero off ``F``; ``x``: the thread's vector in ``sx``) with the
+        factor ``C = A + eps I`` and the refinement of ``kamino.jax_ref.reduction.ff_solve``, ``x_{k+1} = x_k + C^-1
+        (b - A x_k)``, written as ``x_{k+1} = C^-1 (b + eps x_k)`` (the same vector: ``A = C - eps I``), which needs no
         product with ``A``: ``x_0 = C^-1 b`` and ``SCHUR_REFINEMENT_STEPS`` more solves. The effort-limited rows'
         identity block keeps them at zero; the hubs' unknowns take a zero right-hand side in every solve."""
         npos = sp.n_pos[wid]
         nf = sp.n_fixed[wid]
         for p in range(npos):
-            vset(sx, xv, xi, p, sb[xb + p * LANES])
-        lane_solve(sp, wid, vb, lv, sx, xv, xi)
+            sx[xi + p * LANES] = sb[xi + p * LANES]
+        lane_solve(sp, wid, vb, sx, xi)
         for _ in range(SCHUR_REFINEMENT_STEPS):
             for p in range(nf):
-                vset(sx, xv, xi, p, sb[xb + p * LANES] + eps * vget(sx, xv, xi, p))
+                sx[xi + p * LANES] = sb[xi + p * LANES] + eps * sx[xi + p * LANES]
             for p in range(nf, npos):
-                vset(sx, xv, xi, p, zero)
-            lane_solve(sp, wid, vb, lv, sx, xv, xi)
+                sx[xi + p * LANES] = zero
+            lane_solve(sp, wid, vb, sx, xi)
 
     return ff_solve
 
@@ -1164,50 +1113,15 @@ def body_funcs(np_dtype):
                            shares_body=shares_body)
 
 
-#: The most scalars of the reduced problem's factor and inverse that the elimination keeps in shared memory
-#: (:func:`schur_dense`); larger reduced problems keep them in device memory (``Schur.L``, ``Schur.G``).
-SCHUR_DENSE_MAX = 12288
-
-
-def schur_dense(tm: int) -> int:
-    """The shared scalars of :func:`schur_inverse_func` for reduced problems of up to ``tm`` rows: two squares of
-    stride ``tm`` rounded up to odd (the factor's rows and the inverse's columns then start on distinct banks, so that
-    threads reading down a column or along their own column do not conflict), rounded up to a multiple of 256, or 0
-    above :data:`SCHUR_DENSE_MAX`."""
-    ld = tm + 1 - tm % 2
-    D = 256 * max(1, -(-2 * ld * ld // 256))
-    return D if D <= SCHUR_DENSE_MAX else 0
-
-
 @functools.cache
-def schur_inverse_func(np_dtype, D: int = 0):
+def schur_inverse_func(np_dtype):
     """``G = (S~ + diag(eta + rho))^-1`` of a world's reduced problem by its threads (§7.11).
-    ``schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u)``; with ``D > 0``
-    (:func:`schur_dense`) the factor and the inverse are worked on in shared memory and ``G`` is written to
-    ``sch.G`` at the end, else both in device memory (``sch.L``, ``sch.G``)."""
+    ``schur_inverse(sch, wid, lane, row_info, rb, rs, nf, eta, rho_free, rho_box, rho_u)``, the factor in ``sch.L``
+    and the inverse in ``sch.G`` (device memory: formed in shared memory, they cut the multiprocessor's resident
+    worlds and the elimination took longer, benchmarks/README.md)."""
     scalar = builder_types(np_dtype).scalar
-    farr = wp.array(dtype=scalar)
     Schur = schur_struct(np_dtype)
     row_penalty = rules.row_penalty_func(np_dtype)
-    DL = max(D, 1)
-    DVec = shared_vector(np_dtype, DL)
-    dset, dget = shared_set_func(np_dtype, DL), shared_get_func(np_dtype, DL)
-
-    @wp.func
-    def get(a: farr, ds: DVec, k: int) -> scalar:
-        """Entry ``k`` of the factor's or the inverse's storage: the shared tile (``D > 0``) or ``a``
-        (``sch.L``, ``sch.G``)."""
-        if wp.static(D > 0):
-            return dget(ds, k)
-        return a[k]
-
-    @wp.func
-    def put(a: farr, ds: DVec, k: int, v: scalar):
-        """Entry ``k`` of the factor's or the inverse's storage := ``v`` (:func:`get`'s)."""
-        if wp.static(D > 0):
-            dset(ds, k, v)
-        else:
-            a[k] = v
 
     @wp.func
     def schur_inverse(sch: Schur, wid: int, lane: int, row_info: wp.array(dtype=wp.int32), rb: int, rs: int, nf: int,
@@ -1218,57 +1132,43 @@ def schur_inverse_func(np_dtype, D: int = 0):
         then ``G``'s columns, ``L L^T g_c = e_c``, one thread per column (no barrier), each stored contiguously
         (``G_ic`` at ``c tm + i``: in the product with ``G`` the threads, one per row ``i``, read consecutive
         entries): every PADMM iteration's solve is then one product with ``G`` (:func:`schur_apply_func`). ``L_ik``
-        at ``lb + i ld + k`` and ``G_ic`` at ``gb + c ld + i``: in shared memory ``ld`` is ``tm`` rounded up to odd,
-        and ``G`` goes to ``sch.G`` in the end, threads over consecutive entries."""
+        at ``g0 + i tm + k``."""
         nt = sch.nt[wid]
         tm = sch.tm
         g0 = wid * tm * tm
         t0 = wid * tm
-        ds = wp.tile_zeros(shape=(DL,), dtype=scalar, storage="shared")  # one unread scalar when D = 0
-        ld = tm
-        lb = g0
-        gb = g0
-        if wp.static(D > 0):
-            ld = tm + 1 - tm % 2
-            lb = 0
-            gb = ld * ld
         for j in range(nt):
             aj = sch.rows[t0 + j]
             s = sch.S[g0 + j * tm + j] + eta + row_penalty(row_info, rb + aj * rs, aj, nf, rho_free, rho_box, rho_u)
             for k in range(j):
-                s -= get(sch.L, ds, lb + j * ld + k) * get(sch.L, ds, lb + j * ld + k)
+                s -= sch.L[g0 + j * tm + k] * sch.L[g0 + j * tm + k]
             d = wp.sqrt(s)
             for i in range(j + 1 + lane, nt, LANES):
                 v = sch.S[g0 + j * tm + i]
                 for k in range(j):
-                    v -= get(sch.L, ds, lb + i * ld + k) * get(sch.L, ds, lb + j * ld + k)
-                put(sch.L, ds, lb + i * ld + j, v / d)
+                    v -= sch.L[g0 + i * tm + k] * sch.L[g0 + j * tm + k]
+                sch.L[g0 + i * tm + j] = v / d
             if lane == 0:  # no thread reads L_jj before the next column
-                put(sch.L, ds, lb + j * ld + j, d)
+                sch.L[g0 + j * tm + j] = d
             sync()
         for c in range(lane, nt, LANES):
+            gc = g0 + c * tm
             for i in range(nt):  # L z = e_c, into column c of G
                 v = scalar(0.0)
                 if i == c:
                     v = scalar(1.0)
                 if i >= c:
                     for k in range(c, i):
-                        v -= get(sch.L, ds, lb + i * ld + k) * get(sch.G, ds, gb + c * ld + k)
-                    v = v / get(sch.L, ds, lb + i * ld + i)
-                put(sch.G, ds, gb + c * ld + i, v)
+                        v -= sch.L[g0 + i * tm + k] * sch.G[gc + k]
+                    v = v / sch.L[g0 + i * tm + i]
+                sch.G[gc + i] = v
             for ii in range(nt):  # L^T g = z
                 i = nt - 1 - ii
-                v = get(sch.G, ds, gb + c * ld + i)
+                v = sch.G[gc + i]
                 for k in range(i + 1, nt):
-                    v -= get(sch.L, ds, lb + k * ld + i) * get(sch.G, ds, gb + c * ld + k)
-                put(sch.G, ds, gb + c * ld + i, v / get(sch.L, ds, lb + i * ld + i))
+                    v -= sch.L[g0 + k * tm + i] * sch.G[gc + k]
+                sch.G[gc + i] = v / sch.L[g0 + i * tm + i]
         sync()
-        if wp.static(D > 0):
-            for u in range(lane, nt * nt, LANES):
-                c = u // nt
-                i = u - c * nt
-                sch.G[g0 + c * tm + i] = dget(ds, gb + c * ld + i)
-            sync()
 
     return schur_inverse
 
@@ -1370,32 +1270,24 @@ SCHUR_ELIMINATE, SCHUR_RHS, SCHUR_RECOVER = 0, 1, 2
 
 
 @functools.cache
-def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
+def schur_kernel(np_dtype):
     """The Schur reduction's elimination with the world's 32 threads (§7.11), once per step.
     ``schur(m, nblk, eta, rho_free, rho_box, row_stride, sp, n_rows, frozen, row_body, row_J, reg, P, vt,
     inv_inertia_w, lo_s, hi_s, row_info, rho_u, sch, p_ref, x, x_p, y_p, y_hat, z_p, z_hat, impulse, velocity,
-    failed)``, launched tiled: one block of ``LANES`` threads per world. With ``E > 0`` the world's ``L_f`` (up to
-    ``E`` entries, :func:`shared_entries`) and with ``X > 0`` the threads' solution vectors (:func:`schur_vectors`)
-    are staged in shared memory, so that the sweeps of :func:`lane_solve_func` wait on shared memory instead of
-    device memory; else they stay in device memory (``sp.val``, ``Schur.sx``). With ``D > 0`` (:func:`schur_dense`)
-    ``G`` is formed in shared memory too. The two stages' shared memory is the same (each function's tiles are
-    released when it returns): ``max(E + X, D)`` scalars. The columns of ``B = P_F D_FT P_T`` are kept as lists of
-    their entries (``Schur.bp``, ``bv``, ``bn``; :func:`schur_list_cap`)."""
+    failed)``, launched tiled: one block of ``LANES`` threads per world, without shared memory: ``L_f`` is read in
+    ``sp.val``, the threads' solution vectors live in ``Schur.sx``, ``G`` in ``Schur.G``. The columns of ``B = P_F
+    D_FT P_T`` are kept as lists of their entries (``Schur.bp``, ``bv``, ``bn``; :func:`schur_list_cap`)."""
     scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     Schur = schur_struct(np_dtype)
     bases = sparse_llt_kernels(np_dtype).bases
     delassus_entry = sparse_llt_kernels(np_dtype).delassus_entry
     free_row = free_row_func(np_dtype)
-    EL, XL = max(E, 1), max(X, 1)
-    XVec = shared_vector(np_dtype, XL)
-    lset = shared_set_func(np_dtype, EL)
-    ff_solve = ff_solve_func(np_dtype, E, X)
-    vget = thread_vector_funcs(np_dtype, X).vget
+    ff_solve = ff_solve_func(np_dtype)
     bf = body_funcs(np_dtype)
     row_u, row_dot_on, shares_body = bf.row_u, bf.row_dot_on, bf.shares_body
     SweepVal = wp.types.vector(length=SWEEP_BATCH, dtype=scalar)
-    schur_inverse = schur_inverse_func(np_dtype, D)
+    schur_inverse = schur_inverse_func(np_dtype)
     filter_effort_rows = filter_effort_rows_func(np_dtype)
     lane_max = rules.lane_reduce_func(np_dtype, LANES, "max")
     zero = scalar(0.0)
@@ -1441,7 +1333,7 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
         sch.bn[wid * sch.tm + c] = wp.min(cnt, sch.cap)
 
     @wp.func
-    def list_dot(sch: Schur, lb: int, n: int, xv: XVec, xi: int) -> scalar:
+    def list_dot(sch: Schur, lb: int, n: int, xi: int) -> scalar:
         """``b_i . x`` over the ``n`` entries of a right-hand side's list from ``lb`` and the thread's solution ``x``:
         ``SWEEP_BATCH`` entries' positions and values, then their entries of ``x``, loaded together (clamped, the
         surplus values zero), summed in the list's order."""
@@ -1455,7 +1347,7 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
                 bv[r] = wp.where(jb + r < n, sch.bv[j], zero)
             xw = SweepVal()
             for r in range(SWEEP_BATCH):
-                xw[r] = vget(sch.sx, xv, xi, pv[r])
+                xw[r] = sch.sx[xi + pv[r] * LANES]
             for r in range(SWEEP_BATCH):
                 s += bv[r] * xw[r]
         return s
@@ -1468,8 +1360,7 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
         P_T``): first the columns ``b_c`` of ``B`` as lists (``rhs_list``, thread ``c mod LANES``), then column ``c``
         of ``S~`` (``c < nt``) or the right-hand side (``c = nt``, ``b = P v_F``) by thread ``c mod LANES``: its
         solve ``x = A^-1 b`` (:func:`ff_solve_func`) and the products ``b_i . x`` with the lists of every row ``i``
-        of ``T`` (``list_dot``: ``P_i D_iF P_F x``, ``D_TF`` never formed). ``L_f`` and the threads' vectors are
-        staged in shared memory (``E``, ``X``) for the solves and the products, released on return."""
+        of ``T`` (``list_dot``: ``P_i D_iF P_F x``, ``D_TF`` never formed)."""
         base = bases(m, sp, rs, wid)
         rb, vb = base[0], base[1]
         tm = sch.tm
@@ -1479,14 +1370,6 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
         npos = sp.n_pos[wid]
         xb = wid * LANES * sch.np_max + lane  # the thread's scratch vectors, interleaved with the world's others'
         ub = wid * LANES * sch.nb_max + lane
-        xi = xb  # the thread's solution vector: in Schur.sx, or in shared memory (thread_vector_funcs)
-        if wp.static(X > 0):
-            xi = lane
-        lv = wp.tile_zeros(shape=(EL,), dtype=scalar, storage="shared")
-        xv = wp.tile_zeros(shape=(XL,), dtype=scalar, storage="shared")
-        if wp.static(E > 0):
-            for k in range(lane, sp.nnz[wid], LANES):
-                lset(lv, k, sp.val[vb + k * sp.val_stride])
         nt = sch.nt[wid]
         for c in range(lane, nt, LANES):
             rhs_list(m, sch, sp, wid, rb, rs, lo_s, hi_s, P, row_body, row_J, inv_inertia_w, nblk, b0, ub, c, failed)
@@ -1500,11 +1383,11 @@ def schur_kernel(np_dtype, E: int = 0, X: int = 0, D: int = 0):
                     sch.sb[xb + sch.bp[lb + j] * LANES] = sch.bv[lb + j]
             else:
                 rhs_v(sch, sp, wid, rb, rs, lo_s, hi_s, vt, xb)
-            ff_solve(sp, wid, vb, lv, sch.sb, xb, sch.sx, xv, xi, sch.eps)
+            ff_solve(sp, wid, vb, sch.sb, sch.sx, xb, sch.eps)
             for i in range(nt):
                 ai = sch.rows[t0 + i]
                 ri = rb + ai * rs
-                dx = list_dot(sch, (t0 + i) * sch.cap, sch.bn[t0 + i], xv, xi)
+                dx = list_dot(sch, (t0 + i) * sch.cap, sch.bn[t0 + i], xb)
                 if c < nt:
                     ac = sch.rows[t0 + c]
                     sch.S[g0 + i * tm + c] = (P[ri] * delassus_entry(m, rs, row_body, row_J, reg, inv_inertia_w,
@@ -1996,8 +1879,7 @@ def iterate_kernel(np_dtype, R: int, cr: bool, adaptive: bool, accelerate: bool,
 
 
 def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int | None = None,
-                 inverse: bool = False, schur: bool = False, schur_X: int = 0,
-                 schur_D: int = 0) -> SimpleNamespace:
+                 inverse: bool = False, schur: bool = False) -> SimpleNamespace:
     """``factor`` (not under ``cr``), ``solve_fixed`` (post-stabilisation) and ``cr_pattern`` (under ``cr``) for
     worlds of up to ``R`` rows; launch each 32-thread kernel with ``wp.launch_tiled(dim=[num_worlds],
     block_dim=LANES)``, ``cr_pattern`` with one thread per world (``wp.launch``). :func:`iterate_kernel` gives
@@ -2010,9 +1892,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
     :func:`shared_entries`; ``None``: no filter) also ``filter_factor``, :func:`factor_kernel` for the filter's
     factor of the fixed rows, and ``warm_start_filter`` (:func:`warm_start_filter_kernel`). With ``schur`` (§7.11)
     also ``schur_decouple`` (:func:`schur_decouple_kernel`, on ``(worlds, max entries)``), ``schur`` (the
-    elimination, :func:`schur_kernel`: ``L_f`` staged as the factorisation stages it, ``E``, and the threads' vectors
-    in ``schur_X`` shared scalars, :func:`schur_vectors`; ``G`` formed in ``schur_D`` shared scalars,
-    :func:`schur_dense`) and ``schur_solve`` (:func:`schur_solve_kernel`)."""
+    elimination, :func:`schur_kernel`) and ``schur_solve`` (:func:`schur_solve_kernel`)."""
     filtered = filter_E is not None
     return SimpleNamespace(factor=None if cr else factor_kernel(np_dtype, E, inverse), inverse=inverse,
                            solve_fixed=solve_fixed_kernel(np_dtype, R),
@@ -2020,7 +1900,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
                            filter_factor=factor_kernel(np_dtype, filter_E) if filtered else None,
                            warm_start_filter=warm_start_filter_kernel(np_dtype, R) if filtered else None,
                            schur_decouple=schur_decouple_kernel(np_dtype) if schur else None,
-                           schur=schur_kernel(np_dtype, E, schur_X, schur_D) if schur else None,
+                           schur=schur_kernel(np_dtype) if schur else None,
                            schur_solve=schur_solve_kernel(np_dtype, R) if schur else None)
 
 
