@@ -301,7 +301,8 @@ class SolverConfig:
     actuator rows without an effort limit) before PADMM and runs PADMM on the Schur complement of the rest (limit,
     contact and effort-limited actuator rows), then recovers the eliminated impulses (docs/formulation.md §7.11;
     ``kamino.jax_ref.reduction``). ``"none"``: PADMM on every row. The JAX reference, and the Warp backend's
-    32-thread schedule with the sparse factor (``padmm="warp"``, picked by itself then; docs/warp_backend.md)."""
+    32-thread schedule with the sparse factor (``padmm="warp"``, picked by itself then; docs/warp_backend.md).
+    ``reduce_after`` reduces only the worlds that are slow to converge."""
     reduce_after: int = 0
     """under ``reduction="schur"``, when a world reduces (docs/formulation.md §7.11, "Reducing the slow worlds
     only"): ``0``, every world from the start; ``k > 0``, PADMM runs on the full problem for at most ``k``

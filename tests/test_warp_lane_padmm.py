@@ -329,3 +329,53 @@ def test_warp_schedule_reduces_as_the_jax_reference():
     assert int(w.iters.numpy()[0]) == int(ref.iterations) and bool(ref.converged)
     np.testing.assert_allclose(w.impulse.numpy()[:n], np.asarray(ref.impulse), rtol=0, atol=1e-9)
     np.testing.assert_allclose(w.velocity.numpy()[:n], np.asarray(ref.velocity), rtol=0, atol=1e-9)
+
+
+def test_warp_schedule_reduces_the_slow_worlds_as_the_jax_reference():
+    # SolverConfig.reduce_after (docs/formulation.md §7.11, "Reducing the slow worlds only") with 32 threads per world
+    # against the JAX reference's _solve_switched on each world's dual problem, set up as in the test above: three
+    # dr_legs worlds under different PD targets, their second step of 2.5 ms in float64 at tolerance 1e-6, 40 full
+    # iterations before the switch. World 0 converges on the full problem (33 iterations), worlds 1 and 2 do not and
+    # finish on the reduced one (69 and 66 in all); a world that switched on the first step starts the second from
+    # another warm start, so the counts are the second step's. The same iterations in every world; impulses and
+    # velocities to 1e-9, the bound of the test above (measured 2.6e-11 and 1.7e-14 in the full world: its factor's
+    # sweeps against a dense Cholesky; 1.3e-12 and 5.6e-13 in the reduced ones).
+    from kamino.bench import loads
+    from kamino.jax_ref import solver
+
+    base = kamino.models.dr_legs()
+    worlds = 3
+    model = kamino.replicate(base, worlds)
+    cfg = kamino.SolverConfig(dt=0.0025, tolerance=1e-6, reduction="schur", reduce_after=40,
+                              stabilisation=kamino.Stabilisation(curvature_refinement=False, post_stabilisation=0))
+    st = Stepper(model, cfg, np.float64, "cpu", padmm="warp")
+    assert st.switch
+    offset, scale, _ = loads.rl_control_map(base)
+    dofs = base.actuator_dof[None, :] + base.num_dofs * np.arange(worlds)[:, None]
+    target = np.zeros(model.num_dofs)
+    target[dofs.reshape(-1)] = (offset + scale * np.random.default_rng(1).uniform(
+        -1, 1, (worlds, base.num_actuators))).reshape(-1)
+    wb.load_state(st, kamino.init_state(model, dtype=np.float64), kamino.Control(position_target=jnp.asarray(target)))
+    st.run(1)
+    rho0 = st.work.rho_u.numpy().copy()
+    seen, loop = {}, st._padmm_loop
+
+    def padmm_loop(**kwargs):  # the warm start as PADMM reads it
+        seen.setdefault("f0", st.work.f0.numpy().copy())
+        seen.setdefault("v0", st.work.v0.numpy().copy())
+        loop(**kwargs)
+
+    st._padmm_loop = padmm_loop
+    st.run(1)
+    w = st.work
+    skip, iters = st.skip.numpy(), w.iters.numpy()
+    assert 0 < skip.sum() < worlds  # some worlds reduced, some did not
+    assert np.all(iters[skip == 0] > cfg.reduce_after) and np.all(iters[skip == 1] <= cfg.reduce_after)
+    ref_solve = jax.jit(lambda *a: solver.solve(*a[:-2], cfg, None, a[-2], a[-1]), static_argnums=(9,))
+    for wid in range(worlds):
+        args, nf = _world_problem(st, seen["f0"], seen["v0"], wid)
+        ref = ref_solve(*args, float(rho0[wid]), nf)
+        rb, n, _ = _world_rows(st, wid)
+        assert int(iters[wid]) == int(ref.iterations) and bool(ref.converged), (wid, iters[wid], ref.iterations)
+        np.testing.assert_allclose(w.impulse.numpy()[rb:rb + n], np.asarray(ref.impulse), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(w.velocity.numpy()[rb:rb + n], np.asarray(ref.velocity), rtol=0, atol=1e-9)

@@ -46,7 +46,10 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   instead of one per row of ``L_f``); a new penalty or a saturation recomputes the inverse inside the launch. After
   PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered
   (:func:`schur_solve_kernel`: one vector's solve by the world's threads together, :func:`solve_func`'s sweeps).
-  Iteration counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``).
+  Iteration counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``). Under ``SolverConfig.reduce_after
+  > 0`` only the worlds that :func:`schur_switch_kernel` flags after the full problem's first iterations eliminate:
+  the others' blocks return at once (``skip``), and the curvature refinement's loops wait on each other
+  (:func:`schur_park_kernel`).
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
