@@ -218,8 +218,13 @@ class Stepper:
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 filter_E = shared_entries(self.filt.max_nnz) if self.filt is not None else None
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt, filter_E=filter_E,
-                                       inverse=self.sparse_factor and self.sf.inv_total > 0 and not self.schur,
+                                       inverse=(self.sparse_factor and self.sf.inv_total > 0
+                                                and (not self.schur or self.switch)),
                                        schur=self.schur)
+                #: the elimination's factor of L_f alone (no inverse: the elimination's solves sweep L_f); under
+                #: reduce_after > 0 the full problem's factor may end with L_f^-1 (solver_lanes.invert_func)
+                self.elim_factor = (factor_kernel(self.np_dtype, self.wk.E) if self.schur and self.wk.inverse
+                                    else self.wk.factor)
                 # post-stabilisation's own factor: factor_kernel staged for its pattern, PADMM's or the warm-start
                 # filter's compiled kernel where the staging size (and no inversion) is theirs
                 if self.post is not None:
@@ -306,7 +311,7 @@ class Stepper:
         self._launch(self.wk.schur_decouple, (W, self.sf.max_nnz),
                      inputs=[nblk, self.sch.eps, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
                              w.inertia_w, w.inv_inertia_w, self.skip, w.lo_s, w.hi_s], outputs=[self.sp])
-        self._launch_lanes(self.wk.factor,
+        self._launch_lanes(self.elim_factor,
                            inputs=[cfg.penalty.eta, 2 if self.switch else 0, nblk, shift_f, shift_b, w.row_stride,
                                    wm.arrays.row_fixed, w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P,
                                    w.inertia_w, w.inv_inertia_w, w.rho_u],
@@ -620,7 +625,8 @@ class Stepper:
         vectors = [w.row_info, w.x, w.y, w.z, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w]
         modes = (self.adaptive, bool(cfg.acceleration), bool(cfg.fixed_iterations))
         if self.padmm == "warp":
-            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes, self.wk.inverse, reduced)
+            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes, self.wk.inverse and not reduced,
+                                          reduced)
 
             def iterate(chunk):
                 self._launch_lanes(lane_iterate, inputs=[problem, chunk], outputs=[carry, self.sp, *vectors, self.sch])
