@@ -213,6 +213,8 @@ class Stepper:
                                                                                    0, 0, 0)
             #: the worlds that do not reduce (schur_switch; all zero under reduce_after = 0: every world reduces)
             self.skip = wp.zeros(wm.num_worlds if self.schur else 0, dtype=wp.int32)
+            #: the count of worlds that reduced in this step (schur_switch)
+            self.switched = wp.zeros(1, dtype=wp.int32)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
@@ -299,6 +301,15 @@ class Stepper:
         self._launch_lanes(kernel, inputs=inputs if mode == SCHUR_ELIMINATE else [mode, *inputs],
                            outputs=[self.sch, w.p_ref, w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.impulse,
                                     w.velocity, w.failed])
+
+    def _if_reduced(self, launches) -> None:
+        """``launches()`` where they concern the reduced problem: under ``reduce_after > 0`` only when some world
+        reduced in this step (``Stepper.switched``; ``wp.capture_if``, a conditional node in a captured graph: a step
+        whose worlds all converged within ``reduce_after`` iterations launches none of it), else always."""
+        if self.switch:
+            wp.capture_if(self.switched, on_true=launches)
+        else:
+            launches()
 
     def _eliminate(self) -> None:
         """The reduced problem of the worlds that reduce (§7.11): ``L_f`` of ``A + eps I`` on ``F`` (the fixed rows
@@ -437,20 +448,21 @@ class Stepper:
         self._padmm_loop(reduced=self.schur and not self.switch)
         if self.switch:  # the worlds not converged by reduce_after iterations reduce and go on
             w.remaining.zero_()
+            self.switched.zero_()
             self._launch(self.wk.schur_switch, W,
                          inputs=[cfg.max_iterations, w.row_stride, w.n_rows, w.frozen, w.iters, w.y_p, w.z_p],
                          outputs=[self.skip, w.x, w.x_p, w.y_hat, w.z_hat, w.a_p, w.c_p, w.it_cap, w.k_rho,
-                                  w.converged, w.done, w.remaining])
+                                  w.converged, w.done, w.remaining, self.switched])
 
             def reduce() -> None:
                 self._eliminate()
                 self._padmm_loop(reduced=True)
 
-            wp.capture_if(w.remaining, on_true=reduce)
+            self._if_reduced(reduce)
         self._launch(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p, w.ct_mu,
                                                        w.row_info], outputs=[w.impulse, w.velocity, w.failed])
         if self.schur:
-            self._schur(SCHUR_RECOVER)
+            self._if_reduced(lambda: self._schur(SCHUR_RECOVER))
         stab = cfg.stabilisation
         if stab.curvature_refinement and stab.curvature_correction and (wm.max_cts or wm.max_cpl):
             self._launch(ik.integrate, (W, wm.max_bodies),
@@ -468,22 +480,29 @@ class Stepper:
                                     w.u_new, w.row_body, w.row_J, w.u_f, w.P, w.converged],
                             outputs=[w.vstar, w.vt])
             if self.schur:  # v'_T of the refined v_f
-                self._schur(SCHUR_RHS)
+                self._if_reduced(lambda: self._schur(SCHUR_RHS))
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W,
                             inputs=[cfg.max_iterations, w.row_stride, w.n_rows, w.frozen, w.iters, w.y_p, w.z_p],
                             outputs=[w.y_hat, w.z_hat, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
                                      w.remaining])
             if self.switch:  # the full problem's worlds first, the reduced ones waiting; then those
-                self._launch(self.wk.schur_park, W, inputs=[0, self.skip], outputs=[w.done, w.remaining])
+                self._if_reduced(lambda: self._launch(self.wk.schur_park, W, inputs=[0, self.skip],
+                                                      outputs=[w.done, w.remaining]))
                 self._padmm_loop(reduced=False)
-                self._launch(self.wk.schur_park, W, inputs=[1, self.skip], outputs=[w.done, w.remaining])
-            self._padmm_loop(reduced=self.schur)
+
+                def resume() -> None:
+                    self._launch(self.wk.schur_park, W, inputs=[1, self.skip], outputs=[w.done, w.remaining])
+                    self._padmm_loop(reduced=True)
+
+                self._if_reduced(resume)
+            else:
+                self._padmm_loop(reduced=self.schur)
             self._launch(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p,
                                                            w.ct_mu, w.row_info],
                             outputs=[w.impulse, w.velocity, w.failed])
             if self.schur:
-                self._schur(SCHUR_RECOVER)
+                self._if_reduced(lambda: self._schur(SCHUR_RECOVER))
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies),
                         inputs=[nblk, h, ANGULAR_DAMPING * dt, w.row_stride, w.n_rows, w.impulse, w.Jd, w.row_body,

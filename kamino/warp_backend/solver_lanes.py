@@ -913,7 +913,8 @@ def schur_switch_kernel(np_dtype):
     """The worlds that reduce after the full problem's first iterations (``SolverConfig.reduce_after``; §7.11,
     "Reducing the slow worlds only").
     ``schur_switch(m, max_iterations, row_stride, n_rows, frozen, iters, y_p, z_p, skip, x, x_p, y_hat, z_hat, a_p,
-    c_p, it_cap, k_rho, converged, done, remaining)``, one thread per world, after the full problem's PADMM loop."""
+    c_p, it_cap, k_rho, converged, done, remaining, switched)``, one thread per world, after the full problem's PADMM
+    loop."""
     scalar, M = builder_types(np_dtype).take("scalar", "M")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_base = index_funcs(np_dtype).row_base
@@ -927,6 +928,7 @@ def schur_switch_kernel(np_dtype):
         skip: iarr,  # out: 1 in the worlds that do not reduce
         x: farr, x_p: farr, y_hat: farr, z_hat: farr, a_p: farr, c_p: farr, it_cap: iarr, k_rho: iarr,
         converged: iarr, done: iarr, remaining: iarr,  # out (remaining: counts the worlds that reduce)
+        switched: iarr,  # out: counts them too (the step's reduced launches run when it is positive)
     ):
         """A world that stopped unconverged before ``max_iterations`` (not frozen, with rows) reduces: PADMM restarts
         from its iterate (``x = x_p = y_hat = y``, ``z_hat = z``: :func:`schur_kernel` then zeroes ``F`` and
@@ -954,6 +956,7 @@ def schur_switch_kernel(np_dtype):
         k_rho[wid] = k
         done[wid] = 0
         wp.atomic_add(remaining, 0, 1)
+        wp.atomic_add(switched, 0, 1)
 
     return schur_switch
 
