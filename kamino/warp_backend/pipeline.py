@@ -649,7 +649,8 @@ class Stepper:
 
             def iterate(chunk):
                 self._launch_lanes(lane_iterate, inputs=[problem, chunk], outputs=[carry, self.sp, *vectors, self.sch])
-                if self.max_switches:  # the factor of the worlds whose effort-limited rows saturated
+                if self.max_switches and not reduced:  # the factor of the worlds whose effort-limited rows saturated
+                    # (the reduced problem's iterations recompute their inverse in the launch)
                     self._launch_lanes(self.wk.factor,
                                           inputs=[cfg.penalty.eta, 1, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
                                                   w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
@@ -673,8 +674,8 @@ class Stepper:
                                     outputs=[w.pending, w.sdiag, w.D])
         if self.device.is_capturing:
             wp.capture_while(w.remaining, lambda: iterate(self.padmm_chunk))
-        else:  # each launch runs the worlds to their cap or to a switch
-            for _ in range(self.max_switches + 1):
+        else:  # each launch runs the worlds to their cap or to a switch (the reduced problem's: to their cap)
+            for _ in range(1 if reduced else self.max_switches + 1):
                 iterate(2 * cfg.max_iterations)
 
     def __del__(self, _lock=CUDA_STREAM_LOCK) -> None:
