@@ -16,8 +16,9 @@ it. These settings cut that without touching what is computed:
   mark and run in a subprocess at the default level (:func:`pytest_pyfunc_call`), with those whose run time
   dominates: the shipped policy's actions against the recorded ones (test_rl_eval.py, to 2e-7), the bitwise check of
   test_redundant_limits.py, and the JAX reference's animatronic hold. The subprocesses that compare two programs
-  of their own (test_sharding.py's sharded and unsharded runs) or retrace a recorded result (the notebooks' training)
-  get the default level too (``helpers.default_xla_env``).
+  of their own (test_sharding.py's sharded and unsharded runs) get the default level too
+  (``helpers.default_xla_env``). Notebook 05's training runs at level 0: its bar holds there (test_notebooks.py), and
+  the notebook takes about 20 s less than in a subprocess at the default level.
 - One persistent compilation cache under ``.pytest_cache/jax``, shared by the xdist workers and the subprocesses
   they start. Many tests compile the same step (same model, shapes and config) in fresh closures, often on the
   other worker; from the second one on, the executable comes from disk. A size bound turns on JAX's file lock

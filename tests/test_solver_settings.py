@@ -23,16 +23,17 @@ def _run(variant, model, cfg) -> tuple[np.ndarray, np.ndarray]:
 
 def test_acceleration_and_eta_change_the_iterations_not_the_motion():
     """float64, 60 steps: the proximal term and the momentum vanish at PADMM's fixed point, so the poses agree with
-    the defaults' to the residuals' scale (measured 1.7e-11 m; bound 1e-9 m), while the larger shift costs
-    iterations (measured 2.66 against 2.23 per step). The Warp backend follows the reference iteration for
-    iteration (the same rules in the same order)."""
+    the defaults' to the residuals' scale (measured 4.0e-11 m; bound 1e-9 m), while the larger shift costs
+    iterations (measured 3.35 against 2.85 per step). The Warp backend follows the reference iteration for
+    iteration (the same rules in the same order; measured 2e-15 m apart) on the changed settings, so the defaults'
+    run is the Warp backend's (the reference's at the defaults would be a second compile of its rollout, 8 s)."""
     model = kamino.concat([kamino.models.fourbar(actuated=True), kamino.models.box_stack(2)])
     changed = BASE.replace(acceleration=False, **{"penalty.eta": 1e-3})
     assert changed.penalty == kamino.Penalty(eta=1e-3) and not changed.acceleration
-    q_ref, it_ref = _run(JAX, model, BASE)
+    q_ref, it_ref = _run(WARP_SPARSE_LLT, model, BASE)
     q_jax, it_jax = _run(JAX, model, changed)
     q_warp, it_warp = _run(WARP_SPARSE_LLT, model, changed)
-    assert float(np.abs(q_jax - q_ref).max()) < 1e-9
+    assert float(np.abs(q_warp - q_ref).max()) < 1e-9
     assert float(np.abs(q_warp - q_jax).max()) < 1e-9
     np.testing.assert_array_equal(it_warp, it_jax)
-    assert it_jax.mean() > it_ref.mean()
+    assert it_warp.mean() > it_ref.mean()
