@@ -250,6 +250,20 @@ def _world_rows(st, wid: int) -> tuple[int, int, int]:
     return rb, int(w.n_rows.numpy()[wid]), int(w.n_box.numpy()[wid])
 
 
+def _step_seeing_the_warm_start(st: Stepper) -> dict:
+    """One step of ``st``; returns the warm start ``f0``, ``v0`` as its first PADMM loop reads it."""
+    seen, loop = {}, st._padmm_loop
+
+    def padmm_loop(**kwargs):
+        seen.setdefault("f0", st.work.f0.numpy().copy())
+        seen.setdefault("v0", st.work.v0.numpy().copy())
+        loop(**kwargs)
+
+    st._padmm_loop = padmm_loop
+    st.run(1)
+    return seen
+
+
 def _world_problem(st, f0, v0, wid: int = 0):
     """World ``wid``'s dual problem after a step, as ``kamino.jax_ref.solver.solve`` takes it, from the stepper's
     rows (float64; rows contiguous, the 32-thread schedule): ``D = J M^-1 J^T + R`` (``tests.helpers.stepper_delassus``
@@ -312,15 +326,7 @@ def test_warp_schedule_reduces_as_the_jax_reference():
     wb.load_state(st, kamino.init_state(model, dtype=np.float64), kamino.Control(position_target=jnp.asarray(target)))
     st.run(1)
     rho0 = float(st.work.rho_u.numpy()[0])
-    seen, loop = {}, st._padmm_loop
-
-    def padmm_loop(**kwargs):  # the warm start as PADMM reads it
-        seen.setdefault("f0", st.work.f0.numpy().copy())
-        seen.setdefault("v0", st.work.v0.numpy().copy())
-        loop(**kwargs)
-
-    st._padmm_loop = padmm_loop
-    st.run(1)
+    seen = _step_seeing_the_warm_start(st)
     args, nf = _world_problem(st, seen["f0"], seen["v0"])
     n = len(args[1])
     ref = jax.jit(lambda *a: solver.solve(*a, cfg, None, rho0, nf))(*args)
@@ -358,15 +364,7 @@ def test_warp_schedule_reduces_the_slow_worlds_as_the_jax_reference():
     wb.load_state(st, kamino.init_state(model, dtype=np.float64), kamino.Control(position_target=jnp.asarray(target)))
     st.run(1)
     rho0 = st.work.rho_u.numpy().copy()
-    seen, loop = {}, st._padmm_loop
-
-    def padmm_loop(**kwargs):  # the warm start as PADMM reads it
-        seen.setdefault("f0", st.work.f0.numpy().copy())
-        seen.setdefault("v0", st.work.v0.numpy().copy())
-        loop(**kwargs)
-
-    st._padmm_loop = padmm_loop
-    st.run(1)
+    seen = _step_seeing_the_warm_start(st)
     w = st.work
     skip, iters = st.skip.numpy(), w.iters.numpy()
     assert 0 < skip.sum() < worlds  # some worlds reduced, some did not
