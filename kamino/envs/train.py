@@ -107,8 +107,8 @@ def plot_curve(curve: list[dict], path: Path, title: str, train_curve: list[dict
     import numpy as np
 
     step = np.array([c["step"] for c in curve], float)
-    mean = np.array([c["reward"] for c in curve])
-    std = np.array([c["reward_std"] for c in curve])
+    mean = np.array([c.get("reward", np.nan) for c in curve], float)
+    std = np.array([c.get("reward_std", np.nan) for c in curve], float)
     fig, ax = plt.subplots(figsize=(6, 4))
     if np.isfinite(mean).any():
         ax.plot(step, mean, marker="o", label="evaluation episodes")
@@ -119,7 +119,8 @@ def plot_curve(curve: list[dict], path: Path, title: str, train_curve: list[dict
     ax.set_ylabel("episode return")
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend()
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend()
     fig.tight_layout()
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
     fig.savefig(tmp, dpi=120)
@@ -295,9 +296,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
             e = pending["train_curve"][-1]
             bar.update(e["step"], e["reward"], float("nan"), e["env_steps_per_s"], e["run_wall_s"])
             return
-        entry = {"step": done + step, "reward": metrics.get("eval/episode_reward", float("nan")),
-                 "reward_std": metrics.get("eval/episode_reward_std", float("nan")),
-                 "run_wall_s": time.perf_counter() - start}
+        entry = {"step": done + step, "run_wall_s": time.perf_counter() - start}
+        if "eval/episode_reward" in metrics:  # none under ppo's run_evals=False (--set run_evals=False)
+            entry.update(reward=metrics["eval/episode_reward"], reward_std=metrics["eval/episode_reward_std"])
         if "training/sps" in metrics:  # the epoch before this evaluation; the first one includes compilation
             entry["env_steps_per_s"] = metrics["training/sps"]
         if restore is not None and step == 0:
@@ -313,8 +314,8 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         last = metrics
         if step > 0:
             _commit(done + step)
-        bar.update(done + step, entry["reward"], entry["reward_std"], metrics.get("training/sps", 0.0),
-                   entry["run_wall_s"])
+        bar.update(done + step, entry.get("reward", float("nan")), entry.get("reward_std", float("nan")),
+                   metrics.get("training/sps", 0.0), entry["run_wall_s"])
 
     def on_params(step: int, make_policy, params) -> None:
         if step > 0:  # committed with its evaluation's row (on_metrics)
@@ -389,7 +390,7 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
                      "python": platform.python_version()},
     }
     runs.write_json(out / "report.json", report, default=str)
-    if progress and curve and np.isfinite([c["reward"] for c in curve]).any():
+    if progress and curve and all("reward" in c for c in (curve[0], curve[-1])):
         print(f"return {curve[0]['reward']:.2f} (step {curve[0]['step']}) -> {curve[-1]['reward']:.2f} "
               f"(step {curve[-1]['step']}); run folder {out}", flush=True)
     return report
