@@ -117,61 +117,6 @@ def test_schur_solve_refines_and_runs_fixed_iterations_like_the_full_solve():
         assert np.abs(np.asarray(full.velocity) - np.asarray(red.velocity)).max() <= 1e-6
 
 
-def test_switched_solve_matches_the_full_solve():
-    """``reduce_after = k`` (docs/formulation.md §7.11, "Reducing the slow worlds only") solves the same dual problem:
-    on :func:`_loop_problem` (float64, tolerance 1e-8; the full solve takes 95 iterations) with the curvature
-    refinement of :func:`test_schur_solve_refines_and_runs_fixed_iterations_like_the_full_solve`, a solve that
-    switches after 20 full iterations agrees with the full solve as the reduced one does (bound 100 ``tol``,
-    :func:`test_schur_solve_matches_the_full_solve`; measured 2.1e-8) and reports the full and the reduced iterations
-    together (more than ``k``); with ``k`` above the full solve's count it is the full solve (its iterations; its
-    impulses to 1e-12, the compiled select's rounding). Under ``vmap`` (the problem batched with a world at rest:
-    ``v_f = 0``, no warm start, solved in 2 iterations) each world takes its own branch, and its result is its solve
-    alone (to 1e-12)."""
-    args, n_fixed, Minv, J = _loop_problem()
-    D, v_f = args[0], args[1]
-    G = 0.02 * np.random.default_rng(5).standard_normal((J.shape[1], D.shape[0]))
-
-    def refine(lam):
-        return v_f + J @ (G @ lam)
-
-    cfg = kamino.SolverConfig(tolerance=1e-8, max_iterations=1000)
-    switched = cfg.replace(reduction="schur", reduce_after=20)
-    full = _solve(args, n_fixed, cfg, refine)
-    sw = _solve(args, n_fixed, switched, refine)
-    assert bool(sw.converged) and int(sw.iterations) > 20
-    assert np.abs(Minv @ J.T @ (np.asarray(full.impulse) - np.asarray(sw.impulse))).max() <= 100 * 1e-8
-    assert np.abs(np.asarray(full.velocity) - np.asarray(sw.velocity)).max() <= 100 * 1e-8
-    late = _solve(args, n_fixed, cfg.replace(reduction="schur", reduce_after=200), refine)
-    np.testing.assert_allclose(np.asarray(late.impulse), np.asarray(full.impulse), rtol=0, atol=1e-12)
-    assert int(late.iterations) == int(full.iterations) < 200
-    # a batch of the slow world and a world at rest
-    rest = (*args[:1], np.zeros_like(v_f), *args[2:])
-    batch = tuple(np.stack([a, b]) for a, b in zip(args, rest, strict=True))
-    out = jax.jit(jax.vmap(lambda *a: solver.solve(*a, switched, None, None, n_fixed)))(*batch)
-    one = jax.jit(lambda *a: solver.solve(*a, switched, None, None, n_fixed))
-    assert int(out.iterations[1]) <= 20 < int(out.iterations[0])
-    for i, a in enumerate((args, rest)):
-        alone = one(*a)
-        assert int(out.iterations[i]) == int(alone.iterations)
-        np.testing.assert_allclose(np.asarray(out.impulse[i]), np.asarray(alone.impulse), rtol=0, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(out.velocity[i]), np.asarray(alone.velocity), rtol=0, atol=1e-12)
-
-
-def test_reduce_after_is_checked():
-    """``reduce_after`` is an integer >= 0; under the reduction a positive one excludes ``fixed_iterations`` and
-    ``redundant_limits`` (every world reduces from the start there); ``reduction="none"`` does not read it (a sweep
-    over it builds each point on the default configuration first, kamino.bench.throughput.kamino_sweep)."""
-    for bad in (-1, 2.5):
-        with pytest.raises(ValueError, match="reduce_after"):
-            kamino.SolverConfig(reduction="schur", reduce_after=bad)
-    for other in ({"fixed_iterations": True}, {"redundant_limits": True}):
-        with pytest.raises(ValueError, match="reduce_after"):
-            kamino.SolverConfig(reduction="schur", reduce_after=8, **other)
-        kamino.SolverConfig(reduction="schur", reduce_after=0, **other)
-    assert kamino.SolverConfig(reduce_after=8).reduce_after == 8
-    assert kamino.config.solver_settings(["reduce_after=16"]) == {"reduce_after": 16}
-
-
 def test_bad_reduction_is_refused():
     """A reduction other than ``"none"``/``"schur"`` raises naming the field; the Warp backend refuses ``"schur"`` on
     the schedules that do not reduce (one thread per world; Conjugate Residual) instead of silently solving the full
