@@ -301,16 +301,7 @@ class SolverConfig:
     actuator rows without an effort limit) before PADMM and runs PADMM on the Schur complement of the rest (limit,
     contact and effort-limited actuator rows), then recovers the eliminated impulses (docs/formulation.md §7.11;
     ``kamino.jax_ref.reduction``). ``"none"``: PADMM on every row. The JAX reference, and the Warp backend's
-    32-thread schedule with the sparse factor (``padmm="warp"``, picked by itself then; docs/warp_backend.md).
-    ``reduce_after`` reduces only the worlds that are slow to converge."""
-    reduce_after: int = 0
-    """under ``reduction="schur"``, when a world reduces (docs/formulation.md §7.11, "Reducing the slow worlds
-    only"): ``0``, every world from the start; ``k > 0``, PADMM runs on the full problem for at most ``k``
-    iterations, and only the worlds not converged by then eliminate and restart PADMM on the reduced problem from
-    their iterate (its rows of ``T``; penalty and saturated rows kept), for up to ``max_iterations`` iterations in
-    all. Fast worlds never pay for the elimination, slow ones finish with cheap iterations. A world that converged on
-    the full problem refines its solve there; a reduced one stays reduced. Not read under ``reduction="none"``;
-    ``k > 0`` excludes ``fixed_iterations`` and ``redundant_limits``."""
+    32-thread schedule with the sparse factor (``padmm="warp"``, picked by itself then; docs/warp_backend.md)."""
     warm_start: bool = True
     """start PADMM from the previous step's constraint forces (§7.8)."""
     warmstart_scale: float = 1.0
@@ -389,11 +380,6 @@ class SolverConfig:
             bad("tolerance", "must be > 0")
         if self.reduction not in ("none", "schur"):
             bad("reduction", "must be 'none' or 'schur'")
-        if int(self.reduce_after) != self.reduce_after or self.reduce_after < 0:
-            bad("reduce_after", "must be an integer >= 0 (0: every world reduces from the start)")
-        if self.reduction == "schur" and self.reduce_after > 0 and (self.fixed_iterations or self.redundant_limits):
-            bad("reduce_after", "must be 0 with fixed_iterations or redundant_limits (every world reduces from the "
-                "start)")
         if int(self.max_unconverged_steps) != self.max_unconverged_steps or self.max_unconverged_steps < 0:
             bad("max_unconverged_steps", "must be an integer >= 0")
         if not (0.0 <= self.warmstart_scale <= 1.0):

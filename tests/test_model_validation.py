@@ -514,8 +514,8 @@ def test_solver_config_other_fields(field, value):
 
 
 def test_solver_config_nests_its_settings():
-    """16 top-level fields; the nested settings go by their dotted names, a wrong kind or name is refused."""
-    assert len(dataclasses.fields(kamino.SolverConfig)) <= 16
+    """15 top-level fields; the nested settings go by their dotted names, a wrong kind or name is refused."""
+    assert len(dataclasses.fields(kamino.SolverConfig)) <= 15
     cfg = kamino.SolverConfig().replace(tolerance=1e-4, **{"warp.linear_solver": "cr", "penalty.rho": 0.05})
     assert cfg.warp == kamino.WarpSettings(linear_solver="cr") and cfg.penalty == kamino.Penalty(rho=0.05)
     assert cfg.tolerance == 1e-4 and cfg.stabilisation == kamino.Stabilisation()

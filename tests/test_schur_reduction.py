@@ -117,61 +117,6 @@ def test_schur_solve_refines_and_runs_fixed_iterations_like_the_full_solve():
         assert np.abs(np.asarray(full.velocity) - np.asarray(red.velocity)).max() <= 1e-6
 
 
-def test_switched_solve_matches_the_full_solve():
-    """``reduce_after = k`` (docs/formulation.md §7.11, "Reducing the slow worlds only") solves the same dual problem:
-    on :func:`_loop_problem` (float64, tolerance 1e-8; the full solve takes 95 iterations) with the curvature
-    refinement of :func:`test_schur_solve_refines_and_runs_fixed_iterations_like_the_full_solve`, a solve that
-    switches after 20 full iterations agrees with the full solve as the reduced one does (bound 100 ``tol``,
-    :func:`test_schur_solve_matches_the_full_solve`; measured 2.1e-8) and reports the full and the reduced iterations
-    together (more than ``k``); with ``k`` above the full solve's count it is the full solve (its iterations; its
-    impulses to 1e-12, the compiled select's rounding). Under ``vmap`` (the problem batched with a world at rest:
-    ``v_f = 0``, no warm start, solved in 2 iterations) each world takes its own branch, and its result is its solve
-    alone (to 1e-12)."""
-    args, n_fixed, Minv, J = _loop_problem()
-    D, v_f = args[0], args[1]
-    G = 0.02 * np.random.default_rng(5).standard_normal((J.shape[1], D.shape[0]))
-
-    def refine(lam):
-        return v_f + J @ (G @ lam)
-
-    cfg = kamino.SolverConfig(tolerance=1e-8, max_iterations=1000)
-    switched = cfg.replace(reduction="schur", reduce_after=20)
-    full = _solve(args, n_fixed, cfg, refine)
-    sw = _solve(args, n_fixed, switched, refine)
-    assert bool(sw.converged) and int(sw.iterations) > 20
-    assert np.abs(Minv @ J.T @ (np.asarray(full.impulse) - np.asarray(sw.impulse))).max() <= 100 * 1e-8
-    assert np.abs(np.asarray(full.velocity) - np.asarray(sw.velocity)).max() <= 100 * 1e-8
-    late = _solve(args, n_fixed, cfg.replace(reduction="schur", reduce_after=200), refine)
-    np.testing.assert_allclose(np.asarray(late.impulse), np.asarray(full.impulse), rtol=0, atol=1e-12)
-    assert int(late.iterations) == int(full.iterations) < 200
-    # a batch of the slow world and a world at rest
-    rest = (*args[:1], np.zeros_like(v_f), *args[2:])
-    batch = tuple(np.stack([a, b]) for a, b in zip(args, rest, strict=True))
-    out = jax.jit(jax.vmap(lambda *a: solver.solve(*a, switched, None, None, n_fixed)))(*batch)
-    one = jax.jit(lambda *a: solver.solve(*a, switched, None, None, n_fixed))
-    assert int(out.iterations[1]) <= 20 < int(out.iterations[0])
-    for i, a in enumerate((args, rest)):
-        alone = one(*a)
-        assert int(out.iterations[i]) == int(alone.iterations)
-        np.testing.assert_allclose(np.asarray(out.impulse[i]), np.asarray(alone.impulse), rtol=0, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(out.velocity[i]), np.asarray(alone.velocity), rtol=0, atol=1e-12)
-
-
-def test_reduce_after_is_checked():
-    """``reduce_after`` is an integer >= 0; under the reduction a positive one excludes ``fixed_iterations`` and
-    ``redundant_limits`` (every world reduces from the start there); ``reduction="none"`` does not read it (a sweep
-    over it builds each point on the default configuration first, kamino.bench.throughput.kamino_sweep)."""
-    for bad in (-1, 2.5):
-        with pytest.raises(ValueError, match="reduce_after"):
-            kamino.SolverConfig(reduction="schur", reduce_after=bad)
-    for other in ({"fixed_iterations": True}, {"redundant_limits": True}):
-        with pytest.raises(ValueError, match="reduce_after"):
-            kamino.SolverConfig(reduction="schur", reduce_after=8, **other)
-        kamino.SolverConfig(reduction="schur", reduce_after=0, **other)
-    assert kamino.SolverConfig(reduce_after=8).reduce_after == 8
-    assert kamino.config.solver_settings(["reduce_after=16"]) == {"reduce_after": 16}
-
-
 def test_bad_reduction_is_refused():
     """A reduction other than ``"none"``/``"schur"`` raises naming the field; the Warp backend refuses ``"schur"`` on
     the schedules that do not reduce (one thread per world; Conjugate Residual) instead of silently solving the full
@@ -288,45 +233,6 @@ def test_schur_rollout_on_the_warp_lanes_keeps_the_loops_closed():
     assert closure_red <= 2.0 * closure_full, (closure_red, closure_full)
     assert np.abs(u_red - u_full).max() <= 2 * 30 * 1e-3, np.abs(u_red - u_full).max()
     assert it_red <= 1.5 * it_full, (it_red, it_full)
-
-
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[
-    pytest.mark.gpu, pytest.mark.skipif(not __import__("warp").is_cuda_available(), reason="needs a CUDA device")])])
-def test_switched_rollout_on_the_warp_lanes_keeps_the_loops_closed(device):
-    """``reduce_after = 8`` on the Warp backend's 32-thread schedule (float32, the defaults: curvature refinement and
-    post-stabilisation): dr_legs from its standing pose under random PD targets, different in each of 2 worlds (the
-    ``rl`` load's targets, ``kamino.bench.loads.rl_control_map``), 16 steps of 2.5 ms. One world reduces on every
-    step, the other on few; none fails, and the loops stay closed to ``REPROJECTION_GAP`` (1e-5 m), the bound
-    post-stabilisation holds a healthy float32 world to (measured 1.9e-6 m, as without the switch:
-    :func:`test_schur_rollout_on_the_warp_lanes_keeps_the_loops_closed`). On a CUDA device the steps replay a captured
-    graph: the reduced launches sit in a ``wp.capture_if`` around the reduced problem's ``wp.capture_while``."""
-    pytest.importorskip("warp")
-    from kamino.bench import loads
-    from kamino.bench.convergence import ClosureProbe
-    from kamino.config import REPROJECTION_GAP
-    from kamino.warp_backend import backend as wb
-    from kamino.warp_backend.pipeline import Stepper
-
-    base, worlds = kamino.models.dr_legs(), 2
-    model = kamino.replicate(base, worlds)
-    st = Stepper(model, kamino.SolverConfig(dt=0.0025, reduction="schur", reduce_after=8), np.float32, device)
-    assert st.switch and st.padmm == "warp"
-    offset, scale, _ = loads.rl_control_map(base)
-    dofs = base.actuator_dof[None, :] + base.num_dofs * np.arange(worlds)[:, None]
-    target = np.zeros(model.num_dofs, np.float32)
-    target[dofs.reshape(-1)] = (offset + scale * np.random.default_rng(0).uniform(
-        -1, 1, (worlds, base.num_actuators))).reshape(-1)
-    wb.load_state(st, kamino.init_state(model, np.float32), kamino.Control(position_target=jnp.asarray(target)))
-    probe = ClosureProbe(base)
-    closure, reduced = [], []
-    for _ in range(16):
-        st.run(1)
-        closure.append(probe(st.work.q.numpy().view(np.float32).reshape(-1, 7)))
-        reduced.append(st.skip.numpy() == 0)
-    reduced = np.array(reduced)
-    assert reduced.any() and not reduced.all(), reduced.mean()
-    assert not st.work.failed.numpy().any() and not st.work.frozen.numpy().any()
-    assert np.max(closure) <= REPROJECTION_GAP, np.max(closure)
 
 
 @pytest.mark.gpu

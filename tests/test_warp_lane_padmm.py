@@ -239,66 +239,24 @@ def test_warp_schedule_filters_the_warm_start_as_the_thread_kernel(device, monke
 
 
 
-def _world_rows(st, wid: int) -> tuple[int, int, int]:
-    """World ``wid``'s first row slot, rows and box rows under the 32-thread schedule (a world's rows contiguous:
-    ``indexing.row_base`` with ``row_stride = 1``)."""
-    from kamino.warp_backend.model_data import GROUP
-
-    m, w = st.wm.arrays, st.work
-    g = wid // GROUP
-    rb = int(m.grp_row_start.numpy()[g]) + (wid - g * GROUP) * int(m.grp_maxdim.numpy()[g])
-    return rb, int(w.n_rows.numpy()[wid]), int(w.n_box.numpy()[wid])
-
-
-def _step_seeing_the_warm_start(st: Stepper) -> dict:
-    """One step of ``st``; returns the warm start ``f0``, ``v0`` as its first PADMM loop reads it."""
-    seen, loop = {}, st._padmm_loop
-
-    def padmm_loop(**kwargs):
-        seen.setdefault("f0", st.work.f0.numpy().copy())
-        seen.setdefault("v0", st.work.v0.numpy().copy())
-        loop(**kwargs)
-
-    st._padmm_loop = padmm_loop
-    st.run(1)
-    return seen
-
-
-def _world_problem(st, f0, v0, wid: int = 0):
-    """World ``wid``'s dual problem after a step, as ``kamino.jax_ref.solver.solve`` takes it, from the stepper's
-    rows (float64; rows contiguous, the 32-thread schedule): ``D = J M^-1 J^T + R`` (``tests.helpers.stepper_delassus``
-    on world 0, the same sum here on world ``wid``'s bodies), ``v_f = v~_f / P``, the box rows' bounds, the contacts'
-    friction, the warm start (``padmm_init``'s ``impulse_scale f0`` and ``v0``, as PADMM read them: ``Work.f0`` and
-    ``v0`` change after it), and ``n_fixed``."""
+def _world_problem(st, f0, v0):
+    """World 0's dual problem after a step, as ``kamino.jax_ref.solver.solve`` takes it, from the stepper's rows
+    (float64): ``D = J M^-1 J^T + R``, ``v_f = v~_f / P``, the box rows' bounds, the contacts' friction, the warm start
+    (``padmm_init``'s ``impulse_scale f0`` and ``v0``, as PADMM read them: ``Work.f0`` and ``v0`` change after it),
+    and ``n_fixed``."""
     from kamino.warp_backend.workspace import ROW_SRC_MASK
 
     w, m, cfg = st.work, st.wm.arrays, st.cfg
-    rb, n, nbox = _world_rows(st, wid)
-    rows = slice(rb, rb + n)
-    P, vt, lo_s, hi_s = (a.numpy().astype(np.float64)[rows] for a in (w.P, w.vt, w.lo_s, w.hi_s))
-    f0, v0 = np.asarray(f0, np.float64)[rows], np.asarray(v0, np.float64)[rows]
-    if wid == 0:
-        D = stepper_delassus(st, n)
-    else:
-        nblk = st.wm.blocks_per_row
-        J = w.row_J.numpy().astype(np.float64).reshape(-1, nblk, 6)[rows]
-        body = w.row_body.numpy().reshape(-1, nblk)[rows]
-        b0, nb = int(m.body_start.numpy()[wid]), int(m.body_count.numpy()[wid])
-        Minv = np.zeros((nb, 6, 6))
-        Minv[:, :3, :3] = m.inv_mass.numpy()[b0:b0 + nb, None, None] * np.eye(3)
-        Minv[:, 3:, 3:] = w.inv_inertia_w.numpy().reshape(-1, 3, 3)[b0:b0 + nb]
-        Jd = np.zeros((n, nb, 6))
-        for a in range(n):
-            for k in range(nblk):
-                if body[a, k] >= 0:
-                    Jd[a, body[a, k] - b0] += J[a, k]
-        D = np.einsum("abi,bij,cbj->ac", Jd, Minv, Jd) + np.diag(w.reg.numpy().astype(np.float64)[rows])
+    n, nbox = int(w.n_rows.numpy()[0]), int(w.n_box.numpy()[0])
+    P, vt, lo_s, hi_s = (a.numpy().astype(np.float64)[:n] for a in (w.P, w.vt, w.lo_s, w.hi_s))
+    f0, v0 = np.asarray(f0, np.float64)[:n], np.asarray(v0, np.float64)[:n]
+    D = stepper_delassus(st, n)
     lo = np.where(np.isfinite(lo_s), lo_s * P, lo_s)[:nbox]
     hi = np.where(np.isfinite(hi_s), hi_s * P, hi_s)[:nbox]
-    mu = w.ct_mu.numpy().astype(np.float64)[w.row_info.numpy()[rb + nbox:rb + n:3] & ROW_SRC_MASK]
+    mu = w.ct_mu.numpy().astype(np.float64)[w.row_info.numpy()[nbox:n:3] & ROW_SRC_MASK]
     scale_ws = cfg.warmstart_scale * cfg.dt if cfg.warm_start else 0.0
     args = (D, vt / P, lo, hi, mu, np.ones(n, bool), scale_ws * f0, v0)
-    return args, int(m.row_fixed.numpy()[wid])
+    return args, int(m.row_fixed.numpy()[0])
 
 
 def test_warp_schedule_reduces_as_the_jax_reference():
@@ -326,7 +284,15 @@ def test_warp_schedule_reduces_as_the_jax_reference():
     wb.load_state(st, kamino.init_state(model, dtype=np.float64), kamino.Control(position_target=jnp.asarray(target)))
     st.run(1)
     rho0 = float(st.work.rho_u.numpy()[0])
-    seen = _step_seeing_the_warm_start(st)
+    seen, loop = {}, st._padmm_loop
+
+    def padmm_loop():  # the warm start as PADMM reads it
+        seen.setdefault("f0", st.work.f0.numpy().copy())
+        seen.setdefault("v0", st.work.v0.numpy().copy())
+        loop()
+
+    st._padmm_loop = padmm_loop
+    st.run(1)
     args, nf = _world_problem(st, seen["f0"], seen["v0"])
     n = len(args[1])
     ref = jax.jit(lambda *a: solver.solve(*a, cfg, None, rho0, nf))(*args)
@@ -335,45 +301,3 @@ def test_warp_schedule_reduces_as_the_jax_reference():
     assert int(w.iters.numpy()[0]) == int(ref.iterations) and bool(ref.converged)
     np.testing.assert_allclose(w.impulse.numpy()[:n], np.asarray(ref.impulse), rtol=0, atol=1e-9)
     np.testing.assert_allclose(w.velocity.numpy()[:n], np.asarray(ref.velocity), rtol=0, atol=1e-9)
-
-
-def test_warp_schedule_reduces_the_slow_worlds_as_the_jax_reference():
-    # SolverConfig.reduce_after (docs/formulation.md §7.11, "Reducing the slow worlds only") with 32 threads per world
-    # against the JAX reference's _solve_switched on each world's dual problem, set up as in the test above: three
-    # dr_legs worlds under different PD targets, their second step of 2.5 ms in float64 at tolerance 1e-6, 40 full
-    # iterations before the switch. World 0 converges on the full problem (33 iterations), worlds 1 and 2 do not and
-    # finish on the reduced one (69 and 66 in all); a world that switched on the first step starts the second from
-    # another warm start, so the counts are the second step's. The same iterations in every world; impulses and
-    # velocities to 1e-9, the bound of the test above (measured 2.6e-11 and 1.7e-14 in the full world: its factor's
-    # sweeps against a dense Cholesky; 1.3e-12 and 5.6e-13 in the reduced ones).
-    from kamino.bench import loads
-    from kamino.jax_ref import solver
-
-    base = kamino.models.dr_legs()
-    worlds = 3
-    model = kamino.replicate(base, worlds)
-    cfg = kamino.SolverConfig(dt=0.0025, tolerance=1e-6, reduction="schur", reduce_after=40,
-                              stabilisation=kamino.Stabilisation(curvature_refinement=False, post_stabilisation=0))
-    st = Stepper(model, cfg, np.float64, "cpu", padmm="warp")
-    assert st.switch
-    offset, scale, _ = loads.rl_control_map(base)
-    dofs = base.actuator_dof[None, :] + base.num_dofs * np.arange(worlds)[:, None]
-    target = np.zeros(model.num_dofs)
-    target[dofs.reshape(-1)] = (offset + scale * np.random.default_rng(1).uniform(
-        -1, 1, (worlds, base.num_actuators))).reshape(-1)
-    wb.load_state(st, kamino.init_state(model, dtype=np.float64), kamino.Control(position_target=jnp.asarray(target)))
-    st.run(1)
-    rho0 = st.work.rho_u.numpy().copy()
-    seen = _step_seeing_the_warm_start(st)
-    w = st.work
-    skip, iters = st.skip.numpy(), w.iters.numpy()
-    assert 0 < skip.sum() < worlds  # some worlds reduced, some did not
-    assert np.all(iters[skip == 0] > cfg.reduce_after) and np.all(iters[skip == 1] <= cfg.reduce_after)
-    ref_solve = jax.jit(lambda *a: solver.solve(*a[:-2], cfg, None, a[-2], a[-1]), static_argnums=(9,))
-    for wid in range(worlds):
-        args, nf = _world_problem(st, seen["f0"], seen["v0"], wid)
-        ref = ref_solve(*args, float(rho0[wid]), nf)
-        rb, n, _ = _world_rows(st, wid)
-        assert int(iters[wid]) == int(ref.iterations) and bool(ref.converged), (wid, iters[wid], ref.iterations)
-        np.testing.assert_allclose(w.impulse.numpy()[rb:rb + n], np.asarray(ref.impulse), rtol=0, atol=1e-9)
-        np.testing.assert_allclose(w.velocity.numpy()[rb:rb + n], np.asarray(ref.velocity), rtol=0, atol=1e-9)

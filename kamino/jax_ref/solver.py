@@ -609,9 +609,6 @@ def _solve_schur(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu:
         v_last = v_f if refine is None else jnp.where(out.refined, refine(lam_first), v_f)
         return lam_first, reduction.recover(el, v_last, p.P * out.y_p), v_last
 
-    if cfg.reduce_after > 0:
-        return _solve_switched(D, v_f, lo, hi, mu, row_mask, impulse0, velocity0, cfg, refine, rho0, n_fixed,
-                               refine_rows, el, P_t, refine_t)
     if cfg.fixed_iterations:
         out = _run(p, init, refine_t, refine_rows)
         _, lam, v_last = full(out)
@@ -634,56 +631,6 @@ def _solve_schur(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu:
         w = D @ lam + v_f
         v = jax.lax.stop_gradient(v) + (w - jax.lax.stop_gradient(w))
     return _result(out, jnp.where(row_mask, lam, 0.0), jnp.where(row_mask, v, 0.0))
-
-
-def _solve_switched(D: jax.Array, v_f: jax.Array, lo: jax.Array, hi: jax.Array, mu: jax.Array, row_mask: jax.Array,
-                    impulse0: jax.Array, velocity0: jax.Array, cfg: SolverConfig, refine, rho0, n_fixed: int,
-                    refine_rows, el: reduction.Elimination, P_t: jax.Array, refine_t) -> PADMMResult:
-    """:func:`_solve_schur` with ``cfg.reduce_after = k > 0`` (docs/formulation.md §7.11, "Reducing the slow worlds
-    only"): PADMM on the full problem (:func:`solve`'s, from the warm start) for at most ``k`` iterations; a world
-    that converged by then goes on as :func:`solve` (its curvature refinement on the full problem), one that did not
-    (``k < max_iterations``) restarts PADMM on the reduced problem of :func:`_solve_schur`, warm-started with the full
-    iterate's impulses and velocities on ``T`` (zero on ``F``, as the reduced problem's own warm start), its penalty
-    and its saturated rows, the momentum reset, the iteration count going on to ``max_iterations`` in all; its
-    curvature refinement stays reduced. Both branches run for every world and each world keeps its own (a select:
-    under ``vmap`` a world's branch does not depend on the others'); the branch a world does not take stops at once
-    (its cap is its count). The reported iterations are the full and the reduced solve's together; the result has
-    :func:`_solve_schur`'s layout and the full problem's implicit derivative (§7.10) at either branch's solution."""
-    cap = min(int(cfg.reduce_after), int(cfg.max_iterations))
-    pf = _Problem(D, v_f, lo, hi, mu, row_mask, cfg, rho0, n_fixed)
-    init = pf.start(impulse0, velocity0)
-    refine_rows = True if refine_rows is None else refine_rows
-    S, vt_red = reduction.reduced_matrix(el), reduction.reduced_rhs(el, v_f)
-    t = el.t
-
-    def run():
-        first = _run(pf, init._replace(cap=jnp.int32(cap)))
-        switch = ~first.converged & (first.k < cfg.max_iterations)
-        # the full problem goes on where the world does not switch (no iteration where it does)
-        a = _run(pf, first._replace(cap=jnp.where(switch, first.k, cfg.max_iterations)), refine, refine_rows)
-        # the reduced problem from the full iterate where it switches (no iteration where it does not)
-        pr = _Problem(S, vt_red, lo, hi, mu, t, cfg, first.rho_u, n_fixed, P_t)
-        start = pr.start(jnp.where(t, pf.P * first.y_p, 0.0), jnp.where(t, first.z_p / pf.P, 0.0))
-        start = start._replace(k=first.k, k_rho=first.k, cap=jnp.where(switch, cfg.max_iterations, first.k),
-                               sat=first.sat & t, pending=jnp.asarray(True))
-        b = _run(pr, start, refine_t, refine_rows)
-        # the reduced solve in the full layout and in pf's scaled units: the recovered impulses of its first and last
-        # solve, and z = P (D lambda + v_f) on F with the last solve's v_f
-        lam_first = reduction.recover(el, v_f, pr.P * b.y_first)
-        v_last = v_f if refine is None else jnp.where(b.refined, refine(lam_first), v_f)
-        lam_last = reduction.recover(el, v_last, pr.P * b.y_p)
-        z_b = jnp.where(el.f, pf.P * (D @ lam_last + v_last), b.z_p)
-        b = b._replace(L=(), y_p=jnp.where(row_mask, lam_last / pf.P, 0.0), z_p=z_b,
-                       y_first=jnp.where(row_mask, lam_first / pf.P, 0.0))
-        out = jax.tree.map(lambda x, y: jnp.where(switch, x, y), b, a._replace(L=()))
-        return out, out.y_first, out.y_p
-
-    out, y = _implicit_roots(pf, init, init.y_p, init.hi_v, run, refine)
-    v = jax.lax.stop_gradient((out.z_p - de_saxce(out.z_p, mu, pf.n_box)) / pf.P)
-    # the derivative of v+ = D lambda + v_f at the solution, as in solve
-    w = D @ (pf.P * y) + v_f
-    v = v + (w - jax.lax.stop_gradient(w))
-    return _result(out, jnp.where(row_mask, pf.P * y, 0.0), jnp.where(row_mask, v, 0.0))
 
 
 def tangent_shift(dtype) -> float:

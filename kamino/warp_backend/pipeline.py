@@ -140,9 +140,6 @@ class Stepper:
         llt = self.linear_solver == "llt"
         #: SolverConfig.reduction = "schur" (docs/formulation.md §7.11): the 32-thread schedule, the sparse factor
         self.schur = cfg.reduction == "schur"
-        #: SolverConfig.reduce_after > 0: PADMM on the full problem first, the worlds not converged after that many
-        #: iterations reduce (``Stepper.skip``: 1 in the worlds that do not)
-        self.switch = self.schur and cfg.reduce_after > 0
         if self.schur and (padmm != "warp" or not llt or self.dense):
             raise ValueError("SolverConfig.reduction='schur' runs on the Warp backend's 32-thread schedule with the "
                              "sparse factor (padmm='warp', jacobian='sparse', linear_solver='llt'); got "
@@ -202,8 +199,7 @@ class Stepper:
             #: thread per world
             self.filt = None
             self.filter_lanes = padmm == "warp"
-            if (cfg.warm_start and (not self.schur or self.switch)
-                    and int(wm.arrays.row_fixed.numpy().max(initial=0)) > 0):
+            if cfg.warm_start and not self.schur and int(wm.arrays.row_fixed.numpy().max(initial=0)) > 0:
                 self.filt = linear_solve.build(model, self.np_dtype, self.device, wm.arrays.row_fixed.numpy(),
                                                per_world=self.filter_lanes, hub_min_rows=wm.hub_min_rows,
                                                hub_row0=wm.arrays.row_maxdim.numpy())
@@ -211,22 +207,13 @@ class Stepper:
             #: the reduced problem's buffers (solver_lanes.schur_struct; empty without the reduction)
             self.sch = self._schur_buffers(model) if self.schur else schur_buffers(self.np_dtype, self.device, 0, 0,
                                                                                    0, 0, 0)
-            #: the worlds that do not reduce (schur_switch; all zero under reduce_after = 0: every world reduces)
-            self.skip = wp.zeros(wm.num_worlds if self.schur else 0, dtype=wp.int32)
-            #: the count of worlds that reduced in this step (schur_switch)
-            self.switched = wp.zeros(1, dtype=wp.int32)
             if padmm == "warp":
                 wp.config.enable_cpu_blocks = True  # CPU launches run a world's 32 threads as cooperative fibers
                 E = shared_entries(self.sf.max_nnz) if self.sparse_factor else 0
                 filter_E = shared_entries(self.filt.max_nnz) if self.filt is not None else None
                 self.wk = warp_kernels(self.np_dtype, shared_rows(wm.max_slots), E, cr=not llt, filter_E=filter_E,
-                                       inverse=(self.sparse_factor and self.sf.inv_total > 0
-                                                and (not self.schur or self.switch)),
+                                       inverse=self.sparse_factor and self.sf.inv_total > 0 and not self.schur,
                                        schur=self.schur)
-                #: the elimination's factor of L_f alone (no inverse: the elimination's solves sweep L_f); under
-                #: reduce_after > 0 the full problem's factor may end with L_f^-1 (solver_lanes.invert_func)
-                self.elim_factor = (factor_kernel(self.np_dtype, self.wk.E) if self.schur and self.wk.inverse
-                                    else self.wk.factor)
                 # post-stabilisation's own factor: factor_kernel staged for its pattern, PADMM's or the warm-start
                 # filter's compiled kernel where the staging size (and no inversion) is theirs
                 if self.post is not None:
@@ -260,7 +247,7 @@ class Stepper:
         dyn_world = np.repeat(np.arange(wm.num_worlds), tab.world_dyn_count)
         act_rows = np.bincount(dyn_world[tab.dyn_kind == DYN_ACTUATOR], minlength=1)
         #: (under the reduction a saturation recomputes the reduced problem's inverse inside the launch)
-        self.max_switches = int(act_rows.max()) if self.adaptive and llt and (not self.schur or self.switch) else 0
+        self.max_switches = int(act_rows.max()) if self.adaptive and llt and not self.schur else 0
         self.use_graph = self.device.is_cuda
         self.padmm_chunk = cfg.max_iterations if not self.use_graph else min(cfg.max_iterations, 8)
         self._graphs: dict[int, object] = {}
@@ -291,43 +278,15 @@ class Stepper:
 
     def _schur(self, mode: int) -> None:
         """The reduction's launch ``mode``: the elimination (``solver_lanes.schur_kernel``), the reduced right-hand
-        side or the recovery (``solver_lanes.schur_solve_kernel``), in the worlds that reduce."""
+        side or the recovery (``solver_lanes.schur_solve_kernel``)."""
         cfg, w = self.cfg, self.work
-        gate = self.skip if self.switch else w.frozen  # the worlds whose blocks return at once
         inputs = [self.wm.blocks_per_row, cfg.penalty.eta, self.rho_free, cfg.penalty.rho, w.row_stride, self.sp,
-                  w.n_rows, gate, w.row_body, w.row_J, w.reg, w.P, w.vt, w.inv_inertia_w, w.lo_s, w.hi_s,
+                  w.n_rows, w.frozen, w.row_body, w.row_J, w.reg, w.P, w.vt, w.inv_inertia_w, w.lo_s, w.hi_s,
                   w.row_info, w.rho_u]
         kernel = self.wk.schur if mode == SCHUR_ELIMINATE else self.wk.schur_solve
         self._launch_lanes(kernel, inputs=inputs if mode == SCHUR_ELIMINATE else [mode, *inputs],
                            outputs=[self.sch, w.p_ref, w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.impulse,
                                     w.velocity, w.failed])
-
-    def _if_reduced(self, launches) -> None:
-        """``launches()`` where they concern the reduced problem: under ``reduce_after > 0`` only when some world
-        reduced in this step (``Stepper.switched``; ``wp.capture_if``, a conditional node in a captured graph: a step
-        whose worlds all converged within ``reduce_after`` iterations launches none of it), else always."""
-        if self.switch:
-            wp.capture_if(self.switched, on_true=launches)
-        else:
-            launches()
-
-    def _eliminate(self) -> None:
-        """The reduced problem of the worlds that reduce (§7.11): ``L_f`` of ``A + eps I`` on ``F`` (the fixed rows
-        assembled with the elimination's shift, the effort-limited rows decoupled), then the elimination
-        (:meth:`_schur`). Under ``reduce_after > 0`` it overwrites the full factor's ``L_f`` in those worlds only
-        (their full solve is abandoned; post-stabilisation has a factor of its own under the reduction)."""
-        cfg, wm, w = self.cfg, self.wm, self.work
-        W, nblk = wm.num_worlds, wm.blocks_per_row
-        shift_f, shift_b = self.padmm_shifts
-        self._launch(self.wk.schur_decouple, (W, self.sf.max_nnz),
-                     inputs=[nblk, self.sch.eps, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
-                             w.inertia_w, w.inv_inertia_w, self.skip, w.lo_s, w.hi_s], outputs=[self.sp])
-        self._launch_lanes(self.elim_factor,
-                           inputs=[cfg.penalty.eta, 2 if self.switch else 0, nblk, shift_f, shift_b, w.row_stride,
-                                   wm.arrays.row_fixed, w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P,
-                                   w.inertia_w, w.inv_inertia_w, w.rho_u],
-                           outputs=[self.skip if self.switch else w.pending, self.sp])
-        self._schur(SCHUR_ELIMINATE)
 
     # --- launches -------------------------------------------------------------------------------
     def _launch(self, kernel, dim, inputs: list, outputs: list) -> None:
@@ -413,7 +372,7 @@ class Stepper:
         scale_ws = cfg.warmstart_scale * dt if cfg.warm_start else 0.0
         self._launch(sk.scale, rows, inputs=[shift_f, shift_b, scale_ws, w.row_stride, w.n_rows, w.P, w.lo, w.hi,
                                                 w.f0], outputs=[w.vt, w.lo_s, w.hi_s, w.row_info, w.D])
-        if self.sparse_factor and not (self.schur and not self.switch):  # (the elimination's factor: _eliminate)
+        if self.sparse_factor and not self.schur:  # (under the reduction: the elimination's factor, below)
             self._launch(self.spk.assemble_fixed, (W, self.sf.max_nnz),
                             inputs=[nblk, shift_f, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg, w.P,
                                     w.inertia_w, w.inv_inertia_w], outputs=[self.sp])
@@ -422,18 +381,24 @@ class Stepper:
                                     w.P, w.inv_inertia_w], outputs=[self.sp])
         # PADMM (§7), optionally refined (curvature along the solved velocity)
         w.remaining.fill_(W)
-        # under reduce_after > 0 the full problem's iterations stop there (schur_switch raises the cap)
-        first_cap = min(cfg.reduce_after, cfg.max_iterations) if self.switch else cfg.max_iterations
         self._launch(sk.padmm_init, W,
-                        inputs=[scale_ws, first_cap, cfg.penalty.eta, cfg.penalty.rho, w.row_stride,
+                        inputs=[scale_ws, cfg.max_iterations, cfg.penalty.eta, cfg.penalty.rho, w.row_stride,
                                 w.n_rows, w.n_box, w.frozen, w.f0, w.v0, w.P, w.lo_s, w.hi_s, w.ct_mu, w.row_info],
                         outputs=[w.x, w.x_p, w.y_p, w.y_hat, w.z_p, w.z_hat, w.p_ref, w.rho_u, w.pending, w.iters,
                                  w.r_p, w.r_d, w.r_c, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
                                  w.remaining, w.sdiag, w.D])
         if self.filt is not None:  # the warm start without its nearly null directions
             self._filter_warm_start(self.filt, self.filter_lanes)
-        if self.schur and not self.switch:  # every world reduces from the start
-            self._eliminate()
+        if self.schur:  # L_f of A + eps I on F (D~_f with the elimination's shift, the effort-limited rows
+            # decoupled), then the reduced problem
+            self._launch(self.wk.schur_decouple, (W, self.sf.max_nnz),
+                         inputs=[nblk, self.sch.eps, shift_b, w.row_stride, w.row_body, w.row_J, w.row_info, w.reg,
+                                 w.P, w.inertia_w, w.inv_inertia_w, w.lo_s, w.hi_s], outputs=[self.sp])
+            self._launch_lanes(self.wk.factor,
+                               inputs=[cfg.penalty.eta, 0, nblk, shift_f, shift_b, w.row_stride, wm.arrays.row_fixed,
+                                       w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
+                                       w.inv_inertia_w, w.rho_u], outputs=[w.pending, self.sp])
+            self._schur(SCHUR_ELIMINATE)
         elif self.padmm == "warp" and self.sparse_factor:
             self._launch_lanes(self.wk.factor,
                                   inputs=[cfg.penalty.eta, 0, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
@@ -445,24 +410,11 @@ class Stepper:
         elif self.sparse_factor:
             self._launch(self.spk.factor, W, inputs=[cfg.penalty.eta, w.row_stride, w.n_rows, w.rho_u],
                             outputs=[self.sp])
-        self._padmm_loop(reduced=self.schur and not self.switch)
-        if self.switch:  # the worlds not converged by reduce_after iterations reduce and go on
-            w.remaining.zero_()
-            self.switched.zero_()
-            self._launch(self.wk.schur_switch, W,
-                         inputs=[cfg.max_iterations, w.row_stride, w.n_rows, w.frozen, w.iters, w.y_p, w.z_p],
-                         outputs=[self.skip, w.x, w.x_p, w.y_hat, w.z_hat, w.a_p, w.c_p, w.it_cap, w.k_rho,
-                                  w.converged, w.done, w.remaining, self.switched])
-
-            def reduce() -> None:
-                self._eliminate()
-                self._padmm_loop(reduced=True)
-
-            self._if_reduced(reduce)
+        self._padmm_loop()
         self._launch(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p, w.ct_mu,
                                                        w.row_info], outputs=[w.impulse, w.velocity, w.failed])
         if self.schur:
-            self._if_reduced(lambda: self._schur(SCHUR_RECOVER))
+            self._schur(SCHUR_RECOVER)
         stab = cfg.stabilisation
         if stab.curvature_refinement and stab.curvature_correction and (wm.max_cts or wm.max_cpl):
             self._launch(ik.integrate, (W, wm.max_bodies),
@@ -480,29 +432,18 @@ class Stepper:
                                     w.u_new, w.row_body, w.row_J, w.u_f, w.P, w.converged],
                             outputs=[w.vstar, w.vt])
             if self.schur:  # v'_T of the refined v_f
-                self._if_reduced(lambda: self._schur(SCHUR_RHS))
+                self._schur(SCHUR_RHS)
             w.remaining.fill_(W)
             self._launch(sk.padmm_resume, W,
                             inputs=[cfg.max_iterations, w.row_stride, w.n_rows, w.frozen, w.iters, w.y_p, w.z_p],
                             outputs=[w.y_hat, w.z_hat, w.a_p, w.c_p, w.it_cap, w.k_rho, w.converged, w.done,
                                      w.remaining])
-            if self.switch:  # the full problem's worlds first, the reduced ones waiting; then those
-                self._if_reduced(lambda: self._launch(self.wk.schur_park, W, inputs=[0, self.skip],
-                                                      outputs=[w.done, w.remaining]))
-                self._padmm_loop(reduced=False)
-
-                def resume() -> None:
-                    self._launch(self.wk.schur_park, W, inputs=[1, self.skip], outputs=[w.done, w.remaining])
-                    self._padmm_loop(reduced=True)
-
-                self._if_reduced(resume)
-            else:
-                self._padmm_loop(reduced=self.schur)
+            self._padmm_loop()
             self._launch(sk.padmm_finish, rows, inputs=[w.row_stride, w.n_rows, w.n_box, w.P, w.y_p, w.z_p,
                                                            w.ct_mu, w.row_info],
                             outputs=[w.impulse, w.velocity, w.failed])
             if self.schur:
-                self._if_reduced(lambda: self._schur(SCHUR_RECOVER))
+                self._schur(SCHUR_RECOVER)
         # integrate, split the forces, commit (§6)
         self._launch(ik.integrate, (W, wm.max_bodies),
                         inputs=[nblk, h, ANGULAR_DAMPING * dt, w.row_stride, w.n_rows, w.impulse, w.Jd, w.row_body,
@@ -627,30 +568,27 @@ class Stepper:
         wp.launch_tiled(kernel, dim=[self.wm.num_worlds], inputs=[self.wm.arrays, *inputs], outputs=outputs,
                         block_dim=LANES, device=self.device)
 
-    def _padmm_loop(self, reduced: bool = False) -> None:
+    def _padmm_loop(self) -> None:
         """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds
         still iterating when capturing a CUDA graph, else launches running each world to its cap or to a switch
         (one more than the switches a step can have, ``max_switches``). After each launch the worlds whose
-        effort-limited rows saturated have their factor redone (``Work.pending``). ``reduced``: the reduced problem's
-        iterations (§7.11), else the full problem's."""
+        effort-limited rows saturated have their factor redone (``Work.pending``)."""
         cfg, w = self.cfg, self.work
         W, nblk = self.wm.num_worlds, self.wm.blocks_per_row
         shift_f, shift_b = self.padmm_shifts
         problem = rules.fill_struct(rules.problem_struct(self.np_dtype), w, nblk=nblk,
                                     cr_budget=int(cfg.warp.cr_iterations), eta=cfg.penalty.eta, rho_free=self.rho_free,
                                     rho_box=cfg.penalty.rho, tol=cfg.tolerance, restart_tol=RESTART_TOLERANCE,
-                                    **({"vt": self.sch.vt} if reduced else {}))
+                                    **({"vt": self.sch.vt} if self.schur else {}))
         carry = rules.fill_struct(rules.carry_struct(self.np_dtype), w)
         vectors = [w.row_info, w.x, w.y, w.z, w.cr_r, w.cr_p, w.cr_Ap, w.cr_Ar, w.cr_w]
         modes = (self.adaptive, bool(cfg.acceleration), bool(cfg.fixed_iterations))
         if self.padmm == "warp":
-            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes, self.wk.inverse and not reduced,
-                                          reduced)
+            lane_iterate = iterate_kernel(self.np_dtype, self.wk.R, self.wk.cr, *modes, self.wk.inverse, self.schur)
 
             def iterate(chunk):
                 self._launch_lanes(lane_iterate, inputs=[problem, chunk], outputs=[carry, self.sp, *vectors, self.sch])
-                if self.max_switches and not reduced:  # the factor of the worlds whose effort-limited rows saturated
-                    # (the reduced problem's iterations recompute their inverse in the launch)
+                if self.max_switches:  # the factor of the worlds whose effort-limited rows saturated
                     self._launch_lanes(self.wk.factor,
                                           inputs=[cfg.penalty.eta, 1, nblk, shift_f, shift_b, w.row_stride, w.n_rows,
                                                   w.row_body, w.row_J, w.row_info, w.ct_pair, w.reg, w.P, w.inertia_w,
@@ -674,8 +612,8 @@ class Stepper:
                                     outputs=[w.pending, w.sdiag, w.D])
         if self.device.is_capturing:
             wp.capture_while(w.remaining, lambda: iterate(self.padmm_chunk))
-        else:  # each launch runs the worlds to their cap or to a switch (the reduced problem's: to their cap)
-            for _ in range(1 if reduced else self.max_switches + 1):
+        else:  # each launch runs the worlds to their cap or to a switch
+            for _ in range(self.max_switches + 1):
                 iterate(2 * cfg.max_iterations)
 
     def __del__(self, _lock=CUDA_STREAM_LOCK) -> None:

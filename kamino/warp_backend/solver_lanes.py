@@ -46,10 +46,7 @@ the 32 threads of a block share one world and the chain is cut down to the rows:
   instead of one per row of ``L_f``); a new penalty or a saturation recomputes the inverse inside the launch. After
   PADMM (and after the curvature refinement's new ``v_f``, ``v'_T`` again) ``lambda_F`` is recovered
   (:func:`schur_solve_kernel`: one vector's solve by the world's threads together, :func:`solve_func`'s sweeps).
-  Iteration counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``). Under ``SolverConfig.reduce_after
-  > 0`` only the worlds that :func:`schur_switch_kernel` flags after the full problem's first iterations eliminate:
-  the others' blocks return at once (``skip``), and the curvature refinement's loops wait on each other
-  (:func:`schur_park_kernel`).
+  Iteration counts equal the JAX reference's (``tests/test_warp_lane_padmm.py``).
 - **Conjugate Residual** (``iterate_kernel(cr=True)``: ``linear_solve_cr.cr_solve_func``, §8.2, instead of the factor).
   The operator ``P J M^-1 J^T P + diag(P^2 R + eta + rho)`` is applied matrix-free: the threads split the bodies for
   ``M^-1 J^T P v`` (each body's row blocks listed once per step by ``cr_pattern``, so that a body's sum needs no
@@ -370,14 +367,9 @@ def factor_kernel(np_dtype, E: int = 0, invert: bool = False):
         last PADMM iteration (``pending``), which first assemble ``D~`` again with the shifts ``shift`` /
         ``shift_sat`` (``linear_solve.refactor``; kamino.jax_ref.solver.solve, "Saturation"). ``n_rows`` counts the
         rows factorised: with the fixed rows' count ``m.row_fixed``, on a factor built without tail rows (the
-        warm-start filter's), it factorises ``L_f`` alone (the tail steps have no rows; ``rho_u`` plays no part).
-        ``pending_only = 2``: only the worlds whose ``pending`` entry is 0, as assembled, the entries left as they are
-        (the Schur reduction's switch passes the worlds that do not reduce as ``pending``)."""
+        warm-start filter's), it factorises ``L_f`` alone (the tail steps have no rows; ``rho_u`` plays no part)."""
         wid, lane = wp.tid()
-        if pending_only == 2:
-            if pending[wid] != 0:
-                return
-        elif pending_only != 0:
+        if pending_only != 0:
             if pending[wid] == 0:
                 return
             for k in range(lane, sp.nnz[wid], LANES):
@@ -505,7 +497,7 @@ def factor_kernel(np_dtype, E: int = 0, invert: bool = False):
                 t += 1
         sync()
         factor_tail(m, sp, row_stride, wid, n, eta + rho_u[wid], lane)
-        if pending_only == 1 and lane == 0:
+        if pending_only != 0 and lane == 0:
             pending[wid] = 0
 
     return factor
@@ -865,7 +857,7 @@ def free_row_func(np_dtype):
 def schur_decouple_kernel(np_dtype):
     """The fixed rows' block of the elimination (§7.11).
     ``schur_decouple(m, nblk, shift, shift_sat, row_stride, row_body, row_J, row_info, reg, P, inertia_w,
-    inv_inertia_w, skip, lo_s, hi_s, sp)``, on ``(worlds, max entries)``."""
+    inv_inertia_w, lo_s, hi_s, sp)``, on ``(worlds, max entries)``."""
     scalar, M, SP, vec6, mat33 = builder_types(np_dtype).take("scalar", "M", "SP", "vec6", "mat33")
     farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
     row_base = index_funcs(np_dtype).row_base
@@ -876,15 +868,14 @@ def schur_decouple_kernel(np_dtype):
     @wp.kernel(module="unique", enable_backward=False)
     def schur_decouple(m: M, nblk: int, shift: scalar, shift_sat: scalar, row_stride: int, row_body: iarr,
                        row_J: wp.array(dtype=vec6), row_info: iarr, reg: farr, P: farr,
-                       inertia_w: wp.array(dtype=mat33), inv_inertia_w: wp.array(dtype=mat33), skip: iarr,
-                       lo_s: farr, hi_s: farr, sp: SP):
+                       inertia_w: wp.array(dtype=mat33), inv_inertia_w: wp.array(dtype=mat33), lo_s: farr,
+                       hi_s: farr, sp: SP):
         """Entry ``k`` of ``D~_f`` (``linear_solve.assemble_fixed``'s, with the shift ``eps``), and on a row or
         column of an effort-limited row (a row of ``T``) the identity's entry instead, so that :func:`factor_kernel`
         factorises ``A + eps I`` on ``F`` (the Jacobi-scaled ``D_FF``, with its hub unknowns) and the identity on
-        the effort-limited rows, on ``L_f``'s pattern. Nothing in the worlds that do not reduce (``skip``: under
-        ``SolverConfig.reduce_after > 0``, their ``L_f`` is PADMM's full factor)."""
+        the effort-limited rows, on ``L_f``'s pattern."""
         wid, k = wp.tid()
-        if k >= sp.nnz[wid] or skip[wid] != 0:
+        if k >= sp.nnz[wid]:
             return
         fixed_entry(m, sp, row_stride, row_body, row_J, row_info, reg, P, inertia_w, inv_inertia_w, wid, k, nblk,
                     shift, shift_sat)
@@ -906,83 +897,6 @@ def schur_decouple_kernel(np_dtype):
             sp.val[vidx(m, sp, wid, k)] = v
 
     return schur_decouple
-
-
-@functools.cache
-def schur_switch_kernel(np_dtype):
-    """The worlds that reduce after the full problem's first iterations (``SolverConfig.reduce_after``; §7.11,
-    "Reducing the slow worlds only").
-    ``schur_switch(m, max_iterations, row_stride, n_rows, frozen, iters, y_p, z_p, skip, x, x_p, y_hat, z_hat, a_p,
-    c_p, it_cap, k_rho, converged, done, remaining, switched)``, one thread per world, after the full problem's PADMM
-    loop."""
-    scalar, M = builder_types(np_dtype).take("scalar", "M")
-    farr, iarr = wp.array(dtype=scalar), wp.array(dtype=wp.int32)
-    row_base = index_funcs(np_dtype).row_base
-    big = scalar(float(np.finfo(np_dtype).max))
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def schur_switch(
-        m: M,
-        max_iterations: int, row_stride: int,
-        n_rows: iarr, frozen: iarr, iters: iarr, y_p: farr, z_p: farr,
-        skip: iarr,  # out: 1 in the worlds that do not reduce
-        x: farr, x_p: farr, y_hat: farr, z_hat: farr, a_p: farr, c_p: farr, it_cap: iarr, k_rho: iarr,
-        converged: iarr, done: iarr, remaining: iarr,  # out (remaining: counts the worlds that reduce)
-        switched: iarr,  # out: counts them too (the step's reduced launches run when it is positive)
-    ):
-        """A world that stopped unconverged before ``max_iterations`` (not frozen, with rows) reduces: PADMM restarts
-        from its iterate (``x = x_p = y_hat = y``, ``z_hat = z``: :func:`schur_kernel` then zeroes ``F`` and
-        filters the effort-limited rows, as ``kamino.jax_ref.solver._Problem.start`` on the reduced problem), no
-        momentum, the penalty and the saturated rows kept, the penalty's interval from iteration ``k``, up to
-        ``max_iterations`` in all (``kamino.jax_ref.solver._solve_switched``)."""
-        wid = wp.tid()
-        n = n_rows[wid]
-        k = iters[wid]
-        if frozen[wid] != 0 or n == 0 or converged[wid] != 0 or k >= max_iterations:
-            skip[wid] = 1
-            return
-        skip[wid] = 0
-        rs = row_stride
-        rb = row_base(m, row_stride, wid)
-        for a in range(n):
-            r = rb + a * rs
-            x[r] = y_p[r]
-            x_p[r] = y_p[r]
-            y_hat[r] = y_p[r]
-            z_hat[r] = z_p[r]
-        a_p[wid] = scalar(1.0)
-        c_p[wid] = big
-        it_cap[wid] = max_iterations
-        k_rho[wid] = k
-        done[wid] = 0
-        wp.atomic_add(remaining, 0, 1)
-        wp.atomic_add(switched, 0, 1)
-
-    return schur_switch
-
-
-@functools.cache
-def schur_park_kernel(np_dtype):
-    """The curvature refinement's two loops under ``SolverConfig.reduce_after > 0``: the worlds that reduced wait
-    while the others resume the full problem, then resume the reduced one.
-    ``schur_park(m, mode, skip, done, remaining)``, one thread per world: ``mode`` 0 marks a reduced world still
-    iterating as waiting (``done = 2``, out of ``remaining``), ``mode`` 1 lets the waiting worlds iterate again."""
-    M = builder_types(np_dtype).M
-    iarr = wp.array(dtype=wp.int32)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def schur_park(m: M, mode: int, skip: iarr, done: iarr, remaining: iarr):
-        """One world's wait (``mode`` 0) or resumption (``mode`` 1)."""
-        wid = wp.tid()
-        if mode == 0:
-            if done[wid] == 0 and skip[wid] == 0:
-                done[wid] = 2
-                wp.atomic_sub(remaining, 0, 1)
-        elif done[wid] == 2:
-            done[wid] = 0
-            wp.atomic_add(remaining, 0, 1)
-
-    return schur_park
 
 
 #: Entries of a row of ``L_f`` whose indices, values and vector entries a thread of the elimination's sweeps
@@ -1994,9 +1908,7 @@ def warp_kernels(np_dtype, R: int, E: int = 0, cr: bool = False, filter_E: int |
                            warm_start_filter=warm_start_filter_kernel(np_dtype, R) if filtered else None,
                            schur_decouple=schur_decouple_kernel(np_dtype) if schur else None,
                            schur=schur_kernel(np_dtype) if schur else None,
-                           schur_solve=schur_solve_kernel(np_dtype, R) if schur else None,
-                           schur_switch=schur_switch_kernel(np_dtype) if schur else None,
-                           schur_park=schur_park_kernel(np_dtype) if schur else None)
+                           schur_solve=schur_solve_kernel(np_dtype, R) if schur else None)
 
 
 def schur_buffers(np_dtype, device, num_worlds: int, total_rows: int, tm: int, np_max: int, nb_max: int,
