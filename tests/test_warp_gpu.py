@@ -104,3 +104,10 @@ def test_the_traced_step_replays_its_graph_with_the_launches_results():
     np.testing.assert_array_equal(np.stack(iters), np.stack(plain_iters))
     # the same kernels in the same order on the same data: rounding-level differences at most
     np.testing.assert_allclose(np.asarray(a.body_q), plain.work.q.numpy(), atol=1e-5)
+
+
+def test_precompile_covers_every_module_a_captured_step_launches(monkeypatch):
+    # on CUDA the modules compile in parallel (wp.force_load's thread pool), and the step is a captured graph
+    from tests.test_warp_pipeline import assert_precompile_covers_a_step
+
+    assert_precompile_covers_a_step("cuda:0", monkeypatch)

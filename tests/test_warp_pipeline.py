@@ -84,3 +84,36 @@ def test_jax_vmap_batches_the_warp_step():
             np.testing.assert_array_equal(np.asarray(out.info.iterations[k]), np.asarray(alone.info.iterations))
     nested = jax.vmap(jax.vmap(one))(jax.tree.map(lambda x: jnp.stack([x, x]), batch))
     np.testing.assert_array_equal(np.asarray(nested.body_q[1, 2]), np.asarray(one(states[2]).body_q))
+
+
+def assert_precompile_covers_a_step(device: str, monkeypatch) -> None:
+    """``Stepper.precompile`` loads every module that a step of dr_legs (loops, contacts, limits, actuators,
+    post-stabilisation) launches: the step that follows asks Warp for no module it did not record."""
+    from kamino.warp_backend import backend as wb
+
+    model = kamino.models.dr_legs()
+    st = wb.Stepper(model, kamino.SolverConfig(), np.float32, device)
+    st.precompile()
+    modules = {m for m, _ in st.precompiled}
+    assert len(modules) > 20  # the step's kernels, each a module of its own
+    assert all(m.execs for m in modules)  # each one loaded
+    launched: set = set()
+    module_type = type(next(iter(modules)))
+    load = module_type.load
+
+    def spy(self, *args, **kwargs):
+        launched.add(self)
+        return load(self, *args, **kwargs)
+
+    wb.load_state(st, kamino.init_state(model, jnp.float32), None)
+    monkeypatch.setattr(module_type, "load", spy)
+    st.run(2)
+    monkeypatch.undo()
+    assert launched, "the step launched nothing"
+    missed = {m.name for m in launched - modules}
+    assert not missed, f"launched but not precompiled: {sorted(missed)}"
+    assert np.isfinite(st.work.q.numpy()).all()
+
+
+def test_precompile_covers_every_module_a_step_launches(monkeypatch):
+    assert_precompile_covers_a_step("cpu", monkeypatch)

@@ -11,6 +11,7 @@ iterations in one launch.
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -251,6 +252,10 @@ class Stepper:
         self.use_graph = self.device.is_cuda
         self.padmm_chunk = cfg.max_iterations if not self.use_graph else min(cfg.max_iterations, 8)
         self._graphs: dict[int, object] = {}
+        #: the ``(module, block size)`` pairs :meth:`precompile` compiled (``None`` before it ran)
+        self.precompiled: frozenset | None = None
+        #: while :meth:`precompile` records a step: the ``(module, block size)`` of each launch
+        self._recording: set | None = None
         #: callables ``f(stepper)`` enqueued at the start of every step (captured with it), e.g. a
         #: kernel that sets the controls from the device-side time
         self.pre_step: list = []
@@ -296,6 +301,9 @@ class Stepper:
         thread does serial work)."""
         if all(int(d) > 0 for d in (dim if isinstance(dim, tuple) else (dim,))):
             block = PER_WORLD_BLOCK if not isinstance(dim, tuple) else 256
+            if self._recording is not None:
+                self._recording.add((kernel.module, block))
+                return
             wp.launch(kernel, dim=dim, inputs=[self.wm.arrays, *inputs], outputs=outputs, device=self.device,
                       block_dim=block)
 
@@ -308,7 +316,9 @@ class Stepper:
         midpoint = cfg.integrator == "midpoint"
         h = 0.5 * dt if midpoint else dt
         delta = joint_deadband(self.np_dtype)
-        for hook in self.pre_step:
+        self.precompile()
+        recording = self._recording is not None
+        for hook in () if recording else self.pre_step:
             hook(self)
         if midpoint:
             self._launch(rk.advance_poses, (W, wm.max_bodies), inputs=[h, w.q, w.u],
@@ -501,9 +511,13 @@ class Stepper:
                             outputs=[w.con_pair, w.con_pos, w.con_normal, w.con_dist, w.con_force, w.con_velocity,
                                      w.con_point_b])
         self._launch(ik.commit_bodies, (W, wm.max_bodies), inputs=[w.failed, w.q_new, w.u_new], outputs=[w.q, w.u])
-        wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps)],
-                  outputs=[w.converged, w.frozen, w.failed, w.time, w.unconverged], device=self.device)
-        for hook in self.post_step:
+        if recording:
+            self._recording.add((ik.commit_time.module, 256))
+        else:
+            wp.launch(ik.commit_time, dim=W, inputs=[dt, int(cfg.max_unconverged_steps)],
+                      outputs=[w.converged, w.frozen, w.failed, w.time, w.unconverged], device=self.device,
+                      block_dim=256)
+        for hook in () if recording else self.post_step:
             hook(self)
 
     def _filter_warm_start(self, filt: linear_solve.SparseFactor, lanes: bool) -> None:
@@ -556,7 +570,10 @@ class Stepper:
                          inputs=[nblk, extra, w.row_stride, w.converged, w.reproject, w.row_body, w.row_J, w.x,
                                  w.inv_inertia_w], outputs=[w.failed, w.q_new])
 
-        wp.capture_if(w.remaining, on_true=project)
+        if self._recording is not None:  # (a dry run records the launches of both branches)
+            project()
+        else:
+            wp.capture_if(w.remaining, on_true=project)
 
     def invalidate_graphs(self) -> None:
         """Forget the captured graphs (after changing ``pre_step`` or the config-dependent launches)."""
@@ -565,8 +582,31 @@ class Stepper:
     def _launch_lanes(self, kernel, inputs: list, outputs: list) -> None:
         """Launch a 32-threads-per-world kernel (``solver_lanes.py``), one block of ``LANES`` threads per world, whose
         signature is ``(m, *inputs, *outputs)`` (:meth:`_launch`)."""
+        if self._recording is not None:
+            self._recording.add((kernel.module, LANES))
+            return
         wp.launch_tiled(kernel, dim=[self.wm.num_worlds], inputs=[self.wm.arrays, *inputs], outputs=outputs,
                         block_dim=LANES, device=self.device)
+
+    def precompile(self) -> None:
+        """Compile every Warp module a step launches, once, before the first step. Each kernel is a module of its
+        own, which Warp otherwise compiles at its first launch, one after another. On a CUDA device the modules
+        compile in parallel (``wp.force_load`` with a thread per CPU core; NVRTC runs outside Python's lock); on
+        the CPU one after another, as at their first launches. The modules come from a dry run of
+        :meth:`launch_step` that records each launch's kernel and block size instead of launching it
+        (``pre_step`` and ``post_step`` hooks are left out: their kernels compile at their first launch)."""
+        if self.precompiled is not None:
+            return
+        self.precompiled = frozenset()
+        self._recording = set()
+        try:
+            self.launch_step()
+            launches = self.precompiled = frozenset(self._recording)
+        finally:
+            self._recording = None
+        workers = (os.cpu_count() or 1) if self.device.is_cuda else 0
+        for block in sorted({b for _, b in launches}):
+            wp.force_load(self.device, [m for m, b in launches if b == block], block_dim=block, max_workers=workers)
 
     def _padmm_loop(self) -> None:
         """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds
@@ -641,6 +681,7 @@ class Stepper:
         on any stream, XLA's included: ``jit.py``)."""
         graph = self._graphs.get(num_steps)
         if graph is None:
+            self.precompile()  # outside the capture: the dry run's fills are not part of the graph
             with CUDA_STREAM_LOCK, wp.ScopedCapture(device=self.device) as capture:
                 for _ in range(num_steps):
                     self.launch_step()
