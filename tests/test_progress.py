@@ -68,3 +68,20 @@ def test_convergence_bars_on_stderr_only(capsys):
         (line,) = out.splitlines()
         assert json.loads(line)["scene"] == "fourbar" and json.loads(line)["steps"] == 10
         assert ("fourbar tol" in err) is not bool(flag)
+
+
+def test_the_training_bar_keeps_the_last_return_when_an_evaluation_brings_none(capsys):
+    # under run_evals=False Brax's evaluations carry no return: the bar keeps the training episodes' return it
+    # showed last instead of printing nan
+    from kamino.envs.train import Progress
+
+    bar = Progress(100, 0)
+    bar.update(10, 1000.0, 1.0, train_return=5.0)
+    bar.update(20, 1200.0, 2.0)  # an evaluation without a return
+    assert bar.shown == {"train_return": "5.00", "env_steps_per_s": "1200"}
+    bar.update(30, 1300.0, 3.0, eval_return=7.5, eval_std=0.5)
+    assert bar.shown["eval_return"] == "7.50" and bar.shown["train_return"] == "5.00"
+    bar.close()
+    out = capsys.readouterr()
+    assert "nan" not in out.out + out.err
+    assert "train_return=5.00" in out.out + out.err

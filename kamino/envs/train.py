@@ -74,6 +74,7 @@ class Progress:
     def __init__(self, total: int, start: int, enabled: bool = True):
         self.total, self.start, self.enabled = total, start, enabled
         self.bar = None
+        self.shown: dict[str, str] = {}  # the bar's postfix: the last returns shown, the env steps/s
         if enabled:
             try:
                 from tqdm import tqdm
@@ -82,16 +83,27 @@ class Progress:
             else:
                 self.bar = tqdm(total=total, initial=start, unit="step", unit_scale=True, dynamic_ncols=True)
 
-    def update(self, step: int, reward: float, std: float, sps: float, elapsed: float) -> None:
+    def update(self, step: int, sps: float, elapsed: float, *, eval_return: float | None = None,
+               eval_std: float | None = None, train_return: float | None = None) -> None:
+        """Show ``step`` with the env steps/s and whichever return the update brings: an evaluation's (Brax's
+        evaluator) or the training episodes' (``--train-returns``). A return an update lacks (an evaluation under
+        ``run_evals=False``) keeps the last one shown."""
         if not self.enabled:
             return
+        if eval_return is not None:
+            self.shown["eval_return"] = f"{eval_return:.2f}"
+        if train_return is not None:
+            self.shown["train_return"] = f"{train_return:.2f}"
+        self.shown["env_steps_per_s"] = f"{sps:.0f}"
         if self.bar is not None:
             self.bar.n = step
-            self.bar.set_postfix(reward=f"{reward:.2f}", env_steps_per_s=f"{sps:.0f}")
+            self.bar.set_postfix(self.shown)
             self.bar.refresh()
             return
-        print(f"[{step:>10d}/{self.total}] {100 * step / self.total:5.1f}%  eval return {reward:9.3f} +- {std:7.3f}  "
-              f"{sps:9.0f} env steps/s  {elapsed:7.1f} s", flush=True)
+        returns = (f"eval return {eval_return:9.3f} +- {eval_std or 0.0:7.3f}  " if eval_return is not None else
+                   f"train return {train_return:9.3f}  " if train_return is not None else "")
+        print(f"[{step:>10d}/{self.total}] {100 * step / self.total:5.1f}%  {returns}{sps:9.0f} env steps/s  "
+              f"{elapsed:7.1f} s", flush=True)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -294,7 +306,7 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
                 "episode": {k[len("episode/"):]: v for k, v in metrics.items() if k.startswith("episode/")}})
             runs.write_json(paths["train_curve"], train_curve + pending["train_curve"])
             e = pending["train_curve"][-1]
-            bar.update(e["step"], e["reward"], float("nan"), e["env_steps_per_s"], e["run_wall_s"])
+            bar.update(e["step"], e["env_steps_per_s"], e["run_wall_s"], train_return=e["reward"])
             return
         entry = {"step": done + step, "run_wall_s": time.perf_counter() - start}
         if "eval/episode_reward" in metrics:  # none under ppo's run_evals=False (--set run_evals=False)
@@ -314,8 +326,8 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         last = metrics
         if step > 0:
             _commit(done + step)
-        bar.update(done + step, entry.get("reward", float("nan")), entry.get("reward_std", float("nan")),
-                   metrics.get("training/sps", 0.0), entry["run_wall_s"])
+        bar.update(done + step, metrics.get("training/sps", 0.0), entry["run_wall_s"], eval_return=entry.get("reward"),
+                   eval_std=entry.get("reward_std"))
 
     def on_params(step: int, make_policy, params) -> None:
         if step > 0:  # committed with its evaluation's row (on_metrics)
