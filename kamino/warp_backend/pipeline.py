@@ -650,7 +650,7 @@ class Stepper:
                                     inputs=[nblk, shift_f, shift_b, cfg.penalty.eta, w.row_stride, w.n_rows,
                                             w.row_body, w.row_J, w.row_info, w.reg, w.inv_inertia_w, w.P, w.rho_u],
                                     outputs=[w.pending, w.sdiag, w.D])
-        if self.device.is_capturing:
+        if self.device.is_capturing and self._recording is None:  # (a dry run records the body once)
             wp.capture_while(w.remaining, lambda: iterate(self.padmm_chunk))
         else:  # each launch runs the worlds to their cap or to a switch
             for _ in range(self.max_switches + 1):
