@@ -674,8 +674,8 @@ def test_feet_width_rewards_the_stance_in_the_base_heading(legs_own_gains):
 def test_joystick_warm_start_lets_an_internal_loop_load_decay(legs_own_gains):
     """dr_legs' planar four-bars are overconstrained: some joint reactions ``lambda`` (the left null space of the joint
     Jacobian, ``J^T lambda = 0``) move no body, so PADMM's iterations never correct them and only the warm start
-    carries them from substep to substep; grown over an episode, they stalled PADMM and threw the robot (docs/envs.md,
-    "The ninth run"). The null directions come from the joint Jacobian of the reset pose in float64, a structural rank
+    carries them from substep to substep; grown over an episode, they stalled PADMM and threw the robot. The null
+    directions come from the joint Jacobian of the reset pose in float64, a structural rank
     cut: singular values below 1e-12 of the largest, the eight exact redundancies (measured at most 3e-16 of it; the
     next one, genuine, 4e-9). A load of 1e5 N put along each of them at reset must, after 10 policy steps (50
     substeps) at a zero action, be at most 0.99^50 = 0.61 of itself (the walking tasks' ``WARMSTART_SCALE`` alone);

@@ -23,11 +23,11 @@ PPO_CONFIGS: dict[str, dict] = {
         },
     },
     "dr_legs_joystick": {
-        # the recipe that passes the walking test from scratch (docs/envs.md, "The thirteenth run": S3, 0.070
-        # m/s mean tracking error and no falls in 256 episodes at 55 M steps): a 2.5 Hz gait clock whose swing
-        # heights are rewarded (feet_phase), forward commands up to 0.6 m/s, a narrow tracking kernel, and a
-        # stance of 0.13 m between the feet (feet_width; the model's own is 0.2 m), which cuts the lateral sway by a
-        # quarter and the mean-velocity error by half against the same recipe without it (C1: 0.095 m/s at 43 M)
+        # the recipe that passes the walking test from scratch (docs/envs.md, "The `dr_legs_joystick` recipe, and
+        # why"; 0.070 m/s mean tracking error and no falls in 256 episodes at 55 M steps): a 2.5 Hz gait clock
+        # whose swing heights are rewarded (feet_phase), forward commands up to 0.6 m/s, a narrow tracking kernel,
+        # and a stance of 0.13 m between the feet (feet_width; the model's own is 0.2 m), which cuts the lateral sway
+        # by a quarter and the mean-velocity error by half against the same recipe without it (0.095 m/s at 43 M)
         "env": {"gait_frequency": 2.5, "command_lin_x": 0.6, "tracking_sigma": 0.1, "stance_width": 0.13,
                 "reward_weights": {"tracking_lin_vel": 1.5, "tracking_ang_vel": 1.5, "feet_phase": 1.0,
                                    "lin_vel_z": -2.0, "ang_vel_xy": -0.05, "feet_width": 0.5}},
@@ -40,7 +40,7 @@ PPO_CONFIGS: dict[str, dict] = {
             # a fixed rate (brax's default schedule), as Playground trains its joysticks. Brax's ADAPTIVE_KL adapts
             # after each of the 128 minibatch steps of an update and held every run trained with it at its 1e-5
             # floor; at 3e-4 the walking test's error fell from 0.282 to 0.144 m/s in 38 M steps (docs/envs.md,
-            # "The eleventh run" and "The twelfth run")
+            # "The `dr_legs_joystick` recipe, and why")
         },
     },
 }

@@ -27,7 +27,7 @@ from kamino.state import State
 #: reward weights (docs/envs.md); the reward is their weighted sum per policy step, clipped at 0
 #: (``only_positive_rewards``). legged_gym's ``lin_vel_z`` (its weight -2.0), ``ang_vel_xy`` (-0.05) and
 #: ``feet_air_time`` (1.0) are off by default: the committed policy was trained without them, and switching them on
-#: for 28 M steps from it made the walking test worse (docs/envs.md, "The fifth run"); ``reward_weights`` sets them
+#: for 28 M steps from it made the walking test worse; ``reward_weights`` sets them
 #: ``feet_phase`` (0 by default) rewards feet that follow the gait clock's swing heights; it needs ``gait_frequency``.
 #: ``feet_width`` (0 by default) rewards a lateral distance ``stance_width`` between two feet (a narrower stance sways
 #: less: docs/envs.md, "The lateral sway")
@@ -53,7 +53,7 @@ def feet_air_time(air: jax.Array, was_down: jax.Array, down: jax.Array, dt: floa
 #: the kamino default is 1). A robot's redundant loops (dr_legs' planar four-bars) admit internal loads that move no
 #: body (the left null space of the joint Jacobian): the solver never corrects them, float32 rounding adds to them
 #: each solve, and a warm start at 1 carries them over the whole episode. They grew to 1e5-1e6 N within 600 policy
-#: steps, where PADMM stops converging and the robot is thrown (docs/envs.md, "The ninth run"). At 0.99 they decay
+#: steps, where PADMM stops converging and the robot is thrown. At 0.99 they decay
 #: by 1 % per substep; measured over 600 policy steps of 32 walking dr_legs (Warp CPU): the median carried reaction
 #: stays at 1.1-1.6e3 N (at 1.0: 2.3e3 rising to 6.9e4 N), with the same mean PADMM iterations (about 10).
 WARMSTART_SCALE = 0.99
