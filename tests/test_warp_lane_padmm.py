@@ -92,14 +92,16 @@ def test_warp_schedule_with_cr_solves_what_the_thread_kernel_solves():
 def test_warp_schedule_with_inexact_cr_solves_converges_like_the_thread_kernel():
     # At 4 CR iterations per solve the solves are inexact: their exit residual, folded into the dual residual,
     # decides when a world converges (the chain of loops takes ~80 PADMM iterations a step instead of 2). PADMM
-    # then amplifies the rounding of the dot products' other order into a different stopping iteration now and then
-    # (measured: up to 3 of ~80, on 25 of 60 steps); both stop within the tolerance 1e-8 m/s, which over 60 steps
-    # of 1/240 s moves a pose by at most 60 * 1e-8 / 240 = 2.5e-9 m (measured 1.4e-10 m), and take the same PADMM
-    # iterations to 1 % in all (measured 0.15 %).
+    # then amplifies the rounding of the dot products' other order into a different stopping iteration now and then,
+    # earlier or later (measured: by 1-4 iterations, on 7 of the four-bar's 60 steps and on 25 of the chain's); both
+    # stop within the tolerance 1e-8 m/s, which over 60 steps of 1/240 s moves a pose by at most
+    # 60 * 1e-8 / 240 = 2.5e-9 m (measured 2.6e-10 m). The rounding, and so which steps move, depends on the CPU that
+    # Warp compiles for; what does not is that the moves cancel: no world takes a whole PADMM iteration per step
+    # more or fewer on one schedule than on the other (measured: 0.17 per step at most).
     cfg, (q_t, it_t, rho_t), (q_w, it_w, rho_w) = _cr_comparison(4)
     np.testing.assert_allclose(q_w, q_t, rtol=0, atol=60 * cfg.tolerance * cfg.dt)
     assert it_t[:, 2].mean() > 20  # the inexact solves did cost PADMM iterations
-    np.testing.assert_allclose(it_w.sum(axis=0), it_t.sum(axis=0), rtol=0.01)
+    np.testing.assert_array_less(np.abs(it_w.mean(axis=0) - it_t.mean(axis=0)), 1.0)
     np.testing.assert_allclose(rho_w, rho_t, rtol=1e-9)
 
 
