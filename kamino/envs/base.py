@@ -139,7 +139,7 @@ class KaminoEnv(Env):
         self._backend = backend
         self._dtype = jnp.dtype(dtype)
         self._decimation = int(decimation)
-        self._config = dataclasses.replace(solver_config or SolverConfig(), dt=float(sim_dt))
+        self._config = dataclasses.replace(solver_config or self.default_solver_config(), dt=float(sim_dt))
         self._obs_noise = float(obs_noise)
         self._obs_limit = float(obs_limit)
         self._reset_noise = float(reset_noise)
@@ -164,6 +164,12 @@ class KaminoEnv(Env):
                                  f"reset) or an integer >= 1 (configurations solved at construction), got "
                                  f"{reset_bank!r}")
             self._bank = self._solve_bank(int(reset_bank), int(reset_seed))
+
+    @classmethod
+    def default_solver_config(cls) -> SolverConfig:
+        """The :class:`kamino.SolverConfig` the task steps with when no ``solver_config`` is given (its ``dt`` is
+        replaced by ``sim_dt``)."""
+        return SolverConfig()
 
     @property
     def simulator(self) -> Simulator:

@@ -115,6 +115,11 @@ class Joystick(KaminoEnv):
     #: the walking test's bars (:func:`kamino.envs.evaluate.evaluate`): mean tracking error [m/s], fall fraction
     walking_bars = (0.1, 0.05)
 
+    @classmethod
+    def default_solver_config(cls) -> SolverConfig:
+        """``SolverConfig(warmstart_scale=WARMSTART_SCALE)``: a decaying warm start (:data:`WARMSTART_SCALE`)."""
+        return SolverConfig(warmstart_scale=WARMSTART_SCALE)
+
     def __init__(self, model: Model, *, min_height: float, command_lin_x: float = 0.5, command_lin_y: float = 0.3,
                  command_yaw: float = 0.8, tracking_sigma: float = 0.25, max_tilt: float = 1.0,
                  feet: tuple[str, ...] | None = None, air_time_target: float = 0.3, contact_height: float = 0.01,
@@ -168,7 +173,7 @@ class Joystick(KaminoEnv):
         self._air_target = float(air_time_target)
         super().__init__(model, sim_dt=sim_dt, decimation=decimation, reset_noise=reset_noise, obs_noise=obs_noise,
                          resample_steps=resample_steps, reset_bank=reset_bank,
-                         solver_config=solver_config or SolverConfig(warmstart_scale=WARMSTART_SCALE), **kwargs)
+                         solver_config=solver_config, **kwargs)
         placed = np.asarray(self._place(jnp.asarray(model.body_q0, self.dtype)))
         self._foot_stand_z = placed[self._feet, 2]
         self._foot_down_z = self._foot_stand_z + float(contact_height)

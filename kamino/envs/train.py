@@ -260,7 +260,9 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     end = schedule[-1]
     # a resumed run keeps the environment it was trained with (env.json), a new one starts from the task's config
     env_kwargs = {**(runs.run_env(out, task) if restore else cfg["env"]), **env_overrides}
-    environment = make(task, backend=backend, **env_kwargs)
+    # --solver settings replace the task's own solver defaults; the environment is built once, with them
+    stepping = {"solver_config": TASKS[task].default_solver_config().replace(**solver)} if solver else {}
+    environment = make(task, backend=backend, **env_kwargs, **stepping)
     if lead:
         started_from = runs.read_json(out / "run.json", {}).get("init_from") if restore else init_from
         runs.write_json(out / "run.json", {"task": task, "backend": backend, "eval_every": every,
@@ -269,9 +271,6 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         for key, path in paths.items():  # the run files as the committed checkpoints hold them
             if path.exists() or record[key]:
                 runs.write_json_if_changed(path, record[key])
-    if solver:
-        config = environment.solver_config.replace(**solver)
-        environment = make(task, backend=backend, solver_config=config, **env_kwargs)
     used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
     progress = progress and lead
     if progress:
