@@ -324,6 +324,10 @@ def test_bad_arguments_raise_naming_them():
         FourbarTrack(reset_bank=0)
     with pytest.raises(ValueError, match="obs_limit"):
         FourbarTrack(obs_limit=0.0)
+    with pytest.raises(ValueError, match="compile_for"):  # a batch size for the Warp step
+        FourbarTrack(backend="warp", compile_for=0)
+    with pytest.raises(ValueError, match="compile_for"):  # the JAX reference compiles at its first call
+        FourbarTrack(backend="jax", compile_for=64)
     with pytest.raises(ValueError, match="task"):
         make("cartpole")
     from kamino.envs import KaminoEnv

@@ -117,3 +117,31 @@ def assert_precompile_covers_a_step(device: str, monkeypatch) -> None:
 
 def test_precompile_covers_every_module_a_step_launches(monkeypatch):
     assert_precompile_covers_a_step("cpu", monkeypatch)
+
+
+def test_a_step_compiled_in_the_background_is_the_one_a_vmap_steps_with():
+    """``Engine.compile_in_background(n, dtype)`` builds and compiles, in a thread, the stepper that a ``jax.vmap``
+    over ``n`` traced states calls. Stepped at once, without waiting for the thread, the batch must use that very
+    stepper (no second build: the traced step waits for the thread's compile under ``CUDA_STREAM_LOCK``) and give
+    bitwise the states a simulator without the background compile gives (the same kernels on the same inputs)."""
+    import jax
+
+    model = kamino.models.fourbar()
+    cfg = kamino.SolverConfig()
+    base = kamino.init_state(model, jnp.float32)
+    twists = 0.2 * np.random.default_rng(2).standard_normal((3, model.num_bodies, 6))
+    batch = jax.tree.map(lambda *x: jnp.stack(x),
+                         *[base.replace(body_u=jnp.asarray(t, jnp.float32)) for t in twists])
+    sim = kamino.Simulator(model, cfg, backend="warp")
+    thread = sim.engine.compile_in_background(3, np.float32)
+    out = jax.jit(jax.vmap(sim.step))(batch)
+    thread.join()
+    stepper = sim.engine.replica(3).stepper(np.float32, "cpu", for_jit=True)
+    assert stepper.precompiled, "the thread's stepper was not compiled"
+    assert sim.engine.replica(3)._steppers == {(np.dtype(np.float32), "cpu", True, False): stepper}
+    plain = jax.jit(jax.vmap(kamino.Simulator(model, cfg, backend="warp").step))(batch)
+    for name in ("body_q", "body_u"):
+        np.testing.assert_array_equal(np.asarray(getattr(out, name)), np.asarray(getattr(plain, name)), err_msg=name)
+    assert np.asarray(out.info.converged).all()
+    with np.testing.assert_raises(ValueError):
+        sim.engine.compile_in_background(0, np.float32)

@@ -98,6 +98,11 @@ class KaminoEnv(Env):
             reset for training and again for evaluation), the same distribution up to the bank's size.
         reset_seed: the seed of the bank's draws.
         dtype: the simulation and observation dtype (float32 for learning, whatever ``jax_enable_x64`` says).
+        compile_for: Warp backend: the number of environments that ``jax.vmap`` will step together (brax's
+            ``num_envs`` per device); their step's Warp kernels start compiling in a background thread before the
+            reset bank is solved, so that compilation overlaps the rest of the setup
+            (``kamino.warp_backend.backend.Engine.compile_in_background``). ``None``: they compile at the first
+            traced step.
     """
 
     #: names of the reward terms (``metrics`` keys, with ``failed``); set by each task
@@ -111,7 +116,8 @@ class KaminoEnv(Env):
     def __init__(self, model: Model, *, sim_dt: float, decimation: int, backend: str = DEFAULT_BACKEND,
                  solver_config: SolverConfig | None = None, action_lower=None, action_upper=None,
                  obs_noise: float = 0.0, reset_noise: float = 0.1, resample_steps: int | None = None,
-                 reset_bank: int | None = None, reset_seed: int = 0, obs_limit: float = 100.0, dtype=jnp.float32):
+                 reset_bank: int | None = None, reset_seed: int = 0, obs_limit: float = 100.0, dtype=jnp.float32,
+                 compile_for: int | None = None):
         if not isinstance(model, Model):
             raise TypeError(f"{type(self).__name__}: model must be a kamino.Model, got {type(model).__name__}")
         if model.num_worlds != 1:
@@ -132,6 +138,10 @@ class KaminoEnv(Env):
         if resample_steps is not None and (not isinstance(resample_steps, (int, np.integer)) or resample_steps < 1):
             raise ValueError(f"{type(self).__name__}: resample_steps must be None or an integer >= 1, got "
                              f"{resample_steps!r}")
+        if compile_for is not None and (isinstance(compile_for, bool) or not isinstance(compile_for, (int, np.integer))
+                                        or compile_for < 1 or backend != "warp"):
+            raise ValueError(f"{type(self).__name__}: compile_for must be None or an integer >= 1 with the Warp "
+                             f"backend, got {compile_for!r} with backend {backend!r}")
         if solver_config is not None and not isinstance(solver_config, SolverConfig):
             raise TypeError(f"{type(self).__name__}: solver_config must be a kamino.SolverConfig, got "
                             f"{type(solver_config).__name__}")
@@ -145,6 +155,8 @@ class KaminoEnv(Env):
         self._reset_noise = float(reset_noise)
         self._resample_steps = None if resample_steps is None else int(resample_steps)
         self._sim = Simulator(model, self._config, backend=backend)
+        if compile_for is not None:
+            self._sim.engine.compile_in_background(int(compile_for), self._dtype)
         self._pm, self._tables = self._sim.parameters(self._dtype) if backend == "jax" else (None, None)
         self.sys = EnvSystem.from_model(model, self._dtype)
         self._nominal_sys = self.sys

@@ -222,7 +222,9 @@ def evaluate(policy: Policy | str | Path, *, backend: str = "warp", episodes: in
         levels = getattr(cls, "walking_levels", None)
         if levels is not None and "levels" not in env_overrides and not kwargs.get("terrain"):
             kwargs["levels"] = levels  # a terrain task on its default terrain: the test's difficulty rows
-    environment = make(policy.task, backend=backend, **kwargs)
+    # the test's episodes are one batch: on the Warp backend its step compiles while the environment builds
+    environment = make(policy.task, backend=backend, **kwargs,
+                       **({"compile_for": episodes} if backend == "warp" else {}))
     if environment.observation_size != policy.observation_size:
         raise ValueError(f"evaluate: the policy takes {policy.observation_size} observations, {policy.task} built "
                          f"with {kwargs} gives {environment.observation_size}")

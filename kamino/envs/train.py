@@ -260,8 +260,13 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
     end = schedule[-1]
     # a resumed run keeps the environment it was trained with (env.json), a new one starts from the task's config
     env_kwargs = {**(runs.run_env(out, task) if restore else cfg["env"]), **env_overrides}
-    # --solver settings replace the task's own solver defaults; the environment is built once, with them
+    used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
+    # --solver settings replace the task's own solver defaults; the environment is built once, with them. On the
+    # Warp backend the step of PPO's batch (num_envs over the processes and their devices) compiles in the
+    # background while the environment and PPO set up
     stepping = {"solver_config": TASKS[task].default_solver_config().replace(**solver)} if solver else {}
+    if backend == "warp":
+        stepping["compile_for"] = max(int(kwargs["num_envs"]) // (used * jax.process_count()), 1)
     environment = make(task, backend=backend, **env_kwargs, **stepping)
     if lead:
         started_from = runs.read_json(out / "run.json", {}).get("init_from") if restore else init_from
@@ -271,7 +276,6 @@ def train(task: str, *, out: Path | str | None = None, backend: str = DEFAULT_BA
         for key, path in paths.items():  # the run files as the committed checkpoints hold them
             if path.exists() or record[key]:
                 runs.write_json_if_changed(path, record[key])
-    used = min(jax.local_device_count(), kwargs.get("max_devices_per_host") or jax.local_device_count())
     progress = progress and lead
     if progress:
         print(f"{task}: backend {backend}, {used} device(s) {jax.devices()[0].platform}, "

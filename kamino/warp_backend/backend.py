@@ -95,6 +95,26 @@ class Engine:
                 self._replicas[copies] = Engine(replicate(self.model, copies), self.cfg, self.padmm)
             return self._replicas[copies]
 
+    def compile_in_background(self, num_worlds: int, np_dtype) -> threading.Thread:
+        """Start building and compiling, in a daemon thread, the stepper that a ``jax.vmap`` over ``num_worlds``
+        traced states in ``np_dtype`` calls (``replica(num_worlds)``'s, on the device where JAX's traced arrays
+        live: :func:`~kamino.warp_backend.jit.batchable_step`), and return the thread. Warp's compiler runs outside
+        Python's lock, so the modules compile while the caller goes on (building an environment's reset bank,
+        tracing and compiling the XLA program around the step); the traced step then finds its stepper built and
+        compiled, or waits for it (:meth:`~kamino.warp_backend.pipeline.Stepper.precompile`). An error in the thread
+        is not lost: the traced step builds and compiles the stepper again in its own thread, and raises there."""
+        if isinstance(num_worlds, bool) or not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
+            raise ValueError(f"compile_in_background: num_worlds must be an integer >= 1, got {num_worlds!r}")
+        device = _jax_device()
+
+        def work() -> None:
+            with contextlib.suppress(Exception):  # repeated, and raised, by the traced step (the docstring)
+                self.replica(int(num_worlds)).stepper(np_dtype, device, for_jit=True).precompile()
+
+        thread = threading.Thread(target=work, name=f"kamino-compile-{num_worlds}", daemon=True)
+        thread.start()
+        return thread
+
     def reference(self):
         """The JAX reference's engine (``kamino.jax_ref.backend.Engine``) of this model and configuration, built once,
         with ``fixed_iterations`` off: the traced step's derivative is its implicit one at this backend's solution

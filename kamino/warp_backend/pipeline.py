@@ -594,19 +594,28 @@ class Stepper:
         compile in parallel (``wp.force_load`` with a thread per CPU core; NVRTC runs outside Python's lock); on
         the CPU one after another, as at their first launches. The modules come from a dry run of
         :meth:`launch_step` that records each launch's kernel and block size instead of launching it
-        (``pre_step`` and ``post_step`` hooks are left out: their kernels compile at their first launch)."""
-        if self.precompiled is not None:
+        (``pre_step`` and ``post_step`` hooks are left out: their kernels compile at their first launch).
+
+        It runs under :data:`CUDA_STREAM_LOCK` (the dry run's fills go through Warp's stream), so that a thread that
+        reaches a stepper another thread is compiling (``Engine.compile_in_background``) waits for the modules
+        instead of launching before they are loaded. A failure leaves the stepper uncompiled: the next call raises
+        the same error in its own thread."""
+        if self.precompiled is not None:  # compiled already: no lock taken
             return
-        self.precompiled = frozenset()
-        self._recording = set()
-        try:
-            self.launch_step()
-            launches = self.precompiled = frozenset(self._recording)
-        finally:
-            self._recording = None
-        workers = (os.cpu_count() or 1) if self.device.is_cuda else 0
-        for block in sorted({b for _, b in launches}):
-            wp.force_load(self.device, [m for m, b in launches if b == block], block_dim=block, max_workers=workers)
+        with CUDA_STREAM_LOCK:
+            if self.precompiled is not None or self._recording is not None:
+                return  # another thread compiled it meanwhile, or this is this thread's own dry run
+            self._recording = set()
+            try:
+                self.launch_step()
+                launches = frozenset(self._recording)
+            finally:
+                self._recording = None
+            workers = (os.cpu_count() or 1) if self.device.is_cuda else 0
+            for block in sorted({b for _, b in launches}):
+                wp.force_load(self.device, [m for m, b in launches if b == block], block_dim=block,
+                              max_workers=workers)
+            self.precompiled = launches
 
     def _padmm_loop(self) -> None:
         """PADMM iterations until every world is done: ``wp.capture_while`` on the device counter of worlds
