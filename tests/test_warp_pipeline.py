@@ -126,6 +126,8 @@ def test_a_step_compiled_in_the_background_is_the_one_a_vmap_steps_with():
     bitwise the states a simulator without the background compile gives (the same kernels on the same inputs)."""
     import jax
 
+    from kamino.warp_backend.backend import _jax_device
+
     model = kamino.models.fourbar()
     cfg = kamino.SolverConfig()
     base = kamino.init_state(model, jnp.float32)
@@ -136,9 +138,10 @@ def test_a_step_compiled_in_the_background_is_the_one_a_vmap_steps_with():
     thread = sim.engine.compile_in_background(3, np.float32)
     out = jax.jit(jax.vmap(sim.step))(batch)
     thread.join()
-    stepper = sim.engine.replica(3).stepper(np.float32, "cpu", for_jit=True)
+    device = _jax_device()  # "cpu" in CI, "cuda:0" where JAX runs on the GPU
+    stepper = sim.engine.replica(3).stepper(np.float32, device, for_jit=True)
     assert stepper.precompiled, "the thread's stepper was not compiled"
-    assert sim.engine.replica(3)._steppers == {(np.dtype(np.float32), "cpu", True, False): stepper}
+    assert sim.engine.replica(3)._steppers == {(np.dtype(np.float32), device, True, False): stepper}
     plain = jax.jit(jax.vmap(kamino.Simulator(model, cfg, backend="warp").step))(batch)
     for name in ("body_q", "body_u"):
         np.testing.assert_array_equal(np.asarray(getattr(out, name)), np.asarray(getattr(plain, name)), err_msg=name)
