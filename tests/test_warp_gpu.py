@@ -3,6 +3,10 @@
 Run on the lent GPU with ``python -m pytest -m gpu``; skipped where Warp sees no CUDA device.
 """
 
+import subprocess
+import sys
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -111,3 +115,14 @@ def test_precompile_covers_every_module_a_captured_step_launches(monkeypatch):
     from tests.test_warp_pipeline import assert_precompile_covers_a_step
 
     assert_precompile_covers_a_step("cuda:0", monkeypatch)
+
+
+@pytest.mark.skipif(not jax_on_gpu(), reason="needs JAX on the GPU")
+def test_a_step_compiled_in_the_background_captures_its_graph_on_the_gpu():
+    # test_warp_pipeline's background-compile test in a fresh process, so that Warp's CUDA context is not yet
+    # acquired when the worker thread starts: a worker that acquired it itself left the traced step's graph
+    # capture unregistered on the device it reads, and wp.capture_while failed mid-capture
+    node = "tests/test_warp_pipeline.py::test_a_step_compiled_in_the_background_is_the_one_a_vmap_steps_with"
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", node],
+                         capture_output=True, text=True, check=False, cwd=Path(__file__).parent.parent)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]

@@ -102,13 +102,20 @@ class Engine:
         Python's lock, so the modules compile while the caller goes on (building an environment's reset bank,
         tracing and compiling the XLA program around the step); the traced step then finds its stepper built and
         compiled, or waits for it (:meth:`~kamino.warp_backend.pipeline.Stepper.precompile`). An error in the thread
-        is not lost: the traced step builds and compiles the stepper again in its own thread, and raises there."""
+        is not lost: the traced step builds and compiles the stepper again in its own thread, and raises there.
+
+        On a GPU the caller's thread acquires Warp's CUDA context before the worker starts, and the worker runs
+        under it (``wp.ScopedDevice``). A worker that acquired the context lazily itself left the traced step's
+        graph capture unregistered on the device that ``wp.capture_while`` reads, and the capture failed."""
         if isinstance(num_worlds, bool) or not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
             raise ValueError(f"compile_in_background: num_worlds must be an integer >= 1, got {num_worlds!r}")
-        device = _jax_device()
+        device = wp.get_device(_jax_device())
+        if device.is_cuda:
+            _ = device.context  # acquired on the caller's thread (the docstring says why)
 
         def work() -> None:
-            with contextlib.suppress(Exception):  # repeated, and raised, by the traced step (the docstring)
+            # an error is repeated, and raised, by the traced step (the docstring)
+            with contextlib.suppress(Exception), wp.ScopedDevice(device):
                 self.replica(int(num_worlds)).stepper(np_dtype, device, for_jit=True).precompile()
 
         thread = threading.Thread(target=work, name=f"kamino-compile-{num_worlds}", daemon=True)
