@@ -120,8 +120,8 @@ def test_precompile_covers_every_module_a_captured_step_launches(monkeypatch):
 @pytest.mark.skipif(not jax_on_gpu(), reason="needs JAX on the GPU")
 def test_a_step_compiled_in_the_background_captures_its_graph_on_the_gpu():
     # test_warp_pipeline's background-compile test in a fresh process, so that Warp's CUDA context is not yet
-    # acquired when the worker thread starts: a worker that acquired it itself left the traced step's graph
-    # capture unregistered on the device it reads, and wp.capture_while failed mid-capture
+    # acquired when the worker thread starts (compile_in_background's docstring: a worker that acquires it itself
+    # leaves the traced step's graph capture unregistered, and wp.capture_while fails mid-capture)
     node = "tests/test_warp_pipeline.py::test_a_step_compiled_in_the_background_is_the_one_a_vmap_steps_with"
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", node],
                          capture_output=True, text=True, check=False, cwd=Path(__file__).parent.parent)

@@ -105,8 +105,8 @@ class Engine:
         is not lost: the traced step builds and compiles the stepper again in its own thread, and raises there.
 
         On a GPU the caller's thread acquires Warp's CUDA context before the worker starts, and the worker runs
-        under it (``wp.ScopedDevice``). A worker that acquired the context lazily itself left the traced step's
-        graph capture unregistered on the device that ``wp.capture_while`` reads, and the capture failed."""
+        under it (``wp.ScopedDevice``): a worker that acquires the context lazily itself leaves the traced step's
+        graph capture unregistered on the device that ``wp.capture_while`` reads, and the capture fails."""
         if isinstance(num_worlds, bool) or not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
             raise ValueError(f"compile_in_background: num_worlds must be an integer >= 1, got {num_worlds!r}")
         device = wp.get_device(_jax_device())
